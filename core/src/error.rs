@@ -1,0 +1,57 @@
+//! The crate's one error type. Variants carry the context needed to act on them.
+
+use thiserror::Error;
+
+/// Errors of irtrack-core.
+#[derive(Debug, Clone, PartialEq, Error)]
+#[non_exhaustive]
+pub enum Error {
+    /// A 3-D point lies on or behind a camera's image plane.
+    #[error("point is behind camera {camera} (z = {z_mm} mm)")]
+    BehindCamera { camera: usize, z_mm: f64 },
+    /// Two rays are (nearly) parallel; the intersection is undefined.
+    #[error("rays are parallel within {angle_rad:e} rad; cannot triangulate")]
+    ParallelRays { angle_rad: f64 },
+    /// Fewer observations than the method needs.
+    #[error("need at least {needed} views, got {got}")]
+    TooFewViews { needed: usize, got: usize },
+    /// A numerical routine did not produce a finite result.
+    #[error("degenerate geometry in {what}")]
+    Degenerate { what: &'static str },
+    /// A caller-provided buffer is too small for the request.
+    #[error("buffer `{what}` too small: need {needed}, have {have}")]
+    BufferTooSmall { what: &'static str, needed: usize, have: usize },
+    /// Frame dimensions disagree with the data or the configuration.
+    #[error("bad frame geometry: {what}")]
+    BadFrame { what: &'static str },
+    /// Region of interest outside the frame.
+    #[error("region of interest {x},{y} {w}x{h} outside frame {frame_w}x{frame_h}")]
+    BadRoi { x: u32, y: u32, w: u32, h: u32, frame_w: u32, frame_h: u32 },
+    /// Parameter blob shorter than its header or declared body.
+    #[error("parameter blob truncated: need {needed} bytes, got {got}")]
+    BlobTruncated { needed: usize, got: usize },
+    /// Parameter blob does not start with the magic bytes.
+    #[error("not an irtrack parameter blob (magic {found:02x?})")]
+    BlobBadMagic { found: [u8; 4] },
+    /// Parameter blob format version this build does not read.
+    #[error("parameter blob format version {found} unsupported (this build reads {supported})")]
+    BlobUnsupportedVersion { found: u16, supported: u16 },
+    /// CRC mismatch: the blob was corrupted.
+    #[error("parameter blob corrupted: CRC-32 {found:08x}, computed {computed:08x}")]
+    BlobBadCrc { found: u32, computed: u32 },
+    /// Trailing bytes after the declared body.
+    #[error("parameter blob has {extra} trailing bytes after the declared body")]
+    BlobTrailingBytes { extra: usize },
+    /// Body did not decode.
+    #[error("parameter blob body does not decode: {reason}")]
+    BlobBody { reason: &'static str },
+    /// Parameters are structurally valid but not usable.
+    #[error("invalid parameters: {reason}")]
+    InvalidParams { reason: alloc::string::String },
+    /// A protocol message is malformed.
+    #[error("malformed {protocol} message: {reason}")]
+    Protocol { protocol: &'static str, reason: alloc::string::String },
+}
+
+/// Result alias for irtrack-core.
+pub type Result<T> = core::result::Result<T, Error>;

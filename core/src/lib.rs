@@ -1,0 +1,17 @@
+//! irtrack-core: everything the board and the PC share.
+//!
+//! `no_std` + `alloc` without the default `std` feature; nalgebra then uses `libm`.
+//! Per-frame code (blob detection, undistortion, triangulation) never allocates:
+//! callers own every buffer.
+#![cfg_attr(not(feature = "std"), no_std)]
+#![forbid(unsafe_code)]
+
+extern crate alloc;
+
+pub mod blob;
+pub mod camera;
+pub mod error;
+pub mod params;
+pub mod triangulate;
+
+pub use error::{Error, Result};

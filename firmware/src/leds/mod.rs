@@ -1,0 +1,34 @@
+//! Status LEDs: the hardware seam for indicator lights.
+//!
+//! The processing loop never touches GPIO: it publishes an [`Indication`]; a small driver
+//! thread turns it into blink patterns and calls a [`StatusLeds`] back end.
+
+/// Physical indicator lights.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Led {
+    /// Heartbeat: service alive and the loop making progress.
+    Run,
+    /// Marker tracked in all cameras.
+    Track,
+    /// Robot connected (and streaming).
+    Robot,
+    /// Fault (no parameters, camera lost, deadline misses, ...).
+    Fault,
+}
+
+impl Led {
+    pub const ALL: [Led; 4] = [Led::Run, Led::Track, Led::Robot, Led::Fault];
+}
+
+/// A back end that can switch LEDs. Implementations must be quick (no sleeping).
+pub trait StatusLeds: Send {
+    fn set(&mut self, led: Led, on: bool) -> Result<(), LedError>;
+    fn describe(&self) -> String;
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum LedError {
+    #[error("GPIO {what}: {reason}")]
+    Gpio { what: String, reason: String },
+}

@@ -1,0 +1,4 @@
+//! irtrackd: capture, processing loop, status LEDs, parameters and outputs.
+
+pub mod leds;
+pub mod source;

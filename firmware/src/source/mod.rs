@@ -1,0 +1,79 @@
+//! Frame sources: the hardware seam for cameras.
+//!
+//! The processing loop owns one [`FrameSet`] allocated up front and asks the source to fill it
+//! in place, so steady-state capture does not allocate.
+
+/// Pixel storage of one frame. 8-bit sensors use `U8`; 10/12/16-bit sensors use `U16`
+/// (values right-aligned, i.e. a 10-bit sensor gives 0..=1023).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Pixels {
+    U8(Vec<u8>),
+    U16(Vec<u16>),
+}
+
+/// One camera frame, filled in place by a [`FrameSource`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    pub width_px: u32,
+    pub height_px: u32,
+    /// Row stride in pixels (not bytes); `>= width_px`.
+    pub stride_px: u32,
+    /// Significant bits per pixel (8, 10, 12 or 16).
+    pub bit_depth: u8,
+    pub pixels: Pixels,
+    /// Capture time (kernel timestamp for V4L2, CLOCK_MONOTONIC ns).
+    pub timestamp_ns: u64,
+    /// Driver or source sequence number of this camera.
+    pub sequence: u64,
+}
+
+/// One frame per camera, paired in time.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameSet {
+    /// Index of this set, counted by the source (gaps mean dropped sets).
+    pub index: u64,
+    pub frames: Vec<Frame>,
+    /// Largest timestamp difference between the paired frames.
+    pub pairing_error_ns: u64,
+}
+
+/// Counters every source keeps.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct SourceStats {
+    pub sets_delivered: u64,
+    /// Frames that found no partner in time and were dropped.
+    pub unpaired_dropped: u64,
+    /// Sets the source skipped (e.g. simulated dropped frames, consumer too slow).
+    pub sets_dropped: u64,
+    /// Times a camera was lost and reopened.
+    pub reconnects: u64,
+}
+
+/// Errors of a frame source. `Transient` errors are retried by the loop; the others stop it.
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    #[error("camera {camera} ({device}) unavailable: {reason}")]
+    CameraLost { camera: usize, device: String, reason: String },
+    #[error("no frame within {timeout_ms} ms")]
+    Timeout { timeout_ms: u64 },
+    #[error("end of recorded frames")]
+    EndOfStream,
+    #[error("source configuration: {0}")]
+    Config(String),
+    #[error("I/O on {path}: {source}")]
+    Io { path: String, source: std::io::Error },
+}
+
+/// A synchronized multi-camera source.
+pub trait FrameSource: Send {
+    /// Number of cameras.
+    fn camera_count(&self) -> usize;
+    /// A frame set shaped for this source (allocated once by the caller).
+    fn allocate_set(&self) -> FrameSet;
+    /// Blocks until the next paired frame set is available and writes it into `out`.
+    fn next_set(&mut self, out: &mut FrameSet) -> Result<(), SourceError>;
+    /// Counters since start.
+    fn stats(&self) -> SourceStats;
+    /// Human-readable description for status and logs.
+    fn describe(&self) -> String;
+}

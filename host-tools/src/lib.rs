@@ -1,0 +1,3 @@
+//! Library behind the `host-tools` binary; one module per subcommand in [`cmd`].
+
+pub mod cmd;

@@ -1,0 +1,60 @@
+//! `host-tools`: the PC side of irtrack. Thin dispatch over `irtrack_host_tools::cmd`.
+
+use clap::{Parser, Subcommand};
+use irtrack_host_tools::cmd;
+
+#[derive(Parser)]
+#[command(name = "host-tools", version, about = "irtrack PC tools")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a simulated scenario (frames, calibration, truth) to a directory.
+    Simulate(cmd::simulate::Args),
+    /// Run the tracking pipeline offline on recorded frames.
+    Track(cmd::track::Args),
+    /// Analytic resolution planner for a rig.
+    Plan(cmd::plan::Args),
+    /// Accuracy study: simulated rigs vs the paper's Table I.
+    Accuracy(cmd::accuracy::Args),
+    /// Calibrate cameras from checkerboard images (OpenCV).
+    Calibrate(cmd::calibrate::Args),
+    /// Send a parameter blob to irtrackd.
+    PushParams(cmd::push_params::Args),
+    /// Print a parameter blob or calibration YAML in readable form.
+    ShowParams(cmd::show_params::Args),
+    /// Convert between parameter blobs and OpenCV YAML.
+    ConvertParams(cmd::convert_params::Args),
+    /// Simulated robot controller (robot side of the robot protocol).
+    RobotSim(cmd::robot_sim::Args),
+    /// Record a path from irtrackd's position stream.
+    Record(cmd::record::Args),
+    /// Filter, simplify and export a recorded path.
+    Path(cmd::path::Args),
+    /// Tracker-to-robot registration from corresponding points.
+    Register(cmd::register::Args),
+    /// Create a signing key pair for parameter blobs.
+    Keygen(cmd::keygen::Args),
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Simulate(a) => cmd::simulate::run(a),
+        Command::Track(a) => cmd::track::run(a),
+        Command::Plan(a) => cmd::plan::run(a),
+        Command::Accuracy(a) => cmd::accuracy::run(a),
+        Command::Calibrate(a) => cmd::calibrate::run(a),
+        Command::PushParams(a) => cmd::push_params::run(a),
+        Command::ShowParams(a) => cmd::show_params::run(a),
+        Command::ConvertParams(a) => cmd::convert_params::run(a),
+        Command::RobotSim(a) => cmd::robot_sim::run(a),
+        Command::Record(a) => cmd::record::run(a),
+        Command::Path(a) => cmd::path::run(a),
+        Command::Register(a) => cmd::register::run(a),
+        Command::Keygen(a) => cmd::keygen::run(a),
+    }
+}
