@@ -32,3 +32,5 @@ pub enum LedError {
     #[error("GPIO {what}: {reason}")]
     Gpio { what: String, reason: String },
 }
+
+pub mod gpio;

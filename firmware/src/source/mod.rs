@@ -77,3 +77,5 @@ pub trait FrameSource: Send {
     /// Human-readable description for status and logs.
     fn describe(&self) -> String;
 }
+
+pub mod v4l2;
