@@ -42,12 +42,21 @@ pub enum Error {
     /// Trailing bytes after the declared body.
     #[error("parameter blob has {extra} trailing bytes after the declared body")]
     BlobTrailingBytes { extra: usize },
+    /// Header flags this build does not understand (e.g. a signature trailer).
+    #[error("parameter blob flags {flags:#06x} unsupported (known: {known:#06x})")]
+    BlobUnsupportedFlags { flags: u16, known: u16 },
     /// Body did not decode.
     #[error("parameter blob body does not decode: {reason}")]
     BlobBody { reason: &'static str },
     /// Parameters are structurally valid but not usable.
     #[error("invalid parameters: {reason}")]
     InvalidParams { reason: alloc::string::String },
+    /// A camera index past the rig's camera count.
+    #[error("no camera {index}: the rig has {count} cameras")]
+    NoSuchCamera { index: usize, count: usize },
+    /// A protocol message announces more bytes than the protocol allows.
+    #[error("{protocol} message of {size} bytes exceeds the limit of {max} bytes")]
+    MessageTooLarge { protocol: &'static str, size: usize, max: usize },
     /// A protocol message is malformed.
     #[error("malformed {protocol} message: {reason}")]
     Protocol { protocol: &'static str, reason: alloc::string::String },

@@ -10,8 +10,16 @@ extern crate alloc;
 
 pub mod blob;
 pub mod camera;
+pub mod crc;
 pub mod error;
+pub mod filter;
+pub mod image;
+pub mod param_wire;
 pub mod params;
+pub mod registration;
+pub mod pipeline;
+pub mod robot_proto;
+pub mod stream;
 pub mod triangulate;
 
 pub use error::{Error, Result};

@@ -1,10 +1,14 @@
 //! Rig parameters and their on-wire/on-disk blob format (see docs/param-blob.md).
 
+use alloc::format;
 use alloc::string::String;
 use alloc::vec::Vec;
+use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{CameraModel, RigidTransform};
+use crate::crc::Crc32;
+use crate::{Error, Result};
 
 /// One camera of the rig: model plus pose relative to camera 0
 /// (`x_cam = R x_cam0 + t`, OpenCV stereoCalibrate's R, T). Camera 0 has the identity.
@@ -34,4 +38,295 @@ pub struct RigParams {
     pub world_from_cam0: Option<RigidTransform>,
     /// Rigid multi-LED tools for 6-DOF tracking.
     pub tools: Vec<ToolDefinition>,
+}
+
+/// First bytes of every parameter blob.
+pub const BLOB_MAGIC: [u8; 4] = *b"IRPB";
+/// The blob format version this build writes and reads.
+pub const BLOB_FORMAT_VERSION: u16 = 1;
+/// Header size in bytes (magic, version, flags, body length, CRC-32).
+pub const BLOB_HEADER_LEN: usize = 16;
+/// Flag bit reserved for a signature trailer after the body (docs/param-blob.md); not read yet.
+pub const BLOB_FLAG_SIGNED: u16 = 0x0001;
+/// Flags this build accepts. Signed blobs are refused until verification exists, so that a
+/// signature can never be silently ignored.
+pub const BLOB_KNOWN_FLAGS: u16 = 0;
+/// Maximum number of cameras a rig may have.
+pub const MAX_CAMERAS: usize = 16;
+/// Maximum length of a rig id in bytes.
+pub const MAX_RIG_ID_LEN: usize = 64;
+/// Largest accepted image dimension in pixels.
+pub const MAX_IMAGE_DIM_PX: u32 = 16_384;
+/// Tolerance for orthonormality / determinant of rotation matrices.
+pub const ROTATION_TOL: f64 = 1e-6;
+
+/// The fixed-size header in front of a blob body.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BlobHeader {
+    pub version: u16,
+    pub flags: u16,
+    pub body_len: u32,
+    /// CRC-32 (IEEE) over header bytes 0..12 followed by the body.
+    pub crc32: u32,
+}
+
+impl BlobHeader {
+    /// Parses and checks magic, version and flags from the start of `bytes`
+    /// (the body is not looked at). Used by services to reject early.
+    pub fn parse(bytes: &[u8]) -> Result<BlobHeader> {
+        if bytes.len() < 4 {
+            return Err(Error::BlobTruncated { needed: BLOB_HEADER_LEN, got: bytes.len() });
+        }
+        let magic = [bytes[0], bytes[1], bytes[2], bytes[3]];
+        if magic != BLOB_MAGIC {
+            return Err(Error::BlobBadMagic { found: magic });
+        }
+        if bytes.len() < BLOB_HEADER_LEN {
+            return Err(Error::BlobTruncated { needed: BLOB_HEADER_LEN, got: bytes.len() });
+        }
+        let version = u16::from_le_bytes([bytes[4], bytes[5]]);
+        if version != BLOB_FORMAT_VERSION {
+            return Err(Error::BlobUnsupportedVersion { found: version, supported: BLOB_FORMAT_VERSION });
+        }
+        let flags = u16::from_le_bytes([bytes[6], bytes[7]]);
+        if flags & !BLOB_KNOWN_FLAGS != 0 {
+            return Err(Error::BlobUnsupportedFlags { flags, known: BLOB_KNOWN_FLAGS });
+        }
+        let body_len = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+        let crc32 = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]);
+        Ok(BlobHeader { version, flags, body_len, crc32 })
+    }
+
+    /// Total blob length the header declares.
+    pub fn blob_len(&self) -> usize {
+        BLOB_HEADER_LEN + self.body_len as usize
+    }
+}
+
+/// Whether `bytes` starts like a parameter blob (for sniffing file types).
+pub fn looks_like_blob(bytes: &[u8]) -> bool {
+    bytes.len() >= 4 && bytes[..4] == BLOB_MAGIC
+}
+
+fn blob_crc(header_prefix: &[u8], body: &[u8]) -> u32 {
+    let mut c = Crc32::new();
+    c.update(header_prefix);
+    c.update(body);
+    c.finish()
+}
+
+fn postcard_reason(e: &postcard::Error) -> &'static str {
+    match e {
+        postcard::Error::DeserializeUnexpectedEnd => "body ends early",
+        postcard::Error::DeserializeBadVarint => "bad varint",
+        postcard::Error::DeserializeBadBool => "bad bool",
+        postcard::Error::DeserializeBadUtf8 => "string is not UTF-8",
+        postcard::Error::DeserializeBadOption => "bad option tag",
+        postcard::Error::DeserializeBadEnum => "bad enum tag",
+        postcard::Error::DeserializeBadEncoding => "bad encoding",
+        _ => "postcard error",
+    }
+}
+
+fn invalid(reason: String) -> Error {
+    Error::InvalidParams { reason }
+}
+
+fn check_transform(what: &str, t: &RigidTransform) -> Result<()> {
+    if !t.r_row_major.iter().chain(t.t_mm.iter()).all(|v| v.is_finite()) {
+        return Err(invalid(format!("{what}: non-finite rotation or translation")));
+    }
+    if !t.is_proper_rotation(ROTATION_TOL) {
+        return Err(invalid(format!(
+            "{what}: rotation is not a proper rotation (orthonormal, det +1) within {ROTATION_TOL:e}"
+        )));
+    }
+    Ok(())
+}
+
+fn check_camera(i: usize, cam: &CameraModel) -> Result<()> {
+    let size = cam.image_size;
+    if size.width_px == 0 || size.height_px == 0 {
+        return Err(invalid(format!("camera {i}: image size {}x{} is empty", size.width_px, size.height_px)));
+    }
+    if size.width_px > MAX_IMAGE_DIM_PX || size.height_px > MAX_IMAGE_DIM_PX {
+        return Err(invalid(format!(
+            "camera {i}: image size {}x{} exceeds {MAX_IMAGE_DIM_PX} px",
+            size.width_px, size.height_px
+        )));
+    }
+    let k = &cam.intrinsics;
+    if ![k.fx_px, k.fy_px, k.cx_px, k.cy_px].iter().all(|v| v.is_finite()) {
+        return Err(invalid(format!("camera {i}: non-finite intrinsics")));
+    }
+    if k.fx_px <= 0.0 || k.fy_px <= 0.0 {
+        return Err(invalid(format!("camera {i}: focal length fx={} fy={} px must be > 0", k.fx_px, k.fy_px)));
+    }
+    // Pixel centres are at integer coordinates, so the image spans [-0.5, size - 0.5].
+    let (w, h) = (f64::from(size.width_px), f64::from(size.height_px));
+    if !(-0.5..=w - 0.5).contains(&k.cx_px) || !(-0.5..=h - 0.5).contains(&k.cy_px) {
+        return Err(invalid(format!(
+            "camera {i}: principal point ({}, {}) px outside the {}x{} image",
+            k.cx_px, k.cy_px, size.width_px, size.height_px
+        )));
+    }
+    if !cam.distortion.as_array().iter().all(|v| v.is_finite()) {
+        return Err(invalid(format!("camera {i}: non-finite distortion coefficients")));
+    }
+    Ok(())
+}
+
+impl RigParams {
+    /// Encodes header + postcard body (docs/param-blob.md). Does not validate, so that
+    /// tests and tools can also produce blobs a service must refuse; call [`Self::validate`].
+    pub fn to_blob(&self) -> Result<Vec<u8>> {
+        let body = postcard::to_allocvec(self).map_err(|_| Error::BlobBody { reason: "body does not encode" })?;
+        let body_len = u32::try_from(body.len())
+            .map_err(|_| Error::BlobBody { reason: "body longer than 4 GiB" })?;
+        let mut out = Vec::with_capacity(BLOB_HEADER_LEN + body.len());
+        out.extend_from_slice(&BLOB_MAGIC);
+        out.extend_from_slice(&BLOB_FORMAT_VERSION.to_le_bytes());
+        out.extend_from_slice(&0u16.to_le_bytes());
+        out.extend_from_slice(&body_len.to_le_bytes());
+        let crc = blob_crc(&out[..12], &body);
+        out.extend_from_slice(&crc.to_le_bytes());
+        out.extend_from_slice(&body);
+        Ok(out)
+    }
+
+    /// Decodes a blob, checking (in this order) magic, length, version, flags, declared body
+    /// length, CRC and body. Does not validate the contents; call [`Self::validate`].
+    pub fn from_blob(bytes: &[u8]) -> Result<RigParams> {
+        let header = BlobHeader::parse(bytes)?;
+        let needed = header.blob_len();
+        if bytes.len() < needed {
+            return Err(Error::BlobTruncated { needed, got: bytes.len() });
+        }
+        if bytes.len() > needed {
+            return Err(Error::BlobTrailingBytes { extra: bytes.len() - needed });
+        }
+        let body = &bytes[BLOB_HEADER_LEN..];
+        let computed = blob_crc(&bytes[..12], body);
+        if computed != header.crc32 {
+            return Err(Error::BlobBadCrc { found: header.crc32, computed });
+        }
+        let (rig, rest) = postcard::take_from_bytes::<RigParams>(body)
+            .map_err(|e| Error::BlobBody { reason: postcard_reason(&e) })?;
+        if !rest.is_empty() {
+            return Err(Error::BlobBody { reason: "unused bytes at the end of the body" });
+        }
+        Ok(rig)
+    }
+
+    /// Checks that the parameters are usable for tracking: 2..=16 cameras, camera 0 at the
+    /// identity, proper rotations, finite numbers, positive focal lengths, principal points
+    /// inside the images, non-empty image sizes, distinct camera centres, a printable rig id
+    /// (it travels in one-line protocol replies) and sane tool definitions.
+    pub fn validate(&self) -> Result<()> {
+        if self.rig_id.is_empty() || self.rig_id.len() > MAX_RIG_ID_LEN {
+            return Err(invalid(format!("rig id must be 1..={MAX_RIG_ID_LEN} bytes, got {}", self.rig_id.len())));
+        }
+        if !self.rig_id.bytes().all(|b| b.is_ascii_graphic()) {
+            return Err(invalid(format!(
+                "rig id {:?} must be printable ASCII without spaces",
+                self.rig_id
+            )));
+        }
+        let n = self.cameras.len();
+        if !(2..=MAX_CAMERAS).contains(&n) {
+            return Err(invalid(format!("rig needs 2..={MAX_CAMERAS} cameras, has {n}")));
+        }
+        for (i, cam) in self.cameras.iter().enumerate() {
+            check_camera(i, &cam.model)?;
+            check_transform(&format!("camera {i} pose"), &cam.cam_from_cam0)?;
+        }
+        let cam0 = &self.cameras[0].cam_from_cam0;
+        let id = RigidTransform::IDENTITY;
+        let off = cam0
+            .r_row_major
+            .iter()
+            .chain(cam0.t_mm.iter())
+            .zip(id.r_row_major.iter().chain(id.t_mm.iter()))
+            .any(|(a, b)| (a - b).abs() > 1e-9);
+        if off {
+            return Err(invalid("camera 0 pose must be the identity (it is the reference frame)".into()));
+        }
+        for i in 0..n {
+            for j in (i + 1)..n {
+                let d = (self.camera_centre_cam0_mm(i)? - self.camera_centre_cam0_mm(j)?).norm();
+                if d < 1e-3 {
+                    return Err(invalid(format!(
+                        "cameras {i} and {j} have the same centre (distance {d:e} mm); no baseline"
+                    )));
+                }
+            }
+        }
+        if let Some(w) = &self.world_from_cam0 {
+            check_transform("registration world_from_cam0", w)?;
+        }
+        for (ti, tool) in self.tools.iter().enumerate() {
+            if tool.name.is_empty() {
+                return Err(invalid(format!("tool {ti} has an empty name")));
+            }
+            if self.tools[..ti].iter().any(|t| t.name == tool.name) {
+                return Err(invalid(format!("tool name {:?} used twice", tool.name)));
+            }
+            if tool.leds_mm.len() < 3 {
+                return Err(invalid(format!(
+                    "tool {:?} has {} LEDs; 6-DOF needs at least 3",
+                    tool.name,
+                    tool.leds_mm.len()
+                )));
+            }
+            if !tool.leds_mm.iter().flatten().all(|v| v.is_finite()) {
+                return Err(invalid(format!("tool {:?} has non-finite LED positions", tool.name)));
+            }
+        }
+        Ok(())
+    }
+
+    /// Number of cameras.
+    pub fn camera_count(&self) -> usize {
+        self.cameras.len()
+    }
+
+    /// Camera `index`, or [`Error::NoSuchCamera`].
+    pub fn camera(&self, index: usize) -> Result<&CameraParams> {
+        self.cameras.get(index).ok_or(Error::NoSuchCamera { index, count: self.cameras.len() })
+    }
+
+    /// The model (intrinsics, distortion, image size) of camera `index`.
+    pub fn camera_model(&self, index: usize) -> Result<&CameraModel> {
+        Ok(&self.camera(index)?.model)
+    }
+
+    /// Pose of camera `index` relative to camera 0 (`x_cam = R x_cam0 + t`).
+    pub fn cam_from_cam0(&self, index: usize) -> Result<&RigidTransform> {
+        Ok(&self.camera(index)?.cam_from_cam0)
+    }
+
+    /// Optical centre of camera `index` in camera-0 coordinates (`-Rᵀ t`), mm.
+    pub fn camera_centre_cam0_mm(&self, index: usize) -> Result<Vector3<f64>> {
+        let t = self.cam_from_cam0(index)?;
+        Ok(-(t.rotation().transpose() * t.translation_mm()))
+    }
+
+    /// Distance between the optical centres of camera 0 and camera `index`, mm.
+    pub fn baseline_mm(&self, index: usize) -> Result<f64> {
+        Ok(self.camera_centre_cam0_mm(index)?.norm())
+    }
+
+    /// Angle between the optical axes (z) of camera 0 and camera `index`, degrees
+    /// (0 for a parallel rig, 90 for the orthogonal one).
+    pub fn optical_axis_angle_deg(&self, index: usize) -> Result<f64> {
+        // Camera i's z axis in cam0 coordinates is Rᵀ e_z, whose z component is R[2][2].
+        let r22 = self.cam_from_cam0(index)?.r_row_major[8];
+        Ok(libm::acos(r22.clamp(-1.0, 1.0)).to_degrees())
+    }
+
+    /// The CRC-32 of this parameter set's blob: a short id for logs and stream records.
+    pub fn params_crc(&self) -> Result<u32> {
+        let blob = self.to_blob()?;
+        Ok(BlobHeader::parse(&blob)?.crc32)
+    }
 }

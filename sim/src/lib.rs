@@ -1,1 +1,19 @@
-//! Simulator.
+//! irtrack-sim: simulated multi-camera IR-LED tracking rigs.
+//!
+//! [`Scenario`] renders 8- or 10-bit frames of IR LEDs moving along a [`Trajectory`] as seen by a
+//! virtual rig (presets for the paper's parallel and 90° convergent set-ups), with sensor noise,
+//! saturation, lens distortion, motion blur, ambient clutter and dropped frames, and gives the
+//! ground truth for every frame. [`resolution`] is the analytic planner behind `host-tools plan`.
+
+pub mod error;
+pub mod noise;
+pub mod pgm;
+pub mod resolution;
+pub mod rig;
+pub mod scenario;
+pub mod trajectory;
+
+pub use error::SimError;
+pub use rig::{CameraSpec, RigPreset};
+pub use scenario::{BitDepth, Clutter, FrameInfo, FrameTruth, MarkerSpec, MarkerTruth, Scenario, SensorSpec, SimConfig};
+pub use trajectory::Trajectory;

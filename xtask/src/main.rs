@@ -1,1 +1,82 @@
-fn main() {}
+//! irtrack's task runner: `cargo xtask <task>` (alias in .cargo/config.toml).
+//!
+//! Std plus anyhow only, and no dependency on other workspace crates, so it builds first
+//! and fast on a fresh machine.
+
+mod ci;
+mod cross;
+mod demo;
+mod lint;
+mod setup;
+mod util;
+
+// Optional modules, compiled in when their file exists (see build.rs and ci.rs).
+// `rustfmt::skip` stops rustfmt from failing on a missing file; the fmt phase checks
+// these files explicitly instead.
+#[cfg(xtask_has_bench)]
+#[rustfmt::skip]
+mod bench;
+#[cfg(xtask_has_image)]
+#[rustfmt::skip]
+mod image;
+
+pub use util::Ctx;
+
+const USAGE: &str = "\
+usage: cargo xtask <task> [options]
+
+tasks:
+  demo   [--skip-setup]        set up, then run the whole system on simulated cameras
+  test   [--skip-setup] [--only <phase>[,...]] [--list]
+                               every check CI runs (what .ci/run calls)
+  setup                        install missing system packages (apt) and oelint-adv (pip)
+  cross                        static aarch64 release build of irtrackd; prints its path
+  image  ...                   image build (when xtask/src/image.rs exists)
+  bench  ...                   benchmarks (when xtask/src/bench.rs exists)
+";
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let code = match real_main(&args) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("xtask: error: {e:#}");
+            1
+        }
+    };
+    std::process::exit(code);
+}
+
+fn real_main(args: &[String]) -> anyhow::Result<i32> {
+    let ctx = Ctx::new()?;
+    let (task, rest) = match args.split_first() {
+        Some((t, r)) => (t.as_str(), r),
+        None => {
+            print!("{USAGE}");
+            return Ok(2);
+        }
+    };
+    match task {
+        "test" => {
+            let opts = ci::parse_options(rest)?;
+            return Ok(ci::run(&ctx, &opts));
+        }
+        "demo" => demo::run(&ctx, rest)?,
+        "setup" => setup::run(&ctx)?,
+        "cross" => cross::cli(&ctx)?,
+        #[cfg(xtask_has_image)]
+        "image" => image::cli(&ctx, rest)?,
+        #[cfg(xtask_has_bench)]
+        "bench" => bench::cli(&ctx, rest)?,
+        #[cfg(not(xtask_has_image))]
+        "image" => anyhow::bail!("`image` is not present yet (xtask/src/image.rs does not exist)"),
+        #[cfg(not(xtask_has_bench))]
+        "bench" => anyhow::bail!("`bench` is not present yet (xtask/src/bench.rs does not exist)"),
+        "help" | "-h" | "--help" => print!("{USAGE}"),
+        other => {
+            eprint!("unknown task `{other}`\n\n{USAGE}");
+            return Ok(2);
+        }
+    }
+    Ok(0)
+}

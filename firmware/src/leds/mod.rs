@@ -34,3 +34,6 @@ pub enum LedError {
 }
 
 pub mod gpio;
+pub mod driver;
+pub mod indication;
+pub mod sim;

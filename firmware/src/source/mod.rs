@@ -79,3 +79,6 @@ pub trait FrameSource: Send {
 }
 
 pub mod v4l2;
+pub mod pgm;
+pub mod replay;
+pub mod sim;

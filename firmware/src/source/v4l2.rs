@@ -1,6 +1,29 @@
-//! V4L2 capture (owned by the hardware/image work; config seam defined here first).
+//! V4L2 capture from two or more cameras, paired by kernel timestamp.
+//!
+//! Each camera is negotiated to the first format of the preference list it supports (8/10/16-bit
+//! grey first, YUYV as a fallback whose luma is read straight out of the mmap buffer), streams
+//! through a few mmap buffers, and is polled together with the others on one thread. A dequeued
+//! frame is converted at once into the caller's pre-allocated [`Frame`] (the only copy), so
+//! holding a frame while its partner is awaited costs no driver buffer. A camera whose ioctl
+//! fails is reported as [`SourceError::CameraLost`] and reopened with exponential backoff.
+
+use std::collections::BTreeMap;
+use std::io;
+use std::os::raw::c_int;
+use std::time::{Duration, Instant};
 
 use serde::Deserialize;
+use tracing::{info, warn};
+use v4l::buffer::{Flags as BufferFlags, Type as BufferType};
+use v4l::capability::Flags as CapFlags;
+use v4l::control::{Control, Value as ControlValue};
+use v4l::io::traits::{CaptureStream, Stream as _};
+use v4l::prelude::MmapStream;
+use v4l::video::Capture;
+use v4l::video::capture::Parameters;
+use v4l::{Device, FourCC};
+
+use super::{Frame, FrameSet, FrameSource, Pixels, SourceError, SourceStats};
 
 /// `[source.v4l2]` section of the irtrackd config.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -11,4 +34,839 @@ pub struct V4l2Config {
     pub width_px: u32,
     pub height_px: u32,
     pub fps: u32,
+    /// Pixel formats in order of preference (FourCC codes: GREY, Y10, Y16, YUYV).
+    #[serde(default = "default_formats")]
+    pub formats: Vec<String>,
+    /// mmap buffers per camera (2..=32); few buffers keep latency low.
+    #[serde(default = "default_buffer_count")]
+    pub buffer_count: u32,
+    /// Manual exposure time; applied where the camera has exposure controls, logged if not.
+    #[serde(default)]
+    pub exposure_us: Option<u32>,
+    /// Manual analogue gain in the camera's own units; auto gain is switched off.
+    #[serde(default)]
+    pub gain: Option<i64>,
+    /// Further controls by their V4L2 name (case-insensitive), e.g. `"Test Pattern" = 1`.
+    #[serde(default)]
+    pub controls: BTreeMap<String, i64>,
+    /// Largest timestamp difference accepted between paired frames; default half a frame period.
+    #[serde(default)]
+    pub max_pairing_error_us: Option<u64>,
+    /// A set not complete within this time is reported as a timeout.
+    #[serde(default = "default_frame_timeout_ms")]
+    pub frame_timeout_ms: u64,
+    /// First and largest delay between attempts to reopen a lost camera.
+    #[serde(default = "default_reconnect_min_ms")]
+    pub reconnect_min_ms: u64,
+    #[serde(default = "default_reconnect_max_ms")]
+    pub reconnect_max_ms: u64,
+}
+
+fn default_formats() -> Vec<String> {
+    ["GREY", "Y16", "Y10", "YUYV"].iter().map(|s| (*s).to_owned()).collect()
+}
+fn default_buffer_count() -> u32 {
+    4
+}
+fn default_frame_timeout_ms() -> u64 {
+    1000
+}
+fn default_reconnect_min_ms() -> u64 {
+    250
+}
+fn default_reconnect_max_ms() -> u64 {
+    5000
+}
+
+/// Pixel formats this source can deliver to the processing loop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PixelFormat {
+    /// 8-bit luma.
+    Grey,
+    /// 10-bit luma in little-endian 16-bit words.
+    Y10,
+    /// 16-bit little-endian luma.
+    Y16,
+    /// 4:2:2 packed Y0 U Y1 V; only the luma bytes are read.
+    Yuyv,
+}
+
+impl PixelFormat {
+    pub fn parse(name: &str) -> Option<Self> {
+        match name.to_ascii_uppercase().as_str() {
+            "GREY" | "GRAY" | "Y8" => Some(Self::Grey),
+            "Y10" | "Y10 " => Some(Self::Y10),
+            "Y16" | "Y16 " => Some(Self::Y16),
+            "YUYV" => Some(Self::Yuyv),
+            _ => None,
+        }
+    }
+
+    pub fn fourcc(self) -> FourCC {
+        FourCC::new(match self {
+            Self::Grey => b"GREY",
+            Self::Y10 => b"Y10 ",
+            Self::Y16 => b"Y16 ",
+            Self::Yuyv => b"YUYV",
+        })
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Grey => "GREY",
+            Self::Y10 => "Y10",
+            Self::Y16 => "Y16",
+            Self::Yuyv => "YUYV",
+        }
+    }
+
+    pub fn bit_depth(self) -> u8 {
+        match self {
+            Self::Grey | Self::Yuyv => 8,
+            Self::Y10 => 10,
+            Self::Y16 => 16,
+        }
+    }
+
+    /// Bytes per pixel in the driver buffer.
+    fn bytes_per_px(self) -> usize {
+        match self {
+            Self::Grey => 1,
+            Self::Y10 | Self::Y16 | Self::Yuyv => 2,
+        }
+    }
+}
+
+impl V4l2Config {
+    /// Checks the values that do not need a device; `open` calls it first.
+    pub fn validate(&self) -> Result<Vec<PixelFormat>, SourceError> {
+        let bad = |msg: String| Err(SourceError::Config(format!("[source.v4l2] {msg}")));
+        if self.devices.is_empty() {
+            return bad("devices is empty; name at least one camera".into());
+        }
+        if self.width_px == 0 || self.height_px == 0 || self.fps == 0 {
+            return bad(format!(
+                "width_px, height_px and fps must be > 0 (got {}x{} @ {})",
+                self.width_px, self.height_px, self.fps
+            ));
+        }
+        if !(2..=32).contains(&self.buffer_count) {
+            return bad(format!("buffer_count must be 2..=32 (got {})", self.buffer_count));
+        }
+        if self.reconnect_min_ms == 0 || self.reconnect_max_ms < self.reconnect_min_ms {
+            return bad(format!(
+                "need 0 < reconnect_min_ms <= reconnect_max_ms (got {} and {})",
+                self.reconnect_min_ms, self.reconnect_max_ms
+            ));
+        }
+        let mut formats = Vec::new();
+        for name in &self.formats {
+            match PixelFormat::parse(name) {
+                Some(f) => formats.push(f),
+                None => return bad(format!("unknown pixel format {name:?} (known: GREY, Y10, Y16, YUYV)")),
+            }
+        }
+        if formats.is_empty() {
+            return bad("formats is empty".into());
+        }
+        Ok(formats)
+    }
+
+    fn pairing_tolerance_ns(&self) -> u64 {
+        match self.max_pairing_error_us {
+            Some(us) => us.saturating_mul(1000),
+            None => 500_000_000 / u64::from(self.fps.max(1)),
+        }
+    }
+}
+
+/// Opens every configured camera, negotiates format, size, rate and controls, and starts
+/// streaming. All cameras must be present at start; later losses are recovered by reopening.
+pub fn open(config: &V4l2Config) -> Result<Box<dyn FrameSource>, SourceError> {
+    Ok(Box::new(V4l2Source::open(config)?))
+}
+
+/// Copies one driver buffer into a frame, reducing it to luma. `bytes_per_line` is the driver's
+/// row pitch; `frame` must already have this camera's size and pixel type.
+pub fn convert_into(
+    format: PixelFormat,
+    src: &[u8],
+    bytes_per_line: usize,
+    frame: &mut Frame,
+) -> Result<(), SourceError> {
+    let width = frame.width_px as usize;
+    let height = frame.height_px as usize;
+    let row_bytes = width * format.bytes_per_px();
+    if bytes_per_line < row_bytes || height == 0 || src.len() < bytes_per_line * (height - 1) + row_bytes {
+        return Err(SourceError::Config(format!(
+            "driver buffer of {} bytes (pitch {bytes_per_line}) too small for {width}x{height} {}",
+            src.len(),
+            format.name()
+        )));
+    }
+    let stride = frame.stride_px as usize;
+    match (&mut frame.pixels, format) {
+        (Pixels::U8(dst), PixelFormat::Grey) => {
+            for (src_row, dst_row) in src.chunks(bytes_per_line).zip(dst.chunks_mut(stride)).take(height) {
+                dst_row[..width].copy_from_slice(&src_row[..width]);
+            }
+        }
+        (Pixels::U8(dst), PixelFormat::Yuyv) => {
+            // Luma is every even byte; read it strided straight from the mmap buffer.
+            for (src_row, dst_row) in src.chunks(bytes_per_line).zip(dst.chunks_mut(stride)).take(height) {
+                for (d, y) in dst_row[..width].iter_mut().zip(src_row[..row_bytes].iter().step_by(2)) {
+                    *d = *y;
+                }
+            }
+        }
+        (Pixels::U16(dst), PixelFormat::Y10 | PixelFormat::Y16) => {
+            for (src_row, dst_row) in src.chunks(bytes_per_line).zip(dst.chunks_mut(stride)).take(height) {
+                for (d, le) in dst_row[..width].iter_mut().zip(src_row[..row_bytes].chunks_exact(2)) {
+                    *d = u16::from_le_bytes([le[0], le[1]]);
+                }
+            }
+        }
+        _ => {
+            return Err(SourceError::Config(format!(
+                "frame buffer pixel type does not match {}",
+                format.name()
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Matches frames of several cameras by timestamp.
+///
+/// Each camera has one slot holding the timestamp of its newest unpaired frame. A set is complete
+/// when every slot is full and the spread is within tolerance; otherwise frames older than the
+/// newest by more than the tolerance can never pair and are dropped.
+#[derive(Debug, Clone)]
+pub struct Pairer {
+    slots: Vec<Option<u64>>,
+    tolerance_ns: u64,
+}
+
+impl Pairer {
+    pub fn new(cameras: usize, tolerance_ns: u64) -> Self {
+        Self { slots: vec![None; cameras], tolerance_ns }
+    }
+
+    /// Records a frame; returns how many frames were dropped (1 if it replaced an unpaired one).
+    pub fn offer(&mut self, camera: usize, timestamp_ns: u64) -> u64 {
+        let replaced = self.slots[camera].replace(timestamp_ns).is_some();
+        u64::from(replaced)
+    }
+
+    /// Forgets a camera's pending frame (e.g. the camera was lost); returns frames dropped.
+    pub fn clear(&mut self, camera: usize) -> u64 {
+        u64::from(self.slots[camera].take().is_some())
+    }
+
+    /// Pending frames that were never paired; used when a set is abandoned.
+    pub fn clear_all(&mut self) -> u64 {
+        (0..self.slots.len()).map(|c| self.clear(c)).sum()
+    }
+
+    pub fn is_pending(&self, camera: usize) -> bool {
+        self.slots[camera].is_some()
+    }
+
+    /// Tries to complete a set: `Ok(pairing_error_ns)` and the slots emptied, or `Err(dropped)`
+    /// with frames too old for the newest one removed (0 when still waiting for a camera).
+    pub fn try_pair(&mut self) -> Result<u64, u64> {
+        let mut newest = 0;
+        let mut oldest = u64::MAX;
+        for slot in &self.slots {
+            let Some(ts) = *slot else { return Err(0) };
+            newest = newest.max(ts);
+            oldest = oldest.min(ts);
+        }
+        if newest - oldest <= self.tolerance_ns {
+            self.slots.iter_mut().for_each(|s| *s = None);
+            return Ok(newest - oldest);
+        }
+        let mut dropped = 0;
+        for slot in &mut self.slots {
+            if slot.is_some_and(|ts| newest - ts > self.tolerance_ns) {
+                *slot = None;
+                dropped += 1;
+            }
+        }
+        Err(dropped)
+    }
+}
+
+const V4L2_CID_EXPOSURE: u32 = 0x0098_0911;
+const V4L2_CID_AUTOGAIN: u32 = 0x0098_0912;
+const V4L2_CID_GAIN: u32 = 0x0098_0913;
+const V4L2_CID_EXPOSURE_AUTO: u32 = 0x009a_0901;
+const V4L2_CID_EXPOSURE_ABSOLUTE: u32 = 0x009a_0902;
+/// `V4L2_EXPOSURE_MANUAL` of the `EXPOSURE_AUTO` menu.
+const V4L2_EXPOSURE_MANUAL: i64 = 1;
+const ENODEV: i32 = 19;
+
+/// What a camera was negotiated to; fixed for the life of the source.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Negotiated {
+    pub format: PixelFormat,
+    pub width_px: u32,
+    pub height_px: u32,
+    pub bytes_per_line: u32,
+    /// Frame interval the driver accepted, as numerator/denominator seconds.
+    pub interval: (u32, u32),
+    pub driver: String,
+    pub card: String,
+}
+
+struct OpenCamera {
+    stream: MmapStream<'static>,
+    fd: c_int,
+}
+
+enum CameraState {
+    Open(Box<OpenCamera>),
+    Lost { next_attempt: Instant, backoff: Duration, reason: String },
+}
+
+struct Camera {
+    device: String,
+    negotiated: Negotiated,
+    state: CameraState,
+    warned_clock: bool,
+}
+
+/// The V4L2 [`FrameSource`].
+pub struct V4l2Source {
+    config: V4l2Config,
+    formats: Vec<PixelFormat>,
+    cameras: Vec<Camera>,
+    pairer: Pairer,
+    stats: SourceStats,
+    next_index: u64,
+    /// Reused poll set and the camera index of each entry (no per-frame allocation).
+    pollfds: Vec<libc::pollfd>,
+    poll_cameras: Vec<usize>,
+}
+
+fn io_err(device: &str, what: &str, e: io::Error) -> SourceError {
+    SourceError::Io { path: format!("{device} ({what})"), source: e }
+}
+
+fn set_control_logged(device: &Device, path: &str, id: u32, name: &str, value: i64) -> bool {
+    match device.set_control(Control { id, value: ControlValue::Integer(value) }) {
+        Ok(()) => {
+            info!(device = path, control = name, value, "camera control set");
+            true
+        }
+        Err(e) => {
+            warn!(device = path, control = name, value, error = %e, "camera control not applied");
+            false
+        }
+    }
+}
+
+/// Applies exposure, gain and named controls; missing controls are logged, not fatal, because
+/// cameras differ in what they expose.
+fn apply_controls(device: &Device, path: &str, config: &V4l2Config) {
+    let descriptions = match device.query_controls() {
+        Ok(d) => d,
+        Err(e) => {
+            warn!(device = path, error = %e, "cannot list camera controls; none applied");
+            return;
+        }
+    };
+    let find = |id: u32| descriptions.iter().find(|d| d.id == id);
+    if let Some(exposure_us) = config.exposure_us {
+        if find(V4L2_CID_EXPOSURE_AUTO).is_some() {
+            set_control_logged(device, path, V4L2_CID_EXPOSURE_AUTO, "exposure_auto", V4L2_EXPOSURE_MANUAL);
+        }
+        if let Some(d) = find(V4L2_CID_EXPOSURE_ABSOLUTE) {
+            // EXPOSURE_ABSOLUTE counts 100 µs units.
+            let units = (i64::from(exposure_us) / 100).clamp(d.minimum, d.maximum);
+            set_control_logged(device, path, d.id, "exposure_absolute", units);
+        } else if let Some(d) = find(V4L2_CID_EXPOSURE) {
+            // Sensor-specific units (often lines); the value is passed through clamped.
+            let value = i64::from(exposure_us).clamp(d.minimum, d.maximum);
+            set_control_logged(device, path, d.id, "exposure", value);
+        } else {
+            warn!(device = path, exposure_us, "camera has no exposure control; exposure not set");
+        }
+    }
+    if let Some(gain) = config.gain {
+        if find(V4L2_CID_AUTOGAIN).is_some() {
+            set_control_logged(device, path, V4L2_CID_AUTOGAIN, "autogain", 0);
+        }
+        match find(V4L2_CID_GAIN) {
+            Some(d) => {
+                set_control_logged(device, path, d.id, "gain", gain.clamp(d.minimum, d.maximum));
+            }
+            None => warn!(device = path, gain, "camera has no gain control; gain not set"),
+        }
+    }
+    for (name, value) in &config.controls {
+        match descriptions.iter().find(|d| d.name.eq_ignore_ascii_case(name)) {
+            Some(d) => {
+                set_control_logged(device, path, d.id, &d.name, *value);
+            }
+            None => warn!(device = path, control = %name, "camera has no control of that name"),
+        }
+    }
+}
+
+/// Opens a device, negotiates it and starts streaming, waiting for the first frame.
+fn open_camera(
+    path: &str,
+    config: &V4l2Config,
+    formats: &[PixelFormat],
+) -> Result<(Negotiated, OpenCamera), SourceError> {
+    let device = Device::with_path(path).map_err(|e| io_err(path, "open", e))?;
+    let caps = device.query_caps().map_err(|e| io_err(path, "VIDIOC_QUERYCAP", e))?;
+    if !caps.capabilities.contains(CapFlags::VIDEO_CAPTURE | CapFlags::STREAMING) {
+        return Err(SourceError::Config(format!(
+            "{path} ({} {}) is not a streaming single-plane video capture device",
+            caps.driver, caps.card
+        )));
+    }
+    let offered: Vec<FourCC> = device
+        .enum_formats()
+        .map_err(|e| io_err(path, "VIDIOC_ENUM_FMT", e))?
+        .iter()
+        .map(|d| d.fourcc)
+        .collect();
+    let Some(format) = formats.iter().copied().find(|f| offered.contains(&f.fourcc())) else {
+        let names: Vec<String> = offered.iter().map(|f| f.to_string()).collect();
+        return Err(SourceError::Config(format!(
+            "{path} offers none of the configured formats {:?}; it offers [{}]",
+            config.formats,
+            names.join(", ")
+        )));
+    };
+    let wanted = v4l::Format::new(config.width_px, config.height_px, format.fourcc());
+    let got = device.set_format(&wanted).map_err(|e| io_err(path, "VIDIOC_S_FMT", e))?;
+    if got.fourcc != wanted.fourcc || got.width != wanted.width || got.height != wanted.height {
+        return Err(SourceError::Config(format!(
+            "{path} cannot deliver {}x{} {}; the driver offered {}x{} {}",
+            wanted.width, wanted.height, format.name(), got.width, got.height, got.fourcc
+        )));
+    }
+    let params = device
+        .set_params(&Parameters::with_fps(config.fps))
+        .map_err(|e| io_err(path, "VIDIOC_S_PARM", e))?;
+    let interval = (params.interval.numerator, params.interval.denominator);
+    if interval.0.saturating_mul(config.fps) != interval.1 {
+        warn!(device = path, fps = config.fps, interval = ?interval, "driver chose another frame interval");
+    }
+    apply_controls(&device, path, config);
+
+    let mut stream = MmapStream::with_buffers(&device, BufferType::VideoCapture, config.buffer_count)
+        .map_err(|e| io_err(path, "VIDIOC_REQBUFS/mmap", e))?;
+    stream.set_timeout(Duration::from_millis(config.frame_timeout_ms.max(1)));
+    let fd = stream.handle().fd();
+    // The first `next` queues all buffers and starts streaming; its frame is discarded.
+    stream.next().map_err(|e| io_err(path, "VIDIOC_STREAMON/first frame", e))?;
+    let negotiated = Negotiated {
+        format,
+        width_px: got.width,
+        height_px: got.height,
+        bytes_per_line: got.stride,
+        interval,
+        driver: caps.driver,
+        card: caps.card,
+    };
+    info!(device = path, negotiated = ?negotiated, buffers = config.buffer_count, "camera streaming");
+    Ok((negotiated, OpenCamera { stream, fd }))
+}
+
+/// Stops a stream without letting the v4l crate panic in `Drop` on an unexpected error.
+fn close_camera(mut cam: Box<OpenCamera>) {
+    match cam.stream.stop() {
+        Err(e) if e.raw_os_error() != Some(ENODEV) => {
+            // Drop would stop again and panic on the same error; leak this one stream instead.
+            warn!(error = %e, "VIDIOC_STREAMOFF failed; leaking the stream to stay up");
+            std::mem::forget(cam);
+        }
+        _ => drop(cam),
+    }
+}
+
+impl V4l2Source {
+    pub fn open(config: &V4l2Config) -> Result<Self, SourceError> {
+        let formats = config.validate()?;
+        let mut cameras = Vec::with_capacity(config.devices.len());
+        for path in &config.devices {
+            let (negotiated, open) = open_camera(path, config, &formats)?;
+            cameras.push(Camera {
+                device: path.clone(),
+                negotiated,
+                state: CameraState::Open(Box::new(open)),
+                warned_clock: false,
+            });
+        }
+        let n = cameras.len();
+        Ok(Self {
+            config: config.clone(),
+            formats,
+            cameras,
+            pairer: Pairer::new(n, config.pairing_tolerance_ns()),
+            stats: SourceStats::default(),
+            next_index: 0,
+            pollfds: Vec::with_capacity(n),
+            poll_cameras: Vec::with_capacity(n),
+        })
+    }
+
+    /// Negotiated format of each camera.
+    pub fn negotiated(&self) -> Vec<Negotiated> {
+        self.cameras.iter().map(|c| c.negotiated.clone()).collect()
+    }
+
+    fn mark_lost(&mut self, camera: usize, reason: String) -> SourceError {
+        let cam = &mut self.cameras[camera];
+        let backoff = Duration::from_millis(self.config.reconnect_min_ms);
+        let old = std::mem::replace(
+            &mut cam.state,
+            CameraState::Lost { next_attempt: Instant::now() + backoff, backoff, reason: reason.clone() },
+        );
+        if let CameraState::Open(open) = old {
+            close_camera(open);
+        }
+        self.stats.unpaired_dropped += self.pairer.clear_all();
+        warn!(camera, device = %cam.device, %reason, "camera lost; will reopen");
+        SourceError::CameraLost { camera, device: cam.device.clone(), reason }
+    }
+
+    /// Reopens lost cameras whose backoff has elapsed, sleeping until the earliest attempt so a
+    /// caller that retries at once does not spin. Returns the first camera still lost.
+    fn recover(&mut self) -> Result<(), SourceError> {
+        let earliest = self
+            .cameras
+            .iter()
+            .filter_map(|c| match &c.state {
+                CameraState::Lost { next_attempt, .. } => Some(*next_attempt),
+                CameraState::Open(_) => None,
+            })
+            .min();
+        let Some(earliest) = earliest else { return Ok(()) };
+        let now = Instant::now();
+        if earliest > now {
+            std::thread::sleep(earliest - now);
+        }
+        let max_backoff = Duration::from_millis(self.config.reconnect_max_ms);
+        let mut still_lost = None;
+        for (i, cam) in self.cameras.iter_mut().enumerate() {
+            let CameraState::Lost { next_attempt, backoff, reason } = &mut cam.state else { continue };
+            if *next_attempt > Instant::now() {
+                still_lost.get_or_insert((i, reason.clone()));
+                continue;
+            }
+            match open_camera(&cam.device, &self.config, &self.formats) {
+                Ok((negotiated, open)) if negotiated == cam.negotiated => {
+                    info!(camera = i, device = %cam.device, "camera reopened");
+                    cam.state = CameraState::Open(Box::new(open));
+                    self.stats.reconnects += 1;
+                }
+                Ok((negotiated, open)) => {
+                    close_camera(Box::new(open));
+                    *reason = format!("reopened with a different format {negotiated:?}");
+                }
+                Err(e) => *reason = e.to_string(),
+            }
+            if let CameraState::Lost { next_attempt, backoff, reason } = &mut cam.state {
+                *backoff = (*backoff * 2).min(max_backoff);
+                *next_attempt = Instant::now() + *backoff;
+                still_lost.get_or_insert((i, reason.clone()));
+            }
+        }
+        match still_lost {
+            None => Ok(()),
+            Some((camera, reason)) => Err(SourceError::CameraLost {
+                camera,
+                device: self.cameras[camera].device.clone(),
+                reason,
+            }),
+        }
+    }
+
+    /// Dequeues the newest frame of one camera into its slot of `out`.
+    fn take_frame(&mut self, camera: usize, out: &mut FrameSet) -> Result<(), SourceError> {
+        let cam = &mut self.cameras[camera];
+        let CameraState::Open(open) = &mut cam.state else { return Ok(()) };
+        let (buf, meta) = match open.stream.next() {
+            Ok(x) => x,
+            Err(e) => return Err(self.mark_lost(camera, format!("dequeue: {e}"))),
+        };
+        let timestamp_flags = meta.flags & BufferFlags::TIMESTAMP_MASK;
+        if timestamp_flags != BufferFlags::TIMESTAMP_MONOTONIC && !cam.warned_clock {
+            cam.warned_clock = true;
+            warn!(camera, flags = ?meta.flags, "timestamps are not CLOCK_MONOTONIC; pairing may be off");
+        }
+        let used = match meta.bytesused as usize {
+            0 => buf.len(),
+            n => n.min(buf.len()),
+        };
+        let frame = &mut out.frames[camera];
+        convert_into(cam.negotiated.format, &buf[..used], cam.negotiated.bytes_per_line as usize, frame)?;
+        let ts = &meta.timestamp;
+        frame.timestamp_ns = (ts.sec as u64).saturating_mul(1_000_000_000) + (ts.usec as u64) * 1000;
+        frame.sequence = u64::from(meta.sequence);
+        self.stats.unpaired_dropped += self.pairer.offer(camera, frame.timestamp_ns);
+        Ok(())
+    }
+}
+
+impl FrameSource for V4l2Source {
+    fn camera_count(&self) -> usize {
+        self.cameras.len()
+    }
+
+    fn allocate_set(&self) -> FrameSet {
+        let frames = self
+            .cameras
+            .iter()
+            .map(|c| {
+                let n = c.negotiated.width_px as usize * c.negotiated.height_px as usize;
+                Frame {
+                    width_px: c.negotiated.width_px,
+                    height_px: c.negotiated.height_px,
+                    stride_px: c.negotiated.width_px,
+                    bit_depth: c.negotiated.format.bit_depth(),
+                    pixels: match c.negotiated.format {
+                        PixelFormat::Grey | PixelFormat::Yuyv => Pixels::U8(vec![0; n]),
+                        PixelFormat::Y10 | PixelFormat::Y16 => Pixels::U16(vec![0; n]),
+                    },
+                    timestamp_ns: 0,
+                    sequence: 0,
+                }
+            })
+            .collect();
+        FrameSet { index: 0, frames, pairing_error_ns: 0 }
+    }
+
+    fn next_set(&mut self, out: &mut FrameSet) -> Result<(), SourceError> {
+        if out.frames.len() != self.cameras.len() {
+            return Err(SourceError::Config(format!(
+                "frame set has {} frames for {} cameras; use allocate_set",
+                out.frames.len(),
+                self.cameras.len()
+            )));
+        }
+        self.recover()?;
+        let timeout_ms = self.config.frame_timeout_ms;
+        let deadline = Instant::now() + Duration::from_millis(timeout_ms);
+        loop {
+            self.pollfds.clear();
+            self.poll_cameras.clear();
+            for (i, cam) in self.cameras.iter().enumerate() {
+                if let CameraState::Open(open) = &cam.state {
+                    self.pollfds.push(libc::pollfd { fd: open.fd, events: libc::POLLIN, revents: 0 });
+                    self.poll_cameras.push(i);
+                }
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                self.stats.unpaired_dropped += self.pairer.clear_all();
+                return Err(SourceError::Timeout { timeout_ms });
+            }
+            let left_ms = c_int::try_from(left.as_millis().max(1)).unwrap_or(c_int::MAX);
+            // SAFETY: pollfds is a valid, exclusively borrowed array of its length.
+            let ready = unsafe {
+                libc::poll(self.pollfds.as_mut_ptr(), self.pollfds.len() as libc::nfds_t, left_ms)
+            };
+            if ready < 0 {
+                let e = io::Error::last_os_error();
+                if e.kind() == io::ErrorKind::Interrupted {
+                    continue;
+                }
+                return Err(SourceError::Io { path: "poll on cameras".into(), source: e });
+            }
+            for k in 0..self.pollfds.len() {
+                if self.pollfds[k].revents != 0 {
+                    // POLLERR/POLLHUP surface as a failed dequeue, which marks the camera lost.
+                    self.take_frame(self.poll_cameras[k], out)?;
+                }
+            }
+            match self.pairer.try_pair() {
+                Ok(pairing_error_ns) => {
+                    out.index = self.next_index;
+                    out.pairing_error_ns = pairing_error_ns;
+                    self.next_index += 1;
+                    self.stats.sets_delivered += 1;
+                    return Ok(());
+                }
+                Err(dropped) => self.stats.unpaired_dropped += dropped,
+            }
+        }
+    }
+
+    fn stats(&self) -> SourceStats {
+        self.stats.clone()
+    }
+
+    fn describe(&self) -> String {
+        let cams: Vec<String> = self
+            .cameras
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let n = &c.negotiated;
+                let state = match &c.state {
+                    CameraState::Open(_) => "streaming".to_owned(),
+                    CameraState::Lost { reason, .. } => format!("lost: {reason}"),
+                };
+                format!(
+                    "cam{i} {} [{} {}] {} {}x{} @ {}/{} s, {state}",
+                    c.device,
+                    n.driver,
+                    n.card,
+                    n.format.name(),
+                    n.width_px,
+                    n.height_px,
+                    n.interval.0,
+                    n.interval.1
+                )
+            })
+            .collect();
+        format!("v4l2: {}", cams.join("; "))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Deserialize)]
+    struct Wrap {
+        v4l2: V4l2Config,
+    }
+
+    fn parse(body: &str) -> Result<V4l2Config, toml::de::Error> {
+        toml::from_str::<Wrap>(&format!("[v4l2]\n{body}")).map(|w| w.v4l2)
+    }
+
+    const MINIMAL: &str = "devices = [\"/dev/video0\", \"/dev/v4l/by-id/usb-cam1-video-index0\"]\n\
+                           width_px = 640\nheight_px = 360\nfps = 30\n";
+
+    #[test]
+    fn minimal_config_gets_defaults() {
+        let cfg = parse(MINIMAL).unwrap();
+        assert_eq!(cfg.devices.len(), 2);
+        assert_eq!(
+            cfg.validate().unwrap(),
+            vec![PixelFormat::Grey, PixelFormat::Y16, PixelFormat::Y10, PixelFormat::Yuyv]
+        );
+        assert_eq!(cfg.buffer_count, 4);
+        // Half a frame period at 30 fps.
+        assert_eq!(cfg.pairing_tolerance_ns(), 16_666_666);
+    }
+
+    #[test]
+    fn full_config_parses() {
+        let cfg = parse(&format!(
+            "{MINIMAL}formats = [\"yuyv\"]\nbuffer_count = 3\nexposure_us = 500\ngain = 8\n\
+             max_pairing_error_us = 2000\n[v4l2.controls]\n\"Test Pattern\" = 20\n"
+        ))
+        .unwrap();
+        assert_eq!(cfg.validate().unwrap(), vec![PixelFormat::Yuyv]);
+        assert_eq!(cfg.controls.get("Test Pattern"), Some(&20));
+        assert_eq!(cfg.pairing_tolerance_ns(), 2_000_000);
+    }
+
+    #[test]
+    fn unknown_key_is_rejected() {
+        let err = parse(&format!("{MINIMAL}exposure = 3\n")).err().unwrap().to_string();
+        assert!(err.contains("exposure"), "{err}");
+    }
+
+    #[test]
+    fn bad_values_are_named() {
+        let mut cfg = parse(MINIMAL).unwrap();
+        cfg.formats = vec!["MJPG".into()];
+        assert!(cfg.validate().unwrap_err().to_string().contains("MJPG"));
+        let mut cfg = parse(MINIMAL).unwrap();
+        cfg.buffer_count = 1;
+        assert!(cfg.validate().unwrap_err().to_string().contains("buffer_count"));
+        let mut cfg = parse(MINIMAL).unwrap();
+        cfg.devices.clear();
+        assert!(cfg.validate().unwrap_err().to_string().contains("devices"));
+    }
+
+    #[test]
+    fn missing_device_is_a_clear_error() {
+        let mut cfg = parse(MINIMAL).unwrap();
+        cfg.devices = vec!["/dev/irtrack-no-such-video".into()];
+        let err = open(&cfg).err().unwrap().to_string();
+        assert!(err.contains("/dev/irtrack-no-such-video"), "{err}");
+    }
+
+    fn frame(width: u32, height: u32, pixels: Pixels) -> Frame {
+        Frame { width_px: width, height_px: height, stride_px: width, bit_depth: 8, pixels, timestamp_ns: 0, sequence: 0 }
+    }
+
+    #[test]
+    fn yuyv_reduces_to_luma_with_row_padding() {
+        // 3x2 image, pitch 8 bytes (6 used + 2 padding).
+        let src = [10, 1, 11, 2, 12, 3, 99, 99, 20, 4, 21, 5, 22, 6, 99, 99];
+        let mut f = frame(3, 2, Pixels::U8(vec![0; 6]));
+        convert_into(PixelFormat::Yuyv, &src, 8, &mut f).unwrap();
+        assert_eq!(f.pixels, Pixels::U8(vec![10, 11, 12, 20, 21, 22]));
+    }
+
+    #[test]
+    fn grey_copies_rows() {
+        let src = [1, 2, 3, 0, 4, 5, 6, 0];
+        let mut f = frame(3, 2, Pixels::U8(vec![0; 6]));
+        convert_into(PixelFormat::Grey, &src, 4, &mut f).unwrap();
+        assert_eq!(f.pixels, Pixels::U8(vec![1, 2, 3, 4, 5, 6]));
+    }
+
+    #[test]
+    fn y10_and_y16_are_little_endian() {
+        let src = [0xff, 0x03, 0x01, 0x02];
+        let mut f = frame(2, 1, Pixels::U16(vec![0; 2]));
+        convert_into(PixelFormat::Y10, &src, 4, &mut f).unwrap();
+        assert_eq!(f.pixels, Pixels::U16(vec![1023, 0x0201]));
+        convert_into(PixelFormat::Y16, &[0, 0x80, 0xff, 0xff], 4, &mut f).unwrap();
+        assert_eq!(f.pixels, Pixels::U16(vec![0x8000, 0xffff]));
+    }
+
+    #[test]
+    fn short_buffer_and_type_mismatch_are_errors() {
+        let mut f = frame(3, 2, Pixels::U8(vec![0; 6]));
+        let err = convert_into(PixelFormat::Yuyv, &[0; 11], 6, &mut f).unwrap_err().to_string();
+        assert!(err.contains("too small"), "{err}");
+        assert!(convert_into(PixelFormat::Y16, &[0; 12], 6, &mut f).is_err());
+    }
+
+    #[test]
+    fn pairer_pairs_within_tolerance() {
+        let mut p = Pairer::new(2, 5_000);
+        assert_eq!(p.offer(0, 100_000), 0);
+        assert_eq!(p.try_pair(), Err(0));
+        assert_eq!(p.offer(1, 103_000), 0);
+        assert_eq!(p.try_pair(), Ok(3_000));
+        assert!(!p.is_pending(0) && !p.is_pending(1));
+    }
+
+    #[test]
+    fn pairer_drops_stale_and_replaced_frames() {
+        let mut p = Pairer::new(2, 5_000);
+        p.offer(0, 100_000);
+        // A newer frame of the same camera replaces the unpaired one.
+        assert_eq!(p.offer(0, 133_000), 1);
+        // Camera 1's frame is far older than camera 0's: it can never pair and is dropped.
+        p.offer(1, 120_000);
+        assert_eq!(p.try_pair(), Err(1));
+        assert!(p.is_pending(0));
+        p.offer(1, 135_500);
+        assert_eq!(p.try_pair(), Ok(2_500));
+        // Three cameras: only the stale one goes.
+        let mut p = Pairer::new(3, 1_000);
+        p.offer(0, 10_000);
+        p.offer(1, 10_500);
+        p.offer(2, 20_000);
+        assert_eq!(p.try_pair(), Err(2));
+        assert!(p.is_pending(2));
+        assert_eq!(p.clear_all(), 1);
+    }
 }

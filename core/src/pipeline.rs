@@ -1,0 +1,618 @@
+//! Per-frame tracking: blobs in every camera → consistent marker → 3-D point.
+//!
+//! [`Tracker`] owns one [`BlobDetector`] per camera and all scratch space, allocated in
+//! [`Tracker::new`]/[`Tracker::set_params`]; processing a frame set never allocates.
+//!
+//! Choosing the marker: every blob passing the quality gate (area, roundness, not cut by
+//! the frame border) is a candidate. Each pair of candidates from two different cameras
+//! is triangulated; a pair is *plausible* when its ray gap is ≤ `max_gap_mm` and the point
+//! lies within the working range. A plausible pair is extended with the closest
+//! candidate of every other camera whose ray passes within `max_gap_mm`; hypotheses are
+//! ranked by number of cameras, then gap. If a second hypothesis with as many cameras is
+//! also plausible but describes a different point, the frame is ambiguous (e.g. a lamp
+//! lying on the marker's epipolar line) and no point is reported — never a guess.
+//!
+//! ROI tracking: after a tracked frame, each camera that contributed is searched only in a
+//! window around its last centroid. A window with no usable blob falls back to the full
+//! frame at once ([`Tracker::detect_u8`]); [`Tracker::process_u8`] also retries on the full
+//! frames when the windows gave blobs but no consistent point.
+
+use alloc::format;
+use alloc::vec::Vec;
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use crate::blob::{Blob, BlobConfig, BlobDetector, BlobLimits};
+use crate::camera::{CameraModel, RigidTransform};
+use crate::image::{GrayImage, Pixel, Roi};
+use crate::params::RigParams;
+use crate::triangulate::{Ray, least_squares_rays, midpoint};
+use crate::{Error, Result};
+
+/// Most cameras a rig may have (keeps [`Measurement`] a fixed-size `Copy` value).
+pub const MAX_CAMERAS: usize = 8;
+
+/// Tracker settings.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrackerConfig {
+    /// Pixels strictly above this (frame DN) belong to blobs.
+    pub threshold_dn: u32,
+    /// Saturation level for the saturated-pixel count; `None` = the pixel type's maximum.
+    pub saturation_dn: Option<u32>,
+    /// Blob area limits (pixels above threshold).
+    pub min_area_px: u32,
+    pub max_area_px: u32,
+    /// Minimum blob roundness (σ_minor/σ_major): rejects streaks and reflections on edges.
+    pub min_roundness: f64,
+    /// Blobs kept per camera and frame (heaviest first); more are counted as dropped.
+    pub max_blobs: usize,
+    /// Connected-component labels per frame before a frame counts as overloaded.
+    pub max_labels: usize,
+    /// Ignore blobs touching the frame border (cut-off spots have biased centroids).
+    pub reject_edge_blobs: bool,
+    /// Largest ray gap (mm) of a consistent observation.
+    pub max_gap_mm: f64,
+    /// Working range: distance (mm) along each ray from its camera to the point.
+    pub min_range_mm: f64,
+    pub max_range_mm: f64,
+    /// Half size (px) of the tracking window around the last centroid; 0 disables ROI mode.
+    pub roi_half_px: u32,
+}
+
+impl Default for TrackerConfig {
+    fn default() -> Self {
+        TrackerConfig {
+            threshold_dn: 40,
+            saturation_dn: None,
+            min_area_px: 3,
+            max_area_px: 20_000,
+            min_roundness: 0.4,
+            max_blobs: 8,
+            max_labels: 4096,
+            reject_edge_blobs: true,
+            max_gap_mm: 3.0,
+            min_range_mm: 50.0,
+            max_range_mm: 20_000.0,
+            roi_half_px: 40,
+        }
+    }
+}
+
+impl TrackerConfig {
+    fn validate(&self) -> Result<()> {
+        let bad = |reason: alloc::string::String| Err(Error::InvalidParams { reason });
+        if self.min_area_px == 0 || self.min_area_px > self.max_area_px {
+            return bad(format!(
+                "blob area range {}..={} px is empty",
+                self.min_area_px, self.max_area_px
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.min_roundness) {
+            return bad(format!("min_roundness {} outside 0..=1", self.min_roundness));
+        }
+        if self.max_blobs == 0 || self.max_blobs > 64 || self.max_labels == 0 {
+            return bad(format!(
+                "max_blobs {} must be 1..=64, max_labels ≥ 1",
+                self.max_blobs
+            ));
+        }
+        if !(self.max_gap_mm > 0.0 && self.max_gap_mm.is_finite()) {
+            return bad(format!("max_gap_mm {} must be positive", self.max_gap_mm));
+        }
+        if !(self.min_range_mm >= 0.0 && self.max_range_mm > self.min_range_mm) {
+            return bad(format!(
+                "working range {}..{} mm is empty",
+                self.min_range_mm, self.max_range_mm
+            ));
+        }
+        Ok(())
+    }
+
+    fn blob_config(&self) -> BlobConfig {
+        BlobConfig {
+            threshold_dn: self.threshold_dn,
+            saturation_dn: self.saturation_dn,
+            min_area_px: self.min_area_px,
+            max_area_px: self.max_area_px,
+        }
+    }
+}
+
+/// Outcome of one frame set.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum TrackStatus {
+    /// A consistent marker position was found.
+    Tracked,
+    /// Fewer than two cameras have a usable blob; `camera` is the first without one.
+    NoBlob { camera: usize },
+    /// Blobs were found but no pair of them is consistent, or several inconsistent pairs
+    /// are (ambiguous: see [`Measurement::ambiguous`]).
+    NoConsistentPair,
+    /// A camera's frame had too many separate bright regions to label (sunlight, threshold
+    /// too low).
+    Overloaded { camera: usize },
+    /// Not every camera's frame was detected since the last solve.
+    MissingFrame { camera: usize },
+}
+
+/// What one camera contributed to a measurement.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct CameraObservation {
+    /// Blobs found (after area limits, at most `max_blobs`).
+    pub blob_count: u32,
+    /// Blobs passing the quality gate.
+    pub candidate_count: u32,
+    /// Blobs beyond `max_blobs` that were dropped.
+    pub dropped_blobs: u32,
+    /// The detection ran in a tracking window, not the full frame.
+    pub used_roi: bool,
+    /// The blob used for the point (`None`: this camera did not contribute).
+    pub marker: Option<Blob>,
+}
+
+/// Result of one frame set.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measurement {
+    /// Marker position in the camera-0 frame; `None` = no confident marker (never a guess).
+    pub point_cam0_mm: Option<Vector3<f64>>,
+    /// Ray gap (mm) of the reported point: two-view common-perpendicular length, or twice
+    /// the RMS ray distance for more views. For a rejected frame: the smallest gap of any
+    /// pair seen, `f64::INFINITY` if there was no pair.
+    pub gap_mm: f64,
+    pub status: TrackStatus,
+    /// At least one contributing camera was detected in a tracking window.
+    pub used_roi: bool,
+    /// Rejected because several different points were plausible.
+    pub ambiguous: bool,
+    /// Cameras contributing to the point.
+    pub cameras_used: u32,
+    /// 1 − gap / max_gap_mm, clamped to 0..=1 (0 without a point).
+    pub quality: f64,
+    /// Number of valid entries of `cameras`.
+    pub camera_count: usize,
+    pub cameras: [CameraObservation; MAX_CAMERAS],
+}
+
+impl Measurement {
+    fn empty(camera_count: usize) -> Self {
+        Measurement {
+            point_cam0_mm: None,
+            gap_mm: f64::INFINITY,
+            status: TrackStatus::NoBlob { camera: 0 },
+            used_roi: false,
+            ambiguous: false,
+            cameras_used: 0,
+            quality: 0.0,
+            camera_count,
+            cameras: [CameraObservation::default(); MAX_CAMERAS],
+        }
+    }
+
+    /// Per-camera observations of this measurement.
+    pub fn cameras(&self) -> &[CameraObservation] {
+        &self.cameras[..self.camera_count.min(MAX_CAMERAS)]
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Candidate {
+    blob: usize,
+    ray: Ray,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Hypothesis {
+    point_mm: Vector3<f64>,
+    gap_mm: f64,
+    /// Candidate index per camera (`u8::MAX` = camera not used).
+    members: [u8; MAX_CAMERAS],
+    count: u32,
+}
+
+#[derive(Debug, Clone)]
+struct CameraState {
+    detector: BlobDetector,
+    model: CameraModel,
+    cam_from_cam0: RigidTransform,
+    candidates: Vec<Candidate>,
+    /// Centroid of the last tracked frame, for the ROI.
+    last_px: Option<(f64, f64)>,
+    used_roi: bool,
+    detected: bool,
+}
+
+/// The per-frame tracker (see the module documentation).
+#[derive(Debug, Clone)]
+pub struct Tracker {
+    config: TrackerConfig,
+    cams: Vec<CameraState>,
+    rays: Vec<Ray>,
+    measurement: Measurement,
+}
+
+impl Tracker {
+    /// Builds a tracker for `rig`, allocating every buffer.
+    pub fn new(rig: &RigParams, config: TrackerConfig) -> Result<Self> {
+        config.validate()?;
+        let mut t = Tracker {
+            config,
+            cams: Vec::new(),
+            rays: Vec::new(),
+            measurement: Measurement::empty(0),
+        };
+        t.set_params(rig)?;
+        Ok(t)
+    }
+
+    /// Swaps in new rig parameters (calibration push, possibly new image sizes). Buffers
+    /// are reallocated here, outside the per-frame path; tracking restarts from the full
+    /// frame. On error the tracker keeps its previous parameters.
+    pub fn set_params(&mut self, rig: &RigParams) -> Result<()> {
+        let n = rig.cameras.len();
+        if !(2..=MAX_CAMERAS).contains(&n) {
+            return Err(Error::InvalidParams {
+                reason: format!("rig has {n} cameras; the tracker needs 2..={MAX_CAMERAS}"),
+            });
+        }
+        let mut cams = Vec::with_capacity(n);
+        for (i, c) in rig.cameras.iter().enumerate() {
+            let size = c.model.image_size;
+            let k = &c.model.intrinsics;
+            if !(k.fx_px > 0.0 && k.fy_px > 0.0 && k.cx_px.is_finite() && k.cy_px.is_finite()) {
+                return Err(Error::InvalidParams {
+                    reason: format!("camera {i}: focal lengths must be positive and centre finite"),
+                });
+            }
+            let limits = BlobLimits {
+                max_width_px: size.width_px,
+                max_height_px: size.height_px,
+                max_labels: self.config.max_labels,
+                max_blobs: self.config.max_blobs,
+            };
+            let detector = BlobDetector::new(limits).map_err(|e| Error::InvalidParams {
+                reason: format!("camera {i}: image size {}x{}: {e}", size.width_px, size.height_px),
+            })?;
+            cams.push(CameraState {
+                detector,
+                model: c.model,
+                cam_from_cam0: c.cam_from_cam0,
+                candidates: Vec::with_capacity(self.config.max_blobs),
+                last_px: None,
+                used_roi: false,
+                detected: false,
+            });
+        }
+        self.cams = cams;
+        self.rays = Vec::with_capacity(n);
+        self.measurement = Measurement::empty(n);
+        Ok(())
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &TrackerConfig {
+        &self.config
+    }
+
+    /// Number of cameras of the current rig.
+    pub fn camera_count(&self) -> usize {
+        self.cams.len()
+    }
+
+    /// All blobs of `camera`'s last detection (diagnostics; empty for a bad index).
+    pub fn blobs(&self, camera: usize) -> &[Blob] {
+        self.cams.get(camera).map(|c| c.detector.blobs()).unwrap_or(&[])
+    }
+
+    /// The last measurement.
+    pub fn measurement(&self) -> &Measurement {
+        &self.measurement
+    }
+
+    /// Forget the tracking windows: the next frames are searched in full.
+    pub fn reset_tracking(&mut self) {
+        for c in &mut self.cams {
+            c.last_px = None;
+        }
+    }
+
+    /// Detects blobs in one camera's 8-bit frame (in its tracking window if it has one,
+    /// falling back to the full frame when the window holds no usable blob). Returns the
+    /// number of usable candidate blobs.
+    pub fn detect_u8(&mut self, camera: usize, image: &GrayImage<'_, u8>) -> Result<usize> {
+        self.detect_impl(camera, image, true)
+    }
+
+    /// As [`Tracker::detect_u8`] for 16-bit frames (10/12/16-bit sensors; the threshold is in
+    /// the frame's DN).
+    pub fn detect_u16(&mut self, camera: usize, image: &GrayImage<'_, u16>) -> Result<usize> {
+        self.detect_impl(camera, image, true)
+    }
+
+    /// Undistorts, triangulates and gates the blobs of the frames detected since the last
+    /// call. Every camera must have been detected; otherwise the status is
+    /// [`TrackStatus::MissingFrame`].
+    pub fn solve(&mut self) -> &Measurement {
+        self.solve_impl();
+        &self.measurement
+    }
+
+    /// Detects and solves a complete 8-bit frame set (one frame per camera, in camera
+    /// order), retrying on the full frames if the tracking windows gave no consistent point.
+    pub fn process_u8(&mut self, frames: &[GrayImage<'_, u8>]) -> Result<&Measurement> {
+        self.process_impl(frames)
+    }
+
+    /// As [`Tracker::process_u8`] for 16-bit frames.
+    pub fn process_u16(&mut self, frames: &[GrayImage<'_, u16>]) -> Result<&Measurement> {
+        self.process_impl(frames)
+    }
+
+    fn process_impl<P: Pixel>(&mut self, frames: &[GrayImage<'_, P>]) -> Result<&Measurement> {
+        if frames.len() != self.cams.len() {
+            return Err(Error::BadFrame {
+                what: "frame set size differs from the rig's camera count",
+            });
+        }
+        for (c, f) in frames.iter().enumerate() {
+            self.detect_impl(c, f, true)?;
+        }
+        self.solve_impl();
+        if self.measurement.status != TrackStatus::Tracked && self.cams.iter().any(|c| c.used_roi) {
+            for (c, f) in frames.iter().enumerate() {
+                self.detect_impl(c, f, false)?;
+            }
+            self.solve_impl();
+        }
+        Ok(&self.measurement)
+    }
+
+    fn detect_impl<P: Pixel>(
+        &mut self,
+        camera: usize,
+        image: &GrayImage<'_, P>,
+        allow_roi: bool,
+    ) -> Result<usize> {
+        let cfg = self.config;
+        let blob_cfg = cfg.blob_config();
+        let cam = self.cams.get_mut(camera).ok_or(Error::BadFrame {
+            what: "camera index beyond the rig's camera count",
+        })?;
+        let size = cam.model.image_size;
+        if image.width_px != size.width_px || image.height_px != size.height_px {
+            return Err(Error::BadFrame {
+                what: "frame size differs from the calibrated image size",
+            });
+        }
+        cam.detected = false;
+        cam.used_roi = false;
+        cam.candidates.clear();
+        if let (true, true, Some((x, y))) = (allow_roi, cfg.roi_half_px > 0, cam.last_px) {
+            let roi = Roi::around(x, y, cfg.roi_half_px, size.width_px, size.height_px);
+            cam.detector.detect(image, Some(roi), &blob_cfg)?;
+            if cam.collect_candidates(&cfg) > 0 {
+                cam.used_roi = true;
+                cam.detected = true;
+                return Ok(cam.candidates.len());
+            }
+        }
+        cam.detector.detect(image, None, &blob_cfg)?;
+        cam.detected = true;
+        Ok(cam.collect_candidates(&cfg))
+    }
+
+    fn solve_impl(&mut self) {
+        let n = self.cams.len();
+        let cfg = self.config;
+        let mut m = Measurement::empty(n);
+        for (o, c) in m.cameras.iter_mut().zip(&self.cams) {
+            let st = c.detector.stats();
+            *o = CameraObservation {
+                blob_count: c.detector.blobs().len() as u32,
+                candidate_count: c.candidates.len() as u32,
+                dropped_blobs: st.dropped_blobs,
+                used_roi: c.used_roi,
+                marker: None,
+            };
+        }
+        let missing = self.cams.iter().position(|c| !c.detected);
+        let with_candidates = self.cams.iter().filter(|c| !c.candidates.is_empty()).count();
+        let mut best: Option<Hypothesis> = None;
+        if let Some(camera) = missing {
+            m.status = TrackStatus::MissingFrame { camera };
+        } else if with_candidates < 2 {
+            let camera = self
+                .cams
+                .iter()
+                .position(|c| c.candidates.is_empty())
+                .unwrap_or(0);
+            m.status = if self
+                .cams
+                .iter()
+                .any(|c| c.candidates.is_empty() && c.detector.stats().overloaded)
+            {
+                let camera = self
+                    .cams
+                    .iter()
+                    .position(|c| c.candidates.is_empty() && c.detector.stats().overloaded)
+                    .unwrap_or(camera);
+                TrackStatus::Overloaded { camera }
+            } else {
+                TrackStatus::NoBlob { camera }
+            };
+        } else {
+            // Pass 1: the best hypothesis (most cameras, then smallest gap).
+            let mut min_gap = f64::INFINITY;
+            for_each_hypothesis(&self.cams, &cfg, &mut self.rays, &mut min_gap, |h| {
+                let better = match &best {
+                    None => true,
+                    Some(b) => h.count > b.count || (h.count == b.count && h.gap_mm < b.gap_mm),
+                };
+                if better {
+                    best = Some(*h);
+                }
+            });
+            m.gap_mm = min_gap;
+            // Pass 2: is another, different point just as plausible?
+            if let Some(b) = best {
+                let mut ambiguous = false;
+                for_each_hypothesis(&self.cams, &cfg, &mut self.rays, &mut min_gap, |h| {
+                    if h.count == b.count && (h.point_mm - b.point_mm).norm() > cfg.max_gap_mm {
+                        ambiguous = true;
+                    }
+                });
+                if ambiguous {
+                    m.ambiguous = true;
+                    best = None;
+                }
+            }
+            m.status = if best.is_some() {
+                TrackStatus::Tracked
+            } else {
+                TrackStatus::NoConsistentPair
+            };
+        }
+
+        match best {
+            Some(h) => {
+                m.point_cam0_mm = Some(h.point_mm);
+                m.gap_mm = h.gap_mm;
+                m.cameras_used = h.count;
+                m.quality = (1.0 - h.gap_mm / cfg.max_gap_mm).clamp(0.0, 1.0);
+                for (i, c) in self.cams.iter_mut().enumerate() {
+                    let member = h.members[i];
+                    let blob = c
+                        .candidates
+                        .get(member as usize)
+                        .and_then(|cd| c.detector.blobs().get(cd.blob));
+                    m.cameras[i].marker = blob.copied();
+                    m.used_roi |= blob.is_some() && c.used_roi;
+                    c.last_px = blob.map(|b| (b.x_px, b.y_px));
+                }
+            }
+            None => self.reset_tracking(),
+        }
+        for c in &mut self.cams {
+            c.detected = false;
+        }
+        self.measurement = m;
+    }
+}
+
+impl CameraState {
+    /// Quality gate and ray for each blob of the last detection. Returns the count.
+    fn collect_candidates(&mut self, cfg: &TrackerConfig) -> usize {
+        self.candidates.clear();
+        for (i, b) in self.detector.blobs().iter().enumerate() {
+            let usable = b.roundness >= cfg.min_roundness
+                && !(cfg.reject_edge_blobs && b.touches_frame_edge)
+                && !b.touches_roi_edge;
+            if usable && self.candidates.len() < self.candidates.capacity() {
+                let ray = Ray::from_pixel(&self.model, &self.cam_from_cam0, b.x_px, b.y_px);
+                self.candidates.push(Candidate { blob: i, ray });
+            }
+        }
+        self.candidates.len()
+    }
+}
+
+/// Perpendicular distance (mm) of `p` from a ray, `None` if `p` is behind its origin.
+fn ray_distance_mm(ray: &Ray, p: &Vector3<f64>) -> Option<f64> {
+    let v = p - ray.origin_mm;
+    let along = v.dot(&ray.dir);
+    (along > 0.0).then(|| (v - ray.dir * along).norm())
+}
+
+/// Calls `f` with every plausible hypothesis: each gated camera pair, extended by the
+/// nearest consistent candidate of every other camera. `min_gap` receives the smallest
+/// two-view gap seen (diagnostics).
+fn for_each_hypothesis(
+    cams: &[CameraState],
+    cfg: &TrackerConfig,
+    rays: &mut Vec<Ray>,
+    min_gap: &mut f64,
+    mut f: impl FnMut(&Hypothesis),
+) {
+    let n = cams.len();
+    for i in 0..n {
+        for j in i + 1..n {
+            for (a, ca) in cams[i].candidates.iter().enumerate() {
+                for (b, cb) in cams[j].candidates.iter().enumerate() {
+                    let Ok(mp) = midpoint(&ca.ray, &cb.ray) else {
+                        continue;
+                    };
+                    *min_gap = min_gap.min(mp.gap_mm);
+                    let in_range = mp
+                        .range_mm
+                        .iter()
+                        .all(|r| (cfg.min_range_mm..=cfg.max_range_mm).contains(r));
+                    if !(mp.gap_mm <= cfg.max_gap_mm && in_range) {
+                        continue;
+                    }
+                    let mut h = Hypothesis {
+                        point_mm: mp.point_mm,
+                        gap_mm: mp.gap_mm,
+                        members: [u8::MAX; MAX_CAMERAS],
+                        count: 2,
+                    };
+                    h.members[i] = a as u8;
+                    h.members[j] = b as u8;
+                    if n > 2 {
+                        extend(cams, cfg, rays, &mut h, i, j);
+                    }
+                    f(&h);
+                }
+            }
+        }
+    }
+}
+
+/// Adds to a two-view hypothesis the closest candidate of each other camera whose ray
+/// passes within `max_gap_mm` of the point, then re-solves by least squares over all rays.
+/// Falls back to the pair if the combined solution fails the gap gate.
+fn extend(
+    cams: &[CameraState],
+    cfg: &TrackerConfig,
+    rays: &mut Vec<Ray>,
+    h: &mut Hypothesis,
+    i: usize,
+    j: usize,
+) {
+    let pair = *h;
+    for (k, cam) in cams.iter().enumerate() {
+        if k == i || k == j {
+            continue;
+        }
+        let mut nearest: Option<(usize, f64)> = None;
+        for (c, cand) in cam.candidates.iter().enumerate() {
+            if let Some(d) = ray_distance_mm(&cand.ray, &h.point_mm)
+                && d <= cfg.max_gap_mm
+                && nearest.is_none_or(|(_, best)| d < best)
+            {
+                nearest = Some((c, d));
+            }
+        }
+        if let Some((c, _)) = nearest {
+            h.members[k] = c as u8;
+            h.count += 1;
+        }
+    }
+    if h.count == 2 {
+        return;
+    }
+    // Capacity is the camera count, so this never reallocates.
+    rays.clear();
+    for (k, cam) in cams.iter().enumerate() {
+        if let Some(c) = cam.candidates.get(h.members[k] as usize) {
+            rays.push(c.ray);
+        }
+    }
+    match least_squares_rays(rays) {
+        Ok((p, rms_mm)) if 2.0 * rms_mm <= cfg.max_gap_mm => {
+            h.point_mm = p;
+            h.gap_mm = 2.0 * rms_mm;
+        }
+        _ => *h = pair,
+    }
+}

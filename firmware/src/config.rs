@@ -1,0 +1,272 @@
+//! irtrackd configuration: a TOML file (every table rejects unknown keys), defaults for a PC
+//! run with the simulated source, and validation with messages that name the offending key.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::error::{FirmwareError, Result};
+use crate::leds::gpio::GpioLedConfig;
+use crate::robot::RobotConfig;
+use crate::source::replay::ReplayConfig;
+use crate::source::sim::SimSourceConfig;
+use crate::source::v4l2::V4l2Config;
+
+/// Default location of the config file on the board.
+pub const DEFAULT_CONFIG_PATH: &str = "/etc/irtrack/irtrackd.toml";
+
+/// Whole config file.
+#[derive(Debug, Clone, PartialEq, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    #[serde(default)]
+    pub service: ServiceConfig,
+    #[serde(default)]
+    pub listen: ListenConfig,
+    #[serde(default)]
+    pub source: SourceConfig,
+    #[serde(default)]
+    pub tracking: TrackingConfig,
+    #[serde(default)]
+    pub leds: LedsConfig,
+    #[serde(default)]
+    pub realtime: RealtimeConfig,
+    /// Robot link; absent means no robot client runs.
+    #[serde(default)]
+    pub robot: Option<RobotConfig>,
+}
+
+/// `[service]`
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServiceConfig {
+    /// Where parameter sets are stored (systemd's StateDirectory).
+    #[serde(default = "default_state_dir")]
+    pub state_dir: PathBuf,
+    /// Simulated source only: use the simulator's own rig as the parameter set when none is
+    /// stored (demo convenience; off by default so the no-parameters fault stays visible).
+    #[serde(default)]
+    pub params_from_simulator: bool,
+}
+
+fn default_state_dir() -> PathBuf {
+    // systemd sets STATE_DIRECTORY for StateDirectory=; fall back to the FHS path.
+    std::env::var_os("STATE_DIRECTORY")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("/var/lib/irtrackd"))
+}
+
+impl Default for ServiceConfig {
+    fn default() -> Self {
+        Self { state_dir: default_state_dir(), params_from_simulator: false }
+    }
+}
+
+/// `[listen]`: socket addresses (`host:port`; port 0 picks a free port).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ListenConfig {
+    #[serde(default = "default_params_addr")]
+    pub params: String,
+    #[serde(default = "default_ndjson_addr")]
+    pub stream_ndjson: String,
+    #[serde(default = "default_binary_addr")]
+    pub stream_binary: String,
+    #[serde(default = "default_status_addr")]
+    pub status: String,
+    /// Records queued per stream client before it counts as too slow and is dropped.
+    #[serde(default = "default_client_queue")]
+    pub client_queue_records: usize,
+}
+
+fn default_params_addr() -> String {
+    "0.0.0.0:7701".into()
+}
+fn default_ndjson_addr() -> String {
+    "0.0.0.0:7702".into()
+}
+fn default_binary_addr() -> String {
+    "0.0.0.0:7703".into()
+}
+fn default_status_addr() -> String {
+    "0.0.0.0:7704".into()
+}
+fn default_client_queue() -> usize {
+    256
+}
+
+impl Default for ListenConfig {
+    fn default() -> Self {
+        Self {
+            params: default_params_addr(),
+            stream_ndjson: default_ndjson_addr(),
+            stream_binary: default_binary_addr(),
+            status: default_status_addr(),
+            client_queue_records: default_client_queue(),
+        }
+    }
+}
+
+/// Which frame source runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum SourceKind {
+    #[default]
+    Sim,
+    Replay,
+    V4l2,
+}
+
+/// `[source]` with one optional sub-table per kind.
+#[derive(Debug, Clone, PartialEq, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct SourceConfig {
+    #[serde(default)]
+    pub kind: SourceKind,
+    #[serde(default)]
+    pub sim: Option<SimSourceConfig>,
+    #[serde(default)]
+    pub replay: Option<ReplayConfig>,
+    #[serde(default)]
+    pub v4l2: Option<V4l2Config>,
+}
+
+/// `[tracking]`: quality gate and detector settings.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrackingConfig {
+    /// Largest accepted gap between the rays, mm; worse results are published as `rejected`.
+    #[serde(default = "default_max_gap_mm")]
+    pub max_gap_mm: f64,
+    /// Processing deadline, ms; default one frame period of the source.
+    #[serde(default)]
+    pub deadline_ms: Option<f64>,
+}
+
+fn default_max_gap_mm() -> f64 {
+    5.0
+}
+
+impl Default for TrackingConfig {
+    fn default() -> Self {
+        Self { max_gap_mm: default_max_gap_mm(), deadline_ms: None }
+    }
+}
+
+/// LED back end.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum LedBackend {
+    /// Log changes (PC runs, tests).
+    #[default]
+    Sim,
+    /// gpiocdev (or rppal when built with that feature) lines from `[leds.gpio]`.
+    Gpio,
+    /// No LEDs at all.
+    None,
+}
+
+/// `[leds]`
+#[derive(Debug, Clone, PartialEq, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct LedsConfig {
+    #[serde(default)]
+    pub backend: LedBackend,
+    #[serde(default)]
+    pub gpio: Option<GpioLedConfig>,
+}
+
+/// `[realtime]`: applied to the processing thread when permitted.
+#[derive(Debug, Clone, PartialEq, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct RealtimeConfig {
+    /// SCHED_FIFO priority 1..=99 (needs CAP_SYS_NICE or LimitRTPRIO).
+    #[serde(default)]
+    pub fifo_priority: Option<i32>,
+    /// CPUs the processing thread may run on.
+    #[serde(default)]
+    pub cpu_affinity: Option<Vec<usize>>,
+    /// Lock all memory (mlockall) so page faults cannot stall the loop (needs CAP_IPC_LOCK or
+    /// LimitMEMLOCK).
+    #[serde(default)]
+    pub lock_memory: bool,
+}
+
+impl Config {
+    /// Parses TOML text (`origin` names it in errors) and validates.
+    pub fn from_toml(text: &str, origin: &str) -> Result<Config> {
+        let cfg: Config = toml::from_str(text)
+            .map_err(|e| FirmwareError::ConfigFile { path: origin.to_string(), reason: e.to_string() })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Reads, parses and validates a config file.
+    pub fn load(path: &Path) -> Result<Config> {
+        let text = std::fs::read_to_string(path).map_err(|e| FirmwareError::ConfigFile {
+            path: path.display().to_string(),
+            reason: format!("cannot read: {e}"),
+        })?;
+        Self::from_toml(&text, &path.display().to_string())
+    }
+
+    /// Cross-field checks that serde cannot express.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |reason: String| Err(FirmwareError::Config { reason });
+        for (key, addr) in [
+            ("listen.params", &self.listen.params),
+            ("listen.stream_ndjson", &self.listen.stream_ndjson),
+            ("listen.stream_binary", &self.listen.stream_binary),
+            ("listen.status", &self.listen.status),
+        ] {
+            if addr.parse::<std::net::SocketAddr>().is_err() {
+                return bad(format!("{key} = {addr:?} is not an IP:port socket address"));
+            }
+        }
+        if self.listen.client_queue_records == 0 {
+            return bad("listen.client_queue_records must be at least 1".into());
+        }
+        if !(self.tracking.max_gap_mm.is_finite() && self.tracking.max_gap_mm > 0.0) {
+            return bad(format!("tracking.max_gap_mm must be > 0, got {}", self.tracking.max_gap_mm));
+        }
+        if let Some(d) = self.tracking.deadline_ms {
+            if !(d.is_finite() && d > 0.0) {
+                return bad(format!("tracking.deadline_ms must be > 0, got {d}"));
+            }
+        }
+        match self.source.kind {
+            SourceKind::Sim => {
+                if let Some(sim) = &self.source.sim {
+                    sim.validate()?;
+                }
+            }
+            SourceKind::Replay => match &self.source.replay {
+                None => return bad("source.kind = \"replay\" needs a [source.replay] table with `dir`".into()),
+                Some(r) => {
+                    if r.fps.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
+                        return bad("source.replay.fps must be > 0".into());
+                    }
+                }
+            },
+            SourceKind::V4l2 => match &self.source.v4l2 {
+                None => return bad("source.kind = \"v4l2\" needs a [source.v4l2] table".into()),
+                Some(v) if v.devices.len() < 2 => {
+                    return bad(format!("source.v4l2.devices needs at least 2 cameras, got {}", v.devices.len()));
+                }
+                Some(_) => {}
+            },
+        }
+        if self.service.params_from_simulator && self.source.kind != SourceKind::Sim {
+            return bad("service.params_from_simulator only works with source.kind = \"sim\"".into());
+        }
+        if self.leds.backend == LedBackend::Gpio && self.leds.gpio.is_none() {
+            return bad("leds.backend = \"gpio\" needs a [leds.gpio] table".into());
+        }
+        if let Some(p) = self.realtime.fifo_priority {
+            if !(1..=99).contains(&p) {
+                return bad(format!("realtime.fifo_priority must be 1..=99, got {p}"));
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,145 @@
+//! The LED driver thread: derives the indication from the shared status and blinks the LEDs.
+//! It only reads atomics written by the processing loop, so the loop never waits for GPIO.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use super::indication::{Indication, led_levels};
+use super::{Led, StatusLeds};
+use crate::error::{FirmwareError, Result};
+use crate::status::SharedStatus;
+
+/// Driver tick; every pattern edge is a multiple of it.
+pub const TICK: Duration = Duration::from_millis(25);
+/// The loop counts as stalled when it made no progress for this long.
+pub const STALL_AFTER: Duration = Duration::from_secs(1);
+/// Deadline-miss fault: more than this fraction of sets missed within one window.
+pub const DEADLINE_FAULT_FRACTION: f64 = 0.05;
+pub const DEADLINE_WINDOW: Duration = Duration::from_secs(2);
+
+/// Derives liveness and the deadline fault from counter deltas.
+#[derive(Debug)]
+pub struct HealthMonitor {
+    last_iterations: u64,
+    last_progress: Instant,
+    window_start: Instant,
+    window_sets: u64,
+    window_misses: u64,
+}
+
+impl HealthMonitor {
+    pub fn new(status: &SharedStatus, now: Instant) -> Self {
+        Self {
+            last_iterations: status.loop_iterations.load(Ordering::Relaxed),
+            last_progress: now,
+            window_start: now,
+            window_sets: status.sets_processed.load(Ordering::Relaxed),
+            window_misses: status.deadline_misses.load(Ordering::Relaxed),
+        }
+    }
+
+    /// Updates `alive` and `deadline_fault` in `status` and returns the current indication.
+    pub fn update(&mut self, status: &SharedStatus, now: Instant) -> Indication {
+        let it = status.loop_iterations.load(Ordering::Relaxed);
+        if it != self.last_iterations {
+            self.last_iterations = it;
+            self.last_progress = now;
+        }
+        let alive = now.duration_since(self.last_progress) < STALL_AFTER && it > 0;
+        status.alive.store(alive, Ordering::Relaxed);
+        if now.duration_since(self.window_start) >= DEADLINE_WINDOW {
+            let sets = status.sets_processed.load(Ordering::Relaxed);
+            let misses = status.deadline_misses.load(Ordering::Relaxed);
+            let (ds, dm) = (sets - self.window_sets, misses - self.window_misses);
+            let fault = dm >= 2 && dm as f64 > DEADLINE_FAULT_FRACTION * ds.max(1) as f64;
+            status.deadline_fault.store(fault, Ordering::Relaxed);
+            (self.window_start, self.window_sets, self.window_misses) = (now, sets, misses);
+        }
+        Indication { alive, track: status.track(), robot: status.robot(), fault: status.top_fault() }
+    }
+}
+
+/// Running LED driver; stops and switches all LEDs off when dropped or stopped.
+pub struct LedDriver {
+    stop: Arc<AtomicBool>,
+    handle: Option<JoinHandle<()>>,
+}
+
+impl LedDriver {
+    pub fn start(mut leds: Box<dyn StatusLeds>, status: Arc<SharedStatus>) -> Result<Self> {
+        let stop = Arc::new(AtomicBool::new(false));
+        let stop2 = stop.clone();
+        let handle = std::thread::Builder::new()
+            .name("irtrackd-leds".into())
+            .spawn(move || run(leds.as_mut(), &status, &stop2))
+            .map_err(|e| FirmwareError::Thread { what: "LED driver", reason: e.to_string() })?;
+        Ok(Self { stop, handle: Some(handle) })
+    }
+
+    pub fn stop(mut self) {
+        self.shutdown();
+    }
+
+    fn shutdown(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(h) = self.handle.take() {
+            let _ = h.join();
+        }
+    }
+}
+
+impl Drop for LedDriver {
+    fn drop(&mut self) {
+        self.shutdown();
+    }
+}
+
+fn run(leds: &mut dyn StatusLeds, status: &SharedStatus, stop: &AtomicBool) {
+    let start = Instant::now();
+    let mut monitor = HealthMonitor::new(status, start);
+    let mut current: Option<[bool; 4]> = None;
+    let mut last_ind: Option<Indication> = None;
+    let mut error_logged = false;
+    let mut next = start;
+    while !stop.load(Ordering::Relaxed) {
+        let now = Instant::now();
+        let ind = monitor.update(status, now);
+        if last_ind != Some(ind) {
+            tracing::info!(
+                alive = ind.alive,
+                track = ?ind.track,
+                robot = ?ind.robot,
+                fault = ?ind.fault,
+                "LED indication changed"
+            );
+            last_ind = Some(ind);
+        }
+        let t_ms = u64::try_from(now.duration_since(start).as_millis()).unwrap_or(u64::MAX);
+        let levels = led_levels(&ind, t_ms);
+        for (i, led) in Led::ALL.into_iter().enumerate() {
+            if current.is_none_or(|c| c[i] != levels[i]) {
+                if let Err(e) = leds.set(led, levels[i]) {
+                    // A broken LED line must not spam the journal 40 times per second.
+                    if !error_logged {
+                        tracing::warn!(error = %e, "LED back end failed; continuing without it");
+                        error_logged = true;
+                    }
+                }
+            }
+        }
+        current = Some(levels);
+        status.set_led_output(ind, levels);
+        next += TICK;
+        let now = Instant::now();
+        if next > now {
+            std::thread::sleep(next - now);
+        } else {
+            next = now;
+        }
+    }
+    for led in Led::ALL {
+        let _ = leds.set(led, false);
+    }
+}

@@ -1,0 +1,245 @@
+//! Replay of a recorded directory: `DIR/cam<N>/<frame:06>.pgm`, optional
+//! `DIR/timestamps.csv` (`frame,camera,timestamp_ns,dropped`).
+//!
+//! All file paths are built when the source opens, and file contents are read into a retained
+//! buffer, so replaying a frame does not allocate. Timestamps are mapped onto CLOCK_MONOTONIC
+//! (recorded intervals kept at recorded speed; read time at maximum speed) so latency figures
+//! stay meaningful; the set index is the recorded frame number, which matches `truth.csv`.
+
+use std::collections::BTreeMap;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use super::pgm;
+use super::{FrameSet, FrameSource, SourceError, SourceStats};
+use crate::clock;
+
+/// Playback speed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ReplaySpeed {
+    /// Keep the recorded frame intervals (needs timestamps.csv; otherwise `fps`).
+    #[default]
+    Recorded,
+    /// As fast as the loop consumes frames.
+    Max,
+}
+
+/// `[source.replay]` section.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReplayConfig {
+    pub dir: PathBuf,
+    #[serde(default)]
+    pub speed: ReplaySpeed,
+    /// Start again at the first frame after the last one instead of ending.
+    #[serde(default)]
+    pub repeat: bool,
+    /// Frame rate used at recorded speed when the directory has no timestamps.csv.
+    #[serde(default)]
+    pub fps: Option<f64>,
+}
+
+struct RecordedSet {
+    frame: u64,
+    /// Per-camera (path, recorded timestamp).
+    files: Vec<(PathBuf, u64)>,
+}
+
+/// A [`FrameSource`] over a recorded directory.
+pub struct ReplaySource {
+    cfg: ReplayConfig,
+    sets: Vec<RecordedSet>,
+    cameras: usize,
+    next: usize,
+    buf: Vec<u8>,
+    stats: SourceStats,
+    /// Recorded timestamps that were dropped at recording time (frames skipped on replay).
+    skipped_frames: u64,
+    /// (monotonic ns at the first delivered set, its recorded timestamp)
+    epoch: Option<(u64, u64)>,
+    template: FrameSet,
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SourceError + '_ {
+    move |source| SourceError::Io { path: path.display().to_string(), source }
+}
+
+fn frame_path(dir: &Path, camera: usize, frame: u64) -> PathBuf {
+    dir.join(format!("cam{camera}")).join(format!("{frame:06}.pgm"))
+}
+
+impl ReplaySource {
+    pub fn open(cfg: &ReplayConfig) -> Result<Self, SourceError> {
+        let dir = &cfg.dir;
+        let mut cameras = 0;
+        while dir.join(format!("cam{cameras}")).is_dir() {
+            cameras += 1;
+        }
+        if cameras == 0 {
+            return Err(SourceError::Config(format!(
+                "replay directory {} has no cam0/ subdirectory",
+                dir.display()
+            )));
+        }
+        let ts_path = dir.join("timestamps.csv");
+        let mut skipped_frames = 0;
+        let sets = if ts_path.exists() {
+            let text = std::fs::read_to_string(&ts_path).map_err(io(&ts_path))?;
+            // frame -> per-camera (timestamp, dropped)
+            let mut by_frame: BTreeMap<u64, Vec<Option<(u64, bool)>>> = BTreeMap::new();
+            for (lineno, line) in text.lines().enumerate() {
+                let line = line.trim();
+                if line.is_empty() || line.starts_with("frame") || line.starts_with('#') {
+                    continue;
+                }
+                let bad = || {
+                    SourceError::Config(format!(
+                        "{}:{}: expected `frame,camera,timestamp_ns,dropped`, got `{line}`",
+                        ts_path.display(),
+                        lineno + 1
+                    ))
+                };
+                let mut it = line.split(',').map(str::trim);
+                let mut num = || it.next().and_then(|s| s.parse::<u64>().ok()).ok_or_else(bad);
+                let (frame, camera, ts, dropped) = (num()?, num()?, num()?, num()?);
+                let camera = usize::try_from(camera).map_err(|_| bad())?;
+                if camera >= cameras {
+                    return Err(bad());
+                }
+                by_frame.entry(frame).or_insert_with(|| vec![None; cameras])[camera] = Some((ts, dropped != 0));
+            }
+            let mut sets = Vec::with_capacity(by_frame.len());
+            for (frame, cams) in by_frame {
+                if cams.iter().any(|c| c.is_none_or(|(_, dropped)| dropped)) {
+                    skipped_frames += 1;
+                    continue;
+                }
+                let files = cams
+                    .iter()
+                    .enumerate()
+                    .map(|(c, v)| (frame_path(dir, c, frame), v.map_or(0, |(ts, _)| ts)))
+                    .collect();
+                sets.push(RecordedSet { frame, files });
+            }
+            sets
+        } else {
+            // No timestamps: every frame number present in cam0, spaced by `fps`.
+            let cam0 = dir.join("cam0");
+            let mut frames: Vec<u64> = std::fs::read_dir(&cam0)
+                .map_err(io(&cam0))?
+                .filter_map(|e| e.ok())
+                .filter_map(|e| e.file_name().to_str()?.strip_suffix(".pgm")?.parse().ok())
+                .collect();
+            frames.sort_unstable();
+            let period_ns = cfg.fps.filter(|f| *f > 0.0).map_or(0, |f| (1e9 / f) as u64);
+            frames
+                .into_iter()
+                .map(|frame| RecordedSet {
+                    frame,
+                    files: (0..cameras).map(|c| (frame_path(dir, c, frame), frame * period_ns)).collect(),
+                })
+                .collect()
+        };
+        let first = sets.first().ok_or_else(|| {
+            SourceError::Config(format!("replay directory {} holds no complete frame set", dir.display()))
+        })?;
+        let mut buf = Vec::new();
+        let mut frames = Vec::with_capacity(cameras);
+        for (path, _) in &first.files {
+            read_file(path, &mut buf)?;
+            let h = pgm::parse_header(&buf, &path.display().to_string())?;
+            frames.push(pgm::frame_for(&h));
+        }
+        let template = FrameSet { index: 0, frames, pairing_error_ns: 0 };
+        Ok(Self { cfg: cfg.clone(), sets, cameras, next: 0, buf, stats: SourceStats::default(), skipped_frames, epoch: None, template })
+    }
+
+    /// Number of complete recorded sets.
+    pub fn len(&self) -> usize {
+        self.sets.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.sets.is_empty()
+    }
+}
+
+fn read_file(path: &Path, buf: &mut Vec<u8>) -> Result<(), SourceError> {
+    buf.clear();
+    std::fs::File::open(path).and_then(|mut f| f.read_to_end(buf)).map_err(io(path))?;
+    Ok(())
+}
+
+impl FrameSource for ReplaySource {
+    fn camera_count(&self) -> usize {
+        self.cameras
+    }
+
+    fn allocate_set(&self) -> FrameSet {
+        self.template.clone()
+    }
+
+    fn next_set(&mut self, out: &mut FrameSet) -> Result<(), SourceError> {
+        if self.next >= self.sets.len() {
+            if !self.cfg.repeat {
+                return Err(SourceError::EndOfStream);
+            }
+            self.next = 0;
+            self.epoch = None;
+        }
+        let set = &self.sets[self.next];
+        if out.frames.len() != self.cameras {
+            return Err(SourceError::Config(format!(
+                "frame set has {} frames, source has {} cameras",
+                out.frames.len(),
+                self.cameras
+            )));
+        }
+        let rec_ts = set.files.iter().map(|(_, ts)| *ts).max().unwrap_or(0);
+        let now = clock::monotonic_ns();
+        let (epoch_mono, epoch_rec) = *self.epoch.get_or_insert((now, rec_ts));
+        let mapped = |ts: u64| epoch_mono.saturating_add(ts.saturating_sub(epoch_rec));
+        if self.cfg.speed == ReplaySpeed::Recorded {
+            clock::sleep_until_ns(mapped(rec_ts));
+        }
+        let (mut min_ts, mut max_ts) = (u64::MAX, 0);
+        for (camera, ((path, ts), frame)) in set.files.iter().zip(out.frames.iter_mut()).enumerate() {
+            read_file(path, &mut self.buf)?;
+            // Paths are short, so formatting the name for an error only happens on failure.
+            pgm::decode_into(&self.buf, path.to_str().unwrap_or("frame"), frame).map_err(|e| {
+                SourceError::CameraLost { camera, device: path.display().to_string(), reason: e.to_string() }
+            })?;
+            frame.timestamp_ns = match self.cfg.speed {
+                ReplaySpeed::Recorded => mapped(*ts),
+                ReplaySpeed::Max => clock::monotonic_ns(),
+            };
+            frame.sequence = set.frame;
+            min_ts = min_ts.min(*ts);
+            max_ts = max_ts.max(*ts);
+        }
+        out.index = set.frame;
+        out.pairing_error_ns = max_ts.saturating_sub(min_ts);
+        self.next += 1;
+        self.stats.sets_delivered += 1;
+        self.stats.sets_dropped = self.skipped_frames;
+        Ok(())
+    }
+
+    fn stats(&self) -> SourceStats {
+        self.stats.clone()
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "replay of {} ({} cameras, {} sets, {:?} speed{})",
+            self.cfg.dir.display(),
+            self.cameras,
+            self.sets.len(),
+            self.cfg.speed,
+            if self.cfg.repeat { ", repeating" } else { "" }
+        )
+    }
+}

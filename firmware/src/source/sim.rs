@@ -1,0 +1,309 @@
+//! Simulated cameras: the simulator's renderer running live at a chosen frame rate.
+//!
+//! Frame `k` is due at `epoch + k / fps` on CLOCK_MONOTONIC; the source sleeps until then,
+//! renders every camera into the caller's buffers and stamps the frames with that capture
+//! instant (the simulated cameras are hardware-synchronized, so the pairing error is the
+//! scenario's own timestamp spread: zero). When the consumer falls behind by more than one
+//! period the source skips to the current frame and counts the skipped sets as dropped, as a
+//! real camera overwriting its buffers would. The set index is the scenario frame number, so
+//! `Scenario::truth(index)` is the ground truth of every published position.
+
+use nalgebra::Vector3;
+use serde::Deserialize;
+
+use irtrack_sim::{BitDepth, RigPreset, Scenario, SimConfig, Trajectory};
+
+use super::{Frame, FrameSet, FrameSource, Pixels, SourceError, SourceStats};
+use crate::clock;
+use crate::error::{FirmwareError, Result};
+
+/// Rig geometry of the simulated source.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum SimRig {
+    /// Two cameras whose axes cross at `distance_mm` at `angle_deg` (90° by default).
+    #[default]
+    Convergent,
+    /// Two parallel cameras `baseline_mm` apart.
+    Parallel,
+}
+
+/// `[source.sim]`
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimSourceConfig {
+    #[serde(default)]
+    pub rig: SimRig,
+    /// Working distance: axis crossing (convergent) or depth of the trajectory (parallel), mm.
+    #[serde(default = "d_distance")]
+    pub distance_mm: f64,
+    #[serde(default = "d_angle")]
+    pub angle_deg: f64,
+    #[serde(default = "d_baseline")]
+    pub baseline_mm: f64,
+    /// The marker circles the workspace centre with this radius, mm.
+    #[serde(default = "d_radius")]
+    pub radius_mm: f64,
+    /// Time for one circle, s.
+    #[serde(default = "d_period")]
+    pub period_s: f64,
+    #[serde(default = "d_fps")]
+    pub fps: f64,
+    /// `false`: deliver frames as fast as the loop takes them (tests, benchmarks).
+    #[serde(default = "d_true")]
+    pub paced: bool,
+    /// 8 or 10.
+    #[serde(default = "d_bits")]
+    pub bit_depth: u8,
+    #[serde(default = "d_seed")]
+    pub seed: u64,
+    /// Probability that a camera drops a frame.
+    #[serde(default)]
+    pub drop_rate: f64,
+    /// Add a lamp and a specular streak to camera 1.
+    #[serde(default)]
+    pub glare: bool,
+    /// End the stream after this many frames (tests); endless by default.
+    #[serde(default)]
+    pub frames: Option<u64>,
+}
+
+fn d_distance() -> f64 {
+    600.0
+}
+fn d_angle() -> f64 {
+    90.0
+}
+fn d_baseline() -> f64 {
+    irtrack_sim::rig::TABLE_I_BASELINE_MM
+}
+fn d_radius() -> f64 {
+    40.0
+}
+fn d_period() -> f64 {
+    4.0
+}
+fn d_fps() -> f64 {
+    60.0
+}
+fn d_true() -> bool {
+    true
+}
+fn d_bits() -> u8 {
+    8
+}
+fn d_seed() -> u64 {
+    1
+}
+
+impl Default for SimSourceConfig {
+    fn default() -> Self {
+        Self {
+            rig: SimRig::default(),
+            distance_mm: d_distance(),
+            angle_deg: d_angle(),
+            baseline_mm: d_baseline(),
+            radius_mm: d_radius(),
+            period_s: d_period(),
+            fps: d_fps(),
+            paced: true,
+            bit_depth: d_bits(),
+            seed: d_seed(),
+            drop_rate: 0.0,
+            glare: false,
+            frames: None,
+        }
+    }
+}
+
+impl SimSourceConfig {
+    pub fn validate(&self) -> Result<()> {
+        let bad = |reason: String| Err(FirmwareError::Config { reason });
+        if !(self.fps.is_finite() && self.fps > 0.0) {
+            return bad(format!("source.sim.fps must be > 0, got {}", self.fps));
+        }
+        if !matches!(self.bit_depth, 8 | 10) {
+            return bad(format!("source.sim.bit_depth must be 8 or 10, got {}", self.bit_depth));
+        }
+        if !(0.0..1.0).contains(&self.drop_rate) {
+            return bad(format!("source.sim.drop_rate must be in [0, 1), got {}", self.drop_rate));
+        }
+        for (key, v) in [
+            ("distance_mm", self.distance_mm),
+            ("angle_deg", self.angle_deg),
+            ("baseline_mm", self.baseline_mm),
+            ("period_s", self.period_s),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(format!("source.sim.{key} must be > 0, got {v}"));
+            }
+        }
+        if !(self.radius_mm.is_finite() && self.radius_mm >= 0.0) {
+            return bad(format!("source.sim.radius_mm must be >= 0, got {}", self.radius_mm));
+        }
+        Ok(())
+    }
+
+    /// The simulator configuration this section describes.
+    pub fn scenario_config(&self) -> SimConfig {
+        let preset = match self.rig {
+            SimRig::Convergent => RigPreset::Convergent { distance_mm: self.distance_mm, angle_deg: self.angle_deg },
+            SimRig::Parallel => RigPreset::Parallel { baseline_mm: self.baseline_mm },
+        };
+        let mut cfg = SimConfig::preset(preset, self.distance_mm, self.radius_mm);
+        if let Trajectory::Circle { centre_mm, radius_mm, normal, .. } = cfg.trajectory {
+            cfg.trajectory = Trajectory::Circle { centre_mm, radius_mm, normal, period_s: self.period_s };
+        } else {
+            let centre = cfg.rig.workspace_centre_mm(self.distance_mm);
+            cfg.trajectory = Trajectory::Circle {
+                centre_mm: centre,
+                radius_mm: self.radius_mm,
+                normal: Vector3::new(0.3, 1.0, 0.4),
+                period_s: self.period_s,
+            };
+        }
+        cfg.fps = self.fps;
+        cfg.seed = self.seed;
+        cfg.drop_rate = self.drop_rate;
+        cfg.bit_depth = if self.bit_depth == 10 { BitDepth::Ten } else { BitDepth::Eight };
+        if self.glare {
+            cfg.add_glare();
+        }
+        cfg
+    }
+}
+
+/// A [`FrameSource`] rendering a [`Scenario`] live.
+pub struct SimSource {
+    cfg: SimSourceConfig,
+    scenario: Scenario,
+    period_ns: u64,
+    epoch_ns: Option<u64>,
+    next_index: u64,
+    stats: SourceStats,
+}
+
+impl SimSource {
+    pub fn new(cfg: &SimSourceConfig) -> std::result::Result<Self, SourceError> {
+        let scenario = Scenario::new(cfg.scenario_config()).map_err(|e| SourceError::Config(e.to_string()))?;
+        Ok(Self::from_scenario(scenario, cfg))
+    }
+
+    /// Runs an existing scenario (tests keep a copy of the same scenario for ground truth).
+    pub fn from_scenario(scenario: Scenario, cfg: &SimSourceConfig) -> Self {
+        let fps = scenario.config().fps;
+        Self {
+            cfg: SimSourceConfig { fps, ..cfg.clone() },
+            scenario,
+            period_ns: (1e9 / fps).round() as u64,
+            epoch_ns: None,
+            next_index: 0,
+            stats: SourceStats::default(),
+        }
+    }
+
+    pub fn scenario(&self) -> &Scenario {
+        &self.scenario
+    }
+}
+
+impl FrameSource for SimSource {
+    fn camera_count(&self) -> usize {
+        self.scenario.camera_count()
+    }
+
+    fn allocate_set(&self) -> FrameSet {
+        let (w, h) = self.scenario.image_size();
+        let n = w as usize * h as usize;
+        let ten = self.cfg.bit_depth == 10;
+        let frames = (0..self.camera_count())
+            .map(|_| Frame {
+                width_px: w,
+                height_px: h,
+                stride_px: w,
+                bit_depth: if ten { 10 } else { 8 },
+                pixels: if ten { Pixels::U16(vec![0; n]) } else { Pixels::U8(vec![0; n]) },
+                timestamp_ns: 0,
+                sequence: 0,
+            })
+            .collect();
+        FrameSet { index: 0, frames, pairing_error_ns: 0 }
+    }
+
+    fn next_set(&mut self, out: &mut FrameSet) -> std::result::Result<(), SourceError> {
+        loop {
+            let index = self.next_index;
+            if self.cfg.frames.is_some_and(|n| index >= n) {
+                return Err(SourceError::EndOfStream);
+            }
+            let capture_ns = if self.cfg.paced {
+                let epoch = *self.epoch_ns.get_or_insert_with(clock::monotonic_ns);
+                let due = epoch + self.scenario.timestamp_ns(index);
+                let now = clock::monotonic_ns();
+                if now > due + self.period_ns {
+                    // Behind by more than a frame: the camera has moved on; skip to its frame.
+                    let current = (now - epoch) / self.period_ns;
+                    self.stats.sets_dropped += current - index;
+                    self.next_index = current;
+                    continue;
+                }
+                clock::sleep_until_ns(due);
+                due
+            } else {
+                clock::monotonic_ns()
+            };
+            self.next_index = index + 1;
+            if out.frames.len() != self.camera_count() {
+                return Err(SourceError::Config(format!(
+                    "frame set has {} frames, simulator has {} cameras",
+                    out.frames.len(),
+                    self.camera_count()
+                )));
+            }
+            let mut dropped = 0usize;
+            let (mut min_ts, mut max_ts) = (u64::MAX, 0u64);
+            for (camera, frame) in out.frames.iter_mut().enumerate() {
+                let info = match &mut frame.pixels {
+                    Pixels::U8(px) => self.scenario.render_u8(index, camera, px),
+                    Pixels::U16(px) => self.scenario.render_u16(index, camera, px),
+                }
+                .map_err(|e| SourceError::CameraLost { camera, device: "simulator".into(), reason: e.to_string() })?;
+                if info.dropped {
+                    dropped += 1;
+                }
+                min_ts = min_ts.min(info.timestamp_ns);
+                max_ts = max_ts.max(info.timestamp_ns);
+                frame.timestamp_ns = capture_ns;
+                frame.sequence = index;
+            }
+            if dropped > 0 {
+                // An incomplete set cannot be triangulated; the other cameras' frames are unpaired.
+                self.stats.sets_dropped += 1;
+                self.stats.unpaired_dropped += (out.frames.len() - dropped) as u64;
+                continue;
+            }
+            out.index = index;
+            out.pairing_error_ns = max_ts - min_ts;
+            self.stats.sets_delivered += 1;
+            return Ok(());
+        }
+    }
+
+    fn stats(&self) -> SourceStats {
+        self.stats.clone()
+    }
+
+    fn describe(&self) -> String {
+        let (w, h) = self.scenario.image_size();
+        format!(
+            "simulated {:?} rig, {} cameras {}x{} {}-bit at {} fps{}",
+            self.cfg.rig,
+            self.camera_count(),
+            w,
+            h,
+            self.cfg.bit_depth,
+            self.cfg.fps,
+            if self.cfg.paced { "" } else { " (unpaced)" }
+        )
+    }
+}

@@ -1,0 +1,480 @@
+//! Shared run-time status: written by the processing loop (atomics only, so it never blocks or
+//! allocates), the LED driver and the services; read by the status endpoint and the watchdog.
+
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU64, Ordering};
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::leds::indication::{Fault, Indication, RobotIndication, TrackIndication};
+use crate::metrics::{LatencyHistogram, LatencySummary};
+
+const R: Ordering = Ordering::Relaxed;
+
+/// Per-stage latency histograms of the processing loop.
+#[derive(Debug, Default)]
+pub struct StageHistograms {
+    /// Blob detection, all cameras of one set.
+    pub detect: LatencyHistogram,
+    /// Centroids → undistort → triangulate.
+    pub solve: LatencyHistogram,
+    /// Quality gate, record building and publishing to the slot.
+    pub publish: LatencyHistogram,
+    /// Whole processing of one set (compared with the deadline).
+    pub process: LatencyHistogram,
+    /// Capture timestamp → published (includes queueing in the source).
+    pub end_to_end: LatencyHistogram,
+}
+
+impl StageHistograms {
+    pub fn stages(&self) -> [(&'static str, &LatencyHistogram); 5] {
+        [
+            ("detect", &self.detect),
+            ("solve", &self.solve),
+            ("publish", &self.publish),
+            ("process", &self.process),
+            ("end_to_end", &self.end_to_end),
+        ]
+    }
+}
+
+/// Counters of one camera.
+#[derive(Debug, Default)]
+pub struct CameraCounters {
+    pub frames: AtomicU64,
+    /// Exponentially averaged frame interval (ns, from capture timestamps).
+    pub interval_ewma_ns: AtomicU64,
+    pub last_timestamp_ns: AtomicU64,
+    /// Blobs found in the last processed frame.
+    pub blobs_last: AtomicU64,
+    pub width_px: AtomicU64,
+    pub height_px: AtomicU64,
+}
+
+/// Information about the active parameter set (changes rarely; behind a mutex).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct ParamsInfo {
+    pub loaded: bool,
+    pub rig_id: Option<String>,
+    pub created_unix_s: Option<u64>,
+    /// Where the active set came from: "state_dir", "rollback", "pushed", "simulator".
+    pub origin: Option<String>,
+    pub swaps: u64,
+    pub rejected: u64,
+    pub last_rejection: Option<String>,
+}
+
+/// All shared counters and state.
+#[derive(Debug)]
+pub struct SharedStatus {
+    started: Instant,
+    pub source_description: String,
+    pub led_backend: String,
+    pub cameras: Vec<CameraCounters>,
+
+    // Processing loop.
+    pub loop_iterations: AtomicU64,
+    pub sets_processed: AtomicU64,
+    pub published: AtomicU64,
+    pub tracked: AtomicU64,
+    pub lost: AtomicU64,
+    pub gated: AtomicU64,
+    pub deadline_ns: AtomicU64,
+    pub deadline_misses: AtomicU64,
+    pub source_errors: AtomicU64,
+    pub pipeline_errors: AtomicU64,
+    pub stages: StageHistograms,
+    pub last_gap_mm_bits: AtomicU64,
+
+    // Source counters (copied from `FrameSource::stats`).
+    pub sets_delivered: AtomicU64,
+    pub sets_dropped: AtomicU64,
+    pub unpaired_dropped: AtomicU64,
+    pub reconnects: AtomicU64,
+    pub pairing_error_last_ns: AtomicU64,
+    pub pairing_error_max_ns: AtomicU64,
+
+    // Health inputs for the LEDs.
+    pub params_loaded: AtomicBool,
+    pub camera_lost: AtomicBool,
+    track: AtomicU8,
+    robot: AtomicU8,
+    pub deadline_fault: AtomicBool,
+    pub alive: AtomicBool,
+
+    // LED driver output.
+    led_levels: AtomicU8,
+    indication: Mutex<Indication>,
+
+    // Outputs.
+    pub stream_clients: AtomicU64,
+    pub stream_clients_total: AtomicU64,
+    pub stream_dropped_slow: AtomicU64,
+    pub stream_records_sent: AtomicU64,
+    pub slot_overwrites: AtomicU64,
+
+    pub params: Mutex<ParamsInfo>,
+    pub realtime: Mutex<Vec<String>>,
+}
+
+fn track_to_u8(t: TrackIndication) -> u8 {
+    match t {
+        TrackIndication::None => 0,
+        TrackIndication::Partial => 1,
+        TrackIndication::All => 2,
+    }
+}
+
+fn robot_to_u8(r: RobotIndication) -> u8 {
+    match r {
+        RobotIndication::Disconnected => 0,
+        RobotIndication::Connected => 1,
+        RobotIndication::Holding => 2,
+    }
+}
+
+impl SharedStatus {
+    pub fn new(camera_count: usize, source_description: String, led_backend: String) -> Self {
+        Self {
+            started: Instant::now(),
+            source_description,
+            led_backend,
+            cameras: (0..camera_count).map(|_| CameraCounters::default()).collect(),
+            loop_iterations: AtomicU64::new(0),
+            sets_processed: AtomicU64::new(0),
+            published: AtomicU64::new(0),
+            tracked: AtomicU64::new(0),
+            lost: AtomicU64::new(0),
+            gated: AtomicU64::new(0),
+            deadline_ns: AtomicU64::new(0),
+            deadline_misses: AtomicU64::new(0),
+            source_errors: AtomicU64::new(0),
+            pipeline_errors: AtomicU64::new(0),
+            stages: StageHistograms::default(),
+            last_gap_mm_bits: AtomicU64::new(f64::NAN.to_bits()),
+            sets_delivered: AtomicU64::new(0),
+            sets_dropped: AtomicU64::new(0),
+            unpaired_dropped: AtomicU64::new(0),
+            reconnects: AtomicU64::new(0),
+            pairing_error_last_ns: AtomicU64::new(0),
+            pairing_error_max_ns: AtomicU64::new(0),
+            params_loaded: AtomicBool::new(false),
+            camera_lost: AtomicBool::new(false),
+            track: AtomicU8::new(0),
+            robot: AtomicU8::new(0),
+            deadline_fault: AtomicBool::new(false),
+            alive: AtomicBool::new(false),
+            led_levels: AtomicU8::new(0),
+            indication: Mutex::new(Indication::STARTING),
+            stream_clients: AtomicU64::new(0),
+            stream_clients_total: AtomicU64::new(0),
+            stream_dropped_slow: AtomicU64::new(0),
+            stream_records_sent: AtomicU64::new(0),
+            slot_overwrites: AtomicU64::new(0),
+            params: Mutex::new(ParamsInfo::default()),
+            realtime: Mutex::new(Vec::new()),
+        }
+    }
+
+    pub fn uptime_s(&self) -> f64 {
+        self.started.elapsed().as_secs_f64()
+    }
+
+    pub fn set_track(&self, t: TrackIndication) {
+        self.track.store(track_to_u8(t), R);
+    }
+
+    pub fn track(&self) -> TrackIndication {
+        match self.track.load(R) {
+            2 => TrackIndication::All,
+            1 => TrackIndication::Partial,
+            _ => TrackIndication::None,
+        }
+    }
+
+    /// Robot LED state; called by the robot link client.
+    pub fn set_robot(&self, r: RobotIndication) {
+        self.robot.store(robot_to_u8(r), R);
+    }
+
+    pub fn robot(&self) -> RobotIndication {
+        match self.robot.load(R) {
+            1 => RobotIndication::Connected,
+            2 => RobotIndication::Holding,
+            _ => RobotIndication::Disconnected,
+        }
+    }
+
+    /// All active faults, most important first.
+    pub fn active_faults(&self) -> Vec<Fault> {
+        let mut f = Vec::new();
+        if self.camera_lost.load(R) {
+            f.push(Fault::CameraLost);
+        }
+        if !self.params_loaded.load(R) {
+            f.push(Fault::NoParams);
+        }
+        if self.deadline_fault.load(R) {
+            f.push(Fault::DeadlineMisses);
+        }
+        f
+    }
+
+    /// The fault the LED shows (no allocation; called by the LED driver every tick).
+    pub fn top_fault(&self) -> Option<Fault> {
+        if self.camera_lost.load(R) {
+            Some(Fault::CameraLost)
+        } else if !self.params_loaded.load(R) {
+            Some(Fault::NoParams)
+        } else if self.deadline_fault.load(R) {
+            Some(Fault::DeadlineMisses)
+        } else {
+            None
+        }
+    }
+
+    pub(crate) fn set_led_output(&self, ind: Indication, levels: [bool; 4]) {
+        let bits = levels.iter().enumerate().fold(0u8, |acc, (i, &on)| acc | (u8::from(on) << i));
+        self.led_levels.store(bits, R);
+        if let Ok(mut g) = self.indication.lock() {
+            *g = ind;
+        }
+    }
+
+    pub fn led_levels(&self) -> [bool; 4] {
+        let bits = self.led_levels.load(R);
+        [bits & 1 != 0, bits & 2 != 0, bits & 4 != 0, bits & 8 != 0]
+    }
+
+    pub fn indication(&self) -> Indication {
+        self.indication.lock().map(|g| *g).unwrap_or(Indication::STARTING)
+    }
+
+    pub fn params_info(&self) -> ParamsInfo {
+        self.params.lock().map(|g| g.clone()).unwrap_or_default()
+    }
+
+    pub fn update_params_info(&self, f: impl FnOnce(&mut ParamsInfo)) {
+        if let Ok(mut g) = self.params.lock() {
+            f(&mut g);
+        }
+    }
+
+    /// Per-camera frame rate from the averaged capture interval.
+    pub fn camera_fps(&self, camera: usize) -> Option<f64> {
+        let c = self.cameras.get(camera)?;
+        let ns = f64::from_bits(c.interval_ewma_ns.load(R));
+        (ns.is_finite() && ns > 0.0).then(|| 1e9 / ns)
+    }
+
+    /// Builds the JSON status document.
+    pub fn report(&self) -> StatusReport {
+        let latency_us = self.stages.stages().map(|(name, h)| (name, h.snapshot().summary()));
+        StatusReport {
+            service: "irtrackd",
+            versions: Versions {
+                irtrackd: env!("CARGO_PKG_VERSION"),
+            },
+            uptime_s: self.uptime_s(),
+            params: self.params_info(),
+            source: SourceReport {
+                description: self.source_description.clone(),
+                sets_delivered: self.sets_delivered.load(R),
+                sets_dropped: self.sets_dropped.load(R),
+                unpaired_dropped: self.unpaired_dropped.load(R),
+                reconnects: self.reconnects.load(R),
+                pairing_error_last_us: self.pairing_error_last_ns.load(R) as f64 / 1e3,
+                pairing_error_max_us: self.pairing_error_max_ns.load(R) as f64 / 1e3,
+                cameras: self
+                    .cameras
+                    .iter()
+                    .enumerate()
+                    .map(|(i, c)| CameraReport {
+                        index: i,
+                        frames: c.frames.load(R),
+                        fps: self.camera_fps(i),
+                        width_px: c.width_px.load(R),
+                        height_px: c.height_px.load(R),
+                        blobs_last: c.blobs_last.load(R),
+                    })
+                    .collect(),
+            },
+            processing: LoopReport {
+                iterations: self.loop_iterations.load(R),
+                sets_processed: self.sets_processed.load(R),
+                published: self.published.load(R),
+                tracked: self.tracked.load(R),
+                lost: self.lost.load(R),
+                gated: self.gated.load(R),
+                last_gap_mm: Some(f64::from_bits(self.last_gap_mm_bits.load(R))).filter(|g| g.is_finite()),
+                deadline_us: self.deadline_ns.load(R) as f64 / 1e3,
+                deadline_misses: self.deadline_misses.load(R),
+                source_errors: self.source_errors.load(R),
+                pipeline_errors: self.pipeline_errors.load(R),
+                latency_us: latency_us.into_iter().collect(),
+                realtime: self.realtime.lock().map(|g| g.clone()).unwrap_or_default(),
+            },
+            stream: StreamReport {
+                clients: self.stream_clients.load(R),
+                clients_total: self.stream_clients_total.load(R),
+                dropped_slow: self.stream_dropped_slow.load(R),
+                records_sent: self.stream_records_sent.load(R),
+                slot_overwrites: self.slot_overwrites.load(R),
+            },
+            leds: LedReport {
+                backend: self.led_backend.clone(),
+                indication: self.indication(),
+                on: {
+                    let l = self.led_levels();
+                    LedLevels { run: l[0], track: l[1], robot: l[2], fault: l[3] }
+                },
+            },
+            faults: self.active_faults(),
+        }
+    }
+
+    /// Prometheus text exposition (version 0.0.4).
+    pub fn prometheus(&self) -> String {
+        use std::fmt::Write as _;
+        let mut s = String::with_capacity(8 * 1024);
+        let info = self.params_info();
+        let counters: [(&str, &str, u64); 14] = [
+            ("irtrackd_sets_processed_total", "frame sets processed", self.sets_processed.load(R)),
+            ("irtrackd_positions_published_total", "positions published", self.published.load(R)),
+            ("irtrackd_tracked_total", "sets with a gated 3-D position", self.tracked.load(R)),
+            ("irtrackd_lost_total", "sets without a position", self.lost.load(R)),
+            ("irtrackd_gated_total", "positions rejected by the quality gate", self.gated.load(R)),
+            ("irtrackd_deadline_misses_total", "sets processed slower than the frame period", self.deadline_misses.load(R)),
+            ("irtrackd_source_errors_total", "frame source errors", self.source_errors.load(R)),
+            ("irtrackd_sets_dropped_total", "frame sets dropped by the source", self.sets_dropped.load(R)),
+            ("irtrackd_unpaired_dropped_total", "frames without a partner", self.unpaired_dropped.load(R)),
+            ("irtrackd_camera_reconnects_total", "camera reopen count", self.reconnects.load(R)),
+            ("irtrackd_stream_dropped_slow_total", "stream clients dropped as too slow", self.stream_dropped_slow.load(R)),
+            ("irtrackd_stream_records_sent_total", "records queued to stream clients", self.stream_records_sent.load(R)),
+            ("irtrackd_slot_overwrites_total", "results replaced before the stream saw them", self.slot_overwrites.load(R)),
+            ("irtrackd_params_rejected_total", "parameter pushes rejected", info.rejected),
+        ];
+        for (name, help, v) in counters {
+            let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+        }
+        let _ = writeln!(
+            s,
+            "# HELP irtrackd_info build and parameter set\n# TYPE irtrackd_info gauge\nirtrackd_info{{version=\"{}\",rig_id=\"{}\"}} 1",
+            env!("CARGO_PKG_VERSION"),
+            info.rig_id.as_deref().unwrap_or("").replace(['"', '\\', '\n'], "_")
+        );
+        let _ = writeln!(s, "# TYPE irtrackd_params_loaded gauge\nirtrackd_params_loaded {}", u8::from(info.loaded));
+        let _ = writeln!(s, "# TYPE irtrackd_stream_clients gauge\nirtrackd_stream_clients {}", self.stream_clients.load(R));
+        let _ = writeln!(
+            s,
+            "# TYPE irtrackd_pairing_error_seconds gauge\nirtrackd_pairing_error_seconds {}",
+            self.pairing_error_last_ns.load(R) as f64 / 1e9
+        );
+        let _ = writeln!(s, "# TYPE irtrackd_camera_fps gauge");
+        for i in 0..self.cameras.len() {
+            let _ = writeln!(s, "irtrackd_camera_fps{{camera=\"{i}\"}} {}", self.camera_fps(i).unwrap_or(0.0));
+        }
+        let _ = writeln!(s, "# TYPE irtrackd_camera_frames_total counter");
+        for (i, c) in self.cameras.iter().enumerate() {
+            let _ = writeln!(s, "irtrackd_camera_frames_total{{camera=\"{i}\"}} {}", c.frames.load(R));
+        }
+        let _ = writeln!(s, "# TYPE irtrackd_led_on gauge");
+        for (led, on) in ["run", "track", "robot", "fault"].iter().zip(self.led_levels()) {
+            let _ = writeln!(s, "irtrackd_led_on{{led=\"{led}\"}} {}", u8::from(on));
+        }
+        let _ = writeln!(s, "# TYPE irtrackd_fault gauge");
+        let faults = self.active_faults();
+        for (f, name) in [(Fault::CameraLost, "camera_lost"), (Fault::NoParams, "no_params"), (Fault::DeadlineMisses, "deadline_misses")] {
+            let _ = writeln!(s, "irtrackd_fault{{fault=\"{name}\"}} {}", u8::from(faults.contains(&f)));
+        }
+        let _ = writeln!(s, "# HELP irtrackd_stage_latency_seconds processing stage latency\n# TYPE irtrackd_stage_latency_seconds histogram");
+        for (name, h) in self.stages.stages() {
+            h.snapshot().write_prometheus(&mut s, "irtrackd_stage_latency_seconds", &format!("stage=\"{name}\""));
+        }
+        s
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Versions {
+    pub irtrackd: &'static str,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct CameraReport {
+    pub index: usize,
+    pub frames: u64,
+    pub fps: Option<f64>,
+    pub width_px: u64,
+    pub height_px: u64,
+    pub blobs_last: u64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct SourceReport {
+    pub description: String,
+    pub sets_delivered: u64,
+    pub sets_dropped: u64,
+    pub unpaired_dropped: u64,
+    pub reconnects: u64,
+    pub pairing_error_last_us: f64,
+    pub pairing_error_max_us: f64,
+    pub cameras: Vec<CameraReport>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct LoopReport {
+    pub iterations: u64,
+    pub sets_processed: u64,
+    pub published: u64,
+    pub tracked: u64,
+    pub lost: u64,
+    pub gated: u64,
+    pub last_gap_mm: Option<f64>,
+    pub deadline_us: f64,
+    pub deadline_misses: u64,
+    pub source_errors: u64,
+    pub pipeline_errors: u64,
+    pub latency_us: std::collections::BTreeMap<&'static str, LatencySummary>,
+    /// Real-time settings applied or refused (one line each).
+    pub realtime: Vec<String>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct StreamReport {
+    pub clients: u64,
+    pub clients_total: u64,
+    pub dropped_slow: u64,
+    pub records_sent: u64,
+    pub slot_overwrites: u64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct LedLevels {
+    pub run: bool,
+    pub track: bool,
+    pub robot: bool,
+    pub fault: bool,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct LedReport {
+    pub backend: String,
+    pub indication: Indication,
+    pub on: LedLevels,
+}
+
+/// The `/status` JSON document.
+#[derive(Debug, Clone, Serialize)]
+pub struct StatusReport {
+    pub service: &'static str,
+    pub versions: Versions,
+    pub uptime_s: f64,
+    pub params: ParamsInfo,
+    pub source: SourceReport,
+    pub processing: LoopReport,
+    pub stream: StreamReport,
+    pub leds: LedReport,
+    pub faults: Vec<Fault>,
+}

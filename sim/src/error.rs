@@ -1,0 +1,33 @@
+//! The crate's one error type.
+
+use thiserror::Error;
+
+/// Errors of irtrack-sim. Variants name the offending input so a caller can fix it.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum SimError {
+    /// A configuration value is out of range or inconsistent.
+    #[error("invalid simulator configuration: {field}: {reason}")]
+    Config { field: &'static str, reason: String },
+    /// Camera index past the rig's camera count.
+    #[error("camera {camera} does not exist (rig has {count} cameras)")]
+    NoSuchCamera { camera: usize, count: usize },
+    /// The caller's output buffer does not match the image size.
+    #[error("output buffer has {have} pixels, frame needs {needed}")]
+    BufferSize { needed: usize, have: usize },
+    /// A rendering window (blob plus motion-blur streak) exceeds the preallocated scratch.
+    #[error("marker footprint {width_px}x{height_px} px exceeds the {max_px} px render window (too much motion blur or too large a blob)")]
+    WindowTooLarge { width_px: usize, height_px: usize, max_px: usize },
+    /// A trajectory CSV line does not parse.
+    #[error("trajectory CSV line {line}: {reason}")]
+    TrajectoryCsv { line: usize, reason: String },
+    /// A PGM file is malformed.
+    #[error("PGM: {reason}")]
+    Pgm { reason: String },
+    /// Error from the core library (camera model, parameters).
+    #[error("core: {0}")]
+    Core(#[from] irtrack_core::Error),
+    /// I/O while reading or writing simulator files.
+    #[error("I/O: {0}")]
+    Io(#[from] std::io::Error),
+}

@@ -1,0 +1,757 @@
+//! A simulated scenario: rig, trajectory, markers, sensor and clutter, rendered frame by frame.
+//!
+//! Rendering model (per camera, per frame):
+//! - every marker is a Gaussian spot whose variance is the lens PSF's plus that of the LED's
+//!   emitting disk as imaged (a disk of radius R has variance R²/4 per axis). Its centre is the
+//!   marker projected through [`CameraModel::project`] (with lens distortion). The spot is
+//!   integrated exactly over each pixel's area with `erf`, so sub-pixel positions are honest;
+//! - motion blur sums `motion_blur_steps` such spots along the trajectory across the exposure;
+//! - brightness falls with the square of the marker's distance from the camera;
+//! - the signal in electrons gets shot noise (Gaussian with variance = mean) and read noise,
+//!   is scaled so that the full well maps to the top code, rounded and clipped (saturation);
+//! - fixed clutter (a lamp, a reflection) is added in the cameras it is declared for only.
+//!
+//! Pixels far from any source only see background; they are drawn from a precomputed table of
+//! the background's code distribution, one 16-bit random index per pixel.
+//!
+//! [`CameraModel::project`]: irtrack_core::camera::CameraModel::project
+
+use irtrack_core::camera::RigidTransform;
+use irtrack_core::params::RigParams;
+use nalgebra::Vector3;
+
+use crate::noise::{PixelRng, hash_words, normal_table, unit_from_hash};
+use crate::rig::{CameraSpec, RigPreset, build_rig};
+use crate::trajectory::Trajectory;
+use crate::SimError;
+
+/// Most markers a scenario may carry (ground truth uses fixed-size storage).
+pub const MAX_MARKERS: usize = 8;
+/// Most cameras a scenario may have (visibility is a bit mask).
+pub const MAX_CAMERAS: usize = 32;
+/// Side of the largest window rendered around one marker or clutter source (px).
+pub const MAX_WINDOW_PX: usize = 256;
+/// A spot is rendered out to this many standard deviations.
+const SPOT_EXTENT_SIGMA: f64 = 4.5;
+
+/// Output pixel depth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BitDepth {
+    Eight,
+    Ten,
+}
+
+impl BitDepth {
+    /// Largest code.
+    pub fn max_code(self) -> u16 {
+        match self {
+            BitDepth::Eight => 255,
+            BitDepth::Ten => 1023,
+        }
+    }
+    /// Bits per pixel.
+    pub fn bits(self) -> u8 {
+        match self {
+            BitDepth::Eight => 8,
+            BitDepth::Ten => 10,
+        }
+    }
+}
+
+/// Sensor behind an IR-pass filter.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SensorSpec {
+    /// Electrons that map to the top code (saturation).
+    pub full_well_e: f64,
+    /// Read noise, electrons RMS.
+    pub read_noise_e: f64,
+    /// Ambient IR plus dark signal per pixel per exposure, electrons.
+    pub background_e: f64,
+    /// Exposure time; motion blur integrates over it.
+    pub exposure_s: f64,
+}
+
+impl Default for SensorSpec {
+    fn default() -> Self {
+        SensorSpec { full_well_e: 10_000.0, read_noise_e: 12.0, background_e: 250.0, exposure_s: 0.002 }
+    }
+}
+
+/// One IR LED.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MarkerSpec {
+    /// Offset from the trajectory point (camera 0 frame, mm); markers move rigidly together.
+    pub offset_mm: Vector3<f64>,
+    /// Radius of the emitting area (mm).
+    pub radius_mm: f64,
+    /// Lens point-spread function, standard deviation (px).
+    pub psf_sigma_px: f64,
+    /// Electrons collected over the whole spot at 1 m from the camera, per exposure.
+    pub flux_e_at_1m: f64,
+}
+
+impl Default for MarkerSpec {
+    fn default() -> Self {
+        MarkerSpec { offset_mm: Vector3::zeros(), radius_mm: 1.5, psf_sigma_px: 0.9, flux_e_at_1m: 50_000.0 }
+    }
+}
+
+impl MarkerSpec {
+    /// Flux that puts the spot's peak at `fraction` of the full well when the marker is at
+    /// `distance_mm` from a camera of focal length `focal_px` (an auto-exposure stand-in).
+    pub fn flux_for_peak(&self, fraction: f64, full_well_e: f64, distance_mm: f64, focal_px: f64) -> f64 {
+        let sigma = self.sigma_px(distance_mm, focal_px);
+        // Peak of a pixel-integrated Gaussian ≈ flux / (2πσ²) for σ ≳ 0.8 px.
+        let peak_per_flux = 1.0 / (2.0 * core::f64::consts::PI * sigma * sigma);
+        fraction * full_well_e / peak_per_flux * (distance_mm / 1000.0).powi(2)
+    }
+
+    /// Spot standard deviation at a distance (px).
+    pub fn sigma_px(&self, distance_mm: f64, focal_px: f64) -> f64 {
+        let disk_px = focal_px * self.radius_mm / distance_mm;
+        (self.psf_sigma_px * self.psf_sigma_px + 0.25 * disk_px * disk_px).sqrt()
+    }
+}
+
+/// A fixed ambient IR source seen by one camera only (lamp, specular reflection).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Clutter {
+    pub camera: usize,
+    pub u_px: f64,
+    pub v_px: f64,
+    pub sigma_x_px: f64,
+    pub sigma_y_px: f64,
+    /// Electrons over the whole source per exposure.
+    pub flux_e: f64,
+}
+
+/// Everything a scenario is made of.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimConfig {
+    pub rig: RigPreset,
+    pub camera: CameraSpec,
+    pub trajectory: Trajectory,
+    pub markers: Vec<MarkerSpec>,
+    pub sensor: SensorSpec,
+    pub clutter: Vec<Clutter>,
+    pub fps: f64,
+    /// Sub-exposures summed for motion blur; 1 disables it.
+    pub motion_blur_steps: u32,
+    /// Probability that a camera drops a frame.
+    pub drop_rate: f64,
+    pub seed: u64,
+    /// Depth the scenario is meant to be written at (both renderers work regardless).
+    pub bit_depth: BitDepth,
+}
+
+impl SimConfig {
+    /// A preset rig looking at a circle of `radius_mm` around its workspace centre at
+    /// `distance_mm`, one marker, default sensor, 120 fps, no clutter, no drops.
+    pub fn preset(rig: RigPreset, distance_mm: f64, radius_mm: f64) -> Self {
+        let centre = rig.workspace_centre_mm(distance_mm);
+        SimConfig {
+            trajectory: Trajectory::Circle {
+                centre_mm: centre,
+                radius_mm,
+                normal: Vector3::new(0.3, 1.0, 0.4),
+                period_s: 2.0,
+            },
+            rig,
+            camera: CameraSpec::default(),
+            markers: vec![MarkerSpec::default()],
+            sensor: SensorSpec::default(),
+            clutter: Vec::new(),
+            fps: 120.0,
+            motion_blur_steps: 1,
+            drop_rate: 0.0,
+            seed: 1,
+            bit_depth: BitDepth::Eight,
+        }
+    }
+
+    /// A ceiling lamp in camera 1 only: a large saturated spot near the top-left corner plus
+    /// an elongated specular streak, both well off the rows a centred trajectory uses.
+    pub fn add_glare(&mut self) {
+        let w = self.camera.image_size.width_px as f64;
+        let h = self.camera.image_size.height_px as f64;
+        self.clutter.push(Clutter {
+            camera: 1,
+            u_px: 0.18 * w,
+            v_px: 0.12 * h,
+            sigma_x_px: 5.0,
+            sigma_y_px: 5.0,
+            flux_e: 3.0e6,
+        });
+        self.clutter.push(Clutter {
+            camera: 1,
+            u_px: 0.8 * w,
+            v_px: 0.9 * h,
+            sigma_x_px: 9.0,
+            sigma_y_px: 2.0,
+            flux_e: 6.0e5,
+        });
+    }
+}
+
+/// Where one marker is at one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MarkerTruth {
+    pub p_cam0_mm: Vector3<f64>,
+    /// Bit `i` set when the marker's centre projects inside camera `i`'s image.
+    pub visible_mask: u32,
+}
+
+/// Ground truth for one frame (fixed-size, no allocation).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameTruth {
+    pub index: u64,
+    /// Mid-exposure time.
+    pub t_s: f64,
+    pub marker_count: usize,
+    pub markers: [MarkerTruth; MAX_MARKERS],
+}
+
+impl FrameTruth {
+    /// The markers present in the scenario.
+    pub fn markers(&self) -> &[MarkerTruth] {
+        &self.markers[..self.marker_count]
+    }
+}
+
+impl MarkerTruth {
+    /// Whether the marker is inside every one of `camera_count` images.
+    pub fn visible_in_all(&self, camera_count: usize) -> bool {
+        let all = if camera_count >= 32 { u32::MAX } else { (1u32 << camera_count) - 1 };
+        self.visible_mask & all == all
+    }
+}
+
+/// What happened to one rendered frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameInfo {
+    pub index: u64,
+    pub camera: usize,
+    /// Mid-exposure time in ns since the scenario's start.
+    pub timestamp_ns: u64,
+    /// The camera dropped this frame; the output buffer was left untouched.
+    pub dropped: bool,
+}
+
+/// Integer pixel window, half-open.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Window {
+    x0: usize,
+    y0: usize,
+    x1: usize,
+    y1: usize,
+}
+
+impl Window {
+    fn around(u: f64, v: f64, rx: f64, ry: f64, w: usize, h: usize) -> Option<Window> {
+        let x0 = (u - rx).floor().max(0.0);
+        let y0 = (v - ry).floor().max(0.0);
+        let x1 = ((u + rx).ceil() + 1.0).min(w as f64);
+        let y1 = ((v + ry).ceil() + 1.0).min(h as f64);
+        if !(x1 > x0 && y1 > y0) {
+            return None;
+        }
+        Some(Window { x0: x0 as usize, y0: y0 as usize, x1: x1 as usize, y1: y1 as usize })
+    }
+    fn union(&self, o: &Window) -> Window {
+        Window { x0: self.x0.min(o.x0), y0: self.y0.min(o.y0), x1: self.x1.max(o.x1), y1: self.y1.max(o.y1) }
+    }
+    fn intersect(&self, o: &Window) -> Option<Window> {
+        let w = Window { x0: self.x0.max(o.x0), y0: self.y0.max(o.y0), x1: self.x1.min(o.x1), y1: self.y1.min(o.y1) };
+        (w.x1 > w.x0 && w.y1 > w.y0).then_some(w)
+    }
+}
+
+/// One Gaussian light source in one camera's image for the frame being rendered.
+#[derive(Debug, Clone, Copy)]
+struct Spot {
+    u: f64,
+    v: f64,
+    sx: f64,
+    sy: f64,
+    flux_e: f64,
+    window: Window,
+}
+
+/// Per-depth lookup of background codes.
+#[derive(Debug)]
+struct CodeTables {
+    u8_codes: Vec<u8>,
+    u16_codes: Vec<u16>,
+}
+
+/// Scratch reused by every render call (sized once in [`Scenario::new`]).
+#[derive(Debug)]
+struct Scratch {
+    spots: Vec<Spot>,
+    windows: Vec<Window>,
+    mean_e: Vec<f32>,
+    gx: Vec<f64>,
+    gy: Vec<f64>,
+}
+
+/// Output pixel types.
+trait Code: Copy {
+    fn from_code(c: u16) -> Self;
+}
+impl Code for u8 {
+    #[inline]
+    fn from_code(c: u16) -> Self {
+        c as u8
+    }
+}
+impl Code for u16 {
+    #[inline]
+    fn from_code(c: u16) -> Self {
+        c
+    }
+}
+
+/// A ready-to-render scenario.
+#[derive(Debug)]
+pub struct Scenario {
+    cfg: SimConfig,
+    rig: RigParams,
+    poses: Vec<RigidTransform>,
+    normal: Vec<f32>,
+    tables: CodeTables,
+    scratch: Scratch,
+}
+
+impl Scenario {
+    /// Validates the configuration and precomputes rig, noise tables and scratch buffers.
+    pub fn new(cfg: SimConfig) -> Result<Self, SimError> {
+        let bad = |field, reason: String| Err(SimError::Config { field, reason });
+        if !(cfg.fps > 0.0 && cfg.fps.is_finite()) {
+            return bad("fps", format!("{} must be > 0", cfg.fps));
+        }
+        if !(0.0..1.0).contains(&cfg.drop_rate) {
+            return bad("drop_rate", format!("{} must be in [0, 1)", cfg.drop_rate));
+        }
+        if cfg.motion_blur_steps == 0 || cfg.motion_blur_steps > 64 {
+            return bad("motion_blur_steps", format!("{} must be in 1..=64", cfg.motion_blur_steps));
+        }
+        if cfg.markers.is_empty() || cfg.markers.len() > MAX_MARKERS {
+            return bad("markers", format!("{} markers; need 1..={MAX_MARKERS}", cfg.markers.len()));
+        }
+        let s = &cfg.sensor;
+        if !(s.full_well_e > 0.0 && s.read_noise_e >= 0.0 && s.background_e >= 0.0 && s.exposure_s >= 0.0) {
+            return bad("sensor", format!("{s:?}: full well must be > 0, the rest >= 0"));
+        }
+        for m in &cfg.markers {
+            if !(m.psf_sigma_px > 0.05 && m.radius_mm >= 0.0 && m.flux_e_at_1m >= 0.0) {
+                return bad("markers", format!("{m:?}: psf sigma must be > 0.05 px, radius and flux >= 0"));
+            }
+        }
+        cfg.trajectory.validate()?;
+        let rig = build_rig(&cfg.rig, &cfg.camera)?;
+        if rig.cameras.len() > MAX_CAMERAS {
+            return bad("rig", format!("{} cameras; at most {MAX_CAMERAS}", rig.cameras.len()));
+        }
+        let size = rig.cameras[0].model.image_size;
+        if rig.cameras.iter().any(|c| c.model.image_size != size) {
+            return bad("rig", "all cameras must have the same image size".into());
+        }
+        if size.width_px == 0 || size.height_px == 0 {
+            return bad("rig", "image size must be non-zero".into());
+        }
+        for c in &cfg.clutter {
+            if c.camera >= rig.cameras.len() {
+                return Err(SimError::NoSuchCamera { camera: c.camera, count: rig.cameras.len() });
+            }
+            if !(c.sigma_x_px > 0.05 && c.sigma_y_px > 0.05 && c.flux_e >= 0.0) {
+                return bad("clutter", format!("{c:?}: sigmas must be > 0.05 px, flux >= 0"));
+            }
+        }
+        let poses = rig.cameras.iter().map(|c| c.cam_from_cam0).collect();
+        let normal = normal_table();
+        let tables = CodeTables {
+            u8_codes: background_codes(&normal, s, BitDepth::Eight).iter().map(|c| *c as u8).collect(),
+            u16_codes: background_codes(&normal, s, BitDepth::Ten),
+        };
+        let spots_cap = cfg.markers.len() * cfg.motion_blur_steps as usize + cfg.clutter.len();
+        let scratch = Scratch {
+            spots: Vec::with_capacity(spots_cap),
+            windows: Vec::with_capacity(cfg.markers.len() + cfg.clutter.len()),
+            mean_e: vec![0.0; MAX_WINDOW_PX * MAX_WINDOW_PX],
+            gx: vec![0.0; MAX_WINDOW_PX + 1],
+            gy: vec![0.0; MAX_WINDOW_PX + 1],
+        };
+        Ok(Scenario { cfg, rig, poses, normal, tables, scratch })
+    }
+
+    /// The ground-truth rig.
+    pub fn rig(&self) -> &RigParams {
+        &self.rig
+    }
+
+    /// The configuration the scenario was built from.
+    pub fn config(&self) -> &SimConfig {
+        &self.cfg
+    }
+
+    pub fn camera_count(&self) -> usize {
+        self.rig.cameras.len()
+    }
+
+    /// (width, height) in pixels, the same for every camera.
+    pub fn image_size(&self) -> (u32, u32) {
+        let s = self.rig.cameras[0].model.image_size;
+        (s.width_px, s.height_px)
+    }
+
+    /// Mid-exposure time of a frame.
+    pub fn time_s(&self, index: u64) -> f64 {
+        index as f64 / self.cfg.fps
+    }
+
+    /// Timestamp of a frame in ns since start.
+    pub fn timestamp_ns(&self, index: u64) -> u64 {
+        (index as f64 * 1e9 / self.cfg.fps).round() as u64
+    }
+
+    /// Whether `camera` drops frame `index` (deterministic in the seed).
+    pub fn is_dropped(&self, index: u64, camera: usize) -> bool {
+        self.cfg.drop_rate > 0.0
+            && unit_from_hash(hash_words(&[self.cfg.seed, index, camera as u64, 0x4452_4f50])) < self.cfg.drop_rate
+    }
+
+    /// Marker positions (camera 0 frame) and visibility at frame `index`.
+    pub fn truth(&self, index: u64) -> FrameTruth {
+        let t_s = self.time_s(index);
+        let base = self.cfg.trajectory.position(t_s);
+        let empty = MarkerTruth { p_cam0_mm: Vector3::zeros(), visible_mask: 0 };
+        let mut out = FrameTruth { index, t_s, marker_count: self.cfg.markers.len(), markers: [empty; MAX_MARKERS] };
+        for (m, spec) in self.cfg.markers.iter().enumerate() {
+            let p = base + spec.offset_mm;
+            let mut mask = 0u32;
+            for (i, cam) in self.rig.cameras.iter().enumerate() {
+                let pc = self.poses[i].apply(&p);
+                if let Ok(px) = cam.model.project(&pc)
+                    && cam.model.contains_px(&px)
+                {
+                    mask |= 1 << i;
+                }
+            }
+            out.markers[m] = MarkerTruth { p_cam0_mm: p, visible_mask: mask };
+        }
+        out
+    }
+
+    /// Renders an 8-bit frame into `out` (width × height, row-major, no padding).
+    pub fn render_u8(&mut self, index: u64, camera: usize, out: &mut [u8]) -> Result<FrameInfo, SimError> {
+        let max = BitDepth::Eight.max_code();
+        self.render_into(index, camera, out, max, Which::Eight)
+    }
+
+    /// Renders a 10-bit frame (codes 0..=1023) into `out`.
+    pub fn render_u16(&mut self, index: u64, camera: usize, out: &mut [u16]) -> Result<FrameInfo, SimError> {
+        let max = BitDepth::Ten.max_code();
+        self.render_into(index, camera, out, max, Which::Ten)
+    }
+
+    fn render_into<P: Code>(
+        &mut self,
+        index: u64,
+        camera: usize,
+        out: &mut [P],
+        max_code: u16,
+        which: Which,
+    ) -> Result<FrameInfo, SimError> {
+        let count = self.camera_count();
+        if camera >= count {
+            return Err(SimError::NoSuchCamera { camera, count });
+        }
+        let (w, h) = self.image_size();
+        let (w, h) = (w as usize, h as usize);
+        if out.len() != w * h {
+            return Err(SimError::BufferSize { needed: w * h, have: out.len() });
+        }
+        let info = FrameInfo { index, camera, timestamp_ns: self.timestamp_ns(index), dropped: false };
+        if self.is_dropped(index, camera) {
+            return Ok(FrameInfo { dropped: true, ..info });
+        }
+        self.collect_spots(index, camera, w, h)?;
+
+        let mut rng = PixelRng::new(self.cfg.seed, index, camera as u64);
+        // Background everywhere, from the precomputed code distribution.
+        match which {
+            Which::Eight => fill_background(out, &self.tables.u8_codes, &mut rng, |c: u8| c as u16),
+            Which::Ten => fill_background(out, &self.tables.u16_codes, &mut rng, |c: u16| c),
+        }
+        let gain = max_code as f64 / self.cfg.sensor.full_well_e;
+        let read_var = (self.cfg.sensor.read_noise_e * self.cfg.sensor.read_noise_e) as f32;
+        let bg = self.cfg.sensor.background_e as f32;
+        let sc = &mut self.scratch;
+        for wi in 0..sc.windows.len() {
+            let win = sc.windows[wi];
+            let ww = win.x1 - win.x0;
+            let wh = win.y1 - win.y0;
+            let mean = &mut sc.mean_e[..ww * wh];
+            mean.fill(bg);
+            for spot in &sc.spots {
+                let Some(iw) = win.intersect(&spot.window) else { continue };
+                pixel_integrals(&mut sc.gx, iw.x0, iw.x1, spot.u, spot.sx);
+                pixel_integrals(&mut sc.gy, iw.y0, iw.y1, spot.v, spot.sy);
+                for y in iw.y0..iw.y1 {
+                    let fy = spot.flux_e * sc.gy[y - iw.y0];
+                    let row = &mut mean[(y - win.y0) * ww..(y - win.y0 + 1) * ww];
+                    for x in iw.x0..iw.x1 {
+                        row[x - win.x0] += (fy * sc.gx[x - iw.x0]) as f32;
+                    }
+                }
+            }
+            for y in win.y0..win.y1 {
+                let src = &mean[(y - win.y0) * ww..(y - win.y0 + 1) * ww];
+                let dst = &mut out[y * w + win.x0..y * w + win.x1];
+                for (d, m) in dst.iter_mut().zip(src) {
+                    let z = self.normal[rng.next_u16() as usize];
+                    let e = m + (m + read_var).sqrt() * z;
+                    let c = (e as f64 * gain).round().clamp(0.0, max_code as f64);
+                    *d = P::from_code(c as u16);
+                }
+            }
+        }
+        Ok(info)
+    }
+
+    /// Fills `scratch.spots` and `scratch.windows` for one camera and frame.
+    fn collect_spots(&mut self, index: u64, camera: usize, w: usize, h: usize) -> Result<(), SimError> {
+        let sc = &mut self.scratch;
+        sc.spots.clear();
+        sc.windows.clear();
+        let model = &self.rig.cameras[camera].model;
+        let pose = &self.poses[camera];
+        let steps = self.cfg.motion_blur_steps as usize;
+        let t_mid = self.time_s(index);
+        let exp = self.cfg.sensor.exposure_s;
+        for spec in &self.cfg.markers {
+            let mut win: Option<Window> = None;
+            for k in 0..steps {
+                let t = if steps == 1 { t_mid } else { t_mid + exp * ((k as f64 + 0.5) / steps as f64 - 0.5) };
+                let p_cam = pose.apply(&(self.cfg.trajectory.position(t) + spec.offset_mm));
+                let Ok(c) = model.project(&p_cam) else { continue };
+                let dist_mm = p_cam.norm();
+                let sigma = spec.sigma_px(p_cam.z, model.intrinsics.fx_px);
+                let r = SPOT_EXTENT_SIGMA * sigma + 1.0;
+                let Some(sw) = Window::around(c.x, c.y, r, r, w, h) else { continue };
+                let flux = spec.flux_e_at_1m * (1000.0 / dist_mm).powi(2) / steps as f64;
+                sc.spots.push(Spot { u: c.x, v: c.y, sx: sigma, sy: sigma, flux_e: flux, window: sw });
+                win = Some(win.map_or(sw, |a| a.union(&sw)));
+            }
+            if let Some(win) = win {
+                sc.windows.push(win);
+            }
+        }
+        for c in self.cfg.clutter.iter().filter(|c| c.camera == camera) {
+            let rx = SPOT_EXTENT_SIGMA * c.sigma_x_px + 1.0;
+            let ry = SPOT_EXTENT_SIGMA * c.sigma_y_px + 1.0;
+            if let Some(sw) = Window::around(c.u_px, c.v_px, rx, ry, w, h) {
+                sc.spots.push(Spot { u: c.u_px, v: c.v_px, sx: c.sigma_x_px, sy: c.sigma_y_px, flux_e: c.flux_e, window: sw });
+                sc.windows.push(sw);
+            }
+        }
+        for win in &sc.windows {
+            let (ww, wh) = (win.x1 - win.x0, win.y1 - win.y0);
+            if ww > MAX_WINDOW_PX || wh > MAX_WINDOW_PX {
+                return Err(SimError::WindowTooLarge { width_px: ww, height_px: wh, max_px: MAX_WINDOW_PX });
+            }
+        }
+        Ok(())
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Which {
+    Eight,
+    Ten,
+}
+
+fn fill_background<P: Code, T: Copy>(out: &mut [P], table: &[T], rng: &mut PixelRng, to_code: impl Fn(T) -> u16) {
+    for px in out.iter_mut() {
+        *px = P::from_code(to_code(table[rng.next_u16() as usize]));
+    }
+}
+
+/// Code distribution of a background pixel: one code per normal-table entry.
+fn background_codes(normal: &[f32], s: &SensorSpec, depth: BitDepth) -> Vec<u16> {
+    let max = depth.max_code() as f64;
+    let gain = max / s.full_well_e;
+    let sd = (s.background_e + s.read_noise_e * s.read_noise_e).sqrt();
+    normal.iter().map(|z| ((s.background_e + sd * *z as f64) * gain).round().clamp(0.0, max) as u16).collect()
+}
+
+/// Fraction of a unit 1-D Gaussian (centre `c`, sd `s`) falling in each pixel `i0..i1`
+/// (pixel `i` spans `[i - 0.5, i + 0.5]`), written to `out[0..i1-i0]`.
+fn pixel_integrals(out: &mut [f64], i0: usize, i1: usize, c: f64, s: f64) {
+    let k = 1.0 / (s * core::f64::consts::SQRT_2);
+    let mut prev = libm::erf((i0 as f64 - 0.5 - c) * k);
+    for (j, i) in (i0..i1).enumerate() {
+        let next = libm::erf((i as f64 + 0.5 - c) * k);
+        out[j] = 0.5 * (next - prev);
+        prev = next;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn quiet_config() -> SimConfig {
+        let mut cfg = SimConfig::preset(RigPreset::Parallel { baseline_mm: 50.0 }, 800.0, 60.0);
+        cfg.seed = 42;
+        cfg
+    }
+
+    /// Background-subtracted intensity-weighted centroid in a window around `(u, v)`.
+    fn centroid(img: &[u16], w: usize, u: f64, v: f64, bg: f64) -> (f64, f64, f64) {
+        let (mut s, mut sx, mut sy) = (0.0, 0.0, 0.0);
+        for y in (v as usize - 8)..(v as usize + 9) {
+            for x in (u as usize - 8)..(u as usize + 9) {
+                let d = img[y * w + x] as f64 - bg;
+                s += d;
+                sx += d * x as f64;
+                sy += d * y as f64;
+            }
+        }
+        (sx / s, sy / s, s)
+    }
+
+    #[test]
+    fn spot_centroid_is_sub_pixel_accurate_and_flux_is_conserved() {
+        let mut sc = Scenario::new(quiet_config()).unwrap();
+        let (w, h) = sc.image_size();
+        let mut img = vec![0u16; (w * h) as usize];
+        let gain = 1023.0 / sc.config().sensor.full_well_e;
+        let bg = sc.config().sensor.background_e * gain;
+        let mut worst: f64 = 0.0;
+        for index in 0..40 {
+            for cam in 0..2 {
+                sc.render_u16(index, cam, &mut img).unwrap();
+                let truth = sc.truth(index);
+                let p = sc.rig().cameras[cam].cam_from_cam0.apply(&truth.markers()[0].p_cam0_mm);
+                let px = sc.rig().cameras[cam].model.project(&p).unwrap();
+                let (cx, cy, sum) = centroid(&img, w as usize, px.x, px.y, bg);
+                worst = worst.max((cx - px.x).hypot(cy - px.y));
+                let expected = sc.config().markers[0].flux_e_at_1m * (1000.0 / p.norm()).powi(2) * gain;
+                assert!((sum / expected - 1.0).abs() < 0.03, "flux {sum} vs {expected}");
+            }
+        }
+        assert!(worst < 0.05, "worst centroid error {worst} px");
+    }
+
+    #[test]
+    fn same_frame_regardless_of_order_and_seed_matters() {
+        let mut a = Scenario::new(quiet_config()).unwrap();
+        let mut b = Scenario::new(quiet_config()).unwrap();
+        let (w, h) = a.image_size();
+        let n = (w * h) as usize;
+        let (mut fa, mut fb) = (vec![0u8; n], vec![0u8; n]);
+        a.render_u8(5, 1, &mut fa).unwrap();
+        b.render_u8(9, 0, &mut fb).unwrap();
+        b.render_u8(5, 1, &mut fb).unwrap();
+        assert_eq!(fa, fb);
+        let mut cfg = quiet_config();
+        cfg.seed = 43;
+        let mut c = Scenario::new(cfg).unwrap();
+        c.render_u8(5, 1, &mut fb).unwrap();
+        assert_ne!(fa, fb);
+    }
+
+    #[test]
+    fn saturation_clips_at_top_code() {
+        let mut cfg = quiet_config();
+        cfg.markers[0].flux_e_at_1m *= 50.0;
+        let mut sc = Scenario::new(cfg).unwrap();
+        let (w, h) = sc.image_size();
+        let mut img = vec![0u8; (w * h) as usize];
+        sc.render_u8(0, 0, &mut img).unwrap();
+        let saturated = img.iter().filter(|v| **v == 255).count();
+        assert!(saturated >= 9, "{saturated} saturated pixels");
+    }
+
+    #[test]
+    fn glare_appears_in_camera_one_only() {
+        let mut cfg = quiet_config();
+        cfg.add_glare();
+        let mut sc = Scenario::new(cfg).unwrap();
+        let (w, h) = sc.image_size();
+        let mut img = vec![0u8; (w * h) as usize];
+        let lamp = sc.config().clutter[0];
+        let at = (lamp.v_px.round() as usize) * w as usize + lamp.u_px.round() as usize;
+        sc.render_u8(0, 1, &mut img).unwrap();
+        assert_eq!(img[at], 255);
+        sc.render_u8(0, 0, &mut img).unwrap();
+        assert!(img[at] < 30, "{}", img[at]);
+    }
+
+    #[test]
+    fn drops_are_deterministic_and_near_the_rate() {
+        let mut cfg = quiet_config();
+        cfg.drop_rate = 0.1;
+        let mut sc = Scenario::new(cfg).unwrap();
+        let dropped = (0..2000).filter(|i| sc.is_dropped(*i, 0)).count();
+        assert!((150..250).contains(&dropped), "{dropped}");
+        let (w, h) = sc.image_size();
+        let mut img = vec![7u8; (w * h) as usize];
+        let i = (0..2000).find(|i| sc.is_dropped(*i, 1)).unwrap();
+        let info = sc.render_u8(i, 1, &mut img).unwrap();
+        assert!(info.dropped);
+        assert!(img.iter().all(|v| *v == 7), "dropped frame must leave the buffer untouched");
+    }
+
+    #[test]
+    fn motion_blur_stretches_the_spot_along_the_motion() {
+        let mut cfg = quiet_config();
+        // 1 m/s horizontally, 20 ms exposure: a 20 mm (~17 px) streak at 800 mm.
+        cfg.trajectory = Trajectory::Line {
+            from_mm: Vector3::new(-200.0, 0.0, 800.0),
+            to_mm: Vector3::new(200.0, 0.0, 800.0),
+            period_s: 4.0 * std::f64::consts::PI * 200.0 / 1000.0,
+        };
+        cfg.sensor.exposure_s = 0.02;
+        cfg.motion_blur_steps = 16;
+        let mut sc = Scenario::new(cfg).unwrap();
+        let (w, h) = sc.image_size();
+        let mut img = vec![0u8; (w * h) as usize];
+        // Quarter period: the middle of the line, full speed.
+        let idx = (sc.config().fps * 2.0 * std::f64::consts::PI * 200.0 / 1000.0).round() as u64;
+        sc.render_u8(idx, 0, &mut img).unwrap();
+        let row = |y: usize| img[y * w as usize..(y + 1) * w as usize].iter().filter(|v| **v > 20).count();
+        let wide = (0..h as usize).map(row).max().unwrap();
+        assert!(wide >= 12, "streak only {wide} px wide");
+    }
+
+    #[test]
+    fn bad_inputs_are_errors() {
+        let mut sc = Scenario::new(quiet_config()).unwrap();
+        let mut small = vec![0u8; 10];
+        assert!(matches!(sc.render_u8(0, 0, &mut small), Err(SimError::BufferSize { .. })));
+        let mut ok = vec![0u8; 640 * 480];
+        assert!(matches!(sc.render_u8(0, 2, &mut ok), Err(SimError::NoSuchCamera { camera: 2, count: 2 })));
+        let mut cfg = quiet_config();
+        cfg.fps = 0.0;
+        assert!(Scenario::new(cfg).is_err());
+        let mut cfg = quiet_config();
+        cfg.clutter.push(Clutter { camera: 5, u_px: 1.0, v_px: 1.0, sigma_x_px: 1.0, sigma_y_px: 1.0, flux_e: 1.0 });
+        assert!(matches!(Scenario::new(cfg), Err(SimError::NoSuchCamera { .. })));
+    }
+
+    #[test]
+    fn truth_reports_visibility_per_camera() {
+        let mut cfg = quiet_config();
+        // 20 mm inside camera 0's left image edge is 30 mm outside camera 1's (50 mm to the right).
+        let model = CameraSpec::default().model(0);
+        let z = 300.0;
+        let x_edge0 = (-0.5 - model.intrinsics.cx_px) / model.intrinsics.fx_px * z;
+        cfg.trajectory = Trajectory::Fixed(Vector3::new(x_edge0 + 20.0, 0.0, z));
+        let sc = Scenario::new(cfg).unwrap();
+        let t = sc.truth(0);
+        assert_eq!(t.markers()[0].visible_mask, 0b01);
+        assert!(!t.markers()[0].visible_in_all(2));
+    }
+}

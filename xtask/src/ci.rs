@@ -1,0 +1,637 @@
+//! `cargo xtask test`: every check CI runs, as a list of phases.
+//!
+//! Each phase is announced with a banner and timed; a failing phase does not stop the
+//! others (they are independent), so the summary is always complete. The last line is
+//! `N passed, N failed` over all phases: test counts parsed from cargo's `test result:`
+//! lines (host and aarch64), plus one failure for each phase that failed without a failed
+//! test to show for it (fmt, clippy, a build error), so a red run never ends in "0 failed".
+//!
+//! # Adding a phase
+//! Add one entry to [`PHASES`]. Optional modules `src/image.rs` and `src/bench.rs` are
+//! detected by build.rs and wired in automatically; each must provide
+//! `pub fn ci_phase(ctx: &crate::util::Ctx) -> anyhow::Result<crate::ci::Counts>`
+//! (Ok = passed; Err = failed, with a message) and
+//! `pub fn cli(ctx: &crate::util::Ctx, args: &[String]) -> anyhow::Result<()>`
+//! (for `cargo xtask image|bench ...`).
+
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use anyhow::{Result, bail};
+
+use crate::util::{self, Ctx, RunOpts};
+use crate::{cross, lint, setup};
+
+/// Test counts from cargo's `test result:` lines (or from a hook phase).
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Counts {
+    pub passed: u64,
+    pub failed: u64,
+    pub ignored: u64,
+}
+
+impl Counts {
+    fn add(&mut self, other: Counts) {
+        self.passed += other.passed;
+        self.failed += other.failed;
+        self.ignored += other.ignored;
+    }
+}
+
+/// What a phase reports.
+#[derive(Debug, Default)]
+pub struct Outcome {
+    /// Tests run by the phase, if it runs tests.
+    pub counts: Option<Counts>,
+    /// Why the phase failed.
+    pub failure: Option<String>,
+    /// Why the phase did not run (not a failure).
+    pub skipped: Option<String>,
+}
+
+impl Outcome {
+    fn passed() -> Self {
+        Self::default()
+    }
+    fn failed(msg: impl Into<String>) -> Self {
+        Self {
+            failure: Some(msg.into()),
+            ..Self::default()
+        }
+    }
+    fn skipped(msg: impl Into<String>) -> Self {
+        Self {
+            skipped: Some(msg.into()),
+            ..Self::default()
+        }
+    }
+    fn from_result(r: Result<Outcome>) -> Self {
+        r.unwrap_or_else(|e| Outcome::failed(format!("{e:#}")))
+    }
+}
+
+type PhaseFn = fn(&Ctx) -> Outcome;
+
+/// One CI phase. `run == None` means the phase's module is not part of the tree yet.
+pub struct Phase {
+    pub name: &'static str,
+    pub about: &'static str,
+    /// Label for test counts in the summary ("host", "aarch64", ...).
+    pub label: &'static str,
+    pub run: Option<PhaseFn>,
+    /// Kill the phase after this long, so a hung test (e.g. under QEMU) cannot stall CI.
+    pub timeout: Duration,
+}
+
+const MIN: Duration = Duration::from_secs(60);
+
+/// All phases, in run order. Register a new one with a single line here.
+pub const PHASES: &[Phase] = &[
+    Phase {
+        name: "setup",
+        about: "install missing system packages",
+        label: "",
+        run: Some(setup_phase),
+        timeout: MIN.saturating_mul(30),
+    },
+    Phase {
+        name: "fmt",
+        about: "cargo fmt --all --check",
+        label: "",
+        run: Some(fmt),
+        timeout: MIN.saturating_mul(3),
+    },
+    Phase {
+        name: "clippy",
+        about: "cargo clippy --workspace --all-targets -- -D warnings",
+        label: "",
+        run: Some(clippy),
+        timeout: MIN.saturating_mul(25),
+    },
+    Phase {
+        name: "host-tests",
+        about: "cargo test --workspace (all crates, host)",
+        label: "host",
+        run: Some(host_tests),
+        timeout: MIN.saturating_mul(25),
+    },
+    Phase {
+        name: "no-std",
+        about: "irtrack-core without its std feature",
+        label: "",
+        run: Some(no_std),
+        timeout: MIN.saturating_mul(10),
+    },
+    Phase {
+        name: "aarch64-tests",
+        about: "cross-build core/sim/firmware, run their tests under qemu-aarch64",
+        label: "aarch64",
+        run: Some(aarch64_tests),
+        timeout: MIN.saturating_mul(25),
+    },
+    Phase {
+        name: "systemd",
+        about: "systemd-analyze verify on systemd/ units",
+        label: "",
+        run: Some(lint::systemd_phase),
+        timeout: MIN.saturating_mul(2),
+    },
+    Phase {
+        name: "yocto-lint",
+        about: "oelint-adv on yocto-layer/ recipes",
+        label: "",
+        run: Some(lint::yocto_phase),
+        timeout: MIN.saturating_mul(5),
+    },
+    Phase {
+        name: "image",
+        about: "aarch64 image build + QEMU system test",
+        label: "system",
+        run: IMAGE_HOOK,
+        timeout: MIN.saturating_mul(20),
+    },
+    Phase {
+        name: "bench",
+        about: "short benchmark",
+        label: "bench",
+        run: BENCH_HOOK,
+        timeout: MIN.saturating_mul(10),
+    },
+];
+
+#[cfg(xtask_has_image)]
+const IMAGE_HOOK: Option<PhaseFn> = Some(|ctx| hook(crate::image::ci_phase(ctx)));
+#[cfg(not(xtask_has_image))]
+const IMAGE_HOOK: Option<PhaseFn> = None;
+#[cfg(xtask_has_bench)]
+const BENCH_HOOK: Option<PhaseFn> = Some(|ctx| hook(crate::bench::ci_phase(ctx)));
+#[cfg(not(xtask_has_bench))]
+const BENCH_HOOK: Option<PhaseFn> = None;
+
+#[cfg_attr(not(any(xtask_has_image, xtask_has_bench)), allow(dead_code))]
+fn hook(r: Result<Counts>) -> Outcome {
+    match r {
+        Ok(c) => Outcome {
+            counts: Some(c),
+            ..Outcome::default()
+        },
+        Err(e) => Outcome::failed(format!("{e:#}")),
+    }
+}
+
+/// Options of `cargo xtask test`.
+#[derive(Debug, Default)]
+pub struct Options {
+    pub skip_setup: bool,
+    /// Run only these phases (empty = all).
+    pub only: Vec<String>,
+}
+
+pub fn parse_options(args: &[String]) -> Result<Options> {
+    let mut opts = Options::default();
+    let mut it = args.iter();
+    while let Some(a) = it.next() {
+        match a.as_str() {
+            "--skip-setup" => opts.skip_setup = true,
+            "--only" => {
+                let Some(v) = it.next() else {
+                    bail!("--only needs a phase name")
+                };
+                opts.only.extend(v.split(',').map(str::to_string));
+            }
+            s if s.starts_with("--only=") => {
+                opts.only
+                    .extend(s["--only=".len()..].split(',').map(str::to_string));
+            }
+            "--list" => {
+                for p in PHASES {
+                    let state = if p.run.is_some() { "" } else { "  (not present)" };
+                    println!("{:<14} {}{state}", p.name, p.about);
+                }
+                std::process::exit(0);
+            }
+            other => bail!("unknown option `{other}` (options: --skip-setup, --only <phase>[,...], --list)"),
+        }
+    }
+    for name in &opts.only {
+        if !PHASES.iter().any(|p| p.name == name) {
+            let names: Vec<&str> = PHASES.iter().map(|p| p.name).collect();
+            bail!("unknown phase `{name}`; phases: {}", names.join(", "));
+        }
+    }
+    Ok(opts)
+}
+
+struct Row {
+    name: &'static str,
+    label: &'static str,
+    outcome: Outcome,
+    elapsed: Duration,
+}
+
+/// Runs the selected phases and prints the summary. Returns the process exit code; the
+/// summary's last line must stay the last line printed.
+pub fn run(ctx: &Ctx, opts: &Options) -> i32 {
+    let selected: Vec<&Phase> = PHASES
+        .iter()
+        .filter(|p| {
+            if opts.only.is_empty() {
+                !(opts.skip_setup && p.name == "setup")
+            } else {
+                opts.only.iter().any(|o| o == p.name)
+            }
+        })
+        .collect();
+
+    let started = Instant::now();
+    let mut rows = Vec::new();
+    for (i, phase) in selected.iter().enumerate() {
+        println!("\n{}", "=".repeat(100));
+        println!(
+            "==> phase {}/{}: {} ({})",
+            i + 1,
+            selected.len(),
+            phase.name,
+            phase.about
+        );
+        println!("{}", "=".repeat(100));
+        let t0 = Instant::now();
+        let outcome = match phase.run {
+            None => Outcome::skipped("not present"),
+            Some(f) => {
+                set_phase_timeout(phase.timeout);
+                f(ctx)
+            }
+        };
+        let elapsed = t0.elapsed();
+        println!(
+            "<== {}: {} in {}",
+            phase.name,
+            status_text(&outcome),
+            util::fmt_duration(elapsed)
+        );
+        rows.push(Row {
+            name: phase.name,
+            label: phase.label,
+            outcome,
+            elapsed,
+        });
+    }
+    print_summary(&rows, started.elapsed())
+}
+
+fn status_text(o: &Outcome) -> String {
+    if let Some(f) = &o.failure {
+        format!("FAILED ({})", first_line(f))
+    } else if let Some(s) = &o.skipped {
+        format!("skipped: {s}")
+    } else {
+        "ok".into()
+    }
+}
+
+fn first_line(s: &str) -> &str {
+    s.lines().next().unwrap_or("")
+}
+
+fn print_summary(rows: &[Row], total: Duration) -> i32 {
+    println!("\n{}", "=".repeat(100));
+    println!("Summary");
+    println!("{}", "=".repeat(100));
+    println!("{:<14} {:>8}  {:<34} tests", "phase", "time", "result");
+    let mut all = Counts::default();
+    let mut phase_failures = 0u64;
+    for r in rows {
+        let tests = match r.outcome.counts {
+            Some(c) => {
+                all.add(c);
+                format!(
+                    "{}: {} passed, {} failed, {} ignored",
+                    r.label, c.passed, c.failed, c.ignored
+                )
+            }
+            None => "-".into(),
+        };
+        let mut status = status_text(&r.outcome);
+        if status.len() > 34 {
+            status.truncate(31);
+            status.push_str("...");
+        }
+        println!(
+            "{:<14} {:>8}  {:<34} {tests}",
+            r.name,
+            util::fmt_duration(r.elapsed),
+            status
+        );
+        // A failed phase with no failed test behind it (fmt, clippy, build error) still counts.
+        if r.outcome.failure.is_some() && r.outcome.counts.is_none_or(|c| c.failed == 0) {
+            phase_failures += 1;
+        }
+    }
+    let failed_phases: Vec<&Row> = rows.iter().filter(|r| r.outcome.failure.is_some()).collect();
+    for r in &failed_phases {
+        println!(
+            "\n{} failed: {}",
+            r.name,
+            r.outcome.failure.as_deref().unwrap_or("")
+        );
+    }
+    println!("\ntotal time {}", util::fmt_duration(total));
+    if phase_failures > 0 {
+        println!("({phase_failures} failed phase(s) without a failed test are counted as failures below)");
+    }
+    // Nothing may be printed after this line: CI reads it as the run's result.
+    println!("{} passed, {} failed", all.passed, all.failed + phase_failures);
+    if failed_phases.is_empty() { 0 } else { 1 }
+}
+
+// The current phase's time limit, read by the helpers below (phases are sequential).
+static PHASE_TIMEOUT_S: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+fn set_phase_timeout(t: Duration) {
+    PHASE_TIMEOUT_S.store(t.as_secs(), std::sync::atomic::Ordering::Relaxed);
+}
+
+fn phase_opts() -> RunOpts {
+    let s = PHASE_TIMEOUT_S.load(std::sync::atomic::Ordering::Relaxed);
+    RunOpts {
+        timeout: (s > 0).then(|| Duration::from_secs(s)),
+        ..RunOpts::default()
+    }
+}
+
+/// Runs a command that must succeed; its output streams live.
+fn check(mut cmd: Command, what: &str) -> Outcome {
+    match util::run(&mut cmd, phase_opts()) {
+        Ok(out) if out.success() => Outcome::passed(),
+        Ok(out) => Outcome::failed(format!("{what} {}", out.describe())),
+        Err(e) => Outcome::failed(format!("{e:#}")),
+    }
+}
+
+/// Runs `cargo test ...`, collecting counts from its `test result:` lines.
+fn cargo_test(mut cmd: Command) -> Outcome {
+    let opts = RunOpts {
+        capture_stdout: true,
+        ..phase_opts()
+    };
+    let out = match util::run(&mut cmd, opts) {
+        Ok(out) => out,
+        Err(e) => return Outcome::failed(format!("{e:#}")),
+    };
+    let (counts, binaries) = parse_test_results(&out.stdout);
+    let counts = (binaries > 0).then_some(counts);
+    let failure = if out.success() {
+        if binaries == 0 {
+            Some("no `test result:` line: no test ran".to_string())
+        } else {
+            None
+        }
+    } else if let Some(c) = counts.filter(|c| c.failed > 0) {
+        Some(format!(
+            "{} test(s) failed; cargo test {}",
+            c.failed,
+            out.describe()
+        ))
+    } else {
+        Some(format!(
+            "cargo test {} (build error or crashed test binary, see above)",
+            out.describe()
+        ))
+    };
+    Outcome {
+        counts,
+        failure,
+        skipped: None,
+    }
+}
+
+/// Sums `test result: ok. 12 passed; 0 failed; 1 ignored; ...` lines; also returns how many
+/// such lines (test binaries and doctest runs) there were.
+pub fn parse_test_results(stdout: &str) -> (Counts, usize) {
+    let mut total = Counts::default();
+    let mut n = 0;
+    for line in stdout.lines() {
+        let Some(rest) = line.trim().strip_prefix("test result: ") else {
+            continue;
+        };
+        let mut c = Counts::default();
+        let mut seen = false;
+        for part in rest.split(';') {
+            let mut words = part.split_whitespace().rev();
+            let (Some(key), Some(num)) = (words.next(), words.next()) else {
+                continue;
+            };
+            let Ok(num) = num.parse::<u64>() else { continue };
+            match key {
+                "passed" => (c.passed, seen) = (num, true),
+                "failed" => c.failed = num,
+                "ignored" => c.ignored = num,
+                _ => {}
+            }
+        }
+        if seen {
+            total.add(c);
+            n += 1;
+        }
+    }
+    (total, n)
+}
+
+fn setup_phase(ctx: &Ctx) -> Outcome {
+    Outcome::from_result(setup::run(ctx).map(|()| Outcome::passed()))
+}
+
+fn fmt(ctx: &Ctx) -> Outcome {
+    let mut cmd = ctx.cargo();
+    cmd.args(["fmt", "--all", "--check"]);
+    let o = check(cmd, "cargo fmt --check");
+    // cargo fmt does not descend into xtask's optional modules (see main.rs).
+    let optional: Vec<_> = OPTIONAL_MODULES
+        .iter()
+        .map(|m| ctx.root.join("xtask/src").join(format!("{m}.rs")))
+        .filter(|p| p.is_file())
+        .collect();
+    if o.failure.is_some() || optional.is_empty() {
+        return o;
+    }
+    let mut cmd = Command::new("rustfmt");
+    cmd.args(["--check", "--edition", "2024"])
+        .args(&optional)
+        .current_dir(&ctx.root);
+    check(cmd, "rustfmt --check on xtask's optional modules")
+}
+
+const OPTIONAL_MODULES: &[&str] = &["image", "bench"];
+
+fn clippy(ctx: &Ctx) -> Outcome {
+    let mut cmd = ctx.cargo();
+    cmd.args(["clippy", "--workspace", "--all-targets", "--", "-D", "warnings"]);
+    check(cmd, "cargo clippy")
+}
+
+fn host_tests(ctx: &Ctx) -> Outcome {
+    let mut cmd = ctx.cargo();
+    // --no-fail-fast: one failing binary must not hide the counts of the others.
+    cmd.args(["test", "--workspace", "--no-fail-fast"]);
+    cargo_test(cmd)
+}
+
+/// Feature names by which crates switch std on.
+const STD_FEATURES: &[&str] = &["std", "use-std", "use_std"];
+
+fn no_std(ctx: &Ctx) -> Outcome {
+    Outcome::from_result(no_std_inner(ctx))
+}
+
+fn no_std_inner(ctx: &Ctx) -> Result<Outcome> {
+    // 1. The crate declares no_std when `std` is off, so its own code cannot reach std.
+    let lib = ctx.root.join("core/src/lib.rs");
+    let src = std::fs::read_to_string(&lib)?;
+    if !src.contains("#![cfg_attr(not(feature = \"std\"), no_std)]") {
+        return Ok(Outcome::failed(format!(
+            "{} lacks `#![cfg_attr(not(feature = \"std\"), no_std)]`",
+            lib.display()
+        )));
+    }
+    // 2. It compiles that way.
+    let mut cmd = ctx.cargo();
+    cmd.args(["build", "-p", "irtrack-core", "--no-default-features"]);
+    let o = check(cmd, "cargo build -p irtrack-core --no-default-features");
+    if o.failure.is_some() {
+        return Ok(o);
+    }
+    // 3. No dependency linked into it has a std feature on (proc macros run on the host and
+    // are excluded). No no-std target's core library is installed, so a bare-metal build is
+    // not possible here; 1-3 together are what can be verified.
+    let mut cmd = ctx.cargo();
+    cmd.args([
+        "tree",
+        "-p",
+        "irtrack-core",
+        "--no-default-features",
+        "-e",
+        "normal,features,no-proc-macro",
+        "--prefix",
+        "none",
+    ]);
+    let out = util::run(
+        &mut cmd,
+        RunOpts {
+            capture_stdout: true,
+            ..phase_opts()
+        },
+    )?;
+    if !out.success() {
+        return Ok(Outcome::failed(format!("cargo tree {}", out.describe())));
+    }
+    let offenders = std_features_in_tree(&out.stdout);
+    if !offenders.is_empty() {
+        return Ok(Outcome::failed(format!(
+            "std enabled without the std feature: {}",
+            offenders.join(", ")
+        )));
+    }
+    println!("no-std: core declares no_std, builds without `std`, and no dependency enables std");
+    Ok(Outcome::passed())
+}
+
+/// Lines like `nalgebra feature "std"` in `cargo tree -e features --prefix none` output.
+pub fn std_features_in_tree(tree: &str) -> Vec<String> {
+    let mut found: Vec<String> = tree
+        .lines()
+        .map(|l| l.trim_end_matches(" (*)").trim())
+        .filter(|l| {
+            STD_FEATURES
+                .iter()
+                .any(|f| l.ends_with(&format!("feature \"{f}\"")))
+        })
+        .map(str::to_string)
+        .collect();
+    found.sort();
+    found.dedup();
+    found
+}
+
+fn aarch64_tests(ctx: &Ctx) -> Outcome {
+    if !util::on_path("qemu-aarch64") {
+        return Outcome::failed("qemu-aarch64 not found (run `cargo xtask setup`)");
+    }
+    let mut cmd = ctx.cargo();
+    cmd.args(["test", "--no-fail-fast", "--target", cross::TARGET]);
+    for c in cross::CROSS_CRATES {
+        cmd.args(["-p", c]);
+    }
+    if let Err(e) = cross::apply_env(ctx, &mut cmd, "aarch64") {
+        return Outcome::failed(format!("{e:#}"));
+    }
+    cargo_test(cmd)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_cargo_test_result_lines() {
+        let out = "\
+running 3 tests
+test a ... ok
+test result: ok. 3 passed; 0 failed; 1 ignored; 0 measured; 0 filtered out; finished in 0.01s
+
+test result: FAILED. 5 passed; 2 failed; 0 ignored; 0 measured; 0 filtered out; finished in 1.20s
+   Doc-tests irtrack_core
+test result: ok. 0 passed; 0 failed; 0 ignored; 0 measured; 0 filtered out; finished in 0.00s
+test something_named_test result: is not a summary
+";
+        let (c, n) = parse_test_results(out);
+        assert_eq!(n, 3);
+        assert_eq!(
+            c,
+            Counts {
+                passed: 8,
+                failed: 2,
+                ignored: 1
+            }
+        );
+    }
+
+    #[test]
+    fn no_result_lines_means_no_binaries() {
+        let (c, n) = parse_test_results("error[E0425]: cannot find value `x`\n");
+        assert_eq!((c, n), (Counts::default(), 0));
+    }
+
+    #[test]
+    fn finds_std_features_in_tree_output() {
+        let tree = "irtrack-core v0.1.0 (/w/core)\nnalgebra feature \"libm\"\nserde feature \"std\" (*)\n\
+                    postcard feature \"use-std\"\nmy-stdlib feature \"stdx\"\n";
+        assert_eq!(
+            std_features_in_tree(tree),
+            vec!["postcard feature \"use-std\"", "serde feature \"std\""]
+        );
+        assert!(std_features_in_tree("nalgebra feature \"libm\"\n").is_empty());
+    }
+
+    #[test]
+    fn options_parse_and_reject_unknown_phases() {
+        let args: Vec<String> = ["--skip-setup", "--only", "fmt,clippy", "--only=no-std"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        let o = parse_options(&args).unwrap();
+        assert!(o.skip_setup);
+        assert_eq!(o.only, ["fmt", "clippy", "no-std"]);
+        assert!(parse_options(&["--only".to_string(), "nope".to_string()]).is_err());
+        assert!(parse_options(&["--bogus".to_string()]).is_err());
+    }
+
+    #[test]
+    fn phase_names_are_unique() {
+        let mut names: Vec<&str> = PHASES.iter().map(|p| p.name).collect();
+        names.sort();
+        let n = names.len();
+        names.dedup();
+        assert_eq!(names.len(), n);
+    }
+}

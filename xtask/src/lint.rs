@@ -1,0 +1,172 @@
+//! Static checks of non-Rust files: systemd units (`systemd-analyze verify`) and the Yocto
+//! layer's BitBake recipes (`oelint-adv`). Each skips, saying so, while there is nothing to
+//! check, and fails when its tool is missing.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use crate::ci::Outcome;
+use crate::util::{self, Ctx, RunOpts};
+
+const UNIT_SUFFIXES: &[&str] = &["service", "socket", "timer", "path", "target", "mount"];
+const RECIPE_SUFFIXES: &[&str] = &["bb", "bbappend", "bbclass"];
+
+/// Binaries this workspace builds; a unit may name them although they are not installed here.
+const PROJECT_BINARIES: &[&str] = &["irtrackd", "host-tools"];
+
+/// Files under `dir` (recursively) whose extension is one of `suffixes`, sorted.
+fn files_with(dir: &Path, suffixes: &[&str]) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        let Ok(entries) = std::fs::read_dir(&d) else {
+            continue;
+        };
+        for e in entries.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p
+                .extension()
+                .and_then(|x| x.to_str())
+                .is_some_and(|x| suffixes.contains(&x))
+            {
+                out.push(p);
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+pub fn systemd_phase(ctx: &Ctx) -> Outcome {
+    let units = files_with(&ctx.root.join("systemd"), UNIT_SUFFIXES);
+    if units.is_empty() {
+        return Outcome {
+            skipped: Some("not present (no unit files in systemd/)".into()),
+            ..Outcome::default()
+        };
+    }
+    if !util::on_path("systemd-analyze") {
+        return Outcome {
+            failure: Some("systemd-analyze not found".into()),
+            ..Outcome::default()
+        };
+    }
+    let mut cmd = Command::new("systemd-analyze");
+    cmd.args(["verify", "--man=no"])
+        .args(&units)
+        .current_dir(&ctx.root);
+    let opts = RunOpts {
+        capture_stdout: true,
+        capture_stderr: true,
+        ..RunOpts::default()
+    };
+    let out = match util::run(&mut cmd, opts) {
+        Ok(o) => o,
+        Err(e) => {
+            return Outcome {
+                failure: Some(format!("{e:#}")),
+                ..Outcome::default()
+            };
+        }
+    };
+    // verify exits 0 on mere warnings (unknown keys, bad values), so every message counts,
+    // except that the project's own binaries are not installed on the build machine.
+    let problems: Vec<&str> = out
+        .stdout
+        .lines()
+        .chain(out.stderr.lines())
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !is_missing_project_binary(l))
+        .collect();
+    if problems.is_empty() && (out.success() || !out.stderr.is_empty()) {
+        println!("systemd: {} unit file(s) verified", units.len());
+        Outcome::default()
+    } else if problems.is_empty() {
+        Outcome {
+            failure: Some(format!("systemd-analyze verify {}", out.describe())),
+            ..Outcome::default()
+        }
+    } else {
+        Outcome {
+            failure: Some(problems.join("\n")),
+            ..Outcome::default()
+        }
+    }
+}
+
+/// `irtrackd.service: Command /usr/bin/irtrackd is not executable: No such file or directory`
+fn is_missing_project_binary(line: &str) -> bool {
+    let Some(rest) = line.split_once("Command ").map(|(_, r)| r) else {
+        return false;
+    };
+    let Some((path, why)) = rest.split_once(" is not executable: ") else {
+        return false;
+    };
+    let name = Path::new(path).file_name().and_then(|n| n.to_str()).unwrap_or("");
+    why.starts_with("No such file or directory") && PROJECT_BINARIES.contains(&name)
+}
+
+pub fn yocto_phase(ctx: &Ctx) -> Outcome {
+    let layer = ctx.root.join("yocto-layer");
+    let recipes = files_with(&layer, RECIPE_SUFFIXES);
+    if recipes.is_empty() {
+        return Outcome {
+            skipped: Some("not present (no recipes in yocto-layer/)".into()),
+            ..Outcome::default()
+        };
+    }
+    let Some(oelint) = crate::setup::oelint_adv() else {
+        return Outcome {
+            failure: Some("oelint-adv not found (run `cargo xtask setup`)".into()),
+            ..Outcome::default()
+        };
+    };
+    let mut cmd = Command::new(oelint);
+    // Run inside the layer so a layer-local .oelint.cfg (rule suppressions) applies.
+    cmd.args(["--quiet", "--relpaths"])
+        .args(&recipes)
+        .current_dir(&layer);
+    match util::run(&mut cmd, RunOpts::default()) {
+        Ok(out) if out.success() => {
+            println!("yocto-lint: {} recipe file(s) clean", recipes.len());
+            Outcome::default()
+        }
+        Ok(out) => Outcome {
+            failure: Some(format!("oelint-adv {}", out.describe())),
+            ..Outcome::default()
+        },
+        Err(e) => Outcome {
+            failure: Some(format!("{e:#}")),
+            ..Outcome::default()
+        },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_project_binaries_may_be_missing() {
+        let ok = "irtrackd.service: Command /usr/bin/irtrackd is not executable: No such file or directory";
+        assert!(is_missing_project_binary(ok));
+        let other = "x.service: Command /usr/bin/nosuch is not executable: No such file or directory";
+        assert!(!is_missing_project_binary(other));
+        let warn = "/w/systemd/irtrackd.service:4: Failed to parse service type, ignoring: notifyy";
+        assert!(!is_missing_project_binary(warn));
+    }
+
+    #[test]
+    fn finds_files_by_suffix_recursively() {
+        let dir = std::env::temp_dir().join(format!("xtask-lint-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("recipes-irtrack/irtrackd")).unwrap();
+        std::fs::write(dir.join("recipes-irtrack/irtrackd/irtrackd_0.1.bb"), "").unwrap();
+        std::fs::write(dir.join("README.md"), "").unwrap();
+        let found = files_with(&dir, RECIPE_SUFFIXES);
+        std::fs::remove_dir_all(&dir).unwrap();
+        assert_eq!(found.len(), 1);
+        assert!(found[0].ends_with("irtrackd_0.1.bb"));
+    }
+}

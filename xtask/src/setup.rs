@@ -1,0 +1,423 @@
+//! `cargo xtask setup`: installs what the build, the tests and the demo need, idempotently.
+//!
+//! Checks every package first (dpkg-query, no network). When nothing is missing it returns
+//! at once; otherwise it says what it installs and why, then runs apt-get as root or through
+//! `sudo -n`, and prints the exact commands when it can do neither. The package list is the
+//! one verified on Debian 12 (see docs/development.md).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{Result, bail};
+
+use crate::util::{self, RunOpts};
+
+/// One system package, and why the project needs it.
+struct Pkg {
+    name: &'static str,
+    why: &'static str,
+    /// On Debian bookworm this comes from bookworm-backports (main has a too-old version).
+    backports: bool,
+    /// Debian-only (no Ubuntu equivalent with the same role).
+    debian_only: bool,
+}
+
+const fn pkg(name: &'static str, why: &'static str) -> Pkg {
+    Pkg {
+        name,
+        why,
+        backports: false,
+        debian_only: false,
+    }
+}
+
+const PACKAGES: &[Pkg] = &[
+    Pkg {
+        debian_only: true,
+        ..pkg(
+            "rustc-web",
+            "Debian's rustc 1.96 (/usr/bin/rustc); its aarch64 std is used for cross builds",
+        )
+    },
+    Pkg {
+        debian_only: true,
+        ..pkg(
+            "libstd-rust-web-dev:arm64",
+            "aarch64 standard library for /usr/bin/rustc (+ arm64 glibc for QEMU)",
+        )
+    },
+    pkg("gcc-aarch64-linux-gnu", "linker for aarch64-unknown-linux-gnu"),
+    pkg(
+        "libopencv-dev",
+        "OpenCV 4.6: calibration and cross-checks on the PC (opencv crate)",
+    ),
+    pkg("clang", "bindgen (opencv crate, v4l2-sys) needs clang"),
+    pkg("libclang-dev", "bindgen needs libclang"),
+    pkg(
+        "valgrind",
+        "callgrind instruction counts for repeatable benchmarks",
+    ),
+    pkg(
+        "mtools",
+        "copies files into the FAT boot partition of the SD image without mounting",
+    ),
+    pkg("dosfstools", "mkfs.vfat for the SD image's boot partition"),
+    pkg("fdisk", "sfdisk writes the SD image's partition table"),
+    pkg(
+        "e2fsprogs",
+        "mke2fs -d builds the ext4 root filesystem without mounting",
+    ),
+    pkg("cpio", "packs the initramfs of the QEMU system test"),
+    pkg(
+        "u-boot-qemu",
+        "U-Boot for booting the SD image in qemu-system-aarch64",
+    ),
+    Pkg {
+        debian_only: true,
+        ..pkg("busybox-static:arm64", "aarch64 userland of the test image")
+    },
+    Pkg {
+        backports: true,
+        ..pkg("qemu-user", "qemu-aarch64 runs the aarch64 test binaries")
+    },
+    Pkg {
+        backports: true,
+        ..pkg("qemu-system-arm", "qemu-system-aarch64 boots the appliance image")
+    },
+];
+
+const PIP_PACKAGE: &str = "oelint-adv";
+const PIP_WHY: &str = "lints the Yocto layer's BitBake recipes";
+
+/// Which kind of system we are on, from /etc/os-release.
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum Distro {
+    DebianBookworm,
+    /// Another Debian release: same package names, qemu new enough in main (not verified here).
+    DebianOther(String),
+    Ubuntu(String),
+    Unknown(String),
+}
+
+fn detect_distro(os_release: &str) -> Distro {
+    let field = |key: &str| {
+        os_release.lines().find_map(|l| {
+            l.strip_prefix(key)
+                .and_then(|r| r.strip_prefix('='))
+                .map(|v| v.trim().trim_matches('"').to_string())
+        })
+    };
+    let id = field("ID").unwrap_or_default();
+    let codename = field("VERSION_CODENAME").unwrap_or_default();
+    match id.as_str() {
+        "debian" if codename == "bookworm" => Distro::DebianBookworm,
+        "debian" => Distro::DebianOther(codename),
+        "ubuntu" => Distro::Ubuntu(codename),
+        other => Distro::Unknown(other.to_string()),
+    }
+}
+
+/// Installed version of a package, if dpkg says it is installed ("ii").
+fn installed_version(name: &str) -> Option<String> {
+    let out = Command::new("dpkg-query")
+        .args(["-W", "-f=${db:Status-Abbrev}|${Version}", name])
+        .output()
+        .ok()?;
+    parse_dpkg_query(&String::from_utf8_lossy(&out.stdout))
+}
+
+fn parse_dpkg_query(out: &str) -> Option<String> {
+    let (status, version) = out.trim_end().split_once('|')?;
+    (status.trim() == "ii").then(|| version.to_string())
+}
+
+/// The package is present and, on bookworm, a backports package really comes from there.
+fn satisfied(pkg: &Pkg, distro: &Distro) -> bool {
+    match installed_version(pkg.name) {
+        None => false,
+        Some(v) => !(pkg.backports && *distro == Distro::DebianBookworm && !v.contains("bpo")),
+    }
+}
+
+/// Finds `oelint-adv` on PATH or in pip's --user location.
+pub fn oelint_adv() -> Option<PathBuf> {
+    util::find_on_path(PIP_PACKAGE).or_else(|| {
+        let home = std::env::var_os("HOME")?;
+        let p = Path::new(&home).join(".local/bin").join(PIP_PACKAGE);
+        p.is_file().then_some(p)
+    })
+}
+
+fn has_pip() -> bool {
+    Command::new("python3")
+        .args(["-m", "pip", "--version"])
+        .output()
+        .is_ok_and(|o| o.status.success())
+}
+
+/// How privileged commands are run.
+enum Privilege {
+    Root,
+    Sudo,
+    /// Neither: print the commands for the user.
+    None,
+}
+
+fn privilege() -> Privilege {
+    if util::is_root() {
+        return Privilege::Root;
+    }
+    let sudo_ok = util::on_path("sudo")
+        && Command::new("sudo")
+            .args(["-n", "true"])
+            .stdin(std::process::Stdio::null())
+            .output()
+            .is_ok_and(|o| o.status.success());
+    if sudo_ok { Privilege::Sudo } else { Privilege::None }
+}
+
+/// A privileged shell command; kept as text so it can also be printed for the user.
+fn privileged(script: &str, how: &Privilege) -> Command {
+    let mut cmd = match how {
+        Privilege::Sudo => {
+            let mut c = Command::new("sudo");
+            c.args(["-n", "sh", "-c"]);
+            c
+        }
+        _ => {
+            let mut c = Command::new("sh");
+            c.arg("-c");
+            c
+        }
+    };
+    cmd.arg(script);
+    cmd
+}
+
+pub fn run(_ctx: &util::Ctx) -> Result<()> {
+    let os_release = std::fs::read_to_string("/etc/os-release").unwrap_or_default();
+    let distro = detect_distro(&os_release);
+    let has_apt = util::on_path("apt-get") && util::on_path("dpkg-query");
+
+    let wanted: Vec<&Pkg> = PACKAGES
+        .iter()
+        .filter(|p| !(p.debian_only && matches!(distro, Distro::Ubuntu(_))))
+        .collect();
+
+    if !has_apt {
+        print_manual_instructions(&wanted);
+        bail!("no apt-get/dpkg on this machine: install the packages above by hand, then re-run");
+    }
+
+    let mut missing: Vec<&Pkg> = wanted
+        .iter()
+        .copied()
+        .filter(|p| !satisfied(p, &distro))
+        .collect();
+    let need_pip_pkg = oelint_adv().is_none();
+    let pip_missing = need_pip_pkg && !has_pip();
+    let pip3 = Pkg {
+        name: "python3-pip",
+        why: "pip, to install oelint-adv from PyPI",
+        ..pkg("", "")
+    };
+    if pip_missing {
+        missing.push(&pip3);
+    }
+
+    if missing.is_empty() && !need_pip_pkg {
+        println!(
+            "setup: all {} system packages and {PIP_PACKAGE} are present; nothing to install",
+            wanted.len()
+        );
+        return Ok(());
+    }
+
+    println!("setup: distribution: {distro:?}");
+    if !missing.is_empty() {
+        println!("setup: installing {} missing system package(s):", missing.len());
+        for p in &missing {
+            println!("  {:<28} {}", p.name, p.why);
+        }
+        let script = apt_script(&missing, &distro);
+        let how = privilege();
+        if let Privilege::None = how {
+            println!("\nsetup: not root and `sudo -n` is not available. Run as root:\n\n{script}\n");
+            bail!("missing system packages (see the commands above)");
+        }
+        let mut cmd = privileged(&script, &how);
+        let out = util::run(&mut cmd, RunOpts::default())?;
+        if !out.success() {
+            bail!(
+                "installing system packages failed: `{}` {}",
+                script.replace('\n', "; "),
+                out.describe()
+            );
+        }
+        if let Distro::Ubuntu(_) = distro {
+            ubuntu_rust_target()?;
+        }
+    }
+    if need_pip_pkg {
+        install_oelint()?;
+    }
+    println!("setup: done");
+    Ok(())
+}
+
+/// The shell commands that install `missing` (idempotent: each step checks first).
+fn apt_script(missing: &[&Pkg], distro: &Distro) -> String {
+    let mut lines = vec![
+        "set -e".to_string(),
+        "export DEBIAN_FRONTEND=noninteractive".to_string(),
+    ];
+    if missing.iter().any(|p| p.name.ends_with(":arm64")) {
+        lines.push(
+            "dpkg --print-foreign-architectures | grep -qx arm64 || dpkg --add-architecture arm64".into(),
+        );
+    }
+    let bookworm = *distro == Distro::DebianBookworm;
+    let (bpo, main): (Vec<&&Pkg>, Vec<&&Pkg>) = missing.iter().partition(|p| p.backports && bookworm);
+    if !bpo.is_empty() {
+        lines.push(
+            "grep -rqs '^[^#]*bookworm-backports' /etc/apt/sources.list /etc/apt/sources.list.d/ || \
+             echo 'deb http://deb.debian.org/debian bookworm-backports main' \
+             > /etc/apt/sources.list.d/bookworm-backports.list"
+                .into(),
+        );
+    }
+    lines.push("apt-get update".into());
+    let names = |v: &[&&Pkg]| v.iter().map(|p| p.name).collect::<Vec<_>>().join(" ");
+    if !main.is_empty() {
+        lines.push(format!("apt-get install -y {}", names(&main)));
+    }
+    if !bpo.is_empty() {
+        lines.push(format!(
+            "apt-get install -y -t bookworm-backports {}",
+            names(&bpo)
+        ));
+    }
+    lines.join("\n")
+}
+
+/// Ubuntu has no rustc-web / arm64 std package in the same archive; rustup can provide the
+/// aarch64 std there (not verified on this project's machines, which are Debian).
+fn ubuntu_rust_target() -> Result<()> {
+    println!(
+        "setup: Ubuntu: the aarch64 standard library comes from rustup here \
+         (Debian's rustc-web is not available); running `rustup target add aarch64-unknown-linux-gnu`"
+    );
+    let out = util::run(
+        Command::new("rustup").args(["target", "add", "aarch64-unknown-linux-gnu"]),
+        RunOpts::default(),
+    )?;
+    if !out.success() {
+        bail!("`rustup target add aarch64-unknown-linux-gnu` {}", out.describe());
+    }
+    Ok(())
+}
+
+fn install_oelint() -> Result<()> {
+    println!("setup: installing {PIP_PACKAGE} from PyPI: {PIP_WHY}");
+    let base = ["-m", "pip", "install", "--disable-pip-version-check", PIP_PACKAGE];
+    let out = util::run(
+        Command::new("python3").args(base),
+        RunOpts {
+            capture_stderr: true,
+            ..RunOpts::default()
+        },
+    )?;
+    if out.success() {
+        return Ok(());
+    }
+    if out.stderr.contains("externally-managed-environment") {
+        // Debian's system Python refuses global installs; a --user install touches no
+        // dpkg-owned file and lands in ~/.local/bin, where oelint_adv() looks.
+        println!("setup: system Python is externally managed; installing for this user instead");
+        let out = util::run(
+            Command::new("python3")
+                .args(base)
+                .args(["--user", "--break-system-packages"]),
+            RunOpts::default(),
+        )?;
+        if out.success() {
+            return Ok(());
+        }
+        bail!("`pip install --user {PIP_PACKAGE}` {}", out.describe());
+    }
+    bail!("`python3 -m pip install {PIP_PACKAGE}` {}", out.describe())
+}
+
+fn print_manual_instructions(wanted: &[&Pkg]) {
+    println!("setup: this machine has no apt-get. The project needs these Debian packages (or equivalents):");
+    for p in wanted {
+        let src = if p.backports {
+            " (Debian 12: from bookworm-backports)"
+        } else {
+            ""
+        };
+        println!("  {:<28} {}{src}", p.name, p.why);
+    }
+    println!("and from PyPI: {PIP_PACKAGE} ({PIP_WHY}).");
+    println!("Exact commands on Debian 12:\n");
+    let all: Vec<&Pkg> = wanted.to_vec();
+    println!(
+        "{}\npython3 -m pip install {PIP_PACKAGE}\n",
+        apt_script(&all, &Distro::DebianBookworm)
+    );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn distro_detection() {
+        let deb = "PRETTY_NAME=\"Debian GNU/Linux 12 (bookworm)\"\nID=debian\nVERSION_CODENAME=bookworm\n";
+        assert_eq!(detect_distro(deb), Distro::DebianBookworm);
+        let trixie = "ID=debian\nVERSION_CODENAME=trixie\n";
+        assert_eq!(detect_distro(trixie), Distro::DebianOther("trixie".into()));
+        let ubuntu = "ID=ubuntu\nID_LIKE=debian\nVERSION_CODENAME=noble\n";
+        assert_eq!(detect_distro(ubuntu), Distro::Ubuntu("noble".into()));
+        assert_eq!(detect_distro(""), Distro::Unknown(String::new()));
+    }
+
+    #[test]
+    fn dpkg_query_output() {
+        assert_eq!(
+            parse_dpkg_query("ii |1:10.0.2+ds-2~bpo12+1"),
+            Some("1:10.0.2+ds-2~bpo12+1".into())
+        );
+        // Removed but config files left: not installed.
+        assert_eq!(parse_dpkg_query("rc |1.0"), None);
+        assert_eq!(parse_dpkg_query(""), None);
+    }
+
+    #[test]
+    fn apt_script_for_bookworm_uses_backports_and_arm64() {
+        let missing: Vec<&Pkg> = PACKAGES.iter().collect();
+        let s = apt_script(&missing, &Distro::DebianBookworm);
+        assert!(s.contains("dpkg --add-architecture arm64"));
+        assert!(s.contains("bookworm-backports main"));
+        assert!(s.contains("apt-get install -y -t bookworm-backports qemu-user qemu-system-arm"));
+        let main_line = s
+            .lines()
+            .find(|l| l.starts_with("apt-get install -y rustc-web"))
+            .unwrap();
+        assert!(!main_line.contains("qemu-user") && !main_line.contains("qemu-system-arm"));
+        assert!(main_line.contains("libstd-rust-web-dev:arm64"));
+    }
+
+    #[test]
+    fn apt_script_without_arm64_or_backports_needs() {
+        let clang = PACKAGES.iter().find(|p| p.name == "clang").unwrap();
+        let s = apt_script(&[clang], &Distro::DebianBookworm);
+        assert!(!s.contains("add-architecture"));
+        assert!(!s.contains("backports"));
+        assert!(s.ends_with("apt-get install -y clang"));
+        // Outside bookworm qemu comes from the main archive.
+        let qemu = PACKAGES.iter().find(|p| p.name == "qemu-user").unwrap();
+        let s = apt_script(&[qemu], &Distro::DebianOther("trixie".into()));
+        assert!(s.ends_with("apt-get install -y qemu-user"));
+    }
+}

@@ -1,0 +1,330 @@
+//! Shared plumbing: the repository context, running child processes with live output,
+//! capture and a time limit, and small formatting helpers.
+
+use std::ffi::OsString;
+use std::io::{BufRead, BufReader, Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Command, ExitStatus, Stdio};
+use std::thread;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+
+/// What every task and phase gets: where the repository is and how to call cargo.
+pub struct Ctx {
+    /// Workspace root (the directory holding the root `Cargo.toml`).
+    pub root: PathBuf,
+    /// The cargo that started us (`$CARGO`), so a rustup toolchain override is respected.
+    pub cargo: OsString,
+}
+
+impl Ctx {
+    pub fn new() -> Result<Self> {
+        // xtask lives in <root>/xtask; CARGO_MANIFEST_DIR is baked in at compile time.
+        let root = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .parent()
+            .context("xtask manifest directory has no parent")?
+            .to_path_buf();
+        let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+        Ok(Self { root, cargo })
+    }
+
+    /// `cargo` with the working directory at the workspace root and no standard input.
+    pub fn cargo(&self) -> Command {
+        let mut cmd = Command::new(&self.cargo);
+        cmd.current_dir(&self.root);
+        cmd
+    }
+
+    /// Base target directory of host builds (`$CARGO_TARGET_DIR` or `<root>/target`).
+    pub fn target_dir(&self) -> PathBuf {
+        match std::env::var_os("CARGO_TARGET_DIR") {
+            Some(dir) if !dir.is_empty() => {
+                let dir = PathBuf::from(dir);
+                if dir.is_absolute() {
+                    dir
+                } else {
+                    self.root.join(dir)
+                }
+            }
+            _ => self.root.join("target"),
+        }
+    }
+}
+
+/// Result of a finished (or killed) child process.
+pub struct Output {
+    pub status: Option<ExitStatus>,
+    pub timed_out: bool,
+    /// Captured standard output (empty unless capture was requested).
+    pub stdout: String,
+    /// Captured standard error (empty unless capture was requested).
+    pub stderr: String,
+}
+
+impl Output {
+    pub fn success(&self) -> bool {
+        !self.timed_out && self.status.is_some_and(|s| s.success())
+    }
+
+    /// Short description of how the process ended, for error messages.
+    pub fn describe(&self) -> String {
+        if self.timed_out {
+            return "timed out and was killed".into();
+        }
+        match self.status {
+            Some(s) => match s.code() {
+                Some(code) => format!("exited with code {code}"),
+                None => format!("ended by a signal ({s})"),
+            },
+            None => "did not finish".into(),
+        }
+    }
+}
+
+/// How to run a child process.
+#[derive(Clone, Copy, Default)]
+pub struct RunOpts {
+    /// Keep a copy of stdout (it is still echoed live).
+    pub capture_stdout: bool,
+    /// Keep a copy of stderr (it is still echoed live).
+    pub capture_stderr: bool,
+    /// Kill the whole process tree after this long.
+    pub timeout: Option<Duration>,
+}
+
+/// Quotes a command for display so it can be copied into a shell.
+pub fn display_cmd(cmd: &Command) -> String {
+    let mut parts = Vec::new();
+    for (k, v) in cmd.get_envs() {
+        if let Some(v) = v {
+            parts.push(format!(
+                "{}={}",
+                k.to_string_lossy(),
+                shell_quote(&v.to_string_lossy())
+            ));
+        }
+    }
+    parts.push(shell_quote(&cmd.get_program().to_string_lossy()));
+    parts.extend(cmd.get_args().map(|a| shell_quote(&a.to_string_lossy())));
+    parts.join(" ")
+}
+
+pub fn shell_quote(s: &str) -> String {
+    let plain = !s.is_empty()
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_./=:,+@%".contains(c));
+    if plain {
+        s.to_string()
+    } else {
+        format!("'{}'", s.replace('\'', r"'\''"))
+    }
+}
+
+/// Runs `cmd` with no standard input (CI has none; nothing may prompt), echoing its output
+/// live and optionally capturing it. Returns an error only if the process could not start.
+pub fn run(cmd: &mut Command, opts: RunOpts) -> Result<Output> {
+    println!("$ {}", display_cmd(cmd));
+    cmd.stdin(Stdio::null());
+    // Always pipe: lines are echoed as they arrive, so output interleaves sensibly.
+    cmd.stdout(Stdio::piped()).stderr(Stdio::piped());
+    let mut child = cmd
+        .spawn()
+        .with_context(|| format!("could not start `{}`", display_cmd(cmd)))?;
+    let out_pipe = child.stdout.take().context("child stdout missing")?;
+    let err_pipe = child.stderr.take().context("child stderr missing")?;
+    let out_thread = thread::spawn(move || pump(out_pipe, false, opts.capture_stdout));
+    let err_thread = thread::spawn(move || pump(err_pipe, true, opts.capture_stderr));
+
+    let start = Instant::now();
+    let mut timed_out = false;
+    let status = loop {
+        if let Some(status) = child.try_wait()? {
+            break Some(status);
+        }
+        if opts.timeout.is_some_and(|t| start.elapsed() > t) {
+            timed_out = true;
+            eprintln!(
+                "xtask: time limit reached, killing process tree of pid {}",
+                child.id()
+            );
+            kill_tree(child.id());
+            break child.wait().ok();
+        }
+        thread::sleep(Duration::from_millis(100));
+    };
+    // Grandchildren could keep the pipes open after a kill; they were killed with the tree.
+    let stdout = out_thread.join().unwrap_or_default();
+    let stderr = err_thread.join().unwrap_or_default();
+    Ok(Output {
+        status,
+        timed_out,
+        stdout,
+        stderr,
+    })
+}
+
+/// Copies a pipe to our stdout/stderr line by line, returning the text if `keep`.
+fn pump(pipe: impl Read, to_stderr: bool, keep: bool) -> String {
+    let mut reader = BufReader::new(pipe);
+    let mut kept = String::new();
+    let mut buf = Vec::new();
+    loop {
+        buf.clear();
+        match reader.read_until(b'\n', &mut buf) {
+            Ok(0) | Err(_) => break,
+            Ok(_) => {
+                let line = String::from_utf8_lossy(&buf);
+                if to_stderr {
+                    let mut e = std::io::stderr().lock();
+                    let _ = e.write_all(line.as_bytes());
+                    let _ = e.flush();
+                } else {
+                    let mut o = std::io::stdout().lock();
+                    let _ = o.write_all(line.as_bytes());
+                    let _ = o.flush();
+                }
+                if keep {
+                    kept.push_str(&line);
+                }
+            }
+        }
+    }
+    kept
+}
+
+/// Kills `pid` and all its descendants (found through /proc; test binaries run by cargo under
+/// qemu would otherwise survive). The whole tree is listed before anything is killed, and
+/// parents die first so none of them can react to a child's death.
+fn kill_tree(pid: u32) {
+    let mut pids = vec![pid];
+    let mut i = 0;
+    while i < pids.len() {
+        let parent = pids[i];
+        pids.extend(children_of(parent));
+        i += 1;
+    }
+    let args: Vec<String> = pids.iter().map(|p| p.to_string()).collect();
+    let _ = Command::new("kill")
+        .arg("-KILL")
+        .args(&args)
+        .stderr(Stdio::null())
+        .status();
+}
+
+fn children_of(parent: u32) -> Vec<u32> {
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    let mut out = Vec::new();
+    for entry in entries.flatten() {
+        let Some(pid) = entry.file_name().to_str().and_then(|s| s.parse::<u32>().ok()) else {
+            continue;
+        };
+        let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else {
+            continue;
+        };
+        if parse_ppid(&stat) == Some(parent) {
+            out.push(pid);
+        }
+    }
+    out
+}
+
+/// Parent pid from a /proc/<pid>/stat line; the command name may contain spaces and
+/// parentheses, so fields are counted after the last ')'.
+fn parse_ppid(stat: &str) -> Option<u32> {
+    let rest = &stat[stat.rfind(')')? + 1..];
+    rest.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// Human-readable duration: `0.4s`, `12.3s`, `4m05s`.
+pub fn fmt_duration(d: Duration) -> String {
+    let s = d.as_secs_f64();
+    if s < 60.0 {
+        format!("{s:.1}s")
+    } else {
+        format!("{}m{:02}s", d.as_secs() / 60, d.as_secs() % 60)
+    }
+}
+
+/// Whether an executable named `name` is on PATH.
+pub fn on_path(name: &str) -> bool {
+    find_on_path(name).is_some()
+}
+
+pub fn find_on_path(name: &str) -> Option<PathBuf> {
+    let path = std::env::var_os("PATH")?;
+    std::env::split_paths(&path)
+        .map(|d| d.join(name))
+        .find(|p| p.is_file())
+}
+
+pub fn is_root() -> bool {
+    // `id -u` avoids a libc dependency; failure to run it means "assume not root".
+    Command::new("id")
+        .arg("-u")
+        .output()
+        .ok()
+        .is_some_and(|o| String::from_utf8_lossy(&o.stdout).trim() == "0")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ppid_parsed_after_command_name_with_spaces_and_parens() {
+        let stat = "1234 (my (odd) prog) S 42 1234 1234 0 -1 4194560";
+        assert_eq!(parse_ppid(stat), Some(42));
+        assert_eq!(parse_ppid("garbage"), None);
+    }
+
+    #[test]
+    fn quoting_only_where_needed() {
+        assert_eq!(shell_quote("qemu-aarch64"), "qemu-aarch64");
+        assert_eq!(shell_quote("qemu-aarch64 -L /"), "'qemu-aarch64 -L /'");
+        assert_eq!(shell_quote("it's"), r"'it'\''s'");
+        assert_eq!(shell_quote(""), "''");
+    }
+
+    #[test]
+    fn durations_format() {
+        assert_eq!(fmt_duration(Duration::from_millis(400)), "0.4s");
+        assert_eq!(fmt_duration(Duration::from_secs(245)), "4m05s");
+    }
+
+    #[test]
+    fn run_captures_output_and_status() {
+        let mut cmd = Command::new("sh");
+        cmd.args(["-c", "echo out; echo err >&2; exit 3"]);
+        let opts = RunOpts {
+            capture_stdout: true,
+            capture_stderr: true,
+            timeout: None,
+        };
+        let out = run(&mut cmd, opts).unwrap();
+        assert_eq!(out.stdout, "out\n");
+        assert_eq!(out.stderr, "err\n");
+        assert_eq!(out.status.and_then(|s| s.code()), Some(3));
+        assert!(!out.success());
+    }
+
+    #[test]
+    fn run_kills_process_tree_on_timeout() {
+        // The grandchild `sleep` holds the pipe open; the run must still return promptly.
+        let mut cmd = Command::new("sh");
+        cmd.args(["-c", "sleep 30 & sleep 30; echo never"]);
+        let opts = RunOpts {
+            capture_stdout: true,
+            capture_stderr: false,
+            timeout: Some(Duration::from_millis(300)),
+        };
+        let start = Instant::now();
+        let out = run(&mut cmd, opts).unwrap();
+        assert!(out.timed_out);
+        assert!(!out.success());
+        assert!(!out.stdout.contains("never"));
+        assert!(start.elapsed() < Duration::from_secs(10));
+    }
+}
