@@ -48,10 +48,17 @@ pub fn parse_push_header(hdr: &[u8; PUSH_HEADER_LEN]) -> Result<usize> {
     }
     let len = u32::from_le_bytes([hdr[4], hdr[5], hdr[6], hdr[7]]) as usize;
     if len == 0 {
-        return Err(Error::Protocol { protocol: PROTOCOL, reason: "empty blob".to_string() });
+        return Err(Error::Protocol {
+            protocol: PROTOCOL,
+            reason: "empty blob".to_string(),
+        });
     }
     if len > MAX_BLOB_BYTES {
-        return Err(Error::MessageTooLarge { protocol: PROTOCOL, size: len, max: MAX_BLOB_BYTES });
+        return Err(Error::MessageTooLarge {
+            protocol: PROTOCOL,
+            size: len,
+            max: MAX_BLOB_BYTES,
+        });
     }
     Ok(len)
 }
@@ -152,7 +159,10 @@ pub enum Verdict {
 impl Verdict {
     /// Rejection for a core error, with the error's text as message.
     pub fn from_error(e: &Error) -> Verdict {
-        Verdict::Rejected { code: RejectCode::for_error(e), message: e.to_string() }
+        Verdict::Rejected {
+            code: RejectCode::for_error(e),
+            message: e.to_string(),
+        }
     }
 
     /// The wire line, newline-terminated. Control characters in the message become spaces and
@@ -175,7 +185,10 @@ impl Verdict {
 
     /// Parses a verdict line (with or without its trailing newline).
     pub fn parse_line(line: &str) -> Result<Verdict> {
-        let bad = |reason: String| Error::Protocol { protocol: PROTOCOL, reason };
+        let bad = |reason: String| Error::Protocol {
+            protocol: PROTOCOL,
+            reason,
+        };
         let line = line.strip_suffix('\n').unwrap_or(line);
         let line = line.strip_suffix('\r').unwrap_or(line);
         if line.len() >= MAX_VERDICT_LINE {
@@ -186,7 +199,9 @@ impl Verdict {
             if rig_id.is_empty() || rig_id.contains(char::is_whitespace) {
                 return Err(bad(format!("bad rig id in verdict {line:?}")));
             }
-            return Ok(Verdict::Accepted { rig_id: rig_id.to_string() });
+            return Ok(Verdict::Accepted {
+                rig_id: rig_id.to_string(),
+            });
         }
         if let Some(rest) = line.strip_prefix("ERR ") {
             let (code, message) = rest.split_once(' ').unwrap_or((rest, ""));
@@ -194,11 +209,19 @@ impl Verdict {
                 return Err(bad(format!("verdict {line:?} has no error code")));
             }
             return Ok(match RejectCode::from_wire(code) {
-                Some(code) => Verdict::Rejected { code, message: message.to_string() },
-                None => Verdict::Rejected { code: RejectCode::Unknown, message: format!("{code} {message}") },
+                Some(code) => Verdict::Rejected {
+                    code,
+                    message: message.to_string(),
+                },
+                None => Verdict::Rejected {
+                    code: RejectCode::Unknown,
+                    message: format!("{code} {message}"),
+                },
             });
         }
-        Err(bad(format!("verdict {line:?} starts with neither \"OK \" nor \"ERR \"")))
+        Err(bad(format!(
+            "verdict {line:?} starts with neither \"OK \" nor \"ERR \""
+        )))
     }
 
     /// Whether the parameters were accepted.
@@ -228,12 +251,27 @@ mod tests {
 
     #[test]
     fn push_header_errors() {
-        assert!(matches!(parse_push_header(b"IRPX\x01\0\0\0"), Err(Error::Protocol { .. })));
-        assert!(matches!(parse_push_header(b"IRPP\0\0\0\0"), Err(Error::Protocol { .. })));
+        assert!(matches!(
+            parse_push_header(b"IRPX\x01\0\0\0"),
+            Err(Error::Protocol { .. })
+        ));
+        assert!(matches!(
+            parse_push_header(b"IRPP\0\0\0\0"),
+            Err(Error::Protocol { .. })
+        ));
         let too_big = ((MAX_BLOB_BYTES + 1) as u32).to_le_bytes();
-        let hdr = [b'I', b'R', b'P', b'P', too_big[0], too_big[1], too_big[2], too_big[3]];
+        let hdr = [
+            b'I', b'R', b'P', b'P', too_big[0], too_big[1], too_big[2], too_big[3],
+        ];
         let e = parse_push_header(&hdr).unwrap_err();
-        assert_eq!(e, Error::MessageTooLarge { protocol: PROTOCOL, size: MAX_BLOB_BYTES + 1, max: MAX_BLOB_BYTES });
+        assert_eq!(
+            e,
+            Error::MessageTooLarge {
+                protocol: PROTOCOL,
+                size: MAX_BLOB_BYTES + 1,
+                max: MAX_BLOB_BYTES
+            }
+        );
         assert_eq!(RejectCode::for_error(&e), RejectCode::TooLarge);
         let max = (MAX_BLOB_BYTES as u32).to_le_bytes();
         let hdr = [b'I', b'R', b'P', b'P', max[0], max[1], max[2], max[3]];
@@ -242,11 +280,16 @@ mod tests {
 
     #[test]
     fn verdict_lines_round_trip() {
-        let ok = Verdict::Accepted { rig_id: "lab-rig-7".into() };
+        let ok = Verdict::Accepted {
+            rig_id: "lab-rig-7".into(),
+        };
         assert_eq!(ok.to_line(), "OK lab-rig-7\n");
         assert_eq!(Verdict::parse_line(&ok.to_line()).unwrap(), ok);
         for code in RejectCode::ALL {
-            let v = Verdict::Rejected { code, message: format!("because {code}") };
+            let v = Verdict::Rejected {
+                code,
+                message: format!("because {code}"),
+            };
             let line = v.to_line();
             assert_eq!(line, format!("ERR {} because {}\n", code.as_str(), code.as_str()));
             assert_eq!(Verdict::parse_line(&line).unwrap(), v);
@@ -255,11 +298,17 @@ mod tests {
 
     #[test]
     fn verdict_message_stays_one_line() {
-        let v = Verdict::Rejected { code: RejectCode::Storage, message: "disk\nfull\r".into() };
+        let v = Verdict::Rejected {
+            code: RejectCode::Storage,
+            message: "disk\nfull\r".into(),
+        };
         let line = v.to_line();
         assert_eq!(line.matches('\n').count(), 1);
         assert_eq!(line, "ERR STORAGE disk full \n");
-        let long = Verdict::Rejected { code: RejectCode::Internal, message: "é".repeat(2000) };
+        let long = Verdict::Rejected {
+            code: RejectCode::Internal,
+            message: "é".repeat(2000),
+        };
         let line = long.to_line();
         assert!(line.len() <= MAX_VERDICT_LINE && line.ends_with('\n'));
         assert!(Verdict::parse_line(&line).is_ok());
@@ -269,26 +318,47 @@ mod tests {
     fn unknown_code_and_garbage() {
         assert_eq!(
             Verdict::parse_line("ERR QUOTA over quota\n").unwrap(),
-            Verdict::Rejected { code: RejectCode::Unknown, message: "QUOTA over quota".into() }
+            Verdict::Rejected {
+                code: RejectCode::Unknown,
+                message: "QUOTA over quota".into()
+            }
         );
         assert_eq!(
             Verdict::parse_line("ERR BUSY\n").unwrap(),
-            Verdict::Rejected { code: RejectCode::Busy, message: String::new() }
+            Verdict::Rejected {
+                code: RejectCode::Busy,
+                message: String::new()
+            }
         );
         for bad in ["", "OK\n", "OK \n", "OK a b\n", "HELLO\n", "ERR \n", "ok rig\n"] {
-            assert!(matches!(Verdict::parse_line(bad), Err(Error::Protocol { .. })), "{bad:?}");
+            assert!(
+                matches!(Verdict::parse_line(bad), Err(Error::Protocol { .. })),
+                "{bad:?}"
+            );
         }
     }
 
     #[test]
     fn blob_errors_map_to_bad_blob() {
-        assert_eq!(RejectCode::for_error(&Error::BlobBadCrc { found: 1, computed: 2 }), RejectCode::BadBlob);
+        assert_eq!(
+            RejectCode::for_error(&Error::BlobBadCrc {
+                found: 1,
+                computed: 2
+            }),
+            RejectCode::BadBlob
+        );
         assert_eq!(
             RejectCode::for_error(&Error::InvalidParams { reason: "x".into() }),
             RejectCode::InvalidParams
         );
         let v = Verdict::from_error(&Error::BlobBadMagic { found: *b"abcd" });
-        assert!(matches!(v, Verdict::Rejected { code: RejectCode::BadBlob, .. }));
+        assert!(matches!(
+            v,
+            Verdict::Rejected {
+                code: RejectCode::BadBlob,
+                ..
+            }
+        ));
         assert!(!v.is_accepted());
     }
 }

@@ -75,26 +75,43 @@ impl BlobHeader {
     /// (the body is not looked at). Used by services to reject early.
     pub fn parse(bytes: &[u8]) -> Result<BlobHeader> {
         if bytes.len() < 4 {
-            return Err(Error::BlobTruncated { needed: BLOB_HEADER_LEN, got: bytes.len() });
+            return Err(Error::BlobTruncated {
+                needed: BLOB_HEADER_LEN,
+                got: bytes.len(),
+            });
         }
         let magic = [bytes[0], bytes[1], bytes[2], bytes[3]];
         if magic != BLOB_MAGIC {
             return Err(Error::BlobBadMagic { found: magic });
         }
         if bytes.len() < BLOB_HEADER_LEN {
-            return Err(Error::BlobTruncated { needed: BLOB_HEADER_LEN, got: bytes.len() });
+            return Err(Error::BlobTruncated {
+                needed: BLOB_HEADER_LEN,
+                got: bytes.len(),
+            });
         }
         let version = u16::from_le_bytes([bytes[4], bytes[5]]);
         if version != BLOB_FORMAT_VERSION {
-            return Err(Error::BlobUnsupportedVersion { found: version, supported: BLOB_FORMAT_VERSION });
+            return Err(Error::BlobUnsupportedVersion {
+                found: version,
+                supported: BLOB_FORMAT_VERSION,
+            });
         }
         let flags = u16::from_le_bytes([bytes[6], bytes[7]]);
         if flags & !BLOB_KNOWN_FLAGS != 0 {
-            return Err(Error::BlobUnsupportedFlags { flags, known: BLOB_KNOWN_FLAGS });
+            return Err(Error::BlobUnsupportedFlags {
+                flags,
+                known: BLOB_KNOWN_FLAGS,
+            });
         }
         let body_len = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
         let crc32 = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]);
-        Ok(BlobHeader { version, flags, body_len, crc32 })
+        Ok(BlobHeader {
+            version,
+            flags,
+            body_len,
+            crc32,
+        })
     }
 
     /// Total blob length the header declares.
@@ -147,7 +164,10 @@ fn check_transform(what: &str, t: &RigidTransform) -> Result<()> {
 fn check_camera(i: usize, cam: &CameraModel) -> Result<()> {
     let size = cam.image_size;
     if size.width_px == 0 || size.height_px == 0 {
-        return Err(invalid(format!("camera {i}: image size {}x{} is empty", size.width_px, size.height_px)));
+        return Err(invalid(format!(
+            "camera {i}: image size {}x{} is empty",
+            size.width_px, size.height_px
+        )));
     }
     if size.width_px > MAX_IMAGE_DIM_PX || size.height_px > MAX_IMAGE_DIM_PX {
         return Err(invalid(format!(
@@ -160,7 +180,10 @@ fn check_camera(i: usize, cam: &CameraModel) -> Result<()> {
         return Err(invalid(format!("camera {i}: non-finite intrinsics")));
     }
     if k.fx_px <= 0.0 || k.fy_px <= 0.0 {
-        return Err(invalid(format!("camera {i}: focal length fx={} fy={} px must be > 0", k.fx_px, k.fy_px)));
+        return Err(invalid(format!(
+            "camera {i}: focal length fx={} fy={} px must be > 0",
+            k.fx_px, k.fy_px
+        )));
     }
     // Pixel centres are at integer coordinates, so the image spans [-0.5, size - 0.5].
     let (w, h) = (f64::from(size.width_px), f64::from(size.height_px));
@@ -180,9 +203,12 @@ impl RigParams {
     /// Encodes header + postcard body (docs/param-blob.md). Does not validate, so that
     /// tests and tools can also produce blobs a service must refuse; call [`Self::validate`].
     pub fn to_blob(&self) -> Result<Vec<u8>> {
-        let body = postcard::to_allocvec(self).map_err(|_| Error::BlobBody { reason: "body does not encode" })?;
-        let body_len = u32::try_from(body.len())
-            .map_err(|_| Error::BlobBody { reason: "body longer than 4 GiB" })?;
+        let body = postcard::to_allocvec(self).map_err(|_| Error::BlobBody {
+            reason: "body does not encode",
+        })?;
+        let body_len = u32::try_from(body.len()).map_err(|_| Error::BlobBody {
+            reason: "body longer than 4 GiB",
+        })?;
         let mut out = Vec::with_capacity(BLOB_HEADER_LEN + body.len());
         out.extend_from_slice(&BLOB_MAGIC);
         out.extend_from_slice(&BLOB_FORMAT_VERSION.to_le_bytes());
@@ -200,20 +226,31 @@ impl RigParams {
         let header = BlobHeader::parse(bytes)?;
         let needed = header.blob_len();
         if bytes.len() < needed {
-            return Err(Error::BlobTruncated { needed, got: bytes.len() });
+            return Err(Error::BlobTruncated {
+                needed,
+                got: bytes.len(),
+            });
         }
         if bytes.len() > needed {
-            return Err(Error::BlobTrailingBytes { extra: bytes.len() - needed });
+            return Err(Error::BlobTrailingBytes {
+                extra: bytes.len() - needed,
+            });
         }
         let body = &bytes[BLOB_HEADER_LEN..];
         let computed = blob_crc(&bytes[..12], body);
         if computed != header.crc32 {
-            return Err(Error::BlobBadCrc { found: header.crc32, computed });
+            return Err(Error::BlobBadCrc {
+                found: header.crc32,
+                computed,
+            });
         }
-        let (rig, rest) = postcard::take_from_bytes::<RigParams>(body)
-            .map_err(|e| Error::BlobBody { reason: postcard_reason(&e) })?;
+        let (rig, rest) = postcard::take_from_bytes::<RigParams>(body).map_err(|e| Error::BlobBody {
+            reason: postcard_reason(&e),
+        })?;
         if !rest.is_empty() {
-            return Err(Error::BlobBody { reason: "unused bytes at the end of the body" });
+            return Err(Error::BlobBody {
+                reason: "unused bytes at the end of the body",
+            });
         }
         Ok(rig)
     }
@@ -224,7 +261,10 @@ impl RigParams {
     /// (it travels in one-line protocol replies) and sane tool definitions.
     pub fn validate(&self) -> Result<()> {
         if self.rig_id.is_empty() || self.rig_id.len() > MAX_RIG_ID_LEN {
-            return Err(invalid(format!("rig id must be 1..={MAX_RIG_ID_LEN} bytes, got {}", self.rig_id.len())));
+            return Err(invalid(format!(
+                "rig id must be 1..={MAX_RIG_ID_LEN} bytes, got {}",
+                self.rig_id.len()
+            )));
         }
         if !self.rig_id.bytes().all(|b| b.is_ascii_graphic()) {
             return Err(invalid(format!(
@@ -249,7 +289,9 @@ impl RigParams {
             .zip(id.r_row_major.iter().chain(id.t_mm.iter()))
             .any(|(a, b)| (a - b).abs() > 1e-9);
         if off {
-            return Err(invalid("camera 0 pose must be the identity (it is the reference frame)".into()));
+            return Err(invalid(
+                "camera 0 pose must be the identity (it is the reference frame)".into(),
+            ));
         }
         for i in 0..n {
             for j in (i + 1)..n {
@@ -279,7 +321,10 @@ impl RigParams {
                 )));
             }
             if !tool.leds_mm.iter().flatten().all(|v| v.is_finite()) {
-                return Err(invalid(format!("tool {:?} has non-finite LED positions", tool.name)));
+                return Err(invalid(format!(
+                    "tool {:?} has non-finite LED positions",
+                    tool.name
+                )));
             }
         }
         Ok(())
@@ -292,7 +337,10 @@ impl RigParams {
 
     /// Camera `index`, or [`Error::NoSuchCamera`].
     pub fn camera(&self, index: usize) -> Result<&CameraParams> {
-        self.cameras.get(index).ok_or(Error::NoSuchCamera { index, count: self.cameras.len() })
+        self.cameras.get(index).ok_or(Error::NoSuchCamera {
+            index,
+            count: self.cameras.len(),
+        })
     }
 
     /// The model (intrinsics, distortion, image size) of camera `index`.
@@ -328,5 +376,146 @@ impl RigParams {
     pub fn params_crc(&self) -> Result<u32> {
         let blob = self.to_blob()?;
         Ok(BlobHeader::parse(&blob)?.crc32)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{Distortion, ImageSize, Intrinsics};
+    use alloc::vec;
+    use nalgebra::Matrix3;
+
+    fn cam(t_mm: [f64; 3], r_row_major: [f64; 9]) -> CameraParams {
+        CameraParams {
+            model: CameraModel {
+                intrinsics: Intrinsics {
+                    fx_px: 800.0,
+                    fy_px: 801.0,
+                    cx_px: 640.0,
+                    cy_px: 360.0,
+                },
+                distortion: Distortion {
+                    k1: -0.1,
+                    k2: 0.02,
+                    p1: 0.0,
+                    p2: 0.0,
+                    k3: 0.0,
+                },
+                image_size: ImageSize {
+                    width_px: 1280,
+                    height_px: 720,
+                },
+            },
+            cam_from_cam0: RigidTransform { r_row_major, t_mm },
+        }
+    }
+
+    /// The paper's orthogonal (90° convergent) rig.
+    fn orthogonal_rig() -> RigParams {
+        // x1 = R x0 + t with R a +90° rotation about y; camera 1 sits at (500, 0, 500) in cam0.
+        let r = [0.0, 0.0, -1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0];
+        let c1 = Vector3::new(500.0, 0.0, 500.0);
+        let t = -(Matrix3::from_row_slice(&r) * c1);
+        RigParams {
+            rig_id: "ortho-1".into(),
+            created_unix_s: 1,
+            cameras: vec![
+                cam([0.0; 3], RigidTransform::IDENTITY.r_row_major),
+                cam([t.x, t.y, t.z], r),
+            ],
+            world_from_cam0: None,
+            tools: vec![],
+        }
+    }
+
+    fn reason(rig: &RigParams) -> String {
+        match rig.validate() {
+            Err(Error::InvalidParams { reason }) => reason,
+            other => panic!("expected InvalidParams, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn geometry_helpers() {
+        let rig = orthogonal_rig();
+        rig.validate().unwrap();
+        let c1 = rig.camera_centre_cam0_mm(1).unwrap();
+        assert!((c1 - Vector3::new(500.0, 0.0, 500.0)).norm() < 1e-9);
+        assert!((rig.baseline_mm(1).unwrap() - 500.0 * 2f64.sqrt()).abs() < 1e-9);
+        assert!((rig.optical_axis_angle_deg(1).unwrap() - 90.0).abs() < 1e-9);
+        assert_eq!(
+            rig.camera_model(2),
+            Err(Error::NoSuchCamera { index: 2, count: 2 })
+        );
+        assert_eq!(rig.camera_count(), 2);
+    }
+
+    #[test]
+    fn validate_rejects_each_problem() {
+        let mut r = orthogonal_rig();
+        r.cameras.truncate(1);
+        assert!(reason(&r).contains("2..=16 cameras"));
+
+        let mut r = orthogonal_rig();
+        r.cameras[0].cam_from_cam0.t_mm[0] = 1.0;
+        assert!(reason(&r).contains("camera 0 pose must be the identity"));
+
+        let mut r = orthogonal_rig();
+        r.cameras[1].cam_from_cam0.r_row_major[0] = 0.5;
+        assert!(reason(&r).contains("camera 1 pose: rotation is not a proper rotation"));
+
+        let mut r = orthogonal_rig();
+        // A reflection (det -1) is orthonormal but not a rotation.
+        r.cameras[1].cam_from_cam0.r_row_major = [-1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+        assert!(reason(&r).contains("not a proper rotation"));
+
+        let mut r = orthogonal_rig();
+        r.cameras[1].cam_from_cam0.t_mm[2] = f64::NAN;
+        assert!(reason(&r).contains("non-finite"));
+
+        let mut r = orthogonal_rig();
+        r.cameras[1].model.intrinsics.fx_px = 0.0;
+        assert!(reason(&r).contains("camera 1: focal length"));
+
+        let mut r = orthogonal_rig();
+        r.cameras[0].model.intrinsics.cy_px = 720.0;
+        assert!(reason(&r).contains("camera 0: principal point"));
+
+        let mut r = orthogonal_rig();
+        r.cameras[1].model.image_size.height_px = 0;
+        assert!(reason(&r).contains("is empty"));
+
+        let mut r = orthogonal_rig();
+        r.cameras[1].model.distortion.k3 = f64::INFINITY;
+        assert!(reason(&r).contains("distortion"));
+
+        let mut r = orthogonal_rig();
+        r.cameras[1].cam_from_cam0 = RigidTransform::IDENTITY;
+        assert!(reason(&r).contains("same centre"));
+
+        let mut r = orthogonal_rig();
+        r.rig_id = "two words".into();
+        assert!(reason(&r).contains("printable ASCII"));
+        r.rig_id.clear();
+        assert!(reason(&r).contains("rig id"));
+
+        let mut r = orthogonal_rig();
+        r.world_from_cam0 = Some(RigidTransform {
+            r_row_major: [0.0; 9],
+            t_mm: [0.0; 3],
+        });
+        assert!(reason(&r).contains("registration"));
+
+        let mut r = orthogonal_rig();
+        r.tools = vec![ToolDefinition {
+            name: "probe".into(),
+            leds_mm: vec![[0.0; 3]; 2],
+        }];
+        assert!(reason(&r).contains("at least 3"));
+        r.tools[0].leds_mm.push([1.0, 2.0, 3.0]);
+        r.validate().unwrap();
+        r.tools.push(r.tools[0].clone());
+        assert!(reason(&r).contains("used twice"));
     }
 }

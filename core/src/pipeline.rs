@@ -64,7 +64,7 @@ pub struct TrackerConfig {
 impl Default for TrackerConfig {
     fn default() -> Self {
         TrackerConfig {
-            threshold_dn: 40,
+            threshold_dn: 30,
             saturation_dn: None,
             min_area_px: 3,
             max_area_px: 20_000,
@@ -614,5 +614,466 @@ fn extend(
             h.gap_mm = 2.0 * rms_mm;
         }
         _ => *h = pair,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::*;
+    use crate::blob::render::{Rng, Spot, render, to_u8, to_u16};
+    use crate::camera::{Distortion, ImageSize, Intrinsics};
+    use crate::params::CameraParams;
+    use alloc::string::String;
+    use alloc::vec;
+    use nalgebra::Matrix3;
+    use std::println;
+
+    const W: u32 = 320;
+    const H: u32 = 240;
+
+    fn model() -> CameraModel {
+        CameraModel {
+            intrinsics: Intrinsics {
+                fx_px: 400.0,
+                fy_px: 400.0,
+                cx_px: 160.0,
+                cy_px: 120.0,
+            },
+            distortion: Distortion {
+                k1: -0.15,
+                k2: 0.04,
+                p1: 0.001,
+                p2: -0.0005,
+                k3: 0.0,
+            },
+            image_size: ImageSize {
+                width_px: W,
+                height_px: H,
+            },
+        }
+    }
+
+    fn rig(poses: &[RigidTransform]) -> RigParams {
+        RigParams {
+            rig_id: String::from("test"),
+            created_unix_s: 0,
+            cameras: poses
+                .iter()
+                .map(|p| CameraParams {
+                    model: model(),
+                    cam_from_cam0: *p,
+                })
+                .collect(),
+            world_from_cam0: None,
+            tools: vec![],
+        }
+    }
+
+    /// Camera at `centre_mm` (cam0 frame) looking at `target_mm`, y axis roughly down.
+    fn looking_at(centre_mm: Vector3<f64>, target_mm: Vector3<f64>) -> RigidTransform {
+        let z = (target_mm - centre_mm).normalize();
+        let x = Vector3::new(0.0, 1.0, 0.0).cross(&z).normalize();
+        let y = z.cross(&x);
+        let r = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
+        RigidTransform::from_parts(&r, &(-(r * centre_mm)))
+    }
+
+    /// Parallel stereo pair, 120 mm baseline.
+    fn parallel() -> RigParams {
+        let t1 = RigidTransform::from_parts(&Matrix3::identity(), &Vector3::new(-120.0, 0.0, 0.0));
+        rig(&[RigidTransform::IDENTITY, t1])
+    }
+
+    /// The paper's 90° rig: camera 1 on camera 0's x axis, both looking at (0, 0, 600).
+    fn orthogonal() -> RigParams {
+        let target = Vector3::new(0.0, 0.0, 600.0);
+        rig(&[
+            RigidTransform::IDENTITY,
+            looking_at(Vector3::new(600.0, 0.0, 600.0), target),
+        ])
+    }
+
+    fn project(r: &RigParams, cam: usize, p: &Vector3<f64>) -> (f64, f64) {
+        let c = &r.cameras[cam];
+        let px = c.model.project(&c.cam_from_cam0.apply(p)).unwrap();
+        (px.x, px.y)
+    }
+
+    fn led(x: f64, y: f64) -> Spot {
+        Spot::round(x, y, 1.5, 190.0)
+    }
+
+    /// Renders one 8-bit frame per camera: the marker (if visible) plus extra spots.
+    fn frames(
+        r: &RigParams,
+        marker: Option<Vector3<f64>>,
+        extra: &[(usize, Spot)],
+        seed: u64,
+    ) -> Vec<Vec<u8>> {
+        let mut rng = Rng(seed);
+        (0..r.cameras.len())
+            .map(|c| {
+                let mut spots: Vec<Spot> = extra.iter().filter(|(k, _)| *k == c).map(|(_, s)| *s).collect();
+                if let Some(p) = marker {
+                    let (x, y) = project(r, c, &p);
+                    spots.push(led(x, y));
+                }
+                to_u8(&render(W, H, &spots, 10.0, 2.0, 0.05, 255, &mut rng))
+            })
+            .collect()
+    }
+
+    fn views(f: &[Vec<u8>]) -> Vec<GrayImage<'_, u8>> {
+        f.iter().map(|d| GrayImage::new(d, W, H, W).unwrap()).collect()
+    }
+
+    fn tracker(r: &RigParams) -> Tracker {
+        Tracker::new(r, TrackerConfig::default()).unwrap()
+    }
+
+    fn assert_tracked(m: &Measurement, truth: &Vector3<f64>, tol_mm: f64) {
+        assert_eq!(m.status, TrackStatus::Tracked, "{m:?}");
+        let p = m.point_cam0_mm.unwrap();
+        let err = (p - truth).norm();
+        assert!(err < tol_mm, "error {err} mm: got {p:?}, truth {truth:?}");
+        assert!(m.gap_mm <= TrackerConfig::default().max_gap_mm && m.quality > 0.0);
+    }
+
+    #[test]
+    fn tracks_a_marker_with_parallel_and_orthogonal_rigs() {
+        let mut rng = Rng(100);
+        for (name, r) in [("parallel", parallel()), ("orthogonal", orthogonal())] {
+            let mut t = tracker(&r);
+            let mut max_err = 0.0f64;
+            for i in 0..20 {
+                let p = Vector3::new(
+                    -60.0 + 120.0 * rng.uniform(),
+                    -40.0 + 80.0 * rng.uniform(),
+                    560.0 + 80.0 * rng.uniform(),
+                );
+                let f = frames(&r, Some(p), &[], 1000 + i);
+                t.reset_tracking();
+                let m = *t.process_u8(&views(&f)).unwrap();
+                assert_tracked(&m, &p, 1.0);
+                assert_eq!(m.cameras_used, 2);
+                assert!(!m.used_roi);
+                assert!(
+                    m.cameras()
+                        .iter()
+                        .all(|c| c.marker.is_some() && c.blob_count == 1)
+                );
+                max_err = max_err.max((m.point_cam0_mm.unwrap() - p).norm());
+            }
+            println!("{name} rig: max 3-D error {max_err:.3} mm over 20 points");
+        }
+    }
+
+    #[test]
+    fn a_reflection_seen_by_one_camera_is_ignored() {
+        let r = parallel();
+        let p = Vector3::new(10.0, -5.0, 600.0);
+        // A lamp in camera 0 only, far from the marker's epipolar line (different row).
+        let f = frames(&r, Some(p), &[(0, Spot::round(60.0, 200.0, 2.0, 220.0))], 1);
+        let mut t = tracker(&r);
+        let m = *t.process_u8(&views(&f)).unwrap();
+        assert_tracked(&m, &p, 1.0);
+        assert_eq!(m.cameras[0].blob_count, 2);
+        let (x0, y0) = project(&r, 0, &p);
+        let chosen = m.cameras[0].marker.unwrap();
+        assert!((chosen.x_px - x0).abs() < 0.1 && (chosen.y_px - y0).abs() < 0.1);
+    }
+
+    #[test]
+    fn ambiguous_pairs_are_not_guessed() {
+        let r = parallel();
+        let p = Vector3::new(10.0, -5.0, 600.0);
+        let (x0, y0) = project(&r, 0, &p);
+        // A second spot in camera 0 on the same epipolar line (same row), 40 px further
+        // left: it also pairs with camera 1's marker at a plausible depth.
+        let f = frames(&r, Some(p), &[(0, led(x0 - 40.0, y0))], 2);
+        let mut t = tracker(&r);
+        let m = *t.process_u8(&views(&f)).unwrap();
+        assert_eq!(m.status, TrackStatus::NoConsistentPair);
+        assert!(m.ambiguous);
+        assert!(m.point_cam0_mm.is_none());
+        assert!(
+            m.gap_mm < 1.0,
+            "both pairs are individually plausible: {}",
+            m.gap_mm
+        );
+    }
+
+    #[test]
+    fn inconsistent_blobs_give_no_point() {
+        let r = parallel();
+        // Camera 1's spot is 40 rows away from camera 0's epipolar line.
+        let f = frames(&r, None, &[(0, led(150.0, 100.0)), (1, led(110.0, 140.0))], 3);
+        let mut t = tracker(&r);
+        let m = *t.process_u8(&views(&f)).unwrap();
+        assert_eq!(m.status, TrackStatus::NoConsistentPair);
+        assert!(!m.ambiguous);
+        assert!(m.point_cam0_mm.is_none());
+        assert!(m.gap_mm > 10.0 && m.gap_mm.is_finite(), "gap {}", m.gap_mm);
+    }
+
+    #[test]
+    fn missing_blob_is_reported_per_camera() {
+        let r = parallel();
+        let mut t = tracker(&r);
+        let f = frames(&r, None, &[(0, led(150.0, 100.0))], 4);
+        let m = *t.process_u8(&views(&f)).unwrap();
+        assert_eq!(m.status, TrackStatus::NoBlob { camera: 1 });
+        assert!(m.point_cam0_mm.is_none());
+        assert_eq!(m.gap_mm, f64::INFINITY);
+        let f = frames(&r, None, &[], 5);
+        assert_eq!(
+            t.process_u8(&views(&f)).unwrap().status,
+            TrackStatus::NoBlob { camera: 0 }
+        );
+        // A blob cut by the frame border is not a candidate.
+        let f = frames(&r, None, &[(0, led(0.2, 100.0)), (1, led(150.0, 100.0))], 6);
+        let m = *t.process_u8(&views(&f)).unwrap();
+        assert_eq!(m.status, TrackStatus::NoBlob { camera: 0 });
+        assert_eq!(m.cameras[0].blob_count, 1);
+        assert_eq!(m.cameras[0].candidate_count, 0);
+    }
+
+    #[test]
+    fn roi_tracking_and_fallback_to_full_frame() {
+        let r = parallel();
+        let mut t = tracker(&r);
+        let p1 = Vector3::new(0.0, 0.0, 600.0);
+        let m = *t.process_u8(&views(&frames(&r, Some(p1), &[], 10))).unwrap();
+        assert_tracked(&m, &p1, 1.0);
+        assert!(!m.used_roi);
+        // Small motion: found inside the windows, same accuracy.
+        let p2 = Vector3::new(3.0, -2.0, 605.0);
+        let m = *t.process_u8(&views(&frames(&r, Some(p2), &[], 11))).unwrap();
+        assert_tracked(&m, &p2, 1.0);
+        assert!(m.used_roi && m.cameras().iter().all(|c| c.used_roi));
+        // A distractor outside the windows is not even seen while tracking.
+        let f = frames(&r, Some(p2), &[(0, led(20.0, 200.0))], 12);
+        let m = *t.process_u8(&views(&f)).unwrap();
+        assert!(m.used_roi && m.cameras[0].blob_count == 1);
+        // A jump out of the windows: full frame in the same call.
+        let p3 = Vector3::new(-80.0, 40.0, 560.0);
+        let m = *t.process_u8(&views(&frames(&r, Some(p3), &[], 13))).unwrap();
+        assert_tracked(&m, &p3, 1.0);
+        assert!(!m.used_roi);
+        // The marker leaves, a reflection appears inside camera 0's window: the window
+        // result is inconsistent, the full-frame retry finds the marker elsewhere.
+        let (x3, y3) = project(&r, 0, &p3);
+        let p4 = Vector3::new(60.0, -30.0, 620.0);
+        let f = frames(&r, Some(p4), &[(0, led(x3 + 3.0, y3 - 2.0))], 14);
+        let m = *t.process_u8(&views(&f)).unwrap();
+        assert_tracked(&m, &p4, 1.0);
+        assert!(!m.used_roi);
+        assert_eq!(m.cameras[0].blob_count, 2);
+        // Loss: no point, and the next frame searches the full frame.
+        let m = *t.process_u8(&views(&frames(&r, None, &[], 15))).unwrap();
+        assert!(m.point_cam0_mm.is_none());
+        let m = *t.process_u8(&views(&frames(&r, Some(p1), &[], 16))).unwrap();
+        assert_tracked(&m, &p1, 1.0);
+        assert!(!m.used_roi);
+    }
+
+    #[test]
+    fn three_cameras_use_all_consistent_views_and_resolve_ambiguity() {
+        let target = Vector3::new(0.0, 0.0, 600.0);
+        let t1 = RigidTransform::from_parts(&Matrix3::identity(), &Vector3::new(-120.0, 0.0, 0.0));
+        let t2 = looking_at(Vector3::new(0.0, -400.0, 300.0), target);
+        let r = rig(&[RigidTransform::IDENTITY, t1, t2]);
+        let p = Vector3::new(15.0, 10.0, 590.0);
+        let mut t = tracker(&r);
+        let m = *t.process_u8(&views(&frames(&r, Some(p), &[], 20))).unwrap();
+        assert_tracked(&m, &p, 1.0);
+        assert_eq!(m.cameras_used, 3);
+        // The epipolar ghost of the parallel pair: camera 2 says which one is real.
+        let (x0, y0) = project(&r, 0, &p);
+        let f = frames(&r, Some(p), &[(0, led(x0 - 40.0, y0))], 21);
+        t.reset_tracking();
+        let m = *t.process_u8(&views(&f)).unwrap();
+        assert_tracked(&m, &p, 1.0);
+        assert_eq!(m.cameras_used, 3);
+        // Camera 2 loses the marker: the pair alone is ambiguous again.
+        let mut f = frames(&r, Some(p), &[(0, led(x0 - 40.0, y0))], 22);
+        f[2] = frames(&r, None, &[], 23).swap_remove(2);
+        t.reset_tracking();
+        let m = *t.process_u8(&views(&f)).unwrap();
+        assert_eq!(m.status, TrackStatus::NoConsistentPair);
+        assert!(m.ambiguous);
+        // Camera 1 loses it instead: cameras 0 and 2 still track.
+        let mut f = frames(&r, Some(p), &[], 24);
+        f[1] = frames(&r, None, &[], 25).swap_remove(1);
+        t.reset_tracking();
+        let m = *t.process_u8(&views(&f)).unwrap();
+        assert_tracked(&m, &p, 1.5);
+        assert_eq!(m.cameras_used, 2);
+        assert!(m.cameras[1].marker.is_none());
+    }
+
+    #[test]
+    fn sixteen_bit_frames_track() {
+        let r = parallel();
+        let cfg = TrackerConfig {
+            threshold_dn: 160,
+            ..TrackerConfig::default()
+        };
+        let mut t = Tracker::new(&r, cfg).unwrap();
+        let p = Vector3::new(-20.0, 15.0, 640.0);
+        let mut rng = Rng(30);
+        let data: Vec<Vec<u16>> = (0..2)
+            .map(|c| {
+                let (x, y) = project(&r, c, &p);
+                to_u16(&render(
+                    W,
+                    H,
+                    &[Spot::round(x, y, 1.5, 3000.0)],
+                    40.0,
+                    8.0,
+                    0.5,
+                    4095,
+                    &mut rng,
+                ))
+            })
+            .collect();
+        let v: Vec<GrayImage<'_, u16>> = data.iter().map(|d| GrayImage::new(d, W, H, W).unwrap()).collect();
+        let m = *t.process_u16(&v).unwrap();
+        assert_tracked(&m, &p, 1.0);
+    }
+
+    #[test]
+    fn detect_and_solve_separately_and_bad_input() {
+        let r = parallel();
+        let mut t = tracker(&r);
+        let p = Vector3::new(0.0, 0.0, 600.0);
+        let f = frames(&r, Some(p), &[], 40);
+        let v = views(&f);
+        assert_eq!(t.detect_u8(0, &v[0]).unwrap(), 1);
+        // Camera 1 not detected yet.
+        assert_eq!(t.solve().status, TrackStatus::MissingFrame { camera: 1 });
+        t.detect_u8(0, &v[0]).unwrap();
+        t.detect_u8(1, &v[1]).unwrap();
+        assert_tracked(&t.solve().clone(), &p, 1.0);
+        // Solving again without new frames is a missing frame, not a stale point.
+        assert_eq!(t.solve().status, TrackStatus::MissingFrame { camera: 0 });
+        assert!(matches!(t.detect_u8(2, &v[0]), Err(Error::BadFrame { .. })));
+        assert!(matches!(t.process_u8(&v[..1]), Err(Error::BadFrame { .. })));
+        let small = vec![0u8; 100];
+        let g = GrayImage::new(&small, 10, 10, 10).unwrap();
+        assert!(matches!(t.detect_u8(0, &g), Err(Error::BadFrame { .. })));
+        // Bad configuration and rigs.
+        assert!(
+            Tracker::new(
+                &r,
+                TrackerConfig {
+                    max_gap_mm: 0.0,
+                    ..TrackerConfig::default()
+                }
+            )
+            .is_err()
+        );
+        assert!(
+            Tracker::new(
+                &r,
+                TrackerConfig {
+                    min_area_px: 10,
+                    max_area_px: 5,
+                    ..Default::default()
+                }
+            )
+            .is_err()
+        );
+        let mut one = parallel();
+        one.cameras.truncate(1);
+        assert!(matches!(
+            Tracker::new(&one, TrackerConfig::default()),
+            Err(Error::InvalidParams { .. })
+        ));
+        // A failed swap keeps the old parameters.
+        assert!(t.set_params(&one).is_err());
+        assert_eq!(t.camera_count(), 2);
+        assert_tracked(t.process_u8(&v).unwrap(), &p, 1.0);
+    }
+
+    #[test]
+    fn hot_swap_to_a_new_image_size() {
+        let r = parallel();
+        let mut t = tracker(&r);
+        let p = Vector3::new(0.0, 0.0, 600.0);
+        assert_tracked(
+            t.process_u8(&views(&frames(&r, Some(p), &[], 50))).unwrap(),
+            &p,
+            1.0,
+        );
+        // Same cameras at half resolution.
+        let mut half = r.clone();
+        for c in &mut half.cameras {
+            let k = &mut c.model.intrinsics;
+            (k.fx_px, k.fy_px, k.cx_px, k.cy_px) = (200.0, 200.0, 80.0, 60.0);
+            c.model.image_size = ImageSize {
+                width_px: W / 2,
+                height_px: H / 2,
+            };
+        }
+        t.set_params(&half).unwrap();
+        let mut rng = Rng(51);
+        let data: Vec<Vec<u8>> = (0..2)
+            .map(|c| {
+                let (x, y) = project(&half, c, &p);
+                to_u8(&render(
+                    W / 2,
+                    H / 2,
+                    &[led(x, y)],
+                    10.0,
+                    2.0,
+                    0.05,
+                    255,
+                    &mut rng,
+                ))
+            })
+            .collect();
+        let v: Vec<GrayImage<'_, u8>> = data
+            .iter()
+            .map(|d| GrayImage::new(d, W / 2, H / 2, W / 2).unwrap())
+            .collect();
+        assert_tracked(t.process_u8(&v).unwrap(), &p, 2.0);
+        // Old-size frames are now rejected.
+        assert!(t.process_u8(&views(&frames(&r, Some(p), &[], 52))).is_err());
+    }
+
+    #[test]
+    fn overloaded_frame_is_reported() {
+        let r = parallel();
+        let cfg = TrackerConfig {
+            max_labels: 50,
+            ..TrackerConfig::default()
+        };
+        let mut t = Tracker::new(&r, cfg).unwrap();
+        let speckle: Vec<u8> = (0..W * H)
+            .map(|i| {
+                if (i % W).is_multiple_of(4) && (i / W).is_multiple_of(4) {
+                    200
+                } else {
+                    10
+                }
+            })
+            .collect();
+        let ok = frames(&r, Some(Vector3::new(0.0, 0.0, 600.0)), &[], 60);
+        let v = [
+            GrayImage::new(&speckle, W, H, W).unwrap(),
+            GrayImage::new(&ok[1], W, H, W).unwrap(),
+        ];
+        let m = *t.process_u8(&v).unwrap();
+        assert_eq!(m.status, TrackStatus::Overloaded { camera: 0 });
+        assert!(m.point_cam0_mm.is_none());
+    }
+
+    #[test]
+    fn config_round_trips_through_serde_with_defaults() {
+        let c: TrackerConfig =
+            postcard::from_bytes(&postcard::to_allocvec(&TrackerConfig::default()).unwrap()).unwrap();
+        assert_eq!(c, TrackerConfig::default());
     }
 }

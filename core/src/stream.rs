@@ -50,8 +50,13 @@ pub enum TrackStatus {
 }
 
 impl TrackStatus {
-    const ALL: [TrackStatus; 5] =
-        [TrackStatus::Ok, TrackStatus::Lost, TrackStatus::Rejected, TrackStatus::NoParams, TrackStatus::Fault];
+    const ALL: [TrackStatus; 5] = [
+        TrackStatus::Ok,
+        TrackStatus::Lost,
+        TrackStatus::Rejected,
+        TrackStatus::NoParams,
+        TrackStatus::Fault,
+    ];
 
     /// Code used in NDJSON.
     pub fn as_str(self) -> &'static str {
@@ -141,7 +146,11 @@ fn write_array(out: &mut String, vals: Option<&[f64]>) {
 impl PositionRecord {
     /// Appends the NDJSON line (with `\n`) to `out`. Writing into a `String` cannot fail.
     pub fn write_ndjson(&self, out: &mut String) {
-        let _ = write!(out, "{{\"frame\":{},\"capture_ts_ns\":{},\"position_mm\":", self.frame, self.capture_ts_ns);
+        let _ = write!(
+            out,
+            "{{\"frame\":{},\"capture_ts_ns\":{},\"position_mm\":",
+            self.frame, self.capture_ts_ns
+        );
         write_array(out, self.position_mm.as_ref().map(|p| &p[..]));
         out.push_str(",\"orientation_wxyz\":");
         write_array(out, self.orientation_wxyz.as_ref().map(|q| &q[..]));
@@ -172,7 +181,10 @@ impl PositionRecord {
         if line.len() > MAX_NDJSON_LINE {
             return Err(ndjson_err(format!("line of {} bytes is too long", line.len())));
         }
-        let mut p = JsonParser { s: line.as_bytes(), pos: 0 };
+        let mut p = JsonParser {
+            s: line.as_bytes(),
+            pos: 0,
+        };
         let mut frame = None;
         let mut ts = None;
         let mut pos: Option<Option<[f64; 3]>> = None;
@@ -223,7 +235,10 @@ impl PositionRecord {
         }
         p.ws();
         if p.pos != p.s.len() {
-            return Err(ndjson_err(format!("unexpected text after the object at byte {}", p.pos)));
+            return Err(ndjson_err(format!(
+                "unexpected text after the object at byte {}",
+                p.pos
+            )));
         }
         let missing = |k: &str| ndjson_err(format!("missing field \"{k}\""));
         Ok(PositionRecord {
@@ -287,17 +302,25 @@ impl PositionRecord {
     /// Decodes one binary frame (exactly [`BINARY_FRAME_LEN`] bytes).
     pub fn decode_binary(bytes: &[u8]) -> Result<PositionRecord> {
         if bytes.len() != BINARY_FRAME_LEN {
-            return Err(binary_err(format!("frame is {} bytes, expected {BINARY_FRAME_LEN}", bytes.len())));
+            return Err(binary_err(format!(
+                "frame is {} bytes, expected {BINARY_FRAME_LEN}",
+                bytes.len()
+            )));
         }
         if bytes[0..4] != BINARY_MAGIC {
             return Err(binary_err(format!("bad magic {:02x?}", &bytes[0..4])));
         }
         if bytes[4] != BINARY_VERSION {
-            return Err(binary_err(format!("version {} unsupported (this build reads {BINARY_VERSION})", bytes[4])));
+            return Err(binary_err(format!(
+                "version {} unsupported (this build reads {BINARY_VERSION})",
+                bytes[4]
+            )));
         }
         let payload_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
         if payload_len != BINARY_PAYLOAD_LEN {
-            return Err(binary_err(format!("payload length {payload_len}, expected {BINARY_PAYLOAD_LEN}")));
+            return Err(binary_err(format!(
+                "payload length {payload_len}, expected {BINARY_PAYLOAD_LEN}"
+            )));
         }
         let mut c = Crc32::new();
         c.update(&bytes[..100]);
@@ -336,11 +359,17 @@ impl PositionRecord {
 }
 
 fn ndjson_err(reason: String) -> Error {
-    Error::Protocol { protocol: NDJSON, reason }
+    Error::Protocol {
+        protocol: NDJSON,
+        reason,
+    }
 }
 
 fn binary_err(reason: String) -> Error {
-    Error::Protocol { protocol: BINARY, reason }
+    Error::Protocol {
+        protocol: BINARY,
+        reason,
+    }
 }
 
 fn narrow<T: TryFrom<u64>>(key: &str, v: u64) -> Result<T> {
@@ -354,7 +383,10 @@ enum Value<'a> {
     Num(&'a str),
     Str(&'a str),
     /// Up to four numbers or nulls (null read as NaN).
-    Nums { vals: [f64; 4], len: usize },
+    Nums {
+        vals: [f64; 4],
+        len: usize,
+    },
     /// Anything else (nested objects, long arrays): only allowed under unknown keys.
     Other,
 }
@@ -362,9 +394,9 @@ enum Value<'a> {
 impl Value<'_> {
     fn uint(&self, key: &str) -> Result<u64> {
         match self {
-            Value::Num(s) if s.bytes().all(|b| b.is_ascii_digit()) => {
-                s.parse().map_err(|_| ndjson_err(format!("\"{key}\" = {s} out of range")))
-            }
+            Value::Num(s) if s.bytes().all(|b| b.is_ascii_digit()) => s
+                .parse()
+                .map_err(|_| ndjson_err(format!("\"{key}\" = {s} out of range"))),
             _ => Err(ndjson_err(format!("\"{key}\" must be a non-negative integer"))),
         }
     }
@@ -399,13 +431,16 @@ impl Value<'_> {
                 out.copy_from_slice(&vals[..N]);
                 Ok(Some(out))
             }
-            _ => Err(ndjson_err(format!("\"{key}\" must be null or an array of {N} numbers"))),
+            _ => Err(ndjson_err(format!(
+                "\"{key}\" must be null or an array of {N} numbers"
+            ))),
         }
     }
 }
 
 fn parse_f64(key: &str, s: &str) -> Result<f64> {
-    s.parse::<f64>().map_err(|_| ndjson_err(format!("\"{key}\": bad number {s:?}")))
+    s.parse::<f64>()
+        .map_err(|_| ndjson_err(format!("\"{key}\": bad number {s:?}")))
 }
 
 /// Just enough JSON for flat records; rejects what it does not understand with a position.
@@ -436,12 +471,16 @@ impl<'a> JsonParser<'a> {
         if self.eat(b) {
             Ok(())
         } else {
-            Err(ndjson_err(format!("expected '{}' at byte {}", b as char, self.pos)))
+            Err(ndjson_err(format!(
+                "expected '{}' at byte {}",
+                b as char, self.pos
+            )))
         }
     }
 
     fn text(&self, start: usize, end: usize) -> Result<&'a str> {
-        core::str::from_utf8(&self.s[start..end]).map_err(|_| ndjson_err(format!("bad UTF-8 at byte {start}")))
+        core::str::from_utf8(&self.s[start..end])
+            .map_err(|_| ndjson_err(format!("bad UTF-8 at byte {start}")))
     }
 
     /// A string; escapes are skipped over correctly but returned raw (our keys and codes
@@ -460,12 +499,15 @@ impl<'a> JsonParser<'a> {
                 _ => self.pos += 1,
             }
         }
-        Err(ndjson_err(format!("unterminated string starting at byte {start}")))
+        Err(ndjson_err(format!(
+            "unterminated string starting at byte {start}"
+        )))
     }
 
     fn number(&mut self) -> Result<&'a str> {
         let start = self.pos;
-        while self.pos < self.s.len() && matches!(self.s[self.pos], b'0'..=b'9' | b'-' | b'+' | b'.' | b'e' | b'E')
+        while self.pos < self.s.len()
+            && matches!(self.s[self.pos], b'0'..=b'9' | b'-' | b'+' | b'.' | b'e' | b'E')
         {
             self.pos += 1;
         }
@@ -556,7 +598,11 @@ impl<'a> JsonParser<'a> {
                 }
             }
         }
-        if numeric && len <= 4 { Ok(Value::Nums { vals, len }) } else { Ok(Value::Other) }
+        if numeric && len <= 4 {
+            Ok(Value::Nums { vals, len })
+        } else {
+            Ok(Value::Other)
+        }
     }
 }
 
@@ -605,10 +651,16 @@ mod tests {
             ..tracked()
         };
         let line = lost.to_ndjson_line();
-        assert!(line.contains("\"position_mm\":null") && line.contains("\"gap_mm\":null"), "{line}");
+        assert!(
+            line.contains("\"position_mm\":null") && line.contains("\"gap_mm\":null"),
+            "{line}"
+        );
         let back = PositionRecord::from_ndjson_line(&line).unwrap();
         assert!(back.gap_mm.is_nan());
-        assert_eq!(PositionRecord { gap_mm: 0.0, ..back }, PositionRecord { gap_mm: 0.0, ..lost });
+        assert_eq!(
+            PositionRecord { gap_mm: 0.0, ..back },
+            PositionRecord { gap_mm: 0.0, ..lost }
+        );
     }
 
     #[test]
@@ -617,7 +669,11 @@ mod tests {
         let cap = buf.capacity();
         for f in 0..100 {
             buf.clear();
-            PositionRecord { frame: f, ..tracked() }.write_ndjson(&mut buf);
+            PositionRecord {
+                frame: f,
+                ..tracked()
+            }
+            .write_ndjson(&mut buf);
             assert!(buf.len() < MAX_NDJSON_LINE);
         }
         assert_eq!(buf.capacity(), cap);
@@ -632,7 +688,10 @@ mod tests {
         assert_eq!(r.frame, 7);
         assert_eq!(r.status, TrackStatus::Rejected);
         assert_eq!(r.position_mm, Some([1.0, 2.0, 3.0]));
-        assert_eq!((r.orientation_wxyz, r.world_frame, r.params_crc), (None, false, 0));
+        assert_eq!(
+            (r.orientation_wxyz, r.world_frame, r.params_crc),
+            (None, false, 0)
+        );
     }
 
     #[test]
@@ -662,16 +721,27 @@ mod tests {
 
     #[test]
     fn binary_layout_and_round_trip() {
-        let r = PositionRecord { orientation_wxyz: Some([1.0, 0.0, 0.0, 0.0]), world_frame: true, ..tracked() };
+        let r = PositionRecord {
+            orientation_wxyz: Some([1.0, 0.0, 0.0, 0.0]),
+            world_frame: true,
+            ..tracked()
+        };
         let b = r.to_binary();
         assert_eq!(&b[0..8], b"IRPS\x01\x07\x5c\x00");
         assert_eq!(&b[8..16], &42u64.to_le_bytes());
         assert_eq!(&b[24..32], &12.5f64.to_le_bytes());
         assert_eq!((b[88], b[89]), (0, 2));
         assert_eq!(&b[96..100], &0xDEAD_BEEFu32.to_le_bytes());
-        assert_eq!(u32::from_le_bytes(b[100..104].try_into().unwrap()), crate::crc::crc32(&b[..100]));
+        assert_eq!(
+            u32::from_le_bytes(b[100..104].try_into().unwrap()),
+            crate::crc::crc32(&b[..100])
+        );
         assert_eq!(PositionRecord::decode_binary(&b).unwrap(), r);
-        let lost = PositionRecord { position_mm: None, status: TrackStatus::NoParams, ..tracked() };
+        let lost = PositionRecord {
+            position_mm: None,
+            status: TrackStatus::NoParams,
+            ..tracked()
+        };
         let b = lost.to_binary();
         assert_eq!(b[5], 0);
         assert_eq!(PositionRecord::decode_binary(&b).unwrap(), lost);
@@ -685,7 +755,10 @@ mod tests {
                 let mut c = b;
                 c[i] ^= x;
                 assert!(
-                    matches!(PositionRecord::decode_binary(&c), Err(Error::Protocol { protocol: BINARY, .. })),
+                    matches!(
+                        PositionRecord::decode_binary(&c),
+                        Err(Error::Protocol { protocol: BINARY, .. })
+                    ),
                     "byte {i} ^ {x:#x} undetected"
                 );
             }

@@ -5,6 +5,8 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use irtrack_core::pipeline::TrackerConfig;
+
 use crate::error::{FirmwareError, Result};
 use crate::leds::gpio::GpioLedConfig;
 use crate::robot::RobotConfig;
@@ -25,8 +27,9 @@ pub struct Config {
     pub listen: ListenConfig,
     #[serde(default)]
     pub source: SourceConfig,
+    /// Blob detector and quality gate (irtrack-core's `TrackerConfig`; unknown keys rejected).
     #[serde(default)]
-    pub tracking: TrackingConfig,
+    pub tracking: TrackerConfig,
     #[serde(default)]
     pub leds: LedsConfig,
     #[serde(default)]
@@ -131,28 +134,6 @@ pub struct SourceConfig {
     pub v4l2: Option<V4l2Config>,
 }
 
-/// `[tracking]`: quality gate and detector settings.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TrackingConfig {
-    /// Largest accepted gap between the rays, mm; worse results are published as `rejected`.
-    #[serde(default = "default_max_gap_mm")]
-    pub max_gap_mm: f64,
-    /// Processing deadline, ms; default one frame period of the source.
-    #[serde(default)]
-    pub deadline_ms: Option<f64>,
-}
-
-fn default_max_gap_mm() -> f64 {
-    5.0
-}
-
-impl Default for TrackingConfig {
-    fn default() -> Self {
-        Self { max_gap_mm: default_max_gap_mm(), deadline_ms: None }
-    }
-}
-
 /// LED back end.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
@@ -160,8 +141,10 @@ pub enum LedBackend {
     /// Log changes (PC runs, tests).
     #[default]
     Sim,
-    /// gpiocdev (or rppal when built with that feature) lines from `[leds.gpio]`.
+    /// gpiocdev lines from `[leds.gpio]`.
     Gpio,
+    /// rppal pins from `[leds.rppal]` (Raspberry Pi; needs the `rpi` cargo feature).
+    Rppal,
     /// No LEDs at all.
     None,
 }
@@ -174,6 +157,9 @@ pub struct LedsConfig {
     pub backend: LedBackend,
     #[serde(default)]
     pub gpio: Option<GpioLedConfig>,
+    #[cfg(feature = "rpi")]
+    #[serde(default)]
+    pub rppal: Option<crate::leds::rppal::RppalLedConfig>,
 }
 
 /// `[realtime]`: applied to the processing thread when permitted.
@@ -190,6 +176,9 @@ pub struct RealtimeConfig {
     /// LimitMEMLOCK).
     #[serde(default)]
     pub lock_memory: bool,
+    /// Processing deadline per frame set, ms; default: the source's frame period.
+    #[serde(default)]
+    pub deadline_ms: Option<f64>,
 }
 
 impl Config {
@@ -226,12 +215,10 @@ impl Config {
         if self.listen.client_queue_records == 0 {
             return bad("listen.client_queue_records must be at least 1".into());
         }
-        if !(self.tracking.max_gap_mm.is_finite() && self.tracking.max_gap_mm > 0.0) {
-            return bad(format!("tracking.max_gap_mm must be > 0, got {}", self.tracking.max_gap_mm));
-        }
-        if let Some(d) = self.tracking.deadline_ms {
+        check_tracker_config(&self.tracking)?;
+        if let Some(d) = self.realtime.deadline_ms {
             if !(d.is_finite() && d > 0.0) {
-                return bad(format!("tracking.deadline_ms must be > 0, got {d}"));
+                return bad(format!("realtime.deadline_ms must be > 0, got {d}"));
             }
         }
         match self.source.kind {
@@ -253,7 +240,9 @@ impl Config {
                 Some(v) if v.devices.len() < 2 => {
                     return bad(format!("source.v4l2.devices needs at least 2 cameras, got {}", v.devices.len()));
                 }
-                Some(_) => {}
+                Some(v) => {
+                    v.validate().map_err(|e| FirmwareError::Config { reason: format!("[source.v4l2]: {e}") })?;
+                }
             },
         }
         if self.service.params_from_simulator && self.source.kind != SourceKind::Sim {
@@ -262,6 +251,17 @@ impl Config {
         if self.leds.backend == LedBackend::Gpio && self.leds.gpio.is_none() {
             return bad("leds.backend = \"gpio\" needs a [leds.gpio] table".into());
         }
+        #[cfg(feature = "rpi")]
+        if self.leds.backend == LedBackend::Rppal && self.leds.rppal.is_none() {
+            return bad("leds.backend = \"rppal\" needs a [leds.rppal] table".into());
+        }
+        #[cfg(not(feature = "rpi"))]
+        if self.leds.backend == LedBackend::Rppal {
+            return bad("leds.backend = \"rppal\" needs irtrackd built with the `rpi` feature".into());
+        }
+        if let Some(robot) = &self.robot {
+            robot.validate().map_err(|e| FirmwareError::Config { reason: e.to_string() })?;
+        }
         if let Some(p) = self.realtime.fifo_priority {
             if !(1..=99).contains(&p) {
                 return bad(format!("realtime.fifo_priority must be 1..=99, got {p}"));
@@ -269,4 +269,30 @@ impl Config {
         }
         Ok(())
     }
+}
+
+/// Lets irtrack-core check the `[tracking]` values by building a tracker for a tiny dummy rig
+/// (the core keeps its validation private; this way `--check-config` catches bad values).
+fn check_tracker_config(cfg: &TrackerConfig) -> Result<()> {
+    use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
+    use irtrack_core::params::{CameraParams, RigParams};
+    let model = CameraModel {
+        intrinsics: Intrinsics { fx_px: 100.0, fy_px: 100.0, cx_px: 31.5, cy_px: 23.5 },
+        distortion: Distortion::NONE,
+        image_size: ImageSize { width_px: 64, height_px: 48 },
+    };
+    let shifted = RigidTransform { t_mm: [-100.0, 0.0, 0.0], ..RigidTransform::IDENTITY };
+    let rig = RigParams {
+        rig_id: "config-check".into(),
+        created_unix_s: 0,
+        cameras: vec![
+            CameraParams { model, cam_from_cam0: RigidTransform::IDENTITY },
+            CameraParams { model, cam_from_cam0: shifted },
+        ],
+        world_from_cam0: None,
+        tools: Vec::new(),
+    };
+    irtrack_core::pipeline::Tracker::new(&rig, *cfg)
+        .map(|_| ())
+        .map_err(|e| FirmwareError::Config { reason: format!("[tracking]: {e}") })
 }

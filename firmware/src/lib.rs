@@ -1,13 +1,24 @@
 //! irtrackd: capture, processing loop, status LEDs, parameters and outputs.
+//!
+//! Data flow: a [`source::FrameSource`] feeds the [`engine::Engine`] on its own thread; results
+//! go into a latest-value slot (`tokio::sync::watch`) that the stream server and the robot link
+//! read; [`status::SharedStatus`] holds atomics that the LED driver, the status endpoint and the
+//! systemd watchdog read. See docs/irtrackd.md.
 
+pub mod app;
 pub mod clock;
 pub mod config;
+pub mod engine;
 pub mod error;
 pub mod leds;
 pub mod metrics;
+pub mod net;
+pub mod params;
 pub mod robot;
+pub mod rt;
 pub mod source;
 pub mod status;
 pub mod storage;
+pub mod watchdog;
 
 pub use error::{FirmwareError, Result};

@@ -102,6 +102,8 @@ pub struct SharedStatus {
     robot: AtomicU8,
     pub deadline_fault: AtomicBool,
     pub alive: AtomicBool,
+    /// The frame source ended (replay finished); the loop stopped on purpose.
+    pub source_ended: AtomicBool,
 
     // LED driver output.
     led_levels: AtomicU8,
@@ -165,6 +167,7 @@ impl SharedStatus {
             robot: AtomicU8::new(0),
             deadline_fault: AtomicBool::new(false),
             alive: AtomicBool::new(false),
+            source_ended: AtomicBool::new(false),
             led_levels: AtomicU8::new(0),
             indication: Mutex::new(Indication::STARTING),
             stream_clients: AtomicU64::new(0),
@@ -312,6 +315,7 @@ impl SharedStatus {
                 deadline_misses: self.deadline_misses.load(R),
                 source_errors: self.source_errors.load(R),
                 pipeline_errors: self.pipeline_errors.load(R),
+                source_ended: self.source_ended.load(R),
                 latency_us: latency_us.into_iter().collect(),
                 realtime: self.realtime.lock().map(|g| g.clone()).unwrap_or_default(),
             },
@@ -436,6 +440,7 @@ pub struct LoopReport {
     pub deadline_misses: u64,
     pub source_errors: u64,
     pub pipeline_errors: u64,
+    pub source_ended: bool,
     pub latency_us: std::collections::BTreeMap<&'static str, LatencySummary>,
     /// Real-time settings applied or refused (one line each).
     pub realtime: Vec<String>,

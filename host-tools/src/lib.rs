@@ -1,3 +1,4 @@
 //! Library behind the `host-tools` binary; one module per subcommand in [`cmd`].
 
 pub mod cmd;
+pub mod opencv_yaml;

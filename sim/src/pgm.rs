@@ -61,7 +61,7 @@ fn check_len(width_px: u32, height_px: u32, len: usize) -> Result<(), SimError> 
 pub fn read_pgm(bytes: &[u8]) -> Result<Pgm, SimError> {
     let bad = |reason: String| SimError::Pgm { reason };
     let mut pos = 0usize;
-    let mut token = |pos: &mut usize| -> Result<String, SimError> {
+    let token = |pos: &mut usize| -> Result<String, SimError> {
         // Skip whitespace and comments.
         loop {
             match bytes.get(*pos) {
@@ -85,7 +85,7 @@ pub fn read_pgm(bytes: &[u8]) -> Result<Pgm, SimError> {
     if magic != "P5" {
         return Err(bad(format!("magic `{magic}`, expected P5 (binary greymap)")));
     }
-    let mut num = |what: &str, pos: &mut usize| -> Result<u32, SimError> {
+    let num = |what: &str, pos: &mut usize| -> Result<u32, SimError> {
         let t = token(pos)?;
         t.parse::<u32>().map_err(|_| bad(format!("{what} `{t}` is not a number")))
     };

@@ -83,80 +83,36 @@ pub struct Phase {
     pub timeout: Duration,
 }
 
-const MIN: Duration = Duration::from_secs(60);
+/// Builds a [`Phase`]; `limit_min` is the time limit in minutes.
+const fn phase(
+    name: &'static str,
+    about: &'static str,
+    label: &'static str,
+    run: Option<PhaseFn>,
+    limit_min: u64,
+) -> Phase {
+    Phase {
+        name,
+        about,
+        label,
+        run,
+        timeout: Duration::from_secs(limit_min * 60),
+    }
+}
 
 /// All phases, in run order. Register a new one with a single line here.
+#[rustfmt::skip]
 pub const PHASES: &[Phase] = &[
-    Phase {
-        name: "setup",
-        about: "install missing system packages",
-        label: "",
-        run: Some(setup_phase),
-        timeout: MIN.saturating_mul(30),
-    },
-    Phase {
-        name: "fmt",
-        about: "cargo fmt --all --check",
-        label: "",
-        run: Some(fmt),
-        timeout: MIN.saturating_mul(3),
-    },
-    Phase {
-        name: "clippy",
-        about: "cargo clippy --workspace --all-targets -- -D warnings",
-        label: "",
-        run: Some(clippy),
-        timeout: MIN.saturating_mul(25),
-    },
-    Phase {
-        name: "host-tests",
-        about: "cargo test --workspace (all crates, host)",
-        label: "host",
-        run: Some(host_tests),
-        timeout: MIN.saturating_mul(25),
-    },
-    Phase {
-        name: "no-std",
-        about: "irtrack-core without its std feature",
-        label: "",
-        run: Some(no_std),
-        timeout: MIN.saturating_mul(10),
-    },
-    Phase {
-        name: "aarch64-tests",
-        about: "cross-build core/sim/firmware, run their tests under qemu-aarch64",
-        label: "aarch64",
-        run: Some(aarch64_tests),
-        timeout: MIN.saturating_mul(25),
-    },
-    Phase {
-        name: "systemd",
-        about: "systemd-analyze verify on systemd/ units",
-        label: "",
-        run: Some(lint::systemd_phase),
-        timeout: MIN.saturating_mul(2),
-    },
-    Phase {
-        name: "yocto-lint",
-        about: "oelint-adv on yocto-layer/ recipes",
-        label: "",
-        run: Some(lint::yocto_phase),
-        timeout: MIN.saturating_mul(5),
-    },
-    Phase {
-        name: "image",
-        about: "aarch64 image build + QEMU system test",
-        label: "system",
-        run: IMAGE_HOOK,
-        timeout: MIN.saturating_mul(20),
-    },
-    Phase {
-        name: "bench",
-        about: "short benchmark",
-        label: "bench",
-        run: BENCH_HOOK,
-        timeout: MIN.saturating_mul(10),
-    },
+    phase("setup", "install missing system packages", "", Some(setup_phase), 30),
+    phase("fmt", "cargo fmt --all --check", "", Some(fmt), 3),
+    phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", Some(clippy), 25),
+    phase("host-tests", "cargo test --workspace (all crates, host)", "host", Some(host_tests), 25),
+    phase("no-std", "irtrack-core without its std feature", "", Some(no_std), 10),
+    phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", Some(aarch64_tests), 25),
+    phase("systemd", "systemd-analyze verify on systemd/ units", "", Some(lint::systemd_phase), 2),
+    phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", Some(lint::yocto_phase), 5),
+    phase("image", "aarch64 image build + QEMU system test", "system", IMAGE_HOOK, 20),
+    phase("bench", "short benchmark", "bench", BENCH_HOOK, 10),
 ];
 
 #[cfg(xtask_has_image)]
@@ -298,7 +254,7 @@ fn print_summary(rows: &[Row], total: Duration) -> i32 {
     println!("\n{}", "=".repeat(100));
     println!("Summary");
     println!("{}", "=".repeat(100));
-    println!("{:<14} {:>8}  {:<34} tests", "phase", "time", "result");
+    println!("{:<14} {:>8}  {:<44} tests", "phase", "time", "result");
     let mut all = Counts::default();
     let mut phase_failures = 0u64;
     for r in rows {
@@ -313,12 +269,12 @@ fn print_summary(rows: &[Row], total: Duration) -> i32 {
             None => "-".into(),
         };
         let mut status = status_text(&r.outcome);
-        if status.len() > 34 {
-            status.truncate(31);
+        if status.len() > 44 {
+            status.truncate(41);
             status.push_str("...");
         }
         println!(
-            "{:<14} {:>8}  {:<34} {tests}",
+            "{:<14} {:>8}  {:<44} {tests}",
             r.name,
             util::fmt_duration(r.elapsed),
             status
@@ -519,6 +475,7 @@ fn no_std_inner(ctx: &Ctx) -> Result<Outcome> {
         &mut cmd,
         RunOpts {
             capture_stdout: true,
+            quiet_stdout: true,
             ..phase_opts()
         },
     )?;

@@ -34,7 +34,7 @@ fn steps() -> Vec<Step> {
             explain: "Render a simulated two-camera rig watching an IR LED move along a trajectory: \
                       frames per camera, the rig's calibration and the ground truth.",
             action: Action::HostTools(&["simulate", "--out", "{out}/scenario"]),
-            produces: &["scenario/truth.csv"],
+            produces: &["scenario/truth.csv", "scenario/rig.irp"],
         },
         Step {
             title: "track",
@@ -45,7 +45,7 @@ fn steps() -> Vec<Step> {
                 "--frames",
                 "{out}/scenario",
                 "--params",
-                "{out}/scenario/rig.yaml",
+                "{out}/scenario/rig.irp",
                 "--out",
                 "{out}/positions.csv",
             ]),

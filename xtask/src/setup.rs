@@ -76,6 +76,7 @@ const PACKAGES: &[Pkg] = &[
         debian_only: true,
         ..pkg("busybox-static:arm64", "aarch64 userland of the test image")
     },
+    pkg("systemd", "systemd-analyze verifies the unit files in systemd/"),
     Pkg {
         backports: true,
         ..pkg("qemu-user", "qemu-aarch64 runs the aarch64 test binaries")

@@ -91,6 +91,8 @@ pub struct RunOpts {
     pub capture_stderr: bool,
     /// Kill the whole process tree after this long.
     pub timeout: Option<Duration>,
+    /// Do not echo stdout (capture only).
+    pub quiet_stdout: bool,
 }
 
 /// Quotes a command for display so it can be copied into a shell.
@@ -133,8 +135,9 @@ pub fn run(cmd: &mut Command, opts: RunOpts) -> Result<Output> {
         .with_context(|| format!("could not start `{}`", display_cmd(cmd)))?;
     let out_pipe = child.stdout.take().context("child stdout missing")?;
     let err_pipe = child.stderr.take().context("child stderr missing")?;
-    let out_thread = thread::spawn(move || pump(out_pipe, false, opts.capture_stdout));
-    let err_thread = thread::spawn(move || pump(err_pipe, true, opts.capture_stderr));
+    let echo_stdout = !opts.quiet_stdout;
+    let out_thread = thread::spawn(move || pump(out_pipe, false, echo_stdout, opts.capture_stdout));
+    let err_thread = thread::spawn(move || pump(err_pipe, true, true, opts.capture_stderr));
 
     let start = Instant::now();
     let mut timed_out = false;
@@ -164,8 +167,8 @@ pub fn run(cmd: &mut Command, opts: RunOpts) -> Result<Output> {
     })
 }
 
-/// Copies a pipe to our stdout/stderr line by line, returning the text if `keep`.
-fn pump(pipe: impl Read, to_stderr: bool, keep: bool) -> String {
+/// Copies a pipe to our stdout/stderr line by line (if `echo`), returning the text if `keep`.
+fn pump(pipe: impl Read, to_stderr: bool, echo: bool, keep: bool) -> String {
     let mut reader = BufReader::new(pipe);
     let mut kept = String::new();
     let mut buf = Vec::new();
@@ -175,11 +178,11 @@ fn pump(pipe: impl Read, to_stderr: bool, keep: bool) -> String {
             Ok(0) | Err(_) => break,
             Ok(_) => {
                 let line = String::from_utf8_lossy(&buf);
-                if to_stderr {
+                if echo && to_stderr {
                     let mut e = std::io::stderr().lock();
                     let _ = e.write_all(line.as_bytes());
                     let _ = e.flush();
-                } else {
+                } else if echo {
                     let mut o = std::io::stdout().lock();
                     let _ = o.write_all(line.as_bytes());
                     let _ = o.flush();
@@ -301,7 +304,7 @@ mod tests {
         let opts = RunOpts {
             capture_stdout: true,
             capture_stderr: true,
-            timeout: None,
+            ..RunOpts::default()
         };
         let out = run(&mut cmd, opts).unwrap();
         assert_eq!(out.stdout, "out\n");
@@ -317,8 +320,8 @@ mod tests {
         cmd.args(["-c", "sleep 30 & sleep 30; echo never"]);
         let opts = RunOpts {
             capture_stdout: true,
-            capture_stderr: false,
             timeout: Some(Duration::from_millis(300)),
+            ..RunOpts::default()
         };
         let start = Instant::now();
         let out = run(&mut cmd, opts).unwrap();

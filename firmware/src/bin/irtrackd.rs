@@ -1,1 +1,193 @@
-fn main() {}
+//! irtrackd: the irtrack board service (see docs/irtrackd.md).
+
+use std::io::{IsTerminal, Write};
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Parser;
+
+use irtrack_firmware::app::{self, Overrides};
+use irtrack_firmware::config::{self, Config, SourceKind};
+use irtrack_firmware::watchdog;
+
+#[derive(Debug, Parser)]
+#[command(name = "irtrackd", version, about = "irtrack board service: capture, tracking, position stream")]
+struct Cli {
+    /// Config file (TOML). Without it, built-in defaults (simulated source) are used unless
+    /// the default file exists.
+    #[arg(short, long)]
+    config: Option<PathBuf>,
+    /// Validate the configuration and exit.
+    #[arg(long)]
+    check_config: bool,
+    /// Override `source.kind`.
+    #[arg(long, value_enum)]
+    source: Option<SourceKind>,
+    /// Replay directory (implies `--source replay`).
+    #[arg(long)]
+    replay_dir: Option<PathBuf>,
+    /// Override `service.state_dir`.
+    #[arg(long)]
+    state_dir: Option<PathBuf>,
+    /// Bind every endpoint on this IP with OS-chosen ports (tests, several instances).
+    #[arg(long)]
+    ephemeral_ports: Option<std::net::IpAddr>,
+    #[arg(long)]
+    listen_params: Option<String>,
+    #[arg(long)]
+    listen_stream: Option<String>,
+    #[arg(long)]
+    listen_binary: Option<String>,
+    #[arg(long)]
+    listen_status: Option<String>,
+    /// Override the simulated source's frame rate.
+    #[arg(long)]
+    sim_fps: Option<f64>,
+    /// Simulated source: use the simulator's rig when no parameters are stored.
+    #[arg(long)]
+    params_from_simulator: bool,
+}
+
+fn apply_overrides(cfg: &mut Config, cli: &Cli) {
+    if let Some(k) = cli.source {
+        cfg.source.kind = k;
+    }
+    if let Some(dir) = &cli.replay_dir {
+        cfg.source.kind = SourceKind::Replay;
+        let r = cfg.source.replay.get_or_insert_with(|| irtrack_firmware::source::replay::ReplayConfig {
+            dir: dir.clone(),
+            speed: Default::default(),
+            repeat: false,
+            fps: None,
+        });
+        r.dir = dir.clone();
+    }
+    if let Some(d) = &cli.state_dir {
+        cfg.service.state_dir = d.clone();
+    }
+    if let Some(ip) = cli.ephemeral_ports {
+        let a = std::net::SocketAddr::new(ip, 0).to_string();
+        cfg.listen.params = a.clone();
+        cfg.listen.stream_ndjson = a.clone();
+        cfg.listen.stream_binary = a.clone();
+        cfg.listen.status = a;
+    }
+    for (v, slot) in [
+        (&cli.listen_params, &mut cfg.listen.params),
+        (&cli.listen_stream, &mut cfg.listen.stream_ndjson),
+        (&cli.listen_binary, &mut cfg.listen.stream_binary),
+        (&cli.listen_status, &mut cfg.listen.status),
+    ] {
+        if let Some(v) = v {
+            *slot = v.clone();
+        }
+    }
+    if let Some(fps) = cli.sim_fps {
+        cfg.source.sim.get_or_insert_with(Default::default).fps = fps;
+    }
+    if cli.params_from_simulator {
+        cfg.service.params_from_simulator = true;
+    }
+}
+
+fn load_config(cli: &Cli) -> anyhow::Result<Config> {
+    let path = cli.config.clone().or_else(|| {
+        let p = PathBuf::from(config::DEFAULT_CONFIG_PATH);
+        p.exists().then_some(p)
+    });
+    let mut cfg = match &path {
+        Some(p) => Config::load(p)?,
+        None => Config::default(),
+    };
+    apply_overrides(&mut cfg, cli);
+    cfg.validate().context("after command-line overrides")?;
+    Ok(cfg)
+}
+
+fn init_logging() {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    // journald stamps lines itself and shows escape codes literally.
+    let tty = std::io::stderr().is_terminal();
+    if std::env::var_os("JOURNAL_STREAM").is_some() {
+        builder.with_ansi(false).without_time().init();
+    } else {
+        builder.with_ansi(tty).init();
+    }
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    init_logging();
+    let cfg = match load_config(&cli) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("irtrackd: {e:#}");
+            std::process::exit(2);
+        }
+    };
+    if cli.check_config {
+        println!(
+            "irtrackd: config OK (source {:?}, state dir {}, params {}, stream {}, binary {}, status {})",
+            cfg.source.kind,
+            cfg.service.state_dir.display(),
+            cfg.listen.params,
+            cfg.listen.stream_ndjson,
+            cfg.listen.stream_binary,
+            cfg.listen.status
+        );
+        return Ok(());
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("irtrackd-io")
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    rt.block_on(run(cfg))
+}
+
+async fn run(cfg: Config) -> anyhow::Result<()> {
+    let mut running = app::start(cfg, Overrides::default()).await?;
+    let line = running.addrs.ready_line();
+    {
+        let mut out = std::io::stdout().lock();
+        writeln!(out, "{line}")?;
+        out.flush()?;
+    }
+    tracing::info!("{line}");
+    watchdog::notify_ready(&line);
+    let _watchdog = watchdog::spawn(running.status.clone());
+    let mut loop_done = running.take_loop_result();
+
+    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+    let exit = loop {
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => break Ok(()),
+            _ = sigterm.recv() => break Ok(()),
+            r = wait_loop(&mut loop_done) => match r {
+                // Source ended on purpose (replay): keep serving status until stopped.
+                Ok(Ok(())) => {
+                    tracing::info!("processing loop finished; services stay up until stopped");
+                    loop_done = None;
+                }
+                Ok(Err(e)) => break Err(anyhow::Error::new(e).context("processing loop failed")),
+                Err(_) => break Err(anyhow::anyhow!("processing loop thread died")),
+            },
+        }
+    };
+    tracing::info!("stopping");
+    watchdog::notify_stopping();
+    running.shutdown().await;
+    exit
+}
+
+async fn wait_loop(
+    rx: &mut Option<tokio::sync::oneshot::Receiver<irtrack_firmware::Result<()>>>,
+) -> Result<irtrack_firmware::Result<()>, tokio::sync::oneshot::error::RecvError> {
+    match rx {
+        Some(r) => r.await,
+        None => std::future::pending().await,
+    }
+}

@@ -34,6 +34,8 @@ pub enum LedError {
 }
 
 pub mod gpio;
+#[cfg(feature = "rpi")]
+pub mod rppal;
 pub mod driver;
 pub mod indication;
 pub mod sim;

@@ -1,6 +1,83 @@
-//! Robot link (owned by the robot-link work; placeholder seam until then).
+//! Robot link: the tracker-side client of the robot protocol (docs/robot-protocol.md), the safety
+//! supervisor that decides what may be sent, the deadman input and a simulated robot server.
+//!
+//! The [`RobotLink`] trait is the seam irtrackd uses; [`client::TcpRobotLink`] implements it.
+
+pub mod client;
+pub mod deadman;
+pub mod safety;
+pub mod sim;
+#[cfg(test)]
+mod tests;
 
 use serde::Deserialize;
+
+pub use client::{LinkState, LinkStatus, TcpRobotLink};
+pub use deadman::{Deadman, DeadmanConfig};
+pub use safety::{SafetyConfig, Supervisor, Verdict};
+
+/// Errors of the robot link (logged by the client, which keeps reconnecting).
+#[derive(Debug, thiserror::Error)]
+pub enum RobotError {
+    /// Connecting, reading or writing failed.
+    #[error("robot link {addr}: {what}: {source}")]
+    Io {
+        addr: String,
+        what: &'static str,
+        source: std::io::Error,
+    },
+    /// The robot sent something the protocol does not allow.
+    #[error("robot link {addr}: {source}")]
+    Protocol {
+        addr: String,
+        source: irtrack_core::Error,
+    },
+    /// The robot speaks another protocol version.
+    #[error("robot link {addr}: robot speaks protocol version {found}, this build speaks {supported}")]
+    Version { addr: String, found: u8, supported: u8 },
+    /// Nothing heard from the robot within the timeout.
+    #[error("robot link {addr}: no message from the robot for {ms} ms")]
+    Timeout { addr: String, ms: u64 },
+    /// The robot closed the connection.
+    #[error("robot link {addr}: connection closed by the robot")]
+    Closed { addr: String },
+    /// The deadman GPIO line could not be opened or read.
+    #[error("deadman input {what}: {reason}")]
+    Deadman { what: String, reason: String },
+    /// Invalid configuration.
+    #[error("robot config: {reason}")]
+    Config { reason: String },
+}
+
+/// What irtrackd needs from a robot link.
+pub trait RobotLink: Send + Sync {
+    /// Operator enable: motion may start (again). Required after start, after every reconnect
+    /// and after every latched safety stop.
+    fn enable(&self);
+    /// Operator disable: hold now.
+    fn disable(&self);
+    /// Current state and counters.
+    fn status(&self) -> LinkStatus;
+}
+
+fn default_name() -> String {
+    "irtrackd".into()
+}
+fn default_connect_timeout_ms() -> u64 {
+    2000
+}
+fn default_heartbeat_ms() -> u64 {
+    200
+}
+fn default_peer_timeout_ms() -> u64 {
+    1000
+}
+fn default_backoff_min_ms() -> u64 {
+    100
+}
+fn default_backoff_max_ms() -> u64 {
+    5000
+}
 
 /// `[robot]` section of the irtrackd config.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -8,4 +85,116 @@ use serde::Deserialize;
 pub struct RobotConfig {
     /// Robot controller address, `host:port` (the tracker is the TCP client).
     pub address: String,
+    /// Name sent in HELLO (1..=24 of `[A-Za-z0-9._-]`).
+    #[serde(default = "default_name")]
+    pub name: String,
+    #[serde(default = "default_connect_timeout_ms")]
+    pub connect_timeout_ms: u64,
+    /// Heartbeat period towards the robot.
+    #[serde(default = "default_heartbeat_ms")]
+    pub heartbeat_ms: u64,
+    /// The connection is dropped when the robot is silent this long.
+    #[serde(default = "default_peer_timeout_ms")]
+    pub peer_timeout_ms: u64,
+    /// Reconnect backoff: first delay, doubled up to the maximum.
+    #[serde(default = "default_backoff_min_ms")]
+    pub backoff_min_ms: u64,
+    #[serde(default = "default_backoff_max_ms")]
+    pub backoff_max_ms: u64,
+    /// Send 6-DOF `Q` lines when the record has an orientation.
+    #[serde(default)]
+    pub send_orientation: bool,
+    /// Safety limits of this installation (required: there are no safe defaults for a workspace).
+    pub safety: SafetyConfig,
+    /// Deadman / enabling input.
+    pub deadman: DeadmanConfig,
+}
+
+impl RobotConfig {
+    /// Checks values a TOML parser cannot.
+    pub fn validate(&self) -> Result<(), RobotError> {
+        let bad = |reason: String| Err(RobotError::Config { reason });
+        if self.address.is_empty() {
+            return bad("robot.address is empty".into());
+        }
+        let hello = irtrack_core::robot_proto::TrackerMsg::Hello {
+            version: 1,
+            name: self.name.clone(),
+        };
+        if let Err(e) = hello.encode() {
+            return bad(format!("robot.name: {e}"));
+        }
+        if self.heartbeat_ms == 0 || self.peer_timeout_ms <= self.heartbeat_ms {
+            return bad(format!(
+                "robot.peer_timeout_ms ({}) must exceed robot.heartbeat_ms ({}) > 0",
+                self.peer_timeout_ms, self.heartbeat_ms
+            ));
+        }
+        if self.backoff_min_ms == 0 || self.backoff_max_ms < self.backoff_min_ms {
+            return bad("robot.backoff_min_ms must be > 0 and <= robot.backoff_max_ms".into());
+        }
+        self.safety
+            .validate()
+            .map_err(|reason| RobotError::Config { reason })
+    }
+}
+
+#[cfg(test)]
+mod config_tests {
+    use super::*;
+
+    const GOOD: &str = r#"
+address = "192.168.125.1:1025"
+[safety]
+workspace_min_mm = [-500.0, -500.0, 0.0]
+workspace_max_mm = [500.0, 500.0, 800.0]
+max_step_mm = 20.0
+max_speed_mm_s = 250.0
+max_gap_mm = 2.0
+max_age_ms = 100
+[deadman]
+kind = "gpio"
+chip = "gpiochip0"
+line = 17
+active_low = true
+"#;
+
+    #[test]
+    fn parses_and_validates() {
+        let c: RobotConfig = toml::from_str(GOOD).unwrap();
+        c.validate().unwrap();
+        assert_eq!(c.heartbeat_ms, 200);
+        assert!(matches!(
+            c.deadman,
+            DeadmanConfig::Gpio {
+                line: 17,
+                active_low: true,
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn rejects_unknown_keys_and_bad_values() {
+        let unknown = GOOD.replace("max_age_ms = 100", "max_age_ms = 100\nmax_agee = 3");
+        let e = toml::from_str::<RobotConfig>(&unknown).unwrap_err().to_string();
+        assert!(e.contains("max_agee"), "{e}");
+        let inverted = GOOD.replace("[500.0, 500.0, 800.0]", "[500.0, -600.0, 800.0]");
+        let c: RobotConfig = toml::from_str(&inverted).unwrap();
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("workspace"), "{e}");
+        let c: RobotConfig =
+            toml::from_str(&GOOD.replace("max_step_mm = 20.0", "max_step_mm = 0.0")).unwrap();
+        assert!(c.validate().unwrap_err().to_string().contains("max_step_mm"));
+        let missing = GOOD.replace(
+            "[deadman]\nkind = \"gpio\"\nchip = \"gpiochip0\"\nline = 17\nactive_low = true\n",
+            "",
+        );
+        assert!(
+            toml::from_str::<RobotConfig>(&missing)
+                .unwrap_err()
+                .to_string()
+                .contains("deadman")
+        );
+    }
 }

@@ -1,10 +1,121 @@
-//! (not yet implemented)
+//! `host-tools show-params FILE`: human-readable dump of a parameter blob or OpenCV YAML.
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+
+use anyhow::Result;
+use irtrack_core::params::{BlobHeader, RigParams, looks_like_blob};
+
+use crate::opencv_yaml::{iso_utc, load_params_any};
 
 /// Arguments.
 #[derive(clap::Args, Debug)]
-pub struct Args {}
+pub struct Args {
+    /// Parameter blob or OpenCV YAML calibration.
+    pub file: PathBuf,
+}
+
+fn fmt_vec(v: &[f64]) -> String {
+    let parts: Vec<String> = v.iter().map(|x| format!("{x:.6}")).collect();
+    format!("[{}]", parts.join(", "))
+}
+
+/// The report text for `rig`; `source` describes where it came from.
+pub fn describe(rig: &RigParams, source: &str) -> Result<String> {
+    let mut s = String::new();
+    writeln!(s, "source:       {source}")?;
+    writeln!(s, "rig id:       {}", rig.rig_id)?;
+    writeln!(
+        s,
+        "created:      {} ({} Unix s)",
+        iso_utc(rig.created_unix_s),
+        rig.created_unix_s
+    )?;
+    writeln!(s, "cameras:      {}", rig.cameras.len())?;
+    for (i, cam) in rig.cameras.iter().enumerate() {
+        let m = &cam.model;
+        let k = &m.intrinsics;
+        let d = &m.distortion;
+        writeln!(s, "camera {i}{}:", if i == 0 { " (reference frame)" } else { "" })?;
+        writeln!(
+            s,
+            "  image:      {} x {} px",
+            m.image_size.width_px, m.image_size.height_px
+        )?;
+        writeln!(s, "  focal:      fx {:.3} px, fy {:.3} px", k.fx_px, k.fy_px)?;
+        writeln!(s, "  principal:  cx {:.3} px, cy {:.3} px", k.cx_px, k.cy_px)?;
+        writeln!(
+            s,
+            "  distortion: k1 {:.6}, k2 {:.6}, p1 {:.6}, p2 {:.6}, k3 {:.6}",
+            d.k1, d.k2, d.p1, d.p2, d.k3
+        )?;
+        if i > 0 {
+            let t = &cam.cam_from_cam0;
+            let c = rig.camera_centre_cam0_mm(i)?;
+            writeln!(
+                s,
+                "  pose:       baseline {:.3} mm from camera 0, optical axes {:.3} deg apart",
+                rig.baseline_mm(i)?,
+                rig.optical_axis_angle_deg(i)?
+            )?;
+            writeln!(
+                s,
+                "  centre:     ({:.3}, {:.3}, {:.3}) mm in camera-0 frame",
+                c.x, c.y, c.z
+            )?;
+            writeln!(
+                s,
+                "  R, T:       x_cam{i} = R x_cam0 + T, R rows {} {} {}, T {} mm",
+                fmt_vec(&t.r_row_major[0..3]),
+                fmt_vec(&t.r_row_major[3..6]),
+                fmt_vec(&t.r_row_major[6..9]),
+                fmt_vec(&t.t_mm)
+            )?;
+        }
+    }
+    match &rig.world_from_cam0 {
+        None => writeln!(s, "registration: none (positions in camera-0 frame)")?,
+        Some(w) => writeln!(
+            s,
+            "registration: world from camera 0, R rows {} {} {}, T {} mm",
+            fmt_vec(&w.r_row_major[0..3]),
+            fmt_vec(&w.r_row_major[3..6]),
+            fmt_vec(&w.r_row_major[6..9]),
+            fmt_vec(&w.t_mm)
+        )?,
+    }
+    if rig.tools.is_empty() {
+        writeln!(s, "tools:        none")?;
+    }
+    for tool in &rig.tools {
+        writeln!(s, "tool {:?}: {} LEDs", tool.name, tool.leds_mm.len())?;
+        for p in &tool.leds_mm {
+            writeln!(s, "  LED {} mm", fmt_vec(p))?;
+        }
+    }
+    match rig.validate() {
+        Ok(()) => writeln!(s, "validation:   OK")?,
+        Err(e) => writeln!(s, "validation:   INVALID: {e}")?,
+    }
+    Ok(s)
+}
 
 /// Runs the subcommand.
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("this subcommand is not implemented yet")
+pub fn run(args: Args) -> Result<()> {
+    let rig = load_params_any(&args.file)?;
+    let bytes = std::fs::read(&args.file)?;
+    let source = if looks_like_blob(&bytes) {
+        let h = BlobHeader::parse(&bytes)?;
+        format!(
+            "{} (parameter blob v{}, {} bytes, CRC-32 {:08x})",
+            args.file.display(),
+            h.version,
+            bytes.len(),
+            h.crc32
+        )
+    } else {
+        format!("{} (OpenCV YAML)", args.file.display())
+    };
+    print!("{}", describe(&rig, &source)?);
+    Ok(())
 }

@@ -1,10 +1,244 @@
-//! (not yet implemented)
+//! `host-tools simulate`: renders a simulated scenario to a directory (layout in
+//! docs/simulator.md): frames per camera as PGM, the rig as OpenCV YAML and as a parameter
+//! blob, ground truth and per-frame timestamps.
+
+use std::fmt::Write as _;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use irtrack_sim::pgm::{write_pgm_u8, write_pgm_u16};
+use irtrack_sim::rig::{TABLE_I_BASELINE_MM, TABLE_I_FOCAL_PX};
+use irtrack_sim::{BitDepth, MarkerSpec, RigPreset, Scenario, SimConfig, Trajectory};
+use nalgebra::Vector3;
+
+/// Preset rig.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RigArg {
+    Parallel,
+    Convergent,
+}
 
 /// Arguments.
-#[derive(clap::Args, Debug)]
-pub struct Args {}
+#[derive(clap::Args, Debug, Clone)]
+pub struct Args {
+    /// Output directory (created; existing frames are overwritten).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Rig preset.
+    #[arg(long, value_enum, default_value = "convergent")]
+    pub rig: RigArg,
+    /// Working distance (mm): where the convergent rig's axes cross and the path's centre.
+    #[arg(long, default_value_t = 800.0)]
+    pub distance_mm: f64,
+    /// Parallel rig baseline (mm).
+    #[arg(long, default_value_t = TABLE_I_BASELINE_MM)]
+    pub baseline_mm: f64,
+    /// Angle between the convergent rig's optical axes (deg).
+    #[arg(long, default_value_t = 90.0)]
+    pub angle_deg: f64,
+    /// Focal length (px) of the VGA cameras.
+    #[arg(long, default_value_t = TABLE_I_FOCAL_PX)]
+    pub focal_px: f64,
+    /// circle | line | figure8 | csv:FILE (t_s,x_mm,y_mm,z_mm in camera 0's frame).
+    #[arg(long, default_value = "circle")]
+    pub trajectory: String,
+    /// Size of the parametric path (circle radius, line half-length, figure-eight half-width).
+    #[arg(long, default_value_t = 100.0)]
+    pub radius_mm: f64,
+    /// Period of the parametric path (s).
+    #[arg(long, default_value_t = 2.0)]
+    pub period_s: f64,
+    /// Number of frames.
+    #[arg(long, default_value_t = 240)]
+    pub frames: u64,
+    /// Frame rate.
+    #[arg(long, default_value_t = 120.0)]
+    pub fps: f64,
+    /// Add a ceiling lamp and a reflection seen by camera 1 only.
+    #[arg(long)]
+    pub glare: bool,
+    /// Bit depth of the written frames: 8 (maxval 255) or 10 (16-bit PGM, maxval 1023).
+    #[arg(long, default_value_t = 8, value_parser = clap::builder::PossibleValuesParser::new(["8", "10"]).map(|s| s.parse::<u8>().unwrap_or(8)))]
+    pub bits: u8,
+    /// Noise and drop seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Probability that a camera drops a frame.
+    #[arg(long, default_value_t = 0.0)]
+    pub drop_rate: f64,
+    /// Sub-exposures for motion blur (1 = off).
+    #[arg(long, default_value_t = 1)]
+    pub motion_blur: u32,
+    /// Exposure time (ms).
+    #[arg(long, default_value_t = 2.0)]
+    pub exposure_ms: f64,
+    /// Number of markers (extra ones ride 30 mm apart on a rigid tool).
+    #[arg(long, default_value_t = 1)]
+    pub markers: usize,
+    /// Peak of the marker's spot as a fraction of full scale at the working distance
+    /// (auto-exposure stand-in); brightness still falls with distance along the path.
+    #[arg(long, default_value_t = 0.6)]
+    pub peak_fraction: f64,
+    /// Lens without distortion.
+    #[arg(long)]
+    pub no_distortion: bool,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Builds the simulator configuration the arguments describe.
+pub fn config_from_args(a: &Args) -> anyhow::Result<SimConfig> {
+    let rig = match a.rig {
+        RigArg::Parallel => RigPreset::Parallel { baseline_mm: a.baseline_mm },
+        RigArg::Convergent => RigPreset::Convergent { distance_mm: a.distance_mm, angle_deg: a.angle_deg },
+    };
+    let mut cfg = SimConfig::preset(rig, a.distance_mm, a.radius_mm);
+    cfg.camera.focal_px = a.focal_px;
+    if a.no_distortion {
+        cfg.camera.distortion = irtrack_core::camera::Distortion::NONE;
+    }
+    let centre = cfg.rig.workspace_centre_mm(a.distance_mm);
+    let r = a.radius_mm;
+    let normal = Vector3::new(0.3, 1.0, 0.4);
+    cfg.trajectory = match a.trajectory.as_str() {
+        "circle" => Trajectory::Circle { centre_mm: centre, radius_mm: r, normal, period_s: a.period_s },
+        "figure8" => Trajectory::Figure8 { centre_mm: centre, size_mm: r, normal, period_s: a.period_s },
+        "line" => Trajectory::Line {
+            from_mm: centre - Vector3::new(r, 0.4 * r, 0.6 * r),
+            to_mm: centre + Vector3::new(r, 0.4 * r, 0.6 * r),
+            period_s: a.period_s,
+        },
+        other => match other.strip_prefix("csv:") {
+            Some(file) => {
+                let text = std::fs::read_to_string(file).with_context(|| format!("reading trajectory {file}"))?;
+                Trajectory::from_csv(&text).with_context(|| format!("trajectory {file}"))?
+            }
+            None => bail!("unknown trajectory `{other}`: use circle, line, figure8 or csv:FILE"),
+        },
+    };
+    cfg.fps = a.fps;
+    cfg.seed = a.seed;
+    cfg.drop_rate = a.drop_rate;
+    cfg.motion_blur_steps = a.motion_blur;
+    cfg.sensor.exposure_s = a.exposure_ms * 1e-3;
+    cfg.bit_depth = if a.bits == 10 { BitDepth::Ten } else { BitDepth::Eight };
+    if a.markers == 0 || a.markers > irtrack_sim::scenario::MAX_MARKERS {
+        bail!("--markers must be 1..={}", irtrack_sim::scenario::MAX_MARKERS);
+    }
+    let base = MarkerSpec::default();
+    let flux = base.flux_for_peak(a.peak_fraction, cfg.sensor.full_well_e, a.distance_mm, a.focal_px);
+    cfg.markers = (0..a.markers)
+        .map(|i| MarkerSpec {
+            offset_mm: Vector3::new(30.0 * (i % 2) as f64, -30.0 * (i / 2) as f64, 0.0),
+            flux_e_at_1m: flux,
+            ..base
+        })
+        .collect();
+    if a.glare {
+        cfg.add_glare();
+    }
+    Ok(cfg)
+}
+
+/// What was written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WriteSummary {
+    pub frames: u64,
+    pub images: u64,
+    pub dropped: u64,
+}
+
+/// Renders `frames` frames of `sc` into `dir` with the layout of docs/simulator.md.
+pub fn write_scenario(sc: &mut Scenario, dir: &Path, frames: u64, show_progress: bool) -> anyhow::Result<WriteSummary> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let n_cam = sc.camera_count();
+    for c in 0..n_cam {
+        let d = dir.join(format!("cam{c}"));
+        std::fs::create_dir_all(&d).with_context(|| format!("creating {}", d.display()))?;
+        // Stale frames from an earlier, longer run would be read as part of this one.
+        for e in std::fs::read_dir(&d)? {
+            let p = e?.path();
+            if p.extension().is_some_and(|x| x == "pgm") {
+                std::fs::remove_file(&p).with_context(|| format!("removing stale {}", p.display()))?;
+            }
+        }
+    }
+    let rig = sc.rig().clone();
+    crate::opencv_yaml::write_rig_yaml(&dir.join("rig.yaml"), &rig)?;
+    std::fs::write(dir.join("rig.irp"), rig.to_blob()?).context("writing rig.irp")?;
+    std::fs::write(dir.join("scenario.txt"), format!("{:#?}\n", sc.config())).context("writing scenario.txt")?;
+
+    let (w, h) = sc.image_size();
+    let depth = sc.config().bit_depth;
+    let mut f8 = vec![0u8; (w * h) as usize];
+    let mut f16 = vec![0u16; (w * h) as usize];
+    let mut truth = String::from("frame,t_s,x_mm,y_mm,z_mm,visible\n");
+    let multi = sc.config().markers.len() > 1;
+    let mut markers = String::from("frame,marker,x_mm,y_mm,z_mm,visible\n");
+    let mut stamps = String::from("frame,camera,timestamp_ns,dropped\n");
+    let bar = if show_progress {
+        indicatif::ProgressBar::new(frames)
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let mut sum = WriteSummary { frames, images: 0, dropped: 0 };
+    for index in 0..frames {
+        let t = sc.truth(index);
+        for (m, mt) in t.markers().iter().enumerate() {
+            let p = mt.p_cam0_mm;
+            let vis = mt.visible_in_all(n_cam) as u8;
+            if m == 0 {
+                let _ = writeln!(truth, "{index},{:.6},{:.6},{:.6},{:.6},{vis}", t.t_s, p.x, p.y, p.z);
+            }
+            if multi {
+                let _ = writeln!(markers, "{index},{m},{:.6},{:.6},{:.6},{vis}", p.x, p.y, p.z);
+            }
+        }
+        for c in 0..n_cam {
+            let path = dir.join(format!("cam{c}/{index:06}.pgm"));
+            let info = match depth {
+                BitDepth::Eight => sc.render_u8(index, c, &mut f8)?,
+                BitDepth::Ten => sc.render_u16(index, c, &mut f16)?,
+            };
+            let _ = writeln!(stamps, "{index},{c},{},{}", info.timestamp_ns, info.dropped as u8);
+            if info.dropped {
+                sum.dropped += 1;
+                continue;
+            }
+            let file = std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+            let mut out = BufWriter::new(file);
+            match depth {
+                BitDepth::Eight => write_pgm_u8(&mut out, w, h, &f8)?,
+                BitDepth::Ten => write_pgm_u16(&mut out, w, h, 1023, &f16)?,
+            }
+            std::io::Write::flush(&mut out).with_context(|| format!("writing {}", path.display()))?;
+            sum.images += 1;
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    std::fs::write(dir.join("truth.csv"), truth).context("writing truth.csv")?;
+    std::fs::write(dir.join("timestamps.csv"), stamps).context("writing timestamps.csv")?;
+    if multi {
+        std::fs::write(dir.join("markers.csv"), markers).context("writing markers.csv")?;
+    }
+    Ok(sum)
+}
 
 /// Runs the subcommand.
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("this subcommand is not implemented yet")
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let cfg = config_from_args(&args)?;
+    let mut sc = Scenario::new(cfg)?;
+    let s = write_scenario(&mut sc, &args.out, args.frames, !args.quiet)?;
+    println!(
+        "wrote {} frames x {} cameras ({} images, {} dropped) to {}",
+        s.frames,
+        sc.camera_count(),
+        s.images,
+        s.dropped,
+        args.out.display()
+    );
+    Ok(())
 }

@@ -1,0 +1,487 @@
+//! `irtrack-bench`: the tracking hot path against OpenCV's equivalent pipeline and against
+//! the memory floor, on the same rendered frames, in one run (ratios, not timed asserts).
+//!
+//! Usage:
+//!   irtrack-bench [--quick]                 timing table (VGA and 1280x720 stereo pairs)
+//!   irtrack-bench --run CASE --iterations N  run one case N times, print nothing else
+//!                                            (for instruction counting under callgrind)
+//! CASE is `<ours-full|ours-roi|opencv|sum>-<vga|720p>`.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::hint::black_box;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
+use irtrack_core::image::GrayImage;
+use irtrack_core::params::{CameraParams, RigParams};
+use irtrack_core::pipeline::{TrackStatus, Tracker, TrackerConfig};
+use nalgebra::{Matrix3, Vector3};
+use opencv::core::{self as cv, Mat, MatTraitConst, Point2d, Rect, Scalar, Vector};
+use opencv::{calib3d, imgproc};
+
+/// Counts heap allocations made through Rust's allocator (ours; OpenCV's C++ heap is not
+/// seen, so only our pipeline's figure is reported).
+struct Counting;
+
+static ALLOCATIONS: AtomicU64 = AtomicU64::new(0);
+
+// SAFETY: forwards every call to the system allocator unchanged; only counts.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        // SAFETY: caller upholds GlobalAlloc::alloc's contract.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: caller upholds GlobalAlloc::dealloc's contract.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        // SAFETY: caller upholds GlobalAlloc::realloc's contract.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+const THRESHOLD_DN: u8 = 30;
+
+/// One benchmark resolution: rig and a rendered stereo frame pair.
+struct Scene {
+    name: &'static str,
+    rig: RigParams,
+    frames: [Vec<u8>; 2],
+    width_px: u32,
+    height_px: u32,
+    truth_mm: Vector3<f64>,
+}
+
+fn camera(w: u32, h: u32, f_px: f64) -> CameraModel {
+    CameraModel {
+        intrinsics: Intrinsics {
+            fx_px: f_px,
+            fy_px: f_px,
+            cx_px: w as f64 / 2.0,
+            cy_px: h as f64 / 2.0,
+        },
+        distortion: Distortion {
+            k1: -0.2,
+            k2: 0.05,
+            p1: 0.001,
+            p2: -0.0005,
+            k3: 0.0,
+        },
+        image_size: ImageSize {
+            width_px: w,
+            height_px: h,
+        },
+    }
+}
+
+/// Cheap deterministic noise (xorshift32), so rendering stays fast even under callgrind.
+struct Noise(u32);
+
+impl Noise {
+    fn next(&mut self) -> u32 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 17;
+        self.0 ^= self.0 << 5;
+        self.0
+    }
+    /// Approximately normal, sd ≈ 2 DN (sum of four uniforms on ±3.46).
+    fn dn(&mut self) -> f64 {
+        let r = self.next();
+        let u = |s: u32| ((r >> s) & 0xff) as f64 / 255.0 - 0.5;
+        (u(0) + u(8) + u(16) + u(24)) * 6.93
+    }
+}
+
+/// IR camera frame: background 10 ± 2 DN, a Gaussian LED (σ 1.5 px, peak 190 DN).
+fn render(w: u32, h: u32, led_px: (f64, f64), seed: u32) -> Vec<u8> {
+    let mut noise = Noise(seed | 1);
+    let mut img: Vec<u8> = (0..w * h)
+        .map(|_| (10.0 + noise.dn()).round().clamp(0.0, 255.0) as u8)
+        .collect();
+    let (cx, cy) = led_px;
+    let (x0, y0) = ((cx - 8.0).max(0.0) as u32, (cy - 8.0).max(0.0) as u32);
+    for y in y0..((cy + 9.0) as u32).min(h) {
+        for x in x0..((cx + 9.0) as u32).min(w) {
+            let r2 = (x as f64 - cx).powi(2) + (y as f64 - cy).powi(2);
+            let v = img[(y * w + x) as usize] as f64 + 190.0 * (-r2 / (2.0 * 1.5 * 1.5)).exp();
+            img[(y * w + x) as usize] = v.round().clamp(0.0, 255.0) as u8;
+        }
+    }
+    img
+}
+
+fn scene(name: &'static str, w: u32, h: u32, f_px: f64) -> Result<Scene> {
+    let model = camera(w, h, f_px);
+    let t1 = RigidTransform::from_parts(&Matrix3::identity(), &Vector3::new(-150.0, 0.0, 0.0));
+    let rig = RigParams {
+        rig_id: format!("bench-{name}"),
+        created_unix_s: 0,
+        cameras: vec![
+            CameraParams {
+                model,
+                cam_from_cam0: RigidTransform::IDENTITY,
+            },
+            CameraParams {
+                model,
+                cam_from_cam0: t1,
+            },
+        ],
+        world_from_cam0: None,
+        tools: vec![],
+    };
+    let truth_mm = Vector3::new(40.0, -25.0, 800.0);
+    let mut frames: [Vec<u8>; 2] = [vec![], vec![]];
+    for (c, f) in frames.iter_mut().enumerate() {
+        let cam = &rig.cameras[c];
+        let px = cam.model.project(&cam.cam_from_cam0.apply(&truth_mm))?;
+        *f = render(w, h, (px.x, px.y), 0x9E37_79B9 ^ (c as u32 + w));
+    }
+    Ok(Scene {
+        name,
+        rig,
+        frames,
+        width_px: w,
+        height_px: h,
+        truth_mm,
+    })
+}
+
+fn views(s: &Scene) -> Result<[GrayImage<'_, u8>; 2]> {
+    let v = |c: usize| GrayImage::new(&s.frames[c], s.width_px, s.height_px, s.width_px);
+    Ok([v(0)?, v(1)?])
+}
+
+/// Our pipeline; `roi` = tracking windows on (after a warm-up frame) or full frame only.
+struct Ours {
+    tracker: Tracker,
+}
+
+impl Ours {
+    fn new(s: &Scene, roi: bool) -> Result<Self> {
+        let cfg = TrackerConfig {
+            threshold_dn: THRESHOLD_DN as u32,
+            roi_half_px: if roi { 24 } else { 0 },
+            ..TrackerConfig::default()
+        };
+        let mut o = Ours {
+            tracker: Tracker::new(&s.rig, cfg)?,
+        };
+        // Warm-up: establishes the tracking windows.
+        let p = o.run(s)?;
+        if (p - s.truth_mm).norm() > 2.0 {
+            bail!(
+                "{}: our point {p:?} is far from the truth {:?}",
+                s.name,
+                s.truth_mm
+            );
+        }
+        Ok(o)
+    }
+
+    fn run(&mut self, s: &Scene) -> Result<Vector3<f64>> {
+        let m = self.tracker.process_u8(&views(s)?)?;
+        match (m.status, m.point_cam0_mm) {
+            (TrackStatus::Tracked, Some(p)) => Ok(p),
+            _ => bail!("{}: our pipeline did not track: {:?}", s.name, m.status),
+        }
+    }
+}
+
+/// The same job with OpenCV: threshold, connectedComponentsWithStats, intensity moments of
+/// the largest component (pixels minus threshold inside its mask), undistortPoints,
+/// triangulatePoints. Buffers are kept across frames so OpenCV can reuse them.
+struct OpenCv {
+    k: [Mat; 2],
+    d: [Mat; 2],
+    p: [Mat; 2],
+    bin: Mat,
+    labels: Mat,
+    stats: Mat,
+    centroids: Mat,
+    mask: Mat,
+    shifted: Mat,
+    weighted: Mat,
+    points4: Mat,
+}
+
+impl OpenCv {
+    fn new(s: &Scene) -> Result<Self> {
+        // One thread, like our pipeline (and the board).
+        cv::set_num_threads(1)?;
+        let mut k = [Mat::default(), Mat::default()];
+        let mut d = [Mat::default(), Mat::default()];
+        let mut p = [Mat::default(), Mat::default()];
+        for c in 0..2 {
+            let cam = &s.rig.cameras[c];
+            let i = &cam.model.intrinsics;
+            k[c] = Mat::from_slice_2d(&[[i.fx_px, 0.0, i.cx_px], [0.0, i.fy_px, i.cy_px], [0.0, 0.0, 1.0]])?;
+            d[c] = Mat::from_slice_2d(&[cam.model.distortion.as_array()])?;
+            let r = cam.cam_from_cam0.r_row_major;
+            let t = cam.cam_from_cam0.t_mm;
+            p[c] = Mat::from_slice_2d(&[
+                [r[0], r[1], r[2], t[0]],
+                [r[3], r[4], r[5], t[1]],
+                [r[6], r[7], r[8], t[2]],
+            ])?;
+        }
+        Ok(OpenCv {
+            k,
+            d,
+            p,
+            bin: Mat::default(),
+            labels: Mat::default(),
+            stats: Mat::default(),
+            centroids: Mat::default(),
+            mask: Mat::default(),
+            shifted: Mat::default(),
+            weighted: Mat::default(),
+            points4: Mat::default(),
+        })
+    }
+
+    /// Centroid of the largest component, pixels.
+    fn centroid(&mut self, s: &Scene, c: usize) -> Result<(f64, f64)> {
+        let src = Mat::new_rows_cols_with_data(s.height_px as i32, s.width_px as i32, &s.frames[c])?;
+        imgproc::threshold(
+            &*src,
+            &mut self.bin,
+            THRESHOLD_DN as f64,
+            255.0,
+            imgproc::THRESH_BINARY,
+        )?;
+        let n = imgproc::connected_components_with_stats(
+            &self.bin,
+            &mut self.labels,
+            &mut self.stats,
+            &mut self.centroids,
+            8,
+            cv::CV_32S,
+        )?;
+        let mut best = (0, 0);
+        for label in 1..n {
+            let area = *self.stats.at_2d::<i32>(label, imgproc::CC_STAT_AREA)?;
+            if area > best.1 {
+                best = (label, area);
+            }
+        }
+        if best.0 == 0 {
+            bail!("{}: OpenCV found no component in camera {c}", s.name);
+        }
+        let st = |k: i32| -> Result<i32> { Ok(*self.stats.at_2d::<i32>(best.0, k)?) };
+        let rect = Rect::new(
+            st(imgproc::CC_STAT_LEFT)?,
+            st(imgproc::CC_STAT_TOP)?,
+            st(imgproc::CC_STAT_WIDTH)?,
+            st(imgproc::CC_STAT_HEIGHT)?,
+        );
+        let labels_roi = Mat::roi(&self.labels, rect)?;
+        let src_roi = Mat::roi(&*src, rect)?;
+        cv::compare(
+            &*labels_roi,
+            &Scalar::all(best.0 as f64),
+            &mut self.mask,
+            cv::CMP_EQ,
+        )?;
+        // Weight = value − threshold (saturating at 0), kept only inside the component.
+        cv::subtract(
+            &*src_roi,
+            &Scalar::all(THRESHOLD_DN as f64),
+            &mut self.shifted,
+            &cv::no_array(),
+            -1,
+        )?;
+        cv::min(&self.shifted, &self.mask, &mut self.weighted)?;
+        let m = imgproc::moments(&self.weighted, false)?;
+        if m.m00 <= 0.0 {
+            bail!("{}: OpenCV component without weight in camera {c}", s.name);
+        }
+        Ok((rect.x as f64 + m.m10 / m.m00, rect.y as f64 + m.m01 / m.m00))
+    }
+
+    fn run(&mut self, s: &Scene) -> Result<Vector3<f64>> {
+        let mut normalized = [[0.0f64; 2]; 2];
+        for (c, n) in normalized.iter_mut().enumerate() {
+            let (x, y) = self.centroid(s, c)?;
+            let src = Vector::<Point2d>::from_slice(&[Point2d::new(x, y)]);
+            let mut dst = Vector::<Point2d>::new();
+            calib3d::undistort_points(
+                &src,
+                &mut dst,
+                &self.k[c],
+                &self.d[c],
+                &cv::no_array(),
+                &cv::no_array(),
+            )?;
+            let q = dst.get(0)?;
+            *n = [q.x, q.y];
+        }
+        let a = Mat::from_slice_2d(&[[normalized[0][0]], [normalized[0][1]]])?;
+        let b = Mat::from_slice_2d(&[[normalized[1][0]], [normalized[1][1]]])?;
+        calib3d::triangulate_points(&self.p[0], &self.p[1], &a, &b, &mut self.points4)?;
+        let h = |r: i32| -> Result<f64> {
+            Ok(if self.points4.typ() == cv::CV_64F {
+                *self.points4.at_2d::<f64>(r, 0)?
+            } else {
+                *self.points4.at_2d::<f32>(r, 0)? as f64
+            })
+        };
+        let w = h(3)?;
+        Ok(Vector3::new(h(0)? / w, h(1)? / w, h(2)? / w))
+    }
+}
+
+/// The memory floor: one pass summing every pixel of both frames.
+fn sum_pixels(s: &Scene) -> u64 {
+    let mut total = 0u64;
+    for f in &s.frames {
+        // u32 partial sums over chunks that cannot overflow (65536 × 255 < 2^32) vectorise.
+        for chunk in black_box(f).chunks(65536) {
+            total += chunk.iter().map(|&v| v as u32).sum::<u32>() as u64;
+        }
+    }
+    total
+}
+
+/// Median time per iteration (ns) over `batches` batches of `iters` iterations.
+fn time_ns(batches: usize, iters: usize, mut f: impl FnMut() -> Result<()>) -> Result<f64> {
+    let mut per = Vec::with_capacity(batches);
+    for _ in 0..batches {
+        let t = Instant::now();
+        for _ in 0..iters {
+            f()?;
+        }
+        per.push(t.elapsed().as_nanos() as f64 / iters as f64);
+    }
+    per.sort_by(|a, b| a.total_cmp(b));
+    Ok(per[per.len() / 2])
+}
+
+fn fmt_us(ns: f64) -> String {
+    format!("{:.1} µs", ns / 1000.0)
+}
+
+fn scenes() -> Result<Vec<Scene>> {
+    Ok(vec![
+        scene("VGA 640x480", 640, 480, 600.0)?,
+        scene("HD 1280x720", 1280, 720, 900.0)?,
+    ])
+}
+
+fn table(quick: bool) -> Result<()> {
+    let (batches, scale) = if quick { (3, 1) } else { (11, 8) };
+    println!("irtrack-bench: per stereo frame pair, median of {batches} batches, single thread");
+    println!();
+    println!(
+        "| frames | ours full | OpenCV | OpenCV/ours | sum pass | ours/sum | ours ROI | ROI/full | allocs/pair | |ours−OpenCV| |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for s in scenes()? {
+        let iters = scale * if s.width_px > 640 { 10 } else { 25 };
+        let mut full = Ours::new(&s, false)?;
+        let mut roi = Ours::new(&s, true)?;
+        let mut ocv = OpenCv::new(&s)?;
+        let p_ours = full.run(&s)?;
+        let p_cv = ocv.run(&s)?;
+        let diff_mm = (p_ours - p_cv).norm();
+
+        let a0 = ALLOCATIONS.load(Ordering::Relaxed);
+        let t_full = time_ns(batches, iters, || full.run(&s).map(|p| drop(black_box(p))))?;
+        let t_roi = time_ns(batches, iters * 20, || roi.run(&s).map(|p| drop(black_box(p))))?;
+        let ours_allocs = ALLOCATIONS.load(Ordering::Relaxed) - a0;
+        let ours_runs = (batches * iters * 21) as f64;
+        if !roi.tracker.measurement().used_roi {
+            bail!("{}: ROI case did not use the tracking windows", s.name);
+        }
+        let t_cv = time_ns(batches, iters, || ocv.run(&s).map(|p| drop(black_box(p))))?;
+        let t_sum = time_ns(batches, iters * 4, || {
+            black_box(sum_pixels(&s));
+            Ok(())
+        })?;
+        println!(
+            "| {} | {} | {} | {:.1}x | {} | {:.2}x | {} | {:.2} % | {} | {:.3} mm |",
+            s.name,
+            fmt_us(t_full),
+            fmt_us(t_cv),
+            t_cv / t_full,
+            fmt_us(t_sum),
+            t_full / t_sum,
+            fmt_us(t_roi),
+            100.0 * t_roi / t_full,
+            ours_allocs as f64 / ours_runs,
+            diff_mm,
+        );
+    }
+    println!();
+    println!("Goals: OpenCV/ours ≥ 20x, ours/sum ≤ 3x, ROI/full ≤ 5 %, 0 allocations per pair.");
+    Ok(())
+}
+
+/// Runs one case `iters` times after setup and one warm-up, printing nothing but a checksum
+/// (so the work cannot be optimised away); `cargo xtask bench` runs this under callgrind
+/// with two iteration counts and reports the difference per iteration.
+fn run_case(case: &str, iters: usize) -> Result<()> {
+    let (what, res) = case.rsplit_once('-').context("case must be <what>-<vga|720p>")?;
+    let s = match res {
+        "vga" => scene("VGA", 640, 480, 600.0)?,
+        "720p" => scene("720p", 1280, 720, 900.0)?,
+        other => bail!("unknown resolution `{other}` (vga or 720p)"),
+    };
+    let mut check = 0.0f64;
+    match what {
+        "ours-full" | "ours-roi" => {
+            let mut o = Ours::new(&s, what == "ours-roi")?;
+            for _ in 0..iters {
+                check += o.run(&s)?.z;
+            }
+        }
+        "opencv" => {
+            let mut o = OpenCv::new(&s)?;
+            o.run(&s)?;
+            for _ in 0..iters {
+                check += o.run(&s)?.z;
+            }
+        }
+        "sum" => {
+            for _ in 0..iters {
+                check += sum_pixels(&s) as f64;
+            }
+        }
+        other => bail!("unknown case `{other}` (ours-full, ours-roi, opencv, sum)"),
+    }
+    println!("checksum {check}");
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let mut quick = false;
+    let mut case = None;
+    let mut iters = 10usize;
+    let mut it = args.iter();
+    while let Some(a) = it.next() {
+        match a.as_str() {
+            "--quick" => quick = true,
+            "--run" => case = Some(it.next().context("--run needs a case")?.clone()),
+            "--iterations" => iters = it.next().context("--iterations needs a number")?.parse()?,
+            "-h" | "--help" => {
+                println!(
+                    "usage: irtrack-bench [--quick] | --run <ours-full|ours-roi|opencv|sum>-<vga|720p> --iterations N"
+                );
+                return Ok(());
+            }
+            other => bail!("unknown argument `{other}`"),
+        }
+    }
+    match case {
+        Some(c) => run_case(&c, iters),
+        None => table(quick),
+    }
+}

@@ -1,0 +1,398 @@
+//! Parameter blob format (docs/param-blob.md): golden bytes, specific errors, round trips.
+
+use irtrack_core::Error;
+use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
+use irtrack_core::params::{
+    BLOB_FORMAT_VERSION, BLOB_HEADER_LEN, BlobHeader, CameraParams, RigParams, ToolDefinition,
+};
+use proptest::prelude::*;
+
+/// The golden rig: two VGA cameras, the second 100 mm to the right (OpenCV T = (-100, 0, 0)).
+fn golden_rig() -> RigParams {
+    let vga = ImageSize {
+        width_px: 640,
+        height_px: 480,
+    };
+    RigParams {
+        rig_id: "golden1".into(),
+        created_unix_s: 1_700_000_000,
+        cameras: vec![
+            CameraParams {
+                model: CameraModel {
+                    intrinsics: Intrinsics {
+                        fx_px: 500.0,
+                        fy_px: 500.0,
+                        cx_px: 319.5,
+                        cy_px: 239.5,
+                    },
+                    distortion: Distortion::NONE,
+                    image_size: vga,
+                },
+                cam_from_cam0: RigidTransform::IDENTITY,
+            },
+            CameraParams {
+                model: CameraModel {
+                    intrinsics: Intrinsics {
+                        fx_px: 510.0,
+                        fy_px: 505.0,
+                        cx_px: 320.0,
+                        cy_px: 240.0,
+                    },
+                    distortion: Distortion {
+                        k1: -0.25,
+                        k2: 0.125,
+                        p1: 0.0,
+                        p2: 0.0,
+                        k3: 0.0,
+                    },
+                    image_size: vga,
+                },
+                cam_from_cam0: RigidTransform {
+                    t_mm: [-100.0, 0.0, 0.0],
+                    ..RigidTransform::IDENTITY
+                },
+            },
+        ],
+        world_from_cam0: None,
+        tools: vec![],
+    }
+}
+
+/// Independently assembled (Python: struct.pack + zlib.crc32) from the spec, one field per line.
+const GOLDEN_HEX: &[&str] = &[
+    "49525042",         // magic "IRPB"
+    "0100",             // format version 1
+    "0000",             // flags
+    "68010000",         // body length 360
+    "5a3073ee",         // CRC-32 0xee73305a over bytes 0..12 + body
+    "07676f6c64656e31", // rig_id: varint 7, "golden1"
+    "80e2cfaa06",       // created_unix_s 1700000000 (varint)
+    "02",               // 2 cameras
+    // camera 0: fx fy cx cy, k1 k2 p1 p2 k3, width 640 height 480 (varints), R (9), t (3)
+    "0000000000407f40",
+    "0000000000407f40",
+    "0000000000f87340",
+    "0000000000f06d40",
+    "0000000000000000",
+    "0000000000000000",
+    "0000000000000000",
+    "0000000000000000",
+    "0000000000000000",
+    "8005",
+    "e003",
+    "000000000000f03f",
+    "0000000000000000",
+    "0000000000000000",
+    "0000000000000000",
+    "000000000000f03f",
+    "0000000000000000",
+    "0000000000000000",
+    "0000000000000000",
+    "000000000000f03f",
+    "0000000000000000",
+    "0000000000000000",
+    "0000000000000000",
+    // camera 1
+    "0000000000e07f40",
+    "0000000000907f40",
+    "0000000000007440",
+    "0000000000006e40",
+    "000000000000d0bf",
+    "000000000000c03f",
+    "0000000000000000",
+    "0000000000000000",
+    "0000000000000000",
+    "8005",
+    "e003",
+    "000000000000f03f",
+    "0000000000000000",
+    "0000000000000000",
+    "0000000000000000",
+    "000000000000f03f",
+    "0000000000000000",
+    "0000000000000000",
+    "0000000000000000",
+    "000000000000f03f",
+    "00000000000059c0", // t_x = -100 mm
+    "0000000000000000",
+    "0000000000000000",
+    "00", // world_from_cam0: None
+    "00", // no tools
+];
+
+fn golden_bytes() -> Vec<u8> {
+    let hex: String = GOLDEN_HEX.concat();
+    (0..hex.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+        .collect()
+}
+
+#[test]
+fn golden_encode() {
+    assert_eq!(golden_rig().to_blob().unwrap(), golden_bytes());
+}
+
+#[test]
+fn golden_decode() {
+    let rig = RigParams::from_blob(&golden_bytes()).unwrap();
+    assert_eq!(rig, golden_rig());
+    rig.validate().unwrap();
+    assert!((rig.baseline_mm(1).unwrap() - 100.0).abs() < 1e-12);
+    assert_eq!(rig.optical_axis_angle_deg(1).unwrap(), 0.0);
+    assert_eq!(rig.params_crc().unwrap(), 0xee73_305a);
+}
+
+#[test]
+fn header_parses() {
+    let h = BlobHeader::parse(&golden_bytes()).unwrap();
+    assert_eq!(
+        h,
+        BlobHeader {
+            version: 1,
+            flags: 0,
+            body_len: 360,
+            crc32: 0xee73_305a
+        }
+    );
+    assert_eq!(h.blob_len(), 376);
+}
+
+#[test]
+fn truncated_blobs() {
+    let b = golden_bytes();
+    for len in [0, 3] {
+        assert_eq!(
+            RigParams::from_blob(&b[..len]),
+            Err(Error::BlobTruncated { needed: 16, got: len })
+        );
+    }
+    assert_eq!(
+        RigParams::from_blob(&b[..15]),
+        Err(Error::BlobTruncated { needed: 16, got: 15 })
+    );
+    for len in [16, 200, b.len() - 1] {
+        assert_eq!(
+            RigParams::from_blob(&b[..len]),
+            Err(Error::BlobTruncated {
+                needed: 376,
+                got: len
+            })
+        );
+    }
+}
+
+#[test]
+fn wrong_magic() {
+    let mut b = golden_bytes();
+    b[0] = b'X';
+    assert_eq!(
+        RigParams::from_blob(&b),
+        Err(Error::BlobBadMagic { found: *b"XRPB" })
+    );
+    // A YAML file is recognised as "not a blob", not as truncated.
+    assert_eq!(
+        RigParams::from_blob(b"%YAML:1.0\n"),
+        Err(Error::BlobBadMagic { found: *b"%YAM" })
+    );
+}
+
+#[test]
+fn wrong_version() {
+    let mut b = golden_bytes();
+    b[4] = 2;
+    assert_eq!(
+        RigParams::from_blob(&b),
+        Err(Error::BlobUnsupportedVersion {
+            found: 2,
+            supported: BLOB_FORMAT_VERSION
+        })
+    );
+}
+
+#[test]
+fn signed_flag_refused_until_verification_exists() {
+    let mut b = golden_bytes();
+    b[6] = 0x01;
+    assert_eq!(
+        RigParams::from_blob(&b),
+        Err(Error::BlobUnsupportedFlags { flags: 1, known: 0 })
+    );
+}
+
+#[test]
+fn trailing_bytes() {
+    let mut b = golden_bytes();
+    b.extend_from_slice(&[0, 0, 0]);
+    assert_eq!(
+        RigParams::from_blob(&b),
+        Err(Error::BlobTrailingBytes { extra: 3 })
+    );
+}
+
+#[test]
+fn corrupted_body_and_crc() {
+    let mut b = golden_bytes();
+    b[100] ^= 0x10;
+    assert!(matches!(
+        RigParams::from_blob(&b),
+        Err(Error::BlobBadCrc {
+            found: 0xee73_305a,
+            ..
+        })
+    ));
+    let mut b = golden_bytes();
+    b[12] ^= 0x01;
+    assert_eq!(
+        RigParams::from_blob(&b),
+        Err(Error::BlobBadCrc {
+            found: 0xee73_305b,
+            computed: 0xee73_305a
+        })
+    );
+}
+
+/// Rewrites the CRC so that a damaged body reaches the body decoder.
+fn reseal(mut b: Vec<u8>) -> Vec<u8> {
+    let mut covered = b[..12].to_vec();
+    covered.extend_from_slice(&b[BLOB_HEADER_LEN..]);
+    let crc = irtrack_core::crc::crc32(&covered);
+    b[12..16].copy_from_slice(&crc.to_le_bytes());
+    b
+}
+
+#[test]
+fn bad_body_with_valid_crc() {
+    // Body cut short, length field and CRC made consistent.
+    let mut b = golden_bytes();
+    b.truncate(b.len() - 10);
+    let body_len = (b.len() - BLOB_HEADER_LEN) as u32;
+    b[8..12].copy_from_slice(&body_len.to_le_bytes());
+    assert!(matches!(
+        RigParams::from_blob(&reseal(b)),
+        Err(Error::BlobBody { .. })
+    ));
+    // Option tag 7 for world_from_cam0.
+    let mut b = golden_bytes();
+    let n = b.len();
+    b[n - 2] = 7;
+    assert!(matches!(
+        RigParams::from_blob(&reseal(b)),
+        Err(Error::BlobBody { .. })
+    ));
+    // One extra byte inside the declared body.
+    let mut b = golden_bytes();
+    b.push(0);
+    b[8..12].copy_from_slice(&361u32.to_le_bytes());
+    assert_eq!(
+        RigParams::from_blob(&reseal(b)),
+        Err(Error::BlobBody {
+            reason: "unused bytes at the end of the body"
+        })
+    );
+}
+
+#[test]
+fn every_single_byte_corruption_is_detected() {
+    let good = golden_bytes();
+    let mut undetected = Vec::new();
+    for i in 0..good.len() {
+        for x in 1..=255u8 {
+            let mut b = good.clone();
+            b[i] ^= x;
+            if RigParams::from_blob(&b).is_ok() {
+                undetected.push((i, x));
+            }
+        }
+    }
+    assert!(
+        undetected.is_empty(),
+        "undetected corruptions (byte, xor): {undetected:?}"
+    );
+}
+
+fn finite() -> impl Strategy<Value = f64> {
+    -1e6..1e6f64
+}
+
+fn transform() -> impl Strategy<Value = RigidTransform> {
+    (prop::array::uniform9(finite()), prop::array::uniform3(finite()))
+        .prop_map(|(r_row_major, t_mm)| RigidTransform { r_row_major, t_mm })
+}
+
+fn camera() -> impl Strategy<Value = CameraParams> {
+    (
+        prop::array::uniform4(finite()),
+        prop::array::uniform5(-1.0..1.0f64),
+        1..10_000u32,
+        1..10_000u32,
+        transform(),
+    )
+        .prop_map(|(k, d, w, h, pose)| CameraParams {
+            model: CameraModel {
+                intrinsics: Intrinsics {
+                    fx_px: k[0],
+                    fy_px: k[1],
+                    cx_px: k[2],
+                    cy_px: k[3],
+                },
+                distortion: Distortion {
+                    k1: d[0],
+                    k2: d[1],
+                    p1: d[2],
+                    p2: d[3],
+                    k3: d[4],
+                },
+                image_size: ImageSize {
+                    width_px: w,
+                    height_px: h,
+                },
+            },
+            cam_from_cam0: pose,
+        })
+}
+
+fn tool() -> impl Strategy<Value = ToolDefinition> {
+    (
+        "\\PC{0,12}",
+        prop::collection::vec(prop::array::uniform3(finite()), 0..6),
+    )
+        .prop_map(|(name, leds_mm)| ToolDefinition { name, leds_mm })
+}
+
+fn rig() -> impl Strategy<Value = RigParams> {
+    (
+        "\\PC{0,40}",
+        any::<u64>(),
+        prop::collection::vec(camera(), 0..6),
+        prop::option::of(transform()),
+        prop::collection::vec(tool(), 0..3),
+    )
+        .prop_map(
+            |(rig_id, created_unix_s, cameras, world_from_cam0, tools)| RigParams {
+                rig_id,
+                created_unix_s,
+                cameras,
+                world_from_cam0,
+                tools,
+            },
+        )
+}
+
+proptest! {
+    #[test]
+    fn random_rigs_round_trip(rig in rig()) {
+        let blob = rig.to_blob().unwrap();
+        let h = BlobHeader::parse(&blob).unwrap();
+        prop_assert_eq!(h.blob_len(), blob.len());
+        prop_assert_eq!(RigParams::from_blob(&blob).unwrap(), rig);
+    }
+
+    #[test]
+    fn random_single_byte_corruption_detected(rig in rig(), pos in any::<prop::sample::Index>(), x in 1..=255u8) {
+        let mut blob = rig.to_blob().unwrap();
+        let i = pos.index(blob.len());
+        blob[i] ^= x;
+        prop_assert!(RigParams::from_blob(&blob).is_err());
+    }
+}

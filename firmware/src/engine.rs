@@ -1,0 +1,365 @@
+//! The processing loop: a dedicated thread (not a tokio task) that turns frame sets into
+//! position records.
+//!
+//! Per set: `next_set` → blob detection per camera → solve (centroids, undistort, triangulate,
+//! the tracker's quality gate) → record → latest-value slot. Everything the loop touches per set
+//! is allocated up front (frame buffers, tracker buffers) and shared state is atomics, so steady
+//! state does not allocate (checked by `tests/no_alloc.rs`). Parameter swaps are picked up
+//! between sets by comparing a generation counter; only then does the loop take a lock.
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use irtrack_core::camera::RigidTransform;
+use irtrack_core::image::GrayImage;
+use irtrack_core::params::RigParams;
+use irtrack_core::pipeline::{Measurement, TrackStatus as MeasureStatus, Tracker, TrackerConfig};
+use irtrack_core::stream::{PositionRecord, TrackStatus};
+use tokio::sync::watch;
+
+use crate::clock;
+use crate::error::Result;
+use crate::leds::indication::TrackIndication;
+use crate::source::{FrameSet, FrameSource, Pixels, SourceError};
+use crate::status::SharedStatus;
+
+const R: Ordering = Ordering::Relaxed;
+
+/// A parameter set ready for the loop.
+#[derive(Debug)]
+pub struct ActiveParams {
+    pub rig: RigParams,
+    /// Header CRC of the blob (the set's short id in records).
+    pub crc: u32,
+}
+
+/// Hand-over point for parameter sets between the parameter service and the loop.
+#[derive(Debug, Default)]
+pub struct ParamsHandle {
+    current: Mutex<Option<Arc<ActiveParams>>>,
+    generation: AtomicU64,
+}
+
+impl ParamsHandle {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Makes `params` the active set; the loop switches before its next frame set.
+    pub fn install(&self, params: ActiveParams) {
+        if let Ok(mut g) = self.current.lock() {
+            *g = Some(Arc::new(params));
+            self.generation.fetch_add(1, Ordering::Release);
+        }
+    }
+
+    pub fn generation(&self) -> u64 {
+        self.generation.load(Ordering::Acquire)
+    }
+
+    pub fn current(&self) -> Option<Arc<ActiveParams>> {
+        self.current.lock().ok().and_then(|g| g.clone())
+    }
+}
+
+/// What one [`Engine::step`] did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum StepOutcome {
+    /// A set was processed and a record published.
+    Published(PositionRecord),
+    /// The source reported a (retried) error; a fault record was published.
+    SourceError,
+    /// The source has no more frames (replay end, frame limit).
+    EndOfStream,
+}
+
+/// The processing loop's state. Build with [`Engine::new`], then [`Engine::run`] on a thread
+/// (or [`Engine::step`] from tests).
+pub struct Engine {
+    source: Box<dyn FrameSource>,
+    set: FrameSet,
+    tracker_cfg: TrackerConfig,
+    tracker: Option<Tracker>,
+    params: Arc<ParamsHandle>,
+    seen_generation: u64,
+    world_from_cam0: Option<RigidTransform>,
+    params_crc: u32,
+    out: watch::Sender<Option<PositionRecord>>,
+    status: Arc<SharedStatus>,
+    deadline_ns: u64,
+    consecutive_errors: u32,
+}
+
+impl Engine {
+    pub fn new(
+        source: Box<dyn FrameSource>,
+        tracker_cfg: TrackerConfig,
+        params: Arc<ParamsHandle>,
+        out: watch::Sender<Option<PositionRecord>>,
+        status: Arc<SharedStatus>,
+        deadline: Duration,
+    ) -> Self {
+        let set = source.allocate_set();
+        for (c, f) in status.cameras.iter().zip(&set.frames) {
+            c.width_px.store(u64::from(f.width_px), R);
+            c.height_px.store(u64::from(f.height_px), R);
+        }
+        let deadline_ns = u64::try_from(deadline.as_nanos()).unwrap_or(u64::MAX);
+        status.deadline_ns.store(deadline_ns, R);
+        Self {
+            source,
+            set,
+            tracker_cfg,
+            tracker: None,
+            params,
+            seen_generation: 0,
+            world_from_cam0: None,
+            params_crc: 0,
+            out,
+            status,
+            deadline_ns,
+            consecutive_errors: 0,
+        }
+    }
+
+    /// Picks up a newly installed parameter set (allocates; only on swaps).
+    fn refresh_params(&mut self) {
+        let generation = self.params.generation();
+        if generation == self.seen_generation {
+            return;
+        }
+        self.seen_generation = generation;
+        let Some(p) = self.params.current() else { return };
+        let result = match &mut self.tracker {
+            Some(t) => t.set_params(&p.rig),
+            None => Tracker::new(&p.rig, self.tracker_cfg).map(|t| self.tracker = Some(t)),
+        };
+        match result {
+            Ok(()) => {
+                self.world_from_cam0 = p.rig.world_from_cam0;
+                self.params_crc = p.crc;
+                self.status.params_loaded.store(true, R);
+                tracing::info!(rig_id = %p.rig.rig_id, crc = format_args!("{:08x}", p.crc), "processing loop switched parameter set");
+            }
+            // The parameter service builds a tracker before accepting a set, so this means a
+            // bug; keep the previous set rather than stop tracking.
+            Err(e) => tracing::error!(rig_id = %p.rig.rig_id, error = %e, "tracker refused parameter set; keeping the previous one"),
+        }
+    }
+
+    /// Processes one frame set (blocking in the source until it is available).
+    pub fn step(&mut self) -> Result<StepOutcome> {
+        self.refresh_params();
+        self.status.loop_iterations.fetch_add(1, R);
+        match self.source.next_set(&mut self.set) {
+            Ok(()) => {}
+            Err(SourceError::EndOfStream) => return Ok(StepOutcome::EndOfStream),
+            Err(e @ (SourceError::CameraLost { .. } | SourceError::Timeout { .. })) => {
+                self.status.source_errors.fetch_add(1, R);
+                if !self.status.camera_lost.swap(true, R) {
+                    tracing::warn!(error = %e, "camera fault; retrying");
+                }
+                self.status.set_track(TrackIndication::None);
+                let rec = self.empty_record(TrackStatus::Fault, clock::monotonic_ns());
+                self.out.send_replace(Some(rec));
+                self.consecutive_errors = self.consecutive_errors.saturating_add(1);
+                // Sources back off themselves; this only stops a tight loop on instant errors.
+                std::thread::sleep(Duration::from_millis(u64::from(self.consecutive_errors.min(50)) * 10));
+                return Ok(StepOutcome::SourceError);
+            }
+            Err(e) => return Err(e.into()),
+        }
+        if self.status.camera_lost.swap(false, R) {
+            tracing::info!("cameras delivering frames again");
+        }
+        self.consecutive_errors = 0;
+        let t_start = Instant::now();
+        self.account_source();
+
+        let capture_ns = self.set.frames.first().map_or(0, |f| f.timestamp_ns);
+        let (mut rec, t_detect, t_solve) = match self.tracker.as_mut().filter(|_| self.status.params_loaded.load(R)) {
+            None => {
+                self.status.set_track(TrackIndication::None);
+                (self.empty_record(TrackStatus::NoParams, capture_ns), t_start, t_start)
+            }
+            Some(tracker) => {
+                let mut failed = false;
+                for (camera, frame) in self.set.frames.iter().enumerate() {
+                    let detected = match &frame.pixels {
+                        Pixels::U8(px) => GrayImage::new(px, frame.width_px, frame.height_px, frame.stride_px)
+                            .and_then(|img| tracker.detect_u8(camera, &img)),
+                        Pixels::U16(px) => GrayImage::new(px, frame.width_px, frame.height_px, frame.stride_px)
+                            .and_then(|img| tracker.detect_u16(camera, &img)),
+                    };
+                    match detected {
+                        Ok(n) => {
+                            if let Some(c) = self.status.cameras.get(camera) {
+                                c.blobs_last.store(n as u64, R);
+                            }
+                        }
+                        Err(e) => {
+                            if self.status.pipeline_errors.fetch_add(1, R) == 0 {
+                                tracing::error!(camera, error = %e, "blob detection failed");
+                            }
+                            failed = true;
+                        }
+                    }
+                }
+                let t_detect = Instant::now();
+                let m = tracker.solve();
+                let t_solve = Instant::now();
+                let rec = if failed {
+                    self.status.set_track(TrackIndication::None);
+                    Self::record_from(m, self.set.index, capture_ns, self.params_crc, None, TrackStatus::Fault)
+                } else {
+                    self.status.set_track(track_indication(m));
+                    let status = map_status(m);
+                    Self::record_from(m, self.set.index, capture_ns, self.params_crc, self.world_from_cam0.as_ref(), status)
+                };
+                (rec, t_detect, t_solve)
+            }
+        };
+        match rec.status {
+            TrackStatus::Ok => self.status.tracked.fetch_add(1, R),
+            TrackStatus::Rejected => self.status.gated.fetch_add(1, R),
+            _ => self.status.lost.fetch_add(1, R),
+        };
+        if rec.gap_mm.is_finite() {
+            self.status.last_gap_mm_bits.store(rec.gap_mm.to_bits(), R);
+        }
+        let now_ns = clock::monotonic_ns();
+        let e2e_ns = now_ns.saturating_sub(capture_ns);
+        rec.latency_us = u32::try_from(e2e_ns / 1000).unwrap_or(u32::MAX);
+        self.out.send_replace(Some(rec));
+        self.status.published.fetch_add(1, R);
+        let t_end = Instant::now();
+
+        let st = &self.status.stages;
+        st.detect.record(t_detect - t_start);
+        st.solve.record(t_solve - t_detect);
+        st.publish.record(t_end - t_solve.max(t_start));
+        let process = t_end - t_start;
+        st.process.record(process);
+        st.end_to_end.record_us(e2e_ns / 1000);
+        if u64::try_from(process.as_nanos()).unwrap_or(u64::MAX) > self.deadline_ns {
+            self.status.deadline_misses.fetch_add(1, R);
+        }
+        self.status.sets_processed.fetch_add(1, R);
+        Ok(StepOutcome::Published(rec))
+    }
+
+    /// Copies source counters and per-camera rates into the shared status (no allocation).
+    fn account_source(&mut self) {
+        let s = self.source.stats();
+        self.status.sets_delivered.store(s.sets_delivered, R);
+        self.status.sets_dropped.store(s.sets_dropped, R);
+        self.status.unpaired_dropped.store(s.unpaired_dropped, R);
+        self.status.reconnects.store(s.reconnects, R);
+        self.status.pairing_error_last_ns.store(self.set.pairing_error_ns, R);
+        self.status.pairing_error_max_ns.fetch_max(self.set.pairing_error_ns, R);
+        for (c, f) in self.status.cameras.iter().zip(&self.set.frames) {
+            c.frames.fetch_add(1, R);
+            let last = c.last_timestamp_ns.swap(f.timestamp_ns, R);
+            if last != 0 && f.timestamp_ns > last {
+                let interval = (f.timestamp_ns - last) as f64;
+                let old = f64::from_bits(c.interval_ewma_ns.load(R));
+                let new = if old > 0.0 { 0.9 * old + 0.1 * interval } else { interval };
+                c.interval_ewma_ns.store(new.to_bits(), R);
+            }
+        }
+    }
+
+    fn empty_record(&self, status: TrackStatus, capture_ns: u64) -> PositionRecord {
+        PositionRecord {
+            frame: self.set.index,
+            capture_ts_ns: capture_ns,
+            position_mm: None,
+            orientation_wxyz: None,
+            gap_mm: f64::NAN,
+            status,
+            cameras_used: 0,
+            world_frame: false,
+            latency_us: 0,
+            params_crc: self.params_crc,
+        }
+    }
+
+    fn record_from(
+        m: &Measurement,
+        frame: u64,
+        capture_ns: u64,
+        params_crc: u32,
+        world: Option<&RigidTransform>,
+        status: TrackStatus,
+    ) -> PositionRecord {
+        let position_mm = match (status, m.point_cam0_mm) {
+            (TrackStatus::Ok, Some(p)) => {
+                let p = world.map_or(p, |w| w.apply(&p));
+                Some([p.x, p.y, p.z])
+            }
+            _ => None,
+        };
+        PositionRecord {
+            frame,
+            capture_ts_ns: capture_ns,
+            // A record without a point can never claim status Ok.
+            status: if position_mm.is_none() && status == TrackStatus::Ok { TrackStatus::Lost } else { status },
+            position_mm,
+            orientation_wxyz: None,
+            gap_mm: if m.gap_mm.is_finite() { m.gap_mm } else { f64::NAN },
+            cameras_used: u8::try_from(m.cameras_used).unwrap_or(u8::MAX),
+            world_frame: world.is_some() && position_mm.is_some(),
+            latency_us: 0,
+            params_crc,
+        }
+    }
+
+    /// Runs until `stop` is set, the source ends, or a fatal source error.
+    pub fn run(mut self, stop: &AtomicBool) -> Result<()> {
+        tracing::info!(source = %self.source.describe(), deadline_us = self.deadline_ns / 1000, "processing loop started");
+        while !stop.load(R) {
+            match self.step() {
+                Ok(StepOutcome::EndOfStream) => {
+                    tracing::info!("frame source ended; processing loop stops");
+                    self.status.source_ended.store(true, R);
+                    return Ok(());
+                }
+                Ok(_) => {}
+                Err(e) => {
+                    tracing::error!(error = %e, "processing loop stopped by a fatal source error");
+                    self.status.camera_lost.store(true, R);
+                    return Err(e);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    pub fn source(&self) -> &dyn FrameSource {
+        self.source.as_ref()
+    }
+}
+
+/// Stream status for a tracker result.
+fn map_status(m: &Measurement) -> TrackStatus {
+    match m.status {
+        MeasureStatus::Tracked => TrackStatus::Ok,
+        MeasureStatus::NoBlob { .. } => TrackStatus::Lost,
+        MeasureStatus::NoConsistentPair | MeasureStatus::Overloaded { .. } => TrackStatus::Rejected,
+        MeasureStatus::MissingFrame { .. } => TrackStatus::Fault,
+    }
+}
+
+/// LED indication: marker candidates in all, some or none of the cameras.
+fn track_indication(m: &Measurement) -> TrackIndication {
+    let cams = m.cameras();
+    let seen = cams.iter().filter(|c| c.candidate_count > 0).count();
+    if matches!(m.status, MeasureStatus::Tracked) && m.cameras_used as usize == cams.len() {
+        TrackIndication::All
+    } else if seen > 0 {
+        TrackIndication::Partial
+    } else {
+        TrackIndication::None
+    }
+}

@@ -1,0 +1,146 @@
+//! Position stream (NDJSON on 7702, binary framing on 7703) for any number of clients.
+//!
+//! The processing loop only ever writes the latest-value slot. A distributor task copies each
+//! new record into a broadcast ring of `client_queue_records` entries; every client task reads
+//! the ring at its own pace. A client that falls a whole ring behind, or whose socket does not
+//! take a write within [`WRITE_TIMEOUT`], is disconnected and counted as dropped: one slow
+//! reader can delay nobody but itself.
+
+use std::future::Future;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use irtrack_core::stream::{BINARY_FRAME_LEN, PositionRecord};
+use tokio::io::AsyncWriteExt;
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::{broadcast, watch};
+
+use crate::status::SharedStatus;
+
+/// A client whose socket accepts nothing for this long is dropped.
+pub const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// Wire format of a stream port.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StreamFormat {
+    Ndjson,
+    Binary,
+}
+
+/// Fan-out point shared by both stream ports.
+#[derive(Debug, Clone)]
+pub struct StreamHub {
+    tx: broadcast::Sender<PositionRecord>,
+    status: Arc<SharedStatus>,
+}
+
+impl StreamHub {
+    /// Starts the distributor task reading `slot`; it ends when the slot's sender is dropped.
+    pub fn start(
+        mut slot: watch::Receiver<Option<PositionRecord>>,
+        queue_records: usize,
+        status: Arc<SharedStatus>,
+    ) -> Self {
+        let (tx, _) = broadcast::channel(queue_records.max(1));
+        let hub = Self { tx: tx.clone(), status: status.clone() };
+        tokio::spawn(async move {
+            let mut received = 0u64;
+            while slot.changed().await.is_ok() {
+                let rec = *slot.borrow_and_update();
+                if let Some(rec) = rec {
+                    received += 1;
+                    // Results the loop published that this task never saw were overwritten.
+                    let published = status.published.load(Ordering::Relaxed);
+                    status.slot_overwrites.store(published.saturating_sub(received), Ordering::Relaxed);
+                    // No subscribers is fine: nothing to deliver.
+                    let _ = tx.send(rec);
+                }
+            }
+        });
+        hub
+    }
+
+    pub fn subscribe(&self) -> broadcast::Receiver<PositionRecord> {
+        self.tx.subscribe()
+    }
+}
+
+/// Accepts stream clients until `shutdown` resolves.
+pub async fn serve(listener: TcpListener, format: StreamFormat, hub: StreamHub, shutdown: impl Future<Output = ()>) {
+    tokio::pin!(shutdown);
+    loop {
+        tokio::select! {
+            _ = &mut shutdown => break,
+            accepted = listener.accept() => match accepted {
+                Ok((stream, peer)) => {
+                    let _ = stream.set_nodelay(true);
+                    let rx = hub.subscribe();
+                    let status = hub.status.clone();
+                    status.stream_clients.fetch_add(1, Ordering::Relaxed);
+                    status.stream_clients_total.fetch_add(1, Ordering::Relaxed);
+                    tracing::info!(%peer, ?format, "stream client connected");
+                    tokio::spawn(async move {
+                        let end = client(stream, format, rx, &status).await;
+                        status.stream_clients.fetch_sub(1, Ordering::Relaxed);
+                        match end {
+                            ClientEnd::TooSlow(why) => {
+                                status.stream_dropped_slow.fetch_add(1, Ordering::Relaxed);
+                                tracing::warn!(%peer, %why, "stream client too slow; dropped");
+                            }
+                            ClientEnd::Gone => tracing::info!(%peer, "stream client disconnected"),
+                            ClientEnd::Closed => {}
+                        }
+                    });
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "stream accept failed");
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                }
+            }
+        }
+    }
+}
+
+enum ClientEnd {
+    TooSlow(String),
+    Gone,
+    Closed,
+}
+
+async fn client(
+    mut stream: TcpStream,
+    format: StreamFormat,
+    mut rx: broadcast::Receiver<PositionRecord>,
+    status: &SharedStatus,
+) -> ClientEnd {
+    let mut text = String::with_capacity(512);
+    let mut bin = [0u8; BINARY_FRAME_LEN];
+    loop {
+        let rec = match rx.recv().await {
+            Ok(r) => r,
+            Err(broadcast::error::RecvError::Lagged(n)) => {
+                return ClientEnd::TooSlow(format!("fell {n} records behind the queue"));
+            }
+            Err(broadcast::error::RecvError::Closed) => return ClientEnd::Closed,
+        };
+        let bytes: &[u8] = match format {
+            StreamFormat::Ndjson => {
+                text.clear();
+                rec.write_ndjson(&mut text);
+                text.as_bytes()
+            }
+            StreamFormat::Binary => {
+                rec.encode_binary(&mut bin);
+                &bin
+            }
+        };
+        match tokio::time::timeout(WRITE_TIMEOUT, stream.write_all(bytes)).await {
+            Err(_) => return ClientEnd::TooSlow(format!("socket blocked for {} s", WRITE_TIMEOUT.as_secs())),
+            Ok(Err(_)) => return ClientEnd::Gone,
+            Ok(Ok(())) => {
+                status.stream_records_sent.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+}

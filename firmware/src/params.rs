@@ -1,0 +1,165 @@
+//! Parameter sets: validation against the running rig, durable storage, swap into the loop.
+
+use std::sync::Arc;
+
+use irtrack_core::param_wire::{RejectCode, Verdict};
+use irtrack_core::params::{BlobHeader, RigParams};
+use irtrack_core::pipeline::{Tracker, TrackerConfig};
+
+use crate::engine::{ActiveParams, ParamsHandle};
+use crate::error::{FirmwareError, Result};
+use crate::source::FrameSet;
+use crate::status::SharedStatus;
+use crate::storage::{ParamStore, StoredSlot};
+
+/// What the running source looks like; parameter sets must match it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RigShape {
+    /// (width, height) per camera.
+    pub image_sizes_px: Vec<(u32, u32)>,
+}
+
+impl RigShape {
+    pub fn of_set(set: &FrameSet) -> Self {
+        Self { image_sizes_px: set.frames.iter().map(|f| (f.width_px, f.height_px)).collect() }
+    }
+
+    /// Checks camera count and image sizes; the error says exactly what differs.
+    pub fn check(&self, rig: &RigParams) -> std::result::Result<(), String> {
+        if rig.cameras.len() != self.image_sizes_px.len() {
+            return Err(format!(
+                "parameter set {:?} has {} cameras, this rig has {}",
+                rig.rig_id,
+                rig.cameras.len(),
+                self.image_sizes_px.len()
+            ));
+        }
+        for (i, (c, &(w, h))) in rig.cameras.iter().zip(&self.image_sizes_px).enumerate() {
+            let s = c.model.image_size;
+            if (s.width_px, s.height_px) != (w, h) {
+                return Err(format!(
+                    "camera {i}: parameters are for {}x{} px images, the camera delivers {w}x{h}",
+                    s.width_px, s.height_px
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Validates, stores and activates parameter sets.
+#[derive(Debug)]
+pub struct ParamService {
+    store: ParamStore,
+    shape: RigShape,
+    tracker_cfg: TrackerConfig,
+    handle: Arc<ParamsHandle>,
+    status: Arc<SharedStatus>,
+    /// Pushes are handled one at a time (storage order must match activation order).
+    busy: std::sync::Mutex<()>,
+}
+
+fn reject(code: RejectCode, message: String) -> Verdict {
+    Verdict::Rejected { code, message }
+}
+
+impl ParamService {
+    pub fn new(
+        store: ParamStore,
+        shape: RigShape,
+        tracker_cfg: TrackerConfig,
+        handle: Arc<ParamsHandle>,
+        status: Arc<SharedStatus>,
+    ) -> Self {
+        Self { store, shape, tracker_cfg, handle, status, busy: std::sync::Mutex::new(()) }
+    }
+
+    pub fn handle(&self) -> &Arc<ParamsHandle> {
+        &self.handle
+    }
+
+    /// Decodes and checks a blob without storing it.
+    pub fn check_blob(&self, blob: &[u8]) -> std::result::Result<(RigParams, u32), Verdict> {
+        let rig = RigParams::from_blob(blob).map_err(|e| Verdict::from_error(&e))?;
+        rig.validate().map_err(|e| Verdict::from_error(&e))?;
+        self.shape.check(&rig).map_err(|m| reject(RejectCode::RigMismatch, m))?;
+        // Building a tracker here means the loop's swap cannot fail later.
+        Tracker::new(&rig, self.tracker_cfg)
+            .map_err(|e| reject(RejectCode::InvalidParams, format!("tracker refuses the set: {e}")))?;
+        let crc = BlobHeader::parse(blob).map_err(|e| Verdict::from_error(&e))?.crc32;
+        Ok((rig, crc))
+    }
+
+    /// Handles one pushed blob: check, store durably, activate. Blocking (fsync).
+    pub fn push(&self, blob: &[u8]) -> Verdict {
+        let Ok(_guard) = self.busy.try_lock() else {
+            return reject(RejectCode::Busy, "another parameter push is being stored".into());
+        };
+        let verdict = match self.check_blob(blob) {
+            Err(v) => v,
+            Ok((rig, crc)) => match self.store.store(blob) {
+                Err(e) => reject(RejectCode::Storage, format!("{e}; the previous set stays active")),
+                Ok(()) => {
+                    let rig_id = rig.rig_id.clone();
+                    self.activate(rig, crc, "pushed");
+                    Verdict::Accepted { rig_id }
+                }
+            },
+        };
+        if let Verdict::Rejected { code, message } = &verdict {
+            tracing::warn!(%code, %message, "parameter push rejected");
+            let text = format!("{code} {message}");
+            self.status.update_params_info(|p| {
+                p.rejected += 1;
+                p.last_rejection = Some(text);
+            });
+        }
+        verdict
+    }
+
+    fn activate(&self, rig: RigParams, crc: u32, origin: &str) {
+        tracing::info!(rig_id = %rig.rig_id, crc = format_args!("{crc:08x}"), origin, "parameter set active");
+        self.status.update_params_info(|p| {
+            p.loaded = true;
+            p.rig_id = Some(rig.rig_id.clone());
+            p.created_unix_s = Some(rig.created_unix_s);
+            p.origin = Some(origin.to_string());
+            p.swaps += 1;
+        });
+        self.handle.install(ActiveParams { rig, crc });
+    }
+
+    /// Loads the stored set at start: the active file, else the previous one (rollback).
+    /// Returns whether a set is active; a missing or unusable store is logged, not fatal.
+    pub fn load_stored(&self) -> bool {
+        for (slot, origin) in [(StoredSlot::Active, "state_dir"), (StoredSlot::Previous, "rollback")] {
+            let path = self.store.path(slot);
+            match self.store.read(slot) {
+                Ok(None) => {}
+                Ok(Some(blob)) => match self.check_blob(&blob) {
+                    Ok((rig, crc)) => {
+                        if slot == StoredSlot::Previous {
+                            tracing::warn!(path = %path.display(), "active parameter file unusable; rolled back to the previous set");
+                        }
+                        self.activate(rig, crc, origin);
+                        return true;
+                    }
+                    Err(v) => {
+                        tracing::error!(path = %path.display(), verdict = %v.to_line().trim_end(), "stored parameter set unusable")
+                    }
+                },
+                Err(e) => tracing::error!(error = %e, "cannot read stored parameters"),
+            }
+        }
+        tracing::warn!(dir = %self.store.dir().display(), "no valid parameter set: running without positions until one is pushed");
+        false
+    }
+
+    /// Activates a set that did not come through the wire (simulator ground truth).
+    pub fn install_unstored(&self, rig: RigParams, origin: &str) -> Result<()> {
+        let blob = rig.to_blob()?;
+        let (rig, crc) = self.check_blob(&blob).map_err(|v| FirmwareError::RigMismatch { reason: v.to_line() })?;
+        self.activate(rig, crc, origin);
+        Ok(())
+    }
+}

@@ -1,0 +1,627 @@
+//! TCP client of the robot protocol: connects to the robot controller (the server), reconnects
+//! with exponential backoff, sends the newest safe position as the next target whenever the robot
+//! grants credit, holds on every safety condition, and exchanges heartbeats.
+//!
+//! Every (re)connection starts held: sequence state resets and motion resumes only after an
+//! explicit [`RobotLink::enable`] issued after the connection came up.
+
+use std::future::Future;
+use std::sync::Arc;
+use std::time::Duration;
+
+use irtrack_core::robot_proto::{self, HoldReason, PROTOCOL_VERSION, RobotMsg, TrackerMsg};
+use irtrack_core::stream::PositionRecord;
+use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
+use tokio::net::TcpStream;
+use tokio::net::tcp::OwnedWriteHalf;
+use tokio::sync::{mpsc, watch};
+use tokio::task::JoinHandle;
+use tokio::time::{Instant, timeout};
+
+use super::deadman::Deadman;
+use super::safety::{Sample, Supervisor, Verdict};
+use super::{RobotConfig, RobotError, RobotLink};
+
+/// Time base of the samples' `capture_ts_ns` (CLOCK_MONOTONIC for irtrackd).
+pub trait Clock: Send + Sync + 'static {
+    fn now_ns(&self) -> u64;
+}
+
+/// CLOCK_MONOTONIC, the clock frames are stamped with.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct MonotonicClock;
+
+impl Clock for MonotonicClock {
+    fn now_ns(&self) -> u64 {
+        crate::clock::monotonic_ns()
+    }
+}
+
+/// Source of the newest tracker sample.
+pub trait PositionFeed: Send + 'static {
+    /// The newest sample, marking it seen.
+    fn latest(&mut self) -> Option<Sample>;
+    /// Resolves when a newer sample may be available; `false` once the feed is closed.
+    fn changed(&mut self) -> impl Future<Output = bool> + Send;
+}
+
+impl PositionFeed for watch::Receiver<Option<PositionRecord>> {
+    fn latest(&mut self) -> Option<Sample> {
+        self.borrow_and_update().as_ref().map(Sample::from)
+    }
+    fn changed(&mut self) -> impl Future<Output = bool> + Send {
+        async move { watch::Receiver::changed(self).await.is_ok() }
+    }
+}
+
+/// Connection and motion state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkState {
+    /// Not connected (between attempts).
+    Disconnected,
+    /// Connecting or waiting for the robot's ready.
+    Connecting,
+    /// Connected, robot held for this reason.
+    Holding(HoldReason),
+    /// Connected and sending targets.
+    Moving,
+}
+
+/// State and counters, published on every change.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinkStatus {
+    pub state: LinkState,
+    /// Name the robot gave in HELLO.
+    pub robot_name: Option<String>,
+    /// Robot TCP from its last credit line.
+    pub robot_pos_mm: Option<[f64; 3]>,
+    pub connects: u64,
+    pub targets_sent: u64,
+    pub holds_sent: u64,
+    pub rejects: u64,
+    pub last_error: Option<String>,
+}
+
+impl Default for LinkStatus {
+    fn default() -> Self {
+        Self {
+            state: LinkState::Disconnected,
+            robot_name: None,
+            robot_pos_mm: None,
+            connects: 0,
+            targets_sent: 0,
+            holds_sent: 0,
+            rejects: 0,
+            last_error: None,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, Default)]
+struct Control {
+    /// Bumped on every enable/disable so each command is seen once.
+    generation: u64,
+    enabled: bool,
+    stop: bool,
+}
+
+/// The running client (a tokio task) and its control handle.
+pub struct TcpRobotLink {
+    ctl: watch::Sender<Control>,
+    status: watch::Receiver<LinkStatus>,
+    task: JoinHandle<()>,
+}
+
+impl TcpRobotLink {
+    /// Validates the config and starts the client task on the current tokio runtime.
+    pub fn spawn<F: PositionFeed, C: Clock>(
+        cfg: RobotConfig,
+        feed: F,
+        clock: C,
+        deadman: Arc<dyn Deadman>,
+    ) -> Result<Self, RobotError> {
+        cfg.validate()?;
+        let (ctl, ctl_rx) = watch::channel(Control::default());
+        let (status_tx, status) = watch::channel(LinkStatus::default());
+        let mut client = Client {
+            sup: Supervisor::new(cfg.safety.clone()),
+            cfg,
+            feed,
+            clock,
+            deadman,
+            ctl: ctl_rx,
+            status: status_tx,
+            cur: None,
+            feed_open: true,
+        };
+        let task = tokio::spawn(async move { client.run().await });
+        Ok(Self { ctl, status, task })
+    }
+
+    /// A receiver that sees every status change (for LEDs and the status endpoint).
+    pub fn subscribe(&self) -> watch::Receiver<LinkStatus> {
+        self.status.clone()
+    }
+
+    /// Holds the robot, says BYE and ends the task.
+    pub async fn shutdown(self) {
+        self.ctl.send_modify(|c| c.stop = true);
+        let _ = timeout(Duration::from_secs(2), self.task).await;
+    }
+}
+
+impl Drop for TcpRobotLink {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+impl RobotLink for TcpRobotLink {
+    fn enable(&self) {
+        self.ctl.send_modify(|c| {
+            c.generation += 1;
+            c.enabled = true;
+        });
+    }
+    fn disable(&self) {
+        self.ctl.send_modify(|c| {
+            c.generation += 1;
+            c.enabled = false;
+        });
+    }
+    fn status(&self) -> LinkStatus {
+        self.status.borrow().clone()
+    }
+}
+
+struct Client<F, C> {
+    cfg: RobotConfig,
+    sup: Supervisor,
+    feed: F,
+    clock: C,
+    deadman: Arc<dyn Deadman>,
+    ctl: watch::Receiver<Control>,
+    status: watch::Sender<LinkStatus>,
+    cur: Option<Sample>,
+    feed_open: bool,
+}
+
+/// Per-connection protocol state (reset on every connect).
+struct Session {
+    wr: OwnedWriteHalf,
+    ack_seq: u32,
+    window: u8,
+    last_sent_seq: u32,
+    last_sent_ts_ns: Option<u64>,
+    holding: Option<HoldReason>,
+    last_rx: Instant,
+    last_tx: Instant,
+    beat: u32,
+}
+
+enum End {
+    Stop,
+    Lost(RobotError),
+}
+
+impl<F: PositionFeed, C: Clock> Client<F, C> {
+    fn addr(&self) -> String {
+        self.cfg.address.clone()
+    }
+
+    async fn run(&mut self) {
+        let mut backoff_ms = self.cfg.backoff_min_ms;
+        loop {
+            if self.ctl.borrow().stop {
+                return;
+            }
+            self.status.send_modify(|s| s.state = LinkState::Connecting);
+            let connect = timeout(
+                Duration::from_millis(self.cfg.connect_timeout_ms),
+                TcpStream::connect(self.cfg.address.as_str()),
+            )
+            .await;
+            let err = match connect {
+                Ok(Ok(stream)) => match self.session(stream).await {
+                    (End::Stop, _) => {
+                        self.status.send_modify(|s| s.state = LinkState::Disconnected);
+                        return;
+                    }
+                    (End::Lost(e), handshake_done) => {
+                        if handshake_done {
+                            backoff_ms = self.cfg.backoff_min_ms;
+                        }
+                        e
+                    }
+                },
+                Ok(Err(e)) => RobotError::Io {
+                    addr: self.addr(),
+                    what: "connect",
+                    source: e,
+                },
+                Err(_) => RobotError::Timeout {
+                    addr: self.addr(),
+                    ms: self.cfg.connect_timeout_ms,
+                },
+            };
+            tracing::warn!("{err}; reconnecting in {backoff_ms} ms");
+            self.status.send_modify(|s| {
+                s.state = LinkState::Disconnected;
+                s.last_error = Some(err.to_string());
+            });
+            let sleep = tokio::time::sleep(Duration::from_millis(backoff_ms));
+            tokio::pin!(sleep);
+            loop {
+                tokio::select! {
+                    _ = &mut sleep => break,
+                    r = self.ctl.changed() => if r.is_err() || self.ctl.borrow().stop { return },
+                }
+            }
+            backoff_ms = (backoff_ms * 2).min(self.cfg.backoff_max_ms);
+        }
+    }
+
+    /// One connection; returns how it ended and whether the handshake completed.
+    async fn session(&mut self, stream: TcpStream) -> (End, bool) {
+        let addr = self.addr();
+        let _ = stream.set_nodelay(true);
+        let (rd, wr) = stream.into_split();
+        // Reading in its own task keeps partial lines safe across `select!` cancellation.
+        let (tx, mut rx) = mpsc::channel::<Result<RobotMsg, RobotError>>(64);
+        let reader = tokio::spawn(read_lines(BufReader::new(rd), addr.clone(), tx));
+        let _abort = AbortOnDrop(reader);
+        let now = Instant::now();
+        let mut s = Session {
+            wr,
+            ack_seq: 0,
+            window: 1,
+            last_sent_seq: 0,
+            last_sent_ts_ns: None,
+            holding: None,
+            last_rx: now,
+            last_tx: now,
+            beat: 0,
+        };
+        let hello = TrackerMsg::Hello {
+            version: PROTOCOL_VERSION,
+            name: self.cfg.name.clone(),
+        };
+        if let Err(e) = self.send(&mut s, &hello).await {
+            return (End::Lost(e), false);
+        }
+        let robot_pos_mm = match self.handshake(&mut s, &mut rx).await {
+            Ok(p) => p,
+            Err(e) => return (End::Lost(e), false),
+        };
+        // A fresh connection never moves on an enable given before it.
+        self.ctl.mark_unchanged();
+        self.sup.on_connect(robot_pos_mm);
+        self.status.send_modify(|st| st.connects += 1);
+        tracing::info!("robot link {addr}: connected; holding until enabled");
+        let period = self
+            .cfg
+            .heartbeat_ms
+            .min(self.cfg.safety.max_age_ms / 2)
+            .clamp(5, 1000);
+        let mut tick = tokio::time::interval(Duration::from_millis(period));
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let end = loop {
+            let r: Result<(), End> = tokio::select! {
+                m = rx.recv() => match m {
+                    None => Err(End::Lost(RobotError::Closed { addr: addr.clone() })),
+                    Some(Err(e)) => Err(End::Lost(e)),
+                    Some(Ok(msg)) => self.on_robot(&mut s, msg),
+                },
+                open = self.feed.changed(), if self.feed_open => {
+                    self.feed_open = open;
+                    self.cur = if open { self.feed.latest() } else { None };
+                    Ok(())
+                }
+                r = self.ctl.changed() => {
+                    let c = *self.ctl.borrow();
+                    if r.is_err() || c.stop {
+                        Err(End::Stop)
+                    } else {
+                        if c.enabled { self.sup.enable() } else { self.sup.disarm(HoldReason::Stop) }
+                        Ok(())
+                    }
+                }
+                _ = tick.tick() => self.on_tick(&mut s).await,
+            };
+            let r = match r {
+                Ok(()) => self.evaluate(&mut s).await,
+                Err(e) => Err(e),
+            };
+            if let Err(e) = r {
+                break e;
+            }
+        };
+        if matches!(end, End::Stop) {
+            let _ = self
+                .send(
+                    &mut s,
+                    &TrackerMsg::Hold {
+                        reason: HoldReason::Stop,
+                    },
+                )
+                .await;
+            let _ = self.send(&mut s, &TrackerMsg::Bye).await;
+        }
+        self.status.send_modify(|st| st.robot_pos_mm = None);
+        (end, true)
+    }
+
+    async fn handshake(
+        &mut self,
+        s: &mut Session,
+        rx: &mut mpsc::Receiver<Result<RobotMsg, RobotError>>,
+    ) -> Result<[f64; 3], RobotError> {
+        let addr = self.addr();
+        let wait = Duration::from_millis(self.cfg.peer_timeout_ms);
+        let timeout_err = || RobotError::Timeout {
+            addr: addr.clone(),
+            ms: self.cfg.peer_timeout_ms,
+        };
+        let closed = || RobotError::Closed { addr: addr.clone() };
+        let proto = |reason: String| RobotError::Protocol {
+            addr: addr.clone(),
+            source: irtrack_core::Error::Protocol {
+                protocol: "robot",
+                reason,
+            },
+        };
+        let first = timeout(wait, rx.recv())
+            .await
+            .map_err(|_| timeout_err())?
+            .ok_or_else(closed)??;
+        let RobotMsg::Hello { version, name } = first else {
+            return Err(proto(format!("expected HELLO first, got {first:?}")));
+        };
+        if version != PROTOCOL_VERSION {
+            return Err(RobotError::Version {
+                addr: addr.clone(),
+                found: version,
+                supported: PROTOCOL_VERSION,
+            });
+        }
+        loop {
+            match timeout(wait, rx.recv())
+                .await
+                .map_err(|_| timeout_err())?
+                .ok_or_else(closed)??
+            {
+                RobotMsg::Credit {
+                    ack_seq,
+                    window,
+                    pos_mm,
+                } => {
+                    s.ack_seq = ack_seq;
+                    s.last_sent_seq = ack_seq;
+                    s.window = window;
+                    s.last_rx = Instant::now();
+                    self.status.send_modify(|st| {
+                        st.robot_name = Some(name.clone());
+                        st.robot_pos_mm = Some(pos_mm);
+                    });
+                    return Ok(pos_mm);
+                }
+                RobotMsg::Beat { .. } => {}
+                other => {
+                    return Err(proto(format!(
+                        "expected the ready credit after HELLO, got {other:?}"
+                    )));
+                }
+            }
+        }
+    }
+
+    fn on_robot(&mut self, s: &mut Session, msg: RobotMsg) -> Result<(), End> {
+        s.last_rx = Instant::now();
+        match msg {
+            RobotMsg::Credit {
+                ack_seq,
+                window,
+                pos_mm,
+            } => {
+                // An ack beyond what was sent means the robot and tracker disagree: reconnect.
+                if robot_proto::seq_distance(ack_seq, s.last_sent_seq)
+                    > robot_proto::seq_distance(s.ack_seq, s.last_sent_seq)
+                {
+                    return Err(End::Lost(RobotError::Protocol {
+                        addr: self.addr(),
+                        source: irtrack_core::Error::Protocol {
+                            protocol: "robot",
+                            reason: format!("credit acknowledges {ack_seq}, last sent {}", s.last_sent_seq),
+                        },
+                    }));
+                }
+                s.ack_seq = ack_seq;
+                s.window = window;
+                self.sup.on_robot_position(pos_mm);
+                self.status.send_modify(|st| st.robot_pos_mm = Some(pos_mm));
+            }
+            RobotMsg::Reject { seq, code, reason } => {
+                tracing::warn!("robot rejected target {seq}: {code:02} {reason}");
+                self.status.send_modify(|st| st.rejects += 1);
+            }
+            RobotMsg::Beat { .. } => {}
+            RobotMsg::Bye => return Err(End::Lost(RobotError::Closed { addr: self.addr() })),
+            RobotMsg::Hello { .. } => {
+                return Err(End::Lost(RobotError::Protocol {
+                    addr: self.addr(),
+                    source: irtrack_core::Error::Protocol {
+                        protocol: "robot",
+                        reason: "HELLO in session".into(),
+                    },
+                }));
+            }
+        }
+        Ok(())
+    }
+
+    async fn on_tick(&mut self, s: &mut Session) -> Result<(), End> {
+        let silent = s.last_rx.elapsed();
+        if silent > Duration::from_millis(self.cfg.peer_timeout_ms) {
+            return Err(End::Lost(RobotError::Timeout {
+                addr: self.addr(),
+                ms: silent.as_millis() as u64,
+            }));
+        }
+        if s.last_tx.elapsed() >= Duration::from_millis(self.cfg.heartbeat_ms) {
+            s.beat = robot_proto::seq_next(s.beat);
+            self.send(s, &TrackerMsg::Beat { counter: s.beat })
+                .await
+                .map_err(End::Lost)?;
+        }
+        Ok(())
+    }
+
+    /// Applies the supervisor to the newest sample: HOLD on a new hold condition, a target when
+    /// allowed and credit is available.
+    async fn evaluate(&mut self, s: &mut Session) -> Result<(), End> {
+        let verdict = match &self.cur {
+            Some(sample) => self
+                .sup
+                .check(sample, self.clock.now_ns(), self.deadman.pressed()),
+            None if !self.sup.is_armed() => {
+                Verdict::Hold(self.sup.latched().unwrap_or(HoldReason::NotEnabled))
+            }
+            None => Verdict::Hold(HoldReason::MarkerLost),
+        };
+        match verdict {
+            Verdict::Hold(reason) => {
+                if s.holding.is_none() {
+                    self.send(s, &TrackerMsg::Hold { reason })
+                        .await
+                        .map_err(End::Lost)?;
+                    tracing::info!("robot hold: {}", reason.text());
+                    self.status.send_modify(|st| st.holds_sent += 1);
+                }
+                s.holding = Some(reason);
+                self.status.send_if_modified(|st| {
+                    let changed = st.state != LinkState::Holding(reason);
+                    st.state = LinkState::Holding(reason);
+                    changed
+                });
+            }
+            Verdict::Send { pos_mm } => {
+                let Some(sample) = self.cur else { return Ok(()) };
+                if s.last_sent_ts_ns == Some(sample.capture_ts_ns) {
+                    return Ok(());
+                }
+                let outstanding = robot_proto::seq_distance(s.ack_seq, s.last_sent_seq);
+                if outstanding >= u32::from(s.window) {
+                    return Ok(());
+                }
+                let seq = robot_proto::seq_next(s.last_sent_seq);
+                let msg = match sample.orientation_wxyz.filter(|_| self.cfg.send_orientation) {
+                    Some(quat_wxyz) => TrackerMsg::Pose {
+                        seq,
+                        pos_mm,
+                        quat_wxyz,
+                    },
+                    None => TrackerMsg::Target { seq, pos_mm },
+                };
+                self.send(s, &msg).await.map_err(End::Lost)?;
+                self.sup.committed(pos_mm, sample.capture_ts_ns);
+                s.last_sent_seq = seq;
+                s.last_sent_ts_ns = Some(sample.capture_ts_ns);
+                s.holding = None;
+                self.status.send_modify(|st| {
+                    st.targets_sent += 1;
+                    st.state = LinkState::Moving;
+                });
+            }
+        }
+        Ok(())
+    }
+
+    async fn send(&self, s: &mut Session, msg: &TrackerMsg) -> Result<(), RobotError> {
+        let addr = self.addr();
+        let line = msg.encode().map_err(|e| RobotError::Protocol {
+            addr: addr.clone(),
+            source: e,
+        })?;
+        let write = s.wr.write_all(line.as_bytes());
+        match timeout(Duration::from_millis(self.cfg.peer_timeout_ms), write).await {
+            Ok(Ok(())) => {
+                s.last_tx = Instant::now();
+                Ok(())
+            }
+            Ok(Err(e)) => Err(RobotError::Io {
+                addr,
+                what: "write",
+                source: e,
+            }),
+            Err(_) => Err(RobotError::Timeout {
+                addr,
+                ms: self.cfg.peer_timeout_ms,
+            }),
+        }
+    }
+}
+
+struct AbortOnDrop(JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// Reads bounded lines (≤ 80 bytes) and parses them; stops at the first error.
+async fn read_lines<R: tokio::io::AsyncRead + Unpin>(
+    mut rd: BufReader<R>,
+    addr: String,
+    tx: mpsc::Sender<Result<RobotMsg, RobotError>>,
+) {
+    let mut buf = Vec::with_capacity(robot_proto::MAX_LINE_BYTES + 1);
+    loop {
+        buf.clear();
+        let n = match (&mut rd)
+            .take(robot_proto::MAX_LINE_BYTES as u64)
+            .read_until(b'\n', &mut buf)
+            .await
+        {
+            Ok(n) => n,
+            Err(e) => {
+                let _ = tx
+                    .send(Err(RobotError::Io {
+                        addr,
+                        what: "read",
+                        source: e,
+                    }))
+                    .await;
+                return;
+            }
+        };
+        if n == 0 {
+            return; // closed: dropping `tx` tells the session
+        }
+        let msg = if buf.last() != Some(&b'\n') {
+            Err(irtrack_core::Error::Protocol {
+                protocol: "robot",
+                reason: format!(
+                    "line longer than {} bytes or cut off",
+                    robot_proto::MAX_LINE_BYTES
+                ),
+            })
+        } else {
+            match std::str::from_utf8(&buf) {
+                Ok(text) => RobotMsg::parse(text),
+                Err(_) => Err(irtrack_core::Error::Protocol {
+                    protocol: "robot",
+                    reason: "non-ASCII bytes".into(),
+                }),
+            }
+        };
+        let item = msg.map_err(|source| RobotError::Protocol {
+            addr: addr.clone(),
+            source,
+        });
+        let stop = item.is_err();
+        if tx.send(item).await.is_err() || stop {
+            return;
+        }
+    }
+}

@@ -1,0 +1,425 @@
+//! Safety supervisor: pure logic deciding, for the newest tracker sample, whether a target may go
+//! to the robot or the robot must hold. No I/O and no clock of its own, so every rule is testable.
+//!
+//! Rules, checked in this order: operator enable, deadman, marker present, quality (status and
+//! ray gap), sample age, frame (world coordinates), workspace box, step from the previous target
+//! (or from the robot's reported position after an enable), implied speed.
+//!
+//! Transient conditions (deadman, marker lost, poor quality, stale) hold only while they last;
+//! resuming still has to pass the step check against the last target, so the robot never jumps.
+//! Violations that indicate a wrong target (workspace, step, speed) latch: motion stays held until
+//! the operator enables again.
+
+use irtrack_core::robot_proto::HoldReason;
+use irtrack_core::stream::{PositionRecord, TrackStatus};
+use serde::Deserialize;
+
+fn default_true() -> bool {
+    true
+}
+
+/// `[robot.safety]`: limits of one installation.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SafetyConfig {
+    /// Workspace box in the robot base frame (min corner).
+    pub workspace_min_mm: [f64; 3],
+    /// Workspace box (max corner).
+    pub workspace_max_mm: [f64; 3],
+    /// Largest distance between consecutive targets.
+    pub max_step_mm: f64,
+    /// Largest speed implied by consecutive targets and their capture times.
+    pub max_speed_mm_s: f64,
+    /// Largest ray gap accepted as good quality.
+    pub max_gap_mm: f64,
+    /// Oldest sample (capture to send) that may become a target.
+    pub max_age_ms: u64,
+    /// Only send positions the tracker reports in the registered world (robot) frame.
+    #[serde(default = "default_true")]
+    pub require_world_frame: bool,
+}
+
+impl SafetyConfig {
+    /// Checks the limits are usable; the message names the key.
+    pub fn validate(&self) -> Result<(), String> {
+        for i in 0..3 {
+            let (lo, hi) = (self.workspace_min_mm[i], self.workspace_max_mm[i]);
+            if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+                return Err(format!(
+                    "robot.safety workspace axis {i}: min {lo} must be < max {hi}"
+                ));
+            }
+        }
+        let pos = |v: f64, k: &str| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("robot.safety.{k} = {v} must be > 0"))
+            }
+        };
+        pos(self.max_step_mm, "max_step_mm")?;
+        pos(self.max_speed_mm_s, "max_speed_mm_s")?;
+        pos(self.max_gap_mm, "max_gap_mm")?;
+        if self.max_age_ms == 0 {
+            return Err("robot.safety.max_age_ms must be > 0".into());
+        }
+        Ok(())
+    }
+}
+
+/// What the supervisor needs from a tracker record.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sample {
+    pub frame: u64,
+    /// CLOCK_MONOTONIC capture time (the clock the client's [`super::client::Clock`] reads).
+    pub capture_ts_ns: u64,
+    pub position_mm: Option<[f64; 3]>,
+    pub orientation_wxyz: Option<[f64; 4]>,
+    pub gap_mm: f64,
+    pub status: TrackStatus,
+    pub world_frame: bool,
+}
+
+impl From<&PositionRecord> for Sample {
+    fn from(r: &PositionRecord) -> Self {
+        Sample {
+            frame: r.frame,
+            capture_ts_ns: r.capture_ts_ns,
+            position_mm: r.position_mm,
+            orientation_wxyz: r.orientation_wxyz,
+            gap_mm: r.gap_mm,
+            status: r.status,
+            world_frame: r.world_frame,
+        }
+    }
+}
+
+/// Decision for one sample.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Verdict {
+    /// This position may be sent as the next target.
+    Send { pos_mm: [f64; 3] },
+    /// The robot must hold.
+    Hold(HoldReason),
+}
+
+fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+/// The supervisor's state: armed or not, and the last target that went out.
+#[derive(Debug, Clone)]
+pub struct Supervisor {
+    cfg: SafetyConfig,
+    armed: bool,
+    /// Why motion is latched off (None while armed, NotEnabled after connect).
+    latched: Option<HoldReason>,
+    /// Last target sent and its capture time; steps and speed are measured from here.
+    last_target: Option<([f64; 3], u64)>,
+    /// Where the robot reported its TCP; the step reference right after an enable.
+    robot_pos_mm: Option<[f64; 3]>,
+}
+
+impl Supervisor {
+    /// A disarmed supervisor.
+    pub fn new(cfg: SafetyConfig) -> Self {
+        Self {
+            cfg,
+            armed: false,
+            latched: Some(HoldReason::NotEnabled),
+            last_target: None,
+            robot_pos_mm: None,
+        }
+    }
+
+    /// The limits in force.
+    pub fn config(&self) -> &SafetyConfig {
+        &self.cfg
+    }
+
+    /// True when motion is enabled (no latched stop).
+    pub fn is_armed(&self) -> bool {
+        self.armed
+    }
+
+    /// Why motion is latched off, if it is.
+    pub fn latched(&self) -> Option<HoldReason> {
+        self.latched
+    }
+
+    /// New connection: disarmed until an explicit enable; the step reference is the robot's TCP.
+    pub fn on_connect(&mut self, robot_pos_mm: [f64; 3]) {
+        self.armed = false;
+        self.latched = Some(HoldReason::NotEnabled);
+        self.last_target = None;
+        self.robot_pos_mm = Some(robot_pos_mm);
+    }
+
+    /// The robot reported its position (credit line).
+    pub fn on_robot_position(&mut self, pos_mm: [f64; 3]) {
+        self.robot_pos_mm = Some(pos_mm);
+    }
+
+    /// Operator enable. The first target must then lie within `max_step_mm` of the robot's TCP:
+    /// the operator brings the marker to the tool to "pick it up".
+    pub fn enable(&mut self) {
+        self.armed = true;
+        self.latched = None;
+        self.last_target = None;
+    }
+
+    /// Operator disable or any latched stop.
+    pub fn disarm(&mut self, reason: HoldReason) {
+        self.armed = false;
+        self.latched = Some(reason);
+    }
+
+    /// Judges the newest sample at `now_ns`. Latching rules disarm the supervisor.
+    pub fn check(&mut self, s: &Sample, now_ns: u64, deadman_pressed: bool) -> Verdict {
+        if !self.armed {
+            return Verdict::Hold(self.latched.unwrap_or(HoldReason::NotEnabled));
+        }
+        if !deadman_pressed {
+            return Verdict::Hold(HoldReason::Deadman);
+        }
+        match s.status {
+            TrackStatus::Ok => {}
+            TrackStatus::Rejected => return Verdict::Hold(HoldReason::PoorQuality),
+            TrackStatus::Lost | TrackStatus::NoParams | TrackStatus::Fault => {
+                return Verdict::Hold(HoldReason::MarkerLost);
+            }
+        }
+        let Some(p) = s.position_mm else {
+            return Verdict::Hold(HoldReason::MarkerLost);
+        };
+        // NaN gap fails this comparison too: unknown quality is poor quality.
+        if !(s.gap_mm <= self.cfg.max_gap_mm) || !p.iter().all(|v| v.is_finite()) {
+            return Verdict::Hold(HoldReason::PoorQuality);
+        }
+        // A sample from the future (clock mix-up) is as untrustworthy as an old one.
+        let age_ns = now_ns.checked_sub(s.capture_ts_ns);
+        if age_ns.is_none_or(|a| a > self.cfg.max_age_ms * 1_000_000) {
+            return Verdict::Hold(HoldReason::Stale);
+        }
+        if self.cfg.require_world_frame && !s.world_frame {
+            // Camera-frame coordinates would send the robot somewhere meaningless.
+            self.disarm(HoldReason::Workspace);
+            return Verdict::Hold(HoldReason::Workspace);
+        }
+        let inside =
+            (0..3).all(|i| p[i] >= self.cfg.workspace_min_mm[i] && p[i] <= self.cfg.workspace_max_mm[i]);
+        if !inside {
+            self.disarm(HoldReason::Workspace);
+            return Verdict::Hold(HoldReason::Workspace);
+        }
+        let reference = self.last_target.map(|(q, _)| q).or(self.robot_pos_mm);
+        let Some(reference) = reference else {
+            return Verdict::Hold(HoldReason::NotEnabled);
+        };
+        let step = dist(p, reference);
+        if step > self.cfg.max_step_mm {
+            self.disarm(HoldReason::StepTooLarge);
+            return Verdict::Hold(HoldReason::StepTooLarge);
+        }
+        if let Some((q, t_ns)) = self.last_target
+            && s.capture_ts_ns > t_ns
+        {
+            let speed = dist(p, q) / ((s.capture_ts_ns - t_ns) as f64 * 1e-9);
+            if speed > self.cfg.max_speed_mm_s {
+                self.disarm(HoldReason::TooFast);
+                return Verdict::Hold(HoldReason::TooFast);
+            }
+        }
+        Verdict::Send { pos_mm: p }
+    }
+
+    /// Records that `pos_mm` (captured at `capture_ts_ns`) went out as a target.
+    pub fn committed(&mut self, pos_mm: [f64; 3], capture_ts_ns: u64) {
+        self.last_target = Some((pos_mm, capture_ts_ns));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    pub(crate) fn cfg() -> SafetyConfig {
+        SafetyConfig {
+            workspace_min_mm: [-200.0, -200.0, 0.0],
+            workspace_max_mm: [200.0, 200.0, 300.0],
+            max_step_mm: 10.0,
+            max_speed_mm_s: 200.0,
+            max_gap_mm: 1.0,
+            max_age_ms: 50,
+            require_world_frame: true,
+        }
+    }
+
+    fn sample(ts_ms: u64, p: [f64; 3]) -> Sample {
+        Sample {
+            frame: ts_ms,
+            capture_ts_ns: ts_ms * 1_000_000,
+            position_mm: Some(p),
+            orientation_wxyz: None,
+            gap_mm: 0.2,
+            status: TrackStatus::Ok,
+            world_frame: true,
+        }
+    }
+
+    fn armed() -> Supervisor {
+        let mut s = Supervisor::new(cfg());
+        s.on_connect([0.0, 0.0, 100.0]);
+        s.enable();
+        s
+    }
+
+    const MS: u64 = 1_000_000;
+
+    #[test]
+    fn disarmed_until_enable_even_after_reconnect() {
+        let mut s = Supervisor::new(cfg());
+        s.on_connect([0.0, 0.0, 100.0]);
+        let x = sample(100, [1.0, 0.0, 100.0]);
+        assert_eq!(s.check(&x, 100 * MS, true), Verdict::Hold(HoldReason::NotEnabled));
+        s.enable();
+        assert_eq!(
+            s.check(&x, 100 * MS, true),
+            Verdict::Send {
+                pos_mm: [1.0, 0.0, 100.0]
+            }
+        );
+        s.on_connect([0.0, 0.0, 100.0]);
+        assert_eq!(s.check(&x, 100 * MS, true), Verdict::Hold(HoldReason::NotEnabled));
+    }
+
+    #[test]
+    fn transient_holds_clear_by_themselves() {
+        let mut s = armed();
+        let good = sample(100, [1.0, 0.0, 100.0]);
+        assert_eq!(
+            s.check(&good, 110 * MS, false),
+            Verdict::Hold(HoldReason::Deadman)
+        );
+        let lost = Sample {
+            position_mm: None,
+            status: TrackStatus::Lost,
+            gap_mm: f64::NAN,
+            ..good
+        };
+        assert_eq!(
+            s.check(&lost, 110 * MS, true),
+            Verdict::Hold(HoldReason::MarkerLost)
+        );
+        let gap = Sample { gap_mm: 1.5, ..good };
+        assert_eq!(
+            s.check(&gap, 110 * MS, true),
+            Verdict::Hold(HoldReason::PoorQuality)
+        );
+        let rejected = Sample {
+            position_mm: None,
+            status: TrackStatus::Rejected,
+            ..good
+        };
+        assert_eq!(
+            s.check(&rejected, 110 * MS, true),
+            Verdict::Hold(HoldReason::PoorQuality)
+        );
+        assert_eq!(s.check(&good, 151 * MS, true), Verdict::Hold(HoldReason::Stale));
+        assert_eq!(s.check(&good, 99 * MS, true), Verdict::Hold(HoldReason::Stale));
+        assert!(s.is_armed());
+        assert!(matches!(s.check(&good, 150 * MS, true), Verdict::Send { .. }));
+    }
+
+    #[test]
+    fn workspace_step_speed_and_frame_latch() {
+        let mut s = armed();
+        let out = sample(100, [0.0, 0.0, -1.0]);
+        assert_eq!(
+            s.check(&out, 100 * MS, true),
+            Verdict::Hold(HoldReason::Workspace)
+        );
+        assert!(!s.is_armed());
+        assert_eq!(
+            s.check(&sample(101, [0.0, 0.0, 100.0]), 101 * MS, true),
+            Verdict::Hold(HoldReason::Workspace)
+        );
+
+        // First target after enable is measured from the robot's position.
+        let mut s = armed();
+        assert_eq!(
+            s.check(&sample(100, [11.0, 0.0, 100.0]), 100 * MS, true),
+            Verdict::Hold(HoldReason::StepTooLarge)
+        );
+        let mut s = armed();
+        let Verdict::Send { pos_mm } = s.check(&sample(100, [9.0, 0.0, 100.0]), 100 * MS, true) else {
+            panic!()
+        };
+        s.committed(pos_mm, 100 * MS);
+        // 9 mm in 30 ms = 300 mm/s > 200.
+        assert_eq!(
+            s.check(&sample(130, [18.0, 0.0, 100.0]), 130 * MS, true),
+            Verdict::Hold(HoldReason::TooFast)
+        );
+        assert_eq!(s.latched(), Some(HoldReason::TooFast));
+
+        let mut s = armed();
+        let cam = Sample {
+            world_frame: false,
+            ..sample(100, [1.0, 0.0, 100.0])
+        };
+        assert_eq!(
+            s.check(&cam, 100 * MS, true),
+            Verdict::Hold(HoldReason::Workspace)
+        );
+        let mut s = Supervisor::new(SafetyConfig {
+            require_world_frame: false,
+            ..cfg()
+        });
+        s.on_connect([0.0, 0.0, 100.0]);
+        s.enable();
+        assert!(matches!(s.check(&cam, 100 * MS, true), Verdict::Send { .. }));
+    }
+
+    #[test]
+    fn resume_after_loss_checks_step_from_last_target() {
+        let mut s = armed();
+        s.committed([5.0, 0.0, 100.0], 100 * MS);
+        // Marker reappears 30 mm away: would be a jump.
+        assert_eq!(
+            s.check(&sample(500, [35.0, 0.0, 100.0]), 500 * MS, true),
+            Verdict::Hold(HoldReason::StepTooLarge)
+        );
+        s.enable();
+        // After enable the reference is the robot position (0,0,100), still far.
+        s.on_robot_position([5.0, 0.0, 100.0]);
+        assert_eq!(
+            s.check(&sample(600, [35.0, 0.0, 100.0]), 600 * MS, true),
+            Verdict::Hold(HoldReason::StepTooLarge)
+        );
+        s.enable();
+        assert!(matches!(
+            s.check(&sample(700, [8.0, 0.0, 100.0]), 700 * MS, true),
+            Verdict::Send { .. }
+        ));
+    }
+
+    #[test]
+    fn config_validation_names_keys() {
+        assert!(cfg().validate().is_ok());
+        let e = SafetyConfig {
+            max_gap_mm: f64::NAN,
+            ..cfg()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(e.contains("max_gap_mm"));
+        let e = SafetyConfig {
+            max_age_ms: 0,
+            ..cfg()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(e.contains("max_age_ms"));
+    }
+}

@@ -1,0 +1,381 @@
+//! Rig parameters as OpenCV FileStorage YAML, written and read through OpenCV itself so
+//! that OpenCV tools certainly accept the files.
+//!
+//! Names follow OpenCV's calibration samples; cameras are numbered from 1 as there
+//! (`K1` is camera 0 of [`RigParams`]):
+//!
+//! | key                               | content                                                 |
+//! |-----------------------------------|---------------------------------------------------------|
+//! | `rig_id`                          | string                                                  |
+//! | `created_unix_s`                  | real (integral seconds)                                 |
+//! | `calibration_time`                | string, ISO 8601 UTC (informational, ignored on read)   |
+//! | `camera_count`                    | int N (optional on read: counts `K1`, `K2`, ...)        |
+//! | `image_width`, `image_height`     | int, camera 1's image size (OpenCV samples' names)      |
+//! | `image_width_<n>`, `image_height_<n>` | int, camera n's size (on read falls back to the above) |
+//! | `K<n>` (read also `M<n>`)         | 3×3 camera matrix, no skew                             |
+//! | `D<n>`                            | 1×5 distortion k1 k2 p1 p2 k3 (4..14 entries read, extras must be 0) |
+//! | `R`, `T`                          | camera 2 from camera 1: `x2 = R x1 + T`, T in mm (as stereoCalibrate) |
+//! | `R<n>`, `T<n>` (n ≥ 3)            | camera n from camera 1, same convention                 |
+//! | `R_world`, `T_world`              | optional registration world-from-camera-1               |
+//! | `tool_count`, `tool<j>_name`, `tool<j>_leds_mm` | optional tools (j from 1), LEDs as M×3 mm  |
+
+use std::path::Path;
+
+use anyhow::{Context, Result, anyhow, bail, ensure};
+use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
+use irtrack_core::params::{CameraParams, RigParams, ToolDefinition, looks_like_blob};
+use opencv::core::{
+    CV_64F, FileNode, FileNode_MAP, FileNodeTraitConst, FileStorage, FileStorage_Mode, FileStorageTrait,
+    FileStorageTraitConst, Mat, MatTraitConst,
+};
+
+fn path_str(path: &Path) -> Result<&str> {
+    path.to_str()
+        .ok_or_else(|| anyhow!("{}: path is not UTF-8 (OpenCV needs UTF-8 paths)", path.display()))
+}
+
+fn mat(rows: &[&[f64]]) -> Result<Mat> {
+    Ok(Mat::from_slice_2d(rows)?)
+}
+
+/// ISO 8601 UTC from Unix seconds (civil-from-days, proleptic Gregorian).
+pub fn iso_utc(unix_s: u64) -> String {
+    let days = (unix_s / 86_400) as i64;
+    let secs = unix_s % 86_400;
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!(
+        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}Z",
+        secs / 3600,
+        (secs / 60) % 60,
+        secs % 60
+    )
+}
+
+fn write_transform(fs: &mut FileStorage, r_key: &str, t_key: &str, t: &RigidTransform) -> Result<()> {
+    let r = &t.r_row_major;
+    fs.write_mat(r_key, &mat(&[&r[0..3], &r[3..6], &r[6..9]])?)?;
+    fs.write_mat(t_key, &mat(&[&[t.t_mm[0]], &[t.t_mm[1]], &[t.t_mm[2]]])?)?;
+    Ok(())
+}
+
+/// Writes `rig` as OpenCV YAML (names in the module documentation).
+pub fn write_rig_yaml(path: &Path, rig: &RigParams) -> Result<()> {
+    ensure!(
+        !rig.cameras.is_empty(),
+        "{}: rig has no cameras to write",
+        path.display()
+    );
+    let flags = FileStorage_Mode::WRITE as i32 | FileStorage_Mode::FORMAT_YAML as i32;
+    let mut fs = FileStorage::new(path_str(path)?, flags, "")
+        .with_context(|| format!("{}: OpenCV cannot open for writing", path.display()))?;
+    ensure!(
+        fs.is_opened()?,
+        "{}: OpenCV cannot open for writing",
+        path.display()
+    );
+    let write = |fs: &mut FileStorage| -> Result<()> {
+        fs.write_str("rig_id", &rig.rig_id)?;
+        // Real, not int: OpenCV ints are 32-bit; f64 is exact for any plausible time.
+        fs.write_f64("created_unix_s", rig.created_unix_s as f64)?;
+        fs.write_str("calibration_time", &iso_utc(rig.created_unix_s))?;
+        let n = i32::try_from(rig.cameras.len())?;
+        fs.write_i32("camera_count", n)?;
+        let size0 = rig.cameras[0].model.image_size;
+        fs.write_i32("image_width", i32::try_from(size0.width_px)?)?;
+        fs.write_i32("image_height", i32::try_from(size0.height_px)?)?;
+        for (i, cam) in rig.cameras.iter().enumerate() {
+            let n = i + 1;
+            let k = &cam.model.intrinsics;
+            fs.write_i32(
+                &format!("image_width_{n}"),
+                i32::try_from(cam.model.image_size.width_px)?,
+            )?;
+            fs.write_i32(
+                &format!("image_height_{n}"),
+                i32::try_from(cam.model.image_size.height_px)?,
+            )?;
+            fs.write_mat(
+                &format!("K{n}"),
+                &mat(&[
+                    &[k.fx_px, 0.0, k.cx_px],
+                    &[0.0, k.fy_px, k.cy_px],
+                    &[0.0, 0.0, 1.0],
+                ])?,
+            )?;
+            fs.write_mat(&format!("D{n}"), &mat(&[&cam.model.distortion.as_array()])?)?;
+        }
+        for (i, cam) in rig.cameras.iter().enumerate().skip(1) {
+            let (r_key, t_key) = if i == 1 {
+                ("R".to_string(), "T".to_string())
+            } else {
+                pose_keys(i + 1)
+            };
+            write_transform(fs, &r_key, &t_key, &cam.cam_from_cam0)?;
+        }
+        if let Some(w) = &rig.world_from_cam0 {
+            write_transform(fs, "R_world", "T_world", w)?;
+        }
+        if !rig.tools.is_empty() {
+            fs.write_i32("tool_count", i32::try_from(rig.tools.len())?)?;
+            for (j, tool) in rig.tools.iter().enumerate() {
+                fs.write_str(&format!("tool{}_name", j + 1), &tool.name)?;
+                if !tool.leds_mm.is_empty() {
+                    let rows: Vec<&[f64]> = tool.leds_mm.iter().map(|p| &p[..]).collect();
+                    fs.write_mat(&format!("tool{}_leds_mm", j + 1), &mat(&rows)?)?;
+                }
+            }
+        }
+        fs.release()?;
+        Ok(())
+    };
+    write(&mut fs).with_context(|| format!("{}: writing OpenCV YAML failed", path.display()))
+}
+
+fn pose_keys(n: usize) -> (String, String) {
+    (format!("R{n}"), format!("T{n}"))
+}
+
+fn node(fs: &FileStorage, key: &str) -> Result<Option<FileNode>> {
+    let n = fs.get(key)?;
+    Ok(if n.empty()? || n.is_none()? { None } else { Some(n) })
+}
+
+fn required(fs: &FileStorage, key: &str, what: &str) -> Result<FileNode> {
+    node(fs, key)?.ok_or_else(|| anyhow!("missing `{key}` ({what})"))
+}
+
+fn read_mat(n: &FileNode, key: &str) -> Result<(usize, usize, Vec<f64>)> {
+    let m = n
+        .mat()
+        .with_context(|| format!("`{key}` is not an !!opencv-matrix"))?;
+    ensure!(!m.empty(), "`{key}` is not an !!opencv-matrix (or is empty)");
+    let mut m64 = Mat::default();
+    m.convert_to(&mut m64, CV_64F, 1.0, 0.0)?;
+    let (rows, cols) = (m64.rows(), m64.cols());
+    let mut out = Vec::with_capacity((rows * cols) as usize);
+    for r in 0..rows {
+        for c in 0..cols {
+            out.push(*m64.at_2d::<f64>(r, c)?);
+        }
+    }
+    Ok((rows as usize, cols as usize, out))
+}
+
+fn read_fixed(fs: &FileStorage, key: &str, what: &str, rows: usize, cols: usize) -> Result<Vec<f64>> {
+    let (r, c, v) = read_mat(&required(fs, key, what)?, key)?;
+    // A 1×3 or 3×1 vector is the same thing; accept either orientation for vectors.
+    let ok = (r, c) == (rows, cols) || (rows.min(cols) == 1 && r * c == rows * cols && r.min(c) == 1);
+    ensure!(ok, "`{key}` ({what}) is {r}×{c}, expected {rows}×{cols}");
+    Ok(v)
+}
+
+fn read_int(fs: &FileStorage, key: &str) -> Result<Option<i64>> {
+    let Some(n) = node(fs, key)? else { return Ok(None) };
+    ensure!(n.is_int()? || n.is_real()?, "`{key}` must be a number");
+    let v = n.real()?;
+    ensure!(
+        v.fract() == 0.0 && v.is_finite(),
+        "`{key}` = {v} must be an integer"
+    );
+    Ok(Some(v as i64))
+}
+
+fn read_size(fs: &FileStorage, n: usize) -> Result<ImageSize> {
+    let dim = |specific: String, general: &str| -> Result<u32> {
+        let v = match read_int(fs, &specific)? {
+            Some(v) => v,
+            None => read_int(fs, general)?
+                .ok_or_else(|| anyhow!("missing `{specific}` and `{general}` (camera {n} image size)"))?,
+        };
+        u32::try_from(v).map_err(|_| anyhow!("`{specific}`/`{general}` = {v} is not a valid size"))
+    };
+    Ok(ImageSize {
+        width_px: dim(format!("image_width_{n}"), "image_width")?,
+        height_px: dim(format!("image_height_{n}"), "image_height")?,
+    })
+}
+
+fn read_camera_matrix(fs: &FileStorage, n: usize) -> Result<Intrinsics> {
+    let key = if node(fs, &format!("K{n}"))?.is_some() {
+        format!("K{n}")
+    } else {
+        format!("M{n}")
+    };
+    let k = read_fixed(fs, &key, &format!("camera {n} matrix"), 3, 3)?;
+    ensure!(
+        k[1].abs() < 1e-9,
+        "`{key}`: skew {} is not supported (must be 0)",
+        k[1]
+    );
+    ensure!(
+        k[3] == 0.0 && k[6] == 0.0 && k[7] == 0.0 && (k[8] - 1.0).abs() < 1e-12,
+        "`{key}` is not a camera matrix (last row must be 0 0 1, K[1][0] = 0)"
+    );
+    Ok(Intrinsics {
+        fx_px: k[0],
+        fy_px: k[4],
+        cx_px: k[2],
+        cy_px: k[5],
+    })
+}
+
+fn read_transform(fs: &FileStorage, r_key: &str, t_key: &str, what: &str) -> Result<RigidTransform> {
+    let r = read_fixed(fs, r_key, what, 3, 3)?;
+    let t = read_fixed(fs, t_key, what, 3, 1)?;
+    let mut r_row_major = [0.0; 9];
+    r_row_major.copy_from_slice(&r);
+    Ok(RigidTransform {
+        r_row_major,
+        t_mm: [t[0], t[1], t[2]],
+    })
+}
+
+fn read_all(fs: &FileStorage) -> Result<RigParams> {
+    let rig_id = required(fs, "rig_id", "parameter set id")?
+        .to_string()
+        .context("`rig_id` must be a string")?;
+    let created_unix_s = match node(fs, "created_unix_s")? {
+        None => 0,
+        Some(n) => {
+            let v = n.real()?;
+            ensure!(
+                v >= 0.0 && v.fract() == 0.0 && v < 2f64.powi(53),
+                "`created_unix_s` = {v} is not a time"
+            );
+            v as u64
+        }
+    };
+    let count = match read_int(fs, "camera_count")? {
+        Some(c) => usize::try_from(c).map_err(|_| anyhow!("`camera_count` = {c} is negative"))?,
+        None => (1..)
+            .take_while(|n| {
+                matches!(node(fs, &format!("K{n}")), Ok(Some(_)))
+                    || matches!(node(fs, &format!("M{n}")), Ok(Some(_)))
+            })
+            .count(),
+    };
+    ensure!(count >= 1, "no cameras: missing `K1` (camera 1 matrix)");
+    let mut cameras = Vec::with_capacity(count);
+    for i in 0..count {
+        let n = i + 1;
+        let intrinsics = read_camera_matrix(fs, n)?;
+        let d_key = format!("D{n}");
+        let (_, _, d) = read_mat(&required(fs, &d_key, &format!("camera {n} distortion"))?, &d_key)?;
+        let distortion = Distortion::from_slice(&d).map_err(|e| anyhow!("`{d_key}`: {e}"))?;
+        let image_size = read_size(fs, n)?;
+        let cam_from_cam0 = if i == 0 {
+            RigidTransform::IDENTITY
+        } else if i == 1 && node(fs, "R")?.is_some() {
+            read_transform(fs, "R", "T", "camera 2 pose")?
+        } else {
+            let (r, t) = pose_keys(n);
+            read_transform(fs, &r, &t, &format!("camera {n} pose"))?
+        };
+        cameras.push(CameraParams {
+            model: CameraModel {
+                intrinsics,
+                distortion,
+                image_size,
+            },
+            cam_from_cam0,
+        });
+    }
+    let world_from_cam0 = match node(fs, "R_world")? {
+        Some(_) => Some(read_transform(fs, "R_world", "T_world", "registration")?),
+        None => None,
+    };
+    let tool_count = read_int(fs, "tool_count")?.unwrap_or(0);
+    let mut tools = Vec::new();
+    for j in 1..=tool_count {
+        let name = required(fs, &format!("tool{j}_name"), "tool name")?
+            .to_string()
+            .with_context(|| format!("`tool{j}_name` must be a string"))?;
+        let key = format!("tool{j}_leds_mm");
+        let leds_mm = match node(fs, &key)? {
+            None => Vec::new(),
+            Some(n) => {
+                let (rows, cols, v) = read_mat(&n, &key)?;
+                ensure!(cols == 3, "`{key}` is {rows}×{cols}, expected M×3");
+                v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+            }
+        };
+        tools.push(ToolDefinition { name, leds_mm });
+    }
+    Ok(RigParams {
+        rig_id,
+        created_unix_s,
+        cameras,
+        world_from_cam0,
+        tools,
+    })
+}
+
+/// Reads a rig from OpenCV YAML (or XML/JSON FileStorage: OpenCV detects the format).
+/// Does not validate; call [`RigParams::validate`].
+pub fn read_rig_yaml(path: &Path) -> Result<RigParams> {
+    ensure!(path.is_file(), "{}: no such file", path.display());
+    let fs = FileStorage::new(path_str(path)?, FileStorage_Mode::READ as i32, "")
+        .map_err(|e| anyhow!("{}: OpenCV cannot parse it: {}", path.display(), e.message))?;
+    ensure!(fs.is_opened()?, "{}: OpenCV cannot open it", path.display());
+    ensure!(
+        fs.root_def()?.typ()? & FileNode_MAP == FileNode_MAP,
+        "{}: top level is not a mapping of named values",
+        path.display()
+    );
+    read_all(&fs).with_context(|| format!("{}: not a usable calibration file", path.display()))
+}
+
+/// Loads a parameter blob or an OpenCV YAML file, whichever `path` holds.
+pub fn load_params_any(path: &Path) -> Result<RigParams> {
+    let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    if looks_like_blob(&bytes) {
+        return RigParams::from_blob(&bytes)
+            .with_context(|| format!("{}: bad parameter blob", path.display()));
+    }
+    let text_start = String::from_utf8_lossy(&bytes[..bytes.len().min(64)])
+        .trim_start()
+        .to_string();
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    if text_start.starts_with("%YAML") || matches!(ext.as_str(), "yaml" | "yml" | "xml" | "json") {
+        return read_rig_yaml(path);
+    }
+    bail!(
+        "{}: neither a parameter blob (starts with \"IRPB\") nor an OpenCV YAML file (starts with \"%YAML\")",
+        path.display()
+    )
+}
+
+/// Whether a path names a YAML file by its extension (.yaml / .yml).
+pub fn is_yaml_path(path: &Path) -> bool {
+    matches!(
+        path.extension()
+            .and_then(|e| e.to_str())
+            .map(|e| e.to_ascii_lowercase())
+            .as_deref(),
+        Some("yaml" | "yml")
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn iso_dates() {
+        assert_eq!(iso_utc(0), "1970-01-01T00:00:00Z");
+        assert_eq!(iso_utc(1_700_000_000), "2023-11-14T22:13:20Z");
+        assert_eq!(iso_utc(951_782_400), "2000-02-29T00:00:00Z");
+    }
+}
