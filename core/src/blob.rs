@@ -320,6 +320,11 @@ impl BlobDetector {
     #[inline]
     fn label_row<P: Pixel>(&mut self, row: &[P], ly: u32, thr: P, thr_dn: u32, sat_level: u32) -> bool {
         self.cur_runs.clear();
+        // Most rows hold no marker at all: one vectorised max over the row decides that
+        // at memory speed, and the run search below only runs on the few rows that do.
+        if row_max(row) <= thr {
+            return true;
+        }
         let w = row.len();
         let mut x = 0usize;
         let mut j = 0usize; // first previous-row run that may touch the current run
@@ -461,6 +466,38 @@ impl BlobDetector {
         }
         self.blobs.insert(pos, blob);
     }
+}
+
+/// Maximum of a row. Lane-wise maxima over 32-pixel blocks, then a halving tree over the
+/// lanes: compiles to one load and one `pmaxub`/`umax` per vector with no per-pixel branch.
+/// The last block is taken flush with the row end (overlapping is harmless for a maximum),
+/// so rows of 32 pixels or more have no scalar tail.
+#[inline]
+fn row_max<P: Pixel>(row: &[P]) -> P {
+    const N: usize = SKIP_CHUNK_PX;
+    if row.len() < N {
+        return row.iter().fold(P::default(), |m, &v| m.max(v));
+    }
+    let mut lanes = [P::default(); N];
+    let mut chunks = row.chunks_exact(N);
+    for c in &mut chunks {
+        for (l, &v) in lanes.iter_mut().zip(c) {
+            *l = (*l).max(v);
+        }
+    }
+    if !chunks.remainder().is_empty() {
+        for (l, &v) in lanes.iter_mut().zip(&row[row.len() - N..]) {
+            *l = (*l).max(v);
+        }
+    }
+    let mut half = N / 2;
+    while half > 0 {
+        for i in 0..half {
+            lanes[i] = lanes[i].max(lanes[i + half]);
+        }
+        half /= 2;
+    }
+    lanes[0]
 }
 
 /// Root of `i` with path halving.

@@ -75,7 +75,7 @@ impl Default for TrackerConfig {
             max_gap_mm: 3.0,
             min_range_mm: 50.0,
             max_range_mm: 20_000.0,
-            roi_half_px: 40,
+            roi_half_px: 24,
         }
     }
 }

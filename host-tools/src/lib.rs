@@ -1,4 +1,5 @@
 //! Library behind the `host-tools` binary; one module per subcommand in [`cmd`].
 
+pub mod calib;
 pub mod cmd;
 pub mod opencv_yaml;

@@ -555,7 +555,7 @@ impl V4l2Source {
         let max_backoff = Duration::from_millis(self.config.reconnect_max_ms);
         let mut still_lost = None;
         for (i, cam) in self.cameras.iter_mut().enumerate() {
-            let CameraState::Lost { next_attempt, backoff, reason } = &mut cam.state else { continue };
+            let CameraState::Lost { next_attempt, reason, .. } = &mut cam.state else { continue };
             if *next_attempt > Instant::now() {
                 still_lost.get_or_insert((i, reason.clone()));
                 continue;

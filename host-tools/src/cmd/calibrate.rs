@@ -1,10 +1,138 @@
-//! (not yet implemented)
+//! `host-tools calibrate`: calibrate a rig of N ≥ 2 cameras from chessboard images with OpenCV.
+//!
+//! Non-interactive: no prompts; the progress bar is drawn only when stderr is a terminal.
+//! Writes rig.irp (blob), rig.yaml (OpenCV FileStorage), report.md, coverage_cam<i>.png and
+//! view_errors.png into `--out-dir`. See docs/calibration.md.
+
+use std::path::PathBuf;
+
+use anyhow::{Result, bail};
+
+use crate::calib::{self, Options, detect::Board, input, report};
 
 /// Arguments.
 #[derive(clap::Args, Debug)]
-pub struct Args {}
+pub struct Args {
+    /// Directory with the images: subdirectories cam0/, cam1/, ... (views paired by file name),
+    /// or a flat directory together with --pattern.
+    #[arg(long)]
+    pub images: PathBuf,
+    /// Comma-separated file-name patterns, one per camera in camera order, e.g.
+    /// 'left*.png,right*.png'; views pair by the text matched by the wildcards.
+    #[arg(long)]
+    pub pattern: Option<String>,
+    /// Inner corners per board row (squares per row minus one).
+    #[arg(long)]
+    pub board_cols: u32,
+    /// Inner corners per board column (squares per column minus one).
+    #[arg(long)]
+    pub board_rows: u32,
+    /// Side of one printed square, mm (measure the print).
+    #[arg(long)]
+    pub square_mm: f64,
+    /// Output directory (created).
+    #[arg(long)]
+    pub out_dir: PathBuf,
+    /// Reject views whose per-view RMS is an outlier, then recalibrate.
+    #[arg(long)]
+    pub reject_outliers: bool,
+    /// Outlier factor k in median + k·1.4826·MAD.
+    #[arg(long, default_value_t = 3.0)]
+    pub outlier_k: f64,
+    /// After the fixed-intrinsics stereo calibration, refine intrinsics and poses jointly.
+    #[arg(long)]
+    pub joint_refine: bool,
+    /// Keep k3 at 0 (recommended for ordinary lenses with few views).
+    #[arg(long)]
+    pub fix_k3: bool,
+    /// Rig id written into the parameters (default: calib-<unix time>).
+    #[arg(long)]
+    pub rig_id: Option<String>,
+}
 
 /// Runs the subcommand.
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("this subcommand is not implemented yet")
+pub fn run(args: Args) -> Result<()> {
+    if args.board_cols < 2 || args.board_rows < 2 {
+        bail!(
+            "board of {}x{} inner corners is too small; --board-cols/--board-rows count inner corners (at least 2)",
+            args.board_cols,
+            args.board_rows
+        );
+    }
+    if args.board_cols == args.board_rows {
+        eprintln!(
+            "warning: a square pattern ({0}x{0}) has a 90° ambiguous corner order; a board with different \
+             column and row counts (one odd, one even) is safer for multi-camera calibration",
+            args.board_cols
+        );
+    }
+    if !(args.square_mm > 0.0 && args.square_mm.is_finite()) {
+        bail!("--square-mm must be a positive length, got {}", args.square_mm);
+    }
+    if !(args.outlier_k > 0.0 && args.outlier_k.is_finite()) {
+        bail!("--outlier-k must be positive, got {}", args.outlier_k);
+    }
+    let board = Board {
+        cols: args.board_cols,
+        rows: args.board_rows,
+        square_mm: args.square_mm,
+    };
+    let set = input::discover(&args.images, args.pattern.as_deref())?;
+    eprintln!(
+        "{} cameras, {} complete views ({} incomplete)",
+        set.cameras.len(),
+        set.complete_views.len(),
+        set.incomplete_views.len()
+    );
+    let det = calib::detect::detect_all(&set, &board)?;
+    for (ci, d) in det.iter().enumerate() {
+        eprintln!(
+            "cam{ci} ({}): board found in {} of {} images",
+            set.cameras[ci].label,
+            d.found.len(),
+            d.found.len() + d.not_found.len()
+        );
+    }
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    let rig_id = args.rig_id.clone().unwrap_or_else(|| format!("calib-{now}"));
+    let options = Options {
+        reject_outliers: args.reject_outliers,
+        outlier_k: args.outlier_k,
+        joint_refine: args.joint_refine,
+        fix_k3: args.fix_k3,
+    };
+    let cal = calib::calibrate(&set, det, board, options, &rig_id, now)?;
+    for (v, why) in &cal.skipped {
+        eprintln!("skipped view {v}: {why:?}");
+    }
+    for r in &cal.rejected {
+        eprintln!("rejected view {} (round {}): {}", r.view, r.round, r.why);
+    }
+    let written = report::write_outputs(&cal, &args.out_dir, &args.images)?;
+    println!(
+        "overall RMS {:.4} px over {} views",
+        report::overall_rms_px(&cal),
+        cal.stereo_views.len()
+    );
+    for (ci, f) in cal.intrinsics.iter().enumerate() {
+        let k = &cal.rig.cameras[ci].model.intrinsics;
+        println!(
+            "cam{ci}: RMS {:.4} px, fx {:.3} fy {:.3} cx {:.3} cy {:.3}",
+            f.rms_px, k.fx_px, k.fy_px, k.cx_px, k.cy_px
+        );
+    }
+    for i in 1..cal.rig.cameras.len() {
+        println!(
+            "cam{i}: baseline {:.3} mm, optical axes {:.3}° apart",
+            cal.rig.baseline_mm(i)?,
+            cal.rig.optical_axis_angle_deg(i)?
+        );
+    }
+    for p in written {
+        println!("wrote {}", p.display());
+    }
+    Ok(())
 }

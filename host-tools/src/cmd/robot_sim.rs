@@ -1,10 +1,226 @@
-//! (not yet implemented)
+//! `host-tools robot-sim`: a simulated robot controller, the robot (server) side of the robot
+//! protocol (docs/robot-protocol.md). The TCP point moves toward each target at a limited speed;
+//! replies are those of the RAPID module; faults can be injected; everything received and the
+//! TCP position are logged to CSV for comparison with the marker's truth.
+
+use std::io::{BufWriter, ErrorKind, Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use irtrack_core::robot_proto::{MAX_LINE_BYTES, RobotMsg, SimEvent, SimRobot, SimRobotConfig};
 
 /// Arguments.
-#[derive(clap::Args, Debug)]
-pub struct Args {}
+#[derive(clap::Args, Debug, Clone)]
+pub struct Args {
+    /// Address to listen on (port 0 picks a free port; the chosen address is printed).
+    #[arg(long, default_value = "127.0.0.1:1025")]
+    pub listen: String,
+    /// TCP speed limit.
+    #[arg(long, default_value_t = 250.0)]
+    pub speed_mm_s: f64,
+    /// Credit window granted (1 = step-by-step).
+    #[arg(long, default_value_t = 1)]
+    pub credits: u8,
+    /// Start position `x,y,z` in mm.
+    #[arg(long, default_value = "0,0,0", value_parser = parse_xyz)]
+    pub home: [f64; 3],
+    /// CSV log of received targets, events and the TCP position.
+    #[arg(long)]
+    pub log: Option<PathBuf>,
+    /// Delay before every credit reply (a slow controller).
+    #[arg(long, default_value_t = 0)]
+    pub inject_delay_ms: u64,
+    /// Drop each connection after this many targets (0 = never).
+    #[arg(long, default_value_t = 0)]
+    pub disconnect_after: u32,
+    /// Reject every N-th target (0 = never).
+    #[arg(long, default_value_t = 0)]
+    pub reject_every: u32,
+    /// Motion update period.
+    #[arg(long, default_value_t = 5)]
+    pub tick_ms: u64,
+    /// Position rows in the log every this many ms.
+    #[arg(long, default_value_t = 20)]
+    pub log_every_ms: u64,
+    /// Exit after serving this many connections (0 = serve forever).
+    #[arg(long, default_value_t = 0)]
+    pub max_connections: u32,
+    /// Name sent in HELLO.
+    #[arg(long, default_value = "robot-sim")]
+    pub name: String,
+}
+
+fn parse_xyz(s: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>().map_err(|e| format!("{p:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    <[f64; 3]>::try_from(v).map_err(|v| format!("need x,y,z, got {} values", v.len()))
+}
 
 /// Runs the subcommand.
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("this subcommand is not implemented yet")
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let listener = TcpListener::bind(&args.listen).with_context(|| format!("cannot listen on {}", args.listen))?;
+    let addr = listener.local_addr()?;
+    println!("robot-sim listening on {addr}");
+    std::io::stdout().flush()?;
+    serve(&args, listener)
+}
+
+struct Log {
+    out: Option<BufWriter<std::fs::File>>,
+    t0: Instant,
+}
+
+impl Log {
+    fn row(&mut self, conn: u32, event: &str, seq: Option<u32>, target: Option<[f64; 3]>, pos: [f64; 3], detail: &str) {
+        let Some(out) = self.out.as_mut() else { return };
+        let seq = seq.map(|s| s.to_string()).unwrap_or_default();
+        let t = target.map(|t| format!("{:.3},{:.3},{:.3}", t[0], t[1], t[2])).unwrap_or_else(|| ",,".into());
+        // A failing log write must not stop the simulated robot; it is reported once at exit.
+        let _ = writeln!(
+            out,
+            "{:.4},{conn},{event},{seq},{t},{:.3},{:.3},{:.3},{detail}",
+            self.t0.elapsed().as_secs_f64(),
+            pos[0],
+            pos[1],
+            pos[2]
+        );
+    }
+}
+
+/// Serves connections one at a time on `listener`.
+pub fn serve(args: &Args, listener: TcpListener) -> anyhow::Result<()> {
+    if !(args.speed_mm_s.is_finite() && args.speed_mm_s > 0.0) {
+        bail!("--speed-mm-s must be > 0");
+    }
+    if args.credits == 0 || args.credits > irtrack_core::robot_proto::MAX_WINDOW {
+        bail!("--credits must be 1..=99");
+    }
+    let cfg = SimRobotConfig {
+        name: args.name.clone(),
+        speed_mm_s: args.speed_mm_s,
+        window: args.credits,
+        home_mm: args.home,
+        reject_every: args.reject_every,
+        beat_period_s: 0.2,
+    };
+    let out = match &args.log {
+        Some(p) => {
+            let mut w = BufWriter::new(std::fs::File::create(p).with_context(|| format!("create {}", p.display()))?);
+            writeln!(w, "t_s,conn,event,seq,target_x_mm,target_y_mm,target_z_mm,robot_x_mm,robot_y_mm,robot_z_mm,detail")?;
+            Some(w)
+        }
+        None => None,
+    };
+    let mut log = Log { out, t0: Instant::now() };
+    let mut robot = SimRobot::new(cfg);
+    let mut conn = 0;
+    loop {
+        let (stream, peer) = listener.accept().context("accept")?;
+        conn += 1;
+        eprintln!("robot-sim: connection {conn} from {peer}");
+        log.row(conn, "connected", None, None, robot.pos_mm(), &peer.to_string());
+        let why = connection(args, &mut robot, stream, &mut log, conn);
+        robot.disconnect();
+        eprintln!("robot-sim: connection {conn} ended: {why}");
+        log.row(conn, "disconnected", None, None, robot.pos_mm(), &why);
+        if let Some(out) = log.out.as_mut() {
+            out.flush().context("write log")?;
+        }
+        if args.max_connections > 0 && conn >= args.max_connections {
+            return Ok(());
+        }
+    }
+}
+
+fn send(stream: &mut TcpStream, msgs: &[RobotMsg]) -> std::io::Result<()> {
+    for m in msgs {
+        let line = m.encode().map_err(|e| std::io::Error::new(ErrorKind::InvalidData, e.to_string()))?;
+        stream.write_all(line.as_bytes())?;
+    }
+    Ok(())
+}
+
+/// One connection; returns why it ended.
+fn connection(args: &Args, robot: &mut SimRobot, mut stream: TcpStream, log: &mut Log, conn: u32) -> String {
+    let _ = stream.set_nodelay(true);
+    if let Err(e) = stream.set_read_timeout(Some(Duration::from_millis(args.tick_ms.max(1)))) {
+        return format!("socket setup: {e}");
+    }
+    if let Err(e) = send(&mut stream, &robot.connect()) {
+        return format!("write: {e}");
+    }
+    let mut pending: Vec<u8> = Vec::with_capacity(4 * MAX_LINE_BYTES);
+    let mut buf = [0u8; 512];
+    let mut targets = 0u32;
+    let mut last = Instant::now();
+    let mut last_pos_log = Instant::now();
+    let peer_timeout = Duration::from_secs(5);
+    let mut last_rx = Instant::now();
+    loop {
+        let mut replies = Vec::new();
+        match stream.read(&mut buf) {
+            Ok(0) => return "closed by the tracker".into(),
+            Ok(n) => {
+                last_rx = Instant::now();
+                pending.extend_from_slice(&buf[..n]);
+                while let Some(i) = pending.iter().position(|&b| b == b'\n') {
+                    let line: Vec<u8> = pending.drain(..=i).collect();
+                    let text = String::from_utf8_lossy(&line);
+                    replies.extend(robot.on_line(&text));
+                }
+                if pending.len() > MAX_LINE_BYTES {
+                    pending.clear();
+                    replies.extend(robot.on_line("line too long"));
+                }
+            }
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {}
+            Err(e) => return format!("read: {e}"),
+        }
+        if last_rx.elapsed() > peer_timeout {
+            return "tracker silent for 5 s".into();
+        }
+        let dt = last.elapsed().as_secs_f64();
+        last = Instant::now();
+        replies.extend(robot.advance(dt));
+        for e in robot.take_events() {
+            let pos = robot.pos_mm();
+            match e {
+                SimEvent::Target { seq, target_mm } => {
+                    targets += 1;
+                    log.row(conn, "target", Some(seq), Some(target_mm), pos, "");
+                }
+                SimEvent::Reached { seq } => log.row(conn, "reached", Some(seq), None, pos, ""),
+                SimEvent::Rejected { seq, code } => log.row(conn, "rejected", Some(seq), None, pos, &format!("{code:02}")),
+                SimEvent::Hold { reason } => log.row(conn, "hold", None, None, pos, reason.text()),
+                SimEvent::Malformed { reason } => log.row(conn, "malformed", None, None, pos, &reason.replace(',', ";")),
+            }
+        }
+        if last_pos_log.elapsed() >= Duration::from_millis(args.log_every_ms) {
+            last_pos_log = Instant::now();
+            log.row(conn, "pos", None, None, robot.pos_mm(), "");
+        }
+        if args.inject_delay_ms > 0 && replies.iter().any(|m| matches!(m, RobotMsg::Credit { .. })) {
+            std::thread::sleep(Duration::from_millis(args.inject_delay_ms));
+        }
+        if let Err(e) = send(&mut stream, &replies) {
+            return format!("write: {e}");
+        }
+        if replies.contains(&RobotMsg::Bye) {
+            return "BYE".into();
+        }
+        if args.disconnect_after > 0 && targets >= args.disconnect_after {
+            return format!("injected disconnect after {targets} targets");
+        }
+    }
+}
+
+/// Address helper for tests: binds `listen` and returns the listener and its address.
+pub fn bind(listen: &str) -> anyhow::Result<(TcpListener, SocketAddr)> {
+    let l = TcpListener::bind(listen).with_context(|| format!("cannot listen on {listen}"))?;
+    let a = l.local_addr()?;
+    Ok((l, a))
 }

@@ -1,0 +1,136 @@
+//! Helpers shared by the firmware integration tests.
+#![allow(dead_code)]
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use irtrack_core::param_wire::{Verdict, encode_push};
+use irtrack_core::stream::{BINARY_FRAME_LEN, PositionRecord};
+use irtrack_firmware::config::Config;
+use irtrack_firmware::source::sim::SimSourceConfig;
+use irtrack_sim::Scenario;
+use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
+use tokio::net::TcpStream;
+
+/// A fresh, empty directory under the system temp dir (removed on drop).
+pub struct TempDir(pub PathBuf);
+
+impl TempDir {
+    pub fn new(name: &str) -> Self {
+        let p = std::env::temp_dir().join(format!("irtrackd-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).unwrap();
+        TempDir(p)
+    }
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Simulated source at a test-friendly rate (the convergent VGA rig of the defaults).
+pub fn sim_cfg() -> SimSourceConfig {
+    SimSourceConfig { fps: 100.0, ..SimSourceConfig::default() }
+}
+
+/// Config with every listener on 127.0.0.1:0, the given state dir and the simulated source.
+pub fn test_config(state_dir: &Path) -> Config {
+    let mut cfg = Config::default();
+    cfg.service.state_dir = state_dir.to_path_buf();
+    for a in [
+        &mut cfg.listen.params,
+        &mut cfg.listen.stream_ndjson,
+        &mut cfg.listen.stream_binary,
+        &mut cfg.listen.status,
+    ] {
+        *a = "127.0.0.1:0".into();
+    }
+    cfg.source.sim = Some(sim_cfg());
+    cfg
+}
+
+/// The simulator scenario a config's sim source runs (same seed, so same truth).
+pub fn scenario(cfg: &SimSourceConfig) -> Scenario {
+    Scenario::new(cfg.scenario_config()).unwrap()
+}
+
+/// Pushes a blob and returns the server's verdict line.
+pub async fn push(addr: SocketAddr, blob: &[u8]) -> String {
+    let mut s = TcpStream::connect(addr).await.unwrap();
+    s.write_all(&encode_push(blob)).await.unwrap();
+    let mut line = String::new();
+    s.read_to_string(&mut line).await.unwrap();
+    line
+}
+
+pub async fn push_verdict(addr: SocketAddr, blob: &[u8]) -> Verdict {
+    Verdict::parse_line(&push(addr, blob).await).unwrap()
+}
+
+/// An NDJSON stream client.
+pub struct NdjsonClient {
+    lines: tokio::io::Lines<BufReader<TcpStream>>,
+}
+
+impl NdjsonClient {
+    pub async fn connect(addr: SocketAddr) -> Self {
+        let s = TcpStream::connect(addr).await.unwrap();
+        Self { lines: BufReader::new(s).lines() }
+    }
+
+    /// Next record, failing the test after `timeout`.
+    pub async fn next(&mut self) -> PositionRecord {
+        let line = tokio::time::timeout(Duration::from_secs(10), self.lines.next_line())
+            .await
+            .expect("no record within 10 s")
+            .unwrap()
+            .expect("stream closed");
+        PositionRecord::from_ndjson_line(&line).unwrap()
+    }
+
+    /// Reads until `pred` holds, at most `max` records.
+    pub async fn until(&mut self, max: usize, pred: impl Fn(&PositionRecord) -> bool) -> PositionRecord {
+        for _ in 0..max {
+            let r = self.next().await;
+            if pred(&r) {
+                return r;
+            }
+        }
+        panic!("no matching record within {max} records");
+    }
+}
+
+/// Reads one binary record.
+pub async fn read_binary(s: &mut TcpStream) -> PositionRecord {
+    let mut buf = [0u8; BINARY_FRAME_LEN];
+    tokio::time::timeout(Duration::from_secs(10), s.read_exact(&mut buf)).await.unwrap().unwrap();
+    PositionRecord::decode_binary(&buf).unwrap()
+}
+
+/// GET `path` from the status endpoint; returns (status code, body).
+pub async fn http_get(addr: SocketAddr, path: &str) -> (u16, String) {
+    let mut s = TcpStream::connect(addr).await.unwrap();
+    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes()).await.unwrap();
+    let mut resp = String::new();
+    s.read_to_string(&mut resp).await.unwrap();
+    let code = resp.split_whitespace().nth(1).unwrap().parse().unwrap();
+    let body = resp.split_once("\r\n\r\n").map(|(_, b)| b.to_string()).unwrap_or_default();
+    (code, body)
+}
+
+pub async fn status_json(addr: SocketAddr) -> serde_json::Value {
+    let (code, body) = http_get(addr, "/status").await;
+    assert_eq!(code, 200, "{body}");
+    serde_json::from_str(&body).unwrap()
+}
+
+/// Distance between two points, mm.
+pub fn dist_mm(a: [f64; 3], b: [f64; 3]) -> f64 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}

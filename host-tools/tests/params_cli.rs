@@ -1,0 +1,537 @@
+//! Parameter file tools: OpenCV YAML round trips, show/convert-params and push-params against
+//! a fake irtrackd parameter endpoint built on `irtrack_core::param_wire`.
+
+use std::io::{Read, Write};
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::thread;
+use std::time::{Duration, Instant};
+
+use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
+use irtrack_core::param_wire::{self, RejectCode, Verdict};
+use irtrack_core::params::{CameraParams, RigParams, ToolDefinition};
+use irtrack_host_tools::opencv_yaml::{load_params_any, read_rig_yaml, write_rig_yaml};
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("irtrack-params-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+fn camera(fx: f64, k1: f64, size: (u32, u32), pose: RigidTransform) -> CameraParams {
+    CameraParams {
+        model: CameraModel {
+            intrinsics: Intrinsics {
+                fx_px: fx,
+                fy_px: fx * 1.001,
+                cx_px: f64::from(size.0) / 2.0 - 0.3,
+                cy_px: f64::from(size.1) / 2.0 + 0.7,
+            },
+            distortion: Distortion {
+                k1,
+                k2: 0.0123456789,
+                p1: -1e-4,
+                p2: 2.5e-4,
+                k3: -0.001,
+            },
+            image_size: ImageSize {
+                width_px: size.0,
+                height_px: size.1,
+            },
+        },
+        cam_from_cam0: pose,
+    }
+}
+
+/// Three cameras: a parallel partner 120 mm to the right and a 90° convergent one, with a
+/// registration and a tool, so every YAML key is exercised.
+fn rig3() -> RigParams {
+    let r90y = [0.0, 0.0, -1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0];
+    // Centre (600, 0, 600) mm in camera 0: t = -R c.
+    let t90 = [600.0, 0.0, -600.0];
+    let c = 0.1f64.cos();
+    let s = 0.1f64.sin();
+    RigParams {
+        rig_id: "lab-rig-3".into(),
+        created_unix_s: 1_717_171_717,
+        cameras: vec![
+            camera(812.345678901, -0.2876543, (1280, 720), RigidTransform::IDENTITY),
+            camera(
+                800.1,
+                -0.31,
+                (1280, 720),
+                RigidTransform {
+                    t_mm: [-120.123456789, 0.5, -0.25],
+                    ..RigidTransform::IDENTITY
+                },
+            ),
+            camera(
+                640.0 / 3.0,
+                0.05,
+                (640, 480),
+                RigidTransform {
+                    r_row_major: r90y,
+                    t_mm: t90,
+                },
+            ),
+        ],
+        world_from_cam0: Some(RigidTransform {
+            r_row_major: [c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0],
+            t_mm: [1000.0, -250.5, 80.0],
+        }),
+        tools: vec![ToolDefinition {
+            name: "probe".into(),
+            leds_mm: vec![[0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, 35.5, 10.0]],
+        }],
+    }
+}
+
+fn rig2() -> RigParams {
+    let mut r = rig3();
+    r.cameras.truncate(2);
+    r.world_from_cam0 = None;
+    r.tools.clear();
+    r.rig_id = "pair-1".into();
+    r
+}
+
+fn host_tools(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_host-tools"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn text(o: &Output) -> (String, String) {
+    (
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+fn p(path: &Path) -> &str {
+    path.to_str().unwrap()
+}
+
+#[test]
+fn yaml_round_trip_is_exact() {
+    let rig = rig3();
+    rig.validate().unwrap();
+    let path = tmp("rig3.yaml");
+    write_rig_yaml(&path, &rig).unwrap();
+    let yaml = std::fs::read_to_string(&path).unwrap();
+    assert!(yaml.starts_with("%YAML:1.0"), "{yaml}");
+    for key in [
+        "K1: !!opencv-matrix",
+        "D3: !!opencv-matrix",
+        "\nR: !!opencv-matrix",
+        "\nT3: !!opencv-matrix",
+    ] {
+        assert!(yaml.contains(key), "missing {key:?} in\n{yaml}");
+    }
+    assert!(
+        yaml.contains("image_width: 1280") && yaml.contains("image_height_3: 480"),
+        "{yaml}"
+    );
+    assert_eq!(read_rig_yaml(&path).unwrap(), rig);
+    assert_eq!(load_params_any(&path).unwrap(), rig);
+}
+
+/// The layout OpenCV's stereo_calib sample and hand-written files use: `%YAML:1.0`,
+/// `!!opencv-matrix`, M1/M2 for the camera matrices, 1×4 distortion, one image size.
+const HANDWRITTEN: &str = "%YAML:1.0
+---
+rig_id: bench
+image_width: 640
+image_height: 480
+M1: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 6.8e+02, 0., 3.195e+02, 0., 6.81e+02, 2.395e+02, 0., 0., 1. ]
+D1: !!opencv-matrix
+   rows: 1
+   cols: 4
+   dt: d
+   data: [ -2.8e-01, 9.e-02, 1.e-03, -5.e-04 ]
+M2: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: f
+   data: [ 690., 0., 321., 0., 690., 241., 0., 0., 1. ]
+D2: !!opencv-matrix
+   rows: 5
+   cols: 1
+   dt: d
+   data: [ -0.25, 0.08, 0., 0., -0.01 ]
+R: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 1., 0., 0., 0., 1., 0., 0., 0., 1. ]
+T: !!opencv-matrix
+   rows: 3
+   cols: 1
+   dt: d
+   data: [ -150.5, 0., 0. ]
+";
+
+#[test]
+fn reads_handwritten_opencv_yaml() {
+    let path = tmp("handwritten.yml");
+    std::fs::write(&path, HANDWRITTEN).unwrap();
+    let rig = read_rig_yaml(&path).unwrap();
+    assert_eq!(rig.rig_id, "bench");
+    assert_eq!(rig.created_unix_s, 0);
+    assert_eq!(rig.cameras.len(), 2);
+    let c0 = &rig.cameras[0].model;
+    assert_eq!(
+        c0.intrinsics,
+        Intrinsics {
+            fx_px: 680.0,
+            fy_px: 681.0,
+            cx_px: 319.5,
+            cy_px: 239.5
+        }
+    );
+    assert_eq!(
+        c0.distortion,
+        Distortion {
+            k1: -0.28,
+            k2: 0.09,
+            p1: 0.001,
+            p2: -0.0005,
+            k3: 0.0
+        }
+    );
+    assert_eq!(
+        c0.image_size,
+        ImageSize {
+            width_px: 640,
+            height_px: 480
+        }
+    );
+    assert_eq!(rig.cameras[1].model.intrinsics.fx_px, 690.0);
+    assert_eq!(rig.cameras[1].model.distortion.k3, -0.01);
+    assert_eq!(rig.cameras[1].cam_from_cam0.t_mm, [-150.5, 0.0, 0.0]);
+    assert_eq!(rig.cameras[0].cam_from_cam0, RigidTransform::IDENTITY);
+    rig.validate().unwrap();
+    assert!((rig.baseline_mm(1).unwrap() - 150.5).abs() < 1e-12);
+}
+
+#[test]
+fn yaml_errors_name_file_and_key() {
+    let path = tmp("missing_t.yaml");
+    std::fs::write(&path, HANDWRITTEN.split("T: !!").next().unwrap()).unwrap();
+    let e = format!("{:#}", read_rig_yaml(&path).unwrap_err());
+    assert!(e.contains("missing_t.yaml") && e.contains("missing `R2`"), "{e}");
+
+    let path = tmp("skew.yaml");
+    std::fs::write(
+        &path,
+        HANDWRITTEN.replace("6.8e+02, 0., 3.195e+02", "6.8e+02, 2., 3.195e+02"),
+    )
+    .unwrap();
+    let e = format!("{:#}", read_rig_yaml(&path).unwrap_err());
+    assert!(e.contains("skew"), "{e}");
+
+    let path = tmp("k_shape.yaml");
+    std::fs::write(
+        &path,
+        HANDWRITTEN.replacen(
+            "rows: 3\n   cols: 3\n   dt: f\n   data: [ 690., 0., 321., 0., 690., 241., 0., 0., 1. ]",
+            "rows: 1\n   cols: 3\n   dt: f\n   data: [ 690., 0., 321. ]",
+            1,
+        ),
+    )
+    .unwrap();
+    let e = format!("{:#}", read_rig_yaml(&path).unwrap_err());
+    assert!(e.contains("`M2`") && e.contains("1×3"), "{e}");
+
+    let path = tmp("garbage.yaml");
+    std::fs::write(&path, "%YAML:1.0\n---\nK1: [ unclosed\n").unwrap();
+    let e = format!("{:#}", read_rig_yaml(&path).unwrap_err());
+    assert!(e.contains("garbage.yaml"), "{e}");
+
+    let path = tmp("neither.bin");
+    std::fs::write(&path, b"hello world").unwrap();
+    let e = format!("{:#}", load_params_any(&path).unwrap_err());
+    assert!(
+        e.contains("neither.bin") && e.contains("neither a parameter blob"),
+        "{e}"
+    );
+}
+
+#[test]
+fn convert_blob_yaml_blob_is_byte_identical() {
+    let rig = rig3();
+    let blob = tmp("c.irp");
+    std::fs::write(&blob, rig.to_blob().unwrap()).unwrap();
+    let yaml = tmp("c.yaml");
+    let back = tmp("c_back.irp");
+    let o = host_tools(&["convert-params", p(&blob), p(&yaml)]);
+    assert!(o.status.success(), "{:?}", text(&o));
+    let o = host_tools(&["convert-params", p(&yaml), p(&back)]);
+    assert!(o.status.success(), "{:?}", text(&o));
+    assert_eq!(std::fs::read(&back).unwrap(), rig.to_blob().unwrap());
+}
+
+#[test]
+fn convert_refuses_invalid_unless_forced() {
+    let mut rig = rig2();
+    rig.cameras[1].model.intrinsics.fx_px = -1.0;
+    let blob = tmp("bad_fx.irp");
+    std::fs::write(&blob, rig.to_blob().unwrap()).unwrap();
+    let out = tmp("bad_fx.yaml");
+    let o = host_tools(&["convert-params", p(&blob), p(&out)]);
+    let (_, err) = text(&o);
+    assert!(
+        !o.status.success() && err.contains("bad_fx.irp") && err.contains("focal length"),
+        "{err}"
+    );
+    let o = host_tools(&["convert-params", "--force", p(&blob), p(&out)]);
+    assert!(o.status.success(), "{:?}", text(&o));
+    assert_eq!(read_rig_yaml(&out).unwrap(), rig);
+}
+
+#[test]
+fn show_params_reports_geometry() {
+    let blob = tmp("show.irp");
+    std::fs::write(&blob, rig3().to_blob().unwrap()).unwrap();
+    let o = host_tools(&["show-params", p(&blob)]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{err}");
+    for want in [
+        "rig id:       lab-rig-3",
+        "created:      2024-05-31T16:08:37Z",
+        "cameras:      3",
+        "fx 812.346 px",
+        "1280 x 720 px",
+        "optical axes 90.000 deg apart",
+        "baseline 848.528 mm",
+        "centre:     (600.000, 0.000, 600.000) mm",
+        "registration: world from camera 0",
+        "tool \"probe\": 3 LEDs",
+        "validation:   OK",
+        "parameter blob v1",
+    ] {
+        assert!(out.contains(want), "missing {want:?} in\n{out}");
+    }
+    // Camera 1: 120.12 mm (plus small y/z offsets) from camera 0, parallel axes.
+    let b1 = (120.123456789f64.powi(2) + 0.25 + 0.0625).sqrt();
+    assert!(
+        out.contains(&format!(
+            "baseline {b1:.3} mm from camera 0, optical axes 0.000 deg"
+        )),
+        "{out}"
+    );
+
+    let bad = tmp("show_truncated.irp");
+    std::fs::write(&bad, &rig3().to_blob().unwrap()[..40]).unwrap();
+    let o = host_tools(&["show-params", p(&bad)]);
+    let (_, err) = text(&o);
+    assert!(
+        !o.status.success() && err.contains("show_truncated.irp") && err.contains("truncated"),
+        "{err}"
+    );
+}
+
+/// The server side of docs/param-protocol.md, as irtrackd implements it, for one connection:
+/// refuses blobs that do not decode or validate, and rigs whose camera count differs.
+fn serve_one(listener: TcpListener, expected_cameras: usize) -> thread::JoinHandle<Option<RigParams>> {
+    thread::spawn(move || {
+        let (mut s, _) = listener.accept().unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        let mut hdr = [0u8; param_wire::PUSH_HEADER_LEN];
+        s.read_exact(&mut hdr).unwrap();
+        let (verdict, rig) = match param_wire::parse_push_header(&hdr) {
+            Err(e) => (Verdict::from_error(&e), None),
+            Ok(len) => {
+                let mut blob = vec![0u8; len];
+                s.read_exact(&mut blob).unwrap();
+                match RigParams::from_blob(&blob).and_then(|r| r.validate().map(|()| r)) {
+                    Err(e) => (Verdict::from_error(&e), None),
+                    Ok(r) if r.cameras.len() != expected_cameras => (
+                        Verdict::Rejected {
+                            code: RejectCode::RigMismatch,
+                            message: format!(
+                                "rig has {expected_cameras} cameras, parameters have {}",
+                                r.cameras.len()
+                            ),
+                        },
+                        None,
+                    ),
+                    Ok(r) => (
+                        Verdict::Accepted {
+                            rig_id: r.rig_id.clone(),
+                        },
+                        Some(r),
+                    ),
+                }
+            }
+        };
+        s.write_all(verdict.to_line().as_bytes()).unwrap();
+        rig
+    })
+}
+
+#[test]
+fn push_accepted_from_yaml() {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap().to_string();
+    let server = serve_one(listener, 2);
+    let yaml = tmp("push_ok.yaml");
+    write_rig_yaml(&yaml, &rig2()).unwrap();
+    let o = host_tools(&["push-params", "--to", &addr, p(&yaml)]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}\n{err}");
+    assert!(
+        out.contains(&format!("accepted by {addr}: rig pair-1 is active")),
+        "{out}"
+    );
+    assert_eq!(server.join().unwrap(), Some(rig2()));
+}
+
+#[test]
+fn push_rejected_gives_reason_and_failure() {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap().to_string();
+    let server = serve_one(listener, 2);
+    let blob = tmp("push_three.irp");
+    std::fs::write(&blob, rig3().to_blob().unwrap()).unwrap();
+    let o = host_tools(&["push-params", "--to", &addr, p(&blob)]);
+    let (_, err) = text(&o);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("RIG_MISMATCH") && err.contains("rig has 2 cameras, parameters have 3"),
+        "{err}"
+    );
+    assert_eq!(server.join().unwrap(), None);
+}
+
+#[test]
+fn push_retries_until_server_starts() {
+    // Reserve a free port, release it, and start the server on it only after a delay.
+    let port = TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let addr = format!("127.0.0.1:{port}");
+    let late = thread::spawn(move || {
+        thread::sleep(Duration::from_millis(600));
+        serve_one(TcpListener::bind(("127.0.0.1", port)).unwrap(), 2)
+            .join()
+            .unwrap()
+    });
+    let blob = tmp("push_late.irp");
+    std::fs::write(&blob, rig2().to_blob().unwrap()).unwrap();
+    let started = Instant::now();
+    let o = host_tools(&["push-params", "--to", &addr, "--retries", "6", p(&blob)]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}\n{err}");
+    // Backoff 0.25 s then 0.5 s: the 600 ms start is reached on the 2nd or 3rd retry.
+    let retries = err.matches("; retry ").count();
+    assert!((1..=3).contains(&retries), "{err}");
+    assert!(err.contains("retry 1/6 in 0.25 s"), "{err}");
+    assert!(started.elapsed() >= Duration::from_millis(600));
+    assert_eq!(late.join().unwrap(), Some(rig2()));
+}
+
+#[test]
+fn push_gives_up_after_retries() {
+    let port = TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let blob = tmp("push_nobody.irp");
+    std::fs::write(&blob, rig2().to_blob().unwrap()).unwrap();
+    let o = host_tools(&[
+        "push-params",
+        "--to",
+        &format!("127.0.0.1:{port}"),
+        "--retries",
+        "2",
+        p(&blob),
+    ]);
+    let (_, err) = text(&o);
+    assert!(!o.status.success());
+    assert_eq!(err.matches("; retry ").count(), 2, "{err}");
+    assert!(
+        err.contains("retry 2/2 in 0.50 s") && err.contains("giving up") && err.contains("after 3 attempts"),
+        "{err}"
+    );
+}
+
+#[test]
+fn push_dry_run_validates_locally() {
+    let blob = tmp("dry.irp");
+    std::fs::write(&blob, rig2().to_blob().unwrap()).unwrap();
+    let o = host_tools(&["push-params", "--dry-run", p(&blob)]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        out.contains("rig pair-1 with 2 cameras") && out.contains("dry run: nothing sent"),
+        "{out}"
+    );
+
+    let mut bad = rig2();
+    bad.cameras[1].cam_from_cam0.r_row_major[4] = 2.0;
+    let bad_path = tmp("dry_bad.irp");
+    std::fs::write(&bad_path, bad.to_blob().unwrap()).unwrap();
+    let o = host_tools(&["push-params", "--dry-run", p(&bad_path)]);
+    let (_, err) = text(&o);
+    assert!(
+        !o.status.success() && err.contains("dry_bad.irp") && err.contains("proper rotation"),
+        "{err}"
+    );
+
+    let mut corrupt = rig2().to_blob().unwrap();
+    corrupt[30] ^= 0x40;
+    let corrupt_path = tmp("dry_corrupt.irp");
+    std::fs::write(&corrupt_path, corrupt).unwrap();
+    let o = host_tools(&["push-params", "--dry-run", p(&corrupt_path)]);
+    let (_, err) = text(&o);
+    assert!(
+        !o.status.success() && err.contains("dry_corrupt.irp") && err.contains("CRC-32"),
+        "{err}"
+    );
+}
+
+#[test]
+fn client_library_reads_early_rejection() {
+    // A server that refuses from the header alone (BUSY, TOO_LARGE) answers before reading the
+    // body; it then drains the request so that closing does not reset the connection.
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap().to_string();
+    let server = thread::spawn(move || {
+        let (mut s, _) = listener.accept().unwrap();
+        let mut hdr = [0u8; 8];
+        s.read_exact(&mut hdr).unwrap();
+        let v = Verdict::Rejected {
+            code: RejectCode::Busy,
+            message: "another push in progress".into(),
+        };
+        s.write_all(v.to_line().as_bytes()).unwrap();
+        let mut rest = Vec::new();
+        s.read_to_end(&mut rest).unwrap();
+        hdr.len() + rest.len()
+    });
+    let opts = irtrack_host_tools::cmd::push_params::PushOptions {
+        retries: 0,
+        timeout: Duration::from_secs(5),
+        first_backoff: Duration::from_millis(10),
+    };
+    let blob = vec![0x55u8; 200_000];
+    let v = irtrack_host_tools::cmd::push_params::push_blob(&addr, &blob, &opts, &mut |_| {}).unwrap();
+    assert_eq!(
+        v,
+        Verdict::Rejected {
+            code: RejectCode::Busy,
+            message: "another push in progress".into()
+        }
+    );
+    assert_eq!(server.join().unwrap(), 8 + 200_000);
+}
