@@ -167,7 +167,11 @@ impl Ours {
     fn new(s: &Scene, roi: bool) -> Result<Self> {
         let cfg = TrackerConfig {
             threshold_dn: THRESHOLD_DN as u32,
-            roi_half_px: if roi { TrackerConfig::default().roi_half_px } else { 0 },
+            roi_half_px: if roi {
+                TrackerConfig::default().roi_half_px
+            } else {
+                0
+            },
             ..TrackerConfig::default()
         };
         let mut o = Ours {
@@ -362,7 +366,10 @@ fn max_pixels(s: &Scene) -> u8 {
 /// CPU time of the calling thread (ns). The machine may be shared, so wall time would
 /// charge one side of a comparison for time spent preempted; thread CPU time does not.
 fn thread_cpu_ns() -> u64 {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
     // SAFETY: `ts` is a valid, writable timespec; the clock id is a constant.
     let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
     if rc != 0 {
@@ -398,7 +405,9 @@ fn scenes() -> Result<Vec<Scene>> {
 
 fn table(quick: bool) -> Result<()> {
     let (batches, scale) = if quick { (3, 1) } else { (11, 8) };
-    println!("irtrack-bench: per stereo frame pair, thread CPU time, median of {batches} batches, one thread");
+    println!(
+        "irtrack-bench: per stereo frame pair, thread CPU time, median of {batches} batches, one thread"
+    );
     println!();
     println!(
         "| frames | ours full | OpenCV | OpenCV/ours | sum pass | ours/sum | max pass | ours/max | ours ROI | ROI/full | allocs/pair | ours−OpenCV |"

@@ -25,8 +25,8 @@ use anyhow::{Context, Result, anyhow, bail, ensure};
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use irtrack_core::params::{CameraParams, RigParams, ToolDefinition, looks_like_blob};
 use opencv::core::{
-    CV_64F, FileNode, FileNode_MAP, FileNodeTraitConst, FileStorage, FileStorage_Mode, FileStorageTrait,
-    FileStorageTraitConst, Mat, MatTraitConst,
+    CV_64F, FileNode, FileNode_MAP, FileNode_TYPE_MASK, FileNodeTraitConst, FileStorage, FileStorage_Mode,
+    FileStorageTrait, FileStorageTraitConst, Mat, MatTraitConst,
 };
 
 fn path_str(path: &Path) -> Result<&str> {
@@ -326,7 +326,7 @@ pub fn read_rig_yaml(path: &Path) -> Result<RigParams> {
         .map_err(|e| anyhow!("{}: OpenCV cannot parse it: {}", path.display(), e.message))?;
     ensure!(fs.is_opened()?, "{}: OpenCV cannot open it", path.display());
     ensure!(
-        fs.root_def()?.typ()? & FileNode_MAP == FileNode_MAP,
+        fs.root_def()?.typ()? & FileNode_TYPE_MASK == FileNode_MAP,
         "{}: top level is not a mapping of named values",
         path.display()
     );

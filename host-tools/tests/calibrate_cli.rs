@@ -338,7 +338,8 @@ fn reject_outliers_removes_an_inconsistent_view() {
 #[test]
 fn wrong_board_size_says_in_how_many_images_it_was_found() {
     let dir = temp_dir("wrongboard");
-    render(&dir.join("img"), &parallel_rig(), 4, 2);
+    // Few images: OpenCV takes seconds per image to give up on a wrongly sized board.
+    render(&dir.join("img"), &parallel_rig(), 2, 2);
     let o = Command::new(env!("CARGO_BIN_EXE_host-tools"))
         .args([
             "calibrate",
@@ -358,7 +359,7 @@ fn wrong_board_size_says_in_how_many_images_it_was_found() {
     assert!(!o.status.success());
     let e = stderr(&o);
     assert!(
-        e.contains("8x5 board") && e.contains("found in none of the 4 images"),
+        e.contains("8x5 board") && e.contains("found in none of the 2 images"),
         "{e}"
     );
     assert!(e.contains("inner corners"), "{e}");

@@ -17,7 +17,11 @@ fn scratch(name: &str) -> PathBuf {
 fn run_ok(cmd: &mut Command) -> String {
     let out = cmd.output().unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(out.status.success(), "{cmd:?} failed:\n{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{cmd:?} failed:\n{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     stdout
 }
 
@@ -30,7 +34,12 @@ fn simulate(dir: &Path, extra: &[&str]) {
 fn track(dir: &Path, params: &str) -> (String, PathBuf) {
     let out = dir.join("positions.csv");
     let mut c = bin();
-    c.args(["track", "--frames"]).arg(dir).arg("--params").arg(dir.join(params)).arg("--out").arg(&out);
+    c.args(["track", "--frames"])
+        .arg(dir)
+        .arg("--params")
+        .arg(dir.join(params))
+        .arg("--out")
+        .arg(&out);
     (run_ok(&mut c), out)
 }
 
@@ -38,7 +47,10 @@ fn track(dir: &Path, params: &str) -> (String, PathBuf) {
 fn read_positions(path: &Path) -> Vec<(usize, Option<[f64; 3]>, String)> {
     let text = std::fs::read_to_string(path).unwrap();
     let mut lines = text.lines();
-    assert_eq!(lines.next().unwrap(), "frame,x_mm,y_mm,z_mm,gap_mm,status,cameras_used,quality,used_roi");
+    assert_eq!(
+        lines.next().unwrap(),
+        "frame,x_mm,y_mm,z_mm,gap_mm,status,cameras_used,quality,used_roi"
+    );
     lines
         .map(|l| {
             let f: Vec<&str> = l.split(',').collect();
@@ -46,7 +58,11 @@ fn read_positions(path: &Path) -> Vec<(usize, Option<[f64; 3]>, String)> {
                 assert!(f[2].is_empty() && f[3].is_empty(), "partial coordinates: {l}");
                 None
             } else {
-                Some([f[1].parse().unwrap(), f[2].parse().unwrap(), f[3].parse().unwrap()])
+                Some([
+                    f[1].parse().unwrap(),
+                    f[2].parse().unwrap(),
+                    f[3].parse().unwrap(),
+                ])
             };
             (f[0].parse().unwrap(), p, f[5].to_string())
         })
@@ -85,7 +101,10 @@ fn errors(dir: &Path, rows: &[(usize, Option<[f64; 3]>, String)], allowed_untrac
             None => {}
         }
     }
-    assert!(untracked <= allowed_untracked, "{untracked} visible frames not tracked");
+    assert!(
+        untracked <= allowed_untracked,
+        "{untracked} visible frames not tracked"
+    );
     errs
 }
 
@@ -98,8 +117,27 @@ fn p95(errs: &[f64]) -> f64 {
 #[test]
 fn simulate_then_track_reproduces_truth_within_goal() {
     let dir = scratch("convergent");
-    simulate(&dir, &["--rig", "convergent", "--distance-mm", "659.84", "--frames", "60", "--trajectory", "figure8"]);
-    for f in ["rig.yaml", "rig.irp", "truth.csv", "timestamps.csv", "cam0/000000.pgm", "cam1/000059.pgm"] {
+    simulate(
+        &dir,
+        &[
+            "--rig",
+            "convergent",
+            "--distance-mm",
+            "659.84",
+            "--frames",
+            "60",
+            "--trajectory",
+            "figure8",
+        ],
+    );
+    for f in [
+        "rig.yaml",
+        "rig.irp",
+        "truth.csv",
+        "timestamps.csv",
+        "cam0/000000.pgm",
+        "cam1/000059.pgm",
+    ] {
         assert!(dir.join(f).is_file(), "{f} missing");
     }
     let (summary, out) = track(&dir, "rig.irp");
@@ -121,20 +159,51 @@ fn simulate_then_track_reproduces_truth_within_goal() {
 #[test]
 fn ten_bit_frames_track_too() {
     let dir = scratch("tenbit");
-    simulate(&dir, &["--rig", "convergent", "--distance-mm", "1000", "--frames", "30", "--bits", "10", "--trajectory", "line"]);
+    simulate(
+        &dir,
+        &[
+            "--rig",
+            "convergent",
+            "--distance-mm",
+            "1000",
+            "--frames",
+            "30",
+            "--bits",
+            "10",
+            "--trajectory",
+            "line",
+        ],
+    );
     let head = std::fs::read(dir.join("cam0/000000.pgm")).unwrap();
     assert!(head.starts_with(b"P5\n640 480\n1023\n"));
     let (_, out) = track(&dir, "rig.irp");
     let errs = errors(&dir, &read_positions(&out), 0);
     assert_eq!(errs.len(), 30);
-    assert!(p95(&errs) <= 0.147, "p95 {} mm (goal at 1 m: 1.47 mm / 10)", p95(&errs));
+    assert!(
+        p95(&errs) <= 0.147,
+        "p95 {} mm (goal at 1 m: 1.47 mm / 10)",
+        p95(&errs)
+    );
 }
 
 #[test]
 fn glare_is_never_reported_as_a_point() {
     for rig in ["convergent", "parallel"] {
         let dir = scratch(&format!("glare-{rig}"));
-        simulate(&dir, &["--rig", rig, "--distance-mm", "800", "--frames", "60", "--glare", "--seed", "3"]);
+        simulate(
+            &dir,
+            &[
+                "--rig",
+                rig,
+                "--distance-mm",
+                "800",
+                "--frames",
+                "60",
+                "--glare",
+                "--seed",
+                "3",
+            ],
+        );
         let (_, out) = track(&dir, "rig.irp");
         let rows = read_positions(&out);
         // Parallel depth is coarse (about 20 mm per pixel of disparity at 800 mm), so the
@@ -150,19 +219,37 @@ fn glare_is_never_reported_as_a_point() {
 #[test]
 fn dropped_frames_are_reported_missing() {
     let dir = scratch("drops");
-    simulate(&dir, &["--rig", "parallel", "--frames", "80", "--drop-rate", "0.1", "--seed", "5"]);
+    simulate(
+        &dir,
+        &[
+            "--rig",
+            "parallel",
+            "--frames",
+            "80",
+            "--drop-rate",
+            "0.1",
+            "--seed",
+            "5",
+        ],
+    );
     let stamps = std::fs::read_to_string(dir.join("timestamps.csv")).unwrap();
     let mut dropped_frames = std::collections::BTreeSet::new();
     for l in stamps.lines().skip(1) {
         let f: Vec<&str> = l.split(',').collect();
         if f[3] == "1" {
             dropped_frames.insert(f[0].parse::<usize>().unwrap());
-            assert!(!dir.join(format!("cam{}/{:06}.pgm", f[1], f[0].parse::<usize>().unwrap())).exists());
+            assert!(
+                !dir.join(format!("cam{}/{:06}.pgm", f[1], f[0].parse::<usize>().unwrap()))
+                    .exists()
+            );
         }
     }
     assert!(dropped_frames.len() >= 5, "only {} dropped", dropped_frames.len());
     let (summary, out) = track(&dir, "rig.irp");
-    assert!(summary.contains(&format!("missing frames {}", dropped_frames.len())), "{summary}");
+    assert!(
+        summary.contains(&format!("missing frames {}", dropped_frames.len())),
+        "{summary}"
+    );
     let rows = read_positions(&out);
     assert_eq!(rows.len(), 80);
     for (i, p, status) in &rows {
@@ -185,17 +272,29 @@ fn simulation_is_deterministic_per_seed() {
     simulate(&b, &args);
     simulate(&c, &[&args[..], &["--seed", "2"]].concat());
     for f in ["truth.csv", "timestamps.csv", "rig.irp"] {
-        assert_eq!(std::fs::read(a.join(f)).unwrap(), std::fs::read(b.join(f)).unwrap(), "{f}");
+        assert_eq!(
+            std::fs::read(a.join(f)).unwrap(),
+            std::fs::read(b.join(f)).unwrap(),
+            "{f}"
+        );
     }
     let mut compared = 0;
     for cam in 0..2 {
         for i in 0..3 {
             let f = format!("cam{cam}/{i:06}.pgm");
             if a.join(&f).exists() {
-                assert_eq!(std::fs::read(a.join(&f)).unwrap(), std::fs::read(b.join(&f)).unwrap(), "{f}");
+                assert_eq!(
+                    std::fs::read(a.join(&f)).unwrap(),
+                    std::fs::read(b.join(&f)).unwrap(),
+                    "{f}"
+                );
                 compared += 1;
                 if c.join(&f).exists() {
-                    assert_ne!(std::fs::read(a.join(&f)).unwrap(), std::fs::read(c.join(&f)).unwrap(), "{f}");
+                    assert_ne!(
+                        std::fs::read(a.join(&f)).unwrap(),
+                        std::fs::read(c.join(&f)).unwrap(),
+                        "{f}"
+                    );
                 }
             }
         }
@@ -206,10 +305,16 @@ fn simulation_is_deterministic_per_seed() {
 #[test]
 fn csv_trajectory_replays_a_recorded_path() {
     let src = scratch("replay-src");
-    simulate(&src, &["--rig", "convergent", "--frames", "20", "--trajectory", "circle"]);
+    simulate(
+        &src,
+        &["--rig", "convergent", "--frames", "20", "--trajectory", "circle"],
+    );
     let dst = scratch("replay-dst");
     let spec = format!("csv:{}", src.join("truth.csv").display());
-    simulate(&dst, &["--rig", "convergent", "--frames", "20", "--trajectory", &spec]);
+    simulate(
+        &dst,
+        &["--rig", "convergent", "--frames", "20", "--trajectory", &spec],
+    );
     for (a, b) in read_truth(&src).iter().zip(read_truth(&dst).iter()) {
         assert!(dist(a.0, b.0) < 1e-5);
     }
@@ -236,7 +341,10 @@ fn track_names_missing_camera_directory() {
 #[test]
 fn plan_reproduces_table_i() {
     let out = run_ok(bin().args(["plan", "--workspace-mm", "0", "--grid", "1"]));
-    let lines: Vec<&str> = out.lines().filter(|l| l.starts_with("convergent") || l.starts_with("parallel")).collect();
+    let lines: Vec<&str> = out
+        .lines()
+        .filter(|l| l.starts_with("convergent") || l.starts_with("parallel"))
+        .collect();
     assert_eq!(lines.len(), 4, "{out}");
     let expect = [
         ("convergent", "659.84", ["0.97", "0.97", "0.97"]),
@@ -259,7 +367,12 @@ fn plan_reproduces_table_i() {
 #[test]
 fn accuracy_study_meets_goal_for_convergent_rig() {
     use irtrack_host_tools::cmd::accuracy::{Args, study};
-    let args = Args { out: scratch("acc"), distance_mm: vec![659.84, 2309.44], frames: 40, seed: 11 };
+    let args = Args {
+        out: scratch("acc"),
+        distance_mm: vec![659.84, 2309.44],
+        frames: 40,
+        seed: 11,
+    };
     let rows = study(&args).unwrap();
     assert_eq!(rows.len(), 4);
     for r in rows.iter().filter(|r| r.rig == "convergent") {

@@ -6,7 +6,14 @@ use irtrack_sim::{RigPreset, Scenario, SimConfig};
 
 fn main() -> Result<(), irtrack_sim::SimError> {
     for (name, blur) in [("no blur", 1), ("motion blur x8", 8)] {
-        let mut cfg = SimConfig::preset(RigPreset::Convergent { distance_mm: 659.84, angle_deg: 90.0 }, 659.84, 100.0);
+        let mut cfg = SimConfig::preset(
+            RigPreset::Convergent {
+                distance_mm: 659.84,
+                angle_deg: 90.0,
+            },
+            659.84,
+            100.0,
+        );
         cfg.add_glare();
         cfg.motion_blur_steps = blur;
         let mut sc = Scenario::new(cfg)?;

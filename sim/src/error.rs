@@ -16,8 +16,14 @@ pub enum SimError {
     #[error("output buffer has {have} pixels, frame needs {needed}")]
     BufferSize { needed: usize, have: usize },
     /// A rendering window (blob plus motion-blur streak) exceeds the preallocated scratch.
-    #[error("marker footprint {width_px}x{height_px} px exceeds the {max_px} px render window (too much motion blur or too large a blob)")]
-    WindowTooLarge { width_px: usize, height_px: usize, max_px: usize },
+    #[error(
+        "marker footprint {width_px}x{height_px} px exceeds the {max_px} px render window (too much motion blur or too large a blob)"
+    )]
+    WindowTooLarge {
+        width_px: usize,
+        height_px: usize,
+        max_px: usize,
+    },
     /// A trajectory CSV line does not parse.
     #[error("trajectory CSV line {line}: {reason}")]
     TrajectoryCsv { line: usize, reason: String },

@@ -16,5 +16,7 @@ pub mod trajectory;
 
 pub use error::SimError;
 pub use rig::{CameraSpec, RigPreset};
-pub use scenario::{BitDepth, Clutter, FrameInfo, FrameTruth, MarkerSpec, MarkerTruth, Scenario, SensorSpec, SimConfig};
+pub use scenario::{
+    BitDepth, Clutter, FrameInfo, FrameTruth, MarkerSpec, MarkerTruth, Scenario, SensorSpec, SimConfig,
+};
 pub use trajectory::Trajectory;

@@ -44,7 +44,11 @@ pub struct PixelRng {
 
 impl PixelRng {
     pub fn new(seed: u64, frame: u64, camera: u64) -> Self {
-        PixelRng { state: hash_words(&[seed, frame, camera, 0x5049_5845_4c53]), buf: 0, left: 0 }
+        PixelRng {
+            state: hash_words(&[seed, frame, camera, 0x5049_5845_4c53]),
+            buf: 0,
+            left: 0,
+        }
     }
 
     /// Next 16-bit index.
@@ -87,8 +91,12 @@ pub fn normal_quantile(p: f64) -> f64 {
         4.374_664_141_464_968,
         2.938_163_982_698_783,
     ];
-    const D: [f64; 4] =
-        [7.784_695_709_041_462e-3, 3.224_671_290_700_398e-1, 2.445_134_137_142_996, 3.754_408_661_907_416];
+    const D: [f64; 4] = [
+        7.784_695_709_041_462e-3,
+        3.224_671_290_700_398e-1,
+        2.445_134_137_142_996,
+        3.754_408_661_907_416,
+    ];
     const P_LOW: f64 = 0.024_25;
     if p < P_LOW {
         let q = (-2.0 * p.ln()).sqrt();
@@ -109,7 +117,9 @@ pub fn normal_quantile(p: f64) -> f64 {
 /// Standard normal deviates at the mid-quantiles of 65 536 equal-probability bins
 /// (tails truncated at about ±4.3σ, irrelevant for pixel noise).
 pub fn normal_table() -> Vec<f32> {
-    (0..NORMAL_TABLE_LEN).map(|i| normal_quantile((i as f64 + 0.5) / NORMAL_TABLE_LEN as f64) as f32).collect()
+    (0..NORMAL_TABLE_LEN)
+        .map(|i| normal_quantile((i as f64 + 0.5) / NORMAL_TABLE_LEN as f64) as f32)
+        .collect()
 }
 
 #[cfg(test)]

@@ -38,7 +38,9 @@ pub fn write_pgm_u16(
 ) -> Result<(), SimError> {
     check_len(width_px, height_px, data.len())?;
     if maxval < 256 {
-        return Err(SimError::Pgm { reason: format!("16-bit PGM needs maxval >= 256, got {maxval}") });
+        return Err(SimError::Pgm {
+            reason: format!("16-bit PGM needs maxval >= 256, got {maxval}"),
+        });
     }
     write!(w, "P5\n{width_px} {height_px}\n{maxval}\n")?;
     let mut bytes = Vec::with_capacity(data.len() * 2);
@@ -52,7 +54,9 @@ pub fn write_pgm_u16(
 fn check_len(width_px: u32, height_px: u32, len: usize) -> Result<(), SimError> {
     let needed = width_px as usize * height_px as usize;
     if needed != len || needed == 0 {
-        return Err(SimError::Pgm { reason: format!("{width_px}x{height_px} image needs {needed} samples, got {len}") });
+        return Err(SimError::Pgm {
+            reason: format!("{width_px}x{height_px} image needs {needed} samples, got {len}"),
+        });
     }
     Ok(())
 }
@@ -87,7 +91,8 @@ pub fn read_pgm(bytes: &[u8]) -> Result<Pgm, SimError> {
     }
     let num = |what: &str, pos: &mut usize| -> Result<u32, SimError> {
         let t = token(pos)?;
-        t.parse::<u32>().map_err(|_| bad(format!("{what} `{t}` is not a number")))
+        t.parse::<u32>()
+            .map_err(|_| bad(format!("{what} `{t}` is not a number")))
     };
     let width_px = num("width", &mut pos)?;
     let height_px = num("height", &mut pos)?;
@@ -108,9 +113,19 @@ pub fn read_pgm(bytes: &[u8]) -> Result<Pgm, SimError> {
         if body.len() < 2 * n {
             return Err(bad(format!("{} sample bytes, need {}", body.len(), 2 * n)));
         }
-        PgmPixels::U16(body[..2 * n].chunks_exact(2).map(|c| u16::from_be_bytes([c[0], c[1]])).collect())
+        PgmPixels::U16(
+            body[..2 * n]
+                .chunks_exact(2)
+                .map(|c| u16::from_be_bytes([c[0], c[1]]))
+                .collect(),
+        )
     };
-    Ok(Pgm { width_px, height_px, maxval: maxval as u16, pixels })
+    Ok(Pgm {
+        width_px,
+        height_px,
+        maxval: maxval as u16,
+        pixels,
+    })
 }
 
 #[cfg(test)]
@@ -134,9 +149,24 @@ mod tests {
 
     #[test]
     fn malformed_files_are_named_errors() {
-        assert!(read_pgm(b"P2\n1 1\n255\n0").unwrap_err().to_string().contains("P5"));
-        assert!(read_pgm(b"P5\n2 2\n255\n\x01\x02").unwrap_err().to_string().contains("need 4"));
-        assert!(read_pgm(b"P5\n2 x\n255\n").unwrap_err().to_string().contains("height"));
+        assert!(
+            read_pgm(b"P2\n1 1\n255\n0")
+                .unwrap_err()
+                .to_string()
+                .contains("P5")
+        );
+        assert!(
+            read_pgm(b"P5\n2 2\n255\n\x01\x02")
+                .unwrap_err()
+                .to_string()
+                .contains("need 4")
+        );
+        assert!(
+            read_pgm(b"P5\n2 x\n255\n")
+                .unwrap_err()
+                .to_string()
+                .contains("height")
+        );
         assert!(read_pgm(b"P5\n# c\n1 1\n255\n\x09").is_ok());
         assert!(write_pgm_u8(Vec::new(), 2, 2, &[0; 3]).is_err());
     }

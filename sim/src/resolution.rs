@@ -33,14 +33,26 @@ pub struct AxisResolution {
 pub fn parallel_closed_form(focal_px: f64, baseline_mm: f64, z_mm: f64) -> AxisResolution {
     let lateral = z_mm / focal_px;
     let fb = focal_px * baseline_mm;
-    let z = if fb > z_mm { z_mm * z_mm / (fb - z_mm) } else { f64::INFINITY };
-    AxisResolution { x_mm: lateral, y_mm: lateral, z_mm: z }
+    let z = if fb > z_mm {
+        z_mm * z_mm / (fb - z_mm)
+    } else {
+        f64::INFINITY
+    };
+    AxisResolution {
+        x_mm: lateral,
+        y_mm: lateral,
+        z_mm: z,
+    }
 }
 
 /// Closed form (first order) for a convergent rig at its crossing point.
 pub fn convergent_closed_form(focal_px: f64, distance_mm: f64, angle_deg: f64) -> AxisResolution {
     let lateral = distance_mm / focal_px;
-    AxisResolution { x_mm: lateral, y_mm: lateral, z_mm: lateral / angle_deg.to_radians().sin() }
+    AxisResolution {
+        x_mm: lateral,
+        y_mm: lateral,
+        z_mm: lateral / angle_deg.to_radians().sin(),
+    }
 }
 
 /// Ideal (distortion-free, centred) camera used by the planner.
@@ -63,8 +75,14 @@ pub fn ideal_rig(cam: CameraModel, cam1_from_cam0: RigidTransform) -> RigParams 
         rig_id: "plan".into(),
         created_unix_s: 0,
         cameras: vec![
-            CameraParams { model: cam, cam_from_cam0: RigidTransform::IDENTITY },
-            CameraParams { model: cam, cam_from_cam0: cam1_from_cam0 },
+            CameraParams {
+                model: cam,
+                cam_from_cam0: RigidTransform::IDENTITY,
+            },
+            CameraParams {
+                model: cam,
+                cam_from_cam0: cam1_from_cam0,
+            },
         ],
         world_from_cam0: None,
         tools: Vec::new(),
@@ -73,7 +91,13 @@ pub fn ideal_rig(cam: CameraModel, cam1_from_cam0: RigidTransform) -> RigParams 
 
 /// Ideal parallel rig, camera 1 at +x `baseline_mm`.
 pub fn ideal_parallel(cam: CameraModel, baseline_mm: f64) -> RigParams {
-    ideal_rig(cam, RigidTransform { t_mm: [-baseline_mm, 0.0, 0.0], ..RigidTransform::IDENTITY })
+    ideal_rig(
+        cam,
+        RigidTransform {
+            t_mm: [-baseline_mm, 0.0, 0.0],
+            ..RigidTransform::IDENTITY
+        },
+    )
 }
 
 /// Ideal convergent rig crossing at `distance_mm` with `angle_deg`.
@@ -85,7 +109,9 @@ pub fn ideal_convergent(cam: CameraModel, distance_mm: f64, angle_deg: f64) -> R
 fn project_all(rig: &RigParams, p: &Vector3<f64>, out: &mut [[f64; 2]]) -> Result<(), SimError> {
     for (i, c) in rig.cameras.iter().enumerate() {
         let q = c.model.project(&c.cam_from_cam0.apply(p)).map_err(|e| match e {
-            irtrack_core::Error::BehindCamera { z_mm, .. } => irtrack_core::Error::BehindCamera { camera: i, z_mm },
+            irtrack_core::Error::BehindCamera { z_mm, .. } => {
+                irtrack_core::Error::BehindCamera { camera: i, z_mm }
+            }
             other => other,
         })?;
         out[i] = [q.x, q.y];
@@ -165,8 +191,16 @@ mod tests {
         for (d, conv, par_xy, par_z) in TABLE_I {
             let c = convergent_closed_form(TABLE_I_FOCAL_PX, d, 90.0);
             let p = parallel_closed_form(TABLE_I_FOCAL_PX, TABLE_I_BASELINE_MM, d);
-            assert_eq!([round2(c.x_mm), round2(c.y_mm), round2(c.z_mm)], [conv; 3], "convergent at {d}");
-            assert_eq!([round2(p.x_mm), round2(p.y_mm), round2(p.z_mm)], [par_xy, par_xy, par_z], "parallel at {d}");
+            assert_eq!(
+                [round2(c.x_mm), round2(c.y_mm), round2(c.z_mm)],
+                [conv; 3],
+                "convergent at {d}"
+            );
+            assert_eq!(
+                [round2(p.x_mm), round2(p.y_mm), round2(p.z_mm)],
+                [par_xy, par_xy, par_z],
+                "parallel at {d}"
+            );
         }
     }
 
@@ -181,7 +215,10 @@ mod tests {
             }
             let par = ideal_parallel(cam, TABLE_I_BASELINE_MM);
             let r = resolution_at(&par, &Vector3::new(0.0, 0.0, d)).unwrap();
-            assert!((r.x_mm - par_xy).abs() < 0.006 && (r.y_mm - par_xy).abs() < 0.006, "{r:?}");
+            assert!(
+                (r.x_mm - par_xy).abs() < 0.006 && (r.y_mm - par_xy).abs() < 0.006,
+                "{r:?}"
+            );
             assert!((r.z_mm - par_z).abs() < 0.006, "parallel z at {d}: {r:?}");
             // On the rig's mid-line the disparity term gives the same depth figure.
             let mid = resolution_at(&par, &Vector3::new(TABLE_I_BASELINE_MM / 2.0, 0.0, d)).unwrap();

@@ -29,9 +29,18 @@ impl Default for CameraSpec {
     fn default() -> Self {
         CameraSpec {
             focal_px: TABLE_I_FOCAL_PX,
-            image_size: ImageSize { width_px: 640, height_px: 480 },
+            image_size: ImageSize {
+                width_px: 640,
+                height_px: 480,
+            },
             // Mild barrel distortion: about 3 px at the VGA corners at f = 681 px.
-            distortion: Distortion { k1: -0.08, k2: 0.02, p1: 0.0004, p2: -0.0003, k3: 0.0 },
+            distortion: Distortion {
+                k1: -0.08,
+                k2: 0.02,
+                p1: 0.0004,
+                p2: -0.0003,
+                k3: 0.0,
+            },
         }
     }
 }
@@ -105,14 +114,26 @@ pub fn build_rig(preset: &RigPreset, spec: &CameraSpec) -> Result<RigParams, Sim
     let poses = match preset {
         RigPreset::Parallel { baseline_mm } => {
             if !(*baseline_mm > 0.0 && baseline_mm.is_finite()) {
-                return Err(SimError::Config { field: "baseline_mm", reason: format!("{baseline_mm} must be > 0") });
+                return Err(SimError::Config {
+                    field: "baseline_mm",
+                    reason: format!("{baseline_mm} must be > 0"),
+                });
             }
-            let t = RigidTransform { t_mm: [-baseline_mm, 0.0, 0.0], ..RigidTransform::IDENTITY };
+            let t = RigidTransform {
+                t_mm: [-baseline_mm, 0.0, 0.0],
+                ..RigidTransform::IDENTITY
+            };
             vec![RigidTransform::IDENTITY, t]
         }
-        RigPreset::Convergent { distance_mm, angle_deg } => {
+        RigPreset::Convergent {
+            distance_mm,
+            angle_deg,
+        } => {
             if !(*distance_mm > 0.0 && distance_mm.is_finite()) {
-                return Err(SimError::Config { field: "distance_mm", reason: format!("{distance_mm} must be > 0") });
+                return Err(SimError::Config {
+                    field: "distance_mm",
+                    reason: format!("{distance_mm} must be > 0"),
+                });
             }
             if !(*angle_deg > 0.0 && *angle_deg < 180.0) {
                 return Err(SimError::Config {
@@ -120,7 +141,10 @@ pub fn build_rig(preset: &RigPreset, spec: &CameraSpec) -> Result<RigParams, Sim
                     reason: format!("{angle_deg} must be in (0, 180)"),
                 });
             }
-            vec![RigidTransform::IDENTITY, convergent_pose(*distance_mm, *angle_deg)]
+            vec![
+                RigidTransform::IDENTITY,
+                convergent_pose(*distance_mm, *angle_deg),
+            ]
         }
         RigPreset::Custom(rig) => {
             if rig.cameras.len() < 2 {
@@ -134,7 +158,10 @@ pub fn build_rig(preset: &RigPreset, spec: &CameraSpec) -> Result<RigParams, Sim
     };
     let name = match preset {
         RigPreset::Parallel { baseline_mm } => format!("sim-parallel-b{baseline_mm}"),
-        RigPreset::Convergent { distance_mm, angle_deg } => format!("sim-convergent-{angle_deg}deg-d{distance_mm}"),
+        RigPreset::Convergent {
+            distance_mm,
+            angle_deg,
+        } => format!("sim-convergent-{angle_deg}deg-d{distance_mm}"),
         RigPreset::Custom(_) => String::new(),
     };
     Ok(RigParams {
@@ -143,7 +170,10 @@ pub fn build_rig(preset: &RigPreset, spec: &CameraSpec) -> Result<RigParams, Sim
         cameras: poses
             .into_iter()
             .enumerate()
-            .map(|(i, pose)| CameraParams { model: spec.model(i), cam_from_cam0: pose })
+            .map(|(i, pose)| CameraParams {
+                model: spec.model(i),
+                cam_from_cam0: pose,
+            })
             .collect(),
         world_from_cam0: None,
         tools: Vec::new(),
@@ -161,7 +191,10 @@ mod tests {
             assert!(pose.is_proper_rotation(1e-12));
             // The crossing point lies on camera 1's optical axis at distance d.
             let p1 = pose.apply(&Vector3::new(0.0, 0.0, d));
-            assert!(p1.x.abs() < 1e-9 && p1.y.abs() < 1e-9 && (p1.z - d).abs() < 1e-9, "{p1:?}");
+            assert!(
+                p1.x.abs() < 1e-9 && p1.y.abs() < 1e-9 && (p1.z - d).abs() < 1e-9,
+                "{p1:?}"
+            );
             // Angle between the optical axes.
             let z1_in_0 = pose.rotation().transpose() * Vector3::z();
             let ang = z1_in_0.dot(&Vector3::z()).acos().to_degrees();
@@ -178,8 +211,14 @@ mod tests {
         assert!((c1 - Vector3::new(50.0, 0.0, 0.0)).norm() < 1e-12);
         assert!(build_rig(&RigPreset::Parallel { baseline_mm: -1.0 }, &CameraSpec::default()).is_err());
         assert!(
-            build_rig(&RigPreset::Convergent { distance_mm: 500.0, angle_deg: 180.0 }, &CameraSpec::default())
-                .is_err()
+            build_rig(
+                &RigPreset::Convergent {
+                    distance_mm: 500.0,
+                    angle_deg: 180.0
+                },
+                &CameraSpec::default()
+            )
+            .is_err()
         );
     }
 }

@@ -20,10 +20,10 @@ use irtrack_core::camera::RigidTransform;
 use irtrack_core::params::RigParams;
 use nalgebra::Vector3;
 
+use crate::SimError;
 use crate::noise::{PixelRng, hash_words, normal_table, unit_from_hash};
 use crate::rig::{CameraSpec, RigPreset, build_rig};
 use crate::trajectory::Trajectory;
-use crate::SimError;
 
 /// Most markers a scenario may carry (ground truth uses fixed-size storage).
 pub const MAX_MARKERS: usize = 8;
@@ -73,7 +73,12 @@ pub struct SensorSpec {
 
 impl Default for SensorSpec {
     fn default() -> Self {
-        SensorSpec { full_well_e: 10_000.0, read_noise_e: 12.0, background_e: 250.0, exposure_s: 0.002 }
+        SensorSpec {
+            full_well_e: 10_000.0,
+            read_noise_e: 12.0,
+            background_e: 250.0,
+            exposure_s: 0.002,
+        }
     }
 }
 
@@ -92,7 +97,12 @@ pub struct MarkerSpec {
 
 impl Default for MarkerSpec {
     fn default() -> Self {
-        MarkerSpec { offset_mm: Vector3::zeros(), radius_mm: 1.5, psf_sigma_px: 0.9, flux_e_at_1m: 50_000.0 }
+        MarkerSpec {
+            offset_mm: Vector3::zeros(),
+            radius_mm: 1.5,
+            psf_sigma_px: 0.9,
+            flux_e_at_1m: 50_000.0,
+        }
     }
 }
 
@@ -221,7 +231,11 @@ impl FrameTruth {
 impl MarkerTruth {
     /// Whether the marker is inside every one of `camera_count` images.
     pub fn visible_in_all(&self, camera_count: usize) -> bool {
-        let all = if camera_count >= 32 { u32::MAX } else { (1u32 << camera_count) - 1 };
+        let all = if camera_count >= 32 {
+            u32::MAX
+        } else {
+            (1u32 << camera_count) - 1
+        };
         self.visible_mask & all == all
     }
 }
@@ -255,13 +269,28 @@ impl Window {
         if !(x1 > x0 && y1 > y0) {
             return None;
         }
-        Some(Window { x0: x0 as usize, y0: y0 as usize, x1: x1 as usize, y1: y1 as usize })
+        Some(Window {
+            x0: x0 as usize,
+            y0: y0 as usize,
+            x1: x1 as usize,
+            y1: y1 as usize,
+        })
     }
     fn union(&self, o: &Window) -> Window {
-        Window { x0: self.x0.min(o.x0), y0: self.y0.min(o.y0), x1: self.x1.max(o.x1), y1: self.y1.max(o.y1) }
+        Window {
+            x0: self.x0.min(o.x0),
+            y0: self.y0.min(o.y0),
+            x1: self.x1.max(o.x1),
+            y1: self.y1.max(o.y1),
+        }
     }
     fn intersect(&self, o: &Window) -> Option<Window> {
-        let w = Window { x0: self.x0.max(o.x0), y0: self.y0.max(o.y0), x1: self.x1.min(o.x1), y1: self.y1.min(o.y1) };
+        let w = Window {
+            x0: self.x0.max(o.x0),
+            y0: self.y0.max(o.y0),
+            x1: self.x1.min(o.x1),
+            y1: self.y1.min(o.y1),
+        };
         (w.x1 > w.x0 && w.y1 > w.y0).then_some(w)
     }
 }
@@ -333,10 +362,16 @@ impl Scenario {
             return bad("drop_rate", format!("{} must be in [0, 1)", cfg.drop_rate));
         }
         if cfg.motion_blur_steps == 0 || cfg.motion_blur_steps > 64 {
-            return bad("motion_blur_steps", format!("{} must be in 1..=64", cfg.motion_blur_steps));
+            return bad(
+                "motion_blur_steps",
+                format!("{} must be in 1..=64", cfg.motion_blur_steps),
+            );
         }
         if cfg.markers.is_empty() || cfg.markers.len() > MAX_MARKERS {
-            return bad("markers", format!("{} markers; need 1..={MAX_MARKERS}", cfg.markers.len()));
+            return bad(
+                "markers",
+                format!("{} markers; need 1..={MAX_MARKERS}", cfg.markers.len()),
+            );
         }
         let s = &cfg.sensor;
         if !(s.full_well_e > 0.0 && s.read_noise_e >= 0.0 && s.background_e >= 0.0 && s.exposure_s >= 0.0) {
@@ -344,13 +379,19 @@ impl Scenario {
         }
         for m in &cfg.markers {
             if !(m.psf_sigma_px > 0.05 && m.radius_mm >= 0.0 && m.flux_e_at_1m >= 0.0) {
-                return bad("markers", format!("{m:?}: psf sigma must be > 0.05 px, radius and flux >= 0"));
+                return bad(
+                    "markers",
+                    format!("{m:?}: psf sigma must be > 0.05 px, radius and flux >= 0"),
+                );
             }
         }
         cfg.trajectory.validate()?;
         let rig = build_rig(&cfg.rig, &cfg.camera)?;
         if rig.cameras.len() > MAX_CAMERAS {
-            return bad("rig", format!("{} cameras; at most {MAX_CAMERAS}", rig.cameras.len()));
+            return bad(
+                "rig",
+                format!("{} cameras; at most {MAX_CAMERAS}", rig.cameras.len()),
+            );
         }
         let size = rig.cameras[0].model.image_size;
         if rig.cameras.iter().any(|c| c.model.image_size != size) {
@@ -361,7 +402,10 @@ impl Scenario {
         }
         for c in &cfg.clutter {
             if c.camera >= rig.cameras.len() {
-                return Err(SimError::NoSuchCamera { camera: c.camera, count: rig.cameras.len() });
+                return Err(SimError::NoSuchCamera {
+                    camera: c.camera,
+                    count: rig.cameras.len(),
+                });
             }
             if !(c.sigma_x_px > 0.05 && c.sigma_y_px > 0.05 && c.flux_e >= 0.0) {
                 return bad("clutter", format!("{c:?}: sigmas must be > 0.05 px, flux >= 0"));
@@ -370,7 +414,10 @@ impl Scenario {
         let poses = rig.cameras.iter().map(|c| c.cam_from_cam0).collect();
         let normal = normal_table();
         let tables = CodeTables {
-            u8_codes: background_codes(&normal, s, BitDepth::Eight).iter().map(|c| *c as u8).collect(),
+            u8_codes: background_codes(&normal, s, BitDepth::Eight)
+                .iter()
+                .map(|c| *c as u8)
+                .collect(),
             u16_codes: background_codes(&normal, s, BitDepth::Ten),
         };
         let spots_cap = cfg.markers.len() * cfg.motion_blur_steps as usize + cfg.clutter.len();
@@ -381,7 +428,14 @@ impl Scenario {
             gx: vec![0.0; MAX_WINDOW_PX + 1],
             gy: vec![0.0; MAX_WINDOW_PX + 1],
         };
-        Ok(Scenario { cfg, rig, poses, normal, tables, scratch })
+        Ok(Scenario {
+            cfg,
+            rig,
+            poses,
+            normal,
+            tables,
+            scratch,
+        })
     }
 
     /// The ground-truth rig.
@@ -417,15 +471,24 @@ impl Scenario {
     /// Whether `camera` drops frame `index` (deterministic in the seed).
     pub fn is_dropped(&self, index: u64, camera: usize) -> bool {
         self.cfg.drop_rate > 0.0
-            && unit_from_hash(hash_words(&[self.cfg.seed, index, camera as u64, 0x4452_4f50])) < self.cfg.drop_rate
+            && unit_from_hash(hash_words(&[self.cfg.seed, index, camera as u64, 0x4452_4f50]))
+                < self.cfg.drop_rate
     }
 
     /// Marker positions (camera 0 frame) and visibility at frame `index`.
     pub fn truth(&self, index: u64) -> FrameTruth {
         let t_s = self.time_s(index);
         let base = self.cfg.trajectory.position(t_s);
-        let empty = MarkerTruth { p_cam0_mm: Vector3::zeros(), visible_mask: 0 };
-        let mut out = FrameTruth { index, t_s, marker_count: self.cfg.markers.len(), markers: [empty; MAX_MARKERS] };
+        let empty = MarkerTruth {
+            p_cam0_mm: Vector3::zeros(),
+            visible_mask: 0,
+        };
+        let mut out = FrameTruth {
+            index,
+            t_s,
+            marker_count: self.cfg.markers.len(),
+            markers: [empty; MAX_MARKERS],
+        };
         for (m, spec) in self.cfg.markers.iter().enumerate() {
             let p = base + spec.offset_mm;
             let mut mask = 0u32;
@@ -437,7 +500,10 @@ impl Scenario {
                     mask |= 1 << i;
                 }
             }
-            out.markers[m] = MarkerTruth { p_cam0_mm: p, visible_mask: mask };
+            out.markers[m] = MarkerTruth {
+                p_cam0_mm: p,
+                visible_mask: mask,
+            };
         }
         out
     }
@@ -469,11 +535,22 @@ impl Scenario {
         let (w, h) = self.image_size();
         let (w, h) = (w as usize, h as usize);
         if out.len() != w * h {
-            return Err(SimError::BufferSize { needed: w * h, have: out.len() });
+            return Err(SimError::BufferSize {
+                needed: w * h,
+                have: out.len(),
+            });
         }
-        let info = FrameInfo { index, camera, timestamp_ns: self.timestamp_ns(index), dropped: false };
+        let info = FrameInfo {
+            index,
+            camera,
+            timestamp_ns: self.timestamp_ns(index),
+            dropped: false,
+        };
         if self.is_dropped(index, camera) {
-            return Ok(FrameInfo { dropped: true, ..info });
+            return Ok(FrameInfo {
+                dropped: true,
+                ..info
+            });
         }
         self.collect_spots(index, camera, w, h)?;
 
@@ -494,7 +571,9 @@ impl Scenario {
             let mean = &mut sc.mean_e[..ww * wh];
             mean.fill(bg);
             for spot in &sc.spots {
-                let Some(iw) = win.intersect(&spot.window) else { continue };
+                let Some(iw) = win.intersect(&spot.window) else {
+                    continue;
+                };
                 pixel_integrals(&mut sc.gx, iw.x0, iw.x1, spot.u, spot.sx);
                 pixel_integrals(&mut sc.gy, iw.y0, iw.y1, spot.v, spot.sy);
                 for y in iw.y0..iw.y1 {
@@ -532,15 +611,28 @@ impl Scenario {
         for spec in &self.cfg.markers {
             let mut win: Option<Window> = None;
             for k in 0..steps {
-                let t = if steps == 1 { t_mid } else { t_mid + exp * ((k as f64 + 0.5) / steps as f64 - 0.5) };
+                let t = if steps == 1 {
+                    t_mid
+                } else {
+                    t_mid + exp * ((k as f64 + 0.5) / steps as f64 - 0.5)
+                };
                 let p_cam = pose.apply(&(self.cfg.trajectory.position(t) + spec.offset_mm));
                 let Ok(c) = model.project(&p_cam) else { continue };
                 let dist_mm = p_cam.norm();
                 let sigma = spec.sigma_px(p_cam.z, model.intrinsics.fx_px);
                 let r = SPOT_EXTENT_SIGMA * sigma + 1.0;
-                let Some(sw) = Window::around(c.x, c.y, r, r, w, h) else { continue };
+                let Some(sw) = Window::around(c.x, c.y, r, r, w, h) else {
+                    continue;
+                };
                 let flux = spec.flux_e_at_1m * (1000.0 / dist_mm).powi(2) / steps as f64;
-                sc.spots.push(Spot { u: c.x, v: c.y, sx: sigma, sy: sigma, flux_e: flux, window: sw });
+                sc.spots.push(Spot {
+                    u: c.x,
+                    v: c.y,
+                    sx: sigma,
+                    sy: sigma,
+                    flux_e: flux,
+                    window: sw,
+                });
                 win = Some(win.map_or(sw, |a| a.union(&sw)));
             }
             if let Some(win) = win {
@@ -551,14 +643,25 @@ impl Scenario {
             let rx = SPOT_EXTENT_SIGMA * c.sigma_x_px + 1.0;
             let ry = SPOT_EXTENT_SIGMA * c.sigma_y_px + 1.0;
             if let Some(sw) = Window::around(c.u_px, c.v_px, rx, ry, w, h) {
-                sc.spots.push(Spot { u: c.u_px, v: c.v_px, sx: c.sigma_x_px, sy: c.sigma_y_px, flux_e: c.flux_e, window: sw });
+                sc.spots.push(Spot {
+                    u: c.u_px,
+                    v: c.v_px,
+                    sx: c.sigma_x_px,
+                    sy: c.sigma_y_px,
+                    flux_e: c.flux_e,
+                    window: sw,
+                });
                 sc.windows.push(sw);
             }
         }
         for win in &sc.windows {
             let (ww, wh) = (win.x1 - win.x0, win.y1 - win.y0);
             if ww > MAX_WINDOW_PX || wh > MAX_WINDOW_PX {
-                return Err(SimError::WindowTooLarge { width_px: ww, height_px: wh, max_px: MAX_WINDOW_PX });
+                return Err(SimError::WindowTooLarge {
+                    width_px: ww,
+                    height_px: wh,
+                    max_px: MAX_WINDOW_PX,
+                });
             }
         }
         Ok(())
@@ -571,7 +674,12 @@ enum Which {
     Ten,
 }
 
-fn fill_background<P: Code, T: Copy>(out: &mut [P], table: &[T], rng: &mut PixelRng, to_code: impl Fn(T) -> u16) {
+fn fill_background<P: Code, T: Copy>(
+    out: &mut [P],
+    table: &[T],
+    rng: &mut PixelRng,
+    to_code: impl Fn(T) -> u16,
+) {
     for px in out.iter_mut() {
         *px = P::from_code(to_code(table[rng.next_u16() as usize]));
     }
@@ -582,7 +690,10 @@ fn background_codes(normal: &[f32], s: &SensorSpec, depth: BitDepth) -> Vec<u16>
     let max = depth.max_code() as f64;
     let gain = max / s.full_well_e;
     let sd = (s.background_e + s.read_noise_e * s.read_noise_e).sqrt();
-    normal.iter().map(|z| ((s.background_e + sd * *z as f64) * gain).round().clamp(0.0, max) as u16).collect()
+    normal
+        .iter()
+        .map(|z| ((s.background_e + sd * *z as f64) * gain).round().clamp(0.0, max) as u16)
+        .collect()
 }
 
 /// Fraction of a unit 1-D Gaussian (centre `c`, sd `s`) falling in each pixel `i0..i1`
@@ -633,7 +744,9 @@ mod tests {
             for cam in 0..2 {
                 sc.render_u16(index, cam, &mut img).unwrap();
                 let truth = sc.truth(index);
-                let p = sc.rig().cameras[cam].cam_from_cam0.apply(&truth.markers()[0].p_cam0_mm);
+                let p = sc.rig().cameras[cam]
+                    .cam_from_cam0
+                    .apply(&truth.markers()[0].p_cam0_mm);
                 let px = sc.rig().cameras[cam].model.project(&p).unwrap();
                 let (cx, cy, sum) = centroid(&img, w as usize, px.x, px.y, bg);
                 sum_sq += (cx - px.x).powi(2) + (cy - px.y).powi(2);
@@ -647,7 +760,12 @@ mod tests {
         // The crude 17×17 centroid sums ~2 DN of background noise per pixel, ~0.02 px per axis.
         let rms = (sum_sq / n).sqrt();
         assert!(rms < 0.04, "centroid RMS error {rms} px");
-        assert!((bias_x / n).abs() < 0.01 && (bias_y / n).abs() < 0.01, "bias {} {}", bias_x / n, bias_y / n);
+        assert!(
+            (bias_x / n).abs() < 0.01 && (bias_y / n).abs() < 0.01,
+            "bias {} {}",
+            bias_x / n,
+            bias_y / n
+        );
     }
 
     #[test]
@@ -707,7 +825,10 @@ mod tests {
         let i = (0..2000).find(|i| sc.is_dropped(*i, 1)).unwrap();
         let info = sc.render_u8(i, 1, &mut img).unwrap();
         assert!(info.dropped);
-        assert!(img.iter().all(|v| *v == 7), "dropped frame must leave the buffer untouched");
+        assert!(
+            img.iter().all(|v| *v == 7),
+            "dropped frame must leave the buffer untouched"
+        );
     }
 
     #[test]
@@ -728,7 +849,12 @@ mod tests {
         // Quarter period: the middle of the line, full speed.
         let idx = (sc.config().fps * 0.25 * 400.0 * std::f64::consts::PI / 1000.0).round() as u64;
         sc.render_u8(idx, 0, &mut img).unwrap();
-        let row = |y: usize| img[y * w as usize..(y + 1) * w as usize].iter().filter(|v| **v > 20).count();
+        let row = |y: usize| {
+            img[y * w as usize..(y + 1) * w as usize]
+                .iter()
+                .filter(|v| **v > 20)
+                .count()
+        };
         let wide = (0..h as usize).map(row).max().unwrap();
         assert!(wide >= 12, "streak only {wide} px wide");
     }
@@ -737,14 +863,27 @@ mod tests {
     fn bad_inputs_are_errors() {
         let mut sc = Scenario::new(quiet_config()).unwrap();
         let mut small = vec![0u8; 10];
-        assert!(matches!(sc.render_u8(0, 0, &mut small), Err(SimError::BufferSize { .. })));
+        assert!(matches!(
+            sc.render_u8(0, 0, &mut small),
+            Err(SimError::BufferSize { .. })
+        ));
         let mut ok = vec![0u8; 640 * 480];
-        assert!(matches!(sc.render_u8(0, 2, &mut ok), Err(SimError::NoSuchCamera { camera: 2, count: 2 })));
+        assert!(matches!(
+            sc.render_u8(0, 2, &mut ok),
+            Err(SimError::NoSuchCamera { camera: 2, count: 2 })
+        ));
         let mut cfg = quiet_config();
         cfg.fps = 0.0;
         assert!(Scenario::new(cfg).is_err());
         let mut cfg = quiet_config();
-        cfg.clutter.push(Clutter { camera: 5, u_px: 1.0, v_px: 1.0, sigma_x_px: 1.0, sigma_y_px: 1.0, flux_e: 1.0 });
+        cfg.clutter.push(Clutter {
+            camera: 5,
+            u_px: 1.0,
+            v_px: 1.0,
+            sigma_x_px: 1.0,
+            sigma_y_px: 1.0,
+            flux_e: 1.0,
+        });
         assert!(matches!(Scenario::new(cfg), Err(SimError::NoSuchCamera { .. })));
     }
 

@@ -9,11 +9,25 @@ use crate::SimError;
 #[derive(Debug, Clone, PartialEq)]
 pub enum Trajectory {
     /// Smooth back-and-forth between two points (cosine easing, so velocity is continuous).
-    Line { from_mm: Vector3<f64>, to_mm: Vector3<f64>, period_s: f64 },
+    Line {
+        from_mm: Vector3<f64>,
+        to_mm: Vector3<f64>,
+        period_s: f64,
+    },
     /// Circle of `radius_mm` about `centre_mm` in the plane normal to `normal`.
-    Circle { centre_mm: Vector3<f64>, radius_mm: f64, normal: Vector3<f64>, period_s: f64 },
+    Circle {
+        centre_mm: Vector3<f64>,
+        radius_mm: f64,
+        normal: Vector3<f64>,
+        period_s: f64,
+    },
     /// Figure-eight (lemniscate of Gerono) of half-width `size_mm` in the plane normal to `normal`.
-    Figure8 { centre_mm: Vector3<f64>, size_mm: f64, normal: Vector3<f64>, period_s: f64 },
+    Figure8 {
+        centre_mm: Vector3<f64>,
+        size_mm: f64,
+        normal: Vector3<f64>,
+        period_s: f64,
+    },
     /// Recorded samples `(t_s, position)`, strictly increasing in time.
     Samples(Vec<(f64, Vector3<f64>)>),
     /// A marker that does not move.
@@ -23,7 +37,11 @@ pub enum Trajectory {
 /// Two unit vectors spanning the plane normal to `n` (right-handed with `n`).
 fn plane_basis(n: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
     let n = n.try_normalize(1e-12).unwrap_or_else(Vector3::z);
-    let helper = if n.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+    let helper = if n.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
     let u = (helper - n * n.dot(&helper)).normalize();
     let v = n.cross(&u);
     (u, v)
@@ -42,11 +60,16 @@ impl Trajectory {
             {
                 bad("period_s", format!("{period_s} must be > 0"))
             }
-            Trajectory::Samples(s) if s.is_empty() => bad("trajectory", "recorded path has no samples".into()),
+            Trajectory::Samples(s) if s.is_empty() => {
+                bad("trajectory", "recorded path has no samples".into())
+            }
             Trajectory::Samples(s) => {
                 for (i, w) in s.windows(2).enumerate() {
-                    if !(w[1].0 > w[0].0) {
-                        return bad("trajectory", format!("sample {} time {} not after {}", i + 1, w[1].0, w[0].0));
+                    if w[1].0.partial_cmp(&w[0].0) != Some(core::cmp::Ordering::Greater) {
+                        return bad(
+                            "trajectory",
+                            format!("sample {} time {} not after {}", i + 1, w[1].0, w[0].0),
+                        );
                     }
                 }
                 Ok(())
@@ -59,16 +82,30 @@ impl Trajectory {
     pub fn position(&self, t_s: f64) -> Vector3<f64> {
         use core::f64::consts::TAU;
         match self {
-            Trajectory::Line { from_mm, to_mm, period_s } => {
+            Trajectory::Line {
+                from_mm,
+                to_mm,
+                period_s,
+            } => {
                 let a = 0.5 - 0.5 * (TAU * t_s / period_s).cos();
                 from_mm + (to_mm - from_mm) * a
             }
-            Trajectory::Circle { centre_mm, radius_mm, normal, period_s } => {
+            Trajectory::Circle {
+                centre_mm,
+                radius_mm,
+                normal,
+                period_s,
+            } => {
                 let (u, v) = plane_basis(normal);
                 let (s, c) = (TAU * t_s / period_s).sin_cos();
                 centre_mm + (u * c + v * s) * *radius_mm
             }
-            Trajectory::Figure8 { centre_mm, size_mm, normal, period_s } => {
+            Trajectory::Figure8 {
+                centre_mm,
+                size_mm,
+                normal,
+                period_s,
+            } => {
                 let (u, v) = plane_basis(normal);
                 let (s, c) = (TAU * t_s / period_s).sin_cos();
                 centre_mm + (u * s + v * (s * c)) * *size_mm
@@ -105,10 +142,14 @@ impl Trajectory {
             if samples.is_empty() && fields.iter().any(|f| f.parse::<f64>().is_err()) {
                 // Header: find the named columns.
                 for (k, name) in ["t_s", "x_mm", "y_mm", "z_mm"].iter().enumerate() {
-                    cols[k] = fields.iter().position(|f| f == name).ok_or_else(|| SimError::TrajectoryCsv {
-                        line: line_no,
-                        reason: format!("header lacks column `{name}` (need t_s,x_mm,y_mm,z_mm)"),
-                    })?;
+                    cols[k] =
+                        fields
+                            .iter()
+                            .position(|f| f == name)
+                            .ok_or_else(|| SimError::TrajectoryCsv {
+                                line: line_no,
+                                reason: format!("header lacks column `{name}` (need t_s,x_mm,y_mm,z_mm)"),
+                            })?;
                 }
                 continue;
             }
@@ -123,13 +164,19 @@ impl Trajectory {
                     reason: format!("field `{f}`: {e}"),
                 })?;
                 if !v[k].is_finite() {
-                    return Err(SimError::TrajectoryCsv { line: line_no, reason: format!("non-finite `{f}`") });
+                    return Err(SimError::TrajectoryCsv {
+                        line: line_no,
+                        reason: format!("non-finite `{f}`"),
+                    });
                 }
             }
             samples.push((v[0], Vector3::new(v[1], v[2], v[3])));
         }
         let t = Trajectory::Samples(samples);
-        t.validate().map_err(|e| SimError::TrajectoryCsv { line: 0, reason: e.to_string() })?;
+        t.validate().map_err(|e| SimError::TrajectoryCsv {
+            line: 0,
+            reason: e.to_string(),
+        })?;
         Ok(t)
     }
 }
@@ -142,7 +189,12 @@ mod tests {
     fn circle_stays_on_radius_and_in_plane() {
         let c = Vector3::new(10.0, -5.0, 800.0);
         let n = Vector3::new(1.0, 1.0, 1.0);
-        let tr = Trajectory::Circle { centre_mm: c, radius_mm: 120.0, normal: n, period_s: 2.0 };
+        let tr = Trajectory::Circle {
+            centre_mm: c,
+            radius_mm: 120.0,
+            normal: n,
+            period_s: 2.0,
+        };
         for i in 0..50 {
             let p = tr.position(i as f64 * 0.07);
             assert!(((p - c).norm() - 120.0).abs() < 1e-9);
@@ -155,7 +207,11 @@ mod tests {
     fn line_reaches_both_ends() {
         let a = Vector3::new(0.0, 0.0, 600.0);
         let b = Vector3::new(100.0, 20.0, 900.0);
-        let tr = Trajectory::Line { from_mm: a, to_mm: b, period_s: 4.0 };
+        let tr = Trajectory::Line {
+            from_mm: a,
+            to_mm: b,
+            period_s: 4.0,
+        };
         assert!((tr.position(0.0) - a).norm() < 1e-9);
         assert!((tr.position(2.0) - b).norm() < 1e-9);
     }
@@ -163,7 +219,12 @@ mod tests {
     #[test]
     fn figure8_crosses_centre_twice_per_period() {
         let c = Vector3::new(0.0, 0.0, 1000.0);
-        let tr = Trajectory::Figure8 { centre_mm: c, size_mm: 100.0, normal: Vector3::z(), period_s: 1.0 };
+        let tr = Trajectory::Figure8 {
+            centre_mm: c,
+            size_mm: 100.0,
+            normal: Vector3::z(),
+            period_s: 1.0,
+        };
         assert!((tr.position(0.0) - c).norm() < 1e-9);
         assert!((tr.position(0.5) - c).norm() < 1e-9);
         assert!(((tr.position(0.25) - c).norm() - 100.0).abs() < 1e-9);
@@ -181,7 +242,9 @@ mod tests {
 
     #[test]
     fn csv_errors_name_the_line() {
-        let e = Trajectory::from_csv("0,1,2,3\n1,1,x,3\n").unwrap_err().to_string();
+        let e = Trajectory::from_csv("0,1,2,3\n1,1,x,3\n")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("line 2"), "{e}");
         assert!(Trajectory::from_csv("t,a,b\n").is_err());
         assert!(Trajectory::from_csv("1,0,0,0\n0.5,0,0,0\n").is_err());

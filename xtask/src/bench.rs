@@ -36,7 +36,13 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
     }
     let mut build = ctx.cargo();
     build.args(["build", "--release", "-p", "irtrack-bench"]);
-    let out = util::run(&mut build, RunOpts { timeout: Some(Duration::from_secs(1800)), ..RunOpts::default() })?;
+    let out = util::run(
+        &mut build,
+        RunOpts {
+            timeout: Some(Duration::from_secs(1800)),
+            ..RunOpts::default()
+        },
+    )?;
     if !out.success() {
         bail!("building irtrack-bench {}", out.describe());
     }
@@ -46,7 +52,13 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
     if quick {
         table.arg("--quick");
     }
-    let out = util::run(&mut table, RunOpts { timeout: Some(Duration::from_secs(600)), ..RunOpts::default() })?;
+    let out = util::run(
+        &mut table,
+        RunOpts {
+            timeout: Some(Duration::from_secs(600)),
+            ..RunOpts::default()
+        },
+    )?;
     if !out.success() {
         bail!("irtrack-bench {}", out.describe());
     }

@@ -38,7 +38,7 @@ impl Clock for MonotonicClock {
 }
 
 /// Source of the newest tracker sample.
-pub trait PositionFeed: Send + 'static {
+pub trait PositionFeed: Send + Sync + 'static {
     /// The newest sample, marking it seen.
     fn latest(&mut self) -> Option<Sample>;
     /// Resolves when a newer sample may be available; `false` once the feed is closed.
@@ -109,7 +109,7 @@ struct Control {
 pub struct TcpRobotLink {
     ctl: watch::Sender<Control>,
     status: watch::Receiver<LinkStatus>,
-    task: JoinHandle<()>,
+    task: Option<JoinHandle<()>>,
 }
 
 impl TcpRobotLink {
@@ -135,7 +135,7 @@ impl TcpRobotLink {
             feed_open: true,
         };
         let task = tokio::spawn(async move { client.run().await });
-        Ok(Self { ctl, status, task })
+        Ok(Self { ctl, status, task: Some(task) })
     }
 
     /// A receiver that sees every status change (for LEDs and the status endpoint).
@@ -144,15 +144,19 @@ impl TcpRobotLink {
     }
 
     /// Holds the robot, says BYE and ends the task.
-    pub async fn shutdown(self) {
+    pub async fn shutdown(mut self) {
         self.ctl.send_modify(|c| c.stop = true);
-        let _ = timeout(Duration::from_secs(2), self.task).await;
+        if let Some(task) = self.task.take() {
+            let _ = timeout(Duration::from_secs(2), task).await;
+        }
     }
 }
 
 impl Drop for TcpRobotLink {
     fn drop(&mut self) {
-        self.task.abort();
+        if let Some(task) = &self.task {
+            task.abort();
+        }
     }
 }
 
@@ -254,7 +258,7 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
             loop {
                 tokio::select! {
                     _ = &mut sleep => break,
-                    r = self.ctl.changed() => if r.is_err() || self.ctl.borrow().stop { return },
+                    r = self.ctl.changed() => if r.is_err() || self.ctl.borrow_and_update().stop { return },
                 }
             }
             backoff_ms = (backoff_ms * 2).min(self.cfg.backoff_max_ms);
@@ -318,7 +322,7 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                     Ok(())
                 }
                 r = self.ctl.changed() => {
-                    let c = *self.ctl.borrow();
+                    let c = *self.ctl.borrow_and_update();
                     if r.is_err() || c.stop {
                         Err(End::Stop)
                     } else {
@@ -537,27 +541,20 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
     }
 
     async fn send(&self, s: &mut Session, msg: &TrackerMsg) -> Result<(), RobotError> {
-        let addr = self.addr();
-        let line = msg.encode().map_err(|e| RobotError::Protocol {
-            addr: addr.clone(),
-            source: e,
-        })?;
-        let write = s.wr.write_all(line.as_bytes());
-        match timeout(Duration::from_millis(self.cfg.peer_timeout_ms), write).await {
-            Ok(Ok(())) => {
-                s.last_tx = Instant::now();
-                Ok(())
-            }
-            Ok(Err(e)) => Err(RobotError::Io {
-                addr,
-                what: "write",
-                source: e,
-            }),
-            Err(_) => Err(RobotError::Timeout {
-                addr,
-                ms: self.cfg.peer_timeout_ms,
-            }),
+        send_line(s, msg, self.addr(), self.cfg.peer_timeout_ms).await
+    }
+}
+
+/// Writes one line with a timeout (a robot that stops reading must not block the client).
+async fn send_line(s: &mut Session, msg: &TrackerMsg, addr: String, timeout_ms: u64) -> Result<(), RobotError> {
+    let line = msg.encode().map_err(|e| RobotError::Protocol { addr: addr.clone(), source: e })?;
+    match timeout(Duration::from_millis(timeout_ms), s.wr.write_all(line.as_bytes())).await {
+        Ok(Ok(())) => {
+            s.last_tx = Instant::now();
+            Ok(())
         }
+        Ok(Err(e)) => Err(RobotError::Io { addr, what: "write", source: e }),
+        Err(_) => Err(RobotError::Timeout { addr, ms: timeout_ms }),
     }
 }
 

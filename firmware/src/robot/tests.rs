@@ -154,6 +154,15 @@ async fn wait_for(link: &TcpRobotLink, what: &str, cond: impl Fn(&LinkStatus) ->
     );
 }
 
+/// Waits until the robot's log shows a HOLD with `reason`.
+async fn wait_robot_hold(sim: &SimRobotServer, reason: HoldReason) {
+    let t0 = std::time::Instant::now();
+    while !holds(&sim.log()).iter().any(|h| h.1 == reason) {
+        assert!(t0.elapsed() < Duration::from_secs(2), "robot never got HOLD {reason:?}: {:?}", holds(&sim.log()));
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
 async fn connect_and_enable(r: &Rig) {
     wait_for(&r.link, "connection", |s| {
         s.state == LinkState::Holding(HoldReason::NotEnabled)
@@ -286,7 +295,8 @@ async fn no_motion_before_explicit_enable() {
 
 #[tokio::test]
 async fn reconnect_resets_sequence_and_holds_until_enable() {
-    let c = circle(0.5);
+    // 10 mm/s: the marker stays within the step limit of the tool while the link is held.
+    let c = circle(0.1);
     let scen: Scenario = Arc::new(move |t| Some((Some(c(t)), 0.2)));
     let mut sim = sim_cfg(1, [CENTER[0] + RADIUS, 0.0, 200.0]);
     sim.disconnect_after = 20;
@@ -359,7 +369,8 @@ async fn stalled_feed_holds_as_stale() {
         s.state == LinkState::Holding(HoldReason::Stale)
     })
     .await;
-    assert!(holds(&r.sim.log()).iter().any(|h| h.1 == HoldReason::Stale));
+    let h = holds(&r.sim.log());
+    assert!(h.iter().any(|h| h.1 == HoldReason::Stale), "{h:?} {:?} {:?}", r.link.status(), &r.sim.log()[r.sim.log().len().saturating_sub(5)..]);
     // The newest target the robot got was at most max_age old when sent: check by count stability.
     let n = targets(&r.sim.log()).len();
     tokio::time::sleep(Duration::from_millis(200)).await;

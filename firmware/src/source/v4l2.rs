@@ -140,7 +140,7 @@ impl PixelFormat {
 impl V4l2Config {
     /// Checks the values that do not need a device; `open` calls it first.
     pub fn validate(&self) -> Result<Vec<PixelFormat>, SourceError> {
-        let bad = |msg: String| Err(SourceError::Config(format!("[source.v4l2] {msg}")));
+        let bad = |msg: String| Err(SourceError::Config(msg));
         if self.devices.is_empty() {
             return bad("devices is empty; name at least one camera".into());
         }

@@ -151,6 +151,20 @@ pub fn detect_all(set: &ImageSet, board: &Board) -> Result<Vec<CameraDetections>
             bar.inc(1);
         }
         let (w, h, _) = size.ok_or_else(|| anyhow!("camera {ci} ({}) has no images", cam.label))?;
+        // Searching for a wrongly sized board is slow in OpenCV: stop at the first camera
+        // where it was never found instead of searching the others too.
+        if found.is_empty() {
+            bar.finish_and_clear();
+            bail!(
+                "the {}x{} board (inner corners) was found in none of the {} images of camera {ci} ({}). \
+                 Check --board-cols/--board-rows: they count inner corners (squares per row minus one), \
+                 and the whole board with a white border must be in view",
+                board.cols,
+                board.rows,
+                not_found.len(),
+                cam.label
+            );
+        }
         out.push(CameraDetections {
             image_size: (w, h),
             found,

@@ -162,6 +162,25 @@ pub fn view_errors_png(
         imgproc::LINE_8,
         0,
     )?;
+    let prefix_len = views
+        .iter()
+        .skip(1)
+        .fold(views.first().map_or(0, |v| v.chars().count()), |n, v| {
+            views[0]
+                .chars()
+                .zip(v.chars())
+                .take(n)
+                .take_while(|(a, b)| a == b)
+                .count()
+        });
+    // Keep at least one character of every name.
+    let prefix_len = prefix_len.min(
+        views
+            .iter()
+            .map(|v| v.chars().count().saturating_sub(1))
+            .min()
+            .unwrap_or(0),
+    );
     for (vi, view) in views.iter().enumerate() {
         let gx = left + vi as i32 * group_w + 3;
         for (si, (_, vals)) in series.iter().enumerate() {
@@ -176,15 +195,9 @@ pub fn view_errors_png(
         } else {
             black
         };
-        // View names vertically under the group (OpenCV has no rotated text; stack characters).
-        let label: String = view
-            .chars()
-            .rev()
-            .take(6)
-            .collect::<Vec<_>>()
-            .into_iter()
-            .rev()
-            .collect();
+        // View names without their common prefix, vertically under the group (OpenCV has no
+        // rotated text; stack characters).
+        let label: String = view.chars().skip(prefix_len).take(6).collect();
         for (k, ch) in label.chars().enumerate() {
             text(
                 &mut img,

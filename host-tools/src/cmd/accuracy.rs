@@ -11,7 +11,6 @@ use irtrack_core::pipeline::{Tracker, TrackerConfig};
 use irtrack_sim::resolution::{TABLE_I, convergent_closed_form, parallel_closed_form};
 use irtrack_sim::rig::{TABLE_I_BASELINE_MM, TABLE_I_FOCAL_PX};
 use irtrack_sim::{MarkerSpec, RigPreset, Scenario, SimConfig, Trajectory};
-use nalgebra::Vector3;
 
 use super::track::{ErrorStats, error_stats};
 
@@ -49,7 +48,8 @@ pub struct StudyRow {
 impl StudyRow {
     /// Goal: p95 3-D error at most a tenth of the reference.
     pub fn goal_met(&self) -> bool {
-        self.stats.is_some_and(|s| s.p95_mm <= self.reference_mm / 10.0) && self.tracked * 10 >= self.frames * 9
+        self.stats.is_some_and(|s| s.p95_mm <= self.reference_mm / 10.0)
+            && self.tracked * 10 >= self.frames * 9
     }
 }
 
@@ -57,9 +57,14 @@ impl StudyRow {
 /// working point, auto-exposed to 60 % of full scale there, 4-step motion blur over 2 ms.
 pub fn study_config(convergent: bool, distance_mm: f64, seed: u64) -> SimConfig {
     let rig = if convergent {
-        RigPreset::Convergent { distance_mm, angle_deg: 90.0 }
+        RigPreset::Convergent {
+            distance_mm,
+            angle_deg: 90.0,
+        }
     } else {
-        RigPreset::Parallel { baseline_mm: TABLE_I_BASELINE_MM }
+        RigPreset::Parallel {
+            baseline_mm: TABLE_I_BASELINE_MM,
+        }
     };
     let mut cfg = SimConfig::preset(rig, distance_mm, 0.08 * distance_mm);
     if let Trajectory::Circle { period_s, .. } = &mut cfg.trajectory {
@@ -67,7 +72,10 @@ pub fn study_config(convergent: bool, distance_mm: f64, seed: u64) -> SimConfig 
     }
     let m = MarkerSpec::default();
     let flux = m.flux_for_peak(0.6, cfg.sensor.full_well_e, distance_mm, cfg.camera.focal_px);
-    cfg.markers = vec![MarkerSpec { flux_e_at_1m: flux, ..m }];
+    cfg.markers = vec![MarkerSpec {
+        flux_e_at_1m: flux,
+        ..m
+    }];
     cfg.motion_blur_steps = 4;
     cfg.seed = seed ^ distance_mm.to_bits() ^ (convergent as u64);
     cfg
@@ -90,8 +98,10 @@ pub fn run_one(cfg: SimConfig, frames: u64) -> anyhow::Result<(u64, Vec<f64>)> {
         if dropped {
             continue;
         }
-        let imgs: Vec<GrayImage<'_, u8>> =
-            bufs.iter().map(|b| GrayImage::new(b, w, h, w)).collect::<Result<_, _>>()?;
+        let imgs: Vec<GrayImage<'_, u8>> = bufs
+            .iter()
+            .map(|b| GrayImage::new(b, w, h, w))
+            .collect::<Result<_, _>>()?;
         let m = tracker.process_u8(&imgs)?;
         if let Some(p) = m.point_cam0_mm {
             tracked += 1;
@@ -111,11 +121,18 @@ pub fn study(args: &Args) -> anyhow::Result<Vec<StudyRow>> {
         let table = TABLE_I.iter().find(|t| (t.0 - d).abs() < 1e-6);
         for convergent in [true, false] {
             let (name, reference) = if convergent {
-                ("convergent", table.map(|t| t.1).unwrap_or(convergent_closed_form(TABLE_I_FOCAL_PX, d, 90.0).z_mm))
+                (
+                    "convergent",
+                    table
+                        .map(|t| t.1)
+                        .unwrap_or(convergent_closed_form(TABLE_I_FOCAL_PX, d, 90.0).z_mm),
+                )
             } else {
                 (
                     "parallel",
-                    table.map(|t| t.3).unwrap_or(parallel_closed_form(TABLE_I_FOCAL_PX, TABLE_I_BASELINE_MM, d).z_mm),
+                    table
+                        .map(|t| t.3)
+                        .unwrap_or(parallel_closed_form(TABLE_I_FOCAL_PX, TABLE_I_BASELINE_MM, d).z_mm),
                 )
             };
             let (tracked, errors) = run_one(study_config(convergent, d, args.seed), args.frames)
@@ -143,7 +160,13 @@ pub fn markdown(rows: &[StudyRow]) -> String {
     for r in rows {
         let (rms, p95, max) = r
             .stats
-            .map(|e| (format!("{:.3}", e.rms_mm), format!("{:.3}", e.p95_mm), format!("{:.3}", e.max_mm)))
+            .map(|e| {
+                (
+                    format!("{:.3}", e.rms_mm),
+                    format!("{:.3}", e.p95_mm),
+                    format!("{:.3}", e.max_mm),
+                )
+            })
             .unwrap_or(("-".into(), "-".into(), "-".into()));
         let _ = writeln!(
             s,
@@ -175,13 +198,23 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     std::fs::write(args.out.join("accuracy.md"), format!("{header}{md}")).context("writing accuracy.md")?;
     let mut csv = String::from("rig,distance_mm,reference_mm,rms_mm,p95_mm,max_mm,tracked,frames\n");
     for r in &rows {
-        let (a, b, c) = r.stats.map(|e| (e.rms_mm, e.p95_mm, e.max_mm)).unwrap_or((f64::NAN, f64::NAN, f64::NAN));
-        let _ = writeln!(csv, "{},{},{},{a},{b},{c},{},{}", r.rig, r.distance_mm, r.reference_mm, r.tracked, r.frames);
+        let (a, b, c) =
+            r.stats
+                .map(|e| (e.rms_mm, e.p95_mm, e.max_mm))
+                .unwrap_or((f64::NAN, f64::NAN, f64::NAN));
+        let _ = writeln!(
+            csv,
+            "{},{},{},{a},{b},{c},{},{}",
+            r.rig, r.distance_mm, r.reference_mm, r.tracked, r.frames
+        );
     }
     std::fs::write(args.out.join("accuracy.csv"), csv).context("writing accuracy.csv")?;
     plot::write_plot(&args.out.join("accuracy.png"), &rows)?;
     print!("{md}");
-    println!("written {}/accuracy.md, accuracy.csv, accuracy.png", args.out.display());
+    println!(
+        "written {}/accuracy.md, accuracy.csv, accuracy.png",
+        args.out.display()
+    );
     Ok(())
 }
 
@@ -253,7 +286,9 @@ pub mod plot {
 
     impl Canvas {
         fn new() -> Self {
-            Canvas { rgb: vec![255; W * H * 3] }
+            Canvas {
+                rgb: vec![255; W * H * 3],
+            }
         }
         fn px(&mut self, x: i64, y: i64, c: [u8; 3]) {
             if x >= 0 && y >= 0 && (x as usize) < W && (y as usize) < H {
@@ -311,7 +346,9 @@ pub mod plot {
     pub fn write_plot(path: &Path, rows: &[StudyRow]) -> anyhow::Result<()> {
         let mut cv = Canvas::new();
         let ds: Vec<f64> = rows.iter().map(|r| r.distance_mm).collect();
-        let (dmin, dmax) = ds.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), d| (a.min(*d), b.max(*d)));
+        let (dmin, dmax) = ds.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), d| {
+            (a.min(*d), b.max(*d))
+        });
         let x_lo = ((dmin - 100.0) / 500.0).floor() * 500.0;
         let x_hi = ((dmax + 100.0) / 500.0).ceil() * 500.0;
         let mut vals: Vec<f64> = rows.iter().map(|r| r.reference_mm / 10.0).collect();
@@ -320,7 +357,13 @@ pub mod plot {
         vals.extend(rows.iter().filter_map(|r| r.stats.map(|s| s.p95_mm)));
         let vals: Vec<f64> = vals.into_iter().filter(|v| *v > 0.0 && v.is_finite()).collect();
         let lo = vals.iter().cloned().fold(f64::INFINITY, f64::min).log10().floor();
-        let hi = vals.iter().cloned().fold(f64::NEG_INFINITY, f64::max).log10().ceil().max(lo + 1.0);
+        let hi = vals
+            .iter()
+            .cloned()
+            .fold(f64::NEG_INFINITY, f64::max)
+            .log10()
+            .ceil()
+            .max(lo + 1.0);
         let (pw, ph) = ((W - LEFT - RIGHT) as f64, (H - TOP - BOTTOM) as f64);
         let fx = |d: f64| LEFT as f64 + (d - x_lo) / (x_hi - x_lo) * pw;
         let fy = |v: f64| TOP as f64 + (hi - v.log10()) / (hi - lo) * ph;
@@ -336,7 +379,13 @@ pub mod plot {
             } else {
                 format!("0.{}1", "0".repeat((-e) as usize - 1))
             };
-            cv.text(LEFT as i64 - 12 * label.len() as i64 - 8, y as i64 - 7, &label, black, false);
+            cv.text(
+                LEFT as i64 - 12 * label.len() as i64 - 8,
+                y as i64 - 7,
+                &label,
+                black,
+                false,
+            );
             e += 1.0;
         }
         let mut d = x_lo;
@@ -344,12 +393,36 @@ pub mod plot {
             let x = fx(d);
             cv.line((x, TOP as f64), (x, TOP as f64 + ph), 1, 0, grey);
             let label = format!("{d}");
-            cv.text(x as i64 - 6 * label.len() as i64, (TOP as f64 + ph) as i64 + 10, &label, black, false);
+            cv.text(
+                x as i64 - 6 * label.len() as i64,
+                (TOP as f64 + ph) as i64 + 10,
+                &label,
+                black,
+                false,
+            );
             d += 500.0;
         }
-        cv.line((LEFT as f64, TOP as f64), (LEFT as f64, TOP as f64 + ph), 2, 0, black);
-        cv.line((LEFT as f64, TOP as f64 + ph), (LEFT as f64 + pw, TOP as f64 + ph), 2, 0, black);
-        cv.text(LEFT as i64 + pw as i64 / 2 - 72, H as i64 - 34, "DISTANCE MM", black, false);
+        cv.line(
+            (LEFT as f64, TOP as f64),
+            (LEFT as f64, TOP as f64 + ph),
+            2,
+            0,
+            black,
+        );
+        cv.line(
+            (LEFT as f64, TOP as f64 + ph),
+            (LEFT as f64 + pw, TOP as f64 + ph),
+            2,
+            0,
+            black,
+        );
+        cv.text(
+            LEFT as i64 + pw as i64 / 2 - 72,
+            H as i64 - 34,
+            "DISTANCE MM",
+            black,
+            false,
+        );
         cv.text(20, TOP as i64 + ph as i64 / 2 + 80, "3-D ERROR MM", black, true);
         cv.text(LEFT as i64, 14, "ACCURACY VS TABLE I (LOG SCALE)", black, false);
 
@@ -360,13 +433,55 @@ pub mod plot {
         let dark = [90, 90, 90];
         let green = [0, 150, 60];
         let series: Vec<(&str, [u8; 3], usize, Box<dyn Fn(&StudyRow) -> Option<f64>>, &str)> = vec![
-            ("convergent", dark, 0, Box::new(|r: &StudyRow| Some(r.reference_mm)), "TABLE I CONV X=Y=Z"),
-            ("convergent", green, 8, Box::new(|r: &StudyRow| Some(r.reference_mm / 10.0)), "GOAL = TABLE I / 10"),
-            ("convergent", blue, 0, Box::new(|r: &StudyRow| r.stats.map(|s| s.rms_mm)), "CONVERGENT RMS"),
-            ("convergent", light_blue, 6, Box::new(|r: &StudyRow| r.stats.map(|s| s.p95_mm)), "CONVERGENT P95"),
-            ("parallel", [150, 150, 150], 0, Box::new(|r: &StudyRow| Some(r.reference_mm)), "TABLE I PARALLEL Z"),
-            ("parallel", red, 0, Box::new(|r: &StudyRow| r.stats.map(|s| s.rms_mm)), "PARALLEL RMS"),
-            ("parallel", light_red, 6, Box::new(|r: &StudyRow| r.stats.map(|s| s.p95_mm)), "PARALLEL P95"),
+            (
+                "convergent",
+                dark,
+                0,
+                Box::new(|r: &StudyRow| Some(r.reference_mm)),
+                "TABLE I CONV X=Y=Z",
+            ),
+            (
+                "convergent",
+                green,
+                8,
+                Box::new(|r: &StudyRow| Some(r.reference_mm / 10.0)),
+                "GOAL = TABLE I / 10",
+            ),
+            (
+                "convergent",
+                blue,
+                0,
+                Box::new(|r: &StudyRow| r.stats.map(|s| s.rms_mm)),
+                "CONVERGENT RMS",
+            ),
+            (
+                "convergent",
+                light_blue,
+                6,
+                Box::new(|r: &StudyRow| r.stats.map(|s| s.p95_mm)),
+                "CONVERGENT P95",
+            ),
+            (
+                "parallel",
+                [150, 150, 150],
+                0,
+                Box::new(|r: &StudyRow| Some(r.reference_mm)),
+                "TABLE I PARALLEL Z",
+            ),
+            (
+                "parallel",
+                red,
+                0,
+                Box::new(|r: &StudyRow| r.stats.map(|s| s.rms_mm)),
+                "PARALLEL RMS",
+            ),
+            (
+                "parallel",
+                light_red,
+                6,
+                Box::new(|r: &StudyRow| r.stats.map(|s| s.p95_mm)),
+                "PARALLEL P95",
+            ),
         ];
         for (k, (rig, color, dash, get, label)) in series.iter().enumerate() {
             let pts: Vec<(f64, f64)> = rows
@@ -382,7 +497,13 @@ pub mod plot {
             }
             let ly = TOP as i64 + 10 + 28 * k as i64;
             let lx = (W - RIGHT) as i64 + 20;
-            cv.line((lx as f64, ly as f64 + 7.0), (lx as f64 + 30.0, ly as f64 + 7.0), 3, *dash / 2, *color);
+            cv.line(
+                (lx as f64, ly as f64 + 7.0),
+                (lx as f64 + 30.0, ly as f64 + 7.0),
+                3,
+                *dash / 2,
+                *color,
+            );
             cv.dot(lx + 15, ly + 7, 4, *color);
             cv.text(lx + 40, ly, label, black, false);
         }

@@ -115,10 +115,18 @@ pub fn plan(args: &Args) -> anyhow::Result<Vec<PlanRow>> {
             for i in 0..n {
                 for j in 0..n {
                     for k in 0..n {
-                        let f = |a: usize| if n == 1 { 0.0 } else { (a as f64 / (n - 1) as f64 - 0.5) * args.workspace_mm };
+                        let f = |a: usize| {
+                            if n == 1 {
+                                0.0
+                            } else {
+                                (a as f64 / (n - 1) as f64 - 0.5) * args.workspace_mm
+                            }
+                        };
                         let p = point + Vector3::new(f(i), f(j), f(k));
                         let visible = rig.cameras.iter().all(|c| {
-                            c.model.project(&c.cam_from_cam0.apply(&p)).is_ok_and(|q| c.model.contains_px(&q))
+                            c.model
+                                .project(&c.cam_from_cam0.apply(&p))
+                                .is_ok_and(|q| c.model.contains_px(&q))
                         });
                         if !visible {
                             continue;
@@ -163,10 +171,24 @@ pub fn format_plan(args: &Args, rows: &[PlanRow]) -> String {
     let _ = writeln!(
         s,
         "{:<11} {:>9} | {:>8} {:>8} {:>8} | {:>8} {:>8} {:>8} | worst over {} mm cube: {:>7} {:>7} {:>7} | Table I x/y, z",
-        "rig", "dist_mm", "x_mm", "y_mm", "z_mm", "exact_x", "exact_y", "exact_z", args.workspace_mm, "x", "y", "z"
+        "rig",
+        "dist_mm",
+        "x_mm",
+        "y_mm",
+        "z_mm",
+        "exact_x",
+        "exact_y",
+        "exact_z",
+        args.workspace_mm,
+        "x",
+        "y",
+        "z"
     );
     for r in rows {
-        let t = r.table_i.map(|(a, b)| format!("{a:.2}, {b:.2}")).unwrap_or_else(|| "-".into());
+        let t = r
+            .table_i
+            .map(|(a, b)| format!("{a:.2}, {b:.2}"))
+            .unwrap_or_else(|| "-".into());
         let _ = writeln!(
             s,
             "{:<11} {:>9.2} | {:>8.2} {:>8.2} {:>8.2} | {:>8.3} {:>8.3} {:>8.3} | {:>27} {:>7.2} {:>7.2} {:>7.2} | {t}",

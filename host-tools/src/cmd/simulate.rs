@@ -59,7 +59,7 @@ pub struct Args {
     #[arg(long)]
     pub glare: bool,
     /// Bit depth of the written frames: 8 (maxval 255) or 10 (16-bit PGM, maxval 1023).
-    #[arg(long, default_value_t = 8, value_parser = clap::builder::PossibleValuesParser::new(["8", "10"]).map(|s| s.parse::<u8>().unwrap_or(8)))]
+    #[arg(long, default_value_t = 8)]
     pub bits: u8,
     /// Noise and drop seed.
     #[arg(long, default_value_t = 1)]
@@ -91,8 +91,13 @@ pub struct Args {
 /// Builds the simulator configuration the arguments describe.
 pub fn config_from_args(a: &Args) -> anyhow::Result<SimConfig> {
     let rig = match a.rig {
-        RigArg::Parallel => RigPreset::Parallel { baseline_mm: a.baseline_mm },
-        RigArg::Convergent => RigPreset::Convergent { distance_mm: a.distance_mm, angle_deg: a.angle_deg },
+        RigArg::Parallel => RigPreset::Parallel {
+            baseline_mm: a.baseline_mm,
+        },
+        RigArg::Convergent => RigPreset::Convergent {
+            distance_mm: a.distance_mm,
+            angle_deg: a.angle_deg,
+        },
     };
     let mut cfg = SimConfig::preset(rig, a.distance_mm, a.radius_mm);
     cfg.camera.focal_px = a.focal_px;
@@ -103,8 +108,18 @@ pub fn config_from_args(a: &Args) -> anyhow::Result<SimConfig> {
     let r = a.radius_mm;
     let normal = Vector3::new(0.3, 1.0, 0.4);
     cfg.trajectory = match a.trajectory.as_str() {
-        "circle" => Trajectory::Circle { centre_mm: centre, radius_mm: r, normal, period_s: a.period_s },
-        "figure8" => Trajectory::Figure8 { centre_mm: centre, size_mm: r, normal, period_s: a.period_s },
+        "circle" => Trajectory::Circle {
+            centre_mm: centre,
+            radius_mm: r,
+            normal,
+            period_s: a.period_s,
+        },
+        "figure8" => Trajectory::Figure8 {
+            centre_mm: centre,
+            size_mm: r,
+            normal,
+            period_s: a.period_s,
+        },
         "line" => Trajectory::Line {
             from_mm: centre - Vector3::new(r, 0.4 * r, 0.6 * r),
             to_mm: centre + Vector3::new(r, 0.4 * r, 0.6 * r),
@@ -112,7 +127,8 @@ pub fn config_from_args(a: &Args) -> anyhow::Result<SimConfig> {
         },
         other => match other.strip_prefix("csv:") {
             Some(file) => {
-                let text = std::fs::read_to_string(file).with_context(|| format!("reading trajectory {file}"))?;
+                let text =
+                    std::fs::read_to_string(file).with_context(|| format!("reading trajectory {file}"))?;
                 Trajectory::from_csv(&text).with_context(|| format!("trajectory {file}"))?
             }
             None => bail!("unknown trajectory `{other}`: use circle, line, figure8 or csv:FILE"),
@@ -123,7 +139,11 @@ pub fn config_from_args(a: &Args) -> anyhow::Result<SimConfig> {
     cfg.drop_rate = a.drop_rate;
     cfg.motion_blur_steps = a.motion_blur;
     cfg.sensor.exposure_s = a.exposure_ms * 1e-3;
-    cfg.bit_depth = if a.bits == 10 { BitDepth::Ten } else { BitDepth::Eight };
+    cfg.bit_depth = match a.bits {
+        8 => BitDepth::Eight,
+        10 => BitDepth::Ten,
+        other => bail!("--bits {other}: use 8 or 10"),
+    };
     if a.markers == 0 || a.markers > irtrack_sim::scenario::MAX_MARKERS {
         bail!("--markers must be 1..={}", irtrack_sim::scenario::MAX_MARKERS);
     }
@@ -151,7 +171,12 @@ pub struct WriteSummary {
 }
 
 /// Renders `frames` frames of `sc` into `dir` with the layout of docs/simulator.md.
-pub fn write_scenario(sc: &mut Scenario, dir: &Path, frames: u64, show_progress: bool) -> anyhow::Result<WriteSummary> {
+pub fn write_scenario(
+    sc: &mut Scenario,
+    dir: &Path,
+    frames: u64,
+    show_progress: bool,
+) -> anyhow::Result<WriteSummary> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let n_cam = sc.camera_count();
     for c in 0..n_cam {
@@ -168,7 +193,8 @@ pub fn write_scenario(sc: &mut Scenario, dir: &Path, frames: u64, show_progress:
     let rig = sc.rig().clone();
     crate::opencv_yaml::write_rig_yaml(&dir.join("rig.yaml"), &rig)?;
     std::fs::write(dir.join("rig.irp"), rig.to_blob()?).context("writing rig.irp")?;
-    std::fs::write(dir.join("scenario.txt"), format!("{:#?}\n", sc.config())).context("writing scenario.txt")?;
+    std::fs::write(dir.join("scenario.txt"), format!("{:#?}\n", sc.config()))
+        .context("writing scenario.txt")?;
 
     let (w, h) = sc.image_size();
     let depth = sc.config().bit_depth;
@@ -183,14 +209,22 @@ pub fn write_scenario(sc: &mut Scenario, dir: &Path, frames: u64, show_progress:
     } else {
         indicatif::ProgressBar::hidden()
     };
-    let mut sum = WriteSummary { frames, images: 0, dropped: 0 };
+    let mut sum = WriteSummary {
+        frames,
+        images: 0,
+        dropped: 0,
+    };
     for index in 0..frames {
         let t = sc.truth(index);
         for (m, mt) in t.markers().iter().enumerate() {
             let p = mt.p_cam0_mm;
             let vis = mt.visible_in_all(n_cam) as u8;
             if m == 0 {
-                let _ = writeln!(truth, "{index},{:.6},{:.6},{:.6},{:.6},{vis}", t.t_s, p.x, p.y, p.z);
+                let _ = writeln!(
+                    truth,
+                    "{index},{:.6},{:.6},{:.6},{:.6},{vis}",
+                    t.t_s, p.x, p.y, p.z
+                );
             }
             if multi {
                 let _ = writeln!(markers, "{index},{m},{:.6},{:.6},{:.6},{vis}", p.x, p.y, p.z);
@@ -207,7 +241,8 @@ pub fn write_scenario(sc: &mut Scenario, dir: &Path, frames: u64, show_progress:
                 sum.dropped += 1;
                 continue;
             }
-            let file = std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+            let file =
+                std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
             let mut out = BufWriter::new(file);
             match depth {
                 BitDepth::Eight => write_pgm_u8(&mut out, w, h, &f8)?,

@@ -91,10 +91,17 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<Option<(Vector3<f64>, bool)
         }
         let f: Vec<&str> = line.split(',').collect();
         if f.len() < 6 {
-            bail!("{} line {}: expected 6 fields, got {}", path.display(), n + 1, f.len());
+            bail!(
+                "{} line {}: expected 6 fields, got {}",
+                path.display(),
+                n + 1,
+                f.len()
+            );
         }
         let num = |i: usize| -> anyhow::Result<f64> {
-            f[i].trim().parse::<f64>().with_context(|| format!("{} line {}: field {}", path.display(), n + 1, i + 1))
+            f[i].trim()
+                .parse::<f64>()
+                .with_context(|| format!("{} line {}: field {}", path.display(), n + 1, i + 1))
         };
         let frame = num(0)? as usize;
         if out.len() <= frame {
@@ -108,7 +115,8 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<Option<(Vector3<f64>, bool)
 /// Loads rig parameters from a blob or an OpenCV YAML file.
 pub fn load_params(path: &Path) -> anyhow::Result<RigParams> {
     let rig = crate::opencv_yaml::load_params_any(path)?;
-    rig.validate().with_context(|| format!("parameters in {}", path.display()))?;
+    rig.validate()
+        .with_context(|| format!("parameters in {}", path.display()))?;
     Ok(rig)
 }
 
@@ -147,19 +155,35 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
     for c in 0..n_cam {
         let dir = args.frames.join(format!("cam{c}"));
         if !dir.is_dir() {
-            bail!("{} is missing: the parameters describe {n_cam} cameras", dir.display());
+            bail!(
+                "{} is missing: the parameters describe {n_cam} cameras",
+                dir.display()
+            );
         }
         per_cam.push(list_frames(&dir)?);
     }
     let last = per_cam.iter().filter_map(|s| s.iter().next_back()).max().copied();
-    let Some(last) = last else { bail!("no NNNNNN.pgm frames under {}/cam*/", args.frames.display()) };
+    let Some(last) = last else {
+        bail!("no NNNNNN.pgm frames under {}/cam*/", args.frames.display())
+    };
 
     let mut tracker: Option<Tracker> = None;
     let mut maxval_seen: Option<u16> = None;
     let truth_path = args.frames.join("truth.csv");
-    let truth = if truth_path.is_file() { Some(read_truth(&truth_path)?) } else { None };
+    let truth = if truth_path.is_file() {
+        Some(read_truth(&truth_path)?)
+    } else {
+        None
+    };
     let mut csv = String::from("frame,x_mm,y_mm,z_mm,gap_mm,status,cameras_used,quality,used_roi\n");
-    let mut s = TrackSummary { frames: 0, tracked: 0, missing_frames: 0, not_tracked: 0, error: None, wrong_points: 0 };
+    let mut s = TrackSummary {
+        frames: 0,
+        tracked: 0,
+        missing_frames: 0,
+        not_tracked: 0,
+        error: None,
+        wrong_points: 0,
+    };
     let mut errors = Vec::new();
     let mut images8: Vec<Vec<u8>> = vec![Vec::new(); n_cam];
     let mut images16: Vec<Vec<u16>> = vec![Vec::new(); n_cam];
@@ -192,7 +216,10 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
         let tr = match &mut tracker {
             Some(t) => t,
             None => {
-                let mut cfg = TrackerConfig { threshold_dn: default_threshold_dn(maxval), ..TrackerConfig::default() };
+                let mut cfg = TrackerConfig {
+                    threshold_dn: default_threshold_dn(maxval),
+                    ..TrackerConfig::default()
+                };
                 if maxval > 255 {
                     cfg.saturation_dn = Some(maxval as u32);
                 }
@@ -210,10 +237,13 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
                 .iter()
                 .map(|d| GrayImage::new(d, size.0, size.1, size.0))
                 .collect::<Result<_, _>>()?;
-            *tr.process_u16(&frames).with_context(|| format!("frame {index}"))?
+            *tr.process_u16(&frames)
+                .with_context(|| format!("frame {index}"))?
         } else {
-            let frames: Vec<GrayImage<'_, u8>> =
-                images8.iter().map(|d| GrayImage::new(d, size.0, size.1, size.0)).collect::<Result<_, _>>()?;
+            let frames: Vec<GrayImage<'_, u8>> = images8
+                .iter()
+                .map(|d| GrayImage::new(d, size.0, size.1, size.0))
+                .collect::<Result<_, _>>()?;
             *tr.process_u8(&frames).with_context(|| format!("frame {index}"))?
         };
         let status = status_name(&m);
@@ -235,7 +265,11 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
             }
             None => {
                 s.not_tracked += 1;
-                let gap = if m.gap_mm.is_finite() { format!("{:.4}", m.gap_mm) } else { String::new() };
+                let gap = if m.gap_mm.is_finite() {
+                    format!("{:.4}", m.gap_mm)
+                } else {
+                    String::new()
+                };
                 let _ = writeln!(csv, "{index},,,,{gap},{status},0,0,{}", m.used_roi as u8);
             }
         }

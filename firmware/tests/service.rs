@@ -1,0 +1,311 @@
+//! irtrackd end to end over real sockets on 127.0.0.1 with the simulated source.
+
+mod common;
+
+use std::time::Duration;
+
+use common::*;
+use irtrack_core::camera::RigidTransform;
+use irtrack_core::param_wire::{RejectCode, Verdict};
+use irtrack_core::stream::TrackStatus;
+use irtrack_firmware::app::{self, Overrides};
+use irtrack_firmware::leds::Led;
+use irtrack_firmware::storage::{ACTIVE_FILE, PREVIOUS_FILE};
+
+/// Waits until `f` holds (polling), failing after `secs`.
+async fn eventually(secs: u64, mut f: impl FnMut() -> bool) {
+    let end = tokio::time::Instant::now() + Duration::from_secs(secs);
+    while !f() {
+        assert!(tokio::time::Instant::now() < end, "condition not reached within {secs} s");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sim_positions_match_truth_over_ndjson_and_binary() {
+    let dir = TempDir::new("truth");
+    let mut cfg = test_config(dir.path());
+    cfg.service.params_from_simulator = true;
+    let sim = cfg.source.sim.clone().unwrap();
+    let truth = scenario(&sim);
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+
+    let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
+    let mut bin = tokio::net::TcpStream::connect(running.addrs.stream_binary).await.unwrap();
+    let mut errors = Vec::new();
+    let mut n_ok = 0;
+    for _ in 0..60 {
+        let r = client.next().await;
+        if r.status != TrackStatus::Ok {
+            continue;
+        }
+        n_ok += 1;
+        let p = r.position_mm.unwrap();
+        let t = truth.truth(r.frame).markers()[0].p_cam0_mm;
+        errors.push(dist_mm(p, [t.x, t.y, t.z]));
+        assert!(!r.world_frame);
+        assert!(r.latency_us > 0 && r.latency_us < 1_000_000, "latency {} us", r.latency_us);
+    }
+    assert!(n_ok >= 50, "only {n_ok} of 60 records tracked");
+    let max = errors.iter().cloned().fold(0.0, f64::max);
+    let mean = errors.iter().sum::<f64>() / errors.len() as f64;
+    eprintln!("sim → irtrackd → NDJSON: {n_ok} positions, mean error {mean:.3} mm, max {max:.3} mm");
+    assert!(max < 1.0, "max error {max} mm");
+
+    // The binary port carries the same records.
+    let b = read_binary(&mut bin).await;
+    assert!(b.frame > 0 && b.params_crc != 0);
+    if b.status == TrackStatus::Ok {
+        let t = truth.truth(b.frame).markers()[0].p_cam0_mm;
+        assert!(dist_mm(b.position_mm.unwrap(), [t.x, t.y, t.z]) < 1.0);
+    }
+    running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good() {
+    let dir = TempDir::new("params");
+    let cfg = test_config(dir.path());
+    let sim = cfg.source.sim.clone().unwrap();
+    let truth = scenario(&sim);
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let addrs = running.addrs;
+
+    // No parameters: records flow (the loop runs) but none carries a position.
+    let mut client = NdjsonClient::connect(addrs.stream_ndjson).await;
+    for _ in 0..10 {
+        let r = client.next().await;
+        assert_eq!(r.status, TrackStatus::NoParams);
+        assert!(r.position_mm.is_none());
+    }
+    let st = status_json(addrs.status).await;
+    assert_eq!(st["params"]["loaded"], false);
+    assert!(st["faults"].as_array().unwrap().iter().any(|f| f == "no_params"), "{st}");
+    assert_eq!(st["processing"]["tracked"], 0);
+
+    // Push the true rig: accepted and used without restart.
+    let mut rig = truth.rig().clone();
+    rig.rig_id = "rig-a".into();
+    assert_eq!(push(addrs.params, &rig.to_blob().unwrap()).await, "OK rig-a\n");
+    let r = client.until(100, |r| r.status == TrackStatus::Ok).await;
+    let t = truth.truth(r.frame).markers()[0].p_cam0_mm;
+    assert!(dist_mm(r.position_mm.unwrap(), [t.x, t.y, t.z]) < 1.0);
+    assert!(!r.world_frame);
+
+    // A second set with a world transform: positions switch to the world frame live.
+    let world = RigidTransform { t_mm: [1000.0, -200.0, 50.0], ..RigidTransform::IDENTITY };
+    let mut rig_b = rig.clone();
+    rig_b.rig_id = "rig-b".into();
+    rig_b.world_from_cam0 = Some(world);
+    assert_eq!(push(addrs.params, &rig_b.to_blob().unwrap()).await, "OK rig-b\n");
+    let r = client.until(100, |r| r.status == TrackStatus::Ok && r.world_frame).await;
+    let t = truth.truth(r.frame).markers()[0].p_cam0_mm;
+    let p = r.position_mm.unwrap();
+    assert!(dist_mm(p, [t.x + 1000.0, t.y - 200.0, t.z + 50.0]) < 1.0, "{p:?} vs {t:?}");
+
+    // Bad blobs: each rejected with its exact reason; rig-b stays active.
+    let good = rig.to_blob().unwrap();
+    let mut corrupt = good.clone();
+    let last = corrupt.len() - 1;
+    corrupt[last] ^= 0x55;
+    let v = push_verdict(addrs.params, &corrupt).await;
+    let Verdict::Rejected { code, message } = v else { panic!("corrupt blob accepted") };
+    assert_eq!(code, RejectCode::BadBlob);
+    assert!(message.contains("CRC-32"), "{message}");
+
+    let mut magic = good.clone();
+    magic[0] = b'X';
+    let line = push(addrs.params, &magic).await;
+    assert!(line.starts_with("ERR BAD_BLOB not an irtrack parameter blob"), "{line}");
+
+    let mut three = rig.clone();
+    three.rig_id = "three-cams".into();
+    let mut cam2 = three.cameras[1].clone();
+    cam2.cam_from_cam0.t_mm[1] += 300.0;
+    three.cameras.push(cam2);
+    let line = push(addrs.params, &three.to_blob().unwrap()).await;
+    assert_eq!(line, "ERR RIG_MISMATCH parameter set \"three-cams\" has 3 cameras, this rig has 2\n");
+
+    let mut small = rig.clone();
+    small.rig_id = "small".into();
+    for c in &mut small.cameras {
+        c.model.image_size.width_px = 320;
+        c.model.image_size.height_px = 240;
+        c.model.intrinsics.cx_px /= 2.0;
+        c.model.intrinsics.cy_px /= 2.0;
+    }
+    let line = push(addrs.params, &small.to_blob().unwrap()).await;
+    assert_eq!(line, "ERR RIG_MISMATCH camera 0: parameters are for 320x240 px images, the camera delivers 640x480\n");
+
+    let mut invalid = rig.clone();
+    invalid.rig_id = "has space".into();
+    let line = push(addrs.params, &invalid.to_blob().unwrap()).await;
+    assert!(line.starts_with("ERR INVALID_PARAMS"), "{line}");
+
+    // Wrong framing.
+    let mut s = tokio::net::TcpStream::connect(addrs.params).await.unwrap();
+    tokio::io::AsyncWriteExt::write_all(&mut s, b"HELO\x04\x00\x00\x00abcd").await.unwrap();
+    let mut reply = String::new();
+    tokio::io::AsyncReadExt::read_to_string(&mut s, &mut reply).await.unwrap();
+    assert!(reply.starts_with("ERR PROTOCOL"), "{reply}");
+
+    let st = status_json(addrs.status).await;
+    assert_eq!(st["params"]["rig_id"], "rig-b");
+    assert_eq!(st["params"]["rejected"], 6, "{}", st["params"]);
+    let r = client.until(100, |r| r.status == TrackStatus::Ok).await;
+    assert!(r.world_frame, "rig-b (world frame) must still be active");
+
+    // Stored: active = rig-b, previous = rig-a.
+    let active = irtrack_core::params::RigParams::from_blob(&std::fs::read(dir.path().join(ACTIVE_FILE)).unwrap()).unwrap();
+    let prev = irtrack_core::params::RigParams::from_blob(&std::fs::read(dir.path().join(PREVIOUS_FILE)).unwrap()).unwrap();
+    assert_eq!((active.rig_id.as_str(), prev.rig_id.as_str()), ("rig-b", "rig-a"));
+    running.shutdown().await;
+
+    // A restart picks up the stored set.
+    let running = app::start(test_config(dir.path()), Overrides::default()).await.unwrap();
+    let st = status_json(running.addrs.status).await;
+    assert_eq!(st["params"]["rig_id"], "rig-b");
+    assert_eq!(st["params"]["origin"], "state_dir");
+    running.shutdown().await;
+
+    // A corrupted active file falls back to the previous set.
+    std::fs::write(dir.path().join(ACTIVE_FILE), b"IRPBgarbage").unwrap();
+    let running = app::start(test_config(dir.path()), Overrides::default()).await.unwrap();
+    let st = status_json(running.addrs.status).await;
+    assert_eq!(st["params"]["rig_id"], "rig-a");
+    assert_eq!(st["params"]["origin"], "rollback");
+    running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn led_states_follow_faults_and_tracking() {
+    let dir = TempDir::new("leds");
+    let cfg = test_config(dir.path());
+    let sim = cfg.source.sim.clone().unwrap();
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let record = running.led_record.clone().expect("sim LED back end");
+    let status = running.status.clone();
+
+    // No params: fault LED flashes once per 2 s cycle, heartbeat runs, track LED stays off.
+    eventually(5, || status.indication().alive).await;
+    assert_eq!(status.indication().fault, Some(irtrack_firmware::leds::indication::Fault::NoParams));
+    let start = record.changes().len();
+    tokio::time::sleep(Duration::from_millis(2100)).await;
+    let window: Vec<_> = record.changes()[start..].to_vec();
+    let rises = |led: Led| window.iter().filter(|c| c.led == led && c.on).count();
+    assert!((1..=2).contains(&rises(Led::Fault)), "fault flashes: {window:?}");
+    assert!((2..=3).contains(&rises(Led::Run)), "heartbeats: {window:?}");
+    assert_eq!(rises(Led::Track), 0);
+
+    // Params: fault clears, the marker is tracked in both cameras → track LED steady on.
+    let rig = scenario(&sim).rig().clone();
+    assert!(push(running.addrs.params, &rig.to_blob().unwrap()).await.starts_with("OK"));
+    eventually(5, || status.indication().fault.is_none()).await;
+    eventually(5, || status.led_levels()[1]).await;
+    let before = record.changes().len();
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    let window: Vec<_> = record.changes()[before..].to_vec();
+    assert!(window.iter().all(|c| c.led != Led::Fault && c.led != Led::Track), "{window:?}");
+    assert!(status.led_levels()[1], "track LED on");
+
+    // Robot LED follows the robot link's state.
+    status.set_robot(irtrack_firmware::leds::indication::RobotIndication::Connected);
+    eventually(2, || status.led_levels()[2]).await;
+    let st = status_json(running.addrs.status).await;
+    assert_eq!(st["leds"]["indication"]["robot"], "connected");
+    assert_eq!(st["leds"]["on"]["robot"], true);
+    running.shutdown().await;
+    // Stopping switches everything off.
+    let last = record.changes();
+    for led in Led::ALL {
+        let l = last.iter().rev().find(|c| c.led == led).map(|c| c.on);
+        assert_ne!(l, Some(true), "{led:?} left on");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn slow_stream_client_is_dropped_without_stalling_others() {
+    let dir = TempDir::new("slow");
+    let mut cfg = test_config(dir.path());
+    cfg.service.params_from_simulator = true;
+    cfg.listen.client_queue_records = 4;
+    if let Some(s) = cfg.source.sim.as_mut() {
+        s.fps = 400.0;
+    }
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let status = running.status.clone();
+
+    // A client with a tiny receive window that never reads.
+    let sock = tokio::net::TcpSocket::new_v4().unwrap();
+    sock.set_recv_buffer_size(2048).unwrap();
+    let _slow = sock.connect(running.addrs.stream_ndjson).await.unwrap();
+    let mut good = NdjsonClient::connect(running.addrs.stream_ndjson).await;
+
+    let processed0 = status.sets_processed.load(std::sync::atomic::Ordering::Relaxed);
+    let mut last_frame = 0;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(15);
+    while status.stream_dropped_slow.load(std::sync::atomic::Ordering::Relaxed) == 0 {
+        assert!(tokio::time::Instant::now() < deadline, "slow client never dropped");
+        let r = good.next().await;
+        assert!(r.frame > last_frame || last_frame == 0);
+        last_frame = r.frame;
+    }
+    // The good client keeps getting fresh records and the loop kept running.
+    let a = good.next().await.frame;
+    let b = good.next().await.frame;
+    assert!(b > a);
+    let processed1 = status.sets_processed.load(std::sync::atomic::Ordering::Relaxed);
+    assert!(processed1 > processed0 + 50, "loop stalled: {processed0} → {processed1}");
+    let st = status_json(running.addrs.status).await;
+    assert_eq!(st["stream"]["dropped_slow"], 1);
+    assert_eq!(st["stream"]["clients"], 1);
+    running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn status_json_and_metrics_report_the_running_service() {
+    let dir = TempDir::new("status");
+    let mut cfg = test_config(dir.path());
+    cfg.service.params_from_simulator = true;
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let status = running.status.clone();
+    eventually(10, || status.tracked.load(std::sync::atomic::Ordering::Relaxed) >= 30).await;
+
+    let st = status_json(running.addrs.status).await;
+    assert_eq!(st["service"], "irtrackd");
+    assert_eq!(st["versions"]["irtrackd"], env!("CARGO_PKG_VERSION"));
+    assert_eq!(st["params"]["loaded"], true);
+    assert_eq!(st["params"]["origin"], "simulator");
+    assert!(st["params"]["rig_id"].as_str().is_some());
+    let cams = st["source"]["cameras"].as_array().unwrap();
+    assert_eq!(cams.len(), 2);
+    for c in cams {
+        let fps = c["fps"].as_f64().unwrap();
+        assert!((fps - 100.0).abs() < 15.0, "camera fps {fps}");
+        assert_eq!(c["width_px"], 640);
+    }
+    assert!(st["source"]["pairing_error_last_us"].as_f64().is_some());
+    assert!(st["source"]["sets_dropped"].as_u64().is_some());
+    let lat = &st["processing"]["latency_us"];
+    for stage in ["detect", "solve", "publish", "process", "end_to_end"] {
+        assert!(lat[stage]["count"].as_u64().unwrap() >= 30, "{stage}: {}", lat[stage]);
+        assert!(lat[stage]["p50_us"].as_u64().is_some());
+        assert!(lat[stage]["p99_us"].as_u64().unwrap() >= lat[stage]["p50_us"].as_u64().unwrap());
+    }
+    assert!((st["processing"]["deadline_us"].as_f64().unwrap() - 10_000.0).abs() < 1.0);
+    assert!(st["processing"]["deadline_misses"].as_u64().is_some());
+    assert!(st["processing"]["last_gap_mm"].as_f64().unwrap() < 3.0);
+    assert!(st["leds"]["on"]["run"].is_boolean());
+    assert_eq!(st["leds"]["backend"], "simulated LEDs (logged)");
+    assert_eq!(st["faults"].as_array().unwrap().len(), 0, "{}", st["faults"]);
+    eprintln!("latency: {}", st["processing"]["latency_us"]);
+
+    let (code, metrics) = http_get(running.addrs.status, "/metrics").await;
+    assert_eq!(code, 200);
+    assert!(metrics.contains("irtrackd_stage_latency_seconds_bucket{stage=\"detect\",le=\"+Inf\"}"));
+    assert!(metrics.contains("irtrackd_params_loaded 1"));
+    assert!(metrics.contains("irtrackd_camera_fps{camera=\"1\"}"));
+    let (code, _) = http_get(running.addrs.status, "/nope").await;
+    assert_eq!(code, 404);
+    running.shutdown().await;
+}

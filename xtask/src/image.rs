@@ -1,0 +1,710 @@
+//! `cargo xtask image ...`: the aarch64 SD-card image that CI boots in QEMU, its system test,
+//! and the Yocto layer's crate list.
+//!
+//! The image is assembled from Debian's arm64 packages (kernel, busybox-static) and the
+//! statically cross-built `irtrackd`, without loop mounts or root-only tools: a vfat boot
+//! partition (kernel, initramfs, extlinux.conf for U-Boot) written with mtools, an ext4 root
+//! partition written by `mke2fs -d`, and an MBR from `sfdisk`. See docs/image.md.
+
+use std::collections::{BTreeSet, HashMap};
+use std::fs;
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+
+use crate::ci::Counts;
+use crate::util::{self, Ctx};
+
+mod crates;
+mod system;
+
+const USAGE: &str = "\
+usage: cargo xtask image <command>
+
+commands:
+  build            build target/image/irtrack-sd.img (kernel, initramfs, busybox, irtrackd)
+  test             build, then boot it in QEMU and run the system test
+  system-test      same as `test`
+  run              build, then boot it interactively (console on this terminal; Ctrl-A X quits)
+  crates [--check] write (or check) yocto-layer's irtrackd-crates.inc from Cargo.lock
+";
+
+/// Modules the initramfs loads to reach the root filesystem on a virtio disk.
+const INITRD_MODULES: &[&str] = &["virtio_mmio", "virtio_blk", "ext4"];
+/// Modules the root filesystem loads at start: network and the vivid test cameras. vivid makes
+/// two instances with only a video capture node each (/dev/video0, /dev/video1).
+const ROOT_MODULES: &[(&str, &str)] = &[("virtio_net", ""), ("vivid", "n_devs=2 node_types=0x1,0x1")];
+const UBOOT_QEMU: &str = "/usr/lib/u-boot/qemu_arm64/u-boot.bin";
+
+pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
+    match args.first().map(String::as_str) {
+        Some("build") => {
+            let image = build(ctx)?;
+            println!("{}", image.summary());
+            println!("{}", image.sd_img.display());
+            Ok(())
+        }
+        Some("test" | "system-test") => {
+            let image = build(ctx)?;
+            println!("{}", image.summary());
+            let report = system::run(ctx, &image)?;
+            println!("{report}");
+            if report.failed() > 0 {
+                bail!("system test: {} check(s) failed", report.failed());
+            }
+            Ok(())
+        }
+        Some("run") => {
+            let image = build(ctx)?;
+            system::interactive(ctx, &image)
+        }
+        Some("crates") => {
+            let check = args.get(1).is_some_and(|a| a == "--check");
+            crates::cli(ctx, check)
+        }
+        _ => {
+            print!("{USAGE}");
+            bail!("unknown or missing image command")
+        }
+    }
+}
+
+/// CI: the crate list matches Cargo.lock, the image builds, and every system-test check passes.
+pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
+    let mut counts = Counts::default();
+    match crates::check(ctx) {
+        Ok(()) => counts.passed += 1,
+        Err(e) => {
+            eprintln!("image: {e:#}");
+            counts.failed += 1;
+        }
+    }
+    let image = build(ctx).context("building the image")?;
+    println!("{}", image.summary());
+    let report = system::run(ctx, &image)?;
+    println!("{report}");
+    counts.passed += report.passed();
+    counts.failed += report.failed();
+    if counts.failed > 0 {
+        bail!("{} image check(s) failed", counts.failed);
+    }
+    Ok(counts)
+}
+
+/// A built SD-card image.
+pub struct Image {
+    pub sd_img: PathBuf,
+    pub kernel_version: String,
+    pub size_bytes: u64,
+    pub boot_bytes: u64,
+    pub root_bytes: u64,
+    pub irtrackd_bytes: u64,
+    pub build_time: Duration,
+}
+
+impl Image {
+    pub fn summary(&self) -> String {
+        format!(
+            "image: {} — {:.1} MiB (boot {:.1} MiB, root {:.1} MiB; irtrackd {:.1} MiB stripped), \
+             kernel {}, built in {}",
+            self.sd_img.display(),
+            mib(self.size_bytes),
+            mib(self.boot_bytes),
+            mib(self.root_bytes),
+            mib(self.irtrackd_bytes),
+            self.kernel_version,
+            util::fmt_duration(self.build_time)
+        )
+    }
+}
+
+fn mib(bytes: u64) -> f64 {
+    bytes as f64 / (1024.0 * 1024.0)
+}
+
+fn work_dir(ctx: &Ctx) -> PathBuf {
+    ctx.target_dir().join("image")
+}
+
+/// Runs a command quietly; on failure the error shows the command and its output.
+fn run_quiet(cmd: &mut Command) -> Result<String> {
+    let shown = util::display_cmd(cmd);
+    let out = cmd.output().with_context(|| format!("could not start `{shown}`"))?;
+    if !out.status.success() {
+        bail!(
+            "`{shown}` failed ({}):\n{}{}",
+            out.status,
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+fn fresh_dir(dir: &Path) -> Result<()> {
+    if dir.exists() {
+        fs::remove_dir_all(dir).with_context(|| format!("removing {}", dir.display()))?;
+    }
+    fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))
+}
+
+/// Builds the whole image into target/image/.
+pub fn build(ctx: &Ctx) -> Result<Image> {
+    let start = Instant::now();
+    let work = work_dir(ctx);
+    fs::create_dir_all(&work)?;
+    for tool in ["dpkg-deb", "apt-get", "cpio", "gzip", "mkfs.vfat", "mcopy", "mmd", "mke2fs", "sfdisk", "qemu-aarch64"] {
+        if !util::on_path(tool) && !Path::new("/usr/sbin").join(tool).is_file() && !Path::new("/sbin").join(tool).is_file() {
+            bail!("`{tool}` not found; run `cargo xtask setup`");
+        }
+    }
+
+    println!("image: fetching Debian arm64 packages");
+    let debs = fetch_debs(&work.join("dl"))?;
+    let kernel_root = extract_cached(&debs.kernel, &work.join("kernel"))?;
+    let busybox_root = extract_cached(&debs.busybox, &work.join("busybox"))?;
+    let (kver, modules_dir) = kernel_modules_dir(&kernel_root)?;
+    let kernel_image = kernel_root.join("boot").join(format!("vmlinuz-{kver}"));
+    let busybox = busybox_root.join("bin/busybox");
+    if !kernel_image.is_file() || !busybox.is_file() {
+        bail!("{} or {} missing from the extracted packages", kernel_image.display(), busybox.display());
+    }
+
+    println!("image: cross-building irtrackd (static, aarch64, release)");
+    let irtrackd_built = crate::cross::build_irtrackd(ctx)?;
+    let irtrackd = work.join("irtrackd");
+    fs::copy(&irtrackd_built, &irtrackd)?;
+    // The release profile keeps line tables for backtraces; the image does not need them.
+    run_quiet(Command::new("aarch64-linux-gnu-strip").arg(&irtrackd))?;
+    let irtrackd_bytes = fs::metadata(&irtrackd)?.len();
+
+    let index = ModuleIndex::scan(&modules_dir)?;
+    let initrd_mods = index.closure(INITRD_MODULES)?;
+    let root_names: Vec<&str> = ROOT_MODULES.iter().map(|(m, _)| *m).collect();
+    let root_mods: Vec<ModuleFile> =
+        index.closure(&root_names)?.into_iter().filter(|m| !initrd_mods.contains(m)).collect();
+
+    println!("image: initramfs ({} modules)", initrd_mods.len());
+    let initrd = work.join("initrd.gz");
+    build_initramfs(ctx, &work.join("initramfs"), &busybox, &modules_dir, &kver, &initrd_mods, &initrd)?;
+
+    println!("image: root filesystem ({} modules)", root_mods.len());
+    let rootfs = work.join("rootfs");
+    stage_rootfs(ctx, &rootfs, &busybox, &irtrackd, &modules_dir, &kver, &root_mods)?;
+
+    let boot_img = work.join("boot.vfat");
+    let boot_bytes = make_boot_partition(ctx, &boot_img, &kernel_image, &initrd)?;
+    let root_img = work.join("root.ext4");
+    let root_bytes = make_root_partition(&root_img, &rootfs)?;
+    let sd_img = work.join("irtrack-sd.img");
+    assemble_sd(&sd_img, &boot_img, &root_img)?;
+    let size_bytes = fs::metadata(&sd_img)?.len();
+    Ok(Image {
+        sd_img,
+        kernel_version: kver,
+        size_bytes,
+        boot_bytes,
+        root_bytes,
+        irtrackd_bytes,
+        build_time: start.elapsed(),
+    })
+}
+
+struct Debs {
+    kernel: PathBuf,
+    busybox: PathBuf,
+}
+
+/// Finds `<name>_*.deb` in `dir`.
+fn find_deb(dir: &Path, name: &str) -> Option<PathBuf> {
+    let prefix = format!("{name}_");
+    let mut found: Vec<PathBuf> = fs::read_dir(dir)
+        .ok()?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with(&prefix) && n.ends_with(".deb"))
+        })
+        .collect();
+    found.sort();
+    found.pop()
+}
+
+fn apt_download(dir: &Path, package: &str) -> Result<()> {
+    // apt warns that `_apt` cannot write here and downloads as root anyway; that is fine.
+    run_quiet(Command::new("apt-get").args(["download", "-q", package]).current_dir(dir))
+        .with_context(|| format!("downloading {package} (needs `dpkg --add-architecture arm64` and apt-get update; see `cargo xtask setup`)"))?;
+    Ok(())
+}
+
+/// Downloads the arm64 kernel (through the `linux-image-arm64` meta package) and
+/// busybox-static into `dir`, reusing what is already there.
+fn fetch_debs(dir: &Path) -> Result<Debs> {
+    fs::create_dir_all(dir)?;
+    if find_deb(dir, "linux-image-arm64").is_none() {
+        apt_download(dir, "linux-image-arm64:arm64")?;
+    }
+    let meta = find_deb(dir, "linux-image-arm64").context("linux-image-arm64 .deb missing after download")?;
+    let depends = run_quiet(Command::new("dpkg-deb").args(["-f"]).arg(&meta).arg("Depends"))?;
+    let kernel_pkg = depends
+        .split([',', '|'])
+        .map(|d| d.split_whitespace().next().unwrap_or(""))
+        .find(|d| d.starts_with("linux-image-") && d.ends_with("-arm64"))
+        .with_context(|| format!("no linux-image-*-arm64 in Depends of {}: {depends}", meta.display()))?
+        .to_owned();
+    if find_deb(dir, &kernel_pkg).is_none() {
+        apt_download(dir, &format!("{kernel_pkg}:arm64"))?;
+    }
+    if find_deb(dir, "busybox-static").is_none() {
+        apt_download(dir, "busybox-static:arm64")?;
+    }
+    Ok(Debs {
+        kernel: find_deb(dir, &kernel_pkg).context("kernel .deb missing after download")?,
+        busybox: find_deb(dir, "busybox-static").context("busybox-static .deb missing after download")?,
+    })
+}
+
+/// Extracts a .deb into `dir` unless that exact package was extracted there already.
+fn extract_cached(deb: &Path, dir: &Path) -> Result<PathBuf> {
+    let stamp = dir.join(".extracted-from");
+    let name = deb.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    if fs::read_to_string(&stamp).is_ok_and(|s| s == name) {
+        return Ok(dir.to_path_buf());
+    }
+    fresh_dir(dir)?;
+    run_quiet(Command::new("dpkg-deb").arg("-x").arg(deb).arg(dir))?;
+    fs::write(&stamp, &name)?;
+    Ok(dir.to_path_buf())
+}
+
+fn kernel_modules_dir(kernel_root: &Path) -> Result<(String, PathBuf)> {
+    let base = kernel_root.join("lib/modules");
+    let mut versions: Vec<String> = fs::read_dir(&base)
+        .with_context(|| format!("reading {}", base.display()))?
+        .flatten()
+        .filter(|e| e.path().join("kernel").is_dir())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    versions.sort();
+    let kver = versions.pop().with_context(|| format!("no kernel modules under {}", base.display()))?;
+    let dir = base.join(&kver);
+    Ok((kver, dir))
+}
+
+/// A module file, relative to /lib/modules/<kver>/.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
+struct ModuleFile {
+    name: String,
+    rel: PathBuf,
+}
+
+/// All modules of a kernel by name, with dependencies read from each file's `.modinfo`
+/// (what depmod does; kmod is not needed on the build host).
+struct ModuleIndex {
+    root: PathBuf,
+    by_name: HashMap<String, PathBuf>,
+}
+
+/// Module names use `_` where file names may use `-`.
+fn module_name(file_name: &str) -> Option<String> {
+    let stem = file_name.strip_suffix(".ko")?;
+    Some(stem.replace('-', "_"))
+}
+
+impl ModuleIndex {
+    fn scan(modules_dir: &Path) -> Result<Self> {
+        let mut by_name = HashMap::new();
+        let mut stack = vec![modules_dir.join("kernel")];
+        while let Some(dir) = stack.pop() {
+            for entry in fs::read_dir(&dir).with_context(|| format!("reading {}", dir.display()))? {
+                let path = entry?.path();
+                if path.is_dir() {
+                    stack.push(path);
+                } else if let Some(name) = path.file_name().and_then(|n| n.to_str()).and_then(module_name) {
+                    let rel = path.strip_prefix(modules_dir)?.to_path_buf();
+                    by_name.insert(name, rel);
+                }
+            }
+        }
+        if by_name.is_empty() {
+            bail!("no uncompressed .ko modules under {}", modules_dir.display());
+        }
+        Ok(Self { root: modules_dir.to_path_buf(), by_name })
+    }
+
+    fn depends(&self, name: &str) -> Result<Vec<String>> {
+        let rel = self.by_name.get(name).with_context(|| format!("kernel module {name} not found"))?;
+        let bytes = fs::read(self.root.join(rel))?;
+        modinfo_depends(&bytes).with_context(|| format!("reading .modinfo of {}", rel.display()))
+    }
+
+    /// `roots` and everything they need, dependencies first (insmod order).
+    fn closure(&self, roots: &[&str]) -> Result<Vec<ModuleFile>> {
+        let mut order = Vec::new();
+        let mut done = BTreeSet::new();
+        for root in roots {
+            self.visit(root, &mut done, &mut Vec::new(), &mut order)?;
+        }
+        Ok(order)
+    }
+
+    fn visit(
+        &self,
+        name: &str,
+        done: &mut BTreeSet<String>,
+        path: &mut Vec<String>,
+        order: &mut Vec<ModuleFile>,
+    ) -> Result<()> {
+        if done.contains(name) {
+            return Ok(());
+        }
+        if path.iter().any(|p| p == name) {
+            bail!("module dependency cycle: {} -> {name}", path.join(" -> "));
+        }
+        path.push(name.to_owned());
+        for dep in self.depends(name)? {
+            self.visit(&dep, done, path, order)?;
+        }
+        path.pop();
+        done.insert(name.to_owned());
+        let rel = self.by_name[name].clone();
+        order.push(ModuleFile { name: name.to_owned(), rel });
+        Ok(())
+    }
+}
+
+fn le_u16(b: &[u8], at: usize) -> Option<u16> {
+    Some(u16::from_le_bytes(b.get(at..at + 2)?.try_into().ok()?))
+}
+fn le_u32(b: &[u8], at: usize) -> Option<u32> {
+    Some(u32::from_le_bytes(b.get(at..at + 4)?.try_into().ok()?))
+}
+fn le_u64(b: &[u8], at: usize) -> Option<u64> {
+    Some(u64::from_le_bytes(b.get(at..at + 8)?.try_into().ok()?))
+}
+
+/// The `depends=` list of a little-endian ELF64 kernel module's `.modinfo` section.
+fn modinfo_depends(elf: &[u8]) -> Result<Vec<String>> {
+    if elf.get(..4) != Some(b"\x7fELF") || elf.get(4) != Some(&2) || elf.get(5) != Some(&1) {
+        bail!("not a little-endian ELF64 file");
+    }
+    let parse = || -> Option<Vec<String>> {
+        let shoff = usize::try_from(le_u64(elf, 0x28)?).ok()?;
+        let shentsize = usize::from(le_u16(elf, 0x3a)?);
+        let shnum = usize::from(le_u16(elf, 0x3c)?);
+        let shstrndx = usize::from(le_u16(elf, 0x3e)?);
+        let section = |i: usize| -> Option<(u32, usize, usize)> {
+            let h = shoff + i * shentsize;
+            let name = le_u32(elf, h)?;
+            let offset = usize::try_from(le_u64(elf, h + 0x18)?).ok()?;
+            let size = usize::try_from(le_u64(elf, h + 0x20)?).ok()?;
+            Some((name, offset, size))
+        };
+        let (_, str_off, str_size) = section(shstrndx)?;
+        let names = elf.get(str_off..str_off + str_size)?;
+        for i in 0..shnum {
+            let (name, offset, size) = section(i)?;
+            let name = names.get(name as usize..)?;
+            let end = name.iter().position(|&c| c == 0)?;
+            if &name[..end] != b".modinfo" {
+                continue;
+            }
+            let data = elf.get(offset..offset + size)?;
+            let deps = data
+                .split(|&c| c == 0)
+                .filter_map(|entry| entry.strip_prefix(b"depends="))
+                .flat_map(|list| list.split(|&c| c == b','))
+                .filter(|d| !d.is_empty())
+                .map(|d| String::from_utf8_lossy(d).replace('-', "_"))
+                .collect();
+            return Some(deps);
+        }
+        Some(Vec::new())
+    };
+    parse().context("malformed ELF section headers")
+}
+
+fn copy_modules(modules_dir: &Path, dest_modules: &Path, mods: &[ModuleFile]) -> Result<()> {
+    for m in mods {
+        let dest = dest_modules.join(&m.rel);
+        fs::create_dir_all(dest.parent().context("module path has no parent")?)?;
+        fs::copy(modules_dir.join(&m.rel), &dest).with_context(|| format!("copying {}", m.rel.display()))?;
+    }
+    Ok(())
+}
+
+/// `insmod` list: absolute path in the target and module arguments, one module per line.
+fn modules_list(kver: &str, mods: &[ModuleFile], args: &[(&str, &str)]) -> String {
+    let mut out = String::new();
+    for m in mods {
+        let arg = args.iter().find(|(n, _)| *n == m.name).map(|(_, a)| *a).unwrap_or("");
+        out.push_str(&format!("/lib/modules/{kver}/{} {arg}\n", m.rel.display()).replace(" \n", "\n"));
+    }
+    out
+}
+
+fn copy_file_mode(src: &Path, dest: &Path, mode: u32) -> Result<()> {
+    use std::os::unix::fs::PermissionsExt;
+    if let Some(parent) = dest.parent() {
+        fs::create_dir_all(parent)?;
+    }
+    fs::copy(src, dest).with_context(|| format!("copying {} to {}", src.display(), dest.display()))?;
+    fs::set_permissions(dest, fs::Permissions::from_mode(mode))?;
+    Ok(())
+}
+
+/// Copies a directory tree, keeping permissions.
+fn copy_tree(src: &Path, dest: &Path) -> Result<()> {
+    use std::os::unix::fs::PermissionsExt;
+    for entry in fs::read_dir(src).with_context(|| format!("reading {}", src.display()))? {
+        let entry = entry?;
+        let from = entry.path();
+        let to = dest.join(entry.file_name());
+        if from.is_dir() {
+            fs::create_dir_all(&to)?;
+            copy_tree(&from, &to)?;
+        } else {
+            let mode = entry.metadata()?.permissions().mode() & 0o7777;
+            copy_file_mode(&from, &to, mode)?;
+        }
+    }
+    Ok(())
+}
+
+fn build_initramfs(
+    ctx: &Ctx,
+    stage: &Path,
+    busybox: &Path,
+    modules_dir: &Path,
+    kver: &str,
+    mods: &[ModuleFile],
+    out: &Path,
+) -> Result<()> {
+    fresh_dir(stage)?;
+    for d in ["bin", "dev", "proc", "sys", "newroot", "etc"] {
+        fs::create_dir_all(stage.join(d))?;
+    }
+    copy_file_mode(busybox, &stage.join("bin/busybox"), 0o755)?;
+    copy_file_mode(&ctx.root.join("image/initramfs/init"), &stage.join("init"), 0o755)?;
+    copy_modules(modules_dir, &stage.join("lib/modules").join(kver), mods)?;
+    fs::write(stage.join("etc/modules.list"), modules_list(kver, mods, &[]))?;
+    let script = format!(
+        "cd {} && find . | LC_ALL=C sort | cpio -o -H newc -R 0:0 --quiet | gzip -9n > {}",
+        util::shell_quote(&stage.to_string_lossy()),
+        util::shell_quote(&out.to_string_lossy())
+    );
+    run_quiet(Command::new("sh").args(["-c", &script]))?;
+    Ok(())
+}
+
+fn stage_rootfs(
+    ctx: &Ctx,
+    stage: &Path,
+    busybox: &Path,
+    irtrackd: &Path,
+    modules_dir: &Path,
+    kver: &str,
+    mods: &[ModuleFile],
+) -> Result<()> {
+    use std::os::unix::fs::PermissionsExt;
+    fresh_dir(stage)?;
+    for d in ["bin", "sbin", "usr/bin", "usr/sbin", "dev", "proc", "sys", "run", "tmp", "root", "mnt", "var/lib/irtrackd", "var/log"] {
+        fs::create_dir_all(stage.join(d))?;
+    }
+    fs::set_permissions(stage.join("tmp"), fs::Permissions::from_mode(0o1777))?;
+    copy_tree(&ctx.root.join("image/rootfs"), stage)?;
+    copy_file_mode(busybox, &stage.join("bin/busybox"), 0o755)?;
+    // Applet links as busybox itself lists them (run through qemu-user on the x86 host).
+    let list = run_quiet(Command::new("qemu-aarch64").arg(busybox).arg("--list-full"))?;
+    for applet in list.lines().map(str::trim).filter(|l| !l.is_empty()) {
+        let link = stage.join(applet);
+        if link.exists() || applet == "bin/busybox" {
+            continue;
+        }
+        let depth = applet.matches('/').count();
+        let target = format!("{}bin/busybox", "../".repeat(depth));
+        std::os::unix::fs::symlink(&target, &link).with_context(|| format!("linking {applet}"))?;
+    }
+    copy_file_mode(irtrackd, &stage.join("usr/bin/irtrackd"), 0o755)?;
+    copy_modules(modules_dir, &stage.join("lib/modules").join(kver), mods)?;
+    fs::write(stage.join("etc/irtrack/modules.list"), modules_list(kver, mods, ROOT_MODULES))?;
+    Ok(())
+}
+
+/// vfat boot partition: kernel, initramfs and extlinux.conf, written with mtools.
+fn make_boot_partition(ctx: &Ctx, out: &Path, kernel: &Path, initrd: &Path) -> Result<u64> {
+    let payload = fs::metadata(kernel)?.len() + fs::metadata(initrd)?.len();
+    // FAT overhead plus room for a second kernel during an update.
+    let size_mib = (payload / (1 << 20) + 9).max(48);
+    let _ = fs::remove_file(out);
+    run_quiet(
+        Command::new("mkfs.vfat")
+            .args(["-C", "-n", "IRTRACKBOOT"])
+            .arg(out)
+            .arg((size_mib * 1024).to_string()),
+    )?;
+    let img = out.to_string_lossy().into_owned();
+    run_quiet(Command::new("mmd").args(["-i", &img, "::/extlinux"]))?;
+    run_quiet(Command::new("mcopy").args(["-i", &img]).arg(kernel).arg("::/Image"))?;
+    run_quiet(Command::new("mcopy").args(["-i", &img]).arg(initrd).arg("::/initrd.gz"))?;
+    run_quiet(
+        Command::new("mcopy")
+            .args(["-i", &img])
+            .arg(ctx.root.join("image/boot/extlinux.conf"))
+            .arg("::/extlinux/extlinux.conf"),
+    )?;
+    Ok(size_mib << 20)
+}
+
+fn dir_bytes(dir: &Path) -> Result<u64> {
+    let mut total = 0;
+    for entry in fs::read_dir(dir)? {
+        let entry = entry?;
+        let meta = fs::symlink_metadata(entry.path())?;
+        total += if meta.is_dir() { dir_bytes(&entry.path())? + 4096 } else { meta.len().max(1024) };
+    }
+    Ok(total)
+}
+
+/// ext4 root partition populated from the staging directory by `mke2fs -d` (no mount).
+fn make_root_partition(out: &Path, stage: &Path) -> Result<u64> {
+    let used_mib = dir_bytes(stage)? / (1 << 20) + 1;
+    // Free space for parameter sets, logs and a service update; rounded to 16 MiB.
+    let size_mib = ((used_mib * 3 / 2 + 48).div_ceil(16) * 16).max(96);
+    let _ = fs::remove_file(out);
+    run_quiet(
+        Command::new("mke2fs")
+            .args(["-q", "-F", "-t", "ext4", "-L", "irtrack-root", "-E", "root_owner=0:0", "-d"])
+            .arg(stage)
+            .arg(out)
+            .arg(format!("{size_mib}M")),
+    )?;
+    Ok(size_mib << 20)
+}
+
+/// Copies `src` into `dest` at `offset`, skipping all-zero blocks so the image stays sparse.
+fn write_at(dest: &mut fs::File, offset: u64, src: &Path) -> Result<()> {
+    let mut input = fs::File::open(src)?;
+    let mut buf = vec![0u8; 1 << 16];
+    let mut pos = offset;
+    loop {
+        let n = input.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        if buf[..n].iter().any(|&b| b != 0) {
+            dest.seek(SeekFrom::Start(pos))?;
+            dest.write_all(&buf[..n])?;
+        }
+        pos += n as u64;
+    }
+    Ok(())
+}
+
+/// MBR disk: partition 1 vfat boot (bootable, from 1 MiB), partition 2 ext4 root.
+fn assemble_sd(out: &Path, boot: &Path, root: &Path) -> Result<()> {
+    const SECTOR: u64 = 512;
+    let boot_len = fs::metadata(boot)?.len();
+    let root_len = fs::metadata(root)?.len();
+    let boot_start = 2048;
+    let root_start = boot_start + boot_len / SECTOR;
+    let total = (root_start * SECTOR) + root_len;
+    let _ = fs::remove_file(out);
+    let mut file = fs::File::create(out)?;
+    file.set_len(total)?;
+    let layout = format!(
+        "label: dos\nunit: sectors\n\nstart={boot_start}, size={}, type=c, bootable\nstart={root_start}, size={}, type=83\n",
+        boot_len / SECTOR,
+        root_len / SECTOR
+    );
+    let mut sfdisk = Command::new("sfdisk");
+    sfdisk.args(["--quiet", "--no-reread", "--no-tell-kernel"]).arg(out);
+    sfdisk.stdin(std::process::Stdio::piped()).stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped());
+    let mut child = sfdisk.spawn().context("starting sfdisk")?;
+    child.stdin.take().context("sfdisk stdin")?.write_all(layout.as_bytes())?;
+    let res = child.wait_with_output()?;
+    if !res.status.success() {
+        bail!("sfdisk failed: {}", String::from_utf8_lossy(&res.stderr));
+    }
+    write_at(&mut file, boot_start * SECTOR, boot)?;
+    write_at(&mut file, root_start * SECTOR, root)?;
+    file.sync_all()?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A minimal ELF64 with a section-name table and a `.modinfo` section.
+    fn fake_module(modinfo: &[u8]) -> Vec<u8> {
+        let shstr = b"\0.shstrtab\0.modinfo\0";
+        let mut elf = vec![0u8; 64];
+        elf[..6].copy_from_slice(b"\x7fELF\x02\x01");
+        let shstr_off = elf.len();
+        elf.extend_from_slice(shstr);
+        let modinfo_off = elf.len();
+        elf.extend_from_slice(modinfo);
+        let shoff = elf.len();
+        let mut header = |name: u32, off: usize, size: usize| {
+            let mut h = vec![0u8; 64];
+            h[..4].copy_from_slice(&name.to_le_bytes());
+            h[0x18..0x20].copy_from_slice(&(off as u64).to_le_bytes());
+            h[0x20..0x28].copy_from_slice(&(size as u64).to_le_bytes());
+            elf.extend_from_slice(&h);
+        };
+        header(0, 0, 0);
+        header(1, shstr_off, shstr.len());
+        header(11, modinfo_off, modinfo.len());
+        elf[0x28..0x30].copy_from_slice(&(shoff as u64).to_le_bytes());
+        elf[0x3a..0x3c].copy_from_slice(&64u16.to_le_bytes());
+        elf[0x3c..0x3e].copy_from_slice(&3u16.to_le_bytes());
+        elf[0x3e..0x40].copy_from_slice(&1u16.to_le_bytes());
+        elf
+    }
+
+    #[test]
+    fn modinfo_depends_are_read_and_normalised() {
+        let elf = fake_module(b"license=GPL\0depends=videobuf2-common,v4l2_tpg,mc\0vermagic=6.1\0");
+        assert_eq!(modinfo_depends(&elf).unwrap(), vec!["videobuf2_common", "v4l2_tpg", "mc"]);
+        let none = fake_module(b"license=GPL\0depends=\0");
+        assert!(modinfo_depends(&none).unwrap().is_empty());
+        assert!(modinfo_depends(b"not an elf").is_err());
+        let mut truncated = fake_module(b"depends=a\0");
+        truncated.truncate(100);
+        assert!(modinfo_depends(&truncated).is_err());
+    }
+
+    #[test]
+    fn closure_lists_dependencies_first_once() {
+        let dir = std::env::temp_dir().join(format!("xtask-modules-{}", std::process::id()));
+        let kernel = dir.join("kernel/drivers");
+        fs::create_dir_all(&kernel).unwrap();
+        for (file, deps) in [("a.ko", "b,c"), ("b.ko", "c"), ("c-x.ko", ""), ("c.ko", ""), ("d.ko", "c_x")] {
+            fs::write(kernel.join(file), fake_module(format!("depends={deps}\0").as_bytes())).unwrap();
+        }
+        let index = ModuleIndex::scan(&dir).unwrap();
+        let order: Vec<String> = index.closure(&["a", "d"]).unwrap().into_iter().map(|m| m.name).collect();
+        assert_eq!(order, vec!["c", "b", "a", "c_x", "d"]);
+        assert!(index.closure(&["missing"]).unwrap_err().to_string().contains("missing"));
+        fs::write(kernel.join("c.ko"), fake_module(b"depends=a\0")).unwrap();
+        let err = ModuleIndex::scan(&dir).unwrap().closure(&["a"]).unwrap_err().to_string();
+        fs::remove_dir_all(&dir).unwrap();
+        assert!(err.contains("cycle"), "{err}");
+    }
+
+    #[test]
+    fn modules_list_adds_arguments() {
+        let mods = vec![
+            ModuleFile { name: "mc".into(), rel: "kernel/mc.ko".into() },
+            ModuleFile { name: "vivid".into(), rel: "kernel/vivid.ko".into() },
+        ];
+        let list = modules_list("6.1", &mods, &[("vivid", "n_devs=2")]);
+        assert_eq!(list, "/lib/modules/6.1/kernel/mc.ko\n/lib/modules/6.1/kernel/vivid.ko n_devs=2\n");
+    }
+}

@@ -1,0 +1,831 @@
+//! The system test: boots the SD image in `qemu-system-aarch64 -M virt,acpi=off` through U-Boot
+//! and checks irtrackd on the real kernel (vivid cameras, PL061 GPIO, network, restart, reboot).
+//!
+//! QEMU runs with its serial console on a pipe: the test reads the boot log from it and types
+//! shell commands into the guest's console shell. Host ports are chosen free per run and
+//! forwarded to irtrackd's ports. QEMU is killed on every path (the guard's `Drop`), and QEMU
+//! exiting before a step completes fails the test.
+
+use std::fmt;
+use std::fs;
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{Ipv4Addr, SocketAddr, TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::thread;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+
+use super::{Image, UBOOT_QEMU, work_dir};
+use crate::util::{self, Ctx};
+
+/// irtrackd's ports in the guest: parameters, NDJSON stream, binary stream, status.
+const GUEST_PORTS: [u16; 4] = [7701, 7702, 7703, 7704];
+/// What the image's irtrackd.toml configures (checked against what the service reports).
+const LED_LINES: [(&str, u32); 4] = [("run", 4), ("track", 5), ("robot", 6), ("fault", 7)];
+const CAMERA_FPS: f64 = 15.0;
+const BOOT_TIMEOUT: Duration = Duration::from_secs(120);
+
+/// Free host ports, all bound at once so they differ, then released for QEMU.
+fn free_ports<const N: usize>() -> Result<[u16; N]> {
+    let listeners: Vec<TcpListener> =
+        (0..N).map(|_| TcpListener::bind((Ipv4Addr::LOCALHOST, 0))).collect::<std::io::Result<_>>()?;
+    let mut ports = [0; N];
+    for (p, l) in ports.iter_mut().zip(&listeners) {
+        *p = l.local_addr()?.port();
+    }
+    Ok(ports)
+}
+
+fn qemu_command(disk: &Path, host_ports: &[u16; 4]) -> Command {
+    let fwd: Vec<String> = host_ports
+        .iter()
+        .zip(GUEST_PORTS)
+        .map(|(h, g)| format!("hostfwd=tcp:127.0.0.1:{h}-:{g}"))
+        .collect();
+    let mut cmd = Command::new("qemu-system-aarch64");
+    // acpi=off keeps the PL061 GPIO in the device tree when booting through U-Boot.
+    cmd.args(["-M", "virt,acpi=off", "-cpu", "cortex-a53", "-smp", "2", "-m", "512"])
+        .args(["-display", "none", "-monitor", "none", "-serial", "stdio"])
+        .args(["-bios", UBOOT_QEMU])
+        .arg("-drive")
+        .arg(format!("if=none,file={},format=raw,id=sd", disk.display()))
+        .args(["-device", "virtio-blk-device,drive=sd"])
+        .arg("-netdev")
+        .arg(format!("user,id=net0,{}", fwd.join(",")))
+        .args(["-device", "virtio-net-device,netdev=net0"]);
+    cmd
+}
+
+/// A running QEMU whose serial console is collected into a log; killed when dropped.
+struct Qemu {
+    child: Child,
+    stdin: ChildStdin,
+    log: Arc<Mutex<String>>,
+    log_path: PathBuf,
+    started: Instant,
+    commands: u32,
+}
+
+impl Qemu {
+    fn spawn(mut cmd: Command, log_path: &Path) -> Result<Self> {
+        println!("$ {}", util::display_cmd(&cmd));
+        cmd.stdin(Stdio::piped()).stdout(Stdio::piped()).stderr(Stdio::inherit());
+        let started = Instant::now();
+        let mut child = cmd.spawn().context("starting qemu-system-aarch64 (run `cargo xtask setup`)")?;
+        let stdin = child.stdin.take().context("qemu stdin")?;
+        let mut stdout = child.stdout.take().context("qemu stdout")?;
+        let log = Arc::new(Mutex::new(String::new()));
+        let mut file = fs::File::create(log_path)?;
+        let sink = Arc::clone(&log);
+        thread::spawn(move || {
+            let mut buf = [0u8; 4096];
+            while let Ok(n) = stdout.read(&mut buf) {
+                if n == 0 {
+                    break;
+                }
+                let _ = file.write_all(&buf[..n]);
+                let text = String::from_utf8_lossy(&buf[..n]).replace('\r', "");
+                if let Ok(mut log) = sink.lock() {
+                    log.push_str(&text);
+                }
+            }
+        });
+        Ok(Self { child, stdin, log, log_path: log_path.to_path_buf(), started, commands: 0 })
+    }
+
+    fn log_len(&self) -> usize {
+        self.log.lock().map(|l| l.len()).unwrap_or(0)
+    }
+
+    fn ensure_running(&mut self, waiting_for: &str) -> Result<()> {
+        if let Some(status) = self.child.try_wait()? {
+            bail!(
+                "QEMU exited ({status}) while waiting for {waiting_for}; serial log in {}",
+                self.log_path.display()
+            );
+        }
+        Ok(())
+    }
+
+    /// Waits until `needle` appears in the log after byte offset `from`; returns the offset
+    /// just past it.
+    fn wait_for(&mut self, needle: &str, from: usize, timeout: Duration) -> Result<usize> {
+        let start = Instant::now();
+        loop {
+            if let Ok(log) = self.log.lock() {
+                if let Some(i) = log.get(from..).and_then(|rest| rest.find(needle)) {
+                    return Ok(from + i + needle.len());
+                }
+            }
+            self.ensure_running(&format!("{needle:?}"))?;
+            if start.elapsed() > timeout {
+                bail!(
+                    "no {needle:?} on the serial console within {}; log in {}",
+                    util::fmt_duration(timeout),
+                    self.log_path.display()
+                );
+            }
+            thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Runs a shell command on the guest console and returns its output. Markers printed by
+    /// `printf` bracket the output; the terminal's echo of the typed line cannot match them.
+    fn console(&mut self, command: &str, timeout: Duration) -> Result<String> {
+        self.commands += 1;
+        let n = self.commands;
+        let begin = format!("@@B{n}@@\n");
+        let end = format!("@@E{n}@@");
+        let from = self.log_len();
+        let line = format!("printf '@@%s@@\\n' B{n}; {command}; printf '@@%s@@\\n' E{n}\n");
+        self.stdin.write_all(line.as_bytes())?;
+        self.stdin.flush()?;
+        let after_begin = self.wait_for(&begin, from, timeout)?;
+        let after_end = self.wait_for(&end, after_begin, timeout)?;
+        let log = self.log.lock().map_err(|_| anyhow::anyhow!("serial log lock poisoned"))?;
+        Ok(log[after_begin..after_end - end.len()].to_owned())
+    }
+}
+
+impl Drop for Qemu {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// One named check of the system test.
+pub struct Check {
+    pub name: &'static str,
+    pub ok: bool,
+    pub detail: String,
+}
+
+#[derive(Default)]
+pub struct Report {
+    pub checks: Vec<Check>,
+    pub figures: Vec<String>,
+}
+
+impl Report {
+    pub fn passed(&self) -> u64 {
+        self.checks.iter().filter(|c| c.ok).count() as u64
+    }
+    pub fn failed(&self) -> u64 {
+        self.checks.iter().filter(|c| !c.ok).count() as u64
+    }
+    fn check(&mut self, name: &'static str, result: Result<String>) {
+        let (ok, detail) = match result {
+            Ok(d) => (true, d),
+            Err(e) => (false, format!("{e:#}")),
+        };
+        println!("system-test: {} {name}: {detail}", if ok { "PASS" } else { "FAIL" });
+        self.checks.push(Check { name, ok, detail });
+    }
+}
+
+impl fmt::Display for Report {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(f, "system test:")?;
+        for c in &self.checks {
+            writeln!(f, "  {} {}: {}", if c.ok { "PASS" } else { "FAIL" }, c.name, c.detail)?;
+        }
+        for fig in &self.figures {
+            writeln!(f, "  {fig}")?;
+        }
+        write!(f, "system-test: {} passed, {} failed", self.passed(), self.failed())
+    }
+}
+
+/// GET /status over the forwarded port, parsed; retried while the guest is not listening yet
+/// (QEMU's forwarder accepts and then closes in that case).
+fn get_status(port: u16) -> Result<Json> {
+    let mut last = anyhow::anyhow!("no attempt");
+    for _ in 0..20 {
+        match try_get_status(port) {
+            Ok(j) => return Ok(j),
+            Err(e) => last = e,
+        }
+        thread::sleep(Duration::from_millis(500));
+    }
+    Err(last.context(format!("GET /status on 127.0.0.1:{port}")))
+}
+
+fn try_get_status(port: u16) -> Result<Json> {
+    let addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port));
+    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5))?;
+    s.set_read_timeout(Some(Duration::from_secs(10)))?;
+    s.write_all(b"GET /status HTTP/1.0\r\nHost: irtrack\r\n\r\n")?;
+    let mut resp = String::new();
+    s.read_to_string(&mut resp)?;
+    let (head, body) = resp.split_once("\r\n\r\n").context("no HTTP header end")?;
+    if !head.starts_with("HTTP/1.") || !head.lines().next().is_some_and(|l| l.contains(" 200")) {
+        bail!("unexpected reply: {}", head.lines().next().unwrap_or(""));
+    }
+    Json::parse(body)
+}
+
+fn num(j: &Json, path: &str) -> Result<f64> {
+    j.get(path).and_then(Json::as_f64).with_context(|| format!("status has no number at {path}"))
+}
+
+fn text<'a>(j: &'a Json, path: &str) -> Result<&'a str> {
+    j.get(path).and_then(Json::as_str).with_context(|| format!("status has no string at {path}"))
+}
+
+/// Boots a copy of the image and runs every check. Errors only for setup failures; failed
+/// checks are in the report.
+pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
+    let dir = work_dir(ctx).join("system-test");
+    fs::create_dir_all(&dir)?;
+    let params_file = make_params(ctx, &dir)?;
+    let rig_id = rig_id_of(ctx, &params_file)?;
+    // A fresh copy per run: the test's parameter pushes must not leak into the next run.
+    let disk = dir.join("sd.img");
+    let _ = fs::remove_file(&disk);
+    let cp = Command::new("cp").arg("--sparse=always").arg(&image.sd_img).arg(&disk).status()?;
+    if !cp.success() {
+        bail!("copying the image to {}", disk.display());
+    }
+    let ports = free_ports::<4>()?;
+    let [params_port, stream_port, _binary_port, status_port] = ports;
+    let mut report = Report::default();
+    report.figures.push(format!(
+        "image size: {:.1} MiB ({} bytes; boot {:.0} MiB + root {:.0} MiB)",
+        super::mib(image.size_bytes),
+        image.size_bytes,
+        super::mib(image.boot_bytes),
+        super::mib(image.root_bytes)
+    ));
+    let mut q = Qemu::spawn(qemu_command(&disk, &ports), &dir.join("serial-boot1.log"))?;
+
+    // 1. Boot to ready.
+    let ready = q.wait_for("irtrackd ready", 0, BOOT_TIMEOUT);
+    let boot_s = q.started.elapsed().as_secs_f64();
+    let ready_at = match ready {
+        Ok(at) => {
+            report.check("boot to irtrackd ready (U-Boot, kernel, initramfs, busybox init)", Ok(format!("{boot_s:.1} s")));
+            report.figures.push(format!("boot time to ready: {boot_s:.1} s (QEMU start to irtrackd's ready line)"));
+            at
+        }
+        Err(e) => {
+            report.check("boot to irtrackd ready (U-Boot, kernel, initramfs, busybox init)", Err(e));
+            return Ok(report);
+        }
+    };
+    // The console shell starts with irtrackd; make sure it answers before typing commands.
+    let shell = q.console("uname -r", Duration::from_secs(20));
+    report.check("guest console shell", shell.map(|s| format!("kernel {}", s.trim())));
+
+    report.check("v4l2 capture from vivid (format, streaming, kernel timestamps)", check_capture(status_port));
+    report.check("status LEDs on the PL061 through gpiocdev, read back via gpiolib", check_gpio(&mut q, status_port, true));
+    report.check("host-tools push-params over the forwarded port", push_params(ctx, params_port, &params_file));
+    report.check("pushed parameters in use", check_params_used(status_port, &rig_id));
+    report.check("position stream reaches a host client", check_stream(stream_port));
+    report.check("fault LED off once parameters are in use", check_gpio(&mut q, status_port, false));
+    report.check("irtrackd restarts after being killed", check_restart(&mut q, ready_at, status_port, &rig_id));
+    match check_reboot(&mut q, status_port, &rig_id) {
+        Ok((detail, second_boot_s)) => {
+            report.figures.push(format!("reboot to ready: {second_boot_s:.1} s"));
+            report.check("parameters survive a reboot", Ok(detail));
+        }
+        Err(e) => report.check("parameters survive a reboot", Err(e)),
+    }
+    drop(q);
+    Ok(report)
+}
+
+fn check_capture(port: u16) -> Result<String> {
+    let s1 = get_status(port)?;
+    let desc = text(&s1, "source.description")?.to_owned();
+    for want in ["v4l2", "/dev/video0", "/dev/video1", "vivid"] {
+        if !desc.contains(want) {
+            bail!("source description lacks {want:?}: {desc}");
+        }
+    }
+    let t0 = Instant::now();
+    let sets0 = num(&s1, "source.sets_delivered")?;
+    thread::sleep(Duration::from_secs(3));
+    let s2 = get_status(port)?;
+    let sets1 = num(&s2, "source.sets_delivered")?;
+    let rate = (sets1 - sets0) / t0.elapsed().as_secs_f64();
+    if rate < CAMERA_FPS * 0.3 {
+        bail!("only {rate:.1} frame sets/s delivered (vivid runs at {CAMERA_FPS} fps): {desc}");
+    }
+    let mut fps = Vec::new();
+    for cam in 0..2 {
+        let frames = num(&s2, &format!("source.cameras.{cam}.frames"))?;
+        // The service computes fps from the kernel timestamps of successive frames.
+        let f = num(&s2, &format!("source.cameras.{cam}.fps"))?;
+        if frames <= 0.0 || !(CAMERA_FPS * 0.5..=CAMERA_FPS * 1.5).contains(&f) {
+            bail!("camera {cam}: {frames} frames at {f:.1} fps from timestamps (want about {CAMERA_FPS})");
+        }
+        fps.push(f);
+    }
+    let pairing_max_us = num(&s2, "source.pairing_error_max_us")?;
+    let half_period_us = 0.5e6 / CAMERA_FPS;
+    if pairing_max_us > half_period_us {
+        bail!("pairing error {pairing_max_us:.0} µs exceeds half a frame period");
+    }
+    Ok(format!(
+        "{desc}; {rate:.1} sets/s, timestamp fps {:.1}/{:.1}, pairing error ≤ {pairing_max_us:.0} µs, unpaired dropped {}",
+        fps[0],
+        fps[1],
+        num(&s2, "source.unpaired_dropped").unwrap_or(f64::NAN)
+    ))
+}
+
+/// One line of gpiolib's debugfs view, for a line requested by irtrackd.
+#[derive(Debug, Clone, PartialEq)]
+struct GpioLine {
+    offset: u32,
+    output: bool,
+    high: bool,
+}
+
+/// Parses /sys/kernel/debug/gpio for the chip labelled `label`: lines whose consumer is
+/// `consumer`. The header gives the chip's global base (`GPIOs 512-519`).
+fn parse_debugfs_gpio(text: &str, label: &str, consumer: &str) -> Vec<GpioLine> {
+    let mut out = Vec::new();
+    let mut base: Option<u32> = None;
+    for line in text.lines() {
+        if line.starts_with("gpiochip") {
+            base = if line.contains(label) {
+                line.split("GPIOs ").nth(1).and_then(|r| r.split('-').next()).and_then(|n| n.trim().parse().ok())
+            } else {
+                None
+            };
+            continue;
+        }
+        let (Some(base), Some(rest)) = (base, line.trim_start().strip_prefix("gpio-")) else { continue };
+        let Some((num, rest)) = rest.split_once(' ') else { continue };
+        let (Ok(num), Some((names, state))) = (num.parse::<u32>(), rest.split_once(')')) else { continue };
+        let used_by = names.split('|').nth(1).map(str::trim);
+        if used_by != Some(consumer) || num < base {
+            continue;
+        }
+        let mut words = state.split_whitespace();
+        let output = words.next() == Some("out");
+        let high = words.next() == Some("hi");
+        out.push(GpioLine { offset: num - base, output, high });
+    }
+    out
+}
+
+/// Samples the LED lines through the kernel for about 3 s. Always: the four configured lines
+/// are outputs held by irtrackd and the heartbeat toggles. `expect_no_params_fault`: the fault
+/// LED flashes (no parameters yet); otherwise, with no fault reported, it stays off.
+fn check_gpio(q: &mut Qemu, status_port: u16, expect_no_params_fault: bool) -> Result<String> {
+    let before = get_status(status_port)?;
+    let samples = 30;
+    let out = q.console(
+        &format!(
+            "for i in $(seq {samples}); do echo SAMPLE; grep -A9 9030000.pl061 /sys/kernel/debug/gpio; sleep 0.1; done"
+        ),
+        Duration::from_secs(30),
+    )?;
+    let after = get_status(status_port)?;
+    let mut seen = [[false; 2]; 4];
+    let mut n = 0;
+    for sample in out.split("SAMPLE\n").skip(1) {
+        let lines = parse_debugfs_gpio(sample, "9030000.pl061", "irtrackd");
+        for (i, (name, offset)) in LED_LINES.iter().enumerate() {
+            let line = lines
+                .iter()
+                .find(|l| l.offset == *offset)
+                .with_context(|| format!("{name} LED line {offset} not held by irtrackd:\n{sample}"))?;
+            if !line.output {
+                bail!("{name} LED line {offset} is not an output:\n{sample}");
+            }
+            seen[i][usize::from(line.high)] = true;
+        }
+        n += 1;
+    }
+    if n < samples / 2 {
+        bail!("only {n} of {samples} gpio samples parsed:\n{out}");
+    }
+    if !(seen[0][0] && seen[0][1]) {
+        bail!("run LED (heartbeat) did not toggle in {n} samples");
+    }
+    let faults = |j: &Json| -> Vec<String> {
+        j.get("faults")
+            .and_then(Json::as_array)
+            .map(|a| a.iter().filter_map(|f| f.as_str().map(str::to_owned)).collect())
+            .unwrap_or_default()
+    };
+    let (f0, f1) = (faults(&before), faults(&after));
+    let fault_detail = if expect_no_params_fault {
+        if !f0.iter().chain(&f1).any(|f| f == "no_params") {
+            bail!("status does not report the no-parameters fault: {f0:?} {f1:?}");
+        }
+        if !seen[3][1] {
+            bail!("fault LED never lit in {n} samples although status reports {f0:?}");
+        }
+        format!("fault LED flashing for {f0:?}")
+    } else if f0.is_empty() && f1.is_empty() {
+        if seen[3][1] {
+            bail!("fault LED lit although status reports no fault");
+        }
+        "fault LED off, no faults reported".to_owned()
+    } else {
+        format!("fault LED not checked: status reports faults {f0:?} {f1:?}")
+    };
+    Ok(format!("lines 4-7 outputs held by irtrackd, heartbeat toggling over {n} samples; {fault_detail}"))
+}
+
+/// `host-tools simulate` writes a rig (two VGA cameras, like the vivid ones) as `rig.irp`.
+fn make_params(ctx: &Ctx, dir: &Path) -> Result<PathBuf> {
+    let out_dir = dir.join("sim");
+    let out = ctx
+        .cargo()
+        .args(["run", "-q", "-p", "irtrack-host-tools", "--", "simulate", "--frames", "1", "--out"])
+        .arg(&out_dir)
+        .output()
+        .context("running host-tools simulate")?;
+    if !out.status.success() {
+        bail!("host-tools simulate failed: {}", String::from_utf8_lossy(&out.stderr));
+    }
+    let file = out_dir.join("rig.irp");
+    if !file.is_file() {
+        bail!("host-tools simulate wrote no {}", file.display());
+    }
+    Ok(file)
+}
+
+fn rig_id_of(ctx: &Ctx, file: &Path) -> Result<String> {
+    let out = ctx
+        .cargo()
+        .args(["run", "-q", "-p", "irtrack-host-tools", "--", "show-params"])
+        .arg(file)
+        .output()
+        .context("running host-tools show-params")?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    text.lines()
+        .find_map(|l| l.trim().strip_prefix("rig id:").map(|r| r.trim().to_owned()))
+        .filter(|id| !id.is_empty())
+        .with_context(|| format!("no `rig id:` in host-tools show-params output:\n{text}"))
+}
+
+fn push_params(ctx: &Ctx, port: u16, file: &Path) -> Result<String> {
+    let out = ctx
+        .cargo()
+        .args(["run", "-q", "-p", "irtrack-host-tools", "--", "push-params", "--to"])
+        .arg(format!("127.0.0.1:{port}"))
+        .arg(file)
+        .output()
+        .context("running host-tools push-params")?;
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    if !out.status.success() {
+        bail!("push-params {}: {}", out.status, text.trim());
+    }
+    Ok(text.trim().lines().last().unwrap_or("").to_owned())
+}
+
+fn check_params_used(port: u16, rig_id: &str) -> Result<String> {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let s = get_status(port)?;
+        let id = s.get("params.rig_id").and_then(Json::as_str).unwrap_or("");
+        let published = num(&s, "processing.published").unwrap_or(0.0);
+        if id == rig_id {
+            return Ok(format!("status shows rig {id}; {published} records published"));
+        }
+        if Instant::now() > deadline {
+            bail!("status shows rig {id:?}, want {rig_id:?}");
+        }
+        thread::sleep(Duration::from_millis(300));
+    }
+}
+
+/// Reads NDJSON records from the forwarded stream port for a few seconds.
+fn check_stream(port: u16) -> Result<String> {
+    let addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port));
+    let s = TcpStream::connect_timeout(&addr, Duration::from_secs(5))?;
+    s.set_read_timeout(Some(Duration::from_secs(5)))?;
+    let mut reader = BufReader::new(s);
+    let start = Instant::now();
+    let mut records = Vec::new();
+    let mut line = String::new();
+    while start.elapsed() < Duration::from_secs(3) {
+        line.clear();
+        if reader.read_line(&mut line)? == 0 {
+            bail!("stream closed after {} records", records.len());
+        }
+        records.push(Json::parse(line.trim()).with_context(|| format!("bad NDJSON record {line:?}"))?);
+    }
+    if records.len() < 5 {
+        bail!("only {} records in 3 s", records.len());
+    }
+    let field = |r: &Json, k: &str| r.get(k).and_then(Json::as_f64).with_context(|| format!("record without {k}"));
+    let (first, last) = (&records[0], &records[records.len() - 1]);
+    let frames = field(last, "frame")? - field(first, "frame")?;
+    let span_s = (field(last, "capture_ts_ns")? - field(first, "capture_ts_ns")?) / 1e9;
+    if frames <= 0.0 || span_s <= 0.0 {
+        bail!("frame numbers or capture timestamps do not advance");
+    }
+    let crc = field(last, "params_crc")?;
+    if crc == 0.0 {
+        bail!("records carry no parameter CRC although parameters were pushed");
+    }
+    let status = last.get("status").and_then(Json::as_str).unwrap_or("?");
+    Ok(format!(
+        "{} records in 3 s, frames advanced by {frames}, capture timestamps span {span_s:.2} s, last status {status}",
+        records.len()
+    ))
+}
+
+fn check_restart(q: &mut Qemu, _first_ready: usize, status_port: u16, rig_id: &str) -> Result<String> {
+    let pid_before = q.console("pidof irtrackd", Duration::from_secs(10))?.trim().to_owned();
+    if pid_before.is_empty() {
+        bail!("irtrackd not running before the kill");
+    }
+    let from = q.log_len();
+    let t0 = Instant::now();
+    q.console(&format!("kill -9 {pid_before}"), Duration::from_secs(10))?;
+    q.wait_for("irtrackd exited", from, Duration::from_secs(10))?;
+    let at = q.wait_for("irtrackd ready", from, Duration::from_secs(60))?;
+    let restart_s = t0.elapsed().as_secs_f64();
+    let _ = at;
+    let pid_after = q.console("pidof irtrackd", Duration::from_secs(10))?.trim().to_owned();
+    if pid_after.is_empty() || pid_after == pid_before {
+        bail!("pid before {pid_before}, after {pid_after:?}");
+    }
+    let s = get_status(status_port)?;
+    let id = s.get("params.rig_id").and_then(Json::as_str).unwrap_or("");
+    if id != rig_id {
+        bail!("after restart the status shows rig {id:?}, want {rig_id:?} (from the state dir)");
+    }
+    Ok(format!("pid {pid_before} killed, pid {pid_after} ready in {restart_s:.1} s with rig {id} loaded from disk"))
+}
+
+fn check_reboot(q: &mut Qemu, status_port: u16, rig_id: &str) -> Result<(String, f64)> {
+    let from = q.log_len();
+    let t0 = Instant::now();
+    // `reboot` runs the shutdown actions (stop irtrackd, sync, remount read-only) and resets
+    // the machine; U-Boot boots the same disk again.
+    q.stdin.write_all(b"reboot\n")?;
+    q.stdin.flush()?;
+    q.wait_for("U-Boot", from, Duration::from_secs(60))?;
+    q.wait_for("irtrackd ready", from, BOOT_TIMEOUT)?;
+    let boot_s = t0.elapsed().as_secs_f64();
+    let s = get_status(status_port)?;
+    let id = s.get("params.rig_id").and_then(Json::as_str).unwrap_or("");
+    if id != rig_id {
+        bail!("after reboot the status shows rig {id:?}, want {rig_id:?}");
+    }
+    Ok((format!("rebooted, ready again in {boot_s:.1} s with rig {id}"), boot_s))
+}
+
+/// `cargo xtask image run`: boots the image with the console on this terminal.
+pub fn interactive(ctx: &Ctx, image: &Image) -> Result<()> {
+    let ports = free_ports::<4>()?;
+    let disk = work_dir(ctx).join("interactive-sd.img");
+    fs::copy(&image.sd_img, &disk)?;
+    let mut cmd = qemu_command(&disk, &ports);
+    // The terminal becomes the serial console; Ctrl-A X quits QEMU.
+    let args: Vec<String> = cmd.get_args().map(|a| a.to_string_lossy().into_owned()).collect();
+    let mut fixed = Command::new("qemu-system-aarch64");
+    for a in &args {
+        fixed.arg(if a == "stdio" { "mon:stdio" } else { a.as_str() });
+    }
+    cmd = fixed;
+    println!(
+        "irtrackd ports on this host: params 127.0.0.1:{}, stream 127.0.0.1:{}, binary 127.0.0.1:{}, status http://127.0.0.1:{}/status",
+        ports[0], ports[1], ports[2], ports[3]
+    );
+    println!("$ {}", util::display_cmd(&cmd));
+    let status = cmd.status().context("starting qemu-system-aarch64")?;
+    println!("QEMU exited: {status}");
+    Ok(())
+}
+
+/// A small JSON reader for the status document (xtask has no serde).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Json {
+    Null,
+    Bool(bool),
+    Num(f64),
+    Str(String),
+    Arr(Vec<Json>),
+    Obj(Vec<(String, Json)>),
+}
+
+impl Json {
+    pub fn parse(text: &str) -> Result<Json> {
+        let mut p = Parser { s: text.as_bytes(), i: 0 };
+        let v = p.value()?;
+        p.ws();
+        if p.i != p.s.len() {
+            bail!("trailing characters at byte {}", p.i);
+        }
+        Ok(v)
+    }
+
+    /// Looks up a dotted path; numeric parts index arrays (`source.cameras.0.fps`).
+    pub fn get(&self, path: &str) -> Option<&Json> {
+        let mut cur = self;
+        for part in path.split('.') {
+            cur = match cur {
+                Json::Obj(fields) => fields.iter().find(|(k, _)| k == part).map(|(_, v)| v)?,
+                Json::Arr(items) => items.get(part.parse::<usize>().ok()?)?,
+                _ => return None,
+            };
+        }
+        Some(cur)
+    }
+
+    pub fn as_f64(&self) -> Option<f64> {
+        match self {
+            Json::Num(n) => Some(*n),
+            _ => None,
+        }
+    }
+
+    pub fn as_str(&self) -> Option<&str> {
+        match self {
+            Json::Str(s) => Some(s),
+            _ => None,
+        }
+    }
+
+    pub fn as_array(&self) -> Option<&[Json]> {
+        match self {
+            Json::Arr(a) => Some(a),
+            _ => None,
+        }
+    }
+}
+
+struct Parser<'a> {
+    s: &'a [u8],
+    i: usize,
+}
+
+impl Parser<'_> {
+    fn ws(&mut self) {
+        while self.s.get(self.i).is_some_and(|c| c.is_ascii_whitespace()) {
+            self.i += 1;
+        }
+    }
+
+    fn eat(&mut self, lit: &str) -> Result<()> {
+        if self.s[self.i..].starts_with(lit.as_bytes()) {
+            self.i += lit.len();
+            Ok(())
+        } else {
+            bail!("expected {lit:?} at byte {}", self.i)
+        }
+    }
+
+    fn value(&mut self) -> Result<Json> {
+        self.ws();
+        match self.s.get(self.i) {
+            None => bail!("unexpected end of JSON"),
+            Some(b'n') => self.eat("null").map(|_| Json::Null),
+            Some(b't') => self.eat("true").map(|_| Json::Bool(true)),
+            Some(b'f') => self.eat("false").map(|_| Json::Bool(false)),
+            Some(b'"') => self.string().map(Json::Str),
+            Some(b'[') => {
+                self.i += 1;
+                let mut items = Vec::new();
+                self.ws();
+                if self.s.get(self.i) == Some(&b']') {
+                    self.i += 1;
+                    return Ok(Json::Arr(items));
+                }
+                loop {
+                    items.push(self.value()?);
+                    self.ws();
+                    match self.s.get(self.i) {
+                        Some(b',') => self.i += 1,
+                        Some(b']') => {
+                            self.i += 1;
+                            return Ok(Json::Arr(items));
+                        }
+                        _ => bail!("expected , or ] at byte {}", self.i),
+                    }
+                }
+            }
+            Some(b'{') => {
+                self.i += 1;
+                let mut fields = Vec::new();
+                self.ws();
+                if self.s.get(self.i) == Some(&b'}') {
+                    self.i += 1;
+                    return Ok(Json::Obj(fields));
+                }
+                loop {
+                    self.ws();
+                    let key = self.string()?;
+                    self.ws();
+                    self.eat(":")?;
+                    fields.push((key, self.value()?));
+                    self.ws();
+                    match self.s.get(self.i) {
+                        Some(b',') => self.i += 1,
+                        Some(b'}') => {
+                            self.i += 1;
+                            return Ok(Json::Obj(fields));
+                        }
+                        _ => bail!("expected , or }} at byte {}", self.i),
+                    }
+                }
+            }
+            Some(_) => {
+                let start = self.i;
+                while self.s.get(self.i).is_some_and(|c| b"+-.eE0123456789".contains(c)) {
+                    self.i += 1;
+                }
+                let t = std::str::from_utf8(&self.s[start..self.i])?;
+                t.parse().map(Json::Num).with_context(|| format!("bad number {t:?} at byte {start}"))
+            }
+        }
+    }
+
+    fn string(&mut self) -> Result<String> {
+        self.eat("\"")?;
+        let mut out = Vec::new();
+        loop {
+            let c = *self.s.get(self.i).context("unterminated string")?;
+            self.i += 1;
+            match c {
+                b'"' => return Ok(String::from_utf8(out)?),
+                b'\\' => {
+                    let e = *self.s.get(self.i).context("unterminated escape")?;
+                    self.i += 1;
+                    match e {
+                        b'n' => out.push(b'\n'),
+                        b't' => out.push(b'\t'),
+                        b'r' => out.push(b'\r'),
+                        b'b' => out.push(8),
+                        b'f' => out.push(12),
+                        b'u' => {
+                            let hex = self.s.get(self.i..self.i + 4).context("short \\u escape")?;
+                            let code = u32::from_str_radix(std::str::from_utf8(hex)?, 16)?;
+                            self.i += 4;
+                            let ch = char::from_u32(code).unwrap_or('\u{fffd}');
+                            out.extend_from_slice(ch.to_string().as_bytes());
+                        }
+                        other => out.push(other),
+                    }
+                }
+                c => out.push(c),
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn json_paths_and_types() {
+        let j = Json::parse(
+            r#"{"params":{"rig_id":"rig-7","loaded":true},"source":{"cameras":[{"fps":14.9},{"fps":null}]},
+               "faults":["no_params"],"s":"a\"b\u00e9","n":-1.5e3}"#,
+        )
+        .unwrap();
+        assert_eq!(j.get("params.rig_id").and_then(Json::as_str), Some("rig-7"));
+        assert_eq!(j.get("source.cameras.0.fps").and_then(Json::as_f64), Some(14.9));
+        assert_eq!(j.get("source.cameras.1.fps"), Some(&Json::Null));
+        assert_eq!(j.get("source.cameras.2"), None);
+        assert_eq!(j.get("s").and_then(Json::as_str), Some("a\"bé"));
+        assert_eq!(j.get("n").and_then(Json::as_f64), Some(-1500.0));
+        assert_eq!(j.get("faults").and_then(Json::as_array).map(<[Json]>::len), Some(1));
+        assert!(Json::parse("{\"a\":1,}").is_err());
+        assert!(Json::parse("[1 2]").is_err());
+        assert!(Json::parse("{} x").is_err());
+    }
+
+    #[test]
+    fn debugfs_gpio_lines_of_one_chip() {
+        let text = "gpiochip1: GPIOs 500-503, parent: platform/other, other:\n \
+                    gpio-501 (                    |irtrackd            ) out hi \n\n\
+                    gpiochip0: GPIOs 512-519, parent: platform/9030000.pl061, 9030000.pl061:\n \
+                    gpio-515 (                    |GPIO Key Poweroff   ) in  lo IRQ \n \
+                    gpio-516 (                    |irtrackd            ) out hi \n \
+                    gpio-517 (                    |irtrackd            ) out lo \n";
+        let lines = parse_debugfs_gpio(text, "9030000.pl061", "irtrackd");
+        assert_eq!(
+            lines,
+            vec![
+                GpioLine { offset: 4, output: true, high: true },
+                GpioLine { offset: 5, output: true, high: false },
+            ]
+        );
+    }
+
+    #[test]
+    fn free_ports_are_distinct() {
+        let p = free_ports::<4>().unwrap();
+        let mut sorted = p.to_vec();
+        sorted.sort();
+        sorted.dedup();
+        assert_eq!(sorted.len(), 4);
+        assert!(p.iter().all(|&port| port != 0));
+    }
+}
