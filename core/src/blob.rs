@@ -2,9 +2,9 @@
 //!
 //! One pass over the frame (or a region of interest) does everything:
 //! - **Threshold + runs.** Each row is split into runs of pixels strictly above
-//!   `threshold_dn`. Background is skipped a chunk at a time: the maximum of a fixed-size
-//!   chunk is a branch-free reduction the compiler turns into a few SIMD max instructions,
-//!   so dark pixels cost a fraction of a cycle each.
+//!   `threshold_dn`. A row's maximum (a branch-free reduction the compiler turns into SIMD
+//!   max instructions) rejects dark rows, i.e. almost all of them, at memory speed. In the
+//!   few rows with bright pixels, dark 32-pixel chunks are skipped by their maximum too.
 //! - **Fused moments.** While a run is walked, the weight `w = value − threshold` and its
 //!   first and second x moments are summed in integers (`Σw`, `Σw·x`, `Σw·x²`); the run's
 //!   y moments follow from the row index once per run. No floating point per pixel.
@@ -325,11 +325,12 @@ impl BlobDetector {
         if row_max(row) <= thr {
             return true;
         }
+        // Rows with bright pixels: skip dark 32-pixel chunks by their maximum, then walk
+        // to the first bright pixel and hand each run to `add_run`.
         let w = row.len();
         let mut x = 0usize;
-        let mut j = 0usize; // first previous-row run that may touch the current run
+        let mut j = 0usize; // first previous-row run that may touch the next run
         loop {
-            // Skip background a chunk at a time (vectorised max reduction).
             while x + SKIP_CHUNK_PX <= w {
                 let chunk = &row[x..x + SKIP_CHUNK_PX];
                 if chunk.iter().fold(P::default(), |m, &v| m.max(v)) > thr {
@@ -342,83 +343,104 @@ impl BlobDetector {
                 x += 1;
             }
             if x >= w {
-                break;
+                return true;
             }
             if x == lim {
                 continue;
             }
-            // A run starts at x: walk it, summing moments (fused with thresholding).
             let x0 = x;
-            let (mut s0, mut sx, mut sxx) = (0u64, 0u64, 0u64);
-            let (mut peak, mut sat) = (0u32, 0u32);
             while x < w && row[x] > thr {
-                let v = row[x].dn();
-                let wgt = (v - thr_dn) as u64;
-                let xu = x as u64;
-                s0 += wgt;
-                sx += wgt * xu;
-                sxx += wgt * xu * xu;
-                peak = peak.max(v);
-                sat += (v >= sat_level) as u32;
                 x += 1;
             }
-            let (x0, x1) = (x0 as u32, x as u32);
-
-            // Connect to previous-row runs touching [x0-1, x1] (8-connectivity).
-            while j < self.prev_runs.len() && self.prev_runs[j].x1 < x0 {
-                j += 1;
+            if !self.add_run(row, x0, x, ly, &mut j, thr_dn, sat_level) {
+                return false;
             }
-            let mut label = u32::MAX;
-            let mut k = j;
-            while k < self.prev_runs.len() && self.prev_runs[k].x0 <= x1 {
-                let r = find(&mut self.parent, self.prev_runs[k].label);
-                if label == u32::MAX {
-                    label = r;
-                } else if r != label {
-                    // Keep the older (smaller) label as root; order does not matter for
-                    // correctness, it only keeps trees shallow for top-down merges.
-                    let (lo, hi) = if r < label { (r, label) } else { (label, r) };
-                    self.parent[hi as usize] = lo;
-                    label = lo;
-                }
-                k += 1;
-            }
-            if label == u32::MAX {
-                if self.acc.len() >= self.limits.max_labels {
-                    return false;
-                }
-                label = self.acc.len() as u32;
-                self.parent.push(label);
-                self.acc.push(Acc {
-                    bbox: BBox {
-                        x_min_px: x0,
-                        y_min_px: ly,
-                        x_max_px: x1 - 1,
-                        y_max_px: ly,
-                    },
-                    ..Acc::default()
-                });
-            }
-            let a = &mut self.acc[label as usize];
-            let y = ly as u64;
-            a.m.add(&Moments {
-                m00: s0,
-                m10: sx,
-                m01: s0 * y,
-                m20: sxx as u128,
-                m11: sx as u128 * y as u128,
-                m02: s0 as u128 * (y * y) as u128,
-            });
-            a.area += x1 - x0;
-            a.peak = a.peak.max(peak);
-            a.sat += sat;
-            a.bbox.x_min_px = a.bbox.x_min_px.min(x0);
-            a.bbox.x_max_px = a.bbox.x_max_px.max(x1 - 1);
-            a.bbox.y_max_px = ly;
-            self.stats.runs += 1;
-            // Capacity is ceil(w/2), the most runs a row can hold, so this never reallocates.
-            self.cur_runs.push(Run { x0, x1, label });
         }
+    }
+
+    /// Accumulates the moments of the run `row[x0..x1]` (all above threshold) and connects
+    /// it to the previous row's runs (8-connectivity). `j` is the first previous-row run
+    /// that can still touch this or a later run. Returns false when out of labels.
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn add_run<P: Pixel>(
+        &mut self,
+        row: &[P],
+        x0: usize,
+        x1: usize,
+        ly: u32,
+        j: &mut usize,
+        thr_dn: u32,
+        sat_level: u32,
+    ) -> bool {
+        // Weighted sums over the run: integers only.
+        let (mut s0, mut sx, mut sxx) = (0u64, 0u64, 0u64);
+        let (mut peak, mut sat) = (0u32, 0u32);
+        for (x, &p) in (x0..x1).zip(&row[x0..x1]) {
+            let v = p.dn();
+            let wgt = v.saturating_sub(thr_dn) as u64;
+            let xu = x as u64;
+            s0 += wgt;
+            sx += wgt * xu;
+            sxx += wgt * xu * xu;
+            peak = peak.max(v);
+            sat += (v >= sat_level) as u32;
+        }
+        let (x0, x1) = (x0 as u32, x1 as u32);
+
+        // Previous-row runs touching [x0-1, x1] share the component.
+        while *j < self.prev_runs.len() && self.prev_runs[*j].x1 < x0 {
+            *j += 1;
+        }
+        let mut label = u32::MAX;
+        let mut k = *j;
+        while k < self.prev_runs.len() && self.prev_runs[k].x0 <= x1 {
+            let r = find(&mut self.parent, self.prev_runs[k].label);
+            if label == u32::MAX {
+                label = r;
+            } else if r != label {
+                // Keep the older (smaller) label as root; any choice is correct.
+                let (lo, hi) = if r < label { (r, label) } else { (label, r) };
+                self.parent[hi as usize] = lo;
+                label = lo;
+            }
+            k += 1;
+        }
+        if label == u32::MAX {
+            if self.acc.len() >= self.limits.max_labels {
+                return false;
+            }
+            label = self.acc.len() as u32;
+            self.parent.push(label);
+            self.acc.push(Acc {
+                bbox: BBox {
+                    x_min_px: x0,
+                    y_min_px: ly,
+                    x_max_px: x1 - 1,
+                    y_max_px: ly,
+                },
+                ..Acc::default()
+            });
+        }
+        let a = &mut self.acc[label as usize];
+        let y = ly as u64;
+        a.m.add(&Moments {
+            m00: s0,
+            m10: sx,
+            m01: s0 * y,
+            m20: sxx as u128,
+            m11: sx as u128 * y as u128,
+            m02: s0 as u128 * (y * y) as u128,
+        });
+        a.area += x1 - x0;
+        a.peak = a.peak.max(peak);
+        a.sat += sat;
+        a.bbox.x_min_px = a.bbox.x_min_px.min(x0);
+        a.bbox.x_max_px = a.bbox.x_max_px.max(x1 - 1);
+        a.bbox.y_max_px = ly;
+        self.stats.runs += 1;
+        // Capacity is ceil(w/2), the most runs a row can hold, so this never reallocates.
+        self.cur_runs.push(Run { x0, x1, label });
         true
     }
 
@@ -490,14 +512,22 @@ fn row_max<P: Pixel>(row: &[P]) -> P {
             *l = (*l).max(v);
         }
     }
-    let mut half = N / 2;
-    while half > 0 {
-        for i in 0..half {
-            lanes[i] = lanes[i].max(lanes[i + half]);
-        }
-        half /= 2;
-    }
+    // Constant bounds so each step unrolls into a few vector max instructions.
+    fold_half::<P, 16>(&mut lanes);
+    fold_half::<P, 8>(&mut lanes);
+    fold_half::<P, 4>(&mut lanes);
+    fold_half::<P, 2>(&mut lanes);
+    fold_half::<P, 1>(&mut lanes);
     lanes[0]
+}
+
+/// `lanes[i] = max(lanes[i], lanes[i + H])` for i < H.
+#[inline(always)]
+fn fold_half<P: Pixel, const H: usize>(lanes: &mut [P; SKIP_CHUNK_PX]) {
+    let (lo, hi) = lanes.split_at_mut(H);
+    for (a, &b) in lo.iter_mut().zip(&hi[..H]) {
+        *a = (*a).max(b);
+    }
 }
 
 /// Root of `i` with path halving.

@@ -36,7 +36,10 @@ fn consts(src: &str) -> HashMap<String, f64> {
         let l = l.trim();
         if let Some(rest) = l.strip_prefix("CONST num ") {
             let (name, val) = rest.split_once(":=").unwrap();
-            m.insert(name.trim().to_string(), val.trim().trim_end_matches(';').trim().parse().unwrap());
+            m.insert(
+                name.trim().to_string(),
+                val.trim().trim_end_matches(';').trim().parse().unwrap(),
+            );
         }
     }
     m
@@ -75,15 +78,42 @@ fn rapid_module_structure_is_balanced() {
         let first = l.split([' ', '(']).next().unwrap();
         let block = matches!(
             first,
-            "MODULE" | "ENDMODULE" | "PROC" | "ENDPROC" | "FUNC" | "ENDFUNC" | "WHILE" | "ENDWHILE" | "IF" | "ELSEIF"
-                | "ELSE" | "ENDIF" | "ERROR"
+            "MODULE"
+                | "ENDMODULE"
+                | "PROC"
+                | "ENDPROC"
+                | "FUNC"
+                | "ENDFUNC"
+                | "WHILE"
+                | "ENDWHILE"
+                | "IF"
+                | "ELSEIF"
+                | "ELSE"
+                | "ENDIF"
+                | "ERROR"
         );
         assert!(block || l.ends_with(';'), "statement without ';': {l:?}");
     }
     for needed in [
-        "SocketCreate", "SocketBind", "SocketListen", "SocketAccept", "SocketReceive", "SocketSend", "SocketClose",
-        "StrPart", "StrToVal", "MoveL", "ERR_SOCK_TIMEOUT", "ERR_SOCK_CLOSED", "StopMove", "ClearPath", "CRobT",
-        "\\Tool:=irtTool", "\\WObj:=irtWobj", "irtSpeed", "irtZone",
+        "SocketCreate",
+        "SocketBind",
+        "SocketListen",
+        "SocketAccept",
+        "SocketReceive",
+        "SocketSend",
+        "SocketClose",
+        "StrPart",
+        "StrToVal",
+        "MoveL",
+        "ERR_SOCK_TIMEOUT",
+        "ERR_SOCK_CLOSED",
+        "StopMove",
+        "ClearPath",
+        "CRobT",
+        "\\Tool:=irtTool",
+        "\\WObj:=irtWobj",
+        "irtSpeed",
+        "irtZone",
     ] {
         assert!(src.contains(needed), "module lacks {needed}");
     }
@@ -124,7 +154,10 @@ fn rapid_constants_match_the_codec() {
 
 /// RAPID's StrPart: 1-based, errors when the range leaves the string.
 fn str_part(s: &str, start: usize, len: usize) -> &str {
-    assert!(start >= 1 && start - 1 + len <= s.len(), "StrPart({s:?}, {start}, {len}) out of range");
+    assert!(
+        start >= 1 && start - 1 + len <= s.len(),
+        "StrPart({s:?}, {start}, {len}) out of range"
+    );
     &s[start - 1..start - 1 + len]
 }
 
@@ -153,16 +186,32 @@ fn every_client_message_fits_the_rapid_parser() {
     let col = |k: &str| c[k] as usize;
     let (t_len, q_len) = (dispatch_len(&src, "T"), dispatch_len(&src, "Q"));
     let mut msgs = vec![
-        TrackerMsg::Hello { version: rp::PROTOCOL_VERSION, name: "N".repeat(rp::MAX_NAME_CHARS) },
-        TrackerMsg::Beat { counter: rp::SEQ_MODULUS - 1 },
+        TrackerMsg::Hello {
+            version: rp::PROTOCOL_VERSION,
+            name: "N".repeat(rp::MAX_NAME_CHARS),
+        },
+        TrackerMsg::Beat {
+            counter: rp::SEQ_MODULUS - 1,
+        },
         TrackerMsg::Bye,
     ];
     msgs.extend(HoldReason::ALL.iter().map(|&reason| TrackerMsg::Hold { reason }));
     for v in [-rp::MAX_COORD_MM, rp::MAX_COORD_MM, 0.0, 0.004, -1234.565] {
         for seq in [0, 1, rp::SEQ_MODULUS - 1] {
-            msgs.push(TrackerMsg::Target { seq, pos_mm: [v, -v, v] });
-            msgs.push(TrackerMsg::Pose { seq, pos_mm: [v, v, -v], quat_wxyz: [0.5, -0.5, 0.5, -0.5] });
-            msgs.push(TrackerMsg::Pose { seq, pos_mm: [v; 3], quat_wxyz: [-1.0, 0.0, 0.0, 0.0] });
+            msgs.push(TrackerMsg::Target {
+                seq,
+                pos_mm: [v, -v, v],
+            });
+            msgs.push(TrackerMsg::Pose {
+                seq,
+                pos_mm: [v, v, -v],
+                quat_wxyz: [0.5, -0.5, 0.5, -0.5],
+            });
+            msgs.push(TrackerMsg::Pose {
+                seq,
+                pos_mm: [v; 3],
+                quat_wxyz: [-1.0, 0.0, 0.0, 0.0],
+            });
         }
     }
     for m in &msgs {
@@ -175,7 +224,9 @@ fn every_client_message_fits_the_rapid_parser() {
             TrackerMsg::Target { seq, pos_mm } | TrackerMsg::Pose { seq, pos_mm, .. } => {
                 let is_q = matches!(m, TrackerMsg::Pose { .. });
                 assert_eq!(n, if is_q { q_len } else { t_len }, "{s:?}");
-                let got_seq: f64 = str_part(s, col("IRT_SEQ_COL"), col("IRT_SEQ_LEN")).parse().unwrap();
+                let got_seq: f64 = str_part(s, col("IRT_SEQ_COL"), col("IRT_SEQ_LEN"))
+                    .parse()
+                    .unwrap();
                 assert_eq!(got_seq as u32, *seq);
                 for (k, name) in ["IRT_T_X_COL", "IRT_T_Y_COL", "IRT_T_Z_COL"].iter().enumerate() {
                     let v = irt_field(str_part(s, col(name), col("IRT_COORD_LEN"))).unwrap();
@@ -207,7 +258,11 @@ fn irt_digits(v: f64, width: usize) -> String {
 fn irt_coord(v: f64) -> String {
     let sign = if v < 0.0 { "-" } else { "+" };
     let cents = ((v.abs() * 100.0).round()).min(999_999.0);
-    format!("{sign}{}.{}", irt_digits((cents / 100.0).floor(), 4), irt_digits(cents % 100.0, 2))
+    format!(
+        "{sign}{}.{}",
+        irt_digits((cents / 100.0).floor(), 4),
+        irt_digits(cents % 100.0, 2)
+    )
 }
 
 #[test]
@@ -217,18 +272,44 @@ fn lines_the_rapid_module_builds_parse_in_rust() {
     assert!(src.contains(
         "\"C \" + IrtDigits(irtAckSeq, 6) + \" \" + IrtDigits(IRT_WINDOW, 2) + \" \" + IrtCoord(now.trans.x)"
     ));
-    for (seq, x) in [(0.0, 0.0), (999_999.0, -9999.994), (17.0, 123.456), (1.0, 20000.0), (5.0, -0.001)] {
-        let line = format!("C {} {} {} {} {}", irt_digits(seq, 6), irt_digits(1.0, 2), irt_coord(x), irt_coord(-x), irt_coord(400.0));
+    for (seq, x) in [
+        (0.0, 0.0),
+        (999_999.0, -9999.994),
+        (17.0, 123.456),
+        (1.0, 20000.0),
+        (5.0, -0.001),
+    ] {
+        let line = format!(
+            "C {} {} {} {} {}",
+            irt_digits(seq, 6),
+            irt_digits(1.0, 2),
+            irt_coord(x),
+            irt_coord(-x),
+            irt_coord(400.0)
+        );
         let m = RobotMsg::parse(&line).unwrap_or_else(|e| panic!("{line:?}: {e}"));
-        let RobotMsg::Credit { ack_seq, window, pos_mm } = m else { panic!() };
+        let RobotMsg::Credit {
+            ack_seq,
+            window,
+            pos_mm,
+        } = m
+        else {
+            panic!()
+        };
         assert_eq!((ack_seq, window), (seq as u32, 1));
         assert!((pos_mm[0] - x.clamp(-9999.99, 9999.99)).abs() < 0.006, "{line}");
     }
     for reason in ["MALFORMED", "UNREACHABLE", "OUTSIDE_BOX"] {
         assert!(src.contains(&format!("\"{reason}\"")));
         let line = format!("X {} {} {reason}", irt_digits(42.0, 6), irt_digits(1.0, 2));
-        assert!(matches!(RobotMsg::parse(&line).unwrap(), RobotMsg::Reject { seq: 42, .. }));
+        assert!(matches!(
+            RobotMsg::parse(&line).unwrap(),
+            RobotMsg::Reject { seq: 42, .. }
+        ));
     }
     let beat = format!("BEAT {}", irt_digits(999_999.0, 6));
-    assert_eq!(RobotMsg::parse(&beat).unwrap(), RobotMsg::Beat { counter: 999_999 });
+    assert_eq!(
+        RobotMsg::parse(&beat).unwrap(),
+        RobotMsg::Beat { counter: 999_999 }
+    );
 }

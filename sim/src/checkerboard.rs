@@ -332,7 +332,7 @@ fn rig_target(
         .iter()
         .map(|c| (c.cam_from_cam0.inverse().translation_mm() - target).normalize())
         .sum::<Vector3<f64>>();
-    if !(toward.norm() > 1e-6) || !target.iter().all(|v| v.is_finite()) {
+    if toward.norm() <= 1e-6 || !toward.norm().is_finite() || !target.iter().all(|v| v.is_finite()) {
         return Err(SimError::Config {
             field: "rig",
             reason: "cameras have no common viewing direction".into(),
@@ -357,7 +357,7 @@ pub fn generate_poses(
     let x0 = Vector3::x();
     let x_b = (x0 - z_b * x0.dot(&z_b))
         .try_normalize(1e-9)
-        .unwrap_or_else(|| Vector3::y());
+        .unwrap_or_else(Vector3::y);
     let y_b = z_b.cross(&x_b);
     let base = Matrix3::from_columns(&[x_b, y_b, z_b]);
     // Lateral reach of board centres: the half field of view of camera 0 at the target.
@@ -372,8 +372,8 @@ pub fn generate_poses(
         let phi = k as f64 * golden;
         let mut reach = ((k as f64 + 0.5) / cfg.count as f64).sqrt();
         let mut found = None;
-        'shrink: for _ in 0..12 {
-            for _ in 0..150 {
+        'shrink: for _ in 0..30 {
+            for _ in 0..60 {
                 let lateral = x_b * (reach * half_w_mm * phi.cos()) + y_b * (reach * half_h_mm * phi.sin());
                 let depth = distance * rng.gen_range(-0.15..0.25);
                 let centre = target + lateral - toward * depth;
@@ -391,7 +391,7 @@ pub fn generate_poses(
                     break 'shrink;
                 }
             }
-            reach *= 0.75;
+            reach *= 0.9;
         }
         match found {
             Some(p) => poses.push(p),

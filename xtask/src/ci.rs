@@ -80,6 +80,7 @@ pub struct Phase {
     pub label: &'static str,
     pub run: Option<PhaseFn>,
     /// Kill the phase after this long, so a hung test (e.g. under QEMU) cannot stall CI.
+    /// For test phases it limits running the tests, not compiling them.
     pub timeout: Duration,
 }
 
@@ -104,11 +105,11 @@ const fn phase(
 #[rustfmt::skip]
 pub const PHASES: &[Phase] = &[
     phase("setup", "install missing system packages", "", Some(setup_phase), 30),
-    phase("fmt", "cargo fmt --all --check", "", Some(fmt), 3),
-    phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", Some(clippy), 25),
-    phase("host-tests", "cargo test --workspace (all crates, host)", "host", Some(host_tests), 25),
-    phase("no-std", "irtrack-core without its std feature", "", Some(no_std), 10),
-    phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", Some(aarch64_tests), 25),
+    phase("fmt", "cargo fmt --all --check", "", Some(fmt), 5),
+    phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", Some(clippy), 60),
+    phase("host-tests", "cargo test --workspace (all crates, host)", "host", Some(host_tests), 15),
+    phase("no-std", "irtrack-core without its std feature", "", Some(no_std), 30),
+    phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", Some(aarch64_tests), 15),
     phase("systemd", "systemd-analyze verify on systemd/ units", "", Some(lint::systemd_phase), 2),
     phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", Some(lint::yocto_phase), 5),
     phase("image", "aarch64 image build + QEMU system test", "system", IMAGE_HOOK, 20),
@@ -325,24 +326,47 @@ fn check(mut cmd: Command, what: &str) -> Outcome {
     }
 }
 
-/// Runs `cargo test ...`, collecting counts from its `test result:` lines.
-fn cargo_test(mut cmd: Command) -> Outcome {
+/// Compiling is not limited by the phase's time limit (on a loaded machine it can take long);
+/// only running the tests is, which is where a hang would be.
+const BUILD_LIMIT: Duration = Duration::from_secs(60 * 60);
+
+/// Runs `cargo test ...` (as made by `make`) in two steps: `--no-run` to build, then the run,
+/// collecting counts from its `test result:` lines.
+fn cargo_test(make: impl Fn() -> Result<Command>) -> Outcome {
+    let t0 = Instant::now();
+    let build = make().and_then(|mut cmd| {
+        cmd.arg("--no-run");
+        util::run(
+            &mut cmd,
+            RunOpts {
+                timeout: Some(BUILD_LIMIT),
+                ..RunOpts::default()
+            },
+        )
+    });
+    match build {
+        Ok(out) if out.success() => {}
+        Ok(out) => return Outcome::failed(format!("building the tests {}", out.describe())),
+        Err(e) => return Outcome::failed(format!("{e:#}")),
+    }
+    println!(
+        "(tests built in {}; running them)",
+        util::fmt_duration(t0.elapsed())
+    );
     let opts = RunOpts {
         capture_stdout: true,
         ..phase_opts()
     };
-    let out = match util::run(&mut cmd, opts) {
+    let out = match make().and_then(|mut cmd| util::run(&mut cmd, opts)) {
         Ok(out) => out,
         Err(e) => return Outcome::failed(format!("{e:#}")),
     };
     let (counts, binaries) = parse_test_results(&out.stdout);
     let counts = (binaries > 0).then_some(counts);
     let failure = if out.success() {
-        if binaries == 0 {
-            Some("no `test result:` line: no test ran".to_string())
-        } else {
-            None
-        }
+        (binaries == 0).then(|| "no `test result:` line: no test ran".to_string())
+    } else if out.timed_out {
+        Some(format!("running the tests {} (a hung test?)", out.describe()))
     } else if let Some(c) = counts.filter(|c| c.failed > 0) {
         Some(format!(
             "{} test(s) failed; cargo test {}",
@@ -351,7 +375,7 @@ fn cargo_test(mut cmd: Command) -> Outcome {
         ))
     } else {
         Some(format!(
-            "cargo test {} (build error or crashed test binary, see above)",
+            "cargo test {} (a test binary crashed? see above)",
             out.describe()
         ))
     };
@@ -427,10 +451,12 @@ fn clippy(ctx: &Ctx) -> Outcome {
 }
 
 fn host_tests(ctx: &Ctx) -> Outcome {
-    let mut cmd = ctx.cargo();
-    // --no-fail-fast: one failing binary must not hide the counts of the others.
-    cmd.args(["test", "--workspace", "--no-fail-fast"]);
-    cargo_test(cmd)
+    cargo_test(|| {
+        let mut cmd = ctx.cargo();
+        // --no-fail-fast: one failing binary must not hide the counts of the others.
+        cmd.args(["test", "--workspace", "--no-fail-fast"]);
+        Ok(cmd)
+    })
 }
 
 /// Feature names by which crates switch std on.
@@ -514,15 +540,15 @@ fn aarch64_tests(ctx: &Ctx) -> Outcome {
     if !util::on_path("qemu-aarch64") {
         return Outcome::failed("qemu-aarch64 not found (run `cargo xtask setup`)");
     }
-    let mut cmd = ctx.cargo();
-    cmd.args(["test", "--no-fail-fast", "--target", cross::TARGET]);
-    for c in cross::CROSS_CRATES {
-        cmd.args(["-p", c]);
-    }
-    if let Err(e) = cross::apply_env(ctx, &mut cmd, "aarch64") {
-        return Outcome::failed(format!("{e:#}"));
-    }
-    cargo_test(cmd)
+    cargo_test(|| {
+        let mut cmd = ctx.cargo();
+        cmd.args(["test", "--no-fail-fast", "--target", cross::TARGET]);
+        for c in cross::CROSS_CRATES {
+            cmd.args(["-p", c]);
+        }
+        cross::apply_env(ctx, &mut cmd, "aarch64")?;
+        Ok(cmd)
+    })
 }
 
 #[cfg(test)]

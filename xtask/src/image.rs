@@ -132,7 +132,9 @@ fn work_dir(ctx: &Ctx) -> PathBuf {
 /// Runs a command quietly; on failure the error shows the command and its output.
 fn run_quiet(cmd: &mut Command) -> Result<String> {
     let shown = util::display_cmd(cmd);
-    let out = cmd.output().with_context(|| format!("could not start `{shown}`"))?;
+    let out = cmd
+        .output()
+        .with_context(|| format!("could not start `{shown}`"))?;
     if !out.status.success() {
         bail!(
             "`{shown}` failed ({}):\n{}{}",
@@ -156,8 +158,22 @@ pub fn build(ctx: &Ctx) -> Result<Image> {
     let start = Instant::now();
     let work = work_dir(ctx);
     fs::create_dir_all(&work)?;
-    for tool in ["dpkg-deb", "apt-get", "cpio", "gzip", "mkfs.vfat", "mcopy", "mmd", "mke2fs", "sfdisk", "qemu-aarch64"] {
-        if !util::on_path(tool) && !Path::new("/usr/sbin").join(tool).is_file() && !Path::new("/sbin").join(tool).is_file() {
+    for tool in [
+        "dpkg-deb",
+        "apt-get",
+        "cpio",
+        "gzip",
+        "mkfs.vfat",
+        "mcopy",
+        "mmd",
+        "mke2fs",
+        "sfdisk",
+        "qemu-aarch64",
+    ] {
+        if !util::on_path(tool)
+            && !Path::new("/usr/sbin").join(tool).is_file()
+            && !Path::new("/sbin").join(tool).is_file()
+        {
             bail!("`{tool}` not found; run `cargo xtask setup`");
         }
     }
@@ -170,7 +186,11 @@ pub fn build(ctx: &Ctx) -> Result<Image> {
     let kernel_image = kernel_root.join("boot").join(format!("vmlinuz-{kver}"));
     let busybox = busybox_root.join("bin/busybox");
     if !kernel_image.is_file() || !busybox.is_file() {
-        bail!("{} or {} missing from the extracted packages", kernel_image.display(), busybox.display());
+        bail!(
+            "{} or {} missing from the extracted packages",
+            kernel_image.display(),
+            busybox.display()
+        );
     }
 
     println!("image: cross-building irtrackd (static, aarch64, release)");
@@ -184,12 +204,23 @@ pub fn build(ctx: &Ctx) -> Result<Image> {
     let index = ModuleIndex::scan(&modules_dir)?;
     let initrd_mods = index.closure(INITRD_MODULES)?;
     let root_names: Vec<&str> = ROOT_MODULES.iter().map(|(m, _)| *m).collect();
-    let root_mods: Vec<ModuleFile> =
-        index.closure(&root_names)?.into_iter().filter(|m| !initrd_mods.contains(m)).collect();
+    let root_mods: Vec<ModuleFile> = index
+        .closure(&root_names)?
+        .into_iter()
+        .filter(|m| !initrd_mods.contains(m))
+        .collect();
 
     println!("image: initramfs ({} modules)", initrd_mods.len());
     let initrd = work.join("initrd.gz");
-    build_initramfs(ctx, &work.join("initramfs"), &busybox, &modules_dir, &kver, &initrd_mods, &initrd)?;
+    build_initramfs(
+        ctx,
+        &work.join("initramfs"),
+        &busybox,
+        &modules_dir,
+        &kver,
+        &initrd_mods,
+        &initrd,
+    )?;
 
     println!("image: root filesystem ({} modules)", root_mods.len());
     let rootfs = work.join("rootfs");
@@ -255,7 +286,12 @@ fn fetch_debs(dir: &Path) -> Result<Debs> {
         .split([',', '|'])
         .map(|d| d.split_whitespace().next().unwrap_or(""))
         .find(|d| d.starts_with("linux-image-") && d.ends_with("-arm64"))
-        .with_context(|| format!("no linux-image-*-arm64 in Depends of {}: {depends}", meta.display()))?
+        .with_context(|| {
+            format!(
+                "no linux-image-*-arm64 in Depends of {}: {depends}",
+                meta.display()
+            )
+        })?
         .to_owned();
     if find_deb(dir, &kernel_pkg).is_none() {
         apt_download(dir, &format!("{kernel_pkg}:arm64"))?;
@@ -272,7 +308,10 @@ fn fetch_debs(dir: &Path) -> Result<Debs> {
 /// Extracts a .deb into `dir` unless that exact package was extracted there already.
 fn extract_cached(deb: &Path, dir: &Path) -> Result<PathBuf> {
     let stamp = dir.join(".extracted-from");
-    let name = deb.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = deb
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     if fs::read_to_string(&stamp).is_ok_and(|s| s == name) {
         return Ok(dir.to_path_buf());
     }
@@ -291,7 +330,9 @@ fn kernel_modules_dir(kernel_root: &Path) -> Result<(String, PathBuf)> {
         .map(|e| e.file_name().to_string_lossy().into_owned())
         .collect();
     versions.sort();
-    let kver = versions.pop().with_context(|| format!("no kernel modules under {}", base.display()))?;
+    let kver = versions
+        .pop()
+        .with_context(|| format!("no kernel modules under {}", base.display()))?;
     let dir = base.join(&kver);
     Ok((kver, dir))
 }
@@ -334,11 +375,17 @@ impl ModuleIndex {
         if by_name.is_empty() {
             bail!("no uncompressed .ko modules under {}", modules_dir.display());
         }
-        Ok(Self { root: modules_dir.to_path_buf(), by_name })
+        Ok(Self {
+            root: modules_dir.to_path_buf(),
+            by_name,
+        })
     }
 
     fn depends(&self, name: &str) -> Result<Vec<String>> {
-        let rel = self.by_name.get(name).with_context(|| format!("kernel module {name} not found"))?;
+        let rel = self
+            .by_name
+            .get(name)
+            .with_context(|| format!("kernel module {name} not found"))?;
         let bytes = fs::read(self.root.join(rel))?;
         modinfo_depends(&bytes).with_context(|| format!("reading .modinfo of {}", rel.display()))
     }
@@ -373,7 +420,10 @@ impl ModuleIndex {
         path.pop();
         done.insert(name.to_owned());
         let rel = self.by_name[name].clone();
-        order.push(ModuleFile { name: name.to_owned(), rel });
+        order.push(ModuleFile {
+            name: name.to_owned(),
+            rel,
+        });
         Ok(())
     }
 }
@@ -442,7 +492,11 @@ fn copy_modules(modules_dir: &Path, dest_modules: &Path, mods: &[ModuleFile]) ->
 fn modules_list(kver: &str, mods: &[ModuleFile], args: &[(&str, &str)]) -> String {
     let mut out = String::new();
     for m in mods {
-        let arg = args.iter().find(|(n, _)| *n == m.name).map(|(_, a)| *a).unwrap_or("");
+        let arg = args
+            .iter()
+            .find(|(n, _)| *n == m.name)
+            .map(|(_, a)| *a)
+            .unwrap_or("");
         out.push_str(&format!("/lib/modules/{kver}/{} {arg}\n", m.rel.display()).replace(" \n", "\n"));
     }
     out
@@ -513,7 +567,21 @@ fn stage_rootfs(
 ) -> Result<()> {
     use std::os::unix::fs::PermissionsExt;
     fresh_dir(stage)?;
-    for d in ["bin", "sbin", "usr/bin", "usr/sbin", "dev", "proc", "sys", "run", "tmp", "root", "mnt", "var/lib/irtrackd", "var/log"] {
+    for d in [
+        "bin",
+        "sbin",
+        "usr/bin",
+        "usr/sbin",
+        "dev",
+        "proc",
+        "sys",
+        "run",
+        "tmp",
+        "root",
+        "mnt",
+        "var/lib/irtrackd",
+        "var/log",
+    ] {
         fs::create_dir_all(stage.join(d))?;
     }
     fs::set_permissions(stage.join("tmp"), fs::Permissions::from_mode(0o1777))?;
@@ -532,7 +600,10 @@ fn stage_rootfs(
     }
     copy_file_mode(irtrackd, &stage.join("usr/bin/irtrackd"), 0o755)?;
     copy_modules(modules_dir, &stage.join("lib/modules").join(kver), mods)?;
-    fs::write(stage.join("etc/irtrack/modules.list"), modules_list(kver, mods, ROOT_MODULES))?;
+    fs::write(
+        stage.join("etc/irtrack/modules.list"),
+        modules_list(kver, mods, ROOT_MODULES),
+    )?;
     Ok(())
 }
 
@@ -550,8 +621,18 @@ fn make_boot_partition(ctx: &Ctx, out: &Path, kernel: &Path, initrd: &Path) -> R
     )?;
     let img = out.to_string_lossy().into_owned();
     run_quiet(Command::new("mmd").args(["-i", &img, "::/extlinux"]))?;
-    run_quiet(Command::new("mcopy").args(["-i", &img]).arg(kernel).arg("::/Image"))?;
-    run_quiet(Command::new("mcopy").args(["-i", &img]).arg(initrd).arg("::/initrd.gz"))?;
+    run_quiet(
+        Command::new("mcopy")
+            .args(["-i", &img])
+            .arg(kernel)
+            .arg("::/Image"),
+    )?;
+    run_quiet(
+        Command::new("mcopy")
+            .args(["-i", &img])
+            .arg(initrd)
+            .arg("::/initrd.gz"),
+    )?;
     run_quiet(
         Command::new("mcopy")
             .args(["-i", &img])
@@ -566,7 +647,11 @@ fn dir_bytes(dir: &Path) -> Result<u64> {
     for entry in fs::read_dir(dir)? {
         let entry = entry?;
         let meta = fs::symlink_metadata(entry.path())?;
-        total += if meta.is_dir() { dir_bytes(&entry.path())? + 4096 } else { meta.len().max(1024) };
+        total += if meta.is_dir() {
+            dir_bytes(&entry.path())? + 4096
+        } else {
+            meta.len().max(1024)
+        };
     }
     Ok(total)
 }
@@ -579,7 +664,17 @@ fn make_root_partition(out: &Path, stage: &Path) -> Result<u64> {
     let _ = fs::remove_file(out);
     run_quiet(
         Command::new("mke2fs")
-            .args(["-q", "-F", "-t", "ext4", "-L", "irtrack-root", "-E", "root_owner=0:0", "-d"])
+            .args([
+                "-q",
+                "-F",
+                "-t",
+                "ext4",
+                "-L",
+                "irtrack-root",
+                "-E",
+                "root_owner=0:0",
+                "-d",
+            ])
             .arg(stage)
             .arg(out)
             .arg(format!("{size_mib}M")),
@@ -623,10 +718,19 @@ fn assemble_sd(out: &Path, boot: &Path, root: &Path) -> Result<()> {
         root_len / SECTOR
     );
     let mut sfdisk = Command::new("sfdisk");
-    sfdisk.args(["--quiet", "--no-reread", "--no-tell-kernel"]).arg(out);
-    sfdisk.stdin(std::process::Stdio::piped()).stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped());
+    sfdisk
+        .args(["--quiet", "--no-reread", "--no-tell-kernel"])
+        .arg(out);
+    sfdisk
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped());
     let mut child = sfdisk.spawn().context("starting sfdisk")?;
-    child.stdin.take().context("sfdisk stdin")?.write_all(layout.as_bytes())?;
+    child
+        .stdin
+        .take()
+        .context("sfdisk stdin")?
+        .write_all(layout.as_bytes())?;
     let res = child.wait_with_output()?;
     if !res.status.success() {
         bail!("sfdisk failed: {}", String::from_utf8_lossy(&res.stderr));
@@ -671,7 +775,10 @@ mod tests {
     #[test]
     fn modinfo_depends_are_read_and_normalised() {
         let elf = fake_module(b"license=GPL\0depends=videobuf2-common,v4l2_tpg,mc\0vermagic=6.1\0");
-        assert_eq!(modinfo_depends(&elf).unwrap(), vec!["videobuf2_common", "v4l2_tpg", "mc"]);
+        assert_eq!(
+            modinfo_depends(&elf).unwrap(),
+            vec!["videobuf2_common", "v4l2_tpg", "mc"]
+        );
         let none = fake_module(b"license=GPL\0depends=\0");
         assert!(modinfo_depends(&none).unwrap().is_empty());
         assert!(modinfo_depends(b"not an elf").is_err());
@@ -685,15 +792,40 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("xtask-modules-{}", std::process::id()));
         let kernel = dir.join("kernel/drivers");
         fs::create_dir_all(&kernel).unwrap();
-        for (file, deps) in [("a.ko", "b,c"), ("b.ko", "c"), ("c-x.ko", ""), ("c.ko", ""), ("d.ko", "c_x")] {
-            fs::write(kernel.join(file), fake_module(format!("depends={deps}\0").as_bytes())).unwrap();
+        for (file, deps) in [
+            ("a.ko", "b,c"),
+            ("b.ko", "c"),
+            ("c-x.ko", ""),
+            ("c.ko", ""),
+            ("d.ko", "c_x"),
+        ] {
+            fs::write(
+                kernel.join(file),
+                fake_module(format!("depends={deps}\0").as_bytes()),
+            )
+            .unwrap();
         }
         let index = ModuleIndex::scan(&dir).unwrap();
-        let order: Vec<String> = index.closure(&["a", "d"]).unwrap().into_iter().map(|m| m.name).collect();
+        let order: Vec<String> = index
+            .closure(&["a", "d"])
+            .unwrap()
+            .into_iter()
+            .map(|m| m.name)
+            .collect();
         assert_eq!(order, vec!["c", "b", "a", "c_x", "d"]);
-        assert!(index.closure(&["missing"]).unwrap_err().to_string().contains("missing"));
+        assert!(
+            index
+                .closure(&["missing"])
+                .unwrap_err()
+                .to_string()
+                .contains("missing")
+        );
         fs::write(kernel.join("c.ko"), fake_module(b"depends=a\0")).unwrap();
-        let err = ModuleIndex::scan(&dir).unwrap().closure(&["a"]).unwrap_err().to_string();
+        let err = ModuleIndex::scan(&dir)
+            .unwrap()
+            .closure(&["a"])
+            .unwrap_err()
+            .to_string();
         fs::remove_dir_all(&dir).unwrap();
         assert!(err.contains("cycle"), "{err}");
     }
@@ -701,10 +833,19 @@ mod tests {
     #[test]
     fn modules_list_adds_arguments() {
         let mods = vec![
-            ModuleFile { name: "mc".into(), rel: "kernel/mc.ko".into() },
-            ModuleFile { name: "vivid".into(), rel: "kernel/vivid.ko".into() },
+            ModuleFile {
+                name: "mc".into(),
+                rel: "kernel/mc.ko".into(),
+            },
+            ModuleFile {
+                name: "vivid".into(),
+                rel: "kernel/vivid.ko".into(),
+            },
         ];
         let list = modules_list("6.1", &mods, &[("vivid", "n_devs=2")]);
-        assert_eq!(list, "/lib/modules/6.1/kernel/mc.ko\n/lib/modules/6.1/kernel/vivid.ko n_devs=2\n");
+        assert_eq!(
+            list,
+            "/lib/modules/6.1/kernel/mc.ko\n/lib/modules/6.1/kernel/vivid.ko n_devs=2\n"
+        );
     }
 }

@@ -135,7 +135,11 @@ impl TcpRobotLink {
             feed_open: true,
         };
         let task = tokio::spawn(async move { client.run().await });
-        Ok(Self { ctl, status, task: Some(task) })
+        Ok(Self {
+            ctl,
+            status,
+            task: Some(task),
+        })
     }
 
     /// A receiver that sees every status change (for LEDs and the status endpoint).
@@ -546,14 +550,26 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
 }
 
 /// Writes one line with a timeout (a robot that stops reading must not block the client).
-async fn send_line(s: &mut Session, msg: &TrackerMsg, addr: String, timeout_ms: u64) -> Result<(), RobotError> {
-    let line = msg.encode().map_err(|e| RobotError::Protocol { addr: addr.clone(), source: e })?;
+async fn send_line(
+    s: &mut Session,
+    msg: &TrackerMsg,
+    addr: String,
+    timeout_ms: u64,
+) -> Result<(), RobotError> {
+    let line = msg.encode().map_err(|e| RobotError::Protocol {
+        addr: addr.clone(),
+        source: e,
+    })?;
     match timeout(Duration::from_millis(timeout_ms), s.wr.write_all(line.as_bytes())).await {
         Ok(Ok(())) => {
             s.last_tx = Instant::now();
             Ok(())
         }
-        Ok(Err(e)) => Err(RobotError::Io { addr, what: "write", source: e }),
+        Ok(Err(e)) => Err(RobotError::Io {
+            addr,
+            what: "write",
+            source: e,
+        }),
         Err(_) => Err(RobotError::Timeout { addr, ms: timeout_ms }),
     }
 }

@@ -49,6 +49,17 @@ pub enum SkipReason {
     BoardNotFound(Vec<usize>),
 }
 
+impl std::fmt::Display for SkipReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (what, cams) = match self {
+            SkipReason::MissingImage(c) => ("no image in", c),
+            SkipReason::BoardNotFound(c) => ("board not found in", c),
+        };
+        let list: Vec<String> = cams.iter().map(|c| format!("cam{c}")).collect();
+        write!(f, "{what} {}", list.join(", "))
+    }
+}
+
 /// A view rejected as an outlier.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Rejection {

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use nalgebra::Rotation3;
 
-use super::{Calibration, RECOMMENDED_VIEWS, SkipReason, plots};
+use super::{Calibration, RECOMMENDED_VIEWS, plots};
 
 /// Overall RMS of the per-camera fits, weighting each by its corner count.
 pub fn overall_rms_px(cal: &Calibration) -> f64 {
@@ -17,13 +17,6 @@ pub fn overall_rms_px(cal: &Calibration) -> f64 {
         )
     });
     if n == 0 { 0.0 } else { (sum / n as f64).sqrt() }
-}
-
-fn cams(list: &[usize]) -> String {
-    list.iter()
-        .map(|c| format!("cam{c}"))
-        .collect::<Vec<_>>()
-        .join(", ")
 }
 
 /// The report as Markdown.
@@ -102,6 +95,15 @@ pub fn markdown(cal: &Calibration, images_dir: &Path) -> Result<String> {
             dd.k3
         )?;
     }
+    writeln!(
+        s,
+        "\nRMS is each camera's own `calibrateCamera` fit; the intrinsics are the final values{}.",
+        if cal.joint.is_empty() {
+            ""
+        } else {
+            " (after joint refinement)"
+        }
+    )?;
     writeln!(s, "\n## Rig geometry (relative to cam0)\n")?;
     writeln!(
         s,
@@ -192,10 +194,7 @@ pub fn markdown(cal: &Calibration, images_dir: &Path) -> Result<String> {
         let status = if let Some(r) = cal.rejected.iter().find(|r| &r.view == v) {
             format!("rejected (round {}): {}", r.round, r.why)
         } else if let Some((_, why)) = cal.skipped.iter().find(|(w, _)| w == v) {
-            match why {
-                SkipReason::MissingImage(c) => format!("skipped: no image in {}", cams(c)),
-                SkipReason::BoardNotFound(c) => format!("skipped: board not found in {}", cams(c)),
-            }
+            format!("skipped: {why}")
         } else {
             "used".into()
         };
@@ -204,10 +203,7 @@ pub fn markdown(cal: &Calibration, images_dir: &Path) -> Result<String> {
     if !cal.skipped.is_empty() {
         writeln!(s, "\n## Skipped views\n")?;
         for (v, why) in &cal.skipped {
-            match why {
-                SkipReason::MissingImage(c) => writeln!(s, "- `{v}`: no image in {}", cams(c))?,
-                SkipReason::BoardNotFound(c) => writeln!(s, "- `{v}`: board not found in {}", cams(c))?,
-            }
+            writeln!(s, "- `{v}`: {why}")?;
         }
         writeln!(
             s,

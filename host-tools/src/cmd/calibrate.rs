@@ -106,7 +106,7 @@ pub fn run(args: Args) -> Result<()> {
     };
     let cal = calib::calibrate(&set, det, board, options, &rig_id, now)?;
     for (v, why) in &cal.skipped {
-        eprintln!("skipped view {v}: {why:?}");
+        eprintln!("skipped view {v}: {why}");
     }
     for r in &cal.rejected {
         eprintln!("rejected view {} (round {}): {}", r.view, r.round, r.why);

@@ -95,10 +95,20 @@ pub struct PathPoint {
 /// Reads valid samples (status ok, position present) from a record CSV.
 pub fn read_record(path: &Path) -> anyhow::Result<Vec<Sample>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#'));
-    let Some((_, header)) = lines.next() else { bail!("{}: empty file", path.display()) };
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#'));
+    let Some((_, header)) = lines.next() else {
+        bail!("{}: empty file", path.display())
+    };
     let names: Vec<&str> = header.split(',').map(str::trim).collect();
-    let col = |c: &str| names.iter().position(|n| *n == c).with_context(|| format!("{}: no column {c}", path.display()));
+    let col = |c: &str| {
+        names
+            .iter()
+            .position(|n| *n == c)
+            .with_context(|| format!("{}: no column {c}", path.display()))
+    };
     let (it, ix, iy, iz) = (col("t_s")?, col("x_mm")?, col("y_mm")?, col("z_mm")?);
     let istatus = names.iter().position(|n| *n == "status");
     let iway = names.iter().position(|n| *n == "waypoint");
@@ -111,28 +121,49 @@ pub fn read_record(path: &Path) -> anyhow::Result<Vec<Sample>> {
         let num = |i: usize, what: &str| -> anyhow::Result<Option<f64>> {
             match c.get(i).copied() {
                 None | Some("") => Ok(None),
-                Some(s) => s
-                    .parse::<f64>()
-                    .map(Some)
-                    .with_context(|| format!("{}:{}: {what} = {s:?} is not a number", path.display(), lineno + 1)),
+                Some(s) => s.parse::<f64>().map(Some).with_context(|| {
+                    format!(
+                        "{}:{}: {what} = {s:?} is not a number",
+                        path.display(),
+                        lineno + 1
+                    )
+                }),
             }
         };
-        let (Some(t), Some(x), Some(y), Some(z)) = (num(it, "t_s")?, num(ix, "x_mm")?, num(iy, "y_mm")?, num(iz, "z_mm")?)
-        else {
+        let (Some(t), Some(x), Some(y), Some(z)) = (
+            num(it, "t_s")?,
+            num(ix, "x_mm")?,
+            num(iy, "y_mm")?,
+            num(iz, "z_mm")?,
+        ) else {
             continue;
         };
         let waypoint = iway.is_some_and(|i| c.get(i).is_some_and(|s| *s == "1"));
-        out.push(Sample { t_s: t, pos_mm: [x, y, z], waypoint });
+        out.push(Sample {
+            t_s: t,
+            pos_mm: [x, y, z],
+            waypoint,
+        });
     }
     Ok(out)
 }
 
 /// Filter, simplify, resample and assign speeds.
 pub fn process(samples: &[Sample], args: &Args) -> anyhow::Result<Vec<PathPoint>> {
-    let mut pts: Vec<Sample> =
-        if args.waypoints_only { samples.iter().copied().filter(|s| s.waypoint).collect() } else { samples.to_vec() };
-    ensure!(pts.len() >= 2, "need at least 2 usable samples, have {}", pts.len());
-    ensure!(pts.windows(2).all(|w| w[1].t_s >= w[0].t_s), "timestamps must not decrease");
+    let mut pts: Vec<Sample> = if args.waypoints_only {
+        samples.iter().copied().filter(|s| s.waypoint).collect()
+    } else {
+        samples.to_vec()
+    };
+    ensure!(
+        pts.len() >= 2,
+        "need at least 2 usable samples, have {}",
+        pts.len()
+    );
+    ensure!(
+        pts.windows(2).all(|w| w[1].t_s >= w[0].t_s),
+        "timestamps must not decrease"
+    );
     if args.one_euro && !args.waypoints_only {
         let mut f = OneEuro3::new(OneEuroConfig {
             min_cutoff_hz: args.min_cutoff_hz,
@@ -170,7 +201,11 @@ pub fn process(samples: &[Sample], args: &Args) -> anyhow::Result<Vec<PathPoint>
                 seg += 1;
             }
             let len = cum[seg + 1] - cum[seg];
-            let f = if len > 0.0 { ((s_along - cum[seg]) / len).clamp(0.0, 1.0) } else { 0.0 };
+            let f = if len > 0.0 {
+                ((s_along - cum[seg]) / len).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
             out.push((kept[seg].0 + f * (kept[seg + 1].0 - kept[seg].0), *p));
         }
         kept = out;
@@ -183,17 +218,31 @@ pub fn process(samples: &[Sample], args: &Args) -> anyhow::Result<Vec<PathPoint>
             None => {
                 let (t0, p0) = kept[i - 1];
                 let dt = t - t0;
-                if dt > 0.0 { dist_mm(p, p0) / dt } else { args.max_speed_mm_s }
+                if dt > 0.0 {
+                    dist_mm(p, p0) / dt
+                } else {
+                    args.max_speed_mm_s
+                }
             }
         };
-        path.push(PathPoint { pos_mm: p, t_s: t, speed_mm_s: speed.clamp(args.min_speed_mm_s, args.max_speed_mm_s) });
+        path.push(PathPoint {
+            pos_mm: p,
+            t_s: t,
+            speed_mm_s: speed.clamp(args.min_speed_mm_s, args.max_speed_mm_s),
+        });
     }
     Ok(path)
 }
 
 fn parse_orient(s: &str) -> anyhow::Result<[f64; 4]> {
-    let v: Vec<f64> = s.split(',').map(|p| p.trim().parse::<f64>()).collect::<Result<_, _>>().context("--orient")?;
-    let q: [f64; 4] = v.try_into().map_err(|_| anyhow::anyhow!("--orient needs 4 numbers q1,q2,q3,q4"))?;
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .context("--orient")?;
+    let q: [f64; 4] = v
+        .try_into()
+        .map_err(|_| anyhow::anyhow!("--orient needs 4 numbers q1,q2,q3,q4"))?;
     let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
     ensure!(n > 1e-9, "--orient must not be all zero");
     Ok(q.map(|x| x / n))
@@ -203,7 +252,10 @@ fn rapid_ident(s: &str, what: &str) -> anyhow::Result<()> {
     let ok = s.chars().next().is_some_and(|c| c.is_ascii_alphabetic())
         && s.len() <= 32
         && s.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
-    ensure!(ok, "{what} {s:?} is not a RAPID identifier (letter, then letters/digits/_, at most 32)");
+    ensure!(
+        ok,
+        "{what} {s:?} is not a RAPID identifier (letter, then letters/digits/_, at most 32)"
+    );
     Ok(())
 }
 
@@ -213,15 +265,32 @@ pub fn to_rapid(path: &[PathPoint], args: &Args, source: &str) -> anyhow::Result
     rapid_ident(&args.tool, "--tool")?;
     rapid_ident(&args.wobj, "--wobj")?;
     rapid_ident(&args.zone, "--zone")?;
-    ensure!(path.len() <= 9999, "{} points exceed 9999 robtargets: raise --rdp-tol-mm or --resample-mm", path.len());
+    ensure!(
+        path.len() <= 9999,
+        "{} points exceed 9999 robtargets: raise --rdp-tol-mm or --resample-mm",
+        path.len()
+    );
     let q = parse_orient(&args.orient)?;
-    let mut speeds: Vec<i64> = path.iter().map(|p| p.speed_mm_s.round().max(1.0) as i64).collect();
+    let mut speeds: Vec<i64> = path
+        .iter()
+        .map(|p| p.speed_mm_s.round().max(1.0) as i64)
+        .collect();
     speeds.sort_unstable();
     speeds.dedup();
     let mut s = String::new();
     writeln!(s, "MODULE {}", args.module)?;
-    writeln!(s, "    ! Generated by irtrack host-tools path from {}", source.replace(['\n', '"'], " "))?;
-    writeln!(s, "    ! {} points, tool {}, work object {}", path.len(), args.tool, args.wobj)?;
+    writeln!(
+        s,
+        "    ! Generated by irtrack host-tools path from {}",
+        source.replace(['\n', '"'], " ")
+    )?;
+    writeln!(
+        s,
+        "    ! {} points, tool {}, work object {}",
+        path.len(),
+        args.tool,
+        args.wobj
+    )?;
     for v in &speeds {
         writeln!(s, "    CONST speeddata vIr{v} := [{v}, 500, 5000, 1000];")?;
     }
@@ -243,9 +312,19 @@ pub fn to_rapid(path: &[PathPoint], args: &Args, source: &str) -> anyhow::Result
     writeln!(s, "    PROC {}Run()", args.module)?;
     writeln!(s, "        ConfL\\Off;")?;
     for (i, p) in path.iter().enumerate() {
-        let zone = if i + 1 == path.len() || i == 0 { "fine" } else { args.zone.as_str() };
+        let zone = if i + 1 == path.len() || i == 0 {
+            "fine"
+        } else {
+            args.zone.as_str()
+        };
         let v = p.speed_mm_s.round().max(1.0) as i64;
-        writeln!(s, "        MoveL pIr{:04}, vIr{v}, {zone}, {} \\WObj:={};", i + 1, args.tool, args.wobj)?;
+        writeln!(
+            s,
+            "        MoveL pIr{:04}, vIr{v}, {zone}, {} \\WObj:={};",
+            i + 1,
+            args.tool,
+            args.wobj
+        )?;
     }
     writeln!(s, "    ENDPROC")?;
     writeln!(s, "ENDMODULE")?;
@@ -267,7 +346,12 @@ pub fn to_csv(path: &[PathPoint]) -> String {
 
 /// JSON export (numbers only, no strings needing escapes besides the source name).
 pub fn to_json(path: &[PathPoint], source: &str) -> String {
-    let esc: String = source.chars().filter(|c| !c.is_control()).collect::<String>().replace('\\', "\\\\").replace('"', "\\\"");
+    let esc: String = source
+        .chars()
+        .filter(|c| !c.is_control())
+        .collect::<String>()
+        .replace('\\', "\\\\")
+        .replace('"', "\\\"");
     let mut s = format!("{{\"source\":\"{esc}\",\"points\":[");
     for (i, p) in path.iter().enumerate() {
         if i > 0 {

@@ -76,12 +76,20 @@ struct Partial {
     bin: Vec<u8>,
 }
 
-fn read_record(fmt: Format, rd: &mut BufReader<TcpStream>, p: &mut Partial) -> anyhow::Result<Option<PositionRecord>> {
+fn read_record(
+    fmt: Format,
+    rd: &mut BufReader<TcpStream>,
+    p: &mut Partial,
+) -> anyhow::Result<Option<PositionRecord>> {
     match fmt {
         Format::Ndjson => {
             let room = MAX_NDJSON_LINE.saturating_sub(p.line.len()) as u64;
             // On a timeout the bytes read so far stay in `p.line`.
-            let n = rd.by_ref().take(room).read_line(&mut p.line).context("read position stream")?;
+            let n = rd
+                .by_ref()
+                .take(room)
+                .read_line(&mut p.line)
+                .context("read position stream")?;
             if !p.line.ends_with('\n') {
                 if p.line.len() >= MAX_NDJSON_LINE {
                     bail!("position stream line longer than {MAX_NDJSON_LINE} bytes");
@@ -116,10 +124,18 @@ fn read_record(fmt: Format, rd: &mut BufReader<TcpStream>, p: &mut Partial) -> a
 fn write_row(out: &mut impl Write, t0_ns: u64, r: &PositionRecord, waypoint: bool) -> std::io::Result<()> {
     let t = r.capture_ts_ns.saturating_sub(t0_ns) as f64 * 1e-9;
     let (x, y, z) = match r.position_mm {
-        Some(p) => (format!("{:.4}", p[0]), format!("{:.4}", p[1]), format!("{:.4}", p[2])),
+        Some(p) => (
+            format!("{:.4}", p[0]),
+            format!("{:.4}", p[1]),
+            format!("{:.4}", p[2]),
+        ),
         None => (String::new(), String::new(), String::new()),
     };
-    let gap = if r.gap_mm.is_finite() { format!("{:.4}", r.gap_mm) } else { String::new() };
+    let gap = if r.gap_mm.is_finite() {
+        format!("{:.4}", r.gap_mm)
+    } else {
+        String::new()
+    };
     writeln!(
         out,
         "{t:.6},{},{},{x},{y},{z},{gap},{},{}",
@@ -132,11 +148,13 @@ fn write_row(out: &mut impl Write, t0_ns: u64, r: &PositionRecord, waypoint: boo
 
 /// Records until the stream ends, the duration elapses, `q` is typed or enough points exist.
 pub fn record(args: &Args) -> anyhow::Result<Summary> {
-    let stream = TcpStream::connect(&args.from).with_context(|| format!("cannot connect to {}", args.from))?;
+    let stream =
+        TcpStream::connect(&args.from).with_context(|| format!("cannot connect to {}", args.from))?;
     // A short timeout lets the loop check the clock and commands while the stream is quiet.
     stream.set_read_timeout(Some(Duration::from_millis(200)))?;
     let mut rd = BufReader::new(stream);
-    let file = std::fs::File::create(&args.out).with_context(|| format!("{}: cannot create", args.out.display()))?;
+    let file =
+        std::fs::File::create(&args.out).with_context(|| format!("{}: cannot create", args.out.display()))?;
     let mut out = BufWriter::new(file);
     writeln!(out, "{HEADER}")?;
     let (tx, cmds) = mpsc::channel();
@@ -164,7 +182,10 @@ pub fn record(args: &Args) -> anyhow::Result<Summary> {
     let mut partial = Partial::default();
     let interactive = !args.no_stdin;
     loop {
-        if args.duration_s.is_some_and(|d| started.elapsed().as_secs_f64() >= d) {
+        if args
+            .duration_s
+            .is_some_and(|d| started.elapsed().as_secs_f64() >= d)
+        {
             break;
         }
         if args.max_points.is_some_and(|m| s.waypoints >= m) {
@@ -192,7 +213,10 @@ pub fn record(args: &Args) -> anyhow::Result<Summary> {
             Err(e)
                 if e.chain().any(|c| {
                     c.downcast_ref::<std::io::Error>().is_some_and(|io| {
-                        matches!(io.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut)
+                        matches!(
+                            io.kind(),
+                            std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                        )
                     })
                 }) =>
             {
@@ -230,7 +254,10 @@ pub fn record(args: &Args) -> anyhow::Result<Summary> {
                 s.written_rows += 1;
                 if interactive {
                     let p = r.position_mm.unwrap_or_default();
-                    eprintln!("\nwaypoint {}: {:.2} {:.2} {:.2} mm", s.waypoints, p[0], p[1], p[2]);
+                    eprintln!(
+                        "\nwaypoint {}: {:.2} {:.2} {:.2} mm",
+                        s.waypoints, p[0], p[1], p[2]
+                    );
                 }
             }
         }
@@ -260,7 +287,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         bail!("--points needs a way to mark waypoints: stdin or --mark-file");
     }
     if !args.no_stdin {
-        eprintln!("recording from {}; type p + Enter to mark a waypoint, q + Enter to stop", args.from);
+        eprintln!(
+            "recording from {}; type p + Enter to mark a waypoint, q + Enter to stop",
+            args.from
+        );
     }
     let s = record(&args)?;
     println!(

@@ -44,28 +44,58 @@ pub struct Pairs {
     pub robot_mm: Vec<[f64; 3]>,
 }
 
-const COLUMNS: [&str; 6] = ["tracker_x_mm", "tracker_y_mm", "tracker_z_mm", "robot_x_mm", "robot_y_mm", "robot_z_mm"];
+const COLUMNS: [&str; 6] = [
+    "tracker_x_mm",
+    "tracker_y_mm",
+    "tracker_z_mm",
+    "robot_x_mm",
+    "robot_y_mm",
+    "robot_z_mm",
+];
 
 /// Reads the pairs CSV (header required, `#` comments and blank lines ignored).
 pub fn read_pairs(path: &Path) -> anyhow::Result<Pairs> {
     let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'));
-    let Some((_, header)) = lines.next() else { bail!("{}: empty file", path.display()) };
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'));
+    let Some((_, header)) = lines.next() else {
+        bail!("{}: empty file", path.display())
+    };
     let names: Vec<&str> = header.split(',').map(str::trim).collect();
     let idx: Vec<usize> = COLUMNS
         .iter()
-        .map(|c| names.iter().position(|n| n == c).with_context(|| format!("{}: no column {c}", path.display())))
+        .map(|c| {
+            names
+                .iter()
+                .position(|n| n == c)
+                .with_context(|| format!("{}: no column {c}", path.display()))
+        })
         .collect::<anyhow::Result<_>>()?;
     let mut pairs = Pairs::default();
     for (lineno, line) in lines {
         let cells: Vec<&str> = line.split(',').map(str::trim).collect();
         let mut v = [0.0; 6];
         for (k, &i) in idx.iter().enumerate() {
-            let cell = cells.get(i).with_context(|| format!("{}:{}: missing {}", path.display(), lineno + 1, COLUMNS[k]))?;
-            v[k] = cell
-                .parse()
-                .with_context(|| format!("{}:{}: {} = {cell:?} is not a number", path.display(), lineno + 1, COLUMNS[k]))?;
-            ensure!(v[k].is_finite(), "{}:{}: {} is not finite", path.display(), lineno + 1, COLUMNS[k]);
+            let cell = cells
+                .get(i)
+                .with_context(|| format!("{}:{}: missing {}", path.display(), lineno + 1, COLUMNS[k]))?;
+            v[k] = cell.parse().with_context(|| {
+                format!(
+                    "{}:{}: {} = {cell:?} is not a number",
+                    path.display(),
+                    lineno + 1,
+                    COLUMNS[k]
+                )
+            })?;
+            ensure!(
+                v[k].is_finite(),
+                "{}:{}: {} is not finite",
+                path.display(),
+                lineno + 1,
+                COLUMNS[k]
+            );
         }
         pairs.tracker_mm.push([v[0], v[1], v[2]]);
         pairs.robot_mm.push([v[3], v[4], v[5]]);
@@ -87,7 +117,11 @@ pub fn register(pairs: &Pairs, holdout: usize, with_scale: bool) -> anyhow::Resu
     let n = pairs.tracker_mm.len();
     ensure!(n >= 4, "need at least 4 pairs, got {n}");
     let holdout_fit = if holdout > 0 {
-        ensure!(n >= 4 + holdout, "--holdout {holdout} leaves {} pairs to fit; need at least 4", n - holdout.min(n));
+        ensure!(
+            n >= 4 + holdout,
+            "--holdout {holdout} leaves {} pairs to fit; need at least 4",
+            n - holdout.min(n)
+        );
         let k = n - holdout;
         let fit = registration::fit(&pairs.tracker_mm[..k], &pairs.robot_mm[..k], with_scale)
             .context("fit without the held-out pairs")?;
@@ -96,8 +130,12 @@ pub fn register(pairs: &Pairs, holdout: usize, with_scale: bool) -> anyhow::Resu
     } else {
         None
     };
-    let all = registration::fit(&pairs.tracker_mm, &pairs.robot_mm, with_scale).context("fit on all pairs")?;
-    Ok(Report { all, holdout: holdout_fit })
+    let all =
+        registration::fit(&pairs.tracker_mm, &pairs.robot_mm, with_scale).context("fit on all pairs")?;
+    Ok(Report {
+        all,
+        holdout: holdout_fit,
+    })
 }
 
 fn rms(v: &[f64]) -> f64 {
@@ -110,7 +148,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let report = register(&pairs, args.holdout, args.scale)?;
     let a = &report.all;
     println!("pairs: {}", pairs.tracker_mm.len());
-    println!("fit on all pairs: RMS {:.3} mm, max {:.3} mm, scale {:.6}", a.rms_mm, a.max_mm, a.scale);
+    println!(
+        "fit on all pairs: RMS {:.3} mm, max {:.3} mm, scale {:.6}",
+        a.rms_mm, a.max_mm, a.scale
+    );
     if let Some((fit, res)) = &report.holdout {
         println!(
             "held-out {} pairs (fit on the rest: RMS {:.3} mm): RMS {:.3} mm, max {:.3} mm",
@@ -127,7 +168,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.max_rms_mm
     );
     // The stored transform is rigid: refit without scale when --scale was only a diagnostic.
-    let rigid = if args.scale { registration::fit(&pairs.tracker_mm, &pairs.robot_mm, false)? } else { a.clone() };
+    let rigid = if args.scale {
+        registration::fit(&pairs.tracker_mm, &pairs.robot_mm, false)?
+    } else {
+        a.clone()
+    };
     let mut params = crate::opencv_yaml::load_params_any(&args.params)?;
     params.world_from_cam0 = Some(rigid.transform.clone());
     params.validate().context("parameters with the registration")?;
@@ -138,6 +183,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         std::fs::write(&args.out, blob).with_context(|| format!("{}: cannot write", args.out.display()))?;
     }
     let t = rigid.transform.translation_mm();
-    println!("world_from_cam0: t = [{:.3}, {:.3}, {:.3}] mm; written to {}", t[0], t[1], t[2], args.out.display());
+    println!(
+        "world_from_cam0: t = [{:.3}, {:.3}, {:.3}] mm; written to {}",
+        t[0],
+        t[1],
+        t[2],
+        args.out.display()
+    );
     Ok(())
 }

@@ -62,7 +62,8 @@ fn parse_xyz(s: &str) -> Result<[f64; 3], String> {
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let listener = TcpListener::bind(&args.listen).with_context(|| format!("cannot listen on {}", args.listen))?;
+    let listener =
+        TcpListener::bind(&args.listen).with_context(|| format!("cannot listen on {}", args.listen))?;
     let addr = listener.local_addr()?;
     println!("robot-sim listening on {addr}");
     std::io::stdout().flush()?;
@@ -75,10 +76,20 @@ struct Log {
 }
 
 impl Log {
-    fn row(&mut self, conn: u32, event: &str, seq: Option<u32>, target: Option<[f64; 3]>, pos: [f64; 3], detail: &str) {
+    fn row(
+        &mut self,
+        conn: u32,
+        event: &str,
+        seq: Option<u32>,
+        target: Option<[f64; 3]>,
+        pos: [f64; 3],
+        detail: &str,
+    ) {
         let Some(out) = self.out.as_mut() else { return };
         let seq = seq.map(|s| s.to_string()).unwrap_or_default();
-        let t = target.map(|t| format!("{:.3},{:.3},{:.3}", t[0], t[1], t[2])).unwrap_or_else(|| ",,".into());
+        let t = target
+            .map(|t| format!("{:.3},{:.3},{:.3}", t[0], t[1], t[2]))
+            .unwrap_or_else(|| ",,".into());
         // A failing log write must not stop the simulated robot; it is reported once at exit.
         let _ = writeln!(
             out,
@@ -109,13 +120,20 @@ pub fn serve(args: &Args, listener: TcpListener) -> anyhow::Result<()> {
     };
     let out = match &args.log {
         Some(p) => {
-            let mut w = BufWriter::new(std::fs::File::create(p).with_context(|| format!("create {}", p.display()))?);
-            writeln!(w, "t_s,conn,event,seq,target_x_mm,target_y_mm,target_z_mm,robot_x_mm,robot_y_mm,robot_z_mm,detail")?;
+            let mut w =
+                BufWriter::new(std::fs::File::create(p).with_context(|| format!("create {}", p.display()))?);
+            writeln!(
+                w,
+                "t_s,conn,event,seq,target_x_mm,target_y_mm,target_z_mm,robot_x_mm,robot_y_mm,robot_z_mm,detail"
+            )?;
             Some(w)
         }
         None => None,
     };
-    let mut log = Log { out, t0: Instant::now() };
+    let mut log = Log {
+        out,
+        t0: Instant::now(),
+    };
     let mut robot = SimRobot::new(cfg);
     let mut conn = 0;
     loop {
@@ -138,7 +156,9 @@ pub fn serve(args: &Args, listener: TcpListener) -> anyhow::Result<()> {
 
 fn send(stream: &mut TcpStream, msgs: &[RobotMsg]) -> std::io::Result<()> {
     for m in msgs {
-        let line = m.encode().map_err(|e| std::io::Error::new(ErrorKind::InvalidData, e.to_string()))?;
+        let line = m
+            .encode()
+            .map_err(|e| std::io::Error::new(ErrorKind::InvalidData, e.to_string()))?;
         stream.write_all(line.as_bytes())?;
     }
     Ok(())
@@ -194,9 +214,13 @@ fn connection(args: &Args, robot: &mut SimRobot, mut stream: TcpStream, log: &mu
                     log.row(conn, "target", Some(seq), Some(target_mm), pos, "");
                 }
                 SimEvent::Reached { seq } => log.row(conn, "reached", Some(seq), None, pos, ""),
-                SimEvent::Rejected { seq, code } => log.row(conn, "rejected", Some(seq), None, pos, &format!("{code:02}")),
+                SimEvent::Rejected { seq, code } => {
+                    log.row(conn, "rejected", Some(seq), None, pos, &format!("{code:02}"))
+                }
                 SimEvent::Hold { reason } => log.row(conn, "hold", None, None, pos, reason.text()),
-                SimEvent::Malformed { reason } => log.row(conn, "malformed", None, None, pos, &reason.replace(',', ";")),
+                SimEvent::Malformed { reason } => {
+                    log.row(conn, "malformed", None, None, pos, &reason.replace(',', ";"))
+                }
             }
         }
         if last_pos_log.elapsed() >= Duration::from_millis(args.log_every_ms) {

@@ -222,7 +222,7 @@ pub fn write_scenario(
             if m == 0 {
                 let _ = writeln!(
                     truth,
-                    "{index},{:.6},{:.6},{:.6},{:.6},{vis}",
+                    "{index},{:.9},{:.6},{:.6},{:.6},{vis}",
                     t.t_s, p.x, p.y, p.z
                 );
             }

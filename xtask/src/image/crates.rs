@@ -37,11 +37,16 @@ fn parse_lock(text: &str) -> Result<Vec<LockedCrate>> {
             Some(s) if s == CRATES_IO => {}
             Some(s) => bail!("Cargo.lock: {name} {version} comes from {s}; only crates.io can be listed"),
         }
-        let checksum = field("checksum").with_context(|| format!("Cargo.lock: {name} {version} has no checksum"))?;
+        let checksum =
+            field("checksum").with_context(|| format!("Cargo.lock: {name} {version} has no checksum"))?;
         if checksum.len() != 64 || !checksum.bytes().all(|b| b.is_ascii_hexdigit()) {
             bail!("Cargo.lock: {name} {version} has a malformed checksum {checksum:?}");
         }
-        crates.push(LockedCrate { name, version, checksum });
+        crates.push(LockedCrate {
+            name,
+            version,
+            checksum,
+        });
     }
     crates.sort();
     Ok(crates)
@@ -52,14 +57,16 @@ fn render(crates: &[LockedCrate]) -> String {
     let mut out = String::from(
         "# Generated from Cargo.lock by `cargo xtask image crates`; do not edit.\n\
          # CI regenerates this file and fails if it differs.\n\n\
-         # from Cargo.lock\nSRC_URI += \" \\\n",
+         # from Cargo.lock\nSRC_URI += \"",
     );
-    for c in crates {
-        out.push_str(&format!("    crate://crates.io/{}/{} \\\n", c.name, c.version));
-    }
+    let uris: Vec<String> = crates.iter().map(|c| format!("crate://crates.io/{}/{}", c.name, c.version)).collect();
+    out.push_str(&uris.join(" \\\n    "));
     out.push_str("\"\n\n");
     for c in crates {
-        out.push_str(&format!("SRC_URI[{}-{}.sha256sum] = \"{}\"\n", c.name, c.version, c.checksum));
+        out.push_str(&format!(
+            "SRC_URI[{}-{}.sha256sum] = \"{}\"\n",
+            c.name, c.version, c.checksum
+        ));
     }
     out
 }
@@ -76,7 +83,10 @@ pub fn check(ctx: &Ctx) -> Result<()> {
     let (path, want, n) = generate(ctx)?;
     let have = fs::read_to_string(&path).unwrap_or_default();
     if have != want {
-        bail!("{} is out of date with Cargo.lock ({n} crates); run `cargo xtask image crates`", path.display());
+        bail!(
+            "{} is out of date with Cargo.lock ({n} crates); run `cargo xtask image crates`",
+            path.display()
+        );
     }
     println!("image: {} matches Cargo.lock ({n} crates)", path.display());
     Ok(())
@@ -110,18 +120,36 @@ mod tests {
              source = \"{CRATES_IO}\"\nchecksum = \"{SUM}\"\n"
         );
         let crates = parse_lock(&lock).unwrap();
-        assert_eq!(crates.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["adler2", "zed"]);
+        assert_eq!(
+            crates.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(),
+            ["adler2", "zed"]
+        );
         let inc = render(&crates);
-        assert!(inc.contains("    crate://crates.io/adler2/2.0.1 \\\n    crate://crates.io/zed/1.0.0 \\\n\"\n"));
+        assert!(
+            inc.contains("SRC_URI += \"crate://crates.io/adler2/2.0.1 \\\n    crate://crates.io/zed/1.0.0\"\n")
+        );
         assert!(inc.contains(&format!("SRC_URI[zed-1.0.0.sha256sum] = \"{SUM}\"\n")));
         assert!(!inc.contains("irtrack-core"));
     }
 
     #[test]
     fn git_sources_and_bad_checksums_are_rejected() {
-        let git = "[[package]]\nname = \"x\"\nversion = \"1.0.0\"\nsource = \"git+https://example.invalid/x\"\n";
-        assert!(parse_lock(git).unwrap_err().to_string().contains("only crates.io"));
-        let bad = format!("[[package]]\nname = \"x\"\nversion = \"1.0.0\"\nsource = \"{CRATES_IO}\"\nchecksum = \"abc\"\n");
-        assert!(parse_lock(&bad).unwrap_err().to_string().contains("malformed checksum"));
+        let git =
+            "[[package]]\nname = \"x\"\nversion = \"1.0.0\"\nsource = \"git+https://example.invalid/x\"\n";
+        assert!(
+            parse_lock(git)
+                .unwrap_err()
+                .to_string()
+                .contains("only crates.io")
+        );
+        let bad = format!(
+            "[[package]]\nname = \"x\"\nversion = \"1.0.0\"\nsource = \"{CRATES_IO}\"\nchecksum = \"abc\"\n"
+        );
+        assert!(
+            parse_lock(&bad)
+                .unwrap_err()
+                .to_string()
+                .contains("malformed checksum")
+        );
     }
 }

@@ -30,8 +30,9 @@ const BOOT_TIMEOUT: Duration = Duration::from_secs(120);
 
 /// Free host ports, all bound at once so they differ, then released for QEMU.
 fn free_ports<const N: usize>() -> Result<[u16; N]> {
-    let listeners: Vec<TcpListener> =
-        (0..N).map(|_| TcpListener::bind((Ipv4Addr::LOCALHOST, 0))).collect::<std::io::Result<_>>()?;
+    let listeners: Vec<TcpListener> = (0..N)
+        .map(|_| TcpListener::bind((Ipv4Addr::LOCALHOST, 0)))
+        .collect::<std::io::Result<_>>()?;
     let mut ports = [0; N];
     for (p, l) in ports.iter_mut().zip(&listeners) {
         *p = l.local_addr()?.port();
@@ -47,15 +48,24 @@ fn qemu_command(disk: &Path, host_ports: &[u16; 4]) -> Command {
         .collect();
     let mut cmd = Command::new("qemu-system-aarch64");
     // acpi=off keeps the PL061 GPIO in the device tree when booting through U-Boot.
-    cmd.args(["-M", "virt,acpi=off", "-cpu", "cortex-a53", "-smp", "2", "-m", "512"])
-        .args(["-display", "none", "-monitor", "none", "-serial", "stdio"])
-        .args(["-bios", UBOOT_QEMU])
-        .arg("-drive")
-        .arg(format!("if=none,file={},format=raw,id=sd", disk.display()))
-        .args(["-device", "virtio-blk-device,drive=sd"])
-        .arg("-netdev")
-        .arg(format!("user,id=net0,{}", fwd.join(",")))
-        .args(["-device", "virtio-net-device,netdev=net0"]);
+    cmd.args([
+        "-M",
+        "virt,acpi=off",
+        "-cpu",
+        "cortex-a53",
+        "-smp",
+        "2",
+        "-m",
+        "512",
+    ])
+    .args(["-display", "none", "-monitor", "none", "-serial", "stdio"])
+    .args(["-bios", UBOOT_QEMU])
+    .arg("-drive")
+    .arg(format!("if=none,file={},format=raw,id=sd", disk.display()))
+    .args(["-device", "virtio-blk-device,drive=sd"])
+    .arg("-netdev")
+    .arg(format!("user,id=net0,{}", fwd.join(",")))
+    .args(["-device", "virtio-net-device,netdev=net0"]);
     cmd
 }
 
@@ -72,9 +82,13 @@ struct Qemu {
 impl Qemu {
     fn spawn(mut cmd: Command, log_path: &Path) -> Result<Self> {
         println!("$ {}", util::display_cmd(&cmd));
-        cmd.stdin(Stdio::piped()).stdout(Stdio::piped()).stderr(Stdio::inherit());
+        cmd.stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit());
         let started = Instant::now();
-        let mut child = cmd.spawn().context("starting qemu-system-aarch64 (run `cargo xtask setup`)")?;
+        let mut child = cmd
+            .spawn()
+            .context("starting qemu-system-aarch64 (run `cargo xtask setup`)")?;
         let stdin = child.stdin.take().context("qemu stdin")?;
         let mut stdout = child.stdout.take().context("qemu stdout")?;
         let log = Arc::new(Mutex::new(String::new()));
@@ -93,7 +107,14 @@ impl Qemu {
                 }
             }
         });
-        Ok(Self { child, stdin, log, log_path: log_path.to_path_buf(), started, commands: 0 })
+        Ok(Self {
+            child,
+            stdin,
+            log,
+            log_path: log_path.to_path_buf(),
+            started,
+            commands: 0,
+        })
     }
 
     fn log_len(&self) -> usize {
@@ -145,7 +166,10 @@ impl Qemu {
         self.stdin.flush()?;
         let after_begin = self.wait_for(&begin, from, timeout)?;
         let after_end = self.wait_for(&end, after_begin, timeout)?;
-        let log = self.log.lock().map_err(|_| anyhow::anyhow!("serial log lock poisoned"))?;
+        let log = self
+            .log
+            .lock()
+            .map_err(|_| anyhow::anyhow!("serial log lock poisoned"))?;
         Ok(log[after_begin..after_end - end.len()].to_owned())
     }
 }
@@ -182,7 +206,10 @@ impl Report {
             Ok(d) => (true, d),
             Err(e) => (false, format!("{e:#}")),
         };
-        println!("system-test: {} {name}: {detail}", if ok { "PASS" } else { "FAIL" });
+        println!(
+            "system-test: {} {name}: {detail}",
+            if ok { "PASS" } else { "FAIL" }
+        );
         self.checks.push(Check { name, ok, detail });
     }
 }
@@ -191,12 +218,23 @@ impl fmt::Display for Report {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         writeln!(f, "system test:")?;
         for c in &self.checks {
-            writeln!(f, "  {} {}: {}", if c.ok { "PASS" } else { "FAIL" }, c.name, c.detail)?;
+            writeln!(
+                f,
+                "  {} {}: {}",
+                if c.ok { "PASS" } else { "FAIL" },
+                c.name,
+                c.detail
+            )?;
         }
         for fig in &self.figures {
             writeln!(f, "  {fig}")?;
         }
-        write!(f, "system-test: {} passed, {} failed", self.passed(), self.failed())
+        write!(
+            f,
+            "system-test: {} passed, {} failed",
+            self.passed(),
+            self.failed()
+        )
     }
 }
 
@@ -229,11 +267,15 @@ fn try_get_status(port: u16) -> Result<Json> {
 }
 
 fn num(j: &Json, path: &str) -> Result<f64> {
-    j.get(path).and_then(Json::as_f64).with_context(|| format!("status has no number at {path}"))
+    j.get(path)
+        .and_then(Json::as_f64)
+        .with_context(|| format!("status has no number at {path}"))
 }
 
 fn text<'a>(j: &'a Json, path: &str) -> Result<&'a str> {
-    j.get(path).and_then(Json::as_str).with_context(|| format!("status has no string at {path}"))
+    j.get(path)
+        .and_then(Json::as_str)
+        .with_context(|| format!("status has no string at {path}"))
 }
 
 /// Boots a copy of the image and runs every check. Errors only for setup failures; failed
@@ -246,7 +288,11 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
     // A fresh copy per run: the test's parameter pushes must not leak into the next run.
     let disk = dir.join("sd.img");
     let _ = fs::remove_file(&disk);
-    let cp = Command::new("cp").arg("--sparse=always").arg(&image.sd_img).arg(&disk).status()?;
+    let cp = Command::new("cp")
+        .arg("--sparse=always")
+        .arg(&image.sd_img)
+        .arg(&disk)
+        .status()?;
     if !cp.success() {
         bail!("copying the image to {}", disk.display());
     }
@@ -267,29 +313,60 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
     let boot_s = q.started.elapsed().as_secs_f64();
     let ready_at = match ready {
         Ok(at) => {
-            report.check("boot to irtrackd ready (U-Boot, kernel, initramfs, busybox init)", Ok(format!("{boot_s:.1} s")));
-            report.figures.push(format!("boot time to ready: {boot_s:.1} s (QEMU start to irtrackd's ready line)"));
+            report.check(
+                "boot to irtrackd ready (U-Boot, kernel, initramfs, busybox init)",
+                Ok(format!("{boot_s:.1} s")),
+            );
+            report.figures.push(format!(
+                "boot time to ready: {boot_s:.1} s (QEMU start to irtrackd's ready line)"
+            ));
             at
         }
         Err(e) => {
-            report.check("boot to irtrackd ready (U-Boot, kernel, initramfs, busybox init)", Err(e));
+            report.check(
+                "boot to irtrackd ready (U-Boot, kernel, initramfs, busybox init)",
+                Err(e),
+            );
             return Ok(report);
         }
     };
     // The console shell starts with irtrackd; make sure it answers before typing commands.
     let shell = q.console("uname -r", Duration::from_secs(20));
-    report.check("guest console shell", shell.map(|s| format!("kernel {}", s.trim())));
+    report.check(
+        "guest console shell",
+        shell.map(|s| format!("kernel {}", s.trim())),
+    );
 
-    report.check("v4l2 capture from vivid (format, streaming, kernel timestamps)", check_capture(status_port));
-    report.check("status LEDs on the PL061 through gpiocdev, read back via gpiolib", check_gpio(&mut q, status_port, true));
-    report.check("host-tools push-params over the forwarded port", push_params(ctx, params_port, &params_file));
-    report.check("pushed parameters in use", check_params_used(status_port, &rig_id));
+    report.check(
+        "v4l2 capture from vivid (format, streaming, kernel timestamps)",
+        check_capture(status_port),
+    );
+    report.check(
+        "status LEDs on the PL061 through gpiocdev, read back via gpiolib",
+        check_gpio(&mut q, status_port, true),
+    );
+    report.check(
+        "host-tools push-params over the forwarded port",
+        push_params(ctx, params_port, &params_file),
+    );
+    report.check(
+        "pushed parameters in use",
+        check_params_used(status_port, &rig_id),
+    );
     report.check("position stream reaches a host client", check_stream(stream_port));
-    report.check("fault LED off once parameters are in use", check_gpio(&mut q, status_port, false));
-    report.check("irtrackd restarts after being killed", check_restart(&mut q, ready_at, status_port, &rig_id));
+    report.check(
+        "fault LED off once parameters are in use",
+        check_gpio(&mut q, status_port, false),
+    );
+    report.check(
+        "irtrackd restarts after being killed",
+        check_restart(&mut q, ready_at, status_port, &rig_id),
+    );
     match check_reboot(&mut q, status_port, &rig_id) {
         Ok((detail, second_boot_s)) => {
-            report.figures.push(format!("reboot to ready: {second_boot_s:.1} s"));
+            report
+                .figures
+                .push(format!("reboot to ready: {second_boot_s:.1} s"));
             report.check("parameters survive a reboot", Ok(detail));
         }
         Err(e) => report.check("parameters survive a reboot", Err(e)),
@@ -354,15 +431,24 @@ fn parse_debugfs_gpio(text: &str, label: &str, consumer: &str) -> Vec<GpioLine> 
     for line in text.lines() {
         if line.starts_with("gpiochip") {
             base = if line.contains(label) {
-                line.split("GPIOs ").nth(1).and_then(|r| r.split('-').next()).and_then(|n| n.trim().parse().ok())
+                line.split("GPIOs ")
+                    .nth(1)
+                    .and_then(|r| r.split('-').next())
+                    .and_then(|n| n.trim().parse().ok())
             } else {
                 None
             };
             continue;
         }
-        let (Some(base), Some(rest)) = (base, line.trim_start().strip_prefix("gpio-")) else { continue };
-        let Some((num, rest)) = rest.split_once(' ') else { continue };
-        let (Ok(num), Some((names, state))) = (num.parse::<u32>(), rest.split_once(')')) else { continue };
+        let (Some(base), Some(rest)) = (base, line.trim_start().strip_prefix("gpio-")) else {
+            continue;
+        };
+        let Some((num, rest)) = rest.split_once(' ') else {
+            continue;
+        };
+        let (Ok(num), Some((names, state))) = (num.parse::<u32>(), rest.split_once(')')) else {
+            continue;
+        };
         let used_by = names.split('|').nth(1).map(str::trim);
         if used_by != Some(consumer) || num < base {
             continue;
@@ -370,7 +456,11 @@ fn parse_debugfs_gpio(text: &str, label: &str, consumer: &str) -> Vec<GpioLine> 
         let mut words = state.split_whitespace();
         let output = words.next() == Some("out");
         let high = words.next() == Some("hi");
-        out.push(GpioLine { offset: num - base, output, high });
+        out.push(GpioLine {
+            offset: num - base,
+            output,
+            high,
+        });
     }
     out
 }
@@ -433,7 +523,9 @@ fn check_gpio(q: &mut Qemu, status_port: u16, expect_no_params_fault: bool) -> R
     } else {
         format!("fault LED not checked: status reports faults {f0:?} {f1:?}")
     };
-    Ok(format!("lines 4-7 outputs held by irtrackd, heartbeat toggling over {n} samples; {fault_detail}"))
+    Ok(format!(
+        "lines 4-7 outputs held by irtrackd, heartbeat toggling over {n} samples; {fault_detail}"
+    ))
 }
 
 /// `host-tools simulate` writes a rig (two VGA cameras, like the vivid ones) as `rig.irp`.
@@ -441,12 +533,25 @@ fn make_params(ctx: &Ctx, dir: &Path) -> Result<PathBuf> {
     let out_dir = dir.join("sim");
     let out = ctx
         .cargo()
-        .args(["run", "-q", "-p", "irtrack-host-tools", "--", "simulate", "--frames", "1", "--out"])
+        .args([
+            "run",
+            "-q",
+            "-p",
+            "irtrack-host-tools",
+            "--",
+            "simulate",
+            "--frames",
+            "1",
+            "--out",
+        ])
         .arg(&out_dir)
         .output()
         .context("running host-tools simulate")?;
     if !out.status.success() {
-        bail!("host-tools simulate failed: {}", String::from_utf8_lossy(&out.stderr));
+        bail!(
+            "host-tools simulate failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
     }
     let file = out_dir.join("rig.irp");
     if !file.is_file() {
@@ -472,12 +577,24 @@ fn rig_id_of(ctx: &Ctx, file: &Path) -> Result<String> {
 fn push_params(ctx: &Ctx, port: u16, file: &Path) -> Result<String> {
     let out = ctx
         .cargo()
-        .args(["run", "-q", "-p", "irtrack-host-tools", "--", "push-params", "--to"])
+        .args([
+            "run",
+            "-q",
+            "-p",
+            "irtrack-host-tools",
+            "--",
+            "push-params",
+            "--to",
+        ])
         .arg(format!("127.0.0.1:{port}"))
         .arg(file)
         .output()
         .context("running host-tools push-params")?;
-    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
     if !out.status.success() {
         bail!("push-params {}: {}", out.status, text.trim());
     }
@@ -519,7 +636,11 @@ fn check_stream(port: u16) -> Result<String> {
     if records.len() < 5 {
         bail!("only {} records in 3 s", records.len());
     }
-    let field = |r: &Json, k: &str| r.get(k).and_then(Json::as_f64).with_context(|| format!("record without {k}"));
+    let field = |r: &Json, k: &str| {
+        r.get(k)
+            .and_then(Json::as_f64)
+            .with_context(|| format!("record without {k}"))
+    };
     let (first, last) = (&records[0], &records[records.len() - 1]);
     let frames = field(last, "frame")? - field(first, "frame")?;
     let span_s = (field(last, "capture_ts_ns")? - field(first, "capture_ts_ns")?) / 1e9;
@@ -538,7 +659,10 @@ fn check_stream(port: u16) -> Result<String> {
 }
 
 fn check_restart(q: &mut Qemu, _first_ready: usize, status_port: u16, rig_id: &str) -> Result<String> {
-    let pid_before = q.console("pidof irtrackd", Duration::from_secs(10))?.trim().to_owned();
+    let pid_before = q
+        .console("pidof irtrackd", Duration::from_secs(10))?
+        .trim()
+        .to_owned();
     if pid_before.is_empty() {
         bail!("irtrackd not running before the kill");
     }
@@ -549,7 +673,10 @@ fn check_restart(q: &mut Qemu, _first_ready: usize, status_port: u16, rig_id: &s
     let at = q.wait_for("irtrackd ready", from, Duration::from_secs(60))?;
     let restart_s = t0.elapsed().as_secs_f64();
     let _ = at;
-    let pid_after = q.console("pidof irtrackd", Duration::from_secs(10))?.trim().to_owned();
+    let pid_after = q
+        .console("pidof irtrackd", Duration::from_secs(10))?
+        .trim()
+        .to_owned();
     if pid_after.is_empty() || pid_after == pid_before {
         bail!("pid before {pid_before}, after {pid_after:?}");
     }
@@ -558,7 +685,9 @@ fn check_restart(q: &mut Qemu, _first_ready: usize, status_port: u16, rig_id: &s
     if id != rig_id {
         bail!("after restart the status shows rig {id:?}, want {rig_id:?} (from the state dir)");
     }
-    Ok(format!("pid {pid_before} killed, pid {pid_after} ready in {restart_s:.1} s with rig {id} loaded from disk"))
+    Ok(format!(
+        "pid {pid_before} killed, pid {pid_after} ready in {restart_s:.1} s with rig {id} loaded from disk"
+    ))
 }
 
 fn check_reboot(q: &mut Qemu, status_port: u16, rig_id: &str) -> Result<(String, f64)> {
@@ -576,7 +705,10 @@ fn check_reboot(q: &mut Qemu, status_port: u16, rig_id: &str) -> Result<(String,
     if id != rig_id {
         bail!("after reboot the status shows rig {id:?}, want {rig_id:?}");
     }
-    Ok((format!("rebooted, ready again in {boot_s:.1} s with rig {id}"), boot_s))
+    Ok((
+        format!("rebooted, ready again in {boot_s:.1} s with rig {id}"),
+        boot_s,
+    ))
 }
 
 /// `cargo xtask image run`: boots the image with the console on this terminal.
@@ -615,7 +747,10 @@ pub enum Json {
 
 impl Json {
     pub fn parse(text: &str) -> Result<Json> {
-        let mut p = Parser { s: text.as_bytes(), i: 0 };
+        let mut p = Parser {
+            s: text.as_bytes(),
+            i: 0,
+        };
         let v = p.value()?;
         p.ws();
         if p.i != p.s.len() {
@@ -740,7 +875,9 @@ impl Parser<'_> {
                     self.i += 1;
                 }
                 let t = std::str::from_utf8(&self.s[start..self.i])?;
-                t.parse().map(Json::Num).with_context(|| format!("bad number {t:?} at byte {start}"))
+                t.parse()
+                    .map(Json::Num)
+                    .with_context(|| format!("bad number {t:?} at byte {start}"))
             }
         }
     }
@@ -795,7 +932,10 @@ mod tests {
         assert_eq!(j.get("source.cameras.2"), None);
         assert_eq!(j.get("s").and_then(Json::as_str), Some("a\"bé"));
         assert_eq!(j.get("n").and_then(Json::as_f64), Some(-1500.0));
-        assert_eq!(j.get("faults").and_then(Json::as_array).map(<[Json]>::len), Some(1));
+        assert_eq!(
+            j.get("faults").and_then(Json::as_array).map(<[Json]>::len),
+            Some(1)
+        );
         assert!(Json::parse("{\"a\":1,}").is_err());
         assert!(Json::parse("[1 2]").is_err());
         assert!(Json::parse("{} x").is_err());
@@ -813,8 +953,16 @@ mod tests {
         assert_eq!(
             lines,
             vec![
-                GpioLine { offset: 4, output: true, high: true },
-                GpioLine { offset: 5, output: true, high: false },
+                GpioLine {
+                    offset: 4,
+                    output: true,
+                    high: true
+                },
+                GpioLine {
+                    offset: 5,
+                    output: true,
+                    high: false
+                },
             ]
         );
     }

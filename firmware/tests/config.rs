@@ -1,0 +1,141 @@
+//! Configuration errors and the `irtrackd` binary's command line (`--check-config`, ready line).
+
+mod common;
+
+use std::io::{BufRead, BufReader, Write};
+use std::process::{Command, Stdio};
+
+use common::*;
+use irtrack_firmware::config::{Config, SourceKind};
+
+fn err(toml: &str) -> String {
+    Config::from_toml(toml, "test.toml").unwrap_err().to_string()
+}
+
+#[test]
+fn defaults_are_a_simulated_pc_run() {
+    let c = Config::from_toml("", "empty").unwrap();
+    assert_eq!(c.source.kind, SourceKind::Sim);
+    assert_eq!(c.listen.params, "0.0.0.0:7701");
+    assert_eq!(c.listen.stream_ndjson, "0.0.0.0:7702");
+    assert_eq!(c.listen.stream_binary, "0.0.0.0:7703");
+    assert_eq!(c.listen.status, "0.0.0.0:7704");
+    assert!(!c.service.params_from_simulator);
+    let full = r#"
+[service]
+state_dir = "/tmp/x"
+[listen]
+params = "127.0.0.1:9701"
+[source]
+kind = "sim"
+[source.sim]
+rig = "parallel"
+fps = 30.0
+[tracking]
+threshold_dn = 40
+max_gap_mm = 2.0
+[leds]
+backend = "none"
+[realtime]
+fifo_priority = 50
+cpu_affinity = [1]
+lock_memory = true
+deadline_ms = 20.0
+"#;
+    let c = Config::from_toml(full, "full").unwrap();
+    assert_eq!(c.tracking.threshold_dn, 40);
+    assert_eq!(c.realtime.cpu_affinity, Some(vec![1]));
+}
+
+#[test]
+fn bad_configs_name_the_problem() {
+    let e = err("[servic]\nstate_dir = \"/x\"\n");
+    assert!(e.contains("test.toml") && e.contains("unknown field `servic`"), "{e}");
+    let e = err("[source.sim]\nfpz = 30.0\n");
+    assert!(e.contains("unknown field `fpz`") && e.contains("fps"), "{e}");
+    let e = err("[source.sim]\nfps = \"fast\"\n");
+    assert!(e.contains("invalid type") && e.contains("fps"), "{e}");
+    let e = err("[tracking]\nthreshold = 3\n");
+    assert!(e.contains("unknown field `threshold`"), "{e}");
+    let e = err("[tracking]\nmin_area_px = 0\n");
+    assert!(e.contains("[tracking]") && e.contains("area"), "{e}");
+    let e = err("[source]\nkind = \"replay\"\n");
+    assert!(e.contains("needs a [source.replay] table"), "{e}");
+    let e = err("[source]\nkind = \"usb\"\n");
+    assert!(e.contains("unknown variant `usb`"), "{e}");
+    let e = err("[listen]\nstatus = \"localhost\"\n");
+    assert!(e.contains("listen.status"), "{e}");
+    let e = err("[source.sim]\nbit_depth = 12\n");
+    assert!(e.contains("source.sim.bit_depth must be 8 or 10"), "{e}");
+    let e = err("[leds]\nbackend = \"gpio\"\n");
+    assert!(e.contains("[leds.gpio]"), "{e}");
+    let e = err("[realtime]\nfifo_priority = 100\n");
+    assert!(e.contains("1..=99"), "{e}");
+    let e = Config::load(std::path::Path::new("/nonexistent/irtrackd.toml")).unwrap_err().to_string();
+    assert!(e.contains("/nonexistent/irtrackd.toml") && e.contains("cannot read"), "{e}");
+}
+
+fn irtrackd() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_irtrackd"))
+}
+
+#[test]
+fn check_config_flag_reports_and_exits() {
+    let dir = TempDir::new("cli-check");
+    let good = dir.path().join("good.toml");
+    std::fs::write(&good, "[source.sim]\nfps = 50.0\n").unwrap();
+    let out = irtrackd().arg("--check-config").arg("-c").arg(&good).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("config OK"));
+
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, "[source.sim]\nfps = 50.0\ncolour = 1\n").unwrap();
+    let out = irtrackd().arg("--check-config").arg("-c").arg(&bad).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("unknown field `colour`") && stderr.contains("bad.toml"), "{stderr}");
+
+    let out = irtrackd().arg("--check-config").arg("-c").arg(dir.path().join("missing.toml")).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("cannot read"));
+
+    // An override can make a good file invalid, and says so.
+    let out = irtrackd().args(["--check-config", "--sim-fps", "0", "-c"]).arg(&good).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("command-line overrides"));
+}
+
+#[test]
+fn binary_prints_ready_line_streams_and_stops_on_sigterm() {
+    let dir = TempDir::new("cli-run");
+    let mut child = irtrackd()
+        .args(["--ephemeral-ports", "127.0.0.1", "--params-from-simulator", "--sim-fps", "100", "--state-dir"])
+        .arg(dir.path())
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut stdout = BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    stdout.read_line(&mut line).unwrap();
+    assert!(line.starts_with("irtrackd ready params=127.0.0.1:"), "{line}");
+    let field = |k: &str| -> std::net::SocketAddr {
+        line.split_whitespace().find_map(|f| f.strip_prefix(&format!("{k}="))).unwrap().parse().unwrap()
+    };
+    let stream = field("stream");
+    let status = field("status");
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    rt.block_on(async {
+        let mut c = NdjsonClient::connect(stream).await;
+        let r = c.until(100, |r| r.status == irtrack_core::stream::TrackStatus::Ok).await;
+        assert!(r.position_mm.is_some());
+        let st = status_json(status).await;
+        assert_eq!(st["params"]["origin"], "simulator");
+    });
+    // SAFETY: plain kill(2) on our own child.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGTERM) }, 0);
+    let code = child.wait().unwrap();
+    assert!(code.success(), "{code:?}");
+    let _ = std::io::stdout().flush();
+}

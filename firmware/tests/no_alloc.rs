@@ -1,0 +1,109 @@
+//! The processing loop does not allocate per frame set once warmed up: a counting global
+//! allocator counts allocations made by this test's thread while it runs `Engine::step`.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::sync::Arc;
+use std::time::Duration;
+
+use irtrack_core::pipeline::TrackerConfig;
+use irtrack_core::stream::TrackStatus;
+use irtrack_firmware::engine::{ActiveParams, Engine, ParamsHandle, StepOutcome};
+use irtrack_firmware::source::FrameSource;
+use irtrack_firmware::source::sim::{SimSource, SimSourceConfig};
+use irtrack_firmware::status::SharedStatus;
+
+struct Counting;
+
+thread_local! {
+    // Const-initialized without a destructor: touching it never allocates.
+    static ALLOCS: Cell<u64> = const { Cell::new(0) };
+}
+
+fn bump() {
+    let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        bump();
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        bump();
+        unsafe { System.alloc_zeroed(layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        bump();
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn allocs() -> u64 {
+    ALLOCS.with(|c| c.get())
+}
+
+fn engine(with_params: bool, bit_depth: u8) -> (Engine, tokio::sync::watch::Receiver<Option<irtrack_core::stream::PositionRecord>>) {
+    let cfg = SimSourceConfig { paced: false, fps: 100.0, bit_depth, ..SimSourceConfig::default() };
+    let source = SimSource::new(&cfg).unwrap();
+    let handle = Arc::new(ParamsHandle::new());
+    if with_params {
+        let rig = source.scenario().rig().clone();
+        handle.install(ActiveParams { rig, crc: 1 });
+    }
+    let status = Arc::new(SharedStatus::new(source.camera_count(), source.describe(), "none".into()));
+    let (tx, rx) = tokio::sync::watch::channel(None);
+    let mut tracker = TrackerConfig::default();
+    if bit_depth == 10 {
+        // 10-bit frames: threshold in 10-bit DN.
+        tracker.threshold_dn = 120;
+    }
+    (Engine::new(Box::new(source), tracker, handle, tx, status, Duration::from_millis(10)), rx)
+}
+
+fn measure(engine: &mut Engine, warmup: usize, steps: usize) -> (u64, usize) {
+    for _ in 0..warmup {
+        engine.step().unwrap();
+    }
+    let before = allocs();
+    let mut ok = 0;
+    for _ in 0..steps {
+        if let StepOutcome::Published(r) = engine.step().unwrap() {
+            if r.status == TrackStatus::Ok {
+                ok += 1;
+            }
+        }
+    }
+    (allocs() - before, ok)
+}
+
+#[test]
+fn steady_state_processing_does_not_allocate() {
+    for bits in [8u8, 10] {
+        let (mut e, rx) = engine(true, bits);
+        let (n, ok) = measure(&mut e, 10, 60);
+        assert!(ok >= 55, "{bits}-bit: only {ok} of 60 sets tracked; the measured path must be the tracking path");
+        assert_eq!(n, 0, "{bits}-bit: {n} allocations in 60 frame sets");
+        assert!(rx.borrow().is_some());
+    }
+    // The allocator really counts on this thread.
+    let before = allocs();
+    let v: Vec<u8> = Vec::with_capacity(16);
+    drop(v);
+    assert_eq!(allocs() - before, 1);
+}
+
+#[test]
+fn no_params_path_does_not_allocate() {
+    let (mut e, rx) = engine(false, 8);
+    let (n, ok) = measure(&mut e, 5, 30);
+    assert_eq!(ok, 0);
+    assert_eq!(n, 0, "{n} allocations in 30 frame sets without parameters");
+    assert_eq!(rx.borrow().unwrap().status, TrackStatus::NoParams);
+}

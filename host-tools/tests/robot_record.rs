@@ -1,0 +1,114 @@
+//! `host-tools record` against a fake irtrackd position stream (NDJSON and binary): continuous
+//! recording with lost records, and point-teach through the mark file.
+
+use std::io::Write;
+use std::net::TcpListener;
+use std::time::Duration;
+
+use irtrack_core::stream::{PositionRecord, TrackStatus};
+use irtrack_host_tools::cmd::record::{self, Format};
+
+fn rec(frame: u64) -> PositionRecord {
+    let lost = frame % 10 == 5;
+    PositionRecord {
+        frame,
+        capture_ts_ns: 1_000_000_000 + frame * 10_000_000,
+        position_mm: (!lost).then_some([frame as f64, 2.0 * frame as f64, 300.0]),
+        orientation_wxyz: None,
+        gap_mm: if lost { f64::NAN } else { 0.3 },
+        status: if lost { TrackStatus::Lost } else { TrackStatus::Ok },
+        cameras_used: if lost { 1 } else { 2 },
+        world_frame: true,
+        latency_us: 900,
+        params_crc: 7,
+    }
+}
+
+/// Serves `n` records at 100 Hz, then closes; creates `mark` after record `mark_at`.
+fn serve(binary: bool, n: u64, mark: Option<(std::path::PathBuf, u64)>) -> String {
+    let l = TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = l.local_addr().unwrap().to_string();
+    std::thread::spawn(move || {
+        let (mut s, _) = l.accept().unwrap();
+        for f in 1..=n {
+            let r = rec(f);
+            if binary {
+                s.write_all(&r.to_binary()).unwrap();
+            } else {
+                let line = r.to_ndjson_line();
+                // Split lines across writes: the recorder must reassemble them.
+                let (a, b) = line.as_bytes().split_at(line.len() / 2);
+                s.write_all(a).unwrap();
+                s.flush().unwrap();
+                s.write_all(b).unwrap();
+            }
+            if let Some((p, at)) = &mark
+                && *at == f
+            {
+                std::fs::write(p, b"").unwrap();
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    });
+    addr
+}
+
+fn base_args(from: String, out: std::path::PathBuf, format: Format) -> record::Args {
+    record::Args {
+        from,
+        format,
+        out,
+        duration_s: Some(10.0),
+        points: false,
+        max_points: None,
+        mark_file: None,
+        no_stdin: true,
+    }
+}
+
+#[test]
+fn records_continuous_stream_with_gaps() {
+    let dir = std::env::temp_dir().join(format!("irtrack-record-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for (binary, format) in [(false, Format::Ndjson), (true, Format::Binary)] {
+        let out = dir.join(format!("rec-{binary}.csv"));
+        let addr = serve(binary, 40, None);
+        let s = record::record(&base_args(addr, out.clone(), format)).unwrap();
+        assert_eq!((s.records, s.lost, s.written_rows), (40, 4, 40), "{format:?}");
+        let csv = std::fs::read_to_string(&out).unwrap();
+        let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+        assert_eq!(rows.len(), 40);
+        assert_eq!(rows[0][0], "0.000000");
+        assert_eq!(rows[11][0], "0.110000");
+        assert_eq!(&rows[2][3..6], &["3.0000", "6.0000", "300.0000"]);
+        assert_eq!(&rows[4][3..8], &["", "", "", "", "lost"]);
+        // The path tool reads it back, skipping lost rows.
+        let samples = irtrack_host_tools::cmd::path::read_record(&out).unwrap();
+        assert_eq!(samples.len(), 36);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn point_teach_marks_waypoints_from_the_mark_file() {
+    let dir = std::env::temp_dir().join(format!("irtrack-record-pts-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mark = dir.join("mark");
+    let out = dir.join("points.csv");
+    let addr = serve(false, 60, Some((mark.clone(), 20)));
+    let mut a = base_args(addr, out.clone(), Format::Ndjson);
+    a.points = true;
+    a.mark_file = Some(mark.clone());
+    a.max_points = Some(1);
+    let s = record::record(&a).unwrap();
+    assert_eq!(s.waypoints, 1);
+    assert!(!mark.exists(), "mark file consumed");
+    let csv = std::fs::read_to_string(&out).unwrap();
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 1);
+    assert_eq!(rows[0][8], "1");
+    // The waypoint is the newest valid position when the mark appeared (frame 20 or just after).
+    let frame: u64 = rows[0][1].parse().unwrap();
+    assert!((20..=24).contains(&frame), "waypoint frame {frame}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,0 +1,59 @@
+SUMMARY = "irtrack optical tracking service"
+DESCRIPTION = "irtrackd captures two or more IR cameras through V4L2, finds the hand-held \
+tool's LED, triangulates it and streams positions over TCP to a robot controller. It shows \
+its state on GPIO status LEDs and takes calibration parameters over the network."
+HOMEPAGE = "https://example.invalid/irtrack"
+BUGTRACKER = "https://example.invalid/irtrack/issues"
+SECTION = "console/utils"
+# The workspace is dual-licensed and ships no license files of its own.
+LICENSE = "MIT | Apache-2.0"
+# nooelint: oelint.var.licenseremotefile - the sources carry no license texts; the common ones are exact
+LIC_FILES_CHKSUM = "file://${COMMON_LICENSE_DIR}/MIT;md5=0835ade698e0bcf8506ecda2f7b4f302 \
+                    file://${COMMON_LICENSE_DIR}/Apache-2.0;md5=89aea4e17d99a7cacdbeed46a0096b10"
+
+PV = "0.1.0+git"
+
+# Point the git URL and SRCREV at your repository in a bbappend; for development use
+# externalsrc: INHERIT += "externalsrc" and EXTERNALSRC:pn-irtrackd = "/path/to/irtrack".
+SRC_URI = "git://example.invalid/irtrack.git;protocol=https;branch=main \
+           file://irtrackd.toml \
+           file://99-irtrack.rules \
+           "
+# No published repository to pin yet: release builds set SRCREV in a bbappend; kas/irtrack.yml
+# builds the local checkout through externalsrc, where SRCREV is not used.
+# nooelint: oelint.vars.autorev
+SRCREV ?= "${AUTOREV}"
+
+# scarthgap unpacks into WORKDIR; later releases define UNPACKDIR themselves.
+UNPACKDIR ??= "${WORKDIR}"
+S = "${UNPACKDIR}/git"
+
+inherit cargo systemd useradd
+
+# crate:// sources with checksums, generated from Cargo.lock (`cargo xtask image crates`), so
+# do_compile runs offline.
+require ${BPN}-crates.inc
+
+# Only the board service; host-tools (OpenCV) stays on the PC.
+CARGO_BUILD_FLAGS:append = " -p irtrack-firmware --bin irtrackd"
+
+USERADD_PACKAGES = "${PN}"
+GROUPADD_PARAM:${PN} = "--system irtrack"
+USERADD_PARAM:${PN} = "--system --no-create-home --home-dir ${localstatedir}/lib/irtrackd \
+                       --shell /sbin/nologin --gid irtrack irtrack"
+
+SYSTEMD_SERVICE:${PN} = "irtrackd.service"
+SYSTEMD_AUTO_ENABLE:${PN} = "enable"
+
+do_install:append() {
+    install -d ${D}${systemd_system_unitdir}
+    install -m 0644 ${S}/systemd/irtrackd.service ${D}${systemd_system_unitdir}/
+    install -d ${D}${sysconfdir}/irtrack
+    install -m 0644 ${UNPACKDIR}/irtrackd.toml ${D}${sysconfdir}/irtrack/irtrackd.toml
+    install -d ${D}${nonarch_base_libdir}/udev/rules.d
+    install -m 0644 ${UNPACKDIR}/99-irtrack.rules ${D}${nonarch_base_libdir}/udev/rules.d/
+}
+
+FILES:${PN} += "${systemd_system_unitdir}/irtrackd.service \
+                ${nonarch_base_libdir}/udev/rules.d/99-irtrack.rules"
+CONFFILES:${PN} = "${sysconfdir}/irtrack/irtrackd.toml"
