@@ -33,7 +33,8 @@ impl Default for OneEuroConfig {
 impl OneEuroConfig {
     fn validate(&self) -> Result<()> {
         let ok = |v: f64| v.is_finite() && v > 0.0;
-        if !ok(self.min_cutoff_hz) || !ok(self.d_cutoff_hz) || !(self.beta.is_finite() && self.beta >= 0.0) {
+        let beta_ok = self.beta.is_finite() && self.beta >= 0.0;
+        if !(ok(self.min_cutoff_hz) && ok(self.d_cutoff_hz) && beta_ok) {
             return Err(Error::InvalidParams {
                 reason: alloc::format!("One-Euro parameters must be positive: {self:?}"),
             });

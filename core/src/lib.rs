@@ -18,6 +18,7 @@ pub mod param_wire;
 pub mod params;
 pub mod registration;
 pub mod pipeline;
+pub mod pose6d;
 pub mod robot_proto;
 pub mod stream;
 pub mod triangulate;

@@ -771,7 +771,7 @@ impl SimRobot {
         }
         self.last_rx_seq = seq;
         self.received += 1;
-        if self.cfg.reject_every > 0 && self.received % self.cfg.reject_every == 0 {
+        if self.cfg.reject_every > 0 && self.received.is_multiple_of(self.cfg.reject_every) {
             self.events.push(SimEvent::Rejected {
                 seq,
                 code: reject::INJECTED,

@@ -115,7 +115,10 @@ pub fn deadline(cfg: &Config) -> Duration {
     }
 }
 
-fn open_leds(cfg: &Config) -> Result<(Option<Box<dyn StatusLeds>>, Option<LedRecord>)> {
+/// An LED back end (if any) and, for the simulated one, its change record.
+type OpenedLeds = (Option<Box<dyn StatusLeds>>, Option<LedRecord>);
+
+fn open_leds(cfg: &Config) -> Result<OpenedLeds> {
     Ok(match cfg.leds.backend {
         LedBackend::Sim => {
             let (leds, record) = SimLeds::new();
@@ -173,10 +176,11 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     let shape = RigShape::of_set(&source.allocate_set());
     let params = Arc::new(ParamService::new(store, shape, cfg.tracking, handle.clone(), status.clone()));
     let loaded = params.load_stored();
-    if !loaded && cfg.service.params_from_simulator {
-        if let Some(rig) = sim_rig {
-            params.install_unstored(rig, "simulator")?;
-        }
+    if !loaded
+        && cfg.service.params_from_simulator
+        && let Some(rig) = sim_rig
+    {
+        params.install_unstored(rig, "simulator")?;
     }
 
     let (slot_tx, slot_rx) = watch::channel(None);

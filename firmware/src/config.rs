@@ -216,10 +216,10 @@ impl Config {
             return bad("listen.client_queue_records must be at least 1".into());
         }
         check_tracker_config(&self.tracking)?;
-        if let Some(d) = self.realtime.deadline_ms {
-            if !(d.is_finite() && d > 0.0) {
-                return bad(format!("realtime.deadline_ms must be > 0, got {d}"));
-            }
+        if let Some(d) = self.realtime.deadline_ms
+            && !(d.is_finite() && d > 0.0)
+        {
+            return bad(format!("realtime.deadline_ms must be > 0, got {d}"));
         }
         match self.source.kind {
             SourceKind::Sim => {
@@ -262,10 +262,10 @@ impl Config {
         if let Some(robot) = &self.robot {
             robot.validate().map_err(|e| FirmwareError::Config { reason: e.to_string() })?;
         }
-        if let Some(p) = self.realtime.fifo_priority {
-            if !(1..=99).contains(&p) {
-                return bad(format!("realtime.fifo_priority must be 1..=99, got {p}"));
-            }
+        if let Some(p) = self.realtime.fifo_priority
+            && !(1..=99).contains(&p)
+        {
+            return bad(format!("realtime.fifo_priority must be 1..=99, got {p}"));
         }
         Ok(())
     }

@@ -106,7 +106,13 @@ impl ParamService {
                 }
             },
         };
-        if let Verdict::Rejected { code, message } = &verdict {
+        self.note_rejection(&verdict);
+        verdict
+    }
+
+    /// Counts and logs a rejection (also for framing errors caught by the endpoint).
+    pub fn note_rejection(&self, verdict: &Verdict) {
+        if let Verdict::Rejected { code, message } = verdict {
             tracing::warn!(%code, %message, "parameter push rejected");
             let text = format!("{code} {message}");
             self.status.update_params_info(|p| {
@@ -114,7 +120,6 @@ impl ParamService {
                 p.last_rejection = Some(text);
             });
         }
-        verdict
     }
 
     fn activate(&self, rig: RigParams, crc: u32, origin: &str) {

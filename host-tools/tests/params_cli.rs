@@ -225,7 +225,10 @@ fn yaml_errors_name_file_and_key() {
     let path = tmp("missing_t.yaml");
     std::fs::write(&path, HANDWRITTEN.split("T: !!").next().unwrap()).unwrap();
     let e = format!("{:#}", read_rig_yaml(&path).unwrap_err());
-    assert!(e.contains("missing_t.yaml") && e.contains("missing `R2`"), "{e}");
+    assert!(
+        e.contains("missing_t.yaml") && e.contains("missing `T` (camera 2 pose)"),
+        "{e}"
+    );
 
     let path = tmp("skew.yaml");
     std::fs::write(

@@ -143,6 +143,8 @@ pub struct RenderSettings {
     pub white_level: f64,
     /// Everything off the paper.
     pub background_level: f64,
+    /// The board's back, for cameras behind it.
+    pub backing_level: f64,
     /// Gaussian sensor noise, grey levels RMS.
     pub noise_sigma: f64,
     /// Pixels crossed by an edge get `supersample²` samples.
@@ -156,6 +158,7 @@ impl Default for RenderSettings {
             black_level: 35.0,
             white_level: 215.0,
             background_level: 110.0,
+            backing_level: 150.0,
             noise_sigma: 2.0,
             supersample: 8,
             seed: 1,
@@ -352,16 +355,33 @@ pub fn generate_poses(
     board.validate()?;
     let (target, toward) = rig_target(rig, board, cfg.distance_mm)?;
     let distance = (rig.cameras[0].cam_from_cam0.inverse().translation_mm() - target).norm();
-    // Base orientation: board facing the cameras, its x along camera 0's x where possible.
+    sample_poses(rig, board, cfg, target, toward, distance)
+}
+
+/// Board poses around `target` facing `toward` (unit, from the board to the cameras) that every
+/// camera of `rig` sees; the lateral spread follows the first camera's field of view.
+fn sample_poses(
+    rig: &RigParams,
+    board: &BoardSpec,
+    cfg: &PoseConfig,
+    target: Vector3<f64>,
+    toward: Vector3<f64>,
+    distance: f64,
+) -> Result<Vec<RigidTransform>, SimError> {
+    let first = rig.cameras.first().ok_or(SimError::Config {
+        field: "rig",
+        reason: "no cameras".into(),
+    })?;
+    // Base orientation: board facing the cameras, its x along the first camera's x where possible.
     let z_b = -toward;
-    let x0 = Vector3::x();
+    let x0 = first.cam_from_cam0.rotation().transpose() * Vector3::x();
     let x_b = (x0 - z_b * x0.dot(&z_b))
         .try_normalize(1e-9)
         .unwrap_or_else(Vector3::y);
     let y_b = z_b.cross(&x_b);
     let base = Matrix3::from_columns(&[x_b, y_b, z_b]);
-    // Lateral reach of board centres: the half field of view of camera 0 at the target.
-    let m0 = &rig.cameras[0].model;
+    // Lateral reach of board centres: the half field of view of the first camera at the target.
+    let m0 = &first.model;
     let half_w_mm = distance * m0.image_size.width_px as f64 / (2.0 * m0.intrinsics.fx_px);
     let half_h_mm = distance * m0.image_size.height_px as f64 / (2.0 * m0.intrinsics.fy_px);
 
@@ -379,7 +399,10 @@ pub fn generate_poses(
                 let centre = target + lateral - toward * depth;
                 let tilt_axis_angle: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
                 let axis = Unit::new_normalize(x_b * tilt_axis_angle.cos() + y_b * tilt_axis_angle.sin());
-                let tilt = rng.gen_range(-cfg.max_tilt_deg..=cfg.max_tilt_deg).to_radians();
+                // Tilted views pin down the focal length: keep every view at least a third of the
+                // largest tilt away from facing the rig.
+                let tilt_deg = rng.gen_range(cfg.max_tilt_deg / 3.0..=cfg.max_tilt_deg);
+                let tilt = if rng.gen_bool(0.5) { tilt_deg } else { -tilt_deg }.to_radians();
                 let roll = rng.gen_range(-cfg.max_roll_deg..=cfg.max_roll_deg).to_radians();
                 let r = Rotation3::from_axis_angle(&axis, tilt).into_inner()
                     * base
@@ -408,6 +431,40 @@ pub fn generate_poses(
         }
     }
     Ok(poses)
+}
+
+/// Poses (`cam0_from_board`) for intrinsics-only views of one camera: the board fills that
+/// camera's image from varied directions, whether or not the other cameras see it. Needed for
+/// convergent rigs, where the views all cameras share are all tilted the same way and leave the
+/// principal point poorly determined. Other cameras see such boards partly, edge-on or from
+/// behind (rendered as plain backing), so a detector does not find them there.
+pub fn generate_single_camera_poses(
+    rig: &RigParams,
+    board: &BoardSpec,
+    camera: usize,
+    cfg: &PoseConfig,
+) -> Result<Vec<RigidTransform>, SimError> {
+    let cam = rig.cameras.get(camera).ok_or(SimError::NoSuchCamera {
+        camera,
+        count: rig.cameras.len(),
+    })?;
+    // A one-camera rig: its pose stays relative to camera 0, so the poses come out in cam0's frame.
+    let single = RigParams {
+        cameras: vec![cam.clone()],
+        ..rig.clone()
+    };
+    let (centre, axis) = {
+        let ray = Ray::from_normalized(&cam.cam_from_cam0, &Vector2::new(0.0, 0.0));
+        (ray.origin_mm, ray.dir)
+    };
+    let m = &cam.model;
+    let extent_mm = (board.inner_cols.max(board.inner_rows) + 1) as f64 * board.square_mm;
+    let short_px = m.image_size.width_px.min(m.image_size.height_px) as f64;
+    let distance = cfg
+        .distance_mm
+        .unwrap_or(m.intrinsics.fx_px * extent_mm / (0.6 * short_px));
+    let target = centre + axis * distance;
+    sample_poses(&single, board, cfg, target, -axis, distance)
 }
 
 /// Renders views of one camera; holds the undistorted pixel-corner grid so it is computed once.
@@ -469,8 +526,12 @@ impl CameraRenderer {
             (q.z > 1e-12).then(|| (q.x / q.z, q.y / q.z))
         };
         let region_of = |n: &Vector2<f64>| to_board(n).and_then(|(x, y)| board.region(x, y));
+        // Seen from behind (camera on the board's +z side) the board shows its plain backing:
+        // the pattern must never appear mirrored, which would give a detector wrong corners.
+        let from_behind = cam_from_board.inverse().t_mm[2] > 0.0;
         let level = |reg: Option<(i64, i64)>| match reg {
             None => settings.background_level,
+            Some(_) if from_behind => settings.backing_level,
             Some(c) if board.is_black(c) => settings.black_level,
             Some(_) => settings.white_level,
         };
@@ -730,6 +791,41 @@ mod tests {
             (u_edge_img - u_edge_true).abs() < 0.02,
             "edge {u_edge_img} vs {u_edge_true}"
         );
+    }
+
+    #[test]
+    fn single_camera_poses_fill_that_camera_and_backs_are_plain() {
+        let rig = &rigs()[1];
+        let board = BoardSpec::new(9, 6, 25.0).unwrap();
+        let cfg = PoseConfig {
+            count: 4,
+            ..Default::default()
+        };
+        for cam in 0..2 {
+            let poses = generate_single_camera_poses(rig, &board, cam, &cfg).unwrap();
+            let single = RigParams {
+                cameras: vec![rig.cameras[cam].clone()],
+                ..rig.clone()
+            };
+            assert!(
+                poses
+                    .iter()
+                    .all(|p| view_is_usable(&single, &board, p, 62.0, 4.0).is_some())
+            );
+        }
+        // Camera 0 looking at the board's back: no pattern, only backing and background.
+        let r = Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::PI).into_inner();
+        let pose = RigidTransform::from_parts(&r, &(Vector3::new(0.0, 0.0, 800.0) - r * board.centre_mm()));
+        let settings = RenderSettings {
+            noise_sigma: 0.0,
+            ..Default::default()
+        };
+        let mut img = vec![0u8; 640 * 480];
+        CameraRenderer::new(rig.cameras[0].model)
+            .render(&pose, &board, &settings, 0, &mut img)
+            .unwrap();
+        assert!(img.iter().all(|v| *v >= 110), "pattern visible from behind");
+        assert!(img.contains(&150));
     }
 
     #[test]

@@ -33,7 +33,9 @@ commands:
 ";
 
 /// Modules the initramfs loads to reach the root filesystem on a virtio disk.
-const INITRD_MODULES: &[&str] = &["virtio_mmio", "virtio_blk", "ext4"];
+/// `crc32c_generic` is ext4's soft dependency (`softdep=pre: crypto-crc32c`, an alias that
+/// `.modinfo` dependencies do not resolve): metadata checksums need it at mount time.
+const INITRD_MODULES: &[&str] = &["virtio_mmio", "virtio_blk", "crc32c_generic", "ext4"];
 /// Modules the root filesystem loads at start: network and the vivid test cameras. vivid makes
 /// two instances with only a video capture node each (/dev/video0, /dev/video1).
 const ROOT_MODULES: &[(&str, &str)] = &[("virtio_net", ""), ("vivid", "n_devs=2 node_types=0x1,0x1")];

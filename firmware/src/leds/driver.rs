@@ -119,14 +119,13 @@ fn run(leds: &mut dyn StatusLeds, status: &SharedStatus, stop: &AtomicBool) {
         let t_ms = u64::try_from(now.duration_since(start).as_millis()).unwrap_or(u64::MAX);
         let levels = led_levels(&ind, t_ms);
         for (i, led) in Led::ALL.into_iter().enumerate() {
-            if current.is_none_or(|c| c[i] != levels[i]) {
-                if let Err(e) = leds.set(led, levels[i]) {
-                    // A broken LED line must not spam the journal 40 times per second.
-                    if !error_logged {
-                        tracing::warn!(error = %e, "LED back end failed; continuing without it");
-                        error_logged = true;
-                    }
-                }
+            if current.is_none_or(|c| c[i] != levels[i])
+                && let Err(e) = leds.set(led, levels[i])
+                // A broken LED line must not spam the journal 40 times per second.
+                && !error_logged
+            {
+                tracing::warn!(error = %e, "LED back end failed; continuing without it");
+                error_logged = true;
             }
         }
         current = Some(levels);

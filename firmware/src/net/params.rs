@@ -37,12 +37,16 @@ pub async fn serve(listener: TcpListener, service: Arc<ParamService>, shutdown: 
 }
 
 async fn handle(mut stream: TcpStream, service: Arc<ParamService>) -> String {
+    let framing_error = |v: Verdict| {
+        service.note_rejection(&v);
+        v
+    };
     let verdict = match tokio::time::timeout(READ_TIMEOUT, read_push(&mut stream)).await {
-        Err(_) => Verdict::Rejected {
+        Err(_) => framing_error(Verdict::Rejected {
             code: RejectCode::Protocol,
             message: format!("push not received within {} s", READ_TIMEOUT.as_secs()),
-        },
-        Ok(Err(v)) => v,
+        }),
+        Ok(Err(v)) => framing_error(v),
         Ok(Ok(blob)) => tokio::task::spawn_blocking(move || service.push(&blob)).await.unwrap_or_else(|e| {
             Verdict::Rejected { code: RejectCode::Internal, message: format!("push handler failed: {e}") }
         }),

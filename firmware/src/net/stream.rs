@@ -75,6 +75,7 @@ pub async fn serve(listener: TcpListener, format: StreamFormat, hub: StreamHub, 
             accepted = listener.accept() => match accepted {
                 Ok((stream, peer)) => {
                     let _ = stream.set_nodelay(true);
+                    limit_send_buffer(&stream);
                     let rx = hub.subscribe();
                     let status = hub.status.clone();
                     status.stream_clients.fetch_add(1, Ordering::Relaxed);
@@ -99,6 +100,29 @@ pub async fn serve(listener: TcpListener, format: StreamFormat, hub: StreamHub, 
                 }
             }
         }
+    }
+}
+
+/// Kernel send buffer per client. Without a limit Linux grows it to megabytes, which would hide
+/// a stalled reader for many seconds behind stale data; with it, a reader that stops shows up
+/// in our own bounded queue within a fraction of a second.
+pub const CLIENT_SNDBUF_BYTES: libc::c_int = 32 * 1024;
+
+fn limit_send_buffer(stream: &TcpStream) {
+    use std::os::fd::AsRawFd;
+    let v = CLIENT_SNDBUF_BYTES;
+    // SAFETY: valid socket fd owned by `stream`; option value is a c_int of the stated size.
+    let rc = unsafe {
+        libc::setsockopt(
+            stream.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_SNDBUF,
+            (&v as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        )
+    };
+    if rc != 0 {
+        tracing::debug!(error = %std::io::Error::last_os_error(), "SO_SNDBUF not set");
     }
 }
 

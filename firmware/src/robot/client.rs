@@ -67,6 +67,18 @@ pub enum LinkState {
     Moving,
 }
 
+impl LinkState {
+    /// What the robot status LED shows for this state.
+    pub fn indication(self) -> crate::leds::indication::RobotIndication {
+        use crate::leds::indication::RobotIndication;
+        match self {
+            LinkState::Disconnected | LinkState::Connecting => RobotIndication::Disconnected,
+            LinkState::Holding(_) => RobotIndication::Holding,
+            LinkState::Moving => RobotIndication::Connected,
+        }
+    }
+}
+
 /// State and counters, published on every change.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LinkStatus {

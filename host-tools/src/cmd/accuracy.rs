@@ -342,6 +342,26 @@ pub mod plot {
         }
     }
 
+    /// What a plotted series shows.
+    #[derive(Debug, Clone, Copy)]
+    enum Metric {
+        Reference,
+        Goal,
+        Rms,
+        P95,
+    }
+
+    impl Metric {
+        fn value(self, r: &StudyRow) -> Option<f64> {
+            match self {
+                Metric::Reference => Some(r.reference_mm),
+                Metric::Goal => Some(r.reference_mm / 10.0),
+                Metric::Rms => r.stats.map(|s| s.rms_mm),
+                Metric::P95 => r.stats.map(|s| s.p95_mm),
+            }
+        }
+    }
+
     /// Draws RMS/p95 per rig against distance with Table I's figures and the goal, log y.
     pub fn write_plot(path: &Path, rows: &[StudyRow]) -> anyhow::Result<()> {
         let mut cv = Canvas::new();
@@ -432,62 +452,31 @@ pub mod plot {
         let light_red = [255, 150, 150];
         let dark = [90, 90, 90];
         let green = [0, 150, 60];
-        let series: Vec<(&str, [u8; 3], usize, Box<dyn Fn(&StudyRow) -> Option<f64>>, &str)> = vec![
-            (
-                "convergent",
-                dark,
-                0,
-                Box::new(|r: &StudyRow| Some(r.reference_mm)),
-                "TABLE I CONV X=Y=Z",
-            ),
-            (
-                "convergent",
-                green,
-                8,
-                Box::new(|r: &StudyRow| Some(r.reference_mm / 10.0)),
-                "GOAL = TABLE I / 10",
-            ),
-            (
-                "convergent",
-                blue,
-                0,
-                Box::new(|r: &StudyRow| r.stats.map(|s| s.rms_mm)),
-                "CONVERGENT RMS",
-            ),
-            (
-                "convergent",
-                light_blue,
-                6,
-                Box::new(|r: &StudyRow| r.stats.map(|s| s.p95_mm)),
-                "CONVERGENT P95",
-            ),
+        let series: Vec<(&str, [u8; 3], usize, Metric, &str)> = vec![
+            ("convergent", dark, 0, Metric::Reference, "TABLE I CONV X=Y=Z"),
+            ("convergent", green, 8, Metric::Goal, "GOAL = TABLE I / 10"),
+            ("convergent", blue, 0, Metric::Rms, "CONVERGENT RMS"),
+            ("convergent", light_blue, 6, Metric::P95, "CONVERGENT P95"),
             (
                 "parallel",
                 [150, 150, 150],
                 0,
-                Box::new(|r: &StudyRow| Some(r.reference_mm)),
+                Metric::Reference,
                 "TABLE I PARALLEL Z",
             ),
-            (
-                "parallel",
-                red,
-                0,
-                Box::new(|r: &StudyRow| r.stats.map(|s| s.rms_mm)),
-                "PARALLEL RMS",
-            ),
-            (
-                "parallel",
-                light_red,
-                6,
-                Box::new(|r: &StudyRow| r.stats.map(|s| s.p95_mm)),
-                "PARALLEL P95",
-            ),
+            ("parallel", red, 0, Metric::Rms, "PARALLEL RMS"),
+            ("parallel", light_red, 6, Metric::P95, "PARALLEL P95"),
         ];
-        for (k, (rig, color, dash, get, label)) in series.iter().enumerate() {
+        for (k, (rig, color, dash, metric, label)) in series.iter().enumerate() {
             let pts: Vec<(f64, f64)> = rows
                 .iter()
                 .filter(|r| r.rig == *rig)
-                .filter_map(|r| get(r).filter(|v| *v > 0.0).map(|v| (fx(r.distance_mm), fy(v))))
+                .filter_map(|r| {
+                    metric
+                        .value(r)
+                        .filter(|v| *v > 0.0)
+                        .map(|v| (fx(r.distance_mm), fy(v)))
+                })
                 .collect();
             for w in pts.windows(2) {
                 cv.line(w[0], w[1], 3, *dash, *color);

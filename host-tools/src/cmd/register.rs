@@ -76,7 +76,7 @@ pub fn read_pairs(path: &Path) -> anyhow::Result<Pairs> {
     let mut pairs = Pairs::default();
     for (lineno, line) in lines {
         let cells: Vec<&str> = line.split(',').map(str::trim).collect();
-        let mut v = [0.0; 6];
+        let mut v = [0.0f64; 6];
         for (k, &i) in idx.iter().enumerate() {
             let cell = cells
                 .get(i)

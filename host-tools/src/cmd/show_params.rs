@@ -15,8 +15,13 @@ pub struct Args {
     pub file: PathBuf,
 }
 
+/// Adding 0.0 turns -0.0 into 0.0, so exact zeros never print as "-0.000".
+fn nz(x: f64) -> f64 {
+    x + 0.0
+}
+
 fn fmt_vec(v: &[f64]) -> String {
-    let parts: Vec<String> = v.iter().map(|x| format!("{x:.6}")).collect();
+    let parts: Vec<String> = v.iter().map(|x| format!("{:.6}", nz(*x))).collect();
     format!("[{}]", parts.join(", "))
 }
 
@@ -61,7 +66,9 @@ pub fn describe(rig: &RigParams, source: &str) -> Result<String> {
             writeln!(
                 s,
                 "  centre:     ({:.3}, {:.3}, {:.3}) mm in camera-0 frame",
-                c.x, c.y, c.z
+                nz(c.x),
+                nz(c.y),
+                nz(c.z)
             )?;
             writeln!(
                 s,

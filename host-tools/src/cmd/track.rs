@@ -81,10 +81,13 @@ pub fn error_stats(errors_mm: &[f64]) -> Option<ErrorStats> {
     })
 }
 
+/// Marker 0's true position and whether every camera sees it.
+pub type TruthRow = (Vector3<f64>, bool);
+
 /// Reads `truth.csv` (frame,t_s,x_mm,y_mm,z_mm,visible) into frame → (position, visible).
-pub fn read_truth(path: &Path) -> anyhow::Result<Vec<Option<(Vector3<f64>, bool)>>> {
+pub fn read_truth(path: &Path) -> anyhow::Result<Vec<Option<TruthRow>>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut out: Vec<Option<(Vector3<f64>, bool)>> = Vec::new();
+    let mut out: Vec<Option<TruthRow>> = Vec::new();
     for (n, line) in text.lines().enumerate().skip(1) {
         if line.trim().is_empty() {
             continue;
