@@ -1028,15 +1028,18 @@ pub struct MeasuredLayout {
 }
 
 /// Builds a tool definition from triangulated points of a **static** tool seen in several
-/// frames (e.g. [`PoseTracker::points`] or [`PointMatcher::points`] per frame).
+/// frames (copies of [`PointMatcher::points`] or [`PoseTracker::points`] per frame).
 ///
-/// Points of all frames are clustered (radius `cluster_radius_mm`); clusters seen in at
+/// Within a frame, candidates are taken in order of increasing ray gap and a candidate
+/// sharing a blob with one already taken is dropped: a ghost (LED *i* in one camera paired
+/// with LED *j* in the other) shares blobs with both true points and has the larger gap.
+/// Points of all frames are then clustered (radius `cluster_radius_mm`); clusters seen in at
 /// least 80 % of the frames are LEDs. Exactly `expected_leds` such clusters must exist —
 /// a persistent reflection or ghost gives a clear error instead of a wrong tool. The result
 /// is validated like any tool ([`ToolModel::new`]) so an ambiguous layout is refused here.
 pub fn measure_tool_layout(
     name: &str,
-    frames: &[&[[f64; 3]]],
+    frames: &[&[TriangulatedPoint]],
     expected_leds: usize,
     origin: LayoutOrigin,
     cluster_radius_mm: f64,
@@ -1060,12 +1063,21 @@ pub fn measure_tool_layout(
         last_frame: usize,
     }
     let mut clusters: Vec<Cluster> = Vec::new();
+    let mut taken: Vec<TriangulatedPoint> = Vec::new();
     for (fi, frame) in frames.iter().enumerate() {
-        for p in frame.iter() {
-            if !p.iter().all(|v| v.is_finite()) {
+        let mut by_gap: Vec<&TriangulatedPoint> = frame.iter().collect();
+        by_gap.sort_by(|a, b| a.gap_mm.total_cmp(&b.gap_mm));
+        taken.clear();
+        for p in by_gap {
+            if !taken.iter().any(|q| q.shares_blob(p)) {
+                taken.push(*p);
+            }
+        }
+        for p in &taken {
+            if !p.point_mm.iter().all(|v| v.is_finite()) {
                 return bad(format!("measuring tool {name:?}: frame {fi} has a non-finite point"));
             }
-            let v = Vector3::from(*p);
+            let v = p.point_mm;
             let near = clusters
                 .iter_mut()
                 .map(|c| {

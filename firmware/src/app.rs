@@ -19,6 +19,9 @@ use crate::leds::driver::LedDriver;
 use crate::leds::sim::{LedRecord, SimLeds};
 use crate::net::stream::{StreamFormat, StreamHub};
 use crate::params::{ParamService, RigShape};
+use crate::robot::client::MonotonicClock;
+use crate::robot::TcpRobotLink;
+use crate::robot::deadman::FlagDeadman;
 use crate::source::FrameSource;
 use crate::source::replay::ReplaySource;
 use crate::source::sim::SimSource;
@@ -64,16 +67,29 @@ pub struct Running {
     loop_thread: Option<std::thread::JoinHandle<()>>,
     loop_result: Option<oneshot::Receiver<Result<()>>>,
     leds: Option<LedDriver>,
+    robot: Option<TcpRobotLink>,
+    /// Software deadman for `[robot.deadman] kind = "flag"` (set by a control front end).
+    pub robot_deadman_flag: FlagDeadman,
     shutdown_tx: watch::Sender<bool>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
 }
 
 async fn bind(what: &'static str, addr: &str) -> Result<TcpListener> {
-    TcpListener::bind(addr).await.map_err(|source| FirmwareError::Bind { what, addr: addr.to_string(), source })
+    TcpListener::bind(addr)
+        .await
+        .map_err(|source| FirmwareError::Bind {
+            what,
+            addr: addr.to_string(),
+            source,
+        })
 }
 
 fn local(what: &'static str, l: &TcpListener) -> Result<SocketAddr> {
-    l.local_addr().map_err(|source| FirmwareError::Bind { what, addr: "?".into(), source })
+    l.local_addr().map_err(|source| FirmwareError::Bind {
+        what,
+        addr: "?".into(),
+        source,
+    })
 }
 
 /// Opens the configured source; for the simulator also returns its ground-truth rig.
@@ -140,7 +156,9 @@ fn open_leds(cfg: &Config) -> Result<OpenedLeds> {
         }
         #[cfg(not(feature = "rpi"))]
         LedBackend::Rppal => {
-            return Err(FirmwareError::Config { reason: "irtrackd was built without the `rpi` feature".into() });
+            return Err(FirmwareError::Config {
+                reason: "irtrackd was built without the `rpi` feature".into(),
+            });
         }
     })
 }
@@ -168,13 +186,23 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         None => open_leds(&cfg)?,
     };
     let led_desc = leds.as_ref().map_or_else(|| "none".to_string(), |l| l.describe());
-    let status = Arc::new(SharedStatus::new(source.camera_count(), source.describe(), led_desc));
+    let status = Arc::new(SharedStatus::new(
+        source.camera_count(),
+        source.describe(),
+        led_desc,
+    ));
     tracing::info!(source = %source.describe(), leds = %status.led_backend, "starting");
 
     let handle = Arc::new(ParamsHandle::new());
     let store = ParamStore::open(&cfg.service.state_dir)?;
     let shape = RigShape::of_set(&source.allocate_set());
-    let params = Arc::new(ParamService::new(store, shape, cfg.tracking, handle.clone(), status.clone()));
+    let params = Arc::new(ParamService::new(
+        store,
+        shape,
+        cfg.tracking,
+        handle.clone(),
+        status.clone(),
+    ));
     let loaded = params.load_stored();
     if !loaded
         && cfg.service.params_from_simulator
@@ -184,7 +212,14 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     }
 
     let (slot_tx, slot_rx) = watch::channel(None);
-    let engine = Engine::new(source, cfg.tracking, handle, slot_tx, status.clone(), deadline(&cfg));
+    let engine = Engine::new(
+        source,
+        cfg.tracking,
+        handle,
+        slot_tx,
+        status.clone(),
+        deadline(&cfg),
+    );
     let stop_loop = Arc::new(AtomicBool::new(false));
     let (result_tx, result_rx) = oneshot::channel();
     let rt_cfg = cfg.realtime.clone();
@@ -198,7 +233,10 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
             }
             let _ = result_tx.send(engine.run(&stop2));
         })
-        .map_err(|e| FirmwareError::Thread { what: "processing loop", reason: e.to_string() })?;
+        .map_err(|e| FirmwareError::Thread {
+            what: "processing loop",
+            reason: e.to_string(),
+        })?;
 
     let leds = leds.map(|l| LedDriver::start(l, status.clone())).transpose()?;
 
@@ -210,12 +248,45 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         }
     };
     let hub = StreamHub::start(slot_rx.clone(), cfg.listen.client_queue_records, status.clone());
-    let tasks = vec![
+    let mut tasks = vec![
         tokio::spawn(crate::net::params::serve(l_params, params.clone(), shutdown())),
-        tokio::spawn(crate::net::stream::serve(l_ndjson, StreamFormat::Ndjson, hub.clone(), shutdown())),
-        tokio::spawn(crate::net::stream::serve(l_binary, StreamFormat::Binary, hub, shutdown())),
+        tokio::spawn(crate::net::stream::serve(
+            l_ndjson,
+            StreamFormat::Ndjson,
+            hub.clone(),
+            shutdown(),
+        )),
+        tokio::spawn(crate::net::stream::serve(
+            l_binary,
+            StreamFormat::Binary,
+            hub,
+            shutdown(),
+        )),
         tokio::spawn(crate::net::status::serve(l_status, status.clone(), shutdown())),
     ];
+
+    // Robot link: consumes the same latest-value slot; its state drives the Robot LED.
+    let robot_deadman_flag = FlagDeadman::new();
+    let robot = match &cfg.robot {
+        None => None,
+        Some(rc) => {
+            let deadman = rc.deadman.open(&robot_deadman_flag)?;
+            let link = TcpRobotLink::spawn(rc.clone(), slot_rx.clone(), MonotonicClock, deadman)?;
+            let mut link_status = link.subscribe();
+            let st = status.clone();
+            tasks.push(tokio::spawn(async move {
+                loop {
+                    let state = link_status.borrow_and_update().state;
+                    st.set_robot(state.indication());
+                    if link_status.changed().await.is_err() {
+                        break;
+                    }
+                }
+            }));
+            tracing::info!(address = %rc.address, "robot link started (motion needs an explicit enable)");
+            Some(link)
+        }
+    };
 
     Ok(Running {
         addrs,
@@ -227,6 +298,8 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         loop_thread: Some(loop_thread),
         loop_result: Some(result_rx),
         leds,
+        robot,
+        robot_deadman_flag,
         shutdown_tx,
         tasks,
     })
@@ -252,8 +325,16 @@ impl Running {
         }
     }
 
-    /// Stops services, loop and LEDs (LEDs end switched off).
+    /// The robot link, when `[robot]` is configured (enable/disable/status via `RobotLink`).
+    pub fn robot(&self) -> Option<&TcpRobotLink> {
+        self.robot.as_ref()
+    }
+
+    /// Stops the robot link (hold + BYE first), services, loop and LEDs (LEDs end off).
     pub async fn shutdown(mut self) {
+        if let Some(link) = self.robot.take() {
+            link.shutdown().await;
+        }
         let _ = self.shutdown_tx.send(true);
         for t in self.tasks.drain(..) {
             let _ = t.await;

@@ -61,7 +61,10 @@ fn default_state_dir() -> PathBuf {
 
 impl Default for ServiceConfig {
     fn default() -> Self {
-        Self { state_dir: default_state_dir(), params_from_simulator: false }
+        Self {
+            state_dir: default_state_dir(),
+            params_from_simulator: false,
+        }
     }
 }
 
@@ -184,8 +187,10 @@ pub struct RealtimeConfig {
 impl Config {
     /// Parses TOML text (`origin` names it in errors) and validates.
     pub fn from_toml(text: &str, origin: &str) -> Result<Config> {
-        let cfg: Config = toml::from_str(text)
-            .map_err(|e| FirmwareError::ConfigFile { path: origin.to_string(), reason: e.to_string() })?;
+        let cfg: Config = toml::from_str(text).map_err(|e| FirmwareError::ConfigFile {
+            path: origin.to_string(),
+            reason: e.to_string(),
+        })?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -228,7 +233,9 @@ impl Config {
                 }
             }
             SourceKind::Replay => match &self.source.replay {
-                None => return bad("source.kind = \"replay\" needs a [source.replay] table with `dir`".into()),
+                None => {
+                    return bad("source.kind = \"replay\" needs a [source.replay] table with `dir`".into());
+                }
                 Some(r) => {
                     if r.fps.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
                         return bad("source.replay.fps must be > 0".into());
@@ -238,10 +245,15 @@ impl Config {
             SourceKind::V4l2 => match &self.source.v4l2 {
                 None => return bad("source.kind = \"v4l2\" needs a [source.v4l2] table".into()),
                 Some(v) if v.devices.len() < 2 => {
-                    return bad(format!("source.v4l2.devices needs at least 2 cameras, got {}", v.devices.len()));
+                    return bad(format!(
+                        "source.v4l2.devices needs at least 2 cameras, got {}",
+                        v.devices.len()
+                    ));
                 }
                 Some(v) => {
-                    v.validate().map_err(|e| FirmwareError::Config { reason: format!("[source.v4l2]: {e}") })?;
+                    v.validate().map_err(|e| FirmwareError::Config {
+                        reason: format!("[source.v4l2]: {e}"),
+                    })?;
                 }
             },
         }
@@ -260,7 +272,9 @@ impl Config {
             return bad("leds.backend = \"rppal\" needs irtrackd built with the `rpi` feature".into());
         }
         if let Some(robot) = &self.robot {
-            robot.validate().map_err(|e| FirmwareError::Config { reason: e.to_string() })?;
+            robot.validate().map_err(|e| FirmwareError::Config {
+                reason: e.to_string(),
+            })?;
         }
         if let Some(p) = self.realtime.fifo_priority
             && !(1..=99).contains(&p)
@@ -277,22 +291,41 @@ fn check_tracker_config(cfg: &TrackerConfig) -> Result<()> {
     use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
     use irtrack_core::params::{CameraParams, RigParams};
     let model = CameraModel {
-        intrinsics: Intrinsics { fx_px: 100.0, fy_px: 100.0, cx_px: 31.5, cy_px: 23.5 },
+        intrinsics: Intrinsics {
+            fx_px: 100.0,
+            fy_px: 100.0,
+            cx_px: 31.5,
+            cy_px: 23.5,
+        },
         distortion: Distortion::NONE,
-        image_size: ImageSize { width_px: 64, height_px: 48 },
+        image_size: ImageSize {
+            width_px: 64,
+            height_px: 48,
+        },
     };
-    let shifted = RigidTransform { t_mm: [-100.0, 0.0, 0.0], ..RigidTransform::IDENTITY };
+    let shifted = RigidTransform {
+        t_mm: [-100.0, 0.0, 0.0],
+        ..RigidTransform::IDENTITY
+    };
     let rig = RigParams {
         rig_id: "config-check".into(),
         created_unix_s: 0,
         cameras: vec![
-            CameraParams { model, cam_from_cam0: RigidTransform::IDENTITY },
-            CameraParams { model, cam_from_cam0: shifted },
+            CameraParams {
+                model,
+                cam_from_cam0: RigidTransform::IDENTITY,
+            },
+            CameraParams {
+                model,
+                cam_from_cam0: shifted,
+            },
         ],
         world_from_cam0: None,
         tools: Vec::new(),
     };
     irtrack_core::pipeline::Tracker::new(&rig, *cfg)
         .map(|_| ())
-        .map_err(|e| FirmwareError::Config { reason: format!("[tracking]: {e}") })
+        .map_err(|e| FirmwareError::Config {
+            reason: format!("[tracking]: {e}"),
+        })
 }

@@ -144,7 +144,9 @@ impl Engine {
             }
             // The parameter service builds a tracker before accepting a set, so this means a
             // bug; keep the previous set rather than stop tracking.
-            Err(e) => tracing::error!(rig_id = %p.rig.rig_id, error = %e, "tracker refused parameter set; keeping the previous one"),
+            Err(e) => {
+                tracing::error!(rig_id = %p.rig.rig_id, error = %e, "tracker refused parameter set; keeping the previous one")
+            }
         }
     }
 
@@ -165,7 +167,9 @@ impl Engine {
                 self.out.send_replace(Some(rec));
                 self.consecutive_errors = self.consecutive_errors.saturating_add(1);
                 // Sources back off themselves; this only stops a tight loop on instant errors.
-                std::thread::sleep(Duration::from_millis(u64::from(self.consecutive_errors.min(50)) * 10));
+                std::thread::sleep(Duration::from_millis(
+                    u64::from(self.consecutive_errors.min(50)) * 10,
+                ));
                 return Ok(StepOutcome::SourceError);
             }
             Err(e) => return Err(e.into()),
@@ -178,19 +182,31 @@ impl Engine {
         self.account_source();
 
         let capture_ns = self.set.frames.first().map_or(0, |f| f.timestamp_ns);
-        let (mut rec, t_detect, t_solve) = match self.tracker.as_mut().filter(|_| self.status.params_loaded.load(R)) {
+        let (mut rec, t_detect, t_solve) = match self
+            .tracker
+            .as_mut()
+            .filter(|_| self.status.params_loaded.load(R))
+        {
             None => {
                 self.status.set_track(TrackIndication::None);
-                (self.empty_record(TrackStatus::NoParams, capture_ns), t_start, t_start)
+                (
+                    self.empty_record(TrackStatus::NoParams, capture_ns),
+                    t_start,
+                    t_start,
+                )
             }
             Some(tracker) => {
                 let mut failed = false;
                 for (camera, frame) in self.set.frames.iter().enumerate() {
                     let detected = match &frame.pixels {
-                        Pixels::U8(px) => GrayImage::new(px, frame.width_px, frame.height_px, frame.stride_px)
-                            .and_then(|img| tracker.detect_u8(camera, &img)),
-                        Pixels::U16(px) => GrayImage::new(px, frame.width_px, frame.height_px, frame.stride_px)
-                            .and_then(|img| tracker.detect_u16(camera, &img)),
+                        Pixels::U8(px) => {
+                            GrayImage::new(px, frame.width_px, frame.height_px, frame.stride_px)
+                                .and_then(|img| tracker.detect_u8(camera, &img))
+                        }
+                        Pixels::U16(px) => {
+                            GrayImage::new(px, frame.width_px, frame.height_px, frame.stride_px)
+                                .and_then(|img| tracker.detect_u16(camera, &img))
+                        }
                     };
                     match detected {
                         Ok(n) => {
@@ -211,11 +227,25 @@ impl Engine {
                 let t_solve = Instant::now();
                 let rec = if failed {
                     self.status.set_track(TrackIndication::None);
-                    Self::record_from(m, self.set.index, capture_ns, self.params_crc, None, TrackStatus::Fault)
+                    Self::record_from(
+                        m,
+                        self.set.index,
+                        capture_ns,
+                        self.params_crc,
+                        None,
+                        TrackStatus::Fault,
+                    )
                 } else {
                     self.status.set_track(track_indication(m));
                     let status = map_status(m);
-                    Self::record_from(m, self.set.index, capture_ns, self.params_crc, self.world_from_cam0.as_ref(), status)
+                    Self::record_from(
+                        m,
+                        self.set.index,
+                        capture_ns,
+                        self.params_crc,
+                        self.world_from_cam0.as_ref(),
+                        status,
+                    )
                 };
                 (rec, t_detect, t_solve)
             }
@@ -256,15 +286,23 @@ impl Engine {
         self.status.sets_dropped.store(s.sets_dropped, R);
         self.status.unpaired_dropped.store(s.unpaired_dropped, R);
         self.status.reconnects.store(s.reconnects, R);
-        self.status.pairing_error_last_ns.store(self.set.pairing_error_ns, R);
-        self.status.pairing_error_max_ns.fetch_max(self.set.pairing_error_ns, R);
+        self.status
+            .pairing_error_last_ns
+            .store(self.set.pairing_error_ns, R);
+        self.status
+            .pairing_error_max_ns
+            .fetch_max(self.set.pairing_error_ns, R);
         for (c, f) in self.status.cameras.iter().zip(&self.set.frames) {
             c.frames.fetch_add(1, R);
             let last = c.last_timestamp_ns.swap(f.timestamp_ns, R);
             if last != 0 && f.timestamp_ns > last {
                 let interval = (f.timestamp_ns - last) as f64;
                 let old = f64::from_bits(c.interval_ewma_ns.load(R));
-                let new = if old > 0.0 { 0.9 * old + 0.1 * interval } else { interval };
+                let new = if old > 0.0 {
+                    0.9 * old + 0.1 * interval
+                } else {
+                    interval
+                };
                 c.interval_ewma_ns.store(new.to_bits(), R);
             }
         }
@@ -304,7 +342,11 @@ impl Engine {
             frame,
             capture_ts_ns: capture_ns,
             // A record without a point can never claim status Ok.
-            status: if position_mm.is_none() && status == TrackStatus::Ok { TrackStatus::Lost } else { status },
+            status: if position_mm.is_none() && status == TrackStatus::Ok {
+                TrackStatus::Lost
+            } else {
+                status
+            },
             position_mm,
             orientation_wxyz: None,
             gap_mm: if m.gap_mm.is_finite() { m.gap_mm } else { f64::NAN },

@@ -29,7 +29,14 @@ pub enum FirmwareError {
     Storage { path: String, source: std::io::Error },
     /// A listener could not be bound.
     #[error("cannot listen for {what} on {addr}: {source}")]
-    Bind { what: &'static str, addr: String, source: std::io::Error },
+    Bind {
+        what: &'static str,
+        addr: String,
+        source: std::io::Error,
+    },
+    /// The robot link could not be started.
+    #[error("{0}")]
+    Robot(#[from] crate::robot::RobotError),
     /// A worker thread could not be started or died.
     #[error("thread {what}: {reason}")]
     Thread { what: &'static str, reason: String },

@@ -39,7 +39,10 @@ impl LatencyHistogram {
 
     /// Records one sample. Lock-free and allocation-free.
     pub fn record_us(&self, value_us: u64) {
-        let bucket = LATENCY_BUCKETS_US.iter().position(|&b| value_us <= b).unwrap_or(BUCKETS - 1);
+        let bucket = LATENCY_BUCKETS_US
+            .iter()
+            .position(|&b| value_us <= b)
+            .unwrap_or(BUCKETS - 1);
         self.counts[bucket].fetch_add(1, Ordering::Relaxed);
         self.sum_us.fetch_add(value_us, Ordering::Relaxed);
         self.max_us.fetch_max(value_us, Ordering::Relaxed);
@@ -90,7 +93,11 @@ impl HistogramSnapshot {
         for (i, &c) in self.counts.iter().enumerate() {
             seen += c;
             if seen >= rank {
-                return Some(LATENCY_BUCKETS_US.get(i).map_or(self.max_us, |&b| b.min(self.max_us)));
+                return Some(
+                    LATENCY_BUCKETS_US
+                        .get(i)
+                        .map_or(self.max_us, |&b| b.min(self.max_us)),
+                );
             }
         }
         Some(self.max_us)
@@ -165,8 +172,14 @@ mod tests {
         assert_eq!(s.quantile_us(1.0), Some(1_000_000));
         let mut text = String::new();
         s.write_prometheus(&mut text, "x_seconds", "stage=\"a\"");
-        assert!(text.contains("x_seconds_bucket{stage=\"a\",le=\"0.000025\"} 1\n"), "{text}");
-        assert!(text.contains("x_seconds_bucket{stage=\"a\",le=\"+Inf\"} 2\n"), "{text}");
+        assert!(
+            text.contains("x_seconds_bucket{stage=\"a\",le=\"0.000025\"} 1\n"),
+            "{text}"
+        );
+        assert!(
+            text.contains("x_seconds_bucket{stage=\"a\",le=\"+Inf\"} 2\n"),
+            "{text}"
+        );
         assert!(text.contains("x_seconds_count{stage=\"a\"} 2\n"), "{text}");
         assert!(LatencyHistogram::new().snapshot().quantile_us(0.5).is_none());
     }

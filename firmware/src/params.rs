@@ -21,7 +21,9 @@ pub struct RigShape {
 
 impl RigShape {
     pub fn of_set(set: &FrameSet) -> Self {
-        Self { image_sizes_px: set.frames.iter().map(|f| (f.width_px, f.height_px)).collect() }
+        Self {
+            image_sizes_px: set.frames.iter().map(|f| (f.width_px, f.height_px)).collect(),
+        }
     }
 
     /// Checks camera count and image sizes; the error says exactly what differs.
@@ -71,7 +73,14 @@ impl ParamService {
         handle: Arc<ParamsHandle>,
         status: Arc<SharedStatus>,
     ) -> Self {
-        Self { store, shape, tracker_cfg, handle, status, busy: std::sync::Mutex::new(()) }
+        Self {
+            store,
+            shape,
+            tracker_cfg,
+            handle,
+            status,
+            busy: std::sync::Mutex::new(()),
+        }
     }
 
     pub fn handle(&self) -> &Arc<ParamsHandle> {
@@ -82,11 +91,15 @@ impl ParamService {
     pub fn check_blob(&self, blob: &[u8]) -> std::result::Result<(RigParams, u32), Verdict> {
         let rig = RigParams::from_blob(blob).map_err(|e| Verdict::from_error(&e))?;
         rig.validate().map_err(|e| Verdict::from_error(&e))?;
-        self.shape.check(&rig).map_err(|m| reject(RejectCode::RigMismatch, m))?;
+        self.shape
+            .check(&rig)
+            .map_err(|m| reject(RejectCode::RigMismatch, m))?;
         // Building a tracker here means the loop's swap cannot fail later.
         Tracker::new(&rig, self.tracker_cfg)
             .map_err(|e| reject(RejectCode::InvalidParams, format!("tracker refuses the set: {e}")))?;
-        let crc = BlobHeader::parse(blob).map_err(|e| Verdict::from_error(&e))?.crc32;
+        let crc = BlobHeader::parse(blob)
+            .map_err(|e| Verdict::from_error(&e))?
+            .crc32;
         Ok((rig, crc))
     }
 
@@ -137,7 +150,10 @@ impl ParamService {
     /// Loads the stored set at start: the active file, else the previous one (rollback).
     /// Returns whether a set is active; a missing or unusable store is logged, not fatal.
     pub fn load_stored(&self) -> bool {
-        for (slot, origin) in [(StoredSlot::Active, "state_dir"), (StoredSlot::Previous, "rollback")] {
+        for (slot, origin) in [
+            (StoredSlot::Active, "state_dir"),
+            (StoredSlot::Previous, "rollback"),
+        ] {
             let path = self.store.path(slot);
             match self.store.read(slot) {
                 Ok(None) => {}
@@ -163,7 +179,9 @@ impl ParamService {
     /// Activates a set that did not come through the wire (simulator ground truth).
     pub fn install_unstored(&self, rig: RigParams, origin: &str) -> Result<()> {
         let blob = rig.to_blob()?;
-        let (rig, crc) = self.check_blob(&blob).map_err(|v| FirmwareError::RigMismatch { reason: v.to_line() })?;
+        let (rig, crc) = self
+            .check_blob(&blob)
+            .map_err(|v| FirmwareError::RigMismatch { reason: v.to_line() })?;
         self.activate(rig, crc, origin);
         Ok(())
     }

@@ -238,7 +238,10 @@ impl SharedStatus {
     }
 
     pub(crate) fn set_led_output(&self, ind: Indication, levels: [bool; 4]) {
-        let bits = levels.iter().enumerate().fold(0u8, |acc, (i, &on)| acc | (u8::from(on) << i));
+        let bits = levels
+            .iter()
+            .enumerate()
+            .fold(0u8, |acc, (i, &on)| acc | (u8::from(on) << i));
         self.led_levels.store(bits, R);
         if let Ok(mut g) = self.indication.lock() {
             *g = ind;
@@ -273,7 +276,10 @@ impl SharedStatus {
 
     /// Builds the JSON status document.
     pub fn report(&self) -> StatusReport {
-        let latency_us = self.stages.stages().map(|(name, h)| (name, h.snapshot().summary()));
+        let latency_us = self
+            .stages
+            .stages()
+            .map(|(name, h)| (name, h.snapshot().summary()));
         StatusReport {
             service: "irtrackd",
             versions: Versions {
@@ -331,7 +337,12 @@ impl SharedStatus {
                 indication: self.indication(),
                 on: {
                     let l = self.led_levels();
-                    LedLevels { run: l[0], track: l[1], robot: l[2], fault: l[3] }
+                    LedLevels {
+                        run: l[0],
+                        track: l[1],
+                        robot: l[2],
+                        fault: l[3],
+                    }
                 },
             },
             faults: self.active_faults(),
@@ -344,20 +355,76 @@ impl SharedStatus {
         let mut s = String::with_capacity(8 * 1024);
         let info = self.params_info();
         let counters: [(&str, &str, u64); 14] = [
-            ("irtrackd_sets_processed_total", "frame sets processed", self.sets_processed.load(R)),
-            ("irtrackd_positions_published_total", "positions published", self.published.load(R)),
-            ("irtrackd_tracked_total", "sets with a gated 3-D position", self.tracked.load(R)),
-            ("irtrackd_lost_total", "sets without a position", self.lost.load(R)),
-            ("irtrackd_gated_total", "positions rejected by the quality gate", self.gated.load(R)),
-            ("irtrackd_deadline_misses_total", "sets processed slower than the frame period", self.deadline_misses.load(R)),
-            ("irtrackd_source_errors_total", "frame source errors", self.source_errors.load(R)),
-            ("irtrackd_sets_dropped_total", "frame sets dropped by the source", self.sets_dropped.load(R)),
-            ("irtrackd_unpaired_dropped_total", "frames without a partner", self.unpaired_dropped.load(R)),
-            ("irtrackd_camera_reconnects_total", "camera reopen count", self.reconnects.load(R)),
-            ("irtrackd_stream_dropped_slow_total", "stream clients dropped as too slow", self.stream_dropped_slow.load(R)),
-            ("irtrackd_stream_records_sent_total", "records queued to stream clients", self.stream_records_sent.load(R)),
-            ("irtrackd_slot_overwrites_total", "results replaced before the stream saw them", self.slot_overwrites.load(R)),
-            ("irtrackd_params_rejected_total", "parameter pushes rejected", info.rejected),
+            (
+                "irtrackd_sets_processed_total",
+                "frame sets processed",
+                self.sets_processed.load(R),
+            ),
+            (
+                "irtrackd_positions_published_total",
+                "positions published",
+                self.published.load(R),
+            ),
+            (
+                "irtrackd_tracked_total",
+                "sets with a gated 3-D position",
+                self.tracked.load(R),
+            ),
+            (
+                "irtrackd_lost_total",
+                "sets without a position",
+                self.lost.load(R),
+            ),
+            (
+                "irtrackd_gated_total",
+                "positions rejected by the quality gate",
+                self.gated.load(R),
+            ),
+            (
+                "irtrackd_deadline_misses_total",
+                "sets processed slower than the frame period",
+                self.deadline_misses.load(R),
+            ),
+            (
+                "irtrackd_source_errors_total",
+                "frame source errors",
+                self.source_errors.load(R),
+            ),
+            (
+                "irtrackd_sets_dropped_total",
+                "frame sets dropped by the source",
+                self.sets_dropped.load(R),
+            ),
+            (
+                "irtrackd_unpaired_dropped_total",
+                "frames without a partner",
+                self.unpaired_dropped.load(R),
+            ),
+            (
+                "irtrackd_camera_reconnects_total",
+                "camera reopen count",
+                self.reconnects.load(R),
+            ),
+            (
+                "irtrackd_stream_dropped_slow_total",
+                "stream clients dropped as too slow",
+                self.stream_dropped_slow.load(R),
+            ),
+            (
+                "irtrackd_stream_records_sent_total",
+                "records queued to stream clients",
+                self.stream_records_sent.load(R),
+            ),
+            (
+                "irtrackd_slot_overwrites_total",
+                "results replaced before the stream saw them",
+                self.slot_overwrites.load(R),
+            ),
+            (
+                "irtrackd_params_rejected_total",
+                "parameter pushes rejected",
+                info.rejected,
+            ),
         ];
         for (name, help, v) in counters {
             let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
@@ -366,10 +433,21 @@ impl SharedStatus {
             s,
             "# HELP irtrackd_info build and parameter set\n# TYPE irtrackd_info gauge\nirtrackd_info{{version=\"{}\",rig_id=\"{}\"}} 1",
             env!("CARGO_PKG_VERSION"),
-            info.rig_id.as_deref().unwrap_or("").replace(['"', '\\', '\n'], "_")
+            info.rig_id
+                .as_deref()
+                .unwrap_or("")
+                .replace(['"', '\\', '\n'], "_")
         );
-        let _ = writeln!(s, "# TYPE irtrackd_params_loaded gauge\nirtrackd_params_loaded {}", u8::from(info.loaded));
-        let _ = writeln!(s, "# TYPE irtrackd_stream_clients gauge\nirtrackd_stream_clients {}", self.stream_clients.load(R));
+        let _ = writeln!(
+            s,
+            "# TYPE irtrackd_params_loaded gauge\nirtrackd_params_loaded {}",
+            u8::from(info.loaded)
+        );
+        let _ = writeln!(
+            s,
+            "# TYPE irtrackd_stream_clients gauge\nirtrackd_stream_clients {}",
+            self.stream_clients.load(R)
+        );
         let _ = writeln!(
             s,
             "# TYPE irtrackd_pairing_error_seconds gauge\nirtrackd_pairing_error_seconds {}",
@@ -377,11 +455,19 @@ impl SharedStatus {
         );
         let _ = writeln!(s, "# TYPE irtrackd_camera_fps gauge");
         for i in 0..self.cameras.len() {
-            let _ = writeln!(s, "irtrackd_camera_fps{{camera=\"{i}\"}} {}", self.camera_fps(i).unwrap_or(0.0));
+            let _ = writeln!(
+                s,
+                "irtrackd_camera_fps{{camera=\"{i}\"}} {}",
+                self.camera_fps(i).unwrap_or(0.0)
+            );
         }
         let _ = writeln!(s, "# TYPE irtrackd_camera_frames_total counter");
         for (i, c) in self.cameras.iter().enumerate() {
-            let _ = writeln!(s, "irtrackd_camera_frames_total{{camera=\"{i}\"}} {}", c.frames.load(R));
+            let _ = writeln!(
+                s,
+                "irtrackd_camera_frames_total{{camera=\"{i}\"}} {}",
+                c.frames.load(R)
+            );
         }
         let _ = writeln!(s, "# TYPE irtrackd_led_on gauge");
         for (led, on) in ["run", "track", "robot", "fault"].iter().zip(self.led_levels()) {
@@ -389,12 +475,27 @@ impl SharedStatus {
         }
         let _ = writeln!(s, "# TYPE irtrackd_fault gauge");
         let faults = self.active_faults();
-        for (f, name) in [(Fault::CameraLost, "camera_lost"), (Fault::NoParams, "no_params"), (Fault::DeadlineMisses, "deadline_misses")] {
-            let _ = writeln!(s, "irtrackd_fault{{fault=\"{name}\"}} {}", u8::from(faults.contains(&f)));
+        for (f, name) in [
+            (Fault::CameraLost, "camera_lost"),
+            (Fault::NoParams, "no_params"),
+            (Fault::DeadlineMisses, "deadline_misses"),
+        ] {
+            let _ = writeln!(
+                s,
+                "irtrackd_fault{{fault=\"{name}\"}} {}",
+                u8::from(faults.contains(&f))
+            );
         }
-        let _ = writeln!(s, "# HELP irtrackd_stage_latency_seconds processing stage latency\n# TYPE irtrackd_stage_latency_seconds histogram");
+        let _ = writeln!(
+            s,
+            "# HELP irtrackd_stage_latency_seconds processing stage latency\n# TYPE irtrackd_stage_latency_seconds histogram"
+        );
         for (name, h) in self.stages.stages() {
-            h.snapshot().write_prometheus(&mut s, "irtrackd_stage_latency_seconds", &format!("stage=\"{name}\""));
+            h.snapshot().write_prometheus(
+                &mut s,
+                "irtrackd_stage_latency_seconds",
+                &format!("stage=\"{name}\""),
+            );
         }
         s
     }

@@ -27,7 +27,10 @@ pub struct ParamStore {
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> FirmwareError + '_ {
-    move |source| FirmwareError::Storage { path: path.display().to_string(), source }
+    move |source| FirmwareError::Storage {
+        path: path.display().to_string(),
+        source,
+    }
 }
 
 impl ParamStore {
@@ -78,7 +81,9 @@ impl ParamStore {
         }
         fs::rename(&tmp, target).map_err(io_err(target))?;
         // The rename is durable only once the directory entry is on disk.
-        File::open(&self.dir).and_then(|d| d.sync_all()).map_err(io_err(&self.dir))
+        File::open(&self.dir)
+            .and_then(|d| d.sync_all())
+            .map_err(io_err(&self.dir))
     }
 }
 
@@ -93,12 +98,24 @@ mod tests {
         let store = ParamStore::open(&dir).unwrap();
         assert_eq!(store.read(StoredSlot::Active).unwrap(), None);
         store.store(b"one").unwrap();
-        assert_eq!(store.read(StoredSlot::Active).unwrap().as_deref(), Some(&b"one"[..]));
+        assert_eq!(
+            store.read(StoredSlot::Active).unwrap().as_deref(),
+            Some(&b"one"[..])
+        );
         assert_eq!(store.read(StoredSlot::Previous).unwrap(), None);
         store.store(b"two").unwrap();
-        assert_eq!(store.read(StoredSlot::Active).unwrap().as_deref(), Some(&b"two"[..]));
-        assert_eq!(store.read(StoredSlot::Previous).unwrap().as_deref(), Some(&b"one"[..]));
-        let names: Vec<_> = fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(
+            store.read(StoredSlot::Active).unwrap().as_deref(),
+            Some(&b"two"[..])
+        );
+        assert_eq!(
+            store.read(StoredSlot::Previous).unwrap().as_deref(),
+            Some(&b"one"[..])
+        );
+        let names: Vec<_> = fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
         assert_eq!(names.len(), 2, "{names:?}");
         fs::remove_dir_all(&dir).unwrap();
     }

@@ -50,7 +50,10 @@ deadline_ms = 20.0
 #[test]
 fn bad_configs_name_the_problem() {
     let e = err("[servic]\nstate_dir = \"/x\"\n");
-    assert!(e.contains("test.toml") && e.contains("unknown field `servic`"), "{e}");
+    assert!(
+        e.contains("test.toml") && e.contains("unknown field `servic`"),
+        "{e}"
+    );
     let e = err("[source.sim]\nfpz = 30.0\n");
     assert!(e.contains("unknown field `fpz`") && e.contains("fps"), "{e}");
     let e = err("[source.sim]\nfps = \"fast\"\n");
@@ -71,8 +74,13 @@ fn bad_configs_name_the_problem() {
     assert!(e.contains("[leds.gpio]"), "{e}");
     let e = err("[realtime]\nfifo_priority = 100\n");
     assert!(e.contains("1..=99"), "{e}");
-    let e = Config::load(std::path::Path::new("/nonexistent/irtrackd.toml")).unwrap_err().to_string();
-    assert!(e.contains("/nonexistent/irtrackd.toml") && e.contains("cannot read"), "{e}");
+    let e = Config::load(std::path::Path::new("/nonexistent/irtrackd.toml"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("/nonexistent/irtrackd.toml") && e.contains("cannot read"),
+        "{e}"
+    );
 }
 
 fn irtrackd() -> Command {
@@ -84,23 +92,45 @@ fn check_config_flag_reports_and_exits() {
     let dir = TempDir::new("cli-check");
     let good = dir.path().join("good.toml");
     std::fs::write(&good, "[source.sim]\nfps = 50.0\n").unwrap();
-    let out = irtrackd().arg("--check-config").arg("-c").arg(&good).output().unwrap();
+    let out = irtrackd()
+        .arg("--check-config")
+        .arg("-c")
+        .arg(&good)
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(String::from_utf8_lossy(&out.stdout).contains("config OK"));
 
     let bad = dir.path().join("bad.toml");
     std::fs::write(&bad, "[source.sim]\nfps = 50.0\ncolour = 1\n").unwrap();
-    let out = irtrackd().arg("--check-config").arg("-c").arg(&bad).output().unwrap();
+    let out = irtrackd()
+        .arg("--check-config")
+        .arg("-c")
+        .arg(&bad)
+        .output()
+        .unwrap();
     assert_eq!(out.status.code(), Some(2));
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(stderr.contains("unknown field `colour`") && stderr.contains("bad.toml"), "{stderr}");
+    assert!(
+        stderr.contains("unknown field `colour`") && stderr.contains("bad.toml"),
+        "{stderr}"
+    );
 
-    let out = irtrackd().arg("--check-config").arg("-c").arg(dir.path().join("missing.toml")).output().unwrap();
+    let out = irtrackd()
+        .arg("--check-config")
+        .arg("-c")
+        .arg(dir.path().join("missing.toml"))
+        .output()
+        .unwrap();
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot read"));
 
     // An override can make a good file invalid, and says so.
-    let out = irtrackd().args(["--check-config", "--sim-fps", "0", "-c"]).arg(&good).output().unwrap();
+    let out = irtrackd()
+        .args(["--check-config", "--sim-fps", "0", "-c"])
+        .arg(&good)
+        .output()
+        .unwrap();
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("command-line overrides"));
 }
@@ -109,7 +139,14 @@ fn check_config_flag_reports_and_exits() {
 fn binary_prints_ready_line_streams_and_stops_on_sigterm() {
     let dir = TempDir::new("cli-run");
     let mut child = irtrackd()
-        .args(["--ephemeral-ports", "127.0.0.1", "--params-from-simulator", "--sim-fps", "100", "--state-dir"])
+        .args([
+            "--ephemeral-ports",
+            "127.0.0.1",
+            "--params-from-simulator",
+            "--sim-fps",
+            "100",
+            "--state-dir",
+        ])
         .arg(dir.path())
         .env("RUST_LOG", "warn")
         .stdout(Stdio::piped())
@@ -121,14 +158,23 @@ fn binary_prints_ready_line_streams_and_stops_on_sigterm() {
     stdout.read_line(&mut line).unwrap();
     assert!(line.starts_with("irtrackd ready params=127.0.0.1:"), "{line}");
     let field = |k: &str| -> std::net::SocketAddr {
-        line.split_whitespace().find_map(|f| f.strip_prefix(&format!("{k}="))).unwrap().parse().unwrap()
+        line.split_whitespace()
+            .find_map(|f| f.strip_prefix(&format!("{k}=")))
+            .unwrap()
+            .parse()
+            .unwrap()
     };
     let stream = field("stream");
     let status = field("status");
-    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
     rt.block_on(async {
         let mut c = NdjsonClient::connect(stream).await;
-        let r = c.until(100, |r| r.status == irtrack_core::stream::TrackStatus::Ok).await;
+        let r = c
+            .until(100, |r| r.status == irtrack_core::stream::TrackStatus::Ok)
+            .await;
         assert!(r.position_mm.is_some());
         let st = status_json(status).await;
         assert_eq!(st["params"]["origin"], "simulator");

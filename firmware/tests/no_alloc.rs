@@ -49,22 +49,47 @@ fn allocs() -> u64 {
     ALLOCS.with(|c| c.get())
 }
 
-fn engine(with_params: bool, bit_depth: u8) -> (Engine, tokio::sync::watch::Receiver<Option<irtrack_core::stream::PositionRecord>>) {
-    let cfg = SimSourceConfig { paced: false, fps: 100.0, bit_depth, ..SimSourceConfig::default() };
+fn engine(
+    with_params: bool,
+    bit_depth: u8,
+) -> (
+    Engine,
+    tokio::sync::watch::Receiver<Option<irtrack_core::stream::PositionRecord>>,
+) {
+    let cfg = SimSourceConfig {
+        paced: false,
+        fps: 100.0,
+        bit_depth,
+        ..SimSourceConfig::default()
+    };
     let source = SimSource::new(&cfg).unwrap();
     let handle = Arc::new(ParamsHandle::new());
     if with_params {
         let rig = source.scenario().rig().clone();
         handle.install(ActiveParams { rig, crc: 1 });
     }
-    let status = Arc::new(SharedStatus::new(source.camera_count(), source.describe(), "none".into()));
+    let status = Arc::new(SharedStatus::new(
+        source.camera_count(),
+        source.describe(),
+        "none".into(),
+    ));
     let (tx, rx) = tokio::sync::watch::channel(None);
     let mut tracker = TrackerConfig::default();
     if bit_depth == 10 {
         // 10-bit frames: threshold in 10-bit DN.
         tracker.threshold_dn = 120;
     }
-    (Engine::new(Box::new(source), tracker, handle, tx, status, Duration::from_millis(10)), rx)
+    (
+        Engine::new(
+            Box::new(source),
+            tracker,
+            handle,
+            tx,
+            status,
+            Duration::from_millis(10),
+        ),
+        rx,
+    )
 }
 
 fn measure(engine: &mut Engine, warmup: usize, steps: usize) -> (u64, usize) {
@@ -74,10 +99,10 @@ fn measure(engine: &mut Engine, warmup: usize, steps: usize) -> (u64, usize) {
     let before = allocs();
     let mut ok = 0;
     for _ in 0..steps {
-        if let StepOutcome::Published(r) = engine.step().unwrap() {
-            if r.status == TrackStatus::Ok {
-                ok += 1;
-            }
+        if let StepOutcome::Published(r) = engine.step().unwrap()
+            && r.status == TrackStatus::Ok
+        {
+            ok += 1;
         }
     }
     (allocs() - before, ok)
@@ -88,7 +113,10 @@ fn steady_state_processing_does_not_allocate() {
     for bits in [8u8, 10] {
         let (mut e, rx) = engine(true, bits);
         let (n, ok) = measure(&mut e, 10, 60);
-        assert!(ok >= 55, "{bits}-bit: only {ok} of 60 sets tracked; the measured path must be the tracking path");
+        assert!(
+            ok >= 55,
+            "{bits}-bit: only {ok} of 60 sets tracked; the measured path must be the tracking path"
+        );
         assert_eq!(n, 0, "{bits}-bit: {n} allocations in 60 frame sets");
         assert!(rx.borrow().is_some());
     }

@@ -31,7 +31,13 @@ fn record(dir: &std::path::Path) -> irtrack_sim::Scenario {
             let mut px = vec![0u8; (w * h) as usize];
             let info = sc.render_u8(f, c, &mut px).unwrap();
             let dropped = f == DROPPED_FRAME && c == 1;
-            writeln!(csv, "{f},{c},{},{}", info.timestamp_ns + 1_000_000_000, u8::from(dropped)).unwrap();
+            writeln!(
+                csv,
+                "{f},{c},{},{}",
+                info.timestamp_ns + 1_000_000_000,
+                u8::from(dropped)
+            )
+            .unwrap();
             if dropped {
                 continue;
             }
@@ -55,20 +61,39 @@ fn record(dir: &std::path::Path) -> irtrack_sim::Scenario {
 fn replay_directory_gives_positions_matching_truth() {
     let dir = TempDir::new("replay");
     let sc = record(dir.path());
-    let cfg = ReplayConfig { dir: dir.path().to_path_buf(), speed: ReplaySpeed::Max, repeat: false, fps: None };
+    let cfg = ReplayConfig {
+        dir: dir.path().to_path_buf(),
+        speed: ReplaySpeed::Max,
+        repeat: false,
+        fps: None,
+    };
     let source = ReplaySource::open(&cfg).unwrap();
     assert_eq!(source.camera_count(), 2);
-    assert_eq!(source.len() as u64, FRAMES - 1, "the dropped frame's set is skipped");
+    assert_eq!(
+        source.len() as u64,
+        FRAMES - 1,
+        "the dropped frame's set is skipped"
+    );
 
     let handle = Arc::new(ParamsHandle::new());
     let rig = sc.rig().clone();
-    let crc = irtrack_core::params::BlobHeader::parse(&rig.to_blob().unwrap()).unwrap().crc32;
+    let crc = irtrack_core::params::BlobHeader::parse(&rig.to_blob().unwrap())
+        .unwrap()
+        .crc32;
     handle.install(ActiveParams { rig, crc });
     let status = Arc::new(SharedStatus::new(2, source.describe(), "none".into()));
-    status.params_loaded.store(false, std::sync::atomic::Ordering::Relaxed);
+    status
+        .params_loaded
+        .store(false, std::sync::atomic::Ordering::Relaxed);
     let (tx, rx) = tokio::sync::watch::channel(None);
-    let mut engine =
-        Engine::new(Box::new(source), TrackerConfig::default(), handle, tx, status.clone(), Duration::from_millis(10));
+    let mut engine = Engine::new(
+        Box::new(source),
+        TrackerConfig::default(),
+        handle,
+        tx,
+        status.clone(),
+        Duration::from_millis(10),
+    );
     let mut frames = Vec::new();
     loop {
         match engine.step().unwrap() {
@@ -94,7 +119,12 @@ fn replay_directory_gives_positions_matching_truth() {
 fn replay_at_recorded_speed_keeps_intervals_and_reports_bad_files() {
     let dir = TempDir::new("replay-speed");
     record(dir.path());
-    let cfg = ReplayConfig { dir: dir.path().to_path_buf(), speed: ReplaySpeed::Recorded, repeat: false, fps: None };
+    let cfg = ReplayConfig {
+        dir: dir.path().to_path_buf(),
+        speed: ReplaySpeed::Recorded,
+        repeat: false,
+        fps: None,
+    };
     let mut source = ReplaySource::open(&cfg).unwrap();
     let mut set = source.allocate_set();
     let t0 = Instant::now();
@@ -112,11 +142,19 @@ fn replay_at_recorded_speed_keeps_intervals_and_reports_bad_files() {
     // A truncated frame file is reported with its path.
     std::fs::write(dir.path().join("cam0/000004.pgm"), b"P5\n640 480\n255\n").unwrap();
     let err = source.next_set(&mut set).unwrap_err().to_string();
-    assert!(err.contains("000004.pgm") && err.contains("bytes, header needs"), "{err}");
+    assert!(
+        err.contains("000004.pgm") && err.contains("bytes, header needs"),
+        "{err}"
+    );
 
     // No cam0/ directory at all.
     let empty = TempDir::new("replay-empty");
-    let cfg = ReplayConfig { dir: empty.path().to_path_buf(), speed: ReplaySpeed::Max, repeat: false, fps: None };
+    let cfg = ReplayConfig {
+        dir: empty.path().to_path_buf(),
+        speed: ReplaySpeed::Max,
+        repeat: false,
+        fps: None,
+    };
     let err = ReplaySource::open(&cfg).err().unwrap().to_string();
     assert!(err.contains("has no cam0/"), "{err}");
 }

@@ -16,7 +16,10 @@ use irtrack_firmware::storage::{ACTIVE_FILE, PREVIOUS_FILE};
 async fn eventually(secs: u64, mut f: impl FnMut() -> bool) {
     let end = tokio::time::Instant::now() + Duration::from_secs(secs);
     while !f() {
-        assert!(tokio::time::Instant::now() < end, "condition not reached within {secs} s");
+        assert!(
+            tokio::time::Instant::now() < end,
+            "condition not reached within {secs} s"
+        );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
 }
@@ -31,7 +34,9 @@ async fn sim_positions_match_truth_over_ndjson_and_binary() {
     let running = app::start(cfg, Overrides::default()).await.unwrap();
 
     let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
-    let mut bin = tokio::net::TcpStream::connect(running.addrs.stream_binary).await.unwrap();
+    let mut bin = tokio::net::TcpStream::connect(running.addrs.stream_binary)
+        .await
+        .unwrap();
     let mut errors = Vec::new();
     let mut n_ok = 0;
     for _ in 0..60 {
@@ -44,7 +49,11 @@ async fn sim_positions_match_truth_over_ndjson_and_binary() {
         let t = truth.truth(r.frame).markers()[0].p_cam0_mm;
         errors.push(dist_mm(p, [t.x, t.y, t.z]));
         assert!(!r.world_frame);
-        assert!(r.latency_us > 0 && r.latency_us < 1_000_000, "latency {} us", r.latency_us);
+        assert!(
+            r.latency_us > 0 && r.latency_us < 1_000_000,
+            "latency {} us",
+            r.latency_us
+        );
     }
     assert!(n_ok >= 50, "only {n_ok} of 60 records tracked");
     let max = errors.iter().cloned().fold(0.0, f64::max);
@@ -80,7 +89,10 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
     }
     let st = status_json(addrs.status).await;
     assert_eq!(st["params"]["loaded"], false);
-    assert!(st["faults"].as_array().unwrap().iter().any(|f| f == "no_params"), "{st}");
+    assert!(
+        st["faults"].as_array().unwrap().iter().any(|f| f == "no_params"),
+        "{st}"
+    );
     assert_eq!(st["processing"]["tracked"], 0);
 
     // Push the true rig: accepted and used without restart.
@@ -93,15 +105,23 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
     assert!(!r.world_frame);
 
     // A second set with a world transform: positions switch to the world frame live.
-    let world = RigidTransform { t_mm: [1000.0, -200.0, 50.0], ..RigidTransform::IDENTITY };
+    let world = RigidTransform {
+        t_mm: [1000.0, -200.0, 50.0],
+        ..RigidTransform::IDENTITY
+    };
     let mut rig_b = rig.clone();
     rig_b.rig_id = "rig-b".into();
     rig_b.world_from_cam0 = Some(world);
     assert_eq!(push(addrs.params, &rig_b.to_blob().unwrap()).await, "OK rig-b\n");
-    let r = client.until(100, |r| r.status == TrackStatus::Ok && r.world_frame).await;
+    let r = client
+        .until(100, |r| r.status == TrackStatus::Ok && r.world_frame)
+        .await;
     let t = truth.truth(r.frame).markers()[0].p_cam0_mm;
     let p = r.position_mm.unwrap();
-    assert!(dist_mm(p, [t.x + 1000.0, t.y - 200.0, t.z + 50.0]) < 1.0, "{p:?} vs {t:?}");
+    assert!(
+        dist_mm(p, [t.x + 1000.0, t.y - 200.0, t.z + 50.0]) < 1.0,
+        "{p:?} vs {t:?}"
+    );
 
     // Bad blobs: each rejected with its exact reason; rig-b stays active.
     let good = rig.to_blob().unwrap();
@@ -109,14 +129,19 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
     let last = corrupt.len() - 1;
     corrupt[last] ^= 0x55;
     let v = push_verdict(addrs.params, &corrupt).await;
-    let Verdict::Rejected { code, message } = v else { panic!("corrupt blob accepted") };
+    let Verdict::Rejected { code, message } = v else {
+        panic!("corrupt blob accepted")
+    };
     assert_eq!(code, RejectCode::BadBlob);
     assert!(message.contains("CRC-32"), "{message}");
 
     let mut magic = good.clone();
     magic[0] = b'X';
     let line = push(addrs.params, &magic).await;
-    assert!(line.starts_with("ERR BAD_BLOB not an irtrack parameter blob"), "{line}");
+    assert!(
+        line.starts_with("ERR BAD_BLOB not an irtrack parameter blob"),
+        "{line}"
+    );
 
     let mut three = rig.clone();
     three.rig_id = "three-cams".into();
@@ -124,7 +149,10 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
     cam2.cam_from_cam0.t_mm[1] += 300.0;
     three.cameras.push(cam2);
     let line = push(addrs.params, &three.to_blob().unwrap()).await;
-    assert_eq!(line, "ERR RIG_MISMATCH parameter set \"three-cams\" has 3 cameras, this rig has 2\n");
+    assert_eq!(
+        line,
+        "ERR RIG_MISMATCH parameter set \"three-cams\" has 3 cameras, this rig has 2\n"
+    );
 
     let mut small = rig.clone();
     small.rig_id = "small".into();
@@ -135,7 +163,10 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
         c.model.intrinsics.cy_px /= 2.0;
     }
     let line = push(addrs.params, &small.to_blob().unwrap()).await;
-    assert_eq!(line, "ERR RIG_MISMATCH camera 0: parameters are for 320x240 px images, the camera delivers 640x480\n");
+    assert_eq!(
+        line,
+        "ERR RIG_MISMATCH camera 0: parameters are for 320x240 px images, the camera delivers 640x480\n"
+    );
 
     let mut invalid = rig.clone();
     invalid.rig_id = "has space".into();
@@ -144,9 +175,13 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
 
     // Wrong framing.
     let mut s = tokio::net::TcpStream::connect(addrs.params).await.unwrap();
-    tokio::io::AsyncWriteExt::write_all(&mut s, b"HELO\x04\x00\x00\x00abcd").await.unwrap();
+    tokio::io::AsyncWriteExt::write_all(&mut s, b"HELO\x04\x00\x00\x00abcd")
+        .await
+        .unwrap();
     let mut reply = String::new();
-    tokio::io::AsyncReadExt::read_to_string(&mut s, &mut reply).await.unwrap();
+    tokio::io::AsyncReadExt::read_to_string(&mut s, &mut reply)
+        .await
+        .unwrap();
     assert!(reply.starts_with("ERR PROTOCOL"), "{reply}");
 
     let st = status_json(addrs.status).await;
@@ -156,13 +191,19 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
     assert!(r.world_frame, "rig-b (world frame) must still be active");
 
     // Stored: active = rig-b, previous = rig-a.
-    let active = irtrack_core::params::RigParams::from_blob(&std::fs::read(dir.path().join(ACTIVE_FILE)).unwrap()).unwrap();
-    let prev = irtrack_core::params::RigParams::from_blob(&std::fs::read(dir.path().join(PREVIOUS_FILE)).unwrap()).unwrap();
+    let active =
+        irtrack_core::params::RigParams::from_blob(&std::fs::read(dir.path().join(ACTIVE_FILE)).unwrap())
+            .unwrap();
+    let prev =
+        irtrack_core::params::RigParams::from_blob(&std::fs::read(dir.path().join(PREVIOUS_FILE)).unwrap())
+            .unwrap();
     assert_eq!((active.rig_id.as_str(), prev.rig_id.as_str()), ("rig-b", "rig-a"));
     running.shutdown().await;
 
     // A restart picks up the stored set.
-    let running = app::start(test_config(dir.path()), Overrides::default()).await.unwrap();
+    let running = app::start(test_config(dir.path()), Overrides::default())
+        .await
+        .unwrap();
     let st = status_json(running.addrs.status).await;
     assert_eq!(st["params"]["rig_id"], "rig-b");
     assert_eq!(st["params"]["origin"], "state_dir");
@@ -170,7 +211,9 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
 
     // A corrupted active file falls back to the previous set.
     std::fs::write(dir.path().join(ACTIVE_FILE), b"IRPBgarbage").unwrap();
-    let running = app::start(test_config(dir.path()), Overrides::default()).await.unwrap();
+    let running = app::start(test_config(dir.path()), Overrides::default())
+        .await
+        .unwrap();
     let st = status_json(running.addrs.status).await;
     assert_eq!(st["params"]["rig_id"], "rig-a");
     assert_eq!(st["params"]["origin"], "rollback");
@@ -188,7 +231,10 @@ async fn led_states_follow_faults_and_tracking() {
 
     // No params: fault LED flashes once per 2 s cycle, heartbeat runs, track LED stays off.
     eventually(5, || status.indication().alive).await;
-    assert_eq!(status.indication().fault, Some(irtrack_firmware::leds::indication::Fault::NoParams));
+    assert_eq!(
+        status.indication().fault,
+        Some(irtrack_firmware::leds::indication::Fault::NoParams)
+    );
     let start = record.changes().len();
     tokio::time::sleep(Duration::from_millis(2100)).await;
     let window: Vec<_> = record.changes()[start..].to_vec();
@@ -199,13 +245,20 @@ async fn led_states_follow_faults_and_tracking() {
 
     // Params: fault clears, the marker is tracked in both cameras → track LED steady on.
     let rig = scenario(&sim).rig().clone();
-    assert!(push(running.addrs.params, &rig.to_blob().unwrap()).await.starts_with("OK"));
+    assert!(
+        push(running.addrs.params, &rig.to_blob().unwrap())
+            .await
+            .starts_with("OK")
+    );
     eventually(5, || status.indication().fault.is_none()).await;
     eventually(5, || status.led_levels()[1]).await;
     let before = record.changes().len();
     tokio::time::sleep(Duration::from_millis(600)).await;
     let window: Vec<_> = record.changes()[before..].to_vec();
-    assert!(window.iter().all(|c| c.led != Led::Fault && c.led != Led::Track), "{window:?}");
+    assert!(
+        window.iter().all(|c| c.led != Led::Fault && c.led != Led::Track),
+        "{window:?}"
+    );
     assert!(status.led_levels()[1], "track LED on");
 
     // Robot LED follows the robot link's state.
@@ -244,8 +297,15 @@ async fn slow_stream_client_is_dropped_without_stalling_others() {
     let processed0 = status.sets_processed.load(std::sync::atomic::Ordering::Relaxed);
     let mut last_frame = 0;
     let deadline = tokio::time::Instant::now() + Duration::from_secs(15);
-    while status.stream_dropped_slow.load(std::sync::atomic::Ordering::Relaxed) == 0 {
-        assert!(tokio::time::Instant::now() < deadline, "slow client never dropped");
+    while status
+        .stream_dropped_slow
+        .load(std::sync::atomic::Ordering::Relaxed)
+        == 0
+    {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "slow client never dropped"
+        );
         let r = good.next().await;
         assert!(r.frame > last_frame || last_frame == 0);
         last_frame = r.frame;
@@ -255,7 +315,10 @@ async fn slow_stream_client_is_dropped_without_stalling_others() {
     let b = good.next().await.frame;
     assert!(b > a);
     let processed1 = status.sets_processed.load(std::sync::atomic::Ordering::Relaxed);
-    assert!(processed1 > processed0 + 50, "loop stalled: {processed0} → {processed1}");
+    assert!(
+        processed1 > processed0 + 50,
+        "loop stalled: {processed0} → {processed1}"
+    );
     let st = status_json(running.addrs.status).await;
     assert_eq!(st["stream"]["dropped_slow"], 1);
     assert_eq!(st["stream"]["clients"], 1);
@@ -269,7 +332,10 @@ async fn status_json_and_metrics_report_the_running_service() {
     cfg.service.params_from_simulator = true;
     let running = app::start(cfg, Overrides::default()).await.unwrap();
     let status = running.status.clone();
-    eventually(10, || status.tracked.load(std::sync::atomic::Ordering::Relaxed) >= 30).await;
+    eventually(10, || {
+        status.tracked.load(std::sync::atomic::Ordering::Relaxed) >= 30
+    })
+    .await;
 
     let st = status_json(running.addrs.status).await;
     assert_eq!(st["service"], "irtrackd");
@@ -288,7 +354,11 @@ async fn status_json_and_metrics_report_the_running_service() {
     assert!(st["source"]["sets_dropped"].as_u64().is_some());
     let lat = &st["processing"]["latency_us"];
     for stage in ["detect", "solve", "publish", "process", "end_to_end"] {
-        assert!(lat[stage]["count"].as_u64().unwrap() >= 30, "{stage}: {}", lat[stage]);
+        assert!(
+            lat[stage]["count"].as_u64().unwrap() >= 30,
+            "{stage}: {}",
+            lat[stage]
+        );
         assert!(lat[stage]["p50_us"].as_u64().is_some());
         assert!(lat[stage]["p99_us"].as_u64().unwrap() >= lat[stage]["p50_us"].as_u64().unwrap());
     }

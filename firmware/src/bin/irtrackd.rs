@@ -11,7 +11,11 @@ use irtrack_firmware::config::{self, Config, SourceKind};
 use irtrack_firmware::watchdog;
 
 #[derive(Debug, Parser)]
-#[command(name = "irtrackd", version, about = "irtrack board service: capture, tracking, position stream")]
+#[command(
+    name = "irtrackd",
+    version,
+    about = "irtrack board service: capture, tracking, position stream"
+)]
 struct Cli {
     /// Config file (TOML). Without it, built-in defaults (simulated source) are used unless
     /// the default file exists.
@@ -54,12 +58,15 @@ fn apply_overrides(cfg: &mut Config, cli: &Cli) {
     }
     if let Some(dir) = &cli.replay_dir {
         cfg.source.kind = SourceKind::Replay;
-        let r = cfg.source.replay.get_or_insert_with(|| irtrack_firmware::source::replay::ReplayConfig {
-            dir: dir.clone(),
-            speed: Default::default(),
-            repeat: false,
-            fps: None,
-        });
+        let r = cfg
+            .source
+            .replay
+            .get_or_insert_with(|| irtrack_firmware::source::replay::ReplayConfig {
+                dir: dir.clone(),
+                speed: Default::default(),
+                repeat: false,
+                fps: None,
+            });
         r.dir = dir.clone();
     }
     if let Some(d) = &cli.state_dir {
@@ -107,7 +114,9 @@ fn load_config(cli: &Cli) -> anyhow::Result<Config> {
 fn init_logging() {
     use tracing_subscriber::EnvFilter;
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
     // journald stamps lines itself and shows escape codes literally.
     let tty = std::io::stderr().is_terminal();
     if std::env::var_os("JOURNAL_STREAM").is_some() {

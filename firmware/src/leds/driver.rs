@@ -57,7 +57,12 @@ impl HealthMonitor {
             status.deadline_fault.store(fault, Ordering::Relaxed);
             (self.window_start, self.window_sets, self.window_misses) = (now, sets, misses);
         }
-        Indication { alive, track: status.track(), robot: status.robot(), fault: status.top_fault() }
+        Indication {
+            alive,
+            track: status.track(),
+            robot: status.robot(),
+            fault: status.top_fault(),
+        }
     }
 }
 
@@ -74,8 +79,14 @@ impl LedDriver {
         let handle = std::thread::Builder::new()
             .name("irtrackd-leds".into())
             .spawn(move || run(leds.as_mut(), &status, &stop2))
-            .map_err(|e| FirmwareError::Thread { what: "LED driver", reason: e.to_string() })?;
-        Ok(Self { stop, handle: Some(handle) })
+            .map_err(|e| FirmwareError::Thread {
+                what: "LED driver",
+                reason: e.to_string(),
+            })?;
+        Ok(Self {
+            stop,
+            handle: Some(handle),
+        })
     }
 
     pub fn stop(mut self) {
@@ -140,5 +151,52 @@ fn run(leds: &mut dyn StatusLeds, status: &SharedStatus, stop: &AtomicBool) {
     }
     for led in Led::ALL {
         let _ = leds.set(led, false);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::leds::indication::{Fault, TrackIndication};
+
+    fn step(status: &SharedStatus, sets: u64, misses: u64) {
+        status.loop_iterations.fetch_add(sets, Ordering::Relaxed);
+        status.sets_processed.fetch_add(sets, Ordering::Relaxed);
+        status.deadline_misses.fetch_add(misses, Ordering::Relaxed);
+    }
+
+    #[test]
+    fn health_monitor_derives_liveness_and_faults() {
+        let status = SharedStatus::new(2, "test".into(), "none".into());
+        let t0 = Instant::now();
+        let mut m = HealthMonitor::new(&status, t0);
+        // Nothing processed yet: not alive, no params.
+        let ind = m.update(&status, t0);
+        assert!(!ind.alive);
+        assert_eq!(ind.fault, Some(Fault::NoParams));
+
+        status.params_loaded.store(true, Ordering::Relaxed);
+        status.set_track(TrackIndication::All);
+        step(&status, 100, 1);
+        let ind = m.update(&status, t0 + Duration::from_millis(100));
+        assert!(ind.alive);
+        assert_eq!((ind.fault, ind.track), (None, TrackIndication::All));
+
+        // 1 % misses over a window: no fault; 20 % in the next window: deadline fault.
+        step(&status, 100, 0);
+        assert_eq!(m.update(&status, t0 + DEADLINE_WINDOW).fault, None);
+        step(&status, 100, 20);
+        let t = t0 + 2 * DEADLINE_WINDOW;
+        assert_eq!(m.update(&status, t).fault, Some(Fault::DeadlineMisses));
+        // A clean window clears it.
+        step(&status, 100, 0);
+        assert_eq!(m.update(&status, t + DEADLINE_WINDOW).fault, None);
+
+        // Camera lost outranks everything; a stalled loop is not alive.
+        status.camera_lost.store(true, Ordering::Relaxed);
+        let ind = m.update(&status, t + DEADLINE_WINDOW + STALL_AFTER + Duration::from_millis(1));
+        assert_eq!(ind.fault, Some(Fault::CameraLost));
+        assert!(!ind.alive);
+        assert_eq!(status.active_faults(), vec![Fault::CameraLost]);
     }
 }

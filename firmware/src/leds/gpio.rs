@@ -56,7 +56,10 @@ pub struct GpioLeds {
 }
 
 fn gpio_err(what: impl Into<String>, reason: impl ToString) -> LedError {
-    LedError::Gpio { what: what.into(), reason: reason.to_string() }
+    LedError::Gpio {
+        what: what.into(),
+        reason: reason.to_string(),
+    }
 }
 
 fn led_index(led: Led) -> usize {
@@ -79,7 +82,9 @@ fn resolve_chip(spec: &str) -> Result<gpiocdev::Chip, LedError> {
     let paths = gpiocdev::chip::chips().map_err(|e| gpio_err(format!("chip {spec}"), e))?;
     let mut labels = Vec::new();
     for path in paths {
-        let Ok(chip) = gpiocdev::Chip::from_path(&path) else { continue };
+        let Ok(chip) = gpiocdev::Chip::from_path(&path) else {
+            continue;
+        };
         let Ok(info) = chip.info() else { continue };
         if info.label == spec {
             return Ok(chip);
@@ -88,7 +93,10 @@ fn resolve_chip(spec: &str) -> Result<gpiocdev::Chip, LedError> {
     }
     Err(gpio_err(
         format!("chip {spec}"),
-        format!("no chip with that path, name or label; present: [{}]", labels.join(", ")),
+        format!(
+            "no chip with that path, name or label; present: [{}]",
+            labels.join(", ")
+        ),
     ))
 }
 
@@ -107,7 +115,9 @@ fn resolve_line(chip: &gpiocdev::Chip, num_lines: u32, led: Led, line: &LineRef)
 impl GpioLeds {
     pub fn open(config: &GpioLedConfig) -> Result<Self, LedError> {
         let chip = resolve_chip(&config.chip)?;
-        let info = chip.info().map_err(|e| gpio_err(format!("chip info of {}", chip.path().display()), e))?;
+        let info = chip
+            .info()
+            .map_err(|e| gpio_err(format!("chip info of {}", chip.path().display()), e))?;
         let mut offsets = [0; 4];
         let refs = [&config.run, &config.track, &config.robot, &config.fault];
         for (i, (led, line)) in Led::ALL.iter().zip(refs).enumerate() {
@@ -120,16 +130,26 @@ impl GpioLeds {
             }
         }
         let mut builder = Request::builder();
-        builder.on_chip(chip.path()).with_consumer(config.consumer.as_str()).with_lines(&offsets);
+        builder
+            .on_chip(chip.path())
+            .with_consumer(config.consumer.as_str())
+            .with_lines(&offsets);
         if config.active_low {
             builder.as_active_low();
         }
         // Request as outputs with the LEDs off, so nothing flashes before the first state.
-        let request = builder
-            .as_output(Value::Inactive)
-            .request()
-            .map_err(|e| gpio_err(format!("request lines {offsets:?} on {}", chip.path().display()), e))?;
-        Ok(Self { request, chip_path: chip.path().to_path_buf(), chip_label: info.label, offsets })
+        let request = builder.as_output(Value::Inactive).request().map_err(|e| {
+            gpio_err(
+                format!("request lines {offsets:?} on {}", chip.path().display()),
+                e,
+            )
+        })?;
+        Ok(Self {
+            request,
+            chip_path: chip.path().to_path_buf(),
+            chip_label: info.label,
+            offsets,
+        })
     }
 
     /// Line offset of an LED on the chip.
@@ -157,7 +177,9 @@ impl GpioLeds {
         for (offset, on) in self.offsets.iter().zip(on) {
             values.set(*offset, Value::from(on));
         }
-        self.request.set_values(&values).map_err(|e| gpio_err("set LED lines", e))
+        self.request
+            .set_values(&values)
+            .map_err(|e| gpio_err("set LED lines", e))
     }
 }
 

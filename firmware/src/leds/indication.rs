@@ -130,8 +130,15 @@ mod tests {
 
     #[test]
     fn fault_codes_flash_their_count_per_cycle() {
-        for (fault, n) in [(Fault::NoParams, 1), (Fault::CameraLost, 2), (Fault::DeadlineMisses, 3)] {
-            let ind = Indication { fault: Some(fault), ..Indication::STARTING };
+        for (fault, n) in [
+            (Fault::NoParams, 1),
+            (Fault::CameraLost, 2),
+            (Fault::DeadlineMisses, 3),
+        ] {
+            let ind = Indication {
+                fault: Some(fault),
+                ..Indication::STARTING
+            };
             assert_eq!(count_rising_edges(&ind, 3, 0, 2000), n, "{fault:?}");
             assert_eq!(count_rising_edges(&ind, 3, 0, 6000), 3 * n, "{fault:?}");
         }
@@ -149,9 +156,20 @@ mod tests {
         assert_eq!(count_rising_edges(&alive, 0, 0, 3000), 3);
         assert_eq!(count_rising_edges(&alive, 1, 0, 1000), 4);
         assert_eq!(count_rising_edges(&alive, 2, 0, 3000), 3);
-        let all = Indication { track: TrackIndication::All, robot: RobotIndication::Connected, ..alive };
-        assert!((0..2000).step_by(25).all(|t| led_levels(&all, t)[1] && led_levels(&all, t)[2]));
-        let dead = Indication { alive: false, ..alive };
+        let all = Indication {
+            track: TrackIndication::All,
+            robot: RobotIndication::Connected,
+            ..alive
+        };
+        assert!(
+            (0..2000)
+                .step_by(25)
+                .all(|t| led_levels(&all, t)[1] && led_levels(&all, t)[2])
+        );
+        let dead = Indication {
+            alive: false,
+            ..alive
+        };
         assert_eq!(count_rising_edges(&dead, 0, 0, 3000), 0);
     }
 }

@@ -33,9 +33,9 @@ pub enum LedError {
     Gpio { what: String, reason: String },
 }
 
+pub mod driver;
 pub mod gpio;
+pub mod indication;
 #[cfg(feature = "rpi")]
 pub mod rppal;
-pub mod driver;
-pub mod indication;
 pub mod sim;

@@ -47,7 +47,14 @@ pub struct SimLeds {
 impl SimLeds {
     pub fn new() -> (Self, LedRecord) {
         let record = LedRecord::default();
-        (Self { state: [false; 4], record: record.clone(), started: Instant::now() }, record)
+        (
+            Self {
+                state: [false; 4],
+                record: record.clone(),
+                started: Instant::now(),
+            },
+            record,
+        )
     }
 }
 
@@ -58,7 +65,11 @@ impl StatusLeds for SimLeds {
             self.state[i] = on;
             // Blinks are frequent: trace level; indication changes are logged by the driver.
             tracing::trace!(?led, on, "sim LED");
-            self.record.push(LedChange { led, on, at_s: self.started.elapsed().as_secs_f64() });
+            self.record.push(LedChange {
+                led,
+                on,
+                at_s: self.started.elapsed().as_secs_f64(),
+            });
         }
         Ok(())
     }

@@ -47,9 +47,12 @@ async fn handle(mut stream: TcpStream, service: Arc<ParamService>) -> String {
             message: format!("push not received within {} s", READ_TIMEOUT.as_secs()),
         }),
         Ok(Err(v)) => framing_error(v),
-        Ok(Ok(blob)) => tokio::task::spawn_blocking(move || service.push(&blob)).await.unwrap_or_else(|e| {
-            Verdict::Rejected { code: RejectCode::Internal, message: format!("push handler failed: {e}") }
-        }),
+        Ok(Ok(blob)) => tokio::task::spawn_blocking(move || service.push(&blob))
+            .await
+            .unwrap_or_else(|e| Verdict::Rejected {
+                code: RejectCode::Internal,
+                message: format!("push handler failed: {e}"),
+            }),
     };
     let line = verdict.to_line();
     let _ = stream.write_all(line.as_bytes()).await;
@@ -63,9 +66,15 @@ async fn read_push(stream: &mut TcpStream) -> Result<Vec<u8>, Verdict> {
         message: format!("connection ended while reading the {what}: {e}"),
     };
     let mut hdr = [0u8; PUSH_HEADER_LEN];
-    stream.read_exact(&mut hdr).await.map_err(|e| closed("push header", e))?;
+    stream
+        .read_exact(&mut hdr)
+        .await
+        .map_err(|e| closed("push header", e))?;
     let len = parse_push_header(&hdr).map_err(|e| Verdict::from_error(&e))?;
     let mut blob = vec![0u8; len];
-    stream.read_exact(&mut blob).await.map_err(|e| closed("blob", e))?;
+    stream
+        .read_exact(&mut blob)
+        .await
+        .map_err(|e| closed("blob", e))?;
     Ok(blob)
 }

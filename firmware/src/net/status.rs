@@ -50,12 +50,18 @@ async fn read_head(stream: &mut TcpStream) -> Option<String> {
 }
 
 async fn handle(mut stream: TcpStream, status: &SharedStatus) {
-    let head = tokio::time::timeout(READ_TIMEOUT, read_head(&mut stream)).await.ok().flatten();
+    let head = tokio::time::timeout(READ_TIMEOUT, read_head(&mut stream))
+        .await
+        .ok()
+        .flatten();
     let (code, ctype, body) = match head.as_deref().and_then(|h| h.lines().next()) {
         None => (400, "text/plain", "bad request\n".to_string()),
         Some(line) => {
             let mut parts = line.split_whitespace();
-            match (parts.next(), parts.next().map(|p| p.split('?').next().unwrap_or(p))) {
+            match (
+                parts.next(),
+                parts.next().map(|p| p.split('?').next().unwrap_or(p)),
+            ) {
                 (Some("GET"), Some("/status")) => match serde_json::to_string_pretty(&status.report()) {
                     Ok(json) => (200, "application/json", json + "\n"),
                     Err(e) => (500, "text/plain", format!("status encoding failed: {e}\n")),

@@ -43,7 +43,10 @@ impl StreamHub {
         status: Arc<SharedStatus>,
     ) -> Self {
         let (tx, _) = broadcast::channel(queue_records.max(1));
-        let hub = Self { tx: tx.clone(), status: status.clone() };
+        let hub = Self {
+            tx: tx.clone(),
+            status: status.clone(),
+        };
         tokio::spawn(async move {
             let mut received = 0u64;
             while slot.changed().await.is_ok() {
@@ -52,7 +55,9 @@ impl StreamHub {
                     received += 1;
                     // Results the loop published that this task never saw were overwritten.
                     let published = status.published.load(Ordering::Relaxed);
-                    status.slot_overwrites.store(published.saturating_sub(received), Ordering::Relaxed);
+                    status
+                        .slot_overwrites
+                        .store(published.saturating_sub(received), Ordering::Relaxed);
                     // No subscribers is fine: nothing to deliver.
                     let _ = tx.send(rec);
                 }
@@ -67,7 +72,12 @@ impl StreamHub {
 }
 
 /// Accepts stream clients until `shutdown` resolves.
-pub async fn serve(listener: TcpListener, format: StreamFormat, hub: StreamHub, shutdown: impl Future<Output = ()>) {
+pub async fn serve(
+    listener: TcpListener,
+    format: StreamFormat,
+    hub: StreamHub,
+    shutdown: impl Future<Output = ()>,
+) {
     tokio::pin!(shutdown);
     loop {
         tokio::select! {

@@ -53,7 +53,11 @@ pub struct SourceStats {
 #[derive(Debug, thiserror::Error)]
 pub enum SourceError {
     #[error("camera {camera} ({device}) unavailable: {reason}")]
-    CameraLost { camera: usize, device: String, reason: String },
+    CameraLost {
+        camera: usize,
+        device: String,
+        reason: String,
+    },
     #[error("no frame within {timeout_ms} ms")]
     Timeout { timeout_ms: u64 },
     #[error("end of recorded frames")]
@@ -78,7 +82,7 @@ pub trait FrameSource: Send {
     fn describe(&self) -> String;
 }
 
-pub mod v4l2;
 pub mod pgm;
 pub mod replay;
 pub mod sim;
+pub mod v4l2;

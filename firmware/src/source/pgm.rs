@@ -53,7 +53,9 @@ pub fn parse_header(data: &[u8], path: &str) -> Result<PgmHeader, SourceError> {
             pos += 1;
         }
         let digits = std::str::from_utf8(&data[start..pos]).map_err(|_| bad(path, "header not ASCII"))?;
-        *field = digits.parse().map_err(|_| bad(path, "header field is not a number"))?;
+        *field = digits
+            .parse()
+            .map_err(|_| bad(path, "header field is not a number"))?;
     }
     // Exactly one whitespace byte separates maxval from the samples.
     if !data.get(pos).is_some_and(u8::is_ascii_whitespace) {
@@ -63,7 +65,12 @@ pub fn parse_header(data: &[u8], path: &str) -> Result<PgmHeader, SourceError> {
     if w == 0 || h == 0 || maxval == 0 || maxval > 65535 {
         return Err(bad(path, "zero size or maxval outside 1..=65535"));
     }
-    let header = PgmHeader { width_px: w, height_px: h, maxval: maxval as u16, data_offset: pos + 1 };
+    let header = PgmHeader {
+        width_px: w,
+        height_px: h,
+        maxval: maxval as u16,
+        data_offset: pos + 1,
+    };
     let needed = header.data_offset + w as usize * h as usize * header.bytes_per_sample();
     if data.len() < needed {
         return Err(bad(path, &format!("{} bytes, header needs {needed}", data.len())));
@@ -78,10 +85,17 @@ pub fn decode_into(data: &[u8], path: &str, frame: &mut Frame) -> Result<(), Sou
     if h.width_px != frame.width_px || h.height_px != frame.height_px {
         return Err(bad(
             path,
-            &format!("size {}x{} differs from {}x{}", h.width_px, h.height_px, frame.width_px, frame.height_px),
+            &format!(
+                "size {}x{} differs from {}x{}",
+                h.width_px, h.height_px, frame.width_px, frame.height_px
+            ),
         ));
     }
-    let (w, rows, stride) = (frame.width_px as usize, frame.height_px as usize, frame.stride_px as usize);
+    let (w, rows, stride) = (
+        frame.width_px as usize,
+        frame.height_px as usize,
+        frame.stride_px as usize,
+    );
     let body = &data[h.data_offset..];
     match (&mut frame.pixels, h.bytes_per_sample()) {
         (Pixels::U8(px), 1) => {
@@ -110,7 +124,11 @@ pub fn frame_for(h: &PgmHeader) -> Frame {
         height_px: h.height_px,
         stride_px: h.width_px,
         bit_depth: h.bit_depth(),
-        pixels: if h.bytes_per_sample() == 1 { Pixels::U8(vec![0; n]) } else { Pixels::U16(vec![0; n]) },
+        pixels: if h.bytes_per_sample() == 1 {
+            Pixels::U8(vec![0; n])
+        } else {
+            Pixels::U16(vec![0; n])
+        },
         timestamp_ns: 0,
         sequence: 0,
     }
@@ -118,15 +136,23 @@ pub fn frame_for(h: &PgmHeader) -> Frame {
 
 /// Encodes a frame as P5 (used by tests and recording tools).
 pub fn encode(frame: &Frame) -> Vec<u8> {
-    let (w, h, stride) = (frame.width_px as usize, frame.height_px as usize, frame.stride_px as usize);
+    let (w, h, stride) = (
+        frame.width_px as usize,
+        frame.height_px as usize,
+        frame.stride_px as usize,
+    );
     let maxval: u32 = (1u32 << frame.bit_depth.clamp(1, 16)) - 1;
     let mut out = format!("P5\n{w} {h}\n{maxval}\n").into_bytes();
     match &frame.pixels {
-        Pixels::U8(px) => px.chunks(stride).take(h).for_each(|r| out.extend_from_slice(&r[..w])),
-        Pixels::U16(px) => px
+        Pixels::U8(px) => px
             .chunks(stride)
             .take(h)
-            .for_each(|r| r[..w].iter().for_each(|v| out.extend_from_slice(&v.to_be_bytes()))),
+            .for_each(|r| out.extend_from_slice(&r[..w])),
+        Pixels::U16(px) => px.chunks(stride).take(h).for_each(|r| {
+            r[..w]
+                .iter()
+                .for_each(|v| out.extend_from_slice(&v.to_be_bytes()))
+        }),
     }
     out
 }
@@ -137,8 +163,19 @@ mod tests {
 
     #[test]
     fn roundtrip_8_and_16_bit_with_comments() {
-        for (depth, pixels) in [(8u8, Pixels::U8((0..12).collect())), (10, Pixels::U16((0..12).map(|v| v * 80).collect()))] {
-            let f = Frame { width_px: 4, height_px: 3, stride_px: 4, bit_depth: depth, pixels, timestamp_ns: 0, sequence: 0 };
+        for (depth, pixels) in [
+            (8u8, Pixels::U8((0..12).collect())),
+            (10, Pixels::U16((0..12).map(|v| v * 80).collect())),
+        ] {
+            let f = Frame {
+                width_px: 4,
+                height_px: 3,
+                stride_px: 4,
+                bit_depth: depth,
+                pixels,
+                timestamp_ns: 0,
+                sequence: 0,
+            };
             let mut bytes = encode(&f);
             // Insert a comment after the magic, as GIMP/ImageMagick do.
             bytes.splice(2..2, b"\n# made by a test".iter().copied());
@@ -154,7 +191,9 @@ mod tests {
     fn truncated_and_wrong_magic_are_named() {
         let err = parse_header(b"P2\n1 1\n255\n0", "a.pgm").unwrap_err().to_string();
         assert!(err.contains("a.pgm") && err.contains("P5"), "{err}");
-        let err = parse_header(b"P5\n4 4\n255\n0123", "b.pgm").unwrap_err().to_string();
+        let err = parse_header(b"P5\n4 4\n255\n0123", "b.pgm")
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("bytes, header needs 27"), "{err}");
     }
 }

@@ -64,7 +64,10 @@ pub struct ReplaySource {
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SourceError + '_ {
-    move |source| SourceError::Io { path: path.display().to_string(), source }
+    move |source| SourceError::Io {
+        path: path.display().to_string(),
+        source,
+    }
 }
 
 fn frame_path(dir: &Path, camera: usize, frame: u64) -> PathBuf {
@@ -109,7 +112,8 @@ impl ReplaySource {
                 if camera >= cameras {
                     return Err(bad());
                 }
-                by_frame.entry(frame).or_insert_with(|| vec![None; cameras])[camera] = Some((ts, dropped != 0));
+                by_frame.entry(frame).or_insert_with(|| vec![None; cameras])[camera] =
+                    Some((ts, dropped != 0));
             }
             let mut sets = Vec::with_capacity(by_frame.len());
             for (frame, cams) in by_frame {
@@ -139,12 +143,17 @@ impl ReplaySource {
                 .into_iter()
                 .map(|frame| RecordedSet {
                     frame,
-                    files: (0..cameras).map(|c| (frame_path(dir, c, frame), frame * period_ns)).collect(),
+                    files: (0..cameras)
+                        .map(|c| (frame_path(dir, c, frame), frame * period_ns))
+                        .collect(),
                 })
                 .collect()
         };
         let first = sets.first().ok_or_else(|| {
-            SourceError::Config(format!("replay directory {} holds no complete frame set", dir.display()))
+            SourceError::Config(format!(
+                "replay directory {} holds no complete frame set",
+                dir.display()
+            ))
         })?;
         let mut buf = Vec::new();
         let mut frames = Vec::with_capacity(cameras);
@@ -153,8 +162,22 @@ impl ReplaySource {
             let h = pgm::parse_header(&buf, &path.display().to_string())?;
             frames.push(pgm::frame_for(&h));
         }
-        let template = FrameSet { index: 0, frames, pairing_error_ns: 0 };
-        Ok(Self { cfg: cfg.clone(), sets, cameras, next: 0, buf, stats: SourceStats::default(), skipped_frames, epoch: None, template })
+        let template = FrameSet {
+            index: 0,
+            frames,
+            pairing_error_ns: 0,
+        };
+        Ok(Self {
+            cfg: cfg.clone(),
+            sets,
+            cameras,
+            next: 0,
+            buf,
+            stats: SourceStats::default(),
+            skipped_frames,
+            epoch: None,
+            template,
+        })
     }
 
     /// Number of complete recorded sets.
@@ -169,7 +192,9 @@ impl ReplaySource {
 
 fn read_file(path: &Path, buf: &mut Vec<u8>) -> Result<(), SourceError> {
     buf.clear();
-    std::fs::File::open(path).and_then(|mut f| f.read_to_end(buf)).map_err(io(path))?;
+    std::fs::File::open(path)
+        .and_then(|mut f| f.read_to_end(buf))
+        .map_err(io(path))?;
     Ok(())
 }
 
@@ -210,7 +235,11 @@ impl FrameSource for ReplaySource {
             read_file(path, &mut self.buf)?;
             // Paths are short, so formatting the name for an error only happens on failure.
             pgm::decode_into(&self.buf, path.to_str().unwrap_or("frame"), frame).map_err(|e| {
-                SourceError::CameraLost { camera, device: path.display().to_string(), reason: e.to_string() }
+                SourceError::CameraLost {
+                    camera,
+                    device: path.display().to_string(),
+                    reason: e.to_string(),
+                }
             })?;
             frame.timestamp_ns = match self.cfg.speed {
                 ReplaySpeed::Recorded => mapped(*ts),

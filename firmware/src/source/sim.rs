@@ -123,10 +123,16 @@ impl SimSourceConfig {
             return bad(format!("source.sim.fps must be > 0, got {}", self.fps));
         }
         if !matches!(self.bit_depth, 8 | 10) {
-            return bad(format!("source.sim.bit_depth must be 8 or 10, got {}", self.bit_depth));
+            return bad(format!(
+                "source.sim.bit_depth must be 8 or 10, got {}",
+                self.bit_depth
+            ));
         }
         if !(0.0..1.0).contains(&self.drop_rate) {
-            return bad(format!("source.sim.drop_rate must be in [0, 1), got {}", self.drop_rate));
+            return bad(format!(
+                "source.sim.drop_rate must be in [0, 1), got {}",
+                self.drop_rate
+            ));
         }
         for (key, v) in [
             ("distance_mm", self.distance_mm),
@@ -139,7 +145,10 @@ impl SimSourceConfig {
             }
         }
         if !(self.radius_mm.is_finite() && self.radius_mm >= 0.0) {
-            return bad(format!("source.sim.radius_mm must be >= 0, got {}", self.radius_mm));
+            return bad(format!(
+                "source.sim.radius_mm must be >= 0, got {}",
+                self.radius_mm
+            ));
         }
         Ok(())
     }
@@ -147,12 +156,28 @@ impl SimSourceConfig {
     /// The simulator configuration this section describes.
     pub fn scenario_config(&self) -> SimConfig {
         let preset = match self.rig {
-            SimRig::Convergent => RigPreset::Convergent { distance_mm: self.distance_mm, angle_deg: self.angle_deg },
-            SimRig::Parallel => RigPreset::Parallel { baseline_mm: self.baseline_mm },
+            SimRig::Convergent => RigPreset::Convergent {
+                distance_mm: self.distance_mm,
+                angle_deg: self.angle_deg,
+            },
+            SimRig::Parallel => RigPreset::Parallel {
+                baseline_mm: self.baseline_mm,
+            },
         };
         let mut cfg = SimConfig::preset(preset, self.distance_mm, self.radius_mm);
-        if let Trajectory::Circle { centre_mm, radius_mm, normal, .. } = cfg.trajectory {
-            cfg.trajectory = Trajectory::Circle { centre_mm, radius_mm, normal, period_s: self.period_s };
+        if let Trajectory::Circle {
+            centre_mm,
+            radius_mm,
+            normal,
+            ..
+        } = cfg.trajectory
+        {
+            cfg.trajectory = Trajectory::Circle {
+                centre_mm,
+                radius_mm,
+                normal,
+                period_s: self.period_s,
+            };
         } else {
             let centre = cfg.rig.workspace_centre_mm(self.distance_mm);
             cfg.trajectory = Trajectory::Circle {
@@ -165,7 +190,11 @@ impl SimSourceConfig {
         cfg.fps = self.fps;
         cfg.seed = self.seed;
         cfg.drop_rate = self.drop_rate;
-        cfg.bit_depth = if self.bit_depth == 10 { BitDepth::Ten } else { BitDepth::Eight };
+        cfg.bit_depth = if self.bit_depth == 10 {
+            BitDepth::Ten
+        } else {
+            BitDepth::Eight
+        };
         if self.glare {
             cfg.add_glare();
         }
@@ -185,7 +214,8 @@ pub struct SimSource {
 
 impl SimSource {
     pub fn new(cfg: &SimSourceConfig) -> std::result::Result<Self, SourceError> {
-        let scenario = Scenario::new(cfg.scenario_config()).map_err(|e| SourceError::Config(e.to_string()))?;
+        let scenario =
+            Scenario::new(cfg.scenario_config()).map_err(|e| SourceError::Config(e.to_string()))?;
         Ok(Self::from_scenario(scenario, cfg))
     }
 
@@ -222,12 +252,20 @@ impl FrameSource for SimSource {
                 height_px: h,
                 stride_px: w,
                 bit_depth: if ten { 10 } else { 8 },
-                pixels: if ten { Pixels::U16(vec![0; n]) } else { Pixels::U8(vec![0; n]) },
+                pixels: if ten {
+                    Pixels::U16(vec![0; n])
+                } else {
+                    Pixels::U8(vec![0; n])
+                },
                 timestamp_ns: 0,
                 sequence: 0,
             })
             .collect();
-        FrameSet { index: 0, frames, pairing_error_ns: 0 }
+        FrameSet {
+            index: 0,
+            frames,
+            pairing_error_ns: 0,
+        }
     }
 
     fn next_set(&mut self, out: &mut FrameSet) -> std::result::Result<(), SourceError> {
@@ -267,7 +305,11 @@ impl FrameSource for SimSource {
                     Pixels::U8(px) => self.scenario.render_u8(index, camera, px),
                     Pixels::U16(px) => self.scenario.render_u16(index, camera, px),
                 }
-                .map_err(|e| SourceError::CameraLost { camera, device: "simulator".into(), reason: e.to_string() })?;
+                .map_err(|e| SourceError::CameraLost {
+                    camera,
+                    device: "simulator".into(),
+                    reason: e.to_string(),
+                })?;
                 if info.dropped {
                     dropped += 1;
                 }

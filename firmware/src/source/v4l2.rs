@@ -63,7 +63,10 @@ pub struct V4l2Config {
 }
 
 fn default_formats() -> Vec<String> {
-    ["GREY", "Y16", "Y10", "YUYV"].iter().map(|s| (*s).to_owned()).collect()
+    ["GREY", "Y16", "Y10", "YUYV"]
+        .iter()
+        .map(|s| (*s).to_owned())
+        .collect()
 }
 fn default_buffer_count() -> u32 {
     4
@@ -163,7 +166,11 @@ impl V4l2Config {
         for name in &self.formats {
             match PixelFormat::parse(name) {
                 Some(f) => formats.push(f),
-                None => return bad(format!("unknown pixel format {name:?} (known: GREY, Y10, Y16, YUYV)")),
+                None => {
+                    return bad(format!(
+                        "unknown pixel format {name:?} (known: GREY, Y10, Y16, YUYV)"
+                    ));
+                }
             }
         }
         if formats.is_empty() {
@@ -207,21 +214,39 @@ pub fn convert_into(
     let stride = frame.stride_px as usize;
     match (&mut frame.pixels, format) {
         (Pixels::U8(dst), PixelFormat::Grey) => {
-            for (src_row, dst_row) in src.chunks(bytes_per_line).zip(dst.chunks_mut(stride)).take(height) {
+            for (src_row, dst_row) in src
+                .chunks(bytes_per_line)
+                .zip(dst.chunks_mut(stride))
+                .take(height)
+            {
                 dst_row[..width].copy_from_slice(&src_row[..width]);
             }
         }
         (Pixels::U8(dst), PixelFormat::Yuyv) => {
             // Luma is every even byte; read it strided straight from the mmap buffer.
-            for (src_row, dst_row) in src.chunks(bytes_per_line).zip(dst.chunks_mut(stride)).take(height) {
-                for (d, y) in dst_row[..width].iter_mut().zip(src_row[..row_bytes].iter().step_by(2)) {
+            for (src_row, dst_row) in src
+                .chunks(bytes_per_line)
+                .zip(dst.chunks_mut(stride))
+                .take(height)
+            {
+                for (d, y) in dst_row[..width]
+                    .iter_mut()
+                    .zip(src_row[..row_bytes].iter().step_by(2))
+                {
                     *d = *y;
                 }
             }
         }
         (Pixels::U16(dst), PixelFormat::Y10 | PixelFormat::Y16) => {
-            for (src_row, dst_row) in src.chunks(bytes_per_line).zip(dst.chunks_mut(stride)).take(height) {
-                for (d, le) in dst_row[..width].iter_mut().zip(src_row[..row_bytes].chunks_exact(2)) {
+            for (src_row, dst_row) in src
+                .chunks(bytes_per_line)
+                .zip(dst.chunks_mut(stride))
+                .take(height)
+            {
+                for (d, le) in dst_row[..width]
+                    .iter_mut()
+                    .zip(src_row[..row_bytes].chunks_exact(2))
+                {
                     *d = u16::from_le_bytes([le[0], le[1]]);
                 }
             }
@@ -249,7 +274,10 @@ pub struct Pairer {
 
 impl Pairer {
     pub fn new(cameras: usize, tolerance_ns: u64) -> Self {
-        Self { slots: vec![None; cameras], tolerance_ns }
+        Self {
+            slots: vec![None; cameras],
+            tolerance_ns,
+        }
     }
 
     /// Records a frame; returns how many frames were dropped (1 if it replaced an unpaired one).
@@ -326,7 +354,11 @@ struct OpenCamera {
 
 enum CameraState {
     Open(Box<OpenCamera>),
-    Lost { next_attempt: Instant, backoff: Duration, reason: String },
+    Lost {
+        next_attempt: Instant,
+        backoff: Duration,
+        reason: String,
+    },
 }
 
 struct Camera {
@@ -350,11 +382,17 @@ pub struct V4l2Source {
 }
 
 fn io_err(device: &str, what: &str, e: io::Error) -> SourceError {
-    SourceError::Io { path: format!("{device} ({what})"), source: e }
+    SourceError::Io {
+        path: format!("{device} ({what})"),
+        source: e,
+    }
 }
 
 fn set_control_logged(device: &Device, path: &str, id: u32, name: &str, value: i64) -> bool {
-    match device.set_control(Control { id, value: ControlValue::Integer(value) }) {
+    match device.set_control(Control {
+        id,
+        value: ControlValue::Integer(value),
+    }) {
         Ok(()) => {
             info!(device = path, control = name, value, "camera control set");
             true
@@ -379,7 +417,13 @@ fn apply_controls(device: &Device, path: &str, config: &V4l2Config) {
     let find = |id: u32| descriptions.iter().find(|d| d.id == id);
     if let Some(exposure_us) = config.exposure_us {
         if find(V4L2_CID_EXPOSURE_AUTO).is_some() {
-            set_control_logged(device, path, V4L2_CID_EXPOSURE_AUTO, "exposure_auto", V4L2_EXPOSURE_MANUAL);
+            set_control_logged(
+                device,
+                path,
+                V4L2_CID_EXPOSURE_AUTO,
+                "exposure_auto",
+                V4L2_EXPOSURE_MANUAL,
+            );
         }
         if let Some(d) = find(V4L2_CID_EXPOSURE_ABSOLUTE) {
             // EXPOSURE_ABSOLUTE counts 100 µs units.
@@ -390,7 +434,10 @@ fn apply_controls(device: &Device, path: &str, config: &V4l2Config) {
             let value = i64::from(exposure_us).clamp(d.minimum, d.maximum);
             set_control_logged(device, path, d.id, "exposure", value);
         } else {
-            warn!(device = path, exposure_us, "camera has no exposure control; exposure not set");
+            warn!(
+                device = path,
+                exposure_us, "camera has no exposure control; exposure not set"
+            );
         }
     }
     if let Some(gain) = config.gain {
@@ -421,8 +468,13 @@ fn open_camera(
     formats: &[PixelFormat],
 ) -> Result<(Negotiated, OpenCamera), SourceError> {
     let device = Device::with_path(path).map_err(|e| io_err(path, "open", e))?;
-    let caps = device.query_caps().map_err(|e| io_err(path, "VIDIOC_QUERYCAP", e))?;
-    if !caps.capabilities.contains(CapFlags::VIDEO_CAPTURE | CapFlags::STREAMING) {
+    let caps = device
+        .query_caps()
+        .map_err(|e| io_err(path, "VIDIOC_QUERYCAP", e))?;
+    if !caps
+        .capabilities
+        .contains(CapFlags::VIDEO_CAPTURE | CapFlags::STREAMING)
+    {
         return Err(SourceError::Config(format!(
             "{path} ({} {}) is not a streaming single-plane video capture device",
             caps.driver, caps.card
@@ -443,11 +495,18 @@ fn open_camera(
         )));
     };
     let wanted = v4l::Format::new(config.width_px, config.height_px, format.fourcc());
-    let got = device.set_format(&wanted).map_err(|e| io_err(path, "VIDIOC_S_FMT", e))?;
+    let got = device
+        .set_format(&wanted)
+        .map_err(|e| io_err(path, "VIDIOC_S_FMT", e))?;
     if got.fourcc != wanted.fourcc || got.width != wanted.width || got.height != wanted.height {
         return Err(SourceError::Config(format!(
             "{path} cannot deliver {}x{} {}; the driver offered {}x{} {}",
-            wanted.width, wanted.height, format.name(), got.width, got.height, got.fourcc
+            wanted.width,
+            wanted.height,
+            format.name(),
+            got.width,
+            got.height,
+            got.fourcc
         )));
     }
     let params = device
@@ -464,7 +523,9 @@ fn open_camera(
     stream.set_timeout(Duration::from_millis(config.frame_timeout_ms.max(1)));
     let fd = stream.handle().fd();
     // The first `next` queues all buffers and starts streaming; its frame is discarded.
-    stream.next().map_err(|e| io_err(path, "VIDIOC_STREAMON/first frame", e))?;
+    stream
+        .next()
+        .map_err(|e| io_err(path, "VIDIOC_STREAMON/first frame", e))?;
     let negotiated = Negotiated {
         format,
         width_px: got.width,
@@ -526,14 +587,22 @@ impl V4l2Source {
         let backoff = Duration::from_millis(self.config.reconnect_min_ms);
         let old = std::mem::replace(
             &mut cam.state,
-            CameraState::Lost { next_attempt: Instant::now() + backoff, backoff, reason: reason.clone() },
+            CameraState::Lost {
+                next_attempt: Instant::now() + backoff,
+                backoff,
+                reason: reason.clone(),
+            },
         );
         if let CameraState::Open(open) = old {
             close_camera(open);
         }
         self.stats.unpaired_dropped += self.pairer.clear_all();
         warn!(camera, device = %cam.device, %reason, "camera lost; will reopen");
-        SourceError::CameraLost { camera, device: cam.device.clone(), reason }
+        SourceError::CameraLost {
+            camera,
+            device: cam.device.clone(),
+            reason,
+        }
     }
 
     /// Reopens lost cameras whose backoff has elapsed, sleeping until the earliest attempt so a
@@ -555,7 +624,12 @@ impl V4l2Source {
         let max_backoff = Duration::from_millis(self.config.reconnect_max_ms);
         let mut still_lost = None;
         for (i, cam) in self.cameras.iter_mut().enumerate() {
-            let CameraState::Lost { next_attempt, reason, .. } = &mut cam.state else { continue };
+            let CameraState::Lost {
+                next_attempt, reason, ..
+            } = &mut cam.state
+            else {
+                continue;
+            };
             if *next_attempt > Instant::now() {
                 still_lost.get_or_insert((i, reason.clone()));
                 continue;
@@ -572,7 +646,12 @@ impl V4l2Source {
                 }
                 Err(e) => *reason = e.to_string(),
             }
-            if let CameraState::Lost { next_attempt, backoff, reason } = &mut cam.state {
+            if let CameraState::Lost {
+                next_attempt,
+                backoff,
+                reason,
+            } = &mut cam.state
+            {
                 *backoff = (*backoff * 2).min(max_backoff);
                 *next_attempt = Instant::now() + *backoff;
                 still_lost.get_or_insert((i, reason.clone()));
@@ -591,7 +670,9 @@ impl V4l2Source {
     /// Dequeues the newest frame of one camera into its slot of `out`.
     fn take_frame(&mut self, camera: usize, out: &mut FrameSet) -> Result<(), SourceError> {
         let cam = &mut self.cameras[camera];
-        let CameraState::Open(open) = &mut cam.state else { return Ok(()) };
+        let CameraState::Open(open) = &mut cam.state else {
+            return Ok(());
+        };
         let (buf, meta) = match open.stream.next() {
             Ok(x) => x,
             Err(e) => return Err(self.mark_lost(camera, format!("dequeue: {e}"))),
@@ -606,7 +687,12 @@ impl V4l2Source {
             n => n.min(buf.len()),
         };
         let frame = &mut out.frames[camera];
-        convert_into(cam.negotiated.format, &buf[..used], cam.negotiated.bytes_per_line as usize, frame)?;
+        convert_into(
+            cam.negotiated.format,
+            &buf[..used],
+            cam.negotiated.bytes_per_line as usize,
+            frame,
+        )?;
         let ts = &meta.timestamp;
         frame.timestamp_ns = (ts.sec as u64).saturating_mul(1_000_000_000) + (ts.usec as u64) * 1000;
         frame.sequence = u64::from(meta.sequence);
@@ -640,7 +726,11 @@ impl FrameSource for V4l2Source {
                 }
             })
             .collect();
-        FrameSet { index: 0, frames, pairing_error_ns: 0 }
+        FrameSet {
+            index: 0,
+            frames,
+            pairing_error_ns: 0,
+        }
     }
 
     fn next_set(&mut self, out: &mut FrameSet) -> Result<(), SourceError> {
@@ -659,7 +749,11 @@ impl FrameSource for V4l2Source {
             self.poll_cameras.clear();
             for (i, cam) in self.cameras.iter().enumerate() {
                 if let CameraState::Open(open) = &cam.state {
-                    self.pollfds.push(libc::pollfd { fd: open.fd, events: libc::POLLIN, revents: 0 });
+                    self.pollfds.push(libc::pollfd {
+                        fd: open.fd,
+                        events: libc::POLLIN,
+                        revents: 0,
+                    });
                     self.poll_cameras.push(i);
                 }
             }
@@ -671,14 +765,21 @@ impl FrameSource for V4l2Source {
             let left_ms = c_int::try_from(left.as_millis().max(1)).unwrap_or(c_int::MAX);
             // SAFETY: pollfds is a valid, exclusively borrowed array of its length.
             let ready = unsafe {
-                libc::poll(self.pollfds.as_mut_ptr(), self.pollfds.len() as libc::nfds_t, left_ms)
+                libc::poll(
+                    self.pollfds.as_mut_ptr(),
+                    self.pollfds.len() as libc::nfds_t,
+                    left_ms,
+                )
             };
             if ready < 0 {
                 let e = io::Error::last_os_error();
                 if e.kind() == io::ErrorKind::Interrupted {
                     continue;
                 }
-                return Err(SourceError::Io { path: "poll on cameras".into(), source: e });
+                return Err(SourceError::Io {
+                    path: "poll on cameras".into(),
+                    source: e,
+                });
             }
             for k in 0..self.pollfds.len() {
                 if self.pollfds[k].revents != 0 {
@@ -753,7 +854,12 @@ mod tests {
         assert_eq!(cfg.devices.len(), 2);
         assert_eq!(
             cfg.validate().unwrap(),
-            vec![PixelFormat::Grey, PixelFormat::Y16, PixelFormat::Y10, PixelFormat::Yuyv]
+            vec![
+                PixelFormat::Grey,
+                PixelFormat::Y16,
+                PixelFormat::Y10,
+                PixelFormat::Yuyv
+            ]
         );
         assert_eq!(cfg.buffer_count, 4);
         // Half a frame period at 30 fps.
@@ -774,7 +880,10 @@ mod tests {
 
     #[test]
     fn unknown_key_is_rejected() {
-        let err = parse(&format!("{MINIMAL}exposure = 3\n")).err().unwrap().to_string();
+        let err = parse(&format!("{MINIMAL}exposure = 3\n"))
+            .err()
+            .unwrap()
+            .to_string();
         assert!(err.contains("exposure"), "{err}");
     }
 
@@ -800,7 +909,15 @@ mod tests {
     }
 
     fn frame(width: u32, height: u32, pixels: Pixels) -> Frame {
-        Frame { width_px: width, height_px: height, stride_px: width, bit_depth: 8, pixels, timestamp_ns: 0, sequence: 0 }
+        Frame {
+            width_px: width,
+            height_px: height,
+            stride_px: width,
+            bit_depth: 8,
+            pixels,
+            timestamp_ns: 0,
+            sequence: 0,
+        }
     }
 
     #[test]
@@ -833,7 +950,9 @@ mod tests {
     #[test]
     fn short_buffer_and_type_mismatch_are_errors() {
         let mut f = frame(3, 2, Pixels::U8(vec![0; 6]));
-        let err = convert_into(PixelFormat::Yuyv, &[0; 11], 6, &mut f).unwrap_err().to_string();
+        let err = convert_into(PixelFormat::Yuyv, &[0; 11], 6, &mut f)
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("too small"), "{err}");
         assert!(convert_into(PixelFormat::Y16, &[0; 12], 6, &mut f).is_err());
     }

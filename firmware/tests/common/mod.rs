@@ -36,7 +36,10 @@ impl Drop for TempDir {
 
 /// Simulated source at a test-friendly rate (the convergent VGA rig of the defaults).
 pub fn sim_cfg() -> SimSourceConfig {
-    SimSourceConfig { fps: 100.0, ..SimSourceConfig::default() }
+    SimSourceConfig {
+        fps: 100.0,
+        ..SimSourceConfig::default()
+    }
 }
 
 /// Config with every listener on 127.0.0.1:0, the given state dir and the simulated source.
@@ -81,7 +84,9 @@ pub struct NdjsonClient {
 impl NdjsonClient {
     pub async fn connect(addr: SocketAddr) -> Self {
         let s = TcpStream::connect(addr).await.unwrap();
-        Self { lines: BufReader::new(s).lines() }
+        Self {
+            lines: BufReader::new(s).lines(),
+        }
     }
 
     /// Next record, failing the test after `timeout`.
@@ -109,18 +114,26 @@ impl NdjsonClient {
 /// Reads one binary record.
 pub async fn read_binary(s: &mut TcpStream) -> PositionRecord {
     let mut buf = [0u8; BINARY_FRAME_LEN];
-    tokio::time::timeout(Duration::from_secs(10), s.read_exact(&mut buf)).await.unwrap().unwrap();
+    tokio::time::timeout(Duration::from_secs(10), s.read_exact(&mut buf))
+        .await
+        .unwrap()
+        .unwrap();
     PositionRecord::decode_binary(&buf).unwrap()
 }
 
 /// GET `path` from the status endpoint; returns (status code, body).
 pub async fn http_get(addr: SocketAddr, path: &str) -> (u16, String) {
     let mut s = TcpStream::connect(addr).await.unwrap();
-    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes()).await.unwrap();
+    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes())
+        .await
+        .unwrap();
     let mut resp = String::new();
     s.read_to_string(&mut resp).await.unwrap();
     let code = resp.split_whitespace().nth(1).unwrap().parse().unwrap();
-    let body = resp.split_once("\r\n\r\n").map(|(_, b)| b.to_string()).unwrap_or_default();
+    let body = resp
+        .split_once("\r\n\r\n")
+        .map(|(_, b)| b.to_string())
+        .unwrap_or_default();
     (code, body)
 }
 

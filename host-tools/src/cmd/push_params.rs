@@ -141,6 +141,14 @@ pub fn run(args: Args) -> Result<()> {
         rig.cameras.len(),
         blob.len()
     );
+    if blob.len() > param_wire::MAX_BLOB_BYTES {
+        bail!(
+            "{}: blob of {} bytes exceeds the protocol limit of {} bytes",
+            path.display(),
+            blob.len(),
+            param_wire::MAX_BLOB_BYTES
+        );
+    }
     if args.dry_run {
         println!("dry run: nothing sent");
         return Ok(());
