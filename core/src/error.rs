@@ -20,13 +20,24 @@ pub enum Error {
     Degenerate { what: &'static str },
     /// A caller-provided buffer is too small for the request.
     #[error("buffer `{what}` too small: need {needed}, have {have}")]
-    BufferTooSmall { what: &'static str, needed: usize, have: usize },
+    BufferTooSmall {
+        what: &'static str,
+        needed: usize,
+        have: usize,
+    },
     /// Frame dimensions disagree with the data or the configuration.
     #[error("bad frame geometry: {what}")]
     BadFrame { what: &'static str },
     /// Region of interest outside the frame.
     #[error("region of interest {x},{y} {w}x{h} outside frame {frame_w}x{frame_h}")]
-    BadRoi { x: u32, y: u32, w: u32, h: u32, frame_w: u32, frame_h: u32 },
+    BadRoi {
+        x: u32,
+        y: u32,
+        w: u32,
+        h: u32,
+        frame_w: u32,
+        frame_h: u32,
+    },
     /// Parameter blob shorter than its header or declared body.
     #[error("parameter blob truncated: need {needed} bytes, got {got}")]
     BlobTruncated { needed: usize, got: usize },
@@ -48,6 +59,24 @@ pub enum Error {
     /// Body did not decode.
     #[error("parameter blob body does not decode: {reason}")]
     BlobBody { reason: &'static str },
+    /// An unsigned parameter blob where the policy requires a signature.
+    #[error("parameter blob is not signed, and signed parameters are required (sign it with a trusted key)")]
+    BlobUnsigned,
+    /// A signed parameter blob whose key id matches none of the trusted keys.
+    #[error("parameter blob is signed by key {key_id}, which is not one of the {trusted} trusted keys")]
+    BlobUnknownKey {
+        key_id: crate::signing::KeyId,
+        trusted: usize,
+    },
+    /// The signature does not verify with the trusted key of that id: altered or forged.
+    #[error("parameter blob signature by key {key_id} does not verify: altered after signing or forged")]
+    BlobBadSignature { key_id: crate::signing::KeyId },
+    /// A signing or verifying key (file) is malformed.
+    #[error("bad {what}: {reason}")]
+    BadKey {
+        what: &'static str,
+        reason: alloc::string::String,
+    },
     /// Parameters are structurally valid but not usable.
     #[error("invalid parameters: {reason}")]
     InvalidParams { reason: alloc::string::String },
@@ -56,10 +85,17 @@ pub enum Error {
     NoSuchCamera { index: usize, count: usize },
     /// A protocol message announces more bytes than the protocol allows.
     #[error("{protocol} message of {size} bytes exceeds the limit of {max} bytes")]
-    MessageTooLarge { protocol: &'static str, size: usize, max: usize },
+    MessageTooLarge {
+        protocol: &'static str,
+        size: usize,
+        max: usize,
+    },
     /// A protocol message is malformed.
     #[error("malformed {protocol} message: {reason}")]
-    Protocol { protocol: &'static str, reason: alloc::string::String },
+    Protocol {
+        protocol: &'static str,
+        reason: alloc::string::String,
+    },
 }
 
 /// Result alias for irtrack-core.

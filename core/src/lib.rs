@@ -20,6 +20,7 @@ pub mod registration;
 pub mod pipeline;
 pub mod pose6d;
 pub mod robot_proto;
+pub mod signing;
 pub mod stream;
 pub mod triangulate;
 

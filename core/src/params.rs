@@ -46,11 +46,15 @@ pub const BLOB_MAGIC: [u8; 4] = *b"IRPB";
 pub const BLOB_FORMAT_VERSION: u16 = 1;
 /// Header size in bytes (magic, version, flags, body length, CRC-32).
 pub const BLOB_HEADER_LEN: usize = 16;
-/// Flag bit reserved for a signature trailer after the body (docs/param-blob.md); not read yet.
+/// Flag bit: an Ed25519 signature trailer follows the body (docs/param-blob.md, `crate::signing`).
 pub const BLOB_FLAG_SIGNED: u16 = 0x0001;
-/// Flags this build accepts. Signed blobs are refused until verification exists, so that a
-/// signature can never be silently ignored.
+/// Flags [`RigParams::from_blob`] and [`BlobHeader::parse`] accept: none. A signed blob is read
+/// only through [`crate::signing`], so that a signature can never be silently ignored.
 pub const BLOB_KNOWN_FLAGS: u16 = 0;
+/// Every flag this build understands ([`BlobHeader::parse_allow_signed`]).
+pub const BLOB_ALL_FLAGS: u16 = BLOB_FLAG_SIGNED;
+/// Size of the signature trailer of a signed blob: 8-byte key id + 64-byte Ed25519 signature.
+pub const BLOB_SIGNATURE_TRAILER_LEN: usize = 72;
 /// Maximum number of cameras a rig may have.
 pub const MAX_CAMERAS: usize = 16;
 /// Maximum length of a rig id in bytes.
@@ -72,8 +76,19 @@ pub struct BlobHeader {
 
 impl BlobHeader {
     /// Parses and checks magic, version and flags from the start of `bytes`
-    /// (the body is not looked at). Used by services to reject early.
+    /// (the body is not looked at). Used by services to reject early. Refuses signed blobs
+    /// (`BlobUnsupportedFlags`); see [`Self::parse_allow_signed`].
     pub fn parse(bytes: &[u8]) -> Result<BlobHeader> {
+        Self::parse_with_flags(bytes, BLOB_KNOWN_FLAGS)
+    }
+
+    /// Like [`Self::parse`], but also accepts the signature flag. For code that then checks
+    /// the signature (or says clearly that it did not, like `show-params`).
+    pub fn parse_allow_signed(bytes: &[u8]) -> Result<BlobHeader> {
+        Self::parse_with_flags(bytes, BLOB_ALL_FLAGS)
+    }
+
+    fn parse_with_flags(bytes: &[u8], known: u16) -> Result<BlobHeader> {
         if bytes.len() < 4 {
             return Err(Error::BlobTruncated {
                 needed: BLOB_HEADER_LEN,
@@ -98,11 +113,8 @@ impl BlobHeader {
             });
         }
         let flags = u16::from_le_bytes([bytes[6], bytes[7]]);
-        if flags & !BLOB_KNOWN_FLAGS != 0 {
-            return Err(Error::BlobUnsupportedFlags {
-                flags,
-                known: BLOB_KNOWN_FLAGS,
-            });
+        if flags & !known != 0 {
+            return Err(Error::BlobUnsupportedFlags { flags, known });
         }
         let body_len = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
         let crc32 = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]);
@@ -114,10 +126,64 @@ impl BlobHeader {
         })
     }
 
-    /// Total blob length the header declares.
-    pub fn blob_len(&self) -> usize {
+    /// Whether the signature flag is set (a trailer follows the body).
+    pub fn is_signed(&self) -> bool {
+        self.flags & BLOB_FLAG_SIGNED != 0
+    }
+
+    /// Length of the authenticated part: header + body (the CRC covers the same bytes).
+    pub fn signed_part_len(&self) -> usize {
         BLOB_HEADER_LEN + self.body_len as usize
     }
+
+    /// Total blob length the header declares, signature trailer included.
+    pub fn blob_len(&self) -> usize {
+        self.signed_part_len()
+            + if self.is_signed() {
+                BLOB_SIGNATURE_TRAILER_LEN
+            } else {
+                0
+            }
+    }
+
+    /// Checks the length of `bytes` against the header and the CRC; returns the body.
+    /// `bytes` must be the whole blob the header came from.
+    pub(crate) fn check_frame<'a>(&self, bytes: &'a [u8]) -> Result<&'a [u8]> {
+        let needed = self.blob_len();
+        if bytes.len() < needed {
+            return Err(Error::BlobTruncated {
+                needed,
+                got: bytes.len(),
+            });
+        }
+        if bytes.len() > needed {
+            return Err(Error::BlobTrailingBytes {
+                extra: bytes.len() - needed,
+            });
+        }
+        let body = &bytes[BLOB_HEADER_LEN..self.signed_part_len()];
+        let computed = blob_crc(&bytes[..12], body);
+        if computed != self.crc32 {
+            return Err(Error::BlobBadCrc {
+                found: self.crc32,
+                computed,
+            });
+        }
+        Ok(body)
+    }
+}
+
+/// Decodes a postcard body that must be used completely.
+pub(crate) fn decode_body(body: &[u8]) -> Result<RigParams> {
+    let (rig, rest) = postcard::take_from_bytes::<RigParams>(body).map_err(|e| Error::BlobBody {
+        reason: postcard_reason(&e),
+    })?;
+    if !rest.is_empty() {
+        return Err(Error::BlobBody {
+            reason: "unused bytes at the end of the body",
+        });
+    }
+    Ok(rig)
 }
 
 /// Whether `bytes` starts like a parameter blob (for sniffing file types).
@@ -203,16 +269,21 @@ impl RigParams {
     /// Encodes header + postcard body (docs/param-blob.md). Does not validate, so that
     /// tests and tools can also produce blobs a service must refuse; call [`Self::validate`].
     pub fn to_blob(&self) -> Result<Vec<u8>> {
+        self.encode_blob(0, 0)
+    }
+
+    /// Header + body with `flags`, reserving `extra_capacity` bytes (for a signature trailer).
+    pub(crate) fn encode_blob(&self, flags: u16, extra_capacity: usize) -> Result<Vec<u8>> {
         let body = postcard::to_allocvec(self).map_err(|_| Error::BlobBody {
             reason: "body does not encode",
         })?;
         let body_len = u32::try_from(body.len()).map_err(|_| Error::BlobBody {
             reason: "body longer than 4 GiB",
         })?;
-        let mut out = Vec::with_capacity(BLOB_HEADER_LEN + body.len());
+        let mut out = Vec::with_capacity(BLOB_HEADER_LEN + body.len() + extra_capacity);
         out.extend_from_slice(&BLOB_MAGIC);
         out.extend_from_slice(&BLOB_FORMAT_VERSION.to_le_bytes());
-        out.extend_from_slice(&0u16.to_le_bytes());
+        out.extend_from_slice(&flags.to_le_bytes());
         out.extend_from_slice(&body_len.to_le_bytes());
         let crc = blob_crc(&out[..12], &body);
         out.extend_from_slice(&crc.to_le_bytes());
@@ -220,39 +291,13 @@ impl RigParams {
         Ok(out)
     }
 
-    /// Decodes a blob, checking (in this order) magic, length, version, flags, declared body
-    /// length, CRC and body. Does not validate the contents; call [`Self::validate`].
+    /// Decodes an unsigned blob, checking (in this order) magic, length, version, flags,
+    /// declared body length, CRC and body. Does not validate the contents; call
+    /// [`Self::validate`]. A signed blob is refused (`BlobUnsupportedFlags`): read it with
+    /// [`crate::signing::verify_blob`], which checks the signature.
     pub fn from_blob(bytes: &[u8]) -> Result<RigParams> {
         let header = BlobHeader::parse(bytes)?;
-        let needed = header.blob_len();
-        if bytes.len() < needed {
-            return Err(Error::BlobTruncated {
-                needed,
-                got: bytes.len(),
-            });
-        }
-        if bytes.len() > needed {
-            return Err(Error::BlobTrailingBytes {
-                extra: bytes.len() - needed,
-            });
-        }
-        let body = &bytes[BLOB_HEADER_LEN..];
-        let computed = blob_crc(&bytes[..12], body);
-        if computed != header.crc32 {
-            return Err(Error::BlobBadCrc {
-                found: header.crc32,
-                computed,
-            });
-        }
-        let (rig, rest) = postcard::take_from_bytes::<RigParams>(body).map_err(|e| Error::BlobBody {
-            reason: postcard_reason(&e),
-        })?;
-        if !rest.is_empty() {
-            return Err(Error::BlobBody {
-                reason: "unused bytes at the end of the body",
-            });
-        }
-        Ok(rig)
+        decode_body(header.check_frame(bytes)?)
     }
 
     /// Checks that the parameters are usable for tracking: 2..=16 cameras, camera 0 at the
@@ -372,7 +417,9 @@ impl RigParams {
         Ok(libm::acos(r22.clamp(-1.0, 1.0)).to_degrees())
     }
 
-    /// The CRC-32 of this parameter set's blob: a short id for logs and stream records.
+    /// The CRC-32 of this parameter set's unsigned blob: a short id for logs and stream
+    /// records. The same set pushed signed has another header CRC (its flags differ); this id
+    /// does not depend on signing.
     pub fn params_crc(&self) -> Result<u32> {
         let blob = self.to_blob()?;
         Ok(BlobHeader::parse(&blob)?.crc32)

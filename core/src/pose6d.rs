@@ -84,6 +84,11 @@ pub struct PoseConfig {
     pub max_coast_frames: u32,
     /// Plausible assignments kept per frame; more makes the frame ambiguous.
     pub max_hypotheses: usize,
+    /// With one LED missing, a used LED whose image lies within this distance (px) of the
+    /// missing LED's predicted image in some camera may share its blob (two spots merged
+    /// into one with a centroid between them, i.e. a biased point): such a pose is refused.
+    /// About twice the spot radius at the threshold plus a pixel.
+    pub merge_radius_px: f64,
 }
 
 impl Default for PoseConfig {
@@ -107,6 +112,7 @@ impl Default for PoseConfig {
             max_step_mm: 100.0,
             max_coast_frames: 10,
             max_hypotheses: 32,
+            merge_radius_px: 6.0,
         }
     }
 }
@@ -125,6 +131,7 @@ impl PoseConfig {
             ("agree_translation_mm", self.agree_translation_mm),
             ("max_rotation_step_deg", self.max_rotation_step_deg),
             ("max_step_mm", self.max_step_mm),
+            ("merge_radius_px", self.merge_radius_px),
         ];
         for (name, v) in positive {
             if !(v > 0.0 && v.is_finite()) {
@@ -132,7 +139,10 @@ impl PoseConfig {
             }
         }
         if !(0.0..=1.0).contains(&self.min_roundness) {
-            return bad(format!("6-DOF config: min_roundness {} outside 0..=1", self.min_roundness));
+            return bad(format!(
+                "6-DOF config: min_roundness {} outside 0..=1",
+                self.min_roundness
+            ));
         }
         if !(self.min_range_mm >= 0.0 && self.max_range_mm > self.min_range_mm) {
             return bad(format!(
@@ -148,12 +158,12 @@ impl PoseConfig {
             ));
         }
         if !(1..=64).contains(&self.max_blobs_per_camera)
-            || !(1..=1024).contains(&self.max_candidates)
+            || !(1..=255).contains(&self.max_candidates)
             || !(1..=1024).contains(&self.max_hypotheses)
         {
             return bad(format!(
-                "6-DOF config: max_blobs_per_camera {} (1..=64), max_candidates {} and max_hypotheses {} \
-                 (1..=1024) out of range",
+                "6-DOF config: max_blobs_per_camera {} (1..=64), max_candidates {} (1..=255) and \
+                 max_hypotheses {} (1..=1024) out of range",
                 self.max_blobs_per_camera, self.max_candidates, self.max_hypotheses
             ));
         }
@@ -204,18 +214,22 @@ impl ToolModel {
                 dist_mm[i][j] = (leds_mm[i] - leds_mm[j]).norm();
             }
         }
-        for i in 0..n {
-            for j in i + 1..n {
-                if dist_mm[i][j] < config.min_led_separation_mm {
+        for (i, row) in dist_mm.iter().enumerate().take(n) {
+            for (j, &d) in row.iter().enumerate().take(n).skip(i + 1) {
+                if d < config.min_led_separation_mm {
                     return bad(format!(
-                        "tool {:?}: LEDs {i} and {j} are {:.1} mm apart, below min_led_separation_mm {} \
+                        "tool {:?}: LEDs {i} and {j} are {d:.1} mm apart, below min_led_separation_mm {} \
                          (their blobs would merge)",
-                        tool.name, dist_mm[i][j], config.min_led_separation_mm
+                        tool.name, config.min_led_separation_mm
                     ));
                 }
             }
         }
-        let min_leds = if config.allow_missing_led && n >= 4 { n - 1 } else { n };
+        let min_leds = if config.allow_missing_led && n >= 4 {
+            n - 1
+        } else {
+            n
+        };
         // Every LED subset the tracker may fit must fix a rotation.
         let mut subset = [0usize; MAX_TOOL_LEDS];
         for skip in (0..=n).filter(|&s| s == n || min_leds < n) {
@@ -334,7 +348,12 @@ impl ToolModel {
             }
             s.map[led] = NO_LED;
         }
-        let mut s = Search { m: self, map: [NO_LED; MAX_TOOL_LEDS], best: f64::INFINITY, best_map: [NO_LED; MAX_TOOL_LEDS] };
+        let mut s = Search {
+            m: self,
+            map: [NO_LED; MAX_TOOL_LEDS],
+            best: f64::INFINITY,
+            best_map: [NO_LED; MAX_TOOL_LEDS],
+        };
         rec(&mut s, 0, 0, 0, 0.0);
         (s.best, s.best_map)
     }
@@ -353,7 +372,7 @@ fn off_line_mm(p: &[Vector3<f64>], idx: &[usize]) -> f64 {
             }
         }
     }
-    if !(dmax > 0.0) {
+    if dmax.is_nan() || dmax <= 0.0 {
         return 0.0;
     }
     let u = (p[b] - p[a]) / dmax;
@@ -399,7 +418,7 @@ pub fn fit_rigid_horn(model_mm: &[Vector3<f64>], measured_mm: &[Vector3<f64>]) -
         s += (a - ca) * (b - cb).transpose();
         spread += (a - ca).norm_squared();
     }
-    if !(spread > 1e-12) {
+    if spread.is_nan() || spread <= 1e-12 {
         return None;
     }
     let (sxx, sxy, sxz) = (s[(0, 0)], s[(0, 1)], s[(0, 2)]);
@@ -418,12 +437,18 @@ pub fn fit_rigid_horn(model_mm: &[Vector3<f64>], measured_mm: &[Vector3<f64>]) -
     let (l0, l1) = (eig.eigenvalues[order[0]], eig.eigenvalues[order[1]]);
     // Collinear points leave a one-parameter family of rotations: the top two eigenvalues
     // coincide. Relative to the spread this is scale-free.
-    if !((l0 - l1) > 1e-9 * spread) {
+    let eigen_gap = l0 - l1;
+    if eigen_gap.is_nan() || eigen_gap <= 1e-9 * spread {
         return None;
     }
     let v = eig.eigenvectors.column(order[0]);
     let sign = if v[0] < 0.0 { -1.0 } else { 1.0 };
-    let q = UnitQuaternion::from_quaternion(Quaternion::new(sign * v[0], sign * v[1], sign * v[2], sign * v[3]));
+    let q = UnitQuaternion::from_quaternion(Quaternion::new(
+        sign * v[0],
+        sign * v[1],
+        sign * v[2],
+        sign * v[3],
+    ));
     let rotation = *q.to_rotation_matrix().matrix();
     let translation_mm = cb - rotation * ca;
     let mut sum2 = 0.0;
@@ -471,12 +496,18 @@ pub struct TriangulatedPoint {
 
 impl TriangulatedPoint {
     fn shares_blob(&self, other: &TriangulatedPoint) -> bool {
-        self.blobs.iter().zip(&other.blobs).any(|(a, b)| *a != NO_BLOB && a == b)
+        self.blobs
+            .iter()
+            .zip(&other.blobs)
+            .any(|(a, b)| *a != NO_BLOB && a == b)
     }
 
     /// Whether every blob of `self` is also used by `other`.
     fn is_subset_of(&self, other: &TriangulatedPoint) -> bool {
-        self.blobs.iter().zip(&other.blobs).all(|(a, b)| *a == NO_BLOB || a == b)
+        self.blobs
+            .iter()
+            .zip(&other.blobs)
+            .all(|(a, b)| *a == NO_BLOB || a == b)
     }
 }
 
@@ -558,7 +589,11 @@ impl PointMatcher {
         let cfg = self.config;
         for (cam, list) in self.cams.iter_mut().zip(blobs) {
             cam.rays.clear();
-            for (i, b) in list.iter().enumerate().take(cfg.max_blobs_per_camera.min(NO_BLOB as usize)) {
+            for (i, b) in list
+                .iter()
+                .enumerate()
+                .take(cfg.max_blobs_per_camera.min(NO_BLOB as usize))
+            {
                 let usable = b.x_px.is_finite()
                     && b.y_px.is_finite()
                     && b.roundness >= cfg.min_roundness
@@ -578,8 +613,13 @@ impl PointMatcher {
             for cb in ca + 1..n {
                 for ra in &self.cams[ca].rays {
                     for rb in &self.cams[cb].rays {
-                        let Ok(m) = midpoint(&ra.ray, &rb.ray) else { continue };
-                        let in_range = m.range_mm.iter().all(|r| (cfg.min_range_mm..=cfg.max_range_mm).contains(r));
+                        let Ok(m) = midpoint(&ra.ray, &rb.ray) else {
+                            continue;
+                        };
+                        let in_range = m
+                            .range_mm
+                            .iter()
+                            .all(|r| (cfg.min_range_mm..=cfg.max_range_mm).contains(r));
                         if !(m.gap_mm <= cfg.max_gap_mm && in_range) {
                             continue;
                         }
@@ -604,7 +644,12 @@ impl PointMatcher {
 }
 
 /// Adds the closest consistent ray of every camera not yet in `p` and re-solves the point.
-fn extend_with_other_cameras(cams: &[CameraSlot], cfg: &PoseConfig, p: &mut TriangulatedPoint, rays: &mut Vec<Ray>) {
+fn extend_with_other_cameras(
+    cams: &[CameraSlot],
+    cfg: &PoseConfig,
+    p: &mut TriangulatedPoint,
+    rays: &mut Vec<Ray>,
+) {
     for (c, cam) in cams.iter().enumerate() {
         if p.blobs[c] != NO_BLOB {
             continue;
@@ -613,7 +658,7 @@ fn extend_with_other_cameras(cams: &[CameraSlot], cfg: &PoseConfig, p: &mut Tria
         for br in &cam.rays {
             let v = p.point_mm - br.ray.origin_mm;
             let along = v.dot(&br.ray.dir);
-            if !(along > 0.0) {
+            if along.is_nan() || along <= 0.0 {
                 continue;
             }
             let d = (v - br.ray.dir * along).norm();
@@ -652,7 +697,11 @@ fn insert_candidate(points: &mut Vec<TriangulatedPoint>, dropped: &mut u32, p: T
         return;
     }
     *dropped += 1;
-    let worst = points.iter().enumerate().max_by(|a, b| a.1.gap_mm.total_cmp(&b.1.gap_mm)).map(|(i, q)| (i, q.gap_mm));
+    let worst = points
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.gap_mm.total_cmp(&b.1.gap_mm))
+        .map(|(i, q)| (i, q.gap_mm));
     if let Some((i, g)) = worst
         && p.gap_mm < g
     {
@@ -679,6 +728,10 @@ pub enum PoseStatus {
     ResidualTooLarge,
     /// The only plausible pose jumps further than the step limits from the previous one.
     StepTooLarge,
+    /// One LED is missing and its predicted image in `camera` lies within
+    /// `merge_radius_px` of LED `led`'s: the two spots probably merged into one blob whose
+    /// centroid is biased, so the pose would be off by degrees.
+    LedsMerged { led: u32, camera: u32 },
 }
 
 /// Full pose of the tool in the camera-0 frame: `p_cam0 = R p_tool + t`.
@@ -726,7 +779,10 @@ impl Pose6d {
 
     /// The pose as a rigid transform (camera-0 frame from tool frame).
     pub fn cam0_from_tool(&self) -> RigidTransform {
-        RigidTransform { r_row_major: self.r_row_major, t_mm: self.position_mm }
+        RigidTransform {
+            r_row_major: self.r_row_major,
+            t_mm: self.position_mm,
+        }
     }
 }
 
@@ -845,10 +901,17 @@ impl PoseTracker {
         let mut pose = Pose6d::empty(PoseStatus::ResidualTooLarge);
         pose.candidates = points.len() as u32;
         if self.hypotheses.is_empty() {
-            pose.status = PoseStatus::TooFewLeds { points: points.len() as u32, needed: self.tool.min_leds as u32 };
+            pose.status = PoseStatus::TooFewLeds {
+                points: points.len() as u32,
+                needed: self.tool.min_leds as u32,
+            };
             return pose;
         }
-        let plausible = || self.hypotheses.iter().filter(|h| h.fit.rms_mm <= cfg.max_residual_mm);
+        let plausible = || {
+            self.hypotheses
+                .iter()
+                .filter(|h| h.fit.rms_mm <= cfg.max_residual_mm)
+        };
         let Some(max_count) = plausible().map(|h| h.count).max() else {
             pose.hypotheses = self.hypotheses.len() as u32;
             return pose;
@@ -856,7 +919,9 @@ impl PoseTracker {
         let top = || plausible().filter(move |h| h.count == max_count);
         pose.hypotheses = top().count() as u32;
         if self.overflow {
-            pose.status = PoseStatus::Ambiguous { hypotheses: self.hypotheses.len() as u32 };
+            pose.status = PoseStatus::Ambiguous {
+                hypotheses: self.hypotheses.len() as u32,
+            };
             return pose;
         }
         let Some(best) = top().min_by(|a, b| a.fit.rms_mm.total_cmp(&b.fit.rms_mm)) else {
@@ -875,18 +940,24 @@ impl PoseTracker {
             // Continuity decides only if exactly one group of agreeing hypotheses is
             // consistent with the previous pose.
             let Some(r) = &self.reference else {
-                pose.status = PoseStatus::Ambiguous { hypotheses: pose.hypotheses };
+                pose.status = PoseStatus::Ambiguous {
+                    hypotheses: pose.hypotheses,
+                };
                 return pose;
             };
             let mut consistent = top().filter(|h| self.within_step(&h.fit, r));
             let Some(first) = consistent.next() else {
-                pose.status = PoseStatus::Ambiguous { hypotheses: pose.hypotheses };
+                pose.status = PoseStatus::Ambiguous {
+                    hypotheses: pose.hypotheses,
+                };
                 return pose;
             };
             let mut pick = first;
             for h in consistent {
                 if !self.agree(&h.fit, &first.fit) {
-                    pose.status = PoseStatus::Ambiguous { hypotheses: pose.hypotheses };
+                    pose.status = PoseStatus::Ambiguous {
+                        hypotheses: pose.hypotheses,
+                    };
                     return pose;
                 }
                 if h.fit.rms_mm < pick.fit.rms_mm {
@@ -897,6 +968,10 @@ impl PoseTracker {
             pick
         };
         let f = &chosen.fit;
+        if let Some((led, camera)) = self.merged_with_missing(chosen) {
+            pose.status = PoseStatus::LedsMerged { led, camera };
+            return pose;
+        }
         pose.status = PoseStatus::Tracked;
         pose.position_mm = f.translation_mm.into();
         pose.quaternion_wxyz = f.quaternion_wxyz;
@@ -917,17 +992,43 @@ impl PoseTracker {
         pose
     }
 
+    /// For a pose with a missing LED: a used LED whose predicted image is within
+    /// `merge_radius_px` of the missing LED's in some camera, as (led, camera).
+    fn merged_with_missing(&self, h: &Hypothesis) -> Option<(u32, u32)> {
+        let n = self.tool.led_count;
+        let missing = (0..n).find(|&i| h.assign[i] == NO_LED)?;
+        let leds = self.tool.leds_mm();
+        let predict = |i: usize| h.fit.rotation * leds[i] + h.fit.translation_mm;
+        let pm = predict(missing);
+        for (c, cam) in self.matcher.cams.iter().enumerate() {
+            let Ok(px_m) = cam.model.project(&cam.cam_from_cam0.apply(&pm)) else {
+                continue;
+            };
+            for u in (0..n).filter(|&u| u != missing) {
+                let Ok(px_u) = cam.model.project(&cam.cam_from_cam0.apply(&predict(u))) else {
+                    continue;
+                };
+                if (px_u - px_m).norm() < self.config.merge_radius_px {
+                    return Some((u as u32, c as u32));
+                }
+            }
+        }
+        None
+    }
+
     fn centroid_of(&self, f: &RigidFit) -> Vector3<f64> {
         f.rotation * self.tool_centroid_mm + f.translation_mm
     }
 
     fn agree(&self, a: &RigidFit, b: &RigidFit) -> bool {
-        quaternion_angle_rad(&a.quaternion_wxyz, &b.quaternion_wxyz) <= self.config.agree_rotation_deg.to_radians()
+        quaternion_angle_rad(&a.quaternion_wxyz, &b.quaternion_wxyz)
+            <= self.config.agree_rotation_deg.to_radians()
             && (self.centroid_of(a) - self.centroid_of(b)).norm() <= self.config.agree_translation_mm
     }
 
     fn within_step(&self, f: &RigidFit, r: &Reference) -> bool {
-        quaternion_angle_rad(&f.quaternion_wxyz, &r.quaternion_wxyz) <= self.config.max_rotation_step_deg.to_radians()
+        quaternion_angle_rad(&f.quaternion_wxyz, &r.quaternion_wxyz)
+            <= self.config.max_rotation_step_deg.to_radians()
             && (self.centroid_of(f) - r.centroid_mm).norm() <= self.config.max_step_mm
     }
 }
@@ -947,7 +1048,7 @@ fn assign_rec(st: &mut SearchState<'_>, led: usize, missing: usize) {
         return;
     }
     if led == n {
-        emit_hypothesis(st, n - missing);
+        emit_hypothesis(st);
         return;
     }
     if n - missing > st.tool.min_leds {
@@ -975,7 +1076,7 @@ fn assign_rec(st: &mut SearchState<'_>, led: usize, missing: usize) {
     st.assign[led] = NO_LED;
 }
 
-fn emit_hypothesis(st: &mut SearchState<'_>, count: usize) {
+fn emit_hypothesis(st: &mut SearchState<'_>) {
     let mut model = [Vector3::zeros(); MAX_TOOL_LEDS];
     let mut measured = [Vector3::zeros(); MAX_TOOL_LEDS];
     let mut k = 0;
@@ -987,13 +1088,18 @@ fn emit_hypothesis(st: &mut SearchState<'_>, count: usize) {
             k += 1;
         }
     }
-    debug_assert_eq!(k, count);
-    let Some(fit) = fit_rigid_horn(&model[..k], &measured[..k]) else { return };
+    let Some(fit) = fit_rigid_horn(&model[..k], &measured[..k]) else {
+        return;
+    };
     if st.out.len() == st.out.capacity() {
         *st.overflow = true;
         return;
     }
-    st.out.push(Hypothesis { assign: st.assign, count: k as u32, fit });
+    st.out.push(Hypothesis {
+        assign: st.assign,
+        count: k as u32,
+        fit,
+    });
 }
 
 // ---------------------------------------------------------------------------------------
@@ -1047,13 +1153,20 @@ pub fn measure_tool_layout(
 ) -> Result<MeasuredLayout> {
     let bad = |reason: String| Err(Error::InvalidParams { reason });
     if frames.len() < 2 {
-        return bad(format!("measuring tool {name:?}: need ≥ 2 frames, got {}", frames.len()));
+        return bad(format!(
+            "measuring tool {name:?}: need ≥ 2 frames, got {}",
+            frames.len()
+        ));
     }
     if !(3..=MAX_TOOL_LEDS).contains(&expected_leds) {
-        return bad(format!("measuring tool {name:?}: expected_leds {expected_leds} outside 3..={MAX_TOOL_LEDS}"));
+        return bad(format!(
+            "measuring tool {name:?}: expected_leds {expected_leds} outside 3..={MAX_TOOL_LEDS}"
+        ));
     }
     if !(cluster_radius_mm > 0.0 && cluster_radius_mm.is_finite()) {
-        return bad(format!("measuring tool {name:?}: cluster radius {cluster_radius_mm} mm must be positive"));
+        return bad(format!(
+            "measuring tool {name:?}: cluster radius {cluster_radius_mm} mm must be positive"
+        ));
     }
     // (sum, count, sum of squared norms) per cluster; the running mean is the centre.
     struct Cluster {
@@ -1075,7 +1188,9 @@ pub fn measure_tool_layout(
         }
         for p in &taken {
             if !p.point_mm.iter().all(|v| v.is_finite()) {
-                return bad(format!("measuring tool {name:?}: frame {fi} has a non-finite point"));
+                return bad(format!(
+                    "measuring tool {name:?}: frame {fi} has a non-finite point"
+                ));
             }
             let v = p.point_mm;
             let near = clusters
@@ -1099,7 +1214,12 @@ pub fn measure_tool_layout(
                     c.count += 1;
                     c.last_frame = fi;
                 }
-                None => clusters.push(Cluster { sum: v, sum_sq: v.norm_squared(), count: 1, last_frame: fi }),
+                None => clusters.push(Cluster {
+                    sum: v,
+                    sum_sq: v.norm_squared(),
+                    count: 1,
+                    last_frame: fi,
+                }),
             }
         }
     }
@@ -1116,7 +1236,11 @@ pub fn measure_tool_layout(
     let means: Vec<Vector3<f64>> = clusters.iter().map(|c| c.sum / c.count as f64).collect();
     let centroid = means.iter().sum::<Vector3<f64>>() / expected_leds as f64;
     let mut order: Vec<usize> = (0..expected_leds).collect();
-    order.sort_by(|&a, &b| (means[b] - centroid).norm().total_cmp(&(means[a] - centroid).norm()));
+    order.sort_by(|&a, &b| {
+        (means[b] - centroid)
+            .norm()
+            .total_cmp(&(means[a] - centroid).norm())
+    });
     let mut cov = Matrix3::zeros();
     for m in &means {
         let d = m - centroid;
@@ -1146,7 +1270,10 @@ pub fn measure_tool_layout(
         LayoutOrigin::Centroid => centroid,
         LayoutOrigin::FirstLed => means[order[0]],
     };
-    let leds_mm: Vec<[f64; 3]> = order.iter().map(|&i| (r_tool_cam0 * (means[i] - origin_cam0)).into()).collect();
+    let leds_mm: Vec<[f64; 3]> = order
+        .iter()
+        .map(|&i| (r_tool_cam0 * (means[i] - origin_cam0)).into())
+        .collect();
     let observations: Vec<usize> = order.iter().map(|&i| clusters[i].count).collect();
     let spread_rms_mm: Vec<f64> = order
         .iter()
@@ -1156,7 +1283,10 @@ pub fn measure_tool_layout(
             libm::sqrt(var.max(0.0))
         })
         .collect();
-    let tool = ToolDefinition { name: name.into(), leds_mm };
+    let tool = ToolDefinition {
+        name: name.into(),
+        leds_mm,
+    };
     let model = ToolModel::new(&tool, config)?;
     let r_cam0_tool = r_tool_cam0.transpose();
     Ok(MeasuredLayout {

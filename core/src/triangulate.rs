@@ -5,7 +5,7 @@
 //! (length of the common perpendicular) is the quality figure: a true marker seen by both
 //! cameras gives a gap of a few tenths of a millimetre, a mismatched blob gives centimetres.
 
-use nalgebra::{Matrix3, Matrix4, Vector2, Vector3, Vector4};
+use nalgebra::{DMatrix, Matrix3, Vector2, Vector3, Vector4};
 
 use crate::camera::{CameraModel, RigidTransform};
 use crate::{Error, Result};
@@ -126,24 +126,26 @@ pub fn dlt(views: &[(RigidTransform, Vector2<f64>)]) -> Result<Vector3<f64>> {
     if views.len() < 2 {
         return Err(Error::TooFewViews { needed: 2, got: views.len() });
     }
-    let mut ata = Matrix4::<f64>::zeros();
-    for (pose, n) in views {
+    // SVD of the 2N×4 system itself, as OpenCV does: forming AᵀA squares the condition
+    // number and its eigenvectors for the near-zero eigenvalue are unreliable.
+    let mut a = DMatrix::<f64>::zeros(2 * views.len(), 4);
+    for (k, (pose, n)) in views.iter().enumerate() {
         let r = pose.rotation();
         let t = pose.translation_mm();
         let row = |i: usize| Vector4::new(r[(i, 0)], r[(i, 1)], r[(i, 2)], t[i]);
         let (p0, p1, p2) = (row(0), row(1), row(2));
-        let ex = p2 * n.x - p0;
-        let ey = p2 * n.y - p1;
-        ata += ex * ex.transpose() + ey * ey.transpose();
+        a.set_row(2 * k, &(p2 * n.x - p0).transpose());
+        a.set_row(2 * k + 1, &(p2 * n.y - p1).transpose());
     }
-    let eig = ata.symmetric_eigen();
+    let svd = a.svd(false, true);
+    let v_t = svd.v_t.ok_or(Error::Degenerate { what: "DLT SVD" })?;
     let mut imin = 0;
-    for i in 1..4 {
-        if eig.eigenvalues[i] < eig.eigenvalues[imin] {
+    for i in 1..svd.singular_values.len() {
+        if svd.singular_values[i] < svd.singular_values[imin] {
             imin = i;
         }
     }
-    let h = eig.eigenvectors.column(imin);
+    let h = v_t.row(imin);
     if !(libm::fabs(h[3]) > 1e-12 * h.norm()) {
         return Err(Error::Degenerate { what: "DLT point at infinity" });
     }

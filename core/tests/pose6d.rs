@@ -6,15 +6,15 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 
+use irtrack_core::Error;
 use irtrack_core::blob::{Blob, BlobConfig, BlobDetector, BlobLimits};
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::{CameraParams, RigParams, ToolDefinition};
 use irtrack_core::pose6d::{
-    LayoutOrigin, PointMatcher, PoseConfig, PoseStatus, PoseTracker, ToolModel, fit_rigid_horn,
-    TriangulatedPoint, measure_tool_layout, quaternion_angle_rad,
+    LayoutOrigin, PointMatcher, PoseConfig, PoseStatus, PoseTracker, ToolModel, TriangulatedPoint,
+    fit_rigid_horn, measure_tool_layout, quaternion_angle_rad,
 };
-use irtrack_core::Error;
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
 // ---- allocation counter (per thread, as in no_alloc.rs) ---------------------------------
@@ -58,9 +58,23 @@ const BG_DN: f64 = 8.0;
 
 fn camera() -> CameraModel {
     CameraModel {
-        intrinsics: Intrinsics { fx_px: 680.0, fy_px: 680.0, cx_px: 319.5, cy_px: 239.5 },
-        distortion: Distortion { k1: -0.12, k2: 0.03, p1: 0.0, p2: 0.0, k3: 0.0 },
-        image_size: ImageSize { width_px: W, height_px: H },
+        intrinsics: Intrinsics {
+            fx_px: 680.0,
+            fy_px: 680.0,
+            cx_px: 319.5,
+            cy_px: 239.5,
+        },
+        distortion: Distortion {
+            k1: -0.12,
+            k2: 0.03,
+            p1: 0.0,
+            p2: 0.0,
+            k3: 0.0,
+        },
+        image_size: ImageSize {
+            width_px: W,
+            height_px: H,
+        },
     }
 }
 
@@ -78,8 +92,14 @@ fn convergent_rig() -> RigParams {
         rig_id: "convergent-90".into(),
         created_unix_s: 0,
         cameras: vec![
-            CameraParams { model: camera(), cam_from_cam0: RigidTransform::IDENTITY },
-            CameraParams { model: camera(), cam_from_cam0: RigidTransform::from_parts(&r, &(-(r * c1))) },
+            CameraParams {
+                model: camera(),
+                cam_from_cam0: RigidTransform::IDENTITY,
+            },
+            CameraParams {
+                model: camera(),
+                cam_from_cam0: RigidTransform::from_parts(&r, &(-(r * c1))),
+            },
         ],
         world_from_cam0: None,
         tools: vec![],
@@ -90,7 +110,12 @@ fn convergent_rig() -> RigParams {
 fn tool4() -> ToolDefinition {
     ToolDefinition {
         name: "probe4".into(),
-        leds_mm: vec![[0.0, 0.0, 0.0], [99.0, 0.0, 0.0], [3.0, 85.0, 0.0], [62.0, 11.0, 32.0]],
+        leds_mm: vec![
+            [0.0, 0.0, 0.0],
+            [99.0, 0.0, 0.0],
+            [3.0, 85.0, 0.0],
+            [62.0, 11.0, 32.0],
+        ],
     }
 }
 
@@ -127,7 +152,10 @@ struct Renderer {
 
 impl Renderer {
     fn new() -> Self {
-        Renderer { frame: vec![BG_DN as u8; (W * H) as usize], drawn: Vec::new() }
+        Renderer {
+            frame: vec![BG_DN as u8; (W * H) as usize],
+            drawn: Vec::new(),
+        }
     }
 
     fn draw(&mut self, spots_px: &[[f64; 2]], rng: &mut Rng) {
@@ -177,14 +205,21 @@ impl Bench {
         Bench {
             rig,
             renderers: (0..n).map(|_| Renderer::new()).collect(),
-            detectors: (0..n).map(|_| BlobDetector::new(BlobLimits::for_frame(W, H)).unwrap()).collect(),
+            detectors: (0..n)
+                .map(|_| BlobDetector::new(BlobLimits::for_frame(W, H)).unwrap())
+                .collect(),
             rng: Rng(seed),
             cfg: BlobConfig::default(),
         }
     }
 
     /// Projects `points_cam0` (plus per-camera extra spots) into every camera and detects.
-    fn frame(&mut self, points_cam0: &[Vector3<f64>], hidden: &[(usize, usize)], extra_px: &[(usize, [f64; 2])]) {
+    fn frame(
+        &mut self,
+        points_cam0: &[Vector3<f64>],
+        hidden: &[(usize, usize)],
+        extra_px: &[(usize, [f64; 2])],
+    ) {
         for c in 0..self.rig.cameras.len() {
             let cam = &self.rig.cameras[c];
             let mut spots: Vec<[f64; 2]> = Vec::new();
@@ -248,6 +283,25 @@ struct Stats {
     max_rot_deg: f64,
     max_pos_mm: f64,
     statuses: Vec<PoseStatus>,
+    /// Untracked frames although every LED image is ≥ `CLEAR_SEPARATION_PX` from every other.
+    clear_lost: usize,
+}
+
+/// LED images this far apart cannot merge (spot radius at the threshold ≈ 2.4 px).
+const CLEAR_SEPARATION_PX: f64 = 8.0;
+
+/// Smallest distance (px) between two LED images in any camera.
+fn min_separation_px(bench: &Bench, leds: &[Vector3<f64>]) -> f64 {
+    let mut sep = f64::INFINITY;
+    for c in 0..2 {
+        for i in 0..leds.len() {
+            for j in i + 1..leds.len() {
+                let (a, b) = (bench.project(c, &leds[i]), bench.project(c, &leds[j]));
+                sep = sep.min(((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt());
+            }
+        }
+    }
+    sep
 }
 
 impl Stats {
@@ -279,6 +333,9 @@ fn run(
         s.frames += 1;
         if pose.status != PoseStatus::Tracked {
             s.statuses.push(pose.status);
+            if min_separation_px(&bench, &leds) >= CLEAR_SEPARATION_PX {
+                s.clear_lost += 1;
+            }
             continue;
         }
         s.tracked += 1;
@@ -290,18 +347,6 @@ fn run(
         // A swapped identification shows up as a pose tens of degrees off.
         if rot_deg > 5.0 || pos_mm > 20.0 {
             s.swaps += 1;
-        }
-        if std::env::var("POSE_DEBUG").is_ok() {
-            let mut sep = f64::INFINITY;
-            for c in 0..2 {
-                for i in 0..4 {
-                    for j in i + 1..4 {
-                        let (a, b) = (bench.project(c, &leds[i]), bench.project(c, &leds[j]));
-                        sep = sep.min(((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt());
-                    }
-                }
-            }
-            println!("DBG {k} rot {rot_deg:.4} pos {pos_mm:.3} leds {} res {:.3} max {:.3} minsep {sep:.1}", pose.leds_used, pose.residual_rms_mm, pose.residual_max_mm);
         }
         s.rot_sq_deg2 += rot_deg * rot_deg;
         s.pos_sq_mm2 += pos_mm * pos_mm;
@@ -318,7 +363,7 @@ fn report(name: &str, s: &Stats) {
     }
     println!(
         "{name}: {} frames, tracked {} ({} with 3 LEDs), swaps {}, orientation RMS {:.4}° (max {:.3}°), \
-         position RMS {:.3} mm (max {:.3} mm), untracked {:?}",
+         position RMS {:.3} mm (max {:.3} mm), untracked {:?} ({} with all LED images ≥ {CLEAR_SEPARATION_PX} px apart)",
         s.frames,
         s.tracked,
         s.three_led,
@@ -327,7 +372,8 @@ fn report(name: &str, s: &Stats) {
         s.max_rot_deg,
         s.pos_rms_mm(),
         s.max_pos_mm,
-        hist
+        hist,
+        s.clear_lost
     );
 }
 
@@ -338,9 +384,20 @@ fn long_trajectory_orientation_error_and_no_swaps() {
     let s = run(1, 600, |_| vec![], |_, _| vec![]);
     report("clean", &s);
     assert_eq!(s.swaps, 0, "identification swaps");
-    assert!(s.tracked as f64 >= 0.97 * s.frames as f64, "tracked only {} of {}", s.tracked, s.frames);
-    assert!(s.rot_rms_deg() <= 0.2, "orientation RMS {:.4}° above the 0.2° goal", s.rot_rms_deg());
-    assert!(s.pos_rms_mm() <= 0.5, "position RMS {:.3} mm", s.pos_rms_mm());
+    // Frames are lost only where LED images overlap (the ±60° rotations make that happen).
+    assert_eq!(s.clear_lost, 0, "{:?}", s.statuses);
+    assert!(
+        s.tracked as f64 >= 0.88 * s.frames as f64,
+        "tracked only {} of {}",
+        s.tracked,
+        s.frames
+    );
+    assert!(
+        s.rot_rms_deg() <= 0.2,
+        "orientation RMS {:.4}° above the 0.2° goal",
+        s.rot_rms_deg()
+    );
+    assert!(s.pos_rms_mm() <= 0.2, "position RMS {:.3} mm", s.pos_rms_mm());
 }
 
 #[test]
@@ -359,7 +416,13 @@ fn reflections_in_one_camera_do_not_disturb_identification() {
     );
     report("reflection", &s);
     assert_eq!(s.swaps, 0);
-    assert!(s.tracked as f64 >= 0.95 * s.frames as f64, "tracked only {} of {}", s.tracked, s.frames);
+    assert_eq!(s.clear_lost, 0, "{:?}", s.statuses);
+    assert!(
+        s.tracked as f64 >= 0.88 * s.frames as f64,
+        "tracked only {} of {}",
+        s.tracked,
+        s.frames
+    );
     assert!(s.rot_rms_deg() <= 0.2, "orientation RMS {:.4}°", s.rot_rms_deg());
 }
 
@@ -369,33 +432,78 @@ fn one_occluded_led_is_tolerated() {
     let s = run(3, 500, |_| vec![(1, 3)], |_, _| vec![]);
     report("occluded LED 3", &s);
     assert_eq!(s.swaps, 0);
-    assert!(s.tracked as f64 >= 0.95 * s.frames as f64, "tracked only {} of {}", s.tracked, s.frames);
-    assert_eq!(s.three_led, s.tracked, "every pose must come from the three visible LEDs");
-    assert!(s.rot_rms_deg() <= 0.4, "orientation RMS {:.4}°", s.rot_rms_deg());
+    assert_eq!(s.clear_lost, 0, "{:?}", s.statuses);
+    assert!(
+        s.tracked as f64 >= 0.88 * s.frames as f64,
+        "tracked only {} of {}",
+        s.tracked,
+        s.frames
+    );
+    assert_eq!(
+        s.three_led, s.tracked,
+        "every pose must come from the three visible LEDs"
+    );
+    assert!(s.rot_rms_deg() <= 0.2, "orientation RMS {:.4}°", s.rot_rms_deg());
 }
 
 #[test]
 fn two_occluded_leds_are_not_tracked() {
     let s = run(4, 60, |_| vec![(0, 1), (1, 3)], |_, _| vec![]);
     assert_eq!(s.tracked, 0);
-    assert!(s.statuses.iter().all(|st| matches!(st, PoseStatus::TooFewLeds { needed: 3, .. })), "{:?}", s.statuses);
+    assert!(
+        s.statuses
+            .iter()
+            .all(|st| matches!(st, PoseStatus::TooFewLeds { needed: 3, .. })),
+        "{:?}",
+        s.statuses
+    );
 }
 
 // ---- tool validation --------------------------------------------------------------------
 
 fn tool(name: &str, leds: &[[f64; 3]]) -> ToolDefinition {
-    ToolDefinition { name: name.into(), leds_mm: leds.to_vec() }
+    ToolDefinition {
+        name: name.into(),
+        leds_mm: leds.to_vec(),
+    }
 }
 
 #[test]
 fn symmetric_and_degenerate_tools_are_rejected() {
     let cfg = PoseConfig::default();
     let cases = [
-        tool("square", &[[0.0, 0.0, 0.0], [80.0, 0.0, 0.0], [80.0, 80.0, 0.0], [0.0, 80.0, 0.0]]),
-        tool("isosceles", &[[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [50.0, 70.0, 0.0]]),
-        tool("rectangle", &[[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [100.0, 60.0, 0.0], [0.0, 60.0, 0.0]]),
+        tool(
+            "square",
+            &[
+                [0.0, 0.0, 0.0],
+                [80.0, 0.0, 0.0],
+                [80.0, 80.0, 0.0],
+                [0.0, 80.0, 0.0],
+            ],
+        ),
+        tool(
+            "isosceles",
+            &[[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [50.0, 70.0, 0.0]],
+        ),
+        tool(
+            "rectangle",
+            &[
+                [0.0, 0.0, 0.0],
+                [100.0, 0.0, 0.0],
+                [100.0, 60.0, 0.0],
+                [0.0, 60.0, 0.0],
+            ],
+        ),
         // Asymmetric as a whole, but two 3-LED subsets are congruent (a kite missing a LED).
-        tool("kite", &[[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [50.0, 60.0, 0.0], [50.0, -30.0, 0.0]]),
+        tool(
+            "kite",
+            &[
+                [0.0, 0.0, 0.0],
+                [100.0, 0.0, 0.0],
+                [50.0, 60.0, 0.0],
+                [50.0, -30.0, 0.0],
+            ],
+        ),
     ];
     for t in &cases {
         match ToolModel::new(t, &cfg) {
@@ -407,9 +515,13 @@ fn symmetric_and_degenerate_tools_are_rejected() {
         }
     }
     let collinear = tool("line", &[[0.0, 0.0, 0.0], [40.0, 0.0, 0.0], [100.0, 0.0, 0.0]]);
-    assert!(matches!(ToolModel::new(&collinear, &cfg), Err(Error::InvalidParams { reason }) if reason.contains("collinear")));
+    assert!(
+        matches!(ToolModel::new(&collinear, &cfg), Err(Error::InvalidParams { reason }) if reason.contains("collinear"))
+    );
     let close = tool("close", &[[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [30.0, 70.0, 0.0]]);
-    assert!(matches!(ToolModel::new(&close, &cfg), Err(Error::InvalidParams { reason }) if reason.contains("merge")));
+    assert!(
+        matches!(ToolModel::new(&close, &cfg), Err(Error::InvalidParams { reason }) if reason.contains("merge"))
+    );
     let two = tool("two", &[[0.0, 0.0, 0.0], [50.0, 0.0, 0.0]]);
     assert!(ToolModel::new(&two, &cfg).is_err());
     let nan = tool("nan", &[[0.0, 0.0, 0.0], [50.0, f64::NAN, 0.0], [0.0, 60.0, 0.0]]);
@@ -420,13 +532,24 @@ fn symmetric_and_degenerate_tools_are_rejected() {
     let good = ToolModel::new(&tool4(), &cfg).unwrap();
     println!("probe4 identification margin {:.2} mm", good.margin_mm());
     assert!(good.margin_mm() >= cfg.min_margin_mm);
-    let scalene = ToolModel::new(&tool("scalene", &[[0.0, 0.0, 0.0], [110.0, 0.0, 0.0], [38.5, 46.0, 0.0]]), &cfg).unwrap();
+    let scalene = ToolModel::new(
+        &tool(
+            "scalene",
+            &[[0.0, 0.0, 0.0], [110.0, 0.0, 0.0], [38.5, 46.0, 0.0]],
+        ),
+        &cfg,
+    )
+    .unwrap();
     assert_eq!(scalene.min_leds(), 3);
 }
 
 #[test]
 fn config_tolerance_must_fit_inside_margin() {
-    let cfg = PoseConfig { distance_tol_mm: 4.0, min_margin_mm: 6.0, ..PoseConfig::default() };
+    let cfg = PoseConfig {
+        distance_tol_mm: 4.0,
+        min_margin_mm: 6.0,
+        ..PoseConfig::default()
+    };
     assert!(cfg.validate().is_err());
     assert!(PoseTracker::new(&convergent_rig(), &tool4(), cfg).is_err());
 }
@@ -434,7 +557,13 @@ fn config_tolerance_must_fit_inside_margin() {
 // ---- blob-level scenarios (exact projections, no rendering) -----------------------------
 
 fn blob_at(px: [f64; 2]) -> Blob {
-    Blob { x_px: px[0], y_px: px[1], area_px: 9, roundness: 1.0, ..Blob::default() }
+    Blob {
+        x_px: px[0],
+        y_px: px[1],
+        area_px: 9,
+        roundness: 1.0,
+        ..Blob::default()
+    }
 }
 
 fn exact_blobs(rig: &RigParams, points: &[Vector3<f64>]) -> Vec<Vec<Blob>> {
@@ -470,11 +599,18 @@ fn congruent_reflection_is_ambiguous_without_history_and_resolved_with_it() {
     with_reflection.push(reflection);
     let b = exact_blobs(&rig, &with_reflection);
     let pose = *tracker.process(&[&b[0], &b[1]]).unwrap();
-    assert!(matches!(pose.status, PoseStatus::Ambiguous { hypotheses: 2 }), "{:?}", pose.status);
+    assert!(
+        matches!(pose.status, PoseStatus::Ambiguous { hypotheses: 2 }),
+        "{:?}",
+        pose.status
+    );
 
     // A clean frame first: the previous pose then picks the right assignment.
     let b = exact_blobs(&rig, &leds);
-    assert_eq!(tracker.process(&[&b[0], &b[1]]).unwrap().status, PoseStatus::Tracked);
+    assert_eq!(
+        tracker.process(&[&b[0], &b[1]]).unwrap().status,
+        PoseStatus::Tracked
+    );
     let b = exact_blobs(&rig, &with_reflection);
     let pose = *tracker.process(&[&b[0], &b[1]]).unwrap();
     assert_eq!(pose.status, PoseStatus::Tracked);
@@ -497,7 +633,10 @@ fn large_jump_is_refused_until_the_reference_expires() {
     let b = Rotation3::from_euler_angles(0.0, 0.0, 80f64.to_radians());
     let ba = exact_blobs(&rig, &leds_cam0(&tool, &a, &t));
     let bb = exact_blobs(&rig, &leds_cam0(&tool, &b, &t));
-    assert_eq!(tracker.process(&[&ba[0], &ba[1]]).unwrap().status, PoseStatus::Tracked);
+    assert_eq!(
+        tracker.process(&[&ba[0], &ba[1]]).unwrap().status,
+        PoseStatus::Tracked
+    );
     let mut refused = 0;
     loop {
         let st = tracker.process(&[&bb[0], &bb[1]]).unwrap().status;
@@ -514,7 +653,10 @@ fn large_jump_is_refused_until_the_reference_expires() {
     // A corrupt blob (NaN centroid) is ignored, the rest still tracks.
     let mut corrupt = bb.clone();
     corrupt[0].push(blob_at([f64::NAN, 10.0]));
-    assert_eq!(tracker.process(&[&corrupt[0], &corrupt[1]]).unwrap().status, PoseStatus::Tracked);
+    assert_eq!(
+        tracker.process(&[&corrupt[0], &corrupt[1]]).unwrap().status,
+        PoseStatus::Tracked
+    );
 }
 
 #[test]
@@ -523,7 +665,10 @@ fn three_camera_rig_confirms_points_with_the_third_view() {
     // Third camera above the crossing point, looking down (+y is down in camera frames).
     let r = Rotation3::from_euler_angles(90f64.to_radians(), 0.0, 0.0).into_inner();
     let c2 = Vector3::new(0.0, -1000.0, 1000.0);
-    rig.cameras.push(CameraParams { model: camera(), cam_from_cam0: RigidTransform::from_parts(&r, &(-(r * c2))) });
+    rig.cameras.push(CameraParams {
+        model: camera(),
+        cam_from_cam0: RigidTransform::from_parts(&r, &(-(r * c2))),
+    });
     let tool = tool4();
     let (rot, t) = trajectory(123);
     let leds = leds_cam0(&tool, &rot, &t);
@@ -561,7 +706,7 @@ fn per_frame_path_does_not_allocate() {
     let mut tracker = PoseTracker::new(&rig, &tool, PoseConfig::default()).unwrap();
     let sets: Vec<Vec<Vec<Blob>>> = (0..20)
         .map(|k| {
-            let (r, t) = trajectory(k * 30);
+            let (r, t) = trajectory(k * 3);
             let mut pts = leds_cam0(&tool, &r, &t);
             pts.push(Vector3::new(40.0, 30.0, 1050.0)); // an extra point seen by both
             exact_blobs(&rig, &pts)
@@ -600,7 +745,15 @@ fn measured_layout_reproduces_the_tool_and_tracks_with_it() {
         frames.push(pts.to_vec());
     }
     let refs: Vec<&[TriangulatedPoint]> = frames.iter().map(|f| f.as_slice()).collect();
-    let m = measure_tool_layout("measured", &refs, 4, LayoutOrigin::Centroid, 5.0, &PoseConfig::default()).unwrap();
+    let m = measure_tool_layout(
+        "measured",
+        &refs,
+        4,
+        LayoutOrigin::Centroid,
+        5.0,
+        &PoseConfig::default(),
+    )
+    .unwrap();
     println!(
         "measured layout: spread RMS {:?} mm, observations {:?}, margin {:.2} mm",
         m.spread_rms_mm, m.observations, m.margin_mm
@@ -623,13 +776,22 @@ fn measured_layout_reproduces_the_tool_and_tracks_with_it() {
         assert!((a - b).abs() < 0.3, "distance {a} measured as {b}");
     }
     // Centroid origin, principal axes.
-    let c: Vector3<f64> = m.tool.leds_mm.iter().map(|p| Vector3::from(*p)).sum::<Vector3<f64>>() / 4.0;
+    let c: Vector3<f64> = m
+        .tool
+        .leds_mm
+        .iter()
+        .map(|p| Vector3::from(*p))
+        .sum::<Vector3<f64>>()
+        / 4.0;
     assert!(c.norm() < 1e-9);
     // The measured frame maps the measured layout onto the true LED positions.
     for p in &m.tool.leds_mm {
         let q = m.cam0_from_tool.apply(&Vector3::from(*p));
         let nearest = leds.iter().map(|l| (l - q).norm()).fold(f64::INFINITY, f64::min);
-        assert!(nearest < 0.3, "measured LED {q:?} is {nearest} mm from any true LED");
+        assert!(
+            nearest < 0.3,
+            "measured LED {q:?} is {nearest} mm from any true LED"
+        );
     }
     // The measured tool tracks the moving tool with the same orientation changes.
     let mut tracker = PoseTracker::new(&bench.rig, &m.tool, PoseConfig::default()).unwrap();
@@ -639,17 +801,35 @@ fn measured_layout_reproduces_the_tool_and_tracks_with_it() {
     bench.frame(&leds_cam0(&truth, &r2, &t2), &[], &[]);
     let pose1 = *tracker.process(&bench.blobs()).unwrap();
     assert_eq!(pose1.status, PoseStatus::Tracked);
-    let rel_est = Matrix3::from_row_slice(&pose1.r_row_major) * Matrix3::from_row_slice(&pose0.r_row_major).transpose();
+    let rel_est =
+        Matrix3::from_row_slice(&pose1.r_row_major) * Matrix3::from_row_slice(&pose0.r_row_major).transpose();
     let rel_true = (r2 * r.inverse()).into_inner();
-    let err = Rotation3::from_matrix_unchecked(rel_est * rel_true.transpose()).angle().to_degrees();
+    let err = Rotation3::from_matrix_unchecked(rel_est * rel_true.transpose())
+        .angle()
+        .to_degrees();
     assert!(err < 0.3, "relative rotation error {err}°");
 
     // A persistent extra point is refused rather than becoming a fifth LED.
     let mut with_extra = frames.clone();
     for f in &mut with_extra {
-        f.push(TriangulatedPoint { point_mm: Vector3::new(200.0, 0.0, 1000.0), gap_mm: 0.1, blobs: [9; 8], cameras: 2 });
+        f.push(TriangulatedPoint {
+            point_mm: Vector3::new(200.0, 0.0, 1000.0),
+            gap_mm: 0.1,
+            blobs: [9; 8],
+            cameras: 2,
+        });
     }
     let refs: Vec<&[TriangulatedPoint]> = with_extra.iter().map(|f| f.as_slice()).collect();
     assert!(measure_tool_layout("x", &refs, 4, LayoutOrigin::FirstLed, 5.0, &PoseConfig::default()).is_err());
-    assert!(measure_tool_layout("x", &refs[..1], 4, LayoutOrigin::Centroid, 5.0, &PoseConfig::default()).is_err());
+    assert!(
+        measure_tool_layout(
+            "x",
+            &refs[..1],
+            4,
+            LayoutOrigin::Centroid,
+            5.0,
+            &PoseConfig::default()
+        )
+        .is_err()
+    );
 }

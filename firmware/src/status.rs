@@ -284,6 +284,8 @@ impl SharedStatus {
             service: "irtrackd",
             versions: Versions {
                 irtrackd: env!("CARGO_PKG_VERSION"),
+                param_blob_format: irtrack_core::params::BLOB_FORMAT_VERSION,
+                stream_binary: irtrack_core::stream::BINARY_VERSION,
             },
             uptime_s: self.uptime_s(),
             params: self.params_info(),
@@ -504,6 +506,10 @@ impl SharedStatus {
 #[derive(Debug, Clone, Serialize)]
 pub struct Versions {
     pub irtrackd: &'static str,
+    /// Parameter blob format this build reads.
+    pub param_blob_format: u16,
+    /// Binary position framing version on the binary stream port.
+    pub stream_binary: u8,
 }
 
 #[derive(Debug, Clone, Serialize)]

@@ -340,6 +340,14 @@ async fn status_json_and_metrics_report_the_running_service() {
     let st = status_json(running.addrs.status).await;
     assert_eq!(st["service"], "irtrackd");
     assert_eq!(st["versions"]["irtrackd"], env!("CARGO_PKG_VERSION"));
+    assert_eq!(
+        st["versions"]["param_blob_format"],
+        irtrack_core::params::BLOB_FORMAT_VERSION
+    );
+    assert_eq!(
+        st["versions"]["stream_binary"],
+        irtrack_core::stream::BINARY_VERSION
+    );
     assert_eq!(st["params"]["loaded"], true);
     assert_eq!(st["params"]["origin"], "simulator");
     assert!(st["params"]["rig_id"].as_str().is_some());
@@ -377,5 +385,46 @@ async fn status_json_and_metrics_report_the_running_service() {
     assert!(metrics.contains("irtrackd_camera_fps{camera=\"1\"}"));
     let (code, _) = http_get(running.addrs.status, "/nope").await;
     assert_eq!(code, 404);
+    running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn robot_link_from_config_drives_the_robot_led() {
+    use irtrack_firmware::robot::sim::{SimRobotServer, SimServerConfig};
+    let robot = SimRobotServer::start(SimServerConfig::default()).await.unwrap();
+    let dir = TempDir::new("robot");
+    let toml = format!(
+        r#"
+[service]
+params_from_simulator = true
+[robot]
+address = "{}"
+[robot.safety]
+workspace_min_mm = [-500.0, -500.0, 0.0]
+workspace_max_mm = [500.0, 500.0, 1000.0]
+max_step_mm = 20.0
+max_speed_mm_s = 250.0
+max_gap_mm = 2.0
+max_age_ms = 100
+[robot.deadman]
+kind = "none"
+"#,
+        robot.addr
+    );
+    let base = test_config(dir.path());
+    let mut cfg = irtrack_firmware::config::Config::from_toml(&toml, "robot.toml").unwrap();
+    cfg.service.state_dir = base.service.state_dir;
+    cfg.listen = base.listen;
+    cfg.source = base.source;
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    assert!(running.robot().is_some());
+    let status = running.status.clone();
+    // Connected but not enabled: the link holds, the Robot LED blinks slowly.
+    eventually(10, || {
+        status.robot() == irtrack_firmware::leds::indication::RobotIndication::Holding
+    })
+    .await;
+    let st = status_json(running.addrs.status).await;
+    assert_eq!(st["leds"]["indication"]["robot"], "holding");
     running.shutdown().await;
 }

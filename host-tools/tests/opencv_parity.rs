@@ -383,12 +383,9 @@ fn triangulation_matches_cv_triangulate_points_on_exact_geometry() {
 /// normalized coordinates and [R|t]) and must agree with it to numerical precision, on exact
 /// geometry and with ±0.5 px pixel noise (where the midpoint legitimately differs).
 ///
-/// Ignored: `irtrack_core::triangulate::dlt` (eigenvector of AᵀA from nalgebra's
-/// `symmetric_eigen`) returns wrong points for part of the orthogonal rig at 659.84 mm — e.g.
-/// (99.37, 12.16, 750.37) mm gives `BehindCamera` while OpenCV (SVD of A) is exact to 1e-12 mm;
-/// an SVD of the 2N×4 matrix fixes it. Run with `--ignored` once core is fixed.
+/// (Regression: an earlier DLT took the eigenvector of AᵀA and failed on part of the
+/// orthogonal rig; it now uses the SVD of A like OpenCV.)
 #[test]
-#[ignore = "irtrack_core::triangulate::dlt is wrong for part of the orthogonal rig; see doc comment"]
 fn dlt_matches_cv_triangulate_points() {
     let cam = vga(lenses()[0].1);
     let pose0 = RigidTransform::IDENTITY;

@@ -1,12 +1,12 @@
 //! Parameter file tools: OpenCV YAML round trips, show/convert-params and push-params against
 //! a fake irtrackd parameter endpoint built on `irtrack_core::param_wire`.
 
-use std::io::{Read, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Command, Output, Stdio};
 use std::thread;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use irtrack_core::param_wire::{self, RejectCode, Verdict};
@@ -415,31 +415,42 @@ fn push_rejected_gives_reason_and_failure() {
 
 #[test]
 fn push_retries_until_server_starts() {
-    // Reserve a free port, release it, and start the server on it only after a delay.
+    // Reserve a free port and release it; the server starts on it only once the client has
+    // reported its first failed attempt (timing independent of machine load).
     let port = TcpListener::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
         .unwrap()
         .port();
     let addr = format!("127.0.0.1:{port}");
-    let late = thread::spawn(move || {
-        thread::sleep(Duration::from_millis(600));
-        serve_one(TcpListener::bind(("127.0.0.1", port)).unwrap(), 2)
-            .join()
-            .unwrap()
-    });
     let blob = tmp("push_late.irp");
     std::fs::write(&blob, rig2().to_blob().unwrap()).unwrap();
-    let started = Instant::now();
-    let o = host_tools(&["push-params", "--to", &addr, "--retries", "6", p(&blob)]);
-    let (out, err) = text(&o);
-    assert!(o.status.success(), "{out}\n{err}");
-    // Backoff 0.25 s then 0.5 s: the 600 ms start is reached on the 2nd or 3rd retry.
-    let retries = err.matches("; retry ").count();
-    assert!((1..=3).contains(&retries), "{err}");
-    assert!(err.contains("retry 1/6 in 0.25 s"), "{err}");
-    assert!(started.elapsed() >= Duration::from_millis(600));
-    assert_eq!(late.join().unwrap(), Some(rig2()));
+    let mut child = Command::new(env!("CARGO_BIN_EXE_host-tools"))
+        .args(["push-params", "--to", &addr, "--retries", "6", p(&blob)])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stderr = BufReader::new(child.stderr.take().unwrap());
+    let mut first = String::new();
+    stderr.read_line(&mut first).unwrap();
+    assert!(
+        first.contains("Connection refused") && first.contains("retry 1/6 in 0.25 s"),
+        "{first}"
+    );
+    let server = serve_one(TcpListener::bind(("127.0.0.1", port)).unwrap(), 2);
+    let mut rest = String::new();
+    stderr.read_to_string(&mut rest).unwrap();
+    let out = child.wait_with_output().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{first}{rest}");
+    assert!(
+        stdout.contains("accepted by") && stdout.contains("rig pair-1"),
+        "{stdout}"
+    );
+    // Normally no further failure: the bind happens well within the 0.25 s backoff.
+    assert!(rest.matches("; retry ").count() <= 3, "{rest}");
+    assert_eq!(server.join().unwrap(), Some(rig2()));
 }
 
 #[test]

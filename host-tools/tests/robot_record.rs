@@ -32,15 +32,19 @@ fn serve(binary: bool, n: u64, mark: Option<(std::path::PathBuf, u64)>) -> Strin
         let (mut s, _) = l.accept().unwrap();
         for f in 1..=n {
             let r = rec(f);
-            if binary {
-                s.write_all(&r.to_binary()).unwrap();
+            // The recorder may stop early (enough waypoints): a closed socket ends the server.
+            let sent = if binary {
+                s.write_all(&r.to_binary())
             } else {
                 let line = r.to_ndjson_line();
                 // Split lines across writes: the recorder must reassemble them.
                 let (a, b) = line.as_bytes().split_at(line.len() / 2);
-                s.write_all(a).unwrap();
-                s.flush().unwrap();
-                s.write_all(b).unwrap();
+                s.write_all(a)
+                    .and_then(|()| s.flush())
+                    .and_then(|()| s.write_all(b))
+            };
+            if sent.is_err() {
+                return;
             }
             if let Some((p, at)) = &mark
                 && *at == f

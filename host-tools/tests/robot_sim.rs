@@ -29,7 +29,9 @@ fn start(extra: &[&str]) -> Sim {
         .spawn()
         .unwrap();
     let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
     let addr = line.trim().rsplit(' ').next().unwrap().to_string();
     Sim { child, addr }
 }
@@ -69,38 +71,114 @@ fn robot_sim_follows_targets_at_its_speed_and_logs() {
     std::fs::create_dir_all(&dir).unwrap();
     let log = dir.join("sim.csv");
     let sim = start(&[
-        "--speed-mm-s", "200", "--home", "10,20,30", "--log", log.to_str().unwrap(), "--max-connections", "1",
-        "--reject-every", "3",
+        "--speed-mm-s",
+        "200",
+        "--home",
+        "10,20,30",
+        "--log",
+        log.to_str().unwrap(),
+        "--max-connections",
+        "1",
+        "--reject-every",
+        "3",
     ]);
     let mut c = Conn::open(&sim.addr);
-    assert_eq!(c.recv(), RobotMsg::Hello { version: 1, name: "robot-sim".into() });
-    assert_eq!(c.recv(), RobotMsg::Credit { ack_seq: 0, window: 1, pos_mm: [10.0, 20.0, 30.0] });
-    c.send(TrackerMsg::Hello { version: 1, name: "test".into() });
+    assert_eq!(
+        c.recv(),
+        RobotMsg::Hello {
+            version: 1,
+            name: "robot-sim".into()
+        }
+    );
+    assert_eq!(
+        c.recv(),
+        RobotMsg::Credit {
+            ack_seq: 0,
+            window: 1,
+            pos_mm: [10.0, 20.0, 30.0]
+        }
+    );
+    c.send(TrackerMsg::Hello {
+        version: 1,
+        name: "test".into(),
+    });
     // 40 mm at 200 mm/s: about 0.2 s.
     let t0 = Instant::now();
-    c.send(TrackerMsg::Target { seq: 1, pos_mm: [50.0, 20.0, 30.0] });
-    assert_eq!(c.recv(), RobotMsg::Credit { ack_seq: 1, window: 1, pos_mm: [50.0, 20.0, 30.0] });
+    c.send(TrackerMsg::Target {
+        seq: 1,
+        pos_mm: [50.0, 20.0, 30.0],
+    });
+    assert_eq!(
+        c.recv(),
+        RobotMsg::Credit {
+            ack_seq: 1,
+            window: 1,
+            pos_mm: [50.0, 20.0, 30.0]
+        }
+    );
     let dt = t0.elapsed().as_secs_f64();
     assert!((0.19..0.35).contains(&dt), "40 mm took {dt} s at 200 mm/s");
     // Without credit: rejected.
-    c.send(TrackerMsg::Target { seq: 2, pos_mm: [60.0, 20.0, 30.0] });
-    c.send(TrackerMsg::Target { seq: 3, pos_mm: [70.0, 20.0, 30.0] });
+    c.send(TrackerMsg::Target {
+        seq: 2,
+        pos_mm: [60.0, 20.0, 30.0],
+    });
+    c.send(TrackerMsg::Target {
+        seq: 3,
+        pos_mm: [70.0, 20.0, 30.0],
+    });
     let mut got = vec![c.recv(), c.recv()];
     got.sort_by_key(|m| matches!(m, RobotMsg::Credit { .. }));
-    assert!(matches!(got[0], RobotMsg::Reject { seq: 3, code: reject::NO_CREDIT, .. }), "{got:?}");
+    assert!(
+        matches!(
+            got[0],
+            RobotMsg::Reject {
+                seq: 3,
+                code: reject::NO_CREDIT,
+                ..
+            }
+        ),
+        "{got:?}"
+    );
     assert!(matches!(got[1], RobotMsg::Credit { ack_seq: 2, .. }));
     // Third accepted target is rejected by injection, and still consumed.
-    c.send(TrackerMsg::Target { seq: 3, pos_mm: [70.0, 20.0, 30.0] });
-    assert!(matches!(c.recv(), RobotMsg::Reject { seq: 3, code: reject::INJECTED, .. }));
+    c.send(TrackerMsg::Target {
+        seq: 3,
+        pos_mm: [70.0, 20.0, 30.0],
+    });
+    assert!(matches!(
+        c.recv(),
+        RobotMsg::Reject {
+            seq: 3,
+            code: reject::INJECTED,
+            ..
+        }
+    ));
     assert!(matches!(c.recv(), RobotMsg::Credit { ack_seq: 3, .. }));
     // HOLD stops a move half way.
-    c.send(TrackerMsg::Target { seq: 4, pos_mm: [460.0, 20.0, 30.0] });
+    c.send(TrackerMsg::Target {
+        seq: 4,
+        pos_mm: [460.0, 20.0, 30.0],
+    });
     std::thread::sleep(Duration::from_millis(100));
-    c.send(TrackerMsg::Hold { reason: HoldReason::Deadman });
-    let RobotMsg::Credit { ack_seq: 4, pos_mm, .. } = c.recv() else { panic!("no credit after HOLD") };
+    c.send(TrackerMsg::Hold {
+        reason: HoldReason::Deadman,
+    });
+    let RobotMsg::Credit {
+        ack_seq: 4, pos_mm, ..
+    } = c.recv()
+    else {
+        panic!("no credit after HOLD")
+    };
     assert!(pos_mm[0] > 62.0 && pos_mm[0] < 150.0, "stopped at {pos_mm:?}");
     c.w.write_all(b"T garbage\n").unwrap();
-    assert!(matches!(c.recv(), RobotMsg::Reject { code: reject::MALFORMED, .. }));
+    assert!(matches!(
+        c.recv(),
+        RobotMsg::Reject {
+            code: reject::MALFORMED,
+            ..
+        }
+    ));
     c.send(TrackerMsg::Bye);
     assert_eq!(c.recv(), RobotMsg::Bye);
     drop(c);
@@ -109,7 +187,12 @@ fn robot_sim_follows_targets_at_its_speed_and_logs() {
     assert!(status.success());
     let csv = std::fs::read_to_string(&log).unwrap();
     let mut lines = csv.lines();
-    assert!(lines.next().unwrap().starts_with("t_s,conn,event,seq,target_x_mm"));
+    assert!(
+        lines
+            .next()
+            .unwrap()
+            .starts_with("t_s,conn,event,seq,target_x_mm")
+    );
     let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
     assert!(rows.iter().all(|r| r.len() == 11));
     let targets: Vec<_> = rows.iter().filter(|r| r[2] == "target").collect();
@@ -123,16 +206,31 @@ fn robot_sim_follows_targets_at_its_speed_and_logs() {
 
 #[test]
 fn robot_sim_injects_disconnects_and_delays() {
-    let sim = start(&["--speed-mm-s", "1000", "--disconnect-after", "2", "--inject-delay-ms", "100", "--max-connections", "2"]);
+    let sim = start(&[
+        "--speed-mm-s",
+        "1000",
+        "--disconnect-after",
+        "2",
+        "--inject-delay-ms",
+        "100",
+        "--max-connections",
+        "2",
+    ]);
     for _ in 0..2 {
         let mut c = Conn::open(&sim.addr);
         assert!(matches!(c.recv(), RobotMsg::Hello { .. }));
         assert!(matches!(c.recv(), RobotMsg::Credit { ack_seq: 0, .. }));
         let t0 = Instant::now();
-        c.send(TrackerMsg::Target { seq: 1, pos_mm: [1.0, 0.0, 0.0] });
+        c.send(TrackerMsg::Target {
+            seq: 1,
+            pos_mm: [1.0, 0.0, 0.0],
+        });
         assert!(matches!(c.recv(), RobotMsg::Credit { ack_seq: 1, .. }));
         assert!(t0.elapsed() >= Duration::from_millis(100), "reply not delayed");
-        c.send(TrackerMsg::Target { seq: 2, pos_mm: [2.0, 0.0, 0.0] });
+        c.send(TrackerMsg::Target {
+            seq: 2,
+            pos_mm: [2.0, 0.0, 0.0],
+        });
         // Dropped after the second target: the stream ends.
         let mut rest = String::new();
         let mut r = c.r;

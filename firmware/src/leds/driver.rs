@@ -194,7 +194,10 @@ mod tests {
 
         // Camera lost outranks everything; a stalled loop is not alive.
         status.camera_lost.store(true, Ordering::Relaxed);
-        let ind = m.update(&status, t + DEADLINE_WINDOW + STALL_AFTER + Duration::from_millis(1));
+        let ind = m.update(
+            &status,
+            t + DEADLINE_WINDOW + STALL_AFTER + Duration::from_millis(1),
+        );
         assert_eq!(ind.fault, Some(Fault::CameraLost));
         assert!(!ind.alive);
         assert_eq!(status.active_faults(), vec![Fault::CameraLost]);

@@ -1,0 +1,295 @@
+//! `cargo xtask fuzz [--quick | --secs N] [--target NAME]...`: runs the cargo-fuzz targets in
+//! `fuzz/` (docs/fuzzing.md) one after another and prints executions, coverage and crashes.
+//!
+//! CI runs `--quick` (25 s per target). The toolchain is the pinned stable one: cargo-fuzz
+//! passes `-Z` flags, which `RUSTC_BOOTSTRAP=1` allows on stable, so no nightly is needed.
+//! Coverage comes from sanitizer-coverage instrumentation; AddressSanitizer is off because
+//! the fuzzed crates are safe Rust (irtrack-core forbids `unsafe`) and it would halve the
+//! execution rate. Debug assertions (and so overflow checks) are on.
+
+use std::path::Path;
+use std::process::Command;
+use std::time::Duration;
+
+use anyhow::{Result, bail};
+
+use crate::ci::Counts;
+use crate::util::{self, Ctx, RunOpts};
+
+/// Every target in fuzz/fuzz_targets, in run order.
+pub const TARGETS: &[&str] = &["param_blob", "robot_proto", "stream", "config", "param_wire"];
+const QUICK_SECS: u64 = 25;
+/// The documented long run (docs/fuzzing.md).
+const DEFAULT_SECS: u64 = 600;
+
+/// CI entry point: every target for [`QUICK_SECS`]; any crash fails the phase.
+pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
+    let results = run_targets(ctx, TARGETS, QUICK_SECS)?;
+    let failed = results.iter().filter(|r| r.crash.is_some()).count() as u64;
+    let counts = Counts {
+        passed: results.len() as u64 - failed,
+        failed,
+        ignored: 0,
+    };
+    if failed > 0 {
+        bail!("{failed} fuzz target(s) found a crash: {}", crash_list(&results));
+    }
+    Ok(counts)
+}
+
+/// `cargo xtask fuzz [--quick | --secs N] [--target NAME]...`
+pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
+    let mut secs = DEFAULT_SECS;
+    let mut targets: Vec<&str> = Vec::new();
+    let mut it = args.iter();
+    while let Some(a) = it.next() {
+        match a.as_str() {
+            "--quick" => secs = QUICK_SECS,
+            "--secs" => {
+                let Some(v) = it.next() else {
+                    bail!("--secs needs a number of seconds")
+                };
+                secs = v
+                    .parse()
+                    .map_err(|_| anyhow::anyhow!("--secs {v:?} is not a number"))?;
+            }
+            "--target" => {
+                let Some(v) = it.next() else {
+                    bail!("--target needs a name ({})", TARGETS.join(", "))
+                };
+                let Some(t) = TARGETS.iter().find(|t| *t == v) else {
+                    bail!("unknown fuzz target `{v}` ({})", TARGETS.join(", "))
+                };
+                targets.push(t);
+            }
+            other => bail!(
+                "unknown option `{other}` (usage: cargo xtask fuzz [--quick | --secs N] [--target NAME]...)"
+            ),
+        }
+    }
+    if targets.is_empty() {
+        targets = TARGETS.to_vec();
+    }
+    let results = run_targets(ctx, &targets, secs)?;
+    if results.iter().any(|r| r.crash.is_some()) {
+        bail!("crash(es) found: {}", crash_list(&results));
+    }
+    Ok(())
+}
+
+/// What one target's run reported.
+#[derive(Debug, Default, PartialEq)]
+struct RunResult {
+    target: String,
+    secs: u64,
+    execs: Option<u64>,
+    cov: Option<u64>,
+    features: Option<u64>,
+    corpus: Option<u64>,
+    /// Artifact path (or the reason) when the run did not end cleanly.
+    crash: Option<String>,
+}
+
+fn crash_list(results: &[RunResult]) -> String {
+    results
+        .iter()
+        .filter_map(|r| r.crash.as_ref().map(|c| format!("{}: {c}", r.target)))
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// `cargo fuzz` with the environment it needs on the stable toolchain.
+fn cargo_fuzz(ctx: &Ctx, fuzz_dir: &Path) -> Command {
+    let mut cmd = ctx.cargo();
+    cmd.current_dir(fuzz_dir);
+    cmd.env("RUSTC_BOOTSTRAP", "1");
+    cmd.arg("fuzz");
+    cmd
+}
+
+/// Installs cargo-fuzz when `cargo fuzz` is not available (idempotent, no-op when present).
+fn ensure_cargo_fuzz(ctx: &Ctx) -> Result<()> {
+    let present = Command::new(&ctx.cargo)
+        .args(["fuzz", "--version"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if present {
+        return Ok(());
+    }
+    println!("cargo-fuzz is missing: installing it from crates.io (needed by `cargo xtask fuzz`)");
+    let mut cmd = ctx.cargo();
+    cmd.args(["install", "cargo-fuzz", "--locked"]);
+    let out = util::run(
+        &mut cmd,
+        RunOpts {
+            timeout: Some(Duration::from_secs(1800)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("cargo install cargo-fuzz {}", out.describe());
+    }
+    Ok(())
+}
+
+/// Common flags of build and run: release with debug assertions, coverage without ASan.
+const BUILD_FLAGS: &[&str] = &["--release", "--debug-assertions", "--sanitizer", "none"];
+
+fn run_targets(ctx: &Ctx, targets: &[&str], secs: u64) -> Result<Vec<RunResult>> {
+    ensure_cargo_fuzz(ctx)?;
+    let fuzz_dir = ctx.root.join("fuzz");
+    let target_dir = ctx.target_dir().join("fuzz");
+    let mut build = cargo_fuzz(ctx, &fuzz_dir);
+    build
+        .arg("build")
+        .args(BUILD_FLAGS)
+        .arg("--target-dir")
+        .arg(&target_dir);
+    let out = util::run(
+        &mut build,
+        RunOpts {
+            timeout: Some(Duration::from_secs(3600)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("cargo fuzz build {}", out.describe());
+    }
+
+    let mut results = Vec::new();
+    for target in targets {
+        let corpus = fuzz_dir.join("corpus").join(target);
+        std::fs::create_dir_all(&corpus)?;
+        let seeds = fuzz_dir.join("seeds").join(target);
+        let mut run = cargo_fuzz(ctx, &fuzz_dir);
+        run.arg("run")
+            .args(BUILD_FLAGS)
+            .arg("--target-dir")
+            .arg(&target_dir)
+            .arg(target)
+            // New inputs go to the first (git-ignored) directory; seeds are only read.
+            .arg(&corpus)
+            .arg(&seeds)
+            .arg("--")
+            .arg(format!("-max_total_time={secs}"))
+            .arg("-print_final_stats=1")
+            .arg("-max_len=4096")
+            .arg("-timeout=10")
+            .arg("-rss_limit_mb=1024");
+        let out = util::run(
+            &mut run,
+            RunOpts {
+                capture_stderr: true,
+                // libFuzzer stops itself; the limit only catches a hang.
+                timeout: Some(Duration::from_secs(secs + 300)),
+                ..RunOpts::default()
+            },
+        )?;
+        let mut r = parse_run(target, secs, &out.stderr);
+        if !out.success() && r.crash.is_none() {
+            r.crash = Some(format!("cargo fuzz run {}", out.describe()));
+        }
+        results.push(r);
+    }
+    print_table(&results);
+    Ok(results)
+}
+
+/// Reads libFuzzer's final statistics and its last progress line from stderr.
+fn parse_run(target: &str, secs: u64, stderr: &str) -> RunResult {
+    let mut r = RunResult {
+        target: target.to_string(),
+        secs,
+        ..RunResult::default()
+    };
+    for line in stderr.lines() {
+        if let Some(v) = line.strip_prefix("stat::number_of_executed_units:") {
+            r.execs = v.trim().parse().ok();
+        }
+        // Progress lines look like `#123456\tREDUCE cov: 812 ft: 2301 corp: 160/4873b ...`.
+        if line.starts_with('#') {
+            let mut words = line.split_whitespace();
+            while let Some(w) = words.next() {
+                let value = || {
+                    words
+                        .clone()
+                        .next()
+                        .and_then(|v| v.split('/').next()?.parse().ok())
+                };
+                match w {
+                    "cov:" => r.cov = value().or(r.cov),
+                    "ft:" => r.features = value().or(r.features),
+                    "corp:" => r.corpus = value().or(r.corpus),
+                    _ => {}
+                }
+            }
+        }
+        if let Some(rest) = line.split("Test unit written to ").nth(1) {
+            r.crash = Some(rest.trim().to_string());
+        }
+    }
+    r
+}
+
+fn print_table(results: &[RunResult]) {
+    let opt = |v: Option<u64>| v.map_or("-".to_string(), |v| v.to_string());
+    println!();
+    println!("| target | time | executions | exec/s | cov (edges) | features | corpus | result |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for r in results {
+        let rate = r
+            .execs
+            .map_or("-".to_string(), |e| (e / r.secs.max(1)).to_string());
+        println!(
+            "| {} | {} s | {} | {rate} | {} | {} | {} | {} |",
+            r.target,
+            r.secs,
+            opt(r.execs),
+            opt(r.cov),
+            opt(r.features),
+            opt(r.corpus),
+            r.crash.as_deref().unwrap_or("no crash")
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn final_stats_and_last_progress_line_are_read() {
+        let stderr = "INFO: Seed: 1\n\
+            #2\tINITED cov: 90 ft: 100 corp: 5/300b exec/s: 0 rss: 30Mb\n\
+            #4096\tpulse  cov: 120 ft: 340 corp: 40/1200b lim: 43 exec/s: 2048 rss: 33Mb\n\
+            #9000\tREDUCE cov: 131 ft: 351 corp: 44/1300b lim: 43 exec/s: 3000 rss: 33Mb L: 7/60 MS: 1 \n\
+            Done 9000 runs in 3 second(s)\n\
+            stat::number_of_executed_units: 9000\n";
+        let r = parse_run("stream", 3, stderr);
+        assert_eq!(r.execs, Some(9000));
+        assert_eq!(r.cov, Some(131));
+        assert_eq!(r.features, Some(351));
+        assert_eq!(r.corpus, Some(44));
+        assert_eq!(r.crash, None);
+    }
+
+    #[test]
+    fn crash_artifact_is_reported() {
+        let stderr = "==1== ERROR: libFuzzer: deadly signal\n\
+            artifact_prefix='/x/artifacts/stream/'; Test unit written to /x/artifacts/stream/crash-ab12\n";
+        let r = parse_run("stream", 25, stderr);
+        assert_eq!(r.crash.as_deref(), Some("/x/artifacts/stream/crash-ab12"));
+    }
+
+    #[test]
+    fn every_target_has_a_source_and_seeds() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+        for t in TARGETS {
+            let src = root.join("fuzz/fuzz_targets").join(format!("{t}.rs"));
+            assert!(src.is_file(), "{} missing", src.display());
+            let seeds = root.join("fuzz/seeds").join(t);
+            let n = std::fs::read_dir(&seeds).map(|d| d.count()).unwrap_or(0);
+            assert!(n > 0, "no seeds in {}", seeds.display());
+        }
+    }
+}
