@@ -1,11 +1,11 @@
-//! Detects optional phase modules (`src/image.rs`, `src/bench.rs`) that other parts of the
-//! project add. A module that exists is compiled in and its CI phase runs; a missing one is
-//! reported as "skipped: not present". No registration edit is needed.
+//! Detects optional phase modules (`src/image.rs`, `src/bench.rs`, `src/fuzz.rs`) that other
+//! parts of the project add. A module that exists is compiled in and its CI phase runs; a
+//! missing one is reported as "skipped: not present". No registration edit is needed.
 
 use std::path::Path;
 
 /// Optional modules: file stem == module name == cfg name suffix.
-const OPTIONAL_MODULES: &[&str] = &["image", "bench"];
+const OPTIONAL_MODULES: &[&str] = &["image", "bench", "fuzz"];
 
 fn main() {
     // A directory here makes cargo rescan it, so a newly created module is picked up.

@@ -2,6 +2,7 @@
 //!
 //! Conventions follow OpenCV (`projectPoints`, `undistortPoints`): camera frame x right,
 //! y down, z forward (mm); pixel (0,0) is the centre of the top-left pixel.
+#![allow(clippy::neg_cmp_op_on_partial_ord)] // `!(x > y)` is deliberate: also true for NaN, which must be rejected.
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};

@@ -4,6 +4,7 @@
 //! convergence angle (the paper's 90° rig included) because it never rectifies; the ray gap
 //! (length of the common perpendicular) is the quality figure: a true marker seen by both
 //! cameras gives a gap of a few tenths of a millimetre, a mismatched blob gives centimetres.
+#![allow(clippy::neg_cmp_op_on_partial_ord)] // `!(x > y)` is deliberate: also true for NaN, which must be rejected.
 
 use nalgebra::{DMatrix, Matrix3, Vector2, Vector3, Vector4};
 

@@ -48,6 +48,14 @@ deadline_ms = 20.0
 }
 
 #[test]
+fn shipped_example_config_is_valid() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../systemd/irtrackd.example.toml");
+    let c = Config::load(&path).unwrap();
+    assert_eq!(c.service.state_dir, std::path::PathBuf::from("/var/lib/irtrackd"));
+    assert_eq!(c.source.sim.unwrap().fps, 60.0);
+}
+
+#[test]
 fn bad_configs_name_the_problem() {
     let e = err("[servic]\nstate_dir = \"/x\"\n");
     assert!(

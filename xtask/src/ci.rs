@@ -7,7 +7,7 @@
 //! test to show for it (fmt, clippy, a build error), so a red run never ends in "0 failed".
 //!
 //! # Adding a phase
-//! Add one entry to [`PHASES`]. Optional modules `src/image.rs` and `src/bench.rs` are
+//! Add one entry to [`PHASES`]. Optional modules `src/image.rs`, `src/bench.rs`, `src/fuzz.rs` are
 //! detected by build.rs and wired in automatically; each must provide
 //! `pub fn ci_phase(ctx: &crate::util::Ctx) -> anyhow::Result<crate::ci::Counts>`
 //! (Ok = passed; Err = failed, with a message) and
@@ -114,6 +114,7 @@ pub const PHASES: &[Phase] = &[
     phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", Some(lint::yocto_phase), 5),
     phase("image", "aarch64 image build + QEMU system test", "system", IMAGE_HOOK, 20),
     phase("bench", "short benchmark", "bench", BENCH_HOOK, 10),
+    phase("fuzz", "short fuzzing run of every fuzz target", "fuzz", FUZZ_HOOK, 10),
 ];
 
 #[cfg(xtask_has_image)]
@@ -124,8 +125,12 @@ const IMAGE_HOOK: Option<PhaseFn> = None;
 const BENCH_HOOK: Option<PhaseFn> = Some(|ctx| hook(crate::bench::ci_phase(ctx)));
 #[cfg(not(xtask_has_bench))]
 const BENCH_HOOK: Option<PhaseFn> = None;
+#[cfg(xtask_has_fuzz)]
+const FUZZ_HOOK: Option<PhaseFn> = Some(|ctx| hook(crate::fuzz::ci_phase(ctx)));
+#[cfg(not(xtask_has_fuzz))]
+const FUZZ_HOOK: Option<PhaseFn> = None;
 
-#[cfg_attr(not(any(xtask_has_image, xtask_has_bench)), allow(dead_code))]
+#[cfg_attr(not(any(xtask_has_image, xtask_has_bench, xtask_has_fuzz)), allow(dead_code))]
 fn hook(r: Result<Counts>) -> Outcome {
     match r {
         Ok(c) => Outcome {
@@ -424,7 +429,7 @@ fn setup_phase(ctx: &Ctx) -> Outcome {
 
 fn fmt(ctx: &Ctx) -> Outcome {
     let mut cmd = ctx.cargo();
-    cmd.args(["fmt", "--all", "--check"]);
+    cmd.args(["fmt", "--all", "--check", "--", "--color=never"]);
     let o = check(cmd, "cargo fmt --check");
     // cargo fmt does not descend into xtask's optional modules (see main.rs).
     let optional: Vec<_> = OPTIONAL_MODULES
@@ -442,7 +447,7 @@ fn fmt(ctx: &Ctx) -> Outcome {
     check(cmd, "rustfmt --check on xtask's optional modules")
 }
 
-const OPTIONAL_MODULES: &[&str] = &["image", "bench"];
+const OPTIONAL_MODULES: &[&str] = &["image", "bench", "fuzz"];
 
 fn clippy(ctx: &Ctx) -> Outcome {
     let mut cmd = ctx.cargo();

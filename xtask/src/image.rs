@@ -26,7 +26,7 @@ usage: cargo xtask image <command>
 
 commands:
   build            build target/image/irtrack-sd.img (kernel, initramfs, busybox, irtrackd)
-  test             build, then boot it in QEMU and run the system test
+  test [--no-build]  build (or reuse the last build), boot it in QEMU, run the system test
   system-test      same as `test`
   run              build, then boot it interactively (console on this terminal; Ctrl-A X quits)
   crates [--check] write (or check) yocto-layer's irtrackd-crates.inc from Cargo.lock
@@ -50,7 +50,11 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
             Ok(())
         }
         Some("test" | "system-test") => {
-            let image = build(ctx)?;
+            let image = if args.get(1).is_some_and(|a| a == "--no-build") {
+                existing(ctx)?
+            } else {
+                build(ctx)?
+            };
             println!("{}", image.summary());
             let report = system::run(ctx, &image)?;
             println!("{report}");
@@ -153,6 +157,27 @@ fn fresh_dir(dir: &Path) -> Result<()> {
         fs::remove_dir_all(dir).with_context(|| format!("removing {}", dir.display()))?;
     }
     fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))
+}
+
+/// The image of the last `build`, for re-running the system test without rebuilding.
+pub fn existing(ctx: &Ctx) -> Result<Image> {
+    let work = work_dir(ctx);
+    let len = |name: &str| -> Result<u64> {
+        let path = work.join(name);
+        Ok(fs::metadata(&path)
+            .with_context(|| format!("{} missing; run `cargo xtask image build`", path.display()))?
+            .len())
+    };
+    let (kernel_version, _) = kernel_modules_dir(&work.join("kernel"))?;
+    Ok(Image {
+        sd_img: work.join("irtrack-sd.img"),
+        kernel_version,
+        size_bytes: len("irtrack-sd.img")?,
+        boot_bytes: len("boot.vfat")?,
+        root_bytes: len("root.ext4")?,
+        irtrackd_bytes: len("irtrackd")?,
+        build_time: Duration::ZERO,
+    })
 }
 
 /// Builds the whole image into target/image/.

@@ -16,6 +16,9 @@ mod util;
 #[cfg(xtask_has_bench)]
 #[rustfmt::skip]
 mod bench;
+#[cfg(xtask_has_fuzz)]
+#[rustfmt::skip]
+mod fuzz;
 #[cfg(xtask_has_image)]
 #[rustfmt::skip]
 mod image;
@@ -33,6 +36,7 @@ tasks:
   cross                        static aarch64 release build of irtrackd; prints its path
   image  ...                   image build (when xtask/src/image.rs exists)
   bench  ...                   benchmarks (when xtask/src/bench.rs exists)
+  fuzz   ...                   fuzzing (when xtask/src/fuzz.rs exists)
 ";
 
 fn main() {
@@ -70,6 +74,10 @@ fn real_main(args: &[String]) -> anyhow::Result<i32> {
         "bench" => bench::cli(&ctx, rest)?,
         #[cfg(not(xtask_has_image))]
         "image" => anyhow::bail!("`image` is not present yet (xtask/src/image.rs does not exist)"),
+        #[cfg(xtask_has_fuzz)]
+        "fuzz" => fuzz::cli(&ctx, rest)?,
+        #[cfg(not(xtask_has_fuzz))]
+        "fuzz" => anyhow::bail!("`fuzz` is not present yet (xtask/src/fuzz.rs does not exist)"),
         #[cfg(not(xtask_has_bench))]
         "bench" => anyhow::bail!("`bench` is not present yet (xtask/src/bench.rs does not exist)"),
         "help" | "-h" | "--help" => print!("{USAGE}"),

@@ -29,13 +29,21 @@ pub struct RppalLeds {
 }
 
 fn rppal_err(what: String, err: rppal::gpio::Error) -> LedError {
-    LedError::Gpio { what, reason: err.to_string() }
+    LedError::Gpio {
+        what,
+        reason: err.to_string(),
+    }
 }
 
 /// Claims the four BCM pins as outputs with all LEDs off.
 pub fn open(config: &RppalLedConfig) -> Result<Box<dyn StatusLeds>, LedError> {
     let gpio = Gpio::new().map_err(|e| rppal_err("open Raspberry Pi GPIO".to_owned(), e))?;
-    let numbers = [config.run_bcm, config.track_bcm, config.robot_bcm, config.fault_bcm];
+    let numbers = [
+        config.run_bcm,
+        config.track_bcm,
+        config.robot_bcm,
+        config.fault_bcm,
+    ];
     for (i, n) in numbers.iter().enumerate() {
         if numbers[..i].contains(n) {
             return Err(LedError::Gpio {
@@ -45,9 +53,15 @@ pub fn open(config: &RppalLedConfig) -> Result<Box<dyn StatusLeds>, LedError> {
         }
     }
     let claim = |led: Led, bcm: u8| -> Result<OutputPin, LedError> {
-        let pin = gpio.get(bcm).map_err(|e| rppal_err(format!("{led:?} LED BCM pin {bcm}"), e))?;
+        let pin = gpio
+            .get(bcm)
+            .map_err(|e| rppal_err(format!("{led:?} LED BCM pin {bcm}"), e))?;
         // Off means high for active-low wiring.
-        let mut out = if config.active_low { pin.into_output_high() } else { pin.into_output_low() };
+        let mut out = if config.active_low {
+            pin.into_output_high()
+        } else {
+            pin.into_output_low()
+        };
         // Keep the LED off after the service exits instead of restoring the previous mode.
         out.set_reset_on_drop(false);
         Ok(out)
@@ -58,7 +72,10 @@ pub fn open(config: &RppalLedConfig) -> Result<Box<dyn StatusLeds>, LedError> {
         claim(Led::Robot, numbers[2])?,
         claim(Led::Fault, numbers[3])?,
     ];
-    Ok(Box::new(RppalLeds { pins, active_low: config.active_low }))
+    Ok(Box::new(RppalLeds {
+        pins,
+        active_low: config.active_low,
+    }))
 }
 
 impl StatusLeds for RppalLeds {

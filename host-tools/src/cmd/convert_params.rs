@@ -1,11 +1,13 @@
 //! `host-tools convert-params IN OUT`: parameter blob ↔ OpenCV YAML. The output format follows
-//! OUT's extension: `.yaml`/`.yml` is YAML, anything else a blob.
+//! OUT's extension: `.yaml`/`.yml` is YAML, anything else a blob (signed with `--sign-key`).
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
+use irtrack_core::signing::KeyId;
 
-use crate::opencv_yaml::{is_yaml_path, load_params_any, write_rig_yaml};
+use crate::cmd::keygen::{load_params_file, read_secret_key};
+use crate::opencv_yaml::{is_yaml_path, write_rig_yaml};
 
 /// Arguments.
 #[derive(clap::Args, Debug)]
@@ -14,9 +16,12 @@ pub struct Args {
     pub input: PathBuf,
     /// Output: `.yaml`/`.yml` for OpenCV YAML, anything else for a parameter blob.
     pub output: PathBuf,
-    /// Convert even if the parameters do not validate.
+    /// Convert even if the parameters do not validate (never together with --sign-key).
     #[arg(long)]
     pub force: bool,
+    /// Secret key file (from `host-tools keygen`): write a signed blob.
+    #[arg(long, value_name = "FILE")]
+    pub sign_key: Option<PathBuf>,
 }
 
 /// Writes `bytes` to `path` through a temporary file and a rename, so readers never see half.
@@ -28,8 +33,24 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
-    let rig = load_params_any(&args.input)?;
+    let loaded = load_params_file(&args.input)?;
+    let rig = loaded.rig;
+    if args.sign_key.is_some() && is_yaml_path(&args.output) {
+        bail!(
+            "{}: OpenCV YAML cannot carry a signature; sign a blob output instead",
+            args.output.display()
+        );
+    }
     if let Err(e) = rig.validate() {
+        if args.sign_key.is_some() {
+            // A signature vouches for the parameters: never for ones known to be unusable.
+            return Err(e).with_context(|| {
+                format!(
+                    "{}: refusing to sign parameters that are not usable",
+                    args.input.display()
+                )
+            });
+        }
         if args.force {
             eprintln!("convert-params: warning: {}: {e}", args.input.display());
         } else {
@@ -41,6 +62,18 @@ pub fn run(args: Args) -> Result<()> {
             });
         }
     }
+    if let Some((id, _)) = &loaded.signed {
+        // The output is re-encoded; only --sign-key produces a new signature.
+        eprintln!(
+            "convert-params: note: {} is signed by key {id}; the output carries {}",
+            args.input.display(),
+            if args.sign_key.is_some() {
+                "the new signature"
+            } else {
+                "no signature"
+            }
+        );
+    }
     if is_yaml_path(&args.output) {
         write_rig_yaml(&args.output, &rig)?;
         println!(
@@ -50,10 +83,17 @@ pub fn run(args: Args) -> Result<()> {
             rig.cameras.len()
         );
     } else {
-        let blob = rig.to_blob()?;
+        let (blob, signature) = match &args.sign_key {
+            Some(key_path) => {
+                let key = read_secret_key(key_path)?;
+                let id = KeyId::of(&key.verifying_key());
+                (rig.to_signed_blob(&key)?, format!("signed by key {id}"))
+            }
+            None => (rig.to_blob()?, "unsigned".to_string()),
+        };
         write_atomically(&args.output, &blob)?;
         println!(
-            "wrote {} (parameter blob, {} bytes, rig {})",
+            "wrote {} (parameter blob, {} bytes, rig {}, {signature})",
             args.output.display(),
             blob.len(),
             rig.rig_id

@@ -1,5 +1,6 @@
 //! `host-tools push-params`: send a parameter blob (or a converted OpenCV YAML calibration)
-//! to irtrackd and report its verdict (protocol: docs/param-protocol.md).
+//! to irtrackd and report its verdict (protocol: docs/param-protocol.md). With `--sign-key`
+//! the blob is signed first (docs/param-blob.md); an already signed blob file is sent as is.
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
@@ -8,8 +9,9 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, anyhow, bail};
 use irtrack_core::param_wire::{self, MAX_VERDICT_LINE, Verdict};
+use irtrack_core::signing::KeyId;
 
-use crate::opencv_yaml::load_params_any;
+use crate::cmd::keygen::{load_params_file, read_secret_key};
 
 /// Arguments.
 #[derive(clap::Args, Debug)]
@@ -19,6 +21,10 @@ pub struct Args {
     pub to: Option<String>,
     /// Parameter blob or OpenCV YAML calibration (converted before sending).
     pub file: PathBuf,
+    /// Secret key file (from `host-tools keygen`) to sign the blob with. Devices that require
+    /// signed parameters refuse unsigned blobs with UNAUTHORIZED.
+    #[arg(long, value_name = "FILE")]
+    pub sign_key: Option<PathBuf>,
     /// Only load and validate locally; send nothing.
     #[arg(long)]
     pub dry_run: bool,
@@ -129,17 +135,29 @@ pub fn push_blob(to: &str, blob: &[u8], opts: &PushOptions, log: &mut dyn FnMut(
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
     let path = &args.file;
-    let rig = load_params_any(path)?;
+    let loaded = load_params_file(path)?;
+    let rig = loaded.rig;
     rig.validate()
         .with_context(|| format!("{}: parameters are not usable", path.display()))?;
-    let blob = rig.to_blob()?;
-    let crc = irtrack_core::params::BlobHeader::parse(&blob)?.crc32;
+    let (blob, signature) = match (&args.sign_key, loaded.signed) {
+        (Some(key_path), previous) => {
+            let key = read_secret_key(key_path)?;
+            if let Some((old_id, _)) = previous {
+                println!("{}: replacing the signature by key {old_id}", path.display());
+            }
+            let id = KeyId::of(&key.verifying_key());
+            (rig.to_signed_blob(&key)?, format!("signed by key {id}"))
+        }
+        (None, Some((id, bytes))) => (bytes, format!("signed by key {id} (as in the file)")),
+        (None, None) => (rig.to_blob()?, "unsigned".to_string()),
+    };
     println!(
-        "{}: rig {} with {} cameras, blob {} bytes, CRC-32 {crc:08x}: valid",
+        "{}: rig {} with {} cameras, blob {} bytes, params CRC-32 {:08x}, {signature}: valid",
         path.display(),
         rig.rig_id,
         rig.cameras.len(),
-        blob.len()
+        blob.len(),
+        rig.params_crc()?
     );
     if blob.len() > param_wire::MAX_BLOB_BYTES {
         bail!(

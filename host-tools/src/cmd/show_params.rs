@@ -1,18 +1,24 @@
-//! `host-tools show-params FILE`: human-readable dump of a parameter blob or OpenCV YAML.
+//! `host-tools show-params FILE`: human-readable dump of a parameter blob or OpenCV YAML,
+//! with the signature status of a blob (verified against `--trusted-key` files if given).
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
 
 use anyhow::Result;
 use irtrack_core::params::{BlobHeader, RigParams, looks_like_blob};
+use irtrack_core::signing::{self, SignaturePolicy, SignatureStatus};
 
-use crate::opencv_yaml::{iso_utc, load_params_any};
+use crate::cmd::keygen::{load_params_file, read_public_key};
+use crate::opencv_yaml::iso_utc;
 
 /// Arguments.
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// Parameter blob or OpenCV YAML calibration.
     pub file: PathBuf,
+    /// Public key file(s) to verify a signed blob against (repeatable).
+    #[arg(long, value_name = "FILE")]
+    pub trusted_key: Vec<PathBuf>,
 }
 
 /// Adding 0.0 turns -0.0 into 0.0, so exact zeros never print as "-0.000".
@@ -109,20 +115,43 @@ pub fn describe(rig: &RigParams, source: &str) -> Result<String> {
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
-    let rig = load_params_any(&args.file)?;
+    let loaded = load_params_file(&args.file)?;
+    let trusted = args
+        .trusted_key
+        .iter()
+        .map(|p| read_public_key(p))
+        .collect::<Result<Vec<_>>>()?;
     let bytes = std::fs::read(&args.file)?;
-    let source = if looks_like_blob(&bytes) {
-        let h = BlobHeader::parse(&bytes)?;
-        format!(
+    let (source, signature) = if looks_like_blob(&bytes) {
+        let h = BlobHeader::parse_allow_signed(&bytes)?;
+        let source = format!(
             "{} (parameter blob v{}, {} bytes, CRC-32 {:08x})",
             args.file.display(),
             h.version,
             bytes.len(),
             h.crc32
-        )
+        );
+        let signature = match (&loaded.signed, trusted.is_empty()) {
+            (None, _) => "none (unsigned blob)".to_string(),
+            (Some((id, _)), true) => {
+                format!("key {id}, not verified (give --trusted-key FILE to verify)")
+            }
+            (Some(_), false) => {
+                match signing::verify_blob(&bytes, &trusted, SignaturePolicy::RequireSigned) {
+                    Ok((_, SignatureStatus::Signed { key_id })) => format!("key {key_id}, verified"),
+                    Ok((_, SignatureStatus::UnsignedAccepted)) => "none".to_string(),
+                    Err(e) => format!("INVALID: {e}"),
+                }
+            }
+        };
+        (source, Some(signature))
     } else {
-        format!("{} (OpenCV YAML)", args.file.display())
+        (format!("{} (OpenCV YAML)", args.file.display()), None)
     };
-    print!("{}", describe(&rig, &source)?);
+    print!("{}", describe(&loaded.rig, &source)?);
+    if let Some(sig) = signature {
+        println!("signature:    {sig}");
+        println!("params CRC:   {:08x}", loaded.rig.params_crc()?);
+    }
     Ok(())
 }

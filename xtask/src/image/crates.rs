@@ -59,7 +59,10 @@ fn render(crates: &[LockedCrate]) -> String {
          # CI regenerates this file and fails if it differs.\n\n\
          # from Cargo.lock\nSRC_URI += \"",
     );
-    let uris: Vec<String> = crates.iter().map(|c| format!("crate://crates.io/{}/{}", c.name, c.version)).collect();
+    let uris: Vec<String> = crates
+        .iter()
+        .map(|c| format!("crate://crates.io/{}/{}", c.name, c.version))
+        .collect();
     out.push_str(&uris.join(" \\\n    "));
     out.push_str("\"\n\n");
     for c in crates {
@@ -126,7 +129,9 @@ mod tests {
         );
         let inc = render(&crates);
         assert!(
-            inc.contains("SRC_URI += \"crate://crates.io/adler2/2.0.1 \\\n    crate://crates.io/zed/1.0.0\"\n")
+            inc.contains(
+                "SRC_URI += \"crate://crates.io/adler2/2.0.1 \\\n    crate://crates.io/zed/1.0.0\"\n"
+            )
         );
         assert!(inc.contains(&format!("SRC_URI[zed-1.0.0.sha256sum] = \"{SUM}\"\n")));
         assert!(!inc.contains("irtrack-core"));

@@ -500,13 +500,7 @@ fn check_gpio(q: &mut Qemu, status_port: u16, expect_no_params_fault: bool) -> R
     if !(seen[0][0] && seen[0][1]) {
         bail!("run LED (heartbeat) did not toggle in {n} samples");
     }
-    let faults = |j: &Json| -> Vec<String> {
-        j.get("faults")
-            .and_then(Json::as_array)
-            .map(|a| a.iter().filter_map(|f| f.as_str().map(str::to_owned)).collect())
-            .unwrap_or_default()
-    };
-    let (f0, f1) = (faults(&before), faults(&after));
+    let (f0, f1) = (faults_of(&before), faults_of(&after));
     let fault_detail = if expect_no_params_fault {
         if !f0.iter().chain(&f1).any(|f| f == "no_params") {
             bail!("status does not report the no-parameters fault: {f0:?} {f1:?}");
@@ -655,6 +649,80 @@ fn check_stream(port: u16) -> Result<String> {
     Ok(format!(
         "{} records in 3 s, frames advanced by {frames}, capture timestamps span {span_s:.2} s, last status {status}",
         records.len()
+    ))
+}
+
+fn faults_of(j: &Json) -> Vec<String> {
+    j.get("faults")
+        .and_then(Json::as_array)
+        .map(|a| a.iter().filter_map(|f| f.as_str().map(str::to_owned)).collect())
+        .unwrap_or_default()
+}
+
+/// Polls the status until `pred` holds (or the time is up); returns the last document.
+fn wait_status(port: u16, timeout: Duration, pred: impl Fn(&Json) -> bool) -> Result<(Json, bool)> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let s = get_status(port)?;
+        if pred(&s) {
+            return Ok((s, true));
+        }
+        if Instant::now() > deadline {
+            return Ok((s, false));
+        }
+        thread::sleep(Duration::from_millis(250));
+    }
+}
+
+/// Unbinds the second vivid instance (its /dev/video1 disappears under the running stream),
+/// then binds it again: the source must report the loss and reopen the camera by itself.
+fn check_camera_loss(q: &mut Qemu, port: u16) -> Result<String> {
+    let reconnects0 = num(&get_status(port)?, "source.reconnects")?;
+    let t0 = Instant::now();
+    q.console(
+        "echo vivid.1 > /sys/bus/platform/drivers/vivid/unbind",
+        Duration::from_secs(10),
+    )?;
+    let (s, lost) = wait_status(port, Duration::from_secs(10), |s| {
+        faults_of(s).iter().any(|f| f == "camera_lost")
+    })?;
+    if !lost {
+        bail!(
+            "no camera_lost fault after unbinding vivid.1; faults {:?}",
+            faults_of(&s)
+        );
+    }
+    let lost_s = t0.elapsed().as_secs_f64();
+    let t1 = Instant::now();
+    q.console(
+        "echo vivid.1 > /sys/bus/platform/drivers/vivid/bind",
+        Duration::from_secs(10),
+    )?;
+    let (s, back) = wait_status(port, Duration::from_secs(20), |s| {
+        num(s, "source.reconnects").is_ok_and(|r| r > reconnects0)
+            && !faults_of(s).iter().any(|f| f == "camera_lost")
+    })?;
+    if !back {
+        bail!(
+            "camera not reopened within 20 s of binding: reconnects {:?}, faults {:?}",
+            num(&s, "source.reconnects").ok(),
+            faults_of(&s)
+        );
+    }
+    let sets0 = num(&s, "source.sets_delivered")?;
+    let (s2, flowing) = wait_status(port, Duration::from_secs(5), |s| {
+        num(s, "source.sets_delivered").is_ok_and(|n| n > sets0 + 5.0)
+    })?;
+    if !flowing {
+        bail!(
+            "frame sets stopped after reconnecting: {:?}",
+            num(&s2, "source.sets_delivered").ok()
+        );
+    }
+    Ok(format!(
+        "camera_lost reported {lost_s:.1} s after unbind; reopened {:.1} s after bind (reconnects {})",
+        t1.elapsed().as_secs_f64(),
+        num(&s2, "source.reconnects")?
     ))
 }
 
