@@ -196,7 +196,9 @@ impl Verdict {
         }
         if let Some(rest) = line.strip_prefix("OK ") {
             let rig_id = rest.trim();
-            if rig_id.is_empty() || rig_id.contains(char::is_whitespace) {
+            // Control characters too: `to_line` turns them into spaces, so such an id could
+            // not be written back as one word (found by fuzzing).
+            if rig_id.is_empty() || rig_id.contains(|c: char| c.is_whitespace() || c.is_control()) {
                 return Err(bad(format!("bad rig id in verdict {line:?}")));
             }
             return Ok(Verdict::Accepted {
@@ -208,7 +210,13 @@ impl Verdict {
             if code.is_empty() {
                 return Err(bad(format!("verdict {line:?} has no error code")));
             }
-            return Ok(match RejectCode::from_wire(code) {
+            // `UNKNOWN` is what `to_line` writes for an unknown code (raw code first in the
+            // message): read it back as such, or relaying a verdict would stack `UNKNOWN`s.
+            let known = match code {
+                "UNKNOWN" => Some(RejectCode::Unknown),
+                _ => RejectCode::from_wire(code),
+            };
+            return Ok(match known {
                 Some(code) => Verdict::Rejected {
                     code,
                     message: message.to_string(),

@@ -119,8 +119,13 @@ pub struct PositionRecord {
 }
 
 fn write_f64(out: &mut String, v: f64) {
-    // Display of f64 is the shortest exact decimal and never uses an exponent: valid JSON.
-    if v.is_finite() {
+    // Display of f64 is the shortest exact decimal without an exponent: valid JSON, but up to
+    // ~330 digits for very large or tiny magnitudes, which would push the line past
+    // MAX_NDJSON_LINE (found by fuzzing). Those use the shortest exponent form, also valid JSON.
+    let a = v.abs();
+    if v.is_finite() && a != 0.0 && !(1e-6..1e16).contains(&a) {
+        let _ = write!(out, "{v:e}");
+    } else if v.is_finite() {
         let _ = write!(out, "{v}");
     } else {
         out.push_str("null");

@@ -19,4 +19,4 @@ pub use rig::{CameraSpec, RigPreset};
 pub use scenario::{
     BitDepth, Clutter, FrameInfo, FrameTruth, MarkerSpec, MarkerTruth, Scenario, SensorSpec, SimConfig,
 };
-pub use trajectory::Trajectory;
+pub use trajectory::{Orientation, Trajectory};

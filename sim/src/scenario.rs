@@ -18,12 +18,12 @@
 
 use irtrack_core::camera::RigidTransform;
 use irtrack_core::params::RigParams;
-use nalgebra::Vector3;
+use nalgebra::{UnitQuaternion, Vector3};
 
 use crate::SimError;
 use crate::noise::{PixelRng, hash_words, normal_table, unit_from_hash};
 use crate::rig::{CameraSpec, RigPreset, build_rig};
-use crate::trajectory::Trajectory;
+use crate::trajectory::{Orientation, Trajectory};
 
 /// Most markers a scenario may carry (ground truth uses fixed-size storage).
 pub const MAX_MARKERS: usize = 8;
@@ -85,7 +85,9 @@ impl Default for SensorSpec {
 /// One IR LED.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MarkerSpec {
-    /// Offset from the trajectory point (camera 0 frame, mm); markers move rigidly together.
+    /// Offset from the trajectory point, mm: in camera 0's frame without an orientation
+    /// trajectory (markers translate together), in the tool frame with one (the LED's position
+    /// in the tool's definition; the tool turns about the trajectory point).
     pub offset_mm: Vector3<f64>,
     /// Radius of the emitting area (mm).
     pub radius_mm: f64,
@@ -141,6 +143,8 @@ pub struct SimConfig {
     pub rig: RigPreset,
     pub camera: CameraSpec,
     pub trajectory: Trajectory,
+    /// Orientation of the rigid tool the markers belong to; `None`: the markers only translate.
+    pub orientation: Option<Orientation>,
     pub markers: Vec<MarkerSpec>,
     pub sensor: SensorSpec,
     pub clutter: Vec<Clutter>,
@@ -168,6 +172,7 @@ impl SimConfig {
             },
             rig,
             camera: CameraSpec::default(),
+            orientation: None,
             markers: vec![MarkerSpec::default()],
             sensor: SensorSpec::default(),
             clutter: Vec::new(),
@@ -176,6 +181,40 @@ impl SimConfig {
             drop_rate: 0.0,
             seed: 1,
             bit_depth: BitDepth::Eight,
+        }
+    }
+
+    /// Turns the scenario into a rigid multi-LED tool: one marker per LED of `leds_mm` (tool
+    /// frame, mm; marker optics copied from the first marker) and the tool's orientation over
+    /// time. The trajectory then moves the tool frame's origin.
+    pub fn set_tool(&mut self, leds_mm: &[[f64; 3]], orientation: Orientation) {
+        let template = self.markers.first().copied().unwrap_or_default();
+        self.markers = leds_mm
+            .iter()
+            .map(|p| MarkerSpec {
+                offset_mm: Vector3::from(*p),
+                ..template
+            })
+            .collect();
+        self.orientation = Some(orientation);
+    }
+
+    /// Pose of the tool frame at `t_s`: origin and rotation (tool to camera 0).
+    pub fn tool_pose(&self, t_s: f64) -> (Vector3<f64>, UnitQuaternion<f64>) {
+        let q = self
+            .orientation
+            .as_ref()
+            .map_or_else(UnitQuaternion::identity, |o| o.rotation(t_s));
+        (self.trajectory.position(t_s), q)
+    }
+
+    /// Position of `marker` (camera 0 frame) at `t_s`.
+    pub fn marker_position(&self, marker: &MarkerSpec, t_s: f64) -> Vector3<f64> {
+        let origin = self.trajectory.position(t_s);
+        match &self.orientation {
+            // Without a tool the offset is already in camera 0's frame (kept bit-exact).
+            None => origin + marker.offset_mm,
+            Some(o) => origin + o.rotation(t_s) * marker.offset_mm,
         }
     }
 
@@ -219,12 +258,23 @@ pub struct FrameTruth {
     pub t_s: f64,
     pub marker_count: usize,
     pub markers: [MarkerTruth; MAX_MARKERS],
+    /// Tool frame origin (the trajectory point) in camera 0's frame, mm.
+    pub tool_position_mm: Vector3<f64>,
+    /// Tool orientation (tool to camera 0); identity without an orientation trajectory.
+    pub tool_orientation: UnitQuaternion<f64>,
 }
 
 impl FrameTruth {
     /// The markers present in the scenario.
     pub fn markers(&self) -> &[MarkerTruth] {
         &self.markers[..self.marker_count]
+    }
+
+    /// Tool orientation as (w, x, y, z) with w ≥ 0 (the tracker's and RAPID's convention).
+    pub fn tool_quaternion_wxyz(&self) -> [f64; 4] {
+        let q = self.tool_orientation.quaternion();
+        let s = if q.w < 0.0 { -1.0 } else { 1.0 };
+        [s * q.w, s * q.i, s * q.j, s * q.k]
     }
 }
 
@@ -386,6 +436,9 @@ impl Scenario {
             }
         }
         cfg.trajectory.validate()?;
+        if let Some(o) = &cfg.orientation {
+            o.validate()?;
+        }
         let rig = build_rig(&cfg.rig, &cfg.camera)?;
         if rig.cameras.len() > MAX_CAMERAS {
             return bad(
@@ -478,7 +531,7 @@ impl Scenario {
     /// Marker positions (camera 0 frame) and visibility at frame `index`.
     pub fn truth(&self, index: u64) -> FrameTruth {
         let t_s = self.time_s(index);
-        let base = self.cfg.trajectory.position(t_s);
+        let (tool_position_mm, tool_orientation) = self.cfg.tool_pose(t_s);
         let empty = MarkerTruth {
             p_cam0_mm: Vector3::zeros(),
             visible_mask: 0,
@@ -488,9 +541,11 @@ impl Scenario {
             t_s,
             marker_count: self.cfg.markers.len(),
             markers: [empty; MAX_MARKERS],
+            tool_position_mm,
+            tool_orientation,
         };
         for (m, spec) in self.cfg.markers.iter().enumerate() {
-            let p = base + spec.offset_mm;
+            let p = self.cfg.marker_position(spec, t_s);
             let mut mask = 0u32;
             for (i, cam) in self.rig.cameras.iter().enumerate() {
                 let pc = self.poses[i].apply(&p);
@@ -616,7 +671,7 @@ impl Scenario {
                 } else {
                     t_mid + exp * ((k as f64 + 0.5) / steps as f64 - 0.5)
                 };
-                let p_cam = pose.apply(&(self.cfg.trajectory.position(t) + spec.offset_mm));
+                let p_cam = pose.apply(&self.cfg.marker_position(spec, t));
                 let Ok(c) = model.project(&p_cam) else { continue };
                 let dist_mm = p_cam.norm();
                 let sigma = spec.sigma_px(p_cam.z, model.intrinsics.fx_px);
@@ -885,6 +940,62 @@ mod tests {
             flux_e: 1.0,
         });
         assert!(matches!(Scenario::new(cfg), Err(SimError::NoSuchCamera { .. })));
+    }
+
+    #[test]
+    fn rotating_tool_truth_is_rigid_and_rendered_where_projected() {
+        let mut cfg = SimConfig::preset(
+            RigPreset::Convergent {
+                distance_mm: 1000.0,
+                angle_deg: 90.0,
+            },
+            1000.0,
+            60.0,
+        );
+        let leds = [
+            [0.0, 0.0, 0.0],
+            [99.0, 0.0, 0.0],
+            [3.0, 85.0, 0.0],
+            [62.0, 11.0, 32.0],
+        ];
+        cfg.set_tool(
+            &leds,
+            Orientation::Wobble {
+                base: UnitQuaternion::from_euler_angles(0.2, -0.5, 0.8),
+                amplitude_deg: Vector3::new(40.0, 30.0, 50.0),
+                period_s: Vector3::new(1.7, 2.3, 3.1),
+                phase_rad: Vector3::new(0.0, 1.0, 2.0),
+            },
+        );
+        let mut sc = Scenario::new(cfg).unwrap();
+        let (w, h) = sc.image_size();
+        let mut img = vec![0u8; (w * h) as usize];
+        let mut turned_deg: f64 = 0.0;
+        for index in (0..240).step_by(20) {
+            let t = sc.truth(index);
+            assert_eq!(t.marker_count, 4);
+            turned_deg = turned_deg.max(
+                t.tool_orientation
+                    .angle_to(&sc.truth(0).tool_orientation)
+                    .to_degrees(),
+            );
+            for (i, m) in t.markers().iter().enumerate() {
+                let expect = t.tool_position_mm + t.tool_orientation * Vector3::from(leds[i]);
+                assert!((m.p_cam0_mm - expect).norm() < 1e-9);
+            }
+            let q = t.tool_quaternion_wxyz();
+            assert!(q[0] >= 0.0 && (q.iter().map(|v| v * v).sum::<f64>() - 1.0).abs() < 1e-12);
+            for cam in 0..2 {
+                sc.render_u8(index, cam, &mut img).unwrap();
+                for m in t.markers() {
+                    let pc = sc.rig().cameras[cam].cam_from_cam0.apply(&m.p_cam0_mm);
+                    let px = sc.rig().cameras[cam].model.project(&pc).unwrap();
+                    let at = px.y.round() as usize * w as usize + px.x.round() as usize;
+                    assert!(img[at] > 60, "frame {index} cam {cam}: {} at {px:?}", img[at]);
+                }
+            }
+        }
+        assert!(turned_deg > 30.0, "tool turned only {turned_deg}°");
     }
 
     #[test]

@@ -1,6 +1,7 @@
-//! Marker trajectories in camera 0's frame (mm) as functions of time.
+//! Marker trajectories in camera 0's frame (mm) as functions of time, and orientation
+//! trajectories of a rigid multi-LED tool.
 
-use nalgebra::Vector3;
+use nalgebra::{UnitQuaternion, Vector3};
 
 use crate::SimError;
 
@@ -181,9 +182,113 @@ impl Trajectory {
     }
 }
 
+/// How a rigid tool turns over time: `R(t)` maps tool-frame vectors into camera 0's frame.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Orientation {
+    /// A tool that keeps one orientation.
+    Fixed(UnitQuaternion<f64>),
+    /// Smooth turning about the tool's own axes around a base orientation:
+    /// `R(t) = base · Rz(az sin(2πt/Tz + φz)) · Ry(ay sin(2πt/Ty + φy)) · Rx(ax sin(2πt/Tx + φx))`.
+    /// Different periods per axis give a Lissajous-like sweep through orientation space.
+    Wobble {
+        base: UnitQuaternion<f64>,
+        /// Amplitudes about the tool's x, y, z axes (degrees).
+        amplitude_deg: Vector3<f64>,
+        /// Periods per axis (s).
+        period_s: Vector3<f64>,
+        /// Phases per axis (rad).
+        phase_rad: Vector3<f64>,
+    },
+}
+
+impl Orientation {
+    /// Checks parameters once so `rotation` never sees bad values.
+    pub fn validate(&self) -> Result<(), SimError> {
+        let bad = |reason: String| {
+            Err(SimError::Config {
+                field: "orientation",
+                reason,
+            })
+        };
+        match self {
+            Orientation::Fixed(q) if !q.coords.iter().all(|v| v.is_finite()) => {
+                bad(format!("{q:?} is not finite"))
+            }
+            Orientation::Wobble {
+                base,
+                amplitude_deg,
+                period_s,
+                phase_rad,
+            } => {
+                let finite = base
+                    .coords
+                    .iter()
+                    .chain(amplitude_deg.iter())
+                    .chain(phase_rad.iter());
+                if !finite.into_iter().all(|v| v.is_finite()) {
+                    return bad("base, amplitudes and phases must be finite".into());
+                }
+                if !period_s.iter().all(|p| *p > 0.0 && p.is_finite()) {
+                    return bad(format!("periods {period_s:?} must be > 0"));
+                }
+                Ok(())
+            }
+            Orientation::Fixed(_) => Ok(()),
+        }
+    }
+
+    /// Orientation at time `t_s` (tool frame to camera 0 frame).
+    pub fn rotation(&self, t_s: f64) -> UnitQuaternion<f64> {
+        use core::f64::consts::TAU;
+        match self {
+            Orientation::Fixed(q) => *q,
+            Orientation::Wobble {
+                base,
+                amplitude_deg,
+                period_s,
+                phase_rad,
+            } => {
+                let angle =
+                    |k: usize| amplitude_deg[k].to_radians() * (TAU * t_s / period_s[k] + phase_rad[k]).sin();
+                let rx = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), angle(0));
+                let ry = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), angle(1));
+                let rz = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), angle(2));
+                base * rz * ry * rx
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn wobble_stays_within_amplitude_and_repeats() {
+        let base = UnitQuaternion::from_euler_angles(0.3, -0.2, 1.0);
+        let o = Orientation::Wobble {
+            base,
+            amplitude_deg: Vector3::new(20.0, 0.0, 0.0),
+            period_s: Vector3::new(2.0, 3.0, 5.0),
+            phase_rad: Vector3::zeros(),
+        };
+        o.validate().unwrap();
+        assert!(o.rotation(0.0).angle_to(&base) < 1e-12);
+        // Only x turns: the angle from the base is |20° sin(2πt/2)|, largest at t = 0.5 s.
+        assert!((o.rotation(0.5).angle_to(&base).to_degrees() - 20.0).abs() < 1e-9);
+        for i in 0..40 {
+            let t = i as f64 * 0.113;
+            assert!(o.rotation(t).angle_to(&base).to_degrees() <= 20.0 + 1e-9);
+            assert!(o.rotation(t).angle_to(&o.rotation(t + 2.0)) < 1e-9);
+        }
+        let bad = Orientation::Wobble {
+            base,
+            amplitude_deg: Vector3::new(20.0, 0.0, 0.0),
+            period_s: Vector3::new(2.0, 0.0, 5.0),
+            phase_rad: Vector3::zeros(),
+        };
+        assert!(bad.validate().unwrap_err().to_string().contains("orientation"));
+    }
 
     #[test]
     fn circle_stays_on_radius_and_in_plane() {

@@ -335,6 +335,12 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                 open = self.feed.changed(), if self.feed_open => {
                     self.feed_open = open;
                     self.cur = if open { self.feed.latest() } else { None };
+                    if !self.cfg.send_orientation {
+                        // Orientation that is never sent must not hold the robot either.
+                        if let Some(c) = &mut self.cur {
+                            c.orientation_wxyz = None;
+                        }
+                    }
                     Ok(())
                 }
                 r = self.ctl.changed() => {
@@ -524,7 +530,7 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                     changed
                 });
             }
-            Verdict::Send { pos_mm } => {
+            Verdict::Send { pos_mm, quat_wxyz } => {
                 let Some(sample) = self.cur else { return Ok(()) };
                 if s.last_sent_ts_ns == Some(sample.capture_ts_ns) {
                     return Ok(());
@@ -534,7 +540,7 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                     return Ok(());
                 }
                 let seq = robot_proto::seq_next(s.last_sent_seq);
-                let msg = match sample.orientation_wxyz.filter(|_| self.cfg.send_orientation) {
+                let msg = match quat_wxyz {
                     Some(quat_wxyz) => TrackerMsg::Pose {
                         seq,
                         pos_mm,
@@ -543,7 +549,7 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                     None => TrackerMsg::Target { seq, pos_mm },
                 };
                 self.send(s, &msg).await.map_err(End::Lost)?;
-                self.sup.committed(pos_mm, sample.capture_ts_ns);
+                self.sup.committed(pos_mm, quat_wxyz, sample.capture_ts_ns);
                 s.last_sent_seq = seq;
                 s.last_sent_ts_ns = Some(sample.capture_ts_ns);
                 s.holding = None;

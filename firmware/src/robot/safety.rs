@@ -3,7 +3,12 @@
 //!
 //! Rules, checked in this order: operator enable, deadman, marker present, quality (status and
 //! ray gap), sample age, frame (world coordinates), workspace box, step from the previous target
-//! (or from the robot's reported position after an enable), implied speed.
+//! (or from the robot's reported position after an enable), implied speed, and for 6-DOF samples
+//! the orientation (a unit quaternion) and the rotation step from the previous oriented target.
+//!
+//! The robot reports only its TCP position, not its orientation, so the first oriented target
+//! after an enable or a reconnect has no rotation reference; the operator enables with the tool
+//! held at the robot's TCP, and from then on every target is checked against the previous one.
 //!
 //! Transient conditions (deadman, marker lost, poor quality, stale) hold only while they last;
 //! resuming still has to pass the step check against the last target, so the robot never jumps.
@@ -16,6 +21,10 @@ use serde::Deserialize;
 
 fn default_true() -> bool {
     true
+}
+
+fn default_max_rotation_step_deg() -> f64 {
+    10.0
 }
 
 /// `[robot.safety]`: limits of one installation.
@@ -37,6 +46,9 @@ pub struct SafetyConfig {
     /// Only send positions the tracker reports in the registered world (robot) frame.
     #[serde(default = "default_true")]
     pub require_world_frame: bool,
+    /// Largest rotation between consecutive oriented targets (degrees, 6-DOF `Q` targets).
+    #[serde(default = "default_max_rotation_step_deg")]
+    pub max_rotation_step_deg: f64,
 }
 
 impl SafetyConfig {
@@ -60,6 +72,12 @@ impl SafetyConfig {
         pos(self.max_step_mm, "max_step_mm")?;
         pos(self.max_speed_mm_s, "max_speed_mm_s")?;
         pos(self.max_gap_mm, "max_gap_mm")?;
+        if !(self.max_rotation_step_deg > 0.0 && self.max_rotation_step_deg <= 180.0) {
+            return Err(format!(
+                "robot.safety.max_rotation_step_deg = {} must be in (0, 180]",
+                self.max_rotation_step_deg
+            ));
+        }
         if self.max_age_ms == 0 {
             return Err("robot.safety.max_age_ms must be > 0".into());
         }
@@ -97,14 +115,23 @@ impl From<&PositionRecord> for Sample {
 /// Decision for one sample.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Verdict {
-    /// This position may be sent as the next target.
-    Send { pos_mm: [f64; 3] },
+    /// This position (and orientation, for a 6-DOF sample) may be sent as the next target.
+    Send {
+        pos_mm: [f64; 3],
+        quat_wxyz: Option<[f64; 4]>,
+    },
     /// The robot must hold.
     Hold(HoldReason),
 }
 
 fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+/// Angle (degrees) of the rotation between two unit quaternions; q and −q are the same rotation.
+pub fn rotation_between_deg(a: &[f64; 4], b: &[f64; 4]) -> f64 {
+    let dot: f64 = a.iter().zip(b).map(|(x, y)| x * y).sum();
+    (2.0 * dot.abs().min(1.0).acos()).to_degrees()
 }
 
 /// The supervisor's state: armed or not, and the last target that went out.
@@ -116,6 +143,8 @@ pub struct Supervisor {
     latched: Option<HoldReason>,
     /// Last target sent and its capture time; steps and speed are measured from here.
     last_target: Option<([f64; 3], u64)>,
+    /// Orientation of the last target when it was a 6-DOF one; the rotation step reference.
+    last_orientation: Option<[f64; 4]>,
     /// Where the robot reported its TCP; the step reference right after an enable.
     robot_pos_mm: Option<[f64; 3]>,
 }
@@ -128,6 +157,7 @@ impl Supervisor {
             armed: false,
             latched: Some(HoldReason::NotEnabled),
             last_target: None,
+            last_orientation: None,
             robot_pos_mm: None,
         }
     }
@@ -152,6 +182,7 @@ impl Supervisor {
         self.armed = false;
         self.latched = Some(HoldReason::NotEnabled);
         self.last_target = None;
+        self.last_orientation = None;
         self.robot_pos_mm = Some(robot_pos_mm);
     }
 
@@ -166,6 +197,7 @@ impl Supervisor {
         self.armed = true;
         self.latched = None;
         self.last_target = None;
+        self.last_orientation = None;
     }
 
     /// Operator disable or any latched stop.
@@ -230,12 +262,30 @@ impl Supervisor {
                 return Verdict::Hold(HoldReason::TooFast);
             }
         }
-        Verdict::Send { pos_mm: p }
+        if let Some(q) = s.orientation_wxyz {
+            let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+            // The tracker emits unit quaternions; anything else is a corrupt sample.
+            if !(q.iter().all(|v| v.is_finite()) && (norm - 1.0).abs() <= 1e-3) {
+                return Verdict::Hold(HoldReason::PoorQuality);
+            }
+            if let Some(prev) = self.last_orientation
+                && rotation_between_deg(&prev, &q) > self.cfg.max_rotation_step_deg
+            {
+                self.disarm(HoldReason::StepTooLarge);
+                return Verdict::Hold(HoldReason::StepTooLarge);
+            }
+        }
+        Verdict::Send {
+            pos_mm: p,
+            quat_wxyz: s.orientation_wxyz,
+        }
     }
 
-    /// Records that `pos_mm` (captured at `capture_ts_ns`) went out as a target.
-    pub fn committed(&mut self, pos_mm: [f64; 3], capture_ts_ns: u64) {
+    /// Records that `pos_mm` (and `quat_wxyz` for a 6-DOF target), captured at `capture_ts_ns`,
+    /// went out as a target.
+    pub fn committed(&mut self, pos_mm: [f64; 3], quat_wxyz: Option<[f64; 4]>, capture_ts_ns: u64) {
         self.last_target = Some((pos_mm, capture_ts_ns));
+        self.last_orientation = quat_wxyz;
     }
 }
 
@@ -252,6 +302,7 @@ mod tests {
             max_gap_mm: 1.0,
             max_age_ms: 50,
             require_world_frame: true,
+            max_rotation_step_deg: 5.0,
         }
     }
 
@@ -286,7 +337,8 @@ mod tests {
         assert_eq!(
             s.check(&x, 100 * MS, true),
             Verdict::Send {
-                pos_mm: [1.0, 0.0, 100.0]
+                pos_mm: [1.0, 0.0, 100.0],
+                quat_wxyz: None
             }
         );
         s.on_connect([0.0, 0.0, 100.0]);
@@ -352,10 +404,10 @@ mod tests {
             Verdict::Hold(HoldReason::StepTooLarge)
         );
         let mut s = armed();
-        let Verdict::Send { pos_mm } = s.check(&sample(100, [9.0, 0.0, 100.0]), 100 * MS, true) else {
+        let Verdict::Send { pos_mm, .. } = s.check(&sample(100, [9.0, 0.0, 100.0]), 100 * MS, true) else {
             panic!()
         };
-        s.committed(pos_mm, 100 * MS);
+        s.committed(pos_mm, None, 100 * MS);
         // 9 mm in 30 ms = 300 mm/s > 200.
         assert_eq!(
             s.check(&sample(130, [18.0, 0.0, 100.0]), 130 * MS, true),
@@ -384,7 +436,7 @@ mod tests {
     #[test]
     fn resume_after_loss_checks_step_from_last_target() {
         let mut s = armed();
-        s.committed([5.0, 0.0, 100.0], 100 * MS);
+        s.committed([5.0, 0.0, 100.0], None, 100 * MS);
         // Marker reappears 30 mm away: would be a jump.
         assert_eq!(
             s.check(&sample(500, [35.0, 0.0, 100.0]), 500 * MS, true),
@@ -402,6 +454,60 @@ mod tests {
             s.check(&sample(700, [8.0, 0.0, 100.0]), 700 * MS, true),
             Verdict::Send { .. }
         ));
+    }
+
+    #[test]
+    fn rotation_step_latches_and_bad_quaternions_hold() {
+        let mut s = armed();
+        let turn = |deg: f64| {
+            let h = (deg.to_radians() / 2.0).sin_cos();
+            Some([h.1, 0.0, 0.0, h.0])
+        };
+        let oriented = |ts_ms: u64, q: Option<[f64; 4]>| Sample {
+            orientation_wxyz: q,
+            ..sample(ts_ms, [1.0, 0.0, 100.0])
+        };
+        // First oriented target after enable: no rotation reference, sent as a pose.
+        let x = oriented(100, turn(40.0));
+        let Verdict::Send { pos_mm, quat_wxyz } = s.check(&x, 100 * MS, true) else {
+            panic!("first pose not sent")
+        };
+        assert_eq!(quat_wxyz, turn(40.0));
+        s.committed(pos_mm, quat_wxyz, 100 * MS);
+        // 4.5° further: within the 5° limit; the sign of q does not matter.
+        let q = turn(44.5).map(|q| q.map(|v| -v));
+        assert!(matches!(
+            s.check(&oriented(110, q), 110 * MS, true),
+            Verdict::Send { .. }
+        ));
+        s.committed(pos_mm, q, 110 * MS);
+        assert!((rotation_between_deg(&q.unwrap(), &turn(40.0).unwrap()) - 4.5).abs() < 1e-9);
+        // A non-unit or NaN quaternion is poor quality (transient, not latched).
+        assert_eq!(
+            s.check(&oriented(120, Some([0.9, 0.0, 0.0, 0.0])), 120 * MS, true),
+            Verdict::Hold(HoldReason::PoorQuality)
+        );
+        assert_eq!(
+            s.check(&oriented(120, Some([f64::NAN, 0.0, 0.0, 1.0])), 120 * MS, true),
+            Verdict::Hold(HoldReason::PoorQuality)
+        );
+        // 6° from the last target: a rotation jump latches like a position jump.
+        assert_eq!(
+            s.check(&oriented(130, turn(50.5)), 130 * MS, true),
+            Verdict::Hold(HoldReason::StepTooLarge)
+        );
+        assert!(!s.is_armed());
+        assert_eq!(
+            s.check(&oriented(140, turn(44.5)), 140 * MS, true),
+            Verdict::Hold(HoldReason::StepTooLarge)
+        );
+        let e = SafetyConfig {
+            max_rotation_step_deg: 0.0,
+            ..cfg()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(e.contains("max_rotation_step_deg"), "{e}");
     }
 
     #[test]

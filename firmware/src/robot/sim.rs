@@ -6,7 +6,7 @@ use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use irtrack_core::robot_proto::{RobotMsg, SimEvent, SimRobot, SimRobotConfig};
+use irtrack_core::robot_proto::{RobotMsg, SimEvent, SimRobot, SimRobotConfig, TrackerMsg};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::task::JoinHandle;
@@ -53,6 +53,20 @@ pub struct SimRecord {
     pub log: Vec<(f64, u32, SimLog, [f64; 3])>,
     /// (seconds since start, robot TCP), every tick while connected.
     pub trace: Vec<(f64, [f64; 3])>,
+    /// Every well-formed `T`/`Q` target line as received, before the robot model judges it.
+    pub received: Vec<ReceivedTarget>,
+}
+
+/// One target line as it arrived on the wire.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReceivedTarget {
+    /// Seconds since the server started.
+    pub t_s: f64,
+    pub conn: u32,
+    pub seq: u32,
+    pub pos_mm: [f64; 3],
+    /// Orientation of a 6-DOF `Q` target (w, x, y, z); `None` for a position-only `T`.
+    pub quat_wxyz: Option<[f64; 4]>,
 }
 
 /// A running simulated robot server.
@@ -94,6 +108,11 @@ impl SimRobotServer {
         self.record.lock().map(|r| r.log.clone()).unwrap_or_default()
     }
 
+    /// Snapshot of the targets received so far.
+    pub fn received(&self) -> Vec<ReceivedTarget> {
+        self.record.lock().map(|r| r.received.clone()).unwrap_or_default()
+    }
+
     /// Snapshot of the position trace.
     pub fn trace(&self) -> Vec<(f64, [f64; 3])> {
         self.record.lock().map(|r| r.trace.clone()).unwrap_or_default()
@@ -103,6 +122,27 @@ impl SimRobotServer {
 fn push(rec: &Mutex<SimRecord>, t0: Instant, conn: u32, e: SimLog, pos: [f64; 3]) {
     if let Ok(mut r) = rec.lock() {
         r.log.push((t0.elapsed().as_secs_f64(), conn, e, pos));
+    }
+}
+
+fn record_target(rec: &Mutex<SimRecord>, t0: Instant, conn: u32, line: &str) {
+    let (seq, pos_mm, quat_wxyz) = match TrackerMsg::parse(line) {
+        Ok(TrackerMsg::Target { seq, pos_mm }) => (seq, pos_mm, None),
+        Ok(TrackerMsg::Pose {
+            seq,
+            pos_mm,
+            quat_wxyz,
+        }) => (seq, pos_mm, Some(quat_wxyz)),
+        _ => return,
+    };
+    if let Ok(mut r) = rec.lock() {
+        r.received.push(ReceivedTarget {
+            t_s: t0.elapsed().as_secs_f64(),
+            conn,
+            seq,
+            pos_mm,
+            quat_wxyz,
+        });
     }
 }
 
@@ -138,7 +178,10 @@ async fn serve(
     loop {
         let replies = tokio::select! {
             line = lines.next_line() => match line {
-                Ok(Some(l)) => robot.on_line(&l),
+                Ok(Some(l)) => {
+                    record_target(rec, t0, conn, &l);
+                    robot.on_line(&l)
+                }
                 _ => return,
             },
             _ = tick.tick() => {

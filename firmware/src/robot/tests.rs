@@ -29,6 +29,7 @@ fn safety() -> SafetyConfig {
         max_gap_mm: 1.0,
         max_age_ms: 60,
         require_world_frame: true,
+        max_rotation_step_deg: 10.0,
     }
 }
 
