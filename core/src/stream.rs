@@ -13,7 +13,9 @@ use alloc::string::String;
 use core::fmt::Write as _;
 use serde::{Deserialize, Serialize};
 
+use crate::camera::RigidTransform;
 use crate::crc::Crc32;
+use crate::pose6d::{Pose6d, PoseStatus};
 use crate::{Error, Result};
 
 /// Magic of a binary frame.
@@ -118,6 +120,13 @@ pub struct PositionRecord {
     pub params_crc: u32,
 }
 
+/// Quaternion of a rotation matrix by the closed form (a calibrated `world_from_cam0` is
+/// orthonormal to rounding; the caller normalises the product).
+fn quaternion_from_rotation(r: &nalgebra::Matrix3<f64>) -> nalgebra::Quaternion<f64> {
+    let rot = nalgebra::Rotation3::from_matrix_unchecked(*r);
+    nalgebra::UnitQuaternion::from_rotation_matrix(&rot).into_inner()
+}
+
 fn write_f64(out: &mut String, v: f64) {
     // Display of f64 is the shortest exact decimal without an exponent: valid JSON, but up to
     // ~330 digits for very large or tiny magnitudes, which would push the line past
@@ -149,6 +158,57 @@ fn write_array(out: &mut String, vals: Option<&[f64]>) {
 }
 
 impl PositionRecord {
+    /// The record of one 6-DOF frame set: the tool origin and orientation from `pose`
+    /// (camera-0 frame), moved into the world frame when `world_from_cam0` is given.
+    /// `gap_mm` carries the layout fit's RMS residual (the pose's quality figure). Status:
+    /// `Tracked` → `Ok`, `TooFewLeds` → `Lost`, every refusal (ambiguous, residual, step,
+    /// merged LEDs) → `Rejected`. `latency_us` and `params_crc` are left 0 for the caller.
+    pub fn from_pose(
+        frame: u64,
+        capture_ts_ns: u64,
+        pose: &Pose6d,
+        world_from_cam0: Option<&RigidTransform>,
+        cameras_used: u8,
+    ) -> PositionRecord {
+        let status = match pose.status {
+            PoseStatus::Tracked => TrackStatus::Ok,
+            PoseStatus::TooFewLeds { .. } => TrackStatus::Lost,
+            PoseStatus::Ambiguous { .. }
+            | PoseStatus::ResidualTooLarge
+            | PoseStatus::StepTooLarge
+            | PoseStatus::LedsMerged { .. } => TrackStatus::Rejected,
+        };
+        let tracked = status == TrackStatus::Ok;
+        let (position_mm, orientation_wxyz) = match (tracked, world_from_cam0) {
+            (false, _) => (None, None),
+            (true, None) => (Some(pose.position_mm), Some(pose.quaternion_wxyz)),
+            (true, Some(w)) => {
+                let p = w.apply(&nalgebra::Vector3::from(pose.position_mm));
+                let q = pose.quaternion_wxyz;
+                let q_tool = nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]);
+                let q_world = quaternion_from_rotation(&w.rotation()) * q_tool;
+                let n = q_world.norm();
+                let s = if q_world.w < 0.0 { -1.0 / n } else { 1.0 / n };
+                (
+                    Some([p.x, p.y, p.z]),
+                    Some([s * q_world.w, s * q_world.i, s * q_world.j, s * q_world.k]),
+                )
+            }
+        };
+        PositionRecord {
+            frame,
+            capture_ts_ns,
+            position_mm,
+            orientation_wxyz,
+            gap_mm: if tracked { pose.residual_rms_mm } else { f64::NAN },
+            status,
+            cameras_used: if tracked { cameras_used } else { 0 },
+            world_frame: world_from_cam0.is_some(),
+            latency_us: 0,
+            params_crc: 0,
+        }
+    }
+
     /// Appends the NDJSON line (with `\n`) to `out`. Writing into a `String` cannot fail.
     pub fn write_ndjson(&self, out: &mut String) {
         let _ = write!(
@@ -628,6 +688,62 @@ mod tests {
             latency_us: 4321,
             params_crc: 0xDEAD_BEEF,
         }
+    }
+
+    #[test]
+    fn pose_record_in_world_frame() {
+        use crate::pose6d::MAX_TOOL_LEDS;
+        // Tool turned 90° about z in cam0, at (10, 20, 1000); world = cam0 turned 90° about x
+        // and shifted.
+        let h = core::f64::consts::FRAC_1_SQRT_2;
+        let mut pose = Pose6d {
+            status: PoseStatus::Tracked,
+            position_mm: [10.0, 20.0, 1000.0],
+            quaternion_wxyz: [h, 0.0, 0.0, h],
+            r_row_major: [0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            residual_rms_mm: 0.07,
+            residual_max_mm: 0.1,
+            leds_used: 4,
+            led_mask: 0b1111,
+            leds_mm: [[0.0; 3]; MAX_TOOL_LEDS],
+            candidates: 4,
+            hypotheses: 1,
+            resolved_by_continuity: false,
+        };
+        let r = PositionRecord::from_pose(7, 99, &pose, None, 2);
+        assert_eq!(r.position_mm, Some([10.0, 20.0, 1000.0]));
+        assert_eq!(r.orientation_wxyz, Some([h, 0.0, 0.0, h]));
+        assert_eq!(
+            (r.status, r.gap_mm, r.world_frame),
+            (TrackStatus::Ok, 0.07, false)
+        );
+        let world = RigidTransform {
+            r_row_major: [1.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 1.0, 0.0],
+            t_mm: [100.0, 0.0, 50.0],
+        };
+        let r = PositionRecord::from_pose(7, 99, &pose, Some(&world), 2);
+        let p = r.position_mm.unwrap();
+        for (a, b) in p.iter().zip([110.0, -1000.0, 70.0]) {
+            assert!((a - b).abs() < 1e-9, "{p:?}");
+        }
+        // Rx(90°)·Rz(90°) = (w, x, y, z) = (½, ½, −½, ½).
+        let q = r.orientation_wxyz.unwrap();
+        for (v, e) in q.iter().zip([0.5, 0.5, -0.5, 0.5]) {
+            assert!((v - e).abs() < 1e-12, "{q:?}");
+        }
+        assert!(r.world_frame);
+        pose.status = PoseStatus::LedsMerged { led: 1, camera: 0 };
+        let r = PositionRecord::from_pose(8, 99, &pose, Some(&world), 2);
+        assert_eq!(
+            (r.status, r.position_mm, r.orientation_wxyz),
+            (TrackStatus::Rejected, None, None)
+        );
+        assert!(r.gap_mm.is_nan());
+        pose.status = PoseStatus::TooFewLeds { points: 1, needed: 3 };
+        assert_eq!(
+            PositionRecord::from_pose(9, 99, &pose, None, 2).status,
+            TrackStatus::Lost
+        );
     }
 
     #[test]

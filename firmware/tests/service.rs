@@ -240,7 +240,8 @@ async fn led_states_follow_faults_and_tracking() {
     let window: Vec<_> = record.changes()[start..].to_vec();
     let rises = |led: Led| window.iter().filter(|c| c.led == led && c.on).count();
     assert!((1..=2).contains(&rises(Led::Fault)), "fault flashes: {window:?}");
-    assert!((2..=3).contains(&rises(Led::Run)), "heartbeats: {window:?}");
+    // 2 s of heartbeat; a tick delayed by a loaded machine may swallow one 100 ms pulse.
+    assert!((1..=3).contains(&rises(Led::Run)), "heartbeats: {window:?}");
     assert_eq!(rises(Led::Track), 0);
 
     // Params: fault clears, the marker is tracked in both cameras → track LED steady on.
@@ -353,9 +354,15 @@ async fn status_json_and_metrics_report_the_running_service() {
     assert!(st["params"]["rig_id"].as_str().is_some());
     let cams = st["source"]["cameras"].as_array().unwrap();
     assert_eq!(cams.len(), 2);
+    // Delivered-frame rate: the nominal 100 fps unless the (loaded) machine made the source skip.
+    let skipped = st["source"]["sets_dropped"].as_u64().unwrap();
     for c in cams {
         let fps = c["fps"].as_f64().unwrap();
-        assert!((fps - 100.0).abs() < 15.0, "camera fps {fps}");
+        assert!(fps > 0.0 && fps < 115.0, "camera fps {fps}");
+        assert!(
+            skipped > 0 || (fps - 100.0).abs() < 15.0,
+            "camera fps {fps} without skipped sets"
+        );
         assert_eq!(c["width_px"], 640);
     }
     assert!(st["source"]["pairing_error_last_us"].as_f64().is_some());

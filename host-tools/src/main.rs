@@ -38,6 +38,8 @@ enum Command {
     Register(cmd::register::Args),
     /// Create a signing key pair for parameter blobs.
     Keygen(cmd::keygen::Args),
+    /// Measure a multi-LED tool's layout from frames of it held still; adds it to the parameters.
+    MeasureTool(cmd::measure_tool::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -56,5 +58,6 @@ fn main() -> anyhow::Result<()> {
         Command::Path(a) => cmd::path::run(a),
         Command::Register(a) => cmd::register::run(a),
         Command::Keygen(a) => cmd::keygen::run(a),
+        Command::MeasureTool(a) => cmd::measure_tool::run(a),
     }
 }

@@ -45,6 +45,9 @@ pub fn apply_env(ctx: &Ctx, cmd: &mut Command, target_subdir: &str) -> Result<()
         "aarch64-linux-gnu-gcc",
     );
     cmd.env("CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER", runner);
+    // Tests that spawn a target binary (CARGO_BIN_EXE_*) must start it through the same
+    // runner: there is no binfmt_misc registration on CI machines.
+    cmd.env("IRTRACK_TEST_RUNNER", runner);
     // bindgen (v4l2-sys) must parse the aarch64 headers, not the host's.
     cmd.env("BINDGEN_EXTRA_CLANG_ARGS", "--sysroot=/usr/aarch64-linux-gnu");
     cmd.env("CARGO_TARGET_DIR", ctx.target_dir().join(target_subdir));

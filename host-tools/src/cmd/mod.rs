@@ -13,3 +13,4 @@ pub mod record;
 pub mod path;
 pub mod register;
 pub mod keygen;
+pub mod measure_tool;

@@ -5,12 +5,20 @@
 //! (`--resample-mm`) → speed per segment (constant `--speed-mm-s`, or the recorded hand speed
 //! clamped to `--min-speed-mm-s`..`--max-speed-mm-s`) → export as a RAPID module, CSV or JSON.
 //! With `--waypoints-only` only the samples marked in point-teach mode are used.
+//!
+//! Orientation: when every usable sample carries a quaternion (`qw,qx,qy,qz` columns, recorded
+//! from a 6-DOF tool), each point keeps the orientation of its sample (slerp between the two
+//! kept samples when resampling; signs made continuous so interpolation takes the short way)
+//! and it becomes the robtarget's `orient`, and the CSV/JSON exports carry `qw,qx,qy,qz`. The
+//! RAPID tooldata must then define the TCP frame as the tracked tool's frame. Otherwise every
+//! robtarget gets `--orient`.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail, ensure};
 use irtrack_core::filter::{OneEuro3, OneEuroConfig, dist_mm, rdp_indices, resample};
+use nalgebra::{Quaternion, UnitQuaternion};
 
 /// Export format.
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
@@ -82,6 +90,8 @@ pub struct Sample {
     pub t_s: f64,
     pub pos_mm: [f64; 3],
     pub waypoint: bool,
+    /// Tool orientation (w, x, y, z) when recorded from a 6-DOF tool.
+    pub quat_wxyz: Option<[f64; 4]>,
 }
 
 /// One output point with the speed to reach it.
@@ -90,6 +100,8 @@ pub struct PathPoint {
     pub pos_mm: [f64; 3],
     pub t_s: f64,
     pub speed_mm_s: f64,
+    /// Orientation (w, x, y, z, unit) when every sample of the path had one.
+    pub quat_wxyz: Option<[f64; 4]>,
 }
 
 /// Reads valid samples (status ok, position present) from a record CSV.
@@ -112,6 +124,7 @@ pub fn read_record(path: &Path) -> anyhow::Result<Vec<Sample>> {
     let (it, ix, iy, iz) = (col("t_s")?, col("x_mm")?, col("y_mm")?, col("z_mm")?);
     let istatus = names.iter().position(|n| *n == "status");
     let iway = names.iter().position(|n| *n == "waypoint");
+    let iquat = ["qw", "qx", "qy", "qz"].map(|c| names.iter().position(|n| *n == c));
     let mut out = Vec::new();
     for (lineno, line) in lines {
         let c: Vec<&str> = line.split(',').map(str::trim).collect();
@@ -139,10 +152,31 @@ pub fn read_record(path: &Path) -> anyhow::Result<Vec<Sample>> {
             continue;
         };
         let waypoint = iway.is_some_and(|i| c.get(i).is_some_and(|s| *s == "1"));
+        let mut q = [0.0; 4];
+        let mut have_q = true;
+        for (k, (i, name)) in iquat.iter().zip(["qw", "qx", "qy", "qz"]).enumerate() {
+            match i.map(|i| num(i, name)).transpose()?.flatten() {
+                Some(v) => q[k] = v,
+                None => have_q = false,
+            }
+        }
+        let quat_wxyz = if have_q {
+            let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+            ensure!(
+                (n - 1.0).abs() < 1e-3,
+                "{}:{}: quaternion {q:?} is not unit (norm {n})",
+                path.display(),
+                lineno + 1
+            );
+            Some(q.map(|v| v / n))
+        } else {
+            None
+        };
         out.push(Sample {
             t_s: t,
             pos_mm: [x, y, z],
             waypoint,
+            quat_wxyz,
         });
     }
     Ok(out)
@@ -179,9 +213,29 @@ pub fn process(samples: &[Sample], args: &Args) -> anyhow::Result<Vec<PathPoint>
             s.pos_mm = f.filter(s.t_s, s.pos_mm);
         }
     }
+    // Orientation only when every sample has one: a path half with, half without is ambiguous.
+    let oriented = pts.iter().all(|s| s.quat_wxyz.is_some());
+    let mut quats: Vec<UnitQuaternion<f64>> = Vec::with_capacity(pts.len());
+    if oriented {
+        for s in &pts {
+            let q = s.quat_wxyz.unwrap_or([1.0, 0.0, 0.0, 0.0]);
+            let mut q = UnitQuaternion::from_quaternion(Quaternion::new(q[0], q[1], q[2], q[3]));
+            // q and −q are the same rotation; keep neighbours in one hemisphere.
+            if let Some(prev) = quats.last()
+                && prev.coords.dot(&q.coords) < 0.0
+            {
+                q = UnitQuaternion::new_unchecked(-q.into_inner());
+            }
+            quats.push(q);
+        }
+    }
+    let quat_at = |i: usize| oriented.then(|| quats[i]);
     let positions: Vec<[f64; 3]> = pts.iter().map(|s| s.pos_mm).collect();
     let keep = rdp_indices(&positions, args.rdp_tol_mm)?;
-    let mut kept: Vec<(f64, [f64; 3])> = keep.iter().map(|&i| (pts[i].t_s, pts[i].pos_mm)).collect();
+    let mut kept: Vec<(f64, [f64; 3], Option<UnitQuaternion<f64>>)> = keep
+        .iter()
+        .map(|&i| (pts[i].t_s, pts[i].pos_mm, quat_at(i)))
+        .collect();
     if args.resample_mm > 0.0 {
         let poly: Vec<[f64; 3]> = kept.iter().map(|k| k.1).collect();
         let res = resample(&poly, args.resample_mm)?;
@@ -206,17 +260,21 @@ pub fn process(samples: &[Sample], args: &Args) -> anyhow::Result<Vec<PathPoint>
             } else {
                 0.0
             };
-            out.push((kept[seg].0 + f * (kept[seg + 1].0 - kept[seg].0), *p));
+            let q = match (kept[seg].2, kept[seg + 1].2) {
+                (Some(a), Some(b)) => Some(a.slerp(&b, f)),
+                _ => None,
+            };
+            out.push((kept[seg].0 + f * (kept[seg + 1].0 - kept[seg].0), *p, q));
         }
         kept = out;
     }
     let mut path = Vec::with_capacity(kept.len());
-    for (i, &(t, p)) in kept.iter().enumerate() {
+    for (i, &(t, p, q)) in kept.iter().enumerate() {
         let speed = match args.speed_mm_s {
             Some(v) => v,
             None if i == 0 => args.min_speed_mm_s,
             None => {
-                let (t0, p0) = kept[i - 1];
+                let (t0, p0, _) = kept[i - 1];
                 let dt = t - t0;
                 if dt > 0.0 {
                     dist_mm(p, p0) / dt
@@ -229,6 +287,7 @@ pub fn process(samples: &[Sample], args: &Args) -> anyhow::Result<Vec<PathPoint>
             pos_mm: p,
             t_s: t,
             speed_mm_s: speed.clamp(args.min_speed_mm_s, args.max_speed_mm_s),
+            quat_wxyz: q.map(|q| [q.w, q.i, q.j, q.k]),
         });
     }
     Ok(path)
@@ -270,7 +329,7 @@ pub fn to_rapid(path: &[PathPoint], args: &Args, source: &str) -> anyhow::Result
         "{} points exceed 9999 robtargets: raise --rdp-tol-mm or --resample-mm",
         path.len()
     );
-    let q = parse_orient(&args.orient)?;
+    let fixed_q = parse_orient(&args.orient)?;
     let mut speeds: Vec<i64> = path
         .iter()
         .map(|p| p.speed_mm_s.round().max(1.0) as i64)
@@ -286,15 +345,21 @@ pub fn to_rapid(path: &[PathPoint], args: &Args, source: &str) -> anyhow::Result
     )?;
     writeln!(
         s,
-        "    ! {} points, tool {}, work object {}",
+        "    ! {} points, tool {}, work object {}, orientation {}",
         path.len(),
         args.tool,
-        args.wobj
+        args.wobj,
+        if path.iter().all(|p| p.quat_wxyz.is_some()) {
+            "recorded (6-DOF tool)"
+        } else {
+            "fixed (--orient)"
+        }
     )?;
     for v in &speeds {
         writeln!(s, "    CONST speeddata vIr{v} := [{v}, 500, 5000, 1000];")?;
     }
     for (i, p) in path.iter().enumerate() {
+        let q = p.quat_wxyz.unwrap_or(fixed_q);
         writeln!(
             s,
             "    CONST robtarget pIr{:04} := [[{:.2}, {:.2}, {:.2}], [{:.6}, {:.6}, {:.6}, {:.6}], [0, 0, 0, 0], [9E9, 9E9, 9E9, 9E9, 9E9, 9E9]];",
@@ -333,13 +398,23 @@ pub fn to_rapid(path: &[PathPoint], args: &Args, source: &str) -> anyhow::Result
 
 /// CSV export.
 pub fn to_csv(path: &[PathPoint]) -> String {
-    let mut s = String::from("index,x_mm,y_mm,z_mm,speed_mm_s,t_s\n");
+    // Orientation columns only for an oriented path, so every field stays a number.
+    let oriented = !path.is_empty() && path.iter().all(|p| p.quat_wxyz.is_some());
+    let mut s = String::from(if oriented {
+        "index,x_mm,y_mm,z_mm,speed_mm_s,t_s,qw,qx,qy,qz\n"
+    } else {
+        "index,x_mm,y_mm,z_mm,speed_mm_s,t_s\n"
+    });
     for (i, p) in path.iter().enumerate() {
-        let _ = writeln!(
+        let _ = write!(
             s,
             "{i},{:.3},{:.3},{:.3},{:.2},{:.4}",
             p.pos_mm[0], p.pos_mm[1], p.pos_mm[2], p.speed_mm_s, p.t_s
         );
+        if let Some(q) = p.quat_wxyz.filter(|_| oriented) {
+            let _ = write!(s, ",{:.6},{:.6},{:.6},{:.6}", q[0], q[1], q[2], q[3]);
+        }
+        s.push('\n');
     }
     s
 }
@@ -359,9 +434,17 @@ pub fn to_json(path: &[PathPoint], source: &str) -> String {
         }
         let _ = write!(
             s,
-            "{{\"x_mm\":{:.3},\"y_mm\":{:.3},\"z_mm\":{:.3},\"speed_mm_s\":{:.2},\"t_s\":{:.4}}}",
+            "{{\"x_mm\":{:.3},\"y_mm\":{:.3},\"z_mm\":{:.3},\"speed_mm_s\":{:.2},\"t_s\":{:.4}",
             p.pos_mm[0], p.pos_mm[1], p.pos_mm[2], p.speed_mm_s, p.t_s
         );
+        if let Some(q) = p.quat_wxyz {
+            let _ = write!(
+                s,
+                ",\"qw\":{:.6},\"qx\":{:.6},\"qy\":{:.6},\"qz\":{:.6}",
+                q[0], q[1], q[2], q[3]
+            );
+        }
+        s.push('}');
     }
     s.push_str("]}\n");
     s

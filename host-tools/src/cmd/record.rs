@@ -62,7 +62,9 @@ pub struct Summary {
     pub written_rows: u64,
 }
 
-const HEADER: &str = "t_s,frame,capture_ts_ns,x_mm,y_mm,z_mm,gap_mm,status,waypoint";
+/// The orientation columns (6-DOF tools; empty for a single LED) come last so readers that
+/// index the older columns keep working.
+const HEADER: &str = "t_s,frame,capture_ts_ns,x_mm,y_mm,z_mm,gap_mm,status,waypoint,qw,qx,qy,qz";
 
 enum Cmd {
     Mark,
@@ -136,14 +138,18 @@ fn write_row(out: &mut impl Write, t0_ns: u64, r: &PositionRecord, waypoint: boo
     } else {
         String::new()
     };
-    writeln!(
+    write!(
         out,
         "{t:.6},{},{},{x},{y},{z},{gap},{},{}",
         r.frame,
         r.capture_ts_ns,
         r.status.as_str(),
         u8::from(waypoint)
-    )
+    )?;
+    match r.orientation_wxyz.filter(|_| r.position_mm.is_some()) {
+        Some(q) => writeln!(out, ",{:.7},{:.7},{:.7},{:.7}", q[0], q[1], q[2], q[3]),
+        None => writeln!(out, ",,,,"),
+    }
 }
 
 /// Records until the stream ends, the duration elapses, `q` is typed or enough points exist.

@@ -1,16 +1,19 @@
 //! `host-tools simulate`: renders a simulated scenario to a directory (layout in
 //! docs/simulator.md): frames per camera as PGM, the rig as OpenCV YAML and as a parameter
-//! blob, ground truth and per-frame timestamps.
+//! blob, ground truth and per-frame timestamps. With `--tool`, a rigid multi-LED tool turning
+//! about its own axes; its definition is added to the parameters (`RigParams.tools`) and the
+//! truth gives the tool's pose (origin and quaternion).
 
 use std::fmt::Write as _;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
+use irtrack_core::params::ToolDefinition;
 use irtrack_sim::pgm::{write_pgm_u8, write_pgm_u16};
 use irtrack_sim::rig::{TABLE_I_BASELINE_MM, TABLE_I_FOCAL_PX};
-use irtrack_sim::{BitDepth, MarkerSpec, RigPreset, Scenario, SimConfig, Trajectory};
-use nalgebra::Vector3;
+use irtrack_sim::{BitDepth, MarkerSpec, Orientation, RigPreset, Scenario, SimConfig, Trajectory};
+use nalgebra::{UnitQuaternion, Vector3};
 
 /// Preset rig.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -80,12 +83,44 @@ pub struct Args {
     /// (auto-exposure stand-in); brightness still falls with distance along the path.
     #[arg(long, default_value_t = 0.6)]
     pub peak_fraction: f64,
+    /// Render a rigid multi-LED tool instead of `--markers`: `probe4` (4 LEDs, asymmetric,
+    /// non-planar, docs/six-dof.md) or `tri3` (3 LEDs, scalene triangle). The trajectory moves
+    /// the tool's origin (LED 0).
+    #[arg(long)]
+    pub tool: Option<String>,
+    /// With `--tool`: amplitude of the tool's turning about each of its axes (deg); 0 = the
+    /// tool keeps one orientation (e.g. to measure its layout with `measure-tool`).
+    #[arg(long, default_value_t = 30.0)]
+    pub tool_rotation_deg: f64,
     /// Lens without distortion.
     #[arg(long)]
     pub no_distortion: bool,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+}
+
+/// A built-in tool definition by name.
+pub fn builtin_tool(name: &str) -> anyhow::Result<ToolDefinition> {
+    let leds_mm = match name {
+        "probe4" => vec![
+            [0.0, 0.0, 0.0],
+            [99.0, 0.0, 0.0],
+            [3.0, 85.0, 0.0],
+            [62.0, 11.0, 32.0],
+        ],
+        "tri3" => vec![[0.0, 0.0, 0.0], [110.0, 0.0, 0.0], [81.8, 60.0, 0.0]],
+        other => bail!("unknown tool `{other}`: use probe4 or tri3"),
+    };
+    Ok(ToolDefinition {
+        name: name.into(),
+        leds_mm,
+    })
+}
+
+/// The tool the arguments ask for, if any.
+pub fn tool_from_args(a: &Args) -> anyhow::Result<Option<ToolDefinition>> {
+    a.tool.as_deref().map(builtin_tool).transpose()
 }
 
 /// Builds the simulator configuration the arguments describe.
@@ -156,6 +191,26 @@ pub fn config_from_args(a: &Args) -> anyhow::Result<SimConfig> {
             ..base
         })
         .collect();
+    if let Some(tool) = tool_from_args(a)? {
+        if a.markers != 1 {
+            bail!("--tool and --markers exclude each other");
+        }
+        if !(a.tool_rotation_deg.is_finite() && (0.0..=90.0).contains(&a.tool_rotation_deg)) {
+            bail!("--tool-rotation-deg {} must be in 0..=90", a.tool_rotation_deg);
+        }
+        // Tilted so that no two LEDs share an image row at rest; incommensurate periods per
+        // axis sweep the orientation space.
+        let a_deg = a.tool_rotation_deg;
+        cfg.set_tool(
+            &tool.leds_mm,
+            Orientation::Wobble {
+                base: UnitQuaternion::from_euler_angles(0.2, -0.3, 0.4),
+                amplitude_deg: Vector3::new(a_deg, 0.85 * a_deg, 1.3 * a_deg),
+                period_s: Vector3::new(2.0, 2.5, 3.25) * a.period_s,
+                phase_rad: Vector3::new(0.0, 1.0, 2.0),
+            },
+        );
+    }
     if a.glare {
         cfg.add_glare();
     }
@@ -175,6 +230,7 @@ pub fn write_scenario(
     sc: &mut Scenario,
     dir: &Path,
     frames: u64,
+    tool: Option<&ToolDefinition>,
     show_progress: bool,
 ) -> anyhow::Result<WriteSummary> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -190,7 +246,9 @@ pub fn write_scenario(
             }
         }
     }
-    let rig = sc.rig().clone();
+    let mut rig = sc.rig().clone();
+    rig.tools.extend(tool.cloned());
+    rig.validate().context("tool definition")?;
     crate::opencv_yaml::write_rig_yaml(&dir.join("rig.yaml"), &rig)?;
     std::fs::write(dir.join("rig.irp"), rig.to_blob()?).context("writing rig.irp")?;
     std::fs::write(dir.join("scenario.txt"), format!("{:#?}\n", sc.config()))
@@ -200,7 +258,12 @@ pub fn write_scenario(
     let depth = sc.config().bit_depth;
     let mut f8 = vec![0u8; (w * h) as usize];
     let mut f16 = vec![0u16; (w * h) as usize];
-    let mut truth = String::from("frame,t_s,x_mm,y_mm,z_mm,visible\n");
+    // With a tool, the truth is the tool's pose (origin = the trajectory point).
+    let mut truth = String::from(if tool.is_some() {
+        "frame,t_s,x_mm,y_mm,z_mm,visible,qw,qx,qy,qz\n"
+    } else {
+        "frame,t_s,x_mm,y_mm,z_mm,visible\n"
+    });
     let multi = sc.config().markers.len() > 1;
     let mut markers = String::from("frame,marker,x_mm,y_mm,z_mm,visible\n");
     let mut stamps = String::from("frame,camera,timestamp_ns,dropped\n");
@@ -219,7 +282,16 @@ pub fn write_scenario(
         for (m, mt) in t.markers().iter().enumerate() {
             let p = mt.p_cam0_mm;
             let vis = mt.visible_in_all(n_cam) as u8;
-            if m == 0 {
+            if m == 0 && tool.is_some() {
+                let o = t.tool_position_mm;
+                let all = t.markers().iter().all(|m| m.visible_in_all(n_cam)) as u8;
+                let q = t.tool_quaternion_wxyz();
+                let _ = writeln!(
+                    truth,
+                    "{index},{:.9},{:.6},{:.6},{:.6},{all},{:.9},{:.9},{:.9},{:.9}",
+                    t.t_s, o.x, o.y, o.z, q[0], q[1], q[2], q[3]
+                );
+            } else if m == 0 {
                 let _ = writeln!(
                     truth,
                     "{index},{:.9},{:.6},{:.6},{:.6},{vis}",
@@ -265,8 +337,9 @@ pub fn write_scenario(
 /// Runs the subcommand.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let cfg = config_from_args(&args)?;
+    let tool = tool_from_args(&args)?;
     let mut sc = Scenario::new(cfg)?;
-    let s = write_scenario(&mut sc, &args.out, args.frames, !args.quiet)?;
+    let s = write_scenario(&mut sc, &args.out, args.frames, tool.as_ref(), !args.quiet)?;
     println!(
         "wrote {} frames x {} cameras ({} images, {} dropped) to {}",
         s.frames,
