@@ -224,10 +224,6 @@ async fn rotating_tool_tracked_in_6dof_to_the_simulated_robot() {
         tx.send(Some(rec)).unwrap();
         if rec.status == TrackStatus::Ok {
             let (truth_pos_mm, truth_q) = truth_world(&truth);
-            if k % 97 == 0 {
-                let e = quaternion_angle_rad(&rec.orientation_wxyz.unwrap(), &wxyz(&truth_q)).to_degrees();
-                eprintln!("DBG {k} rec-vs-truth {e:.4} pose {:?} truth {:?} rec {:?}", pose.quaternion_wxyz, truth.tool_quaternion_wxyz(), rec.orientation_wxyz);
-            }
             published.push(Published {
                 pos_mm: rec.position_mm.unwrap(),
                 truth_pos_mm,
@@ -256,7 +252,12 @@ async fn rotating_tool_tracked_in_6dof_to_the_simulated_robot() {
     let (mut max_rot_step, mut max_step) = (0.0f64, 0.0f64);
     let mut prev: Option<([f64; 3], [f64; 4])> = None;
     for r in &received {
+        // Six decimals per component leave |q| off 1 by up to ~1e-6, which would read as
+        // 0.1° in acos(|q·q'|); the robot normalises (RAPID NOrient), and so does this check.
         let q = r.quat_wxyz.expect("6-DOF target sent as a Q line");
+        let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        assert!((n - 1.0).abs() < 1e-5, "received quaternion {q:?} not unit");
+        let q = q.map(|v| v / n);
         let p = Vector3::from(r.pos_mm);
         let best = published
             .iter()

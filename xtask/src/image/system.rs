@@ -488,11 +488,11 @@ fn parse_debugfs_gpio(text: &str, label: &str, consumer: &str) -> Vec<GpioLine> 
 fn check_gpio(q: &mut Qemu, status_port: u16, expect_no_params_fault: bool) -> Result<String> {
     let before = get_status(status_port)?;
     let samples = 30;
+    // A script on the image loops over gpiolib's debugfs view (a loop typed into the piped
+    // console shell would only run once the next line arrives).
     let out = q.console(
-        &format!(
-            "for i in $(seq {samples}); do echo SAMPLE; grep -A9 9030000.pl061 /sys/kernel/debug/gpio; sleep 0.1; done"
-        ),
-        Duration::from_secs(30),
+        &format!("irtrack-gpio-sample 9030000.pl061 {samples}"),
+        Duration::from_secs(40),
     )?;
     let after = get_status(status_port)?;
     let mut seen = [[false; 2]; 4];
