@@ -21,7 +21,9 @@ pub struct Intrinsics {
 impl Intrinsics {
     /// The 3×3 camera matrix K.
     pub fn matrix(&self) -> Matrix3<f64> {
-        Matrix3::new(self.fx_px, 0.0, self.cx_px, 0.0, self.fy_px, self.cy_px, 0.0, 0.0, 1.0)
+        Matrix3::new(
+            self.fx_px, 0.0, self.cx_px, 0.0, self.fy_px, self.cy_px, 0.0, 0.0, 1.0,
+        )
     }
 }
 
@@ -37,7 +39,13 @@ pub struct Distortion {
 
 impl Distortion {
     /// No distortion.
-    pub const NONE: Distortion = Distortion { k1: 0.0, k2: 0.0, p1: 0.0, p2: 0.0, k3: 0.0 };
+    pub const NONE: Distortion = Distortion {
+        k1: 0.0,
+        k2: 0.0,
+        p1: 0.0,
+        p2: 0.0,
+        k3: 0.0,
+    };
 
     /// Coefficients as OpenCV's 1×5 vector.
     pub fn as_array(&self) -> [f64; 5] {
@@ -56,7 +64,13 @@ impl Distortion {
                 reason: "only k1,k2,p1,p2,k3 are supported; rational/thin-prism terms must be zero".into(),
             });
         }
-        Ok(Distortion { k1: d[0], k2: d[1], p1: d[2], p2: d[3], k3: d.get(4).copied().unwrap_or(0.0) })
+        Ok(Distortion {
+            k1: d[0],
+            k2: d[1],
+            p1: d[2],
+            p2: d[3],
+            k3: d.get(4).copied().unwrap_or(0.0),
+        })
     }
 
     /// Apply distortion to a normalized, undistorted point.
@@ -96,7 +110,10 @@ impl CameraModel {
     /// Points at or behind the image plane are an error, never NaN.
     pub fn project(&self, p_cam_mm: &Vector3<f64>) -> Result<Vector2<f64>> {
         if !(p_cam_mm.z > 0.0) || !p_cam_mm.iter().all(|v| v.is_finite()) {
-            return Err(Error::BehindCamera { camera: 0, z_mm: p_cam_mm.z });
+            return Err(Error::BehindCamera {
+                camera: 0,
+                z_mm: p_cam_mm.z,
+            });
         }
         let x = p_cam_mm.x / p_cam_mm.z;
         let y = p_cam_mm.y / p_cam_mm.z;
@@ -161,8 +178,10 @@ pub struct RigidTransform {
 }
 
 impl RigidTransform {
-    pub const IDENTITY: RigidTransform =
-        RigidTransform { r_row_major: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], t_mm: [0.0; 3] };
+    pub const IDENTITY: RigidTransform = RigidTransform {
+        r_row_major: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        t_mm: [0.0; 3],
+    };
 
     pub fn from_parts(r: &Matrix3<f64>, t_mm: &Vector3<f64>) -> Self {
         let mut r_row_major = [0.0; 9];
@@ -171,7 +190,10 @@ impl RigidTransform {
                 r_row_major[i * 3 + j] = r[(i, j)];
             }
         }
-        RigidTransform { r_row_major, t_mm: [t_mm.x, t_mm.y, t_mm.z] }
+        RigidTransform {
+            r_row_major,
+            t_mm: [t_mm.x, t_mm.y, t_mm.z],
+        }
     }
 
     pub fn rotation(&self) -> Matrix3<f64> {
@@ -215,9 +237,23 @@ mod tests {
 
     fn vga() -> CameraModel {
         CameraModel {
-            intrinsics: Intrinsics { fx_px: 680.0, fy_px: 681.0, cx_px: 320.5, cy_px: 239.5 },
-            distortion: Distortion { k1: -0.28, k2: 0.09, p1: 0.001, p2: -0.0005, k3: -0.01 },
-            image_size: ImageSize { width_px: 640, height_px: 480 },
+            intrinsics: Intrinsics {
+                fx_px: 680.0,
+                fy_px: 681.0,
+                cx_px: 320.5,
+                cy_px: 239.5,
+            },
+            distortion: Distortion {
+                k1: -0.28,
+                k2: 0.09,
+                p1: 0.001,
+                p2: -0.0005,
+                k3: -0.01,
+            },
+            image_size: ImageSize {
+                width_px: 640,
+                height_px: 480,
+            },
         }
     }
 
@@ -227,15 +263,24 @@ mod tests {
         for &(x, y) in &[(0.0, 0.0), (0.3, -0.2), (-0.45, 0.33), (0.1, 0.35)] {
             let px = cam.normalized_to_pixel(x, y);
             let back = cam.undistort_point(px.x, px.y);
-            assert!((back.x - x).abs() < 1e-10 && (back.y - y).abs() < 1e-10, "{x},{y} -> {back:?}");
+            assert!(
+                (back.x - x).abs() < 1e-10 && (back.y - y).abs() < 1e-10,
+                "{x},{y} -> {back:?}"
+            );
         }
     }
 
     #[test]
     fn behind_camera_is_an_error() {
         let cam = vga();
-        assert!(matches!(cam.project(&Vector3::new(1.0, 2.0, -5.0)), Err(Error::BehindCamera { .. })));
-        assert!(matches!(cam.project(&Vector3::new(1.0, 2.0, 0.0)), Err(Error::BehindCamera { .. })));
+        assert!(matches!(
+            cam.project(&Vector3::new(1.0, 2.0, -5.0)),
+            Err(Error::BehindCamera { .. })
+        ));
+        assert!(matches!(
+            cam.project(&Vector3::new(1.0, 2.0, 0.0)),
+            Err(Error::BehindCamera { .. })
+        ));
         assert!(cam.project(&Vector3::new(f64::NAN, 0.0, 1.0)).is_err());
     }
 

@@ -85,14 +85,22 @@ pub fn midpoint(a: &Ray, b: &Ray) -> Result<Midpoint> {
     if !point_mm.iter().all(|v| v.is_finite()) {
         return Err(Error::Degenerate { what: "midpoint" });
     }
-    Ok(Midpoint { point_mm, gap_mm: (pa - pb).norm(), range_mm: [s, t], angle_rad })
+    Ok(Midpoint {
+        point_mm,
+        gap_mm: (pa - pb).norm(),
+        range_mm: [s, t],
+        angle_rad,
+    })
 }
 
 /// N-view linear least squares: the point minimising the sum of squared perpendicular
 /// distances to all rays. Returns the point and the RMS distance of the rays from it.
 pub fn least_squares_rays(rays: &[Ray]) -> Result<(Vector3<f64>, f64)> {
     if rays.len() < 2 {
-        return Err(Error::TooFewViews { needed: 2, got: rays.len() });
+        return Err(Error::TooFewViews {
+            needed: 2,
+            got: rays.len(),
+        });
     }
     let mut a = Matrix3::zeros();
     let mut b = Vector3::zeros();
@@ -105,15 +113,22 @@ pub fn least_squares_rays(rays: &[Ray]) -> Result<(Vector3<f64>, f64)> {
     let eig = a.symmetric_eigenvalues();
     let (min, max) = (eig.min(), eig.max());
     if !(min > max * MIN_RAY_ANGLE_RAD * MIN_RAY_ANGLE_RAD) {
-        return Err(Error::ParallelRays { angle_rad: libm::sqrt((min / max).max(0.0)) });
+        return Err(Error::ParallelRays {
+            angle_rad: libm::sqrt((min / max).max(0.0)),
+        });
     }
-    let p = a.try_inverse().ok_or(Error::Degenerate { what: "least-squares normal matrix" })? * b;
+    let p = a.try_inverse().ok_or(Error::Degenerate {
+        what: "least-squares normal matrix",
+    })? * b;
     let mut sum2 = 0.0;
     for (i, r) in rays.iter().enumerate() {
         let v = p - r.origin_mm;
         let along = v.dot(&r.dir);
         if !(along > 0.0) {
-            return Err(Error::BehindCamera { camera: i, z_mm: along });
+            return Err(Error::BehindCamera {
+                camera: i,
+                z_mm: along,
+            });
         }
         sum2 += (v - r.dir * along).norm_squared();
     }
@@ -125,7 +140,10 @@ pub fn least_squares_rays(rays: &[Ray]) -> Result<(Vector3<f64>, f64)> {
 /// normalized). Used to cross-check against OpenCV; the midpoint is what the tracker runs.
 pub fn dlt(views: &[(RigidTransform, Vector2<f64>)]) -> Result<Vector3<f64>> {
     if views.len() < 2 {
-        return Err(Error::TooFewViews { needed: 2, got: views.len() });
+        return Err(Error::TooFewViews {
+            needed: 2,
+            got: views.len(),
+        });
     }
     // SVD of the 2N×4 system itself, as OpenCV does: forming AᵀA squares the condition
     // number and its eigenvectors for the near-zero eigenvalue are unreliable.
@@ -148,7 +166,9 @@ pub fn dlt(views: &[(RigidTransform, Vector2<f64>)]) -> Result<Vector3<f64>> {
     }
     let h = v_t.row(imin);
     if !(libm::fabs(h[3]) > 1e-12 * h.norm()) {
-        return Err(Error::Degenerate { what: "DLT point at infinity" });
+        return Err(Error::Degenerate {
+            what: "DLT point at infinity",
+        });
     }
     let p = Vector3::new(h[0] / h[3], h[1] / h[3], h[2] / h[3]);
     for (i, (pose, _)) in views.iter().enumerate() {
@@ -168,9 +188,23 @@ mod tests {
 
     fn cam() -> CameraModel {
         CameraModel {
-            intrinsics: Intrinsics { fx_px: 680.0, fy_px: 680.0, cx_px: 320.0, cy_px: 240.0 },
-            distortion: Distortion { k1: -0.2, k2: 0.05, p1: 0.0, p2: 0.0, k3: 0.0 },
-            image_size: ImageSize { width_px: 640, height_px: 480 },
+            intrinsics: Intrinsics {
+                fx_px: 680.0,
+                fy_px: 680.0,
+                cx_px: 320.0,
+                cy_px: 240.0,
+            },
+            distortion: Distortion {
+                k1: -0.2,
+                k2: 0.05,
+                p1: 0.0,
+                p2: 0.0,
+                k3: 0.0,
+            },
+            image_size: ImageSize {
+                width_px: 640,
+                height_px: 480,
+            },
         }
     }
 
@@ -198,15 +232,25 @@ mod tests {
         let c = cam();
         let p0 = RigidTransform::IDENTITY;
         let p1 = orthogonal_pose(1000.0);
-        for p in [Vector3::new(0.0, 0.0, 1000.0), Vector3::new(50.0, -80.0, 950.0), Vector3::new(-120.0, 60.0, 1100.0)] {
+        for p in [
+            Vector3::new(0.0, 0.0, 1000.0),
+            Vector3::new(50.0, -80.0, 950.0),
+            Vector3::new(-120.0, 60.0, 1100.0),
+        ] {
             let m = midpoint(&observe(&c, &p0, &p), &observe(&c, &p1, &p)).unwrap();
             assert!((m.point_mm - p).norm() < 1e-7, "{p:?} -> {:?}", m.point_mm);
             assert!(m.gap_mm < 1e-7);
             assert!((m.angle_rad.to_degrees() - 90.0).abs() < 15.0);
             let (q, rms) = least_squares_rays(&[observe(&c, &p0, &p), observe(&c, &p1, &p)]).unwrap();
             assert!((q - p).norm() < 1e-7 && rms < 1e-7);
-            let n0 = c.undistort_point(c.project(&p0.apply(&p)).unwrap().x, c.project(&p0.apply(&p)).unwrap().y);
-            let n1 = c.undistort_point(c.project(&p1.apply(&p)).unwrap().x, c.project(&p1.apply(&p)).unwrap().y);
+            let n0 = c.undistort_point(
+                c.project(&p0.apply(&p)).unwrap().x,
+                c.project(&p0.apply(&p)).unwrap().y,
+            );
+            let n1 = c.undistort_point(
+                c.project(&p1.apply(&p)).unwrap().x,
+                c.project(&p1.apply(&p)).unwrap().y,
+            );
             let d = dlt(&[(p0, n0), (p1, n1)]).unwrap();
             assert!((d - p).norm() < 1e-6, "dlt {d:?}");
         }
@@ -221,32 +265,60 @@ mod tests {
         let c1 = target + r.transpose() * Vector3::new(0.0, 0.0, -800.0);
         let pose1 = RigidTransform::from_parts(&r, &(-(r * c1)));
         let p = Vector3::new(20.0, 10.0, 790.0);
-        let m = midpoint(&observe(&c, &RigidTransform::IDENTITY, &p), &observe(&c, &pose1, &p)).unwrap();
+        let m = midpoint(
+            &observe(&c, &RigidTransform::IDENTITY, &p),
+            &observe(&c, &pose1, &p),
+        )
+        .unwrap();
         assert!((m.point_mm - p).norm() < 1e-7);
         assert!(m.angle_rad.to_degrees() > 100.0);
     }
 
     #[test]
     fn parallel_rays_are_an_error_not_nan() {
-        let a = Ray { origin_mm: Vector3::zeros(), dir: Vector3::z() };
-        let b = Ray { origin_mm: Vector3::new(100.0, 0.0, 0.0), dir: Vector3::z() };
+        let a = Ray {
+            origin_mm: Vector3::zeros(),
+            dir: Vector3::z(),
+        };
+        let b = Ray {
+            origin_mm: Vector3::new(100.0, 0.0, 0.0),
+            dir: Vector3::z(),
+        };
         assert!(matches!(midpoint(&a, &b), Err(Error::ParallelRays { .. })));
-        assert!(matches!(least_squares_rays(&[a, b]), Err(Error::ParallelRays { .. })));
+        assert!(matches!(
+            least_squares_rays(&[a, b]),
+            Err(Error::ParallelRays { .. })
+        ));
     }
 
     #[test]
     fn point_behind_camera_is_an_error() {
         // Rays diverge: they meet only behind the origins.
-        let a = Ray { origin_mm: Vector3::zeros(), dir: Vector3::new(-0.1, 0.0, 1.0).normalize() };
-        let b = Ray { origin_mm: Vector3::new(100.0, 0.0, 0.0), dir: Vector3::new(0.1, 0.0, 1.0).normalize() };
+        let a = Ray {
+            origin_mm: Vector3::zeros(),
+            dir: Vector3::new(-0.1, 0.0, 1.0).normalize(),
+        };
+        let b = Ray {
+            origin_mm: Vector3::new(100.0, 0.0, 0.0),
+            dir: Vector3::new(0.1, 0.0, 1.0).normalize(),
+        };
         assert!(matches!(midpoint(&a, &b), Err(Error::BehindCamera { .. })));
     }
 
     #[test]
     fn gap_measures_skew_rays() {
-        let a = Ray { origin_mm: Vector3::zeros(), dir: Vector3::z() };
-        let b = Ray { origin_mm: Vector3::new(0.0, 5.0, 1000.0), dir: Vector3::x() };
-        let b = Ray { origin_mm: b.origin_mm - b.dir * 500.0, ..b };
+        let a = Ray {
+            origin_mm: Vector3::zeros(),
+            dir: Vector3::z(),
+        };
+        let b = Ray {
+            origin_mm: Vector3::new(0.0, 5.0, 1000.0),
+            dir: Vector3::x(),
+        };
+        let b = Ray {
+            origin_mm: b.origin_mm - b.dir * 500.0,
+            ..b
+        };
         let m = midpoint(&a, &b).unwrap();
         assert!((m.gap_mm - 5.0).abs() < 1e-9);
         assert!((m.point_mm - Vector3::new(0.0, 2.5, 1000.0)).norm() < 1e-9);

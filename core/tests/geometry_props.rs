@@ -7,9 +7,23 @@ use proptest::prelude::*;
 
 fn camera(fx: f64, k1: f64, k2: f64, p1: f64, p2: f64) -> CameraModel {
     CameraModel {
-        intrinsics: Intrinsics { fx_px: fx, fy_px: fx * 1.002, cx_px: 321.3, cy_px: 238.7 },
-        distortion: Distortion { k1, k2, p1, p2, k3: 0.0 },
-        image_size: ImageSize { width_px: 640, height_px: 480 },
+        intrinsics: Intrinsics {
+            fx_px: fx,
+            fy_px: fx * 1.002,
+            cx_px: 321.3,
+            cy_px: 238.7,
+        },
+        distortion: Distortion {
+            k1,
+            k2,
+            p1,
+            p2,
+            k3: 0.0,
+        },
+        image_size: ImageSize {
+            width_px: 640,
+            height_px: 480,
+        },
     }
 }
 

@@ -16,6 +16,7 @@ pub mod net;
 pub mod params;
 pub mod robot;
 pub mod rt;
+pub mod soak;
 pub mod source;
 pub mod status;
 pub mod storage;

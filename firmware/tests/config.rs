@@ -91,8 +91,19 @@ fn bad_configs_name_the_problem() {
     );
 }
 
+/// The binary under test; cross-built test runs set `IRTRACK_TEST_RUNNER` (e.g.
+/// `qemu-aarch64 -L /`) because a foreign binary cannot be executed directly.
 fn irtrackd() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_irtrackd"))
+    let exe = env!("CARGO_BIN_EXE_irtrackd");
+    match std::env::var("IRTRACK_TEST_RUNNER") {
+        Ok(runner) if !runner.trim().is_empty() => {
+            let mut parts = runner.split_whitespace();
+            let mut cmd = Command::new(parts.next().unwrap());
+            cmd.args(parts).arg(exe);
+            cmd
+        }
+        _ => Command::new(exe),
+    }
 }
 
 #[test]

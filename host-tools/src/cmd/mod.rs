@@ -1,16 +1,16 @@
 //! One module per subcommand; each has `Args` (clap) and `run`.
 
-pub mod simulate;
-pub mod track;
-pub mod plan;
 pub mod accuracy;
 pub mod calibrate;
-pub mod push_params;
-pub mod show_params;
 pub mod convert_params;
-pub mod robot_sim;
-pub mod record;
-pub mod path;
-pub mod register;
 pub mod keygen;
 pub mod measure_tool;
+pub mod path;
+pub mod plan;
+pub mod push_params;
+pub mod record;
+pub mod register;
+pub mod robot_sim;
+pub mod show_params;
+pub mod simulate;
+pub mod track;
