@@ -67,7 +67,8 @@ pub struct Running {
     loop_thread: Option<std::thread::JoinHandle<()>>,
     loop_result: Option<oneshot::Receiver<Result<()>>>,
     leds: Option<LedDriver>,
-    robot: Option<TcpRobotLink>,
+    /// Shared only weakly with the status endpoint's control requests.
+    robot: Option<Arc<TcpRobotLink>>,
     /// Software deadman for `[robot.deadman] kind = "flag"` (set by a control front end).
     pub robot_deadman_flag: FlagDeadman,
     shutdown_tx: watch::Sender<bool>,
@@ -262,7 +263,6 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
             hub,
             shutdown(),
         )),
-        tokio::spawn(crate::net::status::serve(l_status, status.clone(), shutdown())),
     ];
 
     // Robot link: consumes the same latest-value slot; its state drives the Robot LED.
@@ -284,9 +284,24 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
                 }
             }));
             tracing::info!(address = %rc.address, "robot link started (motion needs an explicit enable)");
-            Some(link)
+            Some(Arc::new(link))
         }
     };
+    let control = crate::net::status::RobotControl {
+        allowed: cfg.service.control,
+        link: robot.as_ref().map(Arc::downgrade),
+        deadman_flag: cfg
+            .robot
+            .as_ref()
+            .filter(|rc| rc.deadman == crate::robot::deadman::DeadmanConfig::Flag)
+            .map(|_| robot_deadman_flag.clone()),
+    };
+    tasks.push(tokio::spawn(crate::net::status::serve_with_control(
+        l_status,
+        status.clone(),
+        control,
+        shutdown(),
+    )));
 
     Ok(Running {
         addrs,
@@ -327,13 +342,25 @@ impl Running {
 
     /// The robot link, when `[robot]` is configured (enable/disable/status via `RobotLink`).
     pub fn robot(&self) -> Option<&TcpRobotLink> {
-        self.robot.as_ref()
+        self.robot.as_deref()
     }
 
     /// Stops the robot link (hold + BYE first), services, loop and LEDs (LEDs end off).
     pub async fn shutdown(mut self) {
-        if let Some(link) = self.robot.take() {
-            link.shutdown().await;
+        if let Some(mut link) = self.robot.take() {
+            // A control request may hold the link for a moment; wait for it to finish.
+            for _ in 0..100 {
+                match Arc::try_unwrap(link) {
+                    Ok(owned) => {
+                        owned.shutdown().await;
+                        break;
+                    }
+                    Err(shared) => {
+                        link = shared;
+                        tokio::time::sleep(Duration::from_millis(10)).await;
+                    }
+                }
+            }
         }
         let _ = self.shutdown_tx.send(true);
         for t in self.tasks.drain(..) {

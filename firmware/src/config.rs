@@ -50,6 +50,10 @@ pub struct ServiceConfig {
     /// stored (demo convenience; off by default so the no-parameters fault stays visible).
     #[serde(default)]
     pub params_from_simulator: bool,
+    /// Accept robot control requests (`POST /robot/...`) on the status port. Whoever can reach
+    /// that port can then enable motion, so it is off by default (docs/security.md).
+    #[serde(default)]
+    pub control: bool,
 }
 
 fn default_state_dir() -> PathBuf {
@@ -64,6 +68,7 @@ impl Default for ServiceConfig {
         Self {
             state_dir: default_state_dir(),
             params_from_simulator: false,
+            control: false,
         }
     }
 }

@@ -478,3 +478,67 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        path: Args,
+    }
+
+    #[test]
+    fn recorded_orientation_reaches_robtargets_csv_and_json() {
+        let dir = std::env::temp_dir().join(format!("irtrack-path-orient-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let rec = dir.join("rec.csv");
+        // 0..90° about z along a 100 mm line, stored with alternating quaternion signs.
+        let mut text =
+            String::from("t_s,frame,capture_ts_ns,x_mm,y_mm,z_mm,gap_mm,status,waypoint,qw,qx,qy,qz\n");
+        for i in 0..=10 {
+            let a = (9.0 * i as f64).to_radians() / 2.0;
+            let s = if i % 2 == 0 { 1.0 } else { -1.0 };
+            text += &format!(
+                "{},{i},0,{},0,500,0.05,ok,0,{},0,0,{}\n",
+                0.1 * i as f64,
+                10.0 * i as f64,
+                s * a.cos(),
+                s * a.sin()
+            );
+        }
+        std::fs::write(&rec, text).unwrap();
+        let samples = read_record(&rec).unwrap();
+        assert!(samples.iter().all(|s| s.quat_wxyz.is_some()));
+        let out = dir.join("p.mod");
+        let mut args = Cli::parse_from(["x", rec.to_str().unwrap(), "--out", out.to_str().unwrap()]).path;
+        args.resample_mm = 25.0;
+        let path = process(&samples, &args).unwrap();
+        // Resampled at 25 mm: the point at 25 mm is a quarter of the way through 90°.
+        let q = path[1].quat_wxyz.unwrap();
+        let deg = 2.0 * q[3].atan2(q[0]).to_degrees();
+        assert!((deg - 22.5).abs() < 1e-6, "{q:?} is {deg}°");
+        let rapid = to_rapid(&path, &args, "rec.csv").unwrap();
+        assert!(rapid.contains("orientation recorded"), "{rapid}");
+        let last = path.last().unwrap().quat_wxyz.unwrap();
+        assert!(rapid.contains(&format!(
+            "[{:.6}, {:.6}, {:.6}, {:.6}]",
+            last[0], last[1], last[2], last[3]
+        )));
+        let csv = to_csv(&path);
+        assert!(csv.starts_with("index,x_mm,y_mm,z_mm,speed_mm_s,t_s,qw,qx,qy,qz\n"));
+        assert!(csv.lines().skip(1).all(|l| l.split(',').count() == 10));
+        assert_eq!(to_json(&path, "r").matches("\"qw\"").count(), path.len());
+        // A non-unit quaternion is an error naming the line.
+        std::fs::write(
+            &rec,
+            "t_s,x_mm,y_mm,z_mm,status,qw,qx,qy,qz\n0,1,2,3,ok,0.5,0,0,0\n",
+        )
+        .unwrap();
+        let e = read_record(&rec).unwrap_err().to_string();
+        assert!(e.contains(":2:") && e.contains("not unit"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
