@@ -29,7 +29,11 @@ fuzz_target!(|data: &[u8]| {
     let Some((&mode, rest)) = data.split_first() else {
         return;
     };
-    let blob = if mode & 1 == 0 { rest.to_vec() } else { wrap_body(rest) };
+    let blob = if mode & 1 == 0 {
+        rest.to_vec()
+    } else {
+        wrap_body(rest)
+    };
     let Ok(rig) = RigParams::from_blob(&blob) else {
         return;
     };

@@ -30,7 +30,10 @@ fuzz_target!(|data: &[u8]| {
         let v2 = Verdict::parse_line(&line1).expect("a written verdict must parse");
         let line2 = v2.to_line();
         let v3 = Verdict::parse_line(&line2).expect("a written verdict must parse");
-        assert_eq!(v3, v2, "verdict not stable after one normalisation: {line1:?} -> {line2:?}");
+        assert_eq!(
+            v3, v2,
+            "verdict not stable after one normalisation: {line1:?} -> {line2:?}"
+        );
         assert_eq!(v1.is_accepted(), v3.is_accepted());
     }
 });

@@ -53,7 +53,9 @@ fuzz_target!(|data: &[u8]| {
         // What the simulated robot says must itself be valid protocol.
         // (Positions are rounded to 0.01 mm on the wire, so lines are compared, not messages.)
         for r in replies {
-            let line = r.encode().expect("simulated robot produced an unencodable message");
+            let line = r
+                .encode()
+                .expect("simulated robot produced an unencodable message");
             let back = RobotMsg::parse(line.as_str()).expect("robot reply parses");
             assert_eq!(back.encode().expect("re-encode").as_str(), line.as_str());
         }

@@ -49,8 +49,8 @@ impl PositionFeed for watch::Receiver<Option<PositionRecord>> {
     fn latest(&mut self) -> Option<Sample> {
         self.borrow_and_update().as_ref().map(Sample::from)
     }
-    fn changed(&mut self) -> impl Future<Output = bool> + Send {
-        async move { watch::Receiver::changed(self).await.is_ok() }
+    async fn changed(&mut self) -> bool {
+        watch::Receiver::changed(self).await.is_ok()
     }
 }
 

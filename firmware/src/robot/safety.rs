@@ -225,7 +225,7 @@ impl Supervisor {
             return Verdict::Hold(HoldReason::MarkerLost);
         };
         // NaN gap fails this comparison too: unknown quality is poor quality.
-        if !(s.gap_mm <= self.cfg.max_gap_mm) || !p.iter().all(|v| v.is_finite()) {
+        if s.gap_mm.is_nan() || s.gap_mm > self.cfg.max_gap_mm || !p.iter().all(|v| v.is_finite()) {
             return Verdict::Hold(HoldReason::PoorQuality);
         }
         // A sample from the future (clock mix-up) is as untrustworthy as an old one.

@@ -1,0 +1,233 @@
+//! System test with the real binaries: `irtrackd` (simulated source) drives `host-tools
+//! robot-sim` over the robot protocol after an explicit enable and deadman press on the status
+//! port, and the robot's CSV log is checked against the simulator's marker path.
+//!
+//! The binaries belong to other packages, so cargo does not build them for this test: run
+//! `cargo build -p irtrack-firmware -p irtrack-host-tools` first (same target dir).
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use irtrack_firmware::source::sim::SimSourceConfig;
+use nalgebra::Vector3;
+
+/// Marker circle radius used here: small, so the first target lies within `max_step_mm` of the
+/// robot parked at the circle centre.
+const RADIUS_MM: f64 = 15.0;
+const MAX_STEP_MM: f64 = 20.0;
+
+/// Kills the child on every path (also when an assertion fails).
+struct Guard(Child);
+
+impl Drop for Guard {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn bin(name: &str) -> PathBuf {
+    // target/<profile>/deps/system_e2e-<hash> → target/<profile>/<name>
+    let exe = std::env::current_exe().unwrap();
+    let dir = exe.parent().and_then(Path::parent).unwrap();
+    let p = dir.join(name);
+    assert!(
+        p.is_file(),
+        "{} not found: build it first with `cargo build -p irtrack-firmware -p irtrack-host-tools` \
+         (same CARGO_TARGET_DIR and profile as this test)",
+        p.display()
+    );
+    p
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("irtrack-e2e-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Reads stdout lines until one starts with `prefix`; the rest of stdout is drained in a thread.
+fn wait_line(child: &mut Child, prefix: &str, timeout: Duration) -> String {
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let prefix = prefix.to_string();
+    std::thread::spawn(move || {
+        let mut sent = false;
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if !sent && line.starts_with(&prefix) {
+                let _ = tx.send(line);
+                sent = true;
+            }
+        }
+    });
+    rx.recv_timeout(timeout)
+        .unwrap_or_else(|_| panic!("no line starting with the expected prefix within {timeout:?}"))
+}
+
+fn field(line: &str, key: &str) -> SocketAddr {
+    line.split_whitespace()
+        .find_map(|w| w.strip_prefix(key))
+        .unwrap_or_else(|| panic!("{key} missing in {line:?}"))
+        .parse()
+        .unwrap()
+}
+
+/// One HTTP/1.0 request over a raw socket; returns the status code and body.
+fn http(addr: SocketAddr, method: &str, path: &str) -> (u16, String) {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    write!(s, "{method} {path} HTTP/1.0\r\nHost: test\r\n\r\n").unwrap();
+    let mut resp = String::new();
+    s.read_to_string(&mut resp).unwrap();
+    let code = resp.split_whitespace().nth(1).unwrap().parse().unwrap();
+    let body = resp.split_once("\r\n\r\n").map(|(_, b)| b.to_string()).unwrap_or_default();
+    (code, body)
+}
+
+fn start_irtrackd(config: &Path, state: &Path) -> (Guard, String) {
+    let mut child = Command::new(bin("irtrackd"))
+        .arg("-c")
+        .arg(config)
+        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
+        .arg(state)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let line = wait_line(&mut child, "irtrackd ready", Duration::from_secs(20));
+    (Guard(child), line)
+}
+
+/// Points of the simulated marker's path (camera 0 frame), one per degree of the circle.
+fn marker_path() -> Vec<Vector3<f64>> {
+    let cfg = SimSourceConfig {
+        radius_mm: RADIUS_MM,
+        ..Default::default()
+    }
+    .scenario_config();
+    let period_s = SimSourceConfig::default().period_s;
+    (0..360)
+        .map(|k| cfg.marker_position(&cfg.markers[0], period_s * f64::from(k) / 360.0))
+        .collect()
+}
+
+#[test]
+fn robot_follows_the_simulated_marker_after_network_enable() {
+    let t_start = Instant::now();
+    let dir = temp_dir("robot");
+    let path = marker_path();
+    let centre = path.iter().sum::<Vector3<f64>>() / path.len() as f64;
+    let log = dir.join("robot.csv");
+
+    let mut sim = Command::new(bin("host-tools"))
+        .args(["robot-sim", "--listen", "127.0.0.1:0", "--home"])
+        .arg(format!("{},{},{}", centre.x, centre.y, centre.z))
+        .arg("--log")
+        .arg(&log)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let line = wait_line(&mut sim, "robot-sim listening on ", Duration::from_secs(10));
+    let _sim = Guard(sim);
+    let robot_addr: SocketAddr = line.trim_start_matches("robot-sim listening on ").trim().parse().unwrap();
+
+    let (lo, hi) = (centre.add_scalar(-200.0), centre.add_scalar(200.0));
+    let config = dir.join("irtrackd.toml");
+    std::fs::write(
+        &config,
+        format!(
+            r#"
+[service]
+params_from_simulator = true
+control = true
+[source.sim]
+radius_mm = {RADIUS_MM}
+[leds]
+backend = "none"
+[robot]
+address = "{robot_addr}"
+[robot.safety]
+workspace_min_mm = [{}, {}, {}]
+workspace_max_mm = [{}, {}, {}]
+max_step_mm = {MAX_STEP_MM}
+max_speed_mm_s = 250.0
+max_gap_mm = 2.0
+max_age_ms = 200
+require_world_frame = false
+[robot.deadman]
+kind = "flag"
+"#,
+            lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+        ),
+    )
+    .unwrap();
+    let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
+    let status = field(&ready, "status=");
+
+    // Wait until the link is up (held, not enabled), then enable and press the deadman.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let (code, body) = http(status, "POST", "/robot");
+        assert_eq!(code, 200, "{body}");
+        if body.contains("\"state\":\"holding\"") {
+            break;
+        }
+        assert!(Instant::now() < deadline, "robot link never came up: {body}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (code, body) = http(status, "POST", "/robot/deadman?pressed=maybe");
+    assert_eq!(code, 400, "{body}");
+    let (code, body) = http(status, "POST", "/robot/enable");
+    assert_eq!(code, 200, "{body}");
+    let (code, body) = http(status, "POST", "/robot/deadman?pressed=1");
+    assert_eq!(code, 200, "{body}");
+    assert!(body.contains("\"deadman_flag_pressed\":true"), "{body}");
+    std::thread::sleep(Duration::from_secs(3));
+    let (code, body) = http(status, "POST", "/robot");
+    assert_eq!(code, 200);
+    assert!(body.contains("\"state\":\"moving\""), "link not moving after enable: {body}");
+    let (code, body) = http(status, "POST", "/robot/disable");
+    assert_eq!(code, 200, "{body}");
+    std::thread::sleep(Duration::from_millis(300));
+    drop(_irtrackd);
+    drop(_sim);
+
+    // Targets from the CSV: distance to the marker path and steps between consecutive targets.
+    let text = std::fs::read_to_string(&log).unwrap();
+    let targets: Vec<Vector3<f64>> = text
+        .lines()
+        .skip(1)
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            let xyz: Vec<f64> = f.get(4..7)?.iter().filter_map(|v| v.parse().ok()).collect();
+            (xyz.len() == 3).then(|| Vector3::new(xyz[0], xyz[1], xyz[2]))
+        })
+        .collect();
+    assert!(targets.len() >= 50, "only {} targets in 3 s", targets.len());
+    let off: Vec<f64> = targets
+        .iter()
+        .map(|t| path.iter().map(|p| (t - p).norm()).fold(f64::INFINITY, f64::min))
+        .collect();
+    let mean = off.iter().sum::<f64>() / off.len() as f64;
+    let max = off.iter().copied().fold(0.0, f64::max);
+    let mut max_step = (targets[0] - centre).norm();
+    for w in targets.windows(2) {
+        max_step = max_step.max((w[1] - w[0]).norm());
+    }
+    let span = targets.iter().map(|t| (t - targets[0]).norm()).fold(0.0, f64::max);
+    println!(
+        "robot e2e: {} targets, distance to marker path mean {mean:.3} mm max {max:.3} mm, \
+         largest step {max_step:.3} mm (limit {MAX_STEP_MM}), span {span:.1} mm, {:.1} s",
+        targets.len(),
+        t_start.elapsed().as_secs_f64()
+    );
+    assert!(max < 2.0, "a target is {max:.3} mm off the marker path");
+    assert!(max_step <= MAX_STEP_MM, "step {max_step:.3} mm exceeds max_step_mm");
+    // The robot really followed the circle, not one point of it.
+    assert!(span > RADIUS_MM, "targets span only {span:.1} mm");
+}
