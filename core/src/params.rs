@@ -183,6 +183,16 @@ pub(crate) fn decode_body(body: &[u8]) -> Result<RigParams> {
             reason: "unused bytes at the end of the body",
         });
     }
+    // postcard accepts over-long varints; refuse any body that is not the canonical encoding
+    // so that one parameter set has exactly one byte form (and one CRC, its identity).
+    let canonical = postcard::to_allocvec(&rig).map_err(|e| Error::BlobBody {
+        reason: postcard_reason(&e),
+    })?;
+    if canonical != body {
+        return Err(Error::BlobBody {
+            reason: "body is not in canonical encoding (over-long integer)",
+        });
+    }
     Ok(rig)
 }
 

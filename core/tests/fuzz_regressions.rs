@@ -175,11 +175,10 @@ fn overlong_varint_blob_never_decodes_to_a_different_rig() {
     }
 }
 
-/// Finding F1, open: the blob format promises one encoding per parameter set (its CRC is
+/// Finding F1 (fixed): the blob format promises one encoding per parameter set (its CRC is
 /// reported as `params_crc`), but postcard accepts over-long varints, so byte-different blobs
-/// with different CRCs decode to the same rig. Un-ignore once `from_blob` refuses them.
+/// with different CRCs would decode to the same rig; `from_blob` refuses them.
 #[test]
-#[ignore = "open finding F1 (docs/fuzzing.md): non-canonical blobs are accepted"]
 fn overlong_varint_blob_is_refused() {
     assert!(matches!(
         RigParams::from_blob(&overlong_blob()),

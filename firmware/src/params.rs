@@ -5,6 +5,7 @@ use std::sync::Arc;
 use irtrack_core::param_wire::{RejectCode, Verdict};
 use irtrack_core::params::{BlobHeader, RigParams};
 use irtrack_core::pipeline::{Tracker, TrackerConfig};
+use irtrack_core::signing::{self, SignaturePolicy, SignatureStatus, VerifyingKey};
 
 use crate::engine::{ActiveParams, ParamsHandle};
 use crate::error::{FirmwareError, Result};
@@ -59,6 +60,9 @@ pub struct ParamService {
     status: Arc<SharedStatus>,
     /// Pushes are handled one at a time (storage order must match activation order).
     busy: std::sync::Mutex<()>,
+    /// Keys whose signatures are accepted, and whether unsigned blobs pass (development mode).
+    trusted_keys: Vec<VerifyingKey>,
+    policy: SignaturePolicy,
 }
 
 fn reject(code: RejectCode, message: String) -> Verdict {
@@ -80,27 +84,55 @@ impl ParamService {
             handle,
             status,
             busy: std::sync::Mutex::new(()),
+            trusted_keys: Vec::new(),
+            policy: SignaturePolicy::AllowUnsigned,
         }
+    }
+
+    /// Sets the signature policy for pushed and stored blobs. Without this call the service
+    /// accepts unsigned blobs and no signed ones (no trusted keys).
+    pub fn with_signature_policy(mut self, trusted_keys: Vec<VerifyingKey>, policy: SignaturePolicy) -> Self {
+        if policy == SignaturePolicy::AllowUnsigned {
+            tracing::warn!("development mode: unsigned parameter blobs are accepted");
+        }
+        self.trusted_keys = trusted_keys;
+        self.policy = policy;
+        self
+    }
+
+    pub fn signature_policy(&self) -> SignaturePolicy {
+        self.policy
     }
 
     pub fn handle(&self) -> &Arc<ParamsHandle> {
         &self.handle
     }
 
-    /// Decodes and checks a blob without storing it.
+    /// Decodes and checks a blob without storing it. The signature is checked first (before
+    /// the body is decoded); signature problems give `UNAUTHORIZED`.
     pub fn check_blob(&self, blob: &[u8]) -> std::result::Result<(RigParams, u32), Verdict> {
-        let rig = RigParams::from_blob(blob).map_err(|e| Verdict::from_error(&e))?;
-        rig.validate().map_err(|e| Verdict::from_error(&e))?;
-        self.shape
-            .check(&rig)
-            .map_err(|m| reject(RejectCode::RigMismatch, m))?;
-        // Building a tracker here means the loop's swap cannot fail later.
-        Tracker::new(&rig, self.tracker_cfg)
-            .map_err(|e| reject(RejectCode::InvalidParams, format!("tracker refuses the set: {e}")))?;
-        let crc = BlobHeader::parse(blob)
+        let (rig, auth) = signing::verify_blob(blob, &self.trusted_keys, self.policy)
+            .map_err(|e| signing::verdict_for(&e))?;
+        if let SignatureStatus::Signed { key_id } = auth {
+            tracing::debug!(%key_id, rig_id = %rig.rig_id, "parameter blob signature verified");
+        }
+        self.check_rig(&rig)?;
+        let crc = BlobHeader::parse_allow_signed(blob)
             .map_err(|e| Verdict::from_error(&e))?
             .crc32;
         Ok((rig, crc))
+    }
+
+    /// Contents checks: validation, fit to the running rig, a tracker accepts the set.
+    fn check_rig(&self, rig: &RigParams) -> std::result::Result<(), Verdict> {
+        rig.validate().map_err(|e| Verdict::from_error(&e))?;
+        self.shape
+            .check(rig)
+            .map_err(|m| reject(RejectCode::RigMismatch, m))?;
+        // Building a tracker here means the loop's swap cannot fail later.
+        Tracker::new(rig, self.tracker_cfg)
+            .map_err(|e| reject(RejectCode::InvalidParams, format!("tracker refuses the set: {e}")))?;
+        Ok(())
     }
 
     /// Handles one pushed blob: check, store durably, activate. Blocking (fsync).
@@ -178,10 +210,11 @@ impl ParamService {
 
     /// Activates a set that did not come through the wire (simulator ground truth).
     pub fn install_unstored(&self, rig: RigParams, origin: &str) -> Result<()> {
+        // Not from the network, so no signature to check; the CRC names the set in records.
         let blob = rig.to_blob()?;
-        let (rig, crc) = self
-            .check_blob(&blob)
+        self.check_rig(&rig)
             .map_err(|v| FirmwareError::RigMismatch { reason: v.to_line() })?;
+        let crc = BlobHeader::parse(&blob)?.crc32;
         self.activate(rig, crc, origin);
         Ok(())
     }

@@ -100,7 +100,10 @@ impl SoakReport {
                 self.sets_delivered, self.sets_published
             ),
         );
-        check(self.frames_monotonic, "published frame indices not strictly increasing".into());
+        check(
+            self.frames_monotonic,
+            "published frame indices not strictly increasing".into(),
+        );
         errs
     }
 }

@@ -117,7 +117,10 @@ fn powercut_never_loses_the_parameter_set() {
             .unwrap();
         let wait_ready = Instant::now();
         while !std::fs::read_to_string(&progress).is_ok_and(|s| s.starts_with("ready")) {
-            assert!(wait_ready.elapsed() < Duration::from_secs(20), "child never became ready");
+            assert!(
+                wait_ready.elapsed() < Duration::from_secs(20),
+                "child never became ready"
+            );
             std::thread::sleep(Duration::from_micros(200));
         }
         std::thread::sleep(Duration::from_micros(rng.below(MAX_DELAY_US)));
