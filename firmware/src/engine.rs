@@ -89,6 +89,9 @@ pub struct Engine {
     status: Arc<SharedStatus>,
     deadline_ns: u64,
     consecutive_errors: u32,
+    /// Capture time of the last processed set: older or repeated sets are never published.
+    /// (Time, not index: a repeating replay restarts its indices with newer timestamps.)
+    last_capture_ns: Option<u64>,
 }
 
 impl Engine {
@@ -120,6 +123,7 @@ impl Engine {
             status,
             deadline_ns,
             consecutive_errors: 0,
+            last_capture_ns: None,
         }
     }
 
@@ -154,34 +158,50 @@ impl Engine {
     pub fn step(&mut self) -> Result<StepOutcome> {
         self.refresh_params();
         self.status.loop_iterations.fetch_add(1, R);
-        match self.source.next_set(&mut self.set) {
-            Ok(()) => {}
-            Err(SourceError::EndOfStream) => return Ok(StepOutcome::EndOfStream),
-            Err(e @ (SourceError::CameraLost { .. } | SourceError::Timeout { .. })) => {
-                self.status.source_errors.fetch_add(1, R);
-                if !self.status.camera_lost.swap(true, R) {
-                    tracing::warn!(error = %e, "camera fault; retrying");
+        // Sets not newer than the last processed one (duplicated or reordered by the source)
+        // are dropped unpublished and the next one is fetched: no stale position goes out.
+        loop {
+            match self.source.next_set(&mut self.set) {
+                Ok(()) => {}
+                Err(SourceError::EndOfStream) => return Ok(StepOutcome::EndOfStream),
+                Err(e @ (SourceError::CameraLost { .. } | SourceError::Timeout { .. })) => {
+                    self.status.source_errors.fetch_add(1, R);
+                    if !self.status.camera_lost.swap(true, R) {
+                        tracing::warn!(error = %e, "camera fault; retrying");
+                    }
+                    self.status.set_track(TrackIndication::None);
+                    let rec = self.empty_record(TrackStatus::Fault, clock::monotonic_ns());
+                    self.out.send_replace(Some(rec));
+                    self.consecutive_errors = self.consecutive_errors.saturating_add(1);
+                    // Sources back off themselves; this only stops a tight loop on instant errors.
+                    std::thread::sleep(Duration::from_millis(
+                        u64::from(self.consecutive_errors.min(50)) * 10,
+                    ));
+                    return Ok(StepOutcome::SourceError);
                 }
-                self.status.set_track(TrackIndication::None);
-                let rec = self.empty_record(TrackStatus::Fault, clock::monotonic_ns());
-                self.out.send_replace(Some(rec));
-                self.consecutive_errors = self.consecutive_errors.saturating_add(1);
-                // Sources back off themselves; this only stops a tight loop on instant errors.
-                std::thread::sleep(Duration::from_millis(
-                    u64::from(self.consecutive_errors.min(50)) * 10,
-                ));
-                return Ok(StepOutcome::SourceError);
+                Err(e) => return Err(e.into()),
             }
-            Err(e) => return Err(e.into()),
+            if self.status.camera_lost.swap(false, R) {
+                tracing::info!("cameras delivering frames again");
+            }
+            self.consecutive_errors = 0;
+            let capture_ns = self.set.frames.first().map_or(0, |f| f.timestamp_ns);
+            if self.last_capture_ns.is_some_and(|last| capture_ns <= last) {
+                if self.status.stale_sets.fetch_add(1, R) == 0 {
+                    tracing::warn!(
+                        index = self.set.index,
+                        "frame set not newer than the last one; dropped"
+                    );
+                }
+                continue;
+            }
+            break;
         }
-        if self.status.camera_lost.swap(false, R) {
-            tracing::info!("cameras delivering frames again");
-        }
-        self.consecutive_errors = 0;
+        let capture_ns = self.set.frames.first().map_or(0, |f| f.timestamp_ns);
+        self.last_capture_ns = Some(capture_ns);
         let t_start = Instant::now();
         self.account_source();
 
-        let capture_ns = self.set.frames.first().map_or(0, |f| f.timestamp_ns);
         let (mut rec, t_detect, t_solve) = match self
             .tracker
             .as_mut()

@@ -221,7 +221,7 @@ pub fn run(cfg: SoakConfig, mut progress: impl FnMut(u64, u64)) -> Result<SoakRe
                 } else if done == cfg.frames / 2 {
                     rss[1] = rss_bytes().unwrap_or(0);
                 }
-                if done % tick == 0 {
+                if done.is_multiple_of(tick) {
                     progress(done, rss_bytes().unwrap_or(0));
                 }
             }

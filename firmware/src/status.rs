@@ -84,6 +84,9 @@ pub struct SharedStatus {
     pub deadline_misses: AtomicU64,
     pub source_errors: AtomicU64,
     pub pipeline_errors: AtomicU64,
+    /// Sets not newer than the last processed one (duplicated or reordered by the source),
+    /// dropped unpublished so that no stale position goes out.
+    pub stale_sets: AtomicU64,
     pub stages: StageHistograms,
     pub last_gap_mm_bits: AtomicU64,
 
@@ -153,6 +156,7 @@ impl SharedStatus {
             deadline_misses: AtomicU64::new(0),
             source_errors: AtomicU64::new(0),
             pipeline_errors: AtomicU64::new(0),
+            stale_sets: AtomicU64::new(0),
             stages: StageHistograms::default(),
             last_gap_mm_bits: AtomicU64::new(f64::NAN.to_bits()),
             sets_delivered: AtomicU64::new(0),

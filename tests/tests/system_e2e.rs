@@ -84,7 +84,10 @@ fn http(addr: SocketAddr, method: &str, path: &str) -> (u16, String) {
     let mut resp = String::new();
     s.read_to_string(&mut resp).unwrap();
     let code = resp.split_whitespace().nth(1).unwrap().parse().unwrap();
-    let body = resp.split_once("\r\n\r\n").map(|(_, b)| b.to_string()).unwrap_or_default();
+    let body = resp
+        .split_once("\r\n\r\n")
+        .map(|(_, b)| b.to_string())
+        .unwrap_or_default();
     (code, body)
 }
 
@@ -134,7 +137,11 @@ fn robot_follows_the_simulated_marker_after_network_enable() {
         .unwrap();
     let line = wait_line(&mut sim, "robot-sim listening on ", Duration::from_secs(10));
     let _sim = Guard(sim);
-    let robot_addr: SocketAddr = line.trim_start_matches("robot-sim listening on ").trim().parse().unwrap();
+    let robot_addr: SocketAddr = line
+        .trim_start_matches("robot-sim listening on ")
+        .trim()
+        .parse()
+        .unwrap();
 
     let (lo, hi) = (centre.add_scalar(-200.0), centre.add_scalar(200.0));
     let config = dir.join("irtrackd.toml");
@@ -190,7 +197,10 @@ kind = "flag"
     std::thread::sleep(Duration::from_secs(3));
     let (code, body) = http(status, "POST", "/robot");
     assert_eq!(code, 200);
-    assert!(body.contains("\"state\":\"moving\""), "link not moving after enable: {body}");
+    assert!(
+        body.contains("\"state\":\"moving\""),
+        "link not moving after enable: {body}"
+    );
     let (code, body) = http(status, "POST", "/robot/disable");
     assert_eq!(code, 200, "{body}");
     std::thread::sleep(Duration::from_millis(300));
@@ -219,7 +229,10 @@ kind = "flag"
     for w in targets.windows(2) {
         max_step = max_step.max((w[1] - w[0]).norm());
     }
-    let span = targets.iter().map(|t| (t - targets[0]).norm()).fold(0.0, f64::max);
+    let span = targets
+        .iter()
+        .map(|t| (t - targets[0]).norm())
+        .fold(0.0, f64::max);
     println!(
         "robot e2e: {} targets, distance to marker path mean {mean:.3} mm max {max:.3} mm, \
          largest step {max_step:.3} mm (limit {MAX_STEP_MM}), span {span:.1} mm, {:.1} s",
@@ -227,7 +240,30 @@ kind = "flag"
         t_start.elapsed().as_secs_f64()
     );
     assert!(max < 2.0, "a target is {max:.3} mm off the marker path");
-    assert!(max_step <= MAX_STEP_MM, "step {max_step:.3} mm exceeds max_step_mm");
+    assert!(
+        max_step <= MAX_STEP_MM,
+        "step {max_step:.3} mm exceeds max_step_mm"
+    );
     // The robot really followed the circle, not one point of it.
     assert!(span > RADIUS_MM, "targets span only {span:.1} mm");
+}
+
+#[test]
+fn robot_control_is_refused_unless_the_config_allows_it() {
+    let dir = temp_dir("noctl");
+    let config = dir.join("irtrackd.toml");
+    std::fs::write(
+        &config,
+        "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n",
+    )
+    .unwrap();
+    let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
+    let status = field(&ready, "status=");
+    for path in ["/robot/enable", "/robot/deadman?pressed=1", "/robot/disable"] {
+        let (code, body) = http(status, "POST", path);
+        assert_eq!(code, 403, "{path}: {body}");
+        assert!(body.contains("control = true"), "{path}: {body}");
+    }
+    let (code, body) = http(status, "GET", "/status");
+    assert_eq!(code, 200, "{body}");
 }

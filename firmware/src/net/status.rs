@@ -111,7 +111,11 @@ fn control(path: &str, query: Option<&str>, ctl: &RobotControl) -> (u16, &'stati
         );
     }
     let Some(link) = ctl.link.as_ref().and_then(Weak::upgrade) else {
-        return (409, "text/plain", "no robot link: the config has no [robot] section\n".into());
+        return (
+            409,
+            "text/plain",
+            "no robot link: the config has no [robot] section\n".into(),
+        );
     };
     let flag_state = |ctl: &RobotControl| {
         ctl.deadman_flag

@@ -82,6 +82,7 @@ pub trait FrameSource: Send {
     fn describe(&self) -> String;
 }
 
+pub mod faulty;
 pub mod pgm;
 pub mod replay;
 pub mod sim;
