@@ -16,6 +16,8 @@ use crate::util::{self, Ctx, RunOpts};
 enum Action {
     /// `host-tools <args...>`.
     HostTools(&'static [&'static str]),
+    /// irtrackd on simulated cameras driving `host-tools robot-sim` ([`crate::demo_live`]).
+    RobotFollows,
 }
 
 struct Step {
@@ -58,6 +60,14 @@ fn steps() -> Vec<Step> {
             action: Action::HostTools(&["plan"]),
             produces: &[],
         },
+        Step {
+            title: "robot follows the marker",
+            explain: "Start the board service irtrackd on simulated cameras and a simulated robot \
+                      controller; enable motion over irtrackd's control endpoint and watch the robot \
+                      follow the marker within the safety limits.",
+            action: Action::RobotFollows,
+            produces: &["robot/robot-sim.csv"],
+        },
     ]
 }
 
@@ -85,7 +95,12 @@ pub fn run(ctx: &Ctx, args: &[String]) -> Result<()> {
         crate::setup::run(ctx)?;
     }
 
-    banner(2, total, "build", "Build the PC tools (host-tools).");
+    banner(
+        2,
+        total,
+        "build",
+        "Build the PC tools (host-tools) and the board service (irtrackd).",
+    );
     let host_tools = build_host_tools(ctx)?;
     std::fs::create_dir_all(&out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
 
@@ -109,6 +124,9 @@ pub fn run(ctx: &Ctx, args: &[String]) -> Result<()> {
                         explain_failure(&format!("host-tools {}", argv[0]), &out.stderr, &out.describe())
                     );
                 }
+            }
+            Action::RobotFollows => {
+                crate::demo_live::robot_follows(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
             }
         }
         for rel in step.produces {
@@ -152,7 +170,17 @@ fn explain_failure(what: &str, stderr: &str, how: &str) -> String {
 
 fn build_host_tools(ctx: &Ctx) -> Result<PathBuf> {
     let mut cmd = ctx.cargo();
-    cmd.args(["build", "-p", "irtrack-host-tools", "--bin", "host-tools"]);
+    cmd.args([
+        "build",
+        "-p",
+        "irtrack-host-tools",
+        "--bin",
+        "host-tools",
+        "-p",
+        "irtrack-firmware",
+        "--bin",
+        "irtrackd",
+    ]);
     let out = util::run(&mut cmd, RunOpts::default())?;
     if !out.success() {
         bail!("building host-tools {}", out.describe());

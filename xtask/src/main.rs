@@ -6,6 +6,7 @@
 mod ci;
 mod cross;
 mod demo;
+mod demo_live;
 mod lint;
 mod setup;
 mod util;
