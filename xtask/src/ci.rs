@@ -585,6 +585,11 @@ const EMULATION_SKIPS: &[&str] = &[
     "slow_stream_client",
     "status_json_and_metrics",
     "robot_link_from_config",
+    // Re-runs the test binary 220 times as a child to SIGKILL it: minutes under emulation.
+    "powercut_never_loses_the_parameter_set",
+    // Thousands of rendered frame sets through the live engine.
+    "short_soak_counters_consistent",
+    "injected_source_faults_never_publish",
 ];
 
 #[cfg(test)]
