@@ -49,7 +49,9 @@ pub fn robot_follows(bin_dir: &Path, out: &Path) -> Result<()> {
     let status = addr_field(&ready, "status=")?;
     let stream = addr_field(&ready, "stream=")?;
 
-    // Park the robot where the marker is now, as an operator would jog it there.
+    // Park the robot where the marker is now, as an operator would jog it there. The marker
+    // circles 15 mm around its centre, so it stays within max_step_mm (40) of this point and the
+    // first target after the enable is accepted.
     let start = first_position(stream)?;
     println!(
         "marker now at ({:.1}, {:.1}, {:.1}) mm; robot-sim starts there",
@@ -107,7 +109,7 @@ fn irtrackd_config(robot: SocketAddr) -> String {
 params_from_simulator = true
 control = true
 [source.sim]
-radius_mm = 40.0
+radius_mm = 15.0
 [leds]
 backend = "none"
 [robot]
@@ -115,7 +117,7 @@ address = "{robot}"
 [robot.safety]
 workspace_min_mm = [-2000.0, -2000.0, 0.0]
 workspace_max_mm = [2000.0, 2000.0, 4000.0]
-max_step_mm = 20.0
+max_step_mm = 40.0
 max_speed_mm_s = 400.0
 max_gap_mm = 2.0
 max_age_ms = 200
@@ -155,8 +157,8 @@ fn summarize(log: &Path) -> Result<()> {
     let max_step = targets.windows(2).map(|w| dist(&w[0], &w[1])).fold(0.0, f64::max);
     let extent = targets.iter().map(|t| dist(t, &targets[0])).fold(0.0, f64::max);
     println!(
-        "robot received {} targets in {FOLLOW_S} s; path extent {extent:.1} mm (marker circle: 80 mm \
-         diameter); largest step {max_step:.2} mm (limit 20 mm). Log: {}",
+        "robot received {} targets in {FOLLOW_S} s; path extent {extent:.1} mm (marker circle: 30 mm \
+         diameter); largest step {max_step:.2} mm (limit 40 mm). Log: {}",
         targets.len(),
         log.display()
     );
