@@ -99,7 +99,9 @@ pub fn open_source(cfg: &Config) -> Result<(Box<dyn FrameSource>, Option<RigPara
         SourceKind::Sim => {
             let sim_cfg = cfg.source.sim.clone().unwrap_or_default();
             let s = SimSource::new(&sim_cfg)?;
-            let rig = s.scenario().rig().clone();
+            let mut rig = s.scenario().rig().clone();
+            // The simulator's truth includes the tool it renders (6-DOF demo and tests).
+            rig.tools.extend(sim_cfg.tool_definition());
             (Box::new(s), Some(rig))
         }
         SourceKind::Replay => {
@@ -194,16 +196,17 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     ));
     tracing::info!(source = %source.describe(), leds = %status.led_backend, "starting");
 
+    // Keys are read before anything starts: a broken key file must stop the service, not
+    // leave it unable to accept parameters.
+    let trusted_keys = cfg.params.load_keys()?;
     let handle = Arc::new(ParamsHandle::new());
     let store = ParamStore::open(&cfg.service.state_dir)?;
     let shape = RigShape::of_set(&source.allocate_set());
-    let params = Arc::new(ParamService::new(
-        store,
-        shape,
-        cfg.tracking,
-        handle.clone(),
-        status.clone(),
-    ));
+    let params = Arc::new(
+        ParamService::new(store, shape, cfg.tracking, handle.clone(), status.clone())
+            .with_signature_policy(trusted_keys, cfg.params.policy())
+            .with_pose_config(cfg.pose),
+    );
     let loaded = params.load_stored();
     if !loaded
         && cfg.service.params_from_simulator
@@ -220,7 +223,8 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         slot_tx,
         status.clone(),
         deadline(&cfg),
-    );
+    )
+    .with_pose_config(cfg.pose);
     let stop_loop = Arc::new(AtomicBool::new(false));
     let (result_tx, result_rx) = oneshot::channel();
     let rt_cfg = cfg.realtime.clone();

@@ -25,11 +25,18 @@ pub struct Config {
     pub service: ServiceConfig,
     #[serde(default)]
     pub listen: ListenConfig,
+    /// Who may push parameter sets.
+    #[serde(default)]
+    pub params: ParamsConfig,
     #[serde(default)]
     pub source: SourceConfig,
     /// Blob detector and quality gate (irtrack-core's `TrackerConfig`; unknown keys rejected).
     #[serde(default)]
     pub tracking: TrackerConfig,
+    /// 6-DOF tracker settings, used when the parameter set defines a tool (irtrack-core's
+    /// `PoseConfig`; unknown keys rejected).
+    #[serde(default)]
+    pub pose: irtrack_core::pose6d::PoseConfig,
     #[serde(default)]
     pub leds: LedsConfig,
     #[serde(default)]
@@ -70,6 +77,68 @@ impl Default for ServiceConfig {
             params_from_simulator: false,
             control: false,
         }
+    }
+}
+
+/// `[params]`: who may push parameter sets. By default nothing is trusted, so a board fresh out
+/// of the box rejects every push until a public key is installed (docs/security.md).
+#[derive(Debug, Clone, PartialEq, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct ParamsConfig {
+    /// Public key files written by `host-tools keygen` (`NAME.pub`), or directories whose
+    /// `*.pub` files are all trusted. Blobs signed by one of these keys are accepted.
+    #[serde(default)]
+    pub trusted_keys: Vec<PathBuf>,
+    /// Development mode: also accept unsigned blobs. Shown in the status as
+    /// `params.signature_policy = "allow_unsigned"` and logged as a warning at start.
+    #[serde(default)]
+    pub allow_unsigned: bool,
+}
+
+impl ParamsConfig {
+    /// The signature policy these settings ask for.
+    pub fn policy(&self) -> irtrack_core::signing::SignaturePolicy {
+        if self.allow_unsigned {
+            irtrack_core::signing::SignaturePolicy::AllowUnsigned
+        } else {
+            irtrack_core::signing::SignaturePolicy::RequireSigned
+        }
+    }
+
+    /// Reads every trusted key; a missing or malformed key file is an error naming the file
+    /// (a typo must not silently leave the board unable to accept, or worse, mis-trusting).
+    pub fn load_keys(&self) -> Result<Vec<irtrack_core::signing::VerifyingKey>> {
+        let mut files = Vec::new();
+        for path in &self.trusted_keys {
+            let bad = |reason: String| FirmwareError::Config {
+                reason: format!("params.trusted_keys: {}: {reason}", path.display()),
+            };
+            if path.is_dir() {
+                let entries = std::fs::read_dir(path).map_err(|e| bad(format!("cannot list: {e}")))?;
+                let mut found: Vec<PathBuf> = entries
+                    .filter_map(|e| e.ok().map(|e| e.path()))
+                    .filter(|p| p.extension().is_some_and(|x| x == "pub"))
+                    .collect();
+                found.sort();
+                files.extend(found);
+            } else {
+                files.push(path.clone());
+            }
+        }
+        let mut keys = Vec::with_capacity(files.len());
+        for file in files {
+            let text = std::fs::read_to_string(&file).map_err(|e| FirmwareError::Config {
+                reason: format!("params.trusted_keys: cannot read {}: {e}", file.display()),
+            })?;
+            let key =
+                irtrack_core::signing::parse_public_key_file(&text).map_err(|e| FirmwareError::Config {
+                    reason: format!("params.trusted_keys: {}: {e}", file.display()),
+                })?;
+            if !keys.contains(&key) {
+                keys.push(key);
+            }
+        }
+        Ok(keys)
     }
 }
 
@@ -226,6 +295,9 @@ impl Config {
             return bad("listen.client_queue_records must be at least 1".into());
         }
         check_tracker_config(&self.tracking)?;
+        self.pose.validate().map_err(|e| FirmwareError::Config {
+            reason: format!("[pose]: {e}"),
+        })?;
         if let Some(d) = self.realtime.deadline_ms
             && !(d.is_finite() && d > 0.0)
         {

@@ -5,7 +5,8 @@ use std::sync::Arc;
 use irtrack_core::param_wire::{RejectCode, Verdict};
 use irtrack_core::params::{BlobHeader, RigParams};
 use irtrack_core::pipeline::{Tracker, TrackerConfig};
-use irtrack_core::signing::{self, SignaturePolicy, SignatureStatus, VerifyingKey};
+use irtrack_core::pose6d::{PoseConfig, PoseTracker};
+use irtrack_core::signing::{self, KeyId, SignaturePolicy, SignatureStatus, VerifyingKey};
 
 use crate::engine::{ActiveParams, ParamsHandle};
 use crate::error::{FirmwareError, Result};
@@ -63,6 +64,16 @@ pub struct ParamService {
     /// Keys whose signatures are accepted, and whether unsigned blobs pass (development mode).
     trusted_keys: Vec<VerifyingKey>,
     policy: SignaturePolicy,
+    /// Settings the loop's 6-DOF tracker uses; a set whose tool they refuse is rejected.
+    pose_cfg: PoseConfig,
+}
+
+/// The policy's name in status and logs.
+pub fn policy_name(policy: SignaturePolicy) -> &'static str {
+    match policy {
+        SignaturePolicy::RequireSigned => "require_signed",
+        SignaturePolicy::AllowUnsigned => "allow_unsigned",
+    }
 }
 
 fn reject(code: RejectCode, message: String) -> Verdict {
@@ -77,6 +88,7 @@ impl ParamService {
         handle: Arc<ParamsHandle>,
         status: Arc<SharedStatus>,
     ) -> Self {
+        status.update_params_info(|p| p.signature_policy = policy_name(SignaturePolicy::AllowUnsigned));
         Self {
             store,
             shape,
@@ -86,15 +98,36 @@ impl ParamService {
             busy: std::sync::Mutex::new(()),
             trusted_keys: Vec::new(),
             policy: SignaturePolicy::AllowUnsigned,
+            pose_cfg: PoseConfig::default(),
         }
+    }
+
+    /// The 6-DOF settings of the processing loop (`[pose]`), so that tools are checked with
+    /// the same limits the loop applies.
+    pub fn with_pose_config(mut self, cfg: PoseConfig) -> Self {
+        self.pose_cfg = cfg;
+        self
     }
 
     /// Sets the signature policy for pushed and stored blobs. Without this call the service
     /// accepts unsigned blobs and no signed ones (no trusted keys).
     pub fn with_signature_policy(mut self, trusted_keys: Vec<VerifyingKey>, policy: SignaturePolicy) -> Self {
-        if policy == SignaturePolicy::AllowUnsigned {
-            tracing::warn!("development mode: unsigned parameter blobs are accepted");
+        let ids: Vec<String> = trusted_keys.iter().map(|k| KeyId::of(k).to_string()).collect();
+        match policy {
+            SignaturePolicy::AllowUnsigned => {
+                tracing::warn!("development mode: unsigned parameter blobs are accepted")
+            }
+            SignaturePolicy::RequireSigned if trusted_keys.is_empty() => tracing::warn!(
+                "no trusted keys configured ([params] trusted_keys): every parameter push will be rejected"
+            ),
+            SignaturePolicy::RequireSigned => {
+                tracing::info!(keys = ?ids, "parameter blobs must be signed by a trusted key")
+            }
         }
+        self.status.update_params_info(|p| {
+            p.signature_policy = policy_name(policy);
+            p.trusted_keys = ids;
+        });
         self.trusted_keys = trusted_keys;
         self.policy = policy;
         self
@@ -109,18 +142,32 @@ impl ParamService {
     }
 
     /// Decodes and checks a blob without storing it. The signature is checked first (before
-    /// the body is decoded); signature problems give `UNAUTHORIZED`.
-    pub fn check_blob(&self, blob: &[u8]) -> std::result::Result<(RigParams, u32), Verdict> {
+    /// the body is decoded); signature problems give `UNAUTHORIZED`. Returns the set, its CRC
+    /// and the id of the key that signed it (`None`: unsigned, development mode).
+    pub fn check_blob(&self, blob: &[u8]) -> std::result::Result<(RigParams, u32, Option<KeyId>), Verdict> {
+        if self.policy == SignaturePolicy::RequireSigned && self.trusted_keys.is_empty() {
+            // Say what to fix on the device rather than blaming the blob.
+            return Err(reject(
+                RejectCode::Unauthorized,
+                "this irtrackd trusts no signing key yet: list the public key from `host-tools keygen` in \
+                 [params] trusted_keys of irtrackd.toml (or set allow_unsigned = true for development)"
+                    .into(),
+            ));
+        }
         let (rig, auth) = signing::verify_blob(blob, &self.trusted_keys, self.policy)
             .map_err(|e| signing::verdict_for(&e))?;
-        if let SignatureStatus::Signed { key_id } = auth {
-            tracing::debug!(%key_id, rig_id = %rig.rig_id, "parameter blob signature verified");
-        }
+        let signed_by = match auth {
+            SignatureStatus::Signed { key_id } => {
+                tracing::debug!(%key_id, rig_id = %rig.rig_id, "parameter blob signature verified");
+                Some(key_id)
+            }
+            SignatureStatus::UnsignedAccepted => None,
+        };
         self.check_rig(&rig)?;
         let crc = BlobHeader::parse_allow_signed(blob)
             .map_err(|e| Verdict::from_error(&e))?
             .crc32;
-        Ok((rig, crc))
+        Ok((rig, crc, signed_by))
     }
 
     /// Contents checks: validation, fit to the running rig, a tracker accepts the set.
@@ -132,6 +179,16 @@ impl ParamService {
         // Building a tracker here means the loop's swap cannot fail later.
         Tracker::new(rig, self.tracker_cfg)
             .map_err(|e| reject(RejectCode::InvalidParams, format!("tracker refuses the set: {e}")))?;
+        // The loop tracks the first tool in 6-DOF; a tool it cannot identify (symmetric layout,
+        // LEDs too close) must not be accepted only to fall back to single-marker output.
+        if let Some(tool) = rig.tools.first() {
+            PoseTracker::new(rig, tool, self.pose_cfg).map_err(|e| {
+                reject(
+                    RejectCode::InvalidParams,
+                    format!("6-DOF tracker refuses tool `{}`: {e}", tool.name),
+                )
+            })?;
+        }
         Ok(())
     }
 
@@ -142,11 +199,11 @@ impl ParamService {
         };
         let verdict = match self.check_blob(blob) {
             Err(v) => v,
-            Ok((rig, crc)) => match self.store.store(blob) {
+            Ok((rig, crc, signed_by)) => match self.store.store(blob) {
                 Err(e) => reject(RejectCode::Storage, format!("{e}; the previous set stays active")),
                 Ok(()) => {
                     let rig_id = rig.rig_id.clone();
-                    self.activate(rig, crc, "pushed");
+                    self.activate(rig, crc, "pushed", signed_by);
                     Verdict::Accepted { rig_id }
                 }
             },
@@ -167,9 +224,11 @@ impl ParamService {
         }
     }
 
-    fn activate(&self, rig: RigParams, crc: u32, origin: &str) {
-        tracing::info!(rig_id = %rig.rig_id, crc = format_args!("{crc:08x}"), origin, "parameter set active");
+    fn activate(&self, rig: RigParams, crc: u32, origin: &str, signed_by: Option<KeyId>) {
+        let signature = signed_by.map_or_else(|| "unsigned".to_string(), |id| format!("key {id}"));
+        tracing::info!(rig_id = %rig.rig_id, crc = format_args!("{crc:08x}"), origin, %signature, "parameter set active");
         self.status.update_params_info(|p| {
+            p.signature = Some(signature);
             p.loaded = true;
             p.rig_id = Some(rig.rig_id.clone());
             p.created_unix_s = Some(rig.created_unix_s);
@@ -190,11 +249,11 @@ impl ParamService {
             match self.store.read(slot) {
                 Ok(None) => {}
                 Ok(Some(blob)) => match self.check_blob(&blob) {
-                    Ok((rig, crc)) => {
+                    Ok((rig, crc, signed_by)) => {
                         if slot == StoredSlot::Previous {
                             tracing::warn!(path = %path.display(), "active parameter file unusable; rolled back to the previous set");
                         }
-                        self.activate(rig, crc, origin);
+                        self.activate(rig, crc, origin, signed_by);
                         return true;
                     }
                     Err(v) => {
@@ -215,7 +274,7 @@ impl ParamService {
         self.check_rig(&rig)
             .map_err(|v| FirmwareError::RigMismatch { reason: v.to_line() })?;
         let crc = BlobHeader::parse(&blob)?.crc32;
-        self.activate(rig, crc, origin);
+        self.activate(rig, crc, origin, None);
         Ok(())
     }
 }

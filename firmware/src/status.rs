@@ -63,6 +63,13 @@ pub struct ParamsInfo {
     pub swaps: u64,
     pub rejected: u64,
     pub last_rejection: Option<String>,
+    /// "require_signed" (production) or "allow_unsigned" (development mode, config
+    /// `[params] allow_unsigned = true`).
+    pub signature_policy: &'static str,
+    /// Ids (first 8 bytes of SHA-512, hex) of the public keys whose signatures are accepted.
+    pub trusted_keys: Vec<String>,
+    /// How the active set was authenticated: "key <id>" or "unsigned".
+    pub signature: Option<String>,
 }
 
 /// All shared counters and state.

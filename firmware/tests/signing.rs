@@ -122,3 +122,94 @@ fn development_mode_accepts_unsigned_but_still_checks_signatures() {
     assert_eq!(code, RejectCode::Unauthorized);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+mod common;
+
+/// The whole service as configured by `[params]`: the default trusts nobody, a key directory
+/// makes its `*.pub` keys trusted, the status shows the policy and key ids, and a broken key
+/// file stops the start with an error naming the file.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn config_params_table_decides_who_may_push() {
+    use irtrack_core::signing::{KeyId, public_key_file};
+    use irtrack_firmware::app::{self, Overrides};
+
+    let dir = common::TempDir::new("signing-config");
+    let (rig, _) = rig_and_shape();
+    let trusted = SigningKey::from_bytes(&[21; 32]);
+    let stranger = SigningKey::from_bytes(&[22; 32]);
+    let keys_dir = dir.path().join("trusted-keys");
+    std::fs::create_dir_all(&keys_dir).unwrap();
+    std::fs::write(keys_dir.join("shop.pub"), public_key_file(&trusted.verifying_key())).unwrap();
+    // Not a *.pub file: ignored, even though it holds a key.
+    std::fs::write(keys_dir.join("notes.txt"), public_key_file(&stranger.verifying_key())).unwrap();
+
+    // 1. Out of the box: nothing trusted, every push rejected, status says so.
+    let mut cfg = common::test_config(&dir.path().join("state-default"));
+    cfg.params = Default::default();
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let st = common::status_json(running.addrs.status).await;
+    assert_eq!(st["params"]["signature_policy"], "require_signed", "{st}");
+    assert_eq!(st["params"]["trusted_keys"].as_array().unwrap().len(), 0);
+    for blob in [rig.to_blob().unwrap(), rig.to_signed_blob(&trusted).unwrap()] {
+        match common::push_verdict(running.addrs.params, &blob).await {
+            Verdict::Rejected { code, message } => {
+                assert_eq!(code, RejectCode::Unauthorized);
+                assert!(message.contains("trusts no signing key"), "{message}");
+            }
+            v => panic!("accepted without trusted keys: {v:?}"),
+        }
+    }
+    running.shutdown().await;
+
+    // 2. A key directory: only its key signs; unsigned and foreign signatures are refused.
+    let mut cfg = common::test_config(&dir.path().join("state-keys"));
+    cfg.params.allow_unsigned = false;
+    cfg.params.trusted_keys = vec![keys_dir.clone()];
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let st = common::status_json(running.addrs.status).await;
+    assert_eq!(st["params"]["signature_policy"], "require_signed");
+    let id = KeyId::of(&trusted.verifying_key()).to_string();
+    assert_eq!(st["params"]["trusted_keys"], serde_json::json!([id]), "{st}");
+    let Verdict::Rejected { code, message } = common::push_verdict(running.addrs.params, &rig.to_blob().unwrap()).await
+    else {
+        panic!("unsigned blob accepted in production mode")
+    };
+    assert_eq!(code, RejectCode::Unauthorized);
+    assert!(message.contains("not signed"), "{message}");
+    let v = common::push_verdict(running.addrs.params, &rig.to_signed_blob(&stranger).unwrap()).await;
+    assert!(matches!(v, Verdict::Rejected { code: RejectCode::Unauthorized, .. }), "{v:?}");
+    let v = common::push_verdict(running.addrs.params, &rig.to_signed_blob(&trusted).unwrap()).await;
+    assert!(matches!(v, Verdict::Accepted { .. }), "{v:?}");
+    let st = common::status_json(running.addrs.status).await;
+    assert_eq!(st["params"]["loaded"], true);
+    assert_eq!(st["params"]["signature"], format!("key {id}"), "{st}");
+    assert_eq!(st["params"]["rejected"], 2);
+    running.shutdown().await;
+
+    // 3. Development mode is visible.
+    let mut cfg = common::test_config(&dir.path().join("state-dev"));
+    cfg.params.allow_unsigned = true;
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let st = common::status_json(running.addrs.status).await;
+    assert_eq!(st["params"]["signature_policy"], "allow_unsigned");
+    assert!(matches!(
+        common::push_verdict(running.addrs.params, &rig.to_blob().unwrap()).await,
+        Verdict::Accepted { .. }
+    ));
+    let st = common::status_json(running.addrs.status).await;
+    assert_eq!(st["params"]["signature"], "unsigned", "{st}");
+    running.shutdown().await;
+
+    // 4. A broken or missing key file stops the start and names the file.
+    let bad = dir.path().join("broken.pub");
+    std::fs::write(&bad, "not a key\n").unwrap();
+    for path in [bad, dir.path().join("missing.pub")] {
+        let mut cfg = common::test_config(&dir.path().join("state-bad"));
+        cfg.params.trusted_keys = vec![path.clone()];
+        let err = match app::start(cfg, Overrides::default()).await {
+            Ok(_) => panic!("started with key file {}", path.display()),
+            Err(e) => e.to_string(),
+        };
+        assert!(err.contains("trusted_keys") && err.contains(&*path.to_string_lossy()), "{err}");
+    }
+}

@@ -137,6 +137,7 @@ fn main() -> anyhow::Result<()> {
         }
     };
     if cli.check_config {
+        let keys = cfg.params.load_keys()?;
         println!(
             "irtrackd: config OK (source {:?}, state dir {}, params {}, stream {}, binary {}, status {})",
             cfg.source.kind,
@@ -145,6 +146,15 @@ fn main() -> anyhow::Result<()> {
             cfg.listen.stream_ndjson,
             cfg.listen.stream_binary,
             cfg.listen.status
+        );
+        println!(
+            "irtrackd: parameter pushes: {} trusted key(s){}",
+            keys.len(),
+            if cfg.params.allow_unsigned {
+                ", unsigned blobs accepted (development mode)"
+            } else {
+                ""
+            }
         );
         return Ok(());
     }

@@ -55,6 +55,8 @@ pub fn test_config(state_dir: &Path) -> Config {
         *a = "127.0.0.1:0".into();
     }
     cfg.source.sim = Some(sim_cfg());
+    // These tests push unsigned blobs; the signed path has its own tests (tests/signing.rs).
+    cfg.params.allow_unsigned = true;
     cfg
 }
 

@@ -50,6 +50,7 @@ do_install:append() {
     install -m 0644 ${S}/systemd/irtrackd.service ${D}${systemd_system_unitdir}/
     install -d ${D}${sysconfdir}/irtrack
     install -m 0644 ${UNPACKDIR}/irtrackd.toml ${D}${sysconfdir}/irtrack/irtrackd.toml
+    install -d ${D}${sysconfdir}/irtrack/trusted-keys
     install -d ${D}${nonarch_base_libdir}/udev/rules.d
     install -m 0644 ${UNPACKDIR}/99-irtrack.rules ${D}${nonarch_base_libdir}/udev/rules.d/
 }
