@@ -6,15 +6,24 @@
 //! is allocated up front (frame buffers, tracker buffers) and shared state is atomics, so steady
 //! state does not allocate (checked by `tests/no_alloc.rs`). Parameter swaps are picked up
 //! between sets by comparing a generation counter; only then does the loop take a lock.
+//!
+//! When the active parameter set defines a multi-LED tool (`RigParams.tools`), the loop runs
+//! in 6-DOF mode: every frame is searched in full (the single-marker tracking window would
+//! cut off the other LEDs), the tracker's blob lists go to a [`PoseTracker`], and the record
+//! carries the tool's pose (position of the tool origin and orientation quaternion).
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use irtrack_core::blob::Blob;
 use irtrack_core::camera::RigidTransform;
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::RigParams;
-use irtrack_core::pipeline::{Measurement, TrackStatus as MeasureStatus, Tracker, TrackerConfig};
+use irtrack_core::pipeline::{
+    MAX_CAMERAS, Measurement, TrackStatus as MeasureStatus, Tracker, TrackerConfig,
+};
+use irtrack_core::pose6d::{Pose6d, PoseConfig, PoseStatus, PoseTracker};
 use irtrack_core::stream::{PositionRecord, TrackStatus};
 use tokio::sync::watch;
 
@@ -81,6 +90,9 @@ pub struct Engine {
     set: FrameSet,
     tracker_cfg: TrackerConfig,
     tracker: Option<Tracker>,
+    /// 6-DOF mode: the tracker of the active set's first tool.
+    pose_cfg: PoseConfig,
+    pose: Option<PoseTracker>,
     params: Arc<ParamsHandle>,
     seen_generation: u64,
     world_from_cam0: Option<RigidTransform>,
@@ -115,6 +127,8 @@ impl Engine {
             set,
             tracker_cfg,
             tracker: None,
+            pose_cfg: PoseConfig::default(),
+            pose: None,
             params,
             seen_generation: 0,
             world_from_cam0: None,
@@ -124,6 +138,36 @@ impl Engine {
             deadline_ns,
             consecutive_errors: 0,
             last_capture_ns: None,
+        }
+    }
+
+    /// Settings of the 6-DOF tracker (`[pose]`), used for sets that define a tool.
+    pub fn with_pose_config(mut self, cfg: PoseConfig) -> Self {
+        self.pose_cfg = cfg;
+        self
+    }
+
+    /// Whether the active set runs in 6-DOF mode.
+    pub fn tracks_pose(&self) -> bool {
+        self.pose.is_some()
+    }
+
+    /// Builds the 6-DOF tracker for a set's first tool (none without tools). A tool the
+    /// tracker refuses leaves single-marker tracking on, loudly: the set itself is usable.
+    fn pose_tracker_for(&self, rig: &RigParams) -> Option<PoseTracker> {
+        let tool = rig.tools.first()?;
+        if rig.tools.len() > 1 {
+            tracing::warn!(tool = %tool.name, count = rig.tools.len(), "several tools defined; tracking the first one");
+        }
+        match PoseTracker::new(rig, tool, self.pose_cfg) {
+            Ok(t) => {
+                tracing::info!(tool = %tool.name, leds = tool.leds_mm.len(), "6-DOF tracking of tool");
+                Some(t)
+            }
+            Err(e) => {
+                tracing::error!(tool = %tool.name, error = %e, "tool refused; tracking a single marker instead");
+                None
+            }
         }
     }
 
@@ -141,6 +185,7 @@ impl Engine {
         };
         match result {
             Ok(()) => {
+                self.pose = self.pose_tracker_for(&p.rig);
                 self.world_from_cam0 = p.rig.world_from_cam0;
                 self.params_crc = p.crc;
                 self.status.params_loaded.store(true, R);
@@ -217,6 +262,10 @@ impl Engine {
             }
             Some(tracker) => {
                 let mut failed = false;
+                if self.pose.is_some() {
+                    // All LEDs must be found, not only those near the last single marker.
+                    tracker.reset_tracking();
+                }
                 for (camera, frame) in self.set.frames.iter().enumerate() {
                     let detected = match &frame.pixels {
                         Pixels::U8(px) => {
@@ -243,31 +292,72 @@ impl Engine {
                     }
                 }
                 let t_detect = Instant::now();
-                let m = tracker.solve();
-                let t_solve = Instant::now();
-                let rec = if failed {
-                    self.status.set_track(TrackIndication::None);
-                    Self::record_from(
-                        m,
-                        self.set.index,
-                        capture_ns,
-                        self.params_crc,
-                        None,
-                        TrackStatus::Fault,
-                    )
+                if let Some(pose_tracker) = self.pose.as_mut() {
+                    let rec = if failed {
+                        self.status.set_track(TrackIndication::None);
+                        Self::blank_record(self.set.index, capture_ns, self.params_crc, TrackStatus::Fault)
+                    } else {
+                        let cameras = tracker.camera_count().min(MAX_CAMERAS);
+                        let mut lists: [&[Blob]; MAX_CAMERAS] = [&[]; MAX_CAMERAS];
+                        for (c, list) in lists.iter_mut().enumerate().take(cameras) {
+                            *list = tracker.blobs(c);
+                        }
+                        let seen = lists[..cameras].iter().filter(|l| !l.is_empty()).count();
+                        match pose_tracker.process(&lists[..cameras]) {
+                            Ok(pose) => {
+                                self.status.set_track(pose_indication(pose, seen, cameras));
+                                let mut rec = PositionRecord::from_pose(
+                                    self.set.index,
+                                    capture_ns,
+                                    pose,
+                                    self.world_from_cam0.as_ref(),
+                                    u8::try_from(seen).unwrap_or(u8::MAX),
+                                );
+                                rec.params_crc = self.params_crc;
+                                rec
+                            }
+                            Err(e) => {
+                                if self.status.pipeline_errors.fetch_add(1, R) == 0 {
+                                    tracing::error!(error = %e, "6-DOF tracking failed");
+                                }
+                                self.status.set_track(TrackIndication::None);
+                                Self::blank_record(
+                                    self.set.index,
+                                    capture_ns,
+                                    self.params_crc,
+                                    TrackStatus::Fault,
+                                )
+                            }
+                        }
+                    };
+                    (rec, t_detect, Instant::now())
                 } else {
-                    self.status.set_track(track_indication(m));
-                    let status = map_status(m);
-                    Self::record_from(
-                        m,
-                        self.set.index,
-                        capture_ns,
-                        self.params_crc,
-                        self.world_from_cam0.as_ref(),
-                        status,
-                    )
-                };
-                (rec, t_detect, t_solve)
+                    let m = tracker.solve();
+                    let t_solve = Instant::now();
+                    let rec = if failed {
+                        self.status.set_track(TrackIndication::None);
+                        Self::record_from(
+                            m,
+                            self.set.index,
+                            capture_ns,
+                            self.params_crc,
+                            None,
+                            TrackStatus::Fault,
+                        )
+                    } else {
+                        self.status.set_track(track_indication(m));
+                        let status = map_status(m);
+                        Self::record_from(
+                            m,
+                            self.set.index,
+                            capture_ns,
+                            self.params_crc,
+                            self.world_from_cam0.as_ref(),
+                            status,
+                        )
+                    };
+                    (rec, t_detect, t_solve)
+                }
             }
         };
         match rec.status {
@@ -329,8 +419,13 @@ impl Engine {
     }
 
     fn empty_record(&self, status: TrackStatus, capture_ns: u64) -> PositionRecord {
+        Self::blank_record(self.set.index, capture_ns, self.params_crc, status)
+    }
+
+    /// A record without a position.
+    fn blank_record(frame: u64, capture_ns: u64, params_crc: u32, status: TrackStatus) -> PositionRecord {
         PositionRecord {
-            frame: self.set.index,
+            frame,
             capture_ts_ns: capture_ns,
             position_mm: None,
             orientation_wxyz: None,
@@ -339,7 +434,7 @@ impl Engine {
             cameras_used: 0,
             world_frame: false,
             latency_us: 0,
-            params_crc: self.params_crc,
+            params_crc,
         }
     }
 
@@ -410,6 +505,17 @@ fn map_status(m: &Measurement) -> TrackStatus {
         MeasureStatus::NoBlob { .. } => TrackStatus::Lost,
         MeasureStatus::NoConsistentPair | MeasureStatus::Overloaded { .. } => TrackStatus::Rejected,
         MeasureStatus::MissingFrame { .. } => TrackStatus::Fault,
+    }
+}
+
+/// LED indication in 6-DOF mode: the pose is tracked, or LED blobs are seen somewhere.
+fn pose_indication(pose: &Pose6d, cameras_with_blobs: usize, cameras: usize) -> TrackIndication {
+    if pose.status == PoseStatus::Tracked && cameras_with_blobs == cameras {
+        TrackIndication::All
+    } else if cameras_with_blobs > 0 {
+        TrackIndication::Partial
+    } else {
+        TrackIndication::None
     }
 }
 

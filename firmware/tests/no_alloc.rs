@@ -56,16 +56,32 @@ fn engine(
     Engine,
     tokio::sync::watch::Receiver<Option<irtrack_core::stream::PositionRecord>>,
 ) {
+    engine_with(with_params, bit_depth, None)
+}
+
+/// `tool`: render this built-in multi-LED tool; the set then runs the loop in 6-DOF mode.
+fn engine_with(
+    with_params: bool,
+    bit_depth: u8,
+    tool: Option<&str>,
+) -> (
+    Engine,
+    tokio::sync::watch::Receiver<Option<irtrack_core::stream::PositionRecord>>,
+) {
     let cfg = SimSourceConfig {
         paced: false,
         fps: 100.0,
         bit_depth,
+        tool: tool.map(str::to_string),
+        distance_mm: if tool.is_some() { 1000.0 } else { 600.0 },
+        tool_rotation_deg: 20.0,
         ..SimSourceConfig::default()
     };
     let source = SimSource::new(&cfg).unwrap();
     let handle = Arc::new(ParamsHandle::new());
     if with_params {
-        let rig = source.scenario().rig().clone();
+        let mut rig = source.scenario().rig().clone();
+        rig.tools.extend(cfg.tool_definition());
         handle.install(ActiveParams { rig, crc: 1 });
     }
     let status = Arc::new(SharedStatus::new(
@@ -125,6 +141,16 @@ fn steady_state_processing_does_not_allocate() {
     let v: Vec<u8> = Vec::with_capacity(16);
     drop(v);
     assert_eq!(allocs() - before, 1);
+}
+
+#[test]
+fn six_dof_processing_does_not_allocate() {
+    let (mut e, rx) = engine_with(true, 8, Some("probe4"));
+    let (n, ok) = measure(&mut e, 10, 60);
+    assert!(e.tracks_pose(), "the tool's set must switch the loop to 6-DOF mode");
+    assert!(ok >= 55, "only {ok} of 60 sets tracked in 6-DOF");
+    assert_eq!(n, 0, "{n} allocations in 60 6-DOF frame sets");
+    assert!(rx.borrow().unwrap().orientation_wxyz.is_some());
 }
 
 #[test]

@@ -12,6 +12,7 @@ pub mod pgm;
 pub mod resolution;
 pub mod rig;
 pub mod scenario;
+pub mod tools;
 pub mod trajectory;
 
 pub use error::SimError;

@@ -66,6 +66,13 @@ pub struct SimSourceConfig {
     /// End the stream after this many frames (tests); endless by default.
     #[serde(default)]
     pub frames: Option<u64>,
+    /// Render a built-in multi-LED tool (`probe4`, `tri3`) instead of the single marker; its
+    /// definition is part of the simulator's parameter set, so irtrackd tracks it in 6-DOF.
+    #[serde(default)]
+    pub tool: Option<String>,
+    /// With `tool`: amplitude (deg) of the tool's turning about its own axes; 0 = fixed.
+    #[serde(default = "d_tool_rotation")]
+    pub tool_rotation_deg: f64,
 }
 
 fn d_distance() -> f64 {
@@ -88,6 +95,9 @@ fn d_fps() -> f64 {
 }
 fn d_true() -> bool {
     true
+}
+fn d_tool_rotation() -> f64 {
+    30.0
 }
 fn d_bits() -> u8 {
     8
@@ -112,6 +122,8 @@ impl Default for SimSourceConfig {
             drop_rate: 0.0,
             glare: false,
             frames: None,
+            tool: None,
+            tool_rotation_deg: d_tool_rotation(),
         }
     }
 }
@@ -126,6 +138,20 @@ impl SimSourceConfig {
             return bad(format!(
                 "source.sim.bit_depth must be 8 or 10, got {}",
                 self.bit_depth
+            ));
+        }
+        if let Some(name) = &self.tool
+            && irtrack_sim::tools::builtin_tool(name).is_none()
+        {
+            return bad(format!(
+                "source.sim.tool = {name:?} is not a built-in tool (use {})",
+                irtrack_sim::tools::BUILTIN_TOOLS.join(" or ")
+            ));
+        }
+        if !(self.tool_rotation_deg.is_finite() && (0.0..=90.0).contains(&self.tool_rotation_deg)) {
+            return bad(format!(
+                "source.sim.tool_rotation_deg must be in 0..=90, got {}",
+                self.tool_rotation_deg
             ));
         }
         if !(0.0..1.0).contains(&self.drop_rate) {
@@ -198,7 +224,18 @@ impl SimSourceConfig {
         if self.glare {
             cfg.add_glare();
         }
+        if let Some(tool) = self.tool_definition() {
+            cfg.set_tool(
+                &tool.leds_mm,
+                irtrack_sim::tools::turning(self.tool_rotation_deg, self.period_s),
+            );
+        }
         cfg
+    }
+
+    /// The multi-LED tool this source renders, if any.
+    pub fn tool_definition(&self) -> Option<irtrack_core::params::ToolDefinition> {
+        self.tool.as_deref().and_then(irtrack_sim::tools::builtin_tool)
     }
 }
 

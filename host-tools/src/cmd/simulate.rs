@@ -12,8 +12,8 @@ use anyhow::{Context, bail};
 use irtrack_core::params::ToolDefinition;
 use irtrack_sim::pgm::{write_pgm_u8, write_pgm_u16};
 use irtrack_sim::rig::{TABLE_I_BASELINE_MM, TABLE_I_FOCAL_PX};
-use irtrack_sim::{BitDepth, MarkerSpec, Orientation, RigPreset, Scenario, SimConfig, Trajectory};
-use nalgebra::{UnitQuaternion, Vector3};
+use irtrack_sim::{BitDepth, MarkerSpec, RigPreset, Scenario, SimConfig, Trajectory};
+use nalgebra::Vector3;
 
 /// Preset rig.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -100,21 +100,13 @@ pub struct Args {
     pub quiet: bool,
 }
 
-/// A built-in tool definition by name.
+/// A built-in tool definition by name (irtrack-sim's list).
 pub fn builtin_tool(name: &str) -> anyhow::Result<ToolDefinition> {
-    let leds_mm = match name {
-        "probe4" => vec![
-            [0.0, 0.0, 0.0],
-            [99.0, 0.0, 0.0],
-            [3.0, 85.0, 0.0],
-            [62.0, 11.0, 32.0],
-        ],
-        "tri3" => vec![[0.0, 0.0, 0.0], [110.0, 0.0, 0.0], [81.8, 60.0, 0.0]],
-        other => bail!("unknown tool `{other}`: use probe4 or tri3"),
-    };
-    Ok(ToolDefinition {
-        name: name.into(),
-        leds_mm,
+    irtrack_sim::tools::builtin_tool(name).ok_or_else(|| {
+        anyhow::anyhow!(
+            "unknown tool `{name}`: use {}",
+            irtrack_sim::tools::BUILTIN_TOOLS.join(" or ")
+        )
     })
 }
 
@@ -198,17 +190,9 @@ pub fn config_from_args(a: &Args) -> anyhow::Result<SimConfig> {
         if !(a.tool_rotation_deg.is_finite() && (0.0..=90.0).contains(&a.tool_rotation_deg)) {
             bail!("--tool-rotation-deg {} must be in 0..=90", a.tool_rotation_deg);
         }
-        // Tilted so that no two LEDs share an image row at rest; incommensurate periods per
-        // axis sweep the orientation space.
-        let a_deg = a.tool_rotation_deg;
         cfg.set_tool(
             &tool.leds_mm,
-            Orientation::Wobble {
-                base: UnitQuaternion::from_euler_angles(0.2, -0.3, 0.4),
-                amplitude_deg: Vector3::new(a_deg, 0.85 * a_deg, 1.3 * a_deg),
-                period_s: Vector3::new(2.0, 2.5, 3.25) * a.period_s,
-                phase_rad: Vector3::new(0.0, 1.0, 2.0),
-            },
+            irtrack_sim::tools::turning(a.tool_rotation_deg, a.period_s),
         );
     }
     if a.glare {

@@ -1,0 +1,66 @@
+//! Built-in multi-LED tools and the standard "turning tool" motion, shared by
+//! `host-tools simulate --tool` and irtrackd's simulated source (`[source.sim] tool`).
+
+use irtrack_core::params::ToolDefinition;
+use nalgebra::{UnitQuaternion, Vector3};
+
+use crate::trajectory::Orientation;
+
+/// Names accepted by [`builtin_tool`].
+pub const BUILTIN_TOOLS: &[&str] = &["probe4", "tri3"];
+
+/// A built-in tool definition by name (tool frame, mm; the origin is LED 0).
+/// `probe4`: four LEDs, non-planar, asymmetric (identification margin 13.9 mm).
+/// `tri3`: a scalene triangle with sides of 110, 101.4 and 66.3 mm (all three LEDs needed).
+pub fn builtin_tool(name: &str) -> Option<ToolDefinition> {
+    let leds_mm = match name {
+        "probe4" => vec![
+            [0.0, 0.0, 0.0],
+            [99.0, 0.0, 0.0],
+            [3.0, 85.0, 0.0],
+            [62.0, 11.0, 32.0],
+        ],
+        "tri3" => vec![[0.0, 0.0, 0.0], [110.0, 0.0, 0.0], [81.8, 60.0, 0.0]],
+        _ => return None,
+    };
+    Some(ToolDefinition {
+        name: name.into(),
+        leds_mm,
+    })
+}
+
+/// The tool turning about its own axes with amplitude `amplitude_deg` (x; y and z get 0.85 and
+/// 1.3 of it) and a basic period `period_s`. The rest orientation is tilted so that no two LEDs
+/// of the built-in tools share an image row in the 90° rig; the incommensurate periods per axis
+/// sweep the orientation space instead of repeating one path.
+pub fn turning(amplitude_deg: f64, period_s: f64) -> Orientation {
+    Orientation::Wobble {
+        base: UnitQuaternion::from_euler_angles(0.2, -0.3, 0.4),
+        amplitude_deg: Vector3::new(amplitude_deg, 0.85 * amplitude_deg, 1.3 * amplitude_deg),
+        period_s: Vector3::new(2.0, 2.5, 3.25) * period_s,
+        phase_rad: Vector3::new(0.0, 1.0, 2.0),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builtin_tools_are_valid_and_unknown_names_are_none() {
+        for name in BUILTIN_TOOLS {
+            let tool = builtin_tool(name).unwrap();
+            assert_eq!(tool.name, *name);
+            irtrack_core::pose6d::ToolModel::new(&tool, &Default::default()).unwrap();
+        }
+        assert!(builtin_tool("wand").is_none());
+    }
+
+    #[test]
+    fn turning_is_a_valid_orientation_that_turns() {
+        let o = turning(30.0, 4.0);
+        o.validate().unwrap();
+        let angle = o.rotation(0.0).angle_to(&o.rotation(1.3));
+        assert!(angle.to_degrees() > 5.0, "{}", angle.to_degrees());
+    }
+}
