@@ -13,12 +13,17 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use anyhow::{Context, Result, bail};
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
-use irtrack_core::image::GrayImage;
+use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
+use irtrack_core::image::{GrayImage, Roi};
 use irtrack_core::params::{CameraParams, RigParams};
 use irtrack_core::pipeline::{TrackStatus, Tracker, TrackerConfig};
+use irtrack_core::triangulate::{Ray, midpoint};
 use nalgebra::{Matrix3, Vector3};
-use opencv::core::{self as cv, Mat, MatTraitConst, Point2d, Rect, Scalar, Vector};
-use opencv::{calib3d, imgproc};
+
+#[cfg(feature = "opencv")]
+mod opencv_pipeline;
+#[cfg(feature = "opencv")]
+use opencv_pipeline::OpenCv;
 
 /// Counts heap allocations made through Rust's allocator (ours; OpenCV's C++ heap is not
 /// seen, so only our pipeline's figure is reported).
@@ -198,149 +203,6 @@ impl Ours {
     }
 }
 
-/// The same job with OpenCV: threshold, connectedComponentsWithStats, intensity moments of
-/// the largest component (pixels minus threshold inside its mask), undistortPoints,
-/// triangulatePoints. Buffers are kept across frames so OpenCV can reuse them.
-struct OpenCv {
-    k: [Mat; 2],
-    d: [Mat; 2],
-    p: [Mat; 2],
-    bin: Mat,
-    labels: Mat,
-    stats: Mat,
-    centroids: Mat,
-    mask: Mat,
-    shifted: Mat,
-    weighted: Mat,
-    points4: Mat,
-}
-
-impl OpenCv {
-    fn new(s: &Scene) -> Result<Self> {
-        // One thread, like our pipeline (and the board).
-        cv::set_num_threads(1)?;
-        let mut k = [Mat::default(), Mat::default()];
-        let mut d = [Mat::default(), Mat::default()];
-        let mut p = [Mat::default(), Mat::default()];
-        for c in 0..2 {
-            let cam = &s.rig.cameras[c];
-            let i = &cam.model.intrinsics;
-            k[c] = Mat::from_slice_2d(&[[i.fx_px, 0.0, i.cx_px], [0.0, i.fy_px, i.cy_px], [0.0, 0.0, 1.0]])?;
-            d[c] = Mat::from_slice_2d(&[cam.model.distortion.as_array()])?;
-            let r = cam.cam_from_cam0.r_row_major;
-            let t = cam.cam_from_cam0.t_mm;
-            p[c] = Mat::from_slice_2d(&[
-                [r[0], r[1], r[2], t[0]],
-                [r[3], r[4], r[5], t[1]],
-                [r[6], r[7], r[8], t[2]],
-            ])?;
-        }
-        Ok(OpenCv {
-            k,
-            d,
-            p,
-            bin: Mat::default(),
-            labels: Mat::default(),
-            stats: Mat::default(),
-            centroids: Mat::default(),
-            mask: Mat::default(),
-            shifted: Mat::default(),
-            weighted: Mat::default(),
-            points4: Mat::default(),
-        })
-    }
-
-    /// Centroid of the largest component, pixels.
-    fn centroid(&mut self, s: &Scene, c: usize) -> Result<(f64, f64)> {
-        let src = Mat::new_rows_cols_with_data(s.height_px as i32, s.width_px as i32, &s.frames[c])?;
-        imgproc::threshold(
-            &src,
-            &mut self.bin,
-            THRESHOLD_DN as f64,
-            255.0,
-            imgproc::THRESH_BINARY,
-        )?;
-        let n = imgproc::connected_components_with_stats(
-            &self.bin,
-            &mut self.labels,
-            &mut self.stats,
-            &mut self.centroids,
-            8,
-            cv::CV_32S,
-        )?;
-        let mut best = (0, 0);
-        for label in 1..n {
-            let area = *self.stats.at_2d::<i32>(label, imgproc::CC_STAT_AREA)?;
-            if area > best.1 {
-                best = (label, area);
-            }
-        }
-        if best.0 == 0 {
-            bail!("{}: OpenCV found no component in camera {c}", s.name);
-        }
-        let st = |k: i32| -> Result<i32> { Ok(*self.stats.at_2d::<i32>(best.0, k)?) };
-        let rect = Rect::new(
-            st(imgproc::CC_STAT_LEFT)?,
-            st(imgproc::CC_STAT_TOP)?,
-            st(imgproc::CC_STAT_WIDTH)?,
-            st(imgproc::CC_STAT_HEIGHT)?,
-        );
-        let labels_roi = Mat::roi(&self.labels, rect)?;
-        let src_roi = Mat::roi(&src, rect)?;
-        cv::compare(
-            &labels_roi,
-            &Scalar::all(best.0 as f64),
-            &mut self.mask,
-            cv::CMP_EQ,
-        )?;
-        // Weight = value − threshold (saturating at 0), kept only inside the component.
-        cv::subtract(
-            &src_roi,
-            &Scalar::all(THRESHOLD_DN as f64),
-            &mut self.shifted,
-            &cv::no_array(),
-            -1,
-        )?;
-        cv::min(&self.shifted, &self.mask, &mut self.weighted)?;
-        let m = imgproc::moments(&self.weighted, false)?;
-        if m.m00 <= 0.0 {
-            bail!("{}: OpenCV component without weight in camera {c}", s.name);
-        }
-        Ok((rect.x as f64 + m.m10 / m.m00, rect.y as f64 + m.m01 / m.m00))
-    }
-
-    fn run(&mut self, s: &Scene) -> Result<Vector3<f64>> {
-        let mut normalized = [[0.0f64; 2]; 2];
-        for (c, n) in normalized.iter_mut().enumerate() {
-            let (x, y) = self.centroid(s, c)?;
-            let src = Vector::<Point2d>::from_slice(&[Point2d::new(x, y)]);
-            let mut dst = Vector::<Point2d>::new();
-            calib3d::undistort_points(
-                &src,
-                &mut dst,
-                &self.k[c],
-                &self.d[c],
-                &cv::no_array(),
-                &cv::no_array(),
-            )?;
-            let q = dst.get(0)?;
-            *n = [q.x, q.y];
-        }
-        let a = Mat::from_slice_2d(&[[normalized[0][0]], [normalized[0][1]]])?;
-        let b = Mat::from_slice_2d(&[[normalized[1][0]], [normalized[1][1]]])?;
-        calib3d::triangulate_points(&self.p[0], &self.p[1], &a, &b, &mut self.points4)?;
-        let h = |r: i32| -> Result<f64> {
-            Ok(if self.points4.typ() == cv::CV_64F {
-                *self.points4.at_2d::<f64>(r, 0)?
-            } else {
-                *self.points4.at_2d::<f32>(r, 0)? as f64
-            })
-        };
-        let w = h(3)?;
-        Ok(Vector3::new(h(0)? / w, h(1)? / w, h(2)? / w))
-    }
-}
-
 /// The memory floor: one pass summing every pixel of both frames.
 fn sum_pixels(s: &Scene) -> u64 {
     let mut total = 0u64;
@@ -403,77 +265,169 @@ fn scenes() -> Result<Vec<Scene>> {
     ])
 }
 
+/// Timings of one scene (ns per stereo pair).
+struct Row {
+    full: f64,
+    roi: f64,
+    sum: f64,
+    max: f64,
+    allocs_per_pair: f64,
+    /// The ROI path split up: blob detection in the two windows, and the geometry every
+    /// tracked pair needs whatever the image work (2 undistortions + 1 triangulation).
+    roi_windows: f64,
+    geometry: f64,
+}
+
+fn measure(s: &Scene, batches: usize, iters: usize) -> Result<Row> {
+    let mut full = Ours::new(s, false)?;
+    let mut roi = Ours::new(s, true)?;
+    let t_full = time_ns(batches, iters, || {
+        full.run(s).map(|p| {
+            black_box(p);
+        })
+    })?;
+    let t_roi = time_ns(batches, iters * 20, || {
+        roi.run(s).map(|p| {
+            black_box(p);
+        })
+    })?;
+    let m = *roi.tracker.measurement();
+    if !m.used_roi {
+        bail!("{}: ROI case did not use the tracking windows", s.name);
+    }
+    // Allocations, counted over plain loops (no timing harness inside the window).
+    let a0 = ALLOCATIONS.load(Ordering::Relaxed);
+    for _ in 0..100 {
+        black_box(full.run(s)?);
+        black_box(roi.run(s)?);
+    }
+    let allocs_per_pair = (ALLOCATIONS.load(Ordering::Relaxed) - a0) as f64 / 200.0;
+    let t_sum = time_ns(batches, iters * 4, || {
+        black_box(sum_pixels(s));
+        Ok(())
+    })?;
+    let t_max = time_ns(batches, iters * 4, || {
+        black_box(max_pixels(s));
+        Ok(())
+    })?;
+
+    // ROI breakdown with the public building blocks, on the tracker's own windows.
+    let cfg = *roi.tracker.config();
+    let mut centroids = [(0.0, 0.0); 2];
+    for (c, xy) in centroids.iter_mut().enumerate() {
+        let b = m.cameras[c].marker.context("ROI case: camera without marker")?;
+        *xy = (b.x_px, b.y_px);
+    }
+    let windows = centroids.map(|(x, y)| Roi::around(x, y, cfg.roi_half_px, s.width_px, s.height_px));
+    let mut det = BlobDetector::new(BlobLimits::for_frame(s.width_px, s.height_px))?;
+    let blob_cfg = BlobConfig {
+        threshold_dn: cfg.threshold_dn,
+        ..BlobConfig::default()
+    };
+    let v = views(s)?;
+    let t_windows = time_ns(batches, iters * 40, || {
+        for c in 0..2 {
+            black_box(det.detect(&v[c], Some(windows[c]), &blob_cfg)?.len());
+        }
+        Ok(())
+    })?;
+    let cams = [&s.rig.cameras[0], &s.rig.cameras[1]];
+    let t_geometry = time_ns(batches, iters * 40, || {
+        let r = [0, 1].map(|c| {
+            let (x, y) = black_box(centroids[c]);
+            Ray::from_pixel(&cams[c].model, &cams[c].cam_from_cam0, x, y)
+        });
+        black_box(midpoint(&r[0], &r[1])?);
+        Ok(())
+    })?;
+    Ok(Row {
+        full: t_full,
+        roi: t_roi,
+        sum: t_sum,
+        max: t_max,
+        allocs_per_pair,
+        roi_windows: t_windows,
+        geometry: t_geometry,
+    })
+}
+
 fn table(quick: bool) -> Result<()> {
     let (batches, scale) = if quick { (3, 1) } else { (11, 8) };
     println!(
         "irtrack-bench: per stereo frame pair, thread CPU time, median of {batches} batches, one thread"
     );
     println!();
-    println!(
-        "| frames | ours full | OpenCV | OpenCV/ours | sum pass | ours/sum | max pass | ours/max | ours ROI | ROI/full | allocs/pair | ours−OpenCV |"
-    );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let mut rows = Vec::new();
+    #[cfg(feature = "opencv")]
+    {
+        println!(
+            "| frames | ours full | OpenCV | OpenCV/ours | sum pass | ours/sum | max pass | ours/max | ours ROI | ROI/full | allocs/pair | ours−OpenCV |"
+        );
+        println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
+    }
+    #[cfg(not(feature = "opencv"))]
+    {
+        println!(
+            "| frames | ours full | sum pass | ours/sum | max pass | ours/max | ours ROI | ROI/full | allocs/pair |"
+        );
+        println!("|---|---|---|---|---|---|---|---|---|");
+    }
     for s in scenes()? {
         let iters = scale * if s.width_px > 640 { 10 } else { 25 };
-        let mut full = Ours::new(&s, false)?;
-        let mut roi = Ours::new(&s, true)?;
-        let mut ocv = OpenCv::new(&s)?;
-        let p_ours = full.run(&s)?;
-        let p_cv = ocv.run(&s)?;
-        let diff_mm = (p_ours - p_cv).norm();
-
-        let t_full = time_ns(batches, iters, || {
-            full.run(&s).map(|p| {
-                black_box(p);
-            })
-        })?;
-        let t_roi = time_ns(batches, iters * 20, || {
-            roi.run(&s).map(|p| {
-                black_box(p);
-            })
-        })?;
-        if !roi.tracker.measurement().used_roi {
-            bail!("{}: ROI case did not use the tracking windows", s.name);
+        let r = measure(&s, batches, iters)?;
+        let (full, sum, max) = (fmt_us(r.full), fmt_us(r.sum), fmt_us(r.max));
+        let (ours_sum, ours_max) = (r.full / r.sum, r.full / r.max);
+        let (roi, roi_pct) = (fmt_us(r.roi), 100.0 * r.roi / r.full);
+        #[cfg(feature = "opencv")]
+        {
+            let mut ocv = OpenCv::new(&s)?;
+            let p_ours = Ours::new(&s, false)?.run(&s)?;
+            let diff_mm = (p_ours - ocv.run(&s)?).norm();
+            let t_cv = time_ns(batches, iters, || {
+                ocv.run(&s).map(|p| {
+                    black_box(p);
+                })
+            })?;
+            println!(
+                "| {} | {full} | {} | {:.1}x | {sum} | {ours_sum:.2}x | {max} | {ours_max:.2}x | {roi} | {roi_pct:.2} % | {} | {diff_mm:.4} mm |",
+                s.name,
+                fmt_us(t_cv),
+                t_cv / r.full,
+                r.allocs_per_pair,
+            );
         }
-        // Allocations, counted over plain loops (no timing harness inside the window).
-        let a0 = ALLOCATIONS.load(Ordering::Relaxed);
-        for _ in 0..100 {
-            black_box(full.run(&s)?);
-            black_box(roi.run(&s)?);
-        }
-        let allocs_per_pair = (ALLOCATIONS.load(Ordering::Relaxed) - a0) as f64 / 200.0;
-        let t_cv = time_ns(batches, iters, || {
-            ocv.run(&s).map(|p| {
-                black_box(p);
-            })
-        })?;
-        let t_sum = time_ns(batches, iters * 4, || {
-            black_box(sum_pixels(&s));
-            Ok(())
-        })?;
-        let t_max = time_ns(batches, iters * 4, || {
-            black_box(max_pixels(&s));
-            Ok(())
-        })?;
+        #[cfg(not(feature = "opencv"))]
         println!(
-            "| {} | {} | {} | {:.1}x | {} | {:.2}x | {} | {:.2}x | {} | {:.2} % | {} | {:.4} mm |",
-            s.name,
-            fmt_us(t_full),
-            fmt_us(t_cv),
-            t_cv / t_full,
-            fmt_us(t_sum),
-            t_full / t_sum,
-            fmt_us(t_max),
-            t_full / t_max,
-            fmt_us(t_roi),
-            100.0 * t_roi / t_full,
-            allocs_per_pair,
-            diff_mm,
+            "| {} | {full} | {sum} | {ours_sum:.2}x | {max} | {ours_max:.2}x | {roi} | {roi_pct:.2} % | {} |",
+            s.name, r.allocs_per_pair,
+        );
+        rows.push((s.name, r));
+    }
+    println!();
+    println!("ROI tracking split up (same windows, public building blocks):");
+    println!();
+    println!(
+        "| frames | ours ROI | blob detection in 2 windows | undistort ×2 + triangulate (floor) | rest | floor/full |"
+    );
+    println!("|---|---|---|---|---|---|");
+    for (name, r) in &rows {
+        println!(
+            "| {name} | {} | {} | {} | {} | {:.2} % |",
+            fmt_us(r.roi),
+            fmt_us(r.roi_windows),
+            fmt_us(r.geometry),
+            fmt_us((r.roi - r.roi_windows - r.geometry).max(0.0)),
+            100.0 * r.geometry / r.full,
         );
     }
     println!();
+    #[cfg(feature = "opencv")]
     println!("Goals: OpenCV/ours ≥ 20x, ours/sum ≤ 3x, ROI/full ≤ 5 %, 0 allocations per pair.");
+    #[cfg(feature = "opencv")]
     println!("ours−OpenCV: distance between the two pipelines' 3-D points on the same frames.");
+    #[cfg(not(feature = "opencv"))]
+    println!("Goals: ours/sum ≤ 3x, ROI/full ≤ 5 %, 0 allocations per pair (built without OpenCV).");
+    println!("floor/full: the per-pair geometry any tracked frame needs, as a share of the full frame.");
     Ok(())
 }
 
@@ -495,6 +449,7 @@ fn run_case(case: &str, iters: usize) -> Result<()> {
                 check += o.run(&s)?.z;
             }
         }
+        #[cfg(feature = "opencv")]
         "opencv" => {
             let mut o = OpenCv::new(&s)?;
             o.run(&s)?;

@@ -25,6 +25,13 @@ fn mib(b: u64) -> f64 {
     b as f64 / (1024.0 * 1024.0)
 }
 
+/// 1/5/15-minute load averages (the machine may be shared; latency depends on it).
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|t| t.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "n/a".into())
+}
+
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let cfg = SoakConfig {
@@ -39,7 +46,11 @@ fn main() -> anyhow::Result<()> {
         if cfg.paced { "paced" } else { "unpaced" }
     );
     let r = soak::run(cfg, |done, rss| {
-        println!("  {done:>9} sets, RSS {:.1} MiB", mib(rss));
+        println!(
+            "  {done:>9} sets, RSS {:.2} MiB, load {}",
+            mib(rss),
+            load_average()
+        );
     })
     .context("soak run")?;
     let [p50, p99, p999, max] = r.latency_us;
@@ -75,6 +86,6 @@ fn main() -> anyhow::Result<()> {
     if !errs.is_empty() {
         bail!("counter inconsistencies: {}", errs.join("; "));
     }
-    println!("counters consistent");
+    println!("counters consistent; load average at end {}", load_average());
     Ok(())
 }

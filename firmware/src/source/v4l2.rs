@@ -539,6 +539,28 @@ fn open_camera(
     Ok((negotiated, OpenCamera { stream, fd }))
 }
 
+/// Polls `fds` for hang-ups only (`events` is set to 0: POLLERR, POLLHUP and POLLNVAL are
+/// always reported, while a camera with frames waiting does not wake the poll). Returns how
+/// many descriptors have non-zero `revents`; 0 after the timeout or an interrupted poll.
+fn poll_hangups(fds: &mut [libc::pollfd], timeout: Duration) -> io::Result<usize> {
+    for p in fds.iter_mut() {
+        p.events = 0;
+        p.revents = 0;
+    }
+    // Round up so a sub-millisecond wait does not become a busy loop of zero-timeout polls.
+    let timeout_ms = c_int::try_from(timeout.as_micros().div_ceil(1000)).unwrap_or(c_int::MAX);
+    // SAFETY: fds is a valid, exclusively borrowed array of its length (poll with none sleeps).
+    let ready = unsafe { libc::poll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, timeout_ms) };
+    if ready < 0 {
+        let e = io::Error::last_os_error();
+        if e.kind() == io::ErrorKind::Interrupted {
+            return Ok(0);
+        }
+        return Err(e);
+    }
+    Ok(ready as usize)
+}
+
 /// Stops a stream without letting the v4l crate panic in `Drop` on an unexpected error.
 fn close_camera(mut cam: Box<OpenCamera>) {
     match cam.stream.stop() {
@@ -605,21 +627,71 @@ impl V4l2Source {
         }
     }
 
-    /// Reopens lost cameras whose backoff has elapsed, sleeping until the earliest attempt so a
-    /// caller that retries at once does not spin. Returns the first camera still lost.
-    fn recover(&mut self) -> Result<(), SourceError> {
-        let earliest = self
-            .cameras
+    /// Earliest reopen attempt due among the lost cameras, if any is lost.
+    fn earliest_attempt(&self) -> Option<Instant> {
+        self.cameras
             .iter()
             .filter_map(|c| match &c.state {
                 CameraState::Lost { next_attempt, .. } => Some(*next_attempt),
                 CameraState::Open(_) => None,
             })
-            .min();
-        let Some(earliest) = earliest else { return Ok(()) };
-        let now = Instant::now();
-        if earliest > now {
-            std::thread::sleep(earliest - now);
+            .min()
+    }
+
+    /// Waits up to `timeout` for an open camera to hang up and closes every one that did.
+    ///
+    /// While a camera is lost, `next_set` does not poll the others for frames, so a camera that
+    /// vanished together with it would keep its file descriptor and mmap buffers. Those hold
+    /// the dead device's node number until released: a driver coming back then registers the
+    /// camera under another number (video2 instead of video1) and the configured path leads
+    /// nowhere, for this process and for the next one.
+    fn close_hung_up(&mut self, timeout: Duration) -> Result<(), SourceError> {
+        self.pollfds.clear();
+        self.poll_cameras.clear();
+        for (i, cam) in self.cameras.iter().enumerate() {
+            if let CameraState::Open(open) = &cam.state {
+                self.pollfds.push(libc::pollfd {
+                    fd: open.fd,
+                    events: 0,
+                    revents: 0,
+                });
+                self.poll_cameras.push(i);
+            }
+        }
+        let hung_up = poll_hangups(&mut self.pollfds, timeout).map_err(|e| SourceError::Io {
+            path: "poll on cameras".into(),
+            source: e,
+        })?;
+        if hung_up == 0 {
+            return Ok(());
+        }
+        for k in 0..self.pollfds.len() {
+            let revents = self.pollfds[k].revents;
+            if revents != 0 {
+                // Reported through the status of the lost camera (mark_lost logs it too).
+                let _ = self.mark_lost(
+                    self.poll_cameras[k],
+                    format!("device hung up (poll revents {revents:#x})"),
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// Reopens lost cameras whose backoff has elapsed, waiting until the earliest attempt so a
+    /// caller that retries at once does not spin. Open cameras that hang up meanwhile are
+    /// closed at once. Returns the first camera still lost.
+    fn recover(&mut self) -> Result<(), SourceError> {
+        if self.earliest_attempt().is_none() {
+            return Ok(());
+        }
+        self.close_hung_up(Duration::ZERO)?;
+        while let Some(earliest) = self.earliest_attempt() {
+            let wait = earliest.saturating_duration_since(Instant::now());
+            if wait.is_zero() {
+                break;
+            }
+            self.close_hung_up(wait)?;
         }
         let max_backoff = Duration::from_millis(self.config.reconnect_max_ms);
         let mut still_lost = None;
@@ -987,5 +1059,122 @@ mod tests {
         assert_eq!(p.try_pair(), Err(2));
         assert!(p.is_pending(2));
         assert_eq!(p.clear_all(), 1);
+    }
+
+    fn pipe() -> (c_int, c_int) {
+        let mut fds = [0 as c_int; 2];
+        // SAFETY: fds has room for the two descriptors pipe writes.
+        assert_eq!(unsafe { libc::pipe(fds.as_mut_ptr()) }, 0);
+        (fds[0], fds[1])
+    }
+
+    fn pollfd(fd: c_int) -> libc::pollfd {
+        libc::pollfd {
+            fd,
+            events: libc::POLLIN,
+            revents: 0,
+        }
+    }
+
+    #[test]
+    fn hangup_poll_ignores_waiting_data_and_reports_hangups() {
+        let (live_r, live_w) = pipe();
+        let (dead_r, dead_w) = pipe();
+        // SAFETY: writing one byte from a valid buffer to our own pipe, then closing our fd.
+        unsafe {
+            assert_eq!(libc::write(live_w, [1u8].as_ptr().cast(), 1), 1);
+            libc::close(dead_w);
+        }
+        // Data waiting (a camera with a frame ready) must not wake the poll: it times out.
+        let mut fds = [pollfd(live_r)];
+        let t0 = Instant::now();
+        assert_eq!(poll_hangups(&mut fds, Duration::from_millis(30)).unwrap(), 0);
+        assert!(t0.elapsed() >= Duration::from_millis(25));
+        assert_eq!(fds[0].revents, 0);
+        // A hung-up descriptor is reported at once, and only that one.
+        let mut fds = [pollfd(live_r), pollfd(dead_r)];
+        let t0 = Instant::now();
+        assert_eq!(poll_hangups(&mut fds, Duration::from_secs(5)).unwrap(), 1);
+        assert!(t0.elapsed() < Duration::from_secs(1));
+        assert_eq!(fds[0].revents, 0);
+        assert_ne!(fds[1].revents & libc::POLLHUP, 0);
+        // SAFETY: closing the descriptors this test opened.
+        unsafe {
+            libc::close(live_r);
+            libc::close(live_w);
+            libc::close(dead_r);
+        }
+    }
+
+    fn lost_source(devices: &[&str], reconnect_min_ms: u64) -> V4l2Source {
+        let mut cfg = parse(MINIMAL).unwrap();
+        cfg.devices = devices.iter().map(|d| (*d).to_owned()).collect();
+        cfg.reconnect_min_ms = reconnect_min_ms;
+        cfg.reconnect_max_ms = 4 * reconnect_min_ms;
+        let formats = cfg.validate().unwrap();
+        let backoff = Duration::from_millis(reconnect_min_ms);
+        let cameras = cfg
+            .devices
+            .iter()
+            .map(|d| Camera {
+                device: d.clone(),
+                negotiated: Negotiated {
+                    format: PixelFormat::Grey,
+                    width_px: 640,
+                    height_px: 360,
+                    bytes_per_line: 640,
+                    interval: (1, 30),
+                    driver: "vivid".into(),
+                    card: "vivid".into(),
+                },
+                state: CameraState::Lost {
+                    next_attempt: Instant::now() + backoff,
+                    backoff,
+                    reason: "test".into(),
+                },
+                warned_clock: false,
+            })
+            .collect();
+        V4l2Source {
+            pairer: Pairer::new(devices.len(), cfg.pairing_tolerance_ns()),
+            config: cfg,
+            formats,
+            cameras,
+            stats: SourceStats::default(),
+            next_index: 0,
+            pollfds: Vec::new(),
+            poll_cameras: Vec::new(),
+        }
+    }
+
+    fn backoff_of(src: &V4l2Source, camera: usize) -> Duration {
+        match &src.cameras[camera].state {
+            CameraState::Lost { backoff, .. } => *backoff,
+            CameraState::Open(_) => panic!("camera {camera} is open"),
+        }
+    }
+
+    #[test]
+    fn lost_cameras_are_retried_after_the_backoff_which_doubles_up_to_the_limit() {
+        let mut src = lost_source(&["/dev/irtrack-gone-0", "/dev/irtrack-gone-1"], 40);
+        let mut set = src.allocate_set();
+        let t0 = Instant::now();
+        // next_set waits for the first attempt instead of returning at once (no busy loop).
+        let err = src.next_set(&mut set).unwrap_err().to_string();
+        assert!(t0.elapsed() >= Duration::from_millis(35), "{:?}", t0.elapsed());
+        assert!(
+            err.contains("/dev/irtrack-gone-0") && err.contains("open"),
+            "{err}"
+        );
+        assert_eq!(backoff_of(&src, 0), Duration::from_millis(80));
+        assert_eq!(backoff_of(&src, 1), Duration::from_millis(80));
+        for _ in 0..3 {
+            assert!(src.next_set(&mut set).is_err());
+        }
+        // Capped at reconnect_max_ms; nothing was reopened.
+        assert_eq!(backoff_of(&src, 0), Duration::from_millis(160));
+        assert_eq!(src.stats().reconnects, 0);
+        assert_eq!(src.stats().sets_delivered, 0);
+        assert!(src.describe().contains("lost: I/O on /dev/irtrack-gone-1 (open)"));
     }
 }
