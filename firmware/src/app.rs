@@ -225,6 +225,10 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         deadline(&cfg),
     )
     .with_pose_config(cfg.pose);
+    let engine = match cfg.source.max_pairing_error_us {
+        Some(us) => engine.with_max_pairing_error(Duration::from_micros(us)),
+        None => engine,
+    };
     let stop_loop = Arc::new(AtomicBool::new(false));
     let (result_tx, result_rx) = oneshot::channel();
     let rt_cfg = cfg.realtime.clone();
@@ -252,7 +256,8 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
             let _ = rx.wait_for(|v| *v).await;
         }
     };
-    let hub = StreamHub::start(slot_rx.clone(), cfg.listen.client_queue_records, status.clone());
+    let hub = StreamHub::start(slot_rx.clone(), cfg.listen.client_queue_records, status.clone())
+        .with_max_clients(cfg.listen.max_stream_clients);
     let mut tasks = vec![
         tokio::spawn(crate::net::params::serve(l_params, params.clone(), shutdown())),
         tokio::spawn(crate::net::stream::serve(

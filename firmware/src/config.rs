@@ -157,6 +157,10 @@ pub struct ListenConfig {
     /// Records queued per stream client before it counts as too slow and is dropped.
     #[serde(default = "default_client_queue")]
     pub client_queue_records: usize,
+    /// Stream clients (both formats together) served at once; further connections are closed
+    /// at once and counted, so a flood of connections cannot exhaust memory or descriptors.
+    #[serde(default = "default_max_stream_clients")]
+    pub max_stream_clients: u64,
 }
 
 fn default_params_addr() -> String {
@@ -174,6 +178,9 @@ fn default_status_addr() -> String {
 fn default_client_queue() -> usize {
     256
 }
+fn default_max_stream_clients() -> u64 {
+    32
+}
 
 impl Default for ListenConfig {
     fn default() -> Self {
@@ -183,6 +190,7 @@ impl Default for ListenConfig {
             stream_binary: default_binary_addr(),
             status: default_status_addr(),
             client_queue_records: default_client_queue(),
+            max_stream_clients: default_max_stream_clients(),
         }
     }
 }
@@ -203,6 +211,10 @@ pub enum SourceKind {
 pub struct SourceConfig {
     #[serde(default)]
     pub kind: SourceKind,
+    /// Largest capture-time difference (µs) between the cameras of one set that still gives a
+    /// position; default half the loop's deadline (the frame period unless configured).
+    #[serde(default)]
+    pub max_pairing_error_us: Option<u64>,
     #[serde(default)]
     pub sim: Option<SimSourceConfig>,
     #[serde(default)]
@@ -293,6 +305,12 @@ impl Config {
         }
         if self.listen.client_queue_records == 0 {
             return bad("listen.client_queue_records must be at least 1".into());
+        }
+        if self.listen.max_stream_clients == 0 {
+            return bad("listen.max_stream_clients must be at least 1".into());
+        }
+        if self.source.max_pairing_error_us == Some(0) {
+            return bad("source.max_pairing_error_us must be > 0".into());
         }
         check_tracker_config(&self.tracking)?;
         self.pose.validate().map_err(|e| FirmwareError::Config {

@@ -100,6 +100,8 @@ pub struct Engine {
     out: watch::Sender<Option<PositionRecord>>,
     status: Arc<SharedStatus>,
     deadline_ns: u64,
+    /// Sets whose cameras' capture times differ by more than this give no position.
+    max_pairing_error_ns: u64,
     consecutive_errors: u32,
     /// Capture time of the last processed set: older or repeated sets are never published.
     /// (Time, not index: a repeating replay restarts its indices with newer timestamps.)
@@ -136,6 +138,7 @@ impl Engine {
             out,
             status,
             deadline_ns,
+            max_pairing_error_ns: deadline_ns / 2,
             consecutive_errors: 0,
             last_capture_ns: None,
         }
@@ -144,6 +147,13 @@ impl Engine {
     /// Settings of the 6-DOF tracker (`[pose]`), used for sets that define a tool.
     pub fn with_pose_config(mut self, cfg: PoseConfig) -> Self {
         self.pose_cfg = cfg;
+        self
+    }
+
+    /// Largest capture-time difference between the cameras of one set that still gives a
+    /// position (default: half the deadline).
+    pub fn with_max_pairing_error(mut self, max: Duration) -> Self {
+        self.max_pairing_error_ns = u64::try_from(max.as_nanos()).unwrap_or(u64::MAX);
         self
     }
 
@@ -247,11 +257,29 @@ impl Engine {
         let t_start = Instant::now();
         self.account_source();
 
+        let skewed = self.set.pairing_error_ns > self.max_pairing_error_ns;
         let (mut rec, t_detect, t_solve) = match self
             .tracker
             .as_mut()
             .filter(|_| self.status.params_loaded.load(R))
         {
+            // The cameras saw a moving marker at different instants: their rays do not meet
+            // where the marker was. No position rather than a wrong one.
+            Some(_) if skewed => {
+                if self.status.skewed_sets.fetch_add(1, R) == 0 {
+                    tracing::warn!(
+                        pairing_error_us = self.set.pairing_error_ns / 1000,
+                        max_us = self.max_pairing_error_ns / 1000,
+                        "camera timestamps too far apart; set published without a position"
+                    );
+                }
+                self.status.set_track(TrackIndication::None);
+                (
+                    self.empty_record(TrackStatus::Rejected, capture_ns),
+                    t_start,
+                    t_start,
+                )
+            }
             None => {
                 self.status.set_track(TrackIndication::None);
                 (

@@ -94,6 +94,9 @@ pub struct SharedStatus {
     /// Sets not newer than the last processed one (duplicated or reordered by the source),
     /// dropped unpublished so that no stale position goes out.
     pub stale_sets: AtomicU64,
+    /// Sets whose cameras' capture times differ by more than the allowed pairing error: a
+    /// moving marker would triangulate wrong, so they are published without a position.
+    pub skewed_sets: AtomicU64,
     pub stages: StageHistograms,
     pub last_gap_mm_bits: AtomicU64,
 
@@ -123,6 +126,7 @@ pub struct SharedStatus {
     pub stream_clients: AtomicU64,
     pub stream_clients_total: AtomicU64,
     pub stream_dropped_slow: AtomicU64,
+    pub stream_refused: AtomicU64,
     pub stream_records_sent: AtomicU64,
     pub slot_overwrites: AtomicU64,
 
@@ -164,6 +168,7 @@ impl SharedStatus {
             source_errors: AtomicU64::new(0),
             pipeline_errors: AtomicU64::new(0),
             stale_sets: AtomicU64::new(0),
+            skewed_sets: AtomicU64::new(0),
             stages: StageHistograms::default(),
             last_gap_mm_bits: AtomicU64::new(f64::NAN.to_bits()),
             sets_delivered: AtomicU64::new(0),
@@ -183,6 +188,7 @@ impl SharedStatus {
             indication: Mutex::new(Indication::STARTING),
             stream_clients: AtomicU64::new(0),
             stream_clients_total: AtomicU64::new(0),
+            stream_refused: AtomicU64::new(0),
             stream_dropped_slow: AtomicU64::new(0),
             stream_records_sent: AtomicU64::new(0),
             slot_overwrites: AtomicU64::new(0),
@@ -334,6 +340,8 @@ impl SharedStatus {
                 deadline_misses: self.deadline_misses.load(R),
                 source_errors: self.source_errors.load(R),
                 pipeline_errors: self.pipeline_errors.load(R),
+                stale_sets: self.stale_sets.load(R),
+                skewed_sets: self.skewed_sets.load(R),
                 source_ended: self.source_ended.load(R),
                 latency_us: latency_us.into_iter().collect(),
                 realtime: self.realtime.lock().map(|g| g.clone()).unwrap_or_default(),
@@ -342,6 +350,7 @@ impl SharedStatus {
                 clients: self.stream_clients.load(R),
                 clients_total: self.stream_clients_total.load(R),
                 dropped_slow: self.stream_dropped_slow.load(R),
+                refused: self.stream_refused.load(R),
                 records_sent: self.stream_records_sent.load(R),
                 slot_overwrites: self.slot_overwrites.load(R),
             },
@@ -367,7 +376,7 @@ impl SharedStatus {
         use std::fmt::Write as _;
         let mut s = String::with_capacity(8 * 1024);
         let info = self.params_info();
-        let counters: [(&str, &str, u64); 14] = [
+        let counters: [(&str, &str, u64); 17] = [
             (
                 "irtrackd_sets_processed_total",
                 "frame sets processed",
@@ -399,6 +408,16 @@ impl SharedStatus {
                 self.deadline_misses.load(R),
             ),
             (
+                "irtrackd_stale_sets_total",
+                "duplicated or reordered sets dropped",
+                self.stale_sets.load(R),
+            ),
+            (
+                "irtrackd_skewed_sets_total",
+                "sets refused for camera timestamp skew",
+                self.skewed_sets.load(R),
+            ),
+            (
                 "irtrackd_source_errors_total",
                 "frame source errors",
                 self.source_errors.load(R),
@@ -422,6 +441,11 @@ impl SharedStatus {
                 "irtrackd_stream_dropped_slow_total",
                 "stream clients dropped as too slow",
                 self.stream_dropped_slow.load(R),
+            ),
+            (
+                "irtrackd_stream_refused_total",
+                "stream connections refused at the client limit",
+                self.stream_refused.load(R),
             ),
             (
                 "irtrackd_stream_records_sent_total",
@@ -558,6 +582,10 @@ pub struct LoopReport {
     pub deadline_misses: u64,
     pub source_errors: u64,
     pub pipeline_errors: u64,
+    /// Duplicated or reordered sets dropped unpublished.
+    pub stale_sets: u64,
+    /// Sets published without a position because their cameras' timestamps were too far apart.
+    pub skewed_sets: u64,
     pub source_ended: bool,
     pub latency_us: std::collections::BTreeMap<&'static str, LatencySummary>,
     /// Real-time settings applied or refused (one line each).
@@ -569,6 +597,8 @@ pub struct StreamReport {
     pub clients: u64,
     pub clients_total: u64,
     pub dropped_slow: u64,
+    /// Connections closed at once because `listen.max_stream_clients` were already connected.
+    pub refused: u64,
     pub records_sent: u64,
     pub slot_overwrites: u64,
 }

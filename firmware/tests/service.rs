@@ -326,6 +326,91 @@ async fn slow_stream_client_is_dropped_without_stalling_others() {
     running.shutdown().await;
 }
 
+/// A flood of stream connections (idle ones, ones that write garbage, far more than the limit):
+/// connections over `listen.max_stream_clients` are closed at once and counted, a well-behaved
+/// client keeps receiving fresh records, the loop keeps its pace, and freed slots are reusable.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stream_connection_flood_is_refused_without_disturbing_clients() {
+    use std::sync::atomic::Ordering::Relaxed;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    const LIMIT: u64 = 8;
+    const FLOOD: usize = 200;
+    let dir = TempDir::new("flood");
+    let mut cfg = test_config(dir.path());
+    cfg.service.params_from_simulator = true;
+    cfg.listen.max_stream_clients = LIMIT;
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let status = running.status.clone();
+    let mut good = NdjsonClient::connect(running.addrs.stream_ndjson).await;
+    good.until(200, |r| r.status == TrackStatus::Ok).await;
+
+    // Fill the limit: idle clients on both ports, some writing garbage at the server.
+    let mut held = Vec::new();
+    for i in 0..(LIMIT - 1) as usize {
+        let addr = if i % 2 == 0 {
+            running.addrs.stream_ndjson
+        } else {
+            running.addrs.stream_binary
+        };
+        let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+        if i % 3 == 0 {
+            s.write_all(&[0xAB; 4096]).await.unwrap();
+        }
+        held.push(s);
+    }
+    eventually(5, || status.stream_clients.load(Relaxed) == LIMIT).await;
+
+    // The flood: every further connection is closed by the server without a record.
+    let processed0 = status.sets_processed.load(Relaxed);
+    let mut closed_at_once = 0;
+    for i in 0..FLOOD {
+        let addr = if i % 2 == 0 {
+            running.addrs.stream_ndjson
+        } else {
+            running.addrs.stream_binary
+        };
+        let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+        let mut buf = [0u8; 64];
+        if let Ok(Ok(0)) = tokio::time::timeout(Duration::from_secs(2), s.read(&mut buf)).await {
+            closed_at_once += 1;
+        }
+    }
+    assert_eq!(
+        closed_at_once, FLOOD,
+        "connections over the limit must be closed at once"
+    );
+    assert!(status.stream_refused.load(Relaxed) >= FLOOD as u64);
+    assert_eq!(status.stream_clients.load(Relaxed), LIMIT);
+
+    // The good client still gets fresh, tracked records; the loop kept running meanwhile.
+    let a = good.until(50, |r| r.status == TrackStatus::Ok).await;
+    let b = good.next().await;
+    assert!(b.frame > a.frame);
+    assert!(a.latency_us < 100_000, "stale record: {} µs", a.latency_us);
+    // One more second of streaming with the limit still full: the 100 fps loop keeps its pace.
+    let t0 = tokio::time::Instant::now();
+    let mut last = b.frame;
+    while t0.elapsed() < Duration::from_secs(1) {
+        let r = good.next().await;
+        assert!(r.frame > last);
+        last = r.frame;
+    }
+    let processed1 = status.sets_processed.load(Relaxed);
+    assert!(
+        processed1 >= processed0 + 50,
+        "loop slowed: {processed0} → {processed1} in > 1 s"
+    );
+
+    // Freed slots are usable again.
+    drop(held);
+    eventually(5, || status.stream_clients.load(Relaxed) == 1).await;
+    let mut again = NdjsonClient::connect(running.addrs.stream_ndjson).await;
+    again.next().await;
+    let st = status_json(running.addrs.status).await;
+    assert!(st["stream"]["refused"].as_u64().unwrap() >= FLOOD as u64, "{st}");
+    running.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn status_json_and_metrics_report_the_running_service() {
     let dir = TempDir::new("status");

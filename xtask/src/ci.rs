@@ -590,6 +590,9 @@ const EMULATION_SKIPS: &[&str] = &[
     // Thousands of rendered frame sets through the live engine.
     "short_soak_counters_consistent",
     "injected_source_faults_never_publish",
+    "reflections_and_occlusions_never_publish",
+    // Asserts the 100 fps live loop keeps its pace during the flood.
+    "stream_connection_flood",
     // 720 paced 120 fps sets rendered live with a robot link on wall-clock age limits.
     "turning_tool_is_tracked_in_6dof_by_irtrackd",
 ];

@@ -33,7 +33,12 @@ pub enum StreamFormat {
 pub struct StreamHub {
     tx: broadcast::Sender<PositionRecord>,
     status: Arc<SharedStatus>,
+    /// Clients served at once over both ports; more are closed at once and counted.
+    max_clients: u64,
 }
+
+/// Default for [`StreamHub::with_max_clients`] (`listen.max_stream_clients`).
+pub const DEFAULT_MAX_CLIENTS: u64 = 32;
 
 impl StreamHub {
     /// Starts the distributor task reading `slot`; it ends when the slot's sender is dropped.
@@ -46,6 +51,7 @@ impl StreamHub {
         let hub = Self {
             tx: tx.clone(),
             status: status.clone(),
+            max_clients: DEFAULT_MAX_CLIENTS,
         };
         tokio::spawn(async move {
             let mut received = 0u64;
@@ -66,6 +72,12 @@ impl StreamHub {
         hub
     }
 
+    /// Sets the limit of clients served at once (both ports together).
+    pub fn with_max_clients(mut self, max_clients: u64) -> Self {
+        self.max_clients = max_clients.max(1);
+        self
+    }
+
     pub fn subscribe(&self) -> broadcast::Receiver<PositionRecord> {
         self.tx.subscribe()
     }
@@ -84,6 +96,16 @@ pub async fn serve(
             _ = &mut shutdown => break,
             accepted = listener.accept() => match accepted {
                 Ok((stream, peer)) => {
+                    // Only this task and its twin on the other port add clients, so the check
+                    // can overshoot by at most one connection per port.
+                    if hub.status.stream_clients.load(Ordering::Relaxed) >= hub.max_clients {
+                        let refused = hub.status.stream_refused.fetch_add(1, Ordering::Relaxed);
+                        if refused.is_multiple_of(1000) {
+                            tracing::warn!(%peer, max = hub.max_clients, refused = refused + 1, "stream client limit reached; connection closed");
+                        }
+                        drop(stream);
+                        continue;
+                    }
                     let _ = stream.set_nodelay(true);
                     limit_send_buffer(&stream);
                     let rx = hub.subscribe();

@@ -24,6 +24,9 @@ pub struct SimServerConfig {
     pub disconnect_after: u32,
     /// Stop answering (no heartbeats, no credits) after this many targets; 0 = never.
     pub silent_after: u32,
+    /// After this many targets on a connection, answer with garbage (binary bytes, an
+    /// over-long line, an unknown command) instead of the protocol; 0 = never.
+    pub garbage_after: u32,
 }
 
 impl Default for SimServerConfig {
@@ -34,6 +37,7 @@ impl Default for SimServerConfig {
             inject_delay_ms: 0,
             disconnect_after: 0,
             silent_after: 0,
+            garbage_after: 0,
         }
     }
 }
@@ -43,6 +47,8 @@ impl Default for SimServerConfig {
 pub enum SimLog {
     Connected,
     Disconnected,
+    /// The server sent garbage (`garbage_after`).
+    GarbageSent,
     Event(SimEvent),
 }
 
@@ -202,6 +208,21 @@ async fn serve(
         }
         if cfg.silent_after > 0 && targets >= cfg.silent_after {
             silent = true;
+        }
+        if cfg.garbage_after > 0 && targets >= cfg.garbage_after {
+            // A confused controller: the session must end here without another target.
+            let junk: &[&[u8]] = &[b"\x00\xff\xfe garbage\n", &[b'A'; 200], b"\nMOVE NOW 1 2 3\n"];
+            for j in junk {
+                if wr.write_all(j).await.is_err() {
+                    return;
+                }
+            }
+            push(rec, t0, conn, SimLog::GarbageSent, robot.pos_mm());
+            // Keep reading (and recording targets) until the tracker hangs up.
+            while let Ok(Some(l)) = lines.next_line().await {
+                record_target(rec, t0, conn, &l);
+            }
+            return;
         }
         if silent {
             continue;

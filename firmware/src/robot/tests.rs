@@ -502,6 +502,40 @@ async fn silent_robot_times_out_and_link_reconnects() {
 }
 
 #[tokio::test]
+async fn garbage_from_the_robot_ends_the_session_and_motion_needs_a_new_enable() {
+    let mut sim = sim_cfg(1, [0.0, 0.0, 200.0]);
+    sim.garbage_after = 10;
+    let r = rig(sim, 100.0, line_scenario(|_, p| Some((Some(p), 0.2)))).await;
+    connect_and_enable(&r).await;
+    wait_for(&r.link, "protocol error", |s| {
+        s.last_error.as_deref().is_some_and(|e| e.contains("robot"))
+    })
+    .await;
+    wait_for(&r.link, "reconnect", |s| s.connects >= 2).await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let log = r.sim.log();
+    // Nothing was sent on the garbled connection after the garbage arrived.
+    let garbage_at = log
+        .iter()
+        .find(|e| e.2 == SimLog::GarbageSent)
+        .map(|e| e.0)
+        .expect("garbage sent");
+    let after: Vec<_> = r
+        .sim
+        .received()
+        .into_iter()
+        .filter(|t| t.conn == 1 && t.t_s > garbage_at + 0.01)
+        .collect();
+    assert!(after.is_empty(), "targets after garbage: {after:?}");
+    // Reconnected, but held until enabled again: no target on the new connection.
+    assert_eq!(r.link.status().state, LinkState::Holding(HoldReason::NotEnabled));
+    assert!(r.sim.received().iter().all(|t| t.conn == 1));
+    let err = r.link.status().last_error.unwrap_or_default();
+    println!("link error after garbage: {err}");
+    assert_no_violation(&r.sim);
+}
+
+#[tokio::test]
 async fn heartbeats_flow_while_idle() {
     let r = rig(sim_cfg(1, [0.0, 0.0, 200.0]), 100.0, still([0.0, 0.0, 200.0])).await;
     wait_for(&r.link, "connection", |s| {
