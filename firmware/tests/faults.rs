@@ -16,8 +16,16 @@ use irtrack_firmware::source::sim::{SimSource, SimSourceConfig};
 use irtrack_firmware::status::SharedStatus;
 use irtrack_sim::Scenario;
 
-#[test]
-fn injected_source_faults_never_publish_stale_or_wrong_positions() {
+/// The processing loop over the simulated source (100 fps, unpaced, its own rig as the
+/// parameter set) with `schedule` injected, and the truth of the same scenario.
+struct Rig {
+    engine: Engine,
+    rx: tokio::sync::watch::Receiver<Option<irtrack_core::stream::PositionRecord>>,
+    status: Arc<SharedStatus>,
+    truth: Scenario,
+}
+
+fn rig(schedule: Vec<(u64, Fault)>) -> Rig {
     let cfg = SimSourceConfig {
         paced: false,
         fps: 100.0,
@@ -30,6 +38,27 @@ fn injected_source_faults_never_publish_stale_or_wrong_positions() {
         rig: sim.scenario().rig().clone(),
         crc: 1,
     });
+    let source = FaultySource::new(Box::new(sim), schedule);
+    let status = Arc::new(SharedStatus::new(2, source.describe(), "none".into()));
+    let (tx, rx) = tokio::sync::watch::channel(None);
+    let engine = Engine::new(
+        Box::new(source),
+        TrackerConfig::default(),
+        handle,
+        tx,
+        Arc::clone(&status),
+        Duration::from_millis(10),
+    );
+    Rig {
+        engine,
+        rx,
+        status,
+        truth,
+    }
+}
+
+#[test]
+fn injected_source_faults_never_publish_stale_or_wrong_positions() {
     const LOST_SETS: u32 = 5;
     let schedule = vec![
         (10, Fault::Drop),
@@ -51,17 +80,12 @@ fn injected_source_faults_never_publish_stale_or_wrong_positions() {
         ),
         (70, Fault::Duplicate),
     ];
-    let source = FaultySource::new(Box::new(sim), schedule);
-    let status = Arc::new(SharedStatus::new(2, source.describe(), "none".into()));
-    let (tx, rx) = tokio::sync::watch::channel(None);
-    let mut engine = Engine::new(
-        Box::new(source),
-        TrackerConfig::default(),
-        handle,
-        tx,
-        Arc::clone(&status),
-        Duration::from_millis(10),
-    );
+    let Rig {
+        mut engine,
+        rx,
+        status,
+        truth,
+    } = rig(schedule);
 
     let mut frames = Vec::new();
     let (mut source_errors, mut fault_seen_in_status) = (0u32, false);
@@ -129,29 +153,12 @@ type Published = (u64, TrackStatus, Option<f64>);
 
 /// Runs `sets` sets through the engine with `schedule` injected.
 fn run_with_faults(schedule: Vec<(u64, Fault)>, sets: usize) -> (Vec<Published>, Arc<SharedStatus>) {
-    let cfg = SimSourceConfig {
-        paced: false,
-        fps: 100.0,
-        ..SimSourceConfig::default()
-    };
-    let truth = Scenario::new(cfg.scenario_config()).unwrap();
-    let sim = SimSource::new(&cfg).unwrap();
-    let handle = Arc::new(ParamsHandle::new());
-    handle.install(ActiveParams {
-        rig: sim.scenario().rig().clone(),
-        crc: 1,
-    });
-    let source = FaultySource::new(Box::new(sim), schedule);
-    let status = Arc::new(SharedStatus::new(2, source.describe(), "none".into()));
-    let (tx, _rx) = tokio::sync::watch::channel(None);
-    let mut engine = Engine::new(
-        Box::new(source),
-        TrackerConfig::default(),
-        handle,
-        tx,
-        Arc::clone(&status),
-        Duration::from_millis(10),
-    );
+    let Rig {
+        mut engine,
+        status,
+        truth,
+        ..
+    } = rig(schedule);
     let mut out = Vec::new();
     for _ in 0..sets {
         if let StepOutcome::Published(r) = engine.step().unwrap() {
