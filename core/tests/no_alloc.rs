@@ -2,46 +2,16 @@
 //! `Tracker::process_u8/u16` (detection, ROI tracking, full-frame fallback, loss,
 //! ambiguity, 16-bit) after a warm-up frame.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
-
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::{CameraParams, RigParams};
 use irtrack_core::pipeline::{TrackStatus, Tracker, TrackerConfig};
 use nalgebra::{Matrix3, Vector3};
 
-struct Counting;
-
-thread_local! {
-    // Per thread, so the test harness's own threads do not disturb the count.
-    static ALLOCATIONS: Cell<u64> = const { Cell::new(0) };
-}
-
-// SAFETY: forwards to the system allocator unchanged; only counts calls.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
-        // SAFETY: same contract as the caller's.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: same contract as the caller's.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
-        // SAFETY: same contract as the caller's.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: irtrack_testkit::CountingAlloc = irtrack_testkit::CountingAlloc;
 
-fn allocations() -> u64 {
-    ALLOCATIONS.with(|c| c.get())
-}
+use irtrack_testkit::allocations;
 
 const W: u32 = 320;
 const H: u32 = 240;

@@ -3,9 +3,6 @@
 //! `BlobDetector`, and tracked with `PoseTracker`; errors are measured against the truth.
 //! Rig: the paper's convergent 90° VGA rig (f = 680 px, optical axes crossing at 1 m).
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
-
 use irtrack_core::Error;
 use irtrack_core::blob::{Blob, BlobConfig, BlobDetector, BlobLimits};
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
@@ -17,38 +14,12 @@ use irtrack_core::pose6d::{
 };
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
-// ---- allocation counter (per thread, as in no_alloc.rs) ---------------------------------
-
-struct Counting;
-
-thread_local! {
-    static ALLOCATIONS: Cell<u64> = const { Cell::new(0) };
-}
-
-// SAFETY: forwards to the system allocator unchanged; only counts calls.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
-        // SAFETY: same contract as the caller's.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: same contract as the caller's.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
-        // SAFETY: same contract as the caller's.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
+// ---- allocation counter (per thread) -----------------------------------------------------
 
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: irtrack_testkit::CountingAlloc = irtrack_testkit::CountingAlloc;
 
-fn allocations() -> u64 {
-    ALLOCATIONS.with(|c| c.get())
-}
+use irtrack_testkit::allocations;
 
 // ---- rig, tool, rendering ---------------------------------------------------------------
 

@@ -1,8 +1,6 @@
 //! The processing loop does not allocate per frame set once warmed up: a counting global
 //! allocator counts allocations made by this test's thread while it runs `Engine::step`.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -13,41 +11,10 @@ use irtrack_firmware::source::FrameSource;
 use irtrack_firmware::source::sim::{SimSource, SimSourceConfig};
 use irtrack_firmware::status::SharedStatus;
 
-struct Counting;
-
-thread_local! {
-    // Const-initialized without a destructor: touching it never allocates.
-    static ALLOCS: Cell<u64> = const { Cell::new(0) };
-}
-
-fn bump() {
-    let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
-}
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        bump();
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        bump();
-        unsafe { System.alloc_zeroed(layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        bump();
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) }
-    }
-}
-
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: irtrack_testkit::CountingAlloc = irtrack_testkit::CountingAlloc;
 
-fn allocs() -> u64 {
-    ALLOCS.with(|c| c.get())
-}
+use irtrack_testkit::allocations as allocs;
 
 fn engine(
     with_params: bool,
@@ -147,7 +114,10 @@ fn steady_state_processing_does_not_allocate() {
 fn six_dof_processing_does_not_allocate() {
     let (mut e, rx) = engine_with(true, 8, Some("probe4"));
     let (n, ok) = measure(&mut e, 10, 60);
-    assert!(e.tracks_pose(), "the tool's set must switch the loop to 6-DOF mode");
+    assert!(
+        e.tracks_pose(),
+        "the tool's set must switch the loop to 6-DOF mode"
+    );
     assert!(ok >= 55, "only {ok} of 60 sets tracked in 6-DOF");
     assert_eq!(n, 0, "{n} allocations in 60 6-DOF frame sets");
     assert!(rx.borrow().unwrap().orientation_wxyz.is_some());
