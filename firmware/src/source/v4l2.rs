@@ -5,7 +5,10 @@
 //! through a few mmap buffers, and is polled together with the others on one thread. A dequeued
 //! frame is converted at once into the caller's pre-allocated [`Frame`] (the only copy), so
 //! holding a frame while its partner is awaited costs no driver buffer. A camera whose ioctl
-//! fails is reported as [`SourceError::CameraLost`] and reopened with exponential backoff.
+//! fails is reported as [`SourceError::CameraLost`] and reopened with exponential backoff;
+//! while one is lost the others are watched for hang-ups, so that a device gone with it is
+//! released at once (its stale descriptor would otherwise keep the node number taken and the
+//! returning driver would register the camera under another path).
 
 use std::collections::BTreeMap;
 use std::io;
