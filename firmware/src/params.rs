@@ -164,9 +164,9 @@ impl ParamService {
             SignatureStatus::UnsignedAccepted => None,
         };
         self.check_rig(&rig)?;
-        let crc = BlobHeader::parse_allow_signed(blob)
-            .map_err(|e| Verdict::from_error(&e))?
-            .crc32;
+        // The set's id does not depend on signing (docs/param-blob.md): the same parameters
+        // carry the same `params_crc` whether pushed signed or not.
+        let crc = rig.params_crc().map_err(|e| Verdict::from_error(&e))?;
         Ok((rig, crc, signed_by))
     }
 

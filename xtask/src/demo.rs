@@ -16,6 +16,9 @@ use crate::util::{self, Ctx, RunOpts};
 enum Action {
     /// `host-tools <args...>`.
     HostTools(&'static [&'static str]),
+    /// Checkerboard views -> `host-tools calibrate` -> `push-params` into a running irtrackd
+    /// ([`crate::demo_live::calibrate_and_push`]).
+    CalibrateAndPush,
     /// irtrackd on simulated cameras driving `host-tools robot-sim` ([`crate::demo_live`]).
     RobotFollows,
 }
@@ -61,6 +64,14 @@ fn steps() -> Vec<Step> {
             produces: &[],
         },
         Step {
+            title: "calibrate and push",
+            explain: "Calibrate the simulated 90-degree rig from rendered checkerboard images with \
+                      OpenCV, push the result (signed) into irtrackd running on that rig without \
+                      parameters, and watch the positions appear, compared with the simulator.",
+            action: Action::CalibrateAndPush,
+            produces: &["calib/rig.irp", "calib/report.md"],
+        },
+        Step {
             title: "robot follows the marker",
             explain: "Start the board service irtrackd on simulated cameras and a simulated robot \
                       controller; enable motion over irtrackd's control endpoint and watch the robot \
@@ -99,9 +110,11 @@ pub fn run(ctx: &Ctx, args: &[String]) -> Result<()> {
         2,
         total,
         "build",
-        "Build the PC tools (host-tools) and the board service (irtrackd).",
+        "Build the PC tools (host-tools), the board service (irtrackd) and the checkerboard \
+         renderer (an example of irtrack-tests).",
     );
     let host_tools = build_host_tools(ctx)?;
+    let views_bin = build_views_tool(ctx)?;
     std::fs::create_dir_all(&out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
 
     for (i, step) in steps.iter().enumerate() {
@@ -125,6 +138,11 @@ pub fn run(ctx: &Ctx, args: &[String]) -> Result<()> {
                     );
                 }
             }
+            Action::CalibrateAndPush => crate::demo_live::calibrate_and_push(
+                &crate::demo_live::bin_dir(&host_tools),
+                &views_bin,
+                &out_dir,
+            )?,
             Action::RobotFollows => {
                 crate::demo_live::robot_follows(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
             }
@@ -186,6 +204,31 @@ fn build_host_tools(ctx: &Ctx) -> Result<PathBuf> {
         bail!("building host-tools {}", out.describe());
     }
     let bin = ctx.target_dir().join("debug").join("host-tools");
+    if !bin.is_file() {
+        bail!("{} missing after a successful build", bin.display());
+    }
+    Ok(bin)
+}
+
+/// Builds the checkerboard renderer (xtask itself may not depend on the simulator). The test
+/// profile optimises it (opt-level 1), which renders an order of magnitude faster than a debug build and shares
+/// the artifacts `cargo test` builds.
+fn build_views_tool(ctx: &Ctx) -> Result<PathBuf> {
+    let mut cmd = ctx.cargo();
+    cmd.args([
+        "build",
+        "--profile",
+        "test",
+        "-p",
+        "irtrack-tests",
+        "--example",
+        "checkerboard_views",
+    ]);
+    let out = util::run(&mut cmd, RunOpts::default())?;
+    if !out.success() {
+        bail!("building the checkerboard renderer {}", out.describe());
+    }
+    let bin = ctx.target_dir().join("debug/examples/checkerboard_views");
     if !bin.is_file() {
         bail!("{} missing after a successful build", bin.display());
     }

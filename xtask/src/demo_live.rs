@@ -102,6 +102,277 @@ pub fn robot_follows(bin_dir: &Path, out: &Path) -> Result<()> {
     summarize(&log)
 }
 
+/// Marker frames per circle in the calibration step: `[source.sim]` defaults (4 s period) at
+/// the step's 30 fps.
+const CIRCLE_FRAMES: u64 = 120;
+
+/// Demo step: calibrate the simulated 90° rig from rendered checkerboard views, push the result
+/// (signed) into an irtrackd that started without parameters, and show it taking effect.
+/// `views_bin` is the `checkerboard_views` example of irtrack-tests.
+pub fn calibrate_and_push(bin_dir: &Path, views_bin: &Path, out: &Path) -> Result<()> {
+    let dir = out.join("calib");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let views = dir.join("views");
+    let host_tools = bin_dir.join("host-tools");
+
+    println!("-- 1. render checkerboard views of the simulated rig (and print its true parameters)");
+    let rendered = checked(Command::new(views_bin).arg(&views), "checkerboard_views")?;
+    let truth_circle = parse_truth_circle(&rendered);
+
+    println!("-- 2. calibrate from the images alone (OpenCV), as on a real rig");
+    let t = Instant::now();
+    let mut cmd = Command::new(&host_tools);
+    cmd.arg("calibrate")
+        .arg("--images")
+        .arg(&views)
+        .args(["--board-cols", "9", "--board-rows", "6", "--square-mm", "25"])
+        .args([
+            "--joint-refine",
+            "--fix-k3",
+            "--rig-id",
+            "demo-calibrated",
+            "--out-dir",
+        ])
+        .arg(&dir);
+    checked(&mut cmd, "host-tools calibrate")?;
+    println!("calibrated in {:.1} s", t.elapsed().as_secs_f64());
+
+    println!("-- 3. a signing key; irtrackd will trust only its public half");
+    let key = dir.join("demo-key");
+    let mut cmd = Command::new(&host_tools);
+    cmd.args(["keygen", "--force", "--out"]).arg(&key);
+    checked(&mut cmd, "host-tools keygen")?;
+
+    println!("-- 4. irtrackd on the same simulated rig, started WITHOUT parameters");
+    let state = dir.join("state");
+    // A fresh state directory: a set stored by an earlier demo run would be loaded at start.
+    if state.exists() {
+        std::fs::remove_dir_all(&state).with_context(|| format!("removing {}", state.display()))?;
+    }
+    let config = dir.join("irtrackd.toml");
+    std::fs::write(&config, calib_irtrackd_config(&dir.join("demo-key.pub")))?;
+    let mut child = Command::new(bin_dir.join("irtrackd"))
+        .arg("-c")
+        .arg(&config)
+        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
+        .arg(&state)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .context("starting irtrackd")?;
+    let ready = wait_line(&mut child, "irtrackd ready", Duration::from_secs(30))?;
+    let _irtrackd = Guard(child);
+    println!("{ready}");
+    let params = addr_field(&ready, "params=")?;
+    let status = addr_field(&ready, "status=")?;
+    let stream = addr_field(&ready, "stream=")?;
+    let first = stream_lines(stream, Duration::from_secs(15), |_| Take::Last)?;
+    let (_, body) = http(status, "GET", "/status")?;
+    println!(
+        "before the push: faults {}, stream record status {}, position {}",
+        json_raw(&body, "faults").unwrap_or_else(|| "?".into()),
+        json_raw(&first[0], "status").unwrap_or_else(|| "?".into()),
+        json_raw(&first[0], "position_mm").unwrap_or_else(|| "?".into())
+    );
+
+    println!("-- 5. push the calibration, signed");
+    let mut cmd = Command::new(&host_tools);
+    cmd.args(["push-params", "--to", &params.to_string(), "--sign-key"])
+        .arg(dir.join("demo-key.key"))
+        .arg(dir.join("rig.irp"));
+    checked(&mut cmd, "host-tools push-params")?;
+
+    println!("-- 6. the new set in use");
+    // The loop switches sets before its next frame set; the fault clears then.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let body = loop {
+        let (_, body) = http(status, "GET", "/status")?;
+        if !body.contains("\"no_params\"") {
+            break body;
+        }
+        if Instant::now() > deadline {
+            bail!(
+                "irtrackd still reports no_params 10 s after the push: {}",
+                short(&body)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    println!(
+        "status: rig {}, origin {}, signature policy {}, faults {}",
+        json_raw(&body, "rig_id").unwrap_or_else(|| "?".into()),
+        json_raw(&body, "origin").unwrap_or_else(|| "?".into()),
+        json_raw(&body, "signature_policy").unwrap_or_else(|| "?".into()),
+        json_raw(&body, "faults").unwrap_or_else(|| "?".into())
+    );
+    // One marker circle of positions (records of frames that were not tracked are shown too).
+    let mut first_frame = None;
+    let lines = stream_lines(stream, Duration::from_secs(30), |l| {
+        let Some(frame) = json_raw(l, "frame").and_then(|f| f.parse::<u64>().ok()) else {
+            return Take::Skip;
+        };
+        let start = *first_frame.get_or_insert(frame);
+        if frame + 1 < start + CIRCLE_FRAMES {
+            Take::Keep
+        } else {
+            Take::Last
+        }
+    })?;
+    summarize_circle(&lines, truth_circle)
+}
+
+/// Runs a command with its output shown; fails with its status if it fails. Returns stdout.
+fn checked(cmd: &mut Command, what: &str) -> Result<String> {
+    let out = crate::util::run(
+        cmd,
+        crate::util::RunOpts {
+            capture_stdout: true,
+            ..Default::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("`{what}` failed ({}); see its output above", out.describe());
+    }
+    Ok(out.stdout)
+}
+
+fn calib_irtrackd_config(public_key: &Path) -> String {
+    format!(
+        r#"# Written by `cargo xtask demo` (calibration step).
+[service]
+params_from_simulator = false
+[params]
+trusted_keys = [{:?}]
+[source.sim]
+fps = 30.0
+[leds]
+backend = "none"
+"#,
+        public_key.display().to_string()
+    )
+}
+
+/// `(centre, radius)` from the `truth marker path: circle of radius R mm around (x, y, z) mm`
+/// line of `checkerboard_views`.
+fn parse_truth_circle(text: &str) -> Option<([f64; 3], f64)> {
+    let line = text.lines().find(|l| l.starts_with("truth marker path:"))?;
+    let radius = line
+        .split("radius ")
+        .nth(1)?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
+    let inner = line.split("around (").nth(1)?.split(')').next()?;
+    let v: Vec<f64> = inner.split(',').filter_map(|x| x.trim().parse().ok()).collect();
+    (v.len() == 3).then(|| ([v[0], v[1], v[2]], radius))
+}
+
+/// Centre and mean radius of the tracked positions, compared with the simulator's circle.
+fn summarize_circle(lines: &[String], truth: Option<([f64; 3], f64)>) -> Result<()> {
+    let points: Vec<[f64; 3]> = lines
+        .iter()
+        .filter_map(|l| json_array3(l, "\"position_mm\":"))
+        .collect();
+    // Positions missing from part of the circle would move the centre: demand most of them.
+    if points.len() < lines.len() * 9 / 10 || lines.len() < CIRCLE_FRAMES as usize / 2 {
+        bail!(
+            "only {} tracked positions in {} records over one marker circle",
+            points.len(),
+            lines.len()
+        );
+    }
+    let n = points.len() as f64;
+    let c = [0, 1, 2].map(|k| points.iter().map(|p| p[k]).sum::<f64>() / n);
+    let dist = |p: &[f64; 3], q: &[f64; 3]| {
+        ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt()
+    };
+    let radius = points.iter().map(|p| dist(p, &c)).sum::<f64>() / n;
+    let gaps: Vec<f64> = lines
+        .iter()
+        .filter_map(|l| json_raw(l, "gap_mm").and_then(|g| g.parse().ok()))
+        .collect();
+    let gap = gaps.iter().sum::<f64>() / gaps.len().max(1) as f64;
+    let crc = lines
+        .first()
+        .and_then(|l| json_raw(l, "params_crc"))
+        .and_then(|v| v.parse::<u32>().ok())
+        .unwrap_or(0);
+    println!(
+        "stream: {} of {} records over one marker circle tracked, params_crc {crc:08x}: centre \
+         ({:.2}, {:.2}, {:.2}) mm, radius {radius:.2} mm, mean ray gap {gap:.3} mm",
+        points.len(),
+        lines.len(),
+        c[0],
+        c[1],
+        c[2]
+    );
+    if let Some((tc, tr)) = truth {
+        println!(
+            "simulator truth: centre ({:.2}, {:.2}, {:.2}) mm, radius {tr:.2} mm -> centre off by \
+             {:.2} mm, radius off by {:+.2} mm (calibration error; tests/tests/calibrate_push_e2e.rs \
+             measures it per position)",
+            tc[0],
+            tc[1],
+            tc[2],
+            dist(&c, &tc),
+            radius - tr
+        );
+    }
+    Ok(())
+}
+
+/// What to do with one stream line.
+enum Take {
+    Skip,
+    Keep,
+    /// Keep it and stop reading.
+    Last,
+}
+
+/// Reads position stream lines as `take` decides, within `timeout`.
+fn stream_lines(
+    stream: SocketAddr,
+    timeout: Duration,
+    mut take: impl FnMut(&str) -> Take,
+) -> Result<Vec<String>> {
+    let s = TcpStream::connect(stream).context("connecting to the position stream")?;
+    s.set_read_timeout(Some(Duration::from_secs(5)))?;
+    let deadline = Instant::now() + timeout;
+    let mut out = Vec::new();
+    for line in BufReader::new(s).lines() {
+        let line = line.context("reading the position stream")?;
+        match take(&line) {
+            Take::Skip => {}
+            Take::Keep => out.push(line),
+            Take::Last => {
+                out.push(line);
+                return Ok(out);
+            }
+        }
+        if Instant::now() > deadline {
+            bail!("the position stream did not deliver enough records within {timeout:?}");
+        }
+    }
+    bail!("the position stream closed")
+}
+
+/// The JSON text of the first `"key":` value in `body`, compacted: a string without quotes,
+/// an array with its brackets, or a scalar (the status and stream documents have no nested
+/// arrays; the status document is pretty-printed).
+fn json_raw(body: &str, key: &str) -> Option<String> {
+    let pat = format!("\"{key}\":");
+    let rest = body[body.find(&pat)? + pat.len()..].trim_start();
+    if let Some(s) = rest.strip_prefix('"') {
+        return s.split('"').next().map(str::to_string);
+    }
+    if rest.starts_with('[') {
+        let end = rest.find(']')?;
+        return Some(rest[..=end].split_whitespace().collect());
+    }
+    rest.split([',', '}']).next().map(|v| v.trim().to_string())
+}
+
 fn irtrackd_config(robot: SocketAddr) -> String {
     format!(
         r#"# Written by `cargo xtask demo`.
@@ -248,5 +519,24 @@ mod tests {
         let l = r#"{"frame":3,"position_mm":[1.5,-2,300.25],"gap_mm":0.1}"#;
         assert_eq!(json_array3(l, "\"position_mm\":"), Some([1.5, -2.0, 300.25]));
         assert_eq!(json_array3(r#"{"position_mm":null}"#, "\"position_mm\":"), None);
+    }
+
+    #[test]
+    fn reads_fields_of_pretty_and_compact_json() {
+        let status = "{\n  \"faults\": [\n    \"no_params\"\n  ],\n  \"params\": {\n    \"rig_id\": \"demo\",\n    \"swaps\": 1\n  }\n}";
+        assert_eq!(json_raw(status, "faults").as_deref(), Some("[\"no_params\"]"));
+        assert_eq!(json_raw(status, "rig_id").as_deref(), Some("demo"));
+        assert_eq!(json_raw(status, "swaps").as_deref(), Some("1"));
+        let rec = r#"{"frame":7,"status":"ok","params_crc":3735928559}"#;
+        assert_eq!(json_raw(rec, "frame").as_deref(), Some("7"));
+        assert_eq!(json_raw(rec, "params_crc").as_deref(), Some("3735928559"));
+        assert_eq!(json_raw(rec, "missing"), None);
+    }
+
+    #[test]
+    fn reads_the_truth_circle_line() {
+        let text = "rendered 16 views\ntruth marker path: circle of radius 40.0 mm around (0.0, -1.5, 600.0) mm (camera 0 frame)\n";
+        assert_eq!(parse_truth_circle(text), Some(([0.0, -1.5, 600.0], 40.0)));
+        assert_eq!(parse_truth_circle("truth cam0: fx 1\n"), None);
     }
 }
