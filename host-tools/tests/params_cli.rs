@@ -1,15 +1,18 @@
 //! Parameter file tools: OpenCV YAML round trips, show/convert-params and push-params against
 //! a fake irtrackd parameter endpoint built on `irtrack_core::param_wire`.
 
+mod common;
+
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpListener;
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::path::PathBuf;
+use std::process::{Command, Stdio};
 use std::thread;
 use std::time::Duration;
 
+use common::*;
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
-use irtrack_core::param_wire::{self, RejectCode, Verdict};
+use irtrack_core::param_wire::{RejectCode, Verdict};
 use irtrack_core::params::{CameraParams, RigParams, ToolDefinition};
 use irtrack_host_tools::opencv_yaml::{load_params_any, read_rig_yaml, write_rig_yaml};
 
@@ -94,24 +97,6 @@ fn rig2() -> RigParams {
     r.tools.clear();
     r.rig_id = "pair-1".into();
     r
-}
-
-fn host_tools(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_host-tools"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn text(o: &Output) -> (String, String) {
-    (
-        String::from_utf8_lossy(&o.stdout).into_owned(),
-        String::from_utf8_lossy(&o.stderr).into_owned(),
-    )
-}
-
-fn p(path: &Path) -> &str {
-    path.to_str().unwrap()
 }
 
 #[test]
@@ -343,40 +328,29 @@ fn show_params_reports_geometry() {
 /// The server side of docs/param-protocol.md, as irtrackd implements it, for one connection:
 /// refuses blobs that do not decode or validate, and rigs whose camera count differs.
 fn serve_one(listener: TcpListener, expected_cameras: usize) -> thread::JoinHandle<Option<RigParams>> {
-    thread::spawn(move || {
-        let (mut s, _) = listener.accept().unwrap();
-        s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-        let mut hdr = [0u8; param_wire::PUSH_HEADER_LEN];
-        s.read_exact(&mut hdr).unwrap();
-        let (verdict, rig) = match param_wire::parse_push_header(&hdr) {
+    serve_push_once(
+        listener,
+        move |blob| match RigParams::from_blob(blob).and_then(|r| r.validate().map(|()| r)) {
             Err(e) => (Verdict::from_error(&e), None),
-            Ok(len) => {
-                let mut blob = vec![0u8; len];
-                s.read_exact(&mut blob).unwrap();
-                match RigParams::from_blob(&blob).and_then(|r| r.validate().map(|()| r)) {
-                    Err(e) => (Verdict::from_error(&e), None),
-                    Ok(r) if r.cameras.len() != expected_cameras => (
-                        Verdict::Rejected {
-                            code: RejectCode::RigMismatch,
-                            message: format!(
-                                "rig has {expected_cameras} cameras, parameters have {}",
-                                r.cameras.len()
-                            ),
-                        },
-                        None,
+            Ok(r) if r.cameras.len() != expected_cameras => (
+                Verdict::Rejected {
+                    code: RejectCode::RigMismatch,
+                    message: format!(
+                        "rig has {expected_cameras} cameras, parameters have {}",
+                        r.cameras.len()
                     ),
-                    Ok(r) => (
-                        Verdict::Accepted {
-                            rig_id: r.rig_id.clone(),
-                        },
-                        Some(r),
-                    ),
-                }
-            }
-        };
-        s.write_all(verdict.to_line().as_bytes()).unwrap();
-        rig
-    })
+                },
+                None,
+            ),
+            Ok(r) => (
+                Verdict::Accepted {
+                    rig_id: r.rig_id.clone(),
+                },
+                Some(r),
+            ),
+        },
+        None,
+    )
 }
 
 #[test]

@@ -2,14 +2,15 @@
 //! push-params --sign-key against a fake irtrackd endpoint that verifies with core's
 //! `signing::verify_blob`, as the device does.
 
+mod common;
+
 use std::io::{Read, Write};
 use std::net::TcpListener;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 use std::thread;
-use std::time::Duration;
 
+use common::*;
 use irtrack_core::Error;
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use irtrack_core::param_wire::{self, Verdict};
@@ -56,24 +57,6 @@ fn rig() -> RigParams {
         world_from_cam0: None,
         tools: vec![],
     }
-}
-
-fn host_tools(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_host-tools"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn text(o: &Output) -> (String, String) {
-    (
-        String::from_utf8_lossy(&o.stdout).into_owned(),
-        String::from_utf8_lossy(&o.stderr).into_owned(),
-    )
-}
-
-fn p(path: &Path) -> &str {
-    path.to_str().unwrap()
 }
 
 /// Runs keygen for `dir/name`; returns the (secret, public) paths.
@@ -229,24 +212,24 @@ fn serve_one(
     trusted: Vec<VerifyingKey>,
     policy: SignaturePolicy,
 ) -> thread::JoinHandle<Result<(RigParams, SignatureStatus), Error>> {
-    thread::spawn(move || {
-        let (mut s, _) = listener.accept().unwrap();
-        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-        let mut hdr = [0u8; param_wire::PUSH_HEADER_LEN];
-        s.read_exact(&mut hdr).unwrap();
-        let len = param_wire::parse_push_header(&hdr).unwrap();
-        let mut blob = vec![0u8; len];
-        s.read_exact(&mut blob).unwrap();
-        let result = verify_blob(&blob, &trusted, policy).and_then(|(r, st)| r.validate().map(|()| (r, st)));
-        let verdict = match &result {
-            Ok((r, _)) => Verdict::Accepted {
-                rig_id: r.rig_id.clone(),
-            },
-            Err(e) => signing::verdict_for(e),
-        };
-        s.write_all(verdict.to_line().as_bytes()).unwrap();
-        result
-    })
+    serve_push_once(
+        listener,
+        move |blob| {
+            let result =
+                verify_blob(blob, &trusted, policy).and_then(|(r, st)| r.validate().map(|()| (r, st)));
+            let verdict = match &result {
+                Ok((r, _)) => Verdict::Accepted {
+                    rig_id: r.rig_id.clone(),
+                },
+                Err(e) => signing::verdict_for(e),
+            };
+            (verdict, result)
+        },
+        Err(Error::Protocol {
+            protocol: "param",
+            reason: "bad push header".into(),
+        }),
+    )
 }
 
 fn push(args: &[&str]) -> (bool, String, String) {
