@@ -109,6 +109,53 @@ pub struct Image {
     pub root_bytes: u64,
     pub irtrackd_bytes: u64,
     pub build_time: Duration,
+    /// Secret half of the build's own signing key, whose public half the image trusts
+    /// (`/etc/irtrack/trusted-keys/image-build.pub`); `push-params --sign-key` uses it.
+    pub signing_key: PathBuf,
+}
+
+/// The build's signing key pair in target/image/keys/, created once by `host-tools keygen` and
+/// kept across builds, so that a board flashed earlier still accepts pushes signed with it.
+/// Extra public keys (e.g. the calibration station's) come from `IRTRACK_IMAGE_TRUSTED_KEYS`,
+/// a colon-separated list of `.pub` files.
+fn signing_keys(ctx: &Ctx, work: &Path) -> Result<(PathBuf, Vec<PathBuf>)> {
+    let dir = work.join("keys");
+    let prefix = dir.join("image-build");
+    let (secret, public) = (dir.join("image-build.key"), dir.join("image-build.pub"));
+    if !secret.is_file() || !public.is_file() {
+        fs::create_dir_all(&dir)?;
+        let out = ctx
+            .cargo()
+            .args([
+                "run",
+                "-q",
+                "-p",
+                "irtrack-host-tools",
+                "--",
+                "keygen",
+                "--force",
+                "--out",
+            ])
+            .arg(&prefix)
+            .output()
+            .context("running host-tools keygen")?;
+        if !out.status.success() {
+            bail!(
+                "host-tools keygen failed: {}",
+                String::from_utf8_lossy(&out.stderr).trim()
+            );
+        }
+    }
+    let mut trusted = vec![public];
+    if let Some(list) = std::env::var_os("IRTRACK_IMAGE_TRUSTED_KEYS") {
+        for p in std::env::split_paths(&list).filter(|p| !p.as_os_str().is_empty()) {
+            if !p.is_file() {
+                bail!("IRTRACK_IMAGE_TRUSTED_KEYS: {} is not a file", p.display());
+            }
+            trusted.push(p);
+        }
+    }
+    Ok((secret, trusted))
 }
 
 impl Image {
@@ -177,6 +224,7 @@ pub fn existing(ctx: &Ctx) -> Result<Image> {
         root_bytes: len("root.ext4")?,
         irtrackd_bytes: len("irtrackd")?,
         build_time: Duration::ZERO,
+        signing_key: work.join("keys").join("image-build.key"),
     })
 }
 
@@ -252,6 +300,18 @@ pub fn build(ctx: &Ctx) -> Result<Image> {
     println!("image: root filesystem ({} modules)", root_mods.len());
     let rootfs = work.join("rootfs");
     stage_rootfs(ctx, &rootfs, &busybox, &irtrackd, &modules_dir, &kver, &root_mods)?;
+    let (signing_key, trusted) = signing_keys(ctx, &work)?;
+    let keys_dir = rootfs.join("etc/irtrack/trusted-keys");
+    fs::create_dir_all(&keys_dir)?;
+    for key in &trusted {
+        let name = key.file_name().context("key file without a name")?;
+        fs::copy(key, keys_dir.join(name)).with_context(|| format!("copying {}", key.display()))?;
+    }
+    println!(
+        "image: {} trusted parameter signing key(s); sign pushes with {}",
+        trusted.len(),
+        signing_key.display()
+    );
 
     let boot_img = work.join("boot.vfat");
     let boot_bytes = make_boot_partition(ctx, &boot_img, &kernel_image, &initrd)?;
@@ -268,6 +328,7 @@ pub fn build(ctx: &Ctx) -> Result<Image> {
         root_bytes,
         irtrackd_bytes,
         build_time: start.elapsed(),
+        signing_key,
     })
 }
 

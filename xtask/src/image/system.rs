@@ -357,8 +357,17 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
         "status LEDs on the PL061 through gpiocdev, read back via gpiolib",
         check_gpio(&mut q, status_port, true),
     );
+    report.check(
+        "unsigned parameter push refused (only the image's trusted keys may push)",
+        match &params {
+            Ok((_, file)) => check_unsigned_refused(ctx, params_port, file),
+            Err(e) => Err(anyhow::anyhow!("no parameter set to push: {e:#}")),
+        },
+    );
     let pushed = match &params {
-        Ok((rig_id, file)) => push_params(ctx, params_port, file).map(|d| (rig_id.clone(), d)),
+        Ok((rig_id, file)) => {
+            push_params(ctx, params_port, file, Some(&image.signing_key)).map(|d| (rig_id.clone(), d))
+        }
         Err(e) => Err(anyhow::anyhow!("no parameter set to push: {e:#}")),
     };
     let rig_id = pushed.as_ref().ok().map(|(id, _)| id.clone());
@@ -645,22 +654,36 @@ fn rig_id_of(ctx: &Ctx, file: &Path) -> Result<String> {
         .with_context(|| format!("no `rig id:` in host-tools show-params output:\n{text}"))
 }
 
-fn push_params(ctx: &Ctx, port: u16, file: &Path) -> Result<String> {
-    let out = ctx
-        .cargo()
-        .args([
-            "run",
-            "-q",
-            "-p",
-            "irtrack-host-tools",
-            "--",
-            "push-params",
-            "--to",
-        ])
-        .arg(format!("127.0.0.1:{port}"))
-        .arg(file)
-        .output()
-        .context("running host-tools push-params")?;
+/// An unsigned push must be refused by the image's irtrackd with `UNAUTHORIZED`.
+fn check_unsigned_refused(ctx: &Ctx, port: u16, file: &Path) -> Result<String> {
+    match push_params(ctx, port, file, None) {
+        Ok(reply) => bail!("an unsigned blob was accepted: {reply}"),
+        Err(e) => {
+            let text = format!("{e:#}");
+            match text.lines().find(|l| l.contains("UNAUTHORIZED")) {
+                Some(line) => Ok(line.trim().to_owned()),
+                None => bail!("refused, but not as UNAUTHORIZED: {text}"),
+            }
+        }
+    }
+}
+
+fn push_params(ctx: &Ctx, port: u16, file: &Path, sign_key: Option<&Path>) -> Result<String> {
+    let mut cmd = ctx.cargo();
+    cmd.args([
+        "run",
+        "-q",
+        "-p",
+        "irtrack-host-tools",
+        "--",
+        "push-params",
+        "--to",
+    ])
+    .arg(format!("127.0.0.1:{port}"));
+    if let Some(key) = sign_key {
+        cmd.arg("--sign-key").arg(key);
+    }
+    let out = cmd.arg(file).output().context("running host-tools push-params")?;
     let text = format!(
         "{}{}",
         String::from_utf8_lossy(&out.stdout),
