@@ -5,15 +5,18 @@
 //!   irtrack-bench [--quick]                 timing table (VGA and 1280x720 stereo pairs)
 //!   irtrack-bench --run CASE --iterations N  run one case N times, print nothing else
 //!                                            (for instruction counting under callgrind)
-//! CASE is `<ours-full|ours-roi|opencv|sum>-<vga|720p>`.
+//!   irtrack-bench --idle SECONDS             sleep (baseline process for memory figures)
+//! CASE is `<ours-full|ours-roi|opencv|sum|max>-<vga|720p>`; `opencv` needs the default
+//! feature `opencv`. Without it (`--no-default-features`) the OpenCV columns are left out
+//! and the benchmark cross-builds for aarch64.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::hint::black_box;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use anyhow::{Context, Result, bail};
-use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
+use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use irtrack_core::image::{GrayImage, Roi};
 use irtrack_core::params::{CameraParams, RigParams};
 use irtrack_core::pipeline::{TrackStatus, Tracker, TrackerConfig};
@@ -467,7 +470,7 @@ fn run_case(case: &str, iters: usize) -> Result<()> {
                 check += max_pixels(&s) as f64;
             }
         }
-        other => bail!("unknown case `{other}` (ours-full, ours-roi, opencv, sum)"),
+        other => bail!("unknown case `{other}` (ours-full, ours-roi, opencv, sum, max)"),
     }
     println!("checksum {check}");
     Ok(())
@@ -484,9 +487,16 @@ fn main() -> Result<()> {
             "--quick" => quick = true,
             "--run" => case = Some(it.next().context("--run needs a case")?.clone()),
             "--iterations" => iters = it.next().context("--iterations needs a number")?.parse()?,
+            "--idle" => {
+                // Baseline process for memory figures (`cargo xtask bench --aarch64`): the
+                // runtime alone, doing nothing.
+                let s: u64 = it.next().context("--idle needs seconds")?.parse()?;
+                std::thread::sleep(std::time::Duration::from_secs(s));
+                return Ok(());
+            }
             "-h" | "--help" => {
                 println!(
-                    "usage: irtrack-bench [--quick] | --run <ours-full|ours-roi|opencv|sum>-<vga|720p> --iterations N"
+                    "usage: irtrack-bench [--quick] | --run <ours-full|ours-roi|opencv|sum|max>-<vga|720p> --iterations N | --idle SECONDS"
                 );
                 return Ok(());
             }
