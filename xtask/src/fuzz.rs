@@ -7,11 +7,11 @@
 //! the fuzzed crates are safe Rust (irtrack-core forbids `unsafe`) and it would halve the
 //! execution rate. Debug assertions (and so overflow checks) are on.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 
 use crate::ci::Counts;
 use crate::util::{self, Ctx, RunOpts};
@@ -161,16 +161,16 @@ fn run_targets(ctx: &Ctx, targets: &[&str], secs: u64) -> Result<Vec<RunResult>>
         let corpus = fuzz_dir.join("corpus").join(target);
         std::fs::create_dir_all(&corpus)?;
         let seeds = fuzz_dir.join("seeds").join(target);
-        let mut run = cargo_fuzz(ctx, &fuzz_dir);
-        run.arg("run")
-            .args(BUILD_FLAGS)
-            .arg("--target-dir")
-            .arg(&target_dir)
-            .arg(target)
+        let artifacts = fuzz_dir.join("artifacts").join(target);
+        std::fs::create_dir_all(&artifacts)?;
+        // The binary built above, run directly: `cargo fuzz run` would rebuild first whenever a
+        // source file changed since, and a rebuild must not eat into the fuzzing time.
+        let mut run = Command::new(fuzz_binary(&target_dir, target)?);
+        run.current_dir(&fuzz_dir)
+            .arg(format!("-artifact_prefix={}/", artifacts.display()))
             // New inputs go to the first (git-ignored) directory; seeds are only read.
             .arg(&corpus)
             .arg(&seeds)
-            .arg("--")
             .arg(format!("-max_total_time={secs}"))
             .arg("-print_final_stats=1")
             .arg("-max_len=4096")
@@ -187,12 +187,23 @@ fn run_targets(ctx: &Ctx, targets: &[&str], secs: u64) -> Result<Vec<RunResult>>
         )?;
         let mut r = parse_run(target, secs, &out.stderr);
         if !out.success() && r.crash.is_none() {
-            r.crash = Some(format!("cargo fuzz run {}", out.describe()));
+            r.crash = Some(format!("fuzz target {}", out.describe()));
         }
         results.push(r);
     }
     print_table(&results);
     Ok(results)
+}
+
+/// `<target-dir>/<host triple>/release/<target>`, as `cargo fuzz build` leaves it.
+fn fuzz_binary(target_dir: &Path, target: &str) -> Result<PathBuf> {
+    let entries = std::fs::read_dir(target_dir)
+        .with_context(|| format!("listing {} after cargo fuzz build", target_dir.display()))?;
+    entries
+        .filter_map(|e| e.ok())
+        .map(|e| e.path().join("release").join(target))
+        .find(|p| p.is_file())
+        .with_context(|| format!("fuzz target `{target}` not found under {}", target_dir.display()))
 }
 
 /// Reads libFuzzer's final statistics and its last progress line from stderr.
