@@ -9,6 +9,7 @@ mod demo;
 mod demo_live;
 mod lint;
 mod setup;
+mod soak;
 mod util;
 
 // Optional modules, compiled in when their file exists (see build.rs and ci.rs).
@@ -38,6 +39,8 @@ tasks:
   image  ...                   image build (when xtask/src/image.rs exists)
   bench  ...                   benchmarks (when xtask/src/bench.rs exists)
   fuzz   ...                   fuzzing (when xtask/src/fuzz.rs exists)
+  soak   [--sets N] [--fps F] [--quick]
+                               irtrackd + robot-sim service soak (default 10^6 sets, 500 fps)
 ";
 
 fn main() {
@@ -69,6 +72,7 @@ fn real_main(args: &[String]) -> anyhow::Result<i32> {
         "demo" => demo::run(&ctx, rest)?,
         "setup" => setup::run(&ctx)?,
         "cross" => cross::cli(&ctx)?,
+        "soak" => soak::cli(&ctx, rest)?,
         #[cfg(xtask_has_image)]
         "image" => image::cli(&ctx, rest)?,
         #[cfg(xtask_has_bench)]
