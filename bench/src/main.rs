@@ -10,9 +10,7 @@
 //! feature `opencv`. Without it (`--no-default-features`) the OpenCV columns are left out
 //! and the benchmark cross-builds for aarch64.
 
-use std::alloc::{GlobalAlloc, Layout, System};
 use std::hint::black_box;
-use std::sync::atomic::{AtomicU64, Ordering};
 
 use anyhow::{Context, Result, bail};
 use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
@@ -28,32 +26,10 @@ mod opencv_pipeline;
 #[cfg(feature = "opencv")]
 use opencv_pipeline::OpenCv;
 
-/// Counts heap allocations made through Rust's allocator (ours; OpenCV's C++ heap is not
-/// seen, so only our pipeline's figure is reported).
-struct Counting;
-
-static ALLOCATIONS: AtomicU64 = AtomicU64::new(0);
-
-// SAFETY: forwards every call to the system allocator unchanged; only counts.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-        // SAFETY: caller upholds GlobalAlloc::alloc's contract.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: caller upholds GlobalAlloc::dealloc's contract.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-        // SAFETY: caller upholds GlobalAlloc::realloc's contract.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
+/// Counts heap allocations made through Rust's allocator on the benchmark thread (ours;
+/// OpenCV's C++ heap is not seen, so only our pipeline's figure is reported).
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: irtrack_testkit::CountingAlloc = irtrack_testkit::CountingAlloc;
 
 const THRESHOLD_DN: u8 = 30;
 
@@ -258,7 +234,12 @@ fn time_ns(batches: usize, iters: usize, mut f: impl FnMut() -> Result<()>) -> R
 }
 
 fn fmt_us(ns: f64) -> String {
-    format!("{:.1} µs", ns / 1000.0)
+    // Two decimals for the sub-10 µs figures (ROI, its parts), where .1 hides the changes.
+    if ns < 10_000.0 {
+        format!("{:.2} µs", ns / 1000.0)
+    } else {
+        format!("{:.1} µs", ns / 1000.0)
+    }
 }
 
 fn scenes() -> Result<Vec<Scene>> {
@@ -299,12 +280,12 @@ fn measure(s: &Scene, batches: usize, iters: usize) -> Result<Row> {
         bail!("{}: ROI case did not use the tracking windows", s.name);
     }
     // Allocations, counted over plain loops (no timing harness inside the window).
-    let a0 = ALLOCATIONS.load(Ordering::Relaxed);
+    let a0 = irtrack_testkit::allocations();
     for _ in 0..100 {
         black_box(full.run(s)?);
         black_box(roi.run(s)?);
     }
-    let allocs_per_pair = (ALLOCATIONS.load(Ordering::Relaxed) - a0) as f64 / 200.0;
+    let allocs_per_pair = (irtrack_testkit::allocations() - a0) as f64 / 200.0;
     let t_sum = time_ns(batches, iters * 4, || {
         black_box(sum_pixels(s));
         Ok(())

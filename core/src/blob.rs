@@ -2,9 +2,11 @@
 //!
 //! One pass over the frame (or a region of interest) does everything:
 //! - **Threshold + runs.** Each row is split into runs of pixels strictly above
-//!   `threshold_dn`. A row's maximum (a branch-free reduction the compiler turns into SIMD
-//!   max instructions) rejects dark rows, i.e. almost all of them, at memory speed. In the
-//!   few rows with bright pixels, dark 32-pixel chunks are skipped by their maximum too.
+//!   `threshold_dn`. A maximum (a branch-free reduction the compiler turns into SIMD max
+//!   instructions) rejects dark rows, i.e. almost all of them, at memory speed: first for
+//!   groups of 8 rows at once (one fold per group, which matters for narrow tracking
+//!   windows, where per-row overhead outweighs the pixels), then per row inside a bright
+//!   group. In the few rows with bright pixels, dark 32- and 8-pixel chunks are skipped too.
 //! - **Fused moments.** While a run is walked, the weight `w = value − threshold` and its
 //!   first and second x moments are summed in integers (`Σw`, `Σw·x`, `Σw·x²`); the run's
 //!   y moments follow from the row index once per run. No floating point per pixel.
@@ -36,6 +38,12 @@ pub const MAX_SIDE_PX: u32 = 16384;
 
 /// Pixels per background-skip chunk (32 bytes of u8: one AVX2 or two NEON registers).
 const SKIP_CHUNK_PX: usize = 32;
+
+/// Sub-chunk that narrows down a bright chunk before the per-pixel walk.
+const SUB_CHUNK_PX: usize = 8;
+
+/// Rows whose maximum is taken together to skip dark rows (see [`BlobDetector::detect`]).
+const ROW_GROUP: u32 = 8;
 
 /// Detection settings (may change from frame to frame).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -122,10 +130,29 @@ impl Moments {
         let d = (n as f64) * (n as f64);
         // Cauchy–Schwarz makes both diagonal numerators ≥ 0; saturate against rounding-free
         // but defensive underflow.
-        let xx = (n * self.m20).saturating_sub(m10 * m10) as f64 / d;
-        let yy = (n * self.m02).saturating_sub(m01 * m01) as f64 / d;
-        let xy = ((n * self.m11) as i128 - (m10 * m01) as i128) as f64 / d;
+        let xx = u128_to_f64((n * self.m20).saturating_sub(m10 * m10)) / d;
+        let yy = u128_to_f64((n * self.m02).saturating_sub(m01 * m01)) / d;
+        let xy = i128_to_f64((n * self.m11) as i128 - (m10 * m01) as i128) / d;
         (xx, xy, yy)
+    }
+}
+
+/// `v as f64`, through the (hardware) 64-bit conversion when `v` fits: the 128-bit one is
+/// a software routine, and small spots' numerators nearly always fit. Same rounding.
+#[inline]
+fn u128_to_f64(v: u128) -> f64 {
+    match u64::try_from(v) {
+        Ok(v) => v as f64,
+        Err(_) => v as f64,
+    }
+}
+
+/// As [`u128_to_f64`] for signed values.
+#[inline]
+fn i128_to_f64(v: i128) -> f64 {
+    match i64::try_from(v) {
+        Ok(v) => v as f64,
+        Err(_) => v as f64,
     }
 }
 
@@ -300,45 +327,73 @@ impl BlobDetector {
         let thr = P::from_dn_saturating(config.threshold_dn);
         let sat_level = config.saturation_dn.unwrap_or(P::MAX_DN);
 
-        for ly in 0..roi.height_px {
-            let row = image.row(roi.y_px + ly);
-            let x_end = (roi.x_px + roi.width_px) as usize;
-            let row = row.get(roi.x_px as usize..x_end).unwrap_or(&[]);
-            if !self.label_row(row, ly, thr, config.threshold_dn, sat_level) {
-                self.stats.overloaded = true;
-                self.acc.clear();
-                return Ok(&self.blobs);
+        let mut ly = 0;
+        while ly < roi.height_px {
+            let group_end = (ly + ROW_GROUP).min(roi.height_px);
+            // A group of dark rows is rejected by one lane-wise max over all of its pixels
+            // and a single horizontal fold, instead of a fold plus the per-row set-up for
+            // every row. For a narrow tracking window (49-pixel rows) that per-row overhead,
+            // not the pixels, was most of the cost.
+            if roi.width_px as usize >= SKIP_CHUNK_PX && group_max(image, roi, ly, group_end) <= thr {
+                // Rows without runs: nothing below connects to them.
+                self.prev_runs.clear();
+                ly = group_end;
+                continue;
             }
-            core::mem::swap(&mut self.prev_runs, &mut self.cur_runs);
+            for y in ly..group_end {
+                let row = image.row(roi.y_px + y);
+                let x_end = (roi.x_px + roi.width_px) as usize;
+                let row = row.get(roi.x_px as usize..x_end).unwrap_or(&[]);
+                // Most rows hold no marker at all: one vectorised max over the row decides
+                // that at memory speed, and the run search only runs on the few rows that do.
+                if row_max(row) <= thr {
+                    self.prev_runs.clear();
+                    continue;
+                }
+                if !self.label_row(row, y, thr, config.threshold_dn, sat_level) {
+                    self.stats.overloaded = true;
+                    self.acc.clear();
+                    return Ok(&self.blobs);
+                }
+                core::mem::swap(&mut self.prev_runs, &mut self.cur_runs);
+            }
+            ly = group_end;
         }
         self.finish(image, roi, config);
         Ok(&self.blobs)
     }
 
-    /// Finds the runs of one row, accumulates their moments and connects them to the
-    /// previous row's runs. Returns false when the label buffer is exhausted.
+    /// Finds the runs of one row that has bright pixels, accumulates their moments and
+    /// connects them to the previous row's runs. Returns false when the label buffer is
+    /// exhausted.
     #[inline]
     fn label_row<P: Pixel>(&mut self, row: &[P], ly: u32, thr: P, thr_dn: u32, sat_level: u32) -> bool {
         self.cur_runs.clear();
-        // Most rows hold no marker at all: one vectorised max over the row decides that
-        // at memory speed, and the run search below only runs on the few rows that do.
-        if row_max(row) <= thr {
-            return true;
-        }
-        // Rows with bright pixels: skip dark 32-pixel chunks by their maximum, then walk
-        // to the first bright pixel and hand each run to `add_run`.
+        // Rows with bright pixels: skip dark 32-pixel chunks, narrow a bright chunk down by
+        // 8-pixel sub-chunks (also skips dark tails shorter than 32), then walk to the first
+        // bright pixel and hand each run to `add_run`. The chunk tests are "any pixel above
+        // threshold" reductions (vector compare + OR, cheaper than a max and its fold); the
+        // walk is per pixel, so it is kept to at most 8 pixels per run.
         let w = row.len();
         let mut x = 0usize;
         let mut j = 0usize; // first previous-row run that may touch the next run
         loop {
-            while x + SKIP_CHUNK_PX <= w {
-                let chunk = &row[x..x + SKIP_CHUNK_PX];
-                if chunk.iter().fold(P::default(), |m, &v| m.max(v)) > thr {
+            while let Some(chunk) = row.get(x..).and_then(|r| r.first_chunk::<SKIP_CHUNK_PX>()) {
+                if chunk.iter().fold(false, |a, &v| a | (v > thr)) {
                     break;
                 }
                 x += SKIP_CHUNK_PX;
             }
-            let lim = (x + SKIP_CHUNK_PX).min(w);
+            while let Some(sub) = row
+                .get(x..x + SUB_CHUNK_PX)
+                .and_then(|c| <&[P; SUB_CHUNK_PX]>::try_from(c).ok())
+            {
+                if sub.iter().fold(false, |a, &v| a | (v > thr)) {
+                    break;
+                }
+                x += SUB_CHUNK_PX;
+            }
+            let lim = (x + SUB_CHUNK_PX).min(w);
             while x < lim && row[x] <= thr {
                 x += 1;
             }
@@ -500,6 +555,12 @@ fn row_max<P: Pixel>(row: &[P]) -> P {
     if row.len() < N {
         return row.iter().fold(P::default(), |m, &v| m.max(v));
     }
+    // Tracking-window rows (32..=64 pixels): exactly two, possibly overlapping, blocks.
+    if row.len() <= 2 * N
+        && let (Some(a), Some(b)) = (row.first_chunk::<N>(), row.last_chunk::<N>())
+    {
+        return fold_lanes(merge_max(*a, b));
+    }
     let mut lanes = [P::default(); N];
     let mut chunks = row.chunks_exact(N);
     for c in &mut chunks {
@@ -513,6 +574,75 @@ fn row_max<P: Pixel>(row: &[P]) -> P {
         }
     }
     // Constant bounds so each step unrolls into a few vector max instructions.
+    fold_half::<P, 16>(&mut lanes);
+    fold_half::<P, 8>(&mut lanes);
+    fold_half::<P, 4>(&mut lanes);
+    fold_half::<P, 2>(&mut lanes);
+    fold_half::<P, 1>(&mut lanes);
+    lanes[0]
+}
+
+/// Maximum over rows `ly0..ly1` of `roi` (at least 32 pixels wide): lane-wise maxima of
+/// every 32-pixel block of every row (the last block of a row flush with its end), then one
+/// fold. The group's rows are cut from one slice (one bounds check per row) and windows up
+/// to 64 pixels wide, the usual tracking window, take exactly two blocks per row.
+#[inline(never)]
+fn group_max<P: Pixel>(image: &GrayImage<'_, P>, roi: Roi, ly0: u32, ly1: u32) -> P {
+    const N: usize = SKIP_CHUNK_PX;
+    let bright = P::from_dn_saturating(P::MAX_DN);
+    let (stride, w) = (image.stride_px as usize, roi.width_px as usize);
+    let rows = ly1.saturating_sub(ly0) as usize;
+    let start = (roi.y_px + ly0) as usize * stride + roi.x_px as usize;
+    // Within the frame checked by `GrayImage::validate` and `Roi::check`; if not, report
+    // "bright" so the rows go through the checked per-row path.
+    let Some(region) = rows
+        .checked_sub(1)
+        .and_then(|r| image.data.get(start..start + r * stride + w))
+    else {
+        return bright;
+    };
+    let mut lanes = [P::default(); N];
+    if w <= 2 * N {
+        for row in region.chunks(stride) {
+            let (Some(a), Some(b)) = (
+                row.first_chunk::<N>(),
+                row.get(..w).and_then(|r| r.last_chunk::<N>()),
+            ) else {
+                return bright;
+            };
+            lanes = merge_max(lanes, a);
+            lanes = merge_max(lanes, b);
+        }
+    } else {
+        for row in region.chunks(stride) {
+            let row = row.get(..w).unwrap_or(&[]);
+            let (blocks, tail) = row.as_chunks::<N>();
+            for b in blocks {
+                lanes = merge_max(lanes, b);
+            }
+            if !tail.is_empty()
+                && let Some(b) = row.last_chunk::<N>()
+            {
+                lanes = merge_max(lanes, b);
+            }
+        }
+    }
+    fold_lanes(lanes)
+}
+
+/// Lane-wise maximum of two 32-pixel blocks (constant length: unrolled into vector maxima).
+#[inline(always)]
+fn merge_max<P: Pixel>(mut lanes: [P; SKIP_CHUNK_PX], block: &[P; SKIP_CHUNK_PX]) -> [P; SKIP_CHUNK_PX] {
+    for i in 0..SKIP_CHUNK_PX {
+        lanes[i] = lanes[i].max(block[i]);
+    }
+    lanes
+}
+
+/// Maximum over the lanes: a halving tree with constant bounds, so each step unrolls into a
+/// few vector max instructions.
+#[inline(always)]
+fn fold_lanes<P: Pixel>(mut lanes: [P; SKIP_CHUNK_PX]) -> P {
     fold_half::<P, 16>(&mut lanes);
     fold_half::<P, 8>(&mut lanes);
     fold_half::<P, 4>(&mut lanes);
@@ -1033,6 +1163,26 @@ mod tests {
         assert_eq!(count_blobs(&["#.#", "...", "#.#"]), [1, 1, 1, 1]);
     }
 
+    /// Row groups (8 rows) of at least 32-pixel-wide frames are skipped when dark: a blob
+    /// ending on a group's last row and one starting right after a dark group stay apart,
+    /// and a blob crossing a group boundary stays whole.
+    #[test]
+    fn dark_row_groups_separate_and_boundaries_connect() {
+        // Bars in column 5 over the given row spans (start, end exclusive).
+        let frame = |bar_rows: &[(usize, usize)]| -> Vec<String> {
+            (0..32)
+                .map(|y| {
+                    let bar = bar_rows.iter().any(|&(a, b)| (a..b).contains(&y));
+                    (0..40).map(|x| if bar && x == 5 { '#' } else { '.' }).collect()
+                })
+                .collect()
+        };
+        let areas = |rows: Vec<String>| count_blobs(&rows.iter().map(String::as_str).collect::<Vec<_>>());
+        assert_eq!(areas(frame(&[(0, 8), (16, 21)])), [5, 8]);
+        assert_eq!(areas(frame(&[(3, 8), (16, 24), (24, 30)])), [5, 14]);
+        assert_eq!(areas(frame(&[(4, 13)])), [9]);
+    }
+
     /// Reference labelling: per-pixel flood fill with 8-connectivity.
     fn flood_fill_reference(img: &[u8], w: usize, h: usize, thr: u8) -> Vec<(u32, u64, u64, u64)> {
         let mut seen = vec![false; w * h];
@@ -1103,6 +1253,68 @@ mod tests {
             ours.sort_unstable();
             assert_eq!(ours, reference, "round {round}, density {density}");
         }
+    }
+
+    /// Sparse frames (mostly dark rows, so whole row groups are skipped) in random windows
+    /// of every width class (< 32, 32..=64, > 64 pixels): the same components as a flood
+    /// fill of the window, including components spanning several row groups.
+    #[test]
+    fn sparse_frames_in_random_windows_match_flood_fill() {
+        let mut rng = Rng(81);
+        let (w, h) = (150usize, 90usize);
+        let mut det = BlobDetector::new(BlobLimits {
+            max_labels: 4096,
+            max_blobs: 4096,
+            ..BlobLimits::for_frame(w as u32, h as u32)
+        })
+        .unwrap();
+        let mut skipped_rows = 0u64;
+        for round in 0..300 {
+            let mut img = vec![10u8; w * h];
+            for _ in 0..(rng.next_u64() % 6) {
+                // A random blotch: up to 14 rows tall, so it often spans two row groups.
+                let (cx, cy) = (rng.next_u64() as usize % w, rng.next_u64() as usize % h);
+                let (rx, ry) = (1 + rng.next_u64() as usize % 5, 1 + rng.next_u64() as usize % 7);
+                for y in cy.saturating_sub(ry)..(cy + ry + 1).min(h) {
+                    for x in cx.saturating_sub(rx)..(cx + rx + 1).min(w) {
+                        if rng.uniform() < 0.8 {
+                            img[y * w + x] = 50 + (rng.next_u64() % 200) as u8;
+                        }
+                    }
+                }
+            }
+            let rw = [
+                1 + rng.next_u64() % 31,
+                32 + rng.next_u64() % 33,
+                65 + rng.next_u64() % 86,
+            ][round % 3];
+            let rh = 1 + rng.next_u64() % h as u64;
+            let roi = Roi {
+                x_px: (rng.next_u64() % (w as u64 - rw + 1)) as u32,
+                y_px: (rng.next_u64() % (h as u64 - rh + 1)) as u32,
+                width_px: rw as u32,
+                height_px: rh as u32,
+            };
+            let (rx0, ry0, rw, rh) = (roi.x_px as usize, roi.y_px as usize, rw as usize, rh as usize);
+            let crop: Vec<u8> = (ry0..ry0 + rh)
+                .flat_map(|y| img[y * w + rx0..y * w + rx0 + rw].iter().copied())
+                .collect();
+            let reference = flood_fill_reference(&crop, rw, rh, 40);
+            skipped_rows += crop.chunks(rw).filter(|r| r.iter().all(|&v| v <= 40)).count() as u64;
+            let g = GrayImage::new(&img, w as u32, h as u32, w as u32).unwrap();
+            let mut ours: Vec<(u32, u64, u64, u64)> = det
+                .detect(&g, Some(roi), &cfg(40))
+                .unwrap()
+                .iter()
+                .map(|b| (b.area_px, b.moments.m00, b.moments.m10, b.moments.m01))
+                .collect();
+            ours.sort_unstable();
+            assert_eq!(ours, reference, "round {round}, window {roi:?}");
+        }
+        assert!(
+            skipped_rows > 5000,
+            "frames not sparse enough: {skipped_rows} dark rows"
+        );
     }
 
     #[test]

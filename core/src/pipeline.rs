@@ -405,7 +405,10 @@ impl Tracker {
     fn solve_impl(&mut self) {
         let n = self.cams.len();
         let cfg = self.config;
-        let mut m = Measurement::empty(n);
+        // Built in place: the measurement is ~1.5 KB, and building a copy then moving it
+        // cost a noticeable share of a tracking-window frame.
+        let m = &mut self.measurement;
+        *m = Measurement::empty(n);
         for (o, c) in m.cameras.iter_mut().zip(&self.cams) {
             let st = c.detector.stats();
             *o = CameraObservation {
@@ -444,7 +447,9 @@ impl Tracker {
         } else {
             // Pass 1: the best hypothesis (most cameras, then smallest gap).
             let mut min_gap = f64::INFINITY;
+            let mut plausible = 0usize;
             for_each_hypothesis(&self.cams, &cfg, &mut self.rays, &mut min_gap, |h| {
+                plausible += 1;
                 let better = match &best {
                     None => true,
                     Some(b) => h.count > b.count || (h.count == b.count && h.gap_mm < b.gap_mm),
@@ -454,8 +459,12 @@ impl Tracker {
                 }
             });
             m.gap_mm = min_gap;
-            // Pass 2: is another, different point just as plausible?
-            if let Some(b) = best {
+            // Pass 2: is another, different point just as plausible? With a single
+            // plausible hypothesis (the usual tracked frame) there is no other one, so the
+            // pass and its triangulations are skipped.
+            if let Some(b) = best
+                && plausible > 1
+            {
                 let mut ambiguous = false;
                 for_each_hypothesis(&self.cams, &cfg, &mut self.rays, &mut min_gap, |h| {
                     if h.count == b.count && (h.point_mm - b.point_mm).norm() > cfg.max_gap_mm {
@@ -491,12 +500,16 @@ impl Tracker {
                     c.last_px = blob.map(|b| (b.x_px, b.y_px));
                 }
             }
-            None => self.reset_tracking(),
+            None => {
+                // `reset_tracking`, spelled out: `m` still borrows `self.measurement`.
+                for c in &mut self.cams {
+                    c.last_px = None;
+                }
+            }
         }
         for c in &mut self.cams {
             c.detected = false;
         }
-        self.measurement = m;
     }
 }
 

@@ -1,10 +1,12 @@
 //! Soak + loop latency: the real processing loop with the simulated source.
 //!
 //! `cargo run --release -p irtrack-firmware --example soak -- --frames 100000 --fps 120`
-//! (`--unpaced`: the source delivers as fast as the loop takes sets).
+//! (`--unpaced`: the source delivers as fast as the loop takes sets; `--fifo-priority N`
+//! and `--lock-memory`: the real-time settings irtrackd applies from `[realtime]`).
 
 use anyhow::{Context, bail};
 use clap::Parser;
+use irtrack_firmware::config::RealtimeConfig;
 use irtrack_firmware::soak::{self, SoakConfig};
 
 #[derive(Parser, Debug)]
@@ -19,6 +21,14 @@ struct Args {
     /// Deliver sets as fast as the loop takes them.
     #[arg(long)]
     unpaced: bool,
+    /// Run the loop thread SCHED_FIFO at this priority (as irtrackd's `[realtime]` does on
+    /// the board); needs CAP_SYS_NICE. Without it the run shows a shared machine's
+    /// scheduling delays.
+    #[arg(long)]
+    fifo_priority: Option<i32>,
+    /// mlockall, as `[realtime] lock_memory` (needs CAP_IPC_LOCK).
+    #[arg(long)]
+    lock_memory: bool,
 }
 
 fn mib(b: u64) -> f64 {
@@ -45,6 +55,16 @@ fn main() -> anyhow::Result<()> {
         cfg.fps,
         if cfg.paced { "paced" } else { "unpaced" }
     );
+    if args.fifo_priority.is_some() || args.lock_memory {
+        let rt = RealtimeConfig {
+            fifo_priority: args.fifo_priority,
+            lock_memory: args.lock_memory,
+            ..RealtimeConfig::default()
+        };
+        for line in irtrack_firmware::rt::apply(&rt) {
+            println!("realtime: {line}");
+        }
+    }
     let r = soak::run(cfg, |done, rss| {
         println!(
             "  {done:>9} sets, RSS {:.2} MiB, load {}",

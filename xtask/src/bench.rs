@@ -5,14 +5,23 @@
 //! Instruction counts: each case runs twice under callgrind with different iteration
 //! counts; the difference divided by the extra iterations removes set-up and rendering.
 //! CI runs `--quick` (shorter timing, VGA only under callgrind); nothing is a timed pass/fail.
+//!
+//! `--aarch64`: the OpenCV-free benchmark (`--no-default-features`) and `irtrackd`, both
+//! cross-built static for aarch64, run under QEMU user mode: the benchmark table there (its
+//! ratios; absolute times are the emulator's), the binary size, and the resident memory of
+//! `irtrackd` with the simulated source after it has run a while. QEMU user mode's resident
+//! set includes the emulator and its translated code, so an idle static binary under the same
+//! QEMU is measured too and the difference is printed as the guest's share.
 
-use std::path::Path;
-use std::process::Command;
-use std::time::Duration;
+use std::io::{BufRead, BufReader, Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
 use crate::ci::Counts;
+use crate::cross;
 use crate::util::{self, Ctx, RunOpts};
 
 const CASES: &[&str] = &["ours-full", "ours-roi", "opencv", "sum"];
@@ -23,16 +32,23 @@ pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
     Ok(Counts::default())
 }
 
-/// `cargo xtask bench [--quick] [--no-callgrind]`.
+/// `cargo xtask bench [--quick] [--no-callgrind] [--aarch64]`.
 pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
     let mut quick = false;
     let mut callgrind = true;
+    let mut aarch64 = false;
     for a in args {
         match a.as_str() {
             "--quick" => quick = true,
             "--no-callgrind" => callgrind = false,
-            other => bail!("unknown option `{other}` (usage: cargo xtask bench [--quick] [--no-callgrind])"),
+            "--aarch64" => aarch64 = true,
+            other => bail!(
+                "unknown option `{other}` (usage: cargo xtask bench [--quick] [--no-callgrind] [--aarch64])"
+            ),
         }
+    }
+    if aarch64 {
+        return aarch64_bench(ctx, quick);
     }
     let mut build = ctx.cargo();
     build.args(["build", "--release", "-p", "irtrack-bench"]);
@@ -131,4 +147,274 @@ fn fmt_ir(ir: f64) -> String {
     } else {
         format!("{:.1} k", ir / 1e3)
     }
+}
+
+/// `cargo xtask bench --aarch64 [--quick]` (see the module documentation).
+fn aarch64_bench(ctx: &Ctx, quick: bool) -> Result<()> {
+    if !util::on_path("qemu-aarch64") {
+        bail!("qemu-aarch64 not found (`cargo xtask setup` installs qemu-user)");
+    }
+    // Same target subdirectory and flags as `cross::build_irtrackd`: shared dependencies.
+    let subdir = "aarch64-static";
+    let mut build = ctx.cargo();
+    build.args([
+        "build",
+        "--release",
+        "--target",
+        cross::TARGET,
+        "-p",
+        "irtrack-bench",
+        "--no-default-features",
+    ]);
+    cross::apply_env(ctx, &mut build, subdir)?;
+    build.env("RUSTFLAGS", "-C target-feature=+crt-static");
+    let out = util::run(
+        &mut build,
+        RunOpts {
+            timeout: Some(Duration::from_secs(1800)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("aarch64 build of irtrack-bench {}", out.describe());
+    }
+    let bench = ctx
+        .target_dir()
+        .join(subdir)
+        .join(cross::TARGET)
+        .join("release")
+        .join("irtrack-bench");
+    let irtrackd = cross::build_irtrackd(ctx)?;
+
+    println!();
+    println!(
+        "irtrack-bench on aarch64 under qemu-aarch64 (user mode; emulated, so only the ratios mean much):"
+    );
+    let mut table = Command::new("qemu-aarch64");
+    table.arg(&bench);
+    if quick {
+        table.arg("--quick");
+    }
+    let out = util::run(
+        &mut table,
+        RunOpts {
+            timeout: Some(Duration::from_secs(1200)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("irtrack-bench under qemu-aarch64 {}", out.describe());
+    }
+
+    println!();
+    let size = std::fs::metadata(&irtrackd)
+        .with_context(|| format!("reading {}", irtrackd.display()))?
+        .len();
+    println!(
+        "irtrackd (aarch64, static, release): {} bytes ({:.2} MiB), {}",
+        size,
+        size as f64 / (1024.0 * 1024.0),
+        irtrackd.display()
+    );
+    // The release profile keeps debug information; what a board needs is the stripped file.
+    let stripped = irtrackd.with_extension("stripped");
+    if util::on_path("aarch64-linux-gnu-strip")
+        && Command::new("aarch64-linux-gnu-strip")
+            .arg("-o")
+            .arg(&stripped)
+            .arg(&irtrackd)
+            .status()?
+            .success()
+    {
+        let len = std::fs::metadata(&stripped)?.len();
+        println!(
+            "stripped: {} bytes ({:.2} MiB)",
+            len,
+            len as f64 / (1024.0 * 1024.0)
+        );
+        let _ = std::fs::remove_file(&stripped);
+    }
+    if util::on_path("aarch64-linux-gnu-size") {
+        let o = Command::new("aarch64-linux-gnu-size").arg(&irtrackd).output()?;
+        print!("{}", String::from_utf8_lossy(&o.stdout));
+    }
+
+    let settle = Duration::from_secs(if quick { 10 } else { 30 });
+    let daemon = irtrackd_memory(&irtrackd, settle)?;
+    let idle = idle_memory(&bench, Duration::from_secs(3))?;
+    println!();
+    println!(
+        "Resident memory under qemu-aarch64 (host /proc/<pid>/status of the QEMU process, {} s):",
+        settle.as_secs()
+    );
+    println!();
+    println!("| process | VmRSS | VmHWM | note |");
+    println!("|---|---|---|---|");
+    println!(
+        "| irtrackd, simulated VGA rig at 30 fps | {} | {} | {} frame sets processed, {} published |",
+        kib(daemon.rss_kib),
+        kib(daemon.hwm_kib),
+        daemon.sets_processed,
+        daemon.published
+    );
+    println!(
+        "| idle static Rust binary (QEMU baseline) | {} | {} | `irtrack-bench --idle` |",
+        kib(idle.rss_kib),
+        kib(idle.hwm_kib)
+    );
+    println!(
+        "| difference ≈ irtrackd's own share | {} | {} | includes code QEMU translated for it |",
+        kib(daemon.rss_kib.saturating_sub(idle.rss_kib)),
+        kib(daemon.hwm_kib.saturating_sub(idle.hwm_kib))
+    );
+    println!(
+        "| first → last sample of irtrackd (steady state?) | {} → {} | | sampled at {} s and {} s |",
+        kib(daemon.first_rss_kib),
+        kib(daemon.rss_kib),
+        settle.as_secs() / 2,
+        settle.as_secs()
+    );
+    Ok(())
+}
+
+fn kib(v: u64) -> String {
+    format!("{:.1} MiB", v as f64 / 1024.0)
+}
+
+/// VmRSS and VmHWM (KiB) of a process from /proc.
+fn vm_kib(pid: u32) -> Result<(u64, u64)> {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .with_context(|| format!("reading /proc/{pid}/status"))?;
+    let field = |name: &str| -> Result<u64> {
+        text.lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|v| v.split_whitespace().next())
+            .and_then(|v| v.parse().ok())
+            .with_context(|| format!("no {name} in /proc/{pid}/status"))
+    };
+    Ok((field("VmRSS:")?, field("VmHWM:")?))
+}
+
+struct DaemonMemory {
+    first_rss_kib: u64,
+    rss_kib: u64,
+    hwm_kib: u64,
+    sets_processed: u64,
+    published: u64,
+}
+
+/// Kills the child (ours) when dropped, whatever happened.
+struct KillOnDrop(Child);
+
+impl Drop for KillOnDrop {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Runs `irtrackd` under QEMU with the simulated source, waits for its ready line, samples
+/// its memory at `settle / 2` and `settle`, and reads its frame counters from `/status`.
+fn irtrackd_memory(irtrackd: &Path, settle: Duration) -> Result<DaemonMemory> {
+    let state = std::env::temp_dir().join(format!("irtrack-bench-aarch64-{}", std::process::id()));
+    std::fs::create_dir_all(&state)?;
+    let child = Command::new("qemu-aarch64")
+        .arg(irtrackd)
+        .args([
+            "--ephemeral-ports",
+            "127.0.0.1",
+            "--params-from-simulator",
+            "--sim-fps",
+            "30",
+        ])
+        .arg("--state-dir")
+        .arg(&state)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .context("starting irtrackd under qemu-aarch64")?;
+    let mut child = KillOnDrop(child);
+    let pid = child.0.id();
+    let stdout = child.0.stdout.take().context("irtrackd stdout")?;
+    // The ready line names the status address; read it on a thread so a silent daemon
+    // cannot hang us.
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(|l| l.ok()) {
+            if line.starts_with("irtrackd ready") {
+                let _ = tx.send(line);
+            }
+        }
+    });
+    let ready = rx
+        .recv_timeout(Duration::from_secs(120))
+        .context("irtrackd under qemu-aarch64 printed no ready line within 120 s")?;
+    let status_addr = ready
+        .split_whitespace()
+        .find_map(|w| w.strip_prefix("status="))
+        .context("ready line without status=")?
+        .to_string();
+    let t0 = Instant::now();
+    std::thread::sleep(settle / 2);
+    let (first_rss_kib, _) = vm_kib(pid)?;
+    std::thread::sleep(settle.saturating_sub(t0.elapsed()));
+    let (rss_kib, hwm_kib) = vm_kib(pid)?;
+    let report = http_get(&status_addr, "/status")?;
+    let counter = |name: &str| -> u64 {
+        report
+            .split(&format!("\"{name}\":"))
+            .nth(1)
+            .and_then(|r| r.trim_start().split([',', '\n', '}']).next())
+            .and_then(|v| v.trim().parse().ok())
+            .unwrap_or(0)
+    };
+    let (sets_processed, published) = (counter("sets_processed"), counter("published"));
+    if let Some(status) = child.0.try_wait()? {
+        bail!("irtrackd under qemu-aarch64 exited early ({status})");
+    }
+    drop(child);
+    let _ = std::fs::remove_dir_all(&state);
+    if sets_processed == 0 {
+        bail!("irtrackd under qemu-aarch64 processed no frame sets:\n{report}");
+    }
+    Ok(DaemonMemory {
+        first_rss_kib,
+        rss_kib,
+        hwm_kib,
+        sets_processed,
+        published,
+    })
+}
+
+struct Idle {
+    rss_kib: u64,
+    hwm_kib: u64,
+}
+
+/// Memory of the idle benchmark binary under QEMU (the emulator's own baseline).
+fn idle_memory(bench: &PathBuf, wait: Duration) -> Result<Idle> {
+    let child = Command::new("qemu-aarch64")
+        .arg(bench)
+        .args(["--idle", &(wait.as_secs() + 5).to_string()])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .spawn()
+        .context("starting the idle binary under qemu-aarch64")?;
+    let child = KillOnDrop(child);
+    std::thread::sleep(wait);
+    let (rss_kib, hwm_kib) = vm_kib(child.0.id())?;
+    Ok(Idle { rss_kib, hwm_kib })
+}
+
+/// Minimal HTTP/1.0 GET on 127.0.0.1; returns the body.
+fn http_get(addr: &str, path: &str) -> Result<String> {
+    let mut s = std::net::TcpStream::connect(addr).with_context(|| format!("connecting to {addr}"))?;
+    s.set_read_timeout(Some(Duration::from_secs(20)))?;
+    write!(s, "GET {path} HTTP/1.0\r\nHost: {addr}\r\n\r\n")?;
+    let mut text = String::new();
+    s.read_to_string(&mut text)?;
+    Ok(text
+        .split_once("\r\n\r\n")
+        .map_or(text.clone(), |(_, b)| b.to_string()))
 }
