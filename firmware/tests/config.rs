@@ -23,7 +23,10 @@ fn defaults_are_a_simulated_pc_run() {
     assert!(!c.service.params_from_simulator);
     // Secure by default: nothing trusted, unsigned blobs refused.
     assert!(c.params.trusted_keys.is_empty() && !c.params.allow_unsigned);
-    assert_eq!(c.params.policy(), irtrack_core::signing::SignaturePolicy::RequireSigned);
+    assert_eq!(
+        c.params.policy(),
+        irtrack_core::signing::SignaturePolicy::RequireSigned
+    );
     let full = r#"
 [service]
 state_dir = "/tmp/x"
@@ -56,17 +59,30 @@ fn shipped_example_config_is_valid() {
     let c = Config::load(&path).unwrap();
     assert_eq!(c.service.state_dir, std::path::PathBuf::from("/var/lib/irtrackd"));
     assert_eq!(c.source.sim.unwrap().fps, 60.0);
-    assert_eq!(c.params.trusted_keys, vec![std::path::PathBuf::from("/etc/irtrack/trusted-keys")]);
+    assert_eq!(
+        c.params.trusted_keys,
+        vec![std::path::PathBuf::from("/etc/irtrack/trusted-keys")]
+    );
     assert!(!c.params.allow_unsigned);
 }
 
 #[test]
 fn params_table_is_strict() {
-    let c = Config::from_toml("[params]\nallow_unsigned = true\ntrusted_keys = [\"/k/a.pub\"]\n", "t").unwrap();
+    let c = Config::from_toml(
+        "[params]\nallow_unsigned = true\ntrusted_keys = [\"/k/a.pub\"]\n",
+        "t",
+    )
+    .unwrap();
     assert!(c.params.allow_unsigned);
-    assert_eq!(c.params.policy(), irtrack_core::signing::SignaturePolicy::AllowUnsigned);
+    assert_eq!(
+        c.params.policy(),
+        irtrack_core::signing::SignaturePolicy::AllowUnsigned
+    );
     let e = err("[params]\ntrusted_key = \"/k/a.pub\"\n");
-    assert!(e.contains("unknown field `trusted_key`") && e.contains("trusted_keys"), "{e}");
+    assert!(
+        e.contains("unknown field `trusted_key`") && e.contains("trusted_keys"),
+        "{e}"
+    );
     let e = err("[params]\nallow_unsigned = \"yes\"\n");
     assert!(e.contains("invalid type") && e.contains("allow_unsigned"), "{e}");
 }

@@ -139,9 +139,17 @@ async fn config_params_table_decides_who_may_push() {
     let stranger = SigningKey::from_bytes(&[22; 32]);
     let keys_dir = dir.path().join("trusted-keys");
     std::fs::create_dir_all(&keys_dir).unwrap();
-    std::fs::write(keys_dir.join("shop.pub"), public_key_file(&trusted.verifying_key())).unwrap();
+    std::fs::write(
+        keys_dir.join("shop.pub"),
+        public_key_file(&trusted.verifying_key()),
+    )
+    .unwrap();
     // Not a *.pub file: ignored, even though it holds a key.
-    std::fs::write(keys_dir.join("notes.txt"), public_key_file(&stranger.verifying_key())).unwrap();
+    std::fs::write(
+        keys_dir.join("notes.txt"),
+        public_key_file(&stranger.verifying_key()),
+    )
+    .unwrap();
 
     // 1. Out of the box: nothing trusted, every push rejected, status says so.
     let mut cfg = common::test_config(&dir.path().join("state-default"));
@@ -170,14 +178,24 @@ async fn config_params_table_decides_who_may_push() {
     assert_eq!(st["params"]["signature_policy"], "require_signed");
     let id = KeyId::of(&trusted.verifying_key()).to_string();
     assert_eq!(st["params"]["trusted_keys"], serde_json::json!([id]), "{st}");
-    let Verdict::Rejected { code, message } = common::push_verdict(running.addrs.params, &rig.to_blob().unwrap()).await
+    let Verdict::Rejected { code, message } =
+        common::push_verdict(running.addrs.params, &rig.to_blob().unwrap()).await
     else {
         panic!("unsigned blob accepted in production mode")
     };
     assert_eq!(code, RejectCode::Unauthorized);
     assert!(message.contains("not signed"), "{message}");
     let v = common::push_verdict(running.addrs.params, &rig.to_signed_blob(&stranger).unwrap()).await;
-    assert!(matches!(v, Verdict::Rejected { code: RejectCode::Unauthorized, .. }), "{v:?}");
+    assert!(
+        matches!(
+            v,
+            Verdict::Rejected {
+                code: RejectCode::Unauthorized,
+                ..
+            }
+        ),
+        "{v:?}"
+    );
     let v = common::push_verdict(running.addrs.params, &rig.to_signed_blob(&trusted).unwrap()).await;
     assert!(matches!(v, Verdict::Accepted { .. }), "{v:?}");
     let st = common::status_json(running.addrs.status).await;
@@ -210,6 +228,9 @@ async fn config_params_table_decides_who_may_push() {
             Ok(_) => panic!("started with key file {}", path.display()),
             Err(e) => e.to_string(),
         };
-        assert!(err.contains("trusted_keys") && err.contains(&*path.to_string_lossy()), "{err}");
+        assert!(
+            err.contains("trusted_keys") && err.contains(&*path.to_string_lossy()),
+            "{err}"
+        );
     }
 }

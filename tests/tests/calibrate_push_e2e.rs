@@ -554,7 +554,11 @@ fn refuses_another_rig(
     // Neither stored nor used: the good set stays on disk and in the records.
     let stored = std::fs::read(dir.join("state").join("params.irp")).unwrap();
     assert_eq!(
-        signing::decode_without_verifying(&stored).unwrap().0.params_crc().unwrap(),
+        signing::decode_without_verifying(&stored)
+            .unwrap()
+            .0
+            .params_crc()
+            .unwrap(),
         crc
     );
     let after = records(stream, 5, Duration::from_secs(20), |r| {
