@@ -10,11 +10,12 @@ use std::time::Duration;
 
 use common::*;
 use irtrack_core::pose6d::quaternion_angle_rad;
+use irtrack_core::robot_proto::HoldReason;
 use irtrack_core::robot_proto::SimRobotConfig;
 use irtrack_core::stream::TrackStatus;
 use irtrack_firmware::app::{self, Overrides};
-use irtrack_firmware::robot::RobotLink;
 use irtrack_firmware::robot::sim::{SimRobotServer, SimServerConfig};
+use irtrack_firmware::robot::{LinkState, RobotLink};
 use nalgebra::Vector3;
 
 const FRAMES: u64 = 720;
@@ -88,7 +89,20 @@ kind = "none"
     cfg.source.sim = Some(sim_cfg.clone());
     let running = app::start(cfg, Overrides::default()).await.unwrap();
     let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
-    running.robot().unwrap().enable();
+    // Motion must be enabled on the established connection: a (re)connect always starts
+    // held, so an enable sent before the link is up would be reset by the connect.
+    let link = running.robot().unwrap();
+    let t0 = std::time::Instant::now();
+    while !(link.status().connects >= 1 && link.status().state == LinkState::Holding(HoldReason::NotEnabled))
+    {
+        assert!(
+            t0.elapsed() < Duration::from_secs(5),
+            "link never came up: {:?}",
+            link.status()
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    link.enable();
 
     // --- Stream: every record until the source's last frame, against the truth of its frame.
     let (mut tracked, mut other, mut jumps) = (0usize, 0usize, 0usize);
@@ -192,11 +206,7 @@ kind = "none"
     assert!(
         !matches!(
             link_status.state,
-            irtrack_firmware::robot::LinkState::Holding(
-                irtrack_core::robot_proto::HoldReason::StepTooLarge
-                    | irtrack_core::robot_proto::HoldReason::TooFast
-                    | irtrack_core::robot_proto::HoldReason::Workspace
-            )
+            LinkState::Holding(HoldReason::StepTooLarge | HoldReason::TooFast | HoldReason::Workspace)
         ),
         "{:?}",
         link_status.state
