@@ -17,12 +17,15 @@
 //! `cargo build -p irtrack-firmware --bin irtrackd -p irtrack-host-tools --bin host-tools` first
 //! (same target dir).
 
-use std::io::{BufRead, BufReader, Read, Write};
+mod common;
+
+use std::io::{BufRead, BufReader};
 use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
+use common::*;
 use irtrack_core::camera::ImageSize;
 use irtrack_core::params::RigParams;
 use irtrack_core::signing;
@@ -50,36 +53,6 @@ const FPS: f64 = 20.0;
 /// the 90° rig it is ~0.1 mm, below the calibration's own share (~0.3 mm), so positions
 /// triangulated with another rig than the pushed one would fail there.
 const CENTROID_NOISE_PX: f64 = 0.1;
-
-/// Kills the child on every path out of a test.
-struct Guard(Child);
-
-impl Drop for Guard {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn bin(name: &str) -> PathBuf {
-    // The test runs as target/<profile>/deps/<test>-<hash>; the binaries sit in target/<profile>.
-    let exe = std::env::current_exe().unwrap();
-    let p = exe.parent().and_then(Path::parent).unwrap().join(name);
-    assert!(
-        p.is_file(),
-        "{} not found: run `cargo build -p irtrack-firmware --bin irtrackd -p irtrack-host-tools \
-         --bin host-tools` first (same CARGO_TARGET_DIR)",
-        p.display()
-    );
-    p
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("irtrack-calpush-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 fn text(o: &Output) -> (String, String) {
     (
@@ -188,66 +161,23 @@ fn write_config(dir: &Path, sim: &str) -> (PathBuf, PathBuf) {
     (config, dir.join("signing.key"))
 }
 
-fn wait_line(child: &mut Child, prefix: &str, timeout: Duration) -> String {
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    let wanted = prefix.to_string();
-    std::thread::spawn(move || {
-        let mut sent = false;
-        // Keeps reading so irtrackd never blocks on a full pipe.
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if !sent && line.starts_with(&wanted) {
-                let _ = tx.send(line);
-                sent = true;
-            }
-        }
-    });
-    rx.recv_timeout(timeout)
-        .unwrap_or_else(|_| panic!("no `{prefix}` line within {timeout:?}"))
-}
-
-fn addr(line: &str, key: &str) -> SocketAddr {
-    line.split_whitespace()
-        .find_map(|w| w.strip_prefix(key))
-        .unwrap_or_else(|| panic!("{key} missing in {line:?}"))
-        .parse()
-        .unwrap()
-}
-
 /// Starts irtrackd with every endpoint on a free port of 127.0.0.1; returns the params,
 /// stream and status addresses.
-fn start_irtrackd(config: &Path, state: &Path) -> (Guard, [SocketAddr; 3]) {
-    let mut child = Command::new(bin("irtrackd"))
-        .arg("-c")
-        .arg(config)
-        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
-        .arg(state)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let line = wait_line(&mut child, "irtrackd ready", Duration::from_secs(20));
+fn start_irtrackd_addrs(config: &Path, state: &Path) -> (Guard, [SocketAddr; 3]) {
+    let (guard, line) = start_irtrackd(config, state);
     let addrs = [
-        addr(&line, "params="),
-        addr(&line, "stream="),
-        addr(&line, "status="),
+        addr_field(&line, "params="),
+        addr_field(&line, "stream="),
+        addr_field(&line, "status="),
     ];
-    (Guard(child), addrs)
+    (guard, addrs)
 }
 
 /// `GET /status` as JSON.
 fn status(addr: SocketAddr) -> Value {
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-    write!(s, "GET /status HTTP/1.0\r\nHost: test\r\n\r\n").unwrap();
-    let mut resp = String::new();
-    s.read_to_string(&mut resp).unwrap();
-    let (head, body) = resp.split_once("\r\n\r\n").unwrap();
-    assert!(
-        head.starts_with("HTTP/1.0 200") || head.starts_with("HTTP/1.1 200"),
-        "{head}"
-    );
-    serde_json::from_str(body).unwrap()
+    let (code, body) = http(addr, "GET", "/status");
+    assert_eq!(code, 200, "{body}");
+    serde_json::from_str(&body).unwrap()
 }
 
 fn faults(st: &Value) -> Vec<String> {
@@ -428,7 +358,7 @@ fn calibrate_push_track(
 
     // 2. irtrackd on the same simulated rig, without parameters.
     let (config, key) = write_config(&dir, sim_toml);
-    let (_irtrackd, [params, stream, status_addr]) = start_irtrackd(&config, &dir.join("state"));
+    let (_irtrackd, [params, stream, status_addr]) = start_irtrackd_addrs(&config, &dir.join("state"));
     let before = records(stream, 3, Duration::from_secs(20), |_| true);
     for r in &before {
         assert_eq!(r.status, TrackStatus::NoParams, "{r:?}");

@@ -5,12 +5,13 @@
 //! The binaries belong to other packages, so cargo does not build them for this test: run
 //! `cargo build -p irtrack-firmware -p irtrack-host-tools` first (same target dir).
 
-use std::io::{BufRead, BufReader, Read, Write};
-use std::net::{SocketAddr, TcpStream};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+mod common;
+
+use std::net::SocketAddr;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+use common::*;
 use irtrack_firmware::source::sim::SimSourceConfig;
 use nalgebra::Vector3;
 
@@ -18,92 +19,6 @@ use nalgebra::Vector3;
 /// robot parked at the circle centre.
 const RADIUS_MM: f64 = 15.0;
 const MAX_STEP_MM: f64 = 20.0;
-
-/// Kills the child on every path (also when an assertion fails).
-struct Guard(Child);
-
-impl Drop for Guard {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn bin(name: &str) -> PathBuf {
-    // target/<profile>/deps/system_e2e-<hash> → target/<profile>/<name>
-    let exe = std::env::current_exe().unwrap();
-    let dir = exe.parent().and_then(Path::parent).unwrap();
-    let p = dir.join(name);
-    assert!(
-        p.is_file(),
-        "{} not found: build it first with `cargo build -p irtrack-firmware -p irtrack-host-tools` \
-         (same CARGO_TARGET_DIR and profile as this test)",
-        p.display()
-    );
-    p
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("irtrack-e2e-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-/// Reads stdout lines until one starts with `prefix`; the rest of stdout is drained in a thread.
-fn wait_line(child: &mut Child, prefix: &str, timeout: Duration) -> String {
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    let prefix = prefix.to_string();
-    std::thread::spawn(move || {
-        let mut sent = false;
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if !sent && line.starts_with(&prefix) {
-                let _ = tx.send(line);
-                sent = true;
-            }
-        }
-    });
-    rx.recv_timeout(timeout)
-        .unwrap_or_else(|_| panic!("no line starting with the expected prefix within {timeout:?}"))
-}
-
-fn field(line: &str, key: &str) -> SocketAddr {
-    line.split_whitespace()
-        .find_map(|w| w.strip_prefix(key))
-        .unwrap_or_else(|| panic!("{key} missing in {line:?}"))
-        .parse()
-        .unwrap()
-}
-
-/// One HTTP/1.0 request over a raw socket; returns the status code and body.
-fn http(addr: SocketAddr, method: &str, path: &str) -> (u16, String) {
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-    write!(s, "{method} {path} HTTP/1.0\r\nHost: test\r\n\r\n").unwrap();
-    let mut resp = String::new();
-    s.read_to_string(&mut resp).unwrap();
-    let code = resp.split_whitespace().nth(1).unwrap().parse().unwrap();
-    let body = resp
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.to_string())
-        .unwrap_or_default();
-    (code, body)
-}
-
-fn start_irtrackd(config: &Path, state: &Path) -> (Guard, String) {
-    let mut child = Command::new(bin("irtrackd"))
-        .arg("-c")
-        .arg(config)
-        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
-        .arg(state)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let line = wait_line(&mut child, "irtrackd ready", Duration::from_secs(20));
-    (Guard(child), line)
-}
 
 /// Points of the simulated marker's path (camera 0 frame), one per degree of the circle.
 fn marker_path() -> Vec<Vector3<f64>> {
@@ -174,7 +89,7 @@ kind = "flag"
     )
     .unwrap();
     let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
-    let status = field(&ready, "status=");
+    let status = addr_field(&ready, "status=");
 
     // Wait until the link is up (held, not enabled), then enable and press the deadman.
     let deadline = Instant::now() + Duration::from_secs(10);
@@ -258,7 +173,7 @@ fn robot_control_is_refused_unless_the_config_allows_it() {
     )
     .unwrap();
     let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
-    let status = field(&ready, "status=");
+    let status = addr_field(&ready, "status=");
     for path in ["/robot/enable", "/robot/deadman?pressed=1", "/robot/disable"] {
         let (code, body) = http(status, "POST", path);
         assert_eq!(code, 403, "{path}: {body}");
