@@ -1,13 +1,14 @@
 //! Demo step: irtrackd (simulated cameras) streams to a simulated robot controller, which
 //! follows the marker after an explicit enable. Real binaries, real sockets on 127.0.0.1.
 
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{BufRead, BufReader};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
+use crate::util::{addr_field, http};
 use anyhow::{Context, Result, bail};
 
 /// Kills a child process on every path out of the step.
@@ -454,14 +455,6 @@ fn wait_line(child: &mut Child, prefix: &str, timeout: Duration) -> Result<Strin
         .map_err(|_| anyhow::anyhow!("no `{prefix}` line within {timeout:?}"))
 }
 
-fn addr_field(line: &str, key: &str) -> Result<SocketAddr> {
-    line.split_whitespace()
-        .find_map(|w| w.strip_prefix(key))
-        .with_context(|| format!("`{key}` missing in {line:?}"))?
-        .parse()
-        .with_context(|| format!("bad address for `{key}` in {line:?}"))
-}
-
 /// First tracked position from irtrackd's NDJSON stream.
 fn first_position(stream: SocketAddr) -> Result<[f64; 3]> {
     let s = TcpStream::connect(stream).context("connecting to the position stream")?;
@@ -481,24 +474,6 @@ fn json_array3(line: &str, key: &str) -> Option<[f64; 3]> {
     let inner = rest.strip_prefix('[')?.split(']').next()?;
     let v: Vec<f64> = inner.split(',').filter_map(|x| x.trim().parse().ok()).collect();
     (v.len() == 3).then(|| [v[0], v[1], v[2]])
-}
-
-fn http(addr: SocketAddr, method: &str, path: &str) -> Result<(u16, String)> {
-    let mut s = TcpStream::connect(addr).with_context(|| format!("connecting to {addr}"))?;
-    s.set_read_timeout(Some(Duration::from_secs(5)))?;
-    write!(s, "{method} {path} HTTP/1.0\r\nHost: demo\r\n\r\n")?;
-    let mut resp = String::new();
-    s.read_to_string(&mut resp)?;
-    let code = resp
-        .split_whitespace()
-        .nth(1)
-        .and_then(|c| c.parse().ok())
-        .unwrap_or(0);
-    let body = resp
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.trim().to_string())
-        .unwrap_or_default();
-    Ok((code, body))
 }
 
 fn short(body: &str) -> String {

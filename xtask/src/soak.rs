@@ -25,6 +25,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 
 use crate::util::{self, Ctx, RunOpts};
+use crate::util::{addr_field, http};
 
 const USAGE: &str = "usage: cargo xtask soak [--sets N] [--fps F] [--quick]";
 const DEFAULT_SETS: u64 = 1_000_000;
@@ -261,14 +262,6 @@ fn wait_for(lines: &mpsc::Receiver<String>, prefix: &str, timeout: Duration) -> 
             Err(_) => bail!("no `{prefix}` line within {timeout:?}"),
         }
     }
-}
-
-fn addr_field(line: &str, key: &str) -> Result<SocketAddr> {
-    line.split_whitespace()
-        .find_map(|w| w.strip_prefix(key))
-        .with_context(|| format!("`{key}` missing in {line:?}"))?
-        .parse()
-        .with_context(|| format!("bad address for `{key}` in {line:?}"))
 }
 
 struct Circle {
@@ -1104,25 +1097,6 @@ fn json_value<'a>(body: &'a str, key: &str) -> Option<&'a str> {
     let pat = format!("\"{key}\":");
     let at = body.find(&pat)? + pat.len();
     Some(body[at..].trim_start())
-}
-
-fn http(addr: SocketAddr, method: &str, path: &str) -> Result<(u16, String)> {
-    let mut s = TcpStream::connect(addr).with_context(|| format!("connecting to {addr}"))?;
-    s.set_read_timeout(Some(Duration::from_secs(10)))?;
-    write!(s, "{method} {path} HTTP/1.0\r\nHost: soak\r\n\r\n")?;
-    let mut resp = String::new();
-    s.read_to_string(&mut resp)
-        .with_context(|| format!("{method} {path}"))?;
-    let code = resp
-        .split_whitespace()
-        .nth(1)
-        .and_then(|c| c.parse().ok())
-        .unwrap_or(0);
-    let body = resp
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.trim().to_string())
-        .unwrap_or_default();
-    Ok((code, body))
 }
 
 #[cfg(test)]

@@ -3,6 +3,7 @@
 
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Read, Write};
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitStatus, Stdio};
 use std::thread;
@@ -270,6 +271,36 @@ pub fn is_root() -> bool {
         .output()
         .ok()
         .is_some_and(|o| String::from_utf8_lossy(&o.stdout).trim() == "0")
+}
+
+/// One HTTP/1.0 request to irtrackd's status port over a raw socket (no HTTP client crate);
+/// returns the status code (0 if unreadable) and the trimmed body.
+pub fn http(addr: SocketAddr, method: &str, path: &str) -> Result<(u16, String)> {
+    let mut s = std::net::TcpStream::connect(addr).with_context(|| format!("connecting to {addr}"))?;
+    s.set_read_timeout(Some(Duration::from_secs(10)))?;
+    write!(s, "{method} {path} HTTP/1.0\r\nHost: xtask\r\n\r\n")?;
+    let mut resp = String::new();
+    s.read_to_string(&mut resp)
+        .with_context(|| format!("{method} {path}"))?;
+    let code = resp
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    let body = resp
+        .split_once("\r\n\r\n")
+        .map(|(_, b)| b.trim().to_string())
+        .unwrap_or_default();
+    Ok((code, body))
+}
+
+/// The socket address after `key` (e.g. `status=`) in a line such as irtrackd's ready line.
+pub fn addr_field(line: &str, key: &str) -> Result<SocketAddr> {
+    line.split_whitespace()
+        .find_map(|w| w.strip_prefix(key))
+        .with_context(|| format!("`{key}` missing in {line:?}"))?
+        .parse()
+        .with_context(|| format!("bad address for `{key}` in {line:?}"))
 }
 
 #[cfg(test)]
