@@ -64,20 +64,7 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
     }
     let bin = ctx.target_dir().join("release").join("irtrack-bench");
 
-    let mut table = Command::new(&bin);
-    if quick {
-        table.arg("--quick");
-    }
-    let out = util::run(
-        &mut table,
-        RunOpts {
-            timeout: Some(Duration::from_secs(600)),
-            ..RunOpts::default()
-        },
-    )?;
-    if !out.success() {
-        bail!("irtrack-bench {}", out.describe());
-    }
+    print_table(Command::new(&bin), quick, 600, "irtrack-bench")?;
 
     if !callgrind {
         return Ok(());
@@ -190,21 +177,9 @@ fn aarch64_bench(ctx: &Ctx, quick: bool) -> Result<()> {
     println!(
         "irtrack-bench on aarch64 under qemu-aarch64 (user mode; emulated, so only the ratios mean much):"
     );
-    let mut table = Command::new("qemu-aarch64");
-    table.arg(&bench);
-    if quick {
-        table.arg("--quick");
-    }
-    let out = util::run(
-        &mut table,
-        RunOpts {
-            timeout: Some(Duration::from_secs(1200)),
-            ..RunOpts::default()
-        },
-    )?;
-    if !out.success() {
-        bail!("irtrack-bench under qemu-aarch64 {}", out.describe());
-    }
+    let mut under_qemu = Command::new("qemu-aarch64");
+    under_qemu.arg(&bench);
+    print_table(under_qemu, quick, 1200, "irtrack-bench under qemu-aarch64")?;
 
     println!();
     let size = std::fs::metadata(&irtrackd)
@@ -417,4 +392,22 @@ fn http_get(addr: &str, path: &str) -> Result<String> {
     Ok(text
         .split_once("\r\n\r\n")
         .map_or(text.clone(), |(_, b)| b.to_string()))
+}
+
+/// Runs the benchmark binary (`cmd`) that prints the table, `--quick` if asked.
+fn print_table(mut cmd: Command, quick: bool, timeout_s: u64, what: &str) -> Result<()> {
+    if quick {
+        cmd.arg("--quick");
+    }
+    let out = util::run(
+        &mut cmd,
+        RunOpts {
+            timeout: Some(Duration::from_secs(timeout_s)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("{what} {}", out.describe());
+    }
+    Ok(())
 }
