@@ -112,6 +112,7 @@ pub const PHASES: &[Phase] = &[
     phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", Some(aarch64_tests), 25),
     phase("systemd", "systemd-analyze verify on systemd/ units", "", Some(lint::systemd_phase), 2),
     phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", Some(lint::yocto_phase), 5),
+    phase("yocto-bitbake", "BitBake parses meta-irtrack, lists its recipes, resolves irtrack-image", "bitbake", Some(yocto_bitbake), 30),
     phase("image", "aarch64 image build + QEMU system test", "system", IMAGE_HOOK, 20),
     phase("bench", "short benchmark", "bench", BENCH_HOOK, 10),
     phase("fuzz", "short fuzzing run of every fuzz target", "fuzz", FUZZ_HOOK, 10),
@@ -130,7 +131,6 @@ const FUZZ_HOOK: Option<PhaseFn> = Some(|ctx| hook(crate::fuzz::ci_phase(ctx)));
 #[cfg(not(xtask_has_fuzz))]
 const FUZZ_HOOK: Option<PhaseFn> = None;
 
-#[cfg_attr(not(any(xtask_has_image, xtask_has_bench, xtask_has_fuzz)), allow(dead_code))]
 fn hook(r: Result<Counts>) -> Outcome {
     match r {
         Ok(c) => Outcome {
@@ -431,6 +431,10 @@ pub fn parse_test_results(stdout: &str) -> (Counts, usize) {
         }
     }
     (total, n)
+}
+
+fn yocto_bitbake(ctx: &Ctx) -> Outcome {
+    hook(crate::yocto::ci_phase(ctx))
 }
 
 fn setup_phase(ctx: &Ctx) -> Outcome {

@@ -124,6 +124,11 @@ pub fn yocto_phase(ctx: &Ctx) -> Outcome {
         };
     };
     let mut cmd = Command::new(oelint);
+    // Rules of the release the layer is written for (else oelint-adv applies the newest
+    // release's, e.g. UNPACKDIR, which scarthgap does not have).
+    if let Some(release) = layer_release(&layer) {
+        cmd.args(["--release", &release]);
+    }
     // Infos are suggestions, not findings. The HOMEPAGE reachability rule needs the network,
     // which would make CI flaky. Run inside the layer so a layer-local .oelint.cfg applies.
     cmd.args([
@@ -150,6 +155,22 @@ pub fn yocto_phase(ctx: &Ctx) -> Outcome {
             ..Outcome::default()
         },
     }
+}
+
+/// The first release named by `LAYERSERIES_COMPAT_*` in a `conf/layer.conf` under `dir`.
+fn layer_release(dir: &Path) -> Option<String> {
+    files_with(dir, &["conf"])
+        .iter()
+        .filter(|p| p.ends_with("conf/layer.conf"))
+        .find_map(|p| release_of(&std::fs::read_to_string(p).ok()?))
+}
+
+fn release_of(layer_conf: &str) -> Option<String> {
+    layer_conf.lines().find_map(|l| {
+        let rest = l.trim().strip_prefix("LAYERSERIES_COMPAT_")?;
+        let value = rest.split_once('=')?.1.trim().trim_matches('"');
+        value.split_whitespace().next().map(str::to_string)
+    })
 }
 
 #[cfg(test)]
@@ -223,6 +244,18 @@ mod tests {
         std::fs::remove_dir_all(&root).unwrap();
         assert!(clean.failure.is_none() && clean.skipped.is_none(), "{clean:?}");
         assert!(flagged.failure.is_some(), "{flagged:?}");
+    }
+
+    #[test]
+    fn layer_release_comes_from_layerseries_compat() {
+        let conf = "BBFILE_PRIORITY_x = \"10\"\nLAYERSERIES_COMPAT_x = \"scarthgap styhead\"\n";
+        assert_eq!(release_of(conf).as_deref(), Some("scarthgap"));
+        assert_eq!(release_of("LAYERVERSION_x = \"1\"\n"), None);
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+        assert_eq!(
+            layer_release(&root.join("yocto-layer")).as_deref(),
+            Some("scarthgap")
+        );
     }
 
     #[test]

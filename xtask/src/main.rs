@@ -11,6 +11,7 @@ mod lint;
 mod setup;
 mod soak;
 mod util;
+mod yocto;
 
 // Optional modules, compiled in when their file exists (see build.rs and ci.rs).
 // `rustfmt::skip` stops rustfmt from failing on a missing file; the fmt phase checks
@@ -39,6 +40,8 @@ tasks:
   image  ...                   image build (when xtask/src/image.rs exists)
   bench  ...                   benchmarks (when xtask/src/bench.rs exists)
   fuzz   ...                   fuzzing (when xtask/src/fuzz.rs exists)
+  yocto  check|check-layer|shell
+                               the Yocto layer under real BitBake (docs/image.md)
   soak   [--sets N] [--fps F] [--quick]
                                irtrackd + robot-sim service soak (default 10^6 sets, 500 fps)
 ";
@@ -73,6 +76,7 @@ fn real_main(args: &[String]) -> anyhow::Result<i32> {
         "setup" => setup::run(&ctx)?,
         "cross" => cross::cli(&ctx)?,
         "soak" => soak::cli(&ctx, rest)?,
+        "yocto" => yocto::cli(&ctx, rest)?,
         #[cfg(xtask_has_image)]
         "image" => image::cli(&ctx, rest)?,
         #[cfg(xtask_has_bench)]

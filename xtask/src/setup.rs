@@ -3,7 +3,11 @@
 //! Checks every package first (dpkg-query, no network). When nothing is missing it returns
 //! at once; otherwise it says what it installs and why, then runs apt-get as root or through
 //! `sudo -n`, and prints the exact commands when it can do neither. The package list is the
-//! one verified on Debian 12 (see docs/development.md).
+//! one verified on Debian 12 (see docs/development.md). On Debian 12 the backports suite is
+//! added, when missing, with the mirror of the machine's own `bookworm` entry (no archive host
+//! is written in this repository).
+
+mod sources;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -11,6 +15,7 @@ use std::process::Command;
 use anyhow::{Result, bail};
 
 use crate::util::{self, RunOpts};
+use sources::{Backports, NewEntry};
 
 /// One system package, and why the project needs it.
 struct Pkg {
@@ -85,7 +90,86 @@ const PACKAGES: &[Pkg] = &[
         backports: true,
         ..pkg("qemu-system-arm", "qemu-system-aarch64 boots the appliance image")
     },
+    // BitBake's host tools (openembedded-core scarthgap's HOSTTOOLS and its sanity checks),
+    // for the yocto-bitbake phase: the list /work/shared/yocto's README gives, without the
+    // transitional liblz4-tool (lz4 itself provides lz4c).
+    pkg("gawk", BB_WHY),
+    pkg("wget", BB_WHY),
+    pkg("diffstat", BB_WHY),
+    pkg("unzip", BB_WHY),
+    pkg("texinfo", BB_WHY),
+    pkg("build-essential", BB_WHY),
+    pkg("chrpath", BB_WHY),
+    pkg("socat", BB_WHY),
+    pkg("xz-utils", BB_WHY),
+    pkg("debianutils", BB_WHY),
+    pkg("iputils-ping", BB_WHY),
+    pkg("zstd", BB_WHY),
+    pkg("lz4", BB_WHY),
+    pkg("file", BB_WHY),
+    pkg("python3-pexpect", BB_PY_WHY),
+    pkg("python3-git", BB_PY_WHY),
+    pkg("python3-jinja2", BB_PY_WHY),
+    pkg("python3-subunit", BB_PY_WHY),
+    pkg("locales", "locale-gen: BitBake needs the en_US.UTF-8 locale"),
+    pkg("chromium", "headless browser test of the set-up page"),
+    pkg(
+        "chromium-driver",
+        "headless browser test of the set-up page (WebDriver for chromium)",
+    ),
 ];
+
+const BB_WHY: &str = "host tool BitBake needs (yocto-bitbake phase)";
+const BB_PY_WHY: &str = "Python module of OE's scripts (yocto-bitbake phase, yocto-check-layer)";
+
+/// A machine set-up step beyond packages: checked first, done only when missing.
+struct Step {
+    what: &'static str,
+    why: &'static str,
+    present: fn() -> bool,
+    /// Shell commands, run as root (idempotent themselves).
+    script: &'static str,
+    /// Only needed when setup runs as root (else the step is skipped).
+    root_only: bool,
+}
+
+const STEPS: &[Step] = &[
+    Step {
+        what: "en_US.UTF-8 locale",
+        why: "BitBake refuses to run without it",
+        present: has_en_us_utf8,
+        // Enabled in /etc/locale.gen (not just `localedef`), so a later locale-gen keeps it.
+        script: "sed -i 's/^# *en_US.UTF-8 UTF-8/en_US.UTF-8 UTF-8/' /etc/locale.gen\n\
+                 grep -q '^en_US.UTF-8 UTF-8' /etc/locale.gen || echo 'en_US.UTF-8 UTF-8' >> /etc/locale.gen\n\
+                 locale-gen",
+        root_only: false,
+    },
+    Step {
+        what: crate::yocto::BITBAKE_USER,
+        why: "unprivileged system user that runs BitBake when CI runs as root (BitBake refuses root)",
+        present: has_bitbake_user,
+        script: BITBAKE_USERADD,
+        root_only: true,
+    },
+];
+
+const BITBAKE_USERADD: &str = concat!(
+    "id -u irtrack-yocto >/dev/null 2>&1 || useradd --system --create-home \\\n",
+    "  --home-dir /var/lib/irtrack-yocto --shell /bin/sh \\\n",
+    "  --comment 'irtrack BitBake runner (BitBake refuses root)' irtrack-yocto"
+);
+
+fn has_en_us_utf8() -> bool {
+    Command::new("locale").arg("-a").output().is_ok_and(|o| {
+        String::from_utf8_lossy(&o.stdout)
+            .lines()
+            .any(|l| l.eq_ignore_ascii_case("en_US.utf8") || l.eq_ignore_ascii_case("en_US.UTF-8"))
+    })
+}
+
+fn has_bitbake_user() -> bool {
+    crate::yocto::bitbake_user_uid().is_some()
+}
 
 const PIP_PACKAGE: &str = "oelint-adv";
 const PIP_WHY: &str = "lints the Yocto layer's BitBake recipes";
@@ -226,9 +310,16 @@ pub fn run(_ctx: &util::Ctx) -> Result<()> {
         missing.push(&pip3);
     }
 
-    if missing.is_empty() && !need_pip_pkg {
+    let root = util::is_root();
+    let steps: Vec<&Step> = STEPS
+        .iter()
+        .filter(|s| (root || !s.root_only) && !(s.present)())
+        .collect();
+
+    if missing.is_empty() && !need_pip_pkg && steps.is_empty() {
         println!(
-            "setup: all {} system packages and {PIP_PACKAGE} are present; nothing to install",
+            "setup: all {} system packages, {PIP_PACKAGE} and the BitBake prerequisites are \
+             present; nothing to install",
             wanted.len()
         );
         return Ok(());
@@ -240,7 +331,8 @@ pub fn run(_ctx: &util::Ctx) -> Result<()> {
         for p in &missing {
             println!("  {:<28} {}", p.name, p.why);
         }
-        let script = apt_script(&missing, &distro);
+        let new_entry = backports_entry(&missing, &distro)?;
+        let script = apt_script(&missing, &distro, new_entry.as_ref());
         let how = privilege();
         if let Privilege::None = how {
             println!("\nsetup: not root and `sudo -n` is not available. Run as root:\n\n{script}\n");
@@ -259,6 +351,9 @@ pub fn run(_ctx: &util::Ctx) -> Result<()> {
             ubuntu_rust_target()?;
         }
     }
+    if !steps.is_empty() {
+        run_steps(&steps)?;
+    }
     if need_pip_pkg {
         install_oelint()?;
     }
@@ -266,8 +361,38 @@ pub fn run(_ctx: &util::Ctx) -> Result<()> {
     Ok(())
 }
 
+/// On Debian 12, when a backports package is missing: the apt entry to add for the suite (None
+/// when it is configured already), explaining what is done.
+fn backports_entry(missing: &[&Pkg], distro: &Distro) -> Result<Option<NewEntry>> {
+    if *distro != Distro::DebianBookworm || !missing.iter().any(|p| p.backports) {
+        return Ok(None);
+    }
+    let etc_apt = Path::new("/etc/apt");
+    let all = sources::read_all(etc_apt);
+    match sources::plan_backports(&all, "bookworm", &etc_apt.join("sources.list.d"))? {
+        Backports::Configured(file) => {
+            println!(
+                "setup: bookworm-backports is configured already ({})",
+                file.display()
+            );
+            Ok(None)
+        }
+        Backports::Add(entry) => {
+            println!(
+                "setup: qemu comes from bookworm-backports, which apt does not list yet: writing \
+                 {} with the mirror of this machine's `bookworm` entry ({}, from {})",
+                entry.file.display(),
+                entry.uri,
+                entry.from.display()
+            );
+            Ok(Some(entry))
+        }
+    }
+}
+
 /// The shell commands that install `missing` (idempotent: each step checks first).
-fn apt_script(missing: &[&Pkg], distro: &Distro) -> String {
+/// `backports` is the apt entry to write first, if any.
+fn apt_script(missing: &[&Pkg], distro: &Distro, backports: Option<&NewEntry>) -> String {
     let mut lines = vec![
         "set -e".to_string(),
         "export DEBIAN_FRONTEND=noninteractive".to_string(),
@@ -279,13 +404,13 @@ fn apt_script(missing: &[&Pkg], distro: &Distro) -> String {
     }
     let bookworm = *distro == Distro::DebianBookworm;
     let (bpo, main): (Vec<&&Pkg>, Vec<&&Pkg>) = missing.iter().partition(|p| p.backports && bookworm);
-    if !bpo.is_empty() {
-        lines.push(
-            "grep -rqs '^[^#]*bookworm-backports' /etc/apt/sources.list /etc/apt/sources.list.d/ || \
-             echo 'deb http://deb.debian.org/debian bookworm-backports main' \
-             > /etc/apt/sources.list.d/bookworm-backports.list"
-                .into(),
-        );
+    if let (false, Some(entry)) = (bpo.is_empty(), backports) {
+        // A quoted here-document: the text is written exactly, nothing in it is expanded.
+        lines.push(format!(
+            "cat > {} <<'IRTRACK_APT_EOF'\n{}IRTRACK_APT_EOF",
+            util::shell_quote(&entry.file.to_string_lossy()),
+            entry.text
+        ));
     }
     lines.push("apt-get update".into());
     let names = |v: &[&&Pkg]| v.iter().map(|p| p.name).collect::<Vec<_>>().join(" ");
@@ -299,6 +424,37 @@ fn apt_script(missing: &[&Pkg], distro: &Distro) -> String {
         ));
     }
     lines.join("\n")
+}
+
+/// Runs the missing set-up steps (after the packages they need are installed).
+fn run_steps(steps: &[&Step]) -> Result<()> {
+    println!("setup: {} set-up step(s) missing:", steps.len());
+    for s in steps {
+        println!("  {:<28} {}", s.what, s.why);
+    }
+    let script = std::iter::once("set -e")
+        .chain(steps.iter().map(|s| s.script))
+        .collect::<Vec<_>>()
+        .join("\n");
+    let how = privilege();
+    if let Privilege::None = how {
+        println!("\nsetup: not root and `sudo -n` is not available. Run as root:\n\n{script}\n");
+        bail!("missing set-up steps (see the commands above)");
+    }
+    let out = util::run(&mut privileged(&script, &how), RunOpts::default())?;
+    if !out.success() {
+        bail!(
+            "set-up steps failed: `{}` {}",
+            script.replace('\n', "; "),
+            out.describe()
+        );
+    }
+    for s in steps {
+        if !(s.present)() {
+            bail!("set-up step `{}` ran but its check still fails", s.what);
+        }
+    }
+    Ok(())
 }
 
 /// Ubuntu has no rustc-web / arm64 std package in the same archive; rustup can provide the
@@ -360,11 +516,23 @@ fn print_manual_instructions(wanted: &[&Pkg]) {
         println!("  {:<28} {}{src}", p.name, p.why);
     }
     println!("and from PyPI: {PIP_PACKAGE} ({PIP_WHY}).");
-    println!("Exact commands on Debian 12:\n");
+    for s in STEPS {
+        println!("Also: {} ({}):\n{}\n", s.what, s.why, s.script);
+    }
+    println!(
+        "Exact commands on Debian 12 (MIRROR: the URI of your `bookworm` apt entry, if \
+         bookworm-backports is not configured yet):\n"
+    );
     let all: Vec<&Pkg> = wanted.to_vec();
+    let entry = NewEntry {
+        file: "/etc/apt/sources.list.d/bookworm-backports.list".into(),
+        text: "deb MIRROR bookworm-backports main\n".into(),
+        uri: "MIRROR".into(),
+        from: PathBuf::new(),
+    };
     println!(
         "{}\npython3 -m pip install {PIP_PACKAGE}\n",
-        apt_script(&all, &Distro::DebianBookworm)
+        apt_script(&all, &Distro::DebianBookworm, Some(&entry))
     );
 }
 
@@ -397,9 +565,22 @@ mod tests {
     #[test]
     fn apt_script_for_bookworm_uses_backports_and_arm64() {
         let missing: Vec<&Pkg> = PACKAGES.iter().collect();
-        let s = apt_script(&missing, &Distro::DebianBookworm);
+        let entry = NewEntry {
+            file: "/etc/apt/sources.list.d/bookworm-backports.sources".into(),
+            text: "Types: deb\nURIs: http://m.example.invalid/debian\nSuites: bookworm-backports\n".into(),
+            uri: "http://m.example.invalid/debian".into(),
+            from: "/etc/apt/sources.list.d/debian.sources".into(),
+        };
+        let s = apt_script(&missing, &Distro::DebianBookworm, Some(&entry));
         assert!(s.contains("dpkg --add-architecture arm64"));
-        assert!(s.contains("bookworm-backports main"));
+        assert!(s.contains(
+            "cat > /etc/apt/sources.list.d/bookworm-backports.sources <<'IRTRACK_APT_EOF'\n\
+             Types: deb\nURIs: http://m.example.invalid/debian\nSuites: bookworm-backports\n\
+             IRTRACK_APT_EOF\napt-get update\n"
+        ));
+        // The entry is written before apt-get update reads it.
+        let without = apt_script(&missing, &Distro::DebianBookworm, None);
+        assert!(!without.contains("IRTRACK_APT_EOF"));
         assert!(s.contains("apt-get install -y -t bookworm-backports qemu-user qemu-system-arm"));
         let main_line = s
             .lines()
@@ -412,13 +593,13 @@ mod tests {
     #[test]
     fn apt_script_without_arm64_or_backports_needs() {
         let clang = PACKAGES.iter().find(|p| p.name == "clang").unwrap();
-        let s = apt_script(&[clang], &Distro::DebianBookworm);
+        let s = apt_script(&[clang], &Distro::DebianBookworm, None);
         assert!(!s.contains("add-architecture"));
         assert!(!s.contains("backports"));
         assert!(s.ends_with("apt-get install -y clang"));
         // Outside bookworm qemu comes from the main archive.
         let qemu = PACKAGES.iter().find(|p| p.name == "qemu-user").unwrap();
-        let s = apt_script(&[qemu], &Distro::DebianOther("trixie".into()));
+        let s = apt_script(&[qemu], &Distro::DebianOther("trixie".into()), None);
         assert!(s.ends_with("apt-get install -y qemu-user"));
     }
 }

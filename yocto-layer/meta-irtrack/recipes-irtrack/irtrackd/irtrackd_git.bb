@@ -13,20 +13,21 @@ LIC_FILES_CHKSUM = "file://${COMMON_LICENSE_DIR}/MIT;md5=0835ade698e0bcf8506ecda
 
 PV = "0.1.0+git"
 
-# Point the git URL and SRCREV at your repository in a bbappend; for development use
-# externalsrc: INHERIT += "externalsrc" and EXTERNALSRC:pn-irtrackd = "/path/to/irtrack".
+# The repository's URL; a site with its own mirror overrides SRC_URI in a bbappend. For
+# development build a checkout instead: INHERIT += "externalsrc" and
+# EXTERNALSRC:pn-irtrackd = "/path/to/irtrack" (what yocto-layer/kas/irtrack.yml does).
 SRC_URI = "git://example.invalid/irtrack.git;protocol=https;branch=main \
            file://irtrackd.toml \
            file://99-irtrack.rules \
            "
-# No published repository to pin yet: release builds set SRCREV in a bbappend; kas/irtrack.yml
-# builds the local checkout through externalsrc, where SRCREV is not used.
-# nooelint: oelint.vars.autorev
-SRCREV ?= "${AUTOREV}"
+# A fixed commit, so that parsing needs no network (AUTOREV would run `git ls-remote` at
+# parse time). A release sets it to the commit of its tag, `git rev-parse vX.Y.Z^{commit}`,
+# together with PV (docs/image.md, "Releasing the layer"); CI checks that it is a commit of
+# this repository.
+SRCREV = "cb33a292104bc79ae226f29d2e85a5580e8553f6"
 
-# scarthgap unpacks into WORKDIR; later releases define UNPACKDIR themselves.
-UNPACKDIR ??= "${WORKDIR}"
-S = "${UNPACKDIR}/git"
+# scarthgap (the layer's LAYERSERIES_COMPAT) unpacks fetched sources into WORKDIR.
+S = "${WORKDIR}/git"
 
 inherit cargo systemd useradd
 
@@ -49,10 +50,10 @@ do_install:append() {
     install -d ${D}${systemd_system_unitdir}
     install -m 0644 ${S}/systemd/irtrackd.service ${D}${systemd_system_unitdir}/
     install -d ${D}${sysconfdir}/irtrack
-    install -m 0644 ${UNPACKDIR}/irtrackd.toml ${D}${sysconfdir}/irtrack/irtrackd.toml
+    install -m 0644 ${WORKDIR}/irtrackd.toml ${D}${sysconfdir}/irtrack/irtrackd.toml
     install -d ${D}${sysconfdir}/irtrack/trusted-keys
     install -d ${D}${nonarch_base_libdir}/udev/rules.d
-    install -m 0644 ${UNPACKDIR}/99-irtrack.rules ${D}${nonarch_base_libdir}/udev/rules.d/
+    install -m 0644 ${WORKDIR}/99-irtrack.rules ${D}${nonarch_base_libdir}/udev/rules.d/
 }
 
 FILES:${PN} += "${systemd_system_unitdir}/irtrackd.service \

@@ -1,0 +1,711 @@
+//! `yocto-bitbake` CI phase and `cargo xtask yocto ...`: the Yocto layer under real BitBake.
+//!
+//! The Yocto servers cannot be reached from CI, so unchanged snapshots of BitBake 2.8,
+//! openembedded-core and meta-oe (scarthgap) are provided next to the checkout
+//! (`../shared/yocto/`, see docs/image.md). The phase unpacks them once into
+//! `target/yocto/src/`, copies `yocto-layer/meta-irtrack` into `target/yocto/layers/`, and with
+//! `BB_NO_NETWORK = "1"` and `MACHINE = "qemuarm64"`:
+//!
+//! 1. parses every recipe (`bitbake -p`);
+//! 2. lists the layer's recipes (`bitbake-layers show-recipes -l meta-irtrack`): every `.bb` file
+//!    of the layer must be there and none skipped;
+//! 3. resolves the image's whole task graph (`bitbake -g irtrack-image`);
+//! 4. proves that a broken recipe fails step 1 with BitBake's own message (a syntax error is
+//!    added to the copy, parsed, then removed), so the phase cannot pass vacuously;
+//! 5. checks that the recipe's pinned `SRCREV` is a commit of this repository.
+//!
+//! BitBake refuses to run as root; as root the phase runs it as [`BITBAKE_USER`] (made by
+//! `cargo xtask setup`) through `runuser`.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+use anyhow::{Context, Result, bail};
+
+use crate::ci::Counts;
+use crate::util::{self, Ctx, RunOpts};
+
+/// The unprivileged system user that runs BitBake when CI runs as root.
+pub const BITBAKE_USER: &str = "irtrack-yocto";
+/// Directory of the snapshots when not `../shared/yocto` (or a `shared/yocto` further up).
+pub const SNAPSHOTS_ENV: &str = "IRTRACK_YOCTO_SNAPSHOTS";
+/// The snapshot archives and the directory each unpacks to.
+const TARBALLS: &[(&str, &str)] = &[
+    ("bitbake-2.8.tar.xz", "bitbake"),
+    ("openembedded-core-scarthgap.tar.xz", "openembedded-core"),
+    ("meta-oe-scarthgap.tar.xz", "meta-openembedded"),
+];
+const LAYER: &str = "meta-irtrack";
+const IMAGE: &str = "irtrack-image";
+/// The recipe with the pinned source revision.
+const SRC_RECIPE: &str = "recipes-irtrack/irtrackd/irtrackd_git.bb";
+/// The recipe the negative control adds to the layer's copy: line 3 is not BitBake syntax.
+const BROKEN_RECIPE: &str = "recipes-irtrack/ci-broken/ci-broken_1.0.bb";
+const BROKEN_TEXT: &str = "SUMMARY = \"deliberately broken (yocto-bitbake negative control)\"\n\
+                           LICENSE = \"MIT\"\n\
+                           this line is not bitbake syntax\n";
+/// Marks the blocks of conf files this module writes (rewritten on every run).
+const BEGIN: &str = "# >>> irtrack: written by `cargo xtask` (yocto-bitbake); do not edit";
+const END: &str = "# <<< irtrack";
+
+const USAGE: &str = "\
+usage: cargo xtask yocto <command>
+
+commands:
+  check        what CI's yocto-bitbake phase runs: parse, list recipes, resolve irtrack-image
+  check-layer  run openembedded-core's yocto-check-layer on meta-irtrack (about 25 min; not in CI)
+  shell        print the commands to work in the BitBake build directory by hand
+";
+
+/// CI entry point.
+pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
+    let report = check(ctx)?;
+    Ok(Counts {
+        passed: report,
+        failed: 0,
+        ignored: 0,
+    })
+}
+
+pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
+    match args.first().map(String::as_str) {
+        Some("check") => {
+            let n = check(ctx)?;
+            println!("yocto: all {n} checks passed");
+            Ok(())
+        }
+        Some("check-layer") => check_layer(ctx),
+        Some("shell") => {
+            let env = prepare(ctx, "build", true)?;
+            println!(
+                "{}cd {} && LANG=en_US.UTF-8 BITBAKEDIR={} . ./openembedded-core/oe-init-build-env {}",
+                env.runner
+                    .as_ref()
+                    .map(|u| format!("runuser -u {u} -- bash  # then:\n"))
+                    .unwrap_or_default(),
+                env.src.display(),
+                env.src.join("bitbake").display(),
+                env.build.display()
+            );
+            Ok(())
+        }
+        _ => {
+            print!("{USAGE}");
+            bail!("unknown or missing yocto command")
+        }
+    }
+}
+
+/// The uid of [`BITBAKE_USER`], if that user exists.
+pub fn bitbake_user_uid() -> Option<u32> {
+    let out = Command::new("id").args(["-u", BITBAKE_USER]).output().ok()?;
+    if !out.status.success() {
+        return None;
+    }
+    String::from_utf8_lossy(&out.stdout).trim().parse().ok()
+}
+
+/// Where the snapshots are: `$IRTRACK_YOCTO_SNAPSHOTS`, else the nearest `shared/yocto` beside
+/// the checkout or one of its parents (`../shared/yocto` first). The error says what is missing.
+fn find_snapshots(root: &Path, env: Option<PathBuf>) -> Result<PathBuf> {
+    let complete = |dir: &Path| -> Vec<String> {
+        std::iter::once("SHA256SUMS")
+            .chain(TARBALLS.iter().map(|(f, _)| *f))
+            .filter(|f| !dir.join(f).is_file())
+            .map(str::to_string)
+            .collect()
+    };
+    if let Some(dir) = env {
+        let missing = complete(&dir);
+        if !missing.is_empty() {
+            bail!(
+                "{SNAPSHOTS_ENV}={}: missing {} (the BitBake 2.8 / openembedded-core / meta-oe \
+                 scarthgap snapshots, see docs/image.md)",
+                dir.display(),
+                missing.join(", ")
+            );
+        }
+        return Ok(dir);
+    }
+    let mut looked = Vec::new();
+    for parent in root.ancestors().skip(1) {
+        let dir = parent.join("shared/yocto");
+        if dir.is_dir() {
+            let missing = complete(&dir);
+            if missing.is_empty() {
+                return Ok(dir);
+            }
+            bail!("{} is incomplete: missing {}", dir.display(), missing.join(", "));
+        }
+        looked.push(dir.display().to_string());
+    }
+    bail!(
+        "the BitBake snapshots are missing: CI provides bitbake-2.8.tar.xz, \
+         openembedded-core-scarthgap.tar.xz, meta-oe-scarthgap.tar.xz and SHA256SUMS in \
+         ../shared/yocto beside the checkout (looked in {}); set {SNAPSHOTS_ENV} to their \
+         directory if they are elsewhere (docs/image.md)",
+        looked.join(", ")
+    )
+}
+
+/// Everything a BitBake command needs.
+struct BbEnv {
+    /// Unpacked snapshots (bitbake/, openembedded-core/, meta-openembedded/).
+    src: PathBuf,
+    /// The copy of the layer that BitBake parses.
+    layer: PathBuf,
+    build: PathBuf,
+    /// `Some(user)`: run through `runuser -u user` (we are root).
+    runner: Option<String>,
+}
+
+impl BbEnv {
+    /// `bash -c` running `script` in the initialised build directory, as the right user.
+    fn command(&self, script: &str) -> Command {
+        let full = format!(
+            "set -e; export LANG=en_US.UTF-8 LC_ALL=en_US.UTF-8 BITBAKEDIR={bb}; \
+             . {oe}/oe-init-build-env {build} >/dev/null; {script}",
+            bb = util::shell_quote(&self.src.join("bitbake").to_string_lossy()),
+            oe = util::shell_quote(&self.src.join("openembedded-core").to_string_lossy()),
+            build = util::shell_quote(&self.build.to_string_lossy()),
+        );
+        let mut cmd = match &self.runner {
+            Some(user) => {
+                let mut c = Command::new("runuser");
+                c.args(["-u", user, "--", "bash", "-c", &full]);
+                c
+            }
+            None => {
+                let mut c = Command::new("bash");
+                c.args(["-c", &full]);
+                c
+            }
+        };
+        cmd.current_dir(&self.build);
+        // Nothing from the caller's shell (a cargo/rustup environment) leaks into BitBake,
+        // which whitelists its environment anyway; HOME must be the runner's.
+        if let Some(user) = &self.runner {
+            cmd.env("HOME", format!("/var/lib/{user}"));
+            cmd.env("USER", user);
+            cmd.env("LOGNAME", user);
+        }
+        cmd
+    }
+
+    /// Runs `script`, capturing its output (echoed live unless `quiet`).
+    fn run(&self, script: &str, quiet: bool) -> Result<util::Output> {
+        util::run(
+            &mut self.command(script),
+            RunOpts {
+                capture_stdout: true,
+                capture_stderr: true,
+                quiet_stdout: quiet,
+                timeout: Some(Duration::from_secs(25 * 60)),
+            },
+        )
+    }
+}
+
+/// Unpacks (or reuses) the snapshots, copies the layer, writes the configuration of the
+/// build directory `target/yocto/<build_name>`, whose BBLAYERS has the layer under test only
+/// when `with_layer` (yocto-check-layer wants a build without it and adds it itself).
+fn prepare(ctx: &Ctx, build_name: &str, with_layer: bool) -> Result<BbEnv> {
+    let snapshots = find_snapshots(&ctx.root, std::env::var_os(SNAPSHOTS_ENV).map(PathBuf::from))?;
+    let runner = if util::is_root() {
+        if bitbake_user_uid().is_none() {
+            bail!(
+                "running as root, and BitBake refuses root: the user `{BITBAKE_USER}` that runs \
+                 it does not exist (run `cargo xtask setup`)"
+            );
+        }
+        Some(BITBAKE_USER.to_string())
+    } else {
+        None
+    };
+    if !has_locale() {
+        bail!("BitBake needs the en_US.UTF-8 locale, which is not generated (run `cargo xtask setup`)");
+    }
+    let work = ctx.target_dir().join("yocto");
+    let src = work.join("src");
+    unpack(&snapshots, &src)?;
+    let layers = work.join("layers");
+    let layer = layers.join(LAYER);
+    if layer.exists() {
+        fs::remove_dir_all(&layer).with_context(|| format!("removing {}", layer.display()))?;
+    }
+    fs::create_dir_all(&layers)?;
+    copy_tree(&ctx.root.join("yocto-layer").join(LAYER), &layer)?;
+    let build = work.join(build_name);
+    fs::create_dir_all(&build)?;
+    if let Some(user) = &runner {
+        // The runner owns the whole work area (it writes caches and tmp/ everywhere in it).
+        let out = util::run(
+            Command::new("chown").args(["-R", &format!("{user}:")]).arg(&work),
+            RunOpts::default(),
+        )?;
+        if !out.success() {
+            bail!("chown -R {user} {} {}", work.display(), out.describe());
+        }
+    }
+    let env = BbEnv {
+        src,
+        layer,
+        build,
+        runner,
+    };
+    // A first run creates conf/ from openembedded-core's templates; it also proves that the
+    // runner can reach and write the build directory (a parent not searchable by others,
+    // e.g. a checkout under /root, would stop it here).
+    let out = env.run("true", false)?;
+    if !out.success() {
+        bail!(
+            "initialising the BitBake build directory {} {}{}",
+            env.build.display(),
+            out.describe(),
+            env.runner
+                .as_ref()
+                .map(|u| format!(" (as user {u}: every parent directory must be searchable by it)"))
+                .unwrap_or_default()
+        );
+    }
+    let conf = env.build.join("conf");
+    let mut layers_list = vec![env.src.join("openembedded-core/meta")];
+    if with_layer {
+        layers_list.push(env.src.join("meta-openembedded/meta-oe"));
+        layers_list.push(env.layer.clone());
+    }
+    let bblayers = format!(
+        "BBLAYERS = \" \\\n{} \\\n  \"",
+        layers_list
+            .iter()
+            .map(|p| format!("  {}", p.display()))
+            .collect::<Vec<_>>()
+            .join(" \\\n")
+    );
+    set_block(&conf.join("bblayers.conf"), &bblayers)?;
+    // The kas build's settings that matter for parsing (yocto-layer/kas/irtrack.yml), no
+    // network, and the QEMU machine (the snapshots have no board BSP layer).
+    set_block(
+        &conf.join("local.conf"),
+        "BB_NO_NETWORK = \"1\"\nMACHINE = \"qemuarm64\"\nINIT_MANAGER = \"systemd\"",
+    )?;
+    Ok(env)
+}
+
+fn has_locale() -> bool {
+    Command::new("locale").arg("-a").output().is_ok_and(|o| {
+        String::from_utf8_lossy(&o.stdout)
+            .lines()
+            .any(|l| l.eq_ignore_ascii_case("en_US.utf8") || l.eq_ignore_ascii_case("en_US.UTF-8"))
+    })
+}
+
+/// Unpacks the snapshots into `src` unless exactly these (by SHA256SUMS) are there already.
+fn unpack(snapshots: &Path, src: &Path) -> Result<()> {
+    let sums = fs::read_to_string(snapshots.join("SHA256SUMS"))?;
+    let stamp = src.join(".unpacked-from-SHA256SUMS");
+    if fs::read_to_string(&stamp).is_ok_and(|s| s == sums)
+        && TARBALLS.iter().all(|(_, d)| src.join(d).is_dir())
+    {
+        println!("yocto: snapshots already unpacked in {}", src.display());
+        return Ok(());
+    }
+    println!(
+        "yocto: verifying and unpacking the snapshots from {}",
+        snapshots.display()
+    );
+    let out = util::run(
+        Command::new("sha256sum")
+            .args(["--check", "--strict", "SHA256SUMS"])
+            .current_dir(snapshots),
+        RunOpts::default(),
+    )?;
+    if !out.success() {
+        bail!(
+            "sha256sum --check SHA256SUMS in {} {}",
+            snapshots.display(),
+            out.describe()
+        );
+    }
+    if src.exists() {
+        fs::remove_dir_all(src).with_context(|| format!("removing {}", src.display()))?;
+    }
+    fs::create_dir_all(src)?;
+    for (tarball, _) in TARBALLS {
+        let out = util::run(
+            Command::new("tar")
+                .arg("-xJf")
+                .arg(snapshots.join(tarball))
+                .arg("-C")
+                .arg(src),
+            RunOpts::default(),
+        )?;
+        if !out.success() {
+            bail!("unpacking {tarball} {}", out.describe());
+        }
+    }
+    for (tarball, dir) in TARBALLS {
+        if !src.join(dir).is_dir() {
+            bail!("{tarball} did not unpack to {dir}/");
+        }
+    }
+    fs::write(&stamp, sums)?;
+    Ok(())
+}
+
+/// Replaces (or appends) this module's marked block in a conf file.
+fn set_block(file: &Path, body: &str) -> Result<()> {
+    let text = fs::read_to_string(file).with_context(|| format!("reading {}", file.display()))?;
+    fs::write(file, with_block(&text, body)).with_context(|| format!("writing {}", file.display()))
+}
+
+fn with_block(text: &str, body: &str) -> String {
+    let mut kept = String::new();
+    let mut inside = false;
+    for line in text.lines() {
+        if line == BEGIN {
+            inside = true;
+        } else if inside && line == END {
+            inside = false;
+        } else if !inside {
+            kept.push_str(line);
+            kept.push('\n');
+        }
+    }
+    format!("{kept}{BEGIN}\n{body}\n{END}\n")
+}
+
+fn copy_tree(src: &Path, dest: &Path) -> Result<()> {
+    fs::create_dir_all(dest)?;
+    for entry in fs::read_dir(src).with_context(|| format!("reading {}", src.display()))? {
+        let entry = entry?;
+        let to = dest.join(entry.file_name());
+        if entry.file_type()?.is_dir() {
+            copy_tree(&entry.path(), &to)?;
+        } else {
+            fs::copy(entry.path(), &to).with_context(|| format!("copying {}", entry.path().display()))?;
+        }
+    }
+    Ok(())
+}
+
+/// BitBake's own error message: from its first `ERROR:` line up to its `Summary:` (the
+/// detail lines of an exception follow the `ERROR:` line unprefixed), at most 40 lines; its
+/// last lines when it printed no `ERROR:`.
+fn bitbake_errors(out: &util::Output) -> String {
+    let all = format!("{}\n{}", out.stdout, out.stderr);
+    let lines: Vec<&str> = all.lines().filter(|l| !l.trim().is_empty()).collect();
+    match lines.iter().position(|l| l.starts_with("ERROR:")) {
+        Some(start) => lines[start..]
+            .iter()
+            .take_while(|l| !l.starts_with("Summary:"))
+            .take(40)
+            .copied()
+            .collect::<Vec<_>>()
+            .join("\n"),
+        None => lines[lines.len().saturating_sub(10)..].join("\n"),
+    }
+}
+
+/// `bitbake -p`: Ok, or Err with BitBake's own error lines.
+fn parse_all(env: &BbEnv) -> Result<()> {
+    let out = env.run("bitbake -p", false)?;
+    if !out.success() {
+        bail!("bitbake -p {}:\n{}", out.describe(), bitbake_errors(&out));
+    }
+    Ok(())
+}
+
+/// Recipe names of the layer from `bitbake-layers show-recipes -l <layer>` output, with the
+/// skip reason of any skipped one.
+fn layer_recipes(show: &str, layer: &str) -> Vec<(String, Option<String>)> {
+    let mut out = Vec::new();
+    let mut current: Option<String> = None;
+    for line in show.lines() {
+        if !line.starts_with(' ') {
+            current = line.strip_suffix(':').map(str::to_string);
+            continue;
+        }
+        let mut words = line.split_whitespace();
+        if words.next() != Some(layer) {
+            continue;
+        }
+        if let Some(pn) = &current {
+            let skipped = line
+                .split_once("(skipped")
+                .map(|(_, r)| r.trim_start_matches(':').trim_end_matches(')').trim().to_string());
+            out.push((pn.clone(), skipped));
+        }
+    }
+    out
+}
+
+/// PNs of the layer's `.bb` files (file name up to the first `_`).
+fn expected_recipes(layer: &Path) -> Result<Vec<String>> {
+    let mut out = Vec::new();
+    let mut stack = vec![layer.to_path_buf()];
+    while let Some(dir) = stack.pop() {
+        for e in fs::read_dir(&dir)?.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.extension().is_some_and(|x| x == "bb") {
+                let stem = p.file_stem().and_then(|s| s.to_str()).unwrap_or("");
+                out.push(stem.split('_').next().unwrap_or(stem).to_string());
+            }
+        }
+    }
+    out.sort();
+    out.dedup();
+    Ok(out)
+}
+
+/// The `SRCREV = "..."` of a recipe.
+fn pinned_srcrev(recipe: &str) -> Option<String> {
+    recipe.lines().find_map(|l| {
+        let rest = l.trim().strip_prefix("SRCREV")?.trim_start();
+        let value = rest.strip_prefix('=')?.trim().trim_matches('"');
+        Some(value.to_string())
+    })
+}
+
+/// Runs every check; returns how many passed (all, or an error naming the failure).
+fn check(ctx: &Ctx) -> Result<u64> {
+    let mut passed = 0;
+    let env = prepare(ctx, "build", true)?;
+
+    println!("yocto: 1. parsing every recipe (BB_NO_NETWORK=1, MACHINE=qemuarm64)");
+    parse_all(&env)?;
+    passed += 1;
+
+    println!("yocto: 2. the layer's recipes");
+    let out = env.run(&format!("bitbake-layers show-recipes -l {LAYER}"), false)?;
+    if !out.success() {
+        bail!(
+            "bitbake-layers show-recipes {}:\n{}",
+            out.describe(),
+            bitbake_errors(&out)
+        );
+    }
+    let listed = layer_recipes(&out.stdout, LAYER);
+    let want = expected_recipes(&env.layer)?;
+    for pn in &want {
+        match listed.iter().find(|(n, _)| n == pn) {
+            None => bail!("recipe {pn} of {LAYER} is not listed by bitbake-layers show-recipes"),
+            Some((_, Some(why))) => bail!("BitBake skips recipe {pn}: {why}"),
+            Some(_) => {}
+        }
+    }
+    println!("yocto: {LAYER} provides {} (none skipped)", want.join(", "));
+    passed += 1;
+
+    println!("yocto: 3. resolving the task graph of {IMAGE}");
+    for f in ["pn-buildlist", "task-depends.dot"] {
+        let _ = fs::remove_file(env.build.join(f));
+    }
+    let out = env.run(&format!("bitbake -g {IMAGE}"), false)?;
+    if !out.success() {
+        bail!("bitbake -g {IMAGE} {}:\n{}", out.describe(), bitbake_errors(&out));
+    }
+    let buildlist =
+        fs::read_to_string(env.build.join("pn-buildlist")).context("bitbake -g wrote no pn-buildlist")?;
+    let pns: Vec<&str> = buildlist
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .collect();
+    for pn in [IMAGE, "irtrackd"] {
+        if !pns.contains(&pn) {
+            bail!("{pn} is not in the task graph of {IMAGE} (pn-buildlist)");
+        }
+    }
+    let tasks = fs::read_to_string(env.build.join("task-depends.dot"))
+        .map(|t| t.lines().filter(|l| l.contains("[label=")).count())
+        .unwrap_or(0);
+    println!("yocto: {IMAGE} resolves to {} recipes, {tasks} tasks", pns.len());
+    passed += 1;
+
+    println!("yocto: 4. negative control: a broken recipe must fail the parse with BitBake's message");
+    let broken = env.layer.join(BROKEN_RECIPE);
+    fs::create_dir_all(broken.parent().context("broken recipe path has no parent")?)?;
+    fs::write(&broken, BROKEN_TEXT)?;
+    if let Some(user) = &env.runner {
+        let _ = Command::new("chown")
+            .args(["-R", &format!("{user}:")])
+            .arg(&env.layer)
+            .status();
+    }
+    let control = parse_all(&env);
+    if let Some(dir) = broken.parent() {
+        fs::remove_dir_all(dir)?;
+    }
+    match control {
+        Ok(()) => bail!(
+            "bitbake -p accepted {} (a recipe with a syntax error)",
+            broken.display()
+        ),
+        Err(e) => {
+            let msg = format!("{e:#}");
+            if !(msg.contains("ParseError") && msg.contains("ci-broken_1.0.bb")) {
+                bail!("bitbake -p failed on the broken recipe, but not with its ParseError:\n{msg}");
+            }
+            println!("yocto: refused as expected:\n{msg}");
+        }
+    }
+    passed += 1;
+
+    println!("yocto: 5. the pinned SRCREV is a commit of this repository");
+    let recipe = fs::read_to_string(ctx.root.join("yocto-layer").join(LAYER).join(SRC_RECIPE))?;
+    let rev = pinned_srcrev(&recipe).with_context(|| format!("{SRC_RECIPE} has no SRCREV = \"...\""))?;
+    if rev.len() != 40 || !rev.bytes().all(|b| b.is_ascii_hexdigit()) {
+        bail!("{SRC_RECIPE}: SRCREV {rev:?} is not a full commit hash (parsing would need the network)");
+    }
+    let out = Command::new("git")
+        .args(["cat-file", "-e", &format!("{rev}^{{commit}}")])
+        .current_dir(&ctx.root)
+        .output()
+        .context("running git cat-file")?;
+    if !out.status.success() {
+        bail!(
+            "{SRC_RECIPE}: SRCREV {rev} is not a commit of this repository (a shallow clone? \
+             {})",
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+    }
+    println!("yocto: SRCREV {rev} is a commit of this repository");
+    passed += 1;
+    Ok(passed)
+}
+
+/// `yocto-check-layer` on the layer (not in CI: about 25 minutes on 2 cores).
+fn check_layer(ctx: &Ctx) -> Result<()> {
+    let env = prepare(ctx, "build-check-layer", false)?;
+    let script = format!(
+        "yocto-check-layer --dependency {} -- {}",
+        util::shell_quote(&env.src.join("meta-openembedded/meta-oe").to_string_lossy()),
+        util::shell_quote(&env.layer.to_string_lossy())
+    );
+    // It parses every recipe several times over: allow far more than one parse.
+    let out = util::run(
+        &mut env.command(&script),
+        RunOpts {
+            timeout: Some(Duration::from_secs(3 * 3600)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("yocto-check-layer {}", out.describe());
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn conf_block_is_replaced_not_duplicated() {
+        let base = "CONF_VERSION = \"2\"\n";
+        let once = with_block(base, "MACHINE = \"a\"");
+        assert_eq!(once, format!("{base}{BEGIN}\nMACHINE = \"a\"\n{END}\n"));
+        let twice = with_block(&once, "MACHINE = \"b\"");
+        assert_eq!(twice, format!("{base}{BEGIN}\nMACHINE = \"b\"\n{END}\n"));
+    }
+
+    #[test]
+    fn layer_recipes_and_skip_reasons_are_read() {
+        let show = "NOTE: Starting bitbake server...\nLoading cache...done.\n\
+                    === Matching recipes: ===\n\
+                    irtrack-image:\n  meta-irtrack         1.0\n\
+                    irtrackd:\n  meta-irtrack         0.1.0+git (skipped: missing required distro feature 'systemd')\n\
+                    zlib:\n  core                 1.3.1\n";
+        let r = layer_recipes(show, "meta-irtrack");
+        assert_eq!(
+            r,
+            vec![
+                ("irtrack-image".to_string(), None),
+                (
+                    "irtrackd".to_string(),
+                    Some("missing required distro feature 'systemd'".to_string())
+                )
+            ]
+        );
+    }
+
+    #[test]
+    fn bitbake_error_lines_are_extracted() {
+        let out = util::Output {
+            status: None,
+            timed_out: false,
+            stdout: "Parsing recipes...\nERROR: ParseError at /l/ci-broken_1.0.bb:3: unparsed line: 'x'\n"
+                .into(),
+            stderr: "Summary: There was 1 ERROR message, returning a non-zero exit code.\n".into(),
+        };
+        assert_eq!(
+            bitbake_errors(&out),
+            "ERROR: ParseError at /l/ci-broken_1.0.bb:3: unparsed line: 'x'"
+        );
+    }
+
+    #[test]
+    fn bitbake_exception_details_are_kept() {
+        let out = util::Output {
+            status: None,
+            timed_out: false,
+            stdout: "Parsing recipes...WARNING: x.bb: Exception during build_dependencies\n\
+                     ERROR: ExpansionError during parsing /l/irtrackd_git.bb\n\
+                     bb.data_smart.ExpansionError: ... NetworkAccess: Network access disabled\n\
+                     \n\
+                     ERROR: Parsing halted due to errors, see error messages above\n\
+                     \n\
+                     Summary: There were 2 ERROR messages, returning a non-zero exit code.\n"
+                .into(),
+            stderr: String::new(),
+        };
+        assert_eq!(
+            bitbake_errors(&out),
+            "ERROR: ExpansionError during parsing /l/irtrackd_git.bb\n\
+             bb.data_smart.ExpansionError: ... NetworkAccess: Network access disabled\n\
+             ERROR: Parsing halted due to errors, see error messages above"
+        );
+    }
+
+    #[test]
+    fn srcrev_is_read_from_the_recipe() {
+        let r = "PV = \"0.1.0+git\"\n# SRCREV in a comment\nSRCREV = \"0123456789abcdef0123456789abcdef01234567\"\n";
+        assert_eq!(
+            pinned_srcrev(r).as_deref(),
+            Some("0123456789abcdef0123456789abcdef01234567")
+        );
+        assert_eq!(pinned_srcrev("SRCREV_FORMAT = \"x\"\n"), None);
+    }
+
+    #[test]
+    fn snapshots_are_found_beside_the_checkout_or_reported_missing() {
+        let base = std::env::temp_dir().join(format!("xtask-yocto-snapshots-{}", std::process::id()));
+        let root = base.join("work/checkout");
+        fs::create_dir_all(&root).unwrap();
+        let err = find_snapshots(&root, None).unwrap_err().to_string();
+        assert!(err.contains("snapshots are missing"), "{err}");
+        assert!(
+            err.contains(&base.join("work/shared/yocto").display().to_string()),
+            "{err}"
+        );
+        let shared = base.join("work/shared/yocto");
+        fs::create_dir_all(&shared).unwrap();
+        fs::write(shared.join("SHA256SUMS"), "").unwrap();
+        let err = find_snapshots(&root, None).unwrap_err().to_string();
+        assert!(err.contains("missing bitbake-2.8.tar.xz"), "{err}");
+        for (f, _) in TARBALLS {
+            fs::write(shared.join(f), "").unwrap();
+        }
+        assert_eq!(find_snapshots(&root, None).unwrap(), shared);
+        let err = find_snapshots(&root, Some(base.join("nowhere")))
+            .unwrap_err()
+            .to_string();
+        fs::remove_dir_all(&base).unwrap();
+        assert!(err.contains(SNAPSHOTS_ENV) && err.contains("SHA256SUMS"), "{err}");
+    }
+}
