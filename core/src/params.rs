@@ -55,8 +55,10 @@ pub const BLOB_KNOWN_FLAGS: u16 = 0;
 pub const BLOB_ALL_FLAGS: u16 = BLOB_FLAG_SIGNED;
 /// Size of the signature trailer of a signed blob: 8-byte key id + 64-byte Ed25519 signature.
 pub const BLOB_SIGNATURE_TRAILER_LEN: usize = 72;
-/// Maximum number of cameras a rig may have.
-pub const MAX_CAMERAS: usize = 16;
+/// Maximum number of cameras a rig may have: the one limit of the whole system. The tracker's
+/// per-frame arrays are sized by it (`pipeline::MAX_CAMERAS` is this constant), so a set that
+/// [`RigParams::validate`] accepts is one every tracker can load.
+pub const MAX_CAMERAS: usize = 8;
 /// Maximum length of a rig id in bytes.
 pub const MAX_RIG_ID_LEN: usize = 64;
 /// Largest accepted image dimension in pixels.
@@ -310,7 +312,7 @@ impl RigParams {
         decode_body(header.check_frame(bytes)?)
     }
 
-    /// Checks that the parameters are usable for tracking: 2..=16 cameras, camera 0 at the
+    /// Checks that the parameters are usable for tracking: 2..=[`MAX_CAMERAS`] cameras, camera 0 at the
     /// identity, proper rotations, finite numbers, positive focal lengths, principal points
     /// inside the images, non-empty image sizes, distinct camera centres, a printable rig id
     /// (it travels in one-line protocol replies) and sane tool definitions.
@@ -512,7 +514,7 @@ mod tests {
     fn validate_rejects_each_problem() {
         let mut r = orthogonal_rig();
         r.cameras.truncate(1);
-        assert!(reason(&r).contains("2..=16 cameras"));
+        assert!(reason(&r).contains(&format!("2..={MAX_CAMERAS} cameras")));
 
         let mut r = orthogonal_rig();
         r.cameras[0].cam_from_cam0.t_mm[0] = 1.0;

@@ -30,8 +30,9 @@ use crate::params::RigParams;
 use crate::triangulate::{Ray, least_squares_rays, midpoint};
 use crate::{Error, Result};
 
-/// Most cameras a rig may have (keeps [`Measurement`] a fixed-size `Copy` value).
-pub const MAX_CAMERAS: usize = 8;
+/// Most cameras a rig may have (keeps [`Measurement`] a fixed-size `Copy` value). The same
+/// constant as the parameter set's limit, so validation and tracker agree.
+pub use crate::params::MAX_CAMERAS;
 
 /// Tracker settings.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
