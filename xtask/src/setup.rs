@@ -552,6 +552,17 @@ mod tests {
     }
 
     #[test]
+    fn bitbake_user_step_creates_the_user_the_phase_runs_as() {
+        let user = crate::yocto::BITBAKE_USER;
+        assert!(BITBAKE_USERADD.starts_with(&format!("id -u {user} ")));
+        assert!(BITBAKE_USERADD.ends_with(&format!(" {user}")));
+        // The locale step enables the locale persistently before generating it.
+        let locale = STEPS.iter().find(|s| s.what.contains("locale")).unwrap();
+        let gen_at = locale.script.find("locale-gen").unwrap();
+        assert!(locale.script[..gen_at].contains("/etc/locale.gen"));
+    }
+
+    #[test]
     fn dpkg_query_output() {
         assert_eq!(
             parse_dpkg_query("ii |1:10.0.2+ds-2~bpo12+1"),
