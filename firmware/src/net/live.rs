@@ -452,9 +452,10 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
                 }
                 let sub_now = sub;
                 let rendered = tokio::task::spawn_blocking(move || {
-                    let guard = tap.read()?;
-                    let set = guard.as_deref()?;
-                    Some(render(set, &sub_now, want_preview))
+                    // Hold the copy only for a memcpy (the loop skips sets while it is held),
+                    // then downscale and encode outside the lock.
+                    let set = tap.read()?.as_deref()?.clone();
+                    Some(render(&set, &sub_now, want_preview))
                 })
                 .await
                 .ok()
