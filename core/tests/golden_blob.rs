@@ -226,7 +226,10 @@ fn every_single_byte_corruption_of_the_v2_blob_is_detected() {
         for x in 1..=255u8 {
             let mut b = good.clone();
             b[i] ^= x;
-            assert!(RigParams::from_blob(&b).is_err(), "byte {i} xor {x:#04x} undetected");
+            assert!(
+                RigParams::from_blob(&b).is_err(),
+                "byte {i} xor {x:#04x} undetected"
+            );
         }
     }
 }

@@ -309,5 +309,8 @@ async fn tool_with_a_tip_is_reported_at_the_tip() {
     );
     assert_eq!(n, 150, "only {n} tracked records with the new parameters");
     assert!(tip_rms < 1.0, "tip RMS {tip_rms} mm");
-    assert!(origin_min > 100.0, "a record came within {origin_min} mm of the origin");
+    assert!(
+        origin_min > 100.0,
+        "a record came within {origin_min} mm of the origin"
+    );
 }
