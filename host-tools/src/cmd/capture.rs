@@ -170,9 +170,17 @@ pub enum FetchError {
 pub fn fetch(agent: &ureq::Agent, url: &str, board: &str) -> Result<FrameSet, FetchError> {
     let resp = match agent.get(url).call() {
         Ok(r) => r,
-        Err(ureq::Error::Status(404, _)) => {
+        Err(ureq::Error::Status(404, r)) => {
+            // Old firmware has no route; newer firmware without a frame tap says why.
+            let said = r.into_string().unwrap_or_default();
+            let said = said.trim();
+            let detail = if said.is_empty() {
+                String::new()
+            } else {
+                format!(" (it answered: {said})")
+            };
             return Err(FetchError::Fatal(anyhow!(
-                "irtrackd on {board} has no /api/frameset; update the firmware"
+                "irtrackd on {board} has no /api/frameset; update the firmware{detail}"
             )));
         }
         Err(ureq::Error::Status(code @ (503 | 504), r)) => {
