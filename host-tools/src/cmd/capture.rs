@@ -492,7 +492,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let name = format!("{index:06}");
         index += 1;
         if args.wand {
-            if saved % 50 == 0 || args.count == Some(saved) {
+            if saved.is_multiple_of(50) || args.count == Some(saved) {
                 println!(
                     "{saved} sets ({:.1} sets/s), last pairing error {} µs",
                     saved as f64 / started.elapsed().as_secs_f64().max(1e-9),
