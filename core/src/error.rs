@@ -45,7 +45,7 @@ pub enum Error {
     #[error("not an irtrack parameter blob (magic {found:02x?})")]
     BlobBadMagic { found: [u8; 4] },
     /// Parameter blob format version this build does not read.
-    #[error("parameter blob format version {found} unsupported (this build reads {supported})")]
+    #[error("parameter blob format version {found} unsupported (this build reads versions 1 to {supported})")]
     BlobUnsupportedVersion { found: u16, supported: u16 },
     /// CRC mismatch: the blob was corrupted.
     #[error("parameter blob corrupted: CRC-32 {found:08x}, computed {computed:08x}")]

@@ -23,6 +23,63 @@ pub struct CameraParams {
 pub struct ToolDefinition {
     pub name: String,
     pub leds_mm: Vec<[f64; 3]>,
+    /// The tool's tip in the tool frame (mm), from a pivot calibration (`host-tools pivot`).
+    /// A tool with a tip is reported at its tip; without one, at its origin. Only blob format
+    /// version 2 carries it (docs/param-blob.md).
+    pub tip_mm: Option<[f64; 3]>,
+}
+
+/// Version-1 body (no tool tips), encoded from borrowed fields so writing needs no copy.
+/// postcard encodes `&str`/`String`, `&[T]`/`Vec<T>` and `&Option<T>`/`Option<T>` alike.
+#[derive(Serialize)]
+struct RigV1Ref<'a> {
+    rig_id: &'a str,
+    created_unix_s: u64,
+    cameras: &'a [CameraParams],
+    world_from_cam0: &'a Option<RigidTransform>,
+    tools: Vec<ToolV1Ref<'a>>,
+}
+
+#[derive(Serialize)]
+struct ToolV1Ref<'a> {
+    name: &'a str,
+    leds_mm: &'a [[f64; 3]],
+}
+
+/// Version-1 body as read.
+#[derive(Deserialize)]
+struct RigV1 {
+    rig_id: String,
+    created_unix_s: u64,
+    cameras: Vec<CameraParams>,
+    world_from_cam0: Option<RigidTransform>,
+    tools: Vec<ToolV1>,
+}
+
+#[derive(Deserialize)]
+struct ToolV1 {
+    name: String,
+    leds_mm: Vec<[f64; 3]>,
+}
+
+impl From<RigV1> for RigParams {
+    fn from(v: RigV1) -> Self {
+        RigParams {
+            rig_id: v.rig_id,
+            created_unix_s: v.created_unix_s,
+            cameras: v.cameras,
+            world_from_cam0: v.world_from_cam0,
+            tools: v
+                .tools
+                .into_iter()
+                .map(|t| ToolDefinition {
+                    name: t.name,
+                    leds_mm: t.leds_mm,
+                    tip_mm: None,
+                })
+                .collect(),
+        }
+    }
 }
 
 /// Everything the tracker needs to turn pixels into millimetres.
@@ -42,8 +99,11 @@ pub struct RigParams {
 
 /// First bytes of every parameter blob.
 pub const BLOB_MAGIC: [u8; 4] = *b"IRPB";
-/// The blob format version this build writes and reads.
-pub const BLOB_FORMAT_VERSION: u16 = 1;
+/// The newest blob format version this build reads and writes (2: tools may carry a tip).
+/// A set without tool tips is written as version 1, so older readers still take it.
+pub const BLOB_FORMAT_VERSION: u16 = 2;
+/// The oldest blob format version this build reads (1: tools without tips).
+pub const BLOB_OLDEST_VERSION: u16 = 1;
 /// Header size in bytes (magic, version, flags, body length, CRC-32).
 pub const BLOB_HEADER_LEN: usize = 16;
 /// Flag bit: an Ed25519 signature trailer follows the body (docs/param-blob.md, `crate::signing`).
@@ -108,7 +168,7 @@ impl BlobHeader {
             });
         }
         let version = u16::from_le_bytes([bytes[4], bytes[5]]);
-        if version != BLOB_FORMAT_VERSION {
+        if !(BLOB_OLDEST_VERSION..=BLOB_FORMAT_VERSION).contains(&version) {
             return Err(Error::BlobUnsupportedVersion {
                 found: version,
                 supported: BLOB_FORMAT_VERSION,
@@ -175,9 +235,9 @@ impl BlobHeader {
     }
 }
 
-/// Decodes a postcard body that must be used completely.
-pub(crate) fn decode_body(body: &[u8]) -> Result<RigParams> {
-    let (rig, rest) = postcard::take_from_bytes::<RigParams>(body).map_err(|e| Error::BlobBody {
+/// Decodes a postcard value that must use all of `body`.
+fn take_all<'de, T: Deserialize<'de>>(body: &'de [u8]) -> Result<T> {
+    let (value, rest) = postcard::take_from_bytes::<T>(body).map_err(|e| Error::BlobBody {
         reason: postcard_reason(&e),
     })?;
     if !rest.is_empty() {
@@ -185,11 +245,25 @@ pub(crate) fn decode_body(body: &[u8]) -> Result<RigParams> {
             reason: "unused bytes at the end of the body",
         });
     }
+    Ok(value)
+}
+
+/// Decodes the body of a blob of format `version` (checked by [`BlobHeader::parse`]).
+pub(crate) fn decode_body(version: u16, body: &[u8]) -> Result<RigParams> {
+    let rig = if version == BLOB_OLDEST_VERSION {
+        RigParams::from(take_all::<RigV1>(body)?)
+    } else {
+        take_all::<RigParams>(body)?
+    };
     // postcard accepts over-long varints; refuse any body that is not the canonical encoding
-    // so that one parameter set has exactly one byte form (and one CRC, its identity).
-    let canonical = postcard::to_allocvec(&rig).map_err(|e| Error::BlobBody {
-        reason: postcard_reason(&e),
-    })?;
+    // so that one parameter set has exactly one byte form (and one CRC, its identity). That
+    // includes the version: a set without tool tips is written as version 1.
+    let (canonical_version, canonical) = rig.encode_body()?;
+    if canonical_version != version {
+        return Err(Error::BlobBody {
+            reason: "version-2 body without a tool tip (such a set is written as version 1)",
+        });
+    }
     if canonical != body {
         return Err(Error::BlobBody {
             reason: "body is not in canonical encoding (over-long integer)",
@@ -284,17 +358,52 @@ impl RigParams {
         self.encode_blob(0, 0)
     }
 
-    /// Header + body with `flags`, reserving `extra_capacity` bytes (for a signature trailer).
-    pub(crate) fn encode_blob(&self, flags: u16, extra_capacity: usize) -> Result<Vec<u8>> {
-        let body = postcard::to_allocvec(self).map_err(|_| Error::BlobBody {
+    /// The format version this set is written in: the oldest that carries it (1 unless a
+    /// tool has a tip), so that readers that only know version 1 still take most sets.
+    pub fn blob_version(&self) -> u16 {
+        if self.tools.iter().any(|t| t.tip_mm.is_some()) {
+            BLOB_FORMAT_VERSION
+        } else {
+            BLOB_OLDEST_VERSION
+        }
+    }
+
+    /// The body in the format of [`Self::blob_version`], with that version.
+    fn encode_body(&self) -> Result<(u16, Vec<u8>)> {
+        let version = self.blob_version();
+        let encoded = if version == BLOB_OLDEST_VERSION {
+            postcard::to_allocvec(&RigV1Ref {
+                rig_id: &self.rig_id,
+                created_unix_s: self.created_unix_s,
+                cameras: &self.cameras,
+                world_from_cam0: &self.world_from_cam0,
+                tools: self
+                    .tools
+                    .iter()
+                    .map(|t| ToolV1Ref {
+                        name: &t.name,
+                        leds_mm: &t.leds_mm,
+                    })
+                    .collect(),
+            })
+        } else {
+            postcard::to_allocvec(self)
+        };
+        let body = encoded.map_err(|_| Error::BlobBody {
             reason: "body does not encode",
         })?;
+        Ok((version, body))
+    }
+
+    /// Header + body with `flags`, reserving `extra_capacity` bytes (for a signature trailer).
+    pub(crate) fn encode_blob(&self, flags: u16, extra_capacity: usize) -> Result<Vec<u8>> {
+        let (version, body) = self.encode_body()?;
         let body_len = u32::try_from(body.len()).map_err(|_| Error::BlobBody {
             reason: "body longer than 4 GiB",
         })?;
         let mut out = Vec::with_capacity(BLOB_HEADER_LEN + body.len() + extra_capacity);
         out.extend_from_slice(&BLOB_MAGIC);
-        out.extend_from_slice(&BLOB_FORMAT_VERSION.to_le_bytes());
+        out.extend_from_slice(&version.to_le_bytes());
         out.extend_from_slice(&flags.to_le_bytes());
         out.extend_from_slice(&body_len.to_le_bytes());
         let crc = blob_crc(&out[..12], &body);
@@ -309,7 +418,7 @@ impl RigParams {
     /// [`crate::signing::verify_blob`], which checks the signature.
     pub fn from_blob(bytes: &[u8]) -> Result<RigParams> {
         let header = BlobHeader::parse(bytes)?;
-        decode_body(header.check_frame(bytes)?)
+        decode_body(header.version, header.check_frame(bytes)?)
     }
 
     /// Checks that the parameters are usable for tracking: 2..=[`MAX_CAMERAS`] cameras, camera 0 at the
@@ -382,6 +491,9 @@ impl RigParams {
                     "tool {:?} has non-finite LED positions",
                     tool.name
                 )));
+            }
+            if tool.tip_mm.is_some_and(|t| !t.iter().all(|v| v.is_finite())) {
+                return Err(invalid(format!("tool {:?} has a non-finite tip", tool.name)));
             }
         }
         Ok(())
@@ -570,9 +682,14 @@ mod tests {
         r.tools = vec![ToolDefinition {
             name: "probe".into(),
             leds_mm: vec![[0.0; 3]; 2],
+            tip_mm: None,
         }];
         assert!(reason(&r).contains("at least 3"));
         r.tools[0].leds_mm.push([1.0, 2.0, 3.0]);
+        r.validate().unwrap();
+        r.tools[0].tip_mm = Some([0.0, f64::NAN, 150.0]);
+        assert!(reason(&r).contains("non-finite tip"));
+        r.tools[0].tip_mm = Some([0.0, 0.0, 150.0]);
         r.validate().unwrap();
         r.tools.push(r.tools[0].clone());
         assert!(reason(&r).contains("used twice"));

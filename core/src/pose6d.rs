@@ -184,6 +184,9 @@ pub struct ToolModel {
     dist_mm: [[f64; MAX_TOOL_LEDS]; MAX_TOOL_LEDS],
     margin_mm: f64,
     min_leds: usize,
+    /// The tip in the tool frame (zero, i.e. the origin, for a tool without one).
+    tip_mm: Vector3<f64>,
+    has_tip: bool,
 }
 
 impl ToolModel {
@@ -256,7 +259,12 @@ impl ToolModel {
             dist_mm,
             margin_mm: f64::INFINITY,
             min_leds,
+            tip_mm: tool.tip_mm.map_or_else(Vector3::zeros, Vector3::from),
+            has_tip: tool.tip_mm.is_some(),
         };
+        if !model.tip_mm.iter().all(|v| v.is_finite()) {
+            return bad(format!("tool {:?}: the tip has a non-finite position", tool.name));
+        }
         let (margin, worst) = model.identification_margin();
         model.margin_mm = margin;
         if margin < config.min_margin_mm {
@@ -291,6 +299,11 @@ impl ToolModel {
     /// LED positions in the tool frame (mm).
     pub fn leds_mm(&self) -> &[Vector3<f64>] {
         &self.leds_mm[..self.led_count]
+    }
+
+    /// The tip in the tool frame (mm), if the tool has one (pivot calibration).
+    pub fn tip_mm(&self) -> Option<Vector3<f64>> {
+        self.has_tip.then_some(self.tip_mm)
     }
 
     /// Fewest LEDs a pose is computed from.
@@ -740,6 +753,9 @@ pub struct Pose6d {
     pub status: PoseStatus,
     /// Tool origin in the camera-0 frame (mm), i.e. t.
     pub position_mm: [f64; 3],
+    /// The point the tool is reported at, in the camera-0 frame (mm): its tip `R tip + t` for
+    /// a tool with a tip ([`ToolDefinition::tip_mm`]), else the origin (= `position_mm`).
+    pub tip_mm: [f64; 3],
     /// Orientation as a unit quaternion (w, x, y, z), w ≥ 0.
     pub quaternion_wxyz: [f64; 4],
     /// The same rotation, row-major.
@@ -764,6 +780,7 @@ impl Pose6d {
         Pose6d {
             status,
             position_mm: [0.0; 3],
+            tip_mm: [0.0; 3],
             quaternion_wxyz: [1.0, 0.0, 0.0, 0.0],
             r_row_major: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
             residual_rms_mm: 0.0,
@@ -774,6 +791,15 @@ impl Pose6d {
             candidates: 0,
             hypotheses: 0,
             resolved_by_continuity: false,
+        }
+    }
+
+    /// The pose as reported to clients and the robot: the same orientation, the position moved
+    /// to the tool's tip (unchanged for a tool without a tip). A copy, no allocation.
+    pub fn at_tip(&self) -> Pose6d {
+        Pose6d {
+            position_mm: self.tip_mm,
+            ..*self
         }
     }
 
@@ -974,6 +1000,7 @@ impl PoseTracker {
         }
         pose.status = PoseStatus::Tracked;
         pose.position_mm = f.translation_mm.into();
+        pose.tip_mm = (f.rotation * self.tool.tip_mm + f.translation_mm).into();
         pose.quaternion_wxyz = f.quaternion_wxyz;
         for i in 0..3 {
             for j in 0..3 {
@@ -1286,6 +1313,7 @@ pub fn measure_tool_layout(
     let tool = ToolDefinition {
         name: name.into(),
         leds_mm,
+        tip_mm: None,
     };
     let model = ToolModel::new(&tool, config)?;
     let r_cam0_tool = r_tool_cam0.transpose();

@@ -139,7 +139,7 @@ pub fn verify_blob(
             SignaturePolicy::AllowUnsigned => SignatureStatus::UnsignedAccepted,
         }
     };
-    Ok((decode_body(body)?, status))
+    Ok((decode_body(header.version, body)?, status))
 }
 
 /// Decodes a signed or unsigned blob WITHOUT checking the signature, for tools that display
@@ -148,7 +148,7 @@ pub fn verify_blob(
 pub fn decode_without_verifying(bytes: &[u8]) -> Result<(RigParams, Option<KeyId>)> {
     let (header, body) = open_blob(bytes)?;
     let key_id = header.is_signed().then(|| trailer(bytes, &header).0);
-    Ok((decode_body(body)?, key_id))
+    Ok((decode_body(header.version, body)?, key_id))
 }
 
 /// The reject code for an error met while handling a push: signature problems are

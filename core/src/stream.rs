@@ -699,6 +699,7 @@ mod tests {
         let mut pose = Pose6d {
             status: PoseStatus::Tracked,
             position_mm: [10.0, 20.0, 1000.0],
+            tip_mm: [10.0, 20.0, 1000.0],
             quaternion_wxyz: [h, 0.0, 0.0, h],
             r_row_major: [0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0],
             residual_rms_mm: 0.07,

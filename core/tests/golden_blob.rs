@@ -120,12 +120,118 @@ const GOLDEN_HEX: &[&str] = &[
     "00", // no tools
 ];
 
-fn golden_bytes() -> Vec<u8> {
-    let hex: String = GOLDEN_HEX.concat();
+fn from_hex(hex: &str) -> Vec<u8> {
     (0..hex.len())
         .step_by(2)
         .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
         .collect()
+}
+
+/// The version-1 golden blob: written by this build for a set without tool tips, and the
+/// form every blob made before tool tips existed has (old blobs still load).
+fn golden_bytes() -> Vec<u8> {
+    from_hex(&GOLDEN_HEX.concat())
+}
+
+/// The version-2 golden rig: the version-1 rig plus a pivot-calibrated tool with a tip.
+fn golden_rig_v2() -> RigParams {
+    RigParams {
+        rig_id: "golden2".into(),
+        tools: vec![ToolDefinition {
+            name: "pen".into(),
+            leds_mm: vec![[0.0, 0.0, 0.0], [60.0, 0.0, 0.0], [10.0, 45.0, 5.0]],
+            tip_mm: Some([1.5, -2.25, 150.0]),
+        }],
+        ..golden_rig()
+    }
+}
+
+/// Independently assembled (Python: struct.pack + zlib.crc32) from docs/param-blob.md; the
+/// camera bytes are those of [`GOLDEN_HEX`] (between the camera count and the trailing
+/// `None`/no-tools bytes).
+const GOLDEN_V2_HEAD: &[&str] = &[
+    "49525042",         // magic "IRPB"
+    "0200",             // format version 2 (a tool has a tip)
+    "0000",             // flags
+    "ce010000",         // body length 462
+    "cd12d002",         // CRC-32 0x02d012cd over bytes 0..12 + body
+    "07676f6c64656e32", // rig_id: varint 7, "golden2"
+    "80e2cfaa06",       // created_unix_s 1700000000 (varint)
+    "02",               // 2 cameras
+];
+const GOLDEN_V2_TAIL: &[&str] = &[
+    "00",                                               // world_from_cam0: None
+    "01",                                               // 1 tool
+    "0370656e",                                         // name: varint 3, "pen"
+    "03",                                               // 3 LEDs
+    "000000000000000000000000000000000000000000000000", // LED (0, 0, 0)
+    "0000000000004e4000000000000000000000000000000000", // LED (60, 0, 0)
+    "000000000000244000000000008046400000000000001440", // LED (10, 45, 5)
+    "01",                                               // tip_mm: Some
+    "000000000000f83f00000000000002c00000000000c06240", // tip (1.5, -2.25, 150) mm
+];
+
+fn golden_v2_bytes() -> Vec<u8> {
+    let cameras = &GOLDEN_HEX[8..GOLDEN_HEX.len() - 2];
+    let hex = [GOLDEN_V2_HEAD, cameras, GOLDEN_V2_TAIL].concat().concat();
+    from_hex(&hex)
+}
+
+#[test]
+fn golden_v2_encode_decode() {
+    let rig = golden_rig_v2();
+    assert_eq!(rig.blob_version(), 2);
+    assert_eq!(rig.to_blob().unwrap(), golden_v2_bytes());
+    let back = RigParams::from_blob(&golden_v2_bytes()).unwrap();
+    assert_eq!(back, rig);
+    back.validate().unwrap();
+    assert_eq!(back.params_crc().unwrap(), 0x02d0_12cd);
+    let h = BlobHeader::parse(&golden_v2_bytes()).unwrap();
+    assert_eq!((h.version, h.body_len, h.blob_len()), (2, 462, 478));
+}
+
+#[test]
+fn old_blob_still_loads_and_sets_without_tips_stay_version_1() {
+    // The version-1 golden blob decodes to tools-without-tips parameters ...
+    let rig = RigParams::from_blob(&golden_bytes()).unwrap();
+    assert_eq!(rig.blob_version(), 1);
+    // ... and a set with tools but no tip is still written as version 1 (old readers take it).
+    let mut with_tool = golden_rig_v2();
+    with_tool.tools[0].tip_mm = None;
+    let blob = with_tool.to_blob().unwrap();
+    assert_eq!(BlobHeader::parse(&blob).unwrap().version, 1);
+    assert_eq!(RigParams::from_blob(&blob).unwrap(), with_tool);
+    // A version-1 tool record has no tip byte: name, LEDs, nothing else.
+    assert_eq!(&blob[blob.len() - 4 - 1 - 72..blob.len() - 72][..4], b"\x03pen");
+}
+
+#[test]
+fn version_2_body_without_a_tip_is_not_canonical() {
+    // The version-1 golden blob relabelled as version 2 (CRC fixed): without tools its body is
+    // also a valid version-2 encoding, of a set that must be written as version 1.
+    let mut b = golden_bytes();
+    b[4] = 2;
+    assert_eq!(
+        RigParams::from_blob(&reseal(b)),
+        Err(Error::BlobBody {
+            reason: "version-2 body without a tool tip (such a set is written as version 1)"
+        })
+    );
+}
+
+#[test]
+fn every_single_byte_corruption_of_the_v2_blob_is_detected() {
+    let good = golden_v2_bytes();
+    for i in 0..good.len() {
+        for x in 1..=255u8 {
+            let mut b = good.clone();
+            b[i] ^= x;
+            assert!(
+                RigParams::from_blob(&b).is_err(),
+                "byte {i} xor {x:#04x} undetected"
+            );
+        }
+    }
 }
 
 #[test]
@@ -200,11 +306,11 @@ fn wrong_magic() {
 #[test]
 fn wrong_version() {
     let mut b = golden_bytes();
-    b[4] = 2;
+    b[4] = 3;
     assert_eq!(
         RigParams::from_blob(&b),
         Err(Error::BlobUnsupportedVersion {
-            found: 2,
+            found: 3,
             supported: BLOB_FORMAT_VERSION
         })
     );
@@ -356,8 +462,13 @@ fn tool() -> impl Strategy<Value = ToolDefinition> {
     (
         "\\PC{0,12}",
         prop::collection::vec(prop::array::uniform3(finite()), 0..6),
+        prop::option::of(prop::array::uniform3(finite())),
     )
-        .prop_map(|(name, leds_mm)| ToolDefinition { name, leds_mm })
+        .prop_map(|(name, leds_mm, tip_mm)| ToolDefinition {
+            name,
+            leds_mm,
+            tip_mm,
+        })
 }
 
 fn rig() -> impl Strategy<Value = RigParams> {

@@ -87,6 +87,7 @@ fn tool4() -> ToolDefinition {
             [3.0, 85.0, 0.0],
             [62.0, 11.0, 32.0],
         ],
+        tip_mm: None,
     }
 }
 
@@ -436,6 +437,7 @@ fn tool(name: &str, leds: &[[f64; 3]]) -> ToolDefinition {
     ToolDefinition {
         name: name.into(),
         leds_mm: leds.to_vec(),
+        tip_mm: None,
     }
 }
 

@@ -428,10 +428,11 @@ impl Engine {
                         match pose_tracker.process(&lists[..cameras]) {
                             Ok(pose) => {
                                 self.status.set_track(pose_indication(pose, seen, cameras));
+                                // A pivot-calibrated tool is reported (and sent) at its tip.
                                 let mut rec = PositionRecord::from_pose(
                                     self.set.index,
                                     capture_ns,
-                                    pose,
+                                    &pose.at_tip(),
                                     self.world_from_cam0.as_ref(),
                                     u8::try_from(seen).unwrap_or(u8::MAX),
                                 );

@@ -240,6 +240,7 @@ async fn push_with_an_ambiguous_tool_is_rejected() {
             [80.0, 80.0, 0.0],
             [0.0, 80.0, 0.0],
         ],
+        tip_mm: None,
     });
     match push_verdict(running.addrs.params, &rig.to_blob().unwrap()).await {
         Verdict::Rejected { code, message } => {
@@ -254,4 +255,62 @@ async fn push_with_an_ambiguous_tool_is_rejected() {
     let st = status_json(running.addrs.status).await;
     assert_eq!(st["params"]["loaded"], false);
     running.shutdown().await;
+}
+
+/// A pivot-calibrated tool (a tip in its definition, blob version 2) is reported at its tip:
+/// the stream's positions follow the simulator's true tip, not the tool origin (LED 0).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tool_with_a_tip_is_reported_at_the_tip() {
+    use irtrack_core::param_wire::Verdict;
+    let dir = TempDir::new("sixdof-tip");
+    let mut cfg = test_config(dir.path());
+    let mut sim = cfg.source.sim.clone().unwrap();
+    sim.tool = Some("probe4".into());
+    sim.tool_rotation_deg = 20.0;
+    sim.distance_mm = 1000.0;
+    cfg.source.sim = Some(sim.clone());
+    let truth = scenario(&sim);
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let tip_tool_mm = Vector3::new(35.0, 20.0, -150.0);
+    let mut rig = truth.rig().clone();
+    rig.rig_id = "probe4-with-tip".into();
+    let mut tool = sim.tool_definition().unwrap();
+    tool.tip_mm = Some(tip_tool_mm.into());
+    rig.tools.push(tool);
+    let blob = rig.to_blob().unwrap();
+    assert_eq!(irtrack_core::params::BlobHeader::parse(&blob).unwrap().version, 2);
+    match push_verdict(running.addrs.params, &blob).await {
+        Verdict::Accepted { rig_id } => assert_eq!(rig_id, "probe4-with-tip"),
+        v => panic!("tool with a tip refused: {v:?}"),
+    }
+    let crc = rig.params_crc().unwrap();
+    let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
+    let (mut n, mut tip_sq, mut origin_min) = (0usize, 0.0f64, f64::INFINITY);
+    for _ in 0..2000 {
+        let r = client.next().await;
+        if r.params_crc != crc || r.status != TrackStatus::Ok {
+            continue;
+        }
+        let t = truth.truth(r.frame);
+        let p = Vector3::from(r.position_mm.unwrap());
+        let true_tip = t.tool_position_mm + t.tool_orientation * tip_tool_mm;
+        tip_sq += (p - true_tip).norm_squared();
+        origin_min = origin_min.min((p - t.tool_position_mm).norm());
+        n += 1;
+        if n == 150 {
+            break;
+        }
+    }
+    running.shutdown().await;
+    let tip_rms = (tip_sq / n.max(1) as f64).sqrt();
+    println!(
+        "irtrackd reports the tip: {n} records, RMS {tip_rms:.3} mm from the true tip; \
+         never closer than {origin_min:.1} mm to the tool origin"
+    );
+    assert_eq!(n, 150, "only {n} tracked records with the new parameters");
+    assert!(tip_rms < 1.0, "tip RMS {tip_rms} mm");
+    assert!(
+        origin_min > 100.0,
+        "a record came within {origin_min} mm of the origin"
+    );
 }

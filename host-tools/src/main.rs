@@ -40,6 +40,10 @@ enum Command {
     Keygen(cmd::keygen::Args),
     /// Measure a multi-LED tool's layout from frames of it held still; adds it to the parameters.
     MeasureTool(cmd::measure_tool::Args),
+    /// Pivot calibration: the tip of a 6-DOF tool from poses of it turned about its tip.
+    Pivot(cmd::pivot::Args),
+    /// Save synchronised frame sets from irtrackd for calibration (checkerboard or wand).
+    Capture(cmd::capture::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -59,5 +63,7 @@ fn main() -> anyhow::Result<()> {
         Command::Register(a) => cmd::register::run(a),
         Command::Keygen(a) => cmd::keygen::run(a),
         Command::MeasureTool(a) => cmd::measure_tool::run(a),
+        Command::Pivot(a) => cmd::pivot::run(a),
+        Command::Capture(a) => cmd::capture::run(a),
     }
 }

@@ -6,7 +6,7 @@
 //!
 //! | key                               | content                                                 |
 //! |-----------------------------------|---------------------------------------------------------|
-//! | `rig_id`                          | string                                                  |
+//! | `rig_id`                          | string (optional on read: default from the file name)   |
 //! | `created_unix_s`                  | real (integral seconds)                                 |
 //! | `calibration_time`                | string, ISO 8601 UTC (informational, ignored on read)   |
 //! | `camera_count`                    | int N (optional on read: counts `K1`, `K2`, ...)        |
@@ -18,12 +18,13 @@
 //! | `R<n>`, `T<n>` (n ≥ 3)            | camera n from camera 1, same convention                 |
 //! | `R_world`, `T_world`              | optional registration world-from-camera-1               |
 //! | `tool_count`, `tool<j>_name`, `tool<j>_leds_mm` | optional tools (j from 1), LEDs as M×3 mm  |
+//! | `tool<j>_tip_mm`                  | optional 1×3 tool tip in the tool frame, mm (pivot)     |
 
 use std::path::Path;
 
 use anyhow::{Context, Result, anyhow, bail, ensure};
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
-use irtrack_core::params::{CameraParams, RigParams, ToolDefinition, looks_like_blob};
+use irtrack_core::params::{CameraParams, MAX_RIG_ID_LEN, RigParams, ToolDefinition, looks_like_blob};
 use opencv::core::{
     CV_64F, FileNode, FileNode_MAP, FileNode_TYPE_MASK, FileNodeTraitConst, FileStorage, FileStorage_Mode,
     FileStorageTrait, FileStorageTraitConst, Mat, MatTraitConst,
@@ -130,6 +131,9 @@ pub fn write_rig_yaml(path: &Path, rig: &RigParams) -> Result<()> {
                 if !tool.leds_mm.is_empty() {
                     let rows: Vec<&[f64]> = tool.leds_mm.iter().map(|p| &p[..]).collect();
                     fs.write_mat(&format!("tool{}_leds_mm", j + 1), &mat(&rows)?)?;
+                }
+                if let Some(tip) = &tool.tip_mm {
+                    fs.write_mat(&format!("tool{}_tip_mm", j + 1), &mat(&[&tip[..]])?)?;
                 }
             }
         }
@@ -238,10 +242,32 @@ fn read_transform(fs: &FileStorage, r_key: &str, t_key: &str, what: &str) -> Res
     })
 }
 
-fn read_all(fs: &FileStorage) -> Result<RigParams> {
-    let rig_id = required(fs, "rig_id", "parameter set id")?
-        .to_string()
-        .context("`rig_id` must be a string")?;
+/// A rig id made from a file name: the stem, with anything that is not printable ASCII (or
+/// is a space) replaced by `-`, cut to [`MAX_RIG_ID_LEN`] bytes, so that it validates.
+pub fn rig_id_from_path(path: &Path) -> String {
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let id: String = stem
+        .chars()
+        .map(|c| if c.is_ascii_graphic() { c } else { '-' })
+        .take(MAX_RIG_ID_LEN)
+        .collect();
+    if id.is_empty() {
+        "opencv-calibration".into()
+    } else {
+        id
+    }
+}
+
+/// Reads the rig; a file without `rig_id` (a plain OpenCV stereo calibration) gets
+/// `fallback_rig_id`, and the second value says that this happened.
+fn read_all(fs: &FileStorage, fallback_rig_id: &str) -> Result<(RigParams, bool)> {
+    let (rig_id, id_from_name) = match node(fs, "rig_id")? {
+        Some(n) => (n.to_string().context("`rig_id` must be a string")?, false),
+        None => (fallback_rig_id.to_string(), true),
+    };
     let created_unix_s = match node(fs, "created_unix_s")? {
         None => 0,
         Some(n) => {
@@ -307,20 +333,50 @@ fn read_all(fs: &FileStorage) -> Result<RigParams> {
                 v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
             }
         };
-        tools.push(ToolDefinition { name, leds_mm });
+        let tip_key = format!("tool{j}_tip_mm");
+        let tip_mm = match node(fs, &tip_key)? {
+            None => None,
+            Some(_) => {
+                let v = read_fixed(fs, &tip_key, "tool tip", 1, 3)?;
+                Some([v[0], v[1], v[2]])
+            }
+        };
+        tools.push(ToolDefinition {
+            name,
+            leds_mm,
+            tip_mm,
+        });
     }
-    Ok(RigParams {
-        rig_id,
-        created_unix_s,
-        cameras,
-        world_from_cam0,
-        tools,
-    })
+    Ok((
+        RigParams {
+            rig_id,
+            created_unix_s,
+            cameras,
+            world_from_cam0,
+            tools,
+        },
+        id_from_name,
+    ))
 }
 
 /// Reads a rig from OpenCV YAML (or XML/JSON FileStorage: OpenCV detects the format).
-/// Does not validate; call [`RigParams::validate`].
+/// Does not validate; call [`RigParams::validate`]. A plain OpenCV stereo calibration
+/// (`K1 D1 K2 D2 R T image_width image_height`, no `rig_id`) is accepted: the rig id is taken
+/// from the file name and a note says so on stderr.
 pub fn read_rig_yaml(path: &Path) -> Result<RigParams> {
+    let (rig, id_from_name) = read_rig_yaml_noting(path)?;
+    if id_from_name {
+        eprintln!(
+            "note: {} has no `rig_id` (a plain OpenCV calibration); using rig id {:?} from the file name",
+            path.display(),
+            rig.rig_id
+        );
+    }
+    Ok(rig)
+}
+
+/// [`read_rig_yaml`] without the note; the flag says whether the rig id came from the file name.
+pub fn read_rig_yaml_noting(path: &Path) -> Result<(RigParams, bool)> {
     ensure!(path.is_file(), "{}: no such file", path.display());
     let fs = FileStorage::new(path_str(path)?, FileStorage_Mode::READ as i32, "")
         .map_err(|e| anyhow!("{}: OpenCV cannot parse it: {}", path.display(), e.message))?;
@@ -330,7 +386,8 @@ pub fn read_rig_yaml(path: &Path) -> Result<RigParams> {
         "{}: top level is not a mapping of named values",
         path.display()
     );
-    read_all(&fs).with_context(|| format!("{}: not a usable calibration file", path.display()))
+    read_all(&fs, &rig_id_from_path(path))
+        .with_context(|| format!("{}: not a usable calibration file", path.display()))
 }
 
 /// Loads a parameter blob or an OpenCV YAML file, whichever `path` holds.
@@ -371,6 +428,20 @@ pub fn is_yaml_path(path: &Path) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rig_id_from_file_names() {
+        assert_eq!(rig_id_from_path(Path::new("/x/stereo_lab.yml")), "stereo_lab");
+        assert_eq!(
+            rig_id_from_path(Path::new("my rig ü.yaml")),
+            "my-rig-ü".replace('ü', "-")
+        );
+        assert_eq!(rig_id_from_path(Path::new(".yaml")), ".yaml");
+        assert_eq!(
+            rig_id_from_path(Path::new(&"a".repeat(100))).len(),
+            MAX_RIG_ID_LEN
+        );
+    }
 
     #[test]
     fn iso_dates() {

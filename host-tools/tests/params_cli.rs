@@ -86,6 +86,7 @@ fn rig3() -> RigParams {
         tools: vec![ToolDefinition {
             name: "probe".into(),
             leds_mm: vec![[0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, 35.5, 10.0]],
+            tip_mm: None,
         }],
     }
 }
@@ -522,4 +523,87 @@ fn client_library_reads_early_rejection() {
         }
     );
     assert_eq!(server.join().unwrap(), 8 + 200_000);
+}
+
+/// What OpenCV's stereo_calib sample (or a user's own `cv::FileStorage` code) writes: the two
+/// cameras, R and T, the image size, nothing of irtrack's own (no `rig_id`).
+const PLAIN_OPENCV_STEREO: &str = "%YAML:1.0
+---
+image_width: 752
+image_height: 480
+K1: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 7.1e+02, 0., 3.755e+02, 0., 7.1e+02, 2.395e+02, 0., 0., 1. ]
+D1: !!opencv-matrix
+   rows: 1
+   cols: 5
+   dt: d
+   data: [ -3.1e-01, 1.2e-01, 0., 0., -2.e-02 ]
+K2: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 7.05e+02, 0., 3.76e+02, 0., 7.05e+02, 2.4e+02, 0., 0., 1. ]
+D2: !!opencv-matrix
+   rows: 1
+   cols: 5
+   dt: d
+   data: [ -3.e-01, 1.1e-01, 0., 0., -1.e-02 ]
+R: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 0., 0., -1., 0., 1., 0., 1., 0., 0. ]
+T: !!opencv-matrix
+   rows: 3
+   cols: 1
+   dt: d
+   data: [ 8.e+02, 0., -8.e+02 ]
+";
+
+#[test]
+fn plain_opencv_stereo_file_is_accepted_everywhere_with_rig_id_from_its_name() {
+    let yaml = tmp("lab_stereo.yml");
+    std::fs::write(&yaml, PLAIN_OPENCV_STEREO).unwrap();
+    let rig = load_params_any(&yaml).unwrap();
+    assert_eq!(rig.rig_id, "lab_stereo");
+    assert_eq!(rig.cameras.len(), 2);
+    assert_eq!(rig.cameras[1].model.image_size.width_px, 752);
+    rig.validate().unwrap();
+    assert!((rig.optical_axis_angle_deg(1).unwrap() - 90.0).abs() < 1e-9);
+
+    let note = "has no `rig_id` (a plain OpenCV calibration); using rig id \"lab_stereo\" from the file name";
+    // show-params
+    let o = host_tools(&["show-params", p(&yaml)]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        out.contains("rig id:       lab_stereo") && out.contains("validation:   OK"),
+        "{out}"
+    );
+    assert!(err.contains(note), "{err}");
+    // convert-params: to a blob and back to YAML; the YAML now carries the rig id.
+    let blob = tmp("lab_stereo.irp");
+    let o = host_tools(&["convert-params", p(&yaml), p(&blob)]);
+    assert!(o.status.success(), "{}", text(&o).1);
+    assert!(text(&o).1.contains(note));
+    assert_eq!(RigParams::from_blob(&std::fs::read(&blob).unwrap()).unwrap(), rig);
+    let back = tmp("lab_stereo_back.yaml");
+    let o = host_tools(&["convert-params", p(&blob), p(&back)]);
+    assert!(o.status.success(), "{}", text(&o).1);
+    let (again, from_name) = irtrack_host_tools::opencv_yaml::read_rig_yaml_noting(&back).unwrap();
+    assert!(!from_name);
+    assert_eq!(again, rig);
+    // push-params: sent as the blob of the named rig.
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap().to_string();
+    let server = serve_one(listener, 2);
+    let o = host_tools(&["push-params", "--to", &addr, p(&yaml)]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}\n{err}");
+    assert!(out.contains("rig lab_stereo is active"), "{out}");
+    assert!(err.contains(note), "{err}");
+    assert_eq!(server.join().unwrap(), Some(rig));
 }

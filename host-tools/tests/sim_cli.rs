@@ -383,3 +383,93 @@ fn accuracy_study_meets_goal_for_convergent_rig() {
     let par = rows[1].stats.unwrap().rms_mm;
     assert!(par > 5.0 * conv, "parallel {par} vs convergent {conv}");
 }
+
+/// Keeps only what OpenCV's own stereo calibration writes (K1 D1 K2 D2 R T image_width
+/// image_height): no rig_id, no irtrack-specific keys.
+fn strip_to_plain_opencv(yaml: &str) -> String {
+    let irtrack_only = [
+        "rig_id:",
+        "created_unix_s:",
+        "calibration_time:",
+        "camera_count:",
+        "image_width_",
+        "image_height_",
+    ];
+    yaml.lines()
+        .filter(|l| !irtrack_only.iter().any(|k| l.starts_with(k)))
+        .map(|l| format!("{l}\n"))
+        .collect()
+}
+
+#[test]
+fn track_accepts_a_plain_opencv_stereo_file() {
+    let dir = scratch("plain_opencv");
+    simulate(&dir, &["--frames", "30"]);
+    let plain = strip_to_plain_opencv(&std::fs::read_to_string(dir.join("rig.yaml")).unwrap());
+    assert!(!plain.contains("rig_id") && plain.contains("K2:") && plain.contains("\nT:"));
+    std::fs::write(dir.join("stereo_calib.yml"), plain).unwrap();
+    let out = dir.join("positions.csv");
+    let o = bin()
+        .args(["track", "--frames"])
+        .arg(&dir)
+        .arg("--params")
+        .arg(dir.join("stereo_calib.yml"))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert!(o.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stderr.contains("using rig id \"stereo_calib\" from the file name"),
+        "{stderr}"
+    );
+    let rows = read_positions(&out);
+    let errs = errors(&dir, &rows, 0);
+    assert_eq!(errs.len(), 30);
+    assert!(p95(&errs) < 0.5, "p95 {} mm", p95(&errs));
+}
+
+#[test]
+fn track_warns_about_an_unrelated_truth_csv_and_tracks() {
+    let dir = scratch("unrelated_truth");
+    simulate(&dir, &["--frames", "12"]);
+    let other = scratch("unrelated_truth_other");
+    simulate(&other, &["--frames", "40", "--seed", "9"]);
+    let cases = [
+        // Another scenario's truth: right format, wrong frames.
+        std::fs::read_to_string(other.join("truth.csv")).unwrap(),
+        // Some other CSV that happens to be called truth.csv.
+        "time,temperature_c\n0.0,21.5\n1.0,21.7\n".to_string(),
+        // Right header, broken row.
+        "frame,t_s,x_mm,y_mm,z_mm,visible\n0,0.0,abc,1,2,1\n".to_string(),
+    ];
+    for (i, truth) in cases.iter().enumerate() {
+        std::fs::write(dir.join("truth.csv"), truth).unwrap();
+        let out = dir.join(format!("positions{i}.csv"));
+        let o = bin()
+            .args(["track", "--frames"])
+            .arg(&dir)
+            .arg("--params")
+            .arg(dir.join("rig.irp"))
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        let (stdout, stderr) = (
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr),
+        );
+        assert!(o.status.success(), "case {i}: {stdout}\n{stderr}");
+        assert!(
+            stderr.contains("warning: ignoring") && stderr.contains("truth.csv"),
+            "case {i}: {stderr}"
+        );
+        assert!(stdout.contains("tracked 12"), "case {i}: {stdout}");
+        assert!(!stdout.contains("vs truth.csv"), "case {i}: {stdout}");
+        assert_eq!(read_positions(&out).len(), 12);
+    }
+}

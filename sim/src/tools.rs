@@ -4,7 +4,7 @@
 use irtrack_core::params::ToolDefinition;
 use nalgebra::{UnitQuaternion, Vector3};
 
-use crate::trajectory::Orientation;
+use crate::trajectory::{Orientation, Trajectory};
 
 /// Names accepted by [`builtin_tool`].
 pub const BUILTIN_TOOLS: &[&str] = &["probe4", "tri3"];
@@ -26,6 +26,7 @@ pub fn builtin_tool(name: &str) -> Option<ToolDefinition> {
     Some(ToolDefinition {
         name: name.into(),
         leds_mm,
+        tip_mm: None,
     })
 }
 
@@ -42,6 +43,27 @@ pub fn turning(amplitude_deg: f64, period_s: f64) -> Orientation {
     }
 }
 
+/// Pivot calibration motion: the tool turned about its tip, which stays at `pivot_mm`
+/// (camera 0 frame), with the [`turning`] orientation. Returns the trajectory of the tool origin
+/// and the orientation, to be used together (`SimConfig::set_tool` with the orientation, the
+/// trajectory as `SimConfig::trajectory`).
+pub fn pivoting(
+    tip_tool_mm: Vector3<f64>,
+    pivot_mm: Vector3<f64>,
+    amplitude_deg: f64,
+    period_s: f64,
+) -> (Trajectory, Orientation) {
+    let orientation = turning(amplitude_deg, period_s);
+    (
+        Trajectory::Pivot {
+            pivot_mm,
+            tip_tool_mm,
+            orientation: orientation.clone(),
+        },
+        orientation,
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -54,6 +76,19 @@ mod tests {
             irtrack_core::pose6d::ToolModel::new(&tool, &Default::default()).unwrap();
         }
         assert!(builtin_tool("wand").is_none());
+    }
+
+    #[test]
+    fn pivoting_tool_keeps_its_tip_on_the_pivot() {
+        let tip = Vector3::new(30.0, 40.0, -140.0);
+        let pivot = Vector3::new(0.0, 0.0, 1000.0);
+        let (trajectory, orientation) = pivoting(tip, pivot, 20.0, 4.0);
+        trajectory.validate().unwrap();
+        for i in 0..30 {
+            let t = i as f64 * 0.21;
+            let tip_cam0 = trajectory.position(t) + orientation.rotation(t) * tip;
+            assert!((tip_cam0 - pivot).norm() < 1e-9);
+        }
     }
 
     #[test]

@@ -33,6 +33,15 @@ pub enum Trajectory {
     Samples(Vec<(f64, Vector3<f64>)>),
     /// A marker that does not move.
     Fixed(Vector3<f64>),
+    /// The origin of a tool turned about its fixed tip (pivot calibration): the tip, at
+    /// `tip_tool_mm` in the tool frame, stays at `pivot_mm` while the tool turns as
+    /// `orientation`, so the origin is at `pivot_mm − R(t) tip_tool_mm`. Use the same
+    /// `orientation` for the tool ([`crate::tools::pivoting`] builds both).
+    Pivot {
+        pivot_mm: Vector3<f64>,
+        tip_tool_mm: Vector3<f64>,
+        orientation: Orientation,
+    },
 }
 
 /// Two unit vectors spanning the plane normal to `n` (right-handed with `n`).
@@ -60,6 +69,16 @@ impl Trajectory {
                 if !period_ok(*period_s) =>
             {
                 bad("period_s", format!("{period_s} must be > 0"))
+            }
+            Trajectory::Pivot {
+                pivot_mm,
+                tip_tool_mm,
+                orientation,
+            } => {
+                if !pivot_mm.iter().chain(tip_tool_mm.iter()).all(|v| v.is_finite()) {
+                    return bad("trajectory", "pivot and tip must be finite".into());
+                }
+                orientation.validate()
             }
             Trajectory::Samples(s) if s.is_empty() => {
                 bad("trajectory", "recorded path has no samples".into())
@@ -124,6 +143,11 @@ impl Trajectory {
                 }
             }
             Trajectory::Fixed(p) => *p,
+            Trajectory::Pivot {
+                pivot_mm,
+                tip_tool_mm,
+                orientation,
+            } => pivot_mm - orientation.rotation(t_s) * tip_tool_mm,
         }
     }
 
@@ -288,6 +312,38 @@ mod tests {
             phase_rad: Vector3::zeros(),
         };
         assert!(bad.validate().unwrap_err().to_string().contains("orientation"));
+    }
+
+    #[test]
+    fn pivot_keeps_the_tip_fixed_while_the_origin_moves() {
+        let o = Orientation::Wobble {
+            base: UnitQuaternion::from_euler_angles(0.2, -0.3, 0.4),
+            amplitude_deg: Vector3::new(20.0, 17.0, 26.0),
+            period_s: Vector3::new(2.0, 2.5, 3.25),
+            phase_rad: Vector3::new(0.0, 1.0, 2.0),
+        };
+        let pivot = Vector3::new(5.0, -10.0, 1000.0);
+        let tip = Vector3::new(20.0, 30.0, -150.0);
+        let tr = Trajectory::Pivot {
+            pivot_mm: pivot,
+            tip_tool_mm: tip,
+            orientation: o.clone(),
+        };
+        tr.validate().unwrap();
+        let mut moved: f64 = 0.0;
+        for i in 0..60 {
+            let t = i as f64 * 0.05;
+            let origin = tr.position(t);
+            assert!((origin + o.rotation(t) * tip - pivot).norm() < 1e-9);
+            moved = moved.max((origin - tr.position(0.0)).norm());
+        }
+        assert!(moved > 30.0, "origin moved only {moved} mm");
+        let bad = Trajectory::Pivot {
+            pivot_mm: Vector3::new(f64::NAN, 0.0, 0.0),
+            tip_tool_mm: tip,
+            orientation: o,
+        };
+        assert!(bad.validate().is_err());
     }
 
     #[test]

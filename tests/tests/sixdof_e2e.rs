@@ -38,6 +38,7 @@ fn probe4() -> ToolDefinition {
             [3.0, 85.0, 0.0],
             [62.0, 11.0, 32.0],
         ],
+        tip_mm: None,
     }
 }
 

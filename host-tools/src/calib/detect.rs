@@ -52,7 +52,8 @@ pub struct CameraDetections {
     pub files: BTreeMap<String, PathBuf>,
 }
 
-fn load_grey(path: &Path) -> Result<Mat> {
+/// Reads an image as 8-bit grey (OpenCV converts colour and deeper images).
+pub fn load_grey(path: &Path) -> Result<Mat> {
     let name = path
         .to_str()
         .ok_or_else(|| anyhow!("{}: path is not UTF-8 (OpenCV needs UTF-8)", path.display()))?;

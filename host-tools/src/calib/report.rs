@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use nalgebra::Rotation3;
+use opencv::core::{MatTraitConst, MatTraitConstManual};
 
 use super::{Calibration, RECOMMENDED_VIEWS, plots};
 
@@ -237,7 +238,7 @@ pub fn markdown(cal: &Calibration, images_dir: &Path) -> Result<String> {
     for ci in 0..cal.intrinsics.len() {
         writeln!(
             s,
-            "- `coverage_cam{ci}.png`: detected corners of every view in cam{ci} (red crosses: rejected)"
+            "- `coverage_cam{ci}.png`: detected corners of every view in cam{ci} over its first image (red crosses: rejected)"
         )?;
     }
     writeln!(s, "- `view_errors.png`: per-view RMS per camera")?;
@@ -275,7 +276,33 @@ pub fn write_outputs(cal: &Calibration, out_dir: &Path, images_dir: &Path) -> Re
             cal.camera_labels[ci],
             d.found.len()
         );
-        plots::coverage_png(&p, d.image_size, cal.board.cols, &views, &title)?;
+        // The camera's first image under the corners shows what the coverage is relative to.
+        let first = match d.files.values().next() {
+            Some(f) => {
+                let m = super::detect::load_grey(f)?;
+                let (w, h) = (m.cols() as u32, m.rows() as u32);
+                let bytes = if m.is_continuous() {
+                    m.data_bytes()?.to_vec()
+                } else {
+                    m.try_clone()?.data_bytes()?.to_vec()
+                };
+                Some((w, h, bytes))
+            }
+            None => None,
+        };
+        let background = first.as_ref().map(|(w, h, px)| plots::Background {
+            width_px: *w,
+            height_px: *h,
+            pixels: px,
+        });
+        plots::coverage_png(
+            &p,
+            d.image_size,
+            cal.board.cols,
+            &views,
+            &title,
+            background.as_ref(),
+        )?;
         written.push(p);
     }
     let mut views: Vec<String> = cal

@@ -218,129 +218,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A small hand-drawn log-scale plot (no plotting dependency).
+/// The study's log-scale plot, drawn with plotters (shared font and PNG helpers of
+/// `calib::plots`).
 pub mod plot {
     use super::*;
+    use crate::calib::plots::{FONT, draw_err, ensure_font, write_rgb_png};
+    use plotters::prelude::*;
 
-    const W: usize = 960;
-    const H: usize = 600;
-    const LEFT: usize = 100;
-    const RIGHT: usize = 330;
-    const TOP: usize = 50;
-    const BOTTOM: usize = 80;
-
-    /// 5×7 glyphs, one byte per row, low 5 bits used.
-    fn glyph(c: char) -> [u8; 7] {
-        match c.to_ascii_uppercase() {
-            'A' => [14, 17, 17, 31, 17, 17, 17],
-            'B' => [30, 17, 17, 30, 17, 17, 30],
-            'C' => [14, 17, 16, 16, 16, 17, 14],
-            'D' => [30, 17, 17, 17, 17, 17, 30],
-            'E' => [31, 16, 16, 30, 16, 16, 31],
-            'F' => [31, 16, 16, 30, 16, 16, 16],
-            'G' => [14, 17, 16, 23, 17, 17, 15],
-            'H' => [17, 17, 17, 31, 17, 17, 17],
-            'I' => [14, 4, 4, 4, 4, 4, 14],
-            'J' => [7, 2, 2, 2, 2, 18, 12],
-            'K' => [17, 18, 20, 24, 20, 18, 17],
-            'L' => [16, 16, 16, 16, 16, 16, 31],
-            'M' => [17, 27, 21, 21, 17, 17, 17],
-            'N' => [17, 17, 25, 21, 19, 17, 17],
-            'O' => [14, 17, 17, 17, 17, 17, 14],
-            'P' => [30, 17, 17, 30, 16, 16, 16],
-            'Q' => [14, 17, 17, 17, 21, 18, 13],
-            'R' => [30, 17, 17, 30, 20, 18, 17],
-            'S' => [15, 16, 16, 14, 1, 1, 30],
-            'T' => [31, 4, 4, 4, 4, 4, 4],
-            'U' => [17, 17, 17, 17, 17, 17, 14],
-            'V' => [17, 17, 17, 17, 17, 10, 4],
-            'W' => [17, 17, 17, 21, 21, 21, 10],
-            'X' => [17, 17, 10, 4, 10, 17, 17],
-            'Y' => [17, 17, 10, 4, 4, 4, 4],
-            'Z' => [31, 1, 2, 4, 8, 16, 31],
-            '0' => [14, 17, 19, 21, 25, 17, 14],
-            '1' => [4, 12, 4, 4, 4, 4, 14],
-            '2' => [14, 17, 1, 2, 4, 8, 31],
-            '3' => [31, 2, 4, 2, 1, 17, 14],
-            '4' => [2, 6, 10, 18, 31, 2, 2],
-            '5' => [31, 16, 30, 1, 1, 17, 14],
-            '6' => [6, 8, 16, 30, 17, 17, 14],
-            '7' => [31, 1, 2, 4, 8, 8, 8],
-            '8' => [14, 17, 17, 14, 17, 17, 14],
-            '9' => [14, 17, 17, 15, 1, 2, 12],
-            '.' => [0, 0, 0, 0, 0, 12, 12],
-            '-' => [0, 0, 0, 31, 0, 0, 0],
-            '/' => [1, 2, 2, 4, 8, 8, 16],
-            '(' => [2, 4, 8, 8, 8, 4, 2],
-            ')' => [8, 4, 2, 2, 2, 4, 8],
-            '=' => [0, 0, 31, 0, 31, 0, 0],
-            ',' => [0, 0, 0, 0, 12, 4, 8],
-            '%' => [24, 25, 2, 4, 8, 19, 3],
-            _ => [0; 7],
-        }
-    }
-
-    struct Canvas {
-        rgb: Vec<u8>,
-    }
-
-    impl Canvas {
-        fn new() -> Self {
-            Canvas {
-                rgb: vec![255; W * H * 3],
-            }
-        }
-        fn px(&mut self, x: i64, y: i64, c: [u8; 3]) {
-            if x >= 0 && y >= 0 && (x as usize) < W && (y as usize) < H {
-                let i = (y as usize * W + x as usize) * 3;
-                self.rgb[i..i + 3].copy_from_slice(&c);
-            }
-        }
-        fn dot(&mut self, x: i64, y: i64, r: i64, c: [u8; 3]) {
-            for dy in -r..=r {
-                for dx in -r..=r {
-                    if dx * dx + dy * dy <= r * r {
-                        self.px(x + dx, y + dy, c);
-                    }
-                }
-            }
-        }
-        /// Line with thickness `t`; `dash` > 0 draws dashes of that length.
-        fn line(&mut self, (x0, y0): (f64, f64), (x1, y1): (f64, f64), t: i64, dash: usize, c: [u8; 3]) {
-            let n = ((x1 - x0).abs().max((y1 - y0).abs()).ceil() as usize).max(1);
-            for i in 0..=n {
-                if dash > 0 && (i / dash) % 2 == 1 {
-                    continue;
-                }
-                let f = i as f64 / n as f64;
-                let (x, y) = (x0 + (x1 - x0) * f, y0 + (y1 - y0) * f);
-                for d in 0..t {
-                    self.px(x.round() as i64, y.round() as i64 + d - t / 2, c);
-                    self.px(x.round() as i64 + d - t / 2, y.round() as i64, c);
-                }
-            }
-        }
-        /// Text at scale 2 (10×14 px glyphs, 12 px advance); `vertical` rotates it upwards.
-        fn text(&mut self, x: i64, y: i64, s: &str, c: [u8; 3], vertical: bool) {
-            for (k, ch) in s.chars().enumerate() {
-                let g = glyph(ch);
-                for (row, bits) in g.iter().enumerate() {
-                    for col in 0..5 {
-                        if bits & (1 << (4 - col)) != 0 {
-                            for (sx, sy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                                let (gx, gy) = (k as i64 * 12 + col * 2 + sx, row as i64 * 2 + sy);
-                                if vertical {
-                                    self.px(x + gy, y - gx, c);
-                                } else {
-                                    self.px(x + gx, y + gy, c);
-                                }
-                            }
-                        }
-                    }
-                }
-            }
-        }
-    }
+    const W: u32 = 960;
+    const H: u32 = 600;
 
     /// What a plotted series shows.
     #[derive(Debug, Clone, Copy)]
@@ -364,144 +250,128 @@ pub mod plot {
 
     /// Draws RMS/p95 per rig against distance with Table I's figures and the goal, log y.
     pub fn write_plot(path: &Path, rows: &[StudyRow]) -> anyhow::Result<()> {
-        let mut cv = Canvas::new();
-        let ds: Vec<f64> = rows.iter().map(|r| r.distance_mm).collect();
-        let (dmin, dmax) = ds.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), d| {
-            (a.min(*d), b.max(*d))
+        ensure_font()?;
+        let (dmin, dmax) = rows.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), r| {
+            (a.min(r.distance_mm), b.max(r.distance_mm))
         });
+        anyhow::ensure!(dmin.is_finite(), "no study rows to plot");
         let x_lo = ((dmin - 100.0) / 500.0).floor() * 500.0;
         let x_hi = ((dmax + 100.0) / 500.0).ceil() * 500.0;
-        let mut vals: Vec<f64> = rows.iter().map(|r| r.reference_mm / 10.0).collect();
-        vals.extend(rows.iter().map(|r| r.reference_mm));
-        vals.extend(rows.iter().filter_map(|r| r.stats.map(|s| s.rms_mm)));
-        vals.extend(rows.iter().filter_map(|r| r.stats.map(|s| s.p95_mm)));
-        let vals: Vec<f64> = vals.into_iter().filter(|v| *v > 0.0 && v.is_finite()).collect();
-        let lo = vals.iter().cloned().fold(f64::INFINITY, f64::min).log10().floor();
-        let hi = vals
+        let metrics = [Metric::Reference, Metric::Goal, Metric::Rms, Metric::P95];
+        let vals: Vec<f64> = rows
             .iter()
-            .cloned()
-            .fold(f64::NEG_INFINITY, f64::max)
-            .log10()
-            .ceil()
-            .max(lo + 1.0);
-        let (pw, ph) = ((W - LEFT - RIGHT) as f64, (H - TOP - BOTTOM) as f64);
-        let fx = |d: f64| LEFT as f64 + (d - x_lo) / (x_hi - x_lo) * pw;
-        let fy = |v: f64| TOP as f64 + (hi - v.log10()) / (hi - lo) * ph;
-        let grey = [200, 200, 200];
-        let black = [0, 0, 0];
-        // Grid and axes.
-        let mut e = lo;
-        while e <= hi + 1e-9 {
-            let y = fy(10f64.powf(e));
-            cv.line((LEFT as f64, y), (LEFT as f64 + pw, y), 1, 0, grey);
-            let label = if e >= 0.0 {
-                format!("{}", 10u64.pow(e as u32))
-            } else {
-                format!("0.{}1", "0".repeat((-e) as usize - 1))
-            };
-            cv.text(
-                LEFT as i64 - 12 * label.len() as i64 - 8,
-                y as i64 - 7,
-                &label,
-                black,
-                false,
-            );
-            e += 1.0;
-        }
-        let mut d = x_lo;
-        while d <= x_hi + 1e-9 {
-            let x = fx(d);
-            cv.line((x, TOP as f64), (x, TOP as f64 + ph), 1, 0, grey);
-            let label = format!("{d}");
-            cv.text(
-                x as i64 - 6 * label.len() as i64,
-                (TOP as f64 + ph) as i64 + 10,
-                &label,
-                black,
-                false,
-            );
-            d += 500.0;
-        }
-        cv.line(
-            (LEFT as f64, TOP as f64),
-            (LEFT as f64, TOP as f64 + ph),
-            2,
-            0,
-            black,
+            .flat_map(|r| metrics.iter().filter_map(|m| m.value(r)))
+            .filter(|v| *v > 0.0 && v.is_finite())
+            .collect();
+        let lo = 10f64.powf(vals.iter().cloned().fold(f64::INFINITY, f64::min).log10().floor());
+        let hi = 10f64.powf(
+            vals.iter()
+                .cloned()
+                .fold(f64::NEG_INFINITY, f64::max)
+                .log10()
+                .ceil(),
         );
-        cv.line(
-            (LEFT as f64, TOP as f64 + ph),
-            (LEFT as f64 + pw, TOP as f64 + ph),
-            2,
-            0,
-            black,
-        );
-        cv.text(
-            LEFT as i64 + pw as i64 / 2 - 72,
-            H as i64 - 34,
-            "DISTANCE MM",
-            black,
-            false,
-        );
-        cv.text(20, TOP as i64 + ph as i64 / 2 + 80, "3-D ERROR MM", black, true);
-        cv.text(LEFT as i64, 14, "ACCURACY VS TABLE I (LOG SCALE)", black, false);
-
-        let blue = [20, 80, 220];
-        let light_blue = [120, 170, 255];
-        let red = [210, 30, 30];
-        let light_red = [255, 150, 150];
-        let dark = [90, 90, 90];
-        let green = [0, 150, 60];
-        let series: Vec<(&str, [u8; 3], usize, Metric, &str)> = vec![
-            ("convergent", dark, 0, Metric::Reference, "TABLE I CONV X=Y=Z"),
-            ("convergent", green, 8, Metric::Goal, "GOAL = TABLE I / 10"),
-            ("convergent", blue, 0, Metric::Rms, "CONVERGENT RMS"),
-            ("convergent", light_blue, 6, Metric::P95, "CONVERGENT P95"),
-            (
-                "parallel",
-                [150, 150, 150],
-                0,
-                Metric::Reference,
-                "TABLE I PARALLEL Z",
-            ),
-            ("parallel", red, 0, Metric::Rms, "PARALLEL RMS"),
-            ("parallel", light_red, 6, Metric::P95, "PARALLEL P95"),
-        ];
-        for (k, (rig, color, dash, metric, label)) in series.iter().enumerate() {
-            let pts: Vec<(f64, f64)> = rows
-                .iter()
-                .filter(|r| r.rig == *rig)
-                .filter_map(|r| {
-                    metric
-                        .value(r)
-                        .filter(|v| *v > 0.0)
-                        .map(|v| (fx(r.distance_mm), fy(v)))
-                })
-                .collect();
-            for w in pts.windows(2) {
-                cv.line(w[0], w[1], 3, *dash, *color);
+        let hi = hi.max(lo * 10.0);
+        let mut rgb = vec![255u8; (W * H * 3) as usize];
+        {
+            let root = BitMapBackend::with_buffer(&mut rgb, (W, H)).into_drawing_area();
+            let mut chart = ChartBuilder::on(&root)
+                .caption("accuracy vs Table I (log scale)", (FONT, 20))
+                .margin(14)
+                .x_label_area_size(44)
+                .y_label_area_size(70)
+                .build_cartesian_2d(x_lo..x_hi, (lo..hi).log_scale())
+                .map_err(draw_err)?;
+            chart
+                .configure_mesh()
+                .x_desc("distance (mm)")
+                .y_desc("3-D error (mm)")
+                .x_label_formatter(&|d| format!("{d:.0}"))
+                .y_label_formatter(&|v| format!("{v}"))
+                .label_style((FONT, 14))
+                .draw()
+                .map_err(draw_err)?;
+            let dark = RGBColor(90, 90, 90);
+            let series: [(&str, RGBColor, bool, Metric, &str); 7] = [
+                (
+                    "convergent",
+                    dark,
+                    false,
+                    Metric::Reference,
+                    "Table I, convergent x=y=z",
+                ),
+                (
+                    "convergent",
+                    RGBColor(0, 150, 60),
+                    true,
+                    Metric::Goal,
+                    "goal = Table I / 10",
+                ),
+                (
+                    "convergent",
+                    RGBColor(20, 80, 220),
+                    false,
+                    Metric::Rms,
+                    "convergent RMS",
+                ),
+                (
+                    "convergent",
+                    RGBColor(120, 170, 255),
+                    true,
+                    Metric::P95,
+                    "convergent p95",
+                ),
+                (
+                    "parallel",
+                    RGBColor(150, 150, 150),
+                    false,
+                    Metric::Reference,
+                    "Table I, parallel z",
+                ),
+                (
+                    "parallel",
+                    RGBColor(210, 30, 30),
+                    false,
+                    Metric::Rms,
+                    "parallel RMS",
+                ),
+                (
+                    "parallel",
+                    RGBColor(255, 150, 150),
+                    true,
+                    Metric::P95,
+                    "parallel p95",
+                ),
+            ];
+            for (rig, colour, dashed, metric, label) in series {
+                let pts: Vec<(f64, f64)> = rows
+                    .iter()
+                    .filter(|r| r.rig == rig)
+                    .filter_map(|r| metric.value(r).filter(|v| *v > 0.0).map(|v| (r.distance_mm, v)))
+                    .collect();
+                let style = colour.stroke_width(3);
+                let drawn = if dashed {
+                    chart.draw_series(DashedLineSeries::new(pts.clone(), 10, 6, style))
+                } else {
+                    chart.draw_series(LineSeries::new(pts.clone(), style))
+                };
+                drawn.map_err(draw_err)?.label(label).legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 24, y)], colour.stroke_width(3))
+                });
+                chart
+                    .draw_series(pts.iter().map(|p| Circle::new(*p, 4, colour.filled())))
+                    .map_err(draw_err)?;
             }
-            for p in &pts {
-                cv.dot(p.0 as i64, p.1 as i64, 4, *color);
-            }
-            let ly = TOP as i64 + 10 + 28 * k as i64;
-            let lx = (W - RIGHT) as i64 + 20;
-            cv.line(
-                (lx as f64, ly as f64 + 7.0),
-                (lx as f64 + 30.0, ly as f64 + 7.0),
-                3,
-                *dash / 2,
-                *color,
-            );
-            cv.dot(lx + 15, ly + 7, 4, *color);
-            cv.text(lx + 40, ly, label, black, false);
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::LowerRight)
+                .background_style(WHITE.mix(0.9))
+                .border_style(BLACK.mix(0.3))
+                .label_font((FONT, 14))
+                .draw()
+                .map_err(draw_err)?;
+            root.present().map_err(draw_err)?;
         }
-        let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
-        let mut enc = png::Encoder::new(std::io::BufWriter::new(file), W as u32, H as u32);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut wr = enc.write_header().context("PNG header")?;
-        wr.write_image_data(&cv.rgb).context("PNG data")?;
-        Ok(())
+        write_rgb_png(path, W, H, &rgb)
     }
 }

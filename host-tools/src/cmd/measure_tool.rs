@@ -64,7 +64,7 @@ pub struct Args {
 }
 
 /// Frame indices present in every camera directory, ascending.
-fn common_frames(dir: &Path, n_cam: usize) -> anyhow::Result<Vec<u64>> {
+pub(crate) fn common_frames(dir: &Path, n_cam: usize) -> anyhow::Result<Vec<u64>> {
     let mut common: Option<BTreeSet<u64>> = None;
     for c in 0..n_cam {
         let d = dir.join(format!("cam{c}"));

@@ -2,10 +2,12 @@
 
 pub mod accuracy;
 pub mod calibrate;
+pub mod capture;
 pub mod convert_params;
 pub mod keygen;
 pub mod measure_tool;
 pub mod path;
+pub mod pivot;
 pub mod plan;
 pub mod push_params;
 pub mod record;

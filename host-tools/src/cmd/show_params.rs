@@ -105,6 +105,10 @@ pub fn describe(rig: &RigParams, source: &str) -> Result<String> {
         for p in &tool.leds_mm {
             writeln!(s, "  LED {} mm", fmt_vec(p))?;
         }
+        match &tool.tip_mm {
+            Some(t) => writeln!(s, "  tip {} mm (reported point)", fmt_vec(t))?,
+            None => writeln!(s, "  tip none (the tool origin is reported)")?,
+        }
     }
     match rig.validate() {
         Ok(()) => writeln!(s, "validation:   OK")?,

@@ -87,6 +87,13 @@ pub type TruthRow = (Vector3<f64>, bool);
 /// Reads `truth.csv` (frame,t_s,x_mm,y_mm,z_mm,visible) into frame → (position, visible).
 pub fn read_truth(path: &Path) -> anyhow::Result<Vec<Option<TruthRow>>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let header = text.lines().next().unwrap_or("");
+    if !header.starts_with("frame,t_s,x_mm,y_mm,z_mm,visible") {
+        bail!(
+            "{}: header {header:?} is not the simulator's (frame,t_s,x_mm,y_mm,z_mm,visible,...)",
+            path.display()
+        );
+    }
     let mut out: Vec<Option<TruthRow>> = Vec::new();
     for (n, line) in text.lines().enumerate().skip(1) {
         if line.trim().is_empty() {
@@ -113,6 +120,29 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<Option<TruthRow>>> {
         out[frame] = Some((Vector3::new(num(2)?, num(3)?, num(4)?), f[5].trim() == "1"));
     }
     Ok(out)
+}
+
+/// `truth.csv` if it describes the `frame_count` frames being tracked. A file that does not (a
+/// recording copied next to an unrelated truth, a CSV of something else) is no reason to refuse
+/// tracking: it is ignored with a warning on stderr that says why.
+pub fn matching_truth(path: &Path, frame_count: usize) -> Option<Vec<Option<TruthRow>>> {
+    if !path.is_file() {
+        return None;
+    }
+    let why = match read_truth(path) {
+        Ok(t) if t.len() == frame_count && t.iter().all(Option::is_some) => return Some(t),
+        Ok(t) => format!(
+            "it has rows for {} frame indices (up to {}), the recording has frames 0..{frame_count}",
+            t.iter().flatten().count(),
+            t.len().saturating_sub(1)
+        ),
+        Err(e) => format!("{e:#}"),
+    };
+    eprintln!(
+        "track: warning: ignoring {}: {why}; tracking without a comparison to truth",
+        path.display()
+    );
+    None
 }
 
 /// Loads rig parameters from a blob or an OpenCV YAML file.
@@ -173,11 +203,9 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
     let mut tracker: Option<Tracker> = None;
     let mut maxval_seen: Option<u16> = None;
     let truth_path = args.frames.join("truth.csv");
-    let truth = if truth_path.is_file() {
-        Some(read_truth(&truth_path)?)
-    } else {
-        None
-    };
+    let truth = usize::try_from(last + 1)
+        .ok()
+        .and_then(|n| matching_truth(&truth_path, n));
     let mut csv = String::from("frame,x_mm,y_mm,z_mm,gap_mm,status,cameras_used,quality,used_roi\n");
     let mut s = TrackSummary {
         frames: 0,

@@ -1,0 +1,248 @@
+//! `host-tools capture` against a stand-in for irtrackd's `GET /api/frameset` (format of
+//! docs/http-api.md) that serves checkerboard views of the simulated 90° rig: sets are saved in
+//! the layout `calibrate` reads, the board is found per camera and the coverage grid is shown.
+//! Error cases: firmware without the endpoint (404), nothing listening. (irtrackd's endpoint is
+//! being built on another branch; a test against a real irtrackd follows once it has landed.)
+
+mod common;
+
+use std::io::{BufRead, BufReader, Write};
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::thread;
+
+use common::*;
+use irtrack_sim::checkerboard::{self, BoardSpec, PoseConfig, RenderSettings};
+use irtrack_sim::rig::{CameraSpec, RigPreset, build_rig};
+
+fn scratch(name: &str) -> PathBuf {
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR"))
+        .join("capture_cli")
+        .join(name);
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Serves `responses` to consecutive HTTP requests (status line, content type, body), then stops.
+fn serve(responses: Vec<(u16, &'static str, Vec<u8>)>) -> (String, thread::JoinHandle<usize>) {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap().to_string();
+    let handle = thread::spawn(move || {
+        let mut served = 0;
+        for (status, ctype, body) in responses {
+            let (mut s, _) = listener.accept().unwrap();
+            let mut reader = BufReader::new(s.try_clone().unwrap());
+            let mut request_line = String::new();
+            reader.read_line(&mut request_line).unwrap();
+            assert!(request_line.starts_with("GET /api/frameset "), "{request_line}");
+            loop {
+                let mut l = String::new();
+                if reader.read_line(&mut l).unwrap() == 0 || l == "\r\n" {
+                    break;
+                }
+            }
+            let reason = match status {
+                200 => "OK",
+                404 => "Not Found",
+                _ => "Error",
+            };
+            write!(
+                s,
+                "HTTP/1.1 {status} {reason}\r\nContent-Type: {ctype}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+                body.len()
+            )
+            .unwrap();
+            s.write_all(&body).unwrap();
+            served += 1;
+        }
+        served
+    });
+    (addr, handle)
+}
+
+/// A frame-set body as docs/http-api.md describes it, from one PGM file per camera.
+fn frameset_body(set_index: u64, pgms: &[Vec<u8>], size: (u32, u32)) -> Vec<u8> {
+    let cams: Vec<String> = pgms
+        .iter()
+        .enumerate()
+        .map(|(c, pgm)| {
+            format!(
+                "{{\"camera\":{c},\"width_px\":{},\"height_px\":{},\"bit_depth\":8,\"timestamp_ns\":{},\"sequence\":{set_index},\"pgm_bytes\":{}}}",
+                size.0,
+                size.1,
+                set_index * 1000 + c as u64,
+                pgm.len()
+            )
+        })
+        .collect();
+    let mut b = format!(
+        "{{\"set_index\":{set_index},\"pairing_error_ns\":500,\"cameras\":[{}]}}\n",
+        cams.join(",")
+    )
+    .into_bytes();
+    for pgm in pgms {
+        b.extend_from_slice(pgm);
+    }
+    b
+}
+
+#[test]
+fn capture_saves_sets_finds_the_board_and_shows_coverage() {
+    let dir = scratch("board");
+    let rig = build_rig(
+        &RigPreset::Convergent {
+            distance_mm: 659.84,
+            angle_deg: 90.0,
+        },
+        &CameraSpec::default(),
+    )
+    .unwrap();
+    let board = BoardSpec::new(9, 6, 25.0).unwrap();
+    let poses = checkerboard::generate_poses(
+        &rig,
+        &board,
+        &PoseConfig {
+            count: 3,
+            seed: 4,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let set = checkerboard::write_set(
+        &dir.join("views"),
+        &rig,
+        &board,
+        &poses,
+        &RenderSettings {
+            seed: 4,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let size = rig.cameras[0].model.image_size;
+    let size = (size.width_px, size.height_px);
+    let bodies: Vec<(u16, &'static str, Vec<u8>)> = (0..3)
+        .map(|v| {
+            let pgms: Vec<Vec<u8>> = (0..2).map(|c| std::fs::read(&set.files[c][v]).unwrap()).collect();
+            (
+                200,
+                "application/x-irtrack-frameset",
+                frameset_body(10 + v as u64, &pgms, size),
+            )
+        })
+        .collect();
+    let expected: Vec<Vec<Vec<u8>>> = (0..3)
+        .map(|v| (0..2).map(|c| std::fs::read(&set.files[c][v]).unwrap()).collect())
+        .collect();
+    let (addr, server) = serve(bodies);
+    let out = dir.join("shots");
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr,
+        "--out",
+        p(&out),
+        "--every",
+        "0.05",
+        "--count",
+        "3",
+    ]);
+    let (stdout, stderr) = text(&o);
+    assert!(o.status.success(), "{stdout}\n{stderr}");
+    print!("{stdout}");
+    assert_eq!(server.join().unwrap(), 3);
+    for (v, cams) in expected.iter().enumerate() {
+        for (c, pgm) in cams.iter().enumerate() {
+            let saved = std::fs::read(out.join(format!("cam{c}/{v:06}.pgm"))).unwrap();
+            assert!(saved == *pgm, "cam{c} set {v} differs from what was served");
+        }
+    }
+    assert_eq!(
+        stdout.matches("cam0 board found (54 corners)").count(),
+        3,
+        "{stdout}"
+    );
+    assert_eq!(
+        stdout.matches("cam1 board found (54 corners)").count(),
+        3,
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("views with the board in every camera: 3"),
+        "{stdout}"
+    );
+    // The coverage grid: some cells reached, and not the whole image from three views.
+    assert!(stdout.contains('#') || stdout.contains('+'), "{stdout}");
+    assert!(stdout.contains("saved 3 sets"), "{stdout}");
+
+    // A second session continues the numbering instead of overwriting.
+    let (addr, server) = serve(vec![(
+        200,
+        "application/x-irtrack-frameset",
+        frameset_body(99, &expected[0], size),
+    )]);
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr,
+        "--out",
+        p(&out),
+        "--every",
+        "0.05",
+        "--count",
+        "1",
+    ]);
+    assert!(o.status.success(), "{}", text(&o).1);
+    server.join().unwrap();
+    assert!(out.join("cam1/000003.pgm").is_file());
+}
+
+#[test]
+fn capture_names_old_firmware_and_unreachable_boards() {
+    let dir = scratch("errors");
+    let (addr, server) = serve(vec![(404, "text/plain", b"not found".to_vec())]);
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr,
+        "--out",
+        p(&dir),
+        "--wand",
+        "--count",
+        "2",
+    ]);
+    let (_, err) = text(&o);
+    assert!(!o.status.success());
+    assert!(
+        err.contains(&format!(
+            "irtrackd on {addr} has no /api/frameset; update the firmware"
+        )),
+        "{err}"
+    );
+    server.join().unwrap();
+
+    // Nothing listens on a port that was just free.
+    let port = TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let board = format!("127.0.0.1:{port}");
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &board,
+        "--out",
+        p(&dir),
+        "--wand",
+        "--count",
+        "2",
+    ]);
+    let (_, err) = text(&o);
+    assert!(!o.status.success());
+    assert!(
+        err.contains(&format!("cannot reach irtrackd on {board}")),
+        "{err}"
+    );
+}
