@@ -3,7 +3,7 @@
 import { getJson } from "./api.js";
 import { Cameras } from "./cameras.js";
 import { Controls } from "./controls.js";
-import { Health, previewWarnings, serverFaults } from "./health.js";
+import { Health, serverFaults } from "./health.js";
 import { Live } from "./live.js";
 import { Robot } from "./robot.js";
 import { Scene3D } from "./scene3d.js";
@@ -33,24 +33,21 @@ const controls = new Controls((s) => {
 });
 
 function refreshFaults() {
-  if (state.status) health.faults(state.status, previewWarnings(cameras.summary()));
+  if (state.status) health.faults(state.status, cameras.summary());
 }
 
-async function loadRig(st) {
+/** Camera poses and the workspace box (`GET /api/scene`), fetched again when the active
+ *  parameter set changes. */
+async function loadScene(st) {
   const p = st.params || {};
-  const key = p.loaded ? `${p.rig_id}|${p.created_unix_s}|${p.swaps}` : null;
+  const key = `${p.loaded}|${p.rig_id}|${p.created_unix_s}|${p.swaps}`;
   if (key === state.rigKey) return;
   state.rigKey = key;
-  if (!key) return;
-  if (p.rig && Array.isArray(p.rig.cameras)) {
-    scene.setRig(p.rig);
-    return;
-  }
   try {
-    scene.setRig(await getJson("/api/params"));
+    scene.setScene(await getJson("/api/scene"));
   } catch (e) {
-    state.rigNote = `camera poses unavailable: ${e.message}`;
-    $("scene-info").textContent = state.rigNote;
+    state.rigKey = null; // try again with the next status report
+    $("scene-info").textContent = `camera poses unavailable: ${e.message}`;
   }
 }
 
@@ -62,10 +59,9 @@ function onStatus(msg) {
   health.leds(st);
   health.update(st);
   robot.update(st, state.session);
-  const ws = (st.robot && (st.robot.safety || st.robot)) || {};
-  scene.setWorkspace(ws.workspace_min_mm, ws.workspace_max_mm);
+  if (st.tuning && typeof st.tuning === "object") controls.showLive(st.tuning);
   refreshFaults();
-  loadRig(st);
+  loadScene(st);
   $("foot").textContent =
     `irtrackd ${(st.versions || {}).irtrackd || "?"} · up ${Math.round(st.uptime_s || 0)} s · ` +
     `${state.statusCount} status reports, ${state.positions} positions received`;
@@ -78,6 +74,9 @@ const live = new Live({
     refreshFaults();
   },
   onZoom: (head, png) => cameras.zoom(head, png),
+  onError: (message) => {
+    $("conn").title = `irtrackd: ${message}`;
+  },
   onPosition: (rec) => {
     state.positions += 1;
     health.position(rec);
@@ -104,7 +103,7 @@ window.__irtrack = {
   serverFaults: () => (state.status ? serverFaults(state.status) : []),
   statusReports: () => state.statusCount,
   positions: () => state.positions,
-  scene: () => ({ webgl: scene.ok, records: scene.records, rigCameras: scene.rig ? scene.rig.cameras.length : 0 }),
+  scene: () => ({ webgl: scene.ok, records: scene.records, rigCameras: scene.rig ? scene.rig.cameras.length : 0, workspace: !!scene.workspace }),
   session: () => state.session,
   tuningMessage: () => $("tuning-msg").textContent,
 };

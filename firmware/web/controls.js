@@ -134,6 +134,12 @@ export class Controls {
     }
   }
 
+  /** Values from a status report: the board's truth, also after changes made elsewhere. */
+  showLive(t) {
+    if (this.timer && Object.keys(this.pendingBody).length) return; // our own change is on its way
+    this.show(t);
+  }
+
   /** Shows the board's current values (answer of GET or POST /api/tuning). */
   show(t) {
     this.tuning = t;
@@ -144,11 +150,18 @@ export class Controls {
     (t.cameras || []).forEach((c, i) => {
       const p = this.cameraPairs[i];
       if (!p) return;
-      p.exposure.set(c.exposure);
-      p.gain.set(c.gain);
+      // null: this camera has no such control.
+      p.exposure.enable(c.exposure !== null && c.exposure !== undefined);
+      p.gain.enable(c.gain !== null && c.gain !== undefined);
+      if (c.exposure !== null && c.exposure !== undefined) p.exposure.set(c.exposure);
+      if (c.gain !== null && c.gain !== undefined) p.gain.set(c.gain);
     });
+    const cameraError = $("camera-error");
+    cameraError.textContent = t.last_error ? `A camera refused a change: ${t.last_error}` : "";
+    cameraError.hidden = !t.last_error;
     $("unsaved").hidden = !t.unsaved_changes;
-    $("saved-to").textContent = t.saved_to ? `Save writes ${t.saved_to}` : "";
+    $("saved-to").textContent =
+      (t.saved_to ? `Save writes ${t.saved_to}` : "") + (t.loaded_from_file ? " (values loaded from it at start)" : "");
   }
 
   buildCameraControls(cams) {

@@ -28,17 +28,21 @@ function faultWords(code, st) {
   }
 }
 
-/** The server's fault list as sentences: objects with a message, or codes. */
+/** The server's faults as {camera, text}: `fault_texts` (plain words from the board) when
+ *  present, else the LED fault codes put into words here. */
 export function serverFaults(st) {
-  if (Array.isArray(st.fault_messages) && st.fault_messages.length) return st.fault_messages.map(String);
-  return (st.faults || []).map((f) => (f && typeof f === "object" ? f.message || f.text || faultWords(f.code, st) : faultWords(f, st)));
+  if (Array.isArray(st.fault_texts)) {
+    return st.fault_texts.map((f) => ({ camera: f.camera ?? null, text: f.message || faultWords(f.code, st) }));
+  }
+  return (st.faults || []).map((f) => ({ camera: null, text: faultWords(f, st) }));
 }
 
-/** Problems the page sees in the camera previews, in plain words with the next step. */
-export function previewWarnings(cams) {
+/** Problems the page sees in the camera previews, in plain words with the next step; cameras
+ *  in `skip` already have a fault from the board. */
+export function previewWarnings(cams, skip = new Set()) {
   const out = [];
   for (const c of cams) {
-    if (c.kept === null) continue;
+    if (c.kept === null || skip.has(c.camera)) continue;
     if (c.kept === 0 && c.rejected === 0) {
       const above = c.peak_dn > c.threshold_dn;
       out.push(
@@ -85,10 +89,13 @@ export class Health {
     }
   }
 
-  faults(st, warnings) {
+  /** The banner: the board's faults first, then what the page sees in the previews. */
+  faults(st, cams) {
     const box = document.getElementById("faults");
     const list = document.getElementById("fault-list");
-    const items = serverFaults(st).map((t) => [t, "fault"]).concat(warnings.map((t) => [t, "warn"]));
+    const server = serverFaults(st);
+    const covered = new Set(server.filter((f) => f.camera !== null).map((f) => f.camera));
+    const items = server.map((f) => [f.text, "fault"]).concat(previewWarnings(cams, covered).map((t) => [t, "warn"]));
     box.hidden = items.length === 0;
     list.replaceChildren(
       ...items.map(([t, cls]) => {
@@ -113,6 +120,7 @@ export class Health {
           fmt(c.fps, 1),
           fmt(c.frames),
           fmt(c.blobs_last),
+          fmt(c.peak_dn),
           c.width_px ? `${c.width_px}×${c.height_px}` : "—",
         ]) {
           const td = document.createElement("td");
@@ -140,7 +148,11 @@ export class Health {
       ["deadline misses", `${fmt(proc.deadline_misses)} (deadline ${fmt(proc.deadline_us)} µs)`, proc.deadline_misses ? "bad" : ""],
       ["ray gap, last", proc.last_gap_mm === null || proc.last_gap_mm === undefined ? "—" : `${fmt(proc.last_gap_mm, 3)} mm`],
       ["stream clients", fmt((st.stream || {}).clients)],
-    ]);
+    ].concat(
+      st.viewers
+        ? [["page viewers", `${fmt(st.viewers.live)} (sets copied ${fmt(st.viewers.copies)}, skipped while busy ${fmt(st.viewers.busy_skips)})`]]
+        : []
+    ));
     // Latency table.
     const lat = proc.latency_us || {};
     document.querySelector("#latency tbody").replaceChildren(

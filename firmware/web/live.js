@@ -91,6 +91,9 @@ export class Live {
       case "position":
         this.h.onPosition(msg.record);
         break;
+      case "error":
+        this.h.onError(String(msg.message || "error"));
+        break;
       default:
         break; // newer server message types are ignored
     }

@@ -41,7 +41,7 @@ export class Scene3D {
     this.frameLabel = frameLabel;
     this.ok = false;
     this.dirty = true;
-    this.rig = null;
+    this.rig = null; // {rig_id, cameras} of the last scene
     this.worldFrame = false;
     this.records = 0;
     this.workspace = null;
@@ -65,7 +65,7 @@ export class Scene3D {
     this.frameAxes = new THREE.AxesHelper(150);
     this.scene.add(this.frameAxes);
     this.frameText = label("cam 0 frame", "#9aa3b2");
-    this.frameText.position.set(0, 0, 0);
+    this.frameText.position.set(160, 0, 0); // at the tip of the X axis, clear of the camera 0 label
     this.scene.add(this.frameText);
     this.grid = new THREE.GridHelper(2000, 20, 0x3a4150, 0x262b34);
     this.grid.rotation.x = Math.PI / 2; // into the world's XY plane (Z up)
@@ -117,43 +117,50 @@ export class Scene3D {
     this.dirty = true;
   }
 
-  /** The rig's cameras as frusta, in the display frame. `rig` is the RigParams JSON. */
-  setRig(rig) {
-    if (!this.ok || !rig || !Array.isArray(rig.cameras)) return;
-    const key = JSON.stringify([rig.rig_id, rig.created_unix_s, rig.cameras.length, !!rig.world_from_cam0]);
-    if (key === this.rigKey) return;
-    this.rigKey = key;
-    this.rig = rig;
+  /** Cameras as frusta and the workspace box from `GET /api/scene` (docs/http-api.md). */
+  setScene(sc) {
+    if (!this.ok || !sc) return;
+    const cams = Array.isArray(sc.cameras) ? sc.cameras : [];
     this.rigGroup.clear();
-    const worldFromCam0 = rig.world_from_cam0 ? matrixOf(rig.world_from_cam0) : new THREE.Matrix4();
-    rig.cameras.forEach((cam, i) => {
-      const k = cam.model.intrinsics;
-      const size = cam.model.image_size;
+    this.rig = cams.length ? { rig_id: sc.rig_id, cameras: cams } : null;
+    const worldFromCam0 = sc.world_from_cam0 ? matrixOf(sc.world_from_cam0) : new THREE.Matrix4();
+    cams.forEach((cam, n) => {
+      const i = cam.camera ?? n;
       const d = FRUSTUM_DEPTH_MM;
       const corners = [
         [0, 0],
-        [size.width_px, 0],
-        [size.width_px, size.height_px],
-        [0, size.height_px],
-      ].map(([u, v]) => new THREE.Vector3(((u - k.cx_px) / k.fx_px) * d, ((v - k.cy_px) / k.fy_px) * d, d));
+        [cam.width_px, 0],
+        [cam.width_px, cam.height_px],
+        [0, cam.height_px],
+      ].map(([u, v]) => new THREE.Vector3(((u - cam.cx_px) / cam.fx_px) * d, ((v - cam.cy_px) / cam.fy_px) * d, d));
       const pts = [];
       for (const c of corners) pts.push(new THREE.Vector3(), c);
       for (let j = 0; j < 4; j++) pts.push(corners[j], corners[(j + 1) % 4]);
       // A tick on the image's top edge shows which way is up in the camera picture.
-      pts.push(corners[0].clone().lerp(corners[1], 0.5), corners[0].clone().lerp(corners[1], 0.5).add(new THREE.Vector3(0, -d * 0.15, 0)));
+      const top = corners[0].clone().lerp(corners[1], 0.5);
+      pts.push(top, top.clone().add(new THREE.Vector3(0, -d * 0.15, 0)));
       const color = i === 0 ? 0x5fb3ff : 0xc792ea;
       const lines = new THREE.LineSegments(new THREE.BufferGeometry().setFromPoints(pts), new THREE.LineBasicMaterial({ color }));
       // cam_from_cam0 maps camera-0 coordinates into this camera; its inverse places the camera.
-      const cam0FromCam = matrixOf(cam.cam_from_cam0).invert();
-      const m = worldFromCam0.clone().multiply(cam0FromCam);
+      const camFromCam0 = matrixOf({ r_row_major: cam.r_cam_from_cam0_row_major, t_mm: cam.t_cam_from_cam0_mm });
+      const m = worldFromCam0.clone().multiply(camFromCam0.invert());
       lines.applyMatrix4(m);
       this.rigGroup.add(lines);
       const t = label(`camera ${i}`, i === 0 ? "#5fb3ff" : "#c792ea");
       t.position.copy(new THREE.Vector3(0, 0, 0).applyMatrix4(m));
       this.rigGroup.add(t);
     });
-    this.setWorld(!!rig.world_from_cam0);
+    this.setWorld(!!sc.world_from_cam0);
+    const ws = sc.workspace_mm;
+    this.workspace = ws && ws.min && ws.max ? [ws.min, ws.max] : null;
+    if (this.workspace) {
+      this.workspaceBox.box.min.set(...ws.min);
+      this.workspaceBox.box.max.set(...ws.max);
+    }
+    // The box is given in the frame the robot targets use, which is the frame drawn here.
+    this.workspaceBox.visible = !!this.workspace;
     this.resetView();
+    this.describe();
   }
 
   setWorld(world) {
@@ -167,26 +174,11 @@ export class Scene3D {
     this.dirty = true;
   }
 
-  /** The robot's safety workspace box (world frame), shown when the rig is registered. */
-  setWorkspace(minMm, maxMm) {
-    if (!this.ok) return;
-    if (!minMm || !maxMm) {
-      this.workspace = null;
-      this.workspaceBox.visible = false;
-      return;
-    }
-    this.workspace = [minMm, maxMm];
-    this.workspaceBox.box.min.set(...minMm);
-    this.workspaceBox.box.max.set(...maxMm);
-    this.workspaceBox.visible = this.worldFrame;
-    this.dirty = true;
-  }
-
   /** One position record from the live stream. */
   position(rec) {
     if (!this.ok || !rec) return;
     this.records += 1;
-    if (rec.world_frame !== undefined && !!rec.world_frame !== this.worldFrame && !this.rig) this.setWorld(!!rec.world_frame);
+    if (rec.world_frame !== undefined && !!rec.world_frame !== this.worldFrame) this.setWorld(!!rec.world_frame);
     const p = rec.position_mm;
     if (!p) {
       this.marker.material.color.set(0xff5a5a);
@@ -236,7 +228,7 @@ export class Scene3D {
     else parts.push("camera frusta appear once the board sends the active parameter set");
     if (this.lastP) parts.push(`marker at (${this.lastP.map((v) => v.toFixed(1)).join(", ")}) mm`);
     if (this.lastStatus && this.lastStatus !== "ok") parts.push(`last record: ${this.lastStatus}`);
-    if (this.workspace && !this.worldFrame) parts.push("robot workspace hidden: the rig is not registered to the robot frame");
+    if (this.workspace) parts.push("orange box: the robot's safety workspace");
     this.info.textContent = parts.join(" · ");
   }
 
