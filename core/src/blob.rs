@@ -238,6 +238,9 @@ pub struct BlobDetector {
     parent: Vec<u32>,
     acc: Vec<Acc>,
     blobs: Vec<Blob>,
+    /// The first components dropped by the area limits (up to `max_blobs`), for diagnostics
+    /// (the set-up view shows why a spot was not used). Capacity fixed at construction.
+    rejected_area: Vec<Blob>,
     stats: DetectStats,
 }
 
@@ -275,6 +278,7 @@ impl BlobDetector {
             parent: Vec::with_capacity(limits.max_labels),
             acc: Vec::with_capacity(limits.max_labels),
             blobs: Vec::with_capacity(limits.max_blobs),
+            rejected_area: Vec::with_capacity(limits.max_blobs),
             stats: DetectStats::default(),
         })
     }
@@ -287,6 +291,12 @@ impl BlobDetector {
     /// Blobs of the last detection, heaviest (largest weight sum) first.
     pub fn blobs(&self) -> &[Blob] {
         &self.blobs
+    }
+
+    /// Components of the last detection dropped by the area limits (at most `max_blobs`
+    /// of them, in scan order; [`DetectStats::rejected_area`] counts all).
+    pub fn rejected_by_area(&self) -> &[Blob] {
+        &self.rejected_area
     }
 
     /// Statistics of the last detection.
@@ -312,6 +322,7 @@ impl BlobDetector {
         let roi = roi.unwrap_or(image.full_roi());
         roi.check(image.width_px, image.height_px)?;
         self.blobs.clear();
+        self.rejected_area.clear();
         self.parent.clear();
         self.acc.clear();
         self.prev_runs.clear();
@@ -524,6 +535,11 @@ impl BlobDetector {
             let a = self.acc[i];
             if a.area < config.min_area_px || a.area > config.max_area_px || a.m.m00 == 0 {
                 self.stats.rejected_area += 1;
+                // Within the fixed capacity only: never allocates.
+                if a.m.m00 != 0 && self.rejected_area.len() < self.rejected_area.capacity() {
+                    self.rejected_area
+                        .push(make_blob(&a, roi, image.width_px, image.height_px));
+                }
                 continue;
             }
             let blob = make_blob(&a, roi, image.width_px, image.height_px);
@@ -1062,6 +1078,13 @@ mod tests {
         assert!(n < 5);
         assert_eq!(det.stats().rejected_area as usize, 5 - n);
         assert!(det.blobs().iter().all(|b| (12..=30).contains(&b.area_px)));
+        // The dropped components are listed with their real areas (outside the limits).
+        assert_eq!(det.rejected_by_area().len(), 5 - n);
+        assert!(
+            det.rejected_by_area()
+                .iter()
+                .all(|b| !(12..=30).contains(&b.area_px))
+        );
     }
 
     #[test]

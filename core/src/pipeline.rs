@@ -290,6 +290,32 @@ impl Tracker {
         Ok(())
     }
 
+    /// Replaces the settings live (threshold, area limits, gate), effective from the next
+    /// detection. Settings that size buffers (`max_blobs`, `max_labels`) cannot change here,
+    /// so this never allocates; on error the previous settings stay.
+    pub fn set_config(&mut self, config: TrackerConfig) -> Result<()> {
+        config.validate()?;
+        if config.max_blobs != self.config.max_blobs || config.max_labels != self.config.max_labels {
+            return Err(Error::InvalidParams {
+                reason: format!(
+                    "max_blobs/max_labels ({}/{}) cannot change on a running tracker (is {}/{})",
+                    config.max_blobs, config.max_labels, self.config.max_blobs, self.config.max_labels
+                ),
+            });
+        }
+        self.config = config;
+        Ok(())
+    }
+
+    /// Blobs of `camera`'s last detection dropped by the area limits (diagnostics; a few at
+    /// most, see [`BlobDetector::rejected_by_area`]).
+    pub fn rejected_by_area(&self, camera: usize) -> &[Blob] {
+        self.cams
+            .get(camera)
+            .map(|c| c.detector.rejected_by_area())
+            .unwrap_or(&[])
+    }
+
     /// The configuration in use.
     pub fn config(&self) -> &TrackerConfig {
         &self.config

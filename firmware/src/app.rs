@@ -215,16 +215,49 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         params.install_unstored(rig, "simulator")?;
     }
 
+    // Saved tuning (set-up view "Save") overrides [tracking]'s detector values and the
+    // cameras' exposure/gain.
+    let saved_tuning = crate::tuning::TuningFile::load(&cfg.service.state_dir)?;
+    let tracking = match &saved_tuning {
+        Some(t) => {
+            let tracking = t
+                .apply_to(&cfg.tracking)
+                .map_err(|reason| FirmwareError::Config {
+                    reason: format!(
+                        "{}: {reason}",
+                        cfg.service.state_dir.join(crate::tuning::TUNING_FILE).display()
+                    ),
+                })?;
+            tracing::info!(
+                path = %cfg.service.state_dir.join(crate::tuning::TUNING_FILE).display(),
+                threshold_dn = tracking.threshold_dn,
+                "saved tuning applied"
+            );
+            tracking
+        }
+        None => cfg.tracking,
+    };
+    let tuning = Arc::new(crate::tuning::TuningHandle::new(
+        tracking,
+        saved_tuning.as_ref().map_or(&[][..], |t| &t.camera[..]),
+        &cfg.service.state_dir,
+        saved_tuning.is_some(),
+    ));
+    let tap = Arc::new(crate::viewer::ViewerTap::new());
+    let auth = crate::net::auth::OperatorAuth::new(cfg.service.operator_password_hash.clone())?;
+
     let (slot_tx, slot_rx) = watch::channel(None);
     let engine = Engine::new(
         source,
-        cfg.tracking,
-        handle,
+        tracking,
+        handle.clone(),
         slot_tx,
         status.clone(),
         deadline(&cfg),
     )
-    .with_pose_config(cfg.pose);
+    .with_pose_config(cfg.pose)
+    .with_viewer_tap(tap.clone())
+    .with_tuning(tuning.clone());
     let engine = match cfg.source.max_pairing_error_us {
         Some(us) => engine.with_max_pairing_error(Duration::from_micros(us)),
         None => engine,
@@ -305,12 +338,16 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
             .filter(|rc| rc.deadman == crate::robot::deadman::DeadmanConfig::Flag)
             .map(|_| robot_deadman_flag.clone()),
     };
-    tasks.push(tokio::spawn(crate::net::status::serve_with_control(
-        l_status,
-        status.clone(),
-        control,
-        shutdown(),
-    )));
+    let service = crate::net::status::StatusService::new(status.clone())
+        .with_control(control)
+        .with_auth(auth)
+        .with_live(tap, tuning, slot_rx.clone(), handle)
+        .with_workspace(
+            cfg.robot
+                .as_ref()
+                .map(|r| (r.safety.workspace_min_mm, r.safety.workspace_max_mm)),
+        );
+    tasks.push(tokio::spawn(service.serve(l_status, shutdown())));
 
     Ok(Running {
         addrs,

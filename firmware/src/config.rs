@@ -61,6 +61,11 @@ pub struct ServiceConfig {
     /// that port can then enable motion, so it is off by default (docs/security.md).
     #[serde(default)]
     pub control: bool,
+    /// Argon2id PHC string of the operator password (`irtrackd --hash-password`). Every
+    /// change request on the status port (tuning, save, robot control) needs a sign-in with
+    /// it; without it they are all refused (docs/security.md).
+    #[serde(default)]
+    pub operator_password_hash: Option<String>,
 }
 
 fn default_state_dir() -> PathBuf {
@@ -76,6 +81,7 @@ impl Default for ServiceConfig {
             state_dir: default_state_dir(),
             params_from_simulator: false,
             control: false,
+            operator_password_hash: None,
         }
     }
 }
@@ -313,6 +319,9 @@ impl Config {
             return bad("source.max_pairing_error_us must be > 0".into());
         }
         check_tracker_config(&self.tracking)?;
+        if let Some(h) = &self.service.operator_password_hash {
+            crate::net::auth::check_hash(h)?;
+        }
         self.pose.validate().map_err(|e| FirmwareError::Config {
             reason: format!("[pose]: {e}"),
         })?;

@@ -32,6 +32,8 @@ use crate::error::Result;
 use crate::leds::indication::TrackIndication;
 use crate::source::{FrameSet, FrameSource, Pixels, SourceError};
 use crate::status::SharedStatus;
+use crate::tuning::TuningHandle;
+use crate::viewer::{BlobView, RejectReason, TapSet, ViewerTap};
 
 const R: Ordering = Ordering::Relaxed;
 
@@ -106,6 +108,12 @@ pub struct Engine {
     /// Capture time of the last processed set: older or repeated sets are never published.
     /// (Time, not index: a repeating replay restarts its indices with newer timestamps.)
     last_capture_ns: Option<u64>,
+    /// Latest-only copies for the set-up view (see [`crate::viewer`]).
+    tap: Option<Arc<ViewerTap>>,
+    tap_last_ns: u64,
+    /// Live tuning from the set-up view (see [`crate::tuning`]).
+    tuning: Option<Arc<TuningHandle>>,
+    tuning_seen: u64,
 }
 
 impl Engine {
@@ -141,6 +149,87 @@ impl Engine {
             max_pairing_error_ns: deadline_ns / 2,
             consecutive_errors: 0,
             last_capture_ns: None,
+            tap: None,
+            tap_last_ns: 0,
+            tuning: None,
+            tuning_seen: 0,
+        }
+    }
+
+    /// Feeds `tap` with copies of processed sets while viewers ask for them.
+    pub fn with_viewer_tap(mut self, tap: Arc<ViewerTap>) -> Self {
+        tap.set_template(self.source.allocate_set());
+        self.tap = Some(tap);
+        self
+    }
+
+    /// Applies live tuning from `tuning` between sets.
+    pub fn with_tuning(mut self, tuning: Arc<TuningHandle>) -> Self {
+        let bits = self.set.frames.first().map_or(8, |f| f.bit_depth);
+        tuning.set_max_dn((1u32 << bits.min(16)) - 1);
+        tuning.report_cameras(self.source.controls(), None);
+        self.tuning = Some(tuning);
+        self
+    }
+
+    /// Picks up a tuning change (locks and may allocate only when the operator changed
+    /// something).
+    fn refresh_tuning(&mut self) {
+        let Some(tuning) = &self.tuning else { return };
+        let generation = tuning.generation();
+        if generation == self.tuning_seen {
+            return;
+        }
+        self.tuning_seen = generation;
+        let Some(req) = tuning.take() else { return };
+        let mut error = None;
+        match &mut self.tracker {
+            Some(t) => match t.set_config(req.tracking) {
+                Ok(()) => self.tracker_cfg = req.tracking,
+                Err(e) => error = Some(format!("detector settings refused: {e}")),
+            },
+            None => self.tracker_cfg = req.tracking,
+        }
+        for (camera, control, value) in req.pending {
+            match self.source.set_control(camera, control, value) {
+                Ok(()) => tracing::info!(camera, ?control, value, "camera control changed"),
+                Err(e) => {
+                    tracing::warn!(camera, ?control, value, error = %e, "camera control refused");
+                    error = Some(e.to_string());
+                }
+            }
+        }
+        tuning.report_cameras(self.source.controls(), error);
+        tracing::info!(
+            threshold_dn = self.tracker_cfg.threshold_dn,
+            min_area_px = self.tracker_cfg.min_area_px,
+            max_area_px = self.tracker_cfg.max_area_px,
+            "tuning applied"
+        );
+    }
+
+    /// Copies the set just processed into the viewer tap if a viewer asked (never waits).
+    /// `detected`: the tracker's blob lists belong to this set.
+    fn feed_tap(&mut self, detected: bool) {
+        let Some(tap) = &self.tap else { return };
+        let now_ns = clock::monotonic_ns();
+        if !tap.wants_copy(now_ns, self.tap_last_ns) {
+            return;
+        }
+        let (set, tracker, six_dof) = (&self.set, self.tracker.as_ref(), self.pose.is_some());
+        let threshold_dn = self.tracker_cfg.threshold_dn;
+        let copied = tap.try_fill(|buf: &mut TapSet| {
+            if !buf.copy_frames_from(set) {
+                return false;
+            }
+            buf.threshold_dn = threshold_dn;
+            if let (true, Some(tracker)) = (detected, tracker) {
+                fill_blob_views(buf, tracker, six_dof);
+            }
+            true
+        });
+        if copied {
+            self.tap_last_ns = now_ns;
         }
     }
 
@@ -211,6 +300,7 @@ impl Engine {
 
     /// Processes one frame set (blocking in the source until it is available).
     pub fn step(&mut self) -> Result<StepOutcome> {
+        self.refresh_tuning();
         self.refresh_params();
         self.status.loop_iterations.fetch_add(1, R);
         // Sets not newer than the last processed one (duplicated or reordered by the source)
@@ -258,6 +348,7 @@ impl Engine {
         self.account_source();
 
         let skewed = self.set.pairing_error_ns > self.max_pairing_error_ns;
+        let mut detected = false;
         let (mut rec, t_detect, t_solve) = match self
             .tracker
             .as_mut()
@@ -309,6 +400,8 @@ impl Engine {
                         Ok(n) => {
                             if let Some(c) = self.status.cameras.get(camera) {
                                 c.blobs_last.store(n as u64, R);
+                                c.peak_dn
+                                    .store(u64::from(peak_dn(tracker.blobs(camera), frame)), R);
                             }
                         }
                         Err(e) => {
@@ -319,6 +412,7 @@ impl Engine {
                         }
                     }
                 }
+                detected = !failed;
                 let t_detect = Instant::now();
                 if let Some(pose_tracker) = self.pose.as_mut() {
                     let rec = if failed {
@@ -401,6 +495,8 @@ impl Engine {
         rec.latency_us = u32::try_from(e2e_ns / 1000).unwrap_or(u32::MAX);
         self.out.send_replace(Some(rec));
         self.status.published.fetch_add(1, R);
+        // After publishing: a viewer's copy never delays the position.
+        self.feed_tap(detected);
         let t_end = Instant::now();
 
         let st = &self.status.stages;
@@ -523,6 +619,55 @@ impl Engine {
 
     pub fn source(&self) -> &dyn FrameSource {
         self.source.as_ref()
+    }
+}
+
+/// Brightest pixel of a camera's frame: the brightest blob's peak when there are blobs (free),
+/// else a scan of the frame (only in frames without any blob, where the set-up view needs it
+/// to tell "threshold above the LED" from "no LED in view").
+fn peak_dn(blobs: &[Blob], frame: &crate::source::Frame) -> u32 {
+    if let Some(p) = blobs.iter().map(|b| b.peak_dn).max() {
+        return p;
+    }
+    match &frame.pixels {
+        Pixels::U8(px) => px.iter().copied().max().map_or(0, u32::from),
+        Pixels::U16(px) => px.iter().copied().max().map_or(0, u32::from),
+    }
+}
+
+/// Lists every blob of the tracker's last detection with why it was (not) used.
+fn fill_blob_views(buf: &mut TapSet, tracker: &Tracker, six_dof: bool) {
+    let cfg = *tracker.config();
+    let m = tracker.measurement();
+    for camera in 0..tracker.camera_count() {
+        let marker = m.cameras().get(camera).and_then(|o| o.marker);
+        for b in tracker.blobs(camera) {
+            let reason = if b.roundness < cfg.min_roundness {
+                Some(RejectReason::Roundness)
+            } else if (cfg.reject_edge_blobs && b.touches_frame_edge) || b.touches_roi_edge {
+                Some(RejectReason::Edge)
+            } else if six_dof || marker.is_some_and(|mk| mk.x_px == b.x_px && mk.y_px == b.y_px) {
+                None
+            } else {
+                Some(RejectReason::Gate)
+            };
+            buf.push_blob(camera, blob_view(b, reason));
+        }
+        for b in tracker.rejected_by_area(camera) {
+            buf.push_blob(camera, blob_view(b, Some(RejectReason::Area)));
+        }
+    }
+}
+
+fn blob_view(b: &Blob, reason: Option<RejectReason>) -> BlobView {
+    BlobView {
+        x_px: b.x_px,
+        y_px: b.y_px,
+        area_px: b.area_px,
+        peak_dn: b.peak_dn,
+        roundness: b.roundness,
+        kept: reason.is_none(),
+        reason,
     }
 }
 

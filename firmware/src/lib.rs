@@ -20,6 +20,8 @@ pub mod soak;
 pub mod source;
 pub mod status;
 pub mod storage;
+pub mod tuning;
+pub mod viewer;
 pub mod watchdog;
 
 pub use error::{FirmwareError, Result};

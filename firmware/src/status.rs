@@ -48,6 +48,8 @@ pub struct CameraCounters {
     pub last_timestamp_ns: AtomicU64,
     /// Blobs found in the last processed frame.
     pub blobs_last: AtomicU64,
+    /// Brightest pixel (DN) of the last processed frame.
+    pub peak_dn: AtomicU64,
     pub width_px: AtomicU64,
     pub height_px: AtomicU64,
 }
@@ -129,6 +131,8 @@ pub struct SharedStatus {
     pub stream_refused: AtomicU64,
     pub stream_records_sent: AtomicU64,
     pub slot_overwrites: AtomicU64,
+    /// Open live WebSocket sessions (set-up view).
+    pub live_viewers: AtomicU64,
 
     pub params: Mutex<ParamsInfo>,
     pub realtime: Mutex<Vec<String>>,
@@ -192,6 +196,7 @@ impl SharedStatus {
             stream_dropped_slow: AtomicU64::new(0),
             stream_records_sent: AtomicU64::new(0),
             slot_overwrites: AtomicU64::new(0),
+            live_viewers: AtomicU64::new(0),
             params: Mutex::new(ParamsInfo::default()),
             realtime: Mutex::new(Vec::new()),
         }
@@ -325,6 +330,7 @@ impl SharedStatus {
                         width_px: c.width_px.load(R),
                         height_px: c.height_px.load(R),
                         blobs_last: c.blobs_last.load(R),
+                        peak_dn: c.peak_dn.load(R),
                     })
                     .collect(),
             },
@@ -538,6 +544,77 @@ impl SharedStatus {
     }
 }
 
+/// One fault in plain words with what to do about it (the set-up view's health panel).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FaultText {
+    /// Stable code: `camera_lost`, `no_params`, `deadline_misses`, `no_led`, `no_usable_blob`,
+    /// `skewed_sets`.
+    pub code: &'static str,
+    pub camera: Option<usize>,
+    /// What is wrong and the next step, one sentence.
+    pub message: String,
+}
+
+/// The active faults in plain words. `threshold_dn`: the detector's current threshold, when
+/// known (enables the "threshold above the LED" diagnosis).
+pub fn fault_texts(st: &SharedStatus, threshold_dn: Option<u32>) -> Vec<FaultText> {
+    let mut out = Vec::new();
+    let reconnects = st.reconnects.load(R);
+    if st.camera_lost.load(R) {
+        out.push(FaultText {
+            code: "camera_lost",
+            camera: None,
+            message: format!(
+                "a camera is not delivering frames ({}) — check its cable and power; {reconnects} reconnect attempts so far",
+                st.source_description
+            ),
+        });
+    }
+    if !st.params_loaded.load(R) {
+        out.push(FaultText {
+            code: "no_params",
+            camera: None,
+            message: "no calibration (parameter set) is loaded, so no positions are computed — push one with `host-tools push`".into(),
+        });
+    }
+    if st.deadline_fault.load(R) {
+        out.push(FaultText {
+            code: "deadline_misses",
+            camera: None,
+            message: format!(
+                "processing is slower than the frame rate ({} deadline misses) — lower the frame rate or resolution, or close viewers",
+                st.deadline_misses.load(R)
+            ),
+        });
+    }
+    let processing = st.sets_processed.load(R) > 0 && !st.camera_lost.load(R) && st.params_loaded.load(R);
+    if processing {
+        for (i, c) in st.cameras.iter().enumerate() {
+            if c.blobs_last.load(R) > 0 || c.frames.load(R) == 0 {
+                continue;
+            }
+            let peak = c.peak_dn.load(R);
+            match threshold_dn {
+                Some(thr) if peak <= u64::from(thr) => out.push(FaultText {
+                    code: "no_led",
+                    camera: Some(i),
+                    message: format!(
+                        "camera {i}: no LED found: the threshold {thr} DN is above the brightest pixel {peak} DN — lower the threshold or raise exposure/gain"
+                    ),
+                }),
+                _ => out.push(FaultText {
+                    code: "no_usable_blob",
+                    camera: Some(i),
+                    message: format!(
+                        "camera {i}: no usable blob although pixels reach {peak} DN — check the LED is in view and the blob area and roundness limits"
+                    ),
+                }),
+            }
+        }
+    }
+    out
+}
+
 #[derive(Debug, Clone, Serialize)]
 pub struct Versions {
     pub irtrackd: &'static str,
@@ -555,6 +632,8 @@ pub struct CameraReport {
     pub width_px: u64,
     pub height_px: u64,
     pub blobs_last: u64,
+    /// Brightest pixel (DN) of the last processed frame.
+    pub peak_dn: u64,
 }
 
 #[derive(Debug, Clone, Serialize)]

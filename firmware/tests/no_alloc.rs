@@ -124,6 +124,39 @@ fn six_dof_processing_does_not_allocate() {
 }
 
 #[test]
+fn steady_state_with_a_viewer_attached_does_not_allocate() {
+    use irtrack_firmware::viewer::ViewerTap;
+    let (e, _rx) = engine(true, 8);
+    let tap = Arc::new(ViewerTap::new());
+    let mut e = e.with_viewer_tap(tap.clone());
+    // The viewer arrives: its buffer is allocated here, on the viewer's side.
+    let viewer = tap.attach();
+    viewer.set_interval_ns(1); // a copy of every set
+    let (n, ok) = measure(&mut e, 10, 60);
+    assert!(ok >= 55, "only {ok} of 60 sets tracked with a viewer");
+    assert_eq!(n, 0, "{n} allocations in 60 frame sets copied for a viewer");
+    assert!(tap.copies() >= 60, "the loop copied only {} sets", tap.copies());
+    // The copies really hold the tracked blobs: one kept blob per camera.
+    let guard = tap.read().unwrap();
+    let set = guard.as_deref().unwrap();
+    for (camera, blobs) in set.blobs.iter().enumerate() {
+        assert_eq!(
+            blobs.iter().filter(|b| b.kept).count(),
+            1,
+            "camera {camera}: {blobs:?}"
+        );
+    }
+    drop(guard);
+    // A viewer holding the copy makes the loop skip, not wait.
+    let held = tap.read().unwrap();
+    let (n, _) = measure(&mut e, 0, 5);
+    drop(held);
+    assert_eq!(n, 0);
+    assert!(tap.busy_skips() >= 5, "busy skips {}", tap.busy_skips());
+    drop(viewer);
+}
+
+#[test]
 fn no_params_path_does_not_allocate() {
     let (mut e, rx) = engine(false, 8);
     let (n, ok) = measure(&mut e, 5, 30);

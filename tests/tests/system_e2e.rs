@@ -67,6 +67,7 @@ fn robot_follows_the_simulated_marker_after_network_enable() {
 [service]
 params_from_simulator = true
 control = true
+{}
 [source.sim]
 radius_mm = {RADIUS_MM}
 [leds]
@@ -84,7 +85,13 @@ require_world_frame = false
 [robot.deadman]
 kind = "flag"
 "#,
-            lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+            operator_hash_line(),
+            lo.x,
+            lo.y,
+            lo.z,
+            hi.x,
+            hi.y,
+            hi.z
         ),
     )
     .unwrap();
@@ -94,7 +101,7 @@ kind = "flag"
     // Wait until the link is up (held, not enabled), then enable and press the deadman.
     let deadline = Instant::now() + Duration::from_secs(10);
     loop {
-        let (code, body) = http(status, "POST", "/robot");
+        let (code, body) = http_operator(status, "POST", "/robot");
         assert_eq!(code, 200, "{body}");
         if body.contains("\"state\":\"holding\"") {
             break;
@@ -102,21 +109,21 @@ kind = "flag"
         assert!(Instant::now() < deadline, "robot link never came up: {body}");
         std::thread::sleep(Duration::from_millis(100));
     }
-    let (code, body) = http(status, "POST", "/robot/deadman?pressed=maybe");
+    let (code, body) = http_operator(status, "POST", "/robot/deadman?pressed=maybe");
     assert_eq!(code, 400, "{body}");
-    let (code, body) = http(status, "POST", "/robot/enable");
+    let (code, body) = http_operator(status, "POST", "/robot/enable");
     assert_eq!(code, 200, "{body}");
-    let (code, body) = http(status, "POST", "/robot/deadman?pressed=1");
+    let (code, body) = http_operator(status, "POST", "/robot/deadman?pressed=1");
     assert_eq!(code, 200, "{body}");
     assert!(body.contains("\"deadman_flag_pressed\":true"), "{body}");
     std::thread::sleep(Duration::from_secs(3));
-    let (code, body) = http(status, "POST", "/robot");
+    let (code, body) = http_operator(status, "POST", "/robot");
     assert_eq!(code, 200);
     assert!(
         body.contains("\"state\":\"moving\""),
         "link not moving after enable: {body}"
     );
-    let (code, body) = http(status, "POST", "/robot/disable");
+    let (code, body) = http_operator(status, "POST", "/robot/disable");
     assert_eq!(code, 200, "{body}");
     std::thread::sleep(Duration::from_millis(300));
     drop(_irtrackd);
@@ -175,7 +182,7 @@ fn robot_control_is_refused_unless_the_config_allows_it() {
     let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
     let status = addr_field(&ready, "status=");
     for path in ["/robot/enable", "/robot/deadman?pressed=1", "/robot/disable"] {
-        let (code, body) = http(status, "POST", path);
+        let (code, body) = http_operator(status, "POST", path);
         assert_eq!(code, 403, "{path}: {body}");
         assert!(body.contains("control = true"), "{path}: {body}");
     }

@@ -8,7 +8,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use crate::util::{addr_field, http};
+use crate::util::{addr_field, http, http_operator, operator_hash};
 use anyhow::{Context, Result, bail};
 
 /// Kills a child process on every path out of the step.
@@ -33,7 +33,8 @@ pub fn robot_follows(bin_dir: &Path, out: &Path) -> Result<()> {
     // A free port for the robot, so irtrackd's config can name it before robot-sim starts.
     let robot_addr = TcpListener::bind("127.0.0.1:0")?.local_addr()?;
     let config = dir.join("irtrackd.toml");
-    std::fs::write(&config, irtrackd_config(robot_addr))?;
+    let hash = operator_hash(&bin_dir.join("irtrackd"))?;
+    std::fs::write(&config, irtrackd_config(robot_addr, &hash))?;
     println!("starting irtrackd (simulated cameras, robot link to {robot_addr})");
     let mut child = Command::new(bin_dir.join("irtrackd"))
         .arg("-c")
@@ -73,7 +74,7 @@ pub fn robot_follows(bin_dir: &Path, out: &Path) -> Result<()> {
     // The link connects (with backoff) and holds until explicitly enabled.
     let deadline = Instant::now() + Duration::from_secs(20);
     loop {
-        let (_, body) = http(status, "POST", "/robot")?;
+        let (_, body) = http_operator(status, "POST", "/robot")?;
         if body.contains("\"state\":\"holding\"") {
             println!("robot link up and holding: {}", short(&body));
             break;
@@ -84,7 +85,7 @@ pub fn robot_follows(bin_dir: &Path, out: &Path) -> Result<()> {
         std::thread::sleep(Duration::from_millis(200));
     }
     for req in ["/robot/enable", "/robot/deadman?pressed=1"] {
-        let (code, body) = http(status, "POST", req)?;
+        let (code, body) = http_operator(status, "POST", req)?;
         if code != 200 {
             bail!("POST {req} answered {code}: {body}");
         }
@@ -92,10 +93,10 @@ pub fn robot_follows(bin_dir: &Path, out: &Path) -> Result<()> {
     }
     for _ in 0..FOLLOW_S {
         std::thread::sleep(Duration::from_secs(1));
-        let (_, body) = http(status, "POST", "/robot")?;
+        let (_, body) = http_operator(status, "POST", "/robot")?;
         println!("robot: {}", short(&body));
     }
-    let (_, body) = http(status, "POST", "/robot/disable")?;
+    let (_, body) = http_operator(status, "POST", "/robot/disable")?;
     println!("POST /robot/disable -> {}", short(&body));
     std::thread::sleep(Duration::from_millis(300));
     drop(irtrackd);
@@ -374,12 +375,13 @@ pub(crate) fn json_raw(body: &str, key: &str) -> Option<String> {
     rest.split([',', '}']).next().map(|v| v.trim().to_string())
 }
 
-fn irtrackd_config(robot: SocketAddr) -> String {
+fn irtrackd_config(robot: SocketAddr, operator_hash: &str) -> String {
     format!(
         r#"# Written by `cargo xtask demo`.
 [service]
 params_from_simulator = true
 control = true
+operator_password_hash = "{operator_hash}"
 [source.sim]
 radius_mm = 15.0
 [leds]

@@ -25,7 +25,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 
 use crate::util::{self, Ctx, RunOpts};
-use crate::util::{addr_field, http};
+use crate::util::{addr_field, http, http_operator, operator_hash};
 
 const USAGE: &str = "usage: cargo xtask soak [--sets N] [--fps F] [--quick]";
 const DEFAULT_SETS: u64 = 1_000_000;
@@ -320,7 +320,7 @@ backend = "none"
     Ok(Circle { centre, half_extent })
 }
 
-fn soak_config(opts: &Opts, robot: SocketAddr, circle: &Circle) -> String {
+fn soak_config(opts: &Opts, robot: SocketAddr, circle: &Circle, operator_hash: &str) -> String {
     let lo = circle.centre.map(|c| c - 200.0);
     let hi = circle.centre.map(|c| c + 200.0);
     format!(
@@ -328,6 +328,7 @@ fn soak_config(opts: &Opts, robot: SocketAddr, circle: &Circle) -> String {
 [service]
 params_from_simulator = true
 control = true
+operator_password_hash = "{operator_hash}"
 [listen]
 client_queue_records = {CLIENT_QUEUE_RECORDS}
 [source.sim]
@@ -585,8 +586,12 @@ fn start_robot_sim(bin: &Path, dir: &Path, home: [f64; 3]) -> Result<(Robot, Soc
 fn run_soak(irtrackd: &Path, host_tools: &Path, dir: &Path, opts: &Opts, circle: &Circle) -> Result<Report> {
     let (mut robot, robot_addr) = start_robot_sim(host_tools, dir, circle.centre)?;
     println!("robot-sim listening on {robot_addr}, log {}", robot.log.display());
-    let (mut daemon, ready) =
-        start_irtrackd(irtrackd, dir, "irtrackd", &soak_config(opts, robot_addr, circle))?;
+    let (mut daemon, ready) = start_irtrackd(
+        irtrackd,
+        dir,
+        "irtrackd",
+        &soak_config(opts, robot_addr, circle, &operator_hash(irtrackd)?),
+    )?;
     let t0 = Instant::now();
     let pid = daemon.pid();
     let stream = spawn_stream_reader(ready.stream)?;
@@ -600,7 +605,7 @@ fn run_soak(irtrackd: &Path, host_tools: &Path, dir: &Path, opts: &Opts, circle:
     // Link up (held), then enable motion.
     let deadline = Instant::now() + Duration::from_secs(20);
     loop {
-        let (_, body) = http(status, "POST", "/robot")?;
+        let (_, body) = http_operator(status, "POST", "/robot")?;
         if json_str(&body, "state") == Some("holding") {
             break;
         }
@@ -609,7 +614,7 @@ fn run_soak(irtrackd: &Path, host_tools: &Path, dir: &Path, opts: &Opts, circle:
         }
         std::thread::sleep(Duration::from_millis(50));
     }
-    let (code, body) = http(status, "POST", "/robot/enable")?;
+    let (code, body) = http_operator(status, "POST", "/robot/enable")?;
     if code != 200 {
         bail!("POST /robot/enable answered {code}: {body}");
     }
@@ -677,7 +682,7 @@ fn run_soak(irtrackd: &Path, host_tools: &Path, dir: &Path, opts: &Opts, circle:
         }
         std::thread::sleep(Duration::from_millis(100));
     };
-    let (_, link) = http(status, "POST", "/robot")?;
+    let (_, link) = http_operator(status, "POST", "/robot")?;
     let row = make_row(100, t0, pid, &final_status, status, &stream)?;
     print!("{}", row.markdown());
     // Only the targets sent while frames were flowing count; after the end the link holds.
@@ -752,7 +757,7 @@ fn make_row(
             .map_err(|_| anyhow::anyhow!("stream reader panicked"))?;
         (std::mem::take(&mut st.window_us), st.received)
     };
-    let (_, link) = http(status, "POST", "/robot")?;
+    let (_, link) = http_operator(status, "POST", "/robot")?;
     Ok(Row {
         pct,
         elapsed: t0.elapsed(),

@@ -276,9 +276,49 @@ pub fn is_root() -> bool {
 /// One HTTP/1.0 request to irtrackd's status port over a raw socket (no HTTP client crate);
 /// returns the status code (0 if unreadable) and the trimmed body.
 pub fn http(addr: SocketAddr, method: &str, path: &str) -> Result<(u16, String)> {
+    http_with(addr, method, path, "")
+}
+
+/// Operator password the demo and soak configure on their irtrackd (changes need a sign-in).
+pub const OPERATOR_PASSWORD: &str = "xtask-operator";
+
+/// `[service] operator_password_hash` for [`OPERATOR_PASSWORD`], made by the irtrackd binary
+/// itself (`irtrackd --hash-password`), as an operator would.
+pub fn operator_hash(irtrackd: &Path) -> Result<String> {
+    let mut child = Command::new(irtrackd)
+        .arg("--hash-password")
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .with_context(|| format!("running {} --hash-password", irtrackd.display()))?;
+    child
+        .stdin
+        .take()
+        .context("irtrackd stdin")?
+        .write_all(format!("{OPERATOR_PASSWORD}\n").as_bytes())?;
+    let out = child.wait_with_output()?;
+    let phc = String::from_utf8_lossy(&out.stdout).trim().to_string();
+    if !out.status.success() || !phc.starts_with("$argon2id$") {
+        anyhow::bail!("irtrackd --hash-password failed ({}): {phc:?}", out.status);
+    }
+    Ok(phc)
+}
+
+/// [`http`] signed in as the operator (HTTP Basic with [`OPERATOR_PASSWORD`]).
+pub fn http_operator(addr: SocketAddr, method: &str, path: &str) -> Result<(u16, String)> {
+    use base64::Engine as _;
+    let token = base64::engine::general_purpose::STANDARD.encode(format!("operator:{OPERATOR_PASSWORD}"));
+    http_with(addr, method, path, &format!("Authorization: Basic {token}\r\n"))
+}
+
+fn http_with(addr: SocketAddr, method: &str, path: &str, extra_headers: &str) -> Result<(u16, String)> {
     let mut s = std::net::TcpStream::connect(addr).with_context(|| format!("connecting to {addr}"))?;
     s.set_read_timeout(Some(Duration::from_secs(10)))?;
-    write!(s, "{method} {path} HTTP/1.0\r\nHost: xtask\r\n\r\n")?;
+    write!(
+        s,
+        "{method} {path} HTTP/1.0\r\nHost: xtask\r\n{extra_headers}\r\n"
+    )?;
     let mut resp = String::new();
     s.read_to_string(&mut resp)
         .with_context(|| format!("{method} {path}"))?;

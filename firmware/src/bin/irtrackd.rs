@@ -50,6 +50,10 @@ struct Cli {
     /// Simulated source: use the simulator's rig when no parameters are stored.
     #[arg(long)]
     params_from_simulator: bool,
+    /// Read an operator password from standard input, print its Argon2id hash for
+    /// `[service] operator_password_hash`, and exit.
+    #[arg(long)]
+    hash_password: bool,
 }
 
 fn apply_overrides(cfg: &mut Config, cli: &Cli) {
@@ -126,8 +130,24 @@ fn init_logging() {
     }
 }
 
+/// `--hash-password`: one line from stdin (trailing newline removed) → PHC string on stdout.
+fn hash_password() -> anyhow::Result<()> {
+    let mut line = String::new();
+    std::io::stdin()
+        .read_line(&mut line)
+        .context("reading the password from standard input")?;
+    let password = line.trim_end_matches(['\n', '\r']);
+    let phc = irtrack_firmware::net::auth::hash_password(password)?;
+    println!("{phc}");
+    eprintln!("irtrackd: put this line into the config as\n[service]\noperator_password_hash = \"{phc}\"");
+    Ok(())
+}
+
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    if cli.hash_password {
+        return hash_password();
+    }
     init_logging();
     let cfg = match load_config(&cli) {
         Ok(c) => c,
@@ -156,6 +176,34 @@ fn main() -> anyhow::Result<()> {
                 ""
             }
         );
+        println!(
+            "irtrackd: operator sign-in: {}",
+            if cfg.service.operator_password_hash.is_some() {
+                "password configured (changes on the status port need a sign-in)"
+            } else {
+                "no password configured: every change request on the status port is refused"
+            }
+        );
+        let tuning_path = cfg.service.state_dir.join(irtrack_firmware::tuning::TUNING_FILE);
+        match irtrack_firmware::tuning::TuningFile::load(&cfg.service.state_dir)? {
+            Some(t) => {
+                let applied = t
+                    .apply_to(&cfg.tracking)
+                    .map_err(|e| anyhow::anyhow!("{}: {e}", tuning_path.display()))?;
+                println!(
+                    "irtrackd: saved tuning {} overrides the config at start: threshold {} DN, blob area {}..={} px, {} camera setting(s)",
+                    tuning_path.display(),
+                    applied.threshold_dn,
+                    applied.min_area_px,
+                    applied.max_area_px,
+                    t.camera.len()
+                );
+            }
+            None => println!(
+                "irtrackd: no saved tuning ({} absent); [tracking] from the config applies",
+                tuning_path.display()
+            ),
+        }
         return Ok(());
     }
     let rt = tokio::runtime::Builder::new_multi_thread()

@@ -139,6 +139,19 @@ impl FrameSource for FaultySource {
     fn describe(&self) -> String {
         format!("{} with injected faults", self.inner.describe())
     }
+
+    fn controls(&self) -> Vec<super::CameraControls> {
+        self.inner.controls()
+    }
+
+    fn set_control(
+        &mut self,
+        camera: usize,
+        control: super::CameraControl,
+        value: i64,
+    ) -> Result<(), SourceError> {
+        self.inner.set_control(camera, control, value)
+    }
 }
 
 impl FaultySource {

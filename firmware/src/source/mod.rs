@@ -68,6 +68,40 @@ pub enum SourceError {
     Io { path: String, source: std::io::Error },
 }
 
+/// A camera setting the set-up view may change live.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CameraControl {
+    /// Exposure time in the camera's units (V4L2: 100 µs; simulator: the same).
+    Exposure,
+    /// Analogue gain in the camera's units.
+    Gain,
+}
+
+/// Current value and range of one control.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub struct ControlValue {
+    pub value: i64,
+    pub min: i64,
+    pub max: i64,
+}
+
+/// The live controls of one camera; `None` = the camera has no such control.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+pub struct CameraControls {
+    pub exposure: Option<ControlValue>,
+    pub gain: Option<ControlValue>,
+}
+
+impl CameraControls {
+    pub fn get(&self, control: CameraControl) -> Option<ControlValue> {
+        match control {
+            CameraControl::Exposure => self.exposure,
+            CameraControl::Gain => self.gain,
+        }
+    }
+}
+
 /// A synchronized multi-camera source.
 pub trait FrameSource: Send {
     /// Number of cameras.
@@ -80,6 +114,19 @@ pub trait FrameSource: Send {
     fn stats(&self) -> SourceStats;
     /// Human-readable description for status and logs.
     fn describe(&self) -> String;
+    /// Exposure and gain of every camera (camera order); by default none are supported.
+    fn controls(&self) -> Vec<CameraControls> {
+        vec![CameraControls::default(); self.camera_count()]
+    }
+    /// Sets one control of one camera, effective for the next frames. Called by the
+    /// processing loop between sets, only when the operator changes a value.
+    fn set_control(&mut self, camera: usize, control: CameraControl, value: i64) -> Result<(), SourceError> {
+        let _ = value;
+        Err(SourceError::Config(format!(
+            "camera {camera}: {control:?} cannot be changed on this source ({})",
+            self.describe()
+        )))
+    }
 }
 
 pub mod faulty;

@@ -13,7 +13,10 @@ use serde::Deserialize;
 
 use irtrack_sim::{BitDepth, RigPreset, Scenario, SimConfig, Trajectory};
 
-use super::{Frame, FrameSet, FrameSource, Pixels, SourceError, SourceStats};
+use super::{
+    CameraControl, CameraControls, ControlValue, Frame, FrameSet, FrameSource, Pixels, SourceError,
+    SourceStats,
+};
 use crate::clock;
 use crate::error::{FirmwareError, Result};
 
@@ -239,6 +242,28 @@ impl SimSourceConfig {
     }
 }
 
+/// Simulated exposure (100 µs units, like V4L2's `exposure_absolute`) at which the renderer's
+/// brightness is unchanged, and its range.
+pub const SIM_EXPOSURE_NOMINAL: i64 = 100;
+pub const SIM_EXPOSURE_RANGE: (i64, i64) = (1, 1000);
+/// Simulated gain at which brightness and noise are the renderer's own, and its range.
+pub const SIM_GAIN_NOMINAL: i64 = 16;
+pub const SIM_GAIN_RANGE: (i64, i64) = (1, 255);
+
+/// Exposure and gain of one simulated camera.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct SimControls {
+    exposure: i64,
+    gain: i64,
+}
+
+impl SimControls {
+    const NOMINAL: Self = Self {
+        exposure: SIM_EXPOSURE_NOMINAL,
+        gain: SIM_GAIN_NOMINAL,
+    };
+}
+
 /// A [`FrameSource`] rendering a [`Scenario`] live.
 pub struct SimSource {
     cfg: SimSourceConfig,
@@ -247,6 +272,44 @@ pub struct SimSource {
     epoch_ns: Option<u64>,
     next_index: u64,
     stats: SourceStats,
+    controls: Vec<SimControls>,
+    noise_state: u64,
+}
+
+/// Applies exposure × gain to a rendered frame: brightness scales with both, and gain above
+/// nominal adds read noise (σ = 2 DN per nominal gain step), so the set-up view's controls
+/// visibly act. Nominal settings leave the renderer's frame untouched.
+fn apply_sim_controls(px: &mut Pixels, c: SimControls, max_dn: f32, state: &mut u64) {
+    if c == SimControls::NOMINAL {
+        return;
+    }
+    let scale = (c.exposure as f32 / SIM_EXPOSURE_NOMINAL as f32) * (c.gain as f32 / SIM_GAIN_NOMINAL as f32);
+    let sigma = 2.0 * ((c.gain - SIM_GAIN_NOMINAL).max(0) as f32 / SIM_GAIN_NOMINAL as f32);
+    let mut noise = || {
+        if sigma == 0.0 {
+            return 0.0;
+        }
+        // xorshift64; the sum of two uniforms is a cheap, roughly bell-shaped noise.
+        let mut next = || {
+            *state ^= *state << 13;
+            *state ^= *state >> 7;
+            *state ^= *state << 17;
+            (*state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        (next() + next() - 1.0) * sigma * 2.45
+    };
+    match px {
+        Pixels::U8(v) => {
+            for p in v.iter_mut() {
+                *p = (f32::from(*p) * scale + noise()).clamp(0.0, max_dn) as u8;
+            }
+        }
+        Pixels::U16(v) => {
+            for p in v.iter_mut() {
+                *p = (f32::from(*p) * scale + noise()).clamp(0.0, max_dn) as u16;
+            }
+        }
+    }
 }
 
 impl SimSource {
@@ -261,11 +324,13 @@ impl SimSource {
         let fps = scenario.config().fps;
         Self {
             cfg: SimSourceConfig { fps, ..cfg.clone() },
-            scenario,
             period_ns: (1e9 / fps).round() as u64,
             epoch_ns: None,
             next_index: 0,
             stats: SourceStats::default(),
+            controls: vec![SimControls::NOMINAL; scenario.camera_count()],
+            noise_state: 0x9E37_79B9_7F4A_7C15,
+            scenario,
         }
     }
 
@@ -350,6 +415,10 @@ impl FrameSource for SimSource {
                 if info.dropped {
                     dropped += 1;
                 }
+                if let Some(&c) = self.controls.get(camera) {
+                    let max_dn = if frame.bit_depth == 10 { 1023.0 } else { 255.0 };
+                    apply_sim_controls(&mut frame.pixels, c, max_dn, &mut self.noise_state);
+                }
                 min_ts = min_ts.min(info.timestamp_ns);
                 max_ts = max_ts.max(info.timestamp_ns);
                 frame.timestamp_ns = capture_ns;
@@ -370,6 +439,49 @@ impl FrameSource for SimSource {
 
     fn stats(&self) -> SourceStats {
         self.stats.clone()
+    }
+
+    fn controls(&self) -> Vec<CameraControls> {
+        self.controls
+            .iter()
+            .map(|c| CameraControls {
+                exposure: Some(ControlValue {
+                    value: c.exposure,
+                    min: SIM_EXPOSURE_RANGE.0,
+                    max: SIM_EXPOSURE_RANGE.1,
+                }),
+                gain: Some(ControlValue {
+                    value: c.gain,
+                    min: SIM_GAIN_RANGE.0,
+                    max: SIM_GAIN_RANGE.1,
+                }),
+            })
+            .collect()
+    }
+
+    fn set_control(
+        &mut self,
+        camera: usize,
+        control: CameraControl,
+        value: i64,
+    ) -> std::result::Result<(), SourceError> {
+        let count = self.controls.len();
+        let c = self.controls.get_mut(camera).ok_or_else(|| {
+            SourceError::Config(format!(
+                "camera {camera} does not exist (the simulator has {count})"
+            ))
+        })?;
+        let ((lo, hi), slot) = match control {
+            CameraControl::Exposure => (SIM_EXPOSURE_RANGE, &mut c.exposure),
+            CameraControl::Gain => (SIM_GAIN_RANGE, &mut c.gain),
+        };
+        if !(lo..=hi).contains(&value) {
+            return Err(SourceError::Config(format!(
+                "camera {camera}: {control:?} {value} is outside {lo}..={hi}"
+            )));
+        }
+        *slot = value;
+        Ok(())
     }
 
     fn describe(&self) -> String {

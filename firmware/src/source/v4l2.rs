@@ -464,6 +464,56 @@ fn apply_controls(device: &Device, path: &str, config: &V4l2Config) {
     }
 }
 
+/// Id and range of a camera control.
+#[derive(Debug, Clone, Copy)]
+struct ControlRange {
+    id: u32,
+    min: i64,
+    max: i64,
+}
+
+/// The exposure and gain controls a device has, read through a second handle on the node
+/// (V4L2 controls belong to the device, not to the streaming file descriptor).
+fn live_control_ids(device: &Device) -> (Option<ControlRange>, Option<ControlRange>) {
+    let Ok(descriptions) = device.query_controls() else {
+        return (None, None);
+    };
+    let find = |id: u32| {
+        descriptions.iter().find(|d| d.id == id).map(|d| ControlRange {
+            id: d.id,
+            min: d.minimum,
+            max: d.maximum,
+        })
+    };
+    let exposure = find(V4L2_CID_EXPOSURE_ABSOLUTE).or_else(|| find(V4L2_CID_EXPOSURE));
+    (exposure, find(V4L2_CID_GAIN))
+}
+
+/// Current exposure and gain of the camera at `path` (unsupported or unreadable = `None`).
+fn query_live_controls(path: &str) -> super::CameraControls {
+    let Ok(device) = Device::with_path(path) else {
+        return super::CameraControls::default();
+    };
+    let (exposure, gain) = live_control_ids(&device);
+    let read = |d: Option<ControlRange>| {
+        let d = d?;
+        let value = match device.control(d.id).ok()?.value {
+            ControlValue::Integer(v) => v,
+            ControlValue::Boolean(b) => i64::from(b),
+            _ => return None,
+        };
+        Some(super::ControlValue {
+            value,
+            min: d.min,
+            max: d.max,
+        })
+    };
+    super::CameraControls {
+        exposure: read(exposure),
+        gain: read(gain),
+    }
+}
+
 /// Opens a device, negotiates it and starts streaming, waiting for the first frame.
 fn open_camera(
     path: &str,
@@ -877,6 +927,46 @@ impl FrameSource for V4l2Source {
 
     fn stats(&self) -> SourceStats {
         self.stats.clone()
+    }
+
+    fn controls(&self) -> Vec<super::CameraControls> {
+        self.cameras
+            .iter()
+            .map(|c| query_live_controls(&c.device))
+            .collect()
+    }
+
+    fn set_control(
+        &mut self,
+        camera: usize,
+        control: super::CameraControl,
+        value: i64,
+    ) -> Result<(), SourceError> {
+        let cam = self
+            .cameras
+            .get(camera)
+            .ok_or_else(|| SourceError::Config(format!("camera {camera} does not exist")))?;
+        let path = cam.device.clone();
+        let device = Device::with_path(&path).map_err(|e| io_err(&path, "open for controls", e))?;
+        let (exposure, gain) = live_control_ids(&device);
+        let (desc, auto) = match control {
+            super::CameraControl::Exposure => (exposure, (V4L2_CID_EXPOSURE_AUTO, V4L2_EXPOSURE_MANUAL)),
+            super::CameraControl::Gain => (gain, (V4L2_CID_AUTOGAIN, 0)),
+        };
+        let d = desc.ok_or_else(|| {
+            SourceError::Config(format!("camera {camera} ({path}) has no {control:?} control"))
+        })?;
+        // Manual mode first, where the camera has an automatic one (ignored if absent).
+        let _ = device.set_control(Control {
+            id: auto.0,
+            value: ControlValue::Integer(auto.1),
+        });
+        device
+            .set_control(Control {
+                id: d.id,
+                value: ControlValue::Integer(value.clamp(d.min, d.max)),
+            })
+            .map_err(|e| io_err(&path, "set control", e))
     }
 
     fn describe(&self) -> String {

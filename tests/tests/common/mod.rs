@@ -84,9 +84,28 @@ pub fn start_irtrackd(config: &Path, state: &Path) -> (Guard, String) {
 
 /// One HTTP/1.0 request over a raw socket; returns the status code and body.
 pub fn http(addr: SocketAddr, method: &str, path: &str) -> (u16, String) {
+    http_with(addr, method, path, "")
+}
+
+/// Operator password of the system tests' irtrackd configs.
+pub const OPERATOR_PASSWORD: &str = "system-test-operator";
+
+/// `operator_password_hash = "..."` line for a `[service]` table.
+pub fn operator_hash_line() -> String {
+    let phc = irtrack_firmware::net::auth::hash_password(OPERATOR_PASSWORD).unwrap();
+    format!("operator_password_hash = \"{phc}\"")
+}
+
+/// [`http`] with the operator's HTTP Basic credentials (change requests need a sign-in).
+pub fn http_operator(addr: SocketAddr, method: &str, path: &str) -> (u16, String) {
+    let auth = irtrack_firmware::net::auth::basic_header(OPERATOR_PASSWORD);
+    http_with(addr, method, path, &format!("Authorization: {auth}\r\n"))
+}
+
+fn http_with(addr: SocketAddr, method: &str, path: &str, extra_headers: &str) -> (u16, String) {
     let mut s = TcpStream::connect(addr).unwrap();
     s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-    write!(s, "{method} {path} HTTP/1.0\r\nHost: test\r\n\r\n").unwrap();
+    write!(s, "{method} {path} HTTP/1.0\r\nHost: test\r\n{extra_headers}\r\n").unwrap();
     let mut resp = String::new();
     s.read_to_string(&mut resp).unwrap();
     let code = resp.split_whitespace().nth(1).unwrap().parse().unwrap();

@@ -271,6 +271,76 @@ fn try_get_status(port: u16) -> Result<Json> {
     Json::parse(body)
 }
 
+/// `GET /` (the embedded set-up page) and one message of the live WebSocket (`/api/live`),
+/// over raw sockets: the handshake and one unmasked server frame are simple enough to read
+/// by hand, and xtask stays free of HTTP/WebSocket client crates.
+fn check_web(port: u16) -> Result<String> {
+    let addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port));
+    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5))?;
+    s.set_read_timeout(Some(Duration::from_secs(20)))?;
+    s.write_all(b"GET / HTTP/1.0\r\nHost: irtrack\r\n\r\n")?;
+    let mut page = String::new();
+    s.read_to_string(&mut page)?;
+    let (head, body) = page.split_once("\r\n\r\n").context("no HTTP header end for /")?;
+    if !head.lines().next().is_some_and(|l| l.contains(" 200")) || !body.contains("<html") {
+        bail!(
+            "GET / answered {:?} with {} bytes",
+            head.lines().next(),
+            body.len()
+        );
+    }
+    let mut ws = TcpStream::connect_timeout(&addr, Duration::from_secs(5))?;
+    ws.set_read_timeout(Some(Duration::from_secs(20)))?;
+    ws.write_all(
+        b"GET /api/live HTTP/1.1\r\nHost: irtrack\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+          Sec-WebSocket-Key: aXJ0cmFjay1zeXN0ZW0tdA==\r\nSec-WebSocket-Version: 13\r\n\r\n",
+    )?;
+    // Answer head, byte by byte up to the blank line (the first frame follows directly).
+    let mut head = Vec::new();
+    let mut byte = [0u8; 1];
+    while !head.ends_with(b"\r\n\r\n") {
+        ws.read_exact(&mut byte)
+            .context("reading the WebSocket handshake answer")?;
+        head.push(byte[0]);
+        if head.len() > 8192 {
+            bail!("WebSocket handshake answer too long");
+        }
+    }
+    let head = String::from_utf8_lossy(&head);
+    if !head.starts_with("HTTP/1.1 101") {
+        bail!("no WebSocket upgrade: {}", head.lines().next().unwrap_or(""));
+    }
+    let mut hdr = [0u8; 2];
+    ws.read_exact(&mut hdr)?;
+    let len = match hdr[1] & 0x7f {
+        126 => {
+            let mut b = [0u8; 2];
+            ws.read_exact(&mut b)?;
+            u64::from(u16::from_be_bytes(b))
+        }
+        127 => {
+            let mut b = [0u8; 8];
+            ws.read_exact(&mut b)?;
+            u64::from_be_bytes(b)
+        }
+        n => u64::from(n),
+    };
+    if hdr[0] & 0x0f != 1 || len > 1 << 20 {
+        bail!(
+            "first live frame is not a text message (opcode {}, {len} bytes)",
+            hdr[0] & 0x0f
+        );
+    }
+    let mut payload = vec![0u8; len as usize];
+    ws.read_exact(&mut payload)?;
+    let msg = Json::parse(&String::from_utf8_lossy(&payload))?;
+    let kind = text(&msg, "type")?.to_string();
+    Ok(format!(
+        "GET / {} bytes of HTML; first live message: {kind} ({len} bytes)",
+        body.len()
+    ))
+}
+
 fn num(j: &Json, path: &str) -> Result<f64> {
     j.get(path)
         .and_then(Json::as_f64)
@@ -345,6 +415,10 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
     report.check(
         "v4l2 capture from vivid (format, streaming, kernel timestamps)",
         check_capture(status_port),
+    );
+    report.check(
+        "set-up page and one live WebSocket message through the forwarded status port",
+        check_web(status_port),
     );
     if focus_camera_loss()? {
         // Focused run for work on the V4L2 reconnect path: no parameters, no reboot.

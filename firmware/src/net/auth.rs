@@ -1,0 +1,258 @@
+//! Operator sign-in for the status listener's change requests (tuning, save, robot control).
+//!
+//! The board stores only an Argon2id PHC string (`[service] operator_password_hash`, made by
+//! `irtrackd --hash-password`). A browser signs in once (`POST /api/login`) and gets a random
+//! session token in an HttpOnly, SameSite=Strict cookie; scripts may send HTTP Basic
+//! credentials with every change instead. Viewing needs no sign-in (docs/security.md).
+
+use std::collections::HashMap;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use argon2::password_hash::{PasswordHash, PasswordHasher, PasswordVerifier, SaltString};
+use argon2::{Algorithm, Argon2};
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::Response;
+use base64::Engine as _;
+use rand::RngCore;
+
+use crate::error::{FirmwareError, Result};
+
+/// Name of the session cookie.
+pub const SESSION_COOKIE: &str = "irtrack_session";
+/// User name expected in HTTP Basic credentials.
+pub const BASIC_USER: &str = "operator";
+/// How long a session stays valid after sign-in.
+pub const SESSION_TTL: Duration = Duration::from_secs(12 * 3600);
+/// Sessions kept at once; signing in beyond this forgets the oldest.
+const MAX_SESSIONS: usize = 32;
+
+/// Hashes `password` as an Argon2id PHC string (random salt).
+pub fn hash_password(password: &str) -> Result<String> {
+    if password.is_empty() {
+        return Err(FirmwareError::Config {
+            reason: "the operator password must not be empty".into(),
+        });
+    }
+    let mut salt = [0u8; 16];
+    rand::rngs::OsRng.fill_bytes(&mut salt);
+    let salt = SaltString::encode_b64(&salt).map_err(|e| FirmwareError::Config {
+        reason: format!("password salt: {e}"),
+    })?;
+    Argon2::default()
+        .hash_password(password.as_bytes(), &salt)
+        .map(|h| h.to_string())
+        .map_err(|e| FirmwareError::Config {
+            reason: format!("hashing the operator password: {e}"),
+        })
+}
+
+/// Checks that `phc` is an Argon2id PHC string (config validation).
+pub fn check_hash(phc: &str) -> Result<()> {
+    let bad = |why: String| FirmwareError::Config {
+        reason: format!("service.operator_password_hash: {why}; make one with `irtrackd --hash-password`"),
+    };
+    let h = PasswordHash::new(phc).map_err(|e| bad(format!("not a PHC string ({e})")))?;
+    if h.algorithm != Algorithm::Argon2id.ident() {
+        return Err(bad(format!("algorithm {} is not argon2id", h.algorithm)));
+    }
+    Ok(())
+}
+
+/// Why a change request was refused.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Refusal {
+    /// No password hash in the config: nobody may change anything.
+    NotConfigured,
+    /// No (valid) session or credentials.
+    NotSignedIn,
+    /// Credentials were sent but are wrong.
+    BadCredentials,
+}
+
+impl Refusal {
+    pub fn message(self) -> &'static str {
+        match self {
+            Refusal::NotConfigured => {
+                "no operator password is configured, so changes are refused: run \
+                 `irtrackd --hash-password` and put the result in [service] \
+                 operator_password_hash (docs/security.md)\n"
+            }
+            Refusal::NotSignedIn => {
+                "sign in first: POST /api/login with {\"password\": ...}, or send HTTP Basic \
+                 credentials for user \"operator\"\n"
+            }
+            Refusal::BadCredentials => "wrong operator password\n",
+        }
+    }
+
+    /// 401 with the message.
+    pub fn response(self) -> Response {
+        super::status::text(StatusCode::UNAUTHORIZED, self.message())
+    }
+}
+
+/// Operator credential and the open sessions.
+#[derive(Debug, Default)]
+pub struct OperatorAuth {
+    hash: Option<String>,
+    sessions: Mutex<HashMap<String, Instant>>,
+}
+
+impl OperatorAuth {
+    /// `hash`: the configured PHC string (checked), or `None` (every change refused).
+    pub fn new(hash: Option<String>) -> Result<Self> {
+        if let Some(h) = &hash {
+            check_hash(h)?;
+        }
+        Ok(Self {
+            hash,
+            sessions: Mutex::new(HashMap::new()),
+        })
+    }
+
+    pub fn configured(&self) -> bool {
+        self.hash.is_some()
+    }
+
+    /// Verifies a password (slow on purpose: Argon2; call from a blocking context).
+    pub fn verify(&self, password: &str) -> bool {
+        let Some(phc) = &self.hash else { return false };
+        PasswordHash::new(phc)
+            .map(|h| Argon2::default().verify_password(password.as_bytes(), &h).is_ok())
+            .unwrap_or(false)
+    }
+
+    /// Opens a session; returns its token.
+    pub fn open_session(&self) -> String {
+        let mut raw = [0u8; 32];
+        rand::rngs::OsRng.fill_bytes(&mut raw);
+        let token: String = raw.iter().map(|b| format!("{b:02x}")).collect();
+        let now = Instant::now();
+        if let Ok(mut s) = self.sessions.lock() {
+            s.retain(|_, expiry| *expiry > now);
+            if s.len() >= MAX_SESSIONS
+                && let Some(oldest) = s.iter().min_by_key(|(_, e)| **e).map(|(k, _)| k.clone())
+            {
+                s.remove(&oldest);
+            }
+            s.insert(token.clone(), now + SESSION_TTL);
+        }
+        token
+    }
+
+    pub fn close_session(&self, token: &str) {
+        if let Ok(mut s) = self.sessions.lock() {
+            s.remove(token);
+        }
+    }
+
+    /// Whether `token` names an open, unexpired session.
+    pub fn session_valid(&self, token: &str) -> bool {
+        self.sessions
+            .lock()
+            .map(|s| s.get(token).is_some_and(|e| *e > Instant::now()))
+            .unwrap_or(false)
+    }
+
+    /// Whether the request carries a valid session cookie.
+    pub fn signed_in(&self, headers: &HeaderMap) -> bool {
+        session_token(headers).is_some_and(|t| self.session_valid(t))
+    }
+
+    /// Decides whether a change request may proceed: a valid session cookie, or HTTP Basic
+    /// credentials with the right password (verified off the async threads).
+    pub async fn authorize(
+        self: &std::sync::Arc<Self>,
+        headers: &HeaderMap,
+    ) -> std::result::Result<(), Refusal> {
+        if !self.configured() {
+            return Err(Refusal::NotConfigured);
+        }
+        if self.signed_in(headers) {
+            return Ok(());
+        }
+        let Some(password) = basic_password(headers) else {
+            return Err(Refusal::NotSignedIn);
+        };
+        let me = self.clone();
+        let ok = tokio::task::spawn_blocking(move || me.verify(&password))
+            .await
+            .unwrap_or(false);
+        if ok { Ok(()) } else { Err(Refusal::BadCredentials) }
+    }
+}
+
+/// The session token from the `Cookie` header(s).
+pub fn session_token(headers: &HeaderMap) -> Option<&str> {
+    headers
+        .get_all(header::COOKIE)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(';'))
+        .find_map(|kv| {
+            let (k, v) = kv.trim().split_once('=')?;
+            (k == SESSION_COOKIE).then_some(v)
+        })
+}
+
+/// The password of HTTP Basic credentials for [`BASIC_USER`].
+fn basic_password(headers: &HeaderMap) -> Option<String> {
+    let v = headers.get(header::AUTHORIZATION)?.to_str().ok()?;
+    let (scheme, b64) = v.split_once(' ')?;
+    if !scheme.eq_ignore_ascii_case("basic") {
+        return None;
+    }
+    let raw = base64::engine::general_purpose::STANDARD
+        .decode(b64.trim())
+        .ok()?;
+    let text = String::from_utf8(raw).ok()?;
+    let (user, password) = text.split_once(':')?;
+    (user == BASIC_USER).then(|| password.to_string())
+}
+
+/// `Authorization` header value for scripts and tests.
+pub fn basic_header(password: &str) -> String {
+    format!(
+        "Basic {}",
+        base64::engine::general_purpose::STANDARD.encode(format!("{BASIC_USER}:{password}"))
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hash_verifies_and_rejects_wrong_password() {
+        let h = hash_password("s3cret").unwrap();
+        assert!(h.starts_with("$argon2id$"), "{h}");
+        check_hash(&h).unwrap();
+        let a = OperatorAuth::new(Some(h)).unwrap();
+        assert!(a.verify("s3cret"));
+        assert!(!a.verify("s3cret "));
+        assert!(hash_password("").is_err());
+        assert!(check_hash("plain").is_err());
+    }
+
+    #[test]
+    fn sessions_and_basic_credentials_are_parsed() {
+        let a = OperatorAuth::new(None).unwrap();
+        let t = a.open_session();
+        assert_eq!(t.len(), 64);
+        let mut h = HeaderMap::new();
+        h.insert(
+            header::COOKIE,
+            format!("x=1; {SESSION_COOKIE}={t}").parse().unwrap(),
+        );
+        assert!(a.signed_in(&h));
+        a.close_session(&t);
+        assert!(!a.signed_in(&h));
+        let mut h = HeaderMap::new();
+        h.insert(
+            header::AUTHORIZATION,
+            basic_header("pw:with:colons").parse().unwrap(),
+        );
+        assert_eq!(basic_password(&h).as_deref(), Some("pw:with:colons"));
+    }
+}

@@ -1,0 +1,653 @@
+//! The set-up view's endpoints on the status listener: the live WebSocket (`/api/live`),
+//! frame-set capture (`/api/frameset`), live tuning (`/api/tuning`), sign-in
+//! (`/api/session`, `/api/login`, `/api/logout`) and the scene (`/api/scene`). Contract:
+//! docs/http-api.md.
+//!
+//! Images are made only while someone watches, on the blocking pool, from the viewer tap's
+//! latest copy (see [`crate::viewer`]); the processing loop never waits for any of this.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::body::Bytes;
+use axum::extract::State;
+use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use futures_util::{SinkExt, StreamExt};
+use serde::{Deserialize, Serialize};
+
+use super::auth::{Refusal, SESSION_COOKIE, SESSION_TTL};
+use super::status::{StatusService, json_text, text};
+use crate::source::{Frame, Pixels};
+use crate::tuning::TuningChange;
+use crate::viewer::{BlobView, TapSet};
+
+type Shared = State<Arc<StatusService>>;
+
+/// Preview rate a new subscription gets, and the most a viewer may ask for.
+pub const DEFAULT_PREVIEW_FPS: f64 = 5.0;
+pub const MAX_PREVIEW_FPS: f64 = 30.0;
+/// Position messages per second at most.
+pub const MAX_POSITIONS_PER_S: f64 = 30.0;
+/// How often a session sends the status report.
+pub const STATUS_PERIOD: Duration = Duration::from_millis(500);
+/// How long `/api/frameset` waits for the loop's next set.
+pub const FRAMESET_WAIT: Duration = Duration::from_secs(2);
+/// Largest zoom crop side (px).
+const MAX_ZOOM_PX: u32 = 256;
+/// JPEG quality of previews (grey, downscaled: small and sharp enough to aim and focus).
+const JPEG_QUALITY: u8 = 80;
+
+// ---------------------------------------------------------------- sign-in
+
+#[derive(Serialize)]
+struct SessionInfo {
+    signed_in: bool,
+    operator_configured: bool,
+    control_allowed: bool,
+}
+
+pub(super) async fn session(State(s): Shared, headers: HeaderMap) -> Response {
+    let info = SessionInfo {
+        signed_in: s.auth.signed_in(&headers),
+        operator_configured: s.auth.configured(),
+        control_allowed: s.control.allowed,
+    };
+    json_text(StatusCode::OK, json_line(&info))
+}
+
+#[derive(Deserialize)]
+struct Login {
+    password: String,
+}
+
+pub(super) async fn login(State(s): Shared, body: Bytes) -> Response {
+    if !s.auth.configured() {
+        return text(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "no operator password is configured: run `irtrackd --hash-password` and put the result \
+             in [service] operator_password_hash, then restart irtrackd\n",
+        );
+    }
+    let Ok(Login { password }) = serde_json::from_slice::<Login>(&body) else {
+        return text(
+            StatusCode::BAD_REQUEST,
+            "expected a JSON body {\"password\": \"...\"}\n",
+        );
+    };
+    let auth = s.auth.clone();
+    let ok = tokio::task::spawn_blocking(move || auth.verify(&password))
+        .await
+        .unwrap_or(false);
+    if !ok {
+        tracing::warn!("operator sign-in refused: wrong password");
+        return Refusal::BadCredentials.response();
+    }
+    let token = s.auth.open_session();
+    tracing::info!("operator signed in");
+    let cookie = format!(
+        "{SESSION_COOKIE}={token}; HttpOnly; SameSite=Strict; Path=/; Max-Age={}",
+        SESSION_TTL.as_secs()
+    );
+    let mut resp = json_text(StatusCode::OK, "{\"signed_in\":true}\n".into());
+    if let Ok(v) = HeaderValue::from_str(&cookie) {
+        resp.headers_mut().insert(header::SET_COOKIE, v);
+    }
+    resp
+}
+
+pub(super) async fn logout(State(s): Shared, headers: HeaderMap) -> Response {
+    if let Some(t) = super::auth::session_token(&headers) {
+        s.auth.close_session(t);
+    }
+    let mut resp = json_text(StatusCode::OK, "{\"signed_in\":false}\n".into());
+    resp.headers_mut().insert(
+        header::SET_COOKIE,
+        HeaderValue::from_static("irtrack_session=; HttpOnly; SameSite=Strict; Path=/; Max-Age=0"),
+    );
+    resp
+}
+
+// ---------------------------------------------------------------- tuning
+
+pub(super) async fn tuning_get(State(s): Shared) -> Response {
+    match &s.tuning {
+        Some(t) => json_text(StatusCode::OK, json_line(&t.report())),
+        None => text(StatusCode::NOT_FOUND, "live tuning is not available here\n"),
+    }
+}
+
+pub(super) async fn tuning_post(State(s): Shared, headers: HeaderMap, body: Bytes) -> Response {
+    if let Err(r) = s.auth.authorize(&headers).await {
+        return r.response();
+    }
+    let Some(t) = &s.tuning else {
+        return text(StatusCode::NOT_FOUND, "live tuning is not available here\n");
+    };
+    let change: TuningChange = match serde_json::from_slice(&body) {
+        Ok(c) => c,
+        Err(e) => {
+            return text(
+                StatusCode::BAD_REQUEST,
+                format!("bad tuning request: {e} (see docs/http-api.md)\n"),
+            );
+        }
+    };
+    match t.change(&change) {
+        Ok(()) => {
+            tracing::info!(?change, "tuning changed by the operator");
+            // The loop applies camera values before its next set; give it that long so the
+            // answer shows them (it does not fail if the loop is slower).
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            json_text(StatusCode::OK, json_line(&t.report()))
+        }
+        Err(e) => text(StatusCode::BAD_REQUEST, format!("{e}\n")),
+    }
+}
+
+pub(super) async fn tuning_save(State(s): Shared, headers: HeaderMap) -> Response {
+    if let Err(r) = s.auth.authorize(&headers).await {
+        return r.response();
+    }
+    let Some(t) = s.tuning.clone() else {
+        return text(StatusCode::NOT_FOUND, "live tuning is not available here\n");
+    };
+    let saved = tokio::task::spawn_blocking(move || t.save().map(|p| (p, t.report()))).await;
+    match saved {
+        Ok(Ok((path, report))) => {
+            tracing::info!(path = %path.display(), "tuning saved; applied at the next start");
+            json_text(StatusCode::OK, json_line(&report))
+        }
+        Ok(Err(e)) => text(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            format!("cannot save the tuning: {e}; the live values stay applied\n"),
+        ),
+        Err(e) => text(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            format!("saving the tuning failed: {e}\n"),
+        ),
+    }
+}
+
+// ---------------------------------------------------------------- scene
+
+pub(super) async fn scene(State(s): Shared) -> Response {
+    json_text(StatusCode::OK, json_line(&s.scene_json()))
+}
+
+// ---------------------------------------------------------------- frame set
+
+#[derive(Serialize)]
+struct FramesetCamera {
+    camera: usize,
+    width_px: u32,
+    height_px: u32,
+    bit_depth: u8,
+    timestamp_ns: u64,
+    sequence: u64,
+    pgm_bytes: usize,
+}
+
+#[derive(Serialize)]
+struct FramesetHeader {
+    set_index: u64,
+    pairing_error_ns: u64,
+    cameras: Vec<FramesetCamera>,
+}
+
+/// Binary PGM (`P5`) of a frame: 8-bit as is, deeper frames as 16-bit big-endian samples.
+pub fn pgm(frame: &Frame) -> Vec<u8> {
+    let (w, h, stride) = (
+        frame.width_px as usize,
+        frame.height_px as usize,
+        frame.stride_px as usize,
+    );
+    match &frame.pixels {
+        Pixels::U8(px) => {
+            let mut out = format!("P5\n{w} {h}\n255\n").into_bytes();
+            out.reserve(w * h);
+            for row in px.chunks(stride.max(1)).take(h) {
+                out.extend_from_slice(&row[..w.min(row.len())]);
+            }
+            out
+        }
+        Pixels::U16(px) => {
+            let mut out = format!("P5\n{w} {h}\n65535\n").into_bytes();
+            out.reserve(2 * w * h);
+            for row in px.chunks(stride.max(1)).take(h) {
+                for v in &row[..w.min(row.len())] {
+                    out.extend_from_slice(&v.to_be_bytes());
+                }
+            }
+            out
+        }
+    }
+}
+
+fn frameset_body(set: &TapSet) -> Vec<u8> {
+    let pgms: Vec<Vec<u8>> = set.frames.iter().map(pgm).collect();
+    let header = FramesetHeader {
+        set_index: set.set_index,
+        pairing_error_ns: set.pairing_error_ns,
+        cameras: set
+            .frames
+            .iter()
+            .zip(&pgms)
+            .enumerate()
+            .map(|(i, (f, p))| FramesetCamera {
+                camera: i,
+                width_px: f.width_px,
+                height_px: f.height_px,
+                bit_depth: f.bit_depth,
+                timestamp_ns: f.timestamp_ns,
+                sequence: f.sequence,
+                pgm_bytes: p.len(),
+            })
+            .collect(),
+    };
+    let mut body = serde_json::to_vec(&header).unwrap_or_default();
+    body.push(b'\n');
+    for p in pgms {
+        body.extend_from_slice(&p);
+    }
+    body
+}
+
+pub(super) async fn frameset(State(s): Shared) -> Response {
+    let Some(tap) = s.tap.clone() else {
+        return text(StatusCode::NOT_FOUND, "frame-set capture is not available here\n");
+    };
+    let Ok(_one_at_a_time) = s.frameset_busy.try_lock() else {
+        return text(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "another frame-set request is being served; try again in a moment\n",
+        );
+    };
+    let viewer = tap.attach();
+    let seq0 = tap.seq();
+    tap.request_once();
+    let deadline = Instant::now() + FRAMESET_WAIT;
+    while tap.seq() == seq0 {
+        if Instant::now() >= deadline {
+            return text(
+                StatusCode::GATEWAY_TIMEOUT,
+                "no frame set within 2 s: the cameras are not delivering (see /status)\n",
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    let tap2 = tap.clone();
+    let body = tokio::task::spawn_blocking(move || {
+        let guard = tap2.read()?;
+        guard.as_deref().map(frameset_body)
+    })
+    .await
+    .ok()
+    .flatten();
+    drop(viewer);
+    match body {
+        Some(b) => (
+            StatusCode::OK,
+            [(header::CONTENT_TYPE, "application/x-irtrack-frameset")],
+            b,
+        )
+            .into_response(),
+        None => text(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "the frame-set copy was not available\n",
+        ),
+    }
+}
+
+// ---------------------------------------------------------------- live WebSocket
+
+/// A viewer's wishes (`{"type": "subscribe", ...}`).
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(default)]
+struct Subscription {
+    preview_fps: f64,
+    preview_max_width_px: u32,
+    zoom_px: u32,
+    positions: bool,
+    blobs: bool,
+}
+
+impl Default for Subscription {
+    fn default() -> Self {
+        Self {
+            preview_fps: DEFAULT_PREVIEW_FPS,
+            preview_max_width_px: 640,
+            zoom_px: 0,
+            positions: true,
+            blobs: false,
+        }
+    }
+}
+
+impl Subscription {
+    fn sanitized(mut self) -> Self {
+        if !self.preview_fps.is_finite() || self.preview_fps < 0.0 {
+            self.preview_fps = DEFAULT_PREVIEW_FPS;
+        }
+        self.preview_fps = self.preview_fps.min(MAX_PREVIEW_FPS);
+        self.preview_max_width_px = self.preview_max_width_px.clamp(32, 4096);
+        self.zoom_px = self.zoom_px.min(MAX_ZOOM_PX);
+        self
+    }
+
+    /// Interval at which this viewer needs the loop's copies (0 = none).
+    fn tap_interval_ns(&self) -> u64 {
+        if self.blobs {
+            1 // every processed set
+        } else if self.preview_fps > 0.0 {
+            (1e9 / self.preview_fps) as u64
+        } else {
+            0
+        }
+    }
+}
+
+#[derive(Deserialize)]
+struct ClientMessage {
+    #[serde(rename = "type")]
+    kind: String,
+    #[serde(flatten)]
+    rest: serde_json::Value,
+}
+
+pub(super) async fn live(State(s): Shared, ws: WebSocketUpgrade) -> Response {
+    ws.max_message_size(64 * 1024)
+        .on_upgrade(move |socket| live_session(socket, s))
+}
+
+/// What one copy turns into for one viewer.
+struct Rendered {
+    previews: Vec<(serde_json::Value, Vec<u8>)>,
+    zooms: Vec<(serde_json::Value, Vec<u8>)>,
+    blobs: Option<serde_json::Value>,
+    set_index: u64,
+}
+
+async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
+    let (mut tx, mut rx) = socket.split();
+    let viewer = s.tap.as_ref().map(|t| t.attach());
+    let mut sub = Subscription::default();
+    if let Some(v) = &viewer {
+        v.set_interval_ns(sub.tap_interval_ns());
+    }
+    s.status
+        .live_viewers
+        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let mut status_tick = tokio::time::interval(STATUS_PERIOD);
+    status_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut poll = tokio::time::interval(Duration::from_millis(5));
+    poll.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut last_seq = s.tap.as_ref().map_or(0, |t| t.seq());
+    let mut last_preview: Option<Instant> = None;
+    let mut last_position: Option<Instant> = None;
+    let mut last_blob_set: Option<u64> = None;
+    let mut dropped_sets = 0u64;
+    let mut positions = s.positions.clone();
+    loop {
+        let result = tokio::select! {
+            msg = rx.next() => match msg {
+                Some(Ok(Message::Text(t))) => {
+                    match parse_subscribe(t.as_str()) {
+                        Ok(new) => {
+                            sub = new;
+                            if let Some(v) = &viewer {
+                                v.set_interval_ns(sub.tap_interval_ns());
+                            }
+                            Ok(())
+                        }
+                        Err(e) => {
+                            let m = serde_json::json!({"type": "error", "message": e});
+                            tx.send(Message::Text(m.to_string().into())).await
+                        }
+                    }
+                }
+                Some(Ok(Message::Close(_))) | None | Some(Err(_)) => break,
+                Some(Ok(_)) => Ok(()),
+            },
+            _ = status_tick.tick() => {
+                let mut v = s.report_json();
+                if let Some(o) = v.as_object_mut() {
+                    o.insert("type".into(), "status".into());
+                }
+                tx.send(Message::Text(v.to_string().into())).await
+            }
+            changed = async {
+                match positions.as_mut() {
+                    Some(p) => p.changed().await,
+                    None => std::future::pending().await,
+                }
+            }, if sub.positions => {
+                if changed.is_err() {
+                    positions = None;
+                    continue;
+                }
+                let due = last_position.is_none_or(|t| t.elapsed().as_secs_f64() >= 1.0 / MAX_POSITIONS_PER_S);
+                let rec = positions.as_mut().and_then(|p| *p.borrow_and_update());
+                match (due, rec) {
+                    (true, Some(rec)) => {
+                        last_position = Some(Instant::now());
+                        let m = format!("{{\"type\":\"position\",\"record\":{}}}", rec.to_ndjson_line().trim_end());
+                        tx.send(Message::Text(m.into())).await
+                    }
+                    _ => Ok(()),
+                }
+            }
+            _ = poll.tick(), if viewer.is_some() => {
+                let Some(tap) = s.tap.clone() else { continue };
+                let seq = tap.seq();
+                if seq == last_seq {
+                    continue;
+                }
+                last_seq = seq;
+                let want_preview = sub.preview_fps > 0.0
+                    && last_preview.is_none_or(|t| t.elapsed().as_secs_f64() >= 0.95 / sub.preview_fps);
+                if !want_preview && !sub.blobs {
+                    continue;
+                }
+                let sub_now = sub;
+                let rendered = tokio::task::spawn_blocking(move || {
+                    let guard = tap.read()?;
+                    let set = guard.as_deref()?;
+                    Some(render(set, &sub_now, want_preview))
+                })
+                .await
+                .ok()
+                .flatten();
+                let Some(mut r) = rendered else { continue };
+                if want_preview {
+                    last_preview = Some(Instant::now());
+                }
+                if let Some(prev) = last_blob_set {
+                    dropped_sets += r.set_index.saturating_sub(prev + 1);
+                }
+                if sub.blobs {
+                    last_blob_set = Some(r.set_index);
+                }
+                send_rendered(&mut tx, &mut r, dropped_sets).await
+            }
+        };
+        if result.is_err() {
+            break;
+        }
+    }
+    s.status
+        .live_viewers
+        .fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+    drop(viewer);
+}
+
+fn parse_subscribe(text: &str) -> Result<Subscription, String> {
+    let msg: ClientMessage = serde_json::from_str(text).map_err(|e| format!("not a JSON message: {e}"))?;
+    if msg.kind != "subscribe" {
+        return Err(format!(
+            "unknown message type {:?}; only \"subscribe\" exists",
+            msg.kind
+        ));
+    }
+    let sub: Subscription =
+        serde_json::from_value(msg.rest).map_err(|e| format!("bad subscribe message: {e}"))?;
+    Ok(sub.sanitized())
+}
+
+async fn send_rendered(
+    tx: &mut futures_util::stream::SplitSink<WebSocket, Message>,
+    r: &mut Rendered,
+    dropped: u64,
+) -> Result<(), axum::Error> {
+    for (meta, jpeg) in r.previews.drain(..) {
+        tx.send(Message::Text(meta.to_string().into())).await?;
+        tx.send(Message::Binary(jpeg.into())).await?;
+    }
+    for (meta, png) in r.zooms.drain(..) {
+        tx.send(Message::Text(meta.to_string().into())).await?;
+        tx.send(Message::Binary(png.into())).await?;
+    }
+    if let Some(mut b) = r.blobs.take() {
+        if let Some(o) = b.as_object_mut() {
+            o.insert("dropped".into(), dropped.into());
+        }
+        tx.send(Message::Text(b.to_string().into())).await?;
+    }
+    Ok(())
+}
+
+/// 8-bit value of a pixel (deeper frames shifted down).
+fn px8(frame: &Frame, x: usize, y: usize) -> u8 {
+    let i = y * frame.stride_px as usize + x;
+    match &frame.pixels {
+        Pixels::U8(p) => p.get(i).copied().unwrap_or(0),
+        Pixels::U16(p) => {
+            let shift = u32::from(frame.bit_depth.saturating_sub(8));
+            p.get(i).map_or(0, |v| (u32::from(*v) >> shift).min(255) as u8)
+        }
+    }
+}
+
+fn frame_peak(frame: &Frame) -> u32 {
+    match &frame.pixels {
+        Pixels::U8(p) => p.iter().copied().max().map_or(0, u32::from),
+        Pixels::U16(p) => p.iter().copied().max().map_or(0, u32::from),
+    }
+}
+
+/// Downscales (box filter, integer factor) and encodes previews, crops zooms, lists blobs.
+fn render(set: &TapSet, sub: &Subscription, previews: bool) -> Rendered {
+    let mut out = Rendered {
+        previews: Vec::new(),
+        zooms: Vec::new(),
+        blobs: None,
+        set_index: set.set_index,
+    };
+    for (camera, frame) in set.frames.iter().enumerate() {
+        let blobs: &[BlobView] = set.blobs.get(camera).map_or(&[], Vec::as_slice);
+        if !previews {
+            break;
+        }
+        let (w, h) = (frame.width_px as usize, frame.height_px as usize);
+        let factor = w.div_ceil(sub.preview_max_width_px as usize).max(1);
+        let (pw, ph) = (w / factor, h / factor);
+        let mut small = Vec::with_capacity(pw * ph);
+        for py in 0..ph {
+            for px in 0..pw {
+                let mut sum = 0u32;
+                for dy in 0..factor {
+                    for dx in 0..factor {
+                        sum += u32::from(px8(frame, px * factor + dx, py * factor + dy));
+                    }
+                }
+                small.push((sum / (factor * factor) as u32) as u8);
+            }
+        }
+        let mut jpeg = Vec::new();
+        let encoded = jpeg_encoder::Encoder::new(&mut jpeg, JPEG_QUALITY).encode(
+            &small,
+            pw as u16,
+            ph as u16,
+            jpeg_encoder::ColorType::Luma,
+        );
+        if encoded.is_ok() {
+            let meta = serde_json::json!({
+                "type": "preview",
+                "camera": camera,
+                "set_index": set.set_index,
+                "timestamp_ns": frame.timestamp_ns,
+                "width_px": pw,
+                "height_px": ph,
+                "scale": 1.0 / factor as f64,
+                "threshold_dn": set.threshold_dn,
+                "peak_dn": frame_peak(frame),
+                "bit_depth": frame.bit_depth,
+                "blobs": blobs,
+            });
+            out.previews.push((meta, jpeg));
+        }
+        if sub.zoom_px > 0
+            && let Some(b) = blobs.iter().find(|b| b.kept)
+            && let Some(z) = zoom(frame, camera, set.set_index, b, sub.zoom_px)
+        {
+            out.zooms.push(z);
+        }
+    }
+    if sub.blobs {
+        let timestamps: Vec<u64> = set.frames.iter().map(|f| f.timestamp_ns).collect();
+        out.blobs = Some(serde_json::json!({
+            "type": "blobs",
+            "set_index": set.set_index,
+            "timestamps_ns": timestamps,
+            "pairing_error_ns": set.pairing_error_ns,
+            "cameras": set.blobs,
+            "truncated": set.blobs_truncated,
+        }));
+    }
+    out
+}
+
+/// A full-resolution crop around `blob` as an 8-bit grey PNG.
+fn zoom(
+    frame: &Frame,
+    camera: usize,
+    set_index: u64,
+    blob: &BlobView,
+    size: u32,
+) -> Option<(serde_json::Value, Vec<u8>)> {
+    let size = size.min(frame.width_px).min(frame.height_px);
+    let half = f64::from(size) / 2.0;
+    let clamp = |c: f64, max: u32| (c - half).round().clamp(0.0, f64::from(max - size)) as u32;
+    let (x0, y0) = (
+        clamp(blob.x_px, frame.width_px),
+        clamp(blob.y_px, frame.height_px),
+    );
+    let mut crop = Vec::with_capacity((size * size) as usize);
+    for y in y0..y0 + size {
+        for x in x0..x0 + size {
+            crop.push(px8(frame, x as usize, y as usize));
+        }
+    }
+    let mut png_bytes = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut png_bytes, size, size);
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut w = enc.write_header().ok()?;
+        w.write_image_data(&crop).ok()?;
+    }
+    let meta = serde_json::json!({
+        "type": "zoom",
+        "camera": camera,
+        "set_index": set_index,
+        "x0_px": x0,
+        "y0_px": y0,
+        "size_px": size,
+    });
+    Some((meta, png_bytes))
+}
+
+fn json_line<T: Serialize>(v: &T) -> String {
+    serde_json::to_string(v).unwrap_or_else(|_| "null".into()) + "\n"
+}
