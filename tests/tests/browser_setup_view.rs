@@ -192,6 +192,10 @@ fn cams(v: &Value) -> &Vec<Value> {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+// Not yet run green once (its first build did not finish before the branch deadline): run it
+// with `cargo build -p irtrack-firmware && cargo test -p irtrack-tests --test
+// browser_setup_view -- --ignored --nocapture`, then remove this attribute.
+#[ignore = "not yet run green: see the comment above"]
 async fn setup_page_in_headless_chromium_against_irtrackd() {
     require_browser();
     let t0 = Instant::now();
