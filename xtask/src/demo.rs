@@ -21,6 +21,9 @@ enum Action {
     CalibrateAndPush,
     /// irtrackd on simulated cameras driving `host-tools robot-sim` ([`crate::demo_live`]).
     RobotFollows,
+    /// irtrackd on simulated cameras; headless Chromium saves a picture of its set-up page
+    /// ([`crate::demo_view`]).
+    SetupView,
 }
 
 struct Step {
@@ -79,16 +82,29 @@ fn steps() -> Vec<Step> {
             action: Action::RobotFollows,
             produces: &["robot/robot-sim.csv"],
         },
+        Step {
+            title: "set-up view",
+            explain: "Start irtrackd on simulated cameras and open its set-up page (http://BOARD:7704/ \
+                      on a board) in headless Chromium: live previews with the blob overlay, \
+                      controls, health and the 3-D view; save a screenshot.",
+            action: Action::SetupView,
+            produces: &["setup-view.png"],
+        },
     ]
 }
 
 pub fn run(ctx: &Ctx, args: &[String]) -> Result<()> {
     let mut skip_setup = false;
+    let mut view = false;
     for a in args {
         match a.as_str() {
             "--skip-setup" => skip_setup = true,
-            other => bail!("unknown option `{other}` (options: --skip-setup)"),
+            "--view" => view = true,
+            other => bail!("unknown option `{other}` (options: --skip-setup, --view)"),
         }
+    }
+    if view {
+        return run_view(ctx, skip_setup);
     }
     let out_dir = ctx.root.join("out/demo");
     let steps = steps();
@@ -146,6 +162,9 @@ pub fn run(ctx: &Ctx, args: &[String]) -> Result<()> {
             Action::RobotFollows => {
                 crate::demo_live::robot_follows(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
             }
+            Action::SetupView => {
+                crate::demo_view::screenshot(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
+            }
         }
         for rel in step.produces {
             let p = out_dir.join(rel);
@@ -162,6 +181,37 @@ pub fn run(ctx: &Ctx, args: &[String]) -> Result<()> {
     }
     println!("\ndemo: all {total} steps done; outputs in {}", out_dir.display());
     Ok(())
+}
+
+/// `--view`: setup, build, then irtrackd on simulated cameras with its page until Ctrl-C.
+fn run_view(ctx: &Ctx, skip_setup: bool) -> Result<()> {
+    banner(
+        1,
+        3,
+        "setup",
+        "Install missing system packages (skipped when all are present).",
+    );
+    if skip_setup {
+        println!("skipped (--skip-setup)");
+    } else {
+        crate::setup::run(ctx)?;
+    }
+    banner(
+        2,
+        3,
+        "build",
+        "Build the board service (irtrackd) and the PC tools.",
+    );
+    let host_tools = build_host_tools(ctx)?;
+    let out_dir = ctx.root.join("out/demo");
+    banner(
+        3,
+        3,
+        "set-up view",
+        "Run irtrackd on simulated cameras and keep it running: open the printed address in \
+         a browser.",
+    );
+    crate::demo_view::view(&crate::demo_live::bin_dir(&host_tools), &out_dir)
 }
 
 fn banner(i: usize, n: usize, title: &str, explain: &str) {

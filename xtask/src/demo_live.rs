@@ -12,7 +12,7 @@ use crate::util::{addr_field, http, http_operator, operator_hash};
 use anyhow::{Context, Result, bail};
 
 /// Kills a child process on every path out of the step.
-struct Guard(Child);
+pub(crate) struct Guard(pub(crate) Child);
 
 impl Drop for Guard {
     fn drop(&mut self) {
@@ -362,7 +362,7 @@ fn stream_lines(
 /// The JSON text of the first `"key":` value in `body`, compacted: a string without quotes,
 /// an array with its brackets, or a scalar (the status and stream documents have no nested
 /// arrays; the status document is pretty-printed).
-fn json_raw(body: &str, key: &str) -> Option<String> {
+pub(crate) fn json_raw(body: &str, key: &str) -> Option<String> {
     let pat = format!("\"{key}\":");
     let rest = body[body.find(&pat)? + pat.len()..].trim_start();
     if let Some(s) = rest.strip_prefix('"') {
@@ -439,7 +439,7 @@ fn summarize(log: &Path) -> Result<()> {
     Ok(())
 }
 
-fn wait_line(child: &mut Child, prefix: &str, timeout: Duration) -> Result<String> {
+pub(crate) fn wait_line(child: &mut Child, prefix: &str, timeout: Duration) -> Result<String> {
     let stdout = child.stdout.take().context("child stdout")?;
     let (tx, rx) = mpsc::channel();
     let wanted = prefix.to_string();

@@ -7,6 +7,7 @@ mod ci;
 mod cross;
 mod demo;
 mod demo_live;
+mod demo_view;
 mod lint;
 mod setup;
 mod soak;
@@ -32,7 +33,9 @@ const USAGE: &str = "\
 usage: cargo xtask <task> [options]
 
 tasks:
-  demo   [--skip-setup]        set up, then run the whole system on simulated cameras
+  demo   [--skip-setup] [--view]
+                               set up, then run the whole system on simulated cameras;
+                               --view: only irtrackd and its set-up page, until Ctrl-C
   test   [--skip-setup] [--only <phase>[,...]] [--list]
                                every check CI runs (what .ci/run calls)
   setup                        install missing system packages (apt) and oelint-adv (pip)

@@ -1,0 +1,245 @@
+// Health panel, mirrored LEDs and the fault banner, all from the status report.
+
+import uPlot from "/web/vendor/uplot/uPlot.esm.js";
+import { age, fmt, kv } from "./format.js";
+
+const STAGE_WORDS = {
+  detect: "blob detection",
+  solve: "undistort + triangulate",
+  publish: "gate + publish",
+  process: "whole set (vs deadline)",
+  end_to_end: "capture → published",
+};
+
+/** Plain words and the next step for the fault codes of docs/irtrackd.md, used when the server
+ *  sends only the code. */
+function faultWords(code, st) {
+  const src = st.source || {};
+  const proc = st.processing || {};
+  switch (code) {
+    case "camera_lost":
+      return `A camera stopped delivering frames — check its cable and power; irtrackd keeps reopening it (${fmt(src.reconnects)} reconnect attempts so far).`;
+    case "no_params":
+      return "No calibration is loaded, so no position can be computed — push a parameter set with `host-tools push-params` (docs/calibration.md).";
+    case "deadline_misses":
+      return `Processing is slower than the frame rate (${fmt(proc.deadline_misses)} frame sets over the ${fmt(proc.deadline_us)} µs deadline) — lower the frame rate or resolution, or look for CPU load.`;
+    default:
+      return String(code).replace(/_/g, " ");
+  }
+}
+
+/** The server's faults as {camera, text}: `fault_texts` (plain words from the board) when
+ *  present, else the LED fault codes put into words here. */
+export function serverFaults(st) {
+  if (Array.isArray(st.fault_texts)) {
+    return st.fault_texts.map((f) => ({ camera: f.camera ?? null, text: f.message || faultWords(f.code, st) }));
+  }
+  return (st.faults || []).map((f) => ({ camera: null, text: faultWords(f, st) }));
+}
+
+/** Problems the page sees in the camera previews, in plain words with the next step; cameras
+ *  in `skip` already have a fault from the board. */
+export function previewWarnings(cams, skip = new Set()) {
+  const out = [];
+  for (const c of cams) {
+    if (c.kept === null || skip.has(c.camera)) continue;
+    if (c.kept === 0 && c.rejected === 0) {
+      const above = c.peak_dn > c.threshold_dn;
+      out.push(
+        above
+          ? `Camera ${c.camera} sees no blob although pixels reach ${c.peak_dn} DN (threshold ${c.threshold_dn}) — check the blob area limits.`
+          : `Camera ${c.camera} sees no marker: its brightest pixel is ${c.peak_dn} DN, at or below the threshold ${c.threshold_dn} — lower the threshold or raise exposure or gain.`
+      );
+    } else if (c.kept === 0) {
+      const why = [...new Set(c.reasons.map((r) => r || "unknown"))].join(", ");
+      out.push(`Camera ${c.camera} finds ${c.rejected} blob(s) but rejects all of them (${why}) — adjust the blob area limits or remove the stray light.`);
+    } else if (c.kept > 1) {
+      out.push(`Camera ${c.camera} keeps ${c.kept} blobs where one marker is expected — raise the threshold or cover the other light source.`);
+    }
+  }
+  return out;
+}
+
+export class Health {
+  constructor() {
+    this.plotData = [[], [], [], []];
+    this.plot = null;
+    this.lastStatusAt = 0;
+    this.recordLatency = []; // [t_s, µs] since the last status
+    this.lastGapMm = null;
+  }
+
+  /** Per-record latency from the live positions (one point per record, plotted with the status). */
+  position(rec) {
+    if (rec && typeof rec.latency_us === "number") this.recordLatency.push(rec.latency_us);
+    if (rec && typeof rec.gap_mm === "number") this.lastGapMm = rec.gap_mm;
+  }
+
+  leds(st) {
+    const on = (st.leds && st.leds.on) || {};
+    for (const n of ["run", "track", "robot", "fault"]) {
+      const e = document.querySelector(`.led[data-led=${n}]`);
+      e.classList.toggle("on", !!on[n]);
+    }
+    const ind = st.leds && st.leds.indication;
+    if (ind) {
+      document.getElementById("leds").title =
+        `LEDs (${st.leds.backend || "?"}): alive ${ind.alive ? "yes" : "no"}, track ${ind.track}, robot ${ind.robot}` +
+        (ind.fault ? `, fault ${ind.fault}` : "");
+    }
+  }
+
+  /** The banner: the board's faults first, then what the page sees in the previews. */
+  faults(st, cams) {
+    const box = document.getElementById("faults");
+    const list = document.getElementById("fault-list");
+    const server = serverFaults(st);
+    const covered = new Set(server.filter((f) => f.camera !== null).map((f) => f.camera));
+    const items = server.map((f) => [f.text, "fault"]).concat(previewWarnings(cams, covered).map((t) => [t, "warn"]));
+    box.hidden = items.length === 0;
+    list.replaceChildren(
+      ...items.map(([t, cls]) => {
+        const li = document.createElement("li");
+        li.className = cls;
+        li.textContent = t;
+        return li;
+      })
+    );
+  }
+
+  update(st) {
+    const src = st.source || {};
+    const proc = st.processing || {};
+    // Cameras.
+    const tbody = document.querySelector("#camera-health tbody");
+    tbody.replaceChildren(
+      ...(src.cameras || []).map((c) => {
+        const tr = document.createElement("tr");
+        for (const v of [
+          `camera ${c.index}`,
+          fmt(c.fps, 1),
+          fmt(c.frames),
+          fmt(c.blobs_last),
+          fmt(c.peak_dn),
+          c.width_px ? `${c.width_px}×${c.height_px}` : "—",
+        ]) {
+          const td = document.createElement("td");
+          td.textContent = v;
+          tr.append(td);
+        }
+        return tr;
+      })
+    );
+    kv(document.getElementById("source-health"), [
+      ["source", src.description || "—"],
+      ["sets delivered", fmt(src.sets_delivered)],
+      ["sets dropped", fmt(src.sets_dropped), src.sets_dropped ? "bad" : ""],
+      ["frames without partner", fmt(src.unpaired_dropped), src.unpaired_dropped ? "bad" : ""],
+      ["camera reconnects", fmt(src.reconnects), src.reconnects ? "bad" : ""],
+      ["pairing error now / max", `${fmt(src.pairing_error_last_us, 1)} / ${fmt(src.pairing_error_max_us, 1)} µs`],
+    ]);
+    const sets = proc.sets_processed || 0;
+    const pct = (n) => (sets ? ` (${fmt((100 * n) / sets, 1)} %)` : "");
+    kv(document.getElementById("loop-health"), [
+      ["sets processed", fmt(proc.sets_processed)],
+      ["tracked", fmt(proc.tracked) + pct(proc.tracked || 0)],
+      ["lost (marker not seen)", fmt(proc.lost) + pct(proc.lost || 0)],
+      ["refused by quality gate", fmt(proc.gated)],
+      ["deadline misses", `${fmt(proc.deadline_misses)} (deadline ${fmt(proc.deadline_us)} µs)`, proc.deadline_misses ? "bad" : ""],
+      ["ray gap, last", proc.last_gap_mm === null || proc.last_gap_mm === undefined ? "—" : `${fmt(proc.last_gap_mm, 3)} mm`],
+      ["stream clients", fmt((st.stream || {}).clients)],
+    ].concat(
+      st.viewers
+        ? [["page viewers", `${fmt(st.viewers.live)} (sets copied ${fmt(st.viewers.copies)}, skipped while busy ${fmt(st.viewers.busy_skips)})`]]
+        : []
+    ));
+    // Latency table.
+    const lat = proc.latency_us || {};
+    document.querySelector("#latency tbody").replaceChildren(
+      ...Object.keys(STAGE_WORDS)
+        .filter((k) => lat[k])
+        .map((k) => {
+          const s = lat[k];
+          const tr = document.createElement("tr");
+          for (const v of [STAGE_WORDS[k], fmt(s.p50_us), fmt(s.p90_us), fmt(s.p99_us), fmt(s.max_us), fmt(s.count)]) {
+            const td = document.createElement("td");
+            td.textContent = v;
+            tr.append(td);
+          }
+          return tr;
+        })
+    );
+    this.params(st);
+    this.plotPoint(lat);
+  }
+
+  params(st) {
+    const p = st.params || {};
+    const rows = [];
+    if (!p.loaded) {
+      rows.push(["state", "no parameter set loaded", "bad"]);
+    } else {
+      rows.push(["rig id", p.rig_id || "—"]);
+      rows.push(["signature", p.signature || "—", p.signature === "unsigned" ? "bad" : "good"]);
+      rows.push(["created", p.created_unix_s ? `${new Date(p.created_unix_s * 1000).toISOString().replace("T", " ").slice(0, 19)} UTC (${age(p.created_unix_s)})` : "—"]);
+      rows.push(["came from", p.origin || "—"]);
+    }
+    rows.push(["signature policy", p.signature_policy === "allow_unsigned" ? "development: unsigned sets accepted" : "signed sets only"]);
+    if (p.swaps) rows.push(["swaps since start", fmt(p.swaps)]);
+    if (p.rejected) rows.push(["pushes rejected", `${fmt(p.rejected)}${p.last_rejection ? ": " + p.last_rejection : ""}`, "bad"]);
+    const q = p.quality || p.calibration_quality;
+    if (q && typeof q === "object") {
+      for (const [k, v] of Object.entries(q)) rows.push([`calibration ${k.replace(/_/g, " ")}`, typeof v === "number" ? fmt(v, 3) : String(v)]);
+    }
+    // The live ray gap is what the calibration achieves on the marker right now.
+    rows.push([
+      "ray gap now (calibration check)",
+      this.lastGapMm === null || Number.isNaN(this.lastGapMm) ? "— (no position)" : `${fmt(this.lastGapMm, 3)} mm`,
+    ]);
+    kv(document.getElementById("params"), rows);
+  }
+
+  plotPoint(lat) {
+    const now = Date.now() / 1000;
+    const recs = this.recordLatency;
+    this.recordLatency = [];
+    const recMax = recs.length ? Math.max(...recs) : null;
+    const e2e = lat.end_to_end || {};
+    const d = this.plotData;
+    d[0].push(now);
+    d[1].push(recMax);
+    d[2].push(e2e.p50_us ?? null);
+    d[3].push(e2e.p99_us ?? null);
+    const keep = 240; // two minutes at two reports a second
+    if (d[0].length > keep) for (const a of d) a.splice(0, a.length - keep);
+    this.ensurePlot();
+    if (this.plot) this.plot.setData(d);
+  }
+
+  ensurePlot() {
+    const box = document.getElementById("latency-plot");
+    const width = Math.max(240, box.clientWidth);
+    if (this.plot) {
+      if (Math.abs(this.plot.width - width) > 4) this.plot.setSize({ width, height: 160 });
+      return;
+    }
+    const axis = { stroke: "#9aa3b2", grid: { stroke: "#2a2f38" }, ticks: { stroke: "#2a2f38" } };
+    this.plot = new uPlot(
+      {
+        width,
+        height: 160,
+        legend: { live: false },
+        scales: { x: { time: true } },
+        axes: [axis, { ...axis, label: "µs", size: 60 }],
+        series: [
+          {},
+          { label: "record latency (max per 0.5 s)", stroke: "#5fb3ff", width: 1.5, spanGaps: true },
+          { label: "p50 capture → published", stroke: "#3ecf6e", width: 1.5, spanGaps: true },
+          { label: "p99 capture → published", stroke: "#ffb347", width: 1.5, spanGaps: true },
+        ],
+      },
+      this.plotData,
+      box
+    );
+  }
+}

@@ -1,0 +1,438 @@
+//! The set-up page in a real browser: Debian's headless Chromium, driven over WebDriver
+//! (chromedriver, started here on a free port) with `fantoccini`, against the real `irtrackd`
+//! binary on the simulated cameras. Checks what an operator would: the page loads without
+//! script errors, previews update, the overlay shows one kept blob per camera, a change without
+//! sign-in is refused with a clear message, and after sign-in raising the threshold above the
+//! LED's peak gives 0 blobs and a plain-words fault. Saves screenshots under
+//! `target/browser-test/` (paths printed).
+//!
+//! Needs `chromium` and `chromium-driver` (installed by `cargo xtask setup`) and the irtrackd
+//! binary: run `cargo build -p irtrack-firmware` first (same target dir and profile).
+
+mod common;
+
+use std::io::Write;
+use std::net::{SocketAddr, TcpListener};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::*;
+use fantoccini::{Client, ClientBuilder, Locator, key::Key};
+use serde_json::{Value, json};
+
+const CHROMIUM: &str = "/usr/bin/chromium";
+const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
+const PASSWORD: &str = "browser-test-password";
+const WINDOW: (u32, u32) = (1600, 1300);
+
+/// Fails (never skips) without the browser, naming the fix.
+fn require_browser() {
+    for p in [CHROMIUM, CHROMEDRIVER] {
+        assert!(
+            Path::new(p).is_file(),
+            "{p} is missing: the set-up page test needs Debian's chromium and chromium-driver; \
+             run `cargo xtask setup` (or `apt-get install chromium chromium-driver`)"
+        );
+    }
+}
+
+/// target/browser-test, next to the test binary's profile directory.
+fn out_dir() -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    let target = exe.ancestors().nth(3).unwrap().to_path_buf();
+    let d = target.join("browser-test");
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// An Argon2id hash of `password` made by irtrackd itself (`--hash-password` reads stdin).
+fn password_hash(password: &str) -> String {
+    let mut child = Command::new(bin("irtrackd"))
+        .arg("--hash-password")
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(format!("{password}\n").as_bytes())
+        .unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "irtrackd --hash-password failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let hash = String::from_utf8(out.stdout).unwrap().trim().to_string();
+    assert!(hash.starts_with("$argon2id$"), "unexpected hash {hash:?}");
+    hash
+}
+
+/// Starts chromedriver on a free port; returns its guard and URL once it answers.
+fn start_chromedriver(dir: &Path) -> (Guard, String) {
+    let port = free_port();
+    let child = Command::new(CHROMEDRIVER)
+        .arg(format!("--port={port}"))
+        .arg(format!("--log-path={}", dir.join("chromedriver.log").display()))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap_or_else(|e| panic!("starting {CHROMEDRIVER}: {e}"));
+    let guard = Guard(child);
+    let addr: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
+    let end = Instant::now() + Duration::from_secs(15);
+    loop {
+        if std::net::TcpStream::connect(addr).is_ok() {
+            let (code, body) = http(addr, "GET", "/status");
+            if code == 200 && body.contains("\"ready\":true") {
+                break;
+            }
+        }
+        assert!(
+            Instant::now() < end,
+            "chromedriver did not come up on {addr} within 15 s"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    (guard, format!("http://{addr}"))
+}
+
+async fn browser(driver_url: &str, profile: &Path) -> Client {
+    let mut caps = serde_json::Map::new();
+    caps.insert(
+        "goog:chromeOptions".into(),
+        json!({
+            "binary": CHROMIUM,
+            "args": [
+                "--headless",
+                // As root (CI) Chromium refuses to start with its sandbox.
+                "--no-sandbox",
+                "--disable-dev-shm-usage",
+                // WebGL for three.js on a machine without a GPU: SwiftShader.
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                format!("--window-size={},{}", WINDOW.0, WINDOW.1),
+                format!("--user-data-dir={}", profile.display()),
+            ],
+        }),
+    );
+    ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
+        .capabilities(caps)
+        .connect(driver_url)
+        .await
+        .unwrap_or_else(|e| panic!("WebDriver session with {CHROMIUM} failed: {e}"))
+}
+
+/// Evaluates `expr` in the page.
+async fn js(c: &Client, expr: &str) -> Value {
+    c.execute(&format!("return ({expr});"), vec![])
+        .await
+        .unwrap_or_else(|e| panic!("evaluating `{expr}` failed: {e}"))
+}
+
+/// Polls `expr` until `pred` holds; fails with `what`, the last value and the page's errors.
+async fn wait_for(c: &Client, what: &str, secs: u64, expr: &str, pred: impl Fn(&Value) -> bool) -> Value {
+    let end = Instant::now() + Duration::from_secs(secs);
+    loop {
+        let v = js(c, expr).await;
+        if pred(&v) {
+            return v;
+        }
+        if Instant::now() > end {
+            let errors = js(c, "window.__irtrackErrors || []").await;
+            let faults = js(c, "window.__irtrack ? window.__irtrack.faults() : null").await;
+            panic!(
+                "{what}: not reached within {secs} s; last value {v}; page errors {errors}; faults on the page {faults}"
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(150)).await;
+    }
+}
+
+async fn screenshot(c: &Client, path: &Path) {
+    let png = c.screenshot().await.unwrap();
+    std::fs::write(path, &png).unwrap();
+    println!("screenshot: {} ({} bytes)", path.display(), png.len());
+}
+
+/// Types `value` into the number field `id` and leaves it (fires `change`, as a person would).
+async fn type_number(c: &Client, id: &str, value: &str) {
+    let field = c.find(Locator::Id(id)).await.unwrap();
+    field.clear().await.unwrap();
+    field
+        .send_keys(&format!("{value}{}", char::from(Key::Tab)))
+        .await
+        .unwrap();
+}
+
+/// Pixels of each preview canvas in the threshold view's tint colour.
+const TINTED_JS: &str = "Array.from(document.querySelectorAll('canvas.preview')).map((cv) => { \
+    const d = cv.getContext('2d').getImageData(0, 0, cv.width, cv.height).data; let n = 0; \
+    for (let i = 0; i < d.length; i += 4) if (d[i] === 255 && d[i + 1] === 61 && d[i + 2] === 242) n++; \
+    return n; })";
+
+fn cams(v: &Value) -> &Vec<Value> {
+    v.as_array().unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+// Not yet run green once (its first build did not finish before the branch deadline): run it
+// with `cargo build -p irtrack-firmware && cargo test -p irtrack-tests --test
+// browser_setup_view -- --ignored --nocapture`, then remove this attribute.
+#[ignore = "not yet run green: see the comment above"]
+async fn setup_page_in_headless_chromium_against_irtrackd() {
+    require_browser();
+    let t0 = Instant::now();
+    let dir = temp_dir("browser");
+    let out = out_dir();
+
+    let config = dir.join("irtrackd.toml");
+    std::fs::write(
+        &config,
+        format!(
+            r#"
+[service]
+params_from_simulator = true
+operator_password_hash = "{}"
+[source.sim]
+fps = 30.0
+[leds]
+backend = "sim"
+"#,
+            password_hash(PASSWORD)
+        ),
+    )
+    .unwrap();
+    let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
+    let status = addr_field(&ready, "status=");
+    let (_driver, driver_url) = start_chromedriver(&dir);
+    let c = browser(&driver_url, &dir.join("profile")).await;
+    let result = tokio::time::timeout(Duration::from_secs(90), run(&c, status, &out)).await;
+    let _ = c.close().await;
+    result.expect("browser test took longer than 90 s");
+    println!("browser test took {:.1} s", t0.elapsed().as_secs_f64());
+}
+
+async fn run(c: &Client, status: SocketAddr, out: &Path) {
+    let url = format!("http://{status}/");
+    c.goto(&url).await.unwrap();
+    wait_for(
+        c,
+        "page ready",
+        20,
+        "window.__irtrack && window.__irtrack.ready",
+        |v| v == true,
+    )
+    .await;
+
+    // Previews of both cameras arrive and keep updating.
+    let first = wait_for(
+        c,
+        "a preview of every camera",
+        20,
+        "window.__irtrack.cameras()",
+        |v| cams(v).len() == 2 && cams(v).iter().all(|c| c["shown"].as_u64() >= Some(1)),
+    )
+    .await;
+    wait_for(c, "previews updating", 20, "window.__irtrack.cameras()", |v| {
+        cams(v)
+            .iter()
+            .zip(cams(&first))
+            .all(|(now, then)| now["shown"].as_u64() >= then["shown"].as_u64().map(|n| n + 3))
+    })
+    .await;
+
+    // One kept blob per camera (the simulated rig has one LED and no stray light).
+    let tracked = wait_for(
+        c,
+        "one kept blob per camera",
+        20,
+        "window.__irtrack.cameras()",
+        |v| cams(v).iter().all(|c| c["kept"] == 1),
+    )
+    .await;
+    for cam in 0..2 {
+        let kept = js(c, &format!("document.getElementById('cam-{cam}').dataset.kept")).await;
+        assert_eq!(kept, "1", "camera {cam}'s card shows {kept} kept blobs");
+    }
+    let peak = cams(&tracked)
+        .iter()
+        .map(|c| c["peak_dn"].as_u64().unwrap())
+        .max()
+        .unwrap();
+    println!("previews live, one kept blob per camera, LED peak {peak} DN");
+
+    // Threshold view: pixels above the threshold are tinted in the browser, around the LED.
+    c.find(Locator::Id("threshold-view"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    let tinted = wait_for(c, "tinted pixels in both previews", 10, TINTED_JS, |v| {
+        v.as_array()
+            .is_some_and(|a| a.len() == 2 && a.iter().all(|n| n.as_u64() > Some(0)))
+    })
+    .await;
+    println!("threshold view: tinted pixels per camera {tinted}");
+
+    // The 3-D view runs on WebGL and receives positions.
+    wait_for(
+        c,
+        "3-D view with positions",
+        15,
+        "window.__irtrack.scene()",
+        |v| v["webgl"] == true && v["records"].as_u64() > Some(5),
+    )
+    .await;
+
+    // Health shows live numbers: per-camera fps in the table.
+    let fps = wait_for(
+        c,
+        "camera fps in the health table",
+        10,
+        "document.querySelector('#camera-health tbody tr td:nth-child(2)')?.textContent",
+        |v| {
+            v.as_str()
+                .and_then(|s| s.parse::<f64>().ok())
+                .is_some_and(|f| f > 10.0)
+        },
+    )
+    .await;
+    println!("health: camera 0 at {fps} fps");
+    screenshot(c, &out.join("setup-view.png")).await;
+
+    // A change without sign-in is refused and the page says so; the board keeps its value.
+    let (_, before) = http(status, "GET", "/api/tuning");
+    let before: Value = serde_json::from_str(&before).unwrap();
+    let threshold_before = before["threshold_dn"].as_u64().unwrap();
+    type_number(c, "threshold_dn", "200").await;
+    let msg = wait_for(
+        c,
+        "refusal message",
+        10,
+        "window.__irtrack.tuningMessage()",
+        |v| v.as_str().is_some_and(|s| s.starts_with("Not applied")),
+    )
+    .await;
+    assert!(
+        msg.as_str().unwrap().contains("Sign in to change settings"),
+        "the page should tell to sign in: {msg}"
+    );
+    let (_, after) = http(status, "GET", "/api/tuning");
+    let after: Value = serde_json::from_str(&after).unwrap();
+    assert_eq!(
+        after["threshold_dn"].as_u64(),
+        Some(threshold_before),
+        "refused change applied"
+    );
+    wait_for(
+        c,
+        "threshold field back at the board's value",
+        5,
+        "document.getElementById('threshold_dn').value",
+        |v| v.as_str() == Some(threshold_before.to_string().as_str()),
+    )
+    .await;
+    println!("unsigned change refused: {msg}");
+
+    // Sign in, then raise the threshold above the LED's peak through the page.
+    let pw = c.find(Locator::Id("password")).await.unwrap();
+    pw.send_keys(PASSWORD).await.unwrap();
+    c.find(Locator::Id("signin-btn"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    wait_for(c, "signed in", 10, "window.__irtrack.session()", |v| {
+        v["signed_in"] == true
+    })
+    .await;
+    let above = (peak + 20).min(255);
+    type_number(c, "threshold_dn", &above.to_string()).await;
+    wait_for(c, "change applied", 10, "window.__irtrack.tuningMessage()", |v| {
+        v.as_str().is_some_and(|s| s.starts_with("Applied"))
+    })
+    .await;
+    let (_, now) = http(status, "GET", "/api/tuning");
+    let now: Value = serde_json::from_str(&now).unwrap();
+    assert_eq!(
+        now["threshold_dn"].as_u64(),
+        Some(above),
+        "the board did not take the page's threshold"
+    );
+
+    let dark = wait_for(
+        c,
+        "0 blobs in every camera",
+        20,
+        "window.__irtrack.cameras()",
+        |v| {
+            cams(v)
+                .iter()
+                .all(|c| c["threshold_dn"].as_u64() == Some(above) && c["kept"] == 0 && c["rejected"] == 0)
+        },
+    )
+    .await;
+    // The board reports it in plain words (`fault_texts`, code no_led) and the banner shows it.
+    let faults = wait_for(
+        c,
+        "a plain-words fault per camera on the page",
+        10,
+        "window.__irtrack.faults()",
+        |v| {
+            (0..2).all(|i| {
+                v.as_array().unwrap().iter().any(|f| {
+                    f.as_str().is_some_and(|s| {
+                        let s = s.to_lowercase();
+                        s.contains(&format!("camera {i}")) && s.contains("threshold")
+                    })
+                })
+            })
+        },
+    )
+    .await;
+    let server = js(c, "window.__irtrack.serverFaults()").await;
+    for i in 0..2 {
+        assert!(
+            server.as_array().unwrap().iter().any(|f| f["camera"] == i),
+            "the board reported no fault for camera {i}: {server}"
+        );
+    }
+    let banner_visible = js(c, "!document.getElementById('faults').hidden").await;
+    assert_eq!(banner_visible, true, "the fault banner is hidden");
+    println!("threshold {above} > peak {peak}: {dark}; faults shown: {faults}");
+    screenshot(c, &out.join("setup-view-no-marker.png")).await;
+
+    // Back to the old threshold: the marker is found again.
+    type_number(c, "threshold_dn", &threshold_before.to_string()).await;
+    wait_for(
+        c,
+        "one kept blob per camera again",
+        20,
+        "window.__irtrack.cameras()",
+        |v| cams(v).iter().all(|c| c["kept"] == 1),
+    )
+    .await;
+
+    // No script error, failed module load or console.error in the whole session.
+    let errors = js(c, "window.__irtrackErrors").await;
+    assert_eq!(errors, json!([]), "the page logged errors");
+}
