@@ -40,6 +40,8 @@ enum Command {
     Keygen(cmd::keygen::Args),
     /// Measure a multi-LED tool's layout from frames of it held still; adds it to the parameters.
     MeasureTool(cmd::measure_tool::Args),
+    /// Camera poses (and optionally intrinsics) from a wave of a collinear LED wand.
+    WandCalibrate(cmd::wand_calibrate::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -59,5 +61,6 @@ fn main() -> anyhow::Result<()> {
         Command::Register(a) => cmd::register::run(a),
         Command::Keygen(a) => cmd::keygen::run(a),
         Command::MeasureTool(a) => cmd::measure_tool::run(a),
+        Command::WandCalibrate(a) => cmd::wand_calibrate::run(a),
     }
 }
