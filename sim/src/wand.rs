@@ -99,7 +99,12 @@ impl WandConfig {
                 format!("need at least 2 cameras, got {}", self.rig.cameras.len()),
             );
         }
-        if self.leds_mm.len() < 3 || self.leds_mm.windows(2).any(|w| !(w[1] > w[0])) {
+        if self.leds_mm.len() < 3
+            || self
+                .leds_mm
+                .windows(2)
+                .any(|w| w[1].partial_cmp(&w[0]) != Some(std::cmp::Ordering::Greater))
+        {
             return bad(
                 "leds_mm",
                 format!("{:?}: need 3 or more increasing distances", self.leds_mm),
