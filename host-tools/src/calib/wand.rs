@@ -422,7 +422,7 @@ pub fn identify(
             // follow it.
             let (t_img, r) = (inner[0].0, ratios[1]);
             let q = t_img * (1.0 - r) / (r * (1.0 - t_img));
-            if !(q <= MAX_END_DEPTH_RATIO && q >= 1.0 / MAX_END_DEPTH_RATIO) {
+            if !(1.0 / MAX_END_DEPTH_RATIO..=MAX_END_DEPTH_RATIO).contains(&q) {
                 continue;
             }
             let consistent = inner.iter().zip(&ratios[1..k - 1]).all(|((t, _), r)| {

@@ -99,8 +99,8 @@ fn coverage_png(path: &Path, sol: &WandSolution, rig: &RigParams, c: usize) -> R
         )?;
     }
     for row in &sol.views {
-        match &row[c] {
-            Ok(px) => {
+        if let Ok(px) = &row[c] {
+            {
                 let pts: Vec<Point> = px
                     .iter()
                     .map(|p| Point::new(p.x.round() as i32, p.y.round() as i32))
@@ -125,7 +125,6 @@ fn coverage_png(path: &Path, sol: &WandSolution, rig: &RigParams, c: usize) -> R
                     imgproc::circle(&mut img, *p, 2, colour, imgproc::FILLED, imgproc::LINE_AA, 0)?;
                 }
             }
-            Err(_) => {}
         }
     }
     imgproc::put_text(
