@@ -44,6 +44,8 @@ enum Command {
     Pivot(cmd::pivot::Args),
     /// Save synchronised frame sets from irtrackd for calibration (checkerboard or wand).
     Capture(cmd::capture::Args),
+    /// Camera poses (and optionally intrinsics) from a wave of a collinear LED wand.
+    WandCalibrate(cmd::wand_calibrate::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -65,5 +67,6 @@ fn main() -> anyhow::Result<()> {
         Command::MeasureTool(a) => cmd::measure_tool::run(a),
         Command::Pivot(a) => cmd::pivot::run(a),
         Command::Capture(a) => cmd::capture::run(a),
+        Command::WandCalibrate(a) => cmd::wand_calibrate::run(a),
     }
 }

@@ -14,6 +14,7 @@ pub mod rig;
 pub mod scenario;
 pub mod tools;
 pub mod trajectory;
+pub mod wand;
 
 pub use error::SimError;
 pub use rig::{CameraSpec, RigPreset};

@@ -12,6 +12,9 @@ pub mod input;
 pub mod plots;
 pub mod report;
 pub mod solve;
+pub mod wand;
+pub mod wand_report;
+pub mod wand_solve;
 
 use std::collections::BTreeSet;
 

@@ -16,3 +16,4 @@ pub mod robot_sim;
 pub mod show_params;
 pub mod simulate;
 pub mod track;
+pub mod wand_calibrate;

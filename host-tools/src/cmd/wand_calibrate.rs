@@ -1,0 +1,109 @@
+//! `host-tools wand-calibrate`: camera poses (and optionally intrinsics) of an N-camera rig from
+//! a wave of a collinear LED wand. See docs/calibration.md, "Wand calibration".
+//!
+//! Non-interactive; the progress bar is drawn only when stderr is a terminal.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use irtrack_core::params::RigParams;
+
+use crate::calib::wand::{self, Wand};
+use crate::calib::{wand_report, wand_solve};
+
+/// Arguments.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Recording with cam0/, cam1/, ... holding PGM frames paired by file name.
+    #[arg(long)]
+    pub frames: PathBuf,
+    /// Each camera's intrinsics: OpenCV YAML with K<n>, D<n> and the image size (as
+    /// `calibrate` writes), or a parameter blob.
+    #[arg(long)]
+    pub intrinsics: PathBuf,
+    /// LED distances from one end of the wand, mm, e.g. 0,120,300 (unequal spacing).
+    #[arg(long)]
+    pub wand_mm: String,
+    /// Output directory (created).
+    #[arg(long)]
+    pub out_dir: PathBuf,
+    /// Also refine every camera's intrinsics and distortion in the bundle adjustment.
+    #[arg(long)]
+    pub refine_intrinsics: bool,
+    /// Huber loss threshold, px.
+    #[arg(long, default_value_t = 1.0)]
+    pub huber_px: f64,
+    /// Rig id written into the parameters (default: wand-<unix time>).
+    #[arg(long)]
+    pub rig_id: Option<String>,
+}
+
+/// Runs the subcommand.
+pub fn run(args: Args) -> Result<()> {
+    let start = Instant::now();
+    let wand = Wand::parse(&args.wand_mm)?;
+    if !(args.huber_px > 0.0 && args.huber_px.is_finite()) {
+        bail!("--huber-px must be positive, got {}", args.huber_px);
+    }
+    let models = wand::read_intrinsics(&args.intrinsics)?;
+    if models.len() < 2 {
+        bail!(
+            "{}: intrinsics for {} camera(s); a rig needs at least 2",
+            args.intrinsics.display(),
+            models.len()
+        );
+    }
+    let rec = wand::discover(&args.frames, models.len(), &args.intrinsics)?;
+    eprintln!("{} cameras, {} frames", models.len(), rec.frames.len());
+    let obs = wand::observe(&rec, &models, &wand)?;
+    for c in 0..models.len() {
+        let ok = obs.views.iter().filter(|r| r[c].is_ok()).count();
+        eprintln!("cam{c}: wand identified in {ok} of {} frames", obs.frames.len());
+    }
+    let options = wand_solve::SolveOptions {
+        refine_intrinsics: args.refine_intrinsics,
+        huber_px: args.huber_px,
+    };
+    let sol = wand_solve::solve(&models, &obs, &wand, options, |m| eprintln!("{m}"))?;
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    let rig = RigParams {
+        rig_id: args.rig_id.clone().unwrap_or_else(|| format!("wand-{now}")),
+        created_unix_s: now,
+        cameras: sol.cameras.clone(),
+        world_from_cam0: None,
+        tools: Vec::new(),
+    };
+    rig.validate()
+        .context("wand calibration produced unusable parameters")?;
+    let (written, fig) = wand_report::write_outputs(&args.out_dir, &sol, &rig, &wand, &obs.frames)?;
+    for c in 0..rig.cameras.len() {
+        let extra = if c == 0 {
+            String::new()
+        } else {
+            format!(
+                ", baseline {:.3} mm, optical axes {:.3}° apart",
+                rig.baseline_mm(c)?,
+                rig.optical_axis_angle_deg(c)?
+            )
+        };
+        println!(
+            "cam{c}: reprojection RMS {:.4} px over {} views, coverage {:.0} %{extra}",
+            fig.per_camera_rms_px[c],
+            sol.per_camera_views[c],
+            fig.coverage[c] * 100.0
+        );
+    }
+    println!(
+        "wand length error over {} frames: mean {:+.4} mm, std {:.4} mm, max {:.4} mm",
+        fig.frames_used, fig.length_mean_mm, fig.length_std_mm, fig.length_max_abs_mm
+    );
+    println!("done in {:.1} s", start.elapsed().as_secs_f64());
+    for p in written {
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}
