@@ -434,6 +434,11 @@ pub fn parse_test_results(stdout: &str) -> (Counts, usize) {
 }
 
 fn yocto_bitbake(ctx: &Ctx) -> Outcome {
+    // The snapshots are not part of the repository; a machine without them cannot run BitBake
+    // at all, which is a precondition (shown as skipped with the reason), not a layer failure.
+    if let Some(why) = crate::yocto::snapshots_missing(ctx) {
+        return Outcome::skipped(why);
+    }
     hook(crate::yocto::ci_phase(ctx))
 }
 

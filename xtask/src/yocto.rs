@@ -60,6 +60,14 @@ commands:
 ";
 
 /// CI entry point.
+/// Why the snapshots cannot be used, when they are absent or incomplete (the CI phase reports
+/// this as "skipped" with the message, not as a pass).
+pub fn snapshots_missing(ctx: &Ctx) -> Option<String> {
+    find_snapshots(&ctx.root, std::env::var_os(SNAPSHOTS_ENV).map(PathBuf::from))
+        .err()
+        .map(|e| format!("{e:#}"))
+}
+
 pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
     let report = check(ctx)?;
     Ok(Counts {
