@@ -275,9 +275,9 @@ fn print_summary(rows: &[Row], total: Duration) -> i32 {
             None => "-".into(),
         };
         let mut status = status_text(&r.outcome);
-        if status.len() > 44 {
-            status.truncate(41);
-            status.push_str("...");
+        if status.chars().count() > 44 {
+            // By characters: a byte cut could split a multi-byte character and panic.
+            status = status.chars().take(41).collect::<String>() + "...";
         }
         println!(
             "{:<14} {:>8}  {:<44} {tests}",

@@ -81,11 +81,15 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
 /// CI: the crate list matches Cargo.lock, the image builds, and every system-test check passes.
 pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
     let mut counts = Counts::default();
+    // Failed checks are named again in the phase's error, which CI's summary prints last: the
+    // per-check lines scroll away behind the later phases' output.
+    let mut failed: Vec<String> = Vec::new();
     match crates::check(ctx) {
         Ok(()) => counts.passed += 1,
         Err(e) => {
             eprintln!("image: {e:#}");
             counts.failed += 1;
+            failed.push(format!("crate list: {}", short(&format!("{e:#}"))));
         }
     }
     let image = build(ctx).context("building the image")?;
@@ -94,10 +98,26 @@ pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
     println!("{report}");
     counts.passed += report.passed();
     counts.failed += report.failed();
+    for c in report.checks.iter().filter(|c| !c.ok) {
+        failed.push(format!("{}: {}", c.name, short(&c.detail)));
+    }
     if counts.failed > 0 {
-        bail!("{} image check(s) failed", counts.failed);
+        bail!(
+            "{} image check(s) failed: {}",
+            counts.failed,
+            failed.join("; ")
+        );
     }
     Ok(counts)
+}
+
+/// At most 400 characters of a check's detail, for one summary line.
+fn short(detail: &str) -> String {
+    let one_line = detail.replace('\n', " ");
+    match one_line.char_indices().nth(400) {
+        Some((i, _)) => format!("{}…", &one_line[..i]),
+        None => one_line,
+    }
 }
 
 /// A built SD-card image.

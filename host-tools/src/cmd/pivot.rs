@@ -225,7 +225,7 @@ pub fn read_poses(path: &Path) -> anyhow::Result<Vec<ToolPose>> {
         };
         let cols: Vec<usize> = ["x_mm", "y_mm", "z_mm", "qw", "qx", "qy", "qz"]
             .iter()
-            .map(|c| col(*c))
+            .map(|c| col(c))
             .collect::<anyhow::Result<_>>()?;
         let status = header.iter().position(|h| h.trim() == "status");
         for (n, line) in lines.filter(|(_, l)| !l.trim().is_empty()) {
