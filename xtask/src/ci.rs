@@ -107,7 +107,7 @@ pub const PHASES: &[Phase] = &[
     phase("setup", "install missing system packages", "", Some(setup_phase), 30),
     phase("fmt", "cargo fmt --all --check", "", Some(fmt), 5),
     phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", Some(clippy), 60),
-    phase("host-tests", "cargo test --workspace (all crates, host)", "host", Some(host_tests), 15),
+    phase("host-tests", "cargo test --workspace (all crates, host)", "host", Some(host_tests), 25),
     phase("no-std", "irtrack-core without its std feature", "", Some(no_std), 30),
     phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", Some(aarch64_tests), 25),
     phase("systemd", "systemd-analyze verify on systemd/ units", "", Some(lint::systemd_phase), 2),
