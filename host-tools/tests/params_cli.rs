@@ -326,6 +326,57 @@ fn show_params_reports_geometry() {
     );
 }
 
+#[test]
+fn show_params_compares_two_calibrations() {
+    let a = rig3();
+    // The same rig with camera 2 turned 0.5° about its own vertical axis and moved 2 mm.
+    let mut b = rig3();
+    let old = b.cameras[2].cam_from_cam0;
+    let centre = b.camera_centre_cam0_mm(2).unwrap();
+    let turn = nalgebra::Rotation3::from_axis_angle(&nalgebra::Vector3::y_axis(), 0.5f64.to_radians());
+    let r = turn.matrix() * old.rotation();
+    let moved = centre + nalgebra::Vector3::new(0.0, 2.0, 0.0);
+    b.cameras[2].cam_from_cam0 = RigidTransform::from_parts(&r, &(-(r * moved)));
+    b.cameras[1].model.intrinsics.fx_px += 1.25;
+    let (fa, fb) = (tmp("cmp_a.irp"), tmp("cmp_b.irp"));
+    std::fs::write(&fa, a.to_blob().unwrap()).unwrap();
+    std::fs::write(&fb, b.to_blob().unwrap()).unwrap();
+    let o = host_tools(&["show-params", p(&fb), "--compare", p(&fa)]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{err}");
+    let cmp = out
+        .split_once("compared with")
+        .unwrap_or_else(|| panic!("no comparison in\n{out}"))
+        .1;
+    let line = |cam: &str| {
+        cmp.lines()
+            .find(|l| l.trim_start().starts_with(cam))
+            .unwrap_or_else(|| panic!("no {cam} line in\n{out}"))
+            .to_string()
+    };
+    assert!(line("camera 1:").contains("focal +1.250 px"), "{out}");
+    assert!(
+        line("camera 1:").contains("rotation 0.0000 deg, centre 0.000 mm"),
+        "{out}"
+    );
+    assert!(
+        line("camera 2:").contains("rotation 0.5000 deg, centre 2.000 mm"),
+        "{out}"
+    );
+
+    // A rig with another camera count cannot be compared; the message says why.
+    let mut two = rig3();
+    two.cameras.truncate(2);
+    let f2 = tmp("cmp_two.irp");
+    std::fs::write(&f2, two.to_blob().unwrap()).unwrap();
+    let o = host_tools(&["show-params", p(&fa), "--compare", p(&f2)]);
+    let (_, err) = text(&o);
+    assert!(
+        !o.status.success() && err.contains("has 2 cameras, this file 3"),
+        "{err}"
+    );
+}
+
 /// The server side of docs/param-protocol.md, as irtrackd implements it, for one connection:
 /// refuses blobs that do not decode or validate, and rigs whose camera count differs.
 fn serve_one(listener: TcpListener, expected_cameras: usize) -> thread::JoinHandle<Option<RigParams>> {

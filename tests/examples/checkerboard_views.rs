@@ -74,13 +74,16 @@ fn render(out: &std::path::Path, rig: SimRig) -> Result<(), Box<dyn std::error::
         ..Default::default()
     };
     checkerboard::write_set(out, truth, &board, &poses, &settings)?;
+    // The true rig, for `host-tools show-params CALIBRATION --compare truth_rig.irp`.
+    std::fs::write(out.join("truth_rig.irp"), truth.to_blob()?)?;
     println!(
         "rendered {} views per camera of the simulated {rig:?} rig into {}/cam<i>/ ({} that every \
          camera sees, the rest for one camera's intrinsics only; board: 9x6 inner corners, 25 mm \
-         squares)",
+         squares); the true rig in {}/truth_rig.irp",
         poses.len(),
         out.display(),
-        shared.count
+        shared.count,
+        out.display()
     );
     // The truth, in the format `host-tools calibrate` prints its results, for comparison.
     for (i, c) in truth.cameras.iter().enumerate() {

@@ -68,7 +68,10 @@ fn capture_takes_synchronised_sets_from_a_running_irtrackd() {
         String::from_utf8_lossy(&o.stderr),
     );
     assert!(o.status.success(), "{stdout}\n{stderr}");
-    println!("wand capture of 20 sets took {:.2} s: {stdout}", t0.elapsed().as_secs_f64());
+    println!(
+        "wand capture of 20 sets took {:.2} s: {stdout}",
+        t0.elapsed().as_secs_f64()
+    );
     let files = std::fs::read_dir(wand.join("cam1")).unwrap().count();
     assert_eq!(files, 20);
     // Distinct sets: the simulated LED moves, so consecutive frames differ.

@@ -19,6 +19,8 @@ enum Action {
     /// Checkerboard views -> `host-tools calibrate` -> `push-params` into a running irtrackd
     /// ([`crate::demo_live::calibrate_and_push`]).
     CalibrateAndPush,
+    /// Capture a wand wave from irtrackd and calibrate with it ([`crate::demo_live`]).
+    WandCalibration,
     /// irtrackd on simulated cameras driving `host-tools robot-sim` ([`crate::demo_live`]).
     RobotFollows,
     /// irtrackd on simulated cameras; headless Chromium saves a picture of its set-up page
@@ -73,6 +75,14 @@ fn steps() -> Vec<Step> {
                       parameters, and watch the positions appear, compared with the simulator.",
             action: Action::CalibrateAndPush,
             produces: &["calib/rig.irp", "calib/report.md"],
+        },
+        Step {
+            title: "wand calibration (capture, then wand)",
+            explain: "Wave a simulated LED wand in front of the same 90-degree rig served by irtrackd, \
+                      save the frame sets with `host-tools capture --wand`, calibrate the rig with \
+                      `host-tools wand-calibrate` and compare both calibrations with the truth.",
+            action: Action::WandCalibration,
+            produces: &["wand/rig.irp", "wand/report.md", "wand/coverage_cam0.png"],
         },
         Step {
             title: "robot follows the marker",
@@ -161,6 +171,9 @@ pub fn run(ctx: &Ctx, args: &[String]) -> Result<()> {
             )?,
             Action::RobotFollows => {
                 crate::demo_live::robot_follows(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
+            }
+            Action::WandCalibration => {
+                crate::demo_live::wand_calibration(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
             }
             Action::SetupView => {
                 crate::demo_view::screenshot(&crate::demo_live::bin_dir(&host_tools), &out_dir)?

@@ -223,6 +223,112 @@ pub fn calibrate_and_push(bin_dir: &Path, views_bin: &Path, out: &Path) -> Resul
     summarize_circle(&lines, truth_circle)
 }
 
+/// Wand-wave frame sets the wand step captures: one full wave at 30 fps (10 s).
+const WAND_SETS: u64 = 300;
+
+/// Demo step: the 90° rig of the calibration step, now served by irtrackd showing a wand wave;
+/// `host-tools capture --wand` saves the sets, `wand-calibrate` (intrinsics from the
+/// checkerboard step, refined) gives the rig, and both calibrations are compared with the truth.
+pub fn wand_calibration(bin_dir: &Path, out: &Path) -> Result<()> {
+    let dir = out.join("wand");
+    let intrinsics = out.join("calib/rig.yaml");
+    let truth = out.join("calib/views/truth_rig.irp");
+    for (f, from) in [
+        (&intrinsics, "calibrate and push"),
+        (&truth, "calibrate and push"),
+    ] {
+        if !f.is_file() {
+            bail!("{} is missing: the `{from}` step makes it", f.display());
+        }
+    }
+    let wave = dir.join("wave");
+    // Capture numbers its sets after the ones already there; start from an empty wave.
+    if wave.exists() {
+        std::fs::remove_dir_all(&wave).with_context(|| format!("removing {}", wave.display()))?;
+    }
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let host_tools = bin_dir.join("host-tools");
+
+    println!("-- 1. irtrackd on the simulated 90-degree rig, showing a 0/120/300 mm wand being waved");
+    let config = dir.join("irtrackd.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "# Written by `cargo xtask demo` (wand step).\n[source.sim]\nfps = 30.0\n\
+             wand_mm = [0.0, 120.0, 300.0]\nwand_frames = {WAND_SETS}\n[leds]\nbackend = \"none\"\n"
+        ),
+    )?;
+    let mut child = Command::new(bin_dir.join("irtrackd"))
+        .arg("-c")
+        .arg(&config)
+        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
+        .arg(dir.join("state"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .context("starting irtrackd")?;
+    let ready = wait_line(&mut child, "irtrackd ready", Duration::from_secs(30))?;
+    let irtrackd = Guard(child);
+    let status = addr_field(&ready, "status=")?;
+
+    println!("-- 2. host-tools capture --wand: {WAND_SETS} synchronised frame sets from the board");
+    let mut cmd = Command::new(&host_tools);
+    cmd.args(["capture", "--from", &status.to_string(), "--wand", "--count"])
+        .arg(WAND_SETS.to_string())
+        .arg("--out")
+        .arg(&wave);
+    checked(&mut cmd, "host-tools capture --wand")?;
+    drop(irtrackd);
+
+    println!("-- 3. host-tools wand-calibrate: intrinsics from the checkerboard step, refined");
+    let mut cmd = Command::new(&host_tools);
+    cmd.arg("wand-calibrate")
+        .arg("--frames")
+        .arg(&wave)
+        .arg("--intrinsics")
+        .arg(&intrinsics)
+        .args([
+            "--wand-mm",
+            "0,120,300",
+            "--refine-intrinsics",
+            "--rig-id",
+            "demo-wand",
+        ])
+        .arg("--out-dir")
+        .arg(&dir);
+    checked(&mut cmd, "host-tools wand-calibrate")?;
+
+    println!("-- 4. both calibrations against the simulator's truth");
+    for (label, file) in [
+        ("checkerboard (stereo, OpenCV)", out.join("calib/rig.irp")),
+        ("wand (bundle adjustment)", dir.join("rig.irp")),
+    ] {
+        let mut cmd = Command::new(&host_tools);
+        cmd.arg("show-params").arg(&file).arg("--compare").arg(&truth);
+        let text = crate::util::run(
+            &mut cmd,
+            crate::util::RunOpts {
+                capture_stdout: true,
+                quiet_stdout: true,
+                ..Default::default()
+            },
+        )?;
+        if !text.success() {
+            bail!("`host-tools show-params --compare` failed ({})", text.describe());
+        }
+        let cmp = text
+            .stdout
+            .split_once("compared with")
+            .map(|(_, c)| c)
+            .context("show-params printed no comparison")?;
+        println!("{label}:");
+        for line in cmp.lines().skip(1) {
+            println!("{line}");
+        }
+    }
+    Ok(())
+}
+
 /// Runs a command with its output shown; fails with its status if it fails. Returns stdout.
 fn checked(cmd: &mut Command, what: &str) -> Result<String> {
     let out = crate::util::run(

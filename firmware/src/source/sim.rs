@@ -11,7 +11,8 @@
 use nalgebra::Vector3;
 use serde::Deserialize;
 
-use irtrack_sim::{BitDepth, RigPreset, Scenario, SimConfig, Trajectory};
+use irtrack_sim::wand::{WandConfig, WandWave};
+use irtrack_sim::{BitDepth, FrameInfo, RigPreset, Scenario, SimConfig, Trajectory};
 
 use super::{
     CameraControl, CameraControls, ControlValue, Frame, FrameSet, FrameSource, Pixels, SourceError,
@@ -76,6 +77,18 @@ pub struct SimSourceConfig {
     /// With `tool`: amplitude (deg) of the tool's turning about its own axes; 0 = fixed.
     #[serde(default = "d_tool_rotation")]
     pub tool_rotation_deg: f64,
+    /// Render a wand wave instead of the marker: collinear LEDs at these distances (mm) from
+    /// one end, waved and turned through the work volume, with occlusions and reflections — what
+    /// `host-tools capture --wand` records for `wand-calibrate`.
+    #[serde(default)]
+    pub wand_mm: Option<Vec<f64>>,
+    /// With `wand_mm`: frames in one wave (it repeats).
+    #[serde(default = "d_wand_frames")]
+    pub wand_frames: u64,
+}
+
+fn d_wand_frames() -> u64 {
+    900
 }
 
 fn d_distance() -> f64 {
@@ -127,6 +140,8 @@ impl Default for SimSourceConfig {
             frames: None,
             tool: None,
             tool_rotation_deg: d_tool_rotation(),
+            wand_mm: None,
+            wand_frames: d_wand_frames(),
         }
     }
 }
@@ -156,6 +171,24 @@ impl SimSourceConfig {
                 "source.sim.tool_rotation_deg must be in 0..=90, got {}",
                 self.tool_rotation_deg
             ));
+        }
+        if let Some(leds) = &self.wand_mm {
+            if self.tool.is_some() {
+                return bad("source.sim.wand_mm and source.sim.tool exclude each other: the simulator renders either a wand or a tool".into());
+            }
+            // Finite first, so that `<=` below sees no NaN.
+            if leds.len() < 3 || leds.iter().any(|v| !v.is_finite()) || leds.windows(2).any(|w| w[1] <= w[0])
+            {
+                return bad(format!(
+                    "source.sim.wand_mm = {leds:?}: need 3 or more increasing distances in mm (e.g. [0, 120, 300])"
+                ));
+            }
+            if self.wand_frames < 10 {
+                return bad(format!(
+                    "source.sim.wand_frames must be at least 10, got {}",
+                    self.wand_frames
+                ));
+            }
         }
         if !(0.0..1.0).contains(&self.drop_rate) {
             return bad(format!(
@@ -274,6 +307,8 @@ pub struct SimSource {
     stats: SourceStats,
     controls: Vec<SimControls>,
     noise_state: u64,
+    /// Wand mode: the wave and an 8-bit scratch frame for 10-bit output (allocated up front).
+    wand: Option<(WandWave, Vec<u8>)>,
 }
 
 /// Applies exposure × gain to a rendered frame: brightness scales with both, and gain above
@@ -316,7 +351,21 @@ impl SimSource {
     pub fn new(cfg: &SimSourceConfig) -> std::result::Result<Self, SourceError> {
         let scenario =
             Scenario::new(cfg.scenario_config()).map_err(|e| SourceError::Config(e.to_string()))?;
-        Ok(Self::from_scenario(scenario, cfg))
+        let mut source = Self::from_scenario(scenario, cfg);
+        if let Some(leds_mm) = &cfg.wand_mm {
+            let sim_cfg = source.scenario.config();
+            let centre_mm = sim_cfg.rig.workspace_centre_mm(cfg.distance_mm);
+            let mut wand_cfg =
+                WandConfig::new(source.scenario.rig().clone(), centre_mm, cfg.wand_frames as usize);
+            wand_cfg.leds_mm = leds_mm.clone();
+            wand_cfg.seed = cfg.seed;
+            // The default sweep suits a 1.2 m working distance; keep the same share of the view.
+            wand_cfg.sweep_mm *= cfg.distance_mm / 1200.0;
+            let wave = WandWave::new(wand_cfg).map_err(|e| SourceError::Config(e.to_string()))?;
+            let (w, h) = source.scenario.image_size();
+            source.wand = Some((wave, vec![0; w as usize * h as usize]));
+        }
+        Ok(source)
     }
 
     /// Runs an existing scenario (tests keep a copy of the same scenario for ground truth).
@@ -331,6 +380,7 @@ impl SimSource {
             controls: vec![SimControls::NOMINAL; scenario.camera_count()],
             noise_state: 0x9E37_79B9_7F4A_7C15,
             scenario,
+            wand: None,
         }
     }
 
@@ -403,15 +453,38 @@ impl FrameSource for SimSource {
             let mut dropped = 0usize;
             let (mut min_ts, mut max_ts) = (u64::MAX, 0u64);
             for (camera, frame) in out.frames.iter_mut().enumerate() {
-                let info = match &mut frame.pixels {
-                    Pixels::U8(px) => self.scenario.render_u8(index, camera, px),
-                    Pixels::U16(px) => self.scenario.render_u16(index, camera, px),
-                }
-                .map_err(|e| SourceError::CameraLost {
+                let lost = |e: irtrack_sim::SimError| SourceError::CameraLost {
                     camera,
                     device: "simulator".into(),
                     reason: e.to_string(),
-                })?;
+                };
+                let info = if let Some((wave, scratch)) = &mut self.wand {
+                    let wave_frame = (index % self.cfg.wand_frames) as usize;
+                    match &mut frame.pixels {
+                        Pixels::U8(px) => {
+                            wave.render(wave_frame, camera, px).map_err(lost)?;
+                        }
+                        Pixels::U16(px) => {
+                            wave.render(wave_frame, camera, scratch).map_err(lost)?;
+                            // 8-bit rendering shifted into the 10-bit range.
+                            for (d, s) in px.iter_mut().zip(scratch.iter()) {
+                                *d = u16::from(*s) << 2;
+                            }
+                        }
+                    }
+                    FrameInfo {
+                        index,
+                        camera,
+                        dropped: false,
+                        timestamp_ns: self.scenario.timestamp_ns(index),
+                    }
+                } else {
+                    match &mut frame.pixels {
+                        Pixels::U8(px) => self.scenario.render_u8(index, camera, px),
+                        Pixels::U16(px) => self.scenario.render_u16(index, camera, px),
+                    }
+                    .map_err(lost)?
+                };
                 if info.dropped {
                     dropped += 1;
                 }

@@ -19,6 +19,10 @@ pub struct Args {
     /// Public key file(s) to verify a signed blob against (repeatable).
     #[arg(long, value_name = "FILE")]
     pub trusted_key: Vec<PathBuf>,
+    /// Compare with another calibration of the same rig (blob or YAML): per camera, how far
+    /// the pose and intrinsics moved (e.g. last week's calibration, or a simulator's truth).
+    #[arg(long, value_name = "FILE")]
+    pub compare: Option<PathBuf>,
 }
 
 /// Adding 0.0 turns -0.0 into 0.0, so exact zeros never print as "-0.000".
@@ -117,6 +121,40 @@ pub fn describe(rig: &RigParams, source: &str) -> Result<String> {
     Ok(s)
 }
 
+/// Per camera, how `rig` differs from `other` (camera 0 is both rigs' reference frame, so its
+/// pose cannot differ; its intrinsics can).
+pub fn compare(rig: &RigParams, other: &RigParams, other_name: &str) -> Result<String> {
+    anyhow::ensure!(
+        rig.cameras.len() == other.cameras.len(),
+        "cannot compare with {other_name}: it has {} cameras, this file {}",
+        other.cameras.len(),
+        rig.cameras.len()
+    );
+    let mut s = String::new();
+    writeln!(s, "compared with {other_name} (rig id {}):", other.rig_id)?;
+    for (i, (a, b)) in rig.cameras.iter().zip(&other.cameras).enumerate() {
+        let (ka, kb) = (&a.model.intrinsics, &b.model.intrinsics);
+        let mut line = format!(
+            "  camera {i}: focal {:+.3} px, principal point ({:+.3}, {:+.3}) px",
+            ka.fx_px - kb.fx_px,
+            ka.cx_px - kb.cx_px,
+            ka.cy_px - kb.cy_px
+        );
+        if i > 0 {
+            let r = a.cam_from_cam0.rotation() * b.cam_from_cam0.rotation().transpose();
+            let angle_deg = ((r.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees();
+            let centre_mm = (rig.camera_centre_cam0_mm(i)? - other.camera_centre_cam0_mm(i)?).norm();
+            let baseline_mm = rig.baseline_mm(i)? - other.baseline_mm(i)?;
+            write!(
+                line,
+                ", rotation {angle_deg:.4} deg, centre {centre_mm:.3} mm (baseline {baseline_mm:+.3} mm)"
+            )?;
+        }
+        writeln!(s, "{line}")?;
+    }
+    Ok(s)
+}
+
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
     let loaded = load_params_file(&args.file)?;
@@ -156,6 +194,13 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(sig) = signature {
         println!("signature:    {sig}");
         println!("params CRC:   {:08x}", loaded.rig.params_crc()?);
+    }
+    if let Some(other) = &args.compare {
+        let other_rig = load_params_file(other)?.rig;
+        print!(
+            "{}",
+            compare(&loaded.rig, &other_rig, &other.display().to_string())?
+        );
     }
     Ok(())
 }
