@@ -114,21 +114,6 @@ impl HistogramSnapshot {
             mean_us: (count > 0).then(|| self.sum_us as f64 / count as f64),
         }
     }
-
-    /// Prometheus histogram lines for metric `name` with extra `labels` (e.g. `stage="detect"`).
-    pub fn write_prometheus(&self, out: &mut String, name: &str, labels: &str) {
-        use std::fmt::Write as _;
-        let mut cumulative = 0u64;
-        for (i, &c) in self.counts.iter().enumerate() {
-            cumulative += c;
-            let le = LATENCY_BUCKETS_US
-                .get(i)
-                .map_or_else(|| "+Inf".to_string(), |b| format!("{}", *b as f64 / 1e6));
-            let _ = writeln!(out, "{name}_bucket{{{labels},le=\"{le}\"}} {cumulative}");
-        }
-        let _ = writeln!(out, "{name}_sum{{{labels}}} {}", self.sum_us as f64 / 1e6);
-        let _ = writeln!(out, "{name}_count{{{labels}}} {cumulative}");
-    }
 }
 
 /// Percentiles for the JSON status (bucket upper bounds, µs).
@@ -164,23 +149,14 @@ mod tests {
     }
 
     #[test]
-    fn overflow_bucket_reports_max_and_prometheus_is_cumulative() {
+    fn overflow_bucket_reports_max() {
         let h = LatencyHistogram::new();
         h.record_us(10);
         h.record_us(1_000_000);
         let s = h.snapshot();
         assert_eq!(s.quantile_us(1.0), Some(1_000_000));
-        let mut text = String::new();
-        s.write_prometheus(&mut text, "x_seconds", "stage=\"a\"");
-        assert!(
-            text.contains("x_seconds_bucket{stage=\"a\",le=\"0.000025\"} 1\n"),
-            "{text}"
-        );
-        assert!(
-            text.contains("x_seconds_bucket{stage=\"a\",le=\"+Inf\"} 2\n"),
-            "{text}"
-        );
-        assert!(text.contains("x_seconds_count{stage=\"a\"} 2\n"), "{text}");
+        assert_eq!(s.counts[0], 1);
+        assert_eq!(s.counts[LATENCY_BUCKETS_US.len()], 1, "overflow bucket");
         assert!(LatencyHistogram::new().snapshot().quantile_us(0.5).is_none());
     }
 }

@@ -377,170 +377,247 @@ impl SharedStatus {
         }
     }
 
-    /// Prometheus text exposition (version 0.0.4).
+    /// OpenMetrics text exposition, encoded by `prometheus-client` from a snapshot of the
+    /// counters (read once, so one scrape is consistent with itself).
     pub fn prometheus(&self) -> String {
-        use std::fmt::Write as _;
-        let mut s = String::with_capacity(8 * 1024);
         let info = self.params_info();
-        let counters: [(&str, &str, u64); 17] = [
+        // Counter names without `_total`: the encoder appends it.
+        let counters: [(&'static str, &'static str, u64); 17] = [
             (
-                "irtrackd_sets_processed_total",
+                "irtrackd_sets_processed",
                 "frame sets processed",
                 self.sets_processed.load(R),
             ),
             (
-                "irtrackd_positions_published_total",
+                "irtrackd_positions_published",
                 "positions published",
                 self.published.load(R),
             ),
             (
-                "irtrackd_tracked_total",
+                "irtrackd_tracked",
                 "sets with a gated 3-D position",
                 self.tracked.load(R),
             ),
+            ("irtrackd_lost", "sets without a position", self.lost.load(R)),
             (
-                "irtrackd_lost_total",
-                "sets without a position",
-                self.lost.load(R),
-            ),
-            (
-                "irtrackd_gated_total",
+                "irtrackd_gated",
                 "positions rejected by the quality gate",
                 self.gated.load(R),
             ),
             (
-                "irtrackd_deadline_misses_total",
+                "irtrackd_deadline_misses",
                 "sets processed slower than the frame period",
                 self.deadline_misses.load(R),
             ),
             (
-                "irtrackd_stale_sets_total",
+                "irtrackd_stale_sets",
                 "duplicated or reordered sets dropped",
                 self.stale_sets.load(R),
             ),
             (
-                "irtrackd_skewed_sets_total",
+                "irtrackd_skewed_sets",
                 "sets refused for camera timestamp skew",
                 self.skewed_sets.load(R),
             ),
             (
-                "irtrackd_source_errors_total",
+                "irtrackd_source_errors",
                 "frame source errors",
                 self.source_errors.load(R),
             ),
             (
-                "irtrackd_sets_dropped_total",
+                "irtrackd_sets_dropped",
                 "frame sets dropped by the source",
                 self.sets_dropped.load(R),
             ),
             (
-                "irtrackd_unpaired_dropped_total",
+                "irtrackd_unpaired_dropped",
                 "frames without a partner",
                 self.unpaired_dropped.load(R),
             ),
             (
-                "irtrackd_camera_reconnects_total",
+                "irtrackd_camera_reconnects",
                 "camera reopen count",
                 self.reconnects.load(R),
             ),
             (
-                "irtrackd_stream_dropped_slow_total",
+                "irtrackd_stream_dropped_slow",
                 "stream clients dropped as too slow",
                 self.stream_dropped_slow.load(R),
             ),
             (
-                "irtrackd_stream_refused_total",
+                "irtrackd_stream_refused",
                 "stream connections refused at the client limit",
                 self.stream_refused.load(R),
             ),
             (
-                "irtrackd_stream_records_sent_total",
+                "irtrackd_stream_records_sent",
                 "records queued to stream clients",
                 self.stream_records_sent.load(R),
             ),
             (
-                "irtrackd_slot_overwrites_total",
+                "irtrackd_slot_overwrites",
                 "results replaced before the stream saw them",
                 self.slot_overwrites.load(R),
             ),
             (
-                "irtrackd_params_rejected_total",
+                "irtrackd_params_rejected",
                 "parameter pushes rejected",
                 info.rejected,
             ),
         ];
-        for (name, help, v) in counters {
-            let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+        let snapshot = MetricsSnapshot {
+            counters: counters.to_vec(),
+            version: env!("CARGO_PKG_VERSION"),
+            rig_id: info.rig_id.unwrap_or_default(),
+            params_loaded: info.loaded,
+            stream_clients: self.stream_clients.load(R),
+            pairing_error_s: self.pairing_error_last_ns.load(R) as f64 / 1e9,
+            camera_fps: (0..self.cameras.len())
+                .map(|i| self.camera_fps(i).unwrap_or(0.0))
+                .collect(),
+            camera_frames: self.cameras.iter().map(|c| c.frames.load(R)).collect(),
+            leds: self.led_levels(),
+            faults: self.active_faults(),
+            stages: self.stages.stages().map(|(name, h)| (name, h.snapshot())),
+        };
+        let mut registry = prometheus_client::registry::Registry::default();
+        registry.register_collector(Box::new(snapshot));
+        let mut s = String::with_capacity(8 * 1024);
+        // Writing into a String cannot fail; an encoder error would be a bug in a metric.
+        if let Err(e) = prometheus_client::encoding::text::encode(&mut s, &registry) {
+            s = format!("# metrics encoding failed: {e}\n");
         }
-        let _ = writeln!(
-            s,
-            "# HELP irtrackd_info build and parameter set\n# TYPE irtrackd_info gauge\nirtrackd_info{{version=\"{}\",rig_id=\"{}\"}} 1",
-            env!("CARGO_PKG_VERSION"),
-            info.rig_id
-                .as_deref()
-                .unwrap_or("")
-                .replace(['"', '\\', '\n'], "_")
-        );
-        let _ = writeln!(
-            s,
-            "# TYPE irtrackd_params_loaded gauge\nirtrackd_params_loaded {}",
-            u8::from(info.loaded)
-        );
-        let _ = writeln!(
-            s,
-            "# TYPE irtrackd_stream_clients gauge\nirtrackd_stream_clients {}",
-            self.stream_clients.load(R)
-        );
-        let _ = writeln!(
-            s,
-            "# TYPE irtrackd_pairing_error_seconds gauge\nirtrackd_pairing_error_seconds {}",
-            self.pairing_error_last_ns.load(R) as f64 / 1e9
-        );
-        let _ = writeln!(s, "# TYPE irtrackd_camera_fps gauge");
-        for i in 0..self.cameras.len() {
-            let _ = writeln!(
-                s,
-                "irtrackd_camera_fps{{camera=\"{i}\"}} {}",
-                self.camera_fps(i).unwrap_or(0.0)
-            );
+        s
+    }
+}
+
+/// Exemplar label type for histograms without exemplars.
+type NoLabels = Vec<(String, String)>;
+
+/// The values of one scrape, encoded by [`prometheus_client`].
+#[derive(Debug)]
+struct MetricsSnapshot {
+    counters: Vec<(&'static str, &'static str, u64)>,
+    version: &'static str,
+    rig_id: String,
+    params_loaded: bool,
+    stream_clients: u64,
+    pairing_error_s: f64,
+    camera_fps: Vec<f64>,
+    camera_frames: Vec<u64>,
+    leds: [bool; 4],
+    faults: Vec<Fault>,
+    stages: [(&'static str, crate::metrics::HistogramSnapshot); 5],
+}
+
+impl prometheus_client::collector::Collector for MetricsSnapshot {
+    fn encode(
+        &self,
+        mut enc: prometheus_client::encoding::DescriptorEncoder,
+    ) -> std::result::Result<(), std::fmt::Error> {
+        use prometheus_client::encoding::EncodeMetric;
+        use prometheus_client::metrics::MetricType;
+        use prometheus_client::metrics::counter::ConstCounter;
+        use prometheus_client::metrics::gauge::ConstGauge;
+        for (name, help, v) in &self.counters {
+            let c = ConstCounter::new(*v);
+            c.encode(enc.encode_descriptor(name, help, None, c.metric_type())?)?;
         }
-        let _ = writeln!(s, "# TYPE irtrackd_camera_frames_total counter");
-        for (i, c) in self.cameras.iter().enumerate() {
-            let _ = writeln!(
-                s,
-                "irtrackd_camera_frames_total{{camera=\"{i}\"}} {}",
-                c.frames.load(R)
-            );
+        let info = prometheus_client::metrics::info::Info::new(vec![
+            ("version", self.version.to_string()),
+            ("rig_id", self.rig_id.clone()),
+        ]);
+        // `Info` appends `_info`: the metric is `irtrackd_info`.
+        info.encode(enc.encode_descriptor(
+            "irtrackd",
+            "build and parameter set",
+            None,
+            info.metric_type(),
+        )?)?;
+        let g = ConstGauge::new(i64::from(self.params_loaded));
+        g.encode(enc.encode_descriptor(
+            "irtrackd_params_loaded",
+            "1 when a valid parameter set is in use",
+            None,
+            g.metric_type(),
+        )?)?;
+        let g = ConstGauge::new(self.stream_clients as i64);
+        g.encode(enc.encode_descriptor(
+            "irtrackd_stream_clients",
+            "connected stream clients",
+            None,
+            g.metric_type(),
+        )?)?;
+        let g = ConstGauge::new(self.pairing_error_s);
+        g.encode(enc.encode_descriptor(
+            "irtrackd_pairing_error_seconds",
+            "capture time spread of the last frame set",
+            None,
+            g.metric_type(),
+        )?)?;
+        let mut m = enc.encode_descriptor(
+            "irtrackd_camera_fps",
+            "frames per second per camera",
+            None,
+            MetricType::Gauge,
+        )?;
+        for (i, fps) in self.camera_fps.iter().enumerate() {
+            let labels = [("camera", i.to_string())];
+            ConstGauge::new(*fps).encode(m.encode_family(&labels)?)?;
         }
-        let _ = writeln!(s, "# TYPE irtrackd_led_on gauge");
-        for (led, on) in ["run", "track", "robot", "fault"].iter().zip(self.led_levels()) {
-            let _ = writeln!(s, "irtrackd_led_on{{led=\"{led}\"}} {}", u8::from(on));
+        let mut m = enc.encode_descriptor(
+            "irtrackd_camera_frames",
+            "frames received per camera",
+            None,
+            MetricType::Counter,
+        )?;
+        for (i, n) in self.camera_frames.iter().enumerate() {
+            let labels = [("camera", i.to_string())];
+            ConstCounter::new(*n).encode(m.encode_family(&labels)?)?;
         }
-        let _ = writeln!(s, "# TYPE irtrackd_fault gauge");
-        let faults = self.active_faults();
+        let mut m = enc.encode_descriptor("irtrackd_led_on", "status LED levels", None, MetricType::Gauge)?;
+        for (led, on) in ["run", "track", "robot", "fault"].iter().zip(self.leds) {
+            let labels = [("led", *led)];
+            ConstGauge::new(i64::from(on)).encode(m.encode_family(&labels)?)?;
+        }
+        let mut m = enc.encode_descriptor("irtrackd_fault", "active faults", None, MetricType::Gauge)?;
         for (f, name) in [
             (Fault::CameraLost, "camera_lost"),
             (Fault::NoParams, "no_params"),
             (Fault::DeadlineMisses, "deadline_misses"),
         ] {
-            let _ = writeln!(
-                s,
-                "irtrackd_fault{{fault=\"{name}\"}} {}",
-                u8::from(faults.contains(&f))
-            );
+            let labels = [("fault", name)];
+            ConstGauge::new(i64::from(self.faults.contains(&f))).encode(m.encode_family(&labels)?)?;
         }
-        let _ = writeln!(
-            s,
-            "# HELP irtrackd_stage_latency_seconds processing stage latency\n# TYPE irtrackd_stage_latency_seconds histogram"
-        );
-        for (name, h) in self.stages.stages() {
-            h.snapshot().write_prometheus(
-                &mut s,
-                "irtrackd_stage_latency_seconds",
-                &format!("stage=\"{name}\""),
-            );
+        // The loop records latencies into lock-free atomic buckets (it must neither lock nor
+        // allocate); the snapshot is handed to the encoder as a classic histogram.
+        let mut m = enc.encode_descriptor(
+            "irtrackd_stage_latency_seconds",
+            "processing stage latency",
+            None,
+            MetricType::Histogram,
+        )?;
+        for (name, h) in &self.stages {
+            let buckets: Vec<(f64, u64)> = h
+                .counts
+                .iter()
+                .enumerate()
+                .map(|(i, c)| {
+                    let le = crate::metrics::LATENCY_BUCKETS_US
+                        .get(i)
+                        .map_or(f64::INFINITY, |b| *b as f64 / 1e6);
+                    (le, *c)
+                })
+                .collect();
+            let labels = [("stage", *name)];
+            m.encode_family(&labels)?.encode_histogram::<NoLabels>(
+                h.sum_us as f64 / 1e6,
+                h.count(),
+                &buckets,
+                None,
+            )?;
         }
-        s
+        Ok(())
     }
 }
 

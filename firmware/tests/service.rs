@@ -472,9 +472,29 @@ async fn status_json_and_metrics_report_the_running_service() {
 
     let (code, metrics) = http_get(running.addrs.status, "/metrics").await;
     assert_eq!(code, 200);
-    assert!(metrics.contains("irtrackd_stage_latency_seconds_bucket{stage=\"detect\",le=\"+Inf\"}"));
-    assert!(metrics.contains("irtrackd_params_loaded 1"));
-    assert!(metrics.contains("irtrackd_camera_fps{camera=\"1\"}"));
+    for want in [
+        "irtrackd_stage_latency_seconds_bucket{le=\"+Inf\",stage=\"detect\"}",
+        "irtrackd_params_loaded 1",
+        "irtrackd_camera_fps{camera=\"1\"}",
+        "irtrackd_sets_processed_total ",
+        "irtrackd_info{version=",
+        "irtrackd_fault{fault=\"no_params\"} 0",
+        "# TYPE irtrackd_stage_latency_seconds histogram",
+        "# EOF",
+    ] {
+        assert!(metrics.contains(want), "no {want:?} in\n{metrics}");
+    }
+    // Cumulative buckets: the +Inf bucket of a stage equals its count.
+    let value = |prefix: &str| -> f64 {
+        metrics
+            .lines()
+            .find_map(|l| l.strip_prefix(prefix))
+            .and_then(|v| v.trim().parse().ok())
+            .unwrap_or_else(|| panic!("no {prefix:?} in\n{metrics}"))
+    };
+    let inf = value("irtrackd_stage_latency_seconds_bucket{le=\"+Inf\",stage=\"detect\"}");
+    let count = value("irtrackd_stage_latency_seconds_count{stage=\"detect\"}");
+    assert!(inf > 0.0 && inf == count, "+Inf bucket {inf}, count {count}");
     let (code, _) = http_get(running.addrs.status, "/nope").await;
     assert_eq!(code, 404);
     running.shutdown().await;

@@ -309,7 +309,10 @@ async fn status_json(State(s): Shared) -> Response {
 async fn metrics(State(s): Shared) -> Response {
     (
         StatusCode::OK,
-        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
+        [(
+            header::CONTENT_TYPE,
+            "application/openmetrics-text; version=1.0.0; charset=utf-8",
+        )],
         s.status.prometheus(),
     )
         .into_response()
