@@ -418,8 +418,15 @@ async fn status_json_and_metrics_report_the_running_service() {
     cfg.service.params_from_simulator = true;
     let running = app::start(cfg, Overrides::default()).await.unwrap();
     let status = running.status.clone();
+    // Every stage's histogram, not only the tracked counter: the loop counts a set as tracked
+    // before it records the later stages' latencies, so a snapshot can fall in between.
     eventually(10, || {
         status.tracked.load(std::sync::atomic::Ordering::Relaxed) >= 30
+            && status
+                .stages
+                .stages()
+                .iter()
+                .all(|(_, h)| h.snapshot().count() >= 30)
     })
     .await;
 
