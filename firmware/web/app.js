@@ -2,6 +2,7 @@
 
 import { getJson } from "./api.js";
 import { Cameras } from "./cameras.js";
+import { Capture } from "./capture.js";
 import { Controls } from "./controls.js";
 import { Health, serverFaults } from "./health.js";
 import { Live } from "./live.js";
@@ -27,6 +28,7 @@ const cameras = new Cameras($("cameras"), () => ({ thresholdView: tintBox.checke
 const health = new Health();
 const robot = new Robot();
 const scene = new Scene3D($("scene"), $("scene-info"), $("scene-frame"));
+const capture = new Capture($("capture-btn"), $("capture-msg"));
 const controls = new Controls((s) => {
   state.session = s;
   robot.setSession(s);
@@ -106,6 +108,8 @@ window.__irtrack = {
   scene: () => ({ webgl: scene.ok, records: scene.records, rigCameras: scene.rig ? scene.rig.cameras.length : 0, workspace: !!scene.workspace }),
   session: () => state.session,
   tuningMessage: () => $("tuning-msg").textContent,
+  captureMessage: () => $("capture-msg").textContent,
+  capturesSaved: () => capture.saved,
 };
 
 live.connect();

@@ -127,7 +127,7 @@ fn chromedriver_ready(addr: SocketAddr) -> bool {
     resp.starts_with("HTTP/1.") && resp.contains("\"ready\":true")
 }
 
-async fn browser(driver_url: &str, profile: &Path) -> Client {
+async fn browser(driver_url: &str, profile: &Path, downloads: &Path) -> Client {
     let mut caps = serde_json::Map::new();
     caps.insert(
         "goog:chromeOptions".into(),
@@ -148,6 +148,12 @@ async fn browser(driver_url: &str, profile: &Path) -> Client {
                 format!("--window-size={},{}", WINDOW.0, WINDOW.1),
                 format!("--user-data-dir={}", profile.display()),
             ],
+            // "Save frame set" downloads one file per camera: no prompt, several allowed.
+            "prefs": {
+                "download.default_directory": downloads.display().to_string(),
+                "download.prompt_for_download": false,
+                "profile.default_content_setting_values.automatic_downloads": 1,
+            },
         }),
     );
     ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
@@ -243,14 +249,16 @@ backend = "sim"
     let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
     let status = addr_field(&ready, "status=");
     let (_driver, driver_url) = start_chromedriver(&dir);
-    let c = browser(&driver_url, &dir.join("profile")).await;
-    let result = tokio::time::timeout(Duration::from_secs(90), run(&c, status, &out)).await;
+    let downloads = dir.join("downloads");
+    std::fs::create_dir_all(&downloads).unwrap();
+    let c = browser(&driver_url, &dir.join("profile"), &downloads).await;
+    let result = tokio::time::timeout(Duration::from_secs(90), run(&c, status, &out, &downloads)).await;
     let _ = c.close().await;
     result.expect("browser test took longer than 90 s");
     println!("browser test took {:.1} s", t0.elapsed().as_secs_f64());
 }
 
-async fn run(c: &Client, status: SocketAddr, out: &Path) {
+async fn run(c: &Client, status: SocketAddr, out: &Path, downloads: &Path) {
     let url = format!("http://{status}/");
     c.goto(&url).await.unwrap();
     wait_for(
@@ -337,6 +345,53 @@ async fn run(c: &Client, status: SocketAddr, out: &Path) {
     )
     .await;
     println!("health: camera 0 at {fps} fps");
+
+    // "Save frame set" (no sign-in needed: it only reads) saves one full-resolution PGM per
+    // camera through the browser's downloads.
+    c.find(Locator::Id("capture-btn"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    let msg = wait_for(
+        c,
+        "frame set saved",
+        10,
+        "window.__irtrack.captureMessage()",
+        |v| {
+            v.as_str()
+                .is_some_and(|s| s.starts_with("Saved set") || s.starts_with("Frame set not saved"))
+        },
+    )
+    .await;
+    let msg = msg.as_str().unwrap().to_owned();
+    assert!(msg.starts_with("Saved set") && msg.contains("640×480"), "{msg}");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let saved = loop {
+        let mut pgms: Vec<PathBuf> = std::fs::read_dir(downloads)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|x| x == "pgm"))
+            .collect();
+        pgms.sort();
+        if pgms.len() == 2 || Instant::now() > deadline {
+            break pgms;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert_eq!(saved.len(), 2, "downloaded PGMs: {saved:?} ({msg})");
+    for (i, p) in saved.iter().enumerate() {
+        let name = p.file_name().unwrap().to_string_lossy().into_owned();
+        assert!(name.starts_with(&format!("cam{i}_")), "{name}");
+        let bytes = std::fs::read(p).unwrap();
+        assert!(
+            bytes.starts_with(b"P5\n640 480\n255\n"),
+            "{name}: not an 8-bit 640x480 PGM"
+        );
+        assert_eq!(bytes.len(), "P5\n640 480\n255\n".len() + 640 * 480, "{name}");
+    }
+    println!("capture: {msg}");
     screenshot(c, &out.join("setup-view.png")).await;
 
     // A change without sign-in is refused and the page says so; the board keeps its value.
