@@ -536,6 +536,60 @@ async fn slow_viewers_never_slow_the_loop() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn viewers_with_the_same_settings_share_one_encode() {
+    let dir = TempDir::new("web-share");
+    let running = app::start(config(&dir, None), Overrides::default())
+        .await
+        .unwrap();
+    let addr = running.addrs.status;
+    let st = running.status.clone();
+    assert!(eventually(10, async || st.tracked.load(Relaxed) > 10).await);
+    let sub = r#"{"type": "subscribe", "preview_fps": 10, "preview_max_width_px": 320}"#;
+    let mut viewers = Vec::new();
+    for _ in 0..3 {
+        viewers.push(connect_live(addr, sub).await);
+    }
+    // Every viewer reads its previews (JPEG frames) for 3 s.
+    let deadline = Instant::now() + Duration::from_secs(3);
+    let mut received = [0u64; 3];
+    let mut tasks = Vec::new();
+    for mut ws in viewers {
+        tasks.push(tokio::spawn(async move {
+            let mut jpegs = 0u64;
+            while Instant::now() < deadline {
+                match tokio::time::timeout(Duration::from_millis(500), ws.next()).await {
+                    Ok(Some(Ok(Message::Binary(b)))) => {
+                        assert_eq!(&b[..2], &[0xFF, 0xD8], "not a JPEG");
+                        jpegs += 1;
+                    }
+                    Ok(Some(Ok(_))) | Err(_) => {}
+                    Ok(_) => break,
+                }
+            }
+            jpegs
+        }));
+    }
+    for (i, t) in tasks.into_iter().enumerate() {
+        received[i] = t.await.unwrap();
+    }
+    let v = status_json(addr).await["viewers"].clone();
+    let (encoded, shared) = (
+        v["previews_encoded"].as_u64().unwrap(),
+        v["previews_shared"].as_u64().unwrap(),
+    );
+    println!("JPEGs received per viewer {received:?}; preview sets encoded {encoded}, shared {shared}");
+    // Two cameras: two JPEGs per preview set. Everybody was served at about 10 fps.
+    assert!(received.iter().all(|&n| n >= 2 * 10), "{received:?}");
+    let sets_served = received.iter().sum::<u64>() / 2;
+    assert!(shared > 0, "no viewer reused another's encode: {v}");
+    assert!(
+        encoded < sets_served,
+        "{encoded} encodes for {sets_served} preview sets served: nothing was shared"
+    );
+    running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn frameset_returns_every_camera_with_plausible_timestamps() {
     let dir = TempDir::new("web-frameset");
     let running = app::start(config(&dir, None), Overrides::default())

@@ -150,7 +150,7 @@ export class Health {
       ["stream clients", fmt((st.stream || {}).clients)],
     ].concat(
       st.viewers
-        ? [["page viewers", `${fmt(st.viewers.live)} (sets copied ${fmt(st.viewers.copies)}, skipped while busy ${fmt(st.viewers.busy_skips)})`]]
+        ? [["page viewers", `${fmt(st.viewers.live)} (sets copied ${fmt(st.viewers.copies)}, skipped while busy ${fmt(st.viewers.busy_skips)}; previews encoded ${fmt(st.viewers.previews_encoded)}, shared ${fmt(st.viewers.previews_shared)})`]]
         : []
     ));
     // Latency table.

@@ -102,11 +102,7 @@ pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
         failed.push(format!("{}: {}", c.name, short(&c.detail)));
     }
     if counts.failed > 0 {
-        bail!(
-            "{} image check(s) failed: {}",
-            counts.failed,
-            failed.join("; ")
-        );
+        bail!("{} image check(s) failed: {}", counts.failed, failed.join("; "));
     }
     Ok(counts)
 }

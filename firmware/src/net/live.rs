@@ -363,10 +363,85 @@ pub(super) async fn live(State(s): Shared, ws: WebSocketUpgrade) -> Response {
 
 /// What one copy turns into for one viewer.
 struct Rendered {
-    previews: Vec<(serde_json::Value, Vec<u8>)>,
-    zooms: Vec<(serde_json::Value, Vec<u8>)>,
+    previews: Vec<(serde_json::Value, Bytes)>,
+    zooms: Vec<(serde_json::Value, Bytes)>,
     blobs: Option<serde_json::Value>,
     set_index: u64,
+}
+
+/// A viewer reuses previews another viewer encoded this recently (with the same size and zoom)
+/// instead of encoding its own: N viewers cost about one encode per preview period, not N.
+/// Shorter than the fastest preview period, so nobody gets a stale picture twice.
+const PREVIEW_SHARE_WINDOW: Duration = Duration::from_millis(30);
+
+/// Start of the preview slots (see `live_session`).
+static PREVIEW_EPOCH: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
+
+/// Previews and zooms of one set, encoded once for every viewer with these settings.
+struct SharedPreviews {
+    key: (u32, u32),
+    encoded_at: Instant,
+    set_index: u64,
+    previews: Vec<(serde_json::Value, Bytes)>,
+    zooms: Vec<(serde_json::Value, Bytes)>,
+}
+
+/// The cache viewers share, and how often it saved an encode (reported under `viewers`).
+#[derive(Default)]
+pub struct PreviewShare {
+    cache: std::sync::Mutex<Option<SharedPreviews>>,
+    /// Preview sets encoded.
+    pub encoded: std::sync::atomic::AtomicU64,
+    /// Preview sets a viewer took from another viewer's encode.
+    pub shared: std::sync::atomic::AtomicU64,
+}
+
+/// Previews (and the blob list) for one viewer: from the shared cache when another viewer
+/// encoded them within [`PREVIEW_SHARE_WINDOW`], else encoded from a copy of the tap's set and
+/// offered to the others. `None` when the tap holds no set.
+fn render_for_viewer(
+    tap: &crate::viewer::ViewerTap,
+    share: &PreviewShare,
+    sub: &Subscription,
+    want_preview: bool,
+) -> Option<Rendered> {
+    let key = (sub.preview_max_width_px, sub.zoom_px);
+    if !want_preview {
+        let guard = tap.read()?;
+        return Some(render(guard.as_deref()?, sub, false));
+    }
+    // Held through the encode: viewers that become due together wait here for the first one's
+    // encode instead of all encoding the same set. Only viewer threads take this lock.
+    let mut cache = share.cache.lock().ok()?;
+    if let Some(c) = cache
+        .as_ref()
+        .filter(|c| c.key == key && c.encoded_at.elapsed() < PREVIEW_SHARE_WINDOW)
+    {
+        share.shared.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        // The blob list only: built under the tap's lock, no frame copied.
+        let guard = tap.read()?;
+        let mut r = render(guard.as_deref()?, sub, false);
+        drop(guard);
+        r.previews = c.previews.clone();
+        r.zooms = c.zooms.clone();
+        if !sub.blobs {
+            r.set_index = c.set_index;
+        }
+        return Some(r);
+    }
+    // Hold the tap's copy only for a memcpy (the loop skips sets while it is held), then
+    // downscale and encode outside that lock.
+    let set = tap.read()?.as_deref()?.clone();
+    let r = render(&set, sub, true);
+    share.encoded.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    *cache = Some(SharedPreviews {
+        key,
+        encoded_at: Instant::now(),
+        set_index: r.set_index,
+        previews: r.previews.clone(),
+        zooms: r.zooms.clone(),
+    });
+    Some(r)
 }
 
 async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
@@ -384,7 +459,10 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
     let mut poll = tokio::time::interval(Duration::from_millis(5));
     poll.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut last_seq = s.tap.as_ref().map_or(0, |t| t.seq());
-    let mut last_preview: Option<Instant> = None;
+    // Preview slots on one clock for every viewer: viewers at the same rate become due together,
+    // so the first one's encode is shared by the others (see PREVIEW_SHARE_WINDOW).
+    let epoch = *PREVIEW_EPOCH.get_or_init(Instant::now);
+    let mut last_slot: Option<u64> = None;
     let mut last_position: Option<Instant> = None;
     let mut last_blob_set: Option<u64> = None;
     let mut dropped_sets = 0u64;
@@ -445,24 +523,22 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
                     continue;
                 }
                 last_seq = seq;
-                let want_preview = sub.preview_fps > 0.0
-                    && last_preview.is_none_or(|t| t.elapsed().as_secs_f64() >= 0.95 / sub.preview_fps);
+                let slot = (epoch.elapsed().as_secs_f64() * sub.preview_fps) as u64;
+                let want_preview = sub.preview_fps > 0.0 && last_slot != Some(slot);
                 if !want_preview && !sub.blobs {
                     continue;
                 }
                 let sub_now = sub;
+                let share = s.previews.clone();
                 let rendered = tokio::task::spawn_blocking(move || {
-                    // Hold the copy only for a memcpy (the loop skips sets while it is held),
-                    // then downscale and encode outside the lock.
-                    let set = tap.read()?.as_deref()?.clone();
-                    Some(render(&set, &sub_now, want_preview))
+                    render_for_viewer(&tap, &share, &sub_now, want_preview)
                 })
                 .await
                 .ok()
                 .flatten();
                 let Some(mut r) = rendered else { continue };
                 if want_preview {
-                    last_preview = Some(Instant::now());
+                    last_slot = Some(slot);
                 }
                 if let Some(prev) = last_blob_set {
                     dropped_sets += r.set_index.saturating_sub(prev + 1);
@@ -586,7 +662,7 @@ fn render(set: &TapSet, sub: &Subscription, previews: bool) -> Rendered {
                 "bit_depth": frame.bit_depth,
                 "blobs": blobs,
             });
-            out.previews.push((meta, jpeg));
+            out.previews.push((meta, Bytes::from(jpeg)));
         }
         if sub.zoom_px > 0
             && let Some(b) = blobs.iter().find(|b| b.kept)
@@ -616,7 +692,7 @@ fn zoom(
     set_index: u64,
     blob: &BlobView,
     size: u32,
-) -> Option<(serde_json::Value, Vec<u8>)> {
+) -> Option<(serde_json::Value, Bytes)> {
     let size = size.min(frame.width_px).min(frame.height_px);
     let half = f64::from(size) / 2.0;
     let clamp = |c: f64, max: u32| (c - half).round().clamp(0.0, f64::from(max - size)) as u32;
@@ -646,7 +722,7 @@ fn zoom(
         "y0_px": y0,
         "size_px": size,
     });
-    Some((meta, png_bytes))
+    Some((meta, Bytes::from(png_bytes)))
 }
 
 fn json_line<T: Serialize>(v: &T) -> String {

@@ -70,6 +70,8 @@ pub struct StatusService {
     pub workspace_mm: Option<([f64; 3], [f64; 3])>,
     /// `/api/frameset` serves one request at a time.
     pub(super) frameset_busy: tokio::sync::Mutex<()>,
+    /// The newest encoded previews, shared by viewers with the same settings.
+    pub previews: Arc<super::live::PreviewShare>,
 }
 
 impl StatusService {
@@ -85,6 +87,7 @@ impl StatusService {
             params: None,
             workspace_mm: None,
             frameset_busy: tokio::sync::Mutex::new(()),
+            previews: Arc::default(),
         }
     }
 
@@ -142,6 +145,8 @@ impl StatusService {
                     "live": self.status.live_viewers.load(std::sync::atomic::Ordering::Relaxed),
                     "copies": self.tap.as_ref().map_or(0, |t| t.copies()),
                     "busy_skips": self.tap.as_ref().map_or(0, |t| t.busy_skips()),
+                    "previews_encoded": self.previews.encoded.load(std::sync::atomic::Ordering::Relaxed),
+                    "previews_shared": self.previews.shared.load(std::sync::atomic::Ordering::Relaxed),
                 }),
             );
         }
