@@ -579,11 +579,11 @@ async fn send_rendered(
 ) -> Result<(), axum::Error> {
     for (meta, jpeg) in r.previews.drain(..) {
         tx.send(Message::Text(meta.to_string().into())).await?;
-        tx.send(Message::Binary(jpeg.into())).await?;
+        tx.send(Message::Binary(jpeg)).await?;
     }
     for (meta, png) in r.zooms.drain(..) {
         tx.send(Message::Text(meta.to_string().into())).await?;
-        tx.send(Message::Binary(png.into())).await?;
+        tx.send(Message::Binary(png)).await?;
     }
     if let Some(mut b) = r.blobs.take() {
         if let Some(o) = b.as_object_mut() {
