@@ -117,6 +117,14 @@ const PACKAGES: &[Pkg] = &[
         "chromium-driver",
         "headless browser test of the set-up page (WebDriver for chromium)",
     ),
+    Pkg {
+        debian_only: true,
+        ..pkg("firefox-esr", "browser test of the set-up page in Firefox")
+    },
+    pkg(
+        "xvfb",
+        "virtual X display for the Firefox test (WebGL without a GPU)",
+    ),
 ];
 
 const BB_WHY: &str = "host tool BitBake needs (yocto-bitbake phase)";
