@@ -447,7 +447,13 @@ fn render_for_viewer(
 async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
     let (mut tx, mut rx) = socket.split();
     let viewer = s.tap.as_ref().map(|t| t.attach());
-    let mut sub = Subscription::default();
+    // Status reports only until the client says what it wants: nothing is encoded for a
+    // client that is about to ask for other sizes (the page subscribes on open).
+    let mut sub = Subscription {
+        preview_fps: 0.0,
+        positions: false,
+        ..Subscription::default()
+    };
     if let Some(v) = &viewer {
         v.set_interval_ns(sub.tap_interval_ns());
     }
