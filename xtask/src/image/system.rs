@@ -962,10 +962,7 @@ fn check_rig(port: u16, want: Option<&str>, when: &str) -> Result<String> {
 }
 
 fn check_restart(q: &mut Qemu, status_port: u16, rig_id: Option<&str>) -> Result<String> {
-    let pid_before = q
-        .console("pidof irtrackd", Duration::from_secs(10))?
-        .trim()
-        .to_owned();
+    let pid_before = pid_of_irtrackd(q)?;
     if pid_before.is_empty() {
         bail!("irtrackd not running before the kill");
     }
@@ -975,10 +972,7 @@ fn check_restart(q: &mut Qemu, status_port: u16, rig_id: Option<&str>) -> Result
     q.wait_for("irtrackd exited", from, Duration::from_secs(10))?;
     q.wait_for("irtrackd ready", from, Duration::from_secs(60))?;
     let restart_s = t0.elapsed().as_secs_f64();
-    let pid_after = q
-        .console("pidof irtrackd", Duration::from_secs(10))?
-        .trim()
-        .to_owned();
+    let pid_after = pid_of_irtrackd(q)?;
     if pid_after.is_empty() || pid_after == pid_before {
         bail!("pid before {pid_before}, after {pid_after:?}");
     }
@@ -986,6 +980,20 @@ fn check_restart(q: &mut Qemu, status_port: u16, rig_id: Option<&str>) -> Result
     Ok(format!(
         "pid {pid_before} killed, pid {pid_after} ready in {restart_s:.1} s; {rig}"
     ))
+}
+
+/// `pidof irtrackd` on the console: the line of digits in its output. irtrackd logs to the
+/// same serial console, so a log line can land between the command's markers.
+fn pid_of_irtrackd(q: &mut Qemu) -> Result<String> {
+    let out = q.console("pidof irtrackd", Duration::from_secs(10))?;
+    Ok(pid_line(&out).unwrap_or_default())
+}
+
+fn pid_line(out: &str) -> Option<String> {
+    out.lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty() && l.chars().all(|c| c.is_ascii_digit() || c == ' '))
+        .map(str::to_owned)
 }
 
 fn check_reboot(q: &mut Qemu, status_port: u16, rig_id: Option<&str>) -> Result<(String, f64)> {
@@ -1212,6 +1220,14 @@ impl Parser<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pid_is_found_between_interleaved_log_lines() {
+        let out = "\n\x1b[2m2026-11-23T14:13:48Z\x1b[0m INFO irtrack_firmware::engine: tuning applied threshold_dn=30\n146\n";
+        assert_eq!(pid_line(out).as_deref(), Some("146"));
+        assert_eq!(pid_line("  212 \n").as_deref(), Some("212"));
+        assert_eq!(pid_line("INFO ready\n\n"), None);
+    }
 
     #[test]
     fn json_paths_and_types() {
