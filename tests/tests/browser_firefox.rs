@@ -204,7 +204,7 @@ const TINTED_JS: &str = "Array.from(document.querySelectorAll('canvas.preview'))
     return n; })";
 
 #[test]
-fn setup_page_in_headless_firefox_at_laptop_and_tablet_size() {
+fn setup_page_in_firefox_at_laptop_and_tablet_size() {
     for p in [FIREFOX, XVFB] {
         assert!(
             Path::new(p).is_file(),
