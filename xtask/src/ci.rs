@@ -109,7 +109,7 @@ pub const PHASES: &[Phase] = &[
     phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", Some(clippy), 60),
     phase("host-tests", "cargo test --workspace (all crates, host)", "host", Some(host_tests), 25),
     phase("no-std", "irtrack-core without its std feature", "", Some(no_std), 30),
-    phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", Some(aarch64_tests), 25),
+    phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", Some(aarch64_tests), 35),
     phase("systemd", "systemd-analyze verify on systemd/ units", "", Some(lint::systemd_phase), 2),
     phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", Some(lint::yocto_phase), 5),
     phase("yocto-bitbake", "BitBake parses meta-irtrack, lists its recipes, resolves irtrack-image", "bitbake", Some(yocto_bitbake), 30),
