@@ -1206,6 +1206,9 @@ mod tests {
         cfg.reconnect_max_ms = 4 * reconnect_min_ms;
         let formats = cfg.validate().unwrap();
         let backoff = Duration::from_millis(reconnect_min_ms);
+        // One instant for all cameras: under emulation the map below can take long enough for
+        // the cameras' first attempts to fall into different retry rounds.
+        let first_attempt = Instant::now() + backoff;
         let cameras = cfg
             .devices
             .iter()
@@ -1221,7 +1224,7 @@ mod tests {
                     card: "vivid".into(),
                 },
                 state: CameraState::Lost {
-                    next_attempt: Instant::now() + backoff,
+                    next_attempt: first_attempt,
                     backoff,
                     reason: "test".into(),
                 },
