@@ -528,13 +528,16 @@ async fn run(c: &Client, status: SocketAddr, out: &Path, downloads: &Path) {
         },
     )
     .await;
-    let server = js(c, "window.__irtrack.serverFaults()").await;
-    for i in 0..2 {
-        assert!(
-            server.as_array().unwrap().iter().any(|f| f["camera"] == i),
-            "the board reported no fault for camera {i}: {server}"
-        );
-    }
+    // The page may show its own diagnosis before the next status report (every 0.5 s) carries
+    // the board's: wait for the board's too.
+    wait_for(
+        c,
+        "the board's fault for each camera in its status",
+        10,
+        "window.__irtrack.serverFaults()",
+        |v| (0..2).all(|i| v.as_array().is_some_and(|a| a.iter().any(|f| f["camera"] == i))),
+    )
+    .await;
     let banner_visible = js(c, "!document.getElementById('faults').hidden").await;
     assert_eq!(banner_visible, true, "the fault banner is hidden");
     println!("threshold {above} > peak {peak}: {dark}; faults shown: {faults}");
