@@ -36,17 +36,7 @@ pub fn robot_follows(bin_dir: &Path, out: &Path) -> Result<()> {
     let hash = operator_hash(&bin_dir.join("irtrackd"))?;
     std::fs::write(&config, irtrackd_config(robot_addr, &hash))?;
     println!("starting irtrackd (simulated cameras, robot link to {robot_addr})");
-    let mut child = Command::new(bin_dir.join("irtrackd"))
-        .arg("-c")
-        .arg(&config)
-        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
-        .arg(dir.join("state"))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("starting irtrackd")?;
-    let ready = wait_line(&mut child, "irtrackd ready", Duration::from_secs(30))?;
-    let irtrackd = Guard(child);
+    let (irtrackd, ready) = start_irtrackd(bin_dir, &config, &dir.join("state"))?;
     println!("{ready}");
     let status = addr_field(&ready, "status=")?;
     let stream = addr_field(&ready, "stream=")?;
@@ -153,17 +143,7 @@ pub fn calibrate_and_push(bin_dir: &Path, views_bin: &Path, out: &Path) -> Resul
     }
     let config = dir.join("irtrackd.toml");
     std::fs::write(&config, calib_irtrackd_config(&dir.join("demo-key.pub")))?;
-    let mut child = Command::new(bin_dir.join("irtrackd"))
-        .arg("-c")
-        .arg(&config)
-        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
-        .arg(&state)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("starting irtrackd")?;
-    let ready = wait_line(&mut child, "irtrackd ready", Duration::from_secs(30))?;
-    let _irtrackd = Guard(child);
+    let (_irtrackd, ready) = start_irtrackd(bin_dir, &config, &state)?;
     println!("{ready}");
     let params = addr_field(&ready, "params=")?;
     let status = addr_field(&ready, "status=")?;
@@ -258,17 +238,7 @@ pub fn wand_calibration(bin_dir: &Path, out: &Path) -> Result<()> {
              wand_mm = [0.0, 120.0, 300.0]\nwand_frames = {WAND_SETS}\n[leds]\nbackend = \"none\"\n"
         ),
     )?;
-    let mut child = Command::new(bin_dir.join("irtrackd"))
-        .arg("-c")
-        .arg(&config)
-        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
-        .arg(dir.join("state"))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("starting irtrackd")?;
-    let ready = wait_line(&mut child, "irtrackd ready", Duration::from_secs(30))?;
-    let irtrackd = Guard(child);
+    let (irtrackd, ready) = start_irtrackd(bin_dir, &config, &dir.join("state"))?;
     let status = addr_field(&ready, "status=")?;
 
     println!("-- 2. host-tools capture --wand: {WAND_SETS} synchronised frame sets from the board");
@@ -327,6 +297,22 @@ pub fn wand_calibration(bin_dir: &Path, out: &Path) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Starts irtrackd with `config`, every port ephemeral on 127.0.0.1; returns it (killed on
+/// drop) and its ready line.
+fn start_irtrackd(bin_dir: &Path, config: &Path, state: &Path) -> Result<(Guard, String)> {
+    let mut child = Command::new(bin_dir.join("irtrackd"))
+        .arg("-c")
+        .arg(config)
+        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
+        .arg(state)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .context("starting irtrackd")?;
+    let ready = wait_line(&mut child, "irtrackd ready", Duration::from_secs(30))?;
+    Ok((Guard(child), ready))
 }
 
 /// Runs a command with its output shown; fails with its status if it fails. Returns stdout.
