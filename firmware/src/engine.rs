@@ -217,14 +217,16 @@ impl Engine {
             return;
         }
         let (set, tracker, six_dof) = (&self.set, self.tracker.as_ref(), self.pose.is_some());
-        let threshold_dn = self.tracker_cfg.threshold_dn;
+        let tracker_cfg = self.tracker_cfg;
         let copied = tap.try_fill(|buf: &mut TapSet| {
             if !buf.copy_frames_from(set) {
                 return false;
             }
-            buf.threshold_dn = threshold_dn;
+            buf.threshold_dn = tracker_cfg.threshold_dn;
+            buf.tracker_cfg = tracker_cfg;
             if let (true, Some(tracker)) = (detected, tracker) {
                 fill_blob_views(buf, tracker, six_dof);
+                buf.detected = true;
             }
             true
         });
@@ -652,23 +654,11 @@ fn fill_blob_views(buf: &mut TapSet, tracker: &Tracker, six_dof: bool) {
             } else {
                 Some(RejectReason::Gate)
             };
-            buf.push_blob(camera, blob_view(b, reason));
+            buf.push_blob(camera, BlobView::of(b, reason));
         }
         for b in tracker.rejected_by_area(camera) {
-            buf.push_blob(camera, blob_view(b, Some(RejectReason::Area)));
+            buf.push_blob(camera, BlobView::of(b, Some(RejectReason::Area)));
         }
-    }
-}
-
-fn blob_view(b: &Blob, reason: Option<RejectReason>) -> BlobView {
-    BlobView {
-        x_px: b.x_px,
-        y_px: b.y_px,
-        area_px: b.area_px,
-        peak_dn: b.peak_dn,
-        roundness: b.roundness,
-        kept: reason.is_none(),
-        reason,
     }
 }
 

@@ -12,6 +12,9 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
 
+use irtrack_core::blob::{Blob, BlobConfig, BlobDetector, BlobLimits};
+use irtrack_core::image::{GrayImage, Pixel};
+use irtrack_core::pipeline::TrackerConfig;
 use serde::Serialize;
 
 use crate::source::{Frame, FrameSet, Pixels};
@@ -33,6 +36,10 @@ pub enum RejectReason {
     Edge,
     /// Usable, but not consistent with the other cameras (the ray gate chose another spot).
     Gate,
+    /// Not examined by the loop for this set: outside the tracking window while the marker
+    /// is tracked (the loop looks there again when it loses the marker), or beyond the blobs
+    /// it keeps per camera. Found by the viewer's own full-frame search.
+    Window,
 }
 
 /// One blob as the set-up view draws it (full-resolution pixel coordinates).
@@ -59,6 +66,12 @@ pub struct TapSet {
     pub blobs_truncated: u32,
     /// Threshold the set was detected with (frame DN).
     pub threshold_dn: u32,
+    /// The loop's detection settings when the set was copied (the viewer's full-frame search
+    /// classifies with them).
+    pub tracker_cfg: TrackerConfig,
+    /// `blobs` holds the loop's detection of this set (false before a parameter set exists:
+    /// the loop does not track then).
+    pub detected: bool,
 }
 
 impl TapSet {
@@ -74,6 +87,8 @@ impl TapSet {
                 .collect(),
             blobs_truncated: 0,
             threshold_dn: 0,
+            tracker_cfg: TrackerConfig::default(),
+            detected: false,
         }
     }
 
@@ -111,6 +126,7 @@ impl TapSet {
             b.clear();
         }
         self.blobs_truncated = 0;
+        self.detected = false;
         true
     }
 
@@ -120,6 +136,110 @@ impl TapSet {
             Some(list) if list.len() < list.capacity() => list.push(blob),
             _ => self.blobs_truncated += 1,
         }
+    }
+
+    /// Per camera: the loop's blob list plus every spot a full-frame search finds that the
+    /// list lacks. While the marker is tracked the loop only looks inside its tracking window,
+    /// so a lamp or a reflection elsewhere would not be drawn; the person aiming the cameras
+    /// must see it (it competes with the LED as soon as the marker is lost). Before a parameter
+    /// set exists the loop detects nothing and every spot comes from this search: the ones the
+    /// area, roundness and edge limits would use are marked kept. Runs on the viewer's side, at
+    /// the preview rate, never in the loop.
+    pub fn blobs_with_full_search(&self) -> Vec<Vec<BlobView>> {
+        let cfg = &self.tracker_cfg;
+        let config = BlobConfig {
+            threshold_dn: cfg.threshold_dn,
+            saturation_dn: cfg.saturation_dn,
+            min_area_px: cfg.min_area_px,
+            max_area_px: cfg.max_area_px,
+        };
+        self.frames
+            .iter()
+            .enumerate()
+            .map(|(camera, frame)| {
+                let listed: Vec<BlobView> = if self.detected {
+                    self.blobs.get(camera).cloned().unwrap_or_default()
+                } else {
+                    Vec::new()
+                };
+                let mut out = listed.clone();
+                let Some((found, by_area)) =
+                    full_frame_blobs(frame, &config, cfg.max_blobs.max(MAX_TAP_BLOBS))
+                else {
+                    return out;
+                };
+                // A listed blob inside a found blob's box is the same spot (a blob cut by the
+                // tracking window has another centroid than the whole spot).
+                let is_listed = |b: &Blob| {
+                    listed.iter().any(|l| {
+                        l.x_px >= f64::from(b.bbox.x_min_px) - 1.0
+                            && l.x_px <= f64::from(b.bbox.x_max_px) + 1.0
+                            && l.y_px >= f64::from(b.bbox.y_min_px) - 1.0
+                            && l.y_px <= f64::from(b.bbox.y_max_px) + 1.0
+                    })
+                };
+                let unexamined = if self.detected {
+                    Some(RejectReason::Window)
+                } else {
+                    None
+                };
+                for b in found.iter().filter(|b| !is_listed(b)) {
+                    let reason = if b.roundness < cfg.min_roundness {
+                        Some(RejectReason::Roundness)
+                    } else if cfg.reject_edge_blobs && b.touches_frame_edge {
+                        Some(RejectReason::Edge)
+                    } else {
+                        unexamined
+                    };
+                    out.push(BlobView::of(b, reason));
+                }
+                for b in by_area.iter().filter(|b| !is_listed(b)) {
+                    out.push(BlobView::of(b, Some(RejectReason::Area)));
+                }
+                out.truncate(MAX_TAP_BLOBS);
+                out
+            })
+            .collect()
+    }
+}
+
+impl BlobView {
+    /// A detected blob, kept when there is no reason against it.
+    pub fn of(b: &Blob, reason: Option<RejectReason>) -> Self {
+        BlobView {
+            x_px: b.x_px,
+            y_px: b.y_px,
+            area_px: b.area_px,
+            peak_dn: b.peak_dn,
+            roundness: b.roundness,
+            kept: reason.is_none(),
+            reason,
+        }
+    }
+}
+
+/// Blobs and area-rejected components of a whole frame; `None` if the frame cannot be
+/// searched (malformed, or an overloaded frame: the loop reports that itself).
+fn full_frame_blobs(frame: &Frame, config: &BlobConfig, max_blobs: usize) -> Option<(Vec<Blob>, Vec<Blob>)> {
+    fn run<P: Pixel>(
+        data: &[P],
+        frame: &Frame,
+        config: &BlobConfig,
+        max_blobs: usize,
+    ) -> Option<(Vec<Blob>, Vec<Blob>)> {
+        let image = GrayImage::new(data, frame.width_px, frame.height_px, frame.stride_px).ok()?;
+        let mut limits = BlobLimits::for_frame(frame.width_px, frame.height_px);
+        limits.max_blobs = max_blobs;
+        let mut detector = BlobDetector::new(limits).ok()?;
+        let found = detector.detect(&image, None, config).ok()?.to_vec();
+        if detector.stats().overloaded {
+            return None;
+        }
+        Some((found, detector.rejected_by_area().to_vec()))
+    }
+    match &frame.pixels {
+        Pixels::U8(p) => run(p, frame, config, max_blobs),
+        Pixels::U16(p) => run(p, frame, config, max_blobs),
     }
 }
 

@@ -487,6 +487,96 @@ async fn live_websocket_sends_status_previews_zoom_blobs_and_positions() {
     running.shutdown().await;
 }
 
+/// The next `blobs` message on a live session: per camera, the listed blobs.
+async fn next_blob_lists(ws: &mut Ws) -> Vec<Vec<serde_json::Value>> {
+    loop {
+        let msg = tokio::time::timeout(Duration::from_secs(5), ws.next())
+            .await
+            .expect("a live message within 5 s")
+            .unwrap()
+            .unwrap();
+        if let Message::Text(t) = msg {
+            let v: serde_json::Value = serde_json::from_str(t.as_str()).unwrap();
+            if v["type"] == "blobs" {
+                return v["cameras"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|c| c.as_array().unwrap().clone())
+                    .collect();
+            }
+        }
+    }
+}
+
+fn reasons(list: &[serde_json::Value]) -> Vec<String> {
+    list.iter()
+        .map(|b| b["reason"].as_str().unwrap_or("kept").to_string())
+        .collect()
+}
+
+/// While the marker is tracked the loop only looks inside its tracking window; the lamp and
+/// the streak the simulator puts into camera 1 (`glare`) must still be drawn, with why they
+/// are not used. Before any parameter set exists (cameras being aimed, not yet calibrated)
+/// the loop tracks nothing, and the view still shows each camera's LED as a kept spot.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stray_lights_outside_the_window_and_spots_before_calibration_are_listed() {
+    let subscribe = r#"{"type": "subscribe", "preview_fps": 10, "preview_max_width_px": 160, "blobs": true}"#;
+    // Tracking, with glare in camera 1.
+    let dir = TempDir::new("web-glare");
+    let mut cfg = config(&dir, None);
+    cfg.source.sim.as_mut().unwrap().glare = true;
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let st = running.status.clone();
+    assert!(eventually(10, async || st.tracked.load(Relaxed) > 10).await);
+    let mut ws = connect_live(running.addrs.status, subscribe).await;
+    let mut seen = None;
+    for _ in 0..20 {
+        let lists = next_blob_lists(&mut ws).await;
+        let (r0, r1) = (reasons(&lists[0]), reasons(&lists[1]));
+        if r0 == ["kept"] && r1.iter().filter(|r| *r == "kept").count() == 1 && r1.len() >= 3 {
+            seen = Some(r1);
+            break;
+        }
+    }
+    let r1 = seen.expect("camera 1 lists its LED kept plus the lamp and the streak");
+    println!("tracking, camera 1 with glare: {r1:?}");
+    assert!(
+        r1.iter().any(|r| r == "window" || r == "area"),
+        "the round lamp outside the window is listed: {r1:?}"
+    );
+    assert!(
+        r1.iter().any(|r| r == "roundness"),
+        "the streak is listed as not round: {r1:?}"
+    );
+    drop(ws);
+    running.shutdown().await;
+
+    // No parameter set: nothing is tracked, the spots are still shown.
+    let dir = TempDir::new("web-uncalibrated");
+    let mut cfg = config(&dir, None);
+    cfg.service.params_from_simulator = false;
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let mut ws = connect_live(running.addrs.status, subscribe).await;
+    let lists = next_blob_lists(&mut ws).await;
+    println!(
+        "no parameter set: {:?}",
+        lists.iter().map(|l| reasons(l)).collect::<Vec<_>>()
+    );
+    assert_eq!(running.status.tracked.load(Relaxed), 0);
+    for (camera, list) in lists.iter().enumerate() {
+        assert_eq!(
+            reasons(list),
+            ["kept"],
+            "camera {camera}: the LED as the one kept spot"
+        );
+        let peak = list[0]["peak_dn"].as_u64().unwrap();
+        assert!(peak > 30, "camera {camera}: peak {peak}");
+    }
+    drop(ws);
+    running.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn slow_viewers_never_slow_the_loop() {
     let dir = TempDir::new("web-slow");

@@ -4,7 +4,13 @@
 const KEPT = "#3ecf6e";
 const REJECTED = "#ff5a5a";
 const TINT = [255, 61, 242];
-const REASON_WORDS = { area: "area", roundness: "roundness", edge: "cut by edge", gate: "gate" };
+const REASON_WORDS = {
+  area: "area",
+  roundness: "roundness",
+  edge: "cut by edge",
+  gate: "gate",
+  window: "outside the tracking window",
+};
 
 function el(tag, cls, text) {
   const e = document.createElement(tag);

@@ -627,8 +627,9 @@ fn render(set: &TapSet, sub: &Subscription, previews: bool) -> Rendered {
         blobs: None,
         set_index: set.set_index,
     };
+    let lists = set.blobs_with_full_search();
     for (camera, frame) in set.frames.iter().enumerate() {
-        let blobs: &[BlobView] = set.blobs.get(camera).map_or(&[], Vec::as_slice);
+        let blobs: &[BlobView] = lists.get(camera).map_or(&[], Vec::as_slice);
         if !previews {
             break;
         }
@@ -684,7 +685,7 @@ fn render(set: &TapSet, sub: &Subscription, previews: bool) -> Rendered {
             "set_index": set.set_index,
             "timestamps_ns": timestamps,
             "pairing_error_ns": set.pairing_error_ns,
-            "cameras": set.blobs,
+            "cameras": lists,
             "truncated": set.blobs_truncated,
         }));
     }
