@@ -185,14 +185,25 @@ fn render_path(dir: &Path, truth: &RigParams) {
     simulate::write_scenario(&mut sc, dir, 120, None, false).unwrap();
 }
 
-/// 3-D RMS (mm) of the path tracked with `rig` against the simulator's truth.
-fn path_rms_mm(path_dir: &Path, rig: &RigParams, name: &str) -> f64 {
+/// How a path tracked with one calibration compares with the simulator's truth (mm).
+#[derive(Debug, Clone, Copy)]
+struct PathFigures {
+    /// 3-D RMS in camera 0's frame, as tracked.
+    rms_mm: f64,
+    /// 3-D RMS after the best rigid fit onto the truth (Kabsch): the path's shape error, what
+    /// remains once the tracker is registered to the robot (`host-tools register`).
+    shape_rms_mm: f64,
+}
+
+/// Tracks the rendered path with `rig` and compares it with the simulator's truth.
+fn path_figures(path_dir: &Path, rig: &RigParams, name: &str) -> PathFigures {
     let params = path_dir.join(format!("{name}.irp"));
     std::fs::write(&params, rig.to_blob().unwrap()).unwrap();
+    let out = path_dir.join(format!("{name}.csv"));
     let args = track::Args {
         frames: path_dir.to_path_buf(),
         params,
-        out: path_dir.join(format!("{name}.csv")),
+        out: out.clone(),
         threshold_dn: None,
         max_gap_mm: Some(5.0),
         wrong_point_mm: 5.0,
@@ -200,7 +211,25 @@ fn path_rms_mm(path_dir: &Path, rig: &RigParams, name: &str) -> f64 {
     let s = track::track_dir(&args).unwrap();
     let e = s.error.unwrap();
     assert!(e.count >= 100, "{name}: only {} tracked points", e.count);
-    e.rms_mm
+    let truth = track::read_truth(&path_dir.join("truth.csv")).unwrap();
+    let (mut got, mut want) = (Vec::new(), Vec::new());
+    for line in std::fs::read_to_string(&out).unwrap().lines().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        if f[1].is_empty() {
+            continue;
+        }
+        let frame: usize = f[0].parse().unwrap();
+        let p = [1, 2, 3].map(|i| f[i].parse::<f64>().unwrap());
+        let (t, _) = truth[frame].unwrap();
+        got.push(p);
+        want.push([t.x, t.y, t.z]);
+    }
+    assert_eq!(got.len(), e.count);
+    let fit = irtrack_core::registration::fit(&got, &want, false).unwrap();
+    PathFigures {
+        rms_mm: e.rms_mm,
+        shape_rms_mm: fit.rms_mm,
+    }
 }
 
 fn load(path: &Path) -> RigParams {
@@ -209,25 +238,32 @@ fn load(path: &Path) -> RigParams {
     rig
 }
 
-/// Worst rotation error (°), worst centre error (mm) and path RMS (mm) of one calibration.
-type Figures = (f64, f64, f64);
+/// Worst rotation error (°), worst centre error (mm), path RMS as tracked and after a rigid fit
+/// (mm) of one calibration.
+type Figures = (f64, f64, f64, f64);
 
 /// Renders, calibrates both ways, prints the comparison; returns the wand's and the
 /// checkerboard's figures.
-fn compare_rig(name: &str, truth: &RigParams, frames: usize) -> (Figures, Figures) {
-    let dir = temp_dir(name);
+fn compare_rig(name: &str, truth: &RigParams, frames: usize, seed: u64) -> (Figures, Figures) {
+    let dir = temp_dir(&format!("{name}-{seed}"));
     let cb_yaml = checkerboard_calibration(&dir, truth);
     let cb = load(&cb_yaml);
     let mut cfg = WandConfig::new(truth.clone(), centre(), frames);
+    cfg.seed = seed;
     // Cover the images widely: distortion and principal points are refined where LEDs were seen.
     cfg.sweep_mm = Vector3::new(300.0, 170.0, 300.0);
     let mut wave = WandWave::new(cfg).unwrap();
     wave.write_wave(&dir.join("wave")).unwrap();
     let out = dir.join("wand");
     let started = std::time::Instant::now();
-    let stdout = wand_calibration(&dir.join("wave"), &cb_yaml, &out, &["--refine-intrinsics"]);
+    let stdout = wand_calibration(
+        &dir.join("wave"),
+        &cb_yaml,
+        &out,
+        &["--refine-intrinsics", "--fix-k3"],
+    );
     let wand_s = started.elapsed().as_secs_f64();
-    println!("{name}: wand-calibrate ({frames} frames, {wand_s:.1} s):\n{stdout}");
+    println!("{name}: wand-calibrate ({frames} frames, seed {seed}, {wand_s:.1} s):\n{stdout}");
     let wand_rig = load(&out.join("rig.irp"));
     // rig.yaml holds the same rig.
     let yaml = load(&out.join("rig.yaml"));
@@ -246,41 +282,47 @@ fn compare_rig(name: &str, truth: &RigParams, frames: usize) -> (Figures, Figure
     }
     let path_dir = dir.join("path");
     render_path(&path_dir, truth);
-    let truth_rms = path_rms_mm(&path_dir, truth, "true-rig");
-    let cb_rms = path_rms_mm(&path_dir, &cb, "checkerboard");
-    let wand_rms = path_rms_mm(&path_dir, &wand_rig, "wand");
+    let true_path = path_figures(&path_dir, truth, "true-rig");
+    let cb_path = path_figures(&path_dir, &cb, "checkerboard");
+    let wand_path = path_figures(&path_dir, &wand_rig, "wand");
     let cb_err = pose_errors(truth, &cb);
     let wand_err = pose_errors(truth, &wand_rig);
-    println!("{name}: figure                      | checkerboard | wand");
+    println!("{name}: figure                         | checkerboard | wand");
     for i in 1..truth.cameras.len() {
         println!(
-            "{name}: cam{i} rotation error (°)      | {:12.4} | {:.4}",
+            "{name}: cam{i} rotation error (°)         | {:12.4} | {:.4}",
             cb_err[i - 1].0,
             wand_err[i - 1].0
         );
         println!(
-            "{name}: cam{i} centre error (mm)       | {:12.3} | {:.3}",
+            "{name}: cam{i} centre error (mm)          | {:12.3} | {:.3}",
             cb_err[i - 1].1,
             wand_err[i - 1].1
         );
     }
     println!(
-        "{name}: LED path 3-D RMS (mm)       | {cb_rms:12.4} | {wand_rms:.4}   (true rig: {truth_rms:.4})"
+        "{name}: LED path 3-D RMS (mm)          | {:12.4} | {:.4}   (true rig: {:.4})",
+        cb_path.rms_mm, wand_path.rms_mm, true_path.rms_mm
     );
-    let worst = |e: &[(f64, f64)], rms: f64| {
+    println!(
+        "{name}: after a rigid fit (mm)         | {:12.4} | {:.4}   (true rig: {:.4})",
+        cb_path.shape_rms_mm, wand_path.shape_rms_mm, true_path.shape_rms_mm
+    );
+    let worst = |e: &[(f64, f64)], p: PathFigures| {
         (
             e.iter().map(|e| e.0).fold(0.0, f64::max),
             e.iter().map(|e| e.1).fold(0.0, f64::max),
-            rms,
+            p.rms_mm,
+            p.shape_rms_mm,
         )
     };
     std::fs::remove_dir_all(&dir).unwrap();
-    (worst(&wand_err, wand_rms), worst(&cb_err, cb_rms))
+    (worst(&wand_err, wand_path), worst(&cb_err, cb_path))
 }
 
 /// Checks the wand's figures against limits and against the checkerboard calibration.
-fn assert_figures(name: &str, wand: Figures, cb: Figures, limits: Figures) {
-    let (rot, centre_mm, path_mm) = wand;
+fn assert_figures(name: &str, wand: Figures, cb: Figures, limits: (f64, f64, f64)) {
+    let (rot, centre_mm, path_mm, _) = wand;
     assert!(
         rot <= limits.0,
         "{name}: rotation error {rot:.4}° > {}°",
@@ -302,20 +344,37 @@ fn assert_figures(name: &str, wand: Figures, cb: Figures, limits: Figures) {
     );
 }
 
-/// Goals of issue 15: rotation ≤ 0.02°, centre ≤ 1 mm, path ≤ 0.1 mm. The centre goal is
-/// reached; the rotation and path goals are not (measured 0.031° / 0.50 mm on the 90° rig,
-/// 0.027° / 0.27 mm with the raised camera; docs/calibration.md section 10 gives the measured
-/// reason). The limits below are the measured figures with a margin.
+/// Goals of issue 15: rotation ≤ 0.02°, centre ≤ 1 mm, path ≤ 0.1 mm. With a 1000-frame wave
+/// (33 s at 30 fps) the centre goal is met on every wave tried and the rotation goal on most
+/// (`wand_figures_over_seeds`: 8 of 10 rig/wave pairs); the path goal on none: the tracked
+/// path's error follows the camera centre error (docs/calibration.md, "Accuracy on simulated
+/// wand waves"). The limits are this wave's figures with a margin.
 #[test]
 fn wand_calibrates_the_90_degree_rig_against_truth() {
-    let (wand, cb) = compare_rig("rig90", &rig_90(), 300);
-    assert_figures("90° rig", wand, cb, (0.045, 1.0, 0.7));
+    let (wand, cb) = compare_rig("rig90", &rig_90(), 1000, 1);
+    assert_figures("90° rig", wand, cb, (0.02, 0.6, 0.45));
 }
 
 #[test]
 fn wand_calibrates_three_cameras_with_one_raised() {
-    let (wand, cb) = compare_rig("raised", &rig_raised(), 240);
-    assert_figures("3 cameras, one raised", wand, cb, (0.035, 1.0, 0.4));
+    let (wand, cb) = compare_rig("raised", &rig_raised(), 1000, 1);
+    assert_figures("3 cameras, one raised", wand, cb, (0.025, 0.6, 0.3));
+}
+
+/// The spread over wave seeds (not run by default: about 1 min per seed and rig):
+/// `cargo test -p irtrack-host-tools --test wand_cli -- --ignored --nocapture seeds`.
+#[test]
+#[ignore]
+fn wand_figures_over_seeds() {
+    for seed in 1..=5 {
+        for (name, rig) in [("rig90", rig_90()), ("raised", rig_raised())] {
+            let (w, _) = compare_rig(name, &rig, 1000, seed);
+            println!(
+                "SEED {name} {seed}: rotation {:.4}° centre {:.3} mm path {:.4} mm shape {:.4} mm",
+                w.0, w.1, w.2, w.3
+            );
+        }
+    }
 }
 
 /// Every camera view with a hidden LED is rejected, and a reflection on the wand's line is

@@ -31,6 +31,10 @@ pub struct Args {
     /// Also refine every camera's intrinsics and distortion in the bundle adjustment.
     #[arg(long)]
     pub refine_intrinsics: bool,
+    /// With --refine-intrinsics: keep each camera's k3 as the intrinsics file gives it (as
+    /// `calibrate --fix-k3` does; recommended for ordinary lenses).
+    #[arg(long, requires = "refine_intrinsics")]
+    pub fix_k3: bool,
     /// Huber loss threshold, px.
     #[arg(long, default_value_t = 1.0)]
     pub huber_px: f64,
@@ -63,6 +67,7 @@ pub fn run(args: Args) -> Result<()> {
     }
     let options = wand_solve::SolveOptions {
         refine_intrinsics: args.refine_intrinsics,
+        fix_k3: args.fix_k3,
         huber_px: args.huber_px,
     };
     let sol = wand_solve::solve(&models, &obs, &wand, options, |m| eprintln!("{m}"))?;
