@@ -13,14 +13,15 @@
 //!   irtrack-bench --run CASE --iterations N  run one case N times, print nothing else
 //!                                            (for instruction counting under callgrind)
 //!   irtrack-bench --idle SECONDS             sleep (baseline process for memory figures)
-//! CASE is `<ours-full|ours-roi|opencv|sum|max>-<vga|720p>`; `opencv` needs the default
+//! CASE is `<ours-full|ours-roi|windows-simd|windows-portable|opencv|sum|max>-<vga|720p>`
+//! (`windows-*`: blob detection alone in the tracker's two windows with one kernel); `opencv` needs the default
 //! feature `opencv`. Without it (`--no-default-features`) the OpenCV columns are left out
 //! and the benchmark cross-builds for aarch64.
 
 use std::hint::black_box;
 
 use anyhow::{Context, Result, bail};
-use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
+use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits, Kernel};
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use irtrack_core::image::{GrayImage, Pixel, Roi};
 use irtrack_core::params::{CameraParams, RigParams, ToolDefinition};
@@ -535,7 +536,7 @@ struct Row {
     allocs_per_set: f64,
     /// The ROI path split up (hot): blob detection in the two windows, and the geometry every
     /// tracked pair needs whatever the image work (2 undistortions + 1 triangulation).
-    roi_split: Option<(f64, f64)>,
+    roi_split: Option<RoiSplit>,
 }
 
 /// Times `f` on the hot set and on the cold ring (`iters` per batch each).
@@ -617,8 +618,19 @@ fn measure<P: Px>(s: &Scene<P>, batches: usize, iters: usize, llc_bytes: usize) 
     })
 }
 
-/// ROI breakdown with the public building blocks, on the tracker's own windows (hot).
-fn roi_split<P: Px>(s: &Scene<P>, roi: &Ours, batches: usize, iters: usize) -> Result<(f64, f64)> {
+/// The ROI path split up (hot, ns per set).
+#[derive(Clone, Copy)]
+struct RoiSplit {
+    /// Blob detection in the two tracking windows, default kernel (SIMD where the build has
+    /// it, see `irtrack_core::simd`) and portable kernel.
+    windows: f64,
+    windows_portable: f64,
+    /// Two undistortions and a triangulation: what every tracked set needs.
+    geometry: f64,
+}
+
+/// The tracker's two tracking windows and its blob settings, after a tracked set.
+fn tracking_windows<P: Px>(s: &Scene<P>, roi: &Ours) -> Result<([Roi; 2], [(f64, f64); 2], BlobConfig)> {
     let m = *roi.tracker.measurement();
     let cfg = *roi.tracker.config();
     let mut centroids = [(0.0, 0.0); 2];
@@ -627,18 +639,28 @@ fn roi_split<P: Px>(s: &Scene<P>, roi: &Ours, batches: usize, iters: usize) -> R
         *xy = (b.x_px, b.y_px);
     }
     let windows = centroids.map(|(x, y)| Roi::around(x, y, cfg.roi_half_px, s.width_px, s.height_px));
-    let mut det = BlobDetector::new(BlobLimits::for_frame(s.width_px, s.height_px))?;
     let blob_cfg = BlobConfig {
         threshold_dn: cfg.threshold_dn,
         ..BlobConfig::default()
     };
+    Ok((windows, centroids, blob_cfg))
+}
+
+/// ROI breakdown with the public building blocks, on the tracker's own windows (hot).
+fn roi_split<P: Px>(s: &Scene<P>, roi: &Ours, batches: usize, iters: usize) -> Result<RoiSplit> {
+    let (windows, centroids, blob_cfg) = tracking_windows(s, roi)?;
+    let mut det = BlobDetector::new(BlobLimits::for_frame(s.width_px, s.height_px))?;
     let v = views(s, &s.frames)?;
-    let t_windows = time_ns(batches, iters * 40, || {
-        for c in 0..2 {
-            black_box(det.detect(&v[c], Some(windows[c]), &blob_cfg)?.len());
-        }
-        Ok(())
-    })?;
+    let mut t_windows = [0.0; 2];
+    for (t, kernel) in t_windows.iter_mut().zip([Kernel::Simd, Kernel::Portable]) {
+        det.set_kernel(kernel);
+        *t = time_ns(batches, iters * 40, || {
+            for c in 0..2 {
+                black_box(det.detect(&v[c], Some(windows[c]), &blob_cfg)?.len());
+            }
+            Ok(())
+        })?;
+    }
     let cams = [&s.rig.cameras[0], &s.rig.cameras[1]];
     let t_geometry = time_ns(batches, iters * 40, || {
         let r = [0, 1].map(|c| {
@@ -648,7 +670,11 @@ fn roi_split<P: Px>(s: &Scene<P>, roi: &Ours, batches: usize, iters: usize) -> R
         black_box(midpoint(&r[0], &r[1])?);
         Ok(())
     })?;
-    Ok((t_windows, t_geometry))
+    Ok(RoiSplit {
+        windows: t_windows[0],
+        windows_portable: t_windows[1],
+        geometry: t_geometry,
+    })
 }
 
 /// OpenCV on the same hot set and cold ring; also the distance between the two points.
@@ -766,21 +792,23 @@ fn table(quick: bool) -> Result<()> {
     println!("ROI tracking split up (hot, same windows, public building blocks):");
     println!();
     println!(
-        "| frames | ours ROI | blob detection in 2 windows | undistort ×2 + triangulate (floor) | rest | floor/full |"
+        "| frames | ours ROI | blob detection in 2 windows ({}) | same, portable kernel | undistort ×2 + triangulate (floor) | rest | floor/full |",
+        irtrack_core::simd::NAME
     );
-    println!("|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|");
     for (r, _) in &rows {
-        let (Some(roi), Some((windows, geometry))) = (r.roi, r.roi_split) else {
+        let (Some(roi), Some(split)) = (r.roi, r.roi_split) else {
             continue;
         };
         println!(
-            "| {} | {} | {} | {} | {} | {:.2} % |",
+            "| {} | {} | {} | {} | {} | {} | {:.2} % |",
             r.name,
             fmt_us(roi.hot),
-            fmt_us(windows),
-            fmt_us(geometry),
-            fmt_us((roi.hot - windows - geometry).max(0.0)),
-            100.0 * geometry / r.full.hot,
+            fmt_us(split.windows),
+            fmt_us(split.windows_portable),
+            fmt_us(split.geometry),
+            fmt_us((roi.hot - split.windows - split.geometry).max(0.0)),
+            100.0 * split.geometry / r.full.hot,
         );
     }
     println!();
@@ -822,6 +850,23 @@ fn run_case(case: &str, iters: usize) -> Result<()> {
                 check += o.run(&s.name, &s.frames, s.width_px, s.height_px)?.z;
             }
         }
+        "windows-simd" | "windows-portable" => {
+            // Blob detection alone in the tracker's two windows, one kernel.
+            let o = Ours::new(&s, true)?;
+            let (windows, _, blob_cfg) = tracking_windows(&s, &o)?;
+            let mut det = BlobDetector::new(BlobLimits::for_frame(s.width_px, s.height_px))?;
+            det.set_kernel(if what == "windows-simd" {
+                Kernel::Simd
+            } else {
+                Kernel::Portable
+            });
+            let v = views(&s, &s.frames)?;
+            for _ in 0..iters {
+                for c in 0..2 {
+                    check += det.detect(&v[c], Some(windows[c]), &blob_cfg)?.len() as f64;
+                }
+            }
+        }
         "sum" => {
             for _ in 0..iters {
                 check += sum_pixels(&s.frames) as f64;
@@ -832,7 +877,9 @@ fn run_case(case: &str, iters: usize) -> Result<()> {
                 check += max_pixels(&s.frames) as f64;
             }
         }
-        other => bail!("unknown case `{other}` (ours-full, ours-roi, opencv, sum, max)"),
+        other => bail!(
+            "unknown case `{other}` (ours-full, ours-roi, windows-simd, windows-portable, opencv, sum, max)"
+        ),
     }
     println!("checksum {check}");
     Ok(())
@@ -858,7 +905,7 @@ fn main() -> Result<()> {
             }
             "-h" | "--help" => {
                 println!(
-                    "usage: irtrack-bench [--quick] | --run <ours-full|ours-roi|opencv|sum|max>-<vga|720p> --iterations N | --idle SECONDS"
+                    "usage: irtrack-bench [--quick] | --run <ours-full|ours-roi|windows-simd|windows-portable|opencv|sum|max>-<vga|720p> --iterations N | --idle SECONDS"
                 );
                 return Ok(());
             }
