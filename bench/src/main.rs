@@ -629,8 +629,11 @@ struct RoiSplit {
     geometry: f64,
 }
 
-/// The tracker's two tracking windows and its blob settings, after a tracked set.
-fn tracking_windows<P: Px>(s: &Scene<P>, roi: &Ours) -> Result<([Roi; 2], [(f64, f64); 2], BlobConfig)> {
+/// The tracker's two tracking windows, the centroids they are centred on (px) and its blob
+/// settings, after a tracked set.
+type Windows = ([Roi; 2], [(f64, f64); 2], BlobConfig);
+
+fn tracking_windows<P: Px>(s: &Scene<P>, roi: &Ours) -> Result<Windows> {
     let m = *roi.tracker.measurement();
     let cfg = *roi.tracker.config();
     let mut centroids = [(0.0, 0.0); 2];
