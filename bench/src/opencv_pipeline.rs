@@ -5,7 +5,9 @@ use nalgebra::Vector3;
 use opencv::core::{self as cv, Mat, MatTraitConst, Point2d, Rect, Scalar, Vector};
 use opencv::{calib3d, imgproc};
 
-use crate::{Scene, THRESHOLD_DN};
+use irtrack_core::params::RigParams;
+
+use crate::{Set, THRESHOLD_DN};
 
 /// The same job with OpenCV: threshold, connectedComponentsWithStats, intensity moments of
 /// the largest component (pixels minus threshold inside its mask), undistortPoints,
@@ -25,14 +27,14 @@ pub struct OpenCv {
 }
 
 impl OpenCv {
-    pub fn new(s: &Scene) -> Result<Self> {
+    pub fn new(rig: &RigParams) -> Result<Self> {
         // One thread, like our pipeline (and the board).
         cv::set_num_threads(1)?;
         let mut k = [Mat::default(), Mat::default()];
         let mut d = [Mat::default(), Mat::default()];
         let mut p = [Mat::default(), Mat::default()];
         for c in 0..2 {
-            let cam = &s.rig.cameras[c];
+            let cam = &rig.cameras[c];
             let i = &cam.model.intrinsics;
             k[c] = Mat::from_slice_2d(&[[i.fx_px, 0.0, i.cx_px], [0.0, i.fy_px, i.cy_px], [0.0, 0.0, 1.0]])?;
             d[c] = Mat::from_slice_2d(&[cam.model.distortion.as_array()])?;
@@ -60,8 +62,8 @@ impl OpenCv {
     }
 
     /// Centroid of the largest component, pixels.
-    fn centroid(&mut self, s: &Scene, c: usize) -> Result<(f64, f64)> {
-        let src = Mat::new_rows_cols_with_data(s.height_px as i32, s.width_px as i32, &s.frames[c])?;
+    fn centroid(&mut self, name: &str, frame: &[u8], w: u32, h: u32, c: usize) -> Result<(f64, f64)> {
+        let src = Mat::new_rows_cols_with_data(h as i32, w as i32, frame)?;
         imgproc::threshold(
             &src,
             &mut self.bin,
@@ -85,7 +87,7 @@ impl OpenCv {
             }
         }
         if best.0 == 0 {
-            bail!("{}: OpenCV found no component in camera {c}", s.name);
+            bail!("{name}: OpenCV found no component in camera {c}");
         }
         let st = |k: i32| -> Result<i32> { Ok(*self.stats.at_2d::<i32>(best.0, k)?) };
         let rect = Rect::new(
@@ -113,15 +115,16 @@ impl OpenCv {
         cv::min(&self.shifted, &self.mask, &mut self.weighted)?;
         let m = imgproc::moments(&self.weighted, false)?;
         if m.m00 <= 0.0 {
-            bail!("{}: OpenCV component without weight in camera {c}", s.name);
+            bail!("{name}: OpenCV component without weight in camera {c}");
         }
         Ok((rect.x as f64 + m.m10 / m.m00, rect.y as f64 + m.m01 / m.m00))
     }
 
-    pub fn run(&mut self, s: &Scene) -> Result<Vector3<f64>> {
+    /// The 3-D point (camera-0 frame, mm) from one 8-bit stereo set of `w` × `h` frames.
+    pub fn run(&mut self, name: &str, frames: &Set<u8>, w: u32, h: u32) -> Result<Vector3<f64>> {
         let mut normalized = [[0.0f64; 2]; 2];
         for (c, n) in normalized.iter_mut().enumerate() {
-            let (x, y) = self.centroid(s, c)?;
+            let (x, y) = self.centroid(name, &frames[c], w, h, c)?;
             let src = Vector::<Point2d>::from_slice(&[Point2d::new(x, y)]);
             let mut dst = Vector::<Point2d>::new();
             calib3d::undistort_points(

@@ -30,6 +30,7 @@
 use alloc::vec::Vec;
 
 use crate::image::{GrayImage, Pixel, Roi};
+use crate::simd;
 use crate::{Error, Result};
 
 /// Largest frame side the detector accepts. Keeps every moment sum well inside its
@@ -44,6 +45,19 @@ const SUB_CHUNK_PX: usize = 8;
 
 /// Rows whose maximum is taken together to skip dark rows (see [`BlobDetector::detect`]).
 const ROW_GROUP: u32 = 8;
+
+/// Which code scans 8-bit tracking windows (16..=64 pixels wide). Both give bit-identical
+/// results (`blob::tests` compares them on random frames); the choice exists so that both
+/// stay tested and can be compared in the benchmark.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Kernel {
+    /// Generic code for every pixel type (what LLVM auto-vectorises).
+    Portable,
+    /// The explicit [`crate::simd`] kernels (SSE2 on x86_64, NEON on aarch64) where the
+    /// build has them, else the portable code.
+    #[default]
+    Simd,
+}
 
 /// Detection settings (may change from frame to frame).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -210,6 +224,9 @@ pub struct DetectStats {
     /// Label buffer exhausted: the frame has too many separate bright regions (sunlight,
     /// wrong threshold). No blobs are reported for such a frame.
     pub overloaded: bool,
+    /// The region was scanned by the explicit SIMD kernels ([`Kernel::Simd`]; 8-bit windows
+    /// 16..=64 pixels wide), not the portable code.
+    pub simd_kernel: bool,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -242,6 +259,7 @@ pub struct BlobDetector {
     /// (the set-up view shows why a spot was not used). Capacity fixed at construction.
     rejected_area: Vec<Blob>,
     stats: DetectStats,
+    kernel: Kernel,
 }
 
 impl BlobDetector {
@@ -280,7 +298,18 @@ impl BlobDetector {
             blobs: Vec::with_capacity(limits.max_blobs),
             rejected_area: Vec::with_capacity(limits.max_blobs),
             stats: DetectStats::default(),
+            kernel: Kernel::default(),
         })
+    }
+
+    /// Selects the code for 8-bit tracking windows (default [`Kernel::Simd`]).
+    pub fn set_kernel(&mut self, kernel: Kernel) {
+        self.kernel = kernel;
+    }
+
+    /// The kernel selected (see [`BlobDetector::set_kernel`]).
+    pub fn kernel(&self) -> Kernel {
+        self.kernel
     }
 
     /// The limits this detector was built with.
@@ -338,6 +367,24 @@ impl BlobDetector {
         let thr = P::from_dn_saturating(config.threshold_dn);
         let sat_level = config.saturation_dn.unwrap_or(P::MAX_DN);
 
+        // 8-bit tracking windows: the explicit SIMD kernels.
+        if self.kernel == Kernel::Simd
+            && simd::AVAILABLE
+            && (simd::MIN_W..=simd::MAX_W).contains(&(roi.width_px as usize))
+            && let Some(data) = P::as_u8(image.data)
+        {
+            // `threshold_dn < P::MAX_DN` = 255 was checked above.
+            let thr_u8 = config.threshold_dn as u8;
+            self.stats.simd_kernel = true;
+            if !self.scan_window_u8(data, image.stride_px as usize, roi, thr_u8, sat_level) {
+                self.stats.overloaded = true;
+                self.acc.clear();
+                return Ok(&self.blobs);
+            }
+            self.finish(image, roi, config);
+            return Ok(&self.blobs);
+        }
+
         let mut ly = 0;
         while ly < roi.height_px {
             let group_end = (ly + ROW_GROUP).min(roi.height_px);
@@ -372,6 +419,87 @@ impl BlobDetector {
         }
         self.finish(image, roi, config);
         Ok(&self.blobs)
+    }
+
+    /// The SIMD scan of an 8-bit window 16..=64 pixels wide: dark groups of 8 rows rejected
+    /// by one vector maximum, then each row of a bright group turned into a bit mask of its
+    /// pixels above threshold, whose runs are found with `trailing_zeros` (no chunk tests,
+    /// no pixel walk). Runs go to the same `add_run` as the portable path. Returns false when
+    /// the label buffer is exhausted.
+    fn scan_window_u8(&mut self, data: &[u8], stride: usize, roi: Roi, thr: u8, sat_level: u32) -> bool {
+        // One copy of the scan per block count, so each row's loads are unrolled.
+        match simd::left_blocks(roi.width_px as usize) {
+            0 => self.scan_window_k::<0>(data, stride, roi, thr, sat_level),
+            1 => self.scan_window_k::<1>(data, stride, roi, thr, sat_level),
+            2 => self.scan_window_k::<2>(data, stride, roi, thr, sat_level),
+            _ => self.scan_window_k::<3>(data, stride, roi, thr, sat_level),
+        }
+    }
+
+    fn scan_window_k<const K: usize>(
+        &mut self,
+        data: &[u8],
+        stride: usize,
+        roi: Roi,
+        thr: u8,
+        sat_level: u32,
+    ) -> bool {
+        let (x0, w) = (roi.x_px as usize, roi.width_px as usize);
+        let t = simd::Threshold::new(thr);
+        let mut ly = 0;
+        while ly < roi.height_px {
+            let group_end = (ly + ROW_GROUP).min(roi.height_px);
+            let start = (roi.y_px + ly) as usize * stride + x0;
+            let rows = (group_end - ly) as usize;
+            // `None` (not reached for a checked frame and region) = treat as bright.
+            if simd::group_has_bright::<K>(data, start, stride, rows, w, t) == Some(false) {
+                self.prev_runs.clear();
+                ly = group_end;
+                continue;
+            }
+            for y in ly..group_end {
+                let s = (roi.y_px + y) as usize * stride + x0;
+                let row = data.get(s..s + w).unwrap_or(&[]);
+                let mask = match simd::bright_mask::<K>(row, t) {
+                    Some(m) => m,
+                    // Not reached for a checked region (w in range, row inside the frame);
+                    // if it were, the scalar definition gives the same mask.
+                    None => row
+                        .iter()
+                        .take(64)
+                        .enumerate()
+                        .fold(0u64, |m, (i, &v)| m | (((v > thr) as u64) << i)),
+                };
+                if mask == 0 {
+                    self.prev_runs.clear();
+                    continue;
+                }
+                if !self.label_mask(row, mask, y, thr as u32, sat_level) {
+                    return false;
+                }
+                core::mem::swap(&mut self.prev_runs, &mut self.cur_runs);
+            }
+            ly = group_end;
+        }
+        true
+    }
+
+    /// The runs of a row given as a bit mask of its bright pixels (bit i = `row[i]`).
+    #[inline]
+    fn label_mask(&mut self, row: &[u8], mut mask: u64, ly: u32, thr_dn: u32, sat_level: u32) -> bool {
+        self.cur_runs.clear();
+        let mut j = 0usize;
+        while mask != 0 {
+            let x0 = mask.trailing_zeros() as usize;
+            // Ones from x0 upwards: the run's length (the shift brings in zeros above bit 63).
+            let len = (!(mask >> x0)).trailing_zeros() as usize;
+            let x1 = x0 + len;
+            if !self.add_run(row, x0, x1, ly, &mut j, thr_dn, sat_level) {
+                return false;
+            }
+            mask = if x1 >= 64 { 0 } else { mask & (u64::MAX << x1) };
+        }
+        true
     }
 
     /// Finds the runs of one row that has bright pixels, accumulates their moments and

@@ -14,6 +14,13 @@ pub trait Pixel: Copy + Ord + Default + Send + Sync + 'static {
     fn dn(self) -> u32;
     /// `v` as a pixel, clamped to full scale.
     fn from_dn_saturating(v: u32) -> Self;
+    /// The pixels as bytes when the type is `u8` (the blob detector's SIMD kernels are for
+    /// 8-bit frames); `None` for wider types.
+    #[inline(always)]
+    fn as_u8(pixels: &[Self]) -> Option<&[u8]> {
+        let _ = pixels;
+        None
+    }
 }
 
 impl Pixel for u8 {
@@ -25,6 +32,10 @@ impl Pixel for u8 {
     #[inline(always)]
     fn from_dn_saturating(v: u32) -> Self {
         v.min(Self::MAX_DN) as u8
+    }
+    #[inline(always)]
+    fn as_u8(pixels: &[u8]) -> Option<&[u8]> {
+        Some(pixels)
     }
 }
 

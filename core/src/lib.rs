@@ -21,6 +21,7 @@ pub mod pose6d;
 pub mod registration;
 pub mod robot_proto;
 pub mod signing;
+pub mod simd;
 pub mod stream;
 pub mod triangulate;
 

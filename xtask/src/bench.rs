@@ -1,10 +1,19 @@
 //! `cargo xtask bench [--quick]`: builds `irtrack-bench` (host-only, release), prints its
-//! timing table (ours vs OpenCV vs the memory pass, ROI vs full frame, allocations), then
-//! instruction counts per stereo pair under callgrind, which are stable on a loaded machine.
+//! timing table — every case hot (one frame set in cache) and cold (a ring of ≥ 16 frame sets
+//! ≥ 2× the last-level cache, like a V4L2 buffer queue) side by side: ours vs OpenCV vs the
+//! memory passes, ROI vs full frame, allocations, for synthetic 8- and 10-bit frames and the
+//! simulator's realistic ones — then instruction counts per stereo pair under callgrind,
+//! which are stable on a loaded machine (including blob detection in the two tracking
+//! windows with the SIMD and the portable kernel).
 //!
 //! Instruction counts: each case runs twice under callgrind with different iteration
 //! counts; the difference divided by the extra iterations removes set-up and rendering.
 //! CI runs `--quick` (shorter timing, VGA only under callgrind); nothing is a timed pass/fail.
+//!
+//! Latency (full run only, or `--latency` alone): one table of the loop's latency with 0 and
+//! 3 live viewers (`irtrack-firmware`'s `viewers` example, run here and its figures reprinted)
+//! and a row per robot link kind (socket protocol, ABB EGM, KUKA RSI) for the capture → robot
+//! packet latency, which issue 17's link benchmark fills.
 //!
 //! `--aarch64`: the OpenCV-free benchmark (`--no-default-features`) and `irtrackd`, both
 //! cross-built static for aarch64, run under QEMU user mode: the benchmark table there (its
@@ -24,7 +33,14 @@ use crate::ci::Counts;
 use crate::cross;
 use crate::util::{self, Ctx, RunOpts};
 
-const CASES: &[&str] = &["ours-full", "ours-roi", "opencv", "sum"];
+const CASES: &[&str] = &[
+    "ours-full",
+    "ours-roi",
+    "opencv",
+    "sum",
+    "windows-simd",
+    "windows-portable",
+];
 
 /// CI entry point: the quick benchmark; fails only if something does not build or run.
 pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
@@ -32,24 +48,33 @@ pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
     Ok(Counts::default())
 }
 
-/// `cargo xtask bench [--quick] [--no-callgrind] [--aarch64]`.
+/// `cargo xtask bench [--quick] [--no-callgrind] [--no-latency] [--latency] [--aarch64]`.
 pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
     let mut quick = false;
     let mut callgrind = true;
     let mut aarch64 = false;
+    let mut latency = None;
     for a in args {
         match a.as_str() {
             "--quick" => quick = true,
             "--no-callgrind" => callgrind = false,
             "--aarch64" => aarch64 = true,
+            "--latency" => latency = Some(true),
+            "--no-latency" => latency = Some(false),
             other => bail!(
-                "unknown option `{other}` (usage: cargo xtask bench [--quick] [--no-callgrind] [--aarch64])"
+                "unknown option `{other}` (usage: cargo xtask bench [--quick] [--no-callgrind] [--no-latency] [--latency] [--aarch64])"
             ),
         }
     }
     if aarch64 {
         return aarch64_bench(ctx, quick);
     }
+    if latency == Some(true) {
+        return latency_table(ctx, 8);
+    }
+    // The latency run builds the firmware in release and takes ~20 s of wall time: not in the
+    // quick (CI) run.
+    let latency = latency.unwrap_or(!quick);
     let mut build = ctx.cargo();
     build.args(["build", "--release", "-p", "irtrack-bench"]);
     let out = util::run(
@@ -66,9 +91,20 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
 
     print_table(Command::new(&bin), quick, 600, "irtrack-bench")?;
 
-    if !callgrind {
-        return Ok(());
+    if callgrind {
+        instruction_table(&bin, ctx, quick)?;
     }
+    if latency {
+        latency_table(ctx, 8)?;
+    } else {
+        println!();
+        println!("Latency table (loop with 0 and 3 viewers, robot links) skipped: `cargo xtask bench --latency`.");
+    }
+    Ok(())
+}
+
+/// Instruction counts per stereo pair under callgrind.
+fn instruction_table(bin: &Path, ctx: &Ctx, quick: bool) -> Result<()> {
     if !util::on_path("valgrind") {
         println!("valgrind not found: instruction counts skipped (`cargo xtask setup` installs it)");
         return Ok(());
@@ -79,29 +115,135 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
     println!();
     println!("Instructions per stereo pair (callgrind, ({n2} − {n1} iterations) difference):");
     println!();
-    println!("| frames | ours full | OpenCV | OpenCV/ours | sum pass | ours/sum | ours ROI | ROI/full |");
-    println!("|---|---|---|---|---|---|---|---|");
+    println!(
+        "| frames | ours full | OpenCV | OpenCV/ours | sum pass | ours/sum | ours ROI | ROI/full | 2 windows, SIMD | 2 windows, portable | SIMD/portable |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for res in resolutions {
-        let mut ir = [0f64; 4];
+        let mut ir = [0f64; 6];
         for (i, case) in CASES.iter().enumerate() {
             let name = format!("{case}-{res}");
-            let a = instructions(&bin, &name, n1, &scratch)?;
-            let b = instructions(&bin, &name, n2, &scratch)?;
+            // The two runs of a case are independent: run them side by side (instruction
+            // counts do not depend on what else runs; wall time halves on two cores).
+            let scratch2 = scratch.with_extension("out2");
+            let (a, b) = std::thread::scope(|sc| {
+                let a = sc.spawn(|| instructions(bin, &name, n1, &scratch));
+                let b = instructions(bin, &name, n2, &scratch2);
+                (a.join(), b)
+            });
+            let a = a.map_err(|_| anyhow::anyhow!("callgrind thread panicked"))??;
+            let b = b?;
+            let _ = std::fs::remove_file(&scratch2);
             ir[i] = b.saturating_sub(a) as f64 / (n2 - n1) as f64;
         }
-        let [full, roi, ocv, sum] = ir;
+        let [full, roi, ocv, sum, win_simd, win_portable] = ir;
         println!(
-            "| {res} | {} | {} | {:.1}x | {} | {:.2}x | {} | {:.2} % |",
+            "| {res} | {} | {} | {:.1}x | {} | {:.2}x | {} | {:.2} % | {} | {} | {:.2} |",
             fmt_ir(full),
             fmt_ir(ocv),
             ocv / full,
             fmt_ir(sum),
             full / sum,
             fmt_ir(roi),
-            100.0 * roi / full
+            100.0 * roi / full,
+            fmt_ir(win_simd),
+            fmt_ir(win_portable),
+            win_simd / win_portable
         );
     }
     let _ = std::fs::remove_file(&scratch);
+    Ok(())
+}
+
+/// Quantiles (µs) of one row of the `viewers` example's output.
+struct LatencyRow {
+    sets: u64,
+    p50: u64,
+    p90: u64,
+    p99: u64,
+    max: u64,
+}
+
+/// Finds the row starting with `label` in the `viewers` example's table.
+fn latency_row(text: &str, label: &str) -> Result<LatencyRow> {
+    let line = text
+        .lines()
+        .find(|l| l.starts_with(label))
+        .with_context(|| format!("no `{label}` row in the viewers example's output"))?;
+    let v: Vec<u64> = line[label.len()..]
+        .split_whitespace()
+        .map(|w| w.parse::<u64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("parsing `{line}`"))?;
+    let [sets, p50, p90, p99, max] = v[..] else {
+        bail!("`{line}`: expected 5 numbers");
+    };
+    Ok(LatencyRow {
+        sets,
+        p50,
+        p90,
+        p99,
+        max,
+    })
+}
+
+/// One latency table: the processing loop with 0 and 3 viewers (the firmware's `viewers`
+/// example, `seconds` per phase, simulated 2 × VGA at 100 fps) and a row per robot link kind.
+fn latency_table(ctx: &Ctx, seconds: u32) -> Result<()> {
+    let mut cmd = ctx.cargo();
+    cmd.args([
+        "run",
+        "--release",
+        "-p",
+        "irtrack-firmware",
+        "--example",
+        "viewers",
+        "--",
+        "--seconds",
+        &seconds.to_string(),
+        "--fps",
+        "100",
+    ]);
+    let out = util::run(
+        &mut cmd,
+        RunOpts {
+            capture_stdout: true,
+            timeout: Some(Duration::from_secs(1800)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("the viewers example {}", out.describe());
+    }
+    let rows = [
+        ("loop processing time (detect → publish), 0 viewers", "process time, 0 viewers"),
+        ("loop processing time (detect → publish), 3 viewers", "process time, 3 viewers"),
+        ("capture → published record, 0 viewers", "capture→publish, 0 viewers"),
+        ("capture → published record, 3 viewers", "capture→publish, 3 viewers"),
+    ];
+    println!();
+    println!(
+        "Latency, one table (simulated 2 × VGA at 100 fps, {seconds} s per phase; viewers: 3 WebSockets asking for 30 fps full-width previews, 64 px zooms and every set's blobs):"
+    );
+    println!();
+    println!("| path | sets | p50 | p90 | p99 | max | measured by |");
+    println!("|---|---|---|---|---|---|---|");
+    for (name, label) in rows {
+        let r = latency_row(&out.stdout, label)?;
+        println!(
+            "| {name} | {} | {} µs | {} µs | {} µs | {} µs | `cargo run --release -p irtrack-firmware --example viewers` |",
+            r.sets, r.p50, r.p90, r.p99, r.max
+        );
+    }
+    for link in [
+        "socket protocol (robot asks, tracker answers)",
+        "ABB EGM (UDP + protobuf, 4 ms)",
+        "KUKA RSI (XML over UDP, 4/12 ms)",
+    ] {
+        println!(
+            "| capture → packet leaving irtrackd, {link} | – | – | – | – | – | to be filled by issue 17 (robot-native streaming, being built): its irtrackd + robot-sim benchmark |"
+        );
+    }
     Ok(())
 }
 
