@@ -31,12 +31,39 @@ pub fn bin(name: &str) -> PathBuf {
     p
 }
 
-/// A fresh, empty temporary directory for this process.
-pub fn temp_dir(name: &str) -> PathBuf {
+/// A fresh, empty temporary directory for this process, removed when the test passes (kept
+/// after a failure, for its logs and outputs).
+pub fn temp_dir(name: &str) -> TempDir {
     let d = std::env::temp_dir().join(format!("irtrack-e2e-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
-    d
+    TempDir(d)
+}
+
+/// See [`temp_dir`].
+pub struct TempDir(PathBuf);
+
+impl std::ops::Deref for TempDir {
+    type Target = PathBuf;
+    fn deref(&self) -> &PathBuf {
+        &self.0
+    }
+}
+
+impl AsRef<std::path::Path> for TempDir {
+    fn as_ref(&self) -> &std::path::Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            eprintln!("test failed: its files are kept in {}", self.0.display());
+        } else {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
 }
 
 /// Reads stdout lines until one starts with `prefix`; the rest of stdout is drained in a thread
