@@ -567,3 +567,47 @@ fn controller_counts_late_answers_and_stops_after_the_limit() {
         assert!(echo.join().unwrap() >= 1);
     }
 }
+
+/// The sample RSI Ethernet configuration (rapid/kuka/) is well-formed XML whose sensor type is
+/// irtrackd's default and whose tags are the ones irtrackd reads and writes.
+#[test]
+fn sample_rsi_config_matches_the_link() {
+    use quick_xml::Reader;
+    use quick_xml::events::Event;
+    let p = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../rapid/kuka/IrTrackRsiEthernet.xml"
+    );
+    let text = std::fs::read_to_string(p).unwrap();
+    let mut r = Reader::from_str(&text);
+    r.config_mut().trim_text(true);
+    let (mut sentype, mut tags, mut in_sentype) = (None, Vec::new(), false);
+    loop {
+        match r.read_event().unwrap() {
+            Event::Eof => break,
+            Event::Start(e) => in_sentype = e.name().as_ref() == "SENTYPE",
+            Event::Text(t) if in_sentype => sentype = Some(t.as_ref().to_string()),
+            Event::Empty(e) if e.name().as_ref() == "ELEMENT" => {
+                let tag = e.try_get_attribute("TAG").unwrap().unwrap();
+                tags.push(tag.value.to_string());
+            }
+            Event::End(_) => in_sentype = false,
+            _ => {}
+        }
+    }
+    assert_eq!(
+        sentype.as_deref(),
+        Some(StreamConfig::default().rsi_sen_type.as_str())
+    );
+    for t in ["DEF_RIst", "DEF_RSol", "RKorr.X", "RKorr.Y", "RKorr.Z"] {
+        assert!(tags.iter().any(|x| x == t), "sample config lacks {t}: {tags:?}");
+    }
+    // The controller program switches RSI on in the link's default mode.
+    let krl = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../rapid/kuka/IrTrackRsi.src"
+    ))
+    .unwrap();
+    assert_eq!(StreamConfig::default().rsi_mode, RsiMode::Absolute);
+    assert!(krl.contains("RSI_ON(#ABSOLUTE)") && krl.contains("RSI_MOVECORR()"));
+}

@@ -377,7 +377,10 @@ fn run(
     let mut buf = [0u8; 2048];
     let mut run = 0u32;
     if let Some(l) = log.as_mut() {
-        let _ = writeln!(l, "t_s,id,x_mm,y_mm,z_mm,cmd_x_mm,cmd_y_mm,cmd_z_mm,answered");
+        let _ = writeln!(
+            l,
+            "t_s,mono_ns,id,x_mm,y_mm,z_mm,cmd_x_mm,cmd_y_mm,cmd_z_mm,answered"
+        );
     }
     let mut next = Instant::now();
     while !stop.load(Ordering::SeqCst) {
@@ -435,7 +438,7 @@ fn run(
         if let Some(l) = log.as_mut() {
             let _ = writeln!(
                 l,
-                "{:.4},{id},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{}",
+                "{:.4},{t_ns},{id},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{}",
                 t0.elapsed().as_secs_f64(),
                 c.pos_mm[0],
                 c.pos_mm[1],
