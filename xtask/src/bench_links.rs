@@ -526,11 +526,12 @@ fn jerk(path: &[(u64, [f64; 3])], from: u64, to: u64) -> (f64, f64) {
     let dt = CYCLE_MS * 1e-3;
     let mut js = Vec::new();
     for w in pts.windows(4) {
-        let mut j2 = 0.0;
-        for i in 0..3 {
-            let d3 = w[3][i] - 3.0 * w[2][i] + 3.0 * w[1][i] - w[0][i];
-            j2 += (d3 / dt.powi(3) * 1e-3).powi(2);
-        }
+        let j2: f64 = (0..3)
+            .map(|i| {
+                let d3 = w[3][i] - 3.0 * w[2][i] + 3.0 * w[1][i] - w[0][i];
+                (d3 / dt.powi(3) * 1e-3).powi(2)
+            })
+            .sum();
         js.push(j2.sqrt());
     }
     if js.is_empty() {

@@ -181,11 +181,14 @@ pub fn serve(args: &Args, listener: TcpListener) -> anyhow::Result<()> {
     };
     // The log's t_s counts from here; CLOCK_MONOTONIC of that instant lets a benchmark line the
     // robot's path up with irtrackd's capture timestamps.
-    println!(
+    // Not `println!`: a reader that stopped after the "listening" line must not end the robot.
+    let mut stdout = std::io::stdout();
+    let _ = writeln!(
+        stdout,
         "robot-sim clock t0_mono_ns={}",
         irtrack_firmware::clock::monotonic_ns()
     );
-    std::io::stdout().flush()?;
+    let _ = stdout.flush();
     let mut robot = SimRobot::new(cfg);
     let mut conn = 0;
     loop {
