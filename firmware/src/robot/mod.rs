@@ -250,6 +250,49 @@ active_low = true
     }
 
     #[test]
+    fn kind_selects_the_link_and_checks_its_address() {
+        let egm = format!(
+            "kind = \"egm\"\n{}",
+            GOOD.replace("192.168.125.1:1025", "0.0.0.0:6510")
+        );
+        let c: RobotConfig = toml::from_str(&egm).unwrap();
+        c.validate().unwrap();
+        assert_eq!((c.kind, c.stream.session_timeout_ms), (LinkKind::Egm, 500));
+        let rsi = format!(
+            "kind = \"rsi\"\n{}\n[stream]\nrsi_mode = \"relative\"\n",
+            GOOD.replace("192.168.125.1:1025", "0.0.0.0:49152")
+        );
+        let c: RobotConfig = toml::from_str(&rsi).unwrap();
+        c.validate().unwrap();
+        assert_eq!(c.stream.rsi_mode, udp::RsiMode::Relative);
+        // A host name is fine for the socket client, not for a UDP listener.
+        let named = format!(
+            "kind = \"rsi\"\n{}",
+            GOOD.replace("192.168.125.1:1025", "robot:1025")
+        );
+        let e = toml::from_str::<RobotConfig>(&named)
+            .unwrap()
+            .validate()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("kind = \"rsi\"") && e.contains("robot:1025"), "{e}");
+        let e = toml::from_str::<RobotConfig>(&format!("kind = \"profinet\"\n{GOOD}"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("profinet"), "{e}");
+        let bad_type = format!(
+            "kind = \"rsi\"\n{}\n[stream]\nrsi_sen_type = \"Im Free\"\n",
+            GOOD.replace("192.168.125.1:1025", "0.0.0.0:49152")
+        );
+        let e = toml::from_str::<RobotConfig>(&bad_type)
+            .unwrap()
+            .validate()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("rsi_sen_type"), "{e}");
+    }
+
+    #[test]
     fn rejects_unknown_keys_and_bad_values() {
         let unknown = GOOD.replace("max_age_ms = 100", "max_age_ms = 100\nmax_agee = 3");
         let e = toml::from_str::<RobotConfig>(&unknown).unwrap_err().to_string();
