@@ -85,6 +85,8 @@ fn cfg(kind: LinkKind, mode: RsiMode) -> RobotConfig {
 const REST: u8 = 0;
 const FOLLOW: u8 = 1;
 const LOST: u8 = 2;
+/// The marker at the circle's centre: `RADIUS_MM` from wherever the robot is on the circle.
+const CENTRE: u8 = 3;
 
 /// Publishes the marker at 100 Hz: at rest, moving on the circle, or lost, as `mode` says.
 fn spawn_feed(tx: watch::Sender<Option<PositionRecord>>, mode: Arc<AtomicU8>) -> tokio::task::JoinHandle<()> {
@@ -100,7 +102,11 @@ fn spawn_feed(tx: watch::Sender<Option<PositionRecord>>, mode: Arc<AtomicU8>) ->
             if m != REST && t0.is_none() {
                 t0 = Some(tokio::time::Instant::now());
             }
-            let p = circle(t0.map_or(0.0, |t| t.elapsed().as_secs_f64()));
+            let p = if m == CENTRE {
+                CENTER
+            } else {
+                circle(t0.map_or(0.0, |t| t.elapsed().as_secs_f64()))
+            };
             let _ = tx.send(Some(PositionRecord {
                 frame,
                 capture_ts_ns: monotonic_ns(),
@@ -189,7 +195,11 @@ fn since(path: &[CtrlCycle], t_ns: u64) -> Vec<CtrlCycle> {
 /// that this point was the robot's position when the hold began (not an earlier target), and
 /// that the robot has come to rest at it.
 fn assert_holds(path: &[CtrlCycle], t_ns: u64, what: &str) {
-    let after = since(path, t_ns);
+    // From the first answered cycle: an unanswered one keeps the command it had before.
+    let after: Vec<CtrlCycle> = since(path, t_ns)
+        .into_iter()
+        .skip_while(|c| !c.answered)
+        .collect();
     assert!(
         after.len() >= 20,
         "{what}: only {} cycles after the hold",
@@ -302,8 +312,10 @@ async fn disable_holds(kind: LinkKind, ctrl_kind: CtrlKind, mode: RsiMode) {
     let t = monotonic_ns();
     wait_cycles(&r.ctrl, 100).await;
     assert_holds(&r.ctrl.record().path, t, "disable");
-    // A fresh enable needs the marker within max_step of the robot: it has moved on along the
-    // circle meanwhile, so the link latches a step stop instead of jumping.
+    // A fresh enable needs the marker within max_step of the robot: with the marker now
+    // RADIUS_MM away, the link latches a step stop instead of jumping.
+    r.mode.store(CENTRE, Ordering::SeqCst);
+    tokio::time::sleep(Duration::from_millis(50)).await;
     r.link.enable();
     wait_for(&r.link, "step latch", |s| {
         s.state == LinkState::Holding(HoldReason::StepTooLarge)
