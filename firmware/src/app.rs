@@ -313,7 +313,7 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         None => None,
         Some(rc) => {
             let deadman = rc.deadman.open(&robot_deadman_flag)?;
-            let link = TcpRobotLink::spawn(rc.clone(), slot_rx.clone(), MonotonicClock, deadman)?;
+            let link = crate::robot::spawn_link(rc.clone(), slot_rx.clone(), MonotonicClock, deadman)?;
             let mut link_status = link.subscribe();
             let st = status.clone();
             tasks.push(tokio::spawn(async move {
@@ -325,7 +325,11 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
                     }
                 }
             }));
-            tracing::info!(address = %rc.address, "robot link started (motion needs an explicit enable)");
+            tracing::info!(
+                kind = rc.kind.name(),
+                address = %rc.address,
+                "robot link started (motion needs an explicit enable)"
+            );
             Some(Arc::new(link))
         }
     };

@@ -47,9 +47,71 @@ fn consts(src: &str) -> HashMap<String, f64> {
 
 #[test]
 fn rapid_module_structure_is_balanced() {
-    let src = module();
-    let lines = code_lines(&src);
-    assert_eq!(lines.first().map(String::as_str), Some("MODULE IrTrack"));
+    check_structure(
+        &module(),
+        "IrTrack",
+        &[
+            "SocketCreate",
+            "SocketBind",
+            "SocketListen",
+            "SocketAccept",
+            "SocketReceive",
+            "SocketSend",
+            "SocketClose",
+            "StrPart",
+            "StrToVal",
+            "MoveL",
+            "ERR_SOCK_TIMEOUT",
+            "ERR_SOCK_CLOSED",
+            "StopMove",
+            "ClearPath",
+            "CRobT",
+            "\\Tool:=irtTool",
+            "\\WObj:=irtWobj",
+            "irtSpeed",
+            "irtZone",
+        ],
+    );
+}
+
+/// The EGM module (docs/robot-streaming.md) passes the same structure checks.
+#[test]
+fn rapid_egm_module_structure_is_balanced() {
+    let p = concat!(env!("CARGO_MANIFEST_DIR"), "/../rapid/IrTrackEgm.mod");
+    let src = std::fs::read_to_string(p).unwrap();
+    check_structure(
+        &src,
+        "IrTrackEgm",
+        &[
+            "EGMGetId",
+            "EGMGetState",
+            "EGMSetupUC",
+            "\\Pose",
+            "\\CommTimeout:=",
+            "EGMActPose",
+            "\\MaxSpeedDeviation:=",
+            "\\MaxPosDeviation:=",
+            "EGMRunPose",
+            "EGM_STOP_HOLD",
+            "ERR_UDPUC_COMM",
+            "EGMReset",
+            "\\Tool:=egmTool",
+            "\\WObj:=egmWobj",
+        ],
+    );
+    // The cycle the module documents is the one the simulated controller runs by default.
+    let sim = irtrack_firmware::robot::ctrl_sim::CtrlConfig::new(
+        irtrack_firmware::robot::ctrl_sim::CtrlKind::Egm,
+        "127.0.0.1:6510".parse().unwrap(),
+    );
+    assert_eq!(consts(&src).get("EGM_CYCLE_MS"), Some(&sim.cycle_ms));
+}
+
+/// Balanced blocks, statements ending in ';', the instructions `needed`, short literals.
+fn check_structure(src: &str, name: &str, needed: &[&str]) {
+    let lines = code_lines(src);
+    let first = format!("MODULE {name}");
+    assert_eq!(lines.first().map(String::as_str), Some(first.as_str()));
     assert_eq!(lines.last().map(String::as_str), Some("ENDMODULE"));
     // Block openers and closers must nest properly.
     let mut stack: Vec<&str> = Vec::new();
@@ -94,28 +156,8 @@ fn rapid_module_structure_is_balanced() {
         );
         assert!(block || l.ends_with(';'), "statement without ';': {l:?}");
     }
-    for needed in [
-        "SocketCreate",
-        "SocketBind",
-        "SocketListen",
-        "SocketAccept",
-        "SocketReceive",
-        "SocketSend",
-        "SocketClose",
-        "StrPart",
-        "StrToVal",
-        "MoveL",
-        "ERR_SOCK_TIMEOUT",
-        "ERR_SOCK_CLOSED",
-        "StopMove",
-        "ClearPath",
-        "CRobT",
-        "\\Tool:=irtTool",
-        "\\WObj:=irtWobj",
-        "irtSpeed",
-        "irtZone",
-    ] {
-        assert!(src.contains(needed), "module lacks {needed}");
+    for needed in needed {
+        assert!(src.contains(needed), "module {name} lacks {needed}");
     }
     // Every string literal fits RAPID's 80-character string limit.
     for l in src.lines() {

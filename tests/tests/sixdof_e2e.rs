@@ -136,6 +136,8 @@ async fn rotating_tool_tracked_in_6dof_to_the_simulated_robot() {
     .await
     .unwrap();
     let link_cfg = RobotConfig {
+        kind: Default::default(),
+        stream: Default::default(),
         address: sim.addr.to_string(),
         name: "irtrackd-6dof".into(),
         connect_timeout_ms: 500,

@@ -18,7 +18,15 @@ use crate::ci::Counts;
 use crate::util::{self, Ctx, RunOpts};
 
 /// Every target in fuzz/fuzz_targets, in run order.
-pub const TARGETS: &[&str] = &["param_blob", "robot_proto", "stream", "config", "param_wire"];
+pub const TARGETS: &[&str] = &[
+    "param_blob",
+    "robot_proto",
+    "stream",
+    "config",
+    "param_wire",
+    "egm",
+    "rsi",
+];
 const QUICK_SECS: u64 = 25;
 /// The documented long run (docs/fuzzing.md).
 const DEFAULT_SECS: u64 = 600;

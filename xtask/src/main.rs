@@ -3,6 +3,7 @@
 //! Std plus anyhow only, and no dependency on other workspace crates, so it builds first
 //! and fast on a fresh machine.
 
+mod bench_links;
 mod ci;
 mod cross;
 mod demo;
@@ -42,6 +43,8 @@ tasks:
   cross                        static aarch64 release build of irtrackd; prints its path
   image  ...                   image build (when xtask/src/image.rs exists)
   bench  ...                   benchmarks (when xtask/src/bench.rs exists)
+  bench-links [--quick] [--secs S] [--release]
+                               socket vs EGM vs RSI robot links side by side (docs/robot-streaming.md)
   fuzz   ...                   fuzzing (when xtask/src/fuzz.rs exists)
   yocto  check|check-layer|shell
                                the Yocto layer under real BitBake (docs/image.md)
@@ -79,6 +82,7 @@ fn real_main(args: &[String]) -> anyhow::Result<i32> {
         "setup" => setup::run(&ctx)?,
         "cross" => cross::cli(&ctx)?,
         "soak" => soak::cli(&ctx, rest)?,
+        "bench-links" => bench_links::cli(&ctx, rest)?,
         "yocto" => yocto::cli(&ctx, rest)?,
         #[cfg(xtask_has_image)]
         "image" => image::cli(&ctx, rest)?,

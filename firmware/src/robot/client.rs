@@ -19,7 +19,8 @@ use tokio::task::JoinHandle;
 use tokio::time::{Instant, timeout};
 
 use super::deadman::Deadman;
-use super::safety::{Sample, Supervisor, Verdict};
+use super::gate::{Control, Gate};
+use super::safety::{Sample, Verdict};
 use super::{RobotConfig, RobotError, RobotLink};
 
 /// Time base of the samples' `capture_ts_ns` (CLOCK_MONOTONIC for irtrackd).
@@ -82,6 +83,8 @@ impl LinkState {
 /// State and counters, published on every change.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LinkStatus {
+    /// Which interface this link speaks.
+    pub kind: super::LinkKind,
     pub state: LinkState,
     /// Name the robot gave in HELLO.
     pub robot_name: Option<String>,
@@ -91,12 +94,21 @@ pub struct LinkStatus {
     pub targets_sent: u64,
     pub holds_sent: u64,
     pub rejects: u64,
+    /// Streaming kinds: controller packets answered.
+    pub packets_answered: u64,
+    /// Streaming kinds: packets that could not be decoded (not answered).
+    pub bad_packets: u64,
+    /// Streaming kinds: duplicated or reordered packets (older sequence number; not answered).
+    pub out_of_order: u64,
+    /// Streaming kinds: the UDP address irtrackd listens on.
+    pub local_addr: Option<std::net::SocketAddr>,
     pub last_error: Option<String>,
 }
 
 impl Default for LinkStatus {
     fn default() -> Self {
         Self {
+            kind: super::LinkKind::Socket,
             state: LinkState::Disconnected,
             robot_name: None,
             robot_pos_mm: None,
@@ -104,28 +116,28 @@ impl Default for LinkStatus {
             targets_sent: 0,
             holds_sent: 0,
             rejects: 0,
+            packets_answered: 0,
+            bad_packets: 0,
+            out_of_order: 0,
+            local_addr: None,
             last_error: None,
         }
     }
 }
 
-#[derive(Debug, Clone, Copy, Default)]
-struct Control {
-    /// Bumped on every enable/disable so each command is seen once.
-    generation: u64,
-    enabled: bool,
-    stop: bool,
-}
-
-/// The running client (a tokio task) and its control handle.
-pub struct TcpRobotLink {
+/// A running link of any kind (a tokio task) and its control handle.
+pub struct LinkHandle {
     ctl: watch::Sender<Control>,
     status: watch::Receiver<LinkStatus>,
     task: Option<JoinHandle<()>>,
 }
 
-impl TcpRobotLink {
-    /// Validates the config and starts the client task on the current tokio runtime.
+/// The socket protocol's link; the same handle type serves every kind.
+pub type TcpRobotLink = LinkHandle;
+
+impl LinkHandle {
+    /// Validates the config and starts the socket-protocol client task on the current tokio
+    /// runtime (use [`super::spawn_link`] to start whatever `cfg.kind` names).
     pub fn spawn<F: PositionFeed, C: Clock>(
         cfg: RobotConfig,
         feed: F,
@@ -133,25 +145,35 @@ impl TcpRobotLink {
         deadman: Arc<dyn Deadman>,
     ) -> Result<Self, RobotError> {
         cfg.validate()?;
+        if cfg.kind != super::LinkKind::Socket {
+            return Err(RobotError::Config {
+                reason: format!("robot.kind = \"{}\" is not the socket protocol", cfg.kind.name()),
+            });
+        }
+        Ok(Self::start(|ctl_rx, status_tx| {
+            let mut client = Client {
+                gate: Gate::new(&cfg, feed, clock, deadman, ctl_rx),
+                cfg,
+                status: status_tx,
+            };
+            async move { client.run().await }
+        }))
+    }
+
+    /// Starts `task` with a fresh control channel and status.
+    pub(crate) fn start<T, Fut>(task: T) -> Self
+    where
+        T: FnOnce(watch::Receiver<Control>, watch::Sender<LinkStatus>) -> Fut,
+        Fut: Future<Output = ()> + Send + 'static,
+    {
         let (ctl, ctl_rx) = watch::channel(Control::default());
         let (status_tx, status) = watch::channel(LinkStatus::default());
-        let mut client = Client {
-            sup: Supervisor::new(cfg.safety.clone()),
-            cfg,
-            feed,
-            clock,
-            deadman,
-            ctl: ctl_rx,
-            status: status_tx,
-            cur: None,
-            feed_open: true,
-        };
-        let task = tokio::spawn(async move { client.run().await });
-        Ok(Self {
+        let task = tokio::spawn(task(ctl_rx, status_tx));
+        Self {
             ctl,
             status,
             task: Some(task),
-        })
+        }
     }
 
     /// A receiver that sees every status change (for LEDs and the status endpoint).
@@ -168,7 +190,7 @@ impl TcpRobotLink {
     }
 }
 
-impl Drop for TcpRobotLink {
+impl Drop for LinkHandle {
     fn drop(&mut self) {
         if let Some(task) = &self.task {
             task.abort();
@@ -176,7 +198,7 @@ impl Drop for TcpRobotLink {
     }
 }
 
-impl RobotLink for TcpRobotLink {
+impl RobotLink for LinkHandle {
     fn enable(&self) {
         self.ctl.send_modify(|c| {
             c.generation += 1;
@@ -196,14 +218,8 @@ impl RobotLink for TcpRobotLink {
 
 struct Client<F, C> {
     cfg: RobotConfig,
-    sup: Supervisor,
-    feed: F,
-    clock: C,
-    deadman: Arc<dyn Deadman>,
-    ctl: watch::Receiver<Control>,
+    gate: Gate<F, C>,
     status: watch::Sender<LinkStatus>,
-    cur: Option<Sample>,
-    feed_open: bool,
 }
 
 /// Per-connection protocol state (reset on every connect).
@@ -230,9 +246,14 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
     }
 
     async fn run(&mut self) {
+        self.run_sessions().await;
+        self.gate.log_latency("socket");
+    }
+
+    async fn run_sessions(&mut self) {
         let mut backoff_ms = self.cfg.backoff_min_ms;
         loop {
-            if self.ctl.borrow().stop {
+            if self.gate.ctl.borrow().stop {
                 return;
             }
             self.status.send_modify(|s| s.state = LinkState::Connecting);
@@ -274,7 +295,7 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
             loop {
                 tokio::select! {
                     _ = &mut sleep => break,
-                    r = self.ctl.changed() => if r.is_err() || self.ctl.borrow_and_update().stop { return },
+                    r = self.gate.ctl.changed() => if r.is_err() || self.gate.ctl.borrow_and_update().stop { return },
                 }
             }
             backoff_ms = (backoff_ms * 2).min(self.cfg.backoff_max_ms);
@@ -314,8 +335,7 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
             Err(e) => return (End::Lost(e), false),
         };
         // A fresh connection never moves on an enable given before it.
-        self.ctl.mark_unchanged();
-        self.sup.on_connect(robot_pos_mm);
+        self.gate.on_connect(robot_pos_mm);
         self.status.send_modify(|st| st.connects += 1);
         tracing::info!("robot link {addr}: connected; holding until enabled");
         let period = self
@@ -332,23 +352,15 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                     Some(Err(e)) => Err(End::Lost(e)),
                     Some(Ok(msg)) => self.on_robot(&mut s, msg),
                 },
-                open = self.feed.changed(), if self.feed_open => {
-                    self.feed_open = open;
-                    self.cur = if open { self.feed.latest() } else { None };
-                    if !self.cfg.send_orientation {
-                        // Orientation that is never sent must not hold the robot either.
-                        if let Some(c) = &mut self.cur {
-                            c.orientation_wxyz = None;
-                        }
-                    }
+                open = self.gate.feed.changed(), if self.gate.feed_open => {
+                    self.gate.feed_open = open;
+                    self.gate.refresh();
                     Ok(())
                 }
-                r = self.ctl.changed() => {
-                    let c = *self.ctl.borrow_and_update();
-                    if r.is_err() || c.stop {
+                r = self.gate.ctl.changed() => {
+                    if r.is_err() || self.gate.apply_control() {
                         Err(End::Stop)
                     } else {
-                        if c.enabled { self.sup.enable() } else { self.sup.disarm(HoldReason::Stop) }
                         Ok(())
                     }
                 }
@@ -463,7 +475,7 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                 }
                 s.ack_seq = ack_seq;
                 s.window = window;
-                self.sup.on_robot_position(pos_mm);
+                self.gate.sup.on_robot_position(pos_mm);
                 self.status.send_modify(|st| st.robot_pos_mm = Some(pos_mm));
             }
             RobotMsg::Reject { seq, code, reason } => {
@@ -505,15 +517,8 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
     /// Applies the supervisor to the newest sample: HOLD on a new hold condition, a target when
     /// allowed and credit is available.
     async fn evaluate(&mut self, s: &mut Session) -> Result<(), End> {
-        let verdict = match &self.cur {
-            Some(sample) => self
-                .sup
-                .check(sample, self.clock.now_ns(), self.deadman.pressed()),
-            None if !self.sup.is_armed() => {
-                Verdict::Hold(self.sup.latched().unwrap_or(HoldReason::NotEnabled))
-            }
-            None => Verdict::Hold(HoldReason::MarkerLost),
-        };
+        let cur = self.gate.cur;
+        let verdict = self.gate.verdict(cur.as_ref());
         match verdict {
             Verdict::Hold(reason) => {
                 if s.holding.is_none() {
@@ -531,7 +536,9 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                 });
             }
             Verdict::Send { pos_mm, quat_wxyz } => {
-                let Some(sample) = self.cur else { return Ok(()) };
+                let Some(sample) = self.gate.cur else {
+                    return Ok(());
+                };
                 if s.last_sent_ts_ns == Some(sample.capture_ts_ns) {
                     return Ok(());
                 }
@@ -549,7 +556,8 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                     None => TrackerMsg::Target { seq, pos_mm },
                 };
                 self.send(s, &msg).await.map_err(End::Lost)?;
-                self.sup.committed(pos_mm, quat_wxyz, sample.capture_ts_ns);
+                self.gate.record_sent(sample.capture_ts_ns);
+                self.gate.sup.committed(pos_mm, quat_wxyz, sample.capture_ts_ns);
                 s.last_sent_seq = seq;
                 s.last_sent_ts_ns = Some(sample.capture_ts_ns);
                 s.holding = None;

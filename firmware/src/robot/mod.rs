@@ -1,18 +1,28 @@
-//! Robot link: the tracker-side client of the robot protocol (docs/robot-protocol.md), the safety
-//! supervisor that decides what may be sent, the deadman input and a simulated robot server.
+//! Robot link: the tracker side of three robot interfaces (`[robot] kind`): the socket protocol
+//! (docs/robot-protocol.md), ABB EGM and KUKA RSI (docs/robot-streaming.md); the safety
+//! supervisor that decides what may be sent, the deadman input and simulated controllers.
 //!
-//! The [`RobotLink`] trait is the seam irtrackd uses; [`client::TcpRobotLink`] implements it.
+//! The [`RobotLink`] trait is the seam irtrackd uses; [`LinkHandle`] implements it for every
+//! kind, and [`spawn_link`] is the one place a link is built from the config. All kinds judge
+//! samples through the same [`gate::Gate`] (operator enable, deadman, supervisor).
 
 pub mod client;
+pub mod ctrl_sim;
 pub mod deadman;
+pub mod egm;
+pub mod gate;
+pub mod rsi;
 pub mod safety;
 pub mod sim;
 #[cfg(test)]
 mod tests;
+pub mod udp;
+
+use std::sync::Arc;
 
 use serde::Deserialize;
 
-pub use client::{LinkState, LinkStatus, TcpRobotLink};
+pub use client::{LinkHandle, LinkState, LinkStatus, TcpRobotLink};
 pub use deadman::{Deadman, DeadmanConfig};
 pub use safety::{SafetyConfig, Supervisor, Verdict};
 
@@ -47,6 +57,37 @@ pub enum RobotError {
     /// Invalid configuration.
     #[error("robot config: {reason}")]
     Config { reason: String },
+    /// A streaming-interface packet (EGM or RSI) that cannot be decoded.
+    #[error("{protocol} packet ({len} bytes): {reason}")]
+    Packet {
+        protocol: &'static str,
+        len: usize,
+        reason: String,
+    },
+}
+
+/// `[robot] kind`: which interface irtrackd speaks to the robot controller.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LinkKind {
+    /// irtrack's own line protocol over TCP; irtrackd connects to `address`.
+    #[default]
+    Socket,
+    /// ABB Externally Guided Motion: irtrackd is the EGM sensor, bound to UDP `address`.
+    Egm,
+    /// KUKA RobotSensorInterface: irtrackd answers `<Rob>` packets on UDP `address`.
+    Rsi,
+}
+
+impl LinkKind {
+    /// Name as written in the config.
+    pub fn name(self) -> &'static str {
+        match self {
+            LinkKind::Socket => "socket",
+            LinkKind::Egm => "egm",
+            LinkKind::Rsi => "rsi",
+        }
+    }
 }
 
 /// What irtrackd needs from a robot link.
@@ -83,7 +124,11 @@ fn default_backoff_max_ms() -> u64 {
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RobotConfig {
-    /// Robot controller address, `host:port` (the tracker is the TCP client).
+    /// Interface to the controller; `socket` when absent, so older configs keep working.
+    #[serde(default)]
+    pub kind: LinkKind,
+    /// `socket`: the robot controller's `host:port` (the tracker is the TCP client).
+    /// `egm` / `rsi`: the local UDP `host:port` irtrackd listens on (the controller sends first).
     pub address: String,
     /// Name sent in HELLO (1..=24 of `[A-Za-z0-9._-]`).
     #[serde(default = "default_name")]
@@ -108,6 +153,9 @@ pub struct RobotConfig {
     pub safety: SafetyConfig,
     /// Deadman / enabling input.
     pub deadman: DeadmanConfig,
+    /// `[robot.stream]`: options of the streaming interfaces (EGM, RSI).
+    #[serde(default)]
+    pub stream: udp::StreamConfig,
 }
 
 impl RobotConfig {
@@ -116,6 +164,18 @@ impl RobotConfig {
         let bad = |reason: String| Err(RobotError::Config { reason });
         if self.address.is_empty() {
             return bad("robot.address is empty".into());
+        }
+        if self.kind != LinkKind::Socket {
+            if self.address.parse::<std::net::SocketAddr>().is_err() {
+                return bad(format!(
+                    "robot.address = {:?}: kind = \"{}\" needs a local ip:port to listen on",
+                    self.address,
+                    self.kind.name()
+                ));
+            }
+            self.stream
+                .validate()
+                .map_err(|reason| RobotError::Config { reason })?;
         }
         let hello = irtrack_core::robot_proto::TrackerMsg::Hello {
             version: 1,
@@ -136,6 +196,20 @@ impl RobotConfig {
         self.safety
             .validate()
             .map_err(|reason| RobotError::Config { reason })
+    }
+}
+
+/// Builds and starts the link `cfg.kind` names: the one place irtrackd creates a robot link.
+pub fn spawn_link<F: client::PositionFeed, C: client::Clock>(
+    cfg: RobotConfig,
+    feed: F,
+    clock: C,
+    deadman: Arc<dyn Deadman>,
+) -> Result<LinkHandle, RobotError> {
+    match cfg.kind {
+        LinkKind::Socket => LinkHandle::spawn(cfg, feed, clock, deadman),
+        LinkKind::Egm => udp::spawn::<egm::Egm, F, C>(cfg, feed, clock, deadman),
+        LinkKind::Rsi => udp::spawn::<rsi::Rsi, F, C>(cfg, feed, clock, deadman),
     }
 }
 
@@ -164,6 +238,7 @@ active_low = true
         let c: RobotConfig = toml::from_str(GOOD).unwrap();
         c.validate().unwrap();
         assert_eq!(c.heartbeat_ms, 200);
+        assert_eq!(c.kind, LinkKind::Socket);
         assert!(matches!(
             c.deadman,
             DeadmanConfig::Gpio {
@@ -172,6 +247,49 @@ active_low = true
                 ..
             }
         ));
+    }
+
+    #[test]
+    fn kind_selects_the_link_and_checks_its_address() {
+        let egm = format!(
+            "kind = \"egm\"\n{}",
+            GOOD.replace("192.168.125.1:1025", "0.0.0.0:6510")
+        );
+        let c: RobotConfig = toml::from_str(&egm).unwrap();
+        c.validate().unwrap();
+        assert_eq!((c.kind, c.stream.session_timeout_ms), (LinkKind::Egm, 500));
+        let rsi = format!(
+            "kind = \"rsi\"\n{}\n[stream]\nrsi_mode = \"relative\"\n",
+            GOOD.replace("192.168.125.1:1025", "0.0.0.0:49152")
+        );
+        let c: RobotConfig = toml::from_str(&rsi).unwrap();
+        c.validate().unwrap();
+        assert_eq!(c.stream.rsi_mode, udp::RsiMode::Relative);
+        // A host name is fine for the socket client, not for a UDP listener.
+        let named = format!(
+            "kind = \"rsi\"\n{}",
+            GOOD.replace("192.168.125.1:1025", "robot:1025")
+        );
+        let e = toml::from_str::<RobotConfig>(&named)
+            .unwrap()
+            .validate()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("kind = \"rsi\"") && e.contains("robot:1025"), "{e}");
+        let e = toml::from_str::<RobotConfig>(&format!("kind = \"profinet\"\n{GOOD}"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("profinet"), "{e}");
+        let bad_type = format!(
+            "kind = \"rsi\"\n{}\n[stream]\nrsi_sen_type = \"Im Free\"\n",
+            GOOD.replace("192.168.125.1:1025", "0.0.0.0:49152")
+        );
+        let e = toml::from_str::<RobotConfig>(&bad_type)
+            .unwrap()
+            .validate()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("rsi_sen_type"), "{e}");
     }
 
     #[test]

@@ -45,6 +45,8 @@ fn link_cfg(addr: std::net::SocketAddr) -> RobotConfig {
         send_orientation: false,
         safety: safety(),
         deadman: DeadmanConfig::Flag,
+        kind: Default::default(),
+        stream: Default::default(),
     }
 }
 

@@ -2,6 +2,11 @@
 //! protocol (docs/robot-protocol.md). The TCP point moves toward each target at a limited speed;
 //! replies are those of the RAPID module; faults can be injected; everything received and the
 //! TCP position are logged to CSV for comparison with the marker's truth.
+//!
+//! `--egm` / `--rsi` simulate a streaming controller instead (ABB EGM, KUKA RSI;
+//! docs/robot-streaming.md): a packet to irtrackd's UDP `--sensor` address every cycle, a servo
+//! with lag and speed/acceleration limits, late/missing answers counted, the session stopped
+//! after `--max-missed` missed cycles in a row, and one CSV row per cycle in `--log`.
 
 use std::io::{BufWriter, ErrorKind, Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
@@ -10,6 +15,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use irtrack_core::robot_proto::{MAX_LINE_BYTES, RobotMsg, SimEvent, SimRobot, SimRobotConfig};
+use irtrack_firmware::robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController};
+use irtrack_firmware::robot::udp::RsiMode;
 
 /// Arguments.
 #[derive(clap::Args, Debug, Clone)]
@@ -50,6 +57,41 @@ pub struct Args {
     /// Name sent in HELLO.
     #[arg(long, default_value = "robot-sim")]
     pub name: String,
+    /// Simulate an ABB EGM controller (UDP, protobuf) instead of the socket protocol.
+    #[arg(long, conflicts_with = "rsi")]
+    pub egm: bool,
+    /// Simulate a KUKA RSI controller (UDP, XML) instead of the socket protocol.
+    #[arg(long)]
+    pub rsi: bool,
+    /// RSI correction mode: `absolute` or `relative` (must match irtrackd's `rsi_mode`).
+    #[arg(long, default_value = "absolute", value_parser = parse_rsi_mode)]
+    pub rsi_mode: RsiMode,
+    /// EGM/RSI: irtrackd's UDP address (its `[robot] address`).
+    #[arg(long)]
+    pub sensor: Option<String>,
+    /// EGM/RSI: interpolation cycle (4 = 250 Hz; KR C2's RSI: 12 ≈ 83 Hz).
+    #[arg(long, default_value_t = 4.0)]
+    pub cycle_ms: f64,
+    /// EGM/RSI: servo lag time constant.
+    #[arg(long, default_value_t = 12.0)]
+    pub servo_lag_ms: f64,
+    /// EGM/RSI: acceleration limit (the speed limit is `--speed-mm-s`).
+    #[arg(long, default_value_t = 5000.0)]
+    pub max_accel_mm_s2: f64,
+    /// EGM/RSI: missed cycles in a row that stop the session (0 = never).
+    #[arg(long, default_value_t = 25)]
+    pub max_missed: u32,
+    /// EGM/RSI: stop after this many seconds (default: run until killed).
+    #[arg(long)]
+    pub duration_s: Option<f64>,
+}
+
+fn parse_rsi_mode(s: &str) -> Result<RsiMode, String> {
+    match s {
+        "absolute" => Ok(RsiMode::Absolute),
+        "relative" => Ok(RsiMode::Relative),
+        _ => Err(format!("{s:?}: expected absolute or relative")),
+    }
 }
 
 fn parse_xyz(s: &str) -> Result<[f64; 3], String> {
@@ -62,6 +104,9 @@ fn parse_xyz(s: &str) -> Result<[f64; 3], String> {
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> anyhow::Result<()> {
+    if args.egm || args.rsi {
+        return run_streaming(&args);
+    }
     let listener =
         TcpListener::bind(&args.listen).with_context(|| format!("cannot listen on {}", args.listen))?;
     let addr = listener.local_addr()?;
@@ -134,6 +179,16 @@ pub fn serve(args: &Args, listener: TcpListener) -> anyhow::Result<()> {
         out,
         t0: Instant::now(),
     };
+    // The log's t_s counts from here; CLOCK_MONOTONIC of that instant lets a benchmark line the
+    // robot's path up with irtrackd's capture timestamps.
+    // Not `println!`: a reader that stopped after the "listening" line must not end the robot.
+    let mut stdout = std::io::stdout();
+    let _ = writeln!(
+        stdout,
+        "robot-sim clock t0_mono_ns={}",
+        irtrack_firmware::clock::monotonic_ns()
+    );
+    let _ = stdout.flush();
     let mut robot = SimRobot::new(cfg);
     let mut conn = 0;
     loop {
@@ -247,4 +302,70 @@ pub fn bind(listen: &str) -> anyhow::Result<(TcpListener, SocketAddr)> {
     let l = TcpListener::bind(listen).with_context(|| format!("cannot listen on {listen}"))?;
     let a = l.local_addr()?;
     Ok((l, a))
+}
+
+/// `--egm` / `--rsi`: one streaming session against irtrackd; prints a summary line at the end.
+fn run_streaming(args: &Args) -> anyhow::Result<()> {
+    let sensor = args
+        .sensor
+        .as_deref()
+        .context("--egm/--rsi need --sensor HOST:PORT (irtrackd's [robot] address)")?;
+    let sensor: SocketAddr = sensor
+        .parse()
+        .with_context(|| format!("--sensor {sensor:?} is not an ip:port"))?;
+    if !(args.speed_mm_s.is_finite() && args.speed_mm_s > 0.0) {
+        bail!("--speed-mm-s must be > 0");
+    }
+    if !(args.max_accel_mm_s2.is_finite() && args.max_accel_mm_s2 > 0.0) {
+        bail!("--max-accel-mm-s2 must be > 0");
+    }
+    let kind = if args.egm {
+        CtrlKind::Egm
+    } else {
+        CtrlKind::Rsi(args.rsi_mode)
+    };
+    let bind: SocketAddr = args
+        .listen
+        .parse()
+        .with_context(|| format!("--listen {:?} is not an ip:port", args.listen))?;
+    let log: Option<Box<dyn Write + Send>> = match &args.log {
+        Some(p) => Some(Box::new(BufWriter::new(
+            std::fs::File::create(p).with_context(|| format!("create {}", p.display()))?,
+        ))),
+        None => None,
+    };
+    let cfg = CtrlConfig {
+        bind,
+        cycle_ms: args.cycle_ms,
+        home_mm: args.home,
+        servo_lag_ms: args.servo_lag_ms,
+        max_speed_mm_s: args.speed_mm_s,
+        max_accel_mm_s2: args.max_accel_mm_s2,
+        max_missed: args.max_missed,
+        duration_s: args.duration_s,
+        ..CtrlConfig::new(kind, sensor)
+    };
+    let ctrl = SimController::spawn(cfg, log)?;
+    println!(
+        "robot-sim {} controller on {} sending to {sensor} every {} ms",
+        if args.egm { "EGM" } else { "RSI" },
+        ctrl.local,
+        args.cycle_ms
+    );
+    std::io::stdout().flush()?;
+    while !ctrl.finished() {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let r = ctrl.stop();
+    println!(
+        "robot-sim summary cycles={} answered={} missed={} late={} malformed={} max_missed_run={} stopped={}",
+        r.cycles,
+        r.answered,
+        r.missed,
+        r.late,
+        r.malformed,
+        r.max_missed_run,
+        r.stopped.as_deref().unwrap_or("no")
+    );
+    Ok(())
 }

@@ -1,0 +1,182 @@
+//! The one safety path every robot link goes through: operator enable/disable, the deadman and
+//! the [`Supervisor`] judging the newest sample. The socket client, EGM and RSI all hold a
+//! [`Gate`] and ask it for a [`Verdict`]; only what they do with a hold differs (a `HOLD` line, or
+//! the robot's own position commanded again every cycle).
+
+use std::sync::Arc;
+
+use irtrack_core::robot_proto::HoldReason;
+use tokio::sync::watch;
+
+use super::RobotConfig;
+use super::client::{Clock, PositionFeed};
+use super::deadman::Deadman;
+use super::safety::{Sample, Supervisor, Verdict};
+
+/// Operator commands, shared by every link kind through a watch channel.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Control {
+    /// Bumped on every enable/disable so each command is seen once.
+    pub generation: u64,
+    pub enabled: bool,
+    pub stop: bool,
+}
+
+/// Latency from a sample's capture to its target leaving irtrackd, in µs.
+pub struct Latency {
+    /// `None` only if the fixed bounds were refused (they are valid; no panic path either way).
+    hist: Option<hdrhistogram::Histogram<u64>>,
+}
+
+/// Percentiles of [`Latency`] (µs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct LatencySummary {
+    pub count: u64,
+    pub p50_us: u64,
+    pub p99_us: u64,
+    pub p999_us: u64,
+    pub max_us: u64,
+}
+
+impl Latency {
+    fn new() -> Self {
+        // 1 µs .. 60 s at 3 significant digits, allocated once: recording never allocates.
+        let hist = hdrhistogram::Histogram::new_with_bounds(1, 60_000_000, 3).ok();
+        Self { hist }
+    }
+
+    fn record(&mut self, us: u64) {
+        if let Some(h) = &mut self.hist {
+            h.saturating_record(us.max(1));
+        }
+    }
+
+    /// Percentiles so far.
+    pub fn summary(&self) -> LatencySummary {
+        let Some(h) = &self.hist else {
+            return LatencySummary::default();
+        };
+        LatencySummary {
+            count: h.len(),
+            p50_us: h.value_at_quantile(0.5),
+            p99_us: h.value_at_quantile(0.99),
+            p999_us: h.value_at_quantile(0.999),
+            max_us: h.max(),
+        }
+    }
+}
+
+/// Safety state shared by every link kind. Fields are visible to the links so that their
+/// `select!` loops can borrow the feed and the control channel at the same time.
+pub struct Gate<F, C> {
+    pub(crate) sup: Supervisor,
+    pub(crate) feed: F,
+    pub(crate) clock: C,
+    pub(crate) deadman: Arc<dyn Deadman>,
+    pub(crate) ctl: watch::Receiver<Control>,
+    /// Newest sample (orientation removed when orientation is not sent).
+    pub(crate) cur: Option<Sample>,
+    pub(crate) feed_open: bool,
+    send_orientation: bool,
+    pub(crate) latency: Latency,
+}
+
+impl<F: PositionFeed, C: Clock> Gate<F, C> {
+    pub fn new(
+        cfg: &RobotConfig,
+        feed: F,
+        clock: C,
+        deadman: Arc<dyn Deadman>,
+        ctl: watch::Receiver<Control>,
+    ) -> Self {
+        Self {
+            sup: Supervisor::new(cfg.safety.clone()),
+            feed,
+            clock,
+            deadman,
+            ctl,
+            cur: None,
+            feed_open: true,
+            send_orientation: cfg.send_orientation,
+            latency: Latency::new(),
+        }
+    }
+
+    /// Takes the newest sample from the feed.
+    pub fn refresh(&mut self) {
+        self.cur = if self.feed_open { self.feed.latest() } else { None };
+        if !self.send_orientation {
+            // Orientation that is never sent must not hold the robot either.
+            if let Some(c) = &mut self.cur {
+                c.orientation_wxyz = None;
+            }
+        }
+    }
+
+    /// Applies an operator command not seen yet (streaming links call this per packet); true
+    /// when the link must stop.
+    pub fn poll_control(&mut self) -> bool {
+        match self.ctl.has_changed() {
+            Ok(true) => self.apply_control(),
+            Ok(false) => self.ctl.borrow().stop,
+            // The handle is gone: nobody can enable or stop any more, so stop.
+            Err(_) => true,
+        }
+    }
+
+    /// Applies the newest operator command; true when the link must stop.
+    pub fn apply_control(&mut self) -> bool {
+        let c = *self.ctl.borrow_and_update();
+        if c.stop {
+            return true;
+        }
+        if c.enabled {
+            self.sup.enable();
+        } else {
+            self.sup.disarm(HoldReason::Stop);
+        }
+        false
+    }
+
+    /// A new session with the controller, whose TCP is at `robot_pos_mm`: held until an enable
+    /// given after this moment (an earlier enable never moves a fresh session).
+    pub fn on_connect(&mut self, robot_pos_mm: [f64; 3]) {
+        self.ctl.mark_unchanged();
+        self.sup.on_connect(robot_pos_mm);
+    }
+
+    /// The clock the samples are stamped with.
+    pub fn now_ns(&self) -> u64 {
+        self.clock.now_ns()
+    }
+
+    /// Judges `sample` (normally [`Gate::cur`], possibly predicted ahead) now.
+    pub fn verdict(&mut self, sample: Option<&Sample>) -> Verdict {
+        match sample {
+            Some(s) => self.sup.check(s, self.clock.now_ns(), self.deadman.pressed()),
+            None if !self.sup.is_armed() => {
+                Verdict::Hold(self.sup.latched().unwrap_or(HoldReason::NotEnabled))
+            }
+            None => Verdict::Hold(HoldReason::MarkerLost),
+        }
+    }
+
+    /// A target captured at `capture_ts_ns` has just left irtrackd.
+    pub fn record_sent(&mut self, capture_ts_ns: u64) {
+        let age_ns = self.clock.now_ns().saturating_sub(capture_ts_ns);
+        self.latency.record(age_ns / 1000);
+    }
+
+    /// Logs the latency summary (read by `cargo xtask bench-links`).
+    pub fn log_latency(&self, kind: &str) {
+        let l = self.latency.summary();
+        tracing::info!(
+            "robot link latency kind={kind} n={} p50_us={} p99_us={} p999_us={} max_us={}",
+            l.count,
+            l.p50_us,
+            l.p99_us,
+            l.p999_us,
+            l.max_us
+        );
+    }
+}
