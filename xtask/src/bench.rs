@@ -13,7 +13,7 @@
 //! Latency (full run only, or `--latency` alone): one table of the loop's latency with 0 and
 //! 3 live viewers (`irtrack-firmware`'s `viewers` example, run here and its figures reprinted)
 //! and a row per robot link kind (socket protocol, ABB EGM, KUKA RSI) for the capture → robot
-//! packet latency, which issue 17's link benchmark fills.
+//! packet latency, which `cargo xtask bench-links` measures (docs/robot-streaming.md).
 //!
 //! `--aarch64`: the OpenCV-free benchmark (`--no-default-features`) and `irtrackd`, both
 //! cross-built static for aarch64, run under QEMU user mode: the benchmark table there (its
@@ -241,7 +241,7 @@ fn latency_table(ctx: &Ctx, seconds: u32) -> Result<()> {
         "KUKA RSI (XML over UDP, 4/12 ms)",
     ] {
         println!(
-            "| capture → packet leaving irtrackd, {link} | – | – | – | – | – | to be filled by issue 17 (robot-native streaming, being built): its irtrackd + robot-sim benchmark |"
+            "| capture → packet leaving irtrackd, {link} | – | – | – | – | – | measured by `cargo xtask bench-links` (irtrackd + robot-sim as separate processes; docs/robot-streaming.md) |"
         );
     }
     Ok(())
