@@ -98,7 +98,9 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
         latency_table(ctx, 8)?;
     } else {
         println!();
-        println!("Latency table (loop with 0 and 3 viewers, robot links) skipped: `cargo xtask bench --latency`.");
+        println!(
+            "Latency table (loop with 0 and 3 viewers, robot links) skipped: `cargo xtask bench --latency`."
+        );
     }
     Ok(())
 }
@@ -216,10 +218,22 @@ fn latency_table(ctx: &Ctx, seconds: u32) -> Result<()> {
         bail!("the viewers example {}", out.describe());
     }
     let rows = [
-        ("loop processing time (detect → publish), 0 viewers", "process time, 0 viewers"),
-        ("loop processing time (detect → publish), 3 viewers", "process time, 3 viewers"),
-        ("capture → published record, 0 viewers", "capture→publish, 0 viewers"),
-        ("capture → published record, 3 viewers", "capture→publish, 3 viewers"),
+        (
+            "loop processing time (detect → publish), 0 viewers",
+            "process time, 0 viewers",
+        ),
+        (
+            "loop processing time (detect → publish), 3 viewers",
+            "process time, 3 viewers",
+        ),
+        (
+            "capture → published record, 0 viewers",
+            "capture→publish, 0 viewers",
+        ),
+        (
+            "capture → published record, 3 viewers",
+            "capture→publish, 3 viewers",
+        ),
     ];
     println!();
     println!(
