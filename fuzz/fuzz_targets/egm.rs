@@ -14,7 +14,9 @@ fuzz_target!(|data: &[u8]| {
     };
     let again = msg.encode_to_vec();
     let (msg2, pkt2) = egm::decode_robot(&again).expect("a decoded EgmRobot re-encodes");
-    assert_eq!(msg2, msg);
+    // Compared as bytes: fields the link does not use (e.g. the planned pose) may hold NaN,
+    // which is never equal to itself.
+    assert_eq!(msg2.encode_to_vec(), again);
     assert_eq!(pkt2, pkt);
     let mut link = egm::Egm::new(&StreamConfig::default());
     let cmd = Command {
