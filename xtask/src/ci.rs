@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Result, bail};
 
 use crate::util::{self, Ctx, RunOpts};
-use crate::{cross, lint, setup};
+use crate::{cross, disk, lint, setup};
 
 /// Test counts from cargo's `test result:` lines (or from a hook phase).
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
@@ -82,6 +82,9 @@ pub struct Phase {
     /// Kill the phase after this long, so a hung test (e.g. under QEMU) cannot stall CI.
     /// For test phases it limits running the tests, not compiling them.
     pub timeout: Duration,
+    /// Build directories under `target/` the phase uses (see [`crate::disk`]): when disk
+    /// space runs low, those no later phase uses are removed.
+    pub builds: &'static [&'static str],
 }
 
 /// Builds a [`Phase`]; `limit_min` is the time limit in minutes.
@@ -91,6 +94,7 @@ const fn phase(
     label: &'static str,
     run: Option<PhaseFn>,
     limit_min: u64,
+    builds: &'static [&'static str],
 ) -> Phase {
     Phase {
         name,
@@ -98,24 +102,28 @@ const fn phase(
         label,
         run,
         timeout: Duration::from_secs(limit_min * 60),
+        builds,
     }
 }
 
 /// All phases, in run order. Register a new one with a single line here.
 #[rustfmt::skip]
 pub const PHASES: &[Phase] = &[
-    phase("setup", "install missing system packages", "", Some(setup_phase), 30),
-    phase("fmt", "cargo fmt --all --check", "", Some(fmt), 5),
-    phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", Some(clippy), 60),
-    phase("host-tests", "cargo test --workspace (all crates, host)", "host", Some(host_tests), 25),
-    phase("no-std", "irtrack-core without its std feature", "", Some(no_std), 30),
-    phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", Some(aarch64_tests), 35),
-    phase("systemd", "systemd-analyze verify on systemd/ units", "", Some(lint::systemd_phase), 2),
-    phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", Some(lint::yocto_phase), 5),
-    phase("yocto-bitbake", "BitBake parses meta-irtrack, lists its recipes, resolves irtrack-image", "bitbake", Some(yocto_bitbake), 30),
-    phase("image", "aarch64 image build + QEMU system test", "system", IMAGE_HOOK, 20),
-    phase("bench", "short benchmark", "bench", BENCH_HOOK, 10),
-    phase("fuzz", "short fuzzing run of every fuzz target", "fuzz", FUZZ_HOOK, 10),
+    phase("setup", "install missing system packages", "", Some(setup_phase), 30, &[]),
+    phase("fmt", "cargo fmt --all --check", "", Some(fmt), 5, &[]),
+    phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", Some(clippy), 60, &["debug"]),
+    phase("host-tests", "cargo test --workspace (all crates, host)", "host", Some(host_tests), 25, &["debug"]),
+    phase("no-std", "irtrack-core without its std feature", "", Some(no_std), 30, &["debug"]),
+    // The image runs right after the host phases: its system test runs host-tools from
+    // target/debug, and with that phase done a machine short of disk can drop target/debug
+    // before the aarch64 test build (crate::disk).
+    phase("image", "aarch64 image build + QEMU system test", "system", IMAGE_HOOK, 20, &["image", "aarch64-static", "debug"]),
+    phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", Some(aarch64_tests), 35, &["aarch64"]),
+    phase("systemd", "systemd-analyze verify on systemd/ units", "", Some(lint::systemd_phase), 2, &[]),
+    phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", Some(lint::yocto_phase), 5, &[]),
+    phase("yocto-bitbake", "BitBake parses meta-irtrack, lists its recipes, resolves irtrack-image", "bitbake", Some(yocto_bitbake), 30, &["yocto"]),
+    phase("bench", "short benchmark", "bench", BENCH_HOOK, 10, &["release"]),
+    phase("fuzz", "short fuzzing run of every fuzz target", "fuzz", FUZZ_HOOK, 10, &["fuzz"]),
 ];
 
 #[cfg(xtask_has_image)]
@@ -207,7 +215,17 @@ pub fn run(ctx: &Ctx, opts: &Options) -> i32 {
 
     let started = Instant::now();
     let mut rows = Vec::new();
+    let min_free = match disk::min_free() {
+        Ok(b) => b,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return 2;
+        }
+    };
     for (i, phase) in selected.iter().enumerate() {
+        let done: Vec<&[&str]> = selected[..i].iter().map(|p| p.builds).collect();
+        let remaining: Vec<&[&str]> = selected[i..].iter().map(|p| p.builds).collect();
+        free_disk_if_low(ctx, min_free, &done, &remaining);
         println!("\n{}", "=".repeat(100));
         println!(
             "==> phase {}/{}: {} ({})",
@@ -227,10 +245,13 @@ pub fn run(ctx: &Ctx, opts: &Options) -> i32 {
         };
         let elapsed = t0.elapsed();
         println!(
-            "<== {}: {} in {}",
+            "<== {}: {} in {}{}",
             phase.name,
             status_text(&outcome),
-            util::fmt_duration(elapsed)
+            util::fmt_duration(elapsed),
+            disk::free_bytes(&ctx.target_dir())
+                .map(|b| format!(" ({} free on disk)", disk::fmt_gib(b)))
+                .unwrap_or_default()
         );
         rows.push(Row {
             name: phase.name,
@@ -240,6 +261,48 @@ pub fn run(ctx: &Ctx, opts: &Options) -> i32 {
         });
     }
     print_summary(&rows, started.elapsed())
+}
+
+/// When free space is below `min_free`, removes the build directories under `target/` that
+/// finished phases used and no remaining phase uses, saying what it removed. A run with space
+/// to spare keeps everything (a developer's warm build survives).
+fn free_disk_if_low(ctx: &Ctx, min_free: u64, done: &[&[&str]], remaining: &[&[&str]]) {
+    let target = ctx.target_dir();
+    let Some(free) = disk::free_bytes(&target) else {
+        return;
+    };
+    if free >= min_free {
+        return;
+    }
+    let candidates: Vec<_> = disk::finished_builds(done, remaining)
+        .into_iter()
+        .map(|d| target.join(d))
+        .filter(|p| p.is_dir())
+        .collect();
+    if candidates.is_empty() {
+        println!(
+            "(disk: {} free, below the {} floor, but every build directory is still needed)",
+            disk::fmt_gib(free),
+            disk::fmt_gib(min_free)
+        );
+        return;
+    }
+    println!(
+        "(disk: {} free, below the {} floor (IRTRACK_CI_MIN_FREE_GB); removing build \
+         directories no remaining phase uses)",
+        disk::fmt_gib(free),
+        disk::fmt_gib(min_free)
+    );
+    for dir in candidates {
+        let size = disk::dir_bytes(&dir);
+        match std::fs::remove_dir_all(&dir) {
+            Ok(()) => println!("(disk: removed {} ({}))", dir.display(), disk::fmt_gib(size)),
+            Err(e) => println!("(disk: could not remove {}: {e})", dir.display()),
+        }
+    }
+    if let Some(now) = disk::free_bytes(&target) {
+        println!("(disk: {} free now)", disk::fmt_gib(now));
+    }
 }
 
 fn status_text(o: &Outcome) -> String {

@@ -9,6 +9,7 @@ mod cross;
 mod demo;
 mod demo_live;
 mod demo_view;
+mod disk;
 mod lint;
 mod setup;
 mod soak;

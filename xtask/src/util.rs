@@ -31,9 +31,16 @@ impl Ctx {
     }
 
     /// `cargo` with the working directory at the workspace root and no standard input.
+    ///
+    /// Incremental compilation is off unless the caller's environment sets
+    /// `CARGO_INCREMENTAL`: xtask's builds are one-shot (CI, demo, image), where incremental
+    /// state only costs disk (gigabytes over the workspace's test binaries) and link time.
     pub fn cargo(&self) -> Command {
         let mut cmd = Command::new(&self.cargo);
         cmd.current_dir(&self.root);
+        if std::env::var_os("CARGO_INCREMENTAL").is_none() {
+            cmd.env("CARGO_INCREMENTAL", "0");
+        }
         cmd
     }
 
