@@ -383,7 +383,11 @@ fn compare_rig(name: &str, truth: &RigParams, frames: usize, seed: u64) -> Compa
         "{name}: after a rigid fit (mm)         | {:12.4} | {:10.4} | {:.4}   (true rig: {:.4})",
         cb_path.shape_rms_mm, wand_path.shape_rms_mm, boards_path.shape_rms_mm, true_path.shape_rms_mm
     );
-    for (what, rig) in [("checkerboard", &cb), ("wand alone", &wand_rig), ("wand + boards", &boards_rig)] {
+    for (what, rig) in [
+        ("checkerboard", &cb),
+        ("wand alone", &wand_rig),
+        ("wand + boards", &boards_rig),
+    ] {
         println!("{name}: {what}: intrinsics error vs truth per camera (fx, fy, cx, cy px)");
         for (c, (g, t)) in rig.cameras.iter().zip(&truth.cameras).enumerate() {
             let (g, t) = (&g.model.intrinsics, &t.model.intrinsics);
@@ -443,14 +447,24 @@ fn assert_figures(name: &str, got: Figures, cb: Figures, limits: (f64, f64, f64)
 fn wand_calibrates_the_90_degree_rig_against_truth() {
     let r = compare_rig("rig90", &rig_90(), 1000, 1);
     assert_figures("90° rig, wand alone", r.wand, r.checkerboard, (0.02, 0.6, 0.45));
-    assert_figures("90° rig, wand + boards", r.wand_boards, r.checkerboard, (0.02, 1.0, 0.45));
+    assert_figures(
+        "90° rig, wand + boards",
+        r.wand_boards,
+        r.checkerboard,
+        (0.02, 1.0, 0.45),
+    );
 }
 
 #[test]
 fn wand_calibrates_three_cameras_with_one_raised() {
     let r = compare_rig("raised", &rig_raised(), 1000, 1);
     assert_figures("3 cameras, wand alone", r.wand, r.checkerboard, (0.025, 0.6, 0.3));
-    assert_figures("3 cameras, wand + boards", r.wand_boards, r.checkerboard, (0.02, 1.0, 0.3));
+    assert_figures(
+        "3 cameras, wand + boards",
+        r.wand_boards,
+        r.checkerboard,
+        (0.02, 1.0, 0.3),
+    );
 }
 
 /// The spread over wave seeds (not run by default: about 1 min per seed and rig):

@@ -130,7 +130,8 @@ pub fn read_board_views(
             labels.join(", ")
         );
     }
-    let detections = detect::detect_all(&set, board).with_context(|| format!("--boards {}", dir.display()))?;
+    let detections =
+        detect::detect_all(&set, board).with_context(|| format!("--boards {}", dir.display()))?;
     let object_mm: Vec<Vector3<f64>> = board
         .object_points()
         .iter()

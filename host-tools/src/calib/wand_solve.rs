@@ -391,7 +391,13 @@ fn solve_wand(cams: &[Cam], views: &FrameViews, wand: &Wand, start: WandPose, hu
     pose
 }
 
-fn board_residuals(model: &CameraModel, view: &BoardView, pose: &BoardPose, huber_px: f64, out: &mut Vec<f64>) {
+fn board_residuals(
+    model: &CameraModel,
+    view: &BoardView,
+    pose: &BoardPose,
+    huber_px: f64,
+    out: &mut Vec<f64>,
+) {
     out.clear();
     let cam = Cam {
         r: pose.r,
@@ -1122,7 +1128,8 @@ pub fn solve(
             let limit = (OUTLIER_FACTOR * median(&mut sorted)).max(OUTLIER_FLOOR_PX);
             for (i, e) in &board_errs {
                 if *e > limit {
-                    board_fits[*i].rejected = Some(format!("reprojection outlier: {e:.2} px > {limit:.2} px"));
+                    board_fits[*i].rejected =
+                        Some(format!("reprojection outlier: {e:.2} px > {limit:.2} px"));
                     rejected += 1;
                 }
             }

@@ -9,8 +9,8 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use irtrack_core::params::RigParams;
 
-use crate::calib::wand::{self, Wand};
 use crate::calib::detect::Board;
+use crate::calib::wand::{self, Wand};
 use crate::calib::{wand_boards, wand_report, wand_solve};
 
 /// Arguments.
@@ -159,7 +159,8 @@ pub fn run(args: Args) -> Result<()> {
                 .iter()
                 .filter(|b| b.camera == c && b.rejected.is_none())
                 .collect();
-            let rms = (fits.iter().map(|b| b.rms_px * b.rms_px).sum::<f64>() / fits.len().max(1) as f64).sqrt();
+            let rms =
+                (fits.iter().map(|b| b.rms_px * b.rms_px).sum::<f64>() / fits.len().max(1) as f64).sqrt();
             println!(
                 "cam{c}: board corners RMS {rms:.4} px over {} board views",
                 fits.len()
