@@ -417,10 +417,10 @@ fn compare_rig(name: &str, truth: &RigParams, frames: usize, seed: u64) -> Compa
     }
 }
 
-/// Checks a calibration's figures against limits (rotation °, centre mm, path mm) and against
-/// the checkerboard calibration.
-fn assert_figures(name: &str, got: Figures, cb: Figures, limits: (f64, f64, f64)) {
-    let (rot, centre_mm, path_mm, _, _) = got;
+/// Checks a calibration's figures against limits (rotation °, centre mm, path mm as tracked,
+/// path mm after turning about camera 0) and against the checkerboard calibration.
+fn assert_figures(name: &str, got: Figures, cb: Figures, limits: (f64, f64, f64, f64)) {
+    let (rot, centre_mm, path_mm, _, turned_mm) = got;
     assert!(
         rot <= limits.0,
         "{name}: rotation error {rot:.4}° > {}°",
@@ -437,37 +437,64 @@ fn assert_figures(name: &str, got: Figures, cb: Figures, limits: (f64, f64, f64)
         limits.2
     );
     assert!(
+        turned_mm <= limits.3,
+        "{name}: path RMS after turning about camera 0 {turned_mm:.4} mm > {} mm",
+        limits.3
+    );
+    assert!(
         rot < cb.0 && centre_mm < cb.1 && path_mm < cb.2,
         "{name}: {got:?} not better than checkerboard {cb:?}"
     );
 }
 
-/// Goals of issue 15: rotation ≤ 0.02°, centre ≤ 1 mm, path ≤ 0.1 mm.
+/// Goals of issue 15: rotation ≤ 0.02°, centre ≤ 1 mm, path ≤ 0.1 mm. Rotation and centre goals
+/// are asserted as goals. The path as tracked is not at 0.1 mm with any calibration here: its
+/// error is camera 0's own pointing, set by its principal point (0.1 px turns the whole tracked
+/// frame by 0.008°, 0.17 mm at 1.2 m); asserted are this wave's figures with a margin, and that
+/// the path turned about camera 0 is within about 0.1 mm (docs/calibration.md, "Accuracy on
+/// simulated wand waves"). On the 90° rig the board views in the adjustment improve the path on
+/// every wave measured (five of five), so that is asserted too.
 #[test]
 fn wand_calibrates_the_90_degree_rig_against_truth() {
     let r = compare_rig("rig90", &rig_90(), 1000, 1);
-    assert_figures("90° rig, wand alone", r.wand, r.checkerboard, (0.02, 0.6, 0.45));
+    assert_figures(
+        "90° rig, wand alone",
+        r.wand,
+        r.checkerboard,
+        (0.02, 1.0, 0.4, 0.11),
+    );
     assert_figures(
         "90° rig, wand + boards",
         r.wand_boards,
         r.checkerboard,
-        (0.02, 1.0, 0.45),
+        (0.02, 1.0, 0.3, 0.12),
+    );
+    assert!(
+        r.wand_boards.2 < r.wand.2,
+        "90° rig: path with boards {:.4} mm not below wand alone {:.4} mm",
+        r.wand_boards.2,
+        r.wand.2
     );
 }
 
 #[test]
 fn wand_calibrates_three_cameras_with_one_raised() {
     let r = compare_rig("raised", &rig_raised(), 1000, 1);
-    assert_figures("3 cameras, wand alone", r.wand, r.checkerboard, (0.025, 0.6, 0.3));
+    assert_figures(
+        "3 cameras, wand alone",
+        r.wand,
+        r.checkerboard,
+        (0.02, 1.0, 0.25, 0.1),
+    );
     assert_figures(
         "3 cameras, wand + boards",
         r.wand_boards,
         r.checkerboard,
-        (0.02, 1.0, 0.3),
+        (0.02, 1.0, 0.26, 0.1),
     );
 }
 
-/// The spread over wave seeds (not run by default: about 1 min per seed and rig):
+/// The spread over wave seeds (not run by default: about 1.5 min per seed and rig):
 /// `cargo test -p irtrack-host-tools --test wand_cli -- --ignored --nocapture seeds`.
 #[test]
 #[ignore]
