@@ -114,12 +114,11 @@ pub fn read_board_views(
     if set.cameras.len() < n_cam {
         bail!(
             "--boards {}: board views for {} camera(s) ({}), but the rig has {n_cam}: camera {} has no board \
-             views; every camera needs its own (they pin its intrinsics), e.g. {}",
+             views; every camera needs its own (they pin its intrinsics)",
             dir.display(),
             set.cameras.len(),
             labels.join(", "),
-            set.cameras.len(),
-            dir.join(format!("cam{}", set.cameras.len())).display()
+            set.cameras.len()
         );
     }
     if set.cameras.len() > n_cam {

@@ -1253,6 +1253,51 @@ mod tests {
     }
 
     #[test]
+    fn board_pose_is_recovered_and_its_residuals_vanish() {
+        let model = CameraModel {
+            intrinsics: Intrinsics {
+                fx_px: 700.0,
+                fy_px: 700.0,
+                cx_px: 376.0,
+                cy_px: 240.0,
+            },
+            distortion: Distortion {
+                k1: -0.3,
+                k2: 0.11,
+                ..Distortion::NONE
+            },
+            image_size: irtrack_core::camera::ImageSize {
+                width_px: 752,
+                height_px: 480,
+            },
+        };
+        let truth = BoardPose {
+            r: Rotation3::from_euler_angles(0.3, -0.4, 0.1).into_inner(),
+            t_mm: Vector3::new(-100.0, -60.0, 900.0),
+        };
+        let object_mm: Vec<Vector3<f64>> = (0..6)
+            .flat_map(|r| (0..9).map(move |c| Vector3::new(c as f64 * 30.0, r as f64 * 30.0, 0.0)))
+            .collect();
+        let corners_px = object_mm
+            .iter()
+            .map(|p| model.project(&(truth.r * p + truth.t_mm)).unwrap())
+            .collect();
+        let view = BoardView {
+            camera: 0,
+            view: "v".into(),
+            object_mm,
+            corners_px,
+        };
+        let start = initial_board_pose(&model, &view).unwrap();
+        assert!((start.t_mm - truth.t_mm).norm() < 0.5, "{start:?}");
+        let off = start.perturbed(&[0.01, -0.02, 0.01, 5.0, -3.0, 20.0]);
+        let got = solve_board(&model, &view, off, 1.0);
+        assert!((got.t_mm - truth.t_mm).norm() < 1e-4, "{got:?}");
+        assert!((got.r - truth.r).norm() < 1e-8);
+        assert!(board_rms(&model, &view, &got) < 1e-6);
+    }
+
+    #[test]
     fn huber_residual_matches_the_loss() {
         let e = Vector2::new(3.0, 4.0);
         let r = robust(e, 1.0);
