@@ -98,9 +98,10 @@ fn check(o: &Output, what: &str) -> String {
     out
 }
 
-/// Checkerboard-only calibration: shared views plus 4 views per camera that only it sees
-/// (docs/calibration.md's advice for convergent rigs), joint refinement. Returns rig.yaml.
-fn checkerboard_calibration(dir: &Path, truth: &RigParams) -> PathBuf {
+/// Checkerboard-only calibration: shared views plus `own_views` views per camera that only it
+/// sees (docs/calibration.md's advice for convergent rigs: 4–6), joint refinement. Returns
+/// rig.yaml.
+fn checkerboard_calibration(dir: &Path, truth: &RigParams, own_views: usize) -> PathBuf {
     let board = BoardSpec::new(9, 6, 30.0).unwrap();
     let mut poses = checkerboard::generate_poses(
         truth,
@@ -114,7 +115,7 @@ fn checkerboard_calibration(dir: &Path, truth: &RigParams) -> PathBuf {
     .unwrap();
     for cam in 0..truth.cameras.len() {
         let cfg = PoseConfig {
-            count: 4,
+            count: own_views,
             seed: 50 + cam as u64,
             ..Default::default()
         };
@@ -279,9 +280,9 @@ struct Compared {
 
 /// Renders, calibrates three ways (checkerboard only, wand alone, wand with the board views),
 /// prints the comparison and returns every calibration's figures.
-fn compare_rig(name: &str, truth: &RigParams, frames: usize, seed: u64) -> Compared {
+fn compare_rig(name: &str, truth: &RigParams, frames: usize, seed: u64, own_views: usize) -> Compared {
     let dir = temp_dir(&format!("{name}-{seed}"));
-    let cb_yaml = checkerboard_calibration(&dir, truth);
+    let cb_yaml = checkerboard_calibration(&dir, truth, own_views);
     let cb = load(&cb_yaml);
     let mut cfg = WandConfig::new(truth.clone(), centre(), frames);
     cfg.seed = seed;
@@ -456,7 +457,7 @@ fn assert_figures(name: &str, got: Figures, cb: Figures, limits: (f64, f64, f64,
 /// every wave measured (five of five), so that is asserted too.
 #[test]
 fn wand_calibrates_the_90_degree_rig_against_truth() {
-    let r = compare_rig("rig90", &rig_90(), 1000, 1);
+    let r = compare_rig("rig90", &rig_90(), 1000, 1, 4);
     assert_figures(
         "90° rig, wand alone",
         r.wand,
@@ -479,7 +480,7 @@ fn wand_calibrates_the_90_degree_rig_against_truth() {
 
 #[test]
 fn wand_calibrates_three_cameras_with_one_raised() {
-    let r = compare_rig("raised", &rig_raised(), 1000, 1);
+    let r = compare_rig("raised", &rig_raised(), 1000, 1, 4);
     assert_figures(
         "3 cameras, wand alone",
         r.wand,
@@ -501,7 +502,7 @@ fn wand_calibrates_three_cameras_with_one_raised() {
 fn wand_figures_over_seeds() {
     for seed in 1..=5 {
         for (name, rig) in [("rig90", rig_90()), ("raised", rig_raised())] {
-            let r = compare_rig(name, &rig, 1000, seed);
+            let r = compare_rig(name, &rig, 1000, seed, 4);
             for (what, w) in [("wand", r.wand), ("boards", r.wand_boards)] {
                 println!(
                     "SEED {name} {seed} {what}: rotation {:.4}° centre {:.3} mm path {:.4} mm, turned about cam0 \
@@ -509,6 +510,24 @@ fn wand_figures_over_seeds() {
                     w.0, w.1, w.2, w.4, w.3
                 );
             }
+        }
+    }
+}
+
+/// The 90° rig with 12 instead of 4 board views per camera that only it sees (not run by default,
+/// about 2 min per seed): `cargo test -p irtrack-host-tools --test wand_cli -- --ignored
+/// --nocapture more_board_views`.
+#[test]
+#[ignore]
+fn wand_figures_with_more_board_views() {
+    for seed in 1..=3 {
+        let r = compare_rig("rig90-12", &rig_90(), 1000, seed, 12);
+        for (what, w) in [("wand", r.wand), ("boards", r.wand_boards)] {
+            println!(
+                "MORE rig90 {seed} {what}: rotation {:.4}° centre {:.3} mm path {:.4} mm, turned about cam0 \
+                 {:.4} mm, shape {:.4} mm",
+                w.0, w.1, w.2, w.4, w.3
+            );
         }
     }
 }
@@ -731,5 +750,74 @@ fn bad_input_gives_clear_errors() {
     // Missing intrinsics file.
     let e = run_err(&flat, &dir.join("nope.yaml"), &out);
     assert!(e.contains("nope.yaml: no such file"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// How far the detected board corners of the test's views lie from the simulator's true
+/// corners, and whether the error is systematic (not run by default):
+/// `cargo test -p irtrack-host-tools --test wand_cli -- --ignored --nocapture corner_errors`.
+#[test]
+#[ignore]
+fn corner_errors_of_the_simulated_board_views() {
+    use irtrack_host_tools::calib::detect::{Board, find_corners, load_grey};
+    let truth = rig_90();
+    let dir = temp_dir("corners");
+    let board = BoardSpec::new(9, 6, 30.0).unwrap();
+    let mut poses = checkerboard::generate_poses(
+        &truth,
+        &board,
+        &PoseConfig {
+            count: 14,
+            seed: 5,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    for cam in 0..2 {
+        let cfg = PoseConfig {
+            count: 4,
+            seed: 50 + cam as u64,
+            ..Default::default()
+        };
+        poses.extend(checkerboard::generate_single_camera_poses(&truth, &board, cam, &cfg).unwrap());
+    }
+    let settings = RenderSettings {
+        seed: 5,
+        ..Default::default()
+    };
+    let set = checkerboard::write_set(&dir, &truth, &board, &poses, &settings).unwrap();
+    let b = Board {
+        cols: 9,
+        rows: 6,
+        square_mm: 30.0,
+    };
+    for c in 0..2 {
+        let model = truth.cameras[c].model;
+        let (cx, cy) = (model.intrinsics.cx_px, model.intrinsics.cy_px);
+        let (mut n, mut s2, mut mean, mut radial) = (0usize, 0.0, Vector3::zeros(), 0.0);
+        let mut views = 0;
+        for (v, file) in set.files[c].iter().enumerate() {
+            let Some(found) = find_corners(&load_grey(file).unwrap(), &b).unwrap() else {
+                continue;
+            };
+            views += 1;
+            for (p, t) in found.iter().zip(&set.corners_px[c][v]) {
+                let e = nalgebra::Vector2::new(p.x as f64 - t.x, p.y as f64 - t.y);
+                let r = nalgebra::Vector2::new(t.x - cx, t.y - cy);
+                s2 += e.norm_squared();
+                mean += Vector3::new(e.x, e.y, 0.0);
+                radial += e.dot(&r) / r.norm().max(1.0);
+                n += 1;
+            }
+        }
+        let n_f = n as f64;
+        println!(
+            "CORNERS cam{c}: {views} views, {n} corners: RMS {:.4} px, mean ({:+.4}, {:+.4}) px, mean radial {:+.4} px",
+            (s2 / n_f).sqrt(),
+            mean.x / n_f,
+            mean.y / n_f,
+            radial / n_f
+        );
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }
