@@ -98,9 +98,10 @@ fn check(o: &Output, what: &str) -> String {
     out
 }
 
-/// Checkerboard-only calibration: shared views plus 4 views per camera that only it sees
-/// (docs/calibration.md's advice for convergent rigs), joint refinement. Returns rig.yaml.
-fn checkerboard_calibration(dir: &Path, truth: &RigParams) -> PathBuf {
+/// Checkerboard-only calibration: shared views plus `own_views` views per camera that only it
+/// sees (docs/calibration.md's advice for convergent rigs: 4–6), joint refinement. Returns
+/// rig.yaml.
+fn checkerboard_calibration(dir: &Path, truth: &RigParams, own_views: usize) -> PathBuf {
     let board = BoardSpec::new(9, 6, 30.0).unwrap();
     let mut poses = checkerboard::generate_poses(
         truth,
@@ -114,7 +115,7 @@ fn checkerboard_calibration(dir: &Path, truth: &RigParams) -> PathBuf {
     .unwrap();
     for cam in 0..truth.cameras.len() {
         let cfg = PoseConfig {
-            count: 4,
+            count: own_views,
             seed: 50 + cam as u64,
             ..Default::default()
         };
@@ -193,6 +194,29 @@ struct PathFigures {
     /// 3-D RMS after the best rigid fit onto the truth (Kabsch): the path's shape error, what
     /// remains once the tracker is registered to the robot (`host-tools register`).
     shape_rms_mm: f64,
+    /// 3-D RMS after the best rotation about camera 0's centre only: what remains once camera
+    /// 0's own pointing (its principal point: 0.1 px turns its frame by 0.008°) is taken out.
+    turned_rms_mm: f64,
+}
+
+/// RMS (mm) of `got` against `want` after the rotation R minimising Σ|R·got − want|² (about the
+/// origin, camera 0's centre; no translation).
+fn rms_after_rotation(got: &[[f64; 3]], want: &[[f64; 3]]) -> f64 {
+    let mut h = nalgebra::Matrix3::<f64>::zeros();
+    for (g, w) in got.iter().zip(want) {
+        h += Vector3::from(*w) * Vector3::from(*g).transpose();
+    }
+    let svd = h.svd(true, true);
+    let (u, v_t) = (svd.u.unwrap(), svd.v_t.unwrap());
+    let mut d = nalgebra::Matrix3::<f64>::identity();
+    d[(2, 2)] = (u * v_t).determinant().signum();
+    let r = u * d * v_t;
+    let s: f64 = got
+        .iter()
+        .zip(want)
+        .map(|(g, w)| (r * Vector3::from(*g) - Vector3::from(*w)).norm_squared())
+        .sum();
+    (s / got.len() as f64).sqrt()
 }
 
 /// Tracks the rendered path with `rig` and compares it with the simulator's truth.
@@ -229,6 +253,7 @@ fn path_figures(path_dir: &Path, rig: &RigParams, name: &str) -> PathFigures {
     PathFigures {
         rms_mm: e.rms_mm,
         shape_rms_mm: fit.rms_mm,
+        turned_rms_mm: rms_after_rotation(&got, &want),
     }
 }
 
@@ -238,15 +263,26 @@ fn load(path: &Path) -> RigParams {
     rig
 }
 
-/// Worst rotation error (°), worst centre error (mm), path RMS as tracked and after a rigid fit
-/// (mm) of one calibration.
-type Figures = (f64, f64, f64, f64);
+/// Worst rotation error (°), worst centre error (mm), path RMS as tracked, after a rigid fit and
+/// after a rotation about camera 0 (mm) of one calibration.
+type Figures = (f64, f64, f64, f64, f64);
 
-/// Renders, calibrates both ways, prints the comparison; returns the wand's and the
-/// checkerboard's figures.
-fn compare_rig(name: &str, truth: &RigParams, frames: usize, seed: u64) -> (Figures, Figures) {
+/// The three calibrations of one rig and wave.
+#[derive(Debug, Clone, Copy)]
+struct Compared {
+    /// `calibrate --joint-refine --fix-k3` on the board views alone.
+    checkerboard: Figures,
+    /// `wand-calibrate --refine-intrinsics --fix-k3` from the checkerboard's intrinsics.
+    wand: Figures,
+    /// `wand-calibrate --boards` with the same board views: corners and wand in one adjustment.
+    wand_boards: Figures,
+}
+
+/// Renders, calibrates three ways (checkerboard only, wand alone, wand with the board views),
+/// prints the comparison and returns every calibration's figures.
+fn compare_rig(name: &str, truth: &RigParams, frames: usize, seed: u64, own_views: usize) -> Compared {
     let dir = temp_dir(&format!("{name}-{seed}"));
-    let cb_yaml = checkerboard_calibration(&dir, truth);
+    let cb_yaml = checkerboard_calibration(&dir, truth, own_views);
     let cb = load(&cb_yaml);
     let mut cfg = WandConfig::new(truth.clone(), centre(), frames);
     cfg.seed = seed;
@@ -280,49 +316,112 @@ fn compare_rig(name: &str, truth: &RigParams, frames: usize, seed: u64) -> (Figu
     ] {
         assert!(report.contains(needle), "report lacks {needle}:\n{report}");
     }
+    // The same wave with the checkerboard views in the adjustment: the recommended command.
+    let out_b = dir.join("wand-boards");
+    let views = dir.join("views");
+    let started = std::time::Instant::now();
+    let stdout = wand_calibration(
+        &dir.join("wave"),
+        &cb_yaml,
+        &out_b,
+        &[
+            "--boards",
+            views.to_str().unwrap(),
+            "--board-cols",
+            "9",
+            "--board-rows",
+            "6",
+            "--square-mm",
+            "30",
+            "--fix-k3",
+        ],
+    );
+    let boards_s = started.elapsed().as_secs_f64();
+    println!("{name}: wand-calibrate --boards ({boards_s:.1} s):\n{stdout}");
+    assert!(
+        stdout.contains("board corners RMS"),
+        "no board figures printed:\n{stdout}"
+    );
+    let report = std::fs::read_to_string(out_b.join("report.md")).unwrap();
+    assert!(
+        report.contains("## Checkerboard views") && report.contains("board views used"),
+        "{report}"
+    );
+    let boards_rig = load(&out_b.join("rig.irp"));
     let path_dir = dir.join("path");
     render_path(&path_dir, truth);
     let true_path = path_figures(&path_dir, truth, "true-rig");
     let cb_path = path_figures(&path_dir, &cb, "checkerboard");
     let wand_path = path_figures(&path_dir, &wand_rig, "wand");
+    let boards_path = path_figures(&path_dir, &boards_rig, "wand-boards");
     let cb_err = pose_errors(truth, &cb);
     let wand_err = pose_errors(truth, &wand_rig);
-    println!("{name}: figure                         | checkerboard | wand");
+    let boards_err = pose_errors(truth, &boards_rig);
+    println!("{name}: figure                         | checkerboard | wand alone | wand + boards");
     for i in 1..truth.cameras.len() {
         println!(
-            "{name}: cam{i} rotation error (°)         | {:12.4} | {:.4}",
+            "{name}: cam{i} rotation error (°)         | {:12.4} | {:10.4} | {:.4}",
             cb_err[i - 1].0,
-            wand_err[i - 1].0
+            wand_err[i - 1].0,
+            boards_err[i - 1].0
         );
         println!(
-            "{name}: cam{i} centre error (mm)          | {:12.3} | {:.3}",
+            "{name}: cam{i} centre error (mm)          | {:12.3} | {:10.3} | {:.3}",
             cb_err[i - 1].1,
-            wand_err[i - 1].1
+            wand_err[i - 1].1,
+            boards_err[i - 1].1
         );
     }
     println!(
-        "{name}: LED path 3-D RMS (mm)          | {:12.4} | {:.4}   (true rig: {:.4})",
-        cb_path.rms_mm, wand_path.rms_mm, true_path.rms_mm
+        "{name}: LED path 3-D RMS (mm)          | {:12.4} | {:10.4} | {:.4}   (true rig: {:.4})",
+        cb_path.rms_mm, wand_path.rms_mm, boards_path.rms_mm, true_path.rms_mm
     );
     println!(
-        "{name}: after a rigid fit (mm)         | {:12.4} | {:.4}   (true rig: {:.4})",
-        cb_path.shape_rms_mm, wand_path.shape_rms_mm, true_path.shape_rms_mm
+        "{name}: after turning about cam0 (mm) | {:12.4} | {:10.4} | {:.4}   (true rig: {:.4})",
+        cb_path.turned_rms_mm, wand_path.turned_rms_mm, boards_path.turned_rms_mm, true_path.turned_rms_mm
     );
+    println!(
+        "{name}: after a rigid fit (mm)         | {:12.4} | {:10.4} | {:.4}   (true rig: {:.4})",
+        cb_path.shape_rms_mm, wand_path.shape_rms_mm, boards_path.shape_rms_mm, true_path.shape_rms_mm
+    );
+    for (what, rig) in [
+        ("checkerboard", &cb),
+        ("wand alone", &wand_rig),
+        ("wand + boards", &boards_rig),
+    ] {
+        println!("{name}: {what}: intrinsics error vs truth per camera (fx, fy, cx, cy px)");
+        for (c, (g, t)) in rig.cameras.iter().zip(&truth.cameras).enumerate() {
+            let (g, t) = (&g.model.intrinsics, &t.model.intrinsics);
+            println!(
+                "{name}:   cam{c}: {:+.3} {:+.3} {:+.3} {:+.3}",
+                g.fx_px - t.fx_px,
+                g.fy_px - t.fy_px,
+                g.cx_px - t.cx_px,
+                g.cy_px - t.cy_px
+            );
+        }
+    }
     let worst = |e: &[(f64, f64)], p: PathFigures| {
         (
             e.iter().map(|e| e.0).fold(0.0, f64::max),
             e.iter().map(|e| e.1).fold(0.0, f64::max),
             p.rms_mm,
             p.shape_rms_mm,
+            p.turned_rms_mm,
         )
     };
     std::fs::remove_dir_all(&dir).unwrap();
-    (worst(&wand_err, wand_path), worst(&cb_err, cb_path))
+    Compared {
+        checkerboard: worst(&cb_err, cb_path),
+        wand: worst(&wand_err, wand_path),
+        wand_boards: worst(&boards_err, boards_path),
+    }
 }
 
-/// Checks the wand's figures against limits and against the checkerboard calibration.
-fn assert_figures(name: &str, wand: Figures, cb: Figures, limits: (f64, f64, f64)) {
-    let (rot, centre_mm, path_mm, _) = wand;
+/// Checks a calibration's figures against limits (rotation °, centre mm, path mm as tracked,
+/// path mm after turning about camera 0) and against the checkerboard calibration.
+fn assert_figures(name: &str, got: Figures, cb: Figures, limits: (f64, f64, f64, f64)) {
+    let (rot, centre_mm, path_mm, _, turned_mm) = got;
     assert!(
         rot <= limits.0,
         "{name}: rotation error {rot:.4}° > {}°",
@@ -339,39 +438,95 @@ fn assert_figures(name: &str, wand: Figures, cb: Figures, limits: (f64, f64, f64
         limits.2
     );
     assert!(
+        turned_mm <= limits.3,
+        "{name}: path RMS after turning about camera 0 {turned_mm:.4} mm > {} mm",
+        limits.3
+    );
+    assert!(
         rot < cb.0 && centre_mm < cb.1 && path_mm < cb.2,
-        "{name}: wand {wand:?} not better than checkerboard {cb:?}"
+        "{name}: {got:?} not better than checkerboard {cb:?}"
     );
 }
 
-/// Goals of issue 15: rotation ≤ 0.02°, centre ≤ 1 mm, path ≤ 0.1 mm. With a 1000-frame wave
-/// (33 s at 30 fps) the centre goal is met on every wave tried and the rotation goal on most
-/// (`wand_figures_over_seeds`: 7 of 10 rig/wave pairs); the path goal on none: the tracked
-/// path's error follows the camera centre error (docs/calibration.md, "Accuracy on simulated
-/// wand waves"). The limits are this wave's figures with a margin.
+/// Goals of issue 15: rotation ≤ 0.02°, centre ≤ 1 mm, path ≤ 0.1 mm. Rotation and centre goals
+/// are asserted as goals. The path as tracked is not at 0.1 mm with any calibration here: its
+/// error is camera 0's own pointing, set by its principal point (0.1 px turns the whole tracked
+/// frame by 0.008°, 0.17 mm at 1.2 m); asserted are this wave's figures with a margin, and that
+/// the path turned about camera 0 is within about 0.1 mm (docs/calibration.md, "Accuracy on
+/// simulated wand waves"). On the 90° rig the board views in the adjustment improve the path on
+/// every wave measured (five of five), so that is asserted too.
 #[test]
 fn wand_calibrates_the_90_degree_rig_against_truth() {
-    let (wand, cb) = compare_rig("rig90", &rig_90(), 1000, 1);
-    assert_figures("90° rig", wand, cb, (0.02, 0.6, 0.45));
+    let r = compare_rig("rig90", &rig_90(), 1000, 1, 4);
+    assert_figures(
+        "90° rig, wand alone",
+        r.wand,
+        r.checkerboard,
+        (0.02, 1.0, 0.4, 0.11),
+    );
+    assert_figures(
+        "90° rig, wand + boards",
+        r.wand_boards,
+        r.checkerboard,
+        (0.02, 1.0, 0.3, 0.12),
+    );
+    assert!(
+        r.wand_boards.2 < r.wand.2,
+        "90° rig: path with boards {:.4} mm not below wand alone {:.4} mm",
+        r.wand_boards.2,
+        r.wand.2
+    );
 }
 
 #[test]
 fn wand_calibrates_three_cameras_with_one_raised() {
-    let (wand, cb) = compare_rig("raised", &rig_raised(), 1000, 1);
-    assert_figures("3 cameras, one raised", wand, cb, (0.025, 0.6, 0.3));
+    let r = compare_rig("raised", &rig_raised(), 1000, 1, 4);
+    assert_figures(
+        "3 cameras, wand alone",
+        r.wand,
+        r.checkerboard,
+        (0.02, 1.0, 0.25, 0.1),
+    );
+    assert_figures(
+        "3 cameras, wand + boards",
+        r.wand_boards,
+        r.checkerboard,
+        (0.02, 1.0, 0.26, 0.1),
+    );
 }
 
-/// The spread over wave seeds (not run by default: about 1 min per seed and rig):
+/// The spread over wave seeds (not run by default: about 1.5 min per seed and rig):
 /// `cargo test -p irtrack-host-tools --test wand_cli -- --ignored --nocapture seeds`.
 #[test]
 #[ignore]
 fn wand_figures_over_seeds() {
     for seed in 1..=5 {
         for (name, rig) in [("rig90", rig_90()), ("raised", rig_raised())] {
-            let (w, _) = compare_rig(name, &rig, 1000, seed);
+            let r = compare_rig(name, &rig, 1000, seed, 4);
+            for (what, w) in [("wand", r.wand), ("boards", r.wand_boards)] {
+                println!(
+                    "SEED {name} {seed} {what}: rotation {:.4}° centre {:.3} mm path {:.4} mm, turned about cam0 \
+                     {:.4} mm, shape {:.4} mm",
+                    w.0, w.1, w.2, w.4, w.3
+                );
+            }
+        }
+    }
+}
+
+/// The 90° rig with 12 instead of 4 board views per camera that only it sees (not run by default,
+/// about 2 min per seed): `cargo test -p irtrack-host-tools --test wand_cli -- --ignored
+/// --nocapture more_board_views`.
+#[test]
+#[ignore]
+fn wand_figures_with_more_board_views() {
+    for seed in 1..=3 {
+        let r = compare_rig("rig90-12", &rig_90(), 1000, seed, 12);
+        for (what, w) in [("wand", r.wand), ("boards", r.wand_boards)] {
             println!(
-                "SEED {name} {seed}: rotation {:.4}° centre {:.3} mm path {:.4} mm shape {:.4} mm",
-                w.0, w.1, w.2, w.3
+                "MORE rig90 {seed} {what}: rotation {:.4}° centre {:.3} mm path {:.4} mm, turned about cam0 \
+                 {:.4} mm, shape {:.4} mm",
+                w.0, w.1, w.2, w.4, w.3
             );
         }
     }
@@ -518,6 +673,47 @@ fn bad_input_gives_clear_errors() {
         "{e}"
     );
 
+    // A board folder without one camera's views: named before any frame is read.
+    let boards = dir.join("boards");
+    std::fs::create_dir_all(boards.join("cam0")).unwrap();
+    let o = host_tools(
+        &[
+            "wand-calibrate",
+            "--wand-mm",
+            "0,120,300",
+            "--board-cols",
+            "9",
+            "--board-rows",
+            "6",
+            "--square-mm",
+            "30",
+        ],
+        &[
+            ("--frames", &few),
+            ("--intrinsics", &intrinsics),
+            ("--out-dir", &out),
+            ("--boards", &boards),
+        ],
+    );
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && !out.join("rig.irp").exists());
+    assert!(
+        e.contains("cam1/ is missing") && e.contains("rig has 2 cameras") && e.contains("holds cam0/"),
+        "{e}"
+    );
+    // --boards without the board's geometry.
+    let o = host_tools(
+        &["wand-calibrate", "--wand-mm", "0,120,300"],
+        &[
+            ("--frames", &few),
+            ("--intrinsics", &intrinsics),
+            ("--out-dir", &out),
+            ("--boards", &boards),
+        ],
+    );
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("--board-cols"), "{e}");
+
     // Degenerate motion: the wand keeps one direction.
     let flat = dir.join("flat");
     let mut cfg = WandConfig::new(truth.clone(), centre(), 40);
@@ -554,5 +750,74 @@ fn bad_input_gives_clear_errors() {
     // Missing intrinsics file.
     let e = run_err(&flat, &dir.join("nope.yaml"), &out);
     assert!(e.contains("nope.yaml: no such file"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// How far the detected board corners of the test's views lie from the simulator's true
+/// corners, and whether the error is systematic (not run by default):
+/// `cargo test -p irtrack-host-tools --test wand_cli -- --ignored --nocapture corner_errors`.
+#[test]
+#[ignore]
+fn corner_errors_of_the_simulated_board_views() {
+    use irtrack_host_tools::calib::detect::{Board, find_corners, load_grey};
+    let truth = rig_90();
+    let dir = temp_dir("corners");
+    let board = BoardSpec::new(9, 6, 30.0).unwrap();
+    let mut poses = checkerboard::generate_poses(
+        &truth,
+        &board,
+        &PoseConfig {
+            count: 14,
+            seed: 5,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    for cam in 0..2 {
+        let cfg = PoseConfig {
+            count: 4,
+            seed: 50 + cam as u64,
+            ..Default::default()
+        };
+        poses.extend(checkerboard::generate_single_camera_poses(&truth, &board, cam, &cfg).unwrap());
+    }
+    let settings = RenderSettings {
+        seed: 5,
+        ..Default::default()
+    };
+    let set = checkerboard::write_set(&dir, &truth, &board, &poses, &settings).unwrap();
+    let b = Board {
+        cols: 9,
+        rows: 6,
+        square_mm: 30.0,
+    };
+    for c in 0..2 {
+        let model = truth.cameras[c].model;
+        let (cx, cy) = (model.intrinsics.cx_px, model.intrinsics.cy_px);
+        let (mut n, mut s2, mut mean, mut radial) = (0usize, 0.0, Vector3::zeros(), 0.0);
+        let mut views = 0;
+        for (v, file) in set.files[c].iter().enumerate() {
+            let Some(found) = find_corners(&load_grey(file).unwrap(), &b).unwrap() else {
+                continue;
+            };
+            views += 1;
+            for (p, t) in found.iter().zip(&set.corners_px[c][v]) {
+                let e = nalgebra::Vector2::new(p.x as f64 - t.x, p.y as f64 - t.y);
+                let r = nalgebra::Vector2::new(t.x - cx, t.y - cy);
+                s2 += e.norm_squared();
+                mean += Vector3::new(e.x, e.y, 0.0);
+                radial += e.dot(&r) / r.norm().max(1.0);
+                n += 1;
+            }
+        }
+        let n_f = n as f64;
+        println!(
+            "CORNERS cam{c}: {views} views, {n} corners: RMS {:.4} px, mean ({:+.4}, {:+.4}) px, mean radial {:+.4} px",
+            (s2 / n_f).sqrt(),
+            mean.x / n_f,
+            mean.y / n_f,
+            radial / n_f
+        );
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }

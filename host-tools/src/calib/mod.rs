@@ -13,6 +13,7 @@ pub mod plots;
 pub mod report;
 pub mod solve;
 pub mod wand;
+pub mod wand_boards;
 pub mod wand_report;
 pub mod wand_solve;
 

@@ -44,7 +44,7 @@ fn criteria() -> Result<TermCriteria> {
     )?)
 }
 
-fn k_mat(m: &CameraModel) -> Result<Mat> {
+pub(crate) fn k_mat(m: &CameraModel) -> Result<Mat> {
     let k = m.intrinsics.matrix();
     Ok(Mat::from_slice_2d(&[
         [k[(0, 0)], k[(0, 1)], k[(0, 2)]],
@@ -53,7 +53,7 @@ fn k_mat(m: &CameraModel) -> Result<Mat> {
     ])?)
 }
 
-fn d_mat(m: &CameraModel) -> Result<Mat> {
+pub(crate) fn d_mat(m: &CameraModel) -> Result<Mat> {
     Ok(Mat::from_slice_2d(&[m.distortion.as_array()])?)
 }
 

@@ -219,9 +219,14 @@ fn markdown(
     }
     writeln!(s, "\n## Bundle adjustment rounds\n")?;
     for (i, r) in sol.rounds.iter().enumerate() {
+        let boards = if r.board_views > 0 {
+            format!(", {} board views at {:.4} px", r.board_views, r.board_rms_px)
+        } else {
+            String::new()
+        };
         writeln!(
             s,
-            "- round {}: {} views, RMS {:.4} px, {} evaluations ({}), {} outlier views rejected",
+            "- round {}: {} views, RMS {:.4} px{boards}, {} evaluations ({}), {} outlier views rejected",
             i + 1,
             r.views,
             r.rms_px,
@@ -229,6 +234,40 @@ fn markdown(
             r.termination,
             r.rejected
         )?;
+    }
+    if !sol.boards.is_empty() {
+        writeln!(s, "\n## Checkerboard views\n")?;
+        writeln!(
+            s,
+            "Each camera's board views took part in the adjustment that refined the intrinsics, \
+             every view with its own board pose.\n"
+        )?;
+        writeln!(s, "| camera | board views used | rejected | corner RMS px |")?;
+        writeln!(s, "|---|---|---|---|")?;
+        for c in 0..rig.cameras.len() {
+            let used: Vec<f64> = sol
+                .boards
+                .iter()
+                .filter(|b| b.camera == c && b.rejected.is_none())
+                .map(|b| b.rms_px)
+                .collect();
+            let rejected = sol
+                .boards
+                .iter()
+                .filter(|b| b.camera == c && b.rejected.is_some())
+                .count();
+            let rms = (used.iter().map(|e| e * e).sum::<f64>() / used.len().max(1) as f64).sqrt();
+            writeln!(s, "| cam{c} | {} | {rejected} | {rms:.4} |", used.len())?;
+        }
+        for b in sol.boards.iter().filter(|b| b.rejected.is_some()) {
+            writeln!(
+                s,
+                "\n- cam{} view {}: {}",
+                b.camera,
+                b.view,
+                b.rejected.as_deref().unwrap_or_default()
+            )?;
+        }
     }
     writeln!(s, "\n## Observations used and rejected\n")?;
     writeln!(s, "| camera | used | rejected | reasons |")?;

@@ -26,6 +26,7 @@ use opencv::calib3d;
 use opencv::core::{CV_64F, Mat, MatExprTraitConst, MatTraitConst, Point2d, Vector};
 
 use super::wand::{LedPixels, Rejection, Wand, WandObservations};
+use super::wand_boards::{BoardPose, BoardView, initial_board_pose};
 
 /// Fewest frames seen by two or more cameras a calibration accepts.
 pub const MIN_FRAMES: usize = 20;
@@ -98,6 +99,10 @@ pub struct PairInit {
 pub struct Round {
     pub views: usize,
     pub rms_px: f64,
+    /// Checkerboard views in this round (0 while the intrinsics are held) and their corners'
+    /// RMS reprojection error (px; NaN without boards).
+    pub board_views: usize,
+    pub board_rms_px: f64,
     pub evaluations: usize,
     pub termination: String,
     pub rejected: usize,
@@ -116,6 +121,20 @@ pub struct WandSolution {
     pub rounds: Vec<Round>,
     pub per_camera_rms_px: Vec<f64>,
     pub per_camera_views: Vec<usize>,
+    /// Every checkerboard view given, in input order, with its fit.
+    pub boards: Vec<BoardFit>,
+}
+
+/// How one checkerboard view (one camera's image of the board) fitted.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BoardFit {
+    pub camera: usize,
+    pub view: String,
+    /// RMS reprojection error of its corners in the last round it took part in (px; NaN if
+    /// never fitted).
+    pub rms_px: f64,
+    /// Why it was not used in the final adjustment, if it was not.
+    pub rejected: Option<String>,
 }
 
 /// Camera parameters in the outer problem's layout: 6 pose parameters per camera i ≥ 1, then
@@ -372,6 +391,127 @@ fn solve_wand(cams: &[Cam], views: &FrameViews, wand: &Wand, start: WandPose, hu
     pose
 }
 
+fn board_residuals(
+    model: &CameraModel,
+    view: &BoardView,
+    pose: &BoardPose,
+    huber_px: f64,
+    out: &mut Vec<f64>,
+) {
+    out.clear();
+    let cam = Cam {
+        r: pose.r,
+        t: pose.t_mm,
+        model: *model,
+    };
+    for (p, obs) in view.object_mm.iter().zip(&view.corners_px) {
+        let e = robust(cam.project(p) - obs, huber_px);
+        out.push(e.x);
+        out.push(e.y);
+    }
+}
+
+const BOARD_STEPS: [f64; 6] = [1e-7, 1e-7, 1e-7, 1e-4, 1e-4, 1e-4];
+
+/// Central-difference Jacobian of a board view's residuals with respect to its pose.
+fn board_jacobian(model: &CameraModel, view: &BoardView, pose: &BoardPose, huber_px: f64) -> DMatrix<f64> {
+    let m = view.corners_px.len() * 2;
+    let mut j = DMatrix::zeros(m, 6);
+    let (mut plus, mut minus) = (Vec::new(), Vec::new());
+    for k in 0..6 {
+        let mut p = [0.0; 6];
+        p[k] = BOARD_STEPS[k];
+        board_residuals(model, view, &pose.perturbed(&p), huber_px, &mut plus);
+        p[k] = -BOARD_STEPS[k];
+        board_residuals(model, view, &pose.perturbed(&p), huber_px, &mut minus);
+        for i in 0..m {
+            j[(i, k)] = (plus[i] - minus[i]) / (2.0 * BOARD_STEPS[k]);
+        }
+    }
+    j
+}
+
+/// The per-view board problem for the `levenberg-marquardt` crate: parameters are a
+/// perturbation of `anchor`.
+struct BoardProblem<'a> {
+    model: &'a CameraModel,
+    view: &'a BoardView,
+    anchor: BoardPose,
+    p: DVector<f64>,
+    huber_px: f64,
+}
+
+impl LeastSquaresProblem<f64, Dyn, Dyn> for BoardProblem<'_> {
+    type ResidualStorage = Owned<f64, Dyn>;
+    type JacobianStorage = Owned<f64, Dyn, Dyn>;
+    type ParameterStorage = Owned<f64, Dyn>;
+
+    fn set_params(&mut self, x: &DVector<f64>) {
+        self.p.copy_from(x);
+    }
+    fn params(&self) -> DVector<f64> {
+        self.p.clone()
+    }
+    fn residuals(&self) -> Option<DVector<f64>> {
+        let mut r = Vec::new();
+        board_residuals(
+            self.model,
+            self.view,
+            &self.anchor.perturbed(self.p.as_slice()),
+            self.huber_px,
+            &mut r,
+        );
+        Some(DVector::from_vec(r))
+    }
+    fn jacobian(&self) -> Option<DMatrix<f64>> {
+        Some(board_jacobian(
+            self.model,
+            self.view,
+            &self.anchor.perturbed(self.p.as_slice()),
+            self.huber_px,
+        ))
+    }
+}
+
+fn solve_board(model: &CameraModel, view: &BoardView, start: BoardPose, huber_px: f64) -> BoardPose {
+    let mut pose = start;
+    for _ in 0..3 {
+        let problem = BoardProblem {
+            model,
+            view,
+            anchor: pose,
+            p: DVector::zeros(6),
+            huber_px,
+        };
+        let (problem, _report) = LevenbergMarquardt::new()
+            .with_xtol(1e-13)
+            .with_ftol(1e-14)
+            .minimize(problem);
+        let step = problem.p.norm();
+        pose = problem.anchor.perturbed(problem.p.as_slice());
+        if step < 1e-9 {
+            break;
+        }
+    }
+    pose
+}
+
+/// Reprojection error (px, not robustified) of one board view.
+fn board_rms(model: &CameraModel, view: &BoardView, pose: &BoardPose) -> f64 {
+    let cam = Cam {
+        r: pose.r,
+        t: pose.t_mm,
+        model: *model,
+    };
+    let s: f64 = view
+        .object_mm
+        .iter()
+        .zip(&view.corners_px)
+        .map(|(p, o)| (cam.project(p) - o).norm_squared())
+        .sum();
+    (s / view.corners_px.len().max(1) as f64).sqrt()
+}
+
 /// The outer (camera) problem.
 struct RigProblem<'a> {
     layout: Layout,
@@ -384,6 +524,11 @@ struct RigProblem<'a> {
     anchors: RefCell<Vec<WandPose>>,
     /// Wand poses solved for `x`.
     poses: Vec<WandPose>,
+    /// Checkerboard views (only while intrinsics are refined: they constrain nothing else).
+    boards: &'a [&'a BoardView],
+    /// Board poses at the last accepted point, and solved for `x`.
+    board_anchors: RefCell<Vec<BoardPose>>,
+    board_poses: Vec<BoardPose>,
     evaluations: RefCell<usize>,
 }
 
@@ -410,6 +555,13 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for RigProblem<'_> {
             .zip(anchors.iter())
             .map(|(v, a)| solve_wand(&cams, v, self.wand, *a, self.huber_px))
             .collect();
+        let board_anchors = self.board_anchors.borrow();
+        self.board_poses = self
+            .boards
+            .iter()
+            .zip(board_anchors.iter())
+            .map(|(b, a)| solve_board(&cams[b.camera].model, b, *a, self.huber_px))
+            .collect();
         *self.evaluations.borrow_mut() += 1;
     }
     fn params(&self) -> DVector<f64> {
@@ -423,16 +575,22 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for RigProblem<'_> {
             frame_residuals(&cams, v, self.wand, p, self.huber_px, &mut r);
             all.extend_from_slice(&r);
         }
+        for (b, p) in self.boards.iter().zip(&self.board_poses) {
+            board_residuals(&cams[b.camera].model, b, p, self.huber_px, &mut r);
+            all.extend_from_slice(&r);
+        }
         all.iter().all(|v| v.is_finite()).then(|| DVector::from_vec(all))
     }
     fn jacobian(&self) -> Option<DMatrix<f64>> {
         // Only accepted points get a Jacobian: their wand poses seed the next inner solves.
         self.anchors.borrow_mut().clone_from(&self.poses);
+        self.board_anchors.borrow_mut().clone_from(&self.board_poses);
         let x = self.x.as_slice();
         let cams = self.cams(x);
         let n = self.layout.len();
         let k = self.wand.len();
-        let rows: usize = self.frames.iter().map(|v| v.len() * k * 2).sum();
+        let rows: usize = self.frames.iter().map(|v| v.len() * k * 2).sum::<usize>()
+            + self.boards.iter().map(|b| b.corners_px.len() * 2).sum::<usize>();
         let mut jac = DMatrix::zeros(rows, n);
         let mut row0 = 0;
         let mut xp = x.to_vec();
@@ -467,6 +625,42 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for RigProblem<'_> {
                 Some(ch) => {
                     let coef = ch.solve(&(jw.transpose() * &jc));
                     &jc - &jw * coef
+                }
+                None => jc,
+            };
+            jac.view_mut((row0, 0), (m, n)).copy_from(&reduced);
+            row0 += m;
+        }
+        // Board views: only their camera's intrinsics; the board pose is projected out as the
+        // wand pose is.
+        for (b, pose) in self.boards.iter().zip(&self.board_poses) {
+            let c = b.camera;
+            let m = b.corners_px.len() * 2;
+            let jb = board_jacobian(&cams[c].model, b, pose, self.huber_px);
+            let mut jc = DMatrix::zeros(m, n);
+            let base = self.layout.intr_base(c);
+            for col in base..base + self.layout.n_intr {
+                let h = self.layout.step(col);
+                let orig = xp[col];
+                let mut eval = |delta: f64| {
+                    xp[col] = orig + delta;
+                    let model = self.layout.camera(&xp, c, &self.base[c]).model;
+                    let mut r = Vec::new();
+                    board_residuals(&model, b, pose, self.huber_px, &mut r);
+                    r
+                };
+                let plus = eval(h);
+                let minus = eval(-h);
+                xp[col] = orig;
+                for i in 0..m {
+                    jc[(i, col)] = (plus[i] - minus[i]) / (2.0 * h);
+                }
+            }
+            let jtj = jb.transpose() * &jb;
+            let reduced = match jtj.cholesky() {
+                Some(ch) => {
+                    let coef = ch.solve(&(jb.transpose() * &jc));
+                    &jc - &jb * coef
                 }
                 None => jc,
             };
@@ -707,15 +901,29 @@ fn view_rms(cam: &Cam, px: &LedPixels, pose: &WandPose, wand: &Wand) -> f64 {
     (s / px.len() as f64).sqrt()
 }
 
-/// Runs initialisation and the bundle adjustment with outlier rejection.
+/// Runs initialisation and the bundle adjustment with outlier rejection. `boards` (checkerboard
+/// views, see [`super::wand_boards`]) join the adjustment in the rounds that refine the
+/// intrinsics, which they require.
 pub fn solve(
     models: &[CameraModel],
     obs: &WandObservations,
     wand: &Wand,
+    boards: &[BoardView],
     options: SolveOptions,
     mut progress: impl FnMut(&str),
 ) -> Result<WandSolution> {
     let n_cam = models.len();
+    ensure!(
+        boards.is_empty() || options.refine_intrinsics,
+        "checkerboard views constrain only the intrinsics: they need intrinsics refinement"
+    );
+    if let Some(b) = boards.iter().find(|b| b.camera >= n_cam) {
+        bail!(
+            "board view {} is for camera {}, but the rig has {n_cam} cameras",
+            b.view,
+            b.camera
+        );
+    }
     let frames = usable(&obs.views);
     if frames.len() < MIN_FRAMES {
         let mut counts = std::collections::BTreeMap::new();
@@ -774,6 +982,25 @@ pub fn solve(
     let mut layout = held.clone();
     let mut rounds = Vec::new();
     let mut poses_by_frame: Vec<Option<WandPose>> = vec![None; obs.frames.len()];
+    let mut board_fits: Vec<BoardFit> = boards
+        .iter()
+        .map(|b| BoardFit {
+            camera: b.camera,
+            view: b.view.clone(),
+            rms_px: f64::NAN,
+            rejected: None,
+        })
+        .collect();
+    let mut board_poses: Vec<Option<BoardPose>> = Vec::with_capacity(boards.len());
+    for (b, fit) in boards.iter().zip(board_fits.iter_mut()) {
+        match initial_board_pose(&models[b.camera], b) {
+            Ok(p) => board_poses.push(Some(p)),
+            Err(e) => {
+                fit.rejected = Some(format!("{e:#}"));
+                board_poses.push(None);
+            }
+        }
+    }
     for round in 0..MAX_ROUNDS + usize::from(options.refine_intrinsics) {
         let frames = usable(&views);
         ensure!(
@@ -804,10 +1031,21 @@ pub fn solve(
         }
         let frame_views: Vec<FrameViews> = kept.iter().map(|(_, v)| v.clone()).collect();
         let n_views: usize = frame_views.iter().map(Vec::len).sum();
+        // Board views take part only while the intrinsics are refined.
+        let active: Vec<usize> = if layout.n_intr > 0 {
+            (0..boards.len())
+                .filter(|i| board_fits[*i].rejected.is_none() && board_poses[*i].is_some())
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let active_boards: Vec<&BoardView> = active.iter().map(|i| &boards[*i]).collect();
+        let board_start: Vec<BoardPose> = active.iter().filter_map(|i| board_poses[*i]).collect();
         progress(&format!(
-            "bundle adjustment round {}: {} frames, {n_views} camera views, {} camera parameters",
+            "bundle adjustment round {}: {} frames, {n_views} camera views, {} board views, {} camera parameters",
             round + 1,
             kept.len(),
+            active.len(),
             layout.len()
         ));
         let problem = RigProblem {
@@ -819,6 +1057,9 @@ pub fn solve(
             x: layout.pack(&cameras),
             anchors: RefCell::new(start.clone()),
             poses: start,
+            boards: &active_boards,
+            board_anchors: RefCell::new(board_start.clone()),
+            board_poses: board_start,
             evaluations: RefCell::new(0),
         };
         let x0 = problem.x.clone();
@@ -832,6 +1073,7 @@ pub fn solve(
         let x = problem.x.clone();
         let cams = problem.cams(x.as_slice());
         let poses = problem.poses.clone();
+        let solved_boards = problem.board_poses.clone();
         let evaluations = *problem.evaluations.borrow();
         for (c, cam) in cameras.iter_mut().enumerate() {
             cam.model = cams[c].model;
@@ -865,14 +1107,45 @@ pub fn solve(
                 }
             }
         }
+        // Board views far above the boards' own error level (blur, a bent or moving board).
+        let mut board_errs = Vec::with_capacity(active.len());
+        for (i, p) in active.iter().zip(&solved_boards) {
+            board_poses[*i] = Some(*p);
+            let e = board_rms(&cams[boards[*i].camera].model, &boards[*i], p);
+            board_fits[*i].rms_px = e;
+            board_errs.push((*i, e));
+        }
+        let mut board_rms_px = f64::NAN;
+        if !board_errs.is_empty() {
+            let n_corners: usize = active.iter().map(|i| boards[*i].corners_px.len()).sum();
+            board_rms_px = (board_errs
+                .iter()
+                .map(|(i, e)| e * e * boards[*i].corners_px.len() as f64)
+                .sum::<f64>()
+                / n_corners as f64)
+                .sqrt();
+            let mut sorted: Vec<f64> = board_errs.iter().map(|e| e.1).collect();
+            let limit = (OUTLIER_FACTOR * median(&mut sorted)).max(OUTLIER_FLOOR_PX);
+            for (i, e) in &board_errs {
+                if *e > limit {
+                    board_fits[*i].rejected =
+                        Some(format!("reprojection outlier: {e:.2} px > {limit:.2} px"));
+                    rejected += 1;
+                }
+            }
+        }
         progress(&format!(
-            "round {}: RMS {rms:.4} px over {n_views} views, {evaluations} evaluations ({:?}); {rejected} outlier views",
+            "round {}: RMS {rms:.4} px over {n_views} views, boards {board_rms_px:.4} px over {} views, \
+             {evaluations} evaluations ({:?}); {rejected} outlier views",
             round + 1,
+            board_errs.len(),
             report.termination
         ));
         rounds.push(Round {
             views: n_views,
             rms_px: rms,
+            board_views: board_errs.len(),
+            board_rms_px,
             evaluations,
             termination: format!("{:?}", report.termination),
             rejected,
@@ -930,6 +1203,7 @@ pub fn solve(
             .map(|(s, n)| if *n > 0 { (s / *n as f64).sqrt() } else { f64::NAN })
             .collect(),
         per_camera_views: count,
+        boards: board_fits,
     })
 }
 
@@ -976,6 +1250,51 @@ mod tests {
         let pts: Vec<Vector3<f64>> = wand.leds_mm.iter().map(|s| e0 + d * *s).collect();
         let p = fit_wand(&pts, &wand).unwrap();
         assert!((p.end0_mm - e0).norm() < 1e-9 && (p.dir - d).norm() < 1e-12);
+    }
+
+    #[test]
+    fn board_pose_is_recovered_and_its_residuals_vanish() {
+        let model = CameraModel {
+            intrinsics: Intrinsics {
+                fx_px: 700.0,
+                fy_px: 700.0,
+                cx_px: 376.0,
+                cy_px: 240.0,
+            },
+            distortion: Distortion {
+                k1: -0.3,
+                k2: 0.11,
+                ..Distortion::NONE
+            },
+            image_size: irtrack_core::camera::ImageSize {
+                width_px: 752,
+                height_px: 480,
+            },
+        };
+        let truth = BoardPose {
+            r: Rotation3::from_euler_angles(0.3, -0.4, 0.1).into_inner(),
+            t_mm: Vector3::new(-100.0, -60.0, 900.0),
+        };
+        let object_mm: Vec<Vector3<f64>> = (0..6)
+            .flat_map(|r| (0..9).map(move |c| Vector3::new(c as f64 * 30.0, r as f64 * 30.0, 0.0)))
+            .collect();
+        let corners_px = object_mm
+            .iter()
+            .map(|p| model.project(&(truth.r * p + truth.t_mm)).unwrap())
+            .collect();
+        let view = BoardView {
+            camera: 0,
+            view: "v".into(),
+            object_mm,
+            corners_px,
+        };
+        let start = initial_board_pose(&model, &view).unwrap();
+        assert!((start.t_mm - truth.t_mm).norm() < 0.5, "{start:?}");
+        let off = start.perturbed(&[0.01, -0.02, 0.01, 5.0, -3.0, 20.0]);
+        let got = solve_board(&model, &view, off, 1.0);
+        assert!((got.t_mm - truth.t_mm).norm() < 1e-4, "{got:?}");
+        assert!((got.r - truth.r).norm() < 1e-8);
+        assert!(board_rms(&model, &view, &got) < 1e-6);
     }
 
     #[test]

@@ -9,8 +9,9 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use irtrack_core::params::RigParams;
 
+use crate::calib::detect::Board;
 use crate::calib::wand::{self, Wand};
-use crate::calib::{wand_report, wand_solve};
+use crate::calib::{wand_boards, wand_report, wand_solve};
 
 /// Arguments.
 #[derive(clap::Args, Debug)]
@@ -31,9 +32,28 @@ pub struct Args {
     /// Also refine every camera's intrinsics and distortion in the bundle adjustment.
     #[arg(long)]
     pub refine_intrinsics: bool,
-    /// With --refine-intrinsics: keep each camera's k3 as the intrinsics file gives it (as
+    /// Checkerboard views of every camera (cam0/, cam1/, ... as `calibrate --images` reads them,
+    /// e.g. the views the intrinsics came from): their corners join the adjustment and pin each
+    /// camera's intrinsics, which are then refined (implies --refine-intrinsics). Needs
+    /// --board-cols, --board-rows and --square-mm.
+    #[arg(long, requires_all = ["board_cols", "board_rows", "square_mm"])]
+    pub boards: Option<PathBuf>,
+    /// With --boards: comma-separated file-name patterns, one per camera (as `calibrate
+    /// --pattern`), for a flat board directory.
+    #[arg(long, requires = "boards")]
+    pub board_pattern: Option<String>,
+    /// With --boards: inner corners per board row.
+    #[arg(long, requires = "boards")]
+    pub board_cols: Option<u32>,
+    /// With --boards: inner corners per board column.
+    #[arg(long, requires = "boards")]
+    pub board_rows: Option<u32>,
+    /// With --boards: side of one printed square, mm.
+    #[arg(long, requires = "boards")]
+    pub square_mm: Option<f64>,
+    /// When intrinsics are refined: keep each camera's k3 as the intrinsics file gives it (as
     /// `calibrate --fix-k3` does; recommended for ordinary lenses).
-    #[arg(long, requires = "refine_intrinsics")]
+    #[arg(long)]
     pub fix_k3: bool,
     /// Huber loss threshold, px.
     #[arg(long, default_value_t = 1.0)]
@@ -58,6 +78,36 @@ pub fn run(args: Args) -> Result<()> {
             models.len()
         );
     }
+    let refine_intrinsics = args.refine_intrinsics || args.boards.is_some();
+    if args.fix_k3 && !refine_intrinsics {
+        bail!("--fix-k3 applies to refined intrinsics: add --refine-intrinsics or --boards");
+    }
+    let boards = match &args.boards {
+        Some(dir) => {
+            let board = Board {
+                cols: args.board_cols.unwrap_or(0),
+                rows: args.board_rows.unwrap_or(0),
+                square_mm: args.square_mm.unwrap_or(f64::NAN),
+            };
+            if board.cols < 2 || board.rows < 2 {
+                bail!(
+                    "board of {}x{} inner corners is too small; --board-cols/--board-rows count inner corners",
+                    board.cols,
+                    board.rows
+                );
+            }
+            if !(board.square_mm > 0.0 && board.square_mm.is_finite()) {
+                bail!("--square-mm must be a positive length, got {}", board.square_mm);
+            }
+            let b = wand_boards::read_board_views(dir, args.board_pattern.as_deref(), &board, &models)?;
+            for (c, n) in b.per_camera(models.len()).iter().enumerate() {
+                let missed = b.not_found.iter().filter(|(nc, _)| *nc == c).count();
+                eprintln!("cam{c}: board found in {n} of {} images", n + missed);
+            }
+            b.views
+        }
+        None => Vec::new(),
+    };
     let rec = wand::discover(&args.frames, models.len(), &args.intrinsics)?;
     eprintln!("{} cameras, {} frames", models.len(), rec.frames.len());
     let obs = wand::observe(&rec, &models, &wand)?;
@@ -66,11 +116,11 @@ pub fn run(args: Args) -> Result<()> {
         eprintln!("cam{c}: wand identified in {ok} of {} frames", obs.frames.len());
     }
     let options = wand_solve::SolveOptions {
-        refine_intrinsics: args.refine_intrinsics,
+        refine_intrinsics,
         fix_k3: args.fix_k3,
         huber_px: args.huber_px,
     };
-    let sol = wand_solve::solve(&models, &obs, &wand, options, |m| eprintln!("{m}"))?;
+    let sol = wand_solve::solve(&models, &obs, &wand, &boards, options, |m| eprintln!("{m}"))?;
     let now = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_secs())
@@ -101,6 +151,21 @@ pub fn run(args: Args) -> Result<()> {
             sol.per_camera_views[c],
             fig.coverage[c] * 100.0
         );
+    }
+    if !sol.boards.is_empty() {
+        for c in 0..rig.cameras.len() {
+            let fits: Vec<_> = sol
+                .boards
+                .iter()
+                .filter(|b| b.camera == c && b.rejected.is_none())
+                .collect();
+            let rms =
+                (fits.iter().map(|b| b.rms_px * b.rms_px).sum::<f64>() / fits.len().max(1) as f64).sqrt();
+            println!(
+                "cam{c}: board corners RMS {rms:.4} px over {} board views",
+                fits.len()
+            );
+        }
     }
     println!(
         "wand length error over {} frames: mean {:+.4} mm, std {:.4} mm, max {:.4} mm",
