@@ -208,7 +208,7 @@ const WAND_SETS: u64 = 300;
 
 /// Demo step: the 90° rig of the calibration step, now served by irtrackd showing a wand wave;
 /// `host-tools capture --wand` saves the sets, `wand-calibrate` (intrinsics from the
-/// checkerboard step, refined) gives the rig, and both calibrations are compared with the truth.
+/// checkerboard step, refined with its board views) gives the rig, and both calibrations are compared with the truth.
 pub fn wand_calibration(bin_dir: &Path, out: &Path) -> Result<()> {
     let dir = out.join("wand");
     let intrinsics = out.join("calib/rig.yaml");
@@ -250,17 +250,27 @@ pub fn wand_calibration(bin_dir: &Path, out: &Path) -> Result<()> {
     checked(&mut cmd, "host-tools capture --wand")?;
     drop(irtrackd);
 
-    println!("-- 3. host-tools wand-calibrate: intrinsics from the checkerboard step, refined");
+    println!(
+        "-- 3. host-tools wand-calibrate: intrinsics from the checkerboard step; its board views \
+         join the wand in one adjustment (--boards)"
+    );
     let mut cmd = Command::new(&host_tools);
     cmd.arg("wand-calibrate")
         .arg("--frames")
         .arg(&wave)
         .arg("--intrinsics")
         .arg(&intrinsics)
+        .arg("--boards")
+        .arg(out.join("calib/views"))
         .args([
+            "--board-cols",
+            "9",
+            "--board-rows",
+            "6",
+            "--square-mm",
+            "25",
             "--wand-mm",
             "0,120,300",
-            "--refine-intrinsics",
             "--rig-id",
             "demo-wand",
         ])
