@@ -821,7 +821,22 @@ impl SimRobot {
                 seq,
                 pos_mm,
                 quat_wxyz,
-            } => self.on_target(seq, pos_mm, Some(quat_wxyz)),
+            } => {
+                // Like RAPID's NOrient: a nearly unit quaternion is normalised, anything else
+                // is refused (the `A` answer must carry a unit quaternion).
+                let n = libm::sqrt(quat_wxyz.iter().map(|q| q * q).sum::<f64>());
+                if !(0.9..=1.1).contains(&n) {
+                    self.events.push(SimEvent::Malformed {
+                        reason: alloc::format!("Q target {seq} quaternion norm {n}"),
+                    });
+                    return alloc::vec![RobotMsg::Reject {
+                        seq,
+                        code: reject::MALFORMED,
+                        reason: "MALFORMED".to_string()
+                    }];
+                }
+                self.on_target(seq, pos_mm, Some(quat_wxyz.map(|q| q / n)))
+            }
         }
     }
 
@@ -1048,6 +1063,18 @@ mod tests {
             quat_wxyz: [0.5, 0.0, 0.0, 0.0],
         };
         assert!(bad.encode().is_err(), "non-unit quaternion refused");
+        // The simulated robot normalises a nearly unit Q target and refuses a far one.
+        let mut r0 = SimRobot::new(SimRobotConfig::default());
+        r0.connect();
+        let far = "Q 000001 +0000.00 +0000.00 +0000.00 +0.500000 +0.000000 +0.000000 +0.000000";
+        assert!(matches!(
+            r0.on_line(far).as_slice(),
+            [RobotMsg::Reject { code: reject::MALFORMED, .. }]
+        ));
+        let near = "Q 000001 +0000.00 +0000.00 +0000.00 +0.950000 +0.000000 +0.000000 +0.000000";
+        assert!(r0.on_line(near).is_empty());
+        r0.advance(0.1);
+        assert_eq!(r0.quat_wxyz(), [1.0, 0.0, 0.0, 0.0]);
         // The simulated robot answers with its pose; a Q target sets the orientation.
         let mut r = SimRobot::new(SimRobotConfig {
             home_mm: [500.0, 0.0, 400.0],
