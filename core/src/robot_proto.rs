@@ -1069,7 +1069,10 @@ mod tests {
         let far = "Q 000001 +0000.00 +0000.00 +0000.00 +0.500000 +0.000000 +0.000000 +0.000000";
         assert!(matches!(
             r0.on_line(far).as_slice(),
-            [RobotMsg::Reject { code: reject::MALFORMED, .. }]
+            [RobotMsg::Reject {
+                code: reject::MALFORMED,
+                ..
+            }]
         ));
         let near = "Q 000001 +0000.00 +0000.00 +0000.00 +0.950000 +0.000000 +0.000000 +0.000000";
         assert!(r0.on_line(near).is_empty());

@@ -265,7 +265,10 @@ mod tests {
         let rms = (s2 / n as f64).sqrt();
         assert!((rms - 0.02).abs() < 0.002, "repeatability RMS {rms}");
         assert_ne!(m.repeat_mm(1), m.repeat_mm(2));
-        assert_eq!(RobotErrorModel::ideal().actual_mm([1.0, 2.0, 3.0], 5), [1.0, 2.0, 3.0]);
+        assert_eq!(
+            RobotErrorModel::ideal().actual_mm([1.0, 2.0, 3.0], 5),
+            [1.0, 2.0, 3.0]
+        );
     }
 
     #[test]

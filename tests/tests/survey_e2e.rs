@@ -156,12 +156,21 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
     let scenario = Scenario::new(sim_cfg.scenario_config()).unwrap();
     let rig: RigParams = scenario.rig().clone();
     std::fs::write(dir.join("rig.irp"), rig.to_blob().unwrap()).unwrap();
-    let centre = sim_cfg.scenario_config().rig.workspace_centre_mm(sim_cfg.distance_mm);
+    let centre = sim_cfg
+        .scenario_config()
+        .rig
+        .workspace_centre_mm(sim_cfg.distance_mm);
     let (r_cb, t_cb) = cam0_from_base(centre);
 
     // The robot with its errors and the LED on its flange.
     let mut sim = Command::new(bin("host-tools"))
-        .args(["robot-sim", "--listen", "127.0.0.1:0", "--cell-feed", "127.0.0.1:0"])
+        .args([
+            "robot-sim",
+            "--listen",
+            "127.0.0.1:0",
+            "--cell-feed",
+            "127.0.0.1:0",
+        ])
         .args(["--home", "500,0,300", "--speed-mm-s", "300"])
         .arg(format!(
             "--led-offset-mm={},{},{}",
@@ -189,7 +198,11 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
         .arg(dir.join("site"))
         .output()
         .unwrap();
-    assert!(o.status.success(), "keygen: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "keygen: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let cell = SimCellConfig {
         robot: feed_addr.clone(),
         cam0_from_base_rotation_deg: r_cb.scaled_axis().map(f64::to_degrees).into(),
@@ -220,7 +233,10 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
             .args(["survey", "--stream", &stream.to_string(), "--robot", &robot_addr])
             .arg(format!("--box-min={},{},{}", BOX_MIN[0], BOX_MIN[1], BOX_MIN[2]))
             .arg(format!("--box-max={},{},{}", BOX_MAX[0], BOX_MAX[1], BOX_MAX[2]))
-            .arg(format!("--orient={},{},{},{}", ORIENT[0], ORIENT[1], ORIENT[2], ORIENT[3]))
+            .arg(format!(
+                "--orient={},{},{},{}",
+                ORIENT[0], ORIENT[1], ORIENT[2], ORIENT[3]
+            ))
             .args(["--grid", grid, "--frames", "10", "--settle-ms", "150"])
             .args(["--rotations", rotations, "--rotation-deg", "25"])
             .arg(format!("--tolerance-mm={tolerance_mm}"))
@@ -258,17 +274,31 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
         t_start.elapsed().as_secs_f64()
     );
     // The field is visible at these points: otherwise the check below could not fail.
-    assert!(pred_rms > 3.0 * noise, "the error field is too small to check ({pred_rms:.3} mm)");
+    assert!(
+        pred_rms > 3.0 * noise,
+        "the error field is too small to check ({pred_rms:.3} mm)"
+    );
     assert!(
         (tre_rms - pred_rms).abs() <= 2.0 * noise + 0.15 * pred_rms,
         "TRE RMS {tre_rms:.3} mm does not match the error model's {pred_rms:.3} mm"
     );
-    assert!(tre_rms <= upper, "TRE RMS {tre_rms:.3} mm above the model bound {upper:.3} mm");
-    assert!(fre_rms <= upper, "FRE RMS {fre_rms:.3} mm above the model bound {upper:.3} mm");
+    assert!(
+        tre_rms <= upper,
+        "TRE RMS {tre_rms:.3} mm above the model bound {upper:.3} mm"
+    );
+    assert!(
+        fre_rms <= upper,
+        "FRE RMS {fre_rms:.3} mm above the model bound {upper:.3} mm"
+    );
     assert!(tre_max <= 1.0, "pass/fail used a tolerance of 1 mm");
     let md = std::fs::read_to_string(report.join("survey.md")).unwrap();
     assert!(md.contains("**PASS**"), "{md}");
-    assert!(std::fs::metadata(report.join("error-vs-distance.png")).unwrap().len() > 1000);
+    assert!(
+        std::fs::metadata(report.join("error-vs-distance.png"))
+            .unwrap()
+            .len()
+            > 1000
+    );
 
     // The LED offset solved from the turned visits.
     let offset_line = md.lines().find(|l| l.starts_with("LED offset")).unwrap();
@@ -286,11 +316,7 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
     // The written registration against the cell's truth (it also absorbs the field's rigid part).
     let reg = RigParams::from_blob(&std::fs::read(dir.join("registered.irp")).unwrap()).unwrap();
     let w = reg.world_from_cam0.expect("registration written");
-    let truth = RigidTransform::from_parts(
-        &r_cb.to_rotation_matrix().into_inner(),
-        &t_cb,
-    )
-    .inverse();
+    let truth = RigidTransform::from_parts(&r_cb.to_rotation_matrix().into_inner(), &t_cb).inverse();
     let d_rot_deg = UnitQuaternion::from_matrix(&(w.rotation() * truth.rotation().transpose()))
         .angle()
         .to_degrees();
@@ -306,7 +332,11 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
         .arg(dir.join("site.key"))
         .output()
         .unwrap();
-    assert!(o.status.success(), "push-params: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "push-params: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let last = rows.last().unwrap();
     let led_nominal = Vector3::from(led_position_mm(last.robot, last.quat, LED_OFFSET_MM));
     let s = TcpStream::connect(stream).unwrap();

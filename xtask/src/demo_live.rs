@@ -134,14 +134,32 @@ pub fn survey(bin_dir: &Path, out: &Path) -> Result<()> {
     let stream = addr_field(&ready, "stream=")?;
     let scenario = out.join("scenario/rig.irp");
     let mut cmd = Command::new(bin_dir.join("host-tools"));
-    cmd.args(["survey", "--stream", &stream.to_string(), "--robot", &robot_addr.to_string()])
-        .args(["--box-min=420,-80,220", "--box-max=580,80,380", "--grid", "3,3,3"])
-        .args(["--frames", "10", "--settle-ms", "150", "--rotations", "6", "--tolerance-mm", "1"])
-        .arg("--report")
-        .arg(dir.join("report"));
+    cmd.args([
+        "survey",
+        "--stream",
+        &stream.to_string(),
+        "--robot",
+        &robot_addr.to_string(),
+    ])
+    .args(["--box-min=420,-80,220", "--box-max=580,80,380", "--grid", "3,3,3"])
+    .args([
+        "--frames",
+        "10",
+        "--settle-ms",
+        "150",
+        "--rotations",
+        "6",
+        "--tolerance-mm",
+        "1",
+    ])
+    .arg("--report")
+    .arg(dir.join("report"));
     if scenario.is_file() {
         // The simulator's rig (the demo's first step wrote it): the registration goes into it.
-        cmd.arg("--params").arg(&scenario).arg("--out").arg(dir.join("rig-registered.irp"));
+        cmd.arg("--params")
+            .arg(&scenario)
+            .arg("--out")
+            .arg(dir.join("rig-registered.irp"));
     }
     checked(&mut cmd, "host-tools survey")?;
     drop(irtrackd);

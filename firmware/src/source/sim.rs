@@ -438,8 +438,10 @@ impl SimSource {
                 .robot
                 .parse()
                 .map_err(|e| SourceError::Config(format!("source.sim.cell.robot {:?}: {e}", cell.robot)))?;
-            let feed = CellFeed::connect(addr, std::time::Duration::from_millis(cell.timeout_ms))
-                .map_err(|e| SourceError::Config(format!("source.sim.cell: cannot open the feed socket: {e}")))?;
+            let feed =
+                CellFeed::connect(addr, std::time::Duration::from_millis(cell.timeout_ms)).map_err(|e| {
+                    SourceError::Config(format!("source.sim.cell: cannot open the feed socket: {e}"))
+                })?;
             source.cell = Some((feed, cell.cam0_from_base()));
         }
         Ok(source)

@@ -18,9 +18,9 @@ use std::sync::{Arc, Mutex};
 
 use anyhow::{Context, bail};
 use irtrack_core::robot_proto::{MAX_LINE_BYTES, RobotMsg, SimEvent, SimRobot, SimRobotConfig};
-use irtrack_sim::cell::{self, RobotErrorModel};
 use irtrack_firmware::robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController};
 use irtrack_firmware::robot::udp::RsiMode;
+use irtrack_sim::cell::{self, RobotErrorModel};
 
 /// Arguments.
 #[derive(clap::Args, Debug, Clone)]
@@ -144,7 +144,9 @@ fn spawn_cell_feed(args: &Args, listen: &str, cell: SharedCell) -> anyhow::Resul
         .spawn(move || {
             let mut buf = [0u8; 64];
             loop {
-                let Ok((n, from)) = socket.recv_from(&mut buf) else { continue };
+                let Ok((n, from)) = socket.recv_from(&mut buf) else {
+                    continue;
+                };
                 if &buf[..n] != cell::FEED_REQUEST {
                     continue;
                 }
@@ -156,7 +158,11 @@ fn spawn_cell_feed(args: &Args, listen: &str, cell: SharedCell) -> anyhow::Resul
                 // repeatability error of this standstill.
                 let flange = if st.moving {
                     let f = model.field_mm(st.nominal_mm);
-                    [st.nominal_mm[0] + f[0], st.nominal_mm[1] + f[1], st.nominal_mm[2] + f[2]]
+                    [
+                        st.nominal_mm[0] + f[0],
+                        st.nominal_mm[1] + f[1],
+                        st.nominal_mm[2] + f[2],
+                    ]
                 } else {
                     model.actual_mm(st.nominal_mm, st.visit)
                 };

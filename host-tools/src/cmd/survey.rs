@@ -141,7 +141,11 @@ fn quat(q: [f64; 4]) -> UnitQuaternion<f64> {
 
 fn wxyz(q: &UnitQuaternion<f64>) -> [f64; 4] {
     // w ≥ 0: one sign for the same rotation on the wire.
-    let q = if q.w < 0.0 { -q.into_inner() } else { q.into_inner() };
+    let q = if q.w < 0.0 {
+        -q.into_inner()
+    } else {
+        q.into_inner()
+    };
     [q.w, q.i, q.j, q.k]
 }
 
@@ -325,7 +329,8 @@ const BEAT_EVERY: Duration = Duration::from_millis(200);
 impl Cell {
     fn connect(robot: &str, stream: &str) -> anyhow::Result<Self> {
         let (tx, rx) = channel();
-        let r = TcpStream::connect(robot).with_context(|| format!("cannot connect to the robot at {robot}"))?;
+        let r =
+            TcpStream::connect(robot).with_context(|| format!("cannot connect to the robot at {robot}"))?;
         r.set_nodelay(true)?;
         let s = TcpStream::connect(stream)
             .with_context(|| format!("cannot connect to irtrackd's stream at {stream}"))?;
@@ -425,16 +430,20 @@ impl Cell {
             pos_mm,
             quat_wxyz,
         })?;
-        self.wait(deadline, &format!("the robot to reach target {seq}"), |m| match m {
-            RobotMsg::Credit { ack_seq, .. } if *ack_seq == seq => Some(Ok(())),
-            RobotMsg::Reject { seq: s, code, reason } if *s == seq => Some(Err(anyhow::anyhow!(
-                "the robot rejected target {seq} at [{:.2}, {:.2}, {:.2}] mm: {code:02} {reason}",
-                pos_mm[0],
-                pos_mm[1],
-                pos_mm[2]
-            ))),
-            _ => None,
-        })
+        self.wait(
+            deadline,
+            &format!("the robot to reach target {seq}"),
+            |m| match m {
+                RobotMsg::Credit { ack_seq, .. } if *ack_seq == seq => Some(Ok(())),
+                RobotMsg::Reject { seq: s, code, reason } if *s == seq => Some(Err(anyhow::anyhow!(
+                    "the robot rejected target {seq} at [{:.2}, {:.2}, {:.2}] mm: {code:02} {reason}",
+                    pos_mm[0],
+                    pos_mm[1],
+                    pos_mm[2]
+                ))),
+                _ => None,
+            },
+        )
     }
 
     fn pose(&mut self, deadline: Instant) -> anyhow::Result<([f64; 3], [f64; 4])> {
@@ -452,7 +461,12 @@ impl Cell {
     }
 
     /// Drops everything until `until`, then averages `frames` tracked positions.
-    fn average(&mut self, until: Instant, frames: usize, deadline: Instant) -> anyhow::Result<(Vec<[f64; 3]>, bool)> {
+    fn average(
+        &mut self,
+        until: Instant,
+        frames: usize,
+        deadline: Instant,
+    ) -> anyhow::Result<(Vec<[f64; 3]>, bool)> {
         let mut got = Vec::with_capacity(frames);
         let mut world = false;
         loop {
@@ -461,7 +475,10 @@ impl Cell {
             if now >= deadline {
                 return Ok((got, world));
             }
-            match self.rx.recv_timeout((deadline - now).min(Duration::from_millis(50))) {
+            match self
+                .rx
+                .recv_timeout((deadline - now).min(Duration::from_millis(50)))
+            {
                 Ok(Ev::Record(r)) if Instant::now() >= until => {
                     if r.status == TrackStatus::Ok
                         && let Some(p) = r.position_mm
@@ -596,8 +613,16 @@ fn solve_offset(points: &[Measured], r: &Matrix3<f64>) -> anyhow::Result<(Vector
 
 /// Registration (and LED offset) from the fit and turned points; residuals of every point.
 pub fn analyse(points: &[Measured], led_offset_mm: Option<[f64; 3]>) -> anyhow::Result<Analysis> {
-    let fit_pts: Vec<Measured> = points.iter().filter(|m| m.role != Role::Holdout).cloned().collect();
-    ensure!(fit_pts.len() >= 4, "only {} fit points measured; need 4", fit_pts.len());
+    let fit_pts: Vec<Measured> = points
+        .iter()
+        .filter(|m| m.role != Role::Holdout)
+        .cloned()
+        .collect();
+    ensure!(
+        fit_pts.len() >= 4,
+        "only {} fit points measured; need 4",
+        fit_pts.len()
+    );
     let turned = fit_pts.iter().filter(|m| m.role == Role::Turned).count();
     let tracker_fit: Vec<[f64; 3]> = fit_pts.iter().map(|m| m.tracker_mm).collect();
     let (offset, solved) = match led_offset_mm {
@@ -653,7 +678,11 @@ pub fn analyse(points: &[Measured], led_offset_mm: Option<[f64; 3]>) -> anyhow::
 /// Drives the robot through the plan and measures every point.
 fn measure(args: &Args, plan: &[Planned]) -> anyhow::Result<(Vec<Measured>, bool, Vec<String>)> {
     let mut cell = Cell::connect(&args.robot, &args.stream)?;
-    println!("survey: robot {:?} connected; {} points", cell.robot_name, plan.len());
+    println!(
+        "survey: robot {:?} connected; {} points",
+        cell.robot_name,
+        plan.len()
+    );
     let result = (|| {
         // Start from where the robot stands.
         let t0 = Instant::now() + Duration::from_secs(10);
@@ -665,7 +694,12 @@ fn measure(args: &Args, plan: &[Planned]) -> anyhow::Result<(Vec<Measured>, bool
         for (i, p) in plan.iter().enumerate() {
             let deadline = Instant::now() + Duration::from_secs_f64(args.point_timeout_s);
             let start_inside = (0..3).all(|k| at.0[k] >= lo[k] - 1e-6 && at.0[k] <= hi[k] + 1e-6);
-            for (pos, q) in split_move(at, (p.pos_mm, p.quat_wxyz), args.max_step_mm, args.max_rotation_step_deg) {
+            for (pos, q) in split_move(
+                at,
+                (p.pos_mm, p.quat_wxyz),
+                args.max_step_mm,
+                args.max_rotation_step_deg,
+            ) {
                 // The robot may start outside the box; from its first target on it stays inside.
                 let inside = (0..3).all(|k| pos[k] >= lo[k] - 1e-6 && pos[k] <= hi[k] + 1e-6);
                 ensure!(
@@ -796,7 +830,13 @@ pub struct Report {
 }
 
 impl Report {
-    fn new(args: &Args, points: &[Measured], a: &Analysis, old_world: Option<&RigidTransform>, skipped: &[String]) -> Self {
+    fn new(
+        args: &Args,
+        points: &[Measured],
+        a: &Analysis,
+        old_world: Option<&RigidTransform>,
+        skipped: &[String],
+    ) -> Self {
         let pick = |holdout: bool| -> Vec<[f64; 3]> {
             points
                 .iter()
@@ -847,12 +887,7 @@ impl Report {
         let mut md = String::new();
         let w = &mut md;
         let _ = writeln!(w, "# Cell survey\n");
-        let _ = writeln!(
-            w,
-            "**{}** — {}\n",
-            if pass { "PASS" } else { "FAIL" },
-            verdict
-        );
+        let _ = writeln!(w, "**{}** — {}\n", if pass { "PASS" } else { "FAIL" }, verdict);
         let _ = writeln!(
             w,
             "Box [{:.1}, {:.1}, {:.1}] … [{:.1}, {:.1}, {:.1}] mm, grid {}×{}×{}, {} turned visits, {} frames per point, settle {} ms. Measured {} points ({} skipped).\n",
@@ -871,7 +906,10 @@ impl Report {
             points.len(),
             skipped.len()
         );
-        let _ = writeln!(w, "| | points | RMS (mm) | max (mm) | x RMS / max | y RMS / max | z RMS / max |");
+        let _ = writeln!(
+            w,
+            "| | points | RMS (mm) | max (mm) | x RMS / max | y RMS / max | z RMS / max |"
+        );
         let _ = writeln!(w, "|---|---|---|---|---|---|---|");
         for (name, s) in [("FRE (fit points)", fre), ("TRE (held out)", tre)] {
             let _ = writeln!(
@@ -914,7 +952,10 @@ impl Report {
             t.x, t.y, t.z
         );
         let _ = writeln!(w, "## Worst points\n");
-        let _ = writeln!(w, "| # | role | robot x, y, z (mm) | distance to camera 0 (mm) | error (mm) | ex, ey, ez (mm) |");
+        let _ = writeln!(
+            w,
+            "| # | role | robot x, y, z (mm) | distance to camera 0 (mm) | error (mm) | ex, ey, ez (mm) |"
+        );
         let _ = writeln!(w, "|---|---|---|---|---|---|");
         let mut order: Vec<usize> = (0..points.len()).collect();
         order.sort_by(|&i, &j| fig[j].1.total_cmp(&fig[i].1));
@@ -1032,9 +1073,9 @@ mod plot {
     pub fn error_vs_distance(path: &Path, pts: &[(f64, f64, bool)]) -> anyhow::Result<()> {
         ensure_font()?;
         anyhow::ensure!(!pts.is_empty(), "no survey points to plot");
-        let (dmin, dmax) = pts
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.0), b.max(p.0)));
+        let (dmin, dmax) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+            (a.min(p.0), b.max(p.0))
+        });
         let emax = pts.iter().map(|p| p.1).fold(0.0, f64::max).max(1e-3);
         let pad = ((dmax - dmin) * 0.1).max(10.0);
         let mut rgb = vec![255u8; (W * H * 3) as usize];
@@ -1151,7 +1192,10 @@ mod tests {
         }
         let steps = split_move(
             ([0.0; 3], [1.0, 0.0, 0.0, 0.0]),
-            ([120.0, 0.0, 0.0], wxyz(&UnitQuaternion::from_euler_angles(0.0, 0.0, 0.6))),
+            (
+                [120.0, 0.0, 0.0],
+                wxyz(&UnitQuaternion::from_euler_angles(0.0, 0.0, 0.6)),
+            ),
             50.0,
             10.0,
         );
@@ -1168,14 +1212,20 @@ mod tests {
         let a = args();
         let planned = plan(&a).unwrap();
         let pts: Vec<_> = planned.iter().map(|p| (p.pos_mm, p.quat_wxyz, p.role)).collect();
-        let r = UnitQuaternion::from_euler_angles(0.3, -2.0, 0.7).to_rotation_matrix().into_inner();
+        let r = UnitQuaternion::from_euler_angles(0.3, -2.0, 0.7)
+            .to_rotation_matrix()
+            .into_inner();
         let truth = RigidTransform::from_parts(&r, &Vector3::new(450.0, -30.0, 900.0));
         let offset = [12.0, -8.0, 95.0];
         let exact = measured(&pts, &truth, offset, |_| [0.0; 3]);
         let an = analyse(&exact, None).unwrap();
         assert!(an.offset_solved);
         for k in 0..3 {
-            assert!((an.led_offset_mm[k] - offset[k]).abs() < 1e-6, "{:?}", an.led_offset_mm);
+            assert!(
+                (an.led_offset_mm[k] - offset[k]).abs() < 1e-6,
+                "{:?}",
+                an.led_offset_mm
+            );
         }
         assert!(stats(&an.residual_mm).max_mm < 1e-6);
         assert!((an.scale - 1.0).abs() < 1e-9);
@@ -1185,7 +1235,11 @@ mod tests {
         assert!((an2.fit.translation_mm() - truth.translation_mm()).norm() < 1e-6);
         // Errors on the held-out points only show up in the TRE.
         let noisy = measured(&pts, &truth, offset, |i| {
-            if pts[i].2 == Role::Holdout { [0.5, 0.0, 0.0] } else { [0.0; 3] }
+            if pts[i].2 == Role::Holdout {
+                [0.5, 0.0, 0.0]
+            } else {
+                [0.0; 3]
+            }
         });
         let an3 = analyse(&noisy, None).unwrap();
         let held: Vec<[f64; 3]> = noisy
@@ -1195,17 +1249,22 @@ mod tests {
             .map(|(_, r)| *r)
             .collect();
         let s = stats(&held);
-        assert!((s.rms_mm - 0.5).abs() < 1e-6 && (s.axis_rms_mm[0] - 0.5).abs() < 1e-6, "{s:?}");
+        assert!(
+            (s.rms_mm - 0.5).abs() < 1e-6 && (s.axis_rms_mm[0] - 0.5).abs() < 1e-6,
+            "{s:?}"
+        );
         // A turn about one axis only leaves the offset along it unobservable.
         let mut one_axis = a.clone();
         one_axis.rotations = 1;
         let planned = plan(&one_axis).unwrap();
         let pts: Vec<_> = planned.iter().map(|p| (p.pos_mm, p.quat_wxyz, p.role)).collect();
         let m = measured(&pts, &truth, offset, |_| [0.0; 3]);
-        assert!(analyse(&m, None).is_err() || {
-            // One turned visit is below the two the solve needs: the offset is taken as 0.
-            !analyse(&m, None).unwrap().offset_solved
-        });
+        assert!(
+            analyse(&m, None).is_err() || {
+                // One turned visit is below the two the solve needs: the offset is taken as 0.
+                !analyse(&m, None).unwrap().offset_solved
+            }
+        );
     }
 
     #[test]
@@ -1238,8 +1297,17 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("survey-report-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         r.write(&dir).unwrap();
-        assert!(std::fs::metadata(dir.join("error-vs-distance.png")).unwrap().len() > 1000);
-        assert!(std::fs::read_to_string(dir.join("survey.md")).unwrap().contains("FAIL"));
+        assert!(
+            std::fs::metadata(dir.join("error-vs-distance.png"))
+                .unwrap()
+                .len()
+                > 1000
+        );
+        assert!(
+            std::fs::read_to_string(dir.join("survey.md"))
+                .unwrap()
+                .contains("FAIL")
+        );
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
