@@ -565,9 +565,9 @@ pub fn stats(res: &[[f64; 3]]) -> Stats {
         let e = Vector3::from(*r).norm();
         s.rms_mm += e * e / nf;
         s.max_mm = s.max_mm.max(e);
-        for k in 0..3 {
-            s.axis_rms_mm[k] += r[k] * r[k] / nf;
-            s.axis_max_mm[k] = s.axis_max_mm[k].max(r[k].abs());
+        for (k, v) in r.iter().enumerate() {
+            s.axis_rms_mm[k] += v * v / nf;
+            s.axis_max_mm[k] = s.axis_max_mm[k].max(v.abs());
         }
     }
     s.rms_mm = s.rms_mm.sqrt();
@@ -1220,12 +1220,8 @@ mod tests {
         let exact = measured(&pts, &truth, offset, |_| [0.0; 3]);
         let an = analyse(&exact, None).unwrap();
         assert!(an.offset_solved);
-        for k in 0..3 {
-            assert!(
-                (an.led_offset_mm[k] - offset[k]).abs() < 1e-6,
-                "{:?}",
-                an.led_offset_mm
-            );
+        for (got, want) in an.led_offset_mm.iter().zip(offset) {
+            assert!((got - want).abs() < 1e-6, "{:?}", an.led_offset_mm);
         }
         assert!(stats(&an.residual_mm).max_mm < 1e-6);
         assert!((an.scale - 1.0).abs() < 1e-9);
