@@ -362,7 +362,8 @@ impl Cell {
             name: "host-tools-survey".into(),
         })?;
         let deadline = Instant::now() + Duration::from_secs(10);
-        let name = cell.wait(deadline, "the robot's HELLO", |m| match m {
+        let what = "the robot's HELLO (the controller serves one client: is irtrackd's [robot] link connected to it?)";
+        let name = cell.wait(deadline, what, |m| match m {
             RobotMsg::Hello { version, name } => Some(Ok((*version, name.clone()))),
             _ => None,
         })?;
