@@ -26,6 +26,12 @@ MODULE IrTrack
     ! peer_timeout_ms must exceed the longest single move (max_step / speed).
     PERS num irtRecvPoll := 0.2;
     PERS num irtPeerTimeout := 1;
+    ! Survey mode (host-tools survey, docs/teach-in.md): every target is a
+    ! fine point at the slow survey speed, moved and reported with the
+    ! survey tool (tool0: the flange; the LED offset is solved by the PC).
+    PERS bool irtSurvey := FALSE;
+    PERS speeddata irtSurveySpeed := [50, 20, 5000, 1000];
+    PERS tooldata irtSurveyTool := [TRUE, [[0, 0, 0], [1, 0, 0, 0]], [1, [0, 0, 1], [1, 0, 0, 0], 0, 0, 0]];
 
     ! ---- Protocol constants (checked against the Rust codec by a test) ----
     CONST num IRT_VERSION := 1;
@@ -39,6 +45,7 @@ MODULE IrTrack
     CONST num IRT_T_Z_COL := 28;
     CONST num IRT_Q_Q1_COL := 37;
     CONST num IRT_HOLD_CODE_COL := 6;
+    CONST num IRT_POSE_COL := 6;
     CONST num IRT_WINDOW := 1;
     CONST num IRT_REJ_UNREACHABLE := 1;
     CONST num IRT_REJ_MALFORMED := 99;
@@ -151,6 +158,8 @@ MODULE IrTrack
             IrtTarget line, TRUE;
         ELSEIF n >= 8 AND StrPart(line, 1, 5) = "HOLD " THEN
             IrtHold line;
+        ELSEIF n = 11 AND StrPart(line, 1, 5) = "POSE " THEN
+            IrtSendPose StrPart(line, IRT_POSE_COL, IRT_SEQ_LEN);
         ELSEIF n = 11 AND StrPart(line, 1, 5) = "BEAT " THEN
             ! Heartbeat: receiving it already reset the silence counter.
         ELSEIF n >= 17 AND StrPart(line, 1, 6) = "HELLO " THEN
@@ -194,7 +203,11 @@ MODULE IrTrack
             RETURN;
         ENDIF
         irtLastRxSeq := seq;
-        p := CRobT(\Tool:=irtTool \WObj:=irtWobj);
+        IF irtSurvey THEN
+            p := CRobT(\Tool:=irtSurveyTool \WObj:=irtWobj);
+        ELSE
+            p := CRobT(\Tool:=irtTool \WObj:=irtWobj);
+        ENDIF
         p.trans.x := IrtField(StrPart(line, IRT_T_X_COL, IRT_COORD_LEN), ok);
         p.trans.y := IrtField(StrPart(line, IRT_T_Y_COL, IRT_COORD_LEN), ok);
         p.trans.z := IrtField(StrPart(line, IRT_T_Z_COL, IRT_COORD_LEN), ok);
@@ -215,12 +228,21 @@ MODULE IrTrack
         ENDIF
         ! CalcJointT raises ERR_ROBLIMIT for a target out of reach.
         irtTargetOk := TRUE;
-        jt := CalcJointT(p, irtTool \WObj:=irtWobj);
+        IF irtSurvey THEN
+            jt := CalcJointT(p, irtSurveyTool \WObj:=irtWobj);
+        ELSE
+            jt := CalcJointT(p, irtTool \WObj:=irtWobj);
+        ENDIF
         IF NOT irtTargetOk THEN
             IrtReject seq, IRT_REJ_UNREACHABLE, "UNREACHABLE";
             RETURN;
         ENDIF
-        MoveL p, irtSpeed, irtZone, irtTool \WObj:=irtWobj;
+        IF irtSurvey THEN
+            ! Survey: stop exactly at every point (fine), slowly.
+            MoveL p, irtSurveySpeed, fine, irtSurveyTool \WObj:=irtWobj;
+        ELSE
+            MoveL p, irtSpeed, irtZone, irtTool \WObj:=irtWobj;
+        ENDIF
         irtAckSeq := seq;
         IrtSendCredit;
     ERROR
@@ -248,6 +270,24 @@ MODULE IrTrack
         VAR robtarget now;
         now := CRobT(\Tool:=irtTool \WObj:=irtWobj);
         IrtSend "C " + IrtDigits(irtAckSeq, 6) + " " + IrtDigits(IRT_WINDOW, 2) + " " + IrtCoord(now.trans.x) + " " + IrtCoord(now.trans.y) + " " + IrtCoord(now.trans.z);
+    ENDPROC
+
+    ! Answer to "POSE nnnnnn": the TCP pose now (CRobT), "A nnnnnn x y z
+    ! q1 q2 q3 q4" in the Q layout. Targets are fine points in survey mode,
+    ! so the robot stands still when it reads this line.
+    PROC IrtSendPose(string counter)
+        VAR robtarget now;
+        VAR num c;
+        IF NOT StrToVal(counter, c) THEN
+            IrtReject 0, IRT_REJ_MALFORMED, "MALFORMED";
+            RETURN;
+        ENDIF
+        IF irtSurvey THEN
+            now := CRobT(\Tool:=irtSurveyTool \WObj:=irtWobj);
+        ELSE
+            now := CRobT(\Tool:=irtTool \WObj:=irtWobj);
+        ENDIF
+        IrtSend "A " + IrtDigits(c, 6) + " " + IrtCoord(now.trans.x) + " " + IrtCoord(now.trans.y) + " " + IrtCoord(now.trans.z) + " " + IrtQuat(now.rot.q1) + " " + IrtQuat(now.rot.q2) + " " + IrtQuat(now.rot.q3) + " " + IrtQuat(now.rot.q4);
     ENDPROC
 
     PROC IrtSendBeat()
@@ -286,5 +326,19 @@ MODULE IrTrack
             cents := 999999;
         ENDIF
         RETURN sign + IrtDigits(cents DIV 100, 4) + "." + IrtDigits(cents MOD 100, 2);
+    ENDFUNC
+
+    ! Quaternion component "+d.dddddd", clamped to +-1.
+    FUNC string IrtQuat(num v)
+        VAR string sign := "+";
+        VAR num u;
+        IF v < 0 THEN
+            sign := "-";
+        ENDIF
+        u := Round(Abs(v) * 1000000);
+        IF u > 1000000 THEN
+            u := 1000000;
+        ENDIF
+        RETURN sign + IrtDigits(u DIV 1000000, 1) + "." + IrtDigits(u MOD 1000000, 6);
     ENDFUNC
 ENDMODULE

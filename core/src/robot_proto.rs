@@ -53,6 +53,11 @@ pub const C_X_COL: usize = 13;
 pub const HOLD_CODE_COL: usize = 6;
 /// `BEAT`: column of the counter.
 pub const BEAT_COL: usize = 6;
+/// `POSE`: column of the request counter (same place as `BEAT`'s).
+pub const POSE_COL: usize = 6;
+/// `A`: columns of x, y, z and q1 (same layout as `Q`).
+pub const A_X_COL: usize = T_X_COL;
+pub const A_Q1_COL: usize = Q_Q1_COL;
 
 const PROTO: &str = "robot";
 
@@ -214,6 +219,9 @@ pub enum TrackerMsg {
     Hold { reason: HoldReason },
     /// `BEAT nnnnnn`
     Beat { counter: u32 },
+    /// `POSE nnnnnn` — ask for the robot's actual TCP pose (answered with `A nnnnnn …`, the same
+    /// counter). Used by `host-tools survey`; no credit needed, the robot answers at standstill.
+    PoseRequest { counter: u32 },
     /// `BYE`
     Bye,
 }
@@ -233,6 +241,14 @@ pub enum RobotMsg {
     },
     /// `X ssssss nn TEXT` — target `seq` rejected (it still counts as consumed).
     Reject { seq: u32, code: u8, reason: String },
+    /// `A nnnnnn ±x ±y ±z q1 q2 q3 q4` — answer to `POSE nnnnnn`: the robot's actual TCP pose as
+    /// the controller knows it (RAPID `CRobT`), position in the base frame and orientation
+    /// w, x, y, z (RAPID `orient`). Same columns as `Q`.
+    Actual {
+        counter: u32,
+        pos_mm: [f64; 3],
+        quat_wxyz: [f64; 4],
+    },
     /// `BEAT nnnnnn`
     Beat { counter: u32 },
     /// `BYE`
@@ -294,6 +310,14 @@ fn write_quat(buf: &mut LineBuf, q: f64) -> Result<()> {
     write!(buf, " {:+09.6}", r + 0.0).map_err(|_| err("line too long"))
 }
 
+fn check_unit_quat(q: &[f64; 4]) -> Result<()> {
+    let n = libm::sqrt(q.iter().map(|c| c * c).sum::<f64>());
+    if !(n > 0.99 && n < 1.01) {
+        return Err(err(alloc::format!("quaternion norm {n} is not 1")));
+    }
+    Ok(())
+}
+
 fn finish(mut buf: LineBuf) -> Result<LineBuf> {
     buf.write_str("\n")
         .map_err(|_| err("line longer than 80 bytes"))?;
@@ -323,10 +347,7 @@ impl TrackerMsg {
                 quat_wxyz,
             } => {
                 check_seq(*seq)?;
-                let n = libm::sqrt(quat_wxyz.iter().map(|q| q * q).sum::<f64>());
-                if !(n > 0.99 && n < 1.01) {
-                    return Err(err(alloc::format!("quaternion norm {n} is not 1")));
-                }
+                check_unit_quat(quat_wxyz)?;
                 w(write!(b, "Q {seq:06}"))?;
                 for v in pos_mm {
                     write_coord(&mut b, *v)?;
@@ -339,6 +360,10 @@ impl TrackerMsg {
             TrackerMsg::Beat { counter } => {
                 check_seq(*counter)?;
                 w(write!(b, "BEAT {counter:06}"))?;
+            }
+            TrackerMsg::PoseRequest { counter } => {
+                check_seq(*counter)?;
+                w(write!(b, "POSE {counter:06}"))?;
             }
             TrackerMsg::Bye => w(b.write_str("BYE"))?,
         }
@@ -361,15 +386,11 @@ impl TrackerMsg {
                 })
             }
             "Q" => {
-                l.expect_len(Q_Q1_COL - 1 + 4 * (QUAT_LEN + 1) - 1)?;
-                let mut q = [0.0; 4];
-                for (i, qi) in q.iter_mut().enumerate() {
-                    *qi = l.fixed(Q_Q1_COL + i * (QUAT_LEN + 1), 1, 6)?;
-                }
+                let (pos_mm, quat_wxyz) = l.pose()?;
                 Ok(TrackerMsg::Pose {
                     seq: l.seq()?,
-                    pos_mm: l.xyz(T_X_COL)?,
-                    quat_wxyz: q,
+                    pos_mm,
+                    quat_wxyz,
                 })
             }
             "HOLD" => {
@@ -383,6 +404,7 @@ impl TrackerMsg {
                 Ok(TrackerMsg::Hold { reason })
             }
             "BEAT" => Ok(TrackerMsg::Beat { counter: l.beat()? }),
+            "POSE" => Ok(TrackerMsg::PoseRequest { counter: l.beat()? }),
             "BYE" => {
                 l.expect_len(3)?;
                 Ok(TrackerMsg::Bye)
@@ -421,6 +443,21 @@ impl RobotMsg {
                 check_name(reason, "reject reason")?;
                 w(write!(b, "X {seq:06} {code:02} {reason}"))?;
             }
+            RobotMsg::Actual {
+                counter,
+                pos_mm,
+                quat_wxyz,
+            } => {
+                check_seq(*counter)?;
+                check_unit_quat(quat_wxyz)?;
+                w(write!(b, "A {counter:06}"))?;
+                for v in pos_mm {
+                    write_coord(&mut b, *v)?;
+                }
+                for q in quat_wxyz {
+                    write_quat(&mut b, *q)?;
+                }
+            }
             RobotMsg::Beat { counter } => {
                 check_seq(*counter)?;
                 w(write!(b, "BEAT {counter:06}"))?;
@@ -456,6 +493,14 @@ impl RobotMsg {
                 let reason = l.rest(SEQ_COL + SEQ_LEN + 4).to_string();
                 check_name(&reason, "reject reason")?;
                 Ok(RobotMsg::Reject { seq, code, reason })
+            }
+            "A" => {
+                let (pos_mm, quat_wxyz) = l.pose()?;
+                Ok(RobotMsg::Actual {
+                    counter: l.seq()?,
+                    pos_mm,
+                    quat_wxyz,
+                })
             }
             "BEAT" => Ok(RobotMsg::Beat { counter: l.beat()? }),
             "BYE" => {
@@ -569,6 +614,15 @@ impl<'a> Fields<'a> {
             self.fixed(col + 2 * step, 4, 2)?,
         ])
     }
+    /// `Q`/`A` layout: x, y, z at [`T_X_COL`] and four quaternion components from [`Q_Q1_COL`].
+    fn pose(&self) -> Result<([f64; 3], [f64; 4])> {
+        self.expect_len(Q_Q1_COL - 1 + 4 * (QUAT_LEN + 1) - 1)?;
+        let mut q = [0.0; 4];
+        for (i, qi) in q.iter_mut().enumerate() {
+            *qi = self.fixed(Q_Q1_COL + i * (QUAT_LEN + 1), 1, 6)?;
+        }
+        Ok((self.xyz(T_X_COL)?, q))
+    }
     fn hello(&self, side: &str) -> Result<(u8, String)> {
         self.sep(6)?;
         let version = self.uint(7, 2)? as u8;
@@ -644,7 +698,9 @@ pub enum SimEvent {
 pub struct SimRobot {
     cfg: SimRobotConfig,
     pos_mm: [f64; 3],
-    queue: VecDeque<(u32, [f64; 3])>,
+    /// TCP orientation w, x, y, z: the last `Q` target's once reached (identity at start).
+    quat_wxyz: [f64; 4],
+    queue: VecDeque<(u32, [f64; 3], Option<[f64; 4]>)>,
     /// Last sequence the robot consumed (reached, rejected or flushed by HOLD).
     ack_seq: u32,
     /// Last sequence received.
@@ -663,6 +719,7 @@ impl SimRobot {
         Self {
             cfg,
             pos_mm,
+            quat_wxyz: [1.0, 0.0, 0.0, 0.0],
             queue: VecDeque::new(),
             ack_seq: 0,
             last_rx_seq: 0,
@@ -677,6 +734,11 @@ impl SimRobot {
     /// Current TCP position.
     pub fn pos_mm(&self) -> [f64; 3] {
         self.pos_mm
+    }
+
+    /// Current TCP orientation (w, x, y, z).
+    pub fn quat_wxyz(&self) -> [f64; 4] {
+        self.quat_wxyz
     }
 
     /// True while the robot has a target to move to.
@@ -742,6 +804,11 @@ impl SimRobot {
         };
         match msg {
             TrackerMsg::Hello { .. } | TrackerMsg::Beat { .. } => Vec::new(),
+            TrackerMsg::PoseRequest { counter } => alloc::vec![RobotMsg::Actual {
+                counter,
+                pos_mm: self.pos_mm,
+                quat_wxyz: self.quat_wxyz,
+            }],
             TrackerMsg::Bye => alloc::vec![RobotMsg::Bye],
             TrackerMsg::Hold { reason } => {
                 self.queue.clear();
@@ -749,13 +816,31 @@ impl SimRobot {
                 self.events.push(SimEvent::Hold { reason });
                 alloc::vec![self.credit()]
             }
-            TrackerMsg::Target { seq, pos_mm } | TrackerMsg::Pose { seq, pos_mm, .. } => {
-                self.on_target(seq, pos_mm)
+            TrackerMsg::Target { seq, pos_mm } => self.on_target(seq, pos_mm, None),
+            TrackerMsg::Pose {
+                seq,
+                pos_mm,
+                quat_wxyz,
+            } => {
+                // Like RAPID's NOrient: a nearly unit quaternion is normalised, anything else
+                // is refused (the `A` answer must carry a unit quaternion).
+                let n = libm::sqrt(quat_wxyz.iter().map(|q| q * q).sum::<f64>());
+                if !(0.9..=1.1).contains(&n) {
+                    self.events.push(SimEvent::Malformed {
+                        reason: alloc::format!("Q target {seq} quaternion norm {n}"),
+                    });
+                    return alloc::vec![RobotMsg::Reject {
+                        seq,
+                        code: reject::MALFORMED,
+                        reason: "MALFORMED".to_string()
+                    }];
+                }
+                self.on_target(seq, pos_mm, Some(quat_wxyz.map(|q| q / n)))
             }
         }
     }
 
-    fn on_target(&mut self, seq: u32, target_mm: [f64; 3]) -> Vec<RobotMsg> {
+    fn on_target(&mut self, seq: u32, target_mm: [f64; 3], quat: Option<[f64; 4]>) -> Vec<RobotMsg> {
         let outstanding = seq_distance(self.ack_seq, seq);
         if outstanding == 0 || outstanding > u32::from(self.cfg.window) {
             self.events.push(SimEvent::Rejected {
@@ -791,7 +876,7 @@ impl SimRobot {
             }
             // Keep it in the queue as a no-op at the current end so ordering of acks holds.
             let at = self.queue.back().map(|q| q.1).unwrap_or(self.pos_mm);
-            self.queue.push_back((seq, at));
+            self.queue.push_back((seq, at, None));
             let reason = "INJECTED".to_string();
             return alloc::vec![RobotMsg::Reject {
                 seq,
@@ -800,7 +885,7 @@ impl SimRobot {
             }];
         }
         self.events.push(SimEvent::Target { seq, target_mm });
-        self.queue.push_back((seq, target_mm));
+        self.queue.push_back((seq, target_mm, quat));
         Vec::new()
     }
 
@@ -809,7 +894,7 @@ impl SimRobot {
         let mut out = Vec::new();
         self.last_rx_s += dt_s;
         let mut budget_mm = self.cfg.speed_mm_s * dt_s;
-        while let Some(&(seq, target)) = self.queue.front() {
+        while let Some(&(seq, target, quat)) = self.queue.front() {
             let d = [
                 target[0] - self.pos_mm[0],
                 target[1] - self.pos_mm[1],
@@ -818,6 +903,9 @@ impl SimRobot {
             let dist = libm::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
             if dist <= budget_mm {
                 self.pos_mm = target;
+                if let Some(q) = quat {
+                    self.quat_wxyz = q;
+                }
                 budget_mm -= dist;
                 self.queue.pop_front();
                 self.ack_seq = seq;
@@ -937,9 +1025,84 @@ mod tests {
             name: "IRB1200".into(),
         };
         assert_eq!(h.encode().unwrap().as_str(), "HELLO 01 ROBOT IRB1200\n");
-        for m in [c, x, h, RobotMsg::Beat { counter: 999_999 }, RobotMsg::Bye] {
+        let a = RobotMsg::Actual {
+            counter: 17,
+            pos_mm: [612.5, -140.0, 220.04],
+            quat_wxyz: [0.0, 0.0, 1.0, 0.0],
+        };
+        assert_eq!(
+            a.encode().unwrap().as_str(),
+            "A 000017 +0612.50 -0140.00 +0220.04 +0.000000 +0.000000 +1.000000 +0.000000\n"
+        );
+        for m in [c, x, h, a, RobotMsg::Beat { counter: 999_999 }, RobotMsg::Bye] {
             assert_eq!(RobotMsg::parse(m.encode().unwrap().as_str()).unwrap(), m);
         }
+    }
+
+    #[test]
+    fn golden_pose_request_and_answer() {
+        let p = TrackerMsg::PoseRequest { counter: 17 };
+        assert_eq!(p.encode().unwrap().as_str(), "POSE 000017\n");
+        assert_eq!(TrackerMsg::parse("POSE 000017\n").unwrap(), p);
+        assert!(TrackerMsg::parse("POSE 17").is_err());
+        // The answer has the Q layout: 75 characters, 76 with the newline.
+        let line = "A 999999 -9999.99 +9999.99 +0000.00 -0.500000 +0.500000 -0.500000 +0.500000";
+        assert_eq!(line.len() + 1, 76);
+        assert_eq!(
+            RobotMsg::parse(line).unwrap(),
+            RobotMsg::Actual {
+                counter: 999_999,
+                pos_mm: [-9999.99, 9999.99, 0.0],
+                quat_wxyz: [-0.5, 0.5, -0.5, 0.5],
+            }
+        );
+        assert!(RobotMsg::parse("A 000001 +0000.00 +0000.00 +0000.00").is_err());
+        let bad = RobotMsg::Actual {
+            counter: 1,
+            pos_mm: [0.0; 3],
+            quat_wxyz: [0.5, 0.0, 0.0, 0.0],
+        };
+        assert!(bad.encode().is_err(), "non-unit quaternion refused");
+        // The simulated robot normalises a nearly unit Q target and refuses a far one.
+        let mut r0 = SimRobot::new(SimRobotConfig::default());
+        r0.connect();
+        let far = "Q 000001 +0000.00 +0000.00 +0000.00 +0.500000 +0.000000 +0.000000 +0.000000";
+        assert!(matches!(
+            r0.on_line(far).as_slice(),
+            [RobotMsg::Reject {
+                code: reject::MALFORMED,
+                ..
+            }]
+        ));
+        let near = "Q 000001 +0000.00 +0000.00 +0000.00 +0.950000 +0.000000 +0.000000 +0.000000";
+        assert!(r0.on_line(near).is_empty());
+        r0.advance(0.1);
+        assert_eq!(r0.quat_wxyz(), [1.0, 0.0, 0.0, 0.0]);
+        // The simulated robot answers with its pose; a Q target sets the orientation.
+        let mut r = SimRobot::new(SimRobotConfig {
+            home_mm: [500.0, 0.0, 400.0],
+            ..SimRobotConfig::default()
+        });
+        r.connect();
+        let q = [0.0, 0.6, 0.8, 0.0];
+        feed(
+            &mut r,
+            TrackerMsg::Pose {
+                seq: 1,
+                pos_mm: [510.0, 0.0, 400.0],
+                quat_wxyz: q,
+            },
+        );
+        r.advance(1.0);
+        let got = feed(&mut r, TrackerMsg::PoseRequest { counter: 3 });
+        assert_eq!(
+            got,
+            alloc::vec![RobotMsg::Actual {
+                counter: 3,
+                pos_mm: [510.0, 0.0, 400.0],
+                quat_wxyz: q
+            }]
+        );
     }
 
     #[test]

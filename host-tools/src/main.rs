@@ -36,6 +36,8 @@ enum Command {
     Path(cmd::path::Args),
     /// Tracker-to-robot registration from corresponding points.
     Register(cmd::register::Args),
+    /// Cell survey with the robot: grid, registration, TRE and a pass/fail report.
+    Survey(cmd::survey::Args),
     /// Create a signing key pair for parameter blobs.
     Keygen(cmd::keygen::Args),
     /// Measure a multi-LED tool's layout from frames of it held still; adds it to the parameters.
@@ -63,6 +65,7 @@ fn main() -> anyhow::Result<()> {
         Command::Record(a) => cmd::record::run(a),
         Command::Path(a) => cmd::path::run(a),
         Command::Register(a) => cmd::register::run(a),
+        Command::Survey(a) => cmd::survey::run(a),
         Command::Keygen(a) => cmd::keygen::run(a),
         Command::MeasureTool(a) => cmd::measure_tool::run(a),
         Command::Pivot(a) => cmd::pivot::run(a),

@@ -70,6 +70,10 @@ fn rapid_module_structure_is_balanced() {
             "\\WObj:=irtWobj",
             "irtSpeed",
             "irtZone",
+            "irtSurvey",
+            "irtSurveySpeed, fine, irtSurveyTool",
+            "CRobT(\\Tool:=irtSurveyTool",
+            "IrtSendPose",
         ],
     );
 }
@@ -184,6 +188,7 @@ fn rapid_constants_match_the_codec() {
         ("IRT_T_Z_COL", rp::T_Z_COL),
         ("IRT_Q_Q1_COL", rp::Q_Q1_COL),
         ("IRT_HOLD_CODE_COL", rp::HOLD_CODE_COL),
+        ("IRT_POSE_COL", rp::POSE_COL),
         ("IRT_REJ_UNREACHABLE", rp::reject::UNREACHABLE as usize),
         ("IRT_REJ_MALFORMED", rp::reject::MALFORMED as usize),
     ];
@@ -236,6 +241,10 @@ fn every_client_message_fits_the_rapid_parser() {
             counter: rp::SEQ_MODULUS - 1,
         },
         TrackerMsg::Bye,
+        TrackerMsg::PoseRequest { counter: 0 },
+        TrackerMsg::PoseRequest {
+            counter: rp::SEQ_MODULUS - 1,
+        },
     ];
     msgs.extend(HoldReason::ALL.iter().map(|&reason| TrackerMsg::Hold { reason }));
     for v in [-rp::MAX_COORD_MM, rp::MAX_COORD_MM, 0.0, 0.004, -1234.565] {
@@ -287,6 +296,13 @@ fn every_client_message_fits_the_rapid_parser() {
                 assert_eq!(code, reason.code());
             }
             TrackerMsg::Beat { .. } => assert!(n == 11 && &s[..5] == "BEAT "),
+            TrackerMsg::PoseRequest { counter } => {
+                assert!(n == 11 && &s[..5] == "POSE ", "{s:?}");
+                let got: u32 = str_part(s, col("IRT_POSE_COL"), col("IRT_SEQ_LEN"))
+                    .parse()
+                    .unwrap();
+                assert_eq!(got, *counter);
+            }
             TrackerMsg::Hello { .. } => assert!(n >= 17 && &s[..6] == "HELLO " && &s[6..8] == "01"),
             TrackerMsg::Bye => assert_eq!(s, "BYE"),
         }
@@ -304,6 +320,17 @@ fn irt_coord(v: f64) -> String {
         "{sign}{}.{}",
         irt_digits((cents / 100.0).floor(), 4),
         irt_digits(cents % 100.0, 2)
+    )
+}
+
+/// Emulates IrtQuat from the module.
+fn irt_quat(v: f64) -> String {
+    let sign = if v < 0.0 { "-" } else { "+" };
+    let u = (v.abs() * 1e6).round().min(1e6);
+    format!(
+        "{sign}{}.{}",
+        irt_digits((u / 1e6).floor(), 1),
+        irt_digits(u % 1e6, 6)
     )
 }
 
@@ -348,6 +375,41 @@ fn lines_the_rapid_module_builds_parse_in_rust() {
             RobotMsg::parse(&line).unwrap(),
             RobotMsg::Reject { seq: 42, .. }
         ));
+    }
+    // The survey's pose answer as the module concatenates it (Q layout, IrtQuat components).
+    assert!(src.contains(
+        "\"A \" + IrtDigits(c, 6) + \" \" + IrtCoord(now.trans.x) + \" \" + IrtCoord(now.trans.y) + \" \" + IrtCoord(now.trans.z) + \" \" + IrtQuat(now.rot.q1)"
+    ));
+    for (x, q) in [
+        (612.5, [0.0, 0.0, 1.0, 0.0]),
+        (-9999.994, [0.5, -0.5, 0.5, -0.5]),
+        (0.004, [0.6, 0.0, -0.8, 0.0]),
+    ] {
+        let line = format!(
+            "A {} {} {} {} {} {} {} {}",
+            irt_digits(17.0, 6),
+            irt_coord(x),
+            irt_coord(-x),
+            irt_coord(220.0),
+            irt_quat(q[0]),
+            irt_quat(q[1]),
+            irt_quat(q[2]),
+            irt_quat(q[3])
+        );
+        let m = RobotMsg::parse(&line).unwrap_or_else(|e| panic!("{line:?}: {e}"));
+        let RobotMsg::Actual {
+            counter,
+            pos_mm,
+            quat_wxyz,
+        } = m
+        else {
+            panic!("{line}")
+        };
+        assert_eq!(counter, 17);
+        assert!((pos_mm[0] - x).abs() < 0.006, "{line}");
+        for k in 0..4 {
+            assert!((quat_wxyz[k] - q[k]).abs() < 1e-6, "{line}");
+        }
     }
     let beat = format!("BEAT {}", irt_digits(999_999.0, 6));
     assert_eq!(

@@ -5,6 +5,7 @@
 //! saturation, lens distortion, motion blur, ambient clutter and dropped frames, and gives the
 //! ground truth for every frame. [`resolution`] is the analytic planner behind `host-tools plan`.
 
+pub mod cell;
 pub mod checkerboard;
 pub mod error;
 pub mod noise;

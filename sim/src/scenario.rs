@@ -501,6 +501,14 @@ impl Scenario {
         &self.cfg
     }
 
+    /// Replaces the marker trajectory (the simulated robot cell moves the LED where the robot
+    /// really put it, frame by frame). Everything else stays as built.
+    pub fn set_trajectory(&mut self, trajectory: Trajectory) -> Result<(), SimError> {
+        trajectory.validate()?;
+        self.cfg.trajectory = trajectory;
+        Ok(())
+    }
+
     pub fn camera_count(&self) -> usize {
         self.rig.cameras.len()
     }

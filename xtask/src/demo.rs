@@ -23,6 +23,8 @@ enum Action {
     WandCalibration,
     /// irtrackd on simulated cameras driving `host-tools robot-sim` ([`crate::demo_live`]).
     RobotFollows,
+    /// The cell survey: robot-sim carries the LED, `host-tools survey` ([`crate::demo_live::survey`]).
+    Survey,
     /// irtrackd on simulated cameras; headless Chromium saves a picture of its set-up page
     /// ([`crate::demo_view`]).
     SetupView,
@@ -91,6 +93,15 @@ fn steps() -> Vec<Step> {
                       follow the marker within the safety limits.",
             action: Action::RobotFollows,
             produces: &["robot/robot-sim.csv"],
+        },
+        Step {
+            title: "cell survey",
+            explain: "Fix the LED to the simulated robot's flange (a robot with 0.02 mm repeatability \
+                      and a 0.3 mm absolute error field), drive it through a grid with \
+                      `host-tools survey`, register tracker to robot base, solve the LED's offset \
+                      from turned visits and report FRE/TRE with pass/fail.",
+            action: Action::Survey,
+            produces: &["survey/report/survey.md", "survey/report/error-vs-distance.png"],
         },
         Step {
             title: "set-up view",
@@ -172,6 +183,7 @@ pub fn run(ctx: &Ctx, args: &[String]) -> Result<()> {
             Action::RobotFollows => {
                 crate::demo_live::robot_follows(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
             }
+            Action::Survey => crate::demo_live::survey(&crate::demo_live::bin_dir(&host_tools), &out_dir)?,
             Action::WandCalibration => {
                 crate::demo_live::wand_calibration(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
             }

@@ -94,6 +94,80 @@ pub fn robot_follows(bin_dir: &Path, out: &Path) -> Result<()> {
     summarize(&log)
 }
 
+/// Demo step: the cell survey. robot-sim carries the LED on its flange with a simulated robot's
+/// errors and tells irtrackd's simulated cameras where it really is (a simulator-only feed and a
+/// base-to-camera transform the tracker never sees); `host-tools survey` drives the grid,
+/// registers tracker to robot base and writes the report.
+pub fn survey(bin_dir: &Path, out: &Path) -> Result<()> {
+    let dir = out.join("survey");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let robot_addr = TcpListener::bind("127.0.0.1:0")?.local_addr()?;
+    let feed_addr = std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?;
+    let mut child = Command::new(bin_dir.join("host-tools"))
+        .args(["robot-sim", "--listen", &robot_addr.to_string()])
+        .args(["--cell-feed", &feed_addr.to_string(), "--home", "500,0,300"])
+        .args(["--speed-mm-s", "300", "--led-offset-mm=12,-8,95"])
+        .args(["--repeatability-mm", "0.02", "--abs-error-rms-mm", "0.3"])
+        .args(["--abs-error-wavelength-mm", "300"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .context("starting host-tools robot-sim")?;
+    wait_line(&mut child, "robot-sim cell feed on ", Duration::from_secs(15))?;
+    let robot = Guard(child);
+    println!(
+        "robot-sim: LED 12,-8,95 mm off the flange, repeatability 0.02 mm, absolute error field 0.3 mm RMS"
+    );
+    // Camera 0's pose in the robot base frame (rotation vector 20°, -150°, 35°), chosen so that the
+    // survey box's middle lies where the simulated cameras' axes cross. Only the simulator knows it.
+    let config = dir.join("irtrackd.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "# Written by `cargo xtask demo` (survey step).\n[service]\nparams_from_simulator = true\n\
+             [leds]\nbackend = \"none\"\n[source.sim]\n[source.sim.cell]\nrobot = \"{feed_addr}\"\n\
+             cam0_from_base_rotation_deg = [20.0, -150.0, 35.0]\n\
+             cam0_from_base_translation_mm = [496.641, 173.055, 539.725]\n"
+        ),
+    )?;
+    let (irtrackd, ready) = start_irtrackd(bin_dir, &config, &dir.join("state"))?;
+    let stream = addr_field(&ready, "stream=")?;
+    let scenario = out.join("scenario/rig.irp");
+    let mut cmd = Command::new(bin_dir.join("host-tools"));
+    cmd.args([
+        "survey",
+        "--stream",
+        &stream.to_string(),
+        "--robot",
+        &robot_addr.to_string(),
+    ])
+    .args(["--box-min=420,-80,220", "--box-max=580,80,380", "--grid", "3,3,3"])
+    .args([
+        "--frames",
+        "10",
+        "--settle-ms",
+        "150",
+        "--rotations",
+        "6",
+        "--tolerance-mm",
+        "1",
+    ])
+    .arg("--report")
+    .arg(dir.join("report"));
+    if scenario.is_file() {
+        // The simulator's rig (the demo's first step wrote it): the registration goes into it.
+        cmd.arg("--params")
+            .arg(&scenario)
+            .arg("--out")
+            .arg(dir.join("rig-registered.irp"));
+    }
+    checked(&mut cmd, "host-tools survey")?;
+    drop(irtrackd);
+    drop(robot);
+    println!("report: {}", dir.join("report/survey.md").display());
+    Ok(())
+}
+
 /// Marker frames per circle in the calibration step: `[source.sim]` defaults (4 s period) at
 /// the step's 30 fps.
 const CIRCLE_FRAMES: u64 = 120;

@@ -483,6 +483,9 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                 self.status.send_modify(|st| st.rejects += 1);
             }
             RobotMsg::Beat { .. } => {}
+            // irtrackd never sends `POSE` (only `host-tools survey` does); an unasked answer
+            // carries nothing the link needs.
+            RobotMsg::Actual { .. } => tracing::debug!("unrequested pose answer from the robot"),
             RobotMsg::Bye => return Err(End::Lost(RobotError::Closed { addr: self.addr() })),
             RobotMsg::Hello { .. } => {
                 return Err(End::Lost(RobotError::Protocol {

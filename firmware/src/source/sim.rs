@@ -11,6 +11,7 @@
 use nalgebra::Vector3;
 use serde::Deserialize;
 
+use irtrack_sim::cell::CellFeed;
 use irtrack_sim::wand::{WandConfig, WandWave};
 use irtrack_sim::{BitDepth, FrameInfo, RigPreset, Scenario, SimConfig, Trajectory};
 
@@ -85,6 +86,42 @@ pub struct SimSourceConfig {
     /// With `wand_mm`: frames in one wave (it repeats).
     #[serde(default = "d_wand_frames")]
     pub wand_frames: u64,
+    /// The simulated robot cell: the LED is carried by `host-tools robot-sim`'s flange and is
+    /// rendered where robot-sim says the robot really put it (docs/simulator.md).
+    #[serde(default)]
+    pub cell: Option<SimCellConfig>,
+}
+
+/// `[source.sim.cell]`: simulator-only settings of the robot cell. The transform below is the
+/// cell's truth; the tracker never sees it (the survey measures it).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimCellConfig {
+    /// robot-sim's cell feed (`host-tools robot-sim --cell-feed`), UDP `ip:port`.
+    pub robot: String,
+    /// Rotation of `x_cam0 = R x_base + t` as a rotation vector (axis × angle), degrees.
+    #[serde(default)]
+    pub cam0_from_base_rotation_deg: [f64; 3],
+    /// Translation `t` of the same transform, mm.
+    pub cam0_from_base_translation_mm: [f64; 3],
+    /// How long a frame waits for robot-sim's answer; without one the LED is dark.
+    #[serde(default = "d_cell_timeout")]
+    pub timeout_ms: u64,
+}
+
+impl SimCellConfig {
+    /// `x_cam0 = R x_base + t`.
+    pub fn cam0_from_base(&self) -> nalgebra::Isometry3<f64> {
+        let r = Vector3::from(self.cam0_from_base_rotation_deg).map(f64::to_radians);
+        nalgebra::Isometry3::from_parts(
+            nalgebra::Translation3::from(Vector3::from(self.cam0_from_base_translation_mm)),
+            nalgebra::UnitQuaternion::from_scaled_axis(r),
+        )
+    }
+}
+
+fn d_cell_timeout() -> u64 {
+    20
 }
 
 fn d_wand_frames() -> u64 {
@@ -142,6 +179,7 @@ impl Default for SimSourceConfig {
             tool_rotation_deg: d_tool_rotation(),
             wand_mm: None,
             wand_frames: d_wand_frames(),
+            cell: None,
         }
     }
 }
@@ -187,6 +225,31 @@ impl SimSourceConfig {
                 return bad(format!(
                     "source.sim.wand_frames must be at least 10, got {}",
                     self.wand_frames
+                ));
+            }
+        }
+        if let Some(cell) = &self.cell {
+            if self.tool.is_some() || self.wand_mm.is_some() {
+                return bad("source.sim.cell renders the robot's single LED; it excludes source.sim.tool and source.sim.wand_mm".into());
+            }
+            if cell.robot.parse::<std::net::SocketAddr>().is_err() {
+                return bad(format!(
+                    "source.sim.cell.robot = {:?} is not an ip:port (robot-sim's --cell-feed address)",
+                    cell.robot
+                ));
+            }
+            let finite = cell
+                .cam0_from_base_rotation_deg
+                .iter()
+                .chain(&cell.cam0_from_base_translation_mm)
+                .all(|v| v.is_finite());
+            if !finite {
+                return bad("source.sim.cell: the cam0_from_base transform must be finite".into());
+            }
+            if !(1..=1000).contains(&cell.timeout_ms) {
+                return bad(format!(
+                    "source.sim.cell.timeout_ms must be in 1..=1000, got {}",
+                    cell.timeout_ms
                 ));
             }
         }
@@ -309,7 +372,12 @@ pub struct SimSource {
     noise_state: u64,
     /// Wand mode: the wave and an 8-bit scratch frame for 10-bit output (allocated up front).
     wand: Option<(WandWave, Vec<u8>)>,
+    /// Cell mode: the feed from robot-sim and camera 0's pose in the robot base frame.
+    cell: Option<(CellFeed, nalgebra::Isometry3<f64>)>,
 }
+
+/// Where a dark LED is put: so far away that its spot carries no light.
+const DARK_MM: f64 = 1e9;
 
 /// Applies exposure × gain to a rendered frame: brightness scales with both, and gain above
 /// nominal adds read noise (σ = 2 DN per nominal gain step), so the set-up view's controls
@@ -365,6 +433,17 @@ impl SimSource {
             let (w, h) = source.scenario.image_size();
             source.wand = Some((wave, vec![0; w as usize * h as usize]));
         }
+        if let Some(cell) = &cfg.cell {
+            let addr = cell
+                .robot
+                .parse()
+                .map_err(|e| SourceError::Config(format!("source.sim.cell.robot {:?}: {e}", cell.robot)))?;
+            let feed =
+                CellFeed::connect(addr, std::time::Duration::from_millis(cell.timeout_ms)).map_err(|e| {
+                    SourceError::Config(format!("source.sim.cell: cannot open the feed socket: {e}"))
+                })?;
+            source.cell = Some((feed, cell.cam0_from_base()));
+        }
         Ok(source)
     }
 
@@ -381,6 +460,7 @@ impl SimSource {
             noise_state: 0x9E37_79B9_7F4A_7C15,
             scenario,
             wand: None,
+            cell: None,
         }
     }
 
@@ -449,6 +529,16 @@ impl FrameSource for SimSource {
                     out.frames.len(),
                     self.camera_count()
                 )));
+            }
+            if let Some((feed, cam0_from_base)) = &mut self.cell {
+                // No answer in time (robot-sim not running) or no LED: nothing to see.
+                let p_cam0 = match feed.led_mm() {
+                    Ok(Some(p)) => *cam0_from_base * nalgebra::Point3::from(Vector3::from(p)),
+                    Ok(None) | Err(_) => nalgebra::Point3::new(0.0, 0.0, DARK_MM),
+                };
+                self.scenario
+                    .set_trajectory(Trajectory::Fixed(p_cam0.coords))
+                    .map_err(|e| SourceError::Config(e.to_string()))?;
             }
             let mut dropped = 0usize;
             let (mut min_ts, mut max_ts) = (u64::MAX, 0u64);

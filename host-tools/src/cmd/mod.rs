@@ -15,5 +15,6 @@ pub mod register;
 pub mod robot_sim;
 pub mod show_params;
 pub mod simulate;
+pub mod survey;
 pub mod track;
 pub mod wand_calibrate;

@@ -13,10 +13,14 @@ use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use std::net::UdpSocket;
+use std::sync::{Arc, Mutex};
+
 use anyhow::{Context, bail};
 use irtrack_core::robot_proto::{MAX_LINE_BYTES, RobotMsg, SimEvent, SimRobot, SimRobotConfig};
 use irtrack_firmware::robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController};
 use irtrack_firmware::robot::udp::RsiMode;
+use irtrack_sim::cell::{self, RobotErrorModel};
 
 /// Arguments.
 #[derive(clap::Args, Debug, Clone)]
@@ -84,6 +88,90 @@ pub struct Args {
     /// EGM/RSI: stop after this many seconds (default: run until killed).
     #[arg(long)]
     pub duration_s: Option<f64>,
+    /// Simulated cell: answer irtrackd's simulated cameras (`[source.sim.cell] robot`) on this
+    /// UDP address with where the LED on the flange really is (port 0 picks one; printed).
+    #[arg(long)]
+    pub cell_feed: Option<String>,
+    /// Simulated cell: the LED's position in the flange (TCP) frame, `x,y,z` mm.
+    #[arg(long, default_value = "0,0,0", value_parser = parse_xyz)]
+    pub led_offset_mm: [f64; 3],
+    /// Simulated cell: repeatability, RMS of the 3-D deviation between visits (mm).
+    #[arg(long, default_value_t = 0.02)]
+    pub repeatability_mm: f64,
+    /// Simulated cell: smooth absolute-position error field, RMS of its 3-D magnitude (mm).
+    #[arg(long, default_value_t = 0.3)]
+    pub abs_error_rms_mm: f64,
+    /// Simulated cell: wavelength of the error field (mm).
+    #[arg(long, default_value_t = 800.0)]
+    pub abs_error_wavelength_mm: f64,
+    /// Simulated cell: seed of the error field and of the repeatability draws.
+    #[arg(long, default_value_t = 1)]
+    pub error_seed: u64,
+}
+
+/// What the cell feed needs from the simulated robot, shared with the feed's thread.
+#[derive(Debug, Clone, Copy)]
+struct CellState {
+    nominal_mm: [f64; 3],
+    quat_wxyz: [f64; 4],
+    moving: bool,
+    /// Standstills so far: each draws a new repeatability error.
+    visit: u64,
+}
+
+type SharedCell = Arc<Mutex<CellState>>;
+
+impl Args {
+    fn error_model(&self) -> RobotErrorModel {
+        RobotErrorModel {
+            repeatability_mm: self.repeatability_mm,
+            field_rms_mm: self.abs_error_rms_mm,
+            field_wavelength_mm: self.abs_error_wavelength_mm,
+            seed: self.error_seed,
+        }
+    }
+}
+
+/// Binds the cell feed and answers every `LED?` with the LED's actual position (base frame).
+fn spawn_cell_feed(args: &Args, listen: &str, cell: SharedCell) -> anyhow::Result<SocketAddr> {
+    let model = args.error_model();
+    model.validate().context("robot-sim error model")?;
+    let offset = args.led_offset_mm;
+    let socket = UdpSocket::bind(listen).with_context(|| format!("--cell-feed {listen}: cannot bind"))?;
+    let addr = socket.local_addr()?;
+    std::thread::Builder::new()
+        .name("cell-feed".into())
+        .spawn(move || {
+            let mut buf = [0u8; 64];
+            loop {
+                let Ok((n, from)) = socket.recv_from(&mut buf) else {
+                    continue;
+                };
+                if &buf[..n] != cell::FEED_REQUEST {
+                    continue;
+                }
+                let st = match cell.lock() {
+                    Ok(g) => *g,
+                    Err(p) => *p.into_inner(),
+                };
+                // While moving the robot follows its error field; at rest it also has the
+                // repeatability error of this standstill.
+                let flange = if st.moving {
+                    let f = model.field_mm(st.nominal_mm);
+                    [
+                        st.nominal_mm[0] + f[0],
+                        st.nominal_mm[1] + f[1],
+                        st.nominal_mm[2] + f[2],
+                    ]
+                } else {
+                    model.actual_mm(st.nominal_mm, st.visit)
+                };
+                let led = cell::led_position_mm(flange, st.quat_wxyz, offset);
+                let _ = socket.send_to(cell::encode_feed_answer(Some(led)).as_bytes(), from);
+            }
+        })
+        .context("start the cell feed thread")?;
+    Ok(addr)
 }
 
 fn parse_rsi_mode(s: &str) -> Result<RsiMode, String> {
@@ -190,13 +278,25 @@ pub fn serve(args: &Args, listener: TcpListener) -> anyhow::Result<()> {
     );
     let _ = stdout.flush();
     let mut robot = SimRobot::new(cfg);
+    let cell_state = Arc::new(Mutex::new(CellState {
+        nominal_mm: robot.pos_mm(),
+        quat_wxyz: robot.quat_wxyz(),
+        moving: false,
+        visit: 0,
+    }));
+    if let Some(listen) = &args.cell_feed {
+        let addr = spawn_cell_feed(args, listen, cell_state.clone())?;
+        let _ = writeln!(stdout, "robot-sim cell feed on {addr}");
+        let _ = stdout.flush();
+    }
     let mut conn = 0;
     loop {
         let (stream, peer) = listener.accept().context("accept")?;
         conn += 1;
         eprintln!("robot-sim: connection {conn} from {peer}");
         log.row(conn, "connected", None, None, robot.pos_mm(), &peer.to_string());
-        let why = connection(args, &mut robot, stream, &mut log, conn);
+        let why = connection(args, &mut robot, stream, &mut log, conn, &cell_state);
+        publish(&cell_state, &robot);
         robot.disconnect();
         eprintln!("robot-sim: connection {conn} ended: {why}");
         log.row(conn, "disconnected", None, None, robot.pos_mm(), &why);
@@ -220,7 +320,29 @@ fn send(stream: &mut TcpStream, msgs: &[RobotMsg]) -> std::io::Result<()> {
 }
 
 /// One connection; returns why it ended.
-fn connection(args: &Args, robot: &mut SimRobot, mut stream: TcpStream, log: &mut Log, conn: u32) -> String {
+/// Hands the robot's nominal pose to the cell feed; a new standstill draws a new repeatability error.
+fn publish(cell: &SharedCell, robot: &SimRobot) {
+    let mut st = match cell.lock() {
+        Ok(g) => g,
+        Err(p) => p.into_inner(),
+    };
+    let moving = robot.is_moving();
+    if st.moving && !moving {
+        st.visit += 1;
+    }
+    st.moving = moving;
+    st.nominal_mm = robot.pos_mm();
+    st.quat_wxyz = robot.quat_wxyz();
+}
+
+fn connection(
+    args: &Args,
+    robot: &mut SimRobot,
+    mut stream: TcpStream,
+    log: &mut Log,
+    conn: u32,
+    cell: &SharedCell,
+) -> String {
     let _ = stream.set_nodelay(true);
     if let Err(e) = stream.set_read_timeout(Some(Duration::from_millis(args.tick_ms.max(1)))) {
         return format!("socket setup: {e}");
@@ -261,6 +383,7 @@ fn connection(args: &Args, robot: &mut SimRobot, mut stream: TcpStream, log: &mu
         let dt = last.elapsed().as_secs_f64();
         last = Instant::now();
         replies.extend(robot.advance(dt));
+        publish(cell, robot);
         for e in robot.take_events() {
             let pos = robot.pos_mm();
             match e {

@@ -1,0 +1,367 @@
+//! The cell survey end to end with the real binaries as separate processes: `host-tools
+//! robot-sim` carries the LED on its flange with a simulated robot's errors (repeatability and a
+//! smooth absolute error field) and tells irtrackd's simulated cameras where the LED really is
+//! (`--cell-feed` / `[source.sim.cell]`, a transform only the simulator knows); `host-tools
+//! survey` drives the robot through a grid, registers tracker to robot base with the LED's
+//! flange offset solved from turned visits, and reports FRE/TRE. The figures are checked
+//! against what the configured error model predicts for exactly these points, in both
+//! directions, so a robot-sim that applied no error or a larger one fails the test. Finally the
+//! registration is pushed (signed) and irtrackd streams robot-base coordinates.
+//!
+//! The binaries belong to other packages: run `cargo build -p irtrack-firmware -p
+//! irtrack-host-tools` first (same target dir).
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::net::TcpStream;
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::*;
+use irtrack_core::camera::RigidTransform;
+use irtrack_core::params::RigParams;
+use irtrack_core::registration;
+use irtrack_core::stream::{PositionRecord, TrackStatus};
+use irtrack_firmware::source::sim::{SimCellConfig, SimSourceConfig};
+use irtrack_sim::Scenario;
+use irtrack_sim::cell::{RobotErrorModel, led_position_mm};
+use nalgebra::{UnitQuaternion, Vector3};
+
+/// The simulated robot's errors (robot-sim's flags below say the same).
+const MODEL: RobotErrorModel = RobotErrorModel {
+    repeatability_mm: 0.02,
+    field_rms_mm: 0.3,
+    // Short enough that a rigid registration cannot absorb the field over the 160 mm box.
+    field_wavelength_mm: 300.0,
+    seed: 7,
+};
+/// The LED on the flange (flange frame), unknown to the survey.
+const LED_OFFSET_MM: [f64; 3] = [12.0, -8.0, 95.0];
+/// Survey box (robot base frame) and the flange orientation: tool pointing down.
+const BOX_MIN: [f64; 3] = [420.0, -80.0, 220.0];
+const BOX_MAX: [f64; 3] = [580.0, 80.0, 380.0];
+const ORIENT: [f64; 4] = [0.0, 0.0, 1.0, 0.0];
+/// Tracker noise allowance per averaged point (exact simulated rig, ~0.02 mm per frame).
+const TRACKER_MM: f64 = 0.05;
+
+/// Reads child stdout lines until every prefix has been seen; returns the lines in that order.
+fn wait_lines(child: &mut Child, prefixes: &[&str], timeout: Duration) -> Vec<String> {
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                return;
+            }
+        }
+    });
+    let deadline = Instant::now() + timeout;
+    let mut found: Vec<Option<String>> = vec![None; prefixes.len()];
+    while found.iter().any(Option::is_none) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let line = rx
+            .recv_timeout(left)
+            .unwrap_or_else(|_| panic!("no {prefixes:?} lines within {timeout:?}"));
+        for (i, p) in prefixes.iter().enumerate() {
+            if line.starts_with(p) {
+                found[i] = Some(line.trim_start_matches(p).trim().to_string());
+            }
+        }
+    }
+    found.into_iter().map(Option::unwrap).collect()
+}
+
+/// The cell's truth: camera 0's pose in the robot base frame, chosen so that the middle of the
+/// survey volume's LED positions lies where the simulated cameras' axes cross.
+fn cam0_from_base(centre_cam0: Vector3<f64>) -> (UnitQuaternion<f64>, Vector3<f64>) {
+    let rot_deg = Vector3::new(20.0, -150.0, 35.0);
+    let r = UnitQuaternion::from_scaled_axis(rot_deg.map(f64::to_radians));
+    let mid = Vector3::from(BOX_MIN).lerp(&Vector3::from(BOX_MAX), 0.5);
+    let led_mid = Vector3::from(led_position_mm([mid.x, mid.y, mid.z], ORIENT, LED_OFFSET_MM));
+    (r, centre_cam0 - r * led_mid)
+}
+
+struct Row {
+    role: String,
+    robot: [f64; 3],
+    quat: [f64; 4],
+}
+
+fn read_csv(path: &Path) -> Vec<Row> {
+    let text = std::fs::read_to_string(path).unwrap();
+    text.lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            let n = |i: usize| f[i].parse::<f64>().unwrap();
+            Row {
+                role: f[1].to_string(),
+                robot: [n(2), n(3), n(4)],
+                quat: [n(5), n(6), n(7), n(8)],
+            }
+        })
+        .collect()
+}
+
+fn rms(v: &[f64]) -> f64 {
+    (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt()
+}
+
+/// The TRE the error field alone gives on these points: the LED's true positions with the field
+/// applied, registered rigidly on the fit points onto the nominal ones, residuals on the rest.
+fn predicted_tre(rows: &[Row]) -> (f64, f64) {
+    let nominal: Vec<[f64; 3]> = rows
+        .iter()
+        .map(|r| led_position_mm(r.robot, r.quat, LED_OFFSET_MM))
+        .collect();
+    let actual: Vec<[f64; 3]> = rows
+        .iter()
+        .map(|r| {
+            let f = MODEL.field_mm(r.robot);
+            let p = [r.robot[0] + f[0], r.robot[1] + f[1], r.robot[2] + f[2]];
+            led_position_mm(p, r.quat, LED_OFFSET_MM)
+        })
+        .collect();
+    let fit: Vec<usize> = (0..rows.len()).filter(|&i| rows[i].role != "holdout").collect();
+    let held: Vec<usize> = (0..rows.len()).filter(|&i| rows[i].role == "holdout").collect();
+    let reg = registration::fit(
+        &fit.iter().map(|&i| actual[i]).collect::<Vec<_>>(),
+        &fit.iter().map(|&i| nominal[i]).collect::<Vec<_>>(),
+        false,
+    )
+    .unwrap();
+    let res = registration::residuals_mm(
+        &reg,
+        &held.iter().map(|&i| actual[i]).collect::<Vec<_>>(),
+        &held.iter().map(|&i| nominal[i]).collect::<Vec<_>>(),
+    );
+    (rms(&res), res.iter().copied().fold(0.0, f64::max))
+}
+
+fn figure(out: &str, key: &str) -> f64 {
+    out.lines()
+        .find_map(|l| l.split(key).nth(1))
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no {key:?} in the survey output:\n{out}"))
+}
+
+#[test]
+fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
+    let t_start = Instant::now();
+    let dir = temp_dir("survey");
+    let sim_cfg = SimSourceConfig::default();
+    let scenario = Scenario::new(sim_cfg.scenario_config()).unwrap();
+    let rig: RigParams = scenario.rig().clone();
+    std::fs::write(dir.join("rig.irp"), rig.to_blob().unwrap()).unwrap();
+    let centre = sim_cfg
+        .scenario_config()
+        .rig
+        .workspace_centre_mm(sim_cfg.distance_mm);
+    let (r_cb, t_cb) = cam0_from_base(centre);
+
+    // The robot with its errors and the LED on its flange.
+    let mut sim = Command::new(bin("host-tools"))
+        .args([
+            "robot-sim",
+            "--listen",
+            "127.0.0.1:0",
+            "--cell-feed",
+            "127.0.0.1:0",
+        ])
+        .args(["--home", "500,0,300", "--speed-mm-s", "300"])
+        .arg(format!(
+            "--led-offset-mm={},{},{}",
+            LED_OFFSET_MM[0], LED_OFFSET_MM[1], LED_OFFSET_MM[2]
+        ))
+        .arg(format!("--repeatability-mm={}", MODEL.repeatability_mm))
+        .arg(format!("--abs-error-rms-mm={}", MODEL.field_rms_mm))
+        .arg(format!("--abs-error-wavelength-mm={}", MODEL.field_wavelength_mm))
+        .arg(format!("--error-seed={}", MODEL.seed))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let addrs = wait_lines(
+        &mut sim,
+        &["robot-sim listening on ", "robot-sim cell feed on "],
+        Duration::from_secs(10),
+    );
+    let _sim = Guard(sim);
+    let (robot_addr, feed_addr) = (addrs[0].clone(), addrs[1].clone());
+
+    // irtrackd on the cell's cameras; the transform is the simulator's secret.
+    let o = Command::new(bin("host-tools"))
+        .args(["keygen", "--out"])
+        .arg(dir.join("site"))
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "keygen: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let cell = SimCellConfig {
+        robot: feed_addr.clone(),
+        cam0_from_base_rotation_deg: r_cb.scaled_axis().map(f64::to_degrees).into(),
+        cam0_from_base_translation_mm: t_cb.into(),
+        timeout_ms: 20,
+    };
+    let config = dir.join("irtrackd.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[service]\nparams_from_simulator = true\n[params]\ntrusted_keys = [{:?}]\n\
+             [leds]\nbackend = \"none\"\n[source.sim]\n[source.sim.cell]\nrobot = {:?}\n\
+             cam0_from_base_rotation_deg = {:?}\ncam0_from_base_translation_mm = {:?}\n",
+            dir.join("site.pub").display().to_string(),
+            cell.robot,
+            cell.cam0_from_base_rotation_deg,
+            cell.cam0_from_base_translation_mm
+        ),
+    )
+    .unwrap();
+    let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
+    let stream = addr_field(&ready, "stream=");
+    let params_addr = addr_field(&ready, "params=");
+
+    let report = dir.join("report");
+    let survey = |tolerance_mm: f64, grid: &str, rotations: &str, params: &str, out: &str| {
+        Command::new(bin("host-tools"))
+            .args(["survey", "--stream", &stream.to_string(), "--robot", &robot_addr])
+            .arg(format!("--box-min={},{},{}", BOX_MIN[0], BOX_MIN[1], BOX_MIN[2]))
+            .arg(format!("--box-max={},{},{}", BOX_MAX[0], BOX_MAX[1], BOX_MAX[2]))
+            .arg(format!(
+                "--orient={},{},{},{}",
+                ORIENT[0], ORIENT[1], ORIENT[2], ORIENT[3]
+            ))
+            .args(["--grid", grid, "--frames", "10", "--settle-ms", "150"])
+            .args(["--rotations", rotations, "--rotation-deg", "25"])
+            .arg(format!("--tolerance-mm={tolerance_mm}"))
+            .arg("--params")
+            .arg(dir.join(params))
+            .arg("--out")
+            .arg(dir.join(out))
+            .arg("--report")
+            .arg(&report)
+            .output()
+            .unwrap()
+    };
+    let o = survey(1.0, "3,3,3", "6", "rig.irp", "registered.irp");
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(o.status.success(), "survey failed:\n{out}\n{err}");
+    for l in out.lines().filter(|l| !l.contains("point ")) {
+        println!("{l}");
+    }
+
+    // What the error model predicts for exactly the points the robot reported.
+    let rows = read_csv(&report.join("survey.csv"));
+    assert_eq!(rows.len(), 27 + 6, "every point measured:\n{out}");
+    let (pred_rms, pred_max) = predicted_tre(&rows);
+    let tre_line = out.lines().find(|l| l.starts_with("survey: TRE")).unwrap();
+    let tre_rms = figure(tre_line, "RMS ");
+    let tre_max = figure(tre_line, "max ");
+    let fre_rms = figure(&out, "FRE RMS ");
+    // Noise on top of the field: repeatability and the tracker's per-point noise.
+    let noise = (MODEL.repeatability_mm.powi(2) + TRACKER_MM.powi(2)).sqrt();
+    let upper = (MODEL.field_rms_mm.powi(2) + noise.powi(2)).sqrt();
+    println!(
+        "survey e2e: FRE RMS {fre_rms:.3} mm, TRE RMS {tre_rms:.3} mm (error field alone predicts \
+         {pred_rms:.3}, max {pred_max:.3}; noise allowance {noise:.3}; model bound {upper:.3}), {:.1} s",
+        t_start.elapsed().as_secs_f64()
+    );
+    // The field is visible at these points: otherwise the check below could not fail.
+    assert!(
+        pred_rms > 3.0 * noise,
+        "the error field is too small to check ({pred_rms:.3} mm)"
+    );
+    assert!(
+        (tre_rms - pred_rms).abs() <= 2.0 * noise + 0.15 * pred_rms,
+        "TRE RMS {tre_rms:.3} mm does not match the error model's {pred_rms:.3} mm"
+    );
+    assert!(
+        tre_rms <= upper,
+        "TRE RMS {tre_rms:.3} mm above the model bound {upper:.3} mm"
+    );
+    assert!(
+        fre_rms <= upper,
+        "FRE RMS {fre_rms:.3} mm above the model bound {upper:.3} mm"
+    );
+    assert!(tre_max <= 1.0, "pass/fail used a tolerance of 1 mm");
+    let md = std::fs::read_to_string(report.join("survey.md")).unwrap();
+    assert!(md.contains("**PASS**"), "{md}");
+    assert!(
+        std::fs::metadata(report.join("error-vs-distance.png"))
+            .unwrap()
+            .len()
+            > 1000
+    );
+
+    // The LED offset solved from the turned visits.
+    let offset_line = md.lines().find(|l| l.starts_with("LED offset")).unwrap();
+    let nums: Vec<f64> = offset_line
+        .split(['[', ']'])
+        .nth(1)
+        .unwrap()
+        .split(',')
+        .map(|v| v.trim().parse().unwrap())
+        .collect();
+    let off_err = (Vector3::from_column_slice(&nums) - Vector3::from(LED_OFFSET_MM)).norm();
+    println!("survey e2e: LED offset {offset_line:?}, {off_err:.3} mm from the truth");
+    assert!(off_err < 1.0, "LED offset {off_err:.3} mm off");
+
+    // The written registration against the cell's truth (it also absorbs the field's rigid part).
+    let reg = RigParams::from_blob(&std::fs::read(dir.join("registered.irp")).unwrap()).unwrap();
+    let w = reg.world_from_cam0.expect("registration written");
+    let truth = RigidTransform::from_parts(&r_cb.to_rotation_matrix().into_inner(), &t_cb).inverse();
+    let d_rot_deg = UnitQuaternion::from_matrix(&(w.rotation() * truth.rotation().transpose()))
+        .angle()
+        .to_degrees();
+    let d_t = (w.apply(&centre) - truth.apply(&centre)).norm();
+    println!("survey e2e: registration vs truth: rotation {d_rot_deg:.4}°, at the volume centre {d_t:.3} mm");
+    assert!(d_rot_deg < 0.2 && d_t < 1.0);
+
+    // Signed push: irtrackd now streams robot-base coordinates, where the robot put the LED.
+    let o = Command::new(bin("host-tools"))
+        .args(["push-params", "--retries", "0", "--to", &params_addr.to_string()])
+        .arg(dir.join("registered.irp"))
+        .arg("--sign-key")
+        .arg(dir.join("site.key"))
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "push-params: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let last = rows.last().unwrap();
+    let led_nominal = Vector3::from(led_position_mm(last.robot, last.quat, LED_OFFSET_MM));
+    let s = TcpStream::connect(stream).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let mut world = Vec::new();
+    for line in BufReader::new(s).lines() {
+        let r = PositionRecord::from_ndjson_line(&line.unwrap()).unwrap();
+        if r.world_frame && r.status == TrackStatus::Ok {
+            world.push(Vector3::from(r.position_mm.unwrap()));
+            if world.len() == 20 {
+                break;
+            }
+        }
+        assert!(Instant::now() < deadline, "no world-frame records after the push");
+    }
+    let mean = world.iter().sum::<Vector3<f64>>() / world.len() as f64;
+    let off = (mean - led_nominal).norm();
+    println!("survey e2e: streamed robot-base position {off:.3} mm from where the robot put the LED");
+    assert!(off < 1.0);
+
+    // Surveying again, now against the registered stream (a quick grid): a tolerance the cell
+    // cannot meet fails (non-zero exit, FAIL in the report).
+    let o = survey(0.05, "2,2,2", "0", "registered.irp", "again.irp");
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(!o.status.success() && out.contains("FAIL"), "{out}");
+    println!("survey e2e: total {:.1} s", t_start.elapsed().as_secs_f64());
+}
