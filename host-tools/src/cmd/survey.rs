@@ -35,7 +35,7 @@ use irtrack_core::camera::RigidTransform;
 use irtrack_core::registration;
 use irtrack_core::robot_proto::{HoldReason, PROTOCOL_VERSION, RobotMsg, TrackerMsg, seq_next};
 use irtrack_core::stream::{PositionRecord, TrackStatus};
-use irtrack_firmware::robot::safety::{Sample, SafetyConfig, Supervisor, Verdict};
+use irtrack_firmware::robot::safety::{SafetyConfig, Sample, Supervisor, Verdict};
 use nalgebra::{Matrix3, Matrix6, Quaternion, UnitQuaternion, Vector3, Vector6};
 
 /// Arguments.
@@ -761,6 +761,8 @@ pub fn apply_safety(args: &mut Args, cfg: &SafetyConfig) -> anyhow::Result<Vec<S
 pub struct SafetyGate {
     sup: Supervisor,
     t0: Instant,
+    /// The step reference, for the message: the last target sent, else the robot's TCP.
+    last_mm: [f64; 3],
 }
 
 impl SafetyGate {
@@ -773,6 +775,7 @@ impl SafetyGate {
         SafetyGate {
             sup,
             t0: Instant::now(),
+            last_mm: robot_pos_mm,
         }
     }
 
@@ -797,14 +800,20 @@ impl SafetyGate {
         match self.sup.check(&sample, now_ns, true) {
             Verdict::Send { pos_mm, quat_wxyz } => {
                 self.sup.committed(pos_mm, quat_wxyz, now_ns);
+                self.last_mm = pos_mm;
                 Ok(())
             }
             Verdict::Hold(reason) => bail!(
-                "the safety supervisor ([robot.safety]) held target [{:.2}, {:.2}, {:.2}] mm: {} ({reason:?}); \
-                 the survey stopped and the robot was left where it is",
+                "the safety supervisor ([robot.safety]) held target [{:.2}, {:.2}, {:.2}] mm \
+                 ({:.2} mm from [{:.2}, {:.2}, {:.2}]): {} ({reason:?}); the survey stopped and \
+                 the robot was left where it is",
                 pos_mm[0],
                 pos_mm[1],
                 pos_mm[2],
+                Vector3::from(pos_mm).metric_distance(&Vector3::from(self.last_mm)),
+                self.last_mm[0],
+                self.last_mm[1],
+                self.last_mm[2],
                 hold_text(reason)
             ),
         }
@@ -824,6 +833,9 @@ fn hold_text(r: HoldReason) -> &'static str {
         HoldReason::Stop => "stop",
     }
 }
+
+/// Moves are split this far below the step limits (floating-point headroom for the supervisor).
+const SPLIT_MARGIN: f64 = 0.999;
 
 /// Drives the robot through the plan and measures every point.
 fn measure(
@@ -849,11 +861,13 @@ fn measure(
         for (i, p) in plan.iter().enumerate() {
             let deadline = Instant::now() + Duration::from_secs_f64(args.point_timeout_s);
             let start_inside = (0..3).all(|k| at.0[k] >= lo[k] - 1e-6 && at.0[k] <= hi[k] + 1e-6);
+            // A hair below the limits: a move that is an exact multiple of them (a half turn in
+            // 10° steps) would otherwise exceed the supervisor's limit by rounding.
             for (pos, q) in split_move(
                 at,
                 (p.pos_mm, p.quat_wxyz),
-                args.max_step_mm,
-                args.max_rotation_step_deg,
+                args.max_step_mm * SPLIT_MARGIN,
+                args.max_rotation_step_deg * SPLIT_MARGIN,
             ) {
                 // The robot may start outside the box; from its first target on it stays inside.
                 let inside = (0..3).all(|k| pos[k] >= lo[k] - 1e-6 && pos[k] <= hi[k] + 1e-6);
