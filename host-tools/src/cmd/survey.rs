@@ -716,12 +716,12 @@ pub fn load_safety(path: &Path) -> anyhow::Result<SafetyConfig> {
 /// configured ones. Returns what was tightened, for the log.
 pub fn apply_safety(args: &mut Args, cfg: &SafetyConfig) -> anyhow::Result<Vec<String>> {
     const AXES: [&str; 3] = ["x", "y", "z"];
-    for i in 0..3 {
+    for (i, axis) in AXES.iter().enumerate() {
         ensure!(
             args.box_min[i] >= cfg.workspace_min_mm[i] && args.box_max[i] <= cfg.workspace_max_mm[i],
             "the survey box leaves the [robot.safety] workspace on axis {}: box {}..{} mm, \
              workspace {}..{} mm; nothing was moved",
-            AXES[i],
+            axis,
             args.box_min[i],
             args.box_max[i],
             cfg.workspace_min_mm[i],
