@@ -132,7 +132,7 @@ pub fn survey(bin_dir: &Path, out: &Path) -> Result<()> {
     )?;
     // The board's config as the survey reads it (`--safety`): its [robot.safety] limits govern
     // the survey. A separate file, as this irtrackd must not connect to the robot itself (the
-    // survey is the link's client). robot-sim moves at 250 mm/s, below max_speed_mm_s.
+    // survey is the link's client). robot-sim moves at 300 mm/s, below max_speed_mm_s.
     let safety = dir.join("board-irtrackd.toml");
     std::fs::write(
         &safety,
