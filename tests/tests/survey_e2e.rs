@@ -227,10 +227,24 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
     let stream = addr_field(&ready, "stream=");
     let params_addr = addr_field(&ready, "params=");
 
+    // The board's irtrackd.toml as the survey reads it: its [robot.safety] limits govern the
+    // survey (robot-sim moves at 300 mm/s, below max_speed_mm_s).
+    let board = |max_speed_mm_s: f64| {
+        format!(
+            "[leds]\nbackend = \"none\"\n[robot]\naddress = {robot_addr:?}\n[robot.safety]\n\
+             workspace_min_mm = [300.0, -300.0, 100.0]\nworkspace_max_mm = [700.0, 300.0, 500.0]\n\
+             max_step_mm = 40.0\nmax_speed_mm_s = {max_speed_mm_s:?}\nmax_gap_mm = 2.0\n\
+             max_age_ms = 200\nmax_rotation_step_deg = 10.0\n[robot.deadman]\nkind = \"flag\"\n"
+        )
+    };
+    let safety = dir.join("board-irtrackd.toml");
+    std::fs::write(&safety, board(400.0)).unwrap();
     let report = dir.join("report");
     let survey = |tolerance_mm: f64, grid: &str, rotations: &str, params: &str, out: &str| {
         Command::new(bin("host-tools"))
             .args(["survey", "--stream", &stream.to_string(), "--robot", &robot_addr])
+            .arg("--safety")
+            .arg(&safety)
             .arg(format!("--box-min={},{},{}", BOX_MIN[0], BOX_MIN[1], BOX_MIN[2]))
             .arg(format!("--box-max={},{},{}", BOX_MAX[0], BOX_MAX[1], BOX_MAX[2]))
             .arg(format!(
@@ -253,6 +267,10 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
     let out = String::from_utf8_lossy(&o.stdout).to_string();
     let err = String::from_utf8_lossy(&o.stderr).to_string();
     assert!(o.status.success(), "survey failed:\n{out}\n{err}");
+    assert!(
+        out.contains("under the [robot.safety] limits") && out.contains("step limit 40 mm"),
+        "{out}"
+    );
     for l in out.lines().filter(|l| !l.contains("point ")) {
         println!("{l}");
     }
@@ -363,5 +381,24 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
     let o = survey(0.05, "2,2,2", "0", "registered.irp", "again.irp");
     let out = String::from_utf8_lossy(&o.stdout).to_string();
     assert!(!o.status.success() && out.contains("FAIL"), "{out}");
+
+    // Under a speed limit the survey's targets break, the supervisor holds the second target: the
+    // survey stops at once, non-zero, with the reason on stderr and in the report.
+    std::fs::write(&safety, board(1.0)).unwrap();
+    let o = survey(1.0, "2,2,2", "0", "registered.irp", "held.irp");
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("safety supervisor") && err.contains("TooFast") && err.contains("stopped"),
+        "{err}"
+    );
+    let md = std::fs::read_to_string(report.join("survey.md")).unwrap();
+    assert!(md.contains("STOPPED") && md.contains("TooFast"), "{md}");
+    assert!(!dir.join("held.irp").exists());
+    // A box outside the workspace is refused before anything moves.
+    std::fs::write(&safety, board(400.0).replace("500.0]", "350.0]")).unwrap();
+    let o = survey(1.0, "2,2,2", "0", "registered.irp", "held.irp");
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(!o.status.success() && err.contains("axis z"), "{err}");
     println!("survey e2e: total {:.1} s", t_start.elapsed().as_secs_f64());
 }

@@ -130,6 +130,20 @@ pub fn survey(bin_dir: &Path, out: &Path) -> Result<()> {
              cam0_from_base_translation_mm = [496.641, 173.055, 539.725]\n"
         ),
     )?;
+    // The board's config as the survey reads it (`--safety`): its [robot.safety] limits govern
+    // the survey. A separate file, as this irtrackd must not connect to the robot itself (the
+    // survey is the link's client). robot-sim moves at 300 mm/s, below max_speed_mm_s.
+    let safety = dir.join("board-irtrackd.toml");
+    std::fs::write(
+        &safety,
+        format!(
+            "# Written by `cargo xtask demo` (survey step): the board's [robot] section.\n\
+             [leds]\nbackend = \"none\"\n[robot]\naddress = \"{robot_addr}\"\n[robot.safety]\n\
+             workspace_min_mm = [300.0, -300.0, 100.0]\nworkspace_max_mm = [700.0, 300.0, 500.0]\n\
+             max_step_mm = 40.0\nmax_speed_mm_s = 400.0\nmax_gap_mm = 2.0\nmax_age_ms = 200\n\
+             max_rotation_step_deg = 10.0\n[robot.deadman]\nkind = \"flag\"\n"
+        ),
+    )?;
     let (irtrackd, ready) = start_irtrackd(bin_dir, &config, &dir.join("state"))?;
     let stream = addr_field(&ready, "stream=")?;
     let scenario = out.join("scenario/rig.irp");
@@ -141,6 +155,8 @@ pub fn survey(bin_dir: &Path, out: &Path) -> Result<()> {
         "--robot",
         &robot_addr.to_string(),
     ])
+    .arg("--safety")
+    .arg(&safety)
     .args(["--box-min=420,-80,220", "--box-max=580,80,380", "--grid", "3,3,3"])
     .args([
         "--frames",

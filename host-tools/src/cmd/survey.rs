@@ -8,6 +8,13 @@
 //! robot acknowledges it and `--settle-ms` passed, `--frames` tracked positions from irtrackd's
 //! stream are averaged and the robot is asked for its pose (`POSE` → `A`, RAPID `CRobT`).
 //!
+//! The survey runs under the installation's safety limits: `--safety` names the board's
+//! `irtrackd.toml`, whose `[robot.safety]` section governs it as it governs live following. The
+//! survey box must lie inside the configured workspace (refused before anything moves), moves are
+//! split to no more than the configured `max_step_mm` / `max_rotation_step_deg` (the smaller of
+//! those and the CLI values), and every target passes irtrackd's own safety `Supervisor` before it
+//! is sent; a `Hold` stops the survey at once, the robot stays where it is and the report says why.
+//!
 //! Then: a rigid registration (Kabsch) of the tracker positions onto the robot's on the fit
 //! points, the Umeyama scale reported and checked against `--max-scale-error-ppm` (never
 //! fitted), the target registration error (TRE) on the held-out points, per axis, the error
@@ -28,6 +35,7 @@ use irtrack_core::camera::RigidTransform;
 use irtrack_core::registration;
 use irtrack_core::robot_proto::{HoldReason, PROTOCOL_VERSION, RobotMsg, TrackerMsg, seq_next};
 use irtrack_core::stream::{PositionRecord, TrackStatus};
+use irtrack_firmware::robot::safety::{SafetyConfig, Sample, Supervisor, Verdict};
 use nalgebra::{Matrix3, Matrix6, Quaternion, UnitQuaternion, Vector3, Vector6};
 
 /// Arguments.
@@ -45,6 +53,13 @@ pub struct Args {
     /// Survey box: max corner `x,y,z` mm.
     #[arg(long, value_parser = parse_v3)]
     pub box_max: [f64; 3],
+    /// The board's irtrackd config (`irtrackd.toml`, the same file the board uses): its
+    /// `[robot.safety]` limits govern the survey. The box must lie inside the workspace, steps and
+    /// turns are split to the configured limits, and every target passes the safety supervisor
+    /// before it is sent (a hold stops the survey). Required: a survey never drives a robot
+    /// without the installation's limits.
+    #[arg(long)]
+    pub safety: PathBuf,
     /// Grid points per axis `nx,ny,nz` (N = nx·ny·nz).
     #[arg(long, default_value = "3,3,3", value_parser = parse_grid)]
     pub grid: [usize; 3],
@@ -70,10 +85,12 @@ pub struct Args {
     /// solved from the turned visits (or taken as 0 — LED at the TCP — without them).
     #[arg(long, value_parser = parse_v3)]
     pub led_offset_mm: Option<[f64; 3]>,
-    /// Longest step between consecutive targets; longer moves are split.
+    /// Longest step between consecutive targets; longer moves are split (never longer than
+    /// `[robot.safety] max_step_mm`).
     #[arg(long, default_value_t = 50.0)]
     pub max_step_mm: f64,
-    /// Largest rotation between consecutive targets; larger turns are split.
+    /// Largest rotation between consecutive targets; larger turns are split (never larger than
+    /// `[robot.safety] max_rotation_step_deg`).
     #[arg(long, default_value_t = 10.0)]
     pub max_rotation_step_deg: f64,
     /// Pass when the largest held-out error (TRE max) is at most this.
@@ -676,8 +693,156 @@ pub fn analyse(points: &[Measured], led_offset_mm: Option<[f64; 3]>) -> anyhow::
     })
 }
 
+/// Reads the `[robot.safety]` limits from the board's irtrackd config.
+pub fn load_safety(path: &Path) -> anyhow::Result<SafetyConfig> {
+    let cfg = irtrack_firmware::config::Config::load(path)
+        .with_context(|| format!("--safety {}: cannot load the irtrackd config", path.display()))?;
+    let robot = cfg.robot.with_context(|| {
+        format!(
+            "--safety {}: the file has no [robot.safety] section (the survey runs only under the \
+             installation's safety limits: give the board's irtrackd.toml)",
+            path.display()
+        )
+    })?;
+    robot
+        .safety
+        .validate()
+        .map_err(|e| anyhow::anyhow!("--safety {}: {e}", path.display()))?;
+    Ok(robot.safety)
+}
+
+/// Applies the safety limits to the arguments before anything moves: the survey box must lie
+/// inside the workspace, and the step and rotation limits become the smaller of the CLI's and the
+/// configured ones. Returns what was tightened, for the log.
+pub fn apply_safety(args: &mut Args, cfg: &SafetyConfig) -> anyhow::Result<Vec<String>> {
+    const AXES: [&str; 3] = ["x", "y", "z"];
+    for (i, axis) in AXES.iter().enumerate() {
+        ensure!(
+            args.box_min[i] >= cfg.workspace_min_mm[i] && args.box_max[i] <= cfg.workspace_max_mm[i],
+            "the survey box leaves the [robot.safety] workspace on axis {}: box {}..{} mm, \
+             workspace {}..{} mm; nothing was moved",
+            axis,
+            args.box_min[i],
+            args.box_max[i],
+            cfg.workspace_min_mm[i],
+            cfg.workspace_max_mm[i]
+        );
+    }
+    let mut notes = Vec::new();
+    if cfg.max_step_mm < args.max_step_mm {
+        notes.push(format!(
+            "step limit {} mm ([robot.safety] max_step_mm) instead of --max-step-mm {}",
+            cfg.max_step_mm, args.max_step_mm
+        ));
+        args.max_step_mm = cfg.max_step_mm;
+    }
+    if cfg.max_rotation_step_deg < args.max_rotation_step_deg {
+        notes.push(format!(
+            "rotation step limit {}° ([robot.safety] max_rotation_step_deg) instead of \
+             --max-rotation-step-deg {}",
+            cfg.max_rotation_step_deg, args.max_rotation_step_deg
+        ));
+        args.max_rotation_step_deg = cfg.max_rotation_step_deg;
+    }
+    Ok(notes)
+}
+
+/// irtrackd's safety supervisor in front of the survey's robot link: every target is judged as a
+/// tracker sample would be in live following before it goes out.
+///
+/// Timestamps: a survey target is not a tracked position, so its "capture time" is the monotonic
+/// time at which the survey commits to sending it (age 0, hence never stale). The supervisor's
+/// speed rule then measures the distance between consecutive targets over the time between
+/// their sends. Every target is a fine point (the next one is sent only after the robot reported
+/// the previous one reached), so this is the rate at which the survey commands motion, and it is
+/// bounded by how fast the robot actually travelled the previous, equally long, segment of a
+/// split move; the robot's own travel speed is set by its controller (RAPID survey mode,
+/// robot-sim `--speed-mm-s`), which this check cannot see ahead of time.
+pub struct SafetyGate {
+    sup: Supervisor,
+    t0: Instant,
+    /// The step reference, for the message: the last target sent, else the robot's TCP.
+    last_mm: [f64; 3],
+}
+
+impl SafetyGate {
+    /// Connected: the step reference is the robot's reported TCP; then armed (the survey is the
+    /// operator's explicit start).
+    pub fn new(cfg: SafetyConfig, robot_pos_mm: [f64; 3]) -> Self {
+        let mut sup = Supervisor::new(cfg);
+        sup.on_connect(robot_pos_mm);
+        sup.enable();
+        SafetyGate {
+            sup,
+            t0: Instant::now(),
+            last_mm: robot_pos_mm,
+        }
+    }
+
+    /// The robot reported its TCP (after a point was reached).
+    pub fn on_robot_position(&mut self, pos_mm: [f64; 3]) {
+        self.sup.on_robot_position(pos_mm);
+    }
+
+    /// Judges one target now; `Ok` means it may be sent (and is recorded as sent).
+    pub fn check(&mut self, pos_mm: [f64; 3], quat_wxyz: [f64; 4]) -> anyhow::Result<()> {
+        // +1: a capture time of 0 would look like "before the previous target".
+        let now_ns = self.t0.elapsed().as_nanos() as u64 + 1;
+        let sample = Sample {
+            frame: 0,
+            capture_ts_ns: now_ns,
+            position_mm: Some(pos_mm),
+            orientation_wxyz: Some(quat_wxyz),
+            gap_mm: 0.0,
+            status: TrackStatus::Ok,
+            world_frame: true,
+        };
+        match self.sup.check(&sample, now_ns, true) {
+            Verdict::Send { pos_mm, quat_wxyz } => {
+                self.sup.committed(pos_mm, quat_wxyz, now_ns);
+                self.last_mm = pos_mm;
+                Ok(())
+            }
+            Verdict::Hold(reason) => bail!(
+                "the safety supervisor ([robot.safety]) held target [{:.2}, {:.2}, {:.2}] mm \
+                 ({:.2} mm from [{:.2}, {:.2}, {:.2}]): {} ({reason:?}); the survey stopped and \
+                 the robot was left where it is",
+                pos_mm[0],
+                pos_mm[1],
+                pos_mm[2],
+                Vector3::from(pos_mm).metric_distance(&Vector3::from(self.last_mm)),
+                self.last_mm[0],
+                self.last_mm[1],
+                self.last_mm[2],
+                hold_text(reason)
+            ),
+        }
+    }
+}
+
+fn hold_text(r: HoldReason) -> &'static str {
+    match r {
+        HoldReason::Workspace => "outside the workspace",
+        HoldReason::StepTooLarge => "step or rotation from the previous target too large",
+        HoldReason::TooFast => "implied speed above max_speed_mm_s",
+        HoldReason::PoorQuality => "poor quality",
+        HoldReason::Stale => "stale",
+        HoldReason::MarkerLost => "marker lost",
+        HoldReason::NotEnabled => "not enabled",
+        HoldReason::Deadman => "deadman released",
+        HoldReason::Stop => "stop",
+    }
+}
+
+/// Moves are split this far below the step limits (floating-point headroom for the supervisor).
+const SPLIT_MARGIN: f64 = 0.999;
+
 /// Drives the robot through the plan and measures every point.
-fn measure(args: &Args, plan: &[Planned]) -> anyhow::Result<(Vec<Measured>, bool, Vec<String>)> {
+fn measure(
+    args: &Args,
+    plan: &[Planned],
+    safety: &SafetyConfig,
+) -> anyhow::Result<(Vec<Measured>, bool, Vec<String>)> {
     let mut cell = Cell::connect(&args.robot, &args.stream)?;
     println!(
         "survey: robot {:?} connected; {} points",
@@ -688,6 +853,7 @@ fn measure(args: &Args, plan: &[Planned]) -> anyhow::Result<(Vec<Measured>, bool
         // Start from where the robot stands.
         let t0 = Instant::now() + Duration::from_secs(10);
         let mut at = cell.pose(t0)?;
+        let mut gate = SafetyGate::new(safety.clone(), at.0);
         let (lo, hi) = (args.box_min, args.box_max);
         let mut out = Vec::new();
         let mut skipped = Vec::new();
@@ -695,11 +861,13 @@ fn measure(args: &Args, plan: &[Planned]) -> anyhow::Result<(Vec<Measured>, bool
         for (i, p) in plan.iter().enumerate() {
             let deadline = Instant::now() + Duration::from_secs_f64(args.point_timeout_s);
             let start_inside = (0..3).all(|k| at.0[k] >= lo[k] - 1e-6 && at.0[k] <= hi[k] + 1e-6);
+            // A hair below the limits: a move that is an exact multiple of them (a half turn in
+            // 10° steps) would otherwise exceed the supervisor's limit by rounding.
             for (pos, q) in split_move(
                 at,
                 (p.pos_mm, p.quat_wxyz),
-                args.max_step_mm,
-                args.max_rotation_step_deg,
+                args.max_step_mm * SPLIT_MARGIN,
+                args.max_rotation_step_deg * SPLIT_MARGIN,
             ) {
                 // The robot may start outside the box; from its first target on it stays inside.
                 let inside = (0..3).all(|k| pos[k] >= lo[k] - 1e-6 && pos[k] <= hi[k] + 1e-6);
@@ -710,11 +878,13 @@ fn measure(args: &Args, plan: &[Planned]) -> anyhow::Result<(Vec<Measured>, bool
                     pos[1],
                     pos[2]
                 );
+                gate.check(pos, q)?;
                 cell.move_to(pos, q, deadline)?;
             }
             let settle = Instant::now() + Duration::from_millis(args.settle_ms);
             let (samples, w) = cell.average(settle, args.frames, deadline)?;
             let pose = cell.pose(deadline)?;
+            gate.on_robot_position(pose.0);
             at = (p.pos_mm, p.quat_wxyz);
             if samples.len() < args.frames {
                 let why = format!(
@@ -765,7 +935,7 @@ fn measure(args: &Args, plan: &[Planned]) -> anyhow::Result<(Vec<Measured>, bool
 }
 
 /// Runs the subcommand.
-pub fn run(args: Args) -> anyhow::Result<()> {
+pub fn run(mut args: Args) -> anyhow::Result<()> {
     ensure!(args.frames >= 1, "--frames must be at least 1");
     ensure!(
         args.max_step_mm > 0.0 && args.max_rotation_step_deg > 0.0,
@@ -776,10 +946,31 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(p) => Some(crate::opencv_yaml::load_params_any(p)?),
         None => None,
     };
+    let safety = load_safety(&args.safety)?;
     let plan = plan(&args)?;
+    for note in apply_safety(&mut args, &safety)? {
+        println!("survey: {note}");
+    }
+    println!(
+        "survey: under the [robot.safety] limits of {} (workspace {:?}..{:?} mm, step {} mm, \
+         rotation step {}°, speed {} mm/s)",
+        args.safety.display(),
+        safety.workspace_min_mm,
+        safety.workspace_max_mm,
+        args.max_step_mm,
+        args.max_rotation_step_deg,
+        safety.max_speed_mm_s
+    );
     std::fs::create_dir_all(&args.report)
         .with_context(|| format!("{}: cannot create the report directory", args.report.display()))?;
-    let (points, world, skipped) = measure(&args, &plan)?;
+    let (points, world, skipped) = match measure(&args, &plan, &safety) {
+        Ok(r) => r,
+        Err(e) => {
+            let md = format!("# Cell survey\n\n**STOPPED**: {e:#}\n");
+            let _ = std::fs::write(args.report.join("survey.md"), md);
+            return Err(e.context("survey STOPPED"));
+        }
+    };
     // Positions in camera 0's frame, for the distance to the cameras (and the registration).
     let old_world = if world {
         let w = params
@@ -1156,10 +1347,80 @@ mod tests {
             .collect()
     }
 
+    fn safety_cfg() -> SafetyConfig {
+        SafetyConfig {
+            workspace_min_mm: [300.0, -200.0, 100.0],
+            workspace_max_mm: [700.0, 200.0, 500.0],
+            max_step_mm: 20.0,
+            max_speed_mm_s: 250.0,
+            max_gap_mm: 1.0,
+            max_age_ms: 100,
+            require_world_frame: true,
+            max_rotation_step_deg: 5.0,
+        }
+    }
+
+    #[test]
+    fn safety_refuses_a_box_outside_the_workspace_and_tightens_steps() {
+        let mut a = args();
+        let notes = apply_safety(&mut a, &safety_cfg()).unwrap();
+        assert_eq!((a.max_step_mm, a.max_rotation_step_deg), (20.0, 5.0));
+        assert_eq!(notes.len(), 2, "{notes:?}");
+        assert!(notes[0].contains("max_step_mm"), "{notes:?}");
+        let mut a = args();
+        a.box_max[2] = 550.0;
+        let e = apply_safety(&mut a, &safety_cfg()).unwrap_err().to_string();
+        assert!(
+            e.contains("axis z") && e.contains("550") && e.contains("500"),
+            "{e}"
+        );
+        // The CLI's smaller limits stay.
+        let mut a = args();
+        a.max_step_mm = 5.0;
+        assert!(apply_safety(&mut a, &safety_cfg()).unwrap().len() == 1);
+        assert_eq!(a.max_step_mm, 5.0);
+    }
+
+    #[test]
+    fn safety_file_without_a_robot_section_is_refused() {
+        let p = std::env::temp_dir().join(format!("survey-safety-{}.toml", std::process::id()));
+        std::fs::write(&p, "[leds]\nbackend = \"none\"\n").unwrap();
+        let e = format!("{:#}", load_safety(&p).unwrap_err());
+        let _ = std::fs::remove_file(&p);
+        assert!(e.contains("no [robot.safety] section"), "{e}");
+    }
+
+    #[test]
+    fn safety_gate_passes_split_moves_and_holds_what_the_supervisor_holds() {
+        let q = [0.0, 0.0, 1.0, 0.0];
+        let start = [500.0, 0.0, 300.0];
+        // Split to the limits, a move inside the workspace passes target by target.
+        let mut gate = SafetyGate::new(safety_cfg(), start);
+        for (p, q) in split_move((start, q), ([520.0, 30.0, 320.0], q), 20.0, 5.0) {
+            gate.check(p, q).unwrap();
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        // A step the supervisor's limit forbids (e.g. a split with a larger CLI step) is held.
+        let mut gate = SafetyGate::new(safety_cfg(), start);
+        let moves = split_move((start, q), ([560.0, 0.0, 300.0], q), 30.0, 5.0);
+        let e = gate.check(moves[0].0, moves[0].1).unwrap_err().to_string();
+        assert!(e.contains("StepTooLarge") && e.contains("stopped"), "{e}");
+        // And a target outside the workspace (the robot may start outside the box).
+        let mut gate = SafetyGate::new(safety_cfg(), [690.0, 0.0, 300.0]);
+        let e = gate.check([710.0, 0.0, 300.0], q).unwrap_err().to_string();
+        assert!(e.contains("Workspace"), "{e}");
+        // And targets commanded faster than max_speed_mm_s.
+        let mut gate = SafetyGate::new(safety_cfg(), start);
+        gate.check([510.0, 0.0, 300.0], q).unwrap();
+        let e = gate.check([520.0, 0.0, 300.0], q).unwrap_err().to_string();
+        assert!(e.contains("TooFast"), "{e}");
+    }
+
     fn args() -> Args {
         Args {
             stream: String::new(),
             robot: String::new(),
+            safety: PathBuf::new(),
             box_min: [400.0, -100.0, 200.0],
             box_max: [600.0, 100.0, 400.0],
             grid: [3, 3, 3],
