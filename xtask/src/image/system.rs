@@ -942,10 +942,21 @@ fn camera_loss_steps(q: &mut Qemu, port: u16) -> Result<String> {
         util::OPERATOR_PASSWORD,
         &format!(r#"{{"cameras": [{{"camera": 1, "gain": {LIVE_GAIN}}}]}}"#),
     )?;
-    let tuned = Json::parse(&answer).ok();
-    let gain_before = tuned.as_ref().and_then(|t| tuning_gain(t, 1));
-    if code != 200 || gain_before != Some(LIVE_GAIN as f64) {
+    if code != 200 {
         bail!("setting camera 1's gain to {LIVE_GAIN} answered {code}: {answer}");
+    }
+    // The loop applies it before its next set, which under emulation can be after the answer.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let (_, answer) = util::http(addr, "GET", "/api/tuning")?;
+        let gain = Json::parse(&answer).ok().and_then(|t| tuning_gain(&t, 1));
+        if gain == Some(LIVE_GAIN as f64) {
+            break;
+        }
+        if Instant::now() > deadline {
+            bail!("camera 1's gain still reads {gain:?} 10 s after setting {LIVE_GAIN}: {answer}");
+        }
+        thread::sleep(Duration::from_millis(200));
     }
     let s0 = get_status(port)?;
     let reconnects0 = num(&s0, "source.reconnects")?;
