@@ -114,6 +114,8 @@ pub struct Engine {
     /// Live tuning from the set-up view (see [`crate::tuning`]).
     tuning: Option<Arc<TuningHandle>>,
     tuning_seen: u64,
+    /// Source reconnects already reflected in the tuning report.
+    reconnects_seen: u64,
 }
 
 impl Engine {
@@ -153,6 +155,7 @@ impl Engine {
             tap_last_ns: 0,
             tuning: None,
             tuning_seen: 0,
+            reconnects_seen: 0,
         }
     }
 
@@ -523,6 +526,15 @@ impl Engine {
         self.status.sets_dropped.store(s.sets_dropped, R);
         self.status.unpaired_dropped.store(s.unpaired_dropped, R);
         self.status.reconnects.store(s.reconnects, R);
+        if s.reconnects != self.reconnects_seen {
+            self.reconnects_seen = s.reconnects;
+            // A reopened camera may not hold the values it had (the source writes the live
+            // ones again; a driver may still refuse them): show what it has now. Rare, so the
+            // device queries here do not matter to the loop's timing.
+            if let Some(tuning) = &self.tuning {
+                tuning.refresh_cameras(self.source.controls());
+            }
+        }
         self.status
             .pairing_error_last_ns
             .store(self.set.pairing_error_ns, R);

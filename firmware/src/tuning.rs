@@ -214,6 +214,13 @@ impl TuningHandle {
         }
     }
 
+    /// Replaces the cameras' reported values, keeping the last error (after a reopen).
+    pub fn refresh_cameras(&self, cameras: Vec<CameraControls>) {
+        if let Ok(mut c) = self.cameras.lock() {
+            *c = cameras;
+        }
+    }
+
     pub fn set_max_dn(&self, max_dn: u32) {
         self.max_dn.store(u64::from(max_dn), Ordering::Relaxed);
     }

@@ -267,6 +267,76 @@ async fn every_change_needs_an_operator_sign_in() {
     running.shutdown().await;
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn repeated_wrong_passwords_pause_checks_but_not_open_sessions() {
+    let dir = TempDir::new("web-guess");
+    let running = app::start(config(&dir, Some(PASSWORD)), Overrides::default())
+        .await
+        .unwrap();
+    let addr = running.addrs.status;
+    let a = request(
+        addr,
+        "POST",
+        "/api/login",
+        &[],
+        &format!(r#"{{"password": "{PASSWORD}"}}"#),
+    )
+    .await;
+    assert_eq!(a.code, 200, "{}", a.text());
+    let cookie = (
+        "Cookie",
+        a.header("set-cookie")
+            .unwrap()
+            .split(';')
+            .next()
+            .unwrap()
+            .to_string(),
+    );
+    // Someone guesses, by Basic and by the sign-in form.
+    for i in 0..5 {
+        let a = if i % 2 == 0 {
+            let wrong = ("Authorization", basic_header(&format!("guess{i}")));
+            request(addr, "POST", "/api/tuning", &[wrong], r#"{"threshold_dn": 41}"#).await
+        } else {
+            request(
+                addr,
+                "POST",
+                "/api/login",
+                &[],
+                &format!(r#"{{"password": "guess{i}"}}"#),
+            )
+            .await
+        };
+        assert_eq!(a.code, 401, "guess {i}: {}", a.text());
+    }
+    // Now even the right password waits, with a clear answer and Retry-After.
+    for a in [
+        request(addr, "POST", "/api/tuning", &[basic()], r#"{"threshold_dn": 41}"#).await,
+        request(
+            addr,
+            "POST",
+            "/api/login",
+            &[],
+            &format!(r#"{{"password": "{PASSWORD}"}}"#),
+        )
+        .await,
+    ] {
+        assert_eq!(a.code, 429, "{}", a.text());
+        assert!(
+            a.text().contains("too many wrong operator passwords"),
+            "{}",
+            a.text()
+        );
+        let retry: u64 = a.header("retry-after").expect("Retry-After").parse().unwrap();
+        assert!((1..=10).contains(&retry), "Retry-After {retry}");
+    }
+    // The operator already signed in keeps working.
+    let a = request(addr, "POST", "/api/tuning", &[cookie], r#"{"threshold_dn": 42}"#).await;
+    assert_eq!(a.code, 200, "{}", a.text());
+    assert_eq!(a.json()["threshold_dn"], 42);
+    running.shutdown().await;
+}
+
 fn camera_blobs(st: &serde_json::Value) -> Vec<u64> {
     st["source"]["cameras"]
         .as_array()

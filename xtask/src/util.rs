@@ -283,7 +283,7 @@ pub fn is_root() -> bool {
 /// One HTTP/1.0 request to irtrackd's status port over a raw socket (no HTTP client crate);
 /// returns the status code (0 if unreadable) and the trimmed body.
 pub fn http(addr: SocketAddr, method: &str, path: &str) -> Result<(u16, String)> {
-    http_with(addr, method, path, "")
+    http_with(addr, method, path, "", "")
 }
 
 /// Operator password the demo and soak configure on their irtrackd (changes need a sign-in).
@@ -314,17 +314,40 @@ pub fn operator_hash(irtrackd: &Path) -> Result<String> {
 
 /// [`http`] signed in as the operator (HTTP Basic with [`OPERATOR_PASSWORD`]).
 pub fn http_operator(addr: SocketAddr, method: &str, path: &str) -> Result<(u16, String)> {
-    use base64::Engine as _;
-    let token = base64::engine::general_purpose::STANDARD.encode(format!("operator:{OPERATOR_PASSWORD}"));
-    http_with(addr, method, path, &format!("Authorization: Basic {token}\r\n"))
+    http_as(addr, method, path, OPERATOR_PASSWORD, "")
 }
 
-fn http_with(addr: SocketAddr, method: &str, path: &str, extra_headers: &str) -> Result<(u16, String)> {
+/// One request with a JSON body, signed in with `password` (HTTP Basic).
+pub fn http_as(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    password: &str,
+    json_body: &str,
+) -> Result<(u16, String)> {
+    use base64::Engine as _;
+    let token = base64::engine::general_purpose::STANDARD.encode(format!("operator:{password}"));
+    let mut headers = format!("Authorization: Basic {token}\r\n");
+    if !json_body.is_empty() {
+        headers.push_str("Content-Type: application/json\r\n");
+    }
+    http_with(addr, method, path, &headers, json_body)
+}
+
+fn http_with(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    extra_headers: &str,
+    body: &str,
+) -> Result<(u16, String)> {
     let mut s = std::net::TcpStream::connect(addr).with_context(|| format!("connecting to {addr}"))?;
-    s.set_read_timeout(Some(Duration::from_secs(10)))?;
+    // Long enough for a password check under full-system emulation (Argon2 in QEMU TCG).
+    s.set_read_timeout(Some(Duration::from_secs(30)))?;
     write!(
         s,
-        "{method} {path} HTTP/1.0\r\nHost: xtask\r\n{extra_headers}\r\n"
+        "{method} {path} HTTP/1.0\r\nHost: xtask\r\n{extra_headers}Content-Length: {}\r\n\r\n{body}",
+        body.len()
     )?;
     let mut resp = String::new();
     s.read_to_string(&mut resp)

@@ -26,6 +26,11 @@ pub const BASIC_USER: &str = "operator";
 pub const SESSION_TTL: Duration = Duration::from_secs(12 * 3600);
 /// Sessions kept at once; signing in beyond this forgets the oldest.
 const MAX_SESSIONS: usize = 32;
+/// Wrong passwords in a row before password checks pause.
+const FAILURES_BEFORE_PAUSE: u32 = 5;
+/// First pause; each further wrong password after a pause doubles it, up to [`MAX_PAUSE`].
+const FIRST_PAUSE: Duration = Duration::from_secs(10);
+const MAX_PAUSE: Duration = Duration::from_secs(300);
 
 /// Hashes `password` as an Argon2id PHC string (random salt).
 pub fn hash_password(password: &str) -> Result<String> {
@@ -68,35 +73,71 @@ pub enum Refusal {
     NotSignedIn,
     /// Credentials were sent but are wrong.
     BadCredentials,
+    /// Too many wrong passwords in a row: no password is checked for this many seconds.
+    Paused { retry_after_s: u64 },
 }
 
 impl Refusal {
-    pub fn message(self) -> &'static str {
+    pub fn message(self) -> String {
         match self {
-            Refusal::NotConfigured => {
-                "no operator password is configured, so changes are refused: run \
+            Refusal::NotConfigured => "no operator password is configured, so changes are refused: run \
                  `irtrackd --hash-password` and put the result in [service] \
                  operator_password_hash (docs/security.md)\n"
-            }
-            Refusal::NotSignedIn => {
-                "sign in first: POST /api/login with {\"password\": ...}, or send HTTP Basic \
-                 credentials for user \"operator\"\n"
-            }
-            Refusal::BadCredentials => "wrong operator password\n",
+                .into(),
+            Refusal::NotSignedIn => "sign in first: POST /api/login with {\"password\": ...}, or send HTTP \
+                 Basic credentials for user \"operator\"\n"
+                .into(),
+            Refusal::BadCredentials => "wrong operator password\n".into(),
+            Refusal::Paused { retry_after_s } => format!(
+                "too many wrong operator passwords in a row: password checks are paused, try again \
+                 in {retry_after_s} s (sessions already signed in keep working)\n"
+            ),
         }
     }
 
-    /// 401 with the message.
+    /// 401 with the message; 429 with `Retry-After` while password checks are paused.
     pub fn response(self) -> Response {
-        super::status::text(StatusCode::UNAUTHORIZED, self.message())
+        match self {
+            Refusal::Paused { retry_after_s } => {
+                let mut r = super::status::text(StatusCode::TOO_MANY_REQUESTS, self.message());
+                r.headers_mut()
+                    .insert(header::RETRY_AFTER, axum::http::HeaderValue::from(retry_after_s));
+                r
+            }
+            _ => super::status::text(StatusCode::UNAUTHORIZED, self.message()),
+        }
     }
 }
 
-/// Operator credential and the open sessions.
+/// Wrong-password bookkeeping: guessing is slowed to a few tries per pause.
 #[derive(Debug, Default)]
+struct Failures {
+    in_a_row: u32,
+    pause: Duration,
+    paused_until: Option<tokio::time::Instant>,
+}
+
+/// Operator credential and the open sessions.
+#[derive(Debug)]
 pub struct OperatorAuth {
     hash: Option<String>,
     sessions: Mutex<HashMap<String, Instant>>,
+    /// One Argon2 check at a time: each takes ~19 MiB and a core for a while, and a flood of
+    /// requests must not take the board's memory or the processing loop's CPU.
+    checking: tokio::sync::Semaphore,
+    failures: Mutex<Failures>,
+}
+
+impl Default for OperatorAuth {
+    /// No password: every change refused.
+    fn default() -> Self {
+        Self {
+            hash: None,
+            sessions: Mutex::new(HashMap::new()),
+            checking: tokio::sync::Semaphore::new(1),
+            failures: Mutex::new(Failures::default()),
+        }
+    }
 }
 
 impl OperatorAuth {
@@ -107,8 +148,63 @@ impl OperatorAuth {
         }
         Ok(Self {
             hash,
-            sessions: Mutex::new(HashMap::new()),
+            ..Self::default()
         })
+    }
+
+    /// Checks a password from a request: one check at a time, off the async threads, and
+    /// refused without checking while a pause after repeated wrong passwords lasts (a right
+    /// password then waits too, or the pause would not slow guessing).
+    pub async fn check_password(
+        self: &std::sync::Arc<Self>,
+        password: String,
+    ) -> std::result::Result<(), Refusal> {
+        if !self.configured() {
+            return Err(Refusal::NotConfigured);
+        }
+        self.paused()?;
+        let Ok(_permit) = self.checking.acquire().await else {
+            return Err(Refusal::BadCredentials);
+        };
+        // A check that waited for the permit may find a pause started meanwhile.
+        self.paused()?;
+        let me = self.clone();
+        let ok = tokio::task::spawn_blocking(move || me.verify(&password))
+            .await
+            .unwrap_or(false);
+        let Ok(mut f) = self.failures.lock() else {
+            return Err(Refusal::BadCredentials);
+        };
+        if ok {
+            *f = Failures::default();
+            return Ok(());
+        }
+        f.in_a_row += 1;
+        if f.in_a_row >= FAILURES_BEFORE_PAUSE {
+            f.pause = if f.pause.is_zero() {
+                FIRST_PAUSE
+            } else {
+                (f.pause * 2).min(MAX_PAUSE)
+            };
+            f.paused_until = Some(tokio::time::Instant::now() + f.pause);
+            tracing::warn!(
+                wrong_in_a_row = f.in_a_row,
+                pause_s = f.pause.as_secs(),
+                "operator password checks paused after repeated wrong passwords"
+            );
+        }
+        Err(Refusal::BadCredentials)
+    }
+
+    /// `Err(Paused)` while a pause lasts.
+    fn paused(&self) -> std::result::Result<(), Refusal> {
+        let now = tokio::time::Instant::now();
+        match self.failures.lock().ok().and_then(|f| f.paused_until) {
+            Some(until) if until > now => Err(Refusal::Paused {
+                retry_after_s: (until - now).as_secs_f64().ceil() as u64,
+            }),
+            _ => Ok(()),
+        }
     }
 
     pub fn configured(&self) -> bool {
@@ -175,11 +271,7 @@ impl OperatorAuth {
         let Some(password) = basic_password(headers) else {
             return Err(Refusal::NotSignedIn);
         };
-        let me = self.clone();
-        let ok = tokio::task::spawn_blocking(move || me.verify(&password))
-            .await
-            .unwrap_or(false);
-        if ok { Ok(()) } else { Err(Refusal::BadCredentials) }
+        self.check_password(password).await
     }
 }
 
@@ -233,6 +325,56 @@ mod tests {
         assert!(!a.verify("s3cret "));
         assert!(hash_password("").is_err());
         assert!(check_hash("plain").is_err());
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn wrong_passwords_in_a_row_pause_checks_that_double_then_reset() {
+        let a = std::sync::Arc::new(OperatorAuth::new(Some(hash_password("right").unwrap())).unwrap());
+        let check = |p: &str| {
+            let a = a.clone();
+            let p = p.to_string();
+            async move { a.check_password(p).await }
+        };
+        // Four wrong, then right: no pause, and the count starts again.
+        for _ in 0..FAILURES_BEFORE_PAUSE - 1 {
+            assert_eq!(check("wrong").await, Err(Refusal::BadCredentials));
+        }
+        assert_eq!(check("right").await, Ok(()));
+        for _ in 0..FAILURES_BEFORE_PAUSE {
+            assert_eq!(check("wrong").await, Err(Refusal::BadCredentials));
+        }
+        // Paused: even the right password is refused unchecked.
+        assert_eq!(check("right").await, Err(Refusal::Paused { retry_after_s: 10 }));
+        tokio::time::advance(Duration::from_secs(4)).await;
+        assert_eq!(check("right").await, Err(Refusal::Paused { retry_after_s: 6 }));
+        tokio::time::advance(Duration::from_secs(6)).await;
+        // Another wrong one right after the pause doubles it.
+        assert_eq!(check("wrong").await, Err(Refusal::BadCredentials));
+        assert_eq!(check("right").await, Err(Refusal::Paused { retry_after_s: 20 }));
+        tokio::time::advance(Duration::from_secs(20)).await;
+        assert_eq!(check("right").await, Ok(()));
+        // A success forgets the pauses: the next run of wrong ones starts at 10 s again.
+        for _ in 0..FAILURES_BEFORE_PAUSE {
+            assert_eq!(check("wrong").await, Err(Refusal::BadCredentials));
+        }
+        assert_eq!(check("right").await, Err(Refusal::Paused { retry_after_s: 10 }));
+        // The cap.
+        for _ in 0..8 {
+            tokio::time::advance(MAX_PAUSE).await;
+            assert_eq!(check("wrong").await, Err(Refusal::BadCredentials));
+        }
+        assert_eq!(
+            check("right").await,
+            Err(Refusal::Paused {
+                retry_after_s: MAX_PAUSE.as_secs()
+            })
+        );
+        let r = Refusal::Paused { retry_after_s: 7 }.response();
+        assert_eq!(r.status(), StatusCode::TOO_MANY_REQUESTS);
+        assert_eq!(r.headers()[header::RETRY_AFTER], "7");
+        // Nothing configured: refused before any check.
+        let none = std::sync::Arc::new(OperatorAuth::default());
+        assert_eq!(none.check_password("x".into()).await, Err(Refusal::NotConfigured));
     }
 
     #[test]

@@ -17,7 +17,7 @@ use axum::response::{IntoResponse, Response};
 use futures_util::{SinkExt, StreamExt};
 use serde::{Deserialize, Serialize};
 
-use super::auth::{Refusal, SESSION_COOKIE, SESSION_TTL};
+use super::auth::{SESSION_COOKIE, SESSION_TTL};
 use super::status::{StatusService, json_text, text};
 use crate::source::{Frame, Pixels};
 use crate::tuning::TuningChange;
@@ -76,13 +76,9 @@ pub(super) async fn login(State(s): Shared, body: Bytes) -> Response {
             "expected a JSON body {\"password\": \"...\"}\n",
         );
     };
-    let auth = s.auth.clone();
-    let ok = tokio::task::spawn_blocking(move || auth.verify(&password))
-        .await
-        .unwrap_or(false);
-    if !ok {
-        tracing::warn!("operator sign-in refused: wrong password");
-        return Refusal::BadCredentials.response();
+    if let Err(refusal) = s.auth.check_password(password).await {
+        tracing::warn!(?refusal, "operator sign-in refused");
+        return refusal.response();
     }
     let token = s.auth.open_session();
     tracing::info!("operator signed in");

@@ -369,6 +369,11 @@ struct Camera {
     negotiated: Negotiated,
     state: CameraState,
     warned_clock: bool,
+    /// Exposure and gain the operator set live (set-up view), in the camera's units. A
+    /// reopened device starts from its driver defaults plus the config's values, so these are
+    /// written again after every reopen: a camera that glitched keeps the image it was tuned to.
+    live_exposure: Option<i64>,
+    live_gain: Option<i64>,
 }
 
 /// The V4L2 [`FrameSource`].
@@ -514,6 +519,55 @@ fn query_live_controls(path: &str) -> super::CameraControls {
     }
 }
 
+/// Writes an exposure or gain value (clamped to the control's range) through a second handle on
+/// the camera's node, switching the automatic mode off first where the camera has one.
+fn write_live_control(
+    path: &str,
+    camera: usize,
+    control: super::CameraControl,
+    value: i64,
+) -> Result<(), SourceError> {
+    let device = Device::with_path(path).map_err(|e| io_err(path, "open for controls", e))?;
+    let (exposure, gain) = live_control_ids(&device);
+    let (desc, auto) = match control {
+        super::CameraControl::Exposure => (exposure, (V4L2_CID_EXPOSURE_AUTO, V4L2_EXPOSURE_MANUAL)),
+        super::CameraControl::Gain => (gain, (V4L2_CID_AUTOGAIN, 0)),
+    };
+    let d = desc
+        .ok_or_else(|| SourceError::Config(format!("camera {camera} ({path}) has no {control:?} control")))?;
+    // Manual mode first, where the camera has an automatic one (ignored if absent).
+    let _ = device.set_control(Control {
+        id: auto.0,
+        value: ControlValue::Integer(auto.1),
+    });
+    device
+        .set_control(Control {
+            id: d.id,
+            value: ControlValue::Integer(value.clamp(d.min, d.max)),
+        })
+        .map_err(|e| io_err(path, "set control", e))
+}
+
+/// Writes the operator's live values again after a reopen. A failure is logged, not fatal: the
+/// camera streams, and the set-up view shows the value it really has.
+fn reapply_live_controls(camera: usize, cam: &Camera) {
+    let live = [
+        (super::CameraControl::Exposure, cam.live_exposure),
+        (super::CameraControl::Gain, cam.live_gain),
+    ];
+    for (control, value) in live {
+        let Some(value) = value else { continue };
+        match write_live_control(&cam.device, camera, control, value) {
+            Ok(()) => {
+                info!(camera, device = %cam.device, ?control, value, "live camera setting re-applied after reopen")
+            }
+            Err(e) => {
+                warn!(camera, device = %cam.device, ?control, value, error = %e, "live camera setting lost in the reopen")
+            }
+        }
+    }
+}
+
 /// Opens a device, negotiates it and starts streaming, waiting for the first frame.
 fn open_camera(
     path: &str,
@@ -637,6 +691,8 @@ impl V4l2Source {
                 negotiated,
                 state: CameraState::Open(Box::new(open)),
                 warned_clock: false,
+                live_exposure: None,
+                live_gain: None,
             });
         }
         let n = cameras.len();
@@ -763,6 +819,7 @@ impl V4l2Source {
                 Ok((negotiated, open)) if negotiated == cam.negotiated => {
                     info!(camera = i, device = %cam.device, "camera reopened");
                     cam.state = CameraState::Open(Box::new(open));
+                    reapply_live_controls(i, cam);
                     self.stats.reconnects += 1;
                 }
                 Ok((negotiated, open)) => {
@@ -944,29 +1001,14 @@ impl FrameSource for V4l2Source {
     ) -> Result<(), SourceError> {
         let cam = self
             .cameras
-            .get(camera)
+            .get_mut(camera)
             .ok_or_else(|| SourceError::Config(format!("camera {camera} does not exist")))?;
-        let path = cam.device.clone();
-        let device = Device::with_path(&path).map_err(|e| io_err(&path, "open for controls", e))?;
-        let (exposure, gain) = live_control_ids(&device);
-        let (desc, auto) = match control {
-            super::CameraControl::Exposure => (exposure, (V4L2_CID_EXPOSURE_AUTO, V4L2_EXPOSURE_MANUAL)),
-            super::CameraControl::Gain => (gain, (V4L2_CID_AUTOGAIN, 0)),
-        };
-        let d = desc.ok_or_else(|| {
-            SourceError::Config(format!("camera {camera} ({path}) has no {control:?} control"))
-        })?;
-        // Manual mode first, where the camera has an automatic one (ignored if absent).
-        let _ = device.set_control(Control {
-            id: auto.0,
-            value: ControlValue::Integer(auto.1),
-        });
-        device
-            .set_control(Control {
-                id: d.id,
-                value: ControlValue::Integer(value.clamp(d.min, d.max)),
-            })
-            .map_err(|e| io_err(&path, "set control", e))
+        write_live_control(&cam.device, camera, control, value)?;
+        match control {
+            super::CameraControl::Exposure => cam.live_exposure = Some(value),
+            super::CameraControl::Gain => cam.live_gain = Some(value),
+        }
+        Ok(())
     }
 
     fn describe(&self) -> String {
@@ -1229,6 +1271,8 @@ mod tests {
                     reason: "test".into(),
                 },
                 warned_clock: false,
+                live_exposure: None,
+                live_gain: None,
             })
             .collect();
         V4l2Source {

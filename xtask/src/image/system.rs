@@ -411,6 +411,7 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
         "guest console shell",
         shell.map(|s| format!("kernel {}", s.trim())),
     );
+    report.check(OPERATOR, set_operator_password(&mut q, status_port));
 
     report.check(
         "v4l2 capture from vivid (format, streaming, kernel timestamps)",
@@ -499,7 +500,13 @@ fn camera_loss(report: &mut Report, q: &mut Qemu, status_port: u16) {
     ));
 }
 
-const CAMERA_LOSS: &str = "cameras lost (vivid unbound) are reported and reopened";
+const CAMERA_LOSS: &str =
+    "cameras lost (vivid unbound) are reported and reopened with the operator's live gain";
+const OPERATOR: &str =
+    "operator password set on the console (irtrackd --hash-password), tuning needs it";
+/// Gain the operator sets live on camera 1 before the cameras are lost: neither vivid's
+/// default (100) nor the config's (16), so only the re-applied live value can show it.
+const LIVE_GAIN: i64 = 57;
 const RESTART: &str = "irtrackd restarts after being killed";
 
 /// `IRTRACK_SYSTEM_TEST_ONLY=camera-loss` runs only boot, capture, camera loss and restart.
@@ -509,6 +516,60 @@ fn focus_camera_loss() -> Result<bool> {
         Ok(v) if v == "camera-loss" => Ok(true),
         Ok(v) => bail!("IRTRACK_SYSTEM_TEST_ONLY={v:?}: the only focused run is `camera-loss`"),
     }
+}
+
+/// What an integrator does on a board before anyone may change settings from the set-up view:
+/// hash a password with irtrackd itself, put it under `[service]`, restart the service. Then
+/// a tuning change must be refused with a wrong password and accepted with the right one.
+fn set_operator_password(q: &mut Qemu, status_port: u16) -> Result<String> {
+    let config = "/etc/irtrack/irtrackd.toml";
+    let out = q.console(
+        &format!(
+            "H=$(echo {} | irtrackd --hash-password 2>/dev/null) && \
+             sed -i \"/^\\[service\\]/a operator_password_hash = \\\"$H\\\"\" {config} && \
+             grep -c '^operator_password_hash = \"\\$argon2id' {config}",
+            util::OPERATOR_PASSWORD
+        ),
+        Duration::from_secs(60),
+    )?;
+    if !out.lines().any(|l| l.trim() == "1") {
+        bail!("the password hash did not land in {config} once: {:?}", out.trim());
+    }
+    let pid = pid_of_irtrackd(q)?;
+    if pid.is_empty() {
+        bail!("irtrackd not running before the restart");
+    }
+    let from = q.log_len();
+    q.console(&format!("kill {pid}"), Duration::from_secs(10))?;
+    q.wait_for("irtrackd ready", from, Duration::from_secs(60))?;
+    let addr = SocketAddr::from((Ipv4Addr::LOCALHOST, status_port));
+    // Reading is open to everyone; a change is not.
+    let body = r#"{"threshold_dn": 41}"#;
+    let (wrong, _) = util::http_as(addr, "POST", "/api/tuning", "not-the-password", body)?;
+    if wrong != 401 {
+        bail!("a tuning change with a wrong password answered {wrong}, want 401");
+    }
+    let (code, answer) = util::http_as(addr, "POST", "/api/tuning", util::OPERATOR_PASSWORD, body)?;
+    if code != 200 {
+        bail!("a tuning change with the operator password answered {code}: {answer}");
+    }
+    let threshold = Json::parse(&answer)?
+        .get("threshold_dn")
+        .and_then(Json::as_f64)
+        .context("tuning answer without threshold_dn")?;
+    if threshold != 41.0 {
+        bail!("tuning answer shows threshold {threshold}, want 41: {answer}");
+    }
+    Ok(format!(
+        "hash written to {config}, irtrackd restarted; wrong password 401, operator 200 (threshold 41)"
+    ))
+}
+
+/// Camera `camera`'s gain in a `/api/tuning` object.
+fn tuning_gain(tuning: &Json, camera: usize) -> Option<f64> {
+    tuning
+        .get(&format!("cameras.{camera}.gain"))
+        .and_then(Json::as_f64)
 }
 
 fn check_capture(port: u16) -> Result<String> {
@@ -872,6 +933,31 @@ fn video_nodes(q: &mut Qemu) -> String {
 
 fn camera_loss_steps(q: &mut Qemu, port: u16) -> Result<String> {
     let has_lost = |s: &Json| faults_of(s).iter().any(|f| f == "camera_lost");
+    // The operator tunes camera 1's gain live; a camera coming back must come back with it.
+    let addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port));
+    let (code, answer) = util::http_as(
+        addr,
+        "POST",
+        "/api/tuning",
+        util::OPERATOR_PASSWORD,
+        &format!(r#"{{"cameras": [{{"camera": 1, "gain": {LIVE_GAIN}}}]}}"#),
+    )?;
+    if code != 200 {
+        bail!("setting camera 1's gain to {LIVE_GAIN} answered {code}: {answer}");
+    }
+    // The loop applies it before its next set, which under emulation can be after the answer.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let (_, answer) = util::http(addr, "GET", "/api/tuning")?;
+        let gain = Json::parse(&answer).ok().and_then(|t| tuning_gain(&t, 1));
+        if gain == Some(LIVE_GAIN as f64) {
+            break;
+        }
+        if Instant::now() > deadline {
+            bail!("camera 1's gain still reads {gain:?} 10 s after setting {LIVE_GAIN}: {answer}");
+        }
+        thread::sleep(Duration::from_millis(200));
+    }
     let s0 = get_status(port)?;
     let reconnects0 = num(&s0, "source.reconnects")?;
     let faults0 = faults_of(&s0);
@@ -938,10 +1024,22 @@ fn camera_loss_steps(q: &mut Qemu, port: u16) -> Result<String> {
     if !new_faults.is_empty() {
         bail!("after the reopen the status reports {new_faults:?}, not there before the unbind");
     }
+    // The cameras' values as read back from the devices after the reopen (irtrackd reads them
+    // again when a camera reconnects): camera 1 has the live gain, camera 0 the config's.
+    let (_, answer) = util::http(addr, "GET", "/api/tuning")?;
+    let tuning = Json::parse(&answer)?;
+    let gains = (tuning_gain(&tuning, 0), tuning_gain(&tuning, 1));
+    if gains.1 != Some(LIVE_GAIN as f64) || gains.0 != Some(16.0) {
+        bail!(
+            "after the reopen the cameras' gains are {:?} / {:?}, want 16 (config) / {LIVE_GAIN} (set live before the loss)",
+            gains.0,
+            gains.1
+        );
+    }
     Ok(format!(
         "camera_lost reported {lost_s:.1} s after unbind and held while unbound (fault LED lit \
          in {lit} of {samples} samples); both cameras reopened {reopen_s:.1} s after bind (reconnects {reconnects0} -> {}), {} frame sets since, \
-         faults now {:?}",
+         gains 16 / {LIVE_GAIN} kept, faults now {:?}",
         num(&s2, "source.reconnects")?,
         num(&s2, "source.sets_delivered")? - sets0,
         faults_of(&s2)
