@@ -502,8 +502,7 @@ fn camera_loss(report: &mut Report, q: &mut Qemu, status_port: u16) {
 
 const CAMERA_LOSS: &str =
     "cameras lost (vivid unbound) are reported and reopened with the operator's live gain";
-const OPERATOR: &str =
-    "operator password set on the console (irtrackd --hash-password), tuning needs it";
+const OPERATOR: &str = "operator password set on the console (irtrackd --hash-password), tuning needs it";
 /// Gain the operator sets live on camera 1 before the cameras are lost: neither vivid's
 /// default (100) nor the config's (16), so only the re-applied live value can show it.
 const LIVE_GAIN: i64 = 57;
@@ -533,7 +532,10 @@ fn set_operator_password(q: &mut Qemu, status_port: u16) -> Result<String> {
         Duration::from_secs(60),
     )?;
     if !out.lines().any(|l| l.trim() == "1") {
-        bail!("the password hash did not land in {config} once: {:?}", out.trim());
+        bail!(
+            "the password hash did not land in {config} once: {:?}",
+            out.trim()
+        );
     }
     let pid = pid_of_irtrackd(q)?;
     if pid.is_empty() {
