@@ -209,6 +209,44 @@ pub fn fetch(agent: &ureq::Agent, url: &str, board: &str) -> Result<FrameSet, Fe
     parse_frameset(&body).map_err(|e| FetchError::Fatal(e.context(format!("frame set from {board}"))))
 }
 
+/// [`fetch`], trying again while irtrackd is busy or has no set yet (up to 20 times).
+fn fetch_with_retries(agent: &ureq::Agent, url: &str, board: &str) -> anyhow::Result<FrameSet> {
+    let mut tries = 0;
+    loop {
+        match fetch(agent, url, board) {
+            Ok(set) => return Ok(set),
+            Err(FetchError::Retry(why)) if tries < 20 => {
+                tries += 1;
+                if tries == 1 {
+                    eprintln!("capture: irtrackd on {board} has no set yet ({why}); waiting");
+                }
+                std::thread::sleep(Duration::from_millis(250));
+            }
+            Err(FetchError::Retry(why)) => {
+                bail!("irtrackd on {board} gave no frame set 20 times in a row: {why}")
+            }
+            Err(FetchError::Fatal(e)) => return Err(e),
+        }
+    }
+}
+
+/// One line naming what the board serves, e.g. `board 10.0.0.5: 2 cameras, 752x480 8-bit`.
+pub fn describe_cameras(board: &str, header: &FrameSetHeader) -> String {
+    let mut kinds: Vec<String> = Vec::new();
+    for c in &header.cameras {
+        let k = format!("{}x{} {}-bit", c.width_px, c.height_px, c.bit_depth);
+        if !kinds.contains(&k) {
+            kinds.push(k);
+        }
+    }
+    let n = header.cameras.len();
+    format!(
+        "board {board}: {n} camera{}, {}",
+        if n == 1 { "" } else { "s" },
+        kinds.join(" / ")
+    )
+}
+
 /// Where the board's corners have landed so far in one camera: corners per grid cell.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Coverage {
@@ -399,6 +437,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let agent = ureq::AgentBuilder::new()
         .timeout(Duration::from_secs_f64(args.timeout_s))
         .build();
+    // Ask once before the session: an unreachable board or old firmware is said now, not
+    // after the person has positioned the board and pressed Enter.
+    let first = fetch_with_retries(&agent, &url, &args.from)?;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let board = Board {
         cols: args.board_cols,
@@ -414,6 +455,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "Enter saves a set, `q` + Enter stops".to_string()
     };
     let limit = args.count.map_or(String::new(), |n| format!(", up to {n} sets"));
+    println!("{}", describe_cameras(&args.from, &first.header));
     println!("capturing from {url} into {}: {mode}{limit}", args.out.display());
     let mut index = next_index(&args.out);
     let mut saved = 0u64;
@@ -508,11 +550,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         print!("{}", report(saved, &name, &found, &coverage, both));
         std::io::stdout().flush().ok();
     }
-    println!(
-        "saved {saved} sets into {}/cam0..cam{}",
-        args.out.display(),
-        camera_count.unwrap_or(1).saturating_sub(1)
-    );
+    match camera_count {
+        Some(n) => println!(
+            "saved {saved} sets into {}/cam0..cam{}",
+            args.out.display(),
+            n.saturating_sub(1)
+        ),
+        None => println!("saved no sets into {}", args.out.display()),
+    }
     if !args.wand && saved > 0 {
         println!(
             "next: host-tools calibrate --images {} --board-cols {} --board-rows {} --square-mm <SIZE> --out-dir <OUT>",
