@@ -135,7 +135,14 @@ fn capture_saves_sets_finds_the_board_and_shows_coverage() {
     let expected: Vec<Vec<Vec<u8>>> = (0..3)
         .map(|v| (0..2).map(|c| std::fs::read(&set.files[c][v]).unwrap()).collect())
         .collect();
-    let (addr, server) = serve(bodies);
+    // capture asks the board once before the session (to fail early and name the cameras);
+    // that set is not saved.
+    let probe = (
+        200,
+        "application/x-irtrack-frameset",
+        frameset_body(9, &expected[0], size),
+    );
+    let (addr, server) = serve(std::iter::once(probe.clone()).chain(bodies).collect());
     let out = dir.join("shots");
     let o = host_tools(&[
         "capture",
@@ -151,7 +158,11 @@ fn capture_saves_sets_finds_the_board_and_shows_coverage() {
     let (stdout, stderr) = text(&o);
     assert!(o.status.success(), "{stdout}\n{stderr}");
     print!("{stdout}");
-    assert_eq!(server.join().unwrap(), 3);
+    assert_eq!(server.join().unwrap(), 4);
+    assert!(
+        stdout.starts_with(&format!("board {addr}: 2 cameras, {}x{} 8-bit\n", size.0, size.1)),
+        "{stdout}"
+    );
     for (v, cams) in expected.iter().enumerate() {
         for (c, pgm) in cams.iter().enumerate() {
             let saved = std::fs::read(out.join(format!("cam{c}/{v:06}.pgm"))).unwrap();
@@ -177,11 +188,14 @@ fn capture_saves_sets_finds_the_board_and_shows_coverage() {
     assert!(stdout.contains("saved 3 sets"), "{stdout}");
 
     // A second session continues the numbering instead of overwriting.
-    let (addr, server) = serve(vec![(
-        200,
-        "application/x-irtrack-frameset",
-        frameset_body(99, &expected[0], size),
-    )]);
+    let (addr, server) = serve(vec![
+        probe,
+        (
+            200,
+            "application/x-irtrack-frameset",
+            frameset_body(99, &expected[0], size),
+        ),
+    ]);
     let o = host_tools(&[
         "capture",
         "--from",
