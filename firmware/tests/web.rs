@@ -116,6 +116,18 @@ fn basic() -> (&'static str, String) {
     ("Authorization", basic_header(PASSWORD))
 }
 
+/// `POST /api/login` with `password`.
+async fn login(addr: SocketAddr, password: &str) -> Answer {
+    let body = serde_json::json!({ "password": password }).to_string();
+    request(addr, "POST", "/api/login", &[], &body).await
+}
+
+/// The `Cookie` header that sends back the session a sign-in answer set.
+fn session_cookie(signed_in: &Answer) -> (&'static str, String) {
+    let set = signed_in.header("set-cookie").expect("a session cookie");
+    ("Cookie", set.split(';').next().unwrap_or_default().to_string())
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn page_assets_status_and_limits_on_the_new_server() {
     let dir = TempDir::new("web-page");
@@ -203,22 +215,14 @@ async fn every_change_needs_an_operator_sign_in() {
     // Browsers: login → cookie.
     let a = request(addr, "POST", "/api/login", &[], r#"{"password": "nope"}"#).await;
     assert_eq!(a.code, 401);
-    let a = request(
-        addr,
-        "POST",
-        "/api/login",
-        &[],
-        &format!(r#"{{"password": "{PASSWORD}"}}"#),
-    )
-    .await;
+    let a = login(addr, PASSWORD).await;
     assert_eq!(a.code, 200, "{}", a.text());
     let cookie = a.header("set-cookie").expect("a session cookie");
     assert!(
         cookie.contains("HttpOnly") && cookie.contains("SameSite=Strict"),
         "{cookie}"
     );
-    let pair = cookie.split(';').next().unwrap().to_string();
-    let c = ("Cookie", pair.clone());
+    let c = session_cookie(&a);
     assert_eq!(get(addr, "/api/session").await.json()["signed_in"], false);
     let s = request(addr, "GET", "/api/session", std::slice::from_ref(&c), "")
         .await
@@ -274,52 +278,23 @@ async fn repeated_wrong_passwords_pause_checks_but_not_open_sessions() {
         .await
         .unwrap();
     let addr = running.addrs.status;
-    let a = request(
-        addr,
-        "POST",
-        "/api/login",
-        &[],
-        &format!(r#"{{"password": "{PASSWORD}"}}"#),
-    )
-    .await;
+    let a = login(addr, PASSWORD).await;
     assert_eq!(a.code, 200, "{}", a.text());
-    let cookie = (
-        "Cookie",
-        a.header("set-cookie")
-            .unwrap()
-            .split(';')
-            .next()
-            .unwrap()
-            .to_string(),
-    );
+    let cookie = session_cookie(&a);
     // Someone guesses, by Basic and by the sign-in form.
     for i in 0..5 {
         let a = if i % 2 == 0 {
             let wrong = ("Authorization", basic_header(&format!("guess{i}")));
             request(addr, "POST", "/api/tuning", &[wrong], r#"{"threshold_dn": 41}"#).await
         } else {
-            request(
-                addr,
-                "POST",
-                "/api/login",
-                &[],
-                &format!(r#"{{"password": "guess{i}"}}"#),
-            )
-            .await
+            login(addr, &format!("guess{i}")).await
         };
         assert_eq!(a.code, 401, "guess {i}: {}", a.text());
     }
     // Now even the right password waits, with a clear answer and Retry-After.
     for a in [
         request(addr, "POST", "/api/tuning", &[basic()], r#"{"threshold_dn": 41}"#).await,
-        request(
-            addr,
-            "POST",
-            "/api/login",
-            &[],
-            &format!(r#"{{"password": "{PASSWORD}"}}"#),
-        )
-        .await,
+        login(addr, PASSWORD).await,
     ] {
         assert_eq!(a.code, 429, "{}", a.text());
         assert!(
