@@ -206,9 +206,7 @@ impl TuningHandle {
 
     /// Loop side: the cameras' values after applying (and errors, if any).
     pub fn report_cameras(&self, cameras: Vec<CameraControls>, error: Option<String>) {
-        if let Ok(mut c) = self.cameras.lock() {
-            *c = cameras;
-        }
+        self.refresh_cameras(cameras);
         if let Ok(mut e) = self.last_error.lock() {
             *e = error;
         }
