@@ -259,4 +259,90 @@ fn capture_names_old_firmware_and_unreachable_boards() {
         err.contains(&format!("cannot reach irtrackd on {board}")),
         "{err}"
     );
+    // In the Enter-driven mode too: said before any prompt, with what to check, and no
+    // output folder made for nothing.
+    let out = dir.join("never");
+    let o = host_tools(&["capture", "--from", &board, "--out", p(&out)]);
+    let (stdout, err) = text(&o);
+    assert!(!o.status.success(), "{stdout}");
+    assert!(
+        err.contains(&format!("cannot reach irtrackd on {board}"))
+            && err.contains("is the board on and irtrackd running?"),
+        "{err}"
+    );
+    assert!(
+        !stdout.contains("Enter"),
+        "prompted before checking the board: {stdout}"
+    );
+    assert!(!out.exists(), "{} created for nothing", out.display());
+}
+
+/// A busy board (503) is asked again, before the session and during it; 21 busy answers in a
+/// row end the capture with the board's reason.
+#[test]
+fn capture_retries_a_busy_board_and_gives_up_after_twenty() {
+    let dir = scratch("busy");
+    let pgm = |v: u8| {
+        let mut b = b"P5\n4 2\n255\n".to_vec();
+        b.extend_from_slice(&[v; 8]);
+        b
+    };
+    let set = |i: u64| {
+        (
+            200,
+            "application/x-irtrack-frameset",
+            frameset_body(i, &[pgm(i as u8), pgm(i as u8 + 1)], (4, 2)),
+        )
+    };
+    let busy = || {
+        (
+            503,
+            "text/plain",
+            b"another frame-set request is in progress".to_vec(),
+        )
+    };
+    let (addr, server) = serve(vec![busy(), set(1), busy(), busy(), set(2)]);
+    let out = dir.join("wave");
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr,
+        "--out",
+        p(&out),
+        "--wand",
+        "--count",
+        "1",
+    ]);
+    let (stdout, stderr) = text(&o);
+    assert!(o.status.success(), "{stdout}\n{stderr}");
+    assert_eq!(server.join().unwrap(), 5);
+    assert_eq!(
+        stderr
+            .matches("no set this time (503: another frame-set request")
+            .count(),
+        3,
+        "{stderr}"
+    );
+    assert_eq!(std::fs::read(out.join("cam1/000000.pgm")).unwrap(), pgm(3));
+
+    let (addr, server) = serve((0..21).map(|_| busy()).collect());
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr,
+        "--out",
+        p(&out),
+        "--wand",
+        "--count",
+        "1",
+    ]);
+    let (_, stderr) = text(&o);
+    assert!(!o.status.success());
+    assert!(
+        stderr.contains(&format!(
+            "irtrackd on {addr} gave no frame set 20 times in a row: 503"
+        )),
+        "{stderr}"
+    );
+    assert_eq!(server.join().unwrap(), 21);
 }

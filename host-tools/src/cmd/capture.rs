@@ -209,21 +209,20 @@ pub fn fetch(agent: &ureq::Agent, url: &str, board: &str) -> Result<FrameSet, Fe
     parse_frameset(&body).map_err(|e| FetchError::Fatal(e.context(format!("frame set from {board}"))))
 }
 
-/// [`fetch`], trying again while irtrackd is busy or has no set yet (up to 20 times).
+/// [`fetch`], trying again while irtrackd is busy or has no set yet (up to 20 times in a row).
 fn fetch_with_retries(agent: &ureq::Agent, url: &str, board: &str) -> anyhow::Result<FrameSet> {
-    let mut tries = 0;
+    let mut retries = 0;
     loop {
         match fetch(agent, url, board) {
             Ok(set) => return Ok(set),
-            Err(FetchError::Retry(why)) if tries < 20 => {
-                tries += 1;
-                if tries == 1 {
-                    eprintln!("capture: irtrackd on {board} has no set yet ({why}); waiting");
-                }
-                std::thread::sleep(Duration::from_millis(250));
-            }
             Err(FetchError::Retry(why)) => {
-                bail!("irtrackd on {board} gave no frame set 20 times in a row: {why}")
+                retries += 1;
+                ensure!(
+                    retries <= 20,
+                    "irtrackd on {board} gave no frame set 20 times in a row: {why}"
+                );
+                eprintln!("capture: no set this time ({why}); trying again");
+                std::thread::sleep(Duration::from_millis(100));
             }
             Err(FetchError::Fatal(e)) => return Err(e),
         }
@@ -465,7 +464,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut camera_count: Option<usize> = None;
     let started = Instant::now();
     let mut next_due = Instant::now();
-    let mut retries = 0u32;
     while args.count.is_none_or(|n| saved < n) {
         // Wait for the trigger of this mode; `q` ends the session in every mode.
         if args.wand || args.every.is_some() {
@@ -488,27 +486,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 Ok(Key::Quit | Key::Eof) | Err(_) => break,
             }
         }
-        let set = match fetch(&agent, &url, &args.from) {
-            Ok(s) => {
-                retries = 0;
-                s
-            }
-            Err(FetchError::Retry(why)) => {
-                retries += 1;
-                ensure!(
-                    retries <= 20,
-                    "irtrackd on {} gave no frame set 20 times in a row: {why}",
-                    args.from
-                );
-                eprintln!("capture: no set this time ({why}); trying again");
-                std::thread::sleep(Duration::from_millis(100));
-                if args.every.is_some() {
-                    next_due = Instant::now();
-                }
-                continue;
-            }
-            Err(FetchError::Fatal(e)) => return Err(e),
-        };
+        let set = fetch_with_retries(&agent, &url, &args.from)?;
         // The endpoint serves the newest set: asking faster than the cameras run repeats it.
         if last_set == Some(set.header.set_index) {
             if !args.wand {
