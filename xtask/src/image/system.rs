@@ -26,6 +26,7 @@ const GUEST_PORTS: [u16; 4] = [7701, 7702, 7703, 7704];
 /// What the image's irtrackd.toml configures (checked against what the service reports).
 const LED_LINES: [(&str, u32); 4] = [("run", 4), ("track", 5), ("robot", 6), ("fault", 7)];
 const CAMERA_FPS: f64 = 15.0;
+const CONFIG_GAIN: i64 = 16;
 const BOOT_TIMEOUT: Duration = Duration::from_secs(120);
 /// Empty lines sent after each console command (see [`Qemu::console`]).
 const PUSH: &str = "\n\n\n\n\n\n\n\n\n\n\n\n\n\n\n\n";
@@ -504,7 +505,7 @@ const CAMERA_LOSS: &str =
     "cameras lost (vivid unbound) are reported and reopened with the operator's live gain";
 const OPERATOR: &str = "operator password set on the console (irtrackd --hash-password), tuning needs it";
 /// Gain the operator sets live on camera 1 before the cameras are lost: neither vivid's
-/// default (100) nor the config's (16), so only the re-applied live value can show it.
+/// default (100) nor the config's ([`CONFIG_GAIN`]), so only the re-applied live value can show it.
 const LIVE_GAIN: i64 = 57;
 const RESTART: &str = "irtrackd restarts after being killed";
 
@@ -1031,9 +1032,9 @@ fn camera_loss_steps(q: &mut Qemu, port: u16) -> Result<String> {
     let (_, answer) = util::http(addr, "GET", "/api/tuning")?;
     let tuning = Json::parse(&answer)?;
     let gains = (tuning_gain(&tuning, 0), tuning_gain(&tuning, 1));
-    if gains.1 != Some(LIVE_GAIN as f64) || gains.0 != Some(16.0) {
+    if gains.1 != Some(LIVE_GAIN as f64) || gains.0 != Some(CONFIG_GAIN as f64) {
         bail!(
-            "after the reopen the cameras' gains are {:?} / {:?}, want 16 (config) / {LIVE_GAIN} (set live before the loss)",
+            "after the reopen the cameras' gains are {:?} / {:?}, want {CONFIG_GAIN} (config) / {LIVE_GAIN} (set live before the loss)",
             gains.0,
             gains.1
         );
@@ -1041,7 +1042,7 @@ fn camera_loss_steps(q: &mut Qemu, port: u16) -> Result<String> {
     Ok(format!(
         "camera_lost reported {lost_s:.1} s after unbind and held while unbound (fault LED lit \
          in {lit} of {samples} samples); both cameras reopened {reopen_s:.1} s after bind (reconnects {reconnects0} -> {}), {} frame sets since, \
-         gains 16 / {LIVE_GAIN} kept, faults now {:?}",
+         gains {CONFIG_GAIN} / {LIVE_GAIN} kept, faults now {:?}",
         num(&s2, "source.reconnects")?,
         num(&s2, "source.sets_delivered")? - sets0,
         faults_of(&s2)
