@@ -7,11 +7,12 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use irtrack_core::params::RigParams;
+use irtrack_core::pipeline::TrackerConfig;
 use irtrack_core::stream::PositionRecord;
 use tokio::net::TcpListener;
 use tokio::sync::{oneshot, watch};
 
-use crate::config::{Config, LedBackend, SourceKind};
+use crate::config::{Config, Leds, ListenConfig, RealtimeConfig, Resolved, Source};
 use crate::engine::{Engine, ParamsHandle};
 use crate::error::{FirmwareError, Result};
 use crate::leds::StatusLeds;
@@ -19,14 +20,15 @@ use crate::leds::driver::LedDriver;
 use crate::leds::sim::{LedRecord, SimLeds};
 use crate::net::stream::{StreamFormat, StreamHub};
 use crate::params::{ParamService, RigShape};
-use crate::robot::TcpRobotLink;
 use crate::robot::client::MonotonicClock;
-use crate::robot::deadman::FlagDeadman;
+use crate::robot::deadman::{DeadmanConfig, FlagDeadman};
+use crate::robot::{RobotConfig, TcpRobotLink};
 use crate::source::FrameSource;
 use crate::source::replay::ReplaySource;
 use crate::source::sim::SimSource;
 use crate::status::SharedStatus;
 use crate::storage::ParamStore;
+use crate::tuning::TuningHandle;
 
 /// Actual addresses of the bound listeners.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -94,39 +96,23 @@ fn local(what: &'static str, l: &TcpListener) -> Result<SocketAddr> {
 }
 
 /// Opens the configured source; for the simulator also returns its ground-truth rig.
-pub fn open_source(cfg: &Config) -> Result<(Box<dyn FrameSource>, Option<RigParams>)> {
-    Ok(match cfg.source.kind {
-        SourceKind::Sim => {
-            let sim_cfg = cfg.source.sim.clone().unwrap_or_default();
-            let s = SimSource::new(&sim_cfg)?;
+pub fn open_source(source: &Source) -> Result<(Box<dyn FrameSource>, Option<RigParams>)> {
+    Ok(match source {
+        Source::Sim(sim_cfg) => {
+            let s = SimSource::new(sim_cfg)?;
             let mut rig = s.scenario().rig().clone();
             // The simulator's truth includes the tool it renders (6-DOF demo and tests).
             rig.tools.extend(sim_cfg.tool_definition());
             (Box::new(s), Some(rig))
         }
-        SourceKind::Replay => {
-            let r = cfg.source.replay.as_ref().ok_or_else(|| FirmwareError::Config {
-                reason: "source.kind = \"replay\" needs [source.replay]".into(),
-            })?;
-            (Box::new(ReplaySource::open(r)?), None)
-        }
-        SourceKind::V4l2 => {
-            let v = cfg.source.v4l2.as_ref().ok_or_else(|| FirmwareError::Config {
-                reason: "source.kind = \"v4l2\" needs [source.v4l2]".into(),
-            })?;
-            (crate::source::v4l2::open(v)?, None)
-        }
+        Source::Replay(r) => (Box::new(ReplaySource::open(r)?), None),
+        Source::V4l2(v) => (crate::source::v4l2::open(v)?, None),
     })
 }
 
 /// The loop's deadline: configured, else the source's nominal frame period.
-pub fn deadline(cfg: &Config) -> Duration {
-    let fps = match cfg.source.kind {
-        SourceKind::Sim => Some(cfg.source.sim.clone().unwrap_or_default().fps),
-        SourceKind::Replay => cfg.source.replay.as_ref().and_then(|r| r.fps),
-        SourceKind::V4l2 => cfg.source.v4l2.as_ref().map(|v| f64::from(v.fps)),
-    };
-    match (cfg.realtime.deadline_ms, fps) {
+pub fn deadline(realtime: &RealtimeConfig, source: &Source) -> Duration {
+    match (realtime.deadline_ms, source.nominal_fps()) {
         (Some(ms), _) => Duration::from_secs_f64(ms / 1e3),
         (None, Some(fps)) if fps > 0.0 => Duration::from_secs_f64(1.0 / fps),
         // Replay without a rate: assume 30 fps, a common recording rate.
@@ -137,73 +123,91 @@ pub fn deadline(cfg: &Config) -> Duration {
 /// An LED back end (if any) and, for the simulated one, its change record.
 type OpenedLeds = (Option<Box<dyn StatusLeds>>, Option<LedRecord>);
 
-fn open_leds(cfg: &Config) -> Result<OpenedLeds> {
-    Ok(match cfg.leds.backend {
-        LedBackend::Sim => {
+fn open_leds(leds: &Leds) -> Result<OpenedLeds> {
+    Ok(match leds {
+        Leds::Sim => {
             let (leds, record) = SimLeds::new();
             (Some(Box::new(leds)), Some(record))
         }
-        LedBackend::None => (None, None),
-        LedBackend::Gpio => {
-            let g = cfg.leds.gpio.as_ref().ok_or_else(|| FirmwareError::Config {
-                reason: "leds.backend = \"gpio\" needs [leds.gpio]".into(),
-            })?;
-            (Some(crate::leds::gpio::open(g)?), None)
-        }
+        Leds::None => (None, None),
+        Leds::Gpio(g) => (Some(crate::leds::gpio::open(g)?), None),
         #[cfg(feature = "rpi")]
-        LedBackend::Rppal => {
-            let r = cfg.leds.rppal.as_ref().ok_or_else(|| FirmwareError::Config {
-                reason: "leds.backend = \"rppal\" needs [leds.rppal]".into(),
-            })?;
-            (Some(crate::leds::rppal::open(r)?), None)
-        }
-        #[cfg(not(feature = "rpi"))]
-        LedBackend::Rppal => {
-            return Err(FirmwareError::Config {
-                reason: "irtrackd was built without the `rpi` feature".into(),
-            });
-        }
+        Leds::Rppal(r) => (Some(crate::leds::rppal::open(r)?), None),
     })
 }
 
-/// Starts everything. Must be called inside a tokio runtime. Listeners are bound before
-/// anything else starts, so a port clash fails fast.
-pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
-    let l_params = bind("parameters", &cfg.listen.params).await?;
-    let l_ndjson = bind("NDJSON stream", &cfg.listen.stream_ndjson).await?;
-    let l_binary = bind("binary stream", &cfg.listen.stream_binary).await?;
-    let l_status = bind("status", &cfg.listen.status).await?;
-    let addrs = BoundAddrs {
-        params: local("parameters", &l_params)?,
-        stream_ndjson: local("NDJSON stream", &l_ndjson)?,
-        stream_binary: local("binary stream", &l_binary)?,
-        status: local("status", &l_status)?,
-    };
+/// The four bound listeners and their actual addresses.
+struct Listeners {
+    params: TcpListener,
+    ndjson: TcpListener,
+    binary: TcpListener,
+    status: TcpListener,
+    addrs: BoundAddrs,
+}
 
+/// Step 1: binds every listener, so a port clash fails before anything starts.
+async fn bind_listeners(listen: &ListenConfig) -> Result<Listeners> {
+    let params = bind("parameters", &listen.params).await?;
+    let ndjson = bind("NDJSON stream", &listen.stream_ndjson).await?;
+    let binary = bind("binary stream", &listen.stream_binary).await?;
+    let status = bind("status", &listen.status).await?;
+    let addrs = BoundAddrs {
+        params: local("parameters", &params)?,
+        stream_ndjson: local("NDJSON stream", &ndjson)?,
+        stream_binary: local("binary stream", &binary)?,
+        status: local("status", &status)?,
+    };
+    Ok(Listeners {
+        params,
+        ndjson,
+        binary,
+        status,
+        addrs,
+    })
+}
+
+/// Frame source and LEDs, from the overrides or else the config.
+struct Devices {
+    source: Box<dyn FrameSource>,
+    /// The simulator's ground-truth rig (simulated source only).
+    sim_rig: Option<RigParams>,
+    leds: Option<Box<dyn StatusLeds>>,
+    led_record: Option<LedRecord>,
+}
+
+/// Step 2: opens the source and the LED back end.
+fn open_devices(resolved: &Resolved, overrides: Overrides) -> Result<Devices> {
     let (source, sim_rig) = match overrides.source {
         Some(s) => (s, None),
-        None => open_source(&cfg)?,
+        None => open_source(&resolved.source)?,
     };
     let (leds, led_record) = match overrides.leds {
         Some(l) => (Some(l), None),
-        None => open_leds(&cfg)?,
+        None => open_leds(&resolved.leds)?,
     };
-    let led_desc = leds.as_ref().map_or_else(|| "none".to_string(), |l| l.describe());
-    let status = Arc::new(SharedStatus::new(
-        source.camera_count(),
-        source.describe(),
-        led_desc,
-    ));
-    tracing::info!(source = %source.describe(), leds = %status.led_backend, "starting");
+    Ok(Devices {
+        source,
+        sim_rig,
+        leds,
+        led_record,
+    })
+}
 
-    // Keys are read before anything starts: a broken key file must stop the service, not
-    // leave it unable to accept parameters.
+/// Step 3: the parameter service with its stored (or simulator) parameter set. Keys are read
+/// before anything starts: a broken key file must stop the service, not leave it unable to
+/// accept parameters.
+fn start_params(
+    cfg: &Config,
+    source: &dyn FrameSource,
+    sim_rig: Option<RigParams>,
+    handle: Arc<ParamsHandle>,
+    status: Arc<SharedStatus>,
+) -> Result<Arc<ParamService>> {
     let trusted_keys = cfg.params.load_keys()?;
-    let handle = Arc::new(ParamsHandle::new());
     let store = ParamStore::open(&cfg.service.state_dir)?;
     let shape = RigShape::of_set(&source.allocate_set());
     let params = Arc::new(
-        ParamService::new(store, shape, cfg.tracking, handle.clone(), status.clone())
+        ParamService::new(store, shape, cfg.tracking, handle, status)
             .with_signature_policy(trusted_keys, cfg.params.policy())
             .with_pose_config(cfg.pose),
     );
@@ -214,22 +218,24 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     {
         params.install_unstored(rig, "simulator")?;
     }
+    Ok(params)
+}
 
-    // Saved tuning (set-up view "Save") overrides [tracking]'s detector values and the
-    // cameras' exposure/gain.
-    let saved_tuning = crate::tuning::TuningFile::load(&cfg.service.state_dir)?;
+/// Step 4: saved tuning (set-up view "Save") overrides [tracking]'s detector values and the
+/// cameras' exposure/gain. Returns the detector settings the loop starts with.
+fn load_tuning(cfg: &Config) -> Result<(TrackerConfig, Arc<TuningHandle>)> {
+    let state_dir = &cfg.service.state_dir;
+    let saved_tuning = crate::tuning::TuningFile::load(state_dir)?;
     let tracking = match &saved_tuning {
         Some(t) => {
+            let path = state_dir.join(crate::tuning::TUNING_FILE);
             let tracking = t
                 .apply_to(&cfg.tracking)
                 .map_err(|reason| FirmwareError::Config {
-                    reason: format!(
-                        "{}: {reason}",
-                        cfg.service.state_dir.join(crate::tuning::TUNING_FILE).display()
-                    ),
+                    reason: format!("{}: {reason}", path.display()),
                 })?;
             tracing::info!(
-                path = %cfg.service.state_dir.join(crate::tuning::TUNING_FILE).display(),
+                path = %path.display(),
                 threshold_dn = tracking.threshold_dn,
                 "saved tuning applied"
             );
@@ -237,40 +243,32 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         }
         None => cfg.tracking,
     };
-    let tuning = Arc::new(crate::tuning::TuningHandle::new(
+    let tuning = Arc::new(TuningHandle::new(
         tracking,
         saved_tuning.as_ref().map_or(&[][..], |t| &t.camera[..]),
-        &cfg.service.state_dir,
+        state_dir,
         saved_tuning.is_some(),
     ));
-    let tap = Arc::new(crate::viewer::ViewerTap::new());
-    let auth = crate::net::auth::OperatorAuth::new(cfg.service.operator_password_hash.clone())?;
+    Ok((tracking, tuning))
+}
 
-    let (slot_tx, slot_rx) = watch::channel(None);
-    let engine = Engine::new(
-        source,
-        tracking,
-        handle.clone(),
-        slot_tx,
-        status.clone(),
-        deadline(&cfg),
-    )
-    .with_pose_config(cfg.pose)
-    .with_viewer_tap(tap.clone())
-    .with_tuning(tuning.clone());
-    let engine = match cfg.source.max_pairing_error_us {
-        Some(us) => engine.with_max_pairing_error(Duration::from_micros(us)),
-        None => engine,
-    };
-    let stop_loop = Arc::new(AtomicBool::new(false));
-    let (result_tx, result_rx) = oneshot::channel();
-    let rt_cfg = cfg.realtime.clone();
-    let (stop2, status2) = (stop_loop.clone(), status.clone());
-    let loop_thread = std::thread::Builder::new()
+/// The processing loop's thread and how to stop it.
+struct LoopThread {
+    stop: Arc<AtomicBool>,
+    thread: std::thread::JoinHandle<()>,
+    result: oneshot::Receiver<Result<()>>,
+}
+
+/// Step 5: runs the engine on its own (possibly real-time) thread.
+fn spawn_loop(engine: Engine, rt_cfg: RealtimeConfig, status: Arc<SharedStatus>) -> Result<LoopThread> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let (result_tx, result) = oneshot::channel();
+    let stop2 = stop.clone();
+    let thread = std::thread::Builder::new()
         .name("irtrackd-loop".into())
         .spawn(move || {
             let lines = crate::rt::apply(&rt_cfg);
-            if let Ok(mut g) = status2.realtime.lock() {
+            if let Ok(mut g) = status.realtime.lock() {
                 *g = lines;
             }
             let _ = result_tx.send(engine.run(&stop2));
@@ -279,68 +277,155 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
             what: "processing loop",
             reason: e.to_string(),
         })?;
+    Ok(LoopThread {
+        stop,
+        thread,
+        result,
+    })
+}
 
-    let leds = leds.map(|l| LedDriver::start(l, status.clone())).transpose()?;
+/// A shutdown future factory for the services (each gets its own future).
+fn shutdown_future(rx: &watch::Receiver<bool>) -> impl std::future::Future<Output = ()> + Send + 'static {
+    let mut rx = rx.clone();
+    async move {
+        let _ = rx.wait_for(|v| *v).await;
+    }
+}
 
-    let (shutdown_tx, shutdown_rx) = watch::channel(false);
-    let shutdown = move || {
-        let mut rx = shutdown_rx.clone();
-        async move {
-            let _ = rx.wait_for(|v| *v).await;
-        }
+/// The robot link, when `[robot]` is configured.
+struct RobotParts {
+    link: Option<Arc<TcpRobotLink>>,
+    /// Software deadman for `[robot.deadman] kind = "flag"` (set by a control front end).
+    deadman_flag: FlagDeadman,
+}
+
+/// Step 7: starts the robot link on the latest-value slot; its state drives the Robot LED.
+fn start_robot(
+    robot: Option<&RobotConfig>,
+    positions: &watch::Receiver<Option<PositionRecord>>,
+    status: &Arc<SharedStatus>,
+    tasks: &mut Vec<tokio::task::JoinHandle<()>>,
+) -> Result<RobotParts> {
+    let deadman_flag = FlagDeadman::new();
+    let Some(rc) = robot else {
+        return Ok(RobotParts {
+            link: None,
+            deadman_flag,
+        });
     };
+    let deadman = rc.deadman.open(&deadman_flag)?;
+    let link = crate::robot::spawn_link(rc.clone(), positions.clone(), MonotonicClock, deadman)?;
+    let mut link_status = link.subscribe();
+    let st = status.clone();
+    tasks.push(tokio::spawn(async move {
+        loop {
+            let state = link_status.borrow_and_update().state;
+            st.set_robot(state.indication());
+            if link_status.changed().await.is_err() {
+                break;
+            }
+        }
+    }));
+    tracing::info!(
+        kind = rc.kind.name(),
+        address = %rc.address,
+        "robot link started (motion needs an explicit enable)"
+    );
+    Ok(RobotParts {
+        link: Some(Arc::new(link)),
+        deadman_flag,
+    })
+}
+
+/// Starts everything. Must be called inside a tokio runtime. The config is validated first;
+/// listeners are bound before anything else starts, so a port clash fails fast.
+pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
+    let resolved = cfg.validate()?;
+    let listeners = bind_listeners(&cfg.listen).await?;
+    let addrs = listeners.addrs;
+
+    let devices = open_devices(&resolved, overrides)?;
+    let led_desc = devices
+        .leds
+        .as_ref()
+        .map_or_else(|| "none".to_string(), |l| l.describe());
+    let status = Arc::new(SharedStatus::new(
+        devices.source.camera_count(),
+        devices.source.describe(),
+        led_desc,
+    ));
+    tracing::info!(source = %devices.source.describe(), leds = %status.led_backend, "starting");
+
+    let handle = Arc::new(ParamsHandle::new());
+    let params = start_params(
+        &cfg,
+        devices.source.as_ref(),
+        devices.sim_rig,
+        handle.clone(),
+        status.clone(),
+    )?;
+    let (tracking, tuning) = load_tuning(&cfg)?;
+    let tap = Arc::new(crate::viewer::ViewerTap::new());
+    let auth = crate::net::auth::OperatorAuth::new(cfg.service.operator_password_hash.clone())?;
+
+    let (slot_tx, slot_rx) = watch::channel(None);
+    let engine = Engine::new(
+        devices.source,
+        tracking,
+        handle.clone(),
+        slot_tx,
+        status.clone(),
+        deadline(&cfg.realtime, &resolved.source),
+    )
+    .with_pose_config(cfg.pose)
+    .with_viewer_tap(tap.clone())
+    .with_tuning(tuning.clone());
+    let engine = match cfg.source.max_pairing_error_us {
+        Some(us) => engine.with_max_pairing_error(Duration::from_micros(us)),
+        None => engine,
+    };
+    let processing = spawn_loop(engine, cfg.realtime.clone(), status.clone())?;
+
+    let leds = devices
+        .leds
+        .map(|l| LedDriver::start(l, status.clone()))
+        .transpose()?;
+
+    // Step 6: the parameter and stream services.
+    let (shutdown_tx, shutdown_rx) = watch::channel(false);
     let hub = StreamHub::start(slot_rx.clone(), cfg.listen.client_queue_records, status.clone())
         .with_max_clients(cfg.listen.max_stream_clients);
     let mut tasks = vec![
-        tokio::spawn(crate::net::params::serve(l_params, params.clone(), shutdown())),
-        tokio::spawn(crate::net::stream::serve(
-            l_ndjson,
-            StreamFormat::Ndjson,
-            hub.clone(),
-            shutdown(),
+        tokio::spawn(crate::net::params::serve(
+            listeners.params,
+            params.clone(),
+            shutdown_future(&shutdown_rx),
         )),
         tokio::spawn(crate::net::stream::serve(
-            l_binary,
+            listeners.ndjson,
+            StreamFormat::Ndjson,
+            hub.clone(),
+            shutdown_future(&shutdown_rx),
+        )),
+        tokio::spawn(crate::net::stream::serve(
+            listeners.binary,
             StreamFormat::Binary,
             hub,
-            shutdown(),
+            shutdown_future(&shutdown_rx),
         )),
     ];
 
-    // Robot link: consumes the same latest-value slot; its state drives the Robot LED.
-    let robot_deadman_flag = FlagDeadman::new();
-    let robot = match &cfg.robot {
-        None => None,
-        Some(rc) => {
-            let deadman = rc.deadman.open(&robot_deadman_flag)?;
-            let link = crate::robot::spawn_link(rc.clone(), slot_rx.clone(), MonotonicClock, deadman)?;
-            let mut link_status = link.subscribe();
-            let st = status.clone();
-            tasks.push(tokio::spawn(async move {
-                loop {
-                    let state = link_status.borrow_and_update().state;
-                    st.set_robot(state.indication());
-                    if link_status.changed().await.is_err() {
-                        break;
-                    }
-                }
-            }));
-            tracing::info!(
-                kind = rc.kind.name(),
-                address = %rc.address,
-                "robot link started (motion needs an explicit enable)"
-            );
-            Some(Arc::new(link))
-        }
-    };
+    let robot = start_robot(cfg.robot.as_ref(), &slot_rx, &status, &mut tasks)?;
+
+    // Step 8: the status service (set-up page, live view, robot control).
     let control = crate::net::status::RobotControl {
         allowed: cfg.service.control,
-        link: robot.as_ref().map(Arc::downgrade),
+        link: robot.link.as_ref().map(Arc::downgrade),
         deadman_flag: cfg
             .robot
             .as_ref()
-            .filter(|rc| rc.deadman == crate::robot::deadman::DeadmanConfig::Flag)
-            .map(|_| robot_deadman_flag.clone()),
+            .filter(|rc| rc.deadman == DeadmanConfig::Flag)
+            .map(|_| robot.deadman_flag.clone()),
     };
     let service = crate::net::status::StatusService::new(status.clone())
         .with_control(control)
@@ -351,20 +436,22 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
                 .as_ref()
                 .map(|r| (r.safety.workspace_min_mm, r.safety.workspace_max_mm)),
         );
-    tasks.push(tokio::spawn(service.serve(l_status, shutdown())));
+    tasks.push(tokio::spawn(
+        service.serve(listeners.status, shutdown_future(&shutdown_rx)),
+    ));
 
     Ok(Running {
         addrs,
         status,
         params,
-        led_record,
+        led_record: devices.led_record,
         positions: slot_rx,
-        stop_loop,
-        loop_thread: Some(loop_thread),
-        loop_result: Some(result_rx),
+        stop_loop: processing.stop,
+        loop_thread: Some(processing.thread),
+        loop_result: Some(processing.result),
         leds,
-        robot,
-        robot_deadman_flag,
+        robot: robot.link,
+        robot_deadman_flag: robot.deadman_flag,
         shutdown_tx,
         tasks,
     })

@@ -296,8 +296,9 @@ impl Config {
         Self::from_toml(&text, &path.display().to_string())
     }
 
-    /// Cross-field checks that serde cannot express.
-    pub fn validate(&self) -> Result<()> {
+    /// Cross-field checks that serde cannot express. Returns the file's "kind + tables"
+    /// choices resolved into typed sections ([`Resolved`]): the only place they are matched.
+    pub fn validate(&self) -> Result<Resolved> {
         let bad = |reason: String| Err(FirmwareError::Config { reason });
         for (key, addr) in [
             ("listen.params", &self.listen.params),
@@ -330,13 +331,66 @@ impl Config {
         {
             return bad(format!("realtime.deadline_ms must be > 0, got {d}"));
         }
-        match self.source.kind {
+        let source = self.source.resolve()?;
+        if self.service.params_from_simulator && !matches!(source, Source::Sim(_)) {
+            return bad("service.params_from_simulator only works with source.kind = \"sim\"".into());
+        }
+        let leds = self.leds.resolve()?;
+        if let Some(robot) = &self.robot {
+            robot.validate().map_err(|e| FirmwareError::Config {
+                reason: e.to_string(),
+            })?;
+        }
+        if let Some(p) = self.realtime.fifo_priority
+            && !(1..=99).contains(&p)
+        {
+            return bad(format!("realtime.fifo_priority must be 1..=99, got {p}"));
+        }
+        Ok(Resolved { source, leds })
+    }
+}
+
+/// What [`Config::validate`] resolves: each "`kind` + one optional table per kind" choice of
+/// the file as one typed value, so later code never matches on the kind again.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Resolved {
+    pub source: Source,
+    pub leds: Leds,
+}
+
+/// `[source]` after validation: the kind with its own, checked settings.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Source {
+    /// `[source.sim]` (defaults when the table is absent).
+    Sim(SimSourceConfig),
+    Replay(ReplayConfig),
+    V4l2(V4l2Config),
+}
+
+impl Source {
+    /// The source's nominal frame rate, when it has one.
+    pub fn nominal_fps(&self) -> Option<f64> {
+        match self {
+            Source::Sim(s) => Some(s.fps),
+            Source::Replay(r) => r.fps,
+            Source::V4l2(v) => Some(f64::from(v.fps)),
+        }
+    }
+}
+
+impl SourceConfig {
+    /// Checks the table `kind` names and returns it typed.
+    pub fn resolve(&self) -> Result<Source> {
+        let bad = |reason: String| Err(FirmwareError::Config { reason });
+        Ok(match self.kind {
             SourceKind::Sim => {
-                if let Some(sim) = &self.source.sim {
+                let sim = self.sim.clone().unwrap_or_default();
+                if self.sim.is_some() {
                     sim.validate()?;
                 }
+                Source::Sim(sim)
             }
-            SourceKind::Replay => match &self.source.replay {
+            SourceKind::Replay => match &self.replay {
                 None => {
                     return bad("source.kind = \"replay\" needs a [source.replay] table with `dir`".into());
                 }
@@ -344,9 +398,10 @@ impl Config {
                     if r.fps.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
                         return bad("source.replay.fps must be > 0".into());
                     }
+                    Source::Replay(r.clone())
                 }
             },
-            SourceKind::V4l2 => match &self.source.v4l2 {
+            SourceKind::V4l2 => match &self.v4l2 {
                 None => return bad("source.kind = \"v4l2\" needs a [source.v4l2] table".into()),
                 Some(v) if v.devices.len() < 2 => {
                     return bad(format!(
@@ -358,34 +413,44 @@ impl Config {
                     v.validate().map_err(|e| FirmwareError::Config {
                         reason: format!("[source.v4l2]: {e}"),
                     })?;
+                    Source::V4l2(v.clone())
                 }
             },
-        }
-        if self.service.params_from_simulator && self.source.kind != SourceKind::Sim {
-            return bad("service.params_from_simulator only works with source.kind = \"sim\"".into());
-        }
-        if self.leds.backend == LedBackend::Gpio && self.leds.gpio.is_none() {
-            return bad("leds.backend = \"gpio\" needs a [leds.gpio] table".into());
-        }
-        #[cfg(feature = "rpi")]
-        if self.leds.backend == LedBackend::Rppal && self.leds.rppal.is_none() {
-            return bad("leds.backend = \"rppal\" needs a [leds.rppal] table".into());
-        }
-        #[cfg(not(feature = "rpi"))]
-        if self.leds.backend == LedBackend::Rppal {
-            return bad("leds.backend = \"rppal\" needs irtrackd built with the `rpi` feature".into());
-        }
-        if let Some(robot) = &self.robot {
-            robot.validate().map_err(|e| FirmwareError::Config {
-                reason: e.to_string(),
-            })?;
-        }
-        if let Some(p) = self.realtime.fifo_priority
-            && !(1..=99).contains(&p)
-        {
-            return bad(format!("realtime.fifo_priority must be 1..=99, got {p}"));
-        }
-        Ok(())
+        })
+    }
+}
+
+/// `[leds]` after validation: the back end with its own settings.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Leds {
+    Sim,
+    None,
+    Gpio(GpioLedConfig),
+    #[cfg(feature = "rpi")]
+    Rppal(crate::leds::rppal::RppalLedConfig),
+}
+
+impl LedsConfig {
+    /// Checks the table `backend` names and returns it typed.
+    pub fn resolve(&self) -> Result<Leds> {
+        let bad = |reason: String| Err(FirmwareError::Config { reason });
+        Ok(match self.backend {
+            LedBackend::Sim => Leds::Sim,
+            LedBackend::None => Leds::None,
+            LedBackend::Gpio => match &self.gpio {
+                Some(g) => Leds::Gpio(g.clone()),
+                None => return bad("leds.backend = \"gpio\" needs a [leds.gpio] table".into()),
+            },
+            #[cfg(feature = "rpi")]
+            LedBackend::Rppal => match &self.rppal {
+                Some(r) => Leds::Rppal(r.clone()),
+                None => return bad("leds.backend = \"rppal\" needs a [leds.rppal] table".into()),
+            },
+            #[cfg(not(feature = "rpi"))]
+            LedBackend::Rppal => {
+                return bad("leds.backend = \"rppal\" needs irtrackd built with the `rpi` feature".into());
+            }
+        })
     }
 }
 
