@@ -277,11 +277,7 @@ fn spawn_loop(engine: Engine, rt_cfg: RealtimeConfig, status: Arc<SharedStatus>)
             what: "processing loop",
             reason: e.to_string(),
         })?;
-    Ok(LoopThread {
-        stop,
-        thread,
-        result,
-    })
+    Ok(LoopThread { stop, thread, result })
 }
 
 /// A shutdown future factory for the services (each gets its own future).
