@@ -96,6 +96,12 @@ pub enum Error {
         protocol: &'static str,
         reason: alloc::string::String,
     },
+    /// A binary PGM file is malformed or does not fit the buffer (docs/frameset.md).
+    #[error("not a usable binary PGM: {reason}")]
+    Pgm { reason: alloc::string::String },
+    /// A frame-set body does not match its header line (docs/frameset.md).
+    #[error("bad frame set: {reason}")]
+    FrameSet { reason: alloc::string::String },
 }
 
 /// Result alias for irtrack-core.

@@ -12,7 +12,7 @@ use irtrack_core::pipeline::TrackerConfig;
 use irtrack_core::stream::TrackStatus;
 use irtrack_firmware::engine::{ActiveParams, Engine, ParamsHandle, StepOutcome};
 use irtrack_firmware::source::replay::{ReplayConfig, ReplaySource, ReplaySpeed};
-use irtrack_firmware::source::{Frame, FrameSource, Pixels, pgm};
+use irtrack_firmware::source::{Frame, FrameSource, Pixels};
 use irtrack_firmware::status::SharedStatus;
 
 const FRAMES: u64 = 12;
@@ -50,7 +50,11 @@ fn record(dir: &std::path::Path) -> irtrack_sim::Scenario {
                 timestamp_ns: 0,
                 sequence: f,
             };
-            std::fs::write(dir.join(format!("cam{c}/{f:06}.pgm")), pgm::encode(&frame)).unwrap();
+            std::fs::write(
+                dir.join(format!("cam{c}/{f:06}.pgm")),
+                irtrack_core::pgm::encode(&frame.image()).unwrap(),
+            )
+            .unwrap();
         }
     }
     std::fs::write(dir.join("timestamps.csv"), csv).unwrap();

@@ -227,11 +227,9 @@ fn calibrates_parallel_rig_within_tolerances() {
     let set = render(&dir.join("img"), &truth, VIEWS + 2, 11);
     std::fs::remove_file(&set.files[1][VIEWS]).unwrap();
     let blank = vec![200u8; 640 * 480];
-    irtrack_sim::pgm::write_pgm_u8(
-        std::fs::File::create(&set.files[0][VIEWS + 1]).unwrap(),
-        640,
-        480,
-        &blank,
+    std::fs::write(
+        &set.files[0][VIEWS + 1],
+        irtrack_core::pgm::encode_u8(640, 480, &blank).unwrap(),
     )
     .unwrap();
     let out = dir.join("out");
@@ -353,8 +351,11 @@ fn reject_outliers_removes_an_inconsistent_view() {
             &mut buf,
         )
         .unwrap();
-    irtrack_sim::pgm::write_pgm_u8(std::fs::File::create(&set.files[1][bad]).unwrap(), 640, 480, &buf)
-        .unwrap();
+    std::fs::write(
+        &set.files[1][bad],
+        irtrack_core::pgm::encode_u8(640, 480, &buf).unwrap(),
+    )
+    .unwrap();
 
     let out = dir.join("out");
     let o = calibrate(&dir.join("img"), &out, &["--reject-outliers"]);
@@ -417,11 +418,9 @@ fn unreadable_image_is_named() {
 fn mismatched_image_sizes_are_an_error() {
     let dir = temp_dir("sizes");
     let set = render(&dir.join("img"), &parallel_rig(), 4, 2);
-    irtrack_sim::pgm::write_pgm_u8(
-        std::fs::File::create(&set.files[0][3]).unwrap(),
-        320,
-        240,
-        &vec![128u8; 320 * 240],
+    std::fs::write(
+        &set.files[0][3],
+        irtrack_core::pgm::encode_u8(320, 240, &vec![128u8; 320 * 240]).unwrap(),
     )
     .unwrap();
     let o = calibrate(&dir.join("img"), &dir.join("out"), &[]);

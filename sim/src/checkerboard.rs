@@ -24,7 +24,7 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
 use crate::SimError;
-use crate::pgm::write_pgm_u8;
+use irtrack_core::pgm;
 
 /// A printed chessboard.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -622,8 +622,7 @@ pub fn write_set(
                 &mut buf,
             )?;
             let path = cam_dir.join(format!("view{vi:03}.pgm"));
-            let file = std::io::BufWriter::new(std::fs::File::create(&path)?);
-            write_pgm_u8(file, size.width_px, size.height_px, &buf)?;
+            std::fs::write(&path, pgm::encode_u8(size.width_px, size.height_px, &buf)?)?;
             cam_files.push(path);
             cam_corners.push(corner_pixels(&cam.model, &cam_pose, board)?);
         }
@@ -846,7 +845,7 @@ mod tests {
         assert_eq!(set.files.len(), 2);
         assert_eq!(set.corners_px[1][1].len(), 24);
         let bytes = std::fs::read(&set.files[1][0]).unwrap();
-        let pgm = crate::pgm::read_pgm(&bytes).unwrap();
+        let pgm = pgm::decode(&bytes).unwrap();
         assert_eq!((pgm.width_px, pgm.height_px), (640, 480));
         std::fs::remove_dir_all(&dir).unwrap();
     }

@@ -27,9 +27,6 @@ pub enum SimError {
     /// A trajectory CSV line does not parse.
     #[error("trajectory CSV line {line}: {reason}")]
     TrajectoryCsv { line: usize, reason: String },
-    /// A PGM file is malformed.
-    #[error("PGM: {reason}")]
-    Pgm { reason: String },
     /// Error from the core library (camera model, parameters).
     #[error("core: {0}")]
     Core(#[from] irtrack_core::Error),

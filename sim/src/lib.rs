@@ -9,7 +9,6 @@ pub mod cell;
 pub mod checkerboard;
 pub mod error;
 pub mod noise;
-pub mod pgm;
 pub mod resolution;
 pub mod rig;
 pub mod scenario;

@@ -22,7 +22,7 @@ use nalgebra::{Matrix3, Vector2, Vector3};
 
 use crate::SimError;
 use crate::noise::{PixelRng, hash_words, normal_table, unit_from_hash};
-use crate::pgm::write_pgm_u8;
+use irtrack_core::pgm;
 
 /// A spot is rendered out to this many standard deviations.
 const SPOT_EXTENT_SIGMA: f64 = 4.5;
@@ -446,8 +446,8 @@ impl WandWave {
                 let size = self.cfg.rig.cameras[ci].model.image_size;
                 buf.resize(size.width_px as usize * size.height_px as usize, 0u8);
                 let t = self.render(frame, ci, &mut buf)?;
-                let file = std::io::BufWriter::new(std::fs::File::create(d.join(format!("{frame:06}.pgm")))?);
-                write_pgm_u8(file, size.width_px, size.height_px, &buf)?;
+                let file = pgm::encode_u8(size.width_px, size.height_px, &buf)?;
+                std::fs::write(d.join(format!("{frame:06}.pgm")), file)?;
                 csv.push_str(&format!(
                     "{frame},{ci},{:.6},{:.6},{:.6},{:.9},{:.9},{:.9},{},{},{},{}\n",
                     pose.end0_mm.x,

@@ -22,6 +22,7 @@ use super::status::{StatusService, json_text, text};
 use crate::source::{Frame, Pixels};
 use crate::tuning::TuningChange;
 use crate::viewer::{BlobView, TapSet};
+use irtrack_core::frameset;
 
 type Shared = State<Arc<StatusService>>;
 
@@ -174,80 +175,25 @@ pub(super) async fn scene(State(s): Shared) -> Response {
 
 // ---------------------------------------------------------------- frame set
 
-#[derive(Serialize)]
-struct FramesetCamera {
-    camera: usize,
-    width_px: u32,
-    height_px: u32,
-    bit_depth: u8,
-    timestamp_ns: u64,
-    sequence: u64,
-    pgm_bytes: usize,
-}
-
-#[derive(Serialize)]
-struct FramesetHeader {
-    set_index: u64,
-    pairing_error_ns: u64,
-    cameras: Vec<FramesetCamera>,
-}
-
-/// Binary PGM (`P5`) of a frame: 8-bit as is, deeper frames as 16-bit big-endian samples.
-pub fn pgm(frame: &Frame) -> Vec<u8> {
-    let (w, h, stride) = (
-        frame.width_px as usize,
-        frame.height_px as usize,
-        frame.stride_px as usize,
-    );
-    match &frame.pixels {
-        Pixels::U8(px) => {
-            let mut out = format!("P5\n{w} {h}\n255\n").into_bytes();
-            out.reserve(w * h);
-            for row in px.chunks(stride.max(1)).take(h) {
-                out.extend_from_slice(&row[..w.min(row.len())]);
-            }
-            out
-        }
-        Pixels::U16(px) => {
-            let mut out = format!("P5\n{w} {h}\n65535\n").into_bytes();
-            out.reserve(2 * w * h);
-            for row in px.chunks(stride.max(1)).take(h) {
-                for v in &row[..w.min(row.len())] {
-                    out.extend_from_slice(&v.to_be_bytes());
-                }
-            }
-            out
+/// The frame-set body of `/api/frameset` (docs/frameset.md); `None` if a frame does not fit the
+/// format (a bit depth the frame's samples cannot hold), which the handler answers with 500.
+fn frameset_body(set: &TapSet) -> Option<Vec<u8>> {
+    let frames: Vec<frameset::CameraFrame<'_>> = set
+        .frames
+        .iter()
+        .map(|f| frameset::CameraFrame {
+            image: f.image(),
+            timestamp_ns: f.timestamp_ns,
+            sequence: f.sequence,
+        })
+        .collect();
+    match frameset::encode(set.set_index, set.pairing_error_ns, &frames) {
+        Ok(body) => Some(body),
+        Err(e) => {
+            tracing::warn!("frame set {}: {e}", set.set_index);
+            None
         }
     }
-}
-
-fn frameset_body(set: &TapSet) -> Vec<u8> {
-    let pgms: Vec<Vec<u8>> = set.frames.iter().map(pgm).collect();
-    let header = FramesetHeader {
-        set_index: set.set_index,
-        pairing_error_ns: set.pairing_error_ns,
-        cameras: set
-            .frames
-            .iter()
-            .zip(&pgms)
-            .enumerate()
-            .map(|(i, (f, p))| FramesetCamera {
-                camera: i,
-                width_px: f.width_px,
-                height_px: f.height_px,
-                bit_depth: f.bit_depth,
-                timestamp_ns: f.timestamp_ns,
-                sequence: f.sequence,
-                pgm_bytes: p.len(),
-            })
-            .collect(),
-    };
-    let mut body = serde_json::to_vec(&header).unwrap_or_default();
-    body.push(b'\n');
-    for p in pgms {
-        body.extend_from_slice(&p);
-    }
-    body
 }
 
 pub(super) async fn frameset(State(s): Shared) -> Response {
@@ -276,7 +222,7 @@ pub(super) async fn frameset(State(s): Shared) -> Response {
     let tap2 = tap.clone();
     let body = tokio::task::spawn_blocking(move || {
         let guard = tap2.read()?;
-        guard.as_deref().map(frameset_body)
+        guard.as_deref().and_then(frameset_body)
     })
     .await
     .ok()
@@ -285,7 +231,7 @@ pub(super) async fn frameset(State(s): Shared) -> Response {
     match body {
         Some(b) => (
             StatusCode::OK,
-            [(header::CONTENT_TYPE, "application/x-irtrack-frameset")],
+            [(header::CONTENT_TYPE, frameset::CONTENT_TYPE)],
             b,
         )
             .into_response(),

@@ -3,6 +3,8 @@
 //! The processing loop owns one [`FrameSet`] allocated up front and asks the source to fill it
 //! in place, so steady-state capture does not allocate.
 
+use irtrack_core::pgm;
+
 /// Pixel storage of one frame. 8-bit sensors use `U8`; 10/12/16-bit sensors use `U16`
 /// (values right-aligned, i.e. a 10-bit sensor gives 0..=1023).
 #[derive(Debug, Clone, PartialEq)]
@@ -25,6 +27,62 @@ pub struct Frame {
     pub timestamp_ns: u64,
     /// Driver or source sequence number of this camera.
     pub sequence: u64,
+}
+
+impl Frame {
+    /// The pixels as an image view for the PGM encoder (`irtrack_core::pgm`, docs/frameset.md).
+    pub fn image(&self) -> pgm::Image<'_> {
+        pgm::Image {
+            width_px: self.width_px,
+            height_px: self.height_px,
+            stride_px: self.stride_px,
+            bit_depth: self.bit_depth,
+            samples: match &self.pixels {
+                Pixels::U8(px) => pgm::Samples::U8(px),
+                Pixels::U16(px) => pgm::Samples::U16(px),
+            },
+        }
+    }
+
+    /// An empty frame shaped like the PGM file described by `h` (replay's buffers).
+    pub fn shaped_like_pgm(h: &pgm::PgmHeader) -> Frame {
+        let n = h.width_px as usize * h.height_px as usize;
+        Frame {
+            width_px: h.width_px,
+            height_px: h.height_px,
+            stride_px: h.width_px,
+            bit_depth: h.bit_depth(),
+            pixels: if h.bytes_per_sample() == 1 {
+                Pixels::U8(vec![0; n])
+            } else {
+                Pixels::U16(vec![0; n])
+            },
+            timestamp_ns: 0,
+            sequence: 0,
+        }
+    }
+
+    /// Decodes the PGM file `data` into this frame in place: same size and sample width
+    /// required, no allocation; the bit depth follows the file's maxval.
+    pub fn decode_pgm(&mut self, data: &[u8]) -> Result<(), irtrack_core::Error> {
+        let h = pgm::parse_header(data)?;
+        if (h.width_px, h.height_px) != (self.width_px, self.height_px) {
+            return Err(irtrack_core::Error::Pgm {
+                reason: format!(
+                    "size {}x{} differs from the first frame's {}x{}",
+                    h.width_px, h.height_px, self.width_px, self.height_px
+                ),
+            });
+        }
+        let stride = self.stride_px as usize;
+        let dst = match &mut self.pixels {
+            Pixels::U8(px) => pgm::SamplesMut::U8(px),
+            Pixels::U16(px) => pgm::SamplesMut::U16(px),
+        };
+        pgm::decode_into(data, &h, dst, stride)?;
+        self.bit_depth = h.bit_depth();
+        Ok(())
+    }
 }
 
 /// One frame per camera, paired in time.
@@ -130,7 +188,6 @@ pub trait FrameSource: Send {
 }
 
 pub mod faulty;
-pub mod pgm;
 pub mod replay;
 pub mod sim;
 pub mod v4l2;

@@ -12,8 +12,9 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
-use super::pgm;
-use super::{FrameSet, FrameSource, SourceError, SourceStats};
+use irtrack_core::pgm;
+
+use super::{Frame, FrameSet, FrameSource, SourceError, SourceStats};
 use crate::clock;
 
 /// Playback speed.
@@ -159,8 +160,9 @@ impl ReplaySource {
         let mut frames = Vec::with_capacity(cameras);
         for (path, _) in &first.files {
             read_file(path, &mut buf)?;
-            let h = pgm::parse_header(&buf, &path.display().to_string())?;
-            frames.push(pgm::frame_for(&h));
+            let h = pgm::parse_header(&buf)
+                .map_err(|e| SourceError::Config(format!("{}: {e}", path.display())))?;
+            frames.push(Frame::shaped_like_pgm(&h));
         }
         let template = FrameSet {
             index: 0,
@@ -233,13 +235,10 @@ impl FrameSource for ReplaySource {
         let (mut min_ts, mut max_ts) = (u64::MAX, 0);
         for (camera, ((path, ts), frame)) in set.files.iter().zip(out.frames.iter_mut()).enumerate() {
             read_file(path, &mut self.buf)?;
-            // Paths are short, so formatting the name for an error only happens on failure.
-            pgm::decode_into(&self.buf, path.to_str().unwrap_or("frame"), frame).map_err(|e| {
-                SourceError::CameraLost {
-                    camera,
-                    device: path.display().to_string(),
-                    reason: e.to_string(),
-                }
+            frame.decode_pgm(&self.buf).map_err(|e| SourceError::CameraLost {
+                camera,
+                device: path.display().to_string(),
+                reason: e.to_string(),
             })?;
             frame.timestamp_ns = match self.cfg.speed {
                 ReplaySpeed::Recorded => mapped(*ts),

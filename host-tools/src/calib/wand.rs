@@ -22,7 +22,7 @@ use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics};
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::{RigParams, looks_like_blob};
-use irtrack_sim::pgm::{PgmPixels, read_pgm};
+use irtrack_core::pgm::{self, PgmPixels};
 use nalgebra::Vector2;
 use opencv::core::{
     CV_64F, FileNode, FileNodeTraitConst, FileStorage, FileStorage_Mode, FileStorageTraitConst, Mat,
@@ -484,7 +484,7 @@ pub fn observe(rec: &Recording, models: &[CameraModel], wand: &Wand) -> Result<W
         for (ci, dir) in rec.dirs.iter().enumerate() {
             let path = dir.join(name);
             let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-            let pgm = read_pgm(&bytes).with_context(|| format!("decoding {}", path.display()))?;
+            let pgm = pgm::decode(&bytes).with_context(|| format!("decoding {}", path.display()))?;
             let size = models[ci].image_size;
             ensure!(
                 (pgm.width_px, pgm.height_px) == (size.width_px, size.height_px),

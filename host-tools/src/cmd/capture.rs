@@ -17,7 +17,6 @@ use anyhow::{Context, anyhow, bail, ensure};
 use opencv::core::{Mat, Point2f, Vector};
 use opencv::imgcodecs;
 use opencv::prelude::*;
-use serde::Deserialize;
 
 use crate::calib::detect::{Board, find_corners};
 
@@ -57,92 +56,9 @@ pub struct Args {
     pub timeout_s: f64,
 }
 
-/// One camera's entry in the frame-set header.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
-pub struct CameraHeader {
-    pub camera: u32,
-    pub width_px: u32,
-    pub height_px: u32,
-    pub bit_depth: u8,
-    pub timestamp_ns: u64,
-    #[serde(default)]
-    pub sequence: u64,
-    pub pgm_bytes: usize,
-}
-
-/// The JSON line in front of the frames.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
-pub struct FrameSetHeader {
-    pub set_index: u64,
-    pub pairing_error_ns: u64,
-    pub cameras: Vec<CameraHeader>,
-}
-
-/// A parsed frame set: the header and each camera's PGM file bytes, in camera order.
-#[derive(Debug, Clone)]
-pub struct FrameSet {
-    pub header: FrameSetHeader,
-    pub pgms: Vec<Vec<u8>>,
-}
-
-/// Parses a `GET /api/frameset` body (docs/http-api.md), checking that every frame is a PGM of
-/// the size and depth its header entry announces and that nothing is left over.
-pub fn parse_frameset(body: &[u8]) -> anyhow::Result<FrameSet> {
-    let nl = body.iter().position(|b| *b == b'\n').ok_or_else(|| {
-        anyhow!(
-            "frame set has no header line (no newline in {} bytes)",
-            body.len()
-        )
-    })?;
-    let header: FrameSetHeader = serde_json::from_slice(&body[..nl]).with_context(|| {
-        format!(
-            "frame-set header is not the documented JSON: {:?}",
-            String::from_utf8_lossy(&body[..nl.min(200)])
-        )
-    })?;
-    ensure!(!header.cameras.is_empty(), "frame set without cameras");
-    let mut rest = &body[nl + 1..];
-    let mut pgms = Vec::with_capacity(header.cameras.len());
-    for (i, cam) in header.cameras.iter().enumerate() {
-        ensure!(
-            cam.camera as usize == i,
-            "frame-set header lists camera {} at position {i}; cameras must come in order",
-            cam.camera
-        );
-        ensure!(
-            rest.len() >= cam.pgm_bytes,
-            "camera {i}: header announces {} PGM bytes, only {} left in the body",
-            cam.pgm_bytes,
-            rest.len()
-        );
-        let (pgm, tail) = rest.split_at(cam.pgm_bytes);
-        let decoded =
-            irtrack_sim::pgm::read_pgm(pgm).with_context(|| format!("camera {i}: frame is not a PGM"))?;
-        ensure!(
-            (decoded.width_px, decoded.height_px) == (cam.width_px, cam.height_px),
-            "camera {i}: PGM is {}x{}, header says {}x{}",
-            decoded.width_px,
-            decoded.height_px,
-            cam.width_px,
-            cam.height_px
-        );
-        let expected_max = if cam.bit_depth <= 8 { 255 } else { 65535 };
-        ensure!(
-            decoded.maxval == expected_max,
-            "camera {i}: PGM maxval {} does not match bit depth {}",
-            decoded.maxval,
-            cam.bit_depth
-        );
-        pgms.push(pgm.to_vec());
-        rest = tail;
-    }
-    ensure!(
-        rest.is_empty(),
-        "{} bytes after the last camera's frame",
-        rest.len()
-    );
-    Ok(FrameSet { header, pgms })
-}
+/// The frame-set format (header line + one PGM per camera) lives in `irtrack_core::frameset`
+/// beside irtrackd's writer of it (docs/frameset.md).
+pub use irtrack_core::frameset::{CameraHeader, FrameSet, FrameSetHeader};
 
 /// `http://HOST:PORT/api/frameset` for `BOARD` or `BOARD:PORT`.
 pub fn frameset_url(from: &str) -> String {
@@ -206,7 +122,7 @@ pub fn fetch(agent: &ureq::Agent, url: &str, board: &str) -> Result<FrameSet, Fe
     let mut reader = std::io::Read::take(resp.into_reader(), MAX_BODY);
     std::io::Read::read_to_end(&mut reader, &mut body)
         .map_err(|e| FetchError::Fatal(anyhow!("reading the frame set from {board}: {e}")))?;
-    parse_frameset(&body).map_err(|e| FetchError::Fatal(e.context(format!("frame set from {board}"))))
+    FrameSet::parse(&body).map_err(|e| FetchError::Fatal(anyhow!("frame set from {board}: {e}")))
 }
 
 /// [`fetch`], trying again while irtrackd is busy or has no set yet (up to 20 times in a row).
@@ -581,7 +497,7 @@ mod tests {
 
     #[test]
     fn parses_the_documented_format() {
-        let set = parse_frameset(&body(3, 8, 4)).unwrap();
+        let set = FrameSet::parse(&body(3, 8, 4)).unwrap();
         assert_eq!(set.header.set_index, 123);
         assert_eq!(set.header.pairing_error_ns, 800);
         assert_eq!(set.header.cameras.len(), 3);
@@ -595,7 +511,7 @@ mod tests {
     #[test]
     fn refuses_bodies_that_do_not_match_their_header() {
         let good = body(2, 8, 4);
-        let e = |b: &[u8]| format!("{:#}", parse_frameset(b).unwrap_err());
+        let e = |b: &[u8]| FrameSet::parse(b).unwrap_err().to_string();
         assert!(e(&good[..good.len() - 1]).contains("left in the body"));
         let mut extra = good.clone();
         extra.push(0);

@@ -15,10 +15,10 @@ use anyhow::{Context, bail, ensure};
 use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::RigParams;
+use irtrack_core::pgm::{self, PgmPixels};
 use irtrack_core::pose6d::{
     LayoutOrigin, MeasuredLayout, PointMatcher, PoseConfig, TriangulatedPoint, measure_tool_layout,
 };
-use irtrack_sim::pgm::{PgmPixels, read_pgm};
 
 /// Origin of the measured tool frame.
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
@@ -115,7 +115,7 @@ pub fn measure(args: &Args) -> anyhow::Result<(RigParams, MeasuredLayout, usize)
         for c in 0..n_cam {
             let path = args.frames.join(format!("cam{c}/{index:06}.pgm"));
             let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-            pgms.push(read_pgm(&bytes).with_context(|| format!("decoding {}", path.display()))?);
+            pgms.push(pgm::decode(&bytes).with_context(|| format!("decoding {}", path.display()))?);
         }
         for (c, pgm) in pgms.iter().enumerate() {
             let size = rig.cameras[c].model.image_size;

@@ -20,9 +20,9 @@ use anyhow::{Context, bail, ensure};
 use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::RigParams;
+use irtrack_core::pgm::{self, PgmPixels};
 use irtrack_core::pose6d::{PoseConfig, PoseStatus, PoseTracker};
 use irtrack_core::stream::{PositionRecord, TrackStatus};
-use irtrack_sim::pgm::{PgmPixels, read_pgm};
 use nalgebra::{DMatrix, DVector, Matrix3, Quaternion, UnitQuaternion, Vector3};
 
 /// Arguments.
@@ -291,7 +291,7 @@ pub fn track_poses(
         for c in 0..n_cam {
             let path = dir.join(format!("cam{c}/{index:06}.pgm"));
             let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-            let pgm = read_pgm(&bytes).with_context(|| format!("decoding {}", path.display()))?;
+            let pgm = pgm::decode(&bytes).with_context(|| format!("decoding {}", path.display()))?;
             let size = rig.cameras[c].model.image_size;
             ensure!(
                 (pgm.width_px, pgm.height_px) == (size.width_px, size.height_px),

@@ -5,12 +5,11 @@
 //! truth gives the tool's pose (origin and quaternion).
 
 use std::fmt::Write as _;
-use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use irtrack_core::params::ToolDefinition;
-use irtrack_sim::pgm::{write_pgm_u8, write_pgm_u16};
+use irtrack_core::pgm;
 use irtrack_sim::rig::{TABLE_I_BASELINE_MM, TABLE_I_FOCAL_PX};
 use irtrack_sim::{BitDepth, MarkerSpec, RigPreset, Scenario, SimConfig, Trajectory};
 use nalgebra::Vector3;
@@ -297,14 +296,11 @@ pub fn write_scenario(
                 sum.dropped += 1;
                 continue;
             }
-            let file =
-                std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
-            let mut out = BufWriter::new(file);
-            match depth {
-                BitDepth::Eight => write_pgm_u8(&mut out, w, h, &f8)?,
-                BitDepth::Ten => write_pgm_u16(&mut out, w, h, 1023, &f16)?,
-            }
-            std::io::Write::flush(&mut out).with_context(|| format!("writing {}", path.display()))?;
+            let file = match depth {
+                BitDepth::Eight => pgm::encode_u8(w, h, &f8)?,
+                BitDepth::Ten => pgm::encode_u16(w, h, 10, &f16)?,
+            };
+            std::fs::write(&path, file).with_context(|| format!("writing {}", path.display()))?;
             sum.images += 1;
         }
         bar.inc(1);

@@ -12,8 +12,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::RigParams;
+use irtrack_core::pgm::{self, PgmPixels};
 use irtrack_core::pipeline::{Measurement, TrackStatus, Tracker, TrackerConfig};
-use irtrack_sim::pgm::{PgmPixels, read_pgm};
 use nalgebra::Vector3;
 
 /// Arguments.
@@ -230,7 +230,7 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
         for c in 0..n_cam {
             let path = args.frames.join(format!("cam{c}/{index:06}.pgm"));
             let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-            let pgm = read_pgm(&bytes).with_context(|| format!("decoding {}", path.display()))?;
+            let pgm = pgm::decode(&bytes).with_context(|| format!("decoding {}", path.display()))?;
             if c > 0 && (pgm.width_px, pgm.height_px, pgm.maxval) != (size.0, size.1, maxval) {
                 bail!("{}: size/depth differs from cam0's frame {index}", path.display());
             }
