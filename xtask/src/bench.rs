@@ -29,8 +29,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
-use crate::ci::Counts;
 use crate::cross;
+use crate::report::Counts;
 use crate::util::{self, Ctx, RunOpts};
 
 const CASES: &[&str] = &[

@@ -7,78 +7,28 @@
 //! test to show for it (fmt, clippy, a build error), so a red run never ends in "0 failed".
 //!
 //! # Adding a phase
-//! Add one entry to [`PHASES`]. Optional modules `src/image.rs`, `src/bench.rs`, `src/fuzz.rs` are
-//! detected by build.rs and wired in automatically; each must provide
-//! `pub fn ci_phase(ctx: &crate::util::Ctx) -> anyhow::Result<crate::ci::Counts>`
-//! (Ok = passed; Err = failed, with a message) and
-//! `pub fn cli(ctx: &crate::util::Ctx, args: &[String]) -> anyhow::Result<()>`
-//! (for `cargo xtask image|bench ...`).
+//! Add one entry to [`PHASES`]: a function `fn(&Ctx) -> Outcome`, or a module's
+//! `ci_phase(ctx) -> anyhow::Result<Counts>` wrapped in [`Outcome::from_counts`]. Phases report
+//! through [`crate::report`] and never import this module.
 
 use std::process::Command;
 use std::time::{Duration, Instant};
 
 use anyhow::{Result, bail};
 
+use crate::report::{Counts, Outcome, parse_test_results};
 use crate::util::{self, Ctx, RunOpts};
 use crate::{cross, disk, lint, setup};
 
-/// Test counts from cargo's `test result:` lines (or from a hook phase).
-#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
-pub struct Counts {
-    pub passed: u64,
-    pub failed: u64,
-    pub ignored: u64,
-}
-
-impl Counts {
-    fn add(&mut self, other: Counts) {
-        self.passed += other.passed;
-        self.failed += other.failed;
-        self.ignored += other.ignored;
-    }
-}
-
-/// What a phase reports.
-#[derive(Debug, Default)]
-pub struct Outcome {
-    /// Tests run by the phase, if it runs tests.
-    pub counts: Option<Counts>,
-    /// Why the phase failed.
-    pub failure: Option<String>,
-    /// Why the phase did not run (not a failure).
-    pub skipped: Option<String>,
-}
-
-impl Outcome {
-    fn passed() -> Self {
-        Self::default()
-    }
-    fn failed(msg: impl Into<String>) -> Self {
-        Self {
-            failure: Some(msg.into()),
-            ..Self::default()
-        }
-    }
-    fn skipped(msg: impl Into<String>) -> Self {
-        Self {
-            skipped: Some(msg.into()),
-            ..Self::default()
-        }
-    }
-    fn from_result(r: Result<Outcome>) -> Self {
-        r.unwrap_or_else(|e| Outcome::failed(format!("{e:#}")))
-    }
-}
-
 type PhaseFn = fn(&Ctx) -> Outcome;
 
-/// One CI phase. `run == None` means the phase's module is not part of the tree yet.
+/// One CI phase.
 pub struct Phase {
     pub name: &'static str,
     pub about: &'static str,
     /// Label for test counts in the summary ("host", "aarch64", ...).
     pub label: &'static str,
-    pub run: Option<PhaseFn>,
+    pub run: PhaseFn,
     /// Kill the phase after this long, so a hung test (e.g. under QEMU) cannot stall CI.
     /// For test phases it limits running the tests, not compiling them.
     pub timeout: Duration,
@@ -92,7 +42,7 @@ const fn phase(
     name: &'static str,
     about: &'static str,
     label: &'static str,
-    run: Option<PhaseFn>,
+    run: PhaseFn,
     limit_min: u64,
     builds: &'static [&'static str],
 ) -> Phase {
@@ -109,45 +59,22 @@ const fn phase(
 /// All phases, in run order. Register a new one with a single line here.
 #[rustfmt::skip]
 pub const PHASES: &[Phase] = &[
-    phase("setup", "install missing system packages", "", Some(setup_phase), 30, &[]),
-    phase("fmt", "cargo fmt --all --check", "", Some(fmt), 5, &[]),
-    phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", Some(clippy), 60, &["debug"]),
-    phase("host-tests", "cargo test --workspace (all crates, host)", "host", Some(host_tests), 25, &["debug"]),
-    phase("no-std", "irtrack-core without its std feature", "", Some(no_std), 30, &["debug"]),
+    phase("setup", "install missing system packages", "", setup_phase, 30, &[]),
+    phase("fmt", "cargo fmt --all --check", "", fmt, 5, &[]),
+    phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", clippy, 60, &["debug"]),
+    phase("host-tests", "cargo test --workspace (all crates, host)", "host", host_tests, 25, &["debug"]),
+    phase("no-std", "irtrack-core without its std feature", "", no_std, 30, &["debug"]),
     // The image runs right after the host phases: its system test runs host-tools from
     // target/debug, and with that phase done a machine short of disk can drop target/debug
     // before the aarch64 test build (crate::disk).
-    phase("image", "aarch64 image build + QEMU system test", "system", IMAGE_HOOK, 20, &["image", "aarch64-static", "debug"]),
-    phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", Some(aarch64_tests), 35, &["aarch64"]),
-    phase("systemd", "systemd-analyze verify on systemd/ units", "", Some(lint::systemd_phase), 2, &[]),
-    phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", Some(lint::yocto_phase), 5, &[]),
-    phase("yocto-bitbake", "BitBake parses meta-irtrack, lists its recipes, resolves irtrack-image", "bitbake", Some(yocto_bitbake), 30, &["yocto"]),
-    phase("bench", "short benchmark", "bench", BENCH_HOOK, 10, &["release"]),
-    phase("fuzz", "short fuzzing run of every fuzz target", "fuzz", FUZZ_HOOK, 10, &["fuzz"]),
+    phase("image", "aarch64 image build + QEMU system test", "system", |ctx| Outcome::from_counts(crate::image::ci_phase(ctx)), 20, &["image", "aarch64-static", "debug"]),
+    phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", aarch64_tests, 35, &["aarch64"]),
+    phase("systemd", "systemd-analyze verify on systemd/ units", "", lint::systemd_phase, 2, &[]),
+    phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", lint::yocto_phase, 5, &[]),
+    phase("yocto-bitbake", "BitBake parses meta-irtrack, lists its recipes, resolves irtrack-image", "bitbake", yocto_bitbake, 30, &["yocto"]),
+    phase("bench", "short benchmark", "bench", |ctx| Outcome::from_counts(crate::bench::ci_phase(ctx)), 10, &["release"]),
+    phase("fuzz", "short fuzzing run of every fuzz target", "fuzz", |ctx| Outcome::from_counts(crate::fuzz::ci_phase(ctx)), 10, &["fuzz"]),
 ];
-
-#[cfg(xtask_has_image)]
-const IMAGE_HOOK: Option<PhaseFn> = Some(|ctx| hook(crate::image::ci_phase(ctx)));
-#[cfg(not(xtask_has_image))]
-const IMAGE_HOOK: Option<PhaseFn> = None;
-#[cfg(xtask_has_bench)]
-const BENCH_HOOK: Option<PhaseFn> = Some(|ctx| hook(crate::bench::ci_phase(ctx)));
-#[cfg(not(xtask_has_bench))]
-const BENCH_HOOK: Option<PhaseFn> = None;
-#[cfg(xtask_has_fuzz)]
-const FUZZ_HOOK: Option<PhaseFn> = Some(|ctx| hook(crate::fuzz::ci_phase(ctx)));
-#[cfg(not(xtask_has_fuzz))]
-const FUZZ_HOOK: Option<PhaseFn> = None;
-
-fn hook(r: Result<Counts>) -> Outcome {
-    match r {
-        Ok(c) => Outcome {
-            counts: Some(c),
-            ..Outcome::default()
-        },
-        Err(e) => Outcome::failed(format!("{e:#}")),
-    }
-}
 
 /// Options of `cargo xtask test`.
 #[derive(Debug, Default)]
@@ -175,8 +102,7 @@ pub fn parse_options(args: &[String]) -> Result<Options> {
             }
             "--list" => {
                 for p in PHASES {
-                    let state = if p.run.is_some() { "" } else { "  (not present)" };
-                    println!("{:<14} {}{state}", p.name, p.about);
+                    println!("{:<14} {}", p.name, p.about);
                 }
                 std::process::exit(0);
             }
@@ -236,13 +162,8 @@ pub fn run(ctx: &Ctx, opts: &Options) -> i32 {
         );
         println!("{}", "=".repeat(100));
         let t0 = Instant::now();
-        let outcome = match phase.run {
-            None => Outcome::skipped("not present"),
-            Some(f) => {
-                set_phase_timeout(phase.timeout);
-                f(ctx)
-            }
-        };
+        set_phase_timeout(phase.timeout);
+        let outcome = (phase.run)(ctx);
         let elapsed = t0.elapsed();
         println!(
             "<== {}: {} in {}{}",
@@ -464,45 +385,13 @@ fn cargo_test_with_args(make: impl Fn() -> Result<Command>, test_args: &[&str]) 
     }
 }
 
-/// Sums `test result: ok. 12 passed; 0 failed; 1 ignored; ...` lines; also returns how many
-/// such lines (test binaries and doctest runs) there were.
-pub fn parse_test_results(stdout: &str) -> (Counts, usize) {
-    let mut total = Counts::default();
-    let mut n = 0;
-    for line in stdout.lines() {
-        let Some(rest) = line.trim().strip_prefix("test result: ") else {
-            continue;
-        };
-        let mut c = Counts::default();
-        let mut seen = false;
-        for part in rest.split(';') {
-            let mut words = part.split_whitespace().rev();
-            let (Some(key), Some(num)) = (words.next(), words.next()) else {
-                continue;
-            };
-            let Ok(num) = num.parse::<u64>() else { continue };
-            match key {
-                "passed" => (c.passed, seen) = (num, true),
-                "failed" => c.failed = num,
-                "ignored" => c.ignored = num,
-                _ => {}
-            }
-        }
-        if seen {
-            total.add(c);
-            n += 1;
-        }
-    }
-    (total, n)
-}
-
 fn yocto_bitbake(ctx: &Ctx) -> Outcome {
     // The snapshots are not part of the repository; a machine without them cannot run BitBake
     // at all, which is a precondition (shown as skipped with the reason), not a layer failure.
     if let Some(why) = crate::yocto::snapshots_missing(ctx) {
         return Outcome::skipped(why);
     }
-    hook(crate::yocto::ci_phase(ctx))
+    Outcome::from_counts(crate::yocto::ci_phase(ctx))
 }
 
 fn setup_phase(ctx: &Ctx) -> Outcome {
@@ -512,24 +401,8 @@ fn setup_phase(ctx: &Ctx) -> Outcome {
 fn fmt(ctx: &Ctx) -> Outcome {
     let mut cmd = ctx.cargo();
     cmd.args(["fmt", "--all", "--check", "--", "--color=never"]);
-    let o = check(cmd, "cargo fmt --check");
-    // cargo fmt does not descend into xtask's optional modules (see main.rs).
-    let optional: Vec<_> = OPTIONAL_MODULES
-        .iter()
-        .map(|m| ctx.root.join("xtask/src").join(format!("{m}.rs")))
-        .filter(|p| p.is_file())
-        .collect();
-    if o.failure.is_some() || optional.is_empty() {
-        return o;
-    }
-    let mut cmd = Command::new("rustfmt");
-    cmd.args(["--check", "--edition", "2024"])
-        .args(&optional)
-        .current_dir(&ctx.root);
-    check(cmd, "rustfmt --check on xtask's optional modules")
+    check(cmd, "cargo fmt --check")
 }
-
-const OPTIONAL_MODULES: &[&str] = &["image", "bench", "fuzz"];
 
 fn clippy(ctx: &Ctx) -> Outcome {
     let mut cmd = ctx.cargo();
@@ -685,36 +558,6 @@ const EMULATION_SKIPS: &[&str] = &[
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn parses_cargo_test_result_lines() {
-        let out = "\
-running 3 tests
-test a ... ok
-test result: ok. 3 passed; 0 failed; 1 ignored; 0 measured; 0 filtered out; finished in 0.01s
-
-test result: FAILED. 5 passed; 2 failed; 0 ignored; 0 measured; 0 filtered out; finished in 1.20s
-   Doc-tests irtrack_core
-test result: ok. 0 passed; 0 failed; 0 ignored; 0 measured; 0 filtered out; finished in 0.00s
-test something_named_test result: is not a summary
-";
-        let (c, n) = parse_test_results(out);
-        assert_eq!(n, 3);
-        assert_eq!(
-            c,
-            Counts {
-                passed: 8,
-                failed: 2,
-                ignored: 1
-            }
-        );
-    }
-
-    #[test]
-    fn no_result_lines_means_no_binaries() {
-        let (c, n) = parse_test_results("error[E0425]: cannot find value `x`\n");
-        assert_eq!((c, n), (Counts::default(), 0));
-    }
 
     #[test]
     fn finds_std_features_in_tree_output() {

@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 
-use crate::ci::Counts;
+use crate::report::Counts;
 use crate::util::{self, Ctx, RunOpts};
 
 /// Every target in fuzz/fuzz_targets, in run order.

@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
-use crate::ci::Counts;
+use crate::report::Counts;
 use crate::util::{self, Ctx};
 
 mod crates;

@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use crate::ci::Outcome;
+use crate::report::Outcome;
 use crate::util::{self, Ctx, RunOpts};
 
 const UNIT_SUFFIXES: &[&str] = &["service", "socket", "timer", "path", "target", "mount"];

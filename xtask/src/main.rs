@@ -3,6 +3,7 @@
 //! Std plus anyhow only, and no dependency on other workspace crates, so it builds first
 //! and fast on a fresh machine.
 
+mod bench;
 mod bench_links;
 mod ci;
 mod cross;
@@ -10,24 +11,14 @@ mod demo;
 mod demo_live;
 mod demo_view;
 mod disk;
+mod fuzz;
+mod image;
 mod lint;
+mod report;
 mod setup;
 mod soak;
 mod util;
 mod yocto;
-
-// Optional modules, compiled in when their file exists (see build.rs and ci.rs).
-// `rustfmt::skip` stops rustfmt from failing on a missing file; the fmt phase checks
-// these files explicitly instead.
-#[cfg(xtask_has_bench)]
-#[rustfmt::skip]
-mod bench;
-#[cfg(xtask_has_fuzz)]
-#[rustfmt::skip]
-mod fuzz;
-#[cfg(xtask_has_image)]
-#[rustfmt::skip]
-mod image;
 
 pub use util::Ctx;
 
@@ -85,18 +76,9 @@ fn real_main(args: &[String]) -> anyhow::Result<i32> {
         "soak" => soak::cli(&ctx, rest)?,
         "bench-links" => bench_links::cli(&ctx, rest)?,
         "yocto" => yocto::cli(&ctx, rest)?,
-        #[cfg(xtask_has_image)]
         "image" => image::cli(&ctx, rest)?,
-        #[cfg(xtask_has_bench)]
         "bench" => bench::cli(&ctx, rest)?,
-        #[cfg(not(xtask_has_image))]
-        "image" => anyhow::bail!("`image` is not present yet (xtask/src/image.rs does not exist)"),
-        #[cfg(xtask_has_fuzz)]
         "fuzz" => fuzz::cli(&ctx, rest)?,
-        #[cfg(not(xtask_has_fuzz))]
-        "fuzz" => anyhow::bail!("`fuzz` is not present yet (xtask/src/fuzz.rs does not exist)"),
-        #[cfg(not(xtask_has_bench))]
-        "bench" => anyhow::bail!("`bench` is not present yet (xtask/src/bench.rs does not exist)"),
         "help" | "-h" | "--help" => print!("{USAGE}"),
         other => {
             eprint!("unknown task `{other}`\n\n{USAGE}");

@@ -24,7 +24,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 
-use crate::ci::Counts;
+use crate::report::Counts;
 use crate::util::{self, Ctx, RunOpts};
 
 /// The unprivileged system user that runs BitBake when CI runs as root.
