@@ -37,16 +37,22 @@ pub struct BoundAddrs {
     pub stream_ndjson: SocketAddr,
     pub stream_binary: SocketAddr,
     pub status: SocketAddr,
+    /// NatNet command socket, when `[outputs.natnet]` is enabled.
+    pub natnet: Option<SocketAddr>,
 }
 
 impl BoundAddrs {
     /// The line printed on stdout once every listener is bound (parsed by tests and the QEMU
     /// system test).
     pub fn ready_line(&self) -> String {
-        format!(
+        let mut line = format!(
             "irtrackd ready params={} stream={} binary={} status={}",
             self.params, self.stream_ndjson, self.stream_binary, self.status
-        )
+        );
+        if let Some(a) = self.natnet {
+            line.push_str(&format!(" natnet={a}"));
+        }
+        line
     }
 }
 
@@ -64,6 +70,8 @@ pub struct Running {
     pub params: Arc<ParamService>,
     /// Present when the simulated LED back end is in use.
     pub led_record: Option<LedRecord>,
+    /// Counters of the standard outputs (docs/outputs.md).
+    pub outputs: crate::outputs::OutputsStats,
     positions: watch::Receiver<Option<PositionRecord>>,
     stop_loop: Arc<AtomicBool>,
     loop_thread: Option<std::thread::JoinHandle<()>>,
@@ -156,6 +164,7 @@ async fn bind_listeners(listen: &ListenConfig) -> Result<Listeners> {
         stream_ndjson: local("NDJSON stream", &ndjson)?,
         stream_binary: local("binary stream", &binary)?,
         status: local("status", &status)?,
+        natnet: None,
     };
     Ok(Listeners {
         params,
@@ -338,7 +347,11 @@ fn start_robot(
 pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     let resolved = cfg.validate()?;
     let listeners = bind_listeners(&cfg.listen).await?;
-    let addrs = listeners.addrs;
+    let outputs = crate::outputs::Outputs::bind(&cfg.outputs)?;
+    let addrs = BoundAddrs {
+        natnet: outputs.natnet_addr(),
+        ..listeners.addrs
+    };
 
     let devices = open_devices(&resolved, overrides)?;
     let led_desc = devices
@@ -413,6 +426,15 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
 
     let robot = start_robot(cfg.robot.as_ref(), &slot_rx, &status, &mut tasks)?;
 
+    // Step 7b: the standard outputs (docs/outputs.md), on the same latest-value slot.
+    let output_stats = outputs.stats.clone();
+    let feed = crate::outputs::Feed {
+        slot: slot_rx.clone(),
+        params: handle.clone(),
+        status: status.clone(),
+    };
+    tasks.extend(outputs.spawn(&feed, || shutdown_future(&shutdown_rx)));
+
     // Step 8: the status service (set-up page, live view, robot control).
     let control = crate::net::status::RobotControl {
         allowed: cfg.service.control,
@@ -441,6 +463,7 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         status,
         params,
         led_record: devices.led_record,
+        outputs: output_stats,
         positions: slot_rx,
         stop_loop: processing.stop,
         loop_thread: Some(processing.thread),

@@ -44,6 +44,9 @@ pub struct Config {
     /// Robot link; absent means no robot client runs.
     #[serde(default)]
     pub robot: Option<RobotConfig>,
+    /// Standard outputs (NatNet, ...), all off by default (docs/outputs.md).
+    #[serde(default)]
+    pub outputs: crate::outputs::OutputsConfig,
 }
 
 /// `[service]`
@@ -320,6 +323,7 @@ impl Config {
             return bad("source.max_pairing_error_us must be > 0".into());
         }
         check_tracker_config(&self.tracking)?;
+        self.outputs.validate()?;
         if let Some(h) = &self.service.operator_password_hash {
             crate::net::auth::check_hash(h)?;
         }

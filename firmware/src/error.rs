@@ -37,6 +37,9 @@ pub enum FirmwareError {
     /// The robot link could not be started.
     #[error("{0}")]
     Robot(#[from] crate::robot::RobotError),
+    /// An output (NatNet, recording) could not encode or refused input.
+    #[error("{what}: {reason}")]
+    Output { what: &'static str, reason: String },
     /// A worker thread could not be started or died.
     #[error("thread {what}: {reason}")]
     Thread { what: &'static str, reason: String },

@@ -13,6 +13,7 @@ pub mod error;
 pub mod leds;
 pub mod metrics;
 pub mod net;
+pub mod outputs;
 pub mod params;
 pub mod robot;
 pub mod rt;

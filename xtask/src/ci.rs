@@ -553,6 +553,10 @@ const EMULATION_SKIPS: &[&str] = &[
     "ignores_malformed_duplicated_and_reordered_packets",
     "gap_starts_a_new_held_session",
     "controller_counts_late_answers_and_stops_after_the_limit",
+    // A Python NatNet client (host process) must get 100+ frames of the paced 120/200 fps
+    // simulated loop before the source ends. The encoder's golden-byte tests still run.
+    "natnet_client_reads_tool_rigid_bodies",
+    "natnet_single_led_is_an_unlabelled_marker",
 ];
 
 #[cfg(test)]

@@ -182,6 +182,26 @@ fn has_bitbake_user() -> bool {
 const PIP_PACKAGE: &str = "oelint-adv";
 const PIP_WHY: &str = "lints the Yocto layer's BitBake recipes";
 
+/// Python modules the interop tests import: (PyPI package, module to import, why).
+const PY_MODULES: &[(&str, &str, &str)] = &[(
+    "natnet",
+    "natnet",
+    "independent NatNet client for irtrackd's NatNet output (firmware/tests/natnet.rs)",
+)];
+
+/// The PyPI packages of [`PY_MODULES`] whose module python3 cannot import.
+fn missing_py_modules() -> Vec<&'static (&'static str, &'static str, &'static str)> {
+    PY_MODULES
+        .iter()
+        .filter(|(_, module, _)| {
+            !Command::new("python3")
+                .args(["-c", &format!("import {module}")])
+                .output()
+                .is_ok_and(|o| o.status.success())
+        })
+        .collect()
+}
+
 /// Which kind of system we are on, from /etc/os-release.
 #[derive(Debug, Clone, PartialEq, Eq)]
 enum Distro {
@@ -308,7 +328,8 @@ pub fn run(_ctx: &util::Ctx) -> Result<()> {
         .filter(|p| !satisfied(p, &distro))
         .collect();
     let need_pip_pkg = oelint_adv().is_none();
-    let pip_missing = need_pip_pkg && !has_pip();
+    let py_missing = missing_py_modules();
+    let pip_missing = (need_pip_pkg || !py_missing.is_empty()) && !has_pip();
     let pip3 = Pkg {
         name: "python3-pip",
         why: "pip, to install oelint-adv from PyPI",
@@ -324,7 +345,7 @@ pub fn run(_ctx: &util::Ctx) -> Result<()> {
         .filter(|s| (root || !s.root_only) && !(s.present)())
         .collect();
 
-    if missing.is_empty() && !need_pip_pkg && steps.is_empty() {
+    if missing.is_empty() && !need_pip_pkg && py_missing.is_empty() && steps.is_empty() {
         println!(
             "setup: all {} system packages, {PIP_PACKAGE} and the BitBake prerequisites are \
              present; nothing to install",
@@ -364,6 +385,10 @@ pub fn run(_ctx: &util::Ctx) -> Result<()> {
     }
     if need_pip_pkg {
         install_oelint()?;
+    }
+    for (package, _, why) in &py_missing {
+        println!("setup: installing {package} from PyPI: {why}");
+        pip_install(package)?;
     }
     println!("setup: done");
     Ok(())
@@ -484,7 +509,12 @@ fn ubuntu_rust_target() -> Result<()> {
 
 fn install_oelint() -> Result<()> {
     println!("setup: installing {PIP_PACKAGE} from PyPI: {PIP_WHY}");
-    let base = ["-m", "pip", "install", "--disable-pip-version-check", PIP_PACKAGE];
+    pip_install(PIP_PACKAGE)
+}
+
+/// `pip install PACKAGE`, for this user when the system Python is externally managed.
+fn pip_install(package: &str) -> Result<()> {
+    let base = ["-m", "pip", "install", "--disable-pip-version-check", package];
     let out = util::run(
         Command::new("python3").args(base),
         RunOpts {
@@ -508,9 +538,9 @@ fn install_oelint() -> Result<()> {
         if out.success() {
             return Ok(());
         }
-        bail!("`pip install --user {PIP_PACKAGE}` {}", out.describe());
+        bail!("`pip install --user {package}` {}", out.describe());
     }
-    bail!("`python3 -m pip install {PIP_PACKAGE}` {}", out.describe())
+    bail!("`python3 -m pip install {package}` {}", out.describe())
 }
 
 fn print_manual_instructions(wanted: &[&Pkg]) {
@@ -524,6 +554,9 @@ fn print_manual_instructions(wanted: &[&Pkg]) {
         println!("  {:<28} {}{src}", p.name, p.why);
     }
     println!("and from PyPI: {PIP_PACKAGE} ({PIP_WHY}).");
+    for (package, _, why) in PY_MODULES {
+        println!("and from PyPI: {package} ({why}).");
+    }
     for s in STEPS {
         println!("Also: {} ({}):\n{}\n", s.what, s.why, s.script);
     }

@@ -1,0 +1,116 @@
+//! Standard outputs that existing tools read (docs/outputs.md): NatNet for OptiTrack clients.
+//!
+//! Every output is fed from the processing loop's latest-value slot on the async side, never
+//! from the loop itself: a slow or absent consumer can only make an output skip records
+//! (counted in [`OutputStats`]), never slow the loop.
+
+pub mod natnet;
+pub mod scene;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::AtomicU64;
+
+use irtrack_core::stream::PositionRecord;
+use serde::Deserialize;
+use tokio::sync::watch;
+
+use crate::engine::ParamsHandle;
+use crate::error::Result;
+use crate::status::SharedStatus;
+
+/// `[outputs]`: every output is off unless its table enables it.
+#[derive(Debug, Clone, PartialEq, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct OutputsConfig {
+    #[serde(default)]
+    pub natnet: natnet::NatNetConfig,
+}
+
+impl OutputsConfig {
+    /// Checks every enabled output's settings (errors name the key).
+    pub fn validate(&self) -> Result<()> {
+        if self.natnet.enabled {
+            self.natnet.plan()?;
+        }
+        Ok(())
+    }
+}
+
+/// Counters of one output (read by tests and the status endpoint).
+#[derive(Debug, Default)]
+pub struct OutputStats {
+    /// Datagrams (or messages) handed to the kernel.
+    pub frames_sent: AtomicU64,
+    /// Sends that failed or would have blocked; the packet was dropped, not queued.
+    pub send_drops: AtomicU64,
+    /// Records the loop published that this output never saw (the slot was overwritten first).
+    pub slot_skips: AtomicU64,
+    /// Clients currently served (unicast).
+    pub clients: AtomicU64,
+    /// Clients refused by the client limit.
+    pub refused: AtomicU64,
+    pub requests: AtomicU64,
+    /// Malformed or unknown requests.
+    pub bad_requests: AtomicU64,
+}
+
+/// Counters of every output.
+#[derive(Debug, Clone, Default)]
+pub struct OutputsStats {
+    pub natnet: Arc<OutputStats>,
+}
+
+/// What outputs read: the latest-value slot, the active parameter set (for the models) and
+/// the loop's publication counter (for skipped records).
+pub struct Feed {
+    pub slot: watch::Receiver<Option<PositionRecord>>,
+    pub params: Arc<ParamsHandle>,
+    pub status: Arc<SharedStatus>,
+}
+
+/// The enabled outputs, bound (so a port in use fails at start) but not yet running.
+pub struct Outputs {
+    natnet: Option<natnet::server::NatNetServer>,
+    pub stats: OutputsStats,
+}
+
+impl Outputs {
+    /// Checks the configuration and binds every enabled output's sockets.
+    pub fn bind(cfg: &OutputsConfig) -> Result<Self> {
+        let natnet = if cfg.natnet.enabled {
+            Some(natnet::server::NatNetServer::bind(cfg.natnet.plan()?)?)
+        } else {
+            None
+        };
+        Ok(Self {
+            natnet,
+            stats: OutputsStats::default(),
+        })
+    }
+
+    /// The NatNet command socket's address, when enabled.
+    pub fn natnet_addr(&self) -> Option<SocketAddr> {
+        self.natnet.as_ref().map(|n| n.local_addr())
+    }
+
+    /// Starts the outputs' tasks; each ends when its `shutdown()` future resolves.
+    pub fn spawn<S, F>(self, feed: &Feed, shutdown: S) -> Vec<tokio::task::JoinHandle<()>>
+    where
+        S: Fn() -> F,
+        F: Future<Output = ()> + Send + 'static,
+    {
+        let mut tasks = Vec::new();
+        if let Some(server) = self.natnet {
+            tasks.push(tokio::spawn(server.serve(
+                feed.slot.clone(),
+                feed.params.clone(),
+                feed.status.clone(),
+                self.stats.natnet.clone(),
+                shutdown(),
+            )));
+        }
+        tasks
+    }
+}

@@ -1,0 +1,168 @@
+//! NatNet server (`[outputs.natnet]`): OptiTrack's streaming protocol, so NatNet clients
+//! (game-engine plugins, MotionBuilder, ROS NatNet drivers, drone-swarm software) read
+//! irtrackd's poses as rigid bodies and markers. Spec: docs/outputs.md.
+//!
+//! One UDP socket on the command port answers connect, model-definition, frame and keep-alive
+//! requests. Frames go to the multicast group's data port (transport "multicast"), or to the
+//! address each client's requests came from (transport "unicast"; clients that stop sending
+//! keep-alives are forgotten after `unicast_timeout_s`). The server reads only the latest-value
+//! slot; a frame it cannot send at once is dropped and counted, never waited for.
+
+pub mod server;
+pub mod wire;
+
+use std::net::{Ipv4Addr, SocketAddr};
+
+use serde::Deserialize;
+
+use crate::error::{FirmwareError, Result};
+use crate::outputs::scene::Axes;
+
+/// How frames reach the clients.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Transport {
+    /// To `multicast_group:data_port` (Motive's default; every client on the network).
+    #[default]
+    Multicast,
+    /// To each client that sent a connect or keep-alive, at the address it sent from.
+    Unicast,
+}
+
+/// `[outputs.natnet]`
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NatNetConfig {
+    /// Off by default.
+    #[serde(default)]
+    pub enabled: bool,
+    /// Command socket (`host:port`); NatNet's port is 1510.
+    #[serde(default = "default_command")]
+    pub command: String,
+    #[serde(default)]
+    pub transport: Transport,
+    /// Multicast group for frames (transport "multicast").
+    #[serde(default = "default_group")]
+    pub multicast_group: String,
+    /// Address of the interface multicast frames leave by (`0.0.0.0`: the routing table's
+    /// choice).
+    #[serde(default = "default_interface")]
+    pub multicast_interface: String,
+    /// Destination port of multicast frames; NatNet's is 1511.
+    #[serde(default = "default_data_port")]
+    pub data_port: u16,
+    /// Output axes: "tracker" (unchanged) or "y_up" (docs/outputs.md).
+    #[serde(default)]
+    pub axes: Axes,
+    /// A unicast client not heard from for this long gets no more frames.
+    #[serde(default = "default_unicast_timeout")]
+    pub unicast_timeout_s: f64,
+    /// Unicast clients served at once; further ones are refused (counted).
+    #[serde(default = "default_max_clients")]
+    pub max_clients: usize,
+}
+
+fn default_command() -> String {
+    "0.0.0.0:1510".into()
+}
+fn default_group() -> String {
+    "239.255.42.99".into()
+}
+fn default_interface() -> String {
+    "0.0.0.0".into()
+}
+fn default_data_port() -> u16 {
+    1511
+}
+fn default_unicast_timeout() -> f64 {
+    10.0
+}
+fn default_max_clients() -> usize {
+    16
+}
+
+impl Default for NatNetConfig {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            command: default_command(),
+            transport: Transport::default(),
+            multicast_group: default_group(),
+            multicast_interface: default_interface(),
+            data_port: default_data_port(),
+            axes: Axes::default(),
+            unicast_timeout_s: default_unicast_timeout(),
+            max_clients: default_max_clients(),
+        }
+    }
+}
+
+/// A checked [`NatNetConfig`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct NatNetPlan {
+    pub command: SocketAddr,
+    /// Group and data port, for transport "multicast".
+    pub multicast: Option<(Ipv4Addr, u16)>,
+    pub interface: Ipv4Addr,
+    pub axes: Axes,
+    pub unicast_timeout: std::time::Duration,
+    pub max_clients: usize,
+}
+
+impl NatNetConfig {
+    /// Validates the settings; errors name the key.
+    pub fn plan(&self) -> Result<NatNetPlan> {
+        let bad = |reason: String| FirmwareError::Config {
+            reason: format!("outputs.natnet.{reason}"),
+        };
+        let command: SocketAddr = self.command.parse().map_err(|_| {
+            bad(format!(
+                "command: {:?} is not an address `host:port`",
+                self.command
+            ))
+        })?;
+        let interface: Ipv4Addr = self.multicast_interface.parse().map_err(|_| {
+            bad(format!(
+                "multicast_interface: {:?} is not an IPv4 address",
+                self.multicast_interface
+            ))
+        })?;
+        let multicast = match self.transport {
+            Transport::Unicast => None,
+            Transport::Multicast => {
+                let group: Ipv4Addr = self.multicast_group.parse().map_err(|_| {
+                    bad(format!(
+                        "multicast_group: {:?} is not an IPv4 address",
+                        self.multicast_group
+                    ))
+                })?;
+                if !group.is_multicast() {
+                    return Err(bad(format!(
+                        "multicast_group: {group} is not a multicast address (224.0.0.0/4)"
+                    )));
+                }
+                if self.data_port == 0 {
+                    return Err(bad("data_port: 0 is not a port clients can listen on".into()));
+                }
+                Some((group, self.data_port))
+            }
+        };
+        if !(self.unicast_timeout_s.is_finite() && self.unicast_timeout_s > 0.0) {
+            return Err(bad(format!(
+                "unicast_timeout_s: {} must be a positive number of seconds",
+                self.unicast_timeout_s
+            )));
+        }
+        if self.max_clients == 0 {
+            return Err(bad("max_clients: must be at least 1".into()));
+        }
+        Ok(NatNetPlan {
+            command,
+            multicast,
+            interface,
+            axes: self.axes,
+            unicast_timeout: std::time::Duration::from_secs_f64(self.unicast_timeout_s),
+            max_clients: self.max_clients,
+        })
+    }
+}

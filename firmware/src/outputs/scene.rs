@@ -1,0 +1,324 @@
+//! What the standard outputs send, independent of any one protocol: the tracked models (tools
+//! as rigid bodies, or the single LED) and, per position record, a [`SceneFrame`] in metres in
+//! the output's axes.
+//!
+//! irtrackd tracks one tool today (docs/six-dof.md), but the types carry lists of bodies and
+//! markers so that several tools fit without a change to any encoder.
+
+use irtrack_core::params::RigParams;
+use irtrack_core::stream::{PositionRecord, TrackStatus};
+use nalgebra::{Matrix3, Quaternion, Rotation3, UnitQuaternion, Vector3};
+use serde::Deserialize;
+
+/// Axes of an output (`axes = "..."` in an output's table).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Axes {
+    /// The tracker's own frame, unchanged: camera 0's (x right, y down, z forward) or, after
+    /// the survey's registration, the robot base's.
+    #[default]
+    Tracker,
+    /// Y up, right-handed (Motive's default): camera-0 frame (x, y, z) → (x, −y, −z), a turn of
+    /// 180° about x; robot-base frame (z up) → (x, z, −y), a turn of −90° about x.
+    YUp,
+}
+
+impl Axes {
+    /// The rotation from the record's frame (`world_frame`: robot base, else camera 0) to the
+    /// output's axes.
+    pub fn rotation(self, world_frame: bool) -> Rotation3<f64> {
+        let m = match (self, world_frame) {
+            (Axes::Tracker, _) => Matrix3::identity(),
+            (Axes::YUp, false) => Matrix3::new(1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0),
+            (Axes::YUp, true) => Matrix3::new(1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, -1.0, 0.0),
+        };
+        Rotation3::from_matrix_unchecked(m)
+    }
+}
+
+/// One tracked model as the outputs describe it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelDef {
+    /// Rigid body id (1-based, the tool's index in the parameter set + 1); 0 for the single LED.
+    pub id: u32,
+    pub name: String,
+    /// Marker (LED) positions in the model's own frame relative to the reported point (the
+    /// tool's tip, else its origin), metres. One entry at the origin for the single LED.
+    pub markers_m: Vec<[f64; 3]>,
+    /// A rigid body (6-DOF tool) rather than a single marker.
+    pub rigid_body: bool,
+}
+
+/// The models of the active parameter set.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Models {
+    pub list: Vec<ModelDef>,
+}
+
+/// Name of the single-LED model (no tool defined).
+pub const SINGLE_LED_NAME: &str = "led";
+
+impl Models {
+    /// The tools the loop tracks (today the first one, docs/six-dof.md), else the single LED.
+    pub fn of_rig(rig: Option<&RigParams>) -> Models {
+        let tool = rig.and_then(|r| r.tools.first());
+        let list = match tool {
+            Some(t) => {
+                let tip = t.tip_mm.unwrap_or([0.0; 3]);
+                vec![ModelDef {
+                    id: 1,
+                    name: t.name.clone(),
+                    markers_m: t
+                        .leds_mm
+                        .iter()
+                        .map(|l| {
+                            [
+                                (l[0] - tip[0]) / 1e3,
+                                (l[1] - tip[1]) / 1e3,
+                                (l[2] - tip[2]) / 1e3,
+                            ]
+                        })
+                        .collect(),
+                    rigid_body: true,
+                }]
+            }
+            None => vec![ModelDef {
+                id: 0,
+                name: SINGLE_LED_NAME.into(),
+                markers_m: vec![[0.0; 3]],
+                rigid_body: false,
+            }],
+        };
+        Models { list }
+    }
+
+    pub fn rigid_bodies(&self) -> impl Iterator<Item = &ModelDef> {
+        self.list.iter().filter(|m| m.rigid_body)
+    }
+}
+
+/// A rigid body's state in one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BodySample {
+    pub id: u32,
+    pub position_m: [f64; 3],
+    /// Unit quaternion, x y z w (NatNet's and ROS's order).
+    pub orientation_xyzw: [f64; 4],
+    /// RMS residual of the tool's layout fit, metres.
+    pub mean_error_m: f64,
+    pub tracked: bool,
+}
+
+/// A marker (LED) position in one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MarkerSample {
+    /// Model id (0: no model) in the high 16 bits, 1-based marker index in the low ones.
+    pub id: u32,
+    pub position_m: [f64; 3],
+    /// Ray gap / residual, metres (0 when not known per marker).
+    pub residual_m: f64,
+    /// Computed from a rigid body's fitted pose and its layout (not triangulated alone).
+    pub model_solved: bool,
+}
+
+/// Everything an output sends for one position record. Buffers are reused from frame to
+/// frame ([`SceneBuilder::fill`] clears and refills them), so steady state does not allocate.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct SceneFrame {
+    pub frame: u64,
+    pub capture_ts_ns: u64,
+    /// Capture to publication by the processing loop, ns.
+    pub latency_ns: u64,
+    pub world_frame: bool,
+    /// Per model of [`Models::list`], in that order: its markers (zeros when not tracked).
+    pub marker_sets: Vec<Vec<[f64; 3]>>,
+    pub bodies: Vec<BodySample>,
+    /// Every 3-D marker of the frame (labelled list); single-LED markers have model id 0.
+    pub markers: Vec<MarkerSample>,
+    /// Markers that belong to no model (the single LED).
+    pub unlabelled_m: Vec<[f64; 3]>,
+}
+
+/// Turns position records into [`SceneFrame`]s for a set of [`Models`] and [`Axes`].
+#[derive(Debug, Clone)]
+pub struct SceneBuilder {
+    pub models: Models,
+    pub axes: Axes,
+}
+
+impl SceneBuilder {
+    pub fn new(models: Models, axes: Axes) -> Self {
+        Self { models, axes }
+    }
+
+    /// A record's position in the output axes, metres (the transform applied to every point).
+    pub fn position_m(&self, rec: &PositionRecord) -> Option<[f64; 3]> {
+        let p = rec.position_mm?;
+        let v = self.axes.rotation(rec.world_frame) * Vector3::from(p) / 1e3;
+        Some([v.x, v.y, v.z])
+    }
+
+    /// Fills `out` from `rec` (clears its lists first).
+    pub fn fill(&self, rec: &PositionRecord, out: &mut SceneFrame) {
+        out.frame = rec.frame;
+        out.capture_ts_ns = rec.capture_ts_ns;
+        out.latency_ns = u64::from(rec.latency_us) * 1000;
+        out.world_frame = rec.world_frame;
+        out.bodies.clear();
+        out.markers.clear();
+        out.unlabelled_m.clear();
+        out.marker_sets.resize_with(self.models.list.len(), Vec::new);
+        let rot = self.axes.rotation(rec.world_frame);
+        let tracked = rec.status == TrackStatus::Ok && rec.position_mm.is_some();
+        let p_m = rec
+            .position_mm
+            .map(|p| rot * Vector3::from(p) / 1e3)
+            .unwrap_or_else(Vector3::zeros);
+        let error_m = if rec.gap_mm.is_finite() {
+            rec.gap_mm / 1e3
+        } else {
+            0.0
+        };
+        for (model, set) in self.models.list.iter().zip(out.marker_sets.iter_mut()) {
+            set.clear();
+            if model.rigid_body {
+                let q = match (tracked, rec.orientation_wxyz) {
+                    (true, Some(q)) => {
+                        let q_rec = UnitQuaternion::from_quaternion(Quaternion::new(q[0], q[1], q[2], q[3]));
+                        UnitQuaternion::from_rotation_matrix(&rot) * q_rec
+                    }
+                    _ => UnitQuaternion::identity(),
+                };
+                let ok = tracked && rec.orientation_wxyz.is_some();
+                let pos = if ok { p_m } else { Vector3::zeros() };
+                out.bodies.push(BodySample {
+                    id: model.id,
+                    position_m: pos.into(),
+                    orientation_xyzw: [q.i, q.j, q.k, q.w],
+                    mean_error_m: if ok { error_m } else { 0.0 },
+                    tracked: ok,
+                });
+                for (i, m) in model.markers_m.iter().enumerate() {
+                    let world = if ok {
+                        pos + q * Vector3::from(*m)
+                    } else {
+                        Vector3::zeros()
+                    };
+                    set.push(world.into());
+                    if ok {
+                        out.markers.push(MarkerSample {
+                            id: (model.id << 16) | (i as u32 + 1),
+                            position_m: world.into(),
+                            residual_m: 0.0,
+                            model_solved: true,
+                        });
+                    }
+                }
+            } else {
+                set.push(if tracked { p_m.into() } else { [0.0; 3] });
+                if tracked {
+                    out.unlabelled_m.push(p_m.into());
+                    out.markers.push(MarkerSample {
+                        id: (model.id << 16) | 1,
+                        position_m: p_m.into(),
+                        residual_m: error_m,
+                        model_solved: false,
+                    });
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rec(p: [f64; 3], q: Option<[f64; 4]>, world: bool) -> PositionRecord {
+        PositionRecord {
+            frame: 7,
+            capture_ts_ns: 1_000,
+            position_mm: Some(p),
+            orientation_wxyz: q,
+            gap_mm: 0.5,
+            status: TrackStatus::Ok,
+            cameras_used: 2,
+            world_frame: world,
+            latency_us: 3,
+            params_crc: 0,
+        }
+    }
+
+    #[test]
+    fn y_up_turns_camera_and_robot_frames_so_that_up_is_y() {
+        // Camera 0: "up" is −y. Robot base: "up" is +z. Both must come out as +y.
+        let cam = Axes::YUp.rotation(false) * Vector3::new(0.0, -1.0, 0.0);
+        let base = Axes::YUp.rotation(true) * Vector3::new(0.0, 0.0, 1.0);
+        assert!((cam - Vector3::y()).norm() < 1e-12, "{cam}");
+        assert!((base - Vector3::y()).norm() < 1e-12, "{base}");
+        for w in [false, true] {
+            assert!((Axes::YUp.rotation(w).matrix().determinant() - 1.0).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn rigid_body_markers_follow_the_pose_in_the_output_axes() {
+        let rig_tool = irtrack_core::params::ToolDefinition {
+            name: "t".into(),
+            leds_mm: vec![[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 50.0, 0.0]],
+            tip_mm: Some([0.0, 0.0, -20.0]),
+        };
+        let models = Models {
+            list: vec![ModelDef {
+                id: 1,
+                name: "t".into(),
+                markers_m: rig_tool
+                    .leds_mm
+                    .iter()
+                    .map(|l| [l[0] / 1e3, l[1] / 1e3, (l[2] + 20.0) / 1e3])
+                    .collect(),
+                rigid_body: true,
+            }],
+        };
+        // 90° about z: tool x → frame y.
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let r = rec([10.0, 20.0, 1000.0], Some([h, 0.0, 0.0, h]), true);
+        let b = SceneBuilder::new(models, Axes::YUp);
+        let mut f = SceneFrame::default();
+        b.fill(&r, &mut f);
+        assert_eq!(f.bodies.len(), 1);
+        // Robot base (x, y, z) → (x, z, −y), metres.
+        let p = f.bodies[0].position_m;
+        assert!(
+            (p[0] - 0.010).abs() < 1e-12 && (p[1] - 1.0).abs() < 1e-12 && (p[2] + 0.020).abs() < 1e-12,
+            "{p:?}"
+        );
+        // LED 1 at tool x = 100 mm → base +y → output −z.
+        let m1 = f.marker_sets[0][1];
+        assert!(
+            (m1[0] - 0.010).abs() < 1e-9 && (m1[1] - 1.020).abs() < 1e-9 && (m1[2] + 0.120).abs() < 1e-9,
+            "{m1:?}"
+        );
+        assert_eq!(f.markers.len(), 3);
+        assert_eq!(f.markers[2].id, (1 << 16) | 3);
+        assert!((f.bodies[0].mean_error_m - 0.0005).abs() < 1e-15);
+        let q = f.bodies[0].orientation_xyzw;
+        assert!(((q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]) - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn single_led_is_an_unlabelled_marker_and_lost_records_send_zeros() {
+        let b = SceneBuilder::new(Models::of_rig(None), Axes::Tracker);
+        let mut f = SceneFrame::default();
+        b.fill(&rec([1.0, 2.0, 3.0], None, false), &mut f);
+        assert_eq!(f.unlabelled_m, vec![[0.001, 0.002, 0.003]]);
+        assert_eq!(f.marker_sets, vec![vec![[0.001, 0.002, 0.003]]]);
+        assert!(f.bodies.is_empty());
+        let mut lost = rec([1.0, 2.0, 3.0], None, false);
+        lost.status = TrackStatus::Lost;
+        lost.position_mm = None;
+        b.fill(&lost, &mut f);
+        assert!(f.unlabelled_m.is_empty() && f.markers.is_empty());
+        assert_eq!(f.marker_sets, vec![vec![[0.0; 3]]]);
+    }
+}

@@ -1,0 +1,245 @@
+//! irtrackd's NatNet output against an independent client: PyPI's pure-Python `natnet`
+//! (firmware/tests/py/natnet_client.py) runs as a separate process, connects, reads the model
+//! definitions and frames; what it decodes must equal irtrackd's own NDJSON stream.
+
+mod common;
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::time::Duration;
+
+use common::*;
+use irtrack_core::stream::{PositionRecord, TrackStatus};
+use irtrack_firmware::app::{self, Overrides};
+use serde_json::Value;
+
+const CLIENT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/py/natnet_client.py");
+
+/// Runs the Python client against `addr` until it has `frames` frames (or `timeout_s`).
+async fn python_client(addr: SocketAddr, frames: usize, timeout_s: f64, extra: &[String]) -> Value {
+    let mut cmd = std::process::Command::new("python3");
+    cmd.arg(CLIENT)
+        .arg(addr.ip().to_string())
+        .arg(addr.port().to_string())
+        .arg(frames.to_string())
+        .arg(timeout_s.to_string())
+        .args(extra);
+    let out = tokio::task::spawn_blocking(move || cmd.output())
+        .await
+        .unwrap()
+        .expect("python3 runs");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success(),
+        "NatNet client failed ({}); is PyPI's `natnet` installed (cargo xtask setup)?\n{stderr}",
+        out.status
+    );
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("client output: {e}\n{stderr}"))
+}
+
+/// Collects every NDJSON record by frame number until the stream is quiet for 2 s; returns
+/// once the first record arrived (so the NatNet client starts after the collector).
+async fn collect_ndjson(addr: SocketAddr) -> tokio::task::JoinHandle<HashMap<u32, PositionRecord>> {
+    let mut client = NdjsonClient::connect(addr).await;
+    let first = client.next().await;
+    tokio::spawn(async move {
+        let mut by_frame = HashMap::from([(first.frame as u32, first)]);
+        while let Ok(r) = tokio::time::timeout(Duration::from_secs(2), client.next()).await {
+            by_frame.insert(r.frame as u32, r);
+        }
+        by_frame
+    })
+}
+
+fn f(v: &Value) -> f64 {
+    v.as_f64().unwrap()
+}
+
+fn vec3(v: &Value) -> [f64; 3] {
+    [f(&v[0]), f(&v[1]), f(&v[2])]
+}
+
+async fn start(dir: &TempDir, sim_toml: &str, natnet_toml: &str) -> app::Running {
+    let toml = format!(
+        "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n[outputs.natnet]\nenabled = true\ncommand = \"127.0.0.1:0\"\n{natnet_toml}"
+    );
+    let mut cfg = irtrack_firmware::config::Config::from_toml(&toml, "natnet.toml").unwrap();
+    let base = test_config(dir.path());
+    cfg.service.state_dir = base.service.state_dir;
+    cfg.listen = base.listen;
+    cfg.source.sim = Some(toml::from_str(sim_toml).unwrap());
+    app::start(cfg, Overrides::default()).await.unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn natnet_client_reads_tool_rigid_bodies_equal_to_the_ndjson_stream() {
+    let dir = TempDir::new("natnet-tool");
+    let sim = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nperiod_s = 6.0\nfps = 120.0\nseed = 6\ntool = \"probe4\"\ntool_rotation_deg = 20.0\nframes = 900\n";
+    let running = start(&dir, sim, "transport = \"unicast\"\n").await;
+    let natnet = running.addrs.natnet.expect("NatNet enabled");
+    assert!(running.addrs.ready_line().ends_with(&format!(" natnet={natnet}")));
+    let ndjson = collect_ndjson(running.addrs.stream_ndjson).await;
+
+    let got = python_client(natnet, 150, 10.0, &[]).await;
+    let by_frame = ndjson.await.unwrap();
+    let stats = running.outputs.natnet.clone();
+    running.shutdown().await;
+
+    assert_eq!(got["server"]["name"], "irtrackd");
+    assert_eq!(got["server"]["natnet"], "3.1.0.0");
+    assert_eq!(got["complete"], true, "{got}");
+    // Model definitions: the tool as a marker set and as rigid body 1 with its 4 LEDs.
+    let models = &got["models"][0];
+    assert_eq!(models["marker_sets"][0][0], "probe4");
+    assert_eq!(models["marker_sets"][0][1].as_array().unwrap().len(), 4);
+    let rb = &models["rigid_bodies"][0];
+    assert_eq!(
+        (rb["name"].as_str(), rb["id"].as_u64()),
+        (Some("probe4"), Some(1))
+    );
+    let layout: Vec<[f64; 3]> = rb["markers"].as_array().unwrap().iter().map(vec3).collect();
+    assert_eq!(layout.len(), 4);
+    // probe4's LEDs are 99 mm apart (LED 0 to LED 1), in metres.
+    let d01 = dist_mm(layout[0], layout[1]);
+    assert!((d01 - 0.099).abs() < 1e-6, "{d01}");
+
+    let frames = got["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 150);
+    let (mut compared, mut worst_m, mut worst_q) = (0usize, 0.0f64, 0.0f64);
+    let mut last_frame = None;
+    for fr in frames {
+        let n = fr["frame"].as_u64().unwrap() as u32;
+        if let Some(last) = last_frame {
+            assert!(n > last, "frames out of order: {last} then {n}");
+        }
+        last_frame = Some(n);
+        let rec = by_frame
+            .get(&n)
+            .unwrap_or_else(|| panic!("frame {n} not on the NDJSON stream"));
+        assert_eq!(fr["stamp_mid_exposure"].as_u64(), Some(rec.capture_ts_ns));
+        let body = &fr["rigid_bodies"][0];
+        assert_eq!(body["id"], 1);
+        let tracked = rec.status == TrackStatus::Ok;
+        assert_eq!(body["valid"], tracked, "frame {n}");
+        if !tracked {
+            continue;
+        }
+        let p = rec.position_mm.unwrap();
+        let q = rec.orientation_wxyz.unwrap();
+        let pos = vec3(&body["pos"]);
+        let rot = body["rot"].as_array().unwrap();
+        for i in 0..3 {
+            worst_m = worst_m.max((pos[i] - p[i] / 1e3).abs());
+        }
+        // NatNet: x y z w; the stream: w x y z (same sign convention, w ≥ 0).
+        for (i, c) in [q[1], q[2], q[3], q[0]].iter().enumerate() {
+            worst_q = worst_q.max((f(&rot[i]) - c).abs());
+        }
+        assert!((f(&body["error"]) - rec.gap_mm / 1e3).abs() < 1e-7);
+        // Labelled markers: the 4 LEDs of rigid body 1, model-solved, keeping the layout.
+        let labeled = fr["labeled"].as_array().unwrap();
+        assert_eq!(labeled.len(), 4);
+        for (i, m) in labeled.iter().enumerate() {
+            assert_eq!(m["id"].as_u64(), Some((1 << 16) | (i as u64 + 1)));
+            assert_eq!(m["param"], 0x0C);
+        }
+        let m0 = vec3(&labeled[0]["pos"]);
+        let m1 = vec3(&labeled[1]["pos"]);
+        assert!((dist_mm(m0, m1) - d01).abs() < 1e-5);
+        assert_eq!(vec3(&fr["marker_sets"][0][1][1]), m1);
+        compared += 1;
+    }
+    println!(
+        "NatNet vs NDJSON: {compared} tracked frames, largest position difference {worst_m:.2e} m, quaternion {worst_q:.2e}"
+    );
+    assert!(compared >= 100, "only {compared} tracked frames compared");
+    assert!(worst_m <= 1e-4, "{worst_m} m");
+    assert!(worst_q <= 1e-4, "{worst_q}");
+    let sent = stats.frames_sent.load(std::sync::atomic::Ordering::Relaxed);
+    assert!(sent >= 150, "{sent}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn natnet_single_led_is_an_unlabelled_marker_in_y_up_axes() {
+    let dir = TempDir::new("natnet-led");
+    let sim = "fps = 200.0\nframes = 700\n";
+    let running = start(&dir, sim, "transport = \"unicast\"\naxes = \"y_up\"\n").await;
+    let natnet = running.addrs.natnet.unwrap();
+    let ndjson = collect_ndjson(running.addrs.stream_ndjson).await;
+    let got = python_client(natnet, 120, 10.0, &[]).await;
+    let by_frame = ndjson.await.unwrap();
+    running.shutdown().await;
+
+    let models = &got["models"][0];
+    assert_eq!(models["marker_sets"][0][0], "led");
+    assert!(models["rigid_bodies"].as_array().unwrap().is_empty());
+    let (mut compared, mut worst) = (0usize, 0.0f64);
+    for fr in got["frames"].as_array().unwrap() {
+        let n = fr["frame"].as_u64().unwrap() as u32;
+        let rec = &by_frame[&n];
+        assert!(fr["rigid_bodies"].as_array().unwrap().is_empty());
+        let Some(p) = rec.position_mm.filter(|_| rec.status == TrackStatus::Ok) else {
+            assert!(fr["unlabeled"].as_array().unwrap().is_empty());
+            continue;
+        };
+        assert!(!rec.world_frame);
+        // Camera-0 frame → Y up: (x, −y, −z), metres.
+        let want = [p[0] / 1e3, -p[1] / 1e3, -p[2] / 1e3];
+        let u = vec3(&fr["unlabeled"][0]);
+        let l = &fr["labeled"][0];
+        assert_eq!((l["id"].as_u64(), l["param"].as_u64()), (Some(1), Some(0x12)));
+        for i in 0..3 {
+            worst = worst.max((u[i] - want[i]).abs());
+        }
+        assert_eq!(vec3(&l["pos"]), u);
+        assert_eq!(vec3(&fr["marker_sets"][0][1][0]), u);
+        compared += 1;
+    }
+    println!("NatNet single LED vs NDJSON: {compared} frames, largest difference {worst:.2e} m");
+    assert!(compared >= 100, "{compared}");
+    assert!(worst <= 1e-4, "{worst}");
+}
+
+#[tokio::test]
+async fn natnet_configuration_errors_name_the_problem() {
+    let dir = TempDir::new("natnet-config");
+    // Port in use.
+    let taken = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    let mut cfg = test_config(dir.path());
+    cfg.outputs.natnet.enabled = true;
+    cfg.outputs.natnet.command = taken.local_addr().unwrap().to_string();
+    let e = app::start(cfg, Overrides::default())
+        .await
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        e.contains("cannot listen for NatNet command on 127.0.0.1:"),
+        "{e}"
+    );
+    // Not a multicast group; unknown key; bad address.
+    for (table, want) in [
+        (
+            "enabled = true\nmulticast_group = \"10.1.2.3\"",
+            "outputs.natnet.multicast_group: 10.1.2.3 is not a multicast address",
+        ),
+        (
+            "enabled = true\ncommand = \"nowhere\"",
+            "outputs.natnet.command: \"nowhere\" is not an address",
+        ),
+        ("enabled = true\naxes = \"z_down\"", "unknown variant `z_down`"),
+        ("enabled = true\nport = 1510", "unknown field `port`"),
+    ] {
+        let text = format!("[outputs.natnet]\n{table}\n");
+        let e = irtrack_firmware::config::Config::from_toml(&text, "x.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(want), "{table}: {e}");
+    }
+    // Disabled by default: nothing bound, no natnet= in the ready line.
+    let cfg = test_config(dir.path());
+    assert!(!cfg.outputs.natnet.enabled);
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    assert!(running.addrs.natnet.is_none() && !running.addrs.ready_line().contains("natnet"));
+    running.shutdown().await;
+}
