@@ -162,11 +162,11 @@ async fn natnet_client_reads_tool_rigid_bodies_equal_to_the_ndjson_stream() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn natnet_single_led_is_an_unlabelled_marker_in_y_up_axes() {
     let dir = TempDir::new("natnet-led");
-    let sim = "fps = 200.0\nframes = 700\n";
+    let sim = "fps = 200.0\nframes = 900\n";
     let running = start(&dir, sim, "transport = \"unicast\"\naxes = \"y_up\"\n").await;
     let natnet = running.addrs.natnet.unwrap();
     let ndjson = collect_ndjson(running.addrs.stream_ndjson).await;
-    let got = python_client(natnet, 120, 10.0, &[]).await;
+    let got = python_client(natnet, 150, 10.0, &[]).await;
     let by_frame = ndjson.await.unwrap();
     running.shutdown().await;
 
@@ -176,7 +176,8 @@ async fn natnet_single_led_is_an_unlabelled_marker_in_y_up_axes() {
     let (mut compared, mut worst) = (0usize, 0.0f64);
     for fr in got["frames"].as_array().unwrap() {
         let n = fr["frame"].as_u64().unwrap() as u32;
-        let rec = &by_frame[&n];
+        // Both read the latest-value slot on their own: under load either may skip a record.
+        let Some(rec) = by_frame.get(&n) else { continue };
         assert!(fr["rigid_bodies"].as_array().unwrap().is_empty());
         let Some(p) = rec.position_mm.filter(|_| rec.status == TrackStatus::Ok) else {
             assert!(fr["unlabeled"].as_array().unwrap().is_empty());
