@@ -1,10 +1,12 @@
 //! Does watching disturb tracking? Loop latency with 0 and with 3 live viewers, side by side.
 //!
 //! Runs irtrackd's processing loop (simulated 90° rig, VGA, paced at `--fps`, default 100) with
-//! its status listener on 127.0.0.1, measures per set the loop's processing time and the
-//! capture → publish latency (`latency_us` of the records) for `--seconds` (default 10) with no
-//! viewer, then the same with 3 WebSocket viewers asking for 30 fps full-width previews, 64 px
-//! zooms and every set's blob lists, and prints percentiles (hdrhistogram) and the ratios.
+//! its status listener on 127.0.0.1, records per set the timestamps of its path
+//! (`Engine::last_times`: rendering, driver = capture → dequeued, ours = dequeued → published,
+//! the whole processing time incl. the viewers' copy, capture → published) for `--seconds`
+//! (default 10) with no viewer, then the same with 3 WebSocket viewers asking for 30 fps
+//! full-width previews, 64 px zooms and every set's blob lists, and prints percentiles (the
+//! product's own log-linear histogram) and the ratios.
 //!
 //! ```sh
 //! cargo run --release -p irtrack-firmware --example viewers [-- --seconds 10 --fps 100]
@@ -16,9 +18,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use futures_util::{SinkExt, StreamExt};
-use hdrhistogram::Histogram;
 use irtrack_core::pipeline::TrackerConfig;
-use irtrack_firmware::engine::{ActiveParams, Engine, ParamsHandle, StepOutcome};
+use irtrack_firmware::engine::{ActiveParams, Engine, ParamsHandle, SetTimes, StepOutcome};
+use irtrack_firmware::metrics::LatencyHistogram;
 use irtrack_firmware::net::status::StatusService;
 use irtrack_firmware::source::FrameSource;
 use irtrack_firmware::source::sim::{SimSource, SimSourceConfig};
@@ -26,18 +28,27 @@ use irtrack_firmware::status::SharedStatus;
 use irtrack_firmware::tuning::TuningHandle;
 use irtrack_firmware::viewer::ViewerTap;
 
-/// Per-phase histograms, µs.
+/// Per-phase histograms of the set timestamps ([`SetTimes`]), recorded with the product's own
+/// log-linear histogram.
+#[derive(Default)]
 struct Phase {
-    process_us: Histogram<u64>,
-    latency_us: Histogram<u64>,
+    render: LatencyHistogram,
+    driver: LatencyHistogram,
+    ours: LatencyHistogram,
+    process: LatencyHistogram,
+    end_to_end: LatencyHistogram,
 }
 
 impl Phase {
-    fn new() -> anyhow::Result<Self> {
-        Ok(Self {
-            process_us: Histogram::new_with_bounds(1, 10_000_000, 3)?,
-            latency_us: Histogram::new_with_bounds(1, 10_000_000, 3)?,
-        })
+    fn record(&self, t: &SetTimes) {
+        if t.render_ns > 0 {
+            self.render.record_ns(t.render_ns);
+        }
+        self.driver.record_ns(t.driver_ns());
+        self.ours.record_ns(t.ours_ns());
+        self.process.record_ns(t.done_ns.saturating_sub(t.dequeued_ns));
+        self.end_to_end
+            .record_ns(t.published_ns.saturating_sub(t.capture_ns));
     }
 }
 
@@ -52,6 +63,41 @@ fn arg(name: &str, default: f64) -> f64 {
 
 fn main() -> anyhow::Result<()> {
     let seconds = arg("--seconds", 10.0);
+    // `--connect ADDR`: only the 3 viewers, against a running irtrackd's status port, for
+    // `--seconds` (the viewer load of `cargo xtask bench --latency`'s robot link rows).
+    let args: Vec<String> = std::env::args().collect();
+    if let Some(addr) = args
+        .iter()
+        .position(|a| a == "--connect")
+        .and_then(|i| args.get(i + 1))
+    {
+        let addr: SocketAddr = addr.parse()?;
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()?;
+        return rt.block_on(async {
+            let bytes = Arc::new(AtomicU64::new(0));
+            let viewers: Vec<_> = (0..3)
+                .map(|_| tokio::spawn(viewer(addr, bytes.clone())))
+                .collect();
+            tokio::time::sleep(Duration::from_secs_f64(seconds)).await;
+            for v in viewers {
+                if v.is_finished() {
+                    // A viewer that ended early failed: say why rather than measure without it.
+                    v.await??;
+                    anyhow::bail!("a viewer's connection closed early");
+                }
+                v.abort();
+            }
+            let bytes = bytes.load(Ordering::Relaxed);
+            if bytes == 0 {
+                anyhow::bail!("the viewers received nothing from {addr}");
+            }
+            println!("viewers done: 3 viewers, {seconds} s, {bytes} bytes received");
+            anyhow::Ok(())
+        });
+    }
     let fps = arg("--fps", 100.0);
     let cfg = SimSourceConfig {
         fps,
@@ -86,26 +132,15 @@ fn main() -> anyhow::Result<()> {
     // Phase switch: the loop thread records into phase 0 or 1.
     let phase = Arc::new(AtomicU64::new(0));
     let stop = Arc::new(AtomicBool::new(false));
-    let (phase2, stop2, status2) = (phase.clone(), stop.clone(), status.clone());
+    let (phase2, stop2) = (phase.clone(), stop.clone());
     let loop_thread = std::thread::spawn(move || -> anyhow::Result<[Phase; 2]> {
-        let mut phases = [Phase::new()?, Phase::new()?];
-        let (mut last_count, mut last_sum_us) = (0u64, 0u64);
+        let phases = [Phase::default(), Phase::default()];
         while !stop2.load(Ordering::Relaxed) {
             let outcome = engine.step()?;
             let p = phase2.load(Ordering::Relaxed) as usize;
-            if let (StepOutcome::Published(rec), Some(h)) = (outcome, phases.get_mut(p)) {
-                h.latency_us.record(u64::from(rec.latency_us).max(1))?;
+            if let (StepOutcome::Published(_), Some(h)) = (outcome, phases.get(p)) {
+                h.record(&engine.last_times());
             }
-            // The loop's own processing time of this set (detect → publish, viewer copy
-            // included): the step of its `process` stage histogram's running sum.
-            let snap = status2.stages.process.snapshot();
-            let count = snap.count();
-            if let Some(h) = phases.get_mut(p)
-                && count == last_count + 1
-            {
-                h.process_us.record((snap.sum_us - last_sum_us).max(1))?;
-            }
-            (last_count, last_sum_us) = (count, snap.sum_us);
         }
         Ok(phases)
     });
@@ -125,19 +160,18 @@ fn main() -> anyhow::Result<()> {
         tokio::time::sleep(Duration::from_secs(1)).await; // warm up
         phase.store(0, Ordering::Relaxed);
         tokio::time::sleep(Duration::from_secs_f64(seconds)).await;
-        let viewers: Vec<_> = (0..3).map(|_| tokio::spawn(viewer(addr))).collect();
+        let received = Arc::new(AtomicU64::new(0));
+        let viewers: Vec<_> = (0..3)
+            .map(|_| tokio::spawn(viewer(addr, received.clone())))
+            .collect();
         tokio::time::sleep(Duration::from_millis(500)).await;
         phase.store(1, Ordering::Relaxed);
         let copies0 = tap.copies();
         tokio::time::sleep(Duration::from_secs_f64(seconds)).await;
         phase.store(2, Ordering::Relaxed);
         let copies = tap.copies() - copies0;
-        let mut received = 0u64;
         for v in viewers {
             v.abort();
-            if let Ok(n) = v.await {
-                received += n.unwrap_or(0);
-            }
         }
         let _ = stop_tx.send(());
         let _ = server.await;
@@ -145,7 +179,7 @@ fn main() -> anyhow::Result<()> {
             "viewer phase: the loop made {copies} copies for the viewers; {} busy skips",
             tap.busy_skips()
         );
-        let _ = received;
+        println!("viewers received {} bytes", received.load(Ordering::Relaxed));
         anyhow::Ok(())
     })?;
     stop.store(true, Ordering::Relaxed);
@@ -157,33 +191,41 @@ fn main() -> anyhow::Result<()> {
         "processing loop, simulated 2 × 640x480 at {fps} fps, {seconds} s per phase (cargo run --release -p irtrack-firmware --example viewers)"
     );
     println!(
-        "{:<34} {:>8} {:>8} {:>8} {:>8} {:>8}",
-        "", "sets", "p50 µs", "p90 µs", "p99 µs", "max µs"
+        "{:<34} {:>8} {:>9} {:>9} {:>9} {:>9} {:>9}",
+        "", "sets", "p50 µs", "p90 µs", "p99 µs", "p99.9 µs", "max µs"
     );
-    let row = |name: &str, h: &Histogram<u64>| {
+    let row = |name: &str, h: &LatencyHistogram| {
+        let s = h.snapshot();
+        let q = |q: f64| s.quantile_us(q).unwrap_or(f64::NAN);
         println!(
-            "{:<34} {:>8} {:>8} {:>8} {:>8} {:>8}",
+            "{:<34} {:>8} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
             name,
-            h.len(),
-            h.value_at_quantile(0.5),
-            h.value_at_quantile(0.9),
-            h.value_at_quantile(0.99),
-            h.max()
+            s.count(),
+            q(0.5),
+            q(0.9),
+            q(0.99),
+            q(0.999),
+            s.max_ns as f64 / 1e3
         );
     };
-    row("process time, 0 viewers", &phases[0].process_us);
-    row("process time, 3 viewers", &phases[1].process_us);
-    row("capture→publish, 0 viewers", &phases[0].latency_us);
-    row("capture→publish, 3 viewers", &phases[1].latency_us);
-    let ratio = |q: f64, a: &Histogram<u64>, b: &Histogram<u64>| {
-        b.value_at_quantile(q) as f64 / a.value_at_quantile(q).max(1) as f64
+    for (i, p) in phases.iter().enumerate() {
+        let v = if i == 0 { 0 } else { 3 };
+        row(&format!("render (simulator), {v} viewers"), &p.render);
+        row(&format!("driver, {v} viewers"), &p.driver);
+        row(&format!("ours, {v} viewers"), &p.ours);
+        row(&format!("process time, {v} viewers"), &p.process);
+        row(&format!("capture→publish, {v} viewers"), &p.end_to_end);
+    }
+    let ratio = |q: f64, a: &LatencyHistogram, b: &LatencyHistogram| {
+        let (a, b) = (a.snapshot(), b.snapshot());
+        b.quantile_us(q).unwrap_or(f64::NAN) / a.quantile_us(q).unwrap_or(f64::NAN)
     };
     println!(
-        "ratio 3 viewers / 0 viewers: process p50 {:.2}, p99 {:.2}; capture→publish p50 {:.2}, p99 {:.2}",
-        ratio(0.5, &phases[0].process_us, &phases[1].process_us),
-        ratio(0.99, &phases[0].process_us, &phases[1].process_us),
-        ratio(0.5, &phases[0].latency_us, &phases[1].latency_us),
-        ratio(0.99, &phases[0].latency_us, &phases[1].latency_us),
+        "ratio 3 viewers / 0 viewers: ours p50 {:.2}, p99 {:.2}; capture→publish p50 {:.2}, p99 {:.2}",
+        ratio(0.5, &phases[0].ours, &phases[1].ours),
+        ratio(0.99, &phases[0].ours, &phases[1].ours),
+        ratio(0.5, &phases[0].end_to_end, &phases[1].end_to_end),
+        ratio(0.99, &phases[0].end_to_end, &phases[1].end_to_end),
     );
     println!(
         "deadline misses: {} in total",
@@ -192,21 +234,20 @@ fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A viewer asking for everything; reads (and discards) what it gets. Returns bytes received.
-async fn viewer(addr: SocketAddr) -> anyhow::Result<u64> {
+/// A viewer asking for everything; reads (and discards) what it gets, counting the bytes.
+async fn viewer(addr: SocketAddr, received: Arc<AtomicU64>) -> anyhow::Result<()> {
     let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/api/live")).await?;
     ws.send(tokio_tungstenite::tungstenite::Message::Text(
         r#"{"type":"subscribe","preview_fps":30,"preview_max_width_px":640,"zoom_px":64,"blobs":true}"#
             .into(),
     ))
     .await?;
-    let mut bytes = 0u64;
     let t0 = Instant::now();
     while let Some(msg) = ws.next().await {
-        bytes += msg?.len() as u64;
+        received.fetch_add(msg?.len() as u64, Ordering::Relaxed);
         if t0.elapsed() > Duration::from_secs(3600) {
             break;
         }
     }
-    Ok(bytes)
+    Ok(())
 }

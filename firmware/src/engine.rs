@@ -74,6 +74,38 @@ impl ParamsHandle {
     }
 }
 
+/// The timestamps of one set's path through irtrackd (CLOCK_MONOTONIC ns; 0 = not reached).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SetTimes {
+    /// The frame's capture timestamp: the V4L2 buffer's driver timestamp, or the simulator's
+    /// hand-over instant (first camera).
+    pub capture_ns: u64,
+    /// Time the source spent producing the set before `capture_ns` (simulator rendering).
+    pub render_ns: u64,
+    /// The loop received the set from the source.
+    pub dequeued_ns: u64,
+    /// Blob detection done in every camera.
+    pub blobs_ns: u64,
+    /// Undistorted and triangulated (or the 6-DOF pose solved).
+    pub triangulated_ns: u64,
+    /// Record in the latest-value slot (the robot links and the stream can take it).
+    pub published_ns: u64,
+    /// The loop finished with the set (after the viewers' copy, if one was due).
+    pub done_ns: u64,
+}
+
+impl SetTimes {
+    /// Dequeued → published: irtrackd's own share of the latency.
+    pub fn ours_ns(&self) -> u64 {
+        self.published_ns.saturating_sub(self.dequeued_ns)
+    }
+
+    /// Capture → dequeued: the driver's (or the pairing's) share.
+    pub fn driver_ns(&self) -> u64 {
+        self.dequeued_ns.saturating_sub(self.capture_ns)
+    }
+}
+
 /// What one [`Engine::step`] did.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum StepOutcome {
@@ -116,6 +148,8 @@ pub struct Engine {
     tuning_seen: u64,
     /// Source reconnects already reflected in the tuning report.
     reconnects_seen: u64,
+    /// Timestamps of the last processed set.
+    times: SetTimes,
 }
 
 impl Engine {
@@ -156,7 +190,13 @@ impl Engine {
             tuning: None,
             tuning_seen: 0,
             reconnects_seen: 0,
+            times: SetTimes::default(),
         }
+    }
+
+    /// Timestamps of the last processed set's path.
+    pub fn last_times(&self) -> SetTimes {
+        self.times
     }
 
     /// Feeds `tap` with copies of processed sets while viewers ask for them.
@@ -347,9 +387,10 @@ impl Engine {
             }
             break;
         }
+        let t_start = Instant::now();
+        let dequeued_ns = clock::monotonic_ns();
         let capture_ns = self.set.frames.first().map_or(0, |f| f.timestamp_ns);
         self.last_capture_ns = Some(capture_ns);
-        let t_start = Instant::now();
         self.account_source();
 
         let skewed = self.set.pairing_error_ns > self.max_pairing_error_ns;
@@ -496,22 +537,41 @@ impl Engine {
         if rec.gap_mm.is_finite() {
             self.status.last_gap_mm_bits.store(rec.gap_mm.to_bits(), R);
         }
+        // The stamp the record carries is taken just before the hand-over to the slot; the
+        // `published` stage ends just after it.
         let now_ns = clock::monotonic_ns();
         let e2e_ns = now_ns.saturating_sub(capture_ns);
         rec.latency_us = u32::try_from(e2e_ns / 1000).unwrap_or(u32::MAX);
         self.out.send_replace(Some(rec));
+        let t_published = Instant::now();
         self.status.published.fetch_add(1, R);
         // After publishing: a viewer's copy never delays the position.
         self.feed_tap(detected);
         let t_end = Instant::now();
 
+        let at = |t: Instant| dequeued_ns + u64::try_from((t - t_start).as_nanos()).unwrap_or(u64::MAX);
+        self.times = SetTimes {
+            capture_ns,
+            render_ns: self.set.render_ns,
+            dequeued_ns,
+            blobs_ns: at(t_detect),
+            triangulated_ns: at(t_solve.max(t_detect)),
+            published_ns: at(t_published),
+            done_ns: at(t_end),
+        };
         let st = &self.status.stages;
+        if self.set.render_ns > 0 {
+            st.render.record_ns(self.set.render_ns);
+        }
+        st.driver.record_ns(self.times.driver_ns());
         st.detect.record(t_detect - t_start);
-        st.solve.record(t_solve - t_detect);
-        st.publish.record(t_end - t_solve.max(t_start));
+        st.solve.record(t_solve.max(t_detect) - t_detect);
+        st.publish.record(t_published - t_solve.max(t_detect));
+        st.ours.record(t_published - t_start);
         let process = t_end - t_start;
         st.process.record(process);
-        st.end_to_end.record_us(e2e_ns / 1000);
+        st.end_to_end
+            .record_ns(self.times.published_ns.saturating_sub(capture_ns));
         if u64::try_from(process.as_nanos()).unwrap_or(u64::MAX) > self.deadline_ns {
             self.status.deadline_misses.fetch_add(1, R);
         }

@@ -12,27 +12,41 @@ use crate::metrics::{LatencyHistogram, LatencySummary};
 
 const R: Ordering = Ordering::Relaxed;
 
-/// Per-stage latency histograms of the processing loop.
+/// Per-stage latency histograms of the processing loop, along a set's path (see
+/// [`crate::engine::SetTimes`]): `driver` + `ours` = `end_to_end`.
 #[derive(Debug, Default)]
 pub struct StageHistograms {
-    /// Blob detection, all cameras of one set.
+    /// The simulator's rendering of a set, done ahead of its capture instant (not part of
+    /// `end_to_end`; empty with cameras).
+    pub render: LatencyHistogram,
+    /// Capture timestamp → dequeued by the loop (driver, pairing, source queue).
+    pub driver: LatencyHistogram,
+    /// Dequeued → blobs done, all cameras of one set.
     pub detect: LatencyHistogram,
-    /// Centroids → undistort → triangulate.
+    /// Blobs → undistorted and triangulated.
     pub solve: LatencyHistogram,
     /// Quality gate, record building and publishing to the slot.
     pub publish: LatencyHistogram,
-    /// Whole processing of one set (compared with the deadline).
+    /// Dequeued → published: irtrackd's own share.
+    pub ours: LatencyHistogram,
+    /// Whole processing of one set incl. a viewer copy (compared with the deadline).
     pub process: LatencyHistogram,
-    /// Capture timestamp → published (includes queueing in the source).
+    /// Capture timestamp → published.
     pub end_to_end: LatencyHistogram,
 }
 
+/// Number of stage histograms.
+pub const STAGES: usize = 8;
+
 impl StageHistograms {
-    pub fn stages(&self) -> [(&'static str, &LatencyHistogram); 5] {
+    pub fn stages(&self) -> [(&'static str, &LatencyHistogram); STAGES] {
         [
+            ("render", &self.render),
+            ("driver", &self.driver),
             ("detect", &self.detect),
             ("solve", &self.solve),
             ("publish", &self.publish),
+            ("ours", &self.ours),
             ("process", &self.process),
             ("end_to_end", &self.end_to_end),
         ]
@@ -491,6 +505,12 @@ impl SharedStatus {
     }
 }
 
+/// The `le` edges (µs) of the exported classic histogram (the former fixed buckets).
+const PROMETHEUS_LE_US: [u64; 20] = [
+    25, 50, 100, 200, 300, 500, 750, 1_000, 1_500, 2_000, 3_000, 5_000, 7_500, 10_000, 15_000, 20_000,
+    33_000, 50_000, 100_000, 250_000,
+];
+
 /// Exemplar label type for histograms without exemplars.
 type NoLabels = Vec<(String, String)>;
 
@@ -507,7 +527,7 @@ struct MetricsSnapshot {
     camera_frames: Vec<u64>,
     leds: [bool; 4],
     faults: Vec<Fault>,
-    stages: [(&'static str, crate::metrics::HistogramSnapshot); 5],
+    stages: [(&'static str, crate::metrics::HistogramSnapshot); STAGES],
 }
 
 impl prometheus_client::collector::Collector for MetricsSnapshot {
@@ -589,8 +609,10 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
             let labels = [("fault", name)];
             ConstGauge::new(i64::from(self.faults.contains(&f))).encode(m.encode_family(&labels)?)?;
         }
-        // The loop records latencies into lock-free atomic buckets (it must neither lock nor
-        // allocate); the snapshot is handed to the encoder as a classic histogram.
+        // The loop records latencies into lock-free log-linear buckets (it must neither lock
+        // nor allocate). Exported twice: as a classic histogram on fixed, coarse `le` edges
+        // (counted from the fine buckets, so dashboards can aggregate it), and as the true
+        // percentiles (within 1.6 %), which the coarse edges cannot give.
         let mut m = enc.encode_descriptor(
             "irtrackd_stage_latency_seconds",
             "processing stage latency",
@@ -598,24 +620,43 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
             MetricType::Histogram,
         )?;
         for (name, h) in &self.stages {
-            let buckets: Vec<(f64, u64)> = h
-                .counts
+            let mut buckets: Vec<(f64, u64)> = PROMETHEUS_LE_US
                 .iter()
-                .enumerate()
-                .map(|(i, c)| {
-                    let le = crate::metrics::LATENCY_BUCKETS_US
-                        .get(i)
-                        .map_or(f64::INFINITY, |b| *b as f64 / 1e6);
-                    (le, *c)
-                })
+                .map(|&le_us| (le_us as f64 / 1e6, h.count_at_most_ns(le_us as f64 * 1e3)))
                 .collect();
+            // The encoder takes per-bucket counts and accumulates them itself.
+            for i in (1..buckets.len()).rev() {
+                buckets[i].1 -= buckets[i - 1].1;
+            }
+            let below: u64 = buckets.iter().map(|b| b.1).sum();
+            buckets.push((f64::INFINITY, h.count() - below));
             let labels = [("stage", *name)];
             m.encode_family(&labels)?.encode_histogram::<NoLabels>(
-                h.sum_us as f64 / 1e6,
+                h.sum_ns as f64 / 1e9,
                 h.count(),
                 &buckets,
                 None,
             )?;
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_stage_latency_quantile_seconds",
+            "processing stage latency percentiles since start (log-linear histogram, within 1.6 %)",
+            None,
+            MetricType::Gauge,
+        )?;
+        for (name, h) in &self.stages {
+            for (q, label) in [
+                (0.5, "0.5"),
+                (0.9, "0.9"),
+                (0.99, "0.99"),
+                (0.999, "0.999"),
+                (1.0, "1"),
+            ] {
+                if let Some(ns) = h.quantile_ns(q) {
+                    let labels = [("stage", *name), ("quantile", label)];
+                    ConstGauge::new(ns / 1e9).encode(m.encode_family(&labels)?)?;
+                }
+            }
         }
         Ok(())
     }

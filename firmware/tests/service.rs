@@ -466,8 +466,13 @@ async fn status_json_and_metrics_report_the_running_service() {
             "{stage}: {}",
             lat[stage]
         );
-        assert!(lat[stage]["p50_us"].as_u64().is_some());
-        assert!(lat[stage]["p99_us"].as_u64().unwrap() >= lat[stage]["p50_us"].as_u64().unwrap());
+        // True percentiles (µs with fractions), not bucket edges.
+        let (p50, p99) = (
+            lat[stage]["p50_us"].as_f64().unwrap(),
+            lat[stage]["p99_us"].as_f64().unwrap(),
+        );
+        assert!(p50 > 0.0 && p99 >= p50, "{stage}: {}", lat[stage]);
+        assert!(lat[stage]["max_us"].as_f64().unwrap() >= p99);
     }
     assert!((st["processing"]["deadline_us"].as_f64().unwrap() - 10_000.0).abs() < 1.0);
     assert!(st["processing"]["deadline_misses"].as_u64().is_some());
@@ -487,6 +492,7 @@ async fn status_json_and_metrics_report_the_running_service() {
         "irtrackd_info{version=",
         "irtrackd_fault{fault=\"no_params\"} 0",
         "# TYPE irtrackd_stage_latency_seconds histogram",
+        "irtrackd_stage_latency_quantile_seconds{stage=\"detect\",quantile=\"0.99\"} ",
         "# EOF",
     ] {
         assert!(metrics.contains(want), "no {want:?} in\n{metrics}");

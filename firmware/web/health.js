@@ -3,11 +3,17 @@
 import uPlot from "/web/vendor/uplot/uPlot.esm.js";
 import { age, fmt, kv } from "./format.js";
 
+/** A latency in µs: true percentiles (within 1.6 %), so short stages keep a decimal. */
+const us = (v) => (typeof v === "number" && v < 100 ? fmt(v, 1) : fmt(v));
+
 const STAGE_WORDS = {
+  render: "simulator rendering (ahead of capture)",
+  driver: "driver: capture → dequeued",
   detect: "blob detection",
   solve: "undistort + triangulate",
   publish: "gate + publish",
-  process: "whole set (vs deadline)",
+  ours: "ours: dequeued → published",
+  process: "whole set incl. viewer copy (vs deadline)",
   end_to_end: "capture → published",
 };
 
@@ -157,11 +163,11 @@ export class Health {
     const lat = proc.latency_us || {};
     document.querySelector("#latency tbody").replaceChildren(
       ...Object.keys(STAGE_WORDS)
-        .filter((k) => lat[k])
+        .filter((k) => lat[k] && lat[k].count > 0)
         .map((k) => {
           const s = lat[k];
           const tr = document.createElement("tr");
-          for (const v of [STAGE_WORDS[k], fmt(s.p50_us), fmt(s.p90_us), fmt(s.p99_us), fmt(s.max_us), fmt(s.count)]) {
+          for (const v of [STAGE_WORDS[k], us(s.p50_us), us(s.p90_us), us(s.p99_us), us(s.max_us), fmt(s.count)]) {
             const td = document.createElement("td");
             td.textContent = v;
             tr.append(td);

@@ -160,10 +160,11 @@ fn instruction_table(bin: &Path, ctx: &Ctx, quick: bool) -> Result<()> {
 /// Quantiles (µs) of one row of the `viewers` example's output.
 struct LatencyRow {
     sets: u64,
-    p50: u64,
-    p90: u64,
-    p99: u64,
-    max: u64,
+    p50: f64,
+    p90: f64,
+    p99: f64,
+    p999: f64,
+    max: f64,
 }
 
 /// Finds the row starting with `label` in the `viewers` example's table.
@@ -172,19 +173,20 @@ fn latency_row(text: &str, label: &str) -> Result<LatencyRow> {
         .lines()
         .find(|l| l.starts_with(label))
         .with_context(|| format!("no `{label}` row in the viewers example's output"))?;
-    let v: Vec<u64> = line[label.len()..]
+    let v: Vec<f64> = line[label.len()..]
         .split_whitespace()
-        .map(|w| w.parse::<u64>())
+        .map(|w| w.parse::<f64>())
         .collect::<Result<_, _>>()
         .with_context(|| format!("parsing `{line}`"))?;
-    let [sets, p50, p90, p99, max] = v[..] else {
-        bail!("`{line}`: expected 5 numbers");
+    let [sets, p50, p90, p99, p999, max] = v[..] else {
+        bail!("`{line}`: expected 6 numbers");
     };
     Ok(LatencyRow {
-        sets,
+        sets: sets as u64,
         p50,
         p90,
         p99,
+        p999,
         max,
     })
 }
@@ -217,36 +219,28 @@ fn latency_table(ctx: &Ctx, seconds: u32) -> Result<()> {
     if !out.success() {
         bail!("the viewers example {}", out.describe());
     }
-    let rows = [
-        (
-            "loop processing time (detect → publish), 0 viewers",
-            "process time, 0 viewers",
-        ),
-        (
-            "loop processing time (detect → publish), 3 viewers",
-            "process time, 3 viewers",
-        ),
-        (
-            "capture → published record, 0 viewers",
-            "capture→publish, 0 viewers",
-        ),
-        (
-            "capture → published record, 3 viewers",
-            "capture→publish, 3 viewers",
-        ),
-    ];
+    let mut rows = Vec::new();
+    for v in [0, 3] {
+        rows.extend([
+            (format!("simulator rendering (ahead of capture), {v} viewers"), format!("render (simulator), {v} viewers")),
+            (format!("driver: capture → dequeued, {v} viewers"), format!("driver, {v} viewers")),
+            (format!("ours: dequeued → published, {v} viewers"), format!("ours, {v} viewers")),
+            (format!("whole set incl. viewer copy, {v} viewers"), format!("process time, {v} viewers")),
+            (format!("capture → published record, {v} viewers"), format!("capture→publish, {v} viewers")),
+        ]);
+    }
     println!();
     println!(
         "Latency, one table (simulated 2 × VGA at 100 fps, {seconds} s per phase; viewers: 3 WebSockets asking for 30 fps full-width previews, 64 px zooms and every set's blobs):"
     );
     println!();
-    println!("| path | sets | p50 | p90 | p99 | max | measured by |");
-    println!("|---|---|---|---|---|---|---|");
+    println!("| path | sets | p50 | p90 | p99 | p99.9 | max | measured by |");
+    println!("|---|---|---|---|---|---|---|---|");
     for (name, label) in rows {
-        let r = latency_row(&out.stdout, label)?;
+        let r = latency_row(&out.stdout, &label)?;
         println!(
-            "| {name} | {} | {} µs | {} µs | {} µs | {} µs | `cargo run --release -p irtrack-firmware --example viewers` |",
-            r.sets, r.p50, r.p90, r.p99, r.max
+            "| {name} | {} | {:.1} µs | {:.1} µs | {:.1} µs | {:.1} µs | {:.1} µs | `cargo run --release -p irtrack-firmware --example viewers` |",
+            r.sets, r.p50, r.p90, r.p99, r.p999, r.max
         );
     }
     for link in [

@@ -23,7 +23,8 @@ pub struct Frame {
     /// Significant bits per pixel (8, 10, 12 or 16).
     pub bit_depth: u8,
     pub pixels: Pixels,
-    /// Capture time (kernel timestamp for V4L2, CLOCK_MONOTONIC ns).
+    /// Capture time, CLOCK_MONOTONIC ns: the V4L2 buffer's driver timestamp; the simulator's
+    /// hand-over instant (the scene is rendered as it is at that instant, ahead of it).
     pub timestamp_ns: u64,
     /// Driver or source sequence number of this camera.
     pub sequence: u64,
@@ -93,6 +94,10 @@ pub struct FrameSet {
     pub frames: Vec<Frame>,
     /// Largest timestamp difference between the paired frames.
     pub pairing_error_ns: u64,
+    /// Time the source itself spent producing the set before the frames' timestamps (the
+    /// simulator's rendering, which it does ahead of the capture instant); 0 for cameras.
+    /// Reported as the `render` stage, never as part of capture → published.
+    pub render_ns: u64,
 }
 
 /// Counters every source keeps.

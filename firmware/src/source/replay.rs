@@ -168,6 +168,7 @@ impl ReplaySource {
             index: 0,
             frames,
             pairing_error_ns: 0,
+            render_ns: 0,
         };
         Ok(Self {
             cfg: cfg.clone(),

@@ -374,6 +374,9 @@ pub struct SimSource {
     wand: Option<(WandWave, Vec<u8>)>,
     /// Cell mode: the feed from robot-sim and camera 0's pose in the robot base frame.
     cell: Option<(CellFeed, nalgebra::Isometry3<f64>)>,
+    /// Paced mode renders this long before a frame's capture instant, so that the frame is
+    /// handed over at that instant like a camera's (adapted to the recent rendering times).
+    render_lead_ns: u64,
 }
 
 /// Where a dark LED is put: so far away that its spot carries no light.
@@ -458,6 +461,7 @@ impl SimSource {
             stats: SourceStats::default(),
             controls: vec![SimControls::NOMINAL; scenario.camera_count()],
             noise_state: 0x9E37_79B9_7F4A_7C15,
+            render_lead_ns: ((1e9 / fps) as u64 / 2).min(3_000_000),
             scenario,
             wand: None,
             cell: None,
@@ -497,6 +501,7 @@ impl FrameSource for SimSource {
             index: 0,
             frames,
             pairing_error_ns: 0,
+            render_ns: 0,
         }
     }
 
@@ -517,11 +522,15 @@ impl FrameSource for SimSource {
                     self.next_index = current;
                     continue;
                 }
-                clock::sleep_until_ns(due);
-                due
+                // Render ahead of the capture instant (the scene is drawn as it is at `due`)
+                // and hand the frames over at it: a camera's frame reaches the loop at its
+                // timestamp too; rendering is reported as its own stage (`render_ns`).
+                clock::sleep_until_ns(due.saturating_sub(self.render_lead_ns));
+                Some(due)
             } else {
-                clock::monotonic_ns()
+                None
             };
+            let render_start_ns = clock::monotonic_ns();
             self.next_index = index + 1;
             if out.frames.len() != self.camera_count() {
                 return Err(SourceError::Config(format!(
@@ -584,8 +593,26 @@ impl FrameSource for SimSource {
                 }
                 min_ts = min_ts.min(info.timestamp_ns);
                 max_ts = max_ts.max(info.timestamp_ns);
-                frame.timestamp_ns = capture_ns;
                 frame.sequence = index;
+            }
+            let render_end_ns = clock::monotonic_ns();
+            let render_ns = render_end_ns - render_start_ns;
+            // Lead: 1.5 × this rendering + 0.2 ms, decaying slowly after a slow one; never
+            // more than most of a period.
+            let want_ns = render_ns + render_ns / 2 + 200_000;
+            self.render_lead_ns = want_ns
+                .max(self.render_lead_ns - self.render_lead_ns / 64)
+                .min(self.period_ns * 3 / 4);
+            // Unpaced: the frames are captured when they are handed over, now.
+            let capture_ns = match capture_ns {
+                Some(due) => {
+                    clock::sleep_until_ns(due);
+                    due
+                }
+                None => render_end_ns,
+            };
+            for frame in out.frames.iter_mut() {
+                frame.timestamp_ns = capture_ns;
             }
             if dropped > 0 {
                 // An incomplete set cannot be triangulated; the other cameras' frames are unpaired.
@@ -595,6 +622,7 @@ impl FrameSource for SimSource {
             }
             out.index = index;
             out.pairing_error_ns = max_ts - min_ts;
+            out.render_ns = render_ns;
             self.stats.sets_delivered += 1;
             return Ok(());
         }

@@ -912,6 +912,7 @@ impl FrameSource for V4l2Source {
             index: 0,
             frames,
             pairing_error_ns: 0,
+            render_ns: 0,
         }
     }
 
