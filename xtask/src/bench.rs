@@ -222,11 +222,26 @@ fn latency_table(ctx: &Ctx, seconds: u32) -> Result<()> {
     let mut rows = Vec::new();
     for v in [0, 3] {
         rows.extend([
-            (format!("simulator rendering (ahead of capture), {v} viewers"), format!("render (simulator), {v} viewers")),
-            (format!("driver: capture → dequeued, {v} viewers"), format!("driver, {v} viewers")),
-            (format!("ours: dequeued → published, {v} viewers"), format!("ours, {v} viewers")),
-            (format!("whole set incl. viewer copy, {v} viewers"), format!("process time, {v} viewers")),
-            (format!("capture → published record, {v} viewers"), format!("capture→publish, {v} viewers")),
+            (
+                format!("simulator rendering (ahead of capture), {v} viewers"),
+                format!("render (simulator), {v} viewers"),
+            ),
+            (
+                format!("driver: capture → dequeued, {v} viewers"),
+                format!("driver, {v} viewers"),
+            ),
+            (
+                format!("ours: dequeued → published, {v} viewers"),
+                format!("ours, {v} viewers"),
+            ),
+            (
+                format!("whole set incl. viewer copy, {v} viewers"),
+                format!("process time, {v} viewers"),
+            ),
+            (
+                format!("capture → published record, {v} viewers"),
+                format!("capture→publish, {v} viewers"),
+            ),
         ]);
     }
     println!();
@@ -243,13 +258,40 @@ fn latency_table(ctx: &Ctx, seconds: u32) -> Result<()> {
             r.sets, r.p50, r.p90, r.p99, r.p999, r.max
         );
     }
-    for link in [
-        "socket protocol (robot asks, tracker answers)",
-        "ABB EGM (UDP + protobuf, 4 ms)",
-        "KUKA RSI (XML over UDP, 4/12 ms)",
-    ] {
+    // The robot links: irtrackd and robot-sim as separate processes, each link kind with 0
+    // and with 3 viewers (the same example, `--connect`, against irtrackd's status port).
+    let viewers_bin = ctx.target_dir().join("release").join("examples").join("viewers");
+    let load = crate::bench_links::ViewerLoad {
+        bin: &viewers_bin,
+        count: 3,
+    };
+    let links = crate::bench_links::decomposition(ctx, f64::from(seconds), &load)?;
+    println!();
+    println!(
+        "Capture → robot packet, decomposed (irtrackd release + robot-sim as separate processes; marker on a 100 mm circle at 250 mm/s, 120 fps; robot-sim's socket robot asks every 4 ms, EGM/RSI cycle 4 ms; {seconds} s per row). \
+         driver = capture → dequeued, ours = dequeued → published, protocol wait = published → on the wire (p50 / p99, µs):"
+    );
+    println!();
+    println!(
+        "| link | viewers | targets | driver | ours | capture → published | protocol wait | capture → packet (sample age when it left) | p99.9 age | (simulator rendering, ahead of capture) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for r in &links {
+        let q = |x: crate::bench_links::Quantiles| format!("{:.1} / {:.1}", x.p50_us, x.p99_us);
         println!(
-            "| capture → packet leaving irtrackd, {link} | – | – | – | – | – | measured by `cargo xtask bench-links` (irtrackd + robot-sim as separate processes; docs/robot-streaming.md) |"
+            "| {} | {} | {} | {} | {} | {} | {} / {} | {} / {} | {} | {} |",
+            r.kind,
+            r.viewers,
+            r.latency.n,
+            q(r.split.driver),
+            q(r.split.ours),
+            q(r.split.end_to_end),
+            r.latency.wait_p50_us,
+            r.latency.wait_p99_us,
+            r.latency.p50_us,
+            r.latency.p99_us,
+            r.latency.p999_us,
+            q(r.split.render),
         );
     }
     Ok(())

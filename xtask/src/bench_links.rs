@@ -75,6 +75,7 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
                 &hash,
                 &dir.join(kind),
                 o.secs,
+                None,
             )?);
         }
         Ok(())
@@ -88,17 +89,19 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
         if o.release { "release" } else { "dev" }
     );
     println!(
-        "| link | targets sent | latency p50 / p99 / p99.9 (ms) | replies later than the cycle | tracking error mean / max (mm) | jerk RMS / max (m/s³) |"
+        "| link | targets sent | latency p50 / p99 / p99.9 (ms) | of which protocol wait p50 / p99 (ms) | replies later than the cycle | tracking error mean / max (mm) | jerk RMS / max (m/s³) |"
     );
-    println!("|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|");
     for r in &rows {
         println!(
-            "| {} | {} | {:.2} / {:.2} / {:.2} | {} | {:.1} / {:.1} | {:.0} / {:.0} |",
+            "| {} | {} | {:.2} / {:.2} / {:.2} | {:.2} / {:.2} | {} | {:.1} / {:.1} | {:.0} / {:.0} |",
             r.kind,
             r.latency.n,
             r.latency.p50_us as f64 / 1e3,
             r.latency.p99_us as f64 / 1e3,
             r.latency.p999_us as f64 / 1e3,
+            r.latency.wait_p50_us as f64 / 1e3,
+            r.latency.wait_p99_us as f64 / 1e3,
             r.late,
             r.err_mean_mm,
             r.err_max_mm,
@@ -107,6 +110,30 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// Every link kind with 0 and with `viewers.count` viewers, `secs` each, release build of
+/// irtrackd: the rows of `cargo xtask bench --latency`'s decomposition.
+pub fn decomposition(ctx: &Ctx, secs: f64, viewers: &ViewerLoad) -> Result<Vec<Row>> {
+    let (irtrackd, host_tools) = build(ctx, true)?;
+    let hash = operator_hash(&irtrackd)?;
+    let dir = std::env::temp_dir().join(format!("irtrack-bench-latency-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let mut rows = Vec::new();
+    let result = (|| -> Result<()> {
+        for kind in ["socket", "egm", "rsi"] {
+            for v in [None, Some(viewers)] {
+                let n = v.map_or(0, |v| v.count);
+                println!("-- {kind}, {n} viewers: {secs} s following");
+                let sub = dir.join(format!("{kind}-{n}"));
+                rows.push(run_one(kind, &irtrackd, &host_tools, &hash, &sub, secs, v)?);
+            }
+        }
+        Ok(())
+    })();
+    let _ = std::fs::remove_dir_all(&dir);
+    result?;
+    Ok(rows)
 }
 
 fn build(ctx: &Ctx, release: bool) -> Result<(PathBuf, PathBuf)> {
@@ -137,16 +164,38 @@ fn build(ctx: &Ctx, release: bool) -> Result<(PathBuf, PathBuf)> {
 }
 
 #[derive(Debug, Default, Clone, Copy)]
-struct Latency {
-    n: u64,
-    p50_us: u64,
-    p99_us: u64,
-    p999_us: u64,
+pub struct Latency {
+    pub n: u64,
+    pub p50_us: u64,
+    pub p99_us: u64,
+    pub p999_us: u64,
+    /// Protocol wait: published → on the wire.
+    pub wait_p50_us: u64,
+    pub wait_p99_us: u64,
 }
 
-struct Row {
-    kind: &'static str,
-    latency: Latency,
+/// p50 and p99 (µs) of one processing-loop stage, read from irtrackd's `/status`.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct Quantiles {
+    pub p50_us: f64,
+    pub p99_us: f64,
+}
+
+/// The loop's share of one run: `driver` (capture → dequeued), `ours` (dequeued →
+/// published), and the simulator's rendering (ahead of the capture instant).
+#[derive(Debug, Default, Clone, Copy)]
+pub struct LoopSplit {
+    pub render: Quantiles,
+    pub driver: Quantiles,
+    pub ours: Quantiles,
+    pub end_to_end: Quantiles,
+}
+
+pub struct Row {
+    pub kind: &'static str,
+    pub viewers: usize,
+    pub latency: Latency,
+    pub split: LoopSplit,
     late: String,
     err_mean_mm: f64,
     err_max_mm: f64,
@@ -253,6 +302,12 @@ fn free_port(kind: &str) -> Result<SocketAddr> {
     })
 }
 
+/// The `viewers` example's binary (release), for runs with 3 viewers.
+pub struct ViewerLoad<'a> {
+    pub bin: &'a Path,
+    pub count: usize,
+}
+
 fn run_one(
     kind: &'static str,
     irtrackd: &Path,
@@ -260,6 +315,7 @@ fn run_one(
     hash: &str,
     dir: &Path,
     secs: f64,
+    viewers: Option<&ViewerLoad>,
 ) -> Result<Row> {
     std::fs::create_dir_all(dir)?;
     let robot_addr = free_port(kind)?;
@@ -347,10 +403,40 @@ fn run_one(
             bail!("POST {req} answered {code}: {body}");
         }
     }
+    // Viewers watch the whole followed span (the example runs them against our status port).
+    let viewer_proc = match viewers {
+        Some(v) => Some(Guard(
+            Command::new(v.bin)
+                .args(["--connect", &status.to_string(), "--seconds"])
+                .arg((secs + 5.0).to_string())
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .context("starting the viewers")?,
+        )),
+        None => None,
+    };
     let last_ts = |t: &Track| t.lock().ok().and_then(|v| v.last().map(|r| r.0)).unwrap_or(0);
     let t_enable = last_ts(&track);
     std::thread::sleep(Duration::from_secs_f64(secs));
     let t_end = last_ts(&track);
+    let (code, status_json) = util::http(status, "GET", "/status")?;
+    if code != 200 {
+        bail!("GET /status answered {code}");
+    }
+    let split = LoopSplit {
+        render: stage_quantiles(&status_json, "render")?,
+        driver: stage_quantiles(&status_json, "driver")?,
+        ours: stage_quantiles(&status_json, "ours")?,
+        end_to_end: stage_quantiles(&status_json, "end_to_end")?,
+    };
+    if let Some(mut v) = viewer_proc {
+        if let Some(st) = v.0.try_wait()? {
+            bail!("the viewers stopped early ({st})");
+        }
+        let _ = v.0.kill();
+        let _ = v.0.wait();
+    }
     let (_, body) = http_operator(status, "POST", "/robot")?;
     if !body.contains("\"state\":\"moving\"") {
         bail!("the {kind} link is not moving at the end: {body}");
@@ -404,7 +490,9 @@ fn run_one(
     let (jerk_rms_m_s3, jerk_max_m_s3) = jerk(&path, from, to);
     Ok(Row {
         kind,
+        viewers: viewers.map_or(0, |v| v.count),
         latency,
+        split,
         late,
         err_mean_mm,
         err_max_mm,
@@ -428,6 +516,23 @@ fn parse_latency(log: &str) -> Option<Latency> {
         p50_us: f("p50_us=")?,
         p99_us: f("p99_us=")?,
         p999_us: f("p999_us=")?,
+        wait_p50_us: f("wait_p50_us=")?,
+        wait_p99_us: f("wait_p99_us=")?,
+    })
+}
+
+/// p50/p99 of `stage` in the `/status` document (`"processing":{"latency_us":{"<stage>":{...}}}`).
+fn stage_quantiles(status_json: &str, stage: &str) -> Result<Quantiles> {
+    let key = format!("\"{stage}\":{{");
+    let at = status_json
+        .find(&key)
+        .with_context(|| format!("no stage {stage:?} in /status"))?;
+    let obj = &status_json[at + key.len()..];
+    let obj = &obj[..obj.find('}').unwrap_or(obj.len())];
+    let num = |k: &str| -> f64 { json_raw(obj, k).and_then(|v| v.parse().ok()).unwrap_or(f64::NAN) };
+    Ok(Quantiles {
+        p50_us: num("p50_us"),
+        p99_us: num("p99_us"),
     })
 }
 

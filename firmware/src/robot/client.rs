@@ -44,11 +44,22 @@ pub trait PositionFeed: Send + Sync + 'static {
     fn latest(&mut self) -> Option<Sample>;
     /// Resolves when a newer sample may be available; `false` once the feed is closed.
     fn changed(&mut self) -> impl Future<Output = bool> + Send;
+    /// When the newest sample was published (same clock as its capture time), if known: the
+    /// start of the link's protocol wait.
+    fn published_ns(&self) -> Option<u64> {
+        None
+    }
 }
 
 impl PositionFeed for watch::Receiver<Option<PositionRecord>> {
     fn latest(&mut self) -> Option<Sample> {
         self.borrow_and_update().as_ref().map(Sample::from)
+    }
+    fn published_ns(&self) -> Option<u64> {
+        // The record carries capture → published (µs) in `latency_us`.
+        self.borrow()
+            .as_ref()
+            .map(|r| r.capture_ts_ns + u64::from(r.latency_us) * 1000)
     }
     async fn changed(&mut self) -> bool {
         watch::Receiver::changed(self).await.is_ok()

@@ -22,10 +22,13 @@ pub struct Control {
     pub stop: bool,
 }
 
-/// Latency from a sample's capture to its target leaving irtrackd, in µs.
+/// Per target leaving irtrackd (µs): the sample's age (capture → on the wire) and the
+/// protocol wait (published → on the wire: the time the sample waited for the robot's request
+/// or the controller's cycle).
 pub struct Latency {
     /// `None` only if the fixed bounds were refused (they are valid; no panic path either way).
-    hist: Option<hdrhistogram::Histogram<u64>>,
+    age: Option<hdrhistogram::Histogram<u64>>,
+    wait: Option<hdrhistogram::Histogram<u64>>,
 }
 
 /// Percentiles of [`Latency`] (µs).
@@ -36,33 +39,45 @@ pub struct LatencySummary {
     pub p99_us: u64,
     pub p999_us: u64,
     pub max_us: u64,
+    /// Protocol wait, published → on the wire.
+    pub wait_p50_us: u64,
+    pub wait_p99_us: u64,
+    pub wait_max_us: u64,
 }
 
 impl Latency {
     fn new() -> Self {
-        // 1 µs .. 60 s at 3 significant digits, allocated once: recording never allocates.
-        let hist = hdrhistogram::Histogram::new_with_bounds(1, 60_000_000, 3).ok();
-        Self { hist }
+        // 1 µs .. 60 s at 3 significant digits (0.1 %), allocated once: recording never
+        // allocates. The links record from their own task with `&mut`, so no lock is needed.
+        let h = || hdrhistogram::Histogram::new_with_bounds(1, 60_000_000, 3).ok();
+        Self { age: h(), wait: h() }
     }
 
-    fn record(&mut self, us: u64) {
-        if let Some(h) = &mut self.hist {
-            h.saturating_record(us.max(1));
+    fn record(&mut self, age_us: u64, wait_us: Option<u64>) {
+        if let Some(h) = &mut self.age {
+            h.saturating_record(age_us.max(1));
+        }
+        if let (Some(h), Some(w)) = (&mut self.wait, wait_us) {
+            h.saturating_record(w.max(1));
         }
     }
 
     /// Percentiles so far.
     pub fn summary(&self) -> LatencySummary {
-        let Some(h) = &self.hist else {
-            return LatencySummary::default();
-        };
-        LatencySummary {
-            count: h.len(),
-            p50_us: h.value_at_quantile(0.5),
-            p99_us: h.value_at_quantile(0.99),
-            p999_us: h.value_at_quantile(0.999),
-            max_us: h.max(),
+        let mut s = LatencySummary::default();
+        if let Some(h) = &self.age {
+            s.count = h.len();
+            s.p50_us = h.value_at_quantile(0.5);
+            s.p99_us = h.value_at_quantile(0.99);
+            s.p999_us = h.value_at_quantile(0.999);
+            s.max_us = h.max();
         }
+        if let Some(h) = &self.wait {
+            s.wait_p50_us = h.value_at_quantile(0.5);
+            s.wait_p99_us = h.value_at_quantile(0.99);
+            s.wait_max_us = h.max();
+        }
+        s
     }
 }
 
@@ -76,6 +91,8 @@ pub struct Gate<F, C> {
     pub(crate) ctl: watch::Receiver<Control>,
     /// Newest sample (orientation removed when orientation is not sent).
     pub(crate) cur: Option<Sample>,
+    /// When `cur` was published, if the feed knows.
+    cur_published_ns: Option<u64>,
     pub(crate) feed_open: bool,
     send_orientation: bool,
     pub(crate) latency: Latency,
@@ -96,6 +113,7 @@ impl<F: PositionFeed, C: Clock> Gate<F, C> {
             deadman,
             ctl,
             cur: None,
+            cur_published_ns: None,
             feed_open: true,
             send_orientation: cfg.send_orientation,
             latency: Latency::new(),
@@ -105,6 +123,7 @@ impl<F: PositionFeed, C: Clock> Gate<F, C> {
     /// Takes the newest sample from the feed.
     pub fn refresh(&mut self) {
         self.cur = if self.feed_open { self.feed.latest() } else { None };
+        self.cur_published_ns = self.cur.and_then(|_| self.feed.published_ns());
         if !self.send_orientation {
             // Orientation that is never sent must not hold the robot either.
             if let Some(c) = &mut self.cur {
@@ -163,20 +182,30 @@ impl<F: PositionFeed, C: Clock> Gate<F, C> {
 
     /// A target captured at `capture_ts_ns` has just left irtrackd.
     pub fn record_sent(&mut self, capture_ts_ns: u64) {
-        let age_ns = self.clock.now_ns().saturating_sub(capture_ts_ns);
-        self.latency.record(age_ns / 1000);
+        let now_ns = self.clock.now_ns();
+        let age_ns = now_ns.saturating_sub(capture_ts_ns);
+        // The publication time belongs to the newest sample; a predicted or older target
+        // carries the same capture time when it came from it.
+        let wait_ns = match (self.cur, self.cur_published_ns) {
+            (Some(c), Some(p)) if c.capture_ts_ns == capture_ts_ns => Some(now_ns.saturating_sub(p)),
+            _ => None,
+        };
+        self.latency.record(age_ns / 1000, wait_ns.map(|w| w / 1000));
     }
 
     /// Logs the latency summary (read by `cargo xtask bench-links`).
     pub fn log_latency(&self, kind: &str) {
         let l = self.latency.summary();
         tracing::info!(
-            "robot link latency kind={kind} n={} p50_us={} p99_us={} p999_us={} max_us={}",
+            "robot link latency kind={kind} n={} p50_us={} p99_us={} p999_us={} max_us={} wait_p50_us={} wait_p99_us={} wait_max_us={}",
             l.count,
             l.p50_us,
             l.p99_us,
             l.p999_us,
-            l.max_us
+            l.max_us,
+            l.wait_p50_us,
+            l.wait_p99_us,
+            l.wait_max_us
         );
     }
 }
