@@ -168,17 +168,19 @@ impl HistogramSnapshot {
 
     pub fn summary(&self) -> LatencySummary {
         let count = self.count();
-        // Two decimals of a µs: the resolution of a 1 µs sample is 1/64 µs.
-        let us = |q: f64| self.quantile_us(q).map(|v| (v * 100.0).round() / 100.0);
+        // Two decimals of a µs (the resolution at 1 µs is 1/64 µs); every figure is rounded
+        // alike, so p99 ≤ max holds in the report too.
+        let round = |us: f64| (us * 100.0).round() / 100.0;
+        let us = |q: f64| self.quantile_us(q).map(round);
         LatencySummary {
             count,
             p50_us: us(0.50),
             p90_us: us(0.90),
             p99_us: us(0.99),
             p999_us: us(0.999),
-            min_us: (count > 0).then(|| self.min_ns as f64 / 1e3),
-            max_us: (count > 0).then(|| self.max_ns as f64 / 1e3),
-            mean_us: (count > 0).then(|| self.sum_ns as f64 / count as f64 / 1e3),
+            min_us: (count > 0).then(|| round(self.min_ns as f64 / 1e3)),
+            max_us: (count > 0).then(|| round(self.max_ns as f64 / 1e3)),
+            mean_us: (count > 0).then(|| round(self.sum_ns as f64 / count as f64 / 1e3)),
         }
     }
 }
@@ -323,5 +325,16 @@ mod tests {
         assert_eq!(s.quantile_ns(1.0), Some(500e9), "the maximum is kept exactly");
         assert_eq!(s.quantile_ns(0.5), Some(10.0));
         assert_eq!(s.count_at_most_ns(1e3), 1);
+    }
+
+    #[test]
+    fn summary_keeps_percentiles_below_the_maximum() {
+        let h = LatencyHistogram::new();
+        for v in [12_001u64, 12_345, 12_346] {
+            h.record_ns(v);
+        }
+        let s = h.snapshot().summary();
+        assert!(s.p99_us.unwrap() <= s.max_us.unwrap(), "{s:?}");
+        assert!(s.p50_us.unwrap() >= s.min_us.unwrap(), "{s:?}");
     }
 }

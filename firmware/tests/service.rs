@@ -471,7 +471,12 @@ async fn status_json_and_metrics_report_the_running_service() {
             lat[stage]["p50_us"].as_f64().unwrap(),
             lat[stage]["p99_us"].as_f64().unwrap(),
         );
-        assert!(p50 > 0.0 && p99 >= p50, "{stage}: {}", lat[stage]);
+        // Sets before the parameter set arrived skip detection (0 ns stages); the whole
+        // set and capture → published always take time.
+        assert!(p50 >= 0.0 && p99 >= p50, "{stage}: {}", lat[stage]);
+        if matches!(stage, "process" | "end_to_end") {
+            assert!(p50 > 0.0, "{stage}: {}", lat[stage]);
+        }
         assert!(lat[stage]["max_us"].as_f64().unwrap() >= p99);
     }
     assert!((st["processing"]["deadline_us"].as_f64().unwrap() - 10_000.0).abs() < 1.0);
