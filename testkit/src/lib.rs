@@ -1,5 +1,9 @@
-//! Test support shared by irtrack's test suites and benchmarks. Never a dependency of shipped
-//! code.
+//! Test support shared by irtrack's test suites, benchmarks and xtask. Never a dependency of
+//! shipped code.
+//!
+//! With the `harness` feature, [`harness`] runs irtrackd and other workspace binaries and talks
+//! to them (HTTP, WebSocket, operator sign-in); the system tests in `tests/` and xtask's demo,
+//! soak and image system test use it.
 //!
 //! [`CountingAlloc`] proves "no allocation per frame": install it as the global allocator of a
 //! test binary and compare [`allocations`] before and after the code under test.
@@ -11,6 +15,11 @@
 //! run_frames();
 //! assert_eq!(irtrack_testkit::allocations() - before, 0);
 //! ```
+
+#![deny(missing_docs)]
+
+#[cfg(feature = "harness")]
+pub mod harness;
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;

@@ -30,30 +30,28 @@ const FIREFOX: &str = "/usr/bin/firefox-esr";
 const XVFB: &str = "/usr/bin/Xvfb";
 
 /// Starts Xvfb on a display number it picks itself (`-displayfd`); returns it and the display.
-fn start_xvfb() -> (Guard, String) {
-    let mut child = Command::new(XVFB)
-        .args([
-            "-displayfd",
-            "1",
-            "-screen",
-            "0",
-            "1600x1300x24",
-            "-nolisten",
-            "tcp",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap_or_else(|e| panic!("starting {XVFB}: {e}"));
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
+fn start_xvfb() -> (Proc, String) {
+    let mut xvfb = spawn(
+        Command::new(XVFB)
+            .args([
+                "-displayfd",
+                "1",
+                "-screen",
+                "0",
+                "1600x1300x24",
+                "-nolisten",
+                "tcp",
+            ])
+            .stderr(Stdio::null()),
+        "Xvfb",
+    );
+    // `-displayfd 1`: the display number is its first output line.
+    let line = xvfb.wait_line("", Duration::from_secs(20)).unwrap();
     let n: u32 = line
         .trim()
         .parse()
         .unwrap_or_else(|_| panic!("Xvfb printed no display number: {line:?}"));
-    (Guard(child), format!(":{n}"))
+    (xvfb, format!(":{n}"))
 }
 
 /// A Marionette session (protocol 3): commands `[0, id, name, params]`, answers
@@ -152,7 +150,7 @@ fn out_dir() -> PathBuf {
 }
 
 /// Starts Firefox on `display` with Marionette on a port it picks; returns the process and port.
-fn start_firefox(profile: &Path, display: &str) -> (Guard, u16) {
+fn start_firefox(profile: &Path, display: &str) -> (Proc, u16) {
     std::fs::create_dir_all(profile).unwrap();
     // Port 0: Firefox picks a free one and writes it to MarionetteActivePort. The rest keeps a
     // fresh profile from calling home or showing first-run pages.
@@ -167,16 +165,15 @@ fn start_firefox(profile: &Path, display: &str) -> (Guard, u16) {
 ",
     )
     .unwrap();
-    let child = Command::new(FIREFOX)
-        .args(["--marionette", "--no-remote", "--profile"])
-        .arg(profile)
-        .env("DISPLAY", display)
-        .env_remove("WAYLAND_DISPLAY")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap_or_else(|e| panic!("starting {FIREFOX}: {e}"));
-    let guard = Guard(child);
+    let guard = spawn(
+        Command::new(FIREFOX)
+            .args(["--marionette", "--no-remote", "--profile"])
+            .arg(profile)
+            .env("DISPLAY", display)
+            .env_remove("WAYLAND_DISPLAY")
+            .stderr(Stdio::null()),
+        "firefox",
+    );
     let port_file = profile.join("MarionetteActivePort");
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {

@@ -81,16 +81,15 @@ fn password_hash(password: &str) -> String {
 }
 
 /// Starts chromedriver on a free port; returns its guard and URL once it answers.
-fn start_chromedriver(dir: &Path) -> (Guard, String) {
+fn start_chromedriver(dir: &Path) -> (Proc, String) {
     let port = free_port();
-    let child = Command::new(CHROMEDRIVER)
-        .arg(format!("--port={port}"))
-        .arg(format!("--log-path={}", dir.join("chromedriver.log").display()))
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap_or_else(|e| panic!("starting {CHROMEDRIVER}: {e}"));
-    let guard = Guard(child);
+    let guard = spawn(
+        Command::new(CHROMEDRIVER)
+            .arg(format!("--port={port}"))
+            .arg(format!("--log-path={}", dir.join("chromedriver.log").display()))
+            .stderr(Stdio::null()),
+        "chromedriver",
+    );
     let addr: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
     let end = Instant::now() + Duration::from_secs(15);
     loop {

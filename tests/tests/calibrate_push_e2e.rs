@@ -163,7 +163,7 @@ fn write_config(dir: &Path, sim: &str) -> (PathBuf, PathBuf) {
 
 /// Starts irtrackd with every endpoint on a free port of 127.0.0.1; returns the params,
 /// stream and status addresses.
-fn start_irtrackd_addrs(config: &Path, state: &Path) -> (Guard, [SocketAddr; 3]) {
+fn start_irtrackd_addrs(config: &Path, state: &Path) -> (Irtrackd, [SocketAddr; 3]) {
     let (guard, line) = start_irtrackd(config, state);
     let addrs = [
         addr_field(&line, "params="),

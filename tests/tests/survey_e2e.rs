@@ -16,7 +16,7 @@ mod common;
 use std::io::{BufRead, BufReader};
 use std::net::TcpStream;
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::*;
@@ -45,33 +45,6 @@ const BOX_MAX: [f64; 3] = [580.0, 80.0, 380.0];
 const ORIENT: [f64; 4] = [0.0, 0.0, 1.0, 0.0];
 /// Tracker noise allowance per averaged point (exact simulated rig, ~0.02 mm per frame).
 const TRACKER_MM: f64 = 0.05;
-
-/// Reads child stdout lines until every prefix has been seen; returns the lines in that order.
-fn wait_lines(child: &mut Child, prefixes: &[&str], timeout: Duration) -> Vec<String> {
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                return;
-            }
-        }
-    });
-    let deadline = Instant::now() + timeout;
-    let mut found: Vec<Option<String>> = vec![None; prefixes.len()];
-    while found.iter().any(Option::is_none) {
-        let left = deadline.saturating_duration_since(Instant::now());
-        let line = rx
-            .recv_timeout(left)
-            .unwrap_or_else(|_| panic!("no {prefixes:?} lines within {timeout:?}"));
-        for (i, p) in prefixes.iter().enumerate() {
-            if line.starts_with(p) {
-                found[i] = Some(line.trim_start_matches(p).trim().to_string());
-            }
-        }
-    }
-    found.into_iter().map(Option::unwrap).collect()
-}
 
 /// The cell's truth: camera 0's pose in the robot base frame, chosen so that the middle of the
 /// survey volume's LED positions lies where the simulated cameras' axes cross.
@@ -163,34 +136,31 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
     let (r_cb, t_cb) = cam0_from_base(centre);
 
     // The robot with its errors and the LED on its flange.
-    let mut sim = Command::new(bin("host-tools"))
-        .args([
-            "robot-sim",
-            "--listen",
-            "127.0.0.1:0",
-            "--cell-feed",
-            "127.0.0.1:0",
-        ])
-        .args(["--home", "500,0,300", "--speed-mm-s", "300"])
-        .arg(format!(
-            "--led-offset-mm={},{},{}",
-            LED_OFFSET_MM[0], LED_OFFSET_MM[1], LED_OFFSET_MM[2]
-        ))
-        .arg(format!("--repeatability-mm={}", MODEL.repeatability_mm))
-        .arg(format!("--abs-error-rms-mm={}", MODEL.field_rms_mm))
-        .arg(format!("--abs-error-wavelength-mm={}", MODEL.field_wavelength_mm))
-        .arg(format!("--error-seed={}", MODEL.seed))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let addrs = wait_lines(
-        &mut sim,
-        &["robot-sim listening on ", "robot-sim cell feed on "],
-        Duration::from_secs(10),
+    let mut sim = spawn(
+        Command::new(bin("host-tools"))
+            .args([
+                "robot-sim",
+                "--listen",
+                "127.0.0.1:0",
+                "--cell-feed",
+                "127.0.0.1:0",
+            ])
+            .args(["--home", "500,0,300", "--speed-mm-s", "300"])
+            .arg(format!(
+                "--led-offset-mm={},{},{}",
+                LED_OFFSET_MM[0], LED_OFFSET_MM[1], LED_OFFSET_MM[2]
+            ))
+            .arg(format!("--repeatability-mm={}", MODEL.repeatability_mm))
+            .arg(format!("--abs-error-rms-mm={}", MODEL.field_rms_mm))
+            .arg(format!("--abs-error-wavelength-mm={}", MODEL.field_wavelength_mm))
+            .arg(format!("--error-seed={}", MODEL.seed))
+            .stderr(Stdio::null()),
+        "robot-sim",
     );
-    let _sim = Guard(sim);
-    let (robot_addr, feed_addr) = (addrs[0].clone(), addrs[1].clone());
+    let prefixes = ["robot-sim listening on ", "robot-sim cell feed on "];
+    let lines = sim.wait_lines(&prefixes, Duration::from_secs(10)).unwrap();
+    let addr = |i: usize| lines[i].trim_start_matches(prefixes[i]).trim().to_string();
+    let (robot_addr, feed_addr) = (addr(0), addr(1));
 
     // irtrackd on the cell's cameras; the transform is the simulator's secret.
     let o = Command::new(bin("host-tools"))

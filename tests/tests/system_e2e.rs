@@ -41,17 +41,18 @@ fn robot_follows_the_simulated_marker_after_network_enable() {
     let centre = path.iter().sum::<Vector3<f64>>() / path.len() as f64;
     let log = dir.join("robot.csv");
 
-    let mut sim = Command::new(bin("host-tools"))
-        .args(["robot-sim", "--listen", "127.0.0.1:0", "--home"])
-        .arg(format!("{},{},{}", centre.x, centre.y, centre.z))
-        .arg("--log")
-        .arg(&log)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
+    let mut sim = spawn(
+        Command::new(bin("host-tools"))
+            .args(["robot-sim", "--listen", "127.0.0.1:0", "--home"])
+            .arg(format!("{},{},{}", centre.x, centre.y, centre.z))
+            .arg("--log")
+            .arg(&log)
+            .stderr(Stdio::null()),
+        "robot-sim",
+    );
+    let line = sim
+        .wait_line("robot-sim listening on ", Duration::from_secs(10))
         .unwrap();
-    let line = wait_line(&mut sim, "robot-sim listening on ", Duration::from_secs(10));
-    let _sim = Guard(sim);
     let robot_addr: SocketAddr = line
         .trim_start_matches("robot-sim listening on ")
         .trim()
@@ -127,7 +128,7 @@ kind = "flag"
     assert_eq!(code, 200, "{body}");
     std::thread::sleep(Duration::from_millis(300));
     drop(_irtrackd);
-    drop(_sim);
+    drop(sim);
 
     // Targets from the CSV: distance to the marker path and steps between consecutive targets.
     let text = std::fs::read_to_string(&log).unwrap();

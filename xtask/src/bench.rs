@@ -22,16 +22,15 @@
 //! set includes the emulator and its translated code, so an idle static binary under the same
 //! QEMU is measured too and the difference is printed as the guest's share.
 
-use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
 use crate::cross;
 use crate::report::Counts;
-use crate::util::{self, Ctx, RunOpts};
+use crate::util::{self, Ctx, Proc, RunOpts};
 
 const CASES: &[&str] = &[
     "ours-full",
@@ -44,28 +43,46 @@ const CASES: &[&str] = &[
 
 /// CI entry point: the quick benchmark; fails only if something does not build or run.
 pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
-    cli(ctx, &["--quick".to_string()])?;
+    cli(
+        ctx,
+        &Args {
+            quick: true,
+            ..Args::default()
+        },
+    )?;
     Ok(Counts::default())
 }
 
+/// `cargo xtask bench`.
+#[derive(Debug, Default, clap::Args)]
+pub struct Args {
+    /// The short run CI does (no latency table unless --latency).
+    #[arg(long)]
+    pub quick: bool,
+    /// Leave out the callgrind instruction counts.
+    #[arg(long)]
+    pub no_callgrind: bool,
+    /// Only the latency table (loop with 0 and 3 viewers, robot links).
+    #[arg(long, conflicts_with = "no_latency")]
+    pub latency: bool,
+    /// Leave out the latency table.
+    #[arg(long)]
+    pub no_latency: bool,
+    /// The benchmark cross-built for aarch64, run under qemu-aarch64.
+    #[arg(long)]
+    pub aarch64: bool,
+}
+
 /// `cargo xtask bench [--quick] [--no-callgrind] [--no-latency] [--latency] [--aarch64]`.
-pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
-    let mut quick = false;
-    let mut callgrind = true;
-    let mut aarch64 = false;
-    let mut latency = None;
-    for a in args {
-        match a.as_str() {
-            "--quick" => quick = true,
-            "--no-callgrind" => callgrind = false,
-            "--aarch64" => aarch64 = true,
-            "--latency" => latency = Some(true),
-            "--no-latency" => latency = Some(false),
-            other => bail!(
-                "unknown option `{other}` (usage: cargo xtask bench [--quick] [--no-callgrind] [--no-latency] [--latency] [--aarch64])"
-            ),
-        }
-    }
+pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
+    let (quick, callgrind, aarch64) = (args.quick, !args.no_callgrind, args.aarch64);
+    let latency = if args.latency {
+        Some(true)
+    } else if args.no_latency {
+        Some(false)
+    } else {
+        None
+    };
     if aarch64 {
         return aarch64_bench(ctx, quick);
     }
@@ -470,74 +487,46 @@ struct DaemonMemory {
     published: u64,
 }
 
-/// Kills the child (ours) when dropped, whatever happened.
-struct KillOnDrop(Child);
-
-impl Drop for KillOnDrop {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
 /// Runs `irtrackd` under QEMU with the simulated source, waits for its ready line, samples
 /// its memory at `settle / 2` and `settle`, and reads its frame counters from `/status`.
 fn irtrackd_memory(irtrackd: &Path, settle: Duration) -> Result<DaemonMemory> {
     let state = std::env::temp_dir().join(format!("irtrack-bench-aarch64-{}", std::process::id()));
     std::fs::create_dir_all(&state)?;
-    let child = Command::new("qemu-aarch64")
-        .arg(irtrackd)
-        .args([
-            "--ephemeral-ports",
-            "127.0.0.1",
-            "--params-from-simulator",
-            "--sim-fps",
-            "30",
-        ])
-        .arg("--state-dir")
-        .arg(&state)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("starting irtrackd under qemu-aarch64")?;
-    let mut child = KillOnDrop(child);
-    let pid = child.0.id();
-    let stdout = child.0.stdout.take().context("irtrackd stdout")?;
-    // The ready line names the status address; read it on a thread so a silent daemon
-    // cannot hang us.
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(|l| l.ok()) {
-            if line.starts_with("irtrackd ready") {
-                let _ = tx.send(line);
-            }
-        }
-    });
-    let ready = rx
-        .recv_timeout(Duration::from_secs(120))
-        .context("irtrackd under qemu-aarch64 printed no ready line within 120 s")?;
-    let status_addr = ready
-        .split_whitespace()
-        .find_map(|w| w.strip_prefix("status="))
-        .context("ready line without status=")?
-        .to_string();
+    let mut child = Proc::spawn(
+        Command::new("qemu-aarch64")
+            .arg(irtrackd)
+            .args([
+                "--ephemeral-ports",
+                "127.0.0.1",
+                "--params-from-simulator",
+                "--sim-fps",
+                "30",
+            ])
+            .arg("--state-dir")
+            .arg(&state)
+            .stderr(Stdio::null()),
+        "irtrackd under qemu-aarch64",
+    )?;
+    let pid = child.pid();
+    let ready = child.wait_line("irtrackd ready", Duration::from_secs(120))?;
+    let status_addr = util::addr_field(&ready, "status=")?;
     let t0 = Instant::now();
     std::thread::sleep(settle / 2);
     let (first_rss_kib, _) = vm_kib(pid)?;
     std::thread::sleep(settle.saturating_sub(t0.elapsed()));
     let (rss_kib, hwm_kib) = vm_kib(pid)?;
-    let report = http_get(&status_addr, "/status")?;
-    let counter = |name: &str| -> u64 {
-        report
-            .split(&format!("\"{name}\":"))
-            .nth(1)
-            .and_then(|r| r.trim_start().split([',', '\n', '}']).next())
-            .and_then(|v| v.trim().parse().ok())
+    let (_, report) = util::http(status_addr, "GET", "/status")?;
+    let doc = util::json::parse(&report)?;
+    let counter = |name: &str| {
+        util::json::at(&doc, name)
+            .and_then(serde_json::Value::as_u64)
             .unwrap_or(0)
     };
-    let (sets_processed, published) = (counter("sets_processed"), counter("published"));
-    if let Some(status) = child.0.try_wait()? {
+    let (sets_processed, published) = (
+        counter("processing.sets_processed"),
+        counter("processing.published"),
+    );
+    if let Some(status) = child.wait_timeout(Duration::ZERO)? {
         bail!("irtrackd under qemu-aarch64 exited early ({status})");
     }
     drop(child);
@@ -561,29 +550,15 @@ struct Idle {
 
 /// Memory of the idle benchmark binary under QEMU (the emulator's own baseline).
 fn idle_memory(bench: &PathBuf, wait: Duration) -> Result<Idle> {
-    let child = Command::new("qemu-aarch64")
-        .arg(bench)
-        .args(["--idle", &(wait.as_secs() + 5).to_string()])
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .spawn()
-        .context("starting the idle binary under qemu-aarch64")?;
-    let child = KillOnDrop(child);
+    let child = Proc::spawn(
+        Command::new("qemu-aarch64")
+            .arg(bench)
+            .args(["--idle", &(wait.as_secs() + 5).to_string()]),
+        "the idle binary under qemu-aarch64",
+    )?;
     std::thread::sleep(wait);
-    let (rss_kib, hwm_kib) = vm_kib(child.0.id())?;
+    let (rss_kib, hwm_kib) = vm_kib(child.pid())?;
     Ok(Idle { rss_kib, hwm_kib })
-}
-
-/// Minimal HTTP/1.0 GET on 127.0.0.1; returns the body.
-fn http_get(addr: &str, path: &str) -> Result<String> {
-    let mut s = std::net::TcpStream::connect(addr).with_context(|| format!("connecting to {addr}"))?;
-    s.set_read_timeout(Some(Duration::from_secs(20)))?;
-    write!(s, "GET {path} HTTP/1.0\r\nHost: {addr}\r\n\r\n")?;
-    let mut text = String::new();
-    s.read_to_string(&mut text)?;
-    Ok(text
-        .split_once("\r\n\r\n")
-        .map_or(text.clone(), |(_, b)| b.to_string()))
 }
 
 /// Runs the benchmark binary (`cmd`) that prints the table, `--quick` if asked.

@@ -17,8 +17,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 
 use crate::Ctx;
-use crate::demo_live::{Guard, json_raw};
-use crate::util::{self, RunOpts, addr_field, http_operator, operator_hash};
+use crate::util::{self, Proc, RunOpts, addr_field, http_operator, json, operator_hash};
 
 const RADIUS_MM: f64 = 100.0;
 const SPEED_MM_S: f64 = 250.0;
@@ -29,37 +28,39 @@ const CYCLE_MS: f64 = 4.0;
 /// Samples before this long after the enable are the pick-up transient, not tracking.
 const SETTLE_S: f64 = 1.0;
 
+/// `cargo xtask bench-links`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// 3 s of following per link instead of 20.
+    #[arg(long)]
+    quick: bool,
+    /// Seconds of following per link (at least 2).
+    #[arg(long, value_name = "S")]
+    secs: Option<f64>,
+    /// irtrackd in its release build.
+    #[arg(long)]
+    release: bool,
+}
+
 struct Opts {
     secs: f64,
     release: bool,
 }
 
-fn parse(args: &[String]) -> Result<Opts> {
-    let mut o = Opts {
-        secs: 20.0,
-        release: false,
-    };
-    let mut it = args.iter();
-    while let Some(a) = it.next() {
-        match a.as_str() {
-            "--quick" => o.secs = 3.0,
-            "--release" => o.release = true,
-            "--secs" => {
-                o.secs = it
-                    .next()
-                    .and_then(|v| v.parse().ok())
-                    .filter(|v: &f64| *v >= 2.0)
-                    .context("--secs needs a number >= 2")?
-            }
-            other => bail!("bench-links: unknown option {other:?} (--quick, --secs S, --release)"),
-        }
+fn opts(args: &Args) -> Result<Opts> {
+    let secs = args.secs.unwrap_or(if args.quick { 3.0 } else { 20.0 });
+    if secs.is_nan() || secs < 2.0 {
+        bail!("--secs needs a number >= 2, got {secs}");
     }
-    Ok(o)
+    Ok(Opts {
+        secs,
+        release: args.release,
+    })
 }
 
 /// Runs the benchmark.
-pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
-    let o = parse(args)?;
+pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
+    let o = opts(args)?;
     let (irtrackd, host_tools) = build(ctx, o.release)?;
     let hash = operator_hash(&irtrackd)?;
     let dir = std::env::temp_dir().join(format!("irtrack-bench-links-{}", std::process::id()));
@@ -275,15 +276,9 @@ fn record_stream(addr: SocketAddr) -> Result<Track> {
     let t = track.clone();
     std::thread::spawn(move || {
         for line in BufReader::new(s).lines().map_while(Result::ok) {
-            let ts = json_raw(&line, "capture_ts_ns").and_then(|v| v.parse::<u64>().ok());
-            let p = json_raw(&line, "position_mm").and_then(|v| {
-                let xs: Vec<f64> = v
-                    .trim_matches(['[', ']'])
-                    .split(',')
-                    .filter_map(|x| x.trim().parse().ok())
-                    .collect();
-                <[f64; 3]>::try_from(xs).ok()
-            });
+            let Ok(rec) = json::parse(&line) else { continue };
+            let ts = json::at(&rec, "capture_ts_ns").and_then(serde_json::Value::as_u64);
+            let p = json::vec3_at(&rec, "position_mm");
             if let (Some(ts), Some(p)) = (ts, p)
                 && let Ok(mut v) = t.lock()
             {
@@ -334,7 +329,7 @@ fn run_one(
         .spawn()
         .context("starting irtrackd")?;
     let out = collect_lines(child.stdout.take().context("irtrackd stdout")?);
-    let ird = Guard(child);
+    let mut ird = Proc::adopt(child, "irtrackd");
     let ready = wait_for_line(&out, "irtrackd ready", Duration::from_secs(30))?;
     let status = addr_field(&ready, "status=")?;
     let track = record_stream(addr_field(&ready, "stream=")?)?;
@@ -384,7 +379,7 @@ fn run_one(
         .spawn()
         .context("starting robot-sim")?;
     let sim_out = collect_lines(child.stdout.take().context("robot-sim stdout")?);
-    let sim = Guard(child);
+    let mut sim = Proc::adopt(child, "robot-sim");
 
     let t0 = Instant::now();
     loop {
@@ -442,23 +437,13 @@ fn run_one(
         bail!("the {kind} link is not moving at the end: {body}");
     }
     // SIGTERM: irtrackd shuts the link down, which logs its latency summary.
-    let pid = ird.0.id().to_string();
-    let _ = Command::new("kill").args(["-TERM", &pid]).status();
-    let mut ird = ird;
-    let t0 = Instant::now();
-    while ird.0.try_wait()?.is_none() {
-        if t0.elapsed() > Duration::from_secs(15) {
-            bail!("irtrackd did not stop on SIGTERM");
-        }
-        std::thread::sleep(Duration::from_millis(50));
+    let how = ird.terminate(Duration::from_secs(15))?;
+    if how.starts_with("ignored") {
+        bail!("irtrackd did not stop on SIGTERM: {how}");
     }
     // The socket robot-sim writes its log when the connection ends; the streaming one stops
     // after its missed-cycle limit once irtrackd is gone.
-    let mut sim = sim;
-    let t0 = Instant::now();
-    while sim.0.try_wait()?.is_none() && t0.elapsed() < Duration::from_secs(3) {
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    sim.wait_timeout(Duration::from_secs(3))?;
     drop(sim);
 
     let log = std::fs::read_to_string(&err_log)?;

@@ -76,46 +76,41 @@ pub const PHASES: &[Phase] = &[
     phase("fuzz", "short fuzzing run of every fuzz target", "fuzz", |ctx| Outcome::from_counts(crate::fuzz::ci_phase(ctx)), 10, &["fuzz"]),
 ];
 
-/// Options of `cargo xtask test`.
-#[derive(Debug, Default)]
-pub struct Options {
+/// `cargo xtask test`.
+#[derive(Debug, Default, clap::Args)]
+pub struct Args {
+    /// Leave out the setup phase.
+    #[arg(long)]
     pub skip_setup: bool,
-    /// Run only these phases (empty = all).
+    /// Run only these phases (comma-separated or repeated).
+    #[arg(long, value_name = "PHASE[,...]", value_delimiter = ',')]
     pub only: Vec<String>,
+    /// List the phases and exit.
+    #[arg(long)]
+    pub list: bool,
 }
 
-pub fn parse_options(args: &[String]) -> Result<Options> {
-    let mut opts = Options::default();
-    let mut it = args.iter();
-    while let Some(a) = it.next() {
-        match a.as_str() {
-            "--skip-setup" => opts.skip_setup = true,
-            "--only" => {
-                let Some(v) = it.next() else {
-                    bail!("--only needs a phase name")
-                };
-                opts.only.extend(v.split(',').map(str::to_string));
-            }
-            s if s.starts_with("--only=") => {
-                opts.only
-                    .extend(s["--only=".len()..].split(',').map(str::to_string));
-            }
-            "--list" => {
-                for p in PHASES {
-                    println!("{:<14} {}", p.name, p.about);
-                }
-                std::process::exit(0);
-            }
-            other => bail!("unknown option `{other}` (options: --skip-setup, --only <phase>[,...], --list)"),
-        }
-    }
-    for name in &opts.only {
+/// Checks the phase names of `--only`.
+pub fn check_args(args: &Args) -> Result<()> {
+    for name in &args.only {
         if !PHASES.iter().any(|p| p.name == name) {
             let names: Vec<&str> = PHASES.iter().map(|p| p.name).collect();
             bail!("unknown phase `{name}`; phases: {}", names.join(", "));
         }
     }
-    Ok(opts)
+    Ok(())
+}
+
+/// `cargo xtask test [--skip-setup] [--only <phase>[,...]] [--list]`; returns the exit code.
+pub fn cli(ctx: &Ctx, args: &Args) -> Result<i32> {
+    if args.list {
+        for p in PHASES {
+            println!("{:<14} {}", p.name, p.about);
+        }
+        return Ok(0);
+    }
+    check_args(args)?;
+    Ok(run(ctx, args))
 }
 
 struct Row {
@@ -127,7 +122,7 @@ struct Row {
 
 /// Runs the selected phases and prints the summary. Returns the process exit code; the
 /// summary's last line must stay the last line printed.
-pub fn run(ctx: &Ctx, opts: &Options) -> i32 {
+pub fn run(ctx: &Ctx, opts: &Args) -> i32 {
     let selected: Vec<&Phase> = PHASES
         .iter()
         .filter(|p| {
@@ -576,15 +571,19 @@ mod tests {
 
     #[test]
     fn options_parse_and_reject_unknown_phases() {
-        let args: Vec<String> = ["--skip-setup", "--only", "fmt,clippy", "--only=no-std"]
-            .iter()
-            .map(|s| s.to_string())
-            .collect();
-        let o = parse_options(&args).unwrap();
-        assert!(o.skip_setup);
-        assert_eq!(o.only, ["fmt", "clippy", "no-std"]);
-        assert!(parse_options(&["--only".to_string(), "nope".to_string()]).is_err());
-        assert!(parse_options(&["--bogus".to_string()]).is_err());
+        use clap::Parser;
+        #[derive(Parser)]
+        struct T {
+            #[command(flatten)]
+            a: Args,
+        }
+        let t = T::try_parse_from(["t", "--skip-setup", "--only", "fmt,clippy", "--only=no-std"]).unwrap();
+        assert!(t.a.skip_setup);
+        assert_eq!(t.a.only, ["fmt", "clippy", "no-std"]);
+        check_args(&t.a).unwrap();
+        let bad = T::try_parse_from(["t", "--only", "nope"]).unwrap();
+        assert!(check_args(&bad.a).is_err());
+        assert!(T::try_parse_from(["t", "--bogus"]).is_err());
     }
 
     #[test]

@@ -114,16 +114,19 @@ fn steps() -> Vec<Step> {
     ]
 }
 
-pub fn run(ctx: &Ctx, args: &[String]) -> Result<()> {
-    let mut skip_setup = false;
-    let mut view = false;
-    for a in args {
-        match a.as_str() {
-            "--skip-setup" => skip_setup = true,
-            "--view" => view = true,
-            other => bail!("unknown option `{other}` (options: --skip-setup, --view)"),
-        }
-    }
+/// `cargo xtask demo`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Leave out the setup step.
+    #[arg(long)]
+    pub skip_setup: bool,
+    /// Only irtrackd and its set-up page, until Ctrl-C.
+    #[arg(long)]
+    pub view: bool,
+}
+
+pub fn run(ctx: &Ctx, args: &Args) -> Result<()> {
+    let (skip_setup, view) = (args.skip_setup, args.view);
     if view {
         return run_view(ctx, skip_setup);
     }

@@ -4,22 +4,13 @@
 use std::io::{BufRead, BufReader};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::util::{addr_field, http, http_operator, operator_hash};
+use crate::util::{
+    self, Irtrackd, IrtrackdConfig, Proc, addr_field, http, http_operator, json, operator_hash,
+};
 use anyhow::{Context, Result, bail};
-
-/// Kills a child process on every path out of the step.
-pub(crate) struct Guard(pub(crate) Child);
-
-impl Drop for Guard {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 const FOLLOW_S: u64 = 4;
 
@@ -34,7 +25,7 @@ pub fn robot_follows(bin_dir: &Path, out: &Path) -> Result<()> {
     let robot_addr = TcpListener::bind("127.0.0.1:0")?.local_addr()?;
     let config = dir.join("irtrackd.toml");
     let hash = operator_hash(&bin_dir.join("irtrackd"))?;
-    std::fs::write(&config, irtrackd_config(robot_addr, &hash))?;
+    irtrackd_config(robot_addr, &hash).write(&config)?;
     println!("starting irtrackd (simulated cameras, robot link to {robot_addr})");
     let (irtrackd, ready) = start_irtrackd(bin_dir, &config, &dir.join("state"))?;
     println!("{ready}");
@@ -49,17 +40,16 @@ pub fn robot_follows(bin_dir: &Path, out: &Path) -> Result<()> {
         "marker now at ({:.1}, {:.1}, {:.1}) mm; robot-sim starts there",
         start[0], start[1], start[2]
     );
-    let mut child = Command::new(bin_dir.join("host-tools"))
-        .args(["robot-sim", "--listen", &robot_addr.to_string(), "--home"])
-        .arg(format!("{},{},{}", start[0], start[1], start[2]))
-        .arg("--log")
-        .arg(&log)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("starting host-tools robot-sim")?;
-    wait_line(&mut child, "robot-sim listening on ", Duration::from_secs(15))?;
-    let robot = Guard(child);
+    let mut robot = Proc::spawn(
+        Command::new(bin_dir.join("host-tools"))
+            .args(["robot-sim", "--listen", &robot_addr.to_string(), "--home"])
+            .arg(format!("{},{},{}", start[0], start[1], start[2]))
+            .arg("--log")
+            .arg(&log)
+            .stderr(Stdio::null()),
+        "host-tools robot-sim",
+    )?;
+    robot.wait_line("robot-sim listening on ", Duration::from_secs(15))?;
 
     // The link connects (with backoff) and holds until explicitly enabled.
     let deadline = Instant::now() + Duration::from_secs(20);
@@ -103,47 +93,53 @@ pub fn survey(bin_dir: &Path, out: &Path) -> Result<()> {
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let robot_addr = TcpListener::bind("127.0.0.1:0")?.local_addr()?;
     let feed_addr = std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?;
-    let mut child = Command::new(bin_dir.join("host-tools"))
-        .args(["robot-sim", "--listen", &robot_addr.to_string()])
-        .args(["--cell-feed", &feed_addr.to_string(), "--home", "500,0,300"])
-        .args(["--speed-mm-s", "300", "--led-offset-mm=12,-8,95"])
-        .args(["--repeatability-mm", "0.02", "--abs-error-rms-mm", "0.3"])
-        .args(["--abs-error-wavelength-mm", "300"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("starting host-tools robot-sim")?;
-    wait_line(&mut child, "robot-sim cell feed on ", Duration::from_secs(15))?;
-    let robot = Guard(child);
+    let mut robot = Proc::spawn(
+        Command::new(bin_dir.join("host-tools"))
+            .args(["robot-sim", "--listen", &robot_addr.to_string()])
+            .args(["--cell-feed", &feed_addr.to_string(), "--home", "500,0,300"])
+            .args(["--speed-mm-s", "300", "--led-offset-mm=12,-8,95"])
+            .args(["--repeatability-mm", "0.02", "--abs-error-rms-mm", "0.3"])
+            .args(["--abs-error-wavelength-mm", "300"])
+            .stderr(Stdio::null()),
+        "host-tools robot-sim",
+    )?;
+    robot.wait_line("robot-sim cell feed on ", Duration::from_secs(15))?;
     println!(
         "robot-sim: LED 12,-8,95 mm off the flange, repeatability 0.02 mm, absolute error field 0.3 mm RMS"
     );
     // Camera 0's pose in the robot base frame (rotation vector 20°, -150°, 35°), chosen so that the
     // survey box's middle lies where the simulated cameras' axes cross. Only the simulator knows it.
     let config = dir.join("irtrackd.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "# Written by `cargo xtask demo` (survey step).\n[service]\nparams_from_simulator = true\n\
-             [leds]\nbackend = \"none\"\n[source.sim]\n[source.sim.cell]\nrobot = \"{feed_addr}\"\n\
-             cam0_from_base_rotation_deg = [20.0, -150.0, 35.0]\n\
-             cam0_from_base_translation_mm = [496.641, 173.055, 539.725]\n"
-        ),
-    )?;
+    IrtrackdConfig::simulated()
+        .comment("Written by `cargo xtask demo` (survey step).")
+        .set("service.params_from_simulator", true)
+        .set("source.sim.cell.robot", feed_addr.to_string())
+        .set(
+            "source.sim.cell.cam0_from_base_rotation_deg",
+            vec![20.0, -150.0, 35.0],
+        )
+        .set(
+            "source.sim.cell.cam0_from_base_translation_mm",
+            vec![496.641, 173.055, 539.725],
+        )
+        .write(&config)?;
     // The board's config as the survey reads it (`--safety`): its [robot.safety] limits govern
     // the survey. A separate file, as this irtrackd must not connect to the robot itself (the
     // survey is the link's client). robot-sim moves at 300 mm/s, below max_speed_mm_s.
     let safety = dir.join("board-irtrackd.toml");
-    std::fs::write(
-        &safety,
-        format!(
-            "# Written by `cargo xtask demo` (survey step): the board's [robot] section.\n\
-             [leds]\nbackend = \"none\"\n[robot]\naddress = \"{robot_addr}\"\n[robot.safety]\n\
-             workspace_min_mm = [300.0, -300.0, 100.0]\nworkspace_max_mm = [700.0, 300.0, 500.0]\n\
-             max_step_mm = 40.0\nmax_speed_mm_s = 400.0\nmax_gap_mm = 2.0\nmax_age_ms = 200\n\
-             max_rotation_step_deg = 10.0\n[robot.deadman]\nkind = \"flag\"\n"
-        ),
-    )?;
+    IrtrackdConfig::new()
+        .comment("Written by `cargo xtask demo` (survey step): the board's [robot] section.")
+        .set("leds.backend", "none")
+        .set("robot.address", robot_addr.to_string())
+        .set("robot.safety.workspace_min_mm", vec![300.0, -300.0, 100.0])
+        .set("robot.safety.workspace_max_mm", vec![700.0, 300.0, 500.0])
+        .set("robot.safety.max_step_mm", 40.0)
+        .set("robot.safety.max_speed_mm_s", 400.0)
+        .set("robot.safety.max_gap_mm", 2.0)
+        .set("robot.safety.max_age_ms", 200)
+        .set("robot.safety.max_rotation_step_deg", 10.0)
+        .set("robot.deadman.kind", "flag")
+        .write(&safety)?;
     let (irtrackd, ready) = start_irtrackd(bin_dir, &config, &dir.join("state"))?;
     let stream = addr_field(&ready, "stream=")?;
     let scenario = out.join("scenario/rig.irp");
@@ -232,7 +228,7 @@ pub fn calibrate_and_push(bin_dir: &Path, views_bin: &Path, out: &Path) -> Resul
         std::fs::remove_dir_all(&state).with_context(|| format!("removing {}", state.display()))?;
     }
     let config = dir.join("irtrackd.toml");
-    std::fs::write(&config, calib_irtrackd_config(&dir.join("demo-key.pub")))?;
+    calib_irtrackd_config(&dir.join("demo-key.pub")).write(&config)?;
     let (_irtrackd, ready) = start_irtrackd(bin_dir, &config, &state)?;
     println!("{ready}");
     let params = addr_field(&ready, "params=")?;
@@ -242,9 +238,9 @@ pub fn calibrate_and_push(bin_dir: &Path, views_bin: &Path, out: &Path) -> Resul
     let (_, body) = http(status, "GET", "/status")?;
     println!(
         "before the push: faults {}, stream record status {}, position {}",
-        json_raw(&body, "faults").unwrap_or_else(|| "?".into()),
-        json_raw(&first[0], "status").unwrap_or_else(|| "?".into()),
-        json_raw(&first[0], "position_mm").unwrap_or_else(|| "?".into())
+        field(&body, "faults").unwrap_or_else(|| "?".into()),
+        field(&first[0], "status").unwrap_or_else(|| "?".into()),
+        field(&first[0], "position_mm").unwrap_or_else(|| "?".into())
     );
 
     println!("-- 5. push the calibration, signed");
@@ -272,15 +268,15 @@ pub fn calibrate_and_push(bin_dir: &Path, views_bin: &Path, out: &Path) -> Resul
     };
     println!(
         "status: rig {}, origin {}, signature policy {}, faults {}",
-        json_raw(&body, "rig_id").unwrap_or_else(|| "?".into()),
-        json_raw(&body, "origin").unwrap_or_else(|| "?".into()),
-        json_raw(&body, "signature_policy").unwrap_or_else(|| "?".into()),
-        json_raw(&body, "faults").unwrap_or_else(|| "?".into())
+        field(&body, "params.rig_id").unwrap_or_else(|| "?".into()),
+        field(&body, "params.origin").unwrap_or_else(|| "?".into()),
+        field(&body, "params.signature_policy").unwrap_or_else(|| "?".into()),
+        field(&body, "faults").unwrap_or_else(|| "?".into())
     );
     // One marker circle of positions (records of frames that were not tracked are shown too).
     let mut first_frame = None;
     let lines = stream_lines(stream, Duration::from_secs(30), |l| {
-        let Some(frame) = json_raw(l, "frame").and_then(|f| f.parse::<u64>().ok()) else {
+        let Some(frame) = field(l, "frame").and_then(|f| f.parse::<u64>().ok()) else {
             return Take::Skip;
         };
         let start = *first_frame.get_or_insert(frame);
@@ -321,13 +317,12 @@ pub fn wand_calibration(bin_dir: &Path, out: &Path) -> Result<()> {
 
     println!("-- 1. irtrackd on the simulated 90-degree rig, showing a 0/120/300 mm wand being waved");
     let config = dir.join("irtrackd.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "# Written by `cargo xtask demo` (wand step).\n[source.sim]\nfps = 30.0\n\
-             wand_mm = [0.0, 120.0, 300.0]\nwand_frames = {WAND_SETS}\n[leds]\nbackend = \"none\"\n"
-        ),
-    )?;
+    IrtrackdConfig::simulated()
+        .comment("Written by `cargo xtask demo` (wand step).")
+        .set("source.sim.fps", 30.0)
+        .set("source.sim.wand_mm", vec![0.0, 120.0, 300.0])
+        .set("source.sim.wand_frames", WAND_SETS as i64)
+        .write(&config)?;
     let (irtrackd, ready) = start_irtrackd(bin_dir, &config, &dir.join("state"))?;
     let status = addr_field(&ready, "status=")?;
 
@@ -399,20 +394,11 @@ pub fn wand_calibration(bin_dir: &Path, out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Starts irtrackd with `config`, every port ephemeral on 127.0.0.1; returns it (killed on
-/// drop) and its ready line.
-fn start_irtrackd(bin_dir: &Path, config: &Path, state: &Path) -> Result<(Guard, String)> {
-    let mut child = Command::new(bin_dir.join("irtrackd"))
-        .arg("-c")
-        .arg(config)
-        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
-        .arg(state)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("starting irtrackd")?;
-    let ready = wait_line(&mut child, "irtrackd ready", Duration::from_secs(30))?;
-    Ok((Guard(child), ready))
+/// Starts the demo's irtrackd (`bin_dir/irtrackd`) with `config`; killed on drop.
+fn start_irtrackd(bin_dir: &Path, config: &Path, state: &Path) -> Result<(Irtrackd, String)> {
+    let d = util::start_irtrackd(&bin_dir.join("irtrackd"), config, state)?;
+    let ready = d.ready().line.clone();
+    Ok((d, ready))
 }
 
 /// Runs a command with its output shown; fails with its status if it fails. Returns stdout.
@@ -430,20 +416,12 @@ fn checked(cmd: &mut Command, what: &str) -> Result<String> {
     Ok(out.stdout)
 }
 
-fn calib_irtrackd_config(public_key: &Path) -> String {
-    format!(
-        r#"# Written by `cargo xtask demo` (calibration step).
-[service]
-params_from_simulator = false
-[params]
-trusted_keys = [{:?}]
-[source.sim]
-fps = 30.0
-[leds]
-backend = "none"
-"#,
-        public_key.display().to_string()
-    )
+fn calib_irtrackd_config(public_key: &Path) -> IrtrackdConfig {
+    IrtrackdConfig::simulated()
+        .comment("Written by `cargo xtask demo` (calibration step).")
+        .set("service.params_from_simulator", false)
+        .set("params.trusted_keys", vec![public_key.display().to_string()])
+        .set("source.sim.fps", 30.0)
 }
 
 /// `(centre, radius)` from the `truth marker path: circle of radius R mm around (x, y, z) mm`
@@ -466,7 +444,7 @@ fn parse_truth_circle(text: &str) -> Option<([f64; 3], f64)> {
 fn summarize_circle(lines: &[String], truth: Option<([f64; 3], f64)>) -> Result<()> {
     let points: Vec<[f64; 3]> = lines
         .iter()
-        .filter_map(|l| json_array3(l, "\"position_mm\":"))
+        .filter_map(|l| json_array3(l, "position_mm"))
         .collect();
     // Positions missing from part of the circle would move the centre: demand most of them.
     if points.len() < lines.len() * 9 / 10 || lines.len() < CIRCLE_FRAMES as usize / 2 {
@@ -484,12 +462,12 @@ fn summarize_circle(lines: &[String], truth: Option<([f64; 3], f64)>) -> Result<
     let radius = points.iter().map(|p| dist(p, &c)).sum::<f64>() / n;
     let gaps: Vec<f64> = lines
         .iter()
-        .filter_map(|l| json_raw(l, "gap_mm").and_then(|g| g.parse().ok()))
+        .filter_map(|l| field(l, "gap_mm").and_then(|g| g.parse().ok()))
         .collect();
     let gap = gaps.iter().sum::<f64>() / gaps.len().max(1) as f64;
     let crc = lines
         .first()
-        .and_then(|l| json_raw(l, "params_crc"))
+        .and_then(|l| field(l, "params_crc"))
         .and_then(|v| v.parse::<u32>().ok())
         .unwrap_or(0);
     println!(
@@ -551,47 +529,30 @@ fn stream_lines(
     bail!("the position stream closed")
 }
 
-/// The JSON text of the first `"key":` value in `body`, compacted: a string without quotes,
-/// an array with its brackets, or a scalar (the status and stream documents have no nested
-/// arrays; the status document is pretty-printed).
-pub(crate) fn json_raw(body: &str, key: &str) -> Option<String> {
-    let pat = format!("\"{key}\":");
-    let rest = body[body.find(&pat)? + pat.len()..].trim_start();
-    if let Some(s) = rest.strip_prefix('"') {
-        return s.split('"').next().map(str::to_string);
-    }
-    if rest.starts_with('[') {
-        let end = rest.find(']')?;
-        return Some(rest[..=end].split_whitespace().collect());
-    }
-    rest.split([',', '}']).next().map(|v| v.trim().to_string())
+/// The value at a dotted `path` of a JSON document as text: a string without quotes, anything
+/// else as compact JSON; `None` if the text is no JSON or has no such field.
+pub(crate) fn field(body: &str, path: &str) -> Option<String> {
+    let v = json::parse(body).ok()?;
+    let f = json::at(&v, path)?;
+    Some(f.as_str().map_or_else(|| f.to_string(), str::to_string))
 }
 
-fn irtrackd_config(robot: SocketAddr, operator_hash: &str) -> String {
-    format!(
-        r#"# Written by `cargo xtask demo`.
-[service]
-params_from_simulator = true
-control = true
-operator_password_hash = "{operator_hash}"
-[source.sim]
-radius_mm = 15.0
-[leds]
-backend = "none"
-[robot]
-address = "{robot}"
-[robot.safety]
-workspace_min_mm = [-2000.0, -2000.0, 0.0]
-workspace_max_mm = [2000.0, 2000.0, 4000.0]
-max_step_mm = 40.0
-max_speed_mm_s = 400.0
-max_gap_mm = 2.0
-max_age_ms = 200
-require_world_frame = false
-[robot.deadman]
-kind = "flag"
-"#
-    )
+fn irtrackd_config(robot: SocketAddr, operator_hash: &str) -> IrtrackdConfig {
+    IrtrackdConfig::simulated()
+        .comment("Written by `cargo xtask demo`.")
+        .set("service.params_from_simulator", true)
+        .set("service.control", true)
+        .operator_hash(operator_hash)
+        .set("source.sim.radius_mm", 15.0)
+        .set("robot.address", robot.to_string())
+        .set("robot.safety.workspace_min_mm", vec![-2000.0, -2000.0, 0.0])
+        .set("robot.safety.workspace_max_mm", vec![2000.0, 2000.0, 4000.0])
+        .set("robot.safety.max_step_mm", 40.0)
+        .set("robot.safety.max_speed_mm_s", 400.0)
+        .set("robot.safety.max_gap_mm", 2.0)
+        .set("robot.safety.max_age_ms", 200)
+        .set("robot.safety.require_world_frame", false)
+        .set("robot.deadman.kind", "flag")
 }
 
 /// Reads robot-sim's CSV log and prints what the robot received and where it went.
@@ -631,43 +592,22 @@ fn summarize(log: &Path) -> Result<()> {
     Ok(())
 }
 
-pub(crate) fn wait_line(child: &mut Child, prefix: &str, timeout: Duration) -> Result<String> {
-    let stdout = child.stdout.take().context("child stdout")?;
-    let (tx, rx) = mpsc::channel();
-    let wanted = prefix.to_string();
-    std::thread::spawn(move || {
-        let mut sent = false;
-        // Keep draining so the child never blocks on a full pipe.
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if !sent && line.starts_with(&wanted) {
-                let _ = tx.send(line);
-                sent = true;
-            }
-        }
-    });
-    rx.recv_timeout(timeout)
-        .map_err(|_| anyhow::anyhow!("no `{prefix}` line within {timeout:?}"))
-}
-
 /// First tracked position from irtrackd's NDJSON stream.
 fn first_position(stream: SocketAddr) -> Result<[f64; 3]> {
     let s = TcpStream::connect(stream).context("connecting to the position stream")?;
     s.set_read_timeout(Some(Duration::from_secs(10)))?;
     for line in BufReader::new(s).lines() {
         let line = line.context("reading the position stream")?;
-        if let Some(p) = json_array3(&line, "\"position_mm\":") {
+        if let Some(p) = json_array3(&line, "position_mm") {
             return Ok(p);
         }
     }
     bail!("the position stream closed before a tracked position arrived")
 }
 
-/// Extracts `"key":[a,b,c]` from one JSON line (the stream's documented field layout).
+/// `[x, y, z]` at `key` of one JSON line.
 fn json_array3(line: &str, key: &str) -> Option<[f64; 3]> {
-    let rest = &line[line.find(key)? + key.len()..];
-    let inner = rest.strip_prefix('[')?.split(']').next()?;
-    let v: Vec<f64> = inner.split(',').filter_map(|x| x.trim().parse().ok()).collect();
-    (v.len() == 3).then(|| [v[0], v[1], v[2]])
+    json::vec3_at(&json::parse(line).ok()?, key)
 }
 
 fn short(body: &str) -> String {
@@ -686,20 +626,41 @@ mod tests {
     #[test]
     fn reads_position_arrays_from_stream_lines() {
         let l = r#"{"frame":3,"position_mm":[1.5,-2,300.25],"gap_mm":0.1}"#;
-        assert_eq!(json_array3(l, "\"position_mm\":"), Some([1.5, -2.0, 300.25]));
-        assert_eq!(json_array3(r#"{"position_mm":null}"#, "\"position_mm\":"), None);
+        assert_eq!(json_array3(l, "position_mm"), Some([1.5, -2.0, 300.25]));
+        assert_eq!(json_array3(r#"{"position_mm":null}"#, "position_mm"), None);
     }
 
     #[test]
     fn reads_fields_of_pretty_and_compact_json() {
         let status = "{\n  \"faults\": [\n    \"no_params\"\n  ],\n  \"params\": {\n    \"rig_id\": \"demo\",\n    \"swaps\": 1\n  }\n}";
-        assert_eq!(json_raw(status, "faults").as_deref(), Some("[\"no_params\"]"));
-        assert_eq!(json_raw(status, "rig_id").as_deref(), Some("demo"));
-        assert_eq!(json_raw(status, "swaps").as_deref(), Some("1"));
+        assert_eq!(field(status, "faults").as_deref(), Some("[\"no_params\"]"));
+        assert_eq!(field(status, "params.rig_id").as_deref(), Some("demo"));
+        assert_eq!(field(status, "params.swaps").as_deref(), Some("1"));
         let rec = r#"{"frame":7,"status":"ok","params_crc":3735928559}"#;
-        assert_eq!(json_raw(rec, "frame").as_deref(), Some("7"));
-        assert_eq!(json_raw(rec, "params_crc").as_deref(), Some("3735928559"));
-        assert_eq!(json_raw(rec, "missing"), None);
+        assert_eq!(field(rec, "frame").as_deref(), Some("7"));
+        assert_eq!(field(rec, "params_crc").as_deref(), Some("3735928559"));
+        assert_eq!(field(rec, "missing"), None);
+    }
+
+    #[test]
+    fn demo_configs_are_what_irtrackd_reads() {
+        let text = irtrackd_config("127.0.0.1:9".parse().unwrap(), "$argon2id$h")
+            .to_toml()
+            .unwrap();
+        let t: toml::Table = text.parse().unwrap();
+        assert_eq!(t["robot"]["address"].as_str(), Some("127.0.0.1:9"));
+        assert_eq!(t["robot"]["safety"]["max_age_ms"].as_integer(), Some(200));
+        assert_eq!(
+            t["service"]["operator_password_hash"].as_str(),
+            Some("$argon2id$h")
+        );
+        assert_eq!(t["leds"]["backend"].as_str(), Some("none"));
+        let calib: toml::Table = calib_irtrackd_config(Path::new("/k.pub"))
+            .to_toml()
+            .unwrap()
+            .parse()
+            .unwrap();
+        assert_eq!(calib["params"]["trusted_keys"][0].as_str(), Some("/k.pub"));
     }
 
     #[test]

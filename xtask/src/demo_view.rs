@@ -2,7 +2,6 @@
 //! cameras and saves headless Chromium's picture of the page; [`view`] (`cargo xtask demo
 //! --view`) keeps irtrackd running until Ctrl-C so a person can open the page.
 
-use std::io::Write;
 use std::net::{SocketAddr, TcpListener};
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -10,8 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
-use crate::demo_live::{Guard, json_raw, wait_line};
-use crate::util::{addr_field, http};
+use crate::util::{Proc, addr_field, http, json};
 
 /// Operator password of the demo's irtrackd (bound to 127.0.0.1 only).
 pub const DEMO_PASSWORD: &str = "demo";
@@ -38,56 +36,30 @@ backend = "sim"
     )
 }
 
-/// Argon2id hash of the demo password, made by irtrackd itself.
-fn hash_password(irtrackd: &Path) -> Result<String> {
-    let mut child = Command::new(irtrackd)
-        .arg("--hash-password")
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .context("starting irtrackd --hash-password")?;
-    child
-        .stdin
-        .take()
-        .context("irtrackd stdin")?
-        .write_all(format!("{DEMO_PASSWORD}\n").as_bytes())?;
-    let out = child.wait_with_output()?;
-    if !out.status.success() {
-        bail!(
-            "irtrackd --hash-password failed: {}",
-            String::from_utf8_lossy(&out.stderr).trim()
-        );
-    }
-    Ok(String::from_utf8(out.stdout)
-        .context("hash is not UTF-8")?
-        .trim()
-        .to_string())
-}
-
 /// Starts irtrackd (simulated cameras, parameters from the simulator) in `dir`.
-fn start(bin_dir: &Path, dir: &Path, status_listen: &str) -> Result<(Guard, SocketAddr)> {
+fn start(bin_dir: &Path, dir: &Path, status_listen: &str) -> Result<(Proc, SocketAddr)> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let irtrackd = bin_dir.join("irtrackd");
     let cfg = dir.join("irtrackd.toml");
-    std::fs::write(&cfg, config(status_listen, &hash_password(&irtrackd)?))?;
+    let hash = irtrack_testkit::harness::operator_hash(&irtrackd, DEMO_PASSWORD)?;
+    std::fs::write(&cfg, config(status_listen, &hash))?;
     let state = dir.join("state");
     // A fresh state directory: values saved by an earlier run would be loaded at start.
     if state.exists() {
         std::fs::remove_dir_all(&state).with_context(|| format!("removing {}", state.display()))?;
     }
-    let mut child = Command::new(&irtrackd)
-        .arg("-c")
-        .arg(&cfg)
-        .arg("--state-dir")
-        .arg(&state)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("starting irtrackd")?;
-    let ready = wait_line(&mut child, "irtrackd ready", Duration::from_secs(30))?;
-    let guard = Guard(child);
-    Ok((guard, addr_field(&ready, "status=")?))
+    // Its own [listen] addresses (the usual status port for --view), not --ephemeral-ports.
+    let mut irtrackd = Proc::spawn(
+        Command::new(&irtrackd)
+            .arg("-c")
+            .arg(&cfg)
+            .arg("--state-dir")
+            .arg(&state)
+            .stderr(Stdio::null()),
+        "irtrackd",
+    )?;
+    let ready = irtrackd.wait_line("irtrackd ready", Duration::from_secs(30))?;
+    Ok((irtrackd, addr_field(&ready, "status=")?))
 }
 
 /// Waits until irtrackd has processed frame sets (so the page has something to show).
@@ -95,8 +67,10 @@ fn wait_running(status: SocketAddr) -> Result<()> {
     let end = Instant::now() + Duration::from_secs(20);
     loop {
         let (code, body) = http(status, "GET", "/status")?;
-        let tracked = json_raw(&body, "tracked").and_then(|v| v.parse::<u64>().ok());
-        if code == 200 && tracked.is_some_and(|n| n > 0) {
+        let tracked = json::parse(&body)
+            .ok()
+            .and_then(|v| json::f64_at(&v, "processing.tracked"));
+        if code == 200 && tracked.is_some_and(|n| n > 0.0) {
             return Ok(());
         }
         if Instant::now() > end {
@@ -164,11 +138,11 @@ pub fn view(bin_dir: &Path, out: &Path) -> Result<()> {
         println!("port {VIEW_PORT} is taken; using a free one");
         "127.0.0.1:0".to_string()
     };
-    let (mut irtrackd, status) = start(bin_dir, &out.join("view"), &listen)?;
+    let (irtrackd, status) = start(bin_dir, &out.join("view"), &listen)?;
     println!("\nirtrackd runs on simulated cameras. Open the set-up page:\n\n    http://{status}/\n");
     println!("Sign in with the password `{DEMO_PASSWORD}` to change threshold, exposure and gain.");
     println!("Press Ctrl-C to stop.");
-    let code = irtrackd.0.wait().context("waiting for irtrackd")?;
+    let code = irtrackd.wait()?;
     println!("irtrackd stopped ({code})");
     Ok(())
 }

@@ -46,36 +46,32 @@ pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
     Ok(counts)
 }
 
+/// `cargo xtask fuzz`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// CI's short run per target.
+    #[arg(long, conflicts_with = "secs")]
+    quick: bool,
+    /// Seconds per target (default: the documented long run).
+    #[arg(long, value_name = "N")]
+    secs: Option<u64>,
+    /// Only these targets (repeatable; default all).
+    #[arg(long, value_name = "NAME", value_parser = clap::builder::PossibleValuesParser::new(TARGETS.iter().copied()))]
+    target: Vec<String>,
+}
+
 /// `cargo xtask fuzz [--quick | --secs N] [--target NAME]...`
-pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
-    let mut secs = DEFAULT_SECS;
-    let mut targets: Vec<&str> = Vec::new();
-    let mut it = args.iter();
-    while let Some(a) = it.next() {
-        match a.as_str() {
-            "--quick" => secs = QUICK_SECS,
-            "--secs" => {
-                let Some(v) = it.next() else {
-                    bail!("--secs needs a number of seconds")
-                };
-                secs = v
-                    .parse()
-                    .map_err(|_| anyhow::anyhow!("--secs {v:?} is not a number"))?;
-            }
-            "--target" => {
-                let Some(v) = it.next() else {
-                    bail!("--target needs a name ({})", TARGETS.join(", "))
-                };
-                let Some(t) = TARGETS.iter().find(|t| *t == v) else {
-                    bail!("unknown fuzz target `{v}` ({})", TARGETS.join(", "))
-                };
-                targets.push(t);
-            }
-            other => bail!(
-                "unknown option `{other}` (usage: cargo xtask fuzz [--quick | --secs N] [--target NAME]...)"
-            ),
-        }
-    }
+pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
+    let secs = match (args.quick, args.secs) {
+        (true, _) => QUICK_SECS,
+        (false, Some(s)) => s,
+        (false, None) => DEFAULT_SECS,
+    };
+    let mut targets: Vec<&str> = TARGETS
+        .iter()
+        .copied()
+        .filter(|t| args.target.iter().any(|a| a == t))
+        .collect();
     if targets.is_empty() {
         targets = TARGETS.to_vec();
     }

@@ -18,19 +18,32 @@ use anyhow::{Context, Result, bail};
 use crate::report::Counts;
 use crate::util::{self, Ctx};
 
+mod checks;
 mod crates;
+mod qemu;
 mod system;
 
-const USAGE: &str = "\
-usage: cargo xtask image <command>
-
-commands:
-  build            build target/image/irtrack-sd.img (kernel, initramfs, busybox, irtrackd)
-  test [--no-build]  build (or reuse the last build), boot it in QEMU, run the system test
-  system-test      same as `test`
-  run              build, then boot it interactively (console on this terminal; Ctrl-A X quits)
-  crates [--check] write (or check) yocto-layer's irtrackd-crates.inc from Cargo.lock
-";
+/// `cargo xtask image <command>`.
+#[derive(Debug, clap::Subcommand)]
+pub enum ImageCmd {
+    /// Build target/image/irtrack-sd.img (kernel, initramfs, busybox, irtrackd).
+    Build,
+    /// Build (or reuse the last build), boot it in QEMU, run the system test.
+    #[command(alias = "system-test")]
+    Test {
+        /// Reuse the last build.
+        #[arg(long)]
+        no_build: bool,
+    },
+    /// Build, then boot it interactively (console on this terminal; Ctrl-A X quits).
+    Run,
+    /// Write (or check) yocto-layer's irtrackd-crates.inc from Cargo.lock.
+    Crates {
+        /// Only check that the file is up to date.
+        #[arg(long)]
+        check: bool,
+    },
+}
 
 /// Modules the initramfs loads to reach the root filesystem on a virtio disk.
 /// `crc32c_generic` is ext4's soft dependency (`softdep=pre: crypto-crc32c`, an alias that
@@ -41,20 +54,16 @@ const INITRD_MODULES: &[&str] = &["virtio_mmio", "virtio_blk", "crc32c_generic",
 const ROOT_MODULES: &[(&str, &str)] = &[("virtio_net", ""), ("vivid", "n_devs=2 node_types=0x1,0x1")];
 const UBOOT_QEMU: &str = "/usr/lib/u-boot/qemu_arm64/u-boot.bin";
 
-pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
-    match args.first().map(String::as_str) {
-        Some("build") => {
+pub fn cli(ctx: &Ctx, cmd: ImageCmd) -> Result<()> {
+    match cmd {
+        ImageCmd::Build => {
             let image = build(ctx)?;
             println!("{}", image.summary());
             println!("{}", image.sd_img.display());
             Ok(())
         }
-        Some("test" | "system-test") => {
-            let image = if args.get(1).is_some_and(|a| a == "--no-build") {
-                existing(ctx)?
-            } else {
-                build(ctx)?
-            };
+        ImageCmd::Test { no_build } => {
+            let image = if no_build { existing(ctx)? } else { build(ctx)? };
             println!("{}", image.summary());
             let report = system::run(ctx, &image)?;
             println!("{report}");
@@ -63,18 +72,11 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
             }
             Ok(())
         }
-        Some("run") => {
+        ImageCmd::Run => {
             let image = build(ctx)?;
-            system::interactive(ctx, &image)
+            qemu::interactive(ctx, &image)
         }
-        Some("crates") => {
-            let check = args.get(1).is_some_and(|a| a == "--check");
-            crates::cli(ctx, check)
-        }
-        _ => {
-            print!("{USAGE}");
-            bail!("unknown or missing image command")
-        }
+        ImageCmd::Crates { check } => crates::cli(ctx, check),
     }
 }
 

@@ -1,7 +1,7 @@
 //! irtrack's task runner: `cargo xtask <task>` (alias in .cargo/config.toml).
 //!
-//! Std plus anyhow only, and no dependency on other workspace crates, so it builds first
-//! and fast on a fresh machine.
+//! Few dependencies (anyhow, clap, serde_json, toml and the light test harness
+//! `irtrack-testkit`), none of them heavy, so it builds first and fast on a fresh machine.
 
 mod bench;
 mod bench_links;
@@ -20,33 +20,47 @@ mod soak;
 mod util;
 mod yocto;
 
+use clap::{Parser, Subcommand};
+
 pub use util::Ctx;
 
-const USAGE: &str = "\
-usage: cargo xtask <task> [options]
+/// irtrack's task runner (`cargo xtask <task>`).
+#[derive(Debug, Parser)]
+#[command(name = "cargo xtask", bin_name = "cargo xtask")]
+struct Cli {
+    #[command(subcommand)]
+    task: Task,
+}
 
-tasks:
-  demo   [--skip-setup] [--view]
-                               set up, then run the whole system on simulated cameras;
-                               --view: only irtrackd and its set-up page, until Ctrl-C
-  test   [--skip-setup] [--only <phase>[,...]] [--list]
-                               every check CI runs (what .ci/run calls)
-  setup                        install missing system packages (apt) and oelint-adv (pip)
-  cross                        static aarch64 release build of irtrackd; prints its path
-  image  ...                   image build (when xtask/src/image.rs exists)
-  bench  ...                   benchmarks (when xtask/src/bench.rs exists)
-  bench-links [--quick] [--secs S] [--release]
-                               socket vs EGM vs RSI robot links side by side (docs/robot-streaming.md)
-  fuzz   ...                   fuzzing (when xtask/src/fuzz.rs exists)
-  yocto  check|check-layer|shell
-                               the Yocto layer under real BitBake (docs/image.md)
-  soak   [--sets N] [--fps F] [--quick]
-                               irtrackd + robot-sim service soak (default 10^6 sets, 500 fps)
-";
+#[derive(Debug, Subcommand)]
+enum Task {
+    /// Set up, then run the whole system on simulated cameras (outputs in out/demo/).
+    Demo(demo::Args),
+    /// Every check CI runs (what .ci/run calls).
+    Test(ci::Args),
+    /// Install missing system packages (apt) and oelint-adv (pip).
+    Setup,
+    /// Static aarch64 release build of irtrackd; prints its path.
+    Cross,
+    /// The aarch64 SD image: build, QEMU system test, crate list.
+    #[command(subcommand)]
+    Image(image::ImageCmd),
+    /// Benchmarks (docs/performance.md).
+    Bench(bench::Args),
+    /// Socket vs EGM vs RSI robot links side by side (docs/robot-streaming.md).
+    BenchLinks(bench_links::Args),
+    /// Fuzzing (docs/fuzzing.md).
+    Fuzz(fuzz::Args),
+    /// The Yocto layer under real BitBake (docs/image.md).
+    #[command(subcommand)]
+    Yocto(yocto::YoctoCmd),
+    /// irtrackd + robot-sim service soak (default 10^6 sets at 500 fps).
+    Soak(soak::Args),
+}
 
 fn main() {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let code = match real_main(&args) {
+    let cli = Cli::parse();
+    let code = match real_main(cli.task) {
         Ok(code) => code,
         Err(e) => {
             eprintln!("xtask: error: {e:#}");
@@ -56,34 +70,46 @@ fn main() {
     std::process::exit(code);
 }
 
-fn real_main(args: &[String]) -> anyhow::Result<i32> {
+fn real_main(task: Task) -> anyhow::Result<i32> {
     let ctx = Ctx::new()?;
-    let (task, rest) = match args.split_first() {
-        Some((t, r)) => (t.as_str(), r),
-        None => {
-            print!("{USAGE}");
-            return Ok(2);
-        }
-    };
     match task {
-        "test" => {
-            let opts = ci::parse_options(rest)?;
-            return Ok(ci::run(&ctx, &opts));
-        }
-        "demo" => demo::run(&ctx, rest)?,
-        "setup" => setup::run(&ctx)?,
-        "cross" => cross::cli(&ctx)?,
-        "soak" => soak::cli(&ctx, rest)?,
-        "bench-links" => bench_links::cli(&ctx, rest)?,
-        "yocto" => yocto::cli(&ctx, rest)?,
-        "image" => image::cli(&ctx, rest)?,
-        "bench" => bench::cli(&ctx, rest)?,
-        "fuzz" => fuzz::cli(&ctx, rest)?,
-        "help" | "-h" | "--help" => print!("{USAGE}"),
-        other => {
-            eprint!("unknown task `{other}`\n\n{USAGE}");
-            return Ok(2);
-        }
+        Task::Test(args) => return ci::cli(&ctx, &args),
+        Task::Demo(args) => demo::run(&ctx, &args)?,
+        Task::Setup => setup::run(&ctx)?,
+        Task::Cross => cross::cli(&ctx)?,
+        Task::Soak(args) => soak::cli(&ctx, &args)?,
+        Task::BenchLinks(args) => bench_links::cli(&ctx, &args)?,
+        Task::Yocto(cmd) => yocto::cli(&ctx, cmd)?,
+        Task::Image(cmd) => image::cli(&ctx, cmd)?,
+        Task::Bench(args) => bench::cli(&ctx, &args)?,
+        Task::Fuzz(args) => fuzz::cli(&ctx, &args)?,
     }
     Ok(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_command_line_is_consistent() {
+        use clap::CommandFactory;
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn tasks_parse() {
+        let p = |args: &[&str]| Cli::try_parse_from(std::iter::once("xtask").chain(args.iter().copied()));
+        assert!(matches!(p(&["setup"]).unwrap().task, Task::Setup));
+        assert!(matches!(
+            p(&["image", "test", "--no-build"]).unwrap().task,
+            Task::Image(image::ImageCmd::Test { no_build: true })
+        ));
+        assert!(matches!(
+            p(&["yocto", "check-layer"]).unwrap().task,
+            Task::Yocto(yocto::YoctoCmd::CheckLayer)
+        ));
+        assert!(p(&["nope"]).is_err());
+        assert!(p(&["image", "test", "--bogus"]).is_err());
+    }
 }

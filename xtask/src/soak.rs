@@ -17,7 +17,7 @@ use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -25,9 +25,9 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 
 use crate::util::{self, Ctx, RunOpts};
-use crate::util::{addr_field, http, http_operator, operator_hash};
+use crate::util::{Irtrackd, Proc, http, http_operator, json, operator_hash};
+use serde_json::Value;
 
-const USAGE: &str = "usage: cargo xtask soak [--sets N] [--fps F] [--quick]";
 const DEFAULT_SETS: u64 = 1_000_000;
 const QUICK_SETS: u64 = 20_000;
 const DEFAULT_FPS: f64 = 500.0;
@@ -44,35 +44,38 @@ const CLIENT_QUEUE_RECORDS: u64 = 16_384;
 const MEMORY_LIMIT_KIB: i64 = 1024;
 const POLL: Duration = Duration::from_millis(250);
 
+/// `cargo xtask soak`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Frame sets to run (underscores allowed: 1_000_000); at least 2000.
+    #[arg(long, value_name = "N", value_parser = parse_sets)]
+    sets: Option<u64>,
+    /// Frame sets per second, 10..=5000.
+    #[arg(long, value_name = "F", default_value_t = DEFAULT_FPS)]
+    fps: f64,
+    /// A short run (20 000 sets) unless --sets is given.
+    #[arg(long)]
+    quick: bool,
+}
+
+fn parse_sets(v: &str) -> std::result::Result<u64, String> {
+    v.replace('_', "")
+        .parse()
+        .map_err(|_| format!("{v:?} is not a whole number"))
+}
+
 struct Opts {
     sets: u64,
     fps: f64,
 }
 
-fn parse(args: &[String]) -> Result<Opts> {
-    let mut opts = Opts {
-        sets: DEFAULT_SETS,
-        fps: DEFAULT_FPS,
+fn opts(args: &Args) -> Result<Opts> {
+    let opts = Opts {
+        sets: args
+            .sets
+            .unwrap_or(if args.quick { QUICK_SETS } else { DEFAULT_SETS }),
+        fps: args.fps,
     };
-    let mut it = args.iter();
-    while let Some(a) = it.next() {
-        let mut value = |name: &str| {
-            it.next()
-                .with_context(|| format!("{name} needs a value ({USAGE})"))
-                .cloned()
-        };
-        match a.as_str() {
-            "--sets" => {
-                opts.sets = value("--sets")?
-                    .replace('_', "")
-                    .parse()
-                    .context("--sets: not a whole number")?
-            }
-            "--fps" => opts.fps = value("--fps")?.parse().context("--fps: not a number")?,
-            "--quick" => opts.sets = QUICK_SETS,
-            other => bail!("unknown option `{other}` ({USAGE})"),
-        }
-    }
     // Fewer sets than one marker circle cannot show anything; 20 rows need 20 sets at least.
     if opts.sets < 2_000 {
         bail!("--sets must be at least 2000, got {}", opts.sets);
@@ -84,8 +87,8 @@ fn parse(args: &[String]) -> Result<Opts> {
 }
 
 /// `cargo xtask soak ...`.
-pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
-    let opts = parse(args)?;
+pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
+    let opts = opts(args)?;
     let (irtrackd, host_tools) = build(ctx)?;
     let dir = ctx.target_dir().join("soak");
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -154,55 +157,8 @@ fn build(ctx: &Ctx) -> Result<(PathBuf, PathBuf)> {
     ))
 }
 
-/// A child process that is killed on every path out unless it was stopped on purpose.
-struct Proc {
-    child: Child,
-    name: &'static str,
-}
-
-impl Proc {
-    fn pid(&self) -> u32 {
-        self.child.id()
-    }
-
-    /// SIGTERM, then waits up to `grace`; SIGKILL after that. Returns how it ended.
-    fn terminate(&mut self, grace: Duration) -> Result<String> {
-        if let Some(s) = self.child.try_wait()? {
-            return Ok(format!("had already exited ({s})"));
-        }
-        let _ = Command::new("kill")
-            .args(["-TERM", &self.pid().to_string()])
-            .status();
-        let start = Instant::now();
-        while start.elapsed() < grace {
-            if let Some(s) = self.child.try_wait()? {
-                return Ok(format!("exited after SIGTERM ({s})"));
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        self.child.kill()?;
-        let s = self.child.wait()?;
-        Ok(format!("ignored SIGTERM for {grace:?}, killed ({s})"))
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        if matches!(self.child.try_wait(), Ok(None)) {
-            eprintln!("soak: killing {} (pid {})", self.name, self.pid());
-            let _ = self.child.kill();
-            let _ = self.child.wait();
-        }
-    }
-}
-
-/// The ready line's addresses.
-struct Ready {
-    stream: SocketAddr,
-    status: SocketAddr,
-}
-
-fn start_irtrackd(bin: &Path, dir: &Path, name: &str, config: &str) -> Result<(Proc, Ready)> {
+/// Starts irtrackd with `config` (written to `dir/<name>.toml`), stderr into `dir/<name>.log`.
+fn start_irtrackd(bin: &Path, dir: &Path, name: &str, config: &str) -> Result<Irtrackd> {
     let config_path = dir.join(format!("{name}.toml"));
     std::fs::write(&config_path, config)?;
     let state = dir.join(format!("{name}-state"));
@@ -211,28 +167,9 @@ fn start_irtrackd(bin: &Path, dir: &Path, name: &str, config: &str) -> Result<(P
         std::fs::remove_dir_all(&state).with_context(|| format!("removing {}", state.display()))?;
     }
     let log = File::create(dir.join(format!("{name}.log")))?;
-    let mut child = Command::new(bin)
-        .arg("-c")
-        .arg(&config_path)
-        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
-        .arg(&state)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(log)
-        .spawn()
-        .with_context(|| format!("starting {}", bin.display()))?;
-    let stdout = child.stdout.take().context("irtrackd stdout")?;
-    let proc = Proc {
-        child,
-        name: "irtrackd",
-    };
-    let lines = drain_lines(stdout, None);
-    let line = wait_for(&lines, "irtrackd ready", Duration::from_secs(30))?;
-    let ready = Ready {
-        stream: addr_field(&line, "stream=")?,
-        status: addr_field(&line, "status=")?,
-    };
-    Ok((proc, ready))
+    let mut cmd = Irtrackd::command(bin, &config_path, &state);
+    cmd.stderr(log);
+    Ok(Irtrackd::spawn(&mut cmd, Duration::from_secs(30))?)
 }
 
 /// Reads a child's pipe to the end in a thread (so it never blocks on a full pipe), sending
@@ -250,18 +187,6 @@ fn drain_lines(pipe: impl Read + Send + 'static, copy: Option<File>) -> mpsc::Re
         }
     });
     rx
-}
-
-fn wait_for(lines: &mpsc::Receiver<String>, prefix: &str, timeout: Duration) -> Result<String> {
-    let deadline = Instant::now() + timeout;
-    loop {
-        let left = deadline.saturating_duration_since(Instant::now());
-        match lines.recv_timeout(left) {
-            Ok(l) if l.starts_with(prefix) => return Ok(l),
-            Ok(_) => {}
-            Err(_) => bail!("no `{prefix}` line within {timeout:?}"),
-        }
-    }
 }
 
 struct Circle {
@@ -285,8 +210,8 @@ fps = {fps}
 backend = "none"
 "#
     );
-    let (mut proc, ready) = start_irtrackd(bin, dir, "probe", &config)?;
-    let s = TcpStream::connect(ready.stream).context("connecting to the probe's stream")?;
+    let probe = start_irtrackd(bin, dir, "probe", &config)?;
+    let s = TcpStream::connect(probe.ready().stream).context("connecting to the probe's stream")?;
     s.set_read_timeout(Some(Duration::from_secs(5)))?;
     let circle_frames = (fps * PERIOD_S).ceil() as u64 + 2;
     let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
@@ -306,7 +231,7 @@ backend = "none"
             break;
         }
     }
-    proc.terminate(Duration::from_secs(5))?;
+    probe.shutdown(Duration::from_secs(5))?;
     if first.is_none() || lo.iter().any(|v| !v.is_finite()) {
         bail!("the probe's stream delivered no tracked positions");
     }
@@ -549,32 +474,25 @@ struct Robot {
 fn start_robot_sim(bin: &Path, dir: &Path, home: [f64; 3]) -> Result<(Robot, SocketAddr)> {
     let log = dir.join("robot-sim.csv");
     let _ = std::fs::remove_file(&log);
-    let mut child = Command::new(bin)
-        .args([
-            "robot-sim",
-            "--listen",
-            "127.0.0.1:0",
-            "--credits",
-            &CREDITS.to_string(),
-        ])
-        .arg("--home")
-        .arg(format!("{},{},{}", home[0], home[1], home[2]))
-        .arg("--log")
-        .arg(&log)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .with_context(|| format!("starting {} robot-sim", bin.display()))?;
-    let stdout = child.stdout.take().context("robot-sim stdout")?;
-    let stderr = child.stderr.take().context("robot-sim stderr")?;
-    let proc = Proc {
-        child,
-        name: "robot-sim",
-    };
-    let out = drain_lines(stdout, None);
+    let mut proc = Proc::spawn(
+        Command::new(bin)
+            .args([
+                "robot-sim",
+                "--listen",
+                "127.0.0.1:0",
+                "--credits",
+                &CREDITS.to_string(),
+            ])
+            .arg("--home")
+            .arg(format!("{},{},{}", home[0], home[1], home[2]))
+            .arg("--log")
+            .arg(&log)
+            .stderr(Stdio::piped()),
+        "robot-sim",
+    )?;
+    let stderr = proc.child_mut().stderr.take().context("robot-sim stderr")?;
     let stderr = drain_lines(stderr, File::create(dir.join("robot-sim.log")).ok());
-    let line = wait_for(&out, "robot-sim listening on ", Duration::from_secs(15))?;
+    let line = proc.wait_line("robot-sim listening on ", Duration::from_secs(15))?;
     let addr = line
         .trim_start_matches("robot-sim listening on ")
         .trim()
@@ -586,7 +504,7 @@ fn start_robot_sim(bin: &Path, dir: &Path, home: [f64; 3]) -> Result<(Robot, Soc
 fn run_soak(irtrackd: &Path, host_tools: &Path, dir: &Path, opts: &Opts, circle: &Circle) -> Result<Report> {
     let (mut robot, robot_addr) = start_robot_sim(host_tools, dir, circle.centre)?;
     println!("robot-sim listening on {robot_addr}, log {}", robot.log.display());
-    let (mut daemon, ready) = start_irtrackd(
+    let mut daemon = start_irtrackd(
         irtrackd,
         dir,
         "irtrackd",
@@ -594,6 +512,7 @@ fn run_soak(irtrackd: &Path, host_tools: &Path, dir: &Path, opts: &Opts, circle:
     )?;
     let t0 = Instant::now();
     let pid = daemon.pid();
+    let ready = daemon.ready().clone();
     let stream = spawn_stream_reader(ready.stream)?;
     let status = ready.status;
     println!(
@@ -606,7 +525,7 @@ fn run_soak(irtrackd: &Path, host_tools: &Path, dir: &Path, opts: &Opts, circle:
     let deadline = Instant::now() + Duration::from_secs(20);
     loop {
         let (_, body) = http_operator(status, "POST", "/robot")?;
-        if json_str(&body, "state") == Some("holding") {
+        if json_str(&body, "state").as_deref() == Some("holding") {
             break;
         }
         if Instant::now() > deadline {
@@ -654,7 +573,7 @@ fn run_soak(irtrackd: &Path, host_tools: &Path, dir: &Path, opts: &Opts, circle:
                 next_pct += 5;
             }
         }
-        if let Ok(Some(s)) = daemon.child.try_wait() {
+        if let Ok(Some(s)) = daemon.proc_mut().wait_timeout(Duration::ZERO) {
             bail!(
                 "irtrackd exited during the soak ({s}); see {}",
                 dir.join("irtrackd.log").display()
@@ -696,7 +615,7 @@ fn run_soak(irtrackd: &Path, host_tools: &Path, dir: &Path, opts: &Opts, circle:
     if let Ok(mut st) = stream.lock() {
         st.stopping = true;
     }
-    let how = daemon.terminate(Duration::from_secs(10))?;
+    let how = daemon.shutdown(Duration::from_secs(10))?;
     report.notes.push(format!("irtrackd {how}"));
     let mut robot_lines = Vec::new();
     let wait_end = Instant::now() + Duration::from_secs(10);
@@ -768,7 +687,7 @@ fn make_row(
         lat: percentiles(window),
         received,
         targets: json_num(&link, "targets_sent").unwrap_or(0.0) as u64,
-        link: json_str(&link, "state").unwrap_or("?").to_string(),
+        link: json_str(&link, "state").unwrap_or_else(|| "?".to_string()),
         misses: n("deadline_misses"),
         load1: load_average(),
     })
@@ -880,9 +799,9 @@ fn checks(
         !cameras.is_empty() && cameras.iter().all(|&f| f == processed),
         format!("cameras {cameras:?}, processed {processed}"),
     );
-    let e2e_count = st
-        .find("\"end_to_end\"")
-        .and_then(|i| json_num(&st[i..], "count"))
+    let e2e_count = json::parse(st)
+        .ok()
+        .and_then(|doc| find(find(&doc, "end_to_end")?, "count")?.as_f64())
         .unwrap_or(f64::NAN) as u64;
     report.check(
         "counters: end_to_end histogram count == sets_processed",
@@ -1030,19 +949,15 @@ fn dist(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
-/// `"frames"` of every entry of the status's `cameras` array.
+/// `frames` of every entry of the status's `source.cameras` array.
 fn camera_frames(body: &str) -> Vec<u64> {
-    let Some(start) = body.find("\"cameras\"") else {
+    let Ok(doc) = json::parse(body) else {
         return Vec::new();
     };
-    let rest = &body[start..];
-    let end = rest.find(']').unwrap_or(rest.len());
-    rest[..end]
-        .split("\"frames\"")
-        .skip(1)
-        .filter_map(|chunk| json_num(&format!("\"frames\"{chunk}"), "frames"))
-        .map(|v| v as u64)
-        .collect()
+    find(&doc, "cameras")
+        .and_then(Value::as_array)
+        .map(|cams| cams.iter().filter_map(|c| c.get("frames")?.as_u64()).collect())
+        .unwrap_or_default()
 }
 
 /// VmRSS and VmHWM (KiB) of a process.
@@ -1066,42 +981,48 @@ fn load_average() -> f64 {
         .unwrap_or(f64::NAN)
 }
 
-/// The number after the first `"key":` (any whitespace), as irtrackd's JSON lays it out.
-fn json_num(body: &str, key: &str) -> Option<f64> {
-    let v = json_value(body, key)?;
-    let end = v
-        .find(|c: char| !(c.is_ascii_digit() || "+-.eE".contains(c)))
-        .unwrap_or(v.len());
-    v[..end].parse().ok()
+/// The first `key` in `doc`, searched level by level (the status document's counter names are
+/// unique; the shallowest one wins).
+fn find<'a>(doc: &'a Value, key: &str) -> Option<&'a Value> {
+    let mut level = vec![doc];
+    while !level.is_empty() {
+        let mut next = Vec::new();
+        for v in level {
+            match v {
+                Value::Object(m) => {
+                    if let Some(found) = m.get(key) {
+                        return Some(found);
+                    }
+                    next.extend(m.values());
+                }
+                Value::Array(a) => next.extend(a.iter()),
+                _ => {}
+            }
+        }
+        level = next;
+    }
+    None
 }
 
-fn json_str<'a>(body: &'a str, key: &str) -> Option<&'a str> {
-    json_value(body, key)?.strip_prefix('"')?.split('"').next()
+/// The number at the first `key` of a JSON text (see [`find`]).
+fn json_num(body: &str, key: &str) -> Option<f64> {
+    find(&json::parse(body).ok()?, key)?.as_f64()
+}
+
+fn json_str(body: &str, key: &str) -> Option<String> {
+    find(&json::parse(body).ok()?, key)?.as_str().map(str::to_string)
 }
 
 fn json_bool(body: &str, key: &str) -> Option<bool> {
-    let v = json_value(body, key)?;
-    if v.starts_with("true") {
-        Some(true)
-    } else if v.starts_with("false") {
-        Some(false)
-    } else {
-        None
-    }
+    find(&json::parse(body).ok()?, key)?.as_bool()
 }
 
 fn json_array3(body: &str, key: &str) -> Option<[f64; 3]> {
-    let v = json_value(body, key)?.strip_prefix('[')?;
-    let inner = v.split(']').next()?;
-    let xs: Vec<f64> = inner.split(',').filter_map(|x| x.trim().parse().ok()).collect();
-    <[f64; 3]>::try_from(xs).ok()
-}
-
-/// Text after `"key":` and any whitespace.
-fn json_value<'a>(body: &'a str, key: &str) -> Option<&'a str> {
-    let pat = format!("\"{key}\":");
-    let at = body.find(&pat)? + pat.len();
-    Some(body[at..].trim_start())
+    let doc = json::parse(body).ok()?;
+    match find(&doc, key)?.as_array()?.as_slice() {
+        [x, y, z] => Some([x.as_f64()?, y.as_f64()?, z.as_f64()?]),
+        _ => None,
+    }
 }
 
 #[cfg(test)]
@@ -1110,7 +1031,17 @@ mod tests {
 
     #[test]
     fn options() {
-        let a = |v: &[&str]| parse(&v.iter().map(|s| s.to_string()).collect::<Vec<_>>());
+        use clap::Parser;
+        #[derive(Parser)]
+        struct T {
+            #[command(flatten)]
+            a: Args,
+        }
+        let a = |v: &[&str]| {
+            T::try_parse_from(std::iter::once("t").chain(v.iter().copied()))
+                .map_err(anyhow::Error::from)
+                .and_then(|t| opts(&t.a))
+        };
         let o = a(&[]).unwrap();
         assert_eq!((o.sets, o.fps), (1_000_000, 500.0));
         let o = a(&["--quick", "--fps", "700"]).unwrap();
@@ -1137,7 +1068,7 @@ mod tests {
         assert_eq!(json_num(pretty, "sets_processed"), Some(400.0));
         assert_eq!(json_num(pretty, "last_gap_mm"), Some(0.0025));
         assert_eq!(json_bool(pretty, "source_ended"), Some(true));
-        assert_eq!(json_str(pretty, "state"), Some("moving"));
+        assert_eq!(json_str(pretty, "state").as_deref(), Some("moving"));
         assert_eq!(json_num(pretty, "processed"), None);
         let rec = r#"{"frame":456,"position_mm":[24.5,5.0,-568.8],"latency_us":31127}"#;
         assert_eq!(json_num(rec, "frame"), Some(456.0));
@@ -1148,9 +1079,20 @@ mod tests {
 
     #[test]
     fn camera_frames_from_status() {
-        let st = "\"cameras\": [\n {\"index\": 0, \"frames\": 12},\n {\"index\": 1, \"frames\": 13}\n ],\n \"processing\": {\"frames\": 99}";
+        let st = "{\"source\": {\"cameras\": [\n {\"index\": 0, \"frames\": 12},\n {\"index\": 1, \"frames\": 13}\n ]},\n \"processing\": {\"frames\": 99}}";
         assert_eq!(camera_frames(st), vec![12, 13]);
         assert!(camera_frames("{}").is_empty());
+    }
+
+    #[test]
+    fn the_shallowest_key_wins() {
+        let st = r#"{"processing":{"latency_us":{"detect":{"count":5},"end_to_end":{"count":7}}},"count":1}"#;
+        assert_eq!(json_num(st, "count"), Some(1.0));
+        let doc = json::parse(st).unwrap();
+        assert_eq!(
+            find(find(&doc, "end_to_end").unwrap(), "count").and_then(Value::as_f64),
+            Some(7.0)
+        );
     }
 
     #[test]

@@ -280,36 +280,32 @@ pub fn is_root() -> bool {
         .is_some_and(|o| String::from_utf8_lossy(&o.stdout).trim() == "0")
 }
 
-/// One HTTP/1.0 request to irtrackd's status port over a raw socket (no HTTP client crate);
-/// returns the status code (0 if unreadable) and the trimmed body.
-pub fn http(addr: SocketAddr, method: &str, path: &str) -> Result<(u16, String)> {
-    http_with(addr, method, path, "", "")
-}
+// ------------------------------------------------------------------ irtrackd harness
+//
+// The shared harness (`irtrack_testkit::harness`: processes, irtrackd, HTTP, WebSocket, JSON)
+// with the demo's operator password; errors become anyhow errors with the harness's message.
+
+pub use irtrack_testkit::harness::{Http, Irtrackd, IrtrackdConfig, LiveSocket, Proc, json};
 
 /// Operator password the demo and soak configure on their irtrackd (changes need a sign-in).
 pub const OPERATOR_PASSWORD: &str = "xtask-operator";
 
+/// Long enough for a password check under full-system emulation (Argon2 in QEMU TCG).
+pub const HTTP_TIMEOUT: Duration = Duration::from_secs(30);
+
 /// `[service] operator_password_hash` for [`OPERATOR_PASSWORD`], made by the irtrackd binary
 /// itself (`irtrackd --hash-password`), as an operator would.
 pub fn operator_hash(irtrackd: &Path) -> Result<String> {
-    let mut child = Command::new(irtrackd)
-        .arg("--hash-password")
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .with_context(|| format!("running {} --hash-password", irtrackd.display()))?;
-    child
-        .stdin
-        .take()
-        .context("irtrackd stdin")?
-        .write_all(format!("{OPERATOR_PASSWORD}\n").as_bytes())?;
-    let out = child.wait_with_output()?;
-    let phc = String::from_utf8_lossy(&out.stdout).trim().to_string();
-    if !out.status.success() || !phc.starts_with("$argon2id$") {
-        anyhow::bail!("irtrackd --hash-password failed ({}): {phc:?}", out.status);
-    }
-    Ok(phc)
+    Ok(irtrack_testkit::harness::operator_hash(
+        irtrackd,
+        OPERATOR_PASSWORD,
+    )?)
+}
+
+/// One request to irtrackd's status listener; the status code and the trimmed body.
+pub fn http(addr: SocketAddr, method: &str, path: &str) -> Result<(u16, String)> {
+    let (code, body) = Http::new(HTTP_TIMEOUT).request(addr, method, path, None)?;
+    Ok((code, body.trim().to_string()))
 }
 
 /// [`http`] signed in as the operator (HTTP Basic with [`OPERATOR_PASSWORD`]).
@@ -317,7 +313,7 @@ pub fn http_operator(addr: SocketAddr, method: &str, path: &str) -> Result<(u16,
     http_as(addr, method, path, OPERATOR_PASSWORD, "")
 }
 
-/// One request with a JSON body, signed in with `password` (HTTP Basic).
+/// One request with a JSON body (none if empty), signed in with `password`.
 pub fn http_as(
     addr: SocketAddr,
     method: &str,
@@ -325,52 +321,23 @@ pub fn http_as(
     password: &str,
     json_body: &str,
 ) -> Result<(u16, String)> {
-    use base64::Engine as _;
-    let token = base64::engine::general_purpose::STANDARD.encode(format!("operator:{password}"));
-    let mut headers = format!("Authorization: Basic {token}\r\n");
-    if !json_body.is_empty() {
-        headers.push_str("Content-Type: application/json\r\n");
-    }
-    http_with(addr, method, path, &headers, json_body)
-}
-
-fn http_with(
-    addr: SocketAddr,
-    method: &str,
-    path: &str,
-    extra_headers: &str,
-    body: &str,
-) -> Result<(u16, String)> {
-    let mut s = std::net::TcpStream::connect(addr).with_context(|| format!("connecting to {addr}"))?;
-    // Long enough for a password check under full-system emulation (Argon2 in QEMU TCG).
-    s.set_read_timeout(Some(Duration::from_secs(30)))?;
-    write!(
-        s,
-        "{method} {path} HTTP/1.0\r\nHost: xtask\r\n{extra_headers}Content-Length: {}\r\n\r\n{body}",
-        body.len()
-    )?;
-    let mut resp = String::new();
-    s.read_to_string(&mut resp)
-        .with_context(|| format!("{method} {path}"))?;
-    let code = resp
-        .split_whitespace()
-        .nth(1)
-        .and_then(|c| c.parse().ok())
-        .unwrap_or(0);
-    let body = resp
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.trim().to_string())
-        .unwrap_or_default();
-    Ok((code, body))
+    let body = (!json_body.is_empty()).then_some(json_body);
+    let (code, answer) = Http::new(HTTP_TIMEOUT)
+        .signed_in(password)
+        .request(addr, method, path, body)?;
+    Ok((code, answer.trim().to_string()))
 }
 
 /// The socket address after `key` (e.g. `status=`) in a line such as irtrackd's ready line.
 pub fn addr_field(line: &str, key: &str) -> Result<SocketAddr> {
-    line.split_whitespace()
-        .find_map(|w| w.strip_prefix(key))
-        .with_context(|| format!("`{key}` missing in {line:?}"))?
-        .parse()
-        .with_context(|| format!("bad address for `{key}` in {line:?}"))
+    Ok(irtrack_testkit::harness::irtrackd::addr_field(line, key)?)
+}
+
+/// Starts irtrackd with `config`, every port ephemeral on 127.0.0.1, and waits for its ready
+/// line; killed when dropped.
+pub fn start_irtrackd(irtrackd: &Path, config: &Path, state: &Path) -> Result<Irtrackd> {
+    Irtrackd::start(irtrackd, config, state, Duration::from_secs(30))
+        .with_context(|| format!("starting {} -c {}", irtrackd.display(), config.display()))
 }
 
 #[cfg(test)]

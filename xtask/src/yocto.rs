@@ -50,14 +50,16 @@ const BROKEN_TEXT: &str = "SUMMARY = \"deliberately broken (yocto-bitbake negati
 const BEGIN: &str = "# >>> irtrack: written by `cargo xtask` (yocto-bitbake); do not edit";
 const END: &str = "# <<< irtrack";
 
-const USAGE: &str = "\
-usage: cargo xtask yocto <command>
-
-commands:
-  check        what CI's yocto-bitbake phase runs: parse, list recipes, resolve irtrack-image
-  check-layer  run openembedded-core's yocto-check-layer on meta-irtrack (about 25 min; not in CI)
-  shell        print the commands to work in the BitBake build directory by hand
-";
+/// `cargo xtask yocto <command>`.
+#[derive(Debug, clap::Subcommand)]
+pub enum YoctoCmd {
+    /// What CI's yocto-bitbake phase runs: parse, list recipes, resolve irtrack-image.
+    Check,
+    /// Run openembedded-core's yocto-check-layer on meta-irtrack (about 25 min; not in CI).
+    CheckLayer,
+    /// Print the commands to work in the BitBake build directory by hand.
+    Shell,
+}
 
 /// CI entry point.
 /// Why the snapshots cannot be used, when they are absent or incomplete (the CI phase reports
@@ -77,15 +79,15 @@ pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
     })
 }
 
-pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
-    match args.first().map(String::as_str) {
-        Some("check") => {
+pub fn cli(ctx: &Ctx, cmd: YoctoCmd) -> Result<()> {
+    match cmd {
+        YoctoCmd::Check => {
             let n = check(ctx)?;
             println!("yocto: all {n} checks passed");
             Ok(())
         }
-        Some("check-layer") => check_layer(ctx),
-        Some("shell") => {
+        YoctoCmd::CheckLayer => check_layer(ctx),
+        YoctoCmd::Shell => {
             let env = prepare(ctx, "build", true)?;
             println!(
                 "{}cd {} && LANG=en_US.UTF-8 BITBAKEDIR={} . ./openembedded-core/oe-init-build-env {}",
@@ -98,10 +100,6 @@ pub fn cli(ctx: &Ctx, args: &[String]) -> Result<()> {
                 env.build.display()
             );
             Ok(())
-        }
-        _ => {
-            print!("{USAGE}");
-            bail!("unknown or missing yocto command")
         }
     }
 }

@@ -19,26 +19,36 @@ struct LockedCrate {
     checksum: String,
 }
 
+/// The parts of Cargo.lock read here.
+#[derive(serde::Deserialize)]
+struct Lock {
+    #[serde(default)]
+    package: Vec<LockPackage>,
+}
+
+#[derive(serde::Deserialize)]
+struct LockPackage {
+    name: String,
+    version: String,
+    source: Option<String>,
+    checksum: Option<String>,
+}
+
 /// Registry packages of a Cargo.lock (workspace members have no source and are skipped).
 /// Anything not from crates.io cannot be fetched by `crate://` and is an error.
 fn parse_lock(text: &str) -> Result<Vec<LockedCrate>> {
+    let lock: Lock = toml::from_str(text).context("Cargo.lock is not the TOML cargo writes")?;
     let mut crates = Vec::new();
-    for block in text.split("[[package]]").skip(1) {
-        let field = |key: &str| -> Option<String> {
-            block.lines().find_map(|line| {
-                let rest = line.trim().strip_prefix(key)?.trim_start().strip_prefix('=')?;
-                Some(rest.trim().trim_matches('"').to_owned())
-            })
-        };
-        let name = field("name").context("Cargo.lock package without a name")?;
-        let version = field("version").with_context(|| format!("Cargo.lock: {name} has no version"))?;
-        match field("source") {
+    for p in lock.package {
+        let (name, version) = (p.name, p.version);
+        match p.source {
             None => continue,
             Some(s) if s == CRATES_IO => {}
             Some(s) => bail!("Cargo.lock: {name} {version} comes from {s}; only crates.io can be listed"),
         }
-        let checksum =
-            field("checksum").with_context(|| format!("Cargo.lock: {name} {version} has no checksum"))?;
+        let checksum = p
+            .checksum
+            .with_context(|| format!("Cargo.lock: {name} {version} has no checksum"))?;
         if checksum.len() != 64 || !checksum.bytes().all(|b| b.is_ascii_hexdigit()) {
             bail!("Cargo.lock: {name} {version} has a malformed checksum {checksum:?}");
         }
