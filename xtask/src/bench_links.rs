@@ -400,15 +400,13 @@ fn run_one(
     }
     // Viewers watch the whole followed span (the example runs them against our status port).
     let viewer_proc = match viewers {
-        Some(v) => Some(Guard(
+        Some(v) => Some(Proc::spawn(
             Command::new(v.bin)
                 .args(["--connect", &status.to_string(), "--seconds"])
                 .arg((secs + 5.0).to_string())
-                .stdout(Stdio::null())
-                .stderr(Stdio::null())
-                .spawn()
-                .context("starting the viewers")?,
-        )),
+                .stderr(Stdio::null()),
+            "viewers",
+        )?),
         None => None,
     };
     let last_ts = |t: &Track| t.lock().ok().and_then(|v| v.last().map(|r| r.0)).unwrap_or(0);
@@ -426,11 +424,11 @@ fn run_one(
         end_to_end: stage_quantiles(&status_json, "end_to_end")?,
     };
     if let Some(mut v) = viewer_proc {
-        if let Some(st) = v.0.try_wait()? {
+        if let Some(st) = v.wait_timeout(Duration::ZERO)? {
             bail!("the viewers stopped early ({st})");
         }
-        let _ = v.0.kill();
-        let _ = v.0.wait();
+        // Dropping the handle kills them.
+        drop(v);
     }
     let (_, body) = http_operator(status, "POST", "/robot")?;
     if !body.contains("\"state\":\"moving\"") {
@@ -508,13 +506,10 @@ fn parse_latency(log: &str) -> Option<Latency> {
 
 /// p50/p99 of `stage` in the `/status` document (`"processing":{"latency_us":{"<stage>":{...}}}`).
 fn stage_quantiles(status_json: &str, stage: &str) -> Result<Quantiles> {
-    let key = format!("\"{stage}\":{{");
-    let at = status_json
-        .find(&key)
-        .with_context(|| format!("no stage {stage:?} in /status"))?;
-    let obj = &status_json[at + key.len()..];
-    let obj = &obj[..obj.find('}').unwrap_or(obj.len())];
-    let num = |k: &str| -> f64 { json_raw(obj, k).and_then(|v| v.parse().ok()).unwrap_or(f64::NAN) };
+    let doc = json::parse(status_json)?;
+    let path = format!("processing.latency_us.{stage}");
+    let obj = json::at(&doc, &path).with_context(|| format!("no stage {stage:?} in /status"))?;
+    let num = |k: &str| -> f64 { json::f64_at(obj, k).unwrap_or(f64::NAN) };
     Ok(Quantiles {
         p50_us: num("p50_us"),
         p99_us: num("p99_us"),
