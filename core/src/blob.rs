@@ -90,7 +90,9 @@ impl Default for BlobConfig {
 /// Buffer sizes fixed at construction.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BlobLimits {
+    /// Widest blob (px) the detector keeps buffers for.
     pub max_width_px: u32,
+    /// Tallest blob (px) the detector keeps buffers for.
     pub max_height_px: u32,
     /// Connected-component labels per frame (≈ number of runs that start a new component).
     /// A frame needing more is reported as overloaded, not as a partial result.
@@ -115,11 +117,17 @@ impl BlobLimits {
 /// (`m_pq = Σ w · x^p · y^q`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Moments {
+    /// Σ w (total weight).
     pub m00: u64,
+    /// Σ w·x.
     pub m10: u64,
+    /// Σ w·y.
     pub m01: u64,
+    /// Σ w·x².
     pub m20: u128,
+    /// Σ w·x·y.
     pub m11: u128,
+    /// Σ w·y².
     pub m02: u128,
 }
 
@@ -173,9 +181,13 @@ fn i128_to_f64(v: i128) -> f64 {
 /// Axis-aligned bounding box, inclusive, frame coordinates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct BBox {
+    /// Leftmost column (inclusive).
     pub x_min_px: u32,
+    /// Top row (inclusive).
     pub y_min_px: u32,
+    /// Rightmost column (inclusive).
     pub x_max_px: u32,
+    /// Bottom row (inclusive).
     pub y_max_px: u32,
 }
 
@@ -184,6 +196,7 @@ pub struct BBox {
 pub struct Blob {
     /// Intensity-weighted centroid, frame coordinates (pixel centres at integers).
     pub x_px: f64,
+    /// Row of the centroid (see `x_px`).
     pub y_px: f64,
     /// Pixels above threshold.
     pub area_px: u32,
@@ -193,9 +206,11 @@ pub struct Blob {
     pub peak_dn: u32,
     /// Pixels at or above the saturation level.
     pub saturated_px: u32,
+    /// Bounding box of the blob's pixels.
     pub bbox: BBox,
     /// Standard deviations along the principal axes of the weighted distribution.
     pub sigma_major_px: f64,
+    /// Standard deviation along the minor principal axis.
     pub sigma_minor_px: f64,
     /// `sigma_minor / sigma_major` in [0, 1]: 1 for a round spot, → 0 for a streak.
     pub roundness: f64,

@@ -12,9 +12,13 @@ use crate::{Error, Result};
 /// Pinhole intrinsics in pixels (no skew, as OpenCV's default calibration).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Intrinsics {
+    /// Focal length along x (px).
     pub fx_px: f64,
+    /// Focal length along y (px).
     pub fy_px: f64,
+    /// Principal point column (px).
     pub cx_px: f64,
+    /// Principal point row (px).
     pub cy_px: f64,
 }
 
@@ -30,10 +34,15 @@ impl Intrinsics {
 /// OpenCV distortion coefficients in OpenCV's order (k1, k2, p1, p2, k3).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct Distortion {
+    /// Radial coefficient of r².
     pub k1: f64,
+    /// Radial coefficient of r⁴.
     pub k2: f64,
+    /// First tangential coefficient.
     pub p1: f64,
+    /// Second tangential coefficient.
     pub p2: f64,
+    /// Radial coefficient of r⁶.
     pub k3: f64,
 }
 
@@ -87,15 +96,20 @@ impl Distortion {
 /// Image size in pixels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ImageSize {
+    /// Columns.
     pub width_px: u32,
+    /// Rows.
     pub height_px: u32,
 }
 
 /// One camera: intrinsics, distortion and the image size they were calibrated for.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct CameraModel {
+    /// Pinhole intrinsics.
     pub intrinsics: Intrinsics,
+    /// Lens distortion (OpenCV's five-coefficient model).
     pub distortion: Distortion,
+    /// Image size the intrinsics belong to.
     pub image_size: ImageSize,
 }
 
@@ -174,15 +188,18 @@ impl CameraModel {
 pub struct RigidTransform {
     /// Row-major rotation matrix.
     pub r_row_major: [f64; 9],
+    /// Translation (mm).
     pub t_mm: [f64; 3],
 }
 
 impl RigidTransform {
+    /// No rotation, no translation.
     pub const IDENTITY: RigidTransform = RigidTransform {
         r_row_major: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
         t_mm: [0.0; 3],
     };
 
+    /// From a rotation matrix and a translation (mm).
     pub fn from_parts(r: &Matrix3<f64>, t_mm: &Vector3<f64>) -> Self {
         let mut r_row_major = [0.0; 9];
         for i in 0..3 {
@@ -196,10 +213,12 @@ impl RigidTransform {
         }
     }
 
+    /// The rotation matrix.
     pub fn rotation(&self) -> Matrix3<f64> {
         Matrix3::from_row_slice(&self.r_row_major)
     }
 
+    /// The translation (mm).
     pub fn translation_mm(&self) -> Vector3<f64> {
         Vector3::new(self.t_mm[0], self.t_mm[1], self.t_mm[2])
     }

@@ -55,9 +55,13 @@ impl Pixel for u16 {
 /// (stride ≥ width, for padded V4L2 buffers).
 #[derive(Debug, Clone, Copy)]
 pub struct GrayImage<'a, P> {
+    /// The pixels, row-major, rows `stride_px` apart.
     pub data: &'a [P],
+    /// Columns.
     pub width_px: u32,
+    /// Rows.
     pub height_px: u32,
+    /// Pixels from one row to the next (>= `width_px`).
     pub stride_px: u32,
 }
 
@@ -126,9 +130,13 @@ impl<'a, P> GrayImage<'a, P> {
 /// An axis-aligned region of interest in pixels (top-left corner and size).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Roi {
+    /// Left column.
     pub x_px: u32,
+    /// Top row.
     pub y_px: u32,
+    /// Columns.
     pub width_px: u32,
+    /// Rows.
     pub height_px: u32,
 }
 

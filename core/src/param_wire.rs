@@ -151,9 +151,17 @@ impl core::fmt::Display for RejectCode {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Verdict {
     /// Stored and swapped in.
-    Accepted { rig_id: String },
+    Accepted {
+        /// Rig id of the accepted set.
+        rig_id: String,
+    },
     /// Refused; the previous parameter set stays active.
-    Rejected { code: RejectCode, message: String },
+    Rejected {
+        /// Why, as a code.
+        code: RejectCode,
+        /// Why, in words.
+        message: String,
+    },
 }
 
 impl Verdict {

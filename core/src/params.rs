@@ -14,14 +14,18 @@ use crate::{Error, Result};
 /// (`x_cam = R x_cam0 + t`, OpenCV stereoCalibrate's R, T). Camera 0 has the identity.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CameraParams {
+    /// Intrinsics, distortion and image size.
     pub model: CameraModel,
+    /// Pose of this camera relative to camera 0 (`x_cam = R · x_cam0 + T`).
     pub cam_from_cam0: RigidTransform,
 }
 
 /// A rigid tool carrying several LEDs (6-DOF tracking); LED positions in the tool frame.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ToolDefinition {
+    /// Name the tool is reported under.
     pub name: String,
+    /// LED positions in the tool frame (mm).
     pub leds_mm: Vec<[f64; 3]>,
     /// The tool's tip in the tool frame (mm), from a pivot calibration (`host-tools pivot`).
     /// A tool with a tip is reported at its tip; without one, at its origin. Only blob format
@@ -129,8 +133,11 @@ pub const ROTATION_TOL: f64 = 1e-6;
 /// The fixed-size header in front of a blob body.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BlobHeader {
+    /// Format version of the body.
     pub version: u16,
+    /// Flags (e.g. a signature trailer follows).
     pub flags: u16,
+    /// Length of the body in bytes.
     pub body_len: u32,
     /// CRC-32 (IEEE) over header bytes 0..12 followed by the body.
     pub crc32: u32,

@@ -44,6 +44,7 @@ pub struct TrackerConfig {
     pub saturation_dn: Option<u32>,
     /// Blob area limits (pixels above threshold).
     pub min_area_px: u32,
+    /// Largest blob area (pixels above threshold).
     pub max_area_px: u32,
     /// Minimum blob roundness (σ_minor/σ_major): rejects streaks and reflections on edges.
     pub min_roundness: f64,
@@ -57,6 +58,7 @@ pub struct TrackerConfig {
     pub max_gap_mm: f64,
     /// Working range: distance (mm) along each ray from its camera to the point.
     pub min_range_mm: f64,
+    /// Largest distance (mm) along a ray from its camera to the point.
     pub max_range_mm: f64,
     /// Half size (px) of the tracking window around the last centroid; 0 disables ROI mode.
     pub roi_half_px: u32,
@@ -127,15 +129,24 @@ pub enum TrackStatus {
     /// A consistent marker position was found.
     Tracked,
     /// Fewer than two cameras have a usable blob; `camera` is the first without one.
-    NoBlob { camera: usize },
+    NoBlob {
+        /// The camera.
+        camera: usize,
+    },
     /// Blobs were found but no pair of them is consistent, or several inconsistent pairs
     /// are (ambiguous: see [`Measurement::ambiguous`]).
     NoConsistentPair,
     /// A camera's frame had too many separate bright regions to label (sunlight, threshold
     /// too low).
-    Overloaded { camera: usize },
+    Overloaded {
+        /// The camera.
+        camera: usize,
+    },
     /// Not every camera's frame was detected since the last solve.
-    MissingFrame { camera: usize },
+    MissingFrame {
+        /// The camera.
+        camera: usize,
+    },
 }
 
 /// What one camera contributed to a measurement.
@@ -162,6 +173,7 @@ pub struct Measurement {
     /// the RMS ray distance for more views. For a rejected frame: the smallest gap of any
     /// pair seen, `f64::INFINITY` if there was no pair.
     pub gap_mm: f64,
+    /// What became of the frame set.
     pub status: TrackStatus,
     /// At least one contributing camera was detected in a tracking window.
     pub used_roi: bool,
@@ -173,6 +185,7 @@ pub struct Measurement {
     pub quality: f64,
     /// Number of valid entries of `cameras`.
     pub camera_count: usize,
+    /// Per-camera observations (the first `camera_count`).
     pub cameras: [CameraObservation; MAX_CAMERAS],
 }
 

@@ -68,7 +68,10 @@ pub enum SignaturePolicy {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SignatureStatus {
     /// Signed by the trusted key with this id.
-    Signed { key_id: KeyId },
+    Signed {
+        /// Id of the key that signed it.
+        key_id: KeyId,
+    },
     /// Unsigned, accepted only because the policy is [`SignaturePolicy::AllowUnsigned`].
     UnsignedAccepted,
 }

@@ -109,6 +109,7 @@ pub struct PositionRecord {
     /// Quality: gap between the rays (two views) or RMS ray distance (N views), mm.
     /// NaN when nothing was triangulated (null in NDJSON).
     pub gap_mm: f64,
+    /// What became of the frame set.
     pub status: TrackStatus,
     /// Cameras in which the marker was found.
     pub cameras_used: u8,

@@ -17,6 +17,7 @@ pub const MIN_RAY_ANGLE_RAD: f64 = 1e-4;
 /// A ray in the rig frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Ray {
+    /// Camera centre (mm).
     pub origin_mm: Vector3<f64>,
     /// Unit direction.
     pub dir: Vector3<f64>,

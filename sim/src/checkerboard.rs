@@ -33,6 +33,7 @@ pub struct BoardSpec {
     pub inner_cols: u32,
     /// Inner corners along a column (OpenCV's pattern height).
     pub inner_rows: u32,
+    /// Side of one square (mm).
     pub square_mm: f64,
     /// White paper around the squares, in squares (OpenCV's detector needs at least ~1).
     pub margin_squares: f64,
@@ -139,7 +140,9 @@ const GOLDEN_FRAC: f64 = 0.618_033_988_749_894_8;
 /// Grey levels and noise of rendered views.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RenderSettings {
+    /// Grey level of the black squares.
     pub black_level: f64,
+    /// Grey level of the white squares.
     pub white_level: f64,
     /// Everything off the paper.
     pub background_level: f64,
@@ -149,6 +152,7 @@ pub struct RenderSettings {
     pub noise_sigma: f64,
     /// Pixels crossed by an edge get `supersample²` samples.
     pub supersample: u32,
+    /// Seed of the sensor noise.
     pub seed: u64,
 }
 
@@ -169,7 +173,9 @@ impl Default for RenderSettings {
 /// How to choose board poses.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PoseConfig {
+    /// Number of board poses (views).
     pub count: usize,
+    /// Seed of the pose draw.
     pub seed: u64,
     /// Largest tilt of the board away from facing the rig (degrees).
     pub max_tilt_deg: f64,
@@ -476,6 +482,7 @@ pub struct CameraRenderer {
 }
 
 impl CameraRenderer {
+    /// A renderer for the camera `model`.
     pub fn new(model: CameraModel) -> Self {
         let w = model.image_size.width_px as usize;
         let h = model.image_size.height_px as usize;
@@ -488,6 +495,7 @@ impl CameraRenderer {
         CameraRenderer { model, corners }
     }
 
+    /// The camera model it renders with.
     pub fn model(&self) -> &CameraModel {
         &self.model
     }
@@ -585,6 +593,7 @@ impl CameraRenderer {
 /// Files and ground truth of a rendered calibration set.
 #[derive(Debug, Clone)]
 pub struct CheckerboardSet {
+    /// The board that was rendered.
     pub board: BoardSpec,
     /// `cam0_from_board` for every view.
     pub poses: Vec<RigidTransform>,

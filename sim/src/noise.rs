@@ -43,6 +43,7 @@ pub struct PixelRng {
 }
 
 impl PixelRng {
+    /// The generator for one camera's frame: the same (seed, frame, camera) gives the same noise.
     pub fn new(seed: u64, frame: u64, camera: u64) -> Self {
         PixelRng {
             state: hash_words(&[seed, frame, camera, 0x5049_5845_4c53]),

@@ -24,8 +24,11 @@ use crate::rig::convergent_pose;
 /// Resolution along the axes of camera 0's frame (mm).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AxisResolution {
+    /// Along x.
     pub x_mm: f64,
+    /// Along y.
     pub y_mm: f64,
+    /// Along z (depth).
     pub z_mm: f64,
 }
 

@@ -19,7 +19,9 @@ pub const TABLE_I_BASELINE_MM: f64 = 50.0;
 /// Sensor and lens shared by the preset cameras.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CameraSpec {
+    /// Focal length (px), the same for both axes.
     pub focal_px: f64,
+    /// Image size.
     pub image_size: ImageSize,
     /// Radial/tangential distortion of a typical small M12 lens.
     pub distortion: Distortion,
@@ -73,11 +75,19 @@ impl CameraSpec {
 #[derive(Debug, Clone, PartialEq)]
 pub enum RigPreset {
     /// Two cameras side by side, optical axes parallel, camera 1 at +x `baseline_mm`.
-    Parallel { baseline_mm: f64 },
+    Parallel {
+        /// Distance between the camera centres (mm).
+        baseline_mm: f64,
+    },
     /// Two cameras whose optical axes cross at `distance_mm` in front of camera 0 with an
     /// angle `angle_deg` between them (90° in the paper); both at that distance from the
     /// crossing point. Camera 1 sits on the +x side.
-    Convergent { distance_mm: f64, angle_deg: f64 },
+    Convergent {
+        /// Distance of each camera from the crossing point (mm).
+        distance_mm: f64,
+        /// Angle between the optical axes (degrees).
+        angle_deg: f64,
+    },
     /// Any rig given explicitly (N ≥ 2 cameras at arbitrary poses).
     Custom(RigParams),
 }

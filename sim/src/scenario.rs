@@ -37,7 +37,9 @@ const SPOT_EXTENT_SIGMA: f64 = 4.5;
 /// Output pixel depth.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum BitDepth {
+    /// 8-bit samples (`u8`, 0..=255).
     Eight,
+    /// 10-bit samples (`u16`, 0..=1023).
     Ten,
 }
 
@@ -128,10 +130,15 @@ impl MarkerSpec {
 /// A fixed ambient IR source seen by one camera only (lamp, specular reflection).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Clutter {
+    /// Camera that sees it.
     pub camera: usize,
+    /// Centre column (px).
     pub u_px: f64,
+    /// Centre row (px).
     pub v_px: f64,
+    /// Gaussian width along x (px).
     pub sigma_x_px: f64,
+    /// Gaussian width along y (px).
     pub sigma_y_px: f64,
     /// Electrons over the whole source per exposure.
     pub flux_e: f64,
@@ -140,19 +147,27 @@ pub struct Clutter {
 /// Everything a scenario is made of.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SimConfig {
+    /// Camera arrangement.
     pub rig: RigPreset,
+    /// Focal length and image size of every camera.
     pub camera: CameraSpec,
+    /// Path of the tool (its origin) over time.
     pub trajectory: Trajectory,
     /// Orientation of the rigid tool the markers belong to; `None`: the markers only translate.
     pub orientation: Option<Orientation>,
+    /// The LEDs, positions on the tool.
     pub markers: Vec<MarkerSpec>,
+    /// Sensor: exposure, noise, saturation, bit depth.
     pub sensor: SensorSpec,
+    /// Ambient bright spots that are not markers.
     pub clutter: Vec<Clutter>,
+    /// Frames per second.
     pub fps: f64,
     /// Sub-exposures summed for motion blur; 1 disables it.
     pub motion_blur_steps: u32,
     /// Probability that a camera drops a frame.
     pub drop_rate: f64,
+    /// Seed of every random draw (noise, drops).
     pub seed: u64,
     /// Depth the scenario is meant to be written at (both renderers work regardless).
     pub bit_depth: BitDepth,
@@ -245,6 +260,7 @@ impl SimConfig {
 /// Where one marker is at one frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MarkerTruth {
+    /// Position in camera 0's frame (mm).
     pub p_cam0_mm: Vector3<f64>,
     /// Bit `i` set when the marker's centre projects inside camera `i`'s image.
     pub visible_mask: u32,
@@ -253,10 +269,13 @@ pub struct MarkerTruth {
 /// Ground truth for one frame (fixed-size, no allocation).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FrameTruth {
+    /// Frame number.
     pub index: u64,
     /// Mid-exposure time.
     pub t_s: f64,
+    /// Valid entries of `markers`.
     pub marker_count: usize,
+    /// Each marker's truth (the first `marker_count`).
     pub markers: [MarkerTruth; MAX_MARKERS],
     /// Tool frame origin (the trajectory point) in camera 0's frame, mm.
     pub tool_position_mm: Vector3<f64>,
@@ -293,7 +312,9 @@ impl MarkerTruth {
 /// What happened to one rendered frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FrameInfo {
+    /// Frame number.
     pub index: u64,
+    /// Camera index.
     pub camera: usize,
     /// Mid-exposure time in ns since the scenario's start.
     pub timestamp_ns: u64,
@@ -509,6 +530,7 @@ impl Scenario {
         Ok(())
     }
 
+    /// Number of cameras of the rig.
     pub fn camera_count(&self) -> usize {
         self.rig.cameras.len()
     }

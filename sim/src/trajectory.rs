@@ -11,22 +11,33 @@ use crate::SimError;
 pub enum Trajectory {
     /// Smooth back-and-forth between two points (cosine easing, so velocity is continuous).
     Line {
+        /// One end (mm).
         from_mm: Vector3<f64>,
+        /// The other end (mm).
         to_mm: Vector3<f64>,
+        /// Time for one full back-and-forth (s).
         period_s: f64,
     },
     /// Circle of `radius_mm` about `centre_mm` in the plane normal to `normal`.
     Circle {
+        /// Centre (mm).
         centre_mm: Vector3<f64>,
+        /// Radius (mm).
         radius_mm: f64,
+        /// Normal of the circle's plane.
         normal: Vector3<f64>,
+        /// Time for one turn (s).
         period_s: f64,
     },
     /// Figure-eight (lemniscate of Gerono) of half-width `size_mm` in the plane normal to `normal`.
     Figure8 {
+        /// Centre (mm).
         centre_mm: Vector3<f64>,
+        /// Half-width (mm).
         size_mm: f64,
+        /// Normal of the figure's plane.
         normal: Vector3<f64>,
+        /// Time for one figure (s).
         period_s: f64,
     },
     /// Recorded samples `(t_s, position)`, strictly increasing in time.
@@ -38,8 +49,11 @@ pub enum Trajectory {
     /// `orientation`, so the origin is at `pivot_mm − R(t) tip_tool_mm`. Use the same
     /// `orientation` for the tool ([`crate::tools::pivoting`] builds both).
     Pivot {
+        /// The fixed pivot point (mm).
         pivot_mm: Vector3<f64>,
+        /// The tip (pivot) in the tool frame (mm).
         tip_tool_mm: Vector3<f64>,
+        /// How the tool turns about the pivot.
         orientation: Orientation,
     },
 }
@@ -215,6 +229,7 @@ pub enum Orientation {
     /// `R(t) = base · Rz(az sin(2πt/Tz + φz)) · Ry(ay sin(2πt/Ty + φy)) · Rx(ax sin(2πt/Tx + φx))`.
     /// Different periods per axis give a Lissajous-like sweep through orientation space.
     Wobble {
+        /// Orientation the wobble is centred on.
         base: UnitQuaternion<f64>,
         /// Amplitudes about the tool's x, y, z axes (degrees).
         amplitude_deg: Vector3<f64>,

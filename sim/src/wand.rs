@@ -34,6 +34,7 @@ pub struct WandConfig {
     pub rig: RigParams,
     /// LED positions along the wand from its end 0, mm, increasing (e.g. 0, 120, 300).
     pub leds_mm: Vec<f64>,
+    /// Number of frames of the wave.
     pub frames: usize,
     /// Centre of the wand's middle over the wave (camera 0 frame, mm).
     pub centre_mm: Vector3<f64>,
@@ -52,9 +53,11 @@ pub struct WandConfig {
     pub psf_sigma_px: f64,
     /// Peak grey level of an LED spot at 1 m (before saturation at 255).
     pub peak_dn_at_1m: f64,
+    /// Background grey level.
     pub background_dn: f64,
     /// Read noise, grey levels RMS; shot noise adds `sqrt(signal · shot_gain_dn)`.
     pub noise_dn: f64,
+    /// Grey levels per photo-electron for the shot noise.
     pub shot_gain_dn: f64,
     /// Probability that one LED is hidden from one camera in one frame.
     pub occlusion_rate: f64,
@@ -62,6 +65,7 @@ pub struct WandConfig {
     pub ghost_rate: f64,
     /// Probability of a stray bright spot somewhere in one camera's frame.
     pub stray_rate: f64,
+    /// Seed of every random draw.
     pub seed: u64,
 }
 
@@ -132,7 +136,9 @@ impl WandConfig {
 /// The wand at one frame: end 0 and the unit direction toward the other LEDs (camera 0 frame).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WandPose {
+    /// Position of end 0 (mm).
     pub end0_mm: Vector3<f64>,
+    /// Unit vector from end 0 toward the other LEDs.
     pub dir: Vector3<f64>,
 }
 
@@ -236,6 +242,7 @@ impl WandWave {
         })
     }
 
+    /// The wave's configuration.
     pub fn config(&self) -> &WandConfig {
         &self.cfg
     }
