@@ -66,6 +66,100 @@ struct ToolV1 {
     leds_mm: Vec<[f64; 3]>,
 }
 
+/// Version-2 body (tools with tips, no calibration record), borrowed for writing.
+#[derive(Serialize)]
+struct RigV2Ref<'a> {
+    rig_id: &'a str,
+    created_unix_s: u64,
+    cameras: &'a [CameraParams],
+    world_from_cam0: &'a Option<RigidTransform>,
+    tools: &'a [ToolDefinition],
+}
+
+/// Version-2 body as read.
+#[derive(Deserialize)]
+struct RigV2 {
+    rig_id: String,
+    created_unix_s: u64,
+    cameras: Vec<CameraParams>,
+    world_from_cam0: Option<RigidTransform>,
+    tools: Vec<ToolDefinition>,
+}
+
+impl From<RigV2> for RigParams {
+    fn from(v: RigV2) -> Self {
+        RigParams {
+            rig_id: v.rig_id,
+            created_unix_s: v.created_unix_s,
+            cameras: v.cameras,
+            world_from_cam0: v.world_from_cam0,
+            tools: v.tools,
+            calibration: None,
+        }
+    }
+}
+
+/// The judgement of a calibration against its quality limits (docs/calibration.md).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Verdict {
+    /// Every limit held.
+    Good,
+    /// A limit failed and the result was written anyway (`--accept-poor`).
+    Poor,
+}
+
+impl Verdict {
+    /// `good` or `poor`, as status pages and reports print it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Verdict::Good => "good",
+            Verdict::Poor => "poor",
+        }
+    }
+}
+
+/// One named figure of a calibration, e.g. `wand_length_rms_mm` or `board_rms_px`
+/// (names carry their unit; docs/param-blob.md lists those the tools write).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Figure {
+    pub name: String,
+    pub value: f64,
+}
+
+/// Provenance and quality of a parameter set: how it was calibrated, when, by which tool, how
+/// well the data fitted and the verdict (blob format version 3, docs/param-blob.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationInfo {
+    /// `wand`, `checkerboard`, `wand+checkerboard`, ... (what `host-tools` ran).
+    pub method: String,
+    /// When the calibration was computed, Unix seconds.
+    pub calibrated_unix_s: u64,
+    /// The tool that computed it, e.g. `host-tools 0.1.0`.
+    pub tool_version: String,
+    pub verdict: Verdict,
+    /// The verdict in plain words with the most likely cause of a failed limit (empty when
+    /// every limit held).
+    pub summary: String,
+    /// Reprojection RMS per camera (px), in camera order (empty if the method has none).
+    pub rms_px: Vec<f64>,
+    /// Further figures: wand length error, board corners RMS, pivot fit, ...
+    pub figures: Vec<Figure>,
+}
+
+impl CalibrationInfo {
+    /// The figure called `name`, if present.
+    pub fn figure(&self, name: &str) -> Option<f64> {
+        self.figures.iter().find(|f| f.name == name).map(|f| f.value)
+    }
+}
+
+/// Longest method and tool-version text a calibration record may carry (bytes).
+pub const MAX_CALIBRATION_LABEL_LEN: usize = 64;
+/// Longest calibration summary (bytes).
+pub const MAX_CALIBRATION_SUMMARY_LEN: usize = 1024;
+/// Most figures one calibration record may carry.
+pub const MAX_CALIBRATION_FIGURES: usize = 64;
+
 impl From<RigV1> for RigParams {
     fn from(v: RigV1) -> Self {
         RigParams {
@@ -82,6 +176,7 @@ impl From<RigV1> for RigParams {
                     tip_mm: None,
                 })
                 .collect(),
+            calibration: None,
         }
     }
 }
@@ -99,13 +194,19 @@ pub struct RigParams {
     pub world_from_cam0: Option<RigidTransform>,
     /// Rigid multi-LED tools for 6-DOF tracking.
     pub tools: Vec<ToolDefinition>,
+    /// How the set was calibrated and how good it is; only blob format version 3 carries it,
+    /// sets without it are written as before (docs/param-blob.md).
+    pub calibration: Option<CalibrationInfo>,
 }
 
 /// First bytes of every parameter blob.
 pub const BLOB_MAGIC: [u8; 4] = *b"IRPB";
-/// The newest blob format version this build reads and writes (2: tools may carry a tip).
-/// A set without tool tips is written as version 1, so older readers still take it.
-pub const BLOB_FORMAT_VERSION: u16 = 2;
+/// The newest blob format version this build reads and writes (3: a calibration record;
+/// 2: tools may carry a tip). A set is written in the oldest version that carries it, so a set
+/// without tool tips and without a calibration record is version 1 and older readers take it.
+pub const BLOB_FORMAT_VERSION: u16 = 3;
+/// The version whose tools may carry a tip (and no calibration record).
+pub const BLOB_TIPS_VERSION: u16 = 2;
 /// The oldest blob format version this build reads (1: tools without tips).
 pub const BLOB_OLDEST_VERSION: u16 = 1;
 /// Header size in bytes (magic, version, flags, body length, CRC-32).
@@ -257,10 +358,10 @@ fn take_all<'de, T: Deserialize<'de>>(body: &'de [u8]) -> Result<T> {
 
 /// Decodes the body of a blob of format `version` (checked by [`BlobHeader::parse`]).
 pub(crate) fn decode_body(version: u16, body: &[u8]) -> Result<RigParams> {
-    let rig = if version == BLOB_OLDEST_VERSION {
-        RigParams::from(take_all::<RigV1>(body)?)
-    } else {
-        take_all::<RigParams>(body)?
+    let rig = match version {
+        BLOB_OLDEST_VERSION => RigParams::from(take_all::<RigV1>(body)?),
+        BLOB_TIPS_VERSION => RigParams::from(take_all::<RigV2>(body)?),
+        _ => take_all::<RigParams>(body)?,
     };
     // postcard accepts over-long varints; refuse any body that is not the canonical encoding
     // so that one parameter set has exactly one byte form (and one CRC, its identity). That
@@ -268,7 +369,11 @@ pub(crate) fn decode_body(version: u16, body: &[u8]) -> Result<RigParams> {
     let (canonical_version, canonical) = rig.encode_body()?;
     if canonical_version != version {
         return Err(Error::BlobBody {
-            reason: "version-2 body without a tool tip (such a set is written as version 1)",
+            reason: if version == BLOB_TIPS_VERSION {
+                "version-2 body without a tool tip (such a set is written as version 1)"
+            } else {
+                "version-3 body without a calibration record (such a set is written as version 1 or 2)"
+            },
         });
     }
     if canonical != body {
@@ -320,6 +425,47 @@ fn check_transform(what: &str, t: &RigidTransform) -> Result<()> {
     Ok(())
 }
 
+fn check_calibration(c: &CalibrationInfo, n_cameras: usize) -> Result<()> {
+    for (what, text) in [("method", &c.method), ("tool version", &c.tool_version)] {
+        if text.is_empty() || text.len() > MAX_CALIBRATION_LABEL_LEN {
+            return Err(invalid(format!(
+                "calibration {what} must be 1..={MAX_CALIBRATION_LABEL_LEN} bytes, got {}",
+                text.len()
+            )));
+        }
+    }
+    if c.summary.len() > MAX_CALIBRATION_SUMMARY_LEN {
+        return Err(invalid(format!(
+            "calibration summary is {} bytes, at most {MAX_CALIBRATION_SUMMARY_LEN}",
+            c.summary.len()
+        )));
+    }
+    if !c.rms_px.is_empty() && c.rms_px.len() != n_cameras {
+        return Err(invalid(format!(
+            "calibration gives an RMS for {} cameras, the rig has {n_cameras}",
+            c.rms_px.len()
+        )));
+    }
+    if !c.rms_px.iter().all(|v| v.is_finite() && *v >= 0.0) {
+        return Err(invalid("calibration RMS must be finite and ≥ 0".into()));
+    }
+    if c.figures.len() > MAX_CALIBRATION_FIGURES {
+        return Err(invalid(format!(
+            "calibration has {} figures, at most {MAX_CALIBRATION_FIGURES}",
+            c.figures.len()
+        )));
+    }
+    for f in &c.figures {
+        if f.name.is_empty() || f.name.len() > MAX_CALIBRATION_LABEL_LEN || !f.value.is_finite() {
+            return Err(invalid(format!(
+                "calibration figure {:?} = {} needs a name of 1..={MAX_CALIBRATION_LABEL_LEN} bytes and a finite value",
+                f.name, f.value
+            )));
+        }
+    }
+    Ok(())
+}
+
 fn check_camera(i: usize, cam: &CameraModel) -> Result<()> {
     let size = cam.image_size;
     if size.width_px == 0 || size.height_px == 0 {
@@ -365,11 +511,14 @@ impl RigParams {
         self.encode_blob(0, 0)
     }
 
-    /// The format version this set is written in: the oldest that carries it (1 unless a
-    /// tool has a tip), so that readers that only know version 1 still take most sets.
+    /// The format version this set is written in: the oldest that carries it (3 with a
+    /// calibration record, else 2 if a tool has a tip, else 1), so that readers that only know
+    /// older versions still take every set that needs nothing newer.
     pub fn blob_version(&self) -> u16 {
-        if self.tools.iter().any(|t| t.tip_mm.is_some()) {
+        if self.calibration.is_some() {
             BLOB_FORMAT_VERSION
+        } else if self.tools.iter().any(|t| t.tip_mm.is_some()) {
+            BLOB_TIPS_VERSION
         } else {
             BLOB_OLDEST_VERSION
         }
@@ -378,7 +527,15 @@ impl RigParams {
     /// The body in the format of [`Self::blob_version`], with that version.
     fn encode_body(&self) -> Result<(u16, Vec<u8>)> {
         let version = self.blob_version();
-        let encoded = if version == BLOB_OLDEST_VERSION {
+        let encoded = if version == BLOB_TIPS_VERSION {
+            postcard::to_allocvec(&RigV2Ref {
+                rig_id: &self.rig_id,
+                created_unix_s: self.created_unix_s,
+                cameras: &self.cameras,
+                world_from_cam0: &self.world_from_cam0,
+                tools: &self.tools,
+            })
+        } else if version == BLOB_OLDEST_VERSION {
             postcard::to_allocvec(&RigV1Ref {
                 rig_id: &self.rig_id,
                 created_unix_s: self.created_unix_s,
@@ -503,6 +660,9 @@ impl RigParams {
                 return Err(invalid(format!("tool {:?} has a non-finite tip", tool.name)));
             }
         }
+        if let Some(c) = &self.calibration {
+            check_calibration(c, n)?;
+        }
         Ok(())
     }
 
@@ -604,6 +764,7 @@ mod tests {
             ],
             world_from_cam0: None,
             tools: vec![],
+            calibration: None,
         }
     }
 

@@ -720,6 +720,7 @@ mod tests {
                 .collect(),
             world_from_cam0: None,
             tools: vec![],
+            calibration: None,
         }
     }
 

@@ -45,6 +45,7 @@ fn rig_with(n: usize) -> RigParams {
         cameras,
         world_from_cam0: None,
         tools: vec![],
+        calibration: None,
     }
 }
 

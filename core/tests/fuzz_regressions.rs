@@ -140,6 +140,7 @@ fn small_rig() -> RigParams {
         cameras: vec![cam(0.0), cam(-100.0)],
         world_from_cam0: None,
         tools: vec![],
+        calibration: None,
     }
 }
 

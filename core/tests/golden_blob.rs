@@ -3,7 +3,8 @@
 use irtrack_core::Error;
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use irtrack_core::params::{
-    BLOB_FORMAT_VERSION, BLOB_HEADER_LEN, BlobHeader, CameraParams, RigParams, ToolDefinition,
+    BLOB_FORMAT_VERSION, BLOB_HEADER_LEN, BlobHeader, CalibrationInfo, CameraParams, Figure, RigParams,
+    ToolDefinition, Verdict,
 };
 use proptest::prelude::*;
 
@@ -55,6 +56,7 @@ fn golden_rig() -> RigParams {
         ],
         world_from_cam0: None,
         tools: vec![],
+        calibration: None,
     }
 }
 
@@ -234,6 +236,139 @@ fn every_single_byte_corruption_of_the_v2_blob_is_detected() {
     }
 }
 
+/// The version-3 golden rig: the version-1 cameras with a calibration record (a wand
+/// calibration written anyway, marked poor).
+fn golden_rig_v3() -> RigParams {
+    RigParams {
+        rig_id: "golden3".into(),
+        calibration: Some(CalibrationInfo {
+            method: "wand".into(),
+            calibrated_unix_s: 1_700_000_100,
+            tool_version: "host-tools 0.1.0".into(),
+            verdict: Verdict::Poor,
+            summary: "cam1 RMS 3.75 px > 1 px".into(),
+            rms_px: vec![0.5, 3.75],
+            figures: vec![Figure {
+                name: "wand_length_rms_mm".into(),
+                value: 0.25,
+            }],
+        }),
+        ..golden_rig()
+    }
+}
+
+/// Independently assembled (Python: struct.pack + zlib.crc32) from docs/param-blob.md; the
+/// camera bytes are those of [`GOLDEN_HEX`].
+const GOLDEN_V3_HEAD: &[&str] = &[
+    "49525042",         // magic "IRPB"
+    "0300",             // format version 3 (a calibration record)
+    "0000",             // flags
+    "ca010000",         // body length 458
+    "25bed752",         // CRC-32 0x52d7be25 over bytes 0..12 + body
+    "07676f6c64656e33", // rig_id: varint 7, "golden3"
+    "80e2cfaa06",       // created_unix_s 1700000000 (varint)
+    "02",               // 2 cameras
+];
+const GOLDEN_V3_TAIL: &[&str] = &[
+    "00",                                               // world_from_cam0: None
+    "00",                                               // no tools
+    "01",                                               // calibration: Some
+    "0477616e64",                                       // method: varint 4, "wand"
+    "e4e2cfaa06",                                       // calibrated_unix_s 1700000100
+    "10686f73742d746f6f6c7320302e312e30",               // tool_version "host-tools 0.1.0"
+    "01",                                               // verdict: 1 = poor
+    "1763616d3120524d5320332e3735207078203e2031207078", // summary "cam1 RMS 3.75 px > 1 px"
+    "02",                                               // rms_px: 2 cameras
+    "000000000000e03f",                                 // 0.5 px
+    "0000000000000e40",                                 // 3.75 px
+    "01",                                               // 1 figure
+    "1277616e645f6c656e6774685f726d735f6d6d",           // name "wand_length_rms_mm"
+    "000000000000d03f",                                 // value 0.25
+];
+
+fn golden_v3_bytes() -> Vec<u8> {
+    let cameras = &GOLDEN_HEX[8..GOLDEN_HEX.len() - 2];
+    let hex = [GOLDEN_V3_HEAD, cameras, GOLDEN_V3_TAIL].concat().concat();
+    from_hex(&hex)
+}
+
+#[test]
+fn golden_v3_encode_decode() {
+    let rig = golden_rig_v3();
+    assert_eq!(rig.blob_version(), 3);
+    assert_eq!(rig.to_blob().unwrap(), golden_v3_bytes());
+    let back = RigParams::from_blob(&golden_v3_bytes()).unwrap();
+    assert_eq!(back, rig);
+    back.validate().unwrap();
+    let c = back.calibration.as_ref().unwrap();
+    assert_eq!(
+        (c.verdict, c.figure("wand_length_rms_mm")),
+        (Verdict::Poor, Some(0.25))
+    );
+    let h = BlobHeader::parse(&golden_v3_bytes()).unwrap();
+    assert_eq!(
+        (h.version, h.body_len, h.blob_len(), h.crc32),
+        (3, 458, 474, 0x52d7_be25)
+    );
+    // The same set without its record is the version-1 golden blob's cameras again.
+    let plain = RigParams {
+        calibration: None,
+        ..rig
+    };
+    assert_eq!(plain.blob_version(), 1);
+}
+
+#[test]
+fn version_3_body_without_a_record_is_not_canonical() {
+    // The version-1 golden body + a `None` record byte, relabelled as version 3.
+    let mut b = golden_bytes();
+    b[4] = 3;
+    b.push(0);
+    let len = (b.len() - BLOB_HEADER_LEN) as u32;
+    b[8..12].copy_from_slice(&len.to_le_bytes());
+    assert_eq!(
+        RigParams::from_blob(&reseal(b)),
+        Err(Error::BlobBody {
+            reason: "version-3 body without a calibration record (such a set is written as version 1 or 2)"
+        })
+    );
+}
+
+#[test]
+fn every_single_byte_corruption_of_the_v3_blob_is_detected() {
+    let good = golden_v3_bytes();
+    for i in 0..good.len() {
+        for x in 1..=255u8 {
+            let mut b = good.clone();
+            b[i] ^= x;
+            assert!(
+                RigParams::from_blob(&b).is_err(),
+                "byte {i} xor {x:#04x} undetected"
+            );
+        }
+    }
+}
+
+#[test]
+fn calibration_records_are_validated() {
+    let mut rig = golden_rig_v3();
+    rig.validate().unwrap();
+    let c = rig.calibration.as_mut().unwrap();
+    c.rms_px.push(1.0);
+    let e = rig.validate().unwrap_err().to_string();
+    assert!(e.contains("RMS for 3 cameras, the rig has 2"), "{e}");
+    let c = rig.calibration.as_mut().unwrap();
+    c.rms_px.pop();
+    c.figures[0].value = f64::NAN;
+    let e = rig.validate().unwrap_err().to_string();
+    assert!(e.contains("wand_length_rms_mm"), "{e}");
+    let c = rig.calibration.as_mut().unwrap();
+    c.figures[0].value = 1.0;
+    c.method.clear();
+    let e = rig.validate().unwrap_err().to_string();
+    assert!(e.contains("calibration method"), "{e}");
+}
+
 #[test]
 fn golden_encode() {
     assert_eq!(golden_rig().to_blob().unwrap(), golden_bytes());
@@ -306,11 +441,11 @@ fn wrong_magic() {
 #[test]
 fn wrong_version() {
     let mut b = golden_bytes();
-    b[4] = 3;
+    b[4] = 4;
     assert_eq!(
         RigParams::from_blob(&b),
         Err(Error::BlobUnsupportedVersion {
-            found: 3,
+            found: 4,
             supported: BLOB_FORMAT_VERSION
         })
     );
@@ -471,6 +606,32 @@ fn tool() -> impl Strategy<Value = ToolDefinition> {
         })
 }
 
+fn calibration() -> impl Strategy<Value = CalibrationInfo> {
+    (
+        "\\PC{0,12}",
+        any::<u64>(),
+        "\\PC{0,12}",
+        any::<bool>(),
+        "\\PC{0,30}",
+        prop::collection::vec(finite(), 0..4),
+        prop::collection::vec(("\\PC{0,12}", finite()), 0..4),
+    )
+        .prop_map(
+            |(method, calibrated_unix_s, tool_version, poor, summary, rms_px, figures)| CalibrationInfo {
+                method,
+                calibrated_unix_s,
+                tool_version,
+                verdict: if poor { Verdict::Poor } else { Verdict::Good },
+                summary,
+                rms_px,
+                figures: figures
+                    .into_iter()
+                    .map(|(name, value)| Figure { name, value })
+                    .collect(),
+            },
+        )
+}
+
 fn rig() -> impl Strategy<Value = RigParams> {
     (
         "\\PC{0,40}",
@@ -478,14 +639,16 @@ fn rig() -> impl Strategy<Value = RigParams> {
         prop::collection::vec(camera(), 0..6),
         prop::option::of(transform()),
         prop::collection::vec(tool(), 0..3),
+        prop::option::of(calibration()),
     )
         .prop_map(
-            |(rig_id, created_unix_s, cameras, world_from_cam0, tools)| RigParams {
+            |(rig_id, created_unix_s, cameras, world_from_cam0, tools, calibration)| RigParams {
                 rig_id,
                 created_unix_s,
                 cameras,
                 world_from_cam0,
                 tools,
+                calibration,
             },
         )
 }

@@ -74,6 +74,7 @@ fn convergent_rig() -> RigParams {
         ],
         world_from_cam0: None,
         tools: vec![],
+        calibration: None,
     }
 }
 

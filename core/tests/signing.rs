@@ -65,6 +65,7 @@ fn rig() -> RigParams {
         cameras: vec![cam([0.0; 3]), cam([-150.0, 0.0, 0.0])],
         world_from_cam0: None,
         tools: vec![],
+        calibration: None,
     }
 }
 

@@ -220,6 +220,7 @@ fn start_params(
             .with_signature_policy(trusted_keys, cfg.params.policy())
             .with_pose_config(cfg.pose),
     );
+    status.update_params_info(|p| p.calibration_max_age_days = cfg.params.calibration_max_age_days);
     let loaded = params.load_stored();
     if !loaded
         && cfg.service.params_from_simulator

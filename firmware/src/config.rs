@@ -102,6 +102,10 @@ pub struct ParamsConfig {
     /// `params.signature_policy = "allow_unsigned"` and logged as a warning at start.
     #[serde(default)]
     pub allow_unsigned: bool,
+    /// Days after which the status and the set-up page say the calibration should be checked
+    /// (default 180, `calibration::DEFAULT_MAX_AGE_DAYS`).
+    #[serde(default)]
+    pub calibration_max_age_days: Option<f64>,
 }
 
 impl ParamsConfig {
@@ -322,6 +326,13 @@ impl Config {
         if self.source.max_pairing_error_us == Some(0) {
             return bad("source.max_pairing_error_us must be > 0".into());
         }
+        if let Some(d) = self.params.calibration_max_age_days
+            && !(d.is_finite() && d > 0.0)
+        {
+            return bad(format!(
+                "params.calibration_max_age_days = {d} must be a positive number of days"
+            ));
+        }
         check_tracker_config(&self.tracking)?;
         self.outputs.validate()?;
         if let Some(h) = &self.service.operator_password_hash {
@@ -495,6 +506,7 @@ fn check_tracker_config(cfg: &TrackerConfig) -> Result<()> {
         ],
         world_from_cam0: None,
         tools: Vec::new(),
+        calibration: None,
     };
     irtrack_core::pipeline::Tracker::new(&rig, *cfg)
         .map(|_| ())

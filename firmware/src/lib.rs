@@ -6,6 +6,7 @@
 //! systemd watchdog read. See docs/irtrackd.md.
 
 pub mod app;
+pub mod calibration;
 pub mod clock;
 pub mod config;
 pub mod engine;

@@ -86,6 +86,14 @@ pub struct ParamsInfo {
     pub trusted_keys: Vec<String>,
     /// How the active set was authenticated: "key <id>" or "unsigned".
     pub signature: Option<String>,
+    /// The active set's calibration record: method, age, quality, warning (crate::calibration).
+    pub calibration: Option<crate::calibration::CalibrationStatus>,
+    /// The record itself, to recompute the age when the status is built.
+    #[serde(skip)]
+    pub calibration_record: Option<irtrack_core::params::CalibrationInfo>,
+    /// `[params] calibration_max_age_days` (None: the default).
+    #[serde(skip)]
+    pub calibration_max_age_days: Option<f64>,
 }
 
 /// All shared counters and state.
@@ -324,7 +332,7 @@ impl SharedStatus {
                 stream_binary: irtrack_core::stream::BINARY_VERSION,
             },
             uptime_s: self.uptime_s(),
-            params: self.params_info(),
+            params: self.params_info().aged(crate::calibration::now_unix_s()),
             source: SourceReport {
                 description: self.source_description.clone(),
                 sets_delivered: self.sets_delivered.load(R),

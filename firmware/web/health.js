@@ -17,6 +17,21 @@ const STAGE_WORDS = {
   end_to_end: "capture → published",
 };
 
+/** Rows of the active calibration's record (`/status` params.calibration, docs/calibration.md):
+ *  method, age, quality; marked bad when poor or older than the configured age. */
+export function calibrationRows(c) {
+  if (!c) return [["calibration", "no quality record (set made before records existed, or by hand)"]];
+  const when = new Date(c.calibrated_unix_s * 1000).toISOString().replace("T", " ").slice(0, 19);
+  const old = c.age_days > c.max_age_days;
+  const rows = [
+    ["calibration", `${c.method}, ${c.tool_version}`],
+    ["calibrated", `${when} UTC (${fmt(c.age_days, 0)} days ago${old ? `, older than ${fmt(c.max_age_days, 0)} days` : ""})`, old ? "bad" : "good"],
+    ["calibration quality", c.verdict === "poor" ? `POOR: ${c.summary}` : "good (every limit held)", c.verdict === "poor" ? "bad" : "good"],
+  ];
+  if (c.rms_px && c.rms_px.length) rows.push(["reprojection RMS", c.rms_px.map((v, i) => `cam${i} ${fmt(v, 3)} px`).join(", ")]);
+  return rows;
+}
+
 /** Plain words and the next step for the fault codes of docs/irtrackd.md, used when the server
  *  sends only the code. */
 function faultWords(code, st) {
@@ -101,7 +116,11 @@ export class Health {
     const list = document.getElementById("fault-list");
     const server = serverFaults(st);
     const covered = new Set(server.filter((f) => f.camera !== null).map((f) => f.camera));
-    const items = server.map((f) => [f.text, "fault"]).concat(previewWarnings(cams, covered).map((t) => [t, "warn"]));
+    const cal = (st.params || {}).calibration;
+    const items = server
+      .map((f) => [f.text, "fault"])
+      .concat(cal && cal.warning ? [[`Calibration: ${cal.warning}`, "warn"]] : [])
+      .concat(previewWarnings(cams, covered).map((t) => [t, "warn"]));
     box.hidden = items.length === 0;
     list.replaceChildren(
       ...items.map(([t, cls]) => {
@@ -193,10 +212,7 @@ export class Health {
     rows.push(["signature policy", p.signature_policy === "allow_unsigned" ? "development: unsigned sets accepted" : "signed sets only"]);
     if (p.swaps) rows.push(["swaps since start", fmt(p.swaps)]);
     if (p.rejected) rows.push(["pushes rejected", `${fmt(p.rejected)}${p.last_rejection ? ": " + p.last_rejection : ""}`, "bad"]);
-    const q = p.quality || p.calibration_quality;
-    if (q && typeof q === "object") {
-      for (const [k, v] of Object.entries(q)) rows.push([`calibration ${k.replace(/_/g, " ")}`, typeof v === "number" ? fmt(v, 3) : String(v)]);
-    }
+    if (p.loaded) rows.push(...calibrationRows(p.calibration));
     // The live ray gap is what the calibration achieves on the marker right now.
     rows.push([
       "ray gap now (calibration check)",

@@ -19,12 +19,16 @@
 //! | `R_world`, `T_world`              | optional registration world-from-camera-1               |
 //! | `tool_count`, `tool<j>_name`, `tool<j>_leds_mm` | optional tools (j from 1), LEDs as M×3 mm  |
 //! | `tool<j>_tip_mm`                  | optional 1×3 tool tip in the tool frame, mm (pivot)     |
+//! | `calibration_method`, `calibration_unix_s`, `calibration_tool`, `calibration_verdict` (`good`/`poor`), `calibration_summary`, `calibration_rms_px` (1×N), `calibration_figure_count`, `calibration_figure<j>_name`, `calibration_figure<j>` | optional calibration record (docs/param-blob.md, version 3) |
 
 use std::path::Path;
 
 use anyhow::{Context, Result, anyhow, bail, ensure};
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
-use irtrack_core::params::{CameraParams, MAX_RIG_ID_LEN, RigParams, ToolDefinition, looks_like_blob};
+use irtrack_core::params::{
+    CalibrationInfo, CameraParams, Figure, MAX_RIG_ID_LEN, RigParams, ToolDefinition, Verdict,
+    looks_like_blob,
+};
 use opencv::core::{
     CV_64F, FileNode, FileNode_MAP, FileNode_TYPE_MASK, FileNodeTraitConst, FileStorage, FileStorage_Mode,
     FileStorageTrait, FileStorageTraitConst, Mat, MatTraitConst,
@@ -136,6 +140,9 @@ pub fn write_rig_yaml(path: &Path, rig: &RigParams) -> Result<()> {
                     fs.write_mat(&format!("tool{}_tip_mm", j + 1), &mat(&[&tip[..]])?)?;
                 }
             }
+        }
+        if let Some(c) = &rig.calibration {
+            write_calibration(fs, c)?;
         }
         fs.release()?;
         Ok(())
@@ -261,6 +268,71 @@ pub fn rig_id_from_path(path: &Path) -> String {
     }
 }
 
+fn write_calibration(fs: &mut FileStorage, c: &CalibrationInfo) -> Result<()> {
+    fs.write_str("calibration_method", &c.method)?;
+    fs.write_f64("calibration_unix_s", c.calibrated_unix_s as f64)?;
+    fs.write_str("calibration_tool", &c.tool_version)?;
+    fs.write_str("calibration_verdict", c.verdict.as_str())?;
+    if !c.summary.is_empty() {
+        fs.write_str("calibration_summary", &c.summary)?;
+    }
+    if !c.rms_px.is_empty() {
+        fs.write_mat("calibration_rms_px", &mat(&[&c.rms_px])?)?;
+    }
+    fs.write_i32("calibration_figure_count", i32::try_from(c.figures.len())?)?;
+    for (j, f) in c.figures.iter().enumerate() {
+        fs.write_str(&format!("calibration_figure{}_name", j + 1), &f.name)?;
+        fs.write_f64(&format!("calibration_figure{}", j + 1), f.value)?;
+    }
+    Ok(())
+}
+
+fn read_string(fs: &FileStorage, key: &str) -> Result<Option<String>> {
+    match node(fs, key)? {
+        None => Ok(None),
+        Some(n) => Ok(Some(
+            n.to_string()
+                .with_context(|| format!("`{key}` must be a string"))?,
+        )),
+    }
+}
+
+fn read_calibration(fs: &FileStorage) -> Result<Option<CalibrationInfo>> {
+    let Some(method) = read_string(fs, "calibration_method")? else {
+        return Ok(None);
+    };
+    let when = required(fs, "calibration_unix_s", "calibration time")?.real()?;
+    ensure!(
+        when >= 0.0 && when.fract() == 0.0 && when < 2f64.powi(53),
+        "`calibration_unix_s` = {when} is not a time"
+    );
+    let verdict = match read_string(fs, "calibration_verdict")?.as_deref() {
+        Some("good") => Verdict::Good,
+        Some("poor") => Verdict::Poor,
+        other => bail!("`calibration_verdict` must be \"good\" or \"poor\", got {other:?}"),
+    };
+    let rms_px = match node(fs, "calibration_rms_px")? {
+        None => Vec::new(),
+        Some(n) => read_mat(&n, "calibration_rms_px")?.2,
+    };
+    let mut figures = Vec::new();
+    for j in 1..=read_int(fs, "calibration_figure_count")?.unwrap_or(0) {
+        let name = read_string(fs, &format!("calibration_figure{j}_name"))?
+            .ok_or_else(|| anyhow!("missing `calibration_figure{j}_name`"))?;
+        let value = required(fs, &format!("calibration_figure{j}"), "calibration figure")?.real()?;
+        figures.push(Figure { name, value });
+    }
+    Ok(Some(CalibrationInfo {
+        method,
+        calibrated_unix_s: when as u64,
+        tool_version: read_string(fs, "calibration_tool")?.unwrap_or_default(),
+        verdict,
+        summary: read_string(fs, "calibration_summary")?.unwrap_or_default(),
+        rms_px,
+        figures,
+    }))
+}
+
 /// Reads the rig; a file without `rig_id` (a plain OpenCV stereo calibration) gets
 /// `fallback_rig_id`, and the second value says that this happened.
 fn read_all(fs: &FileStorage, fallback_rig_id: &str) -> Result<(RigParams, bool)> {
@@ -354,6 +426,7 @@ fn read_all(fs: &FileStorage, fallback_rig_id: &str) -> Result<(RigParams, bool)
             cameras,
             world_from_cam0,
             tools,
+            calibration: read_calibration(fs)?,
         },
         id_from_name,
     ))

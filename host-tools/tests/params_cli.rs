@@ -88,6 +88,7 @@ fn rig3() -> RigParams {
             leds_mm: vec![[0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, 35.5, 10.0]],
             tip_mm: None,
         }],
+        calibration: None,
     }
 }
 

@@ -86,7 +86,19 @@ fn pivot_from_simulated_frames_finds_the_tip_within_0_1_mm() {
     assert!(err <= 0.1, "tip {err} mm from truth");
     assert!(stdout.contains("fit RMS"), "{stdout}");
     let blob = std::fs::read(&out).unwrap();
-    assert_eq!(BlobHeader::parse(&blob).unwrap().version, 2);
+    // Version 3: the set now carries the pivot fit's quality record (the simulator's set had
+    // none); without a record it would be version 2 (tips), as before.
+    assert_eq!(BlobHeader::parse(&blob).unwrap().version, 3);
+    let record = RigParams::from_blob(&blob).unwrap().calibration.unwrap();
+    assert_eq!(
+        (record.method.as_str(), record.verdict),
+        ("pivot", irtrack_core::params::Verdict::Good),
+        "{record:?}"
+    );
+    assert!(
+        record.figure("pivot_rms_mm").is_some_and(|v| v < 0.5),
+        "{record:?}"
+    );
 
     // show-params shows the tip; pivoting again from the truth poses, recorded at the new tip,
     // gives (nearly) zero extra offset: the fitted offset is added to the reported point.

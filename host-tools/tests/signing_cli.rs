@@ -56,6 +56,7 @@ fn rig() -> RigParams {
         cameras: vec![cam([0.0; 3]), cam([-200.0, 0.0, 0.0])],
         world_from_cam0: None,
         tools: vec![],
+        calibration: None,
     }
 }
 

@@ -89,6 +89,7 @@ pub fn ideal_rig(cam: CameraModel, cam1_from_cam0: RigidTransform) -> RigParams 
         ],
         world_from_cam0: None,
         tools: Vec::new(),
+        calibration: None,
     }
 }
 

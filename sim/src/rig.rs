@@ -187,6 +187,7 @@ pub fn build_rig(preset: &RigPreset, spec: &CameraSpec) -> Result<RigParams, Sim
             .collect(),
         world_from_cam0: None,
         tools: Vec::new(),
+        calibration: None,
     })
 }
 

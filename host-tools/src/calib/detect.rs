@@ -108,6 +108,41 @@ pub fn find_corners(img: &Mat, board: &Board) -> Result<Option<Vec<Point2f>>> {
     Ok(Some(corners.to_vec()))
 }
 
+/// The board sizes next to `board` (one more or one fewer inner corner per row and/or column,
+/// and rows and columns exchanged), most likely first: counting squares instead of inner
+/// corners gives one more of each.
+fn neighbour_sizes(board: &Board) -> Vec<(u32, u32)> {
+    let (c, r) = (board.cols as i64, board.rows as i64);
+    let mut out: Vec<(u32, u32)> = Vec::new();
+    for (dc, dr) in [
+        (-1, -1),
+        (1, 1),
+        (-1, 0),
+        (0, -1),
+        (1, 0),
+        (0, 1),
+        (-1, 1),
+        (1, -1),
+    ] {
+        let (nc, nr) = (c + dc, r + dr);
+        if nc >= 2 && nr >= 2 {
+            out.push((nc as u32, nr as u32));
+        }
+    }
+    out
+}
+
+/// Which board size near the given one `img` shows, if any (see [`neighbour_sizes`]).
+pub fn other_board_size(img: &Mat, board: &Board) -> Result<Option<(u32, u32)>> {
+    for (cols, rows) in neighbour_sizes(board) {
+        let b = Board { cols, rows, ..*board };
+        if find_corners(img, &b)?.is_some() {
+            return Ok(Some((cols, rows)));
+        }
+    }
+    Ok(None)
+}
+
 /// Loads and searches every image of every camera. Errors on unreadable images and on images
 /// of one camera with different sizes. The progress bar is drawn only on a terminal.
 pub fn detect_all(set: &ImageSet, board: &Board) -> Result<Vec<CameraDetections>> {
@@ -156,10 +191,21 @@ pub fn detect_all(set: &ImageSet, board: &Board) -> Result<Vec<CameraDetections>
         // where it was never found instead of searching the others too.
         if found.is_empty() {
             bar.finish_and_clear();
+            let hint = match cam.files.values().next() {
+                Some(first) => match other_board_size(&load_grey(first)?, board)? {
+                    Some((cols, rows)) => format!(
+                        ". Likely cause: the board size. {} shows a board of {cols}x{rows} inner corners: \
+                         give --board-cols {cols} --board-rows {rows}",
+                        first.display()
+                    ),
+                    None => String::new(),
+                },
+                None => String::new(),
+            };
             bail!(
                 "the {}x{} board (inner corners) was found in none of the {} images of camera {ci} ({}). \
                  Check --board-cols/--board-rows: they count inner corners (squares per row minus one), \
-                 and the whole board with a white border must be in view",
+                 and the whole board with a white border must be in view{hint}",
                 board.cols,
                 board.rows,
                 not_found.len(),

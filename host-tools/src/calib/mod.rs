@@ -7,13 +7,16 @@
 //! on the views every camera saw, rejecting outlier views if asked. [`report`] and [`plots`] turn
 //! the result into report.md and PNGs.
 
+pub mod board_quality;
 pub mod detect;
 pub mod input;
 pub mod plots;
+pub mod quality;
 pub mod report;
 pub mod solve;
 pub mod wand;
 pub mod wand_boards;
+pub mod wand_quality;
 pub mod wand_report;
 pub mod wand_solve;
 
@@ -303,6 +306,7 @@ pub fn calibrate(
         cameras,
         world_from_cam0: None,
         tools: Vec::new(),
+        calibration: None,
     };
     rig.validate()
         .map_err(|e| anyhow::anyhow!("calibration produced unusable parameters: {e}"))?;

@@ -175,6 +175,9 @@ pub struct WandObservations {
     pub frames: Vec<String>,
     /// `views[frame][camera]`.
     pub views: Vec<Vec<std::result::Result<LedPixels, Rejection>>>,
+    /// `blobs[frame][camera]`: the spots found (not touching the frame's edge), distorted
+    /// pixels; the quality gate identifies the wand in them with other cameras' intrinsics.
+    pub blobs: Vec<Vec<Vec<Vector2<f64>>>>,
 }
 
 /// Camera directories and their paired frames.
@@ -478,9 +481,11 @@ pub fn observe(rec: &Recording, models: &[CameraModel], wand: &Wand) -> Result<W
         .collect::<std::result::Result<_, _>>()
         .map_err(|e| anyhow!("blob detector: {e}"))?;
     let mut views = Vec::with_capacity(rec.frames.len());
+    let mut all_blobs = Vec::with_capacity(rec.frames.len());
     let mut blobs_px: Vec<Vector2<f64>> = Vec::with_capacity(16);
     for name in &rec.frames {
         let mut row = Vec::with_capacity(n_cam);
+        let mut blob_row = Vec::with_capacity(n_cam);
         for (ci, dir) in rec.dirs.iter().enumerate() {
             let path = dir.join(name);
             let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
@@ -515,14 +520,17 @@ pub fn observe(rec: &Recording, models: &[CameraModel], wand: &Wand) -> Result<W
                     .map(|b| Vector2::new(b.x_px, b.y_px)),
             );
             row.push(identify(&models[ci], wand, &blobs_px));
+            blob_row.push(blobs_px.clone());
             bar.inc(1);
         }
         views.push(row);
+        all_blobs.push(blob_row);
     }
     bar.finish_and_clear();
     Ok(WandObservations {
         frames: rec.frames.clone(),
         views,
+        blobs: all_blobs,
     })
 }
 

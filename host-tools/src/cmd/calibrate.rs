@@ -8,7 +8,7 @@ use std::path::PathBuf;
 
 use anyhow::{Result, bail};
 
-use crate::calib::{self, Options, detect::Board, input, report};
+use crate::calib::{self, Options, board_quality, detect::Board, input, report};
 
 /// Arguments.
 #[derive(clap::Args, Debug)]
@@ -48,6 +48,15 @@ pub struct Args {
     /// Rig id written into the parameters (default: calib-<unix time>).
     #[arg(long)]
     pub rig_id: Option<String>,
+    /// The distance between camera 0 and camera 1 as measured on the rig (mm): the calibrated
+    /// baseline must agree within 1 % (a wrong --square-mm scales every length).
+    #[arg(long)]
+    pub expect_baseline_mm: Option<f64>,
+    /// Write the result even when it fails a quality limit (docs/calibration.md, "Quality
+    /// gates"); it is marked poor in the parameters, and push-params then refuses it unless told
+    /// --accept-poor too.
+    #[arg(long)]
+    pub accept_poor: bool,
 }
 
 /// Runs the subcommand.
@@ -68,6 +77,11 @@ pub fn run(args: Args) -> Result<()> {
     }
     if !(args.square_mm > 0.0 && args.square_mm.is_finite()) {
         bail!("--square-mm must be a positive length, got {}", args.square_mm);
+    }
+    if let Some(b) = args.expect_baseline_mm
+        && !(b > 0.0 && b.is_finite())
+    {
+        bail!("--expect-baseline-mm must be a positive length, got {b}");
     }
     if !(args.outlier_k > 0.0 && args.outlier_k.is_finite()) {
         bail!("--outlier-k must be positive, got {}", args.outlier_k);
@@ -104,14 +118,13 @@ pub fn run(args: Args) -> Result<()> {
         joint_refine: args.joint_refine,
         fix_k3: args.fix_k3,
     };
-    let cal = calib::calibrate(&set, det, board, options, &rig_id, now)?;
+    let mut cal = calib::calibrate(&set, det, board, options, &rig_id, now)?;
     for (v, why) in &cal.skipped {
         eprintln!("skipped view {v}: {why}");
     }
     for r in &cal.rejected {
         eprintln!("rejected view {} (round {}): {}", r.view, r.round, r.why);
     }
-    let written = report::write_outputs(&cal, &args.out_dir, &args.images)?;
     println!(
         "overall RMS {:.4} px over {} views",
         report::overall_rms_px(&cal),
@@ -131,6 +144,13 @@ pub fn run(args: Args) -> Result<()> {
             cal.rig.optical_axis_angle_deg(i)?
         );
     }
+    let gate = board_quality::judge(&cal, args.expect_baseline_mm)?;
+    gate.enforce(args.accept_poor)?;
+    cal.rig.calibration = Some(gate.record(now));
+    cal.rig
+        .validate()
+        .map_err(|e| anyhow::anyhow!("calibration record: {e}"))?;
+    let written = report::write_outputs(&cal, &args.out_dir, &args.images)?;
     for p in written {
         println!("wrote {}", p.display());
     }

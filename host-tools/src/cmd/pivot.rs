@@ -19,11 +19,13 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail, ensure};
 use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
 use irtrack_core::image::GrayImage;
-use irtrack_core::params::RigParams;
+use irtrack_core::params::{RigParams, Verdict};
 use irtrack_core::pgm::{self, PgmPixels};
 use irtrack_core::pose6d::{PoseConfig, PoseStatus, PoseTracker};
 use irtrack_core::stream::{PositionRecord, TrackStatus};
 use nalgebra::{DMatrix, DVector, Matrix3, Quaternion, UnitQuaternion, Vector3};
+
+use crate::calib::quality::{Check, Gate};
 
 /// Arguments.
 #[derive(clap::Args, Debug, Clone)]
@@ -54,6 +56,116 @@ pub struct Args {
     /// Blob threshold in frame DN for --frames (default: 30 on the 8-bit scale).
     #[arg(long)]
     pub threshold_dn: Option<u32>,
+    /// Write the result even when the fit fails a quality limit (docs/calibration.md, "Quality
+    /// gates"); the parameters are then marked poor.
+    #[arg(long)]
+    pub accept_poor: bool,
+}
+
+/// Largest RMS distance of the per-pose tip positions from the pivot (mm): what the reported
+/// tip position scatters by.
+pub const MAX_PIVOT_RMS_MM: f64 = 0.5;
+/// Largest share of poses dropped as off the fit (%).
+pub const MAX_PIVOT_REJECTED_PCT: f64 = 20.0;
+/// Fewest degrees the used poses must have turned for the tip to be well determined (the hard
+/// floor is --min-turn-deg).
+pub const MIN_PIVOT_TURN_DEG: f64 = 15.0;
+
+/// Judges a pivot fit; `rig_poor` says whether the parameter set's camera calibration is
+/// already marked poor (then the likely cause of a poor fit).
+pub fn judge(fit: &PivotFit, tool: &str, rig_poor: bool) -> Gate {
+    let mut gate = Gate::new("pivot");
+    let total = (fit.used + fit.rejected).max(1) as f64;
+    let rejected_pct = fit.rejected as f64 / total * 100.0;
+    gate.checks.push(Check::at_most(
+        format!("tool {tool} pivot fit RMS"),
+        fit.rms_mm,
+        MAX_PIVOT_RMS_MM,
+        "mm",
+    ));
+    gate.checks.push(Check::at_most(
+        "poses off the fit",
+        rejected_pct,
+        MAX_PIVOT_REJECTED_PCT,
+        "%",
+    ));
+    gate.checks.push(Check::at_least(
+        "turn of the tool about its tip",
+        fit.turn_deg,
+        MIN_PIVOT_TURN_DEG,
+        "°",
+    ));
+    gate.figure("pivot_rms_mm", fit.rms_mm);
+    gate.figure("pivot_max_mm", fit.max_mm);
+    gate.figure("pivot_turn_deg", fit.turn_deg);
+    gate.figure("pivot_poses_used", fit.used as f64);
+    if gate.failed().is_empty() {
+        return gate;
+    }
+    if rejected_pct > MAX_PIVOT_REJECTED_PCT {
+        gate.causes.push(format!(
+            "the tip slipped: {} of {} poses put it more than the outlier limit from the pivot; keep the tip \
+             in the divot while turning",
+            fit.rejected,
+            fit.used + fit.rejected
+        ));
+    }
+    if fit.rms_mm > MAX_PIVOT_RMS_MM {
+        gate.causes.push(if rig_poor {
+            format!(
+                "the rig's calibration is marked poor, and the tracked poses scatter by {:.2} mm RMS about the \
+                 pivot: calibrate the cameras again first",
+                fit.rms_mm
+            )
+        } else {
+            format!(
+                "the tracked poses scatter by {:.2} mm RMS about one pivot ({:.2} mm at most): the tool's LED \
+                 layout does not fit its tracked spots (measure it again with measure-tool), the tool flexes, or \
+                 the tip moved in a divot too wide for it",
+                fit.rms_mm, fit.max_mm
+            )
+        });
+    }
+    if fit.turn_deg < MIN_PIVOT_TURN_DEG {
+        gate.causes.push(format!(
+            "the tool turned only {:.1}° about its tip: tilt it further (30° or more) in two directions",
+            fit.turn_deg
+        ));
+    }
+    gate
+}
+
+/// The parameter set's calibration record with the pivot fit added: its figures join the
+/// record (replacing a previous pivot's), and a poor fit marks the whole set poor. A set without
+/// a record gets one of method `pivot`.
+pub fn add_to_record(rig: &mut RigParams, gate: &Gate) {
+    let now = crate::calib::quality::now_unix_s();
+    match &mut rig.calibration {
+        None => rig.calibration = Some(gate.record(now)),
+        Some(rec) => {
+            rec.figures
+                .retain(|f| !gate.figures.iter().any(|g| g.name == f.name));
+            rec.figures.extend(gate.figures.iter().cloned());
+            if gate.verdict() == Verdict::Poor {
+                rec.verdict = Verdict::Poor;
+                let add = gate.summary();
+                rec.summary = if rec.summary.is_empty() {
+                    add
+                } else {
+                    format!("{}; {add}", rec.summary)
+                };
+                let max = irtrack_core::params::MAX_CALIBRATION_SUMMARY_LEN;
+                if rec.summary.len() > max {
+                    let mut cut = max - 3;
+                    while !rec.summary.is_char_boundary(cut) {
+                        cut -= 1;
+                    }
+                    rec.summary.truncate(cut);
+                    rec.summary.push_str("...");
+                }
+            }
+        }
+    }
 }
 
 /// One tool pose: `p_tracker = rotation · p_tool + position_mm`.
@@ -377,18 +489,34 @@ pub fn calibrate(args: &Args) -> anyhow::Result<(RigParams, usize, PivotFit)> {
     let fit = fit_pivot(&poses, args.outlier_mm, args.min_turn_deg)?;
     let tip = base_tool_mm + fit.tip_tool_mm;
     rig.tools[tool_index].tip_mm = Some([tip.x, tip.y, tip.z]);
+    let rig_poor = rig
+        .calibration
+        .as_ref()
+        .is_some_and(|c| c.verdict == Verdict::Poor);
+    let gate = judge(&fit, &rig.tools[tool_index].name, rig_poor);
+    print_fit(&rig, tool_index, &fit);
+    gate.enforce(args.accept_poor)?;
+    add_to_record(&mut rig, &gate);
     rig.validate().context("parameters with the tool tip")?;
     Ok((rig, tool_index, fit))
 }
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let (rig, tool_index, fit) = calibrate(&args)?;
+    let (rig, _, _) = calibrate(&args)?;
     if crate::opencv_yaml::is_yaml_path(&args.out) {
         crate::opencv_yaml::write_rig_yaml(&args.out, &rig)?;
     } else {
         crate::cmd::convert_params::write_atomically(&args.out, &rig.to_blob()?)?;
     }
+    println!(
+        "written to {} (irtrackd reports the tip once these parameters are pushed)",
+        args.out.display()
+    );
+    Ok(())
+}
+
+fn print_fit(rig: &RigParams, tool_index: usize, fit: &PivotFit) {
     let tool = &rig.tools[tool_index];
     let tip = tool.tip_mm.unwrap_or_default();
     println!(
@@ -404,11 +532,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         fit.pivot_mm.x, fit.pivot_mm.y, fit.pivot_mm.z
     );
     println!("  fit RMS {:.3} mm, max {:.3} mm", fit.rms_mm, fit.max_mm);
-    println!(
-        "written to {} (irtrackd reports the tip once these parameters are pushed)",
-        args.out.display()
-    );
-    Ok(())
 }
 
 #[cfg(test)]

@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, anyhow, bail};
 use irtrack_core::param_wire::{self, MAX_VERDICT_LINE, Verdict};
+use irtrack_core::params::Verdict as CalVerdict;
 use irtrack_core::signing::KeyId;
 
 use crate::cmd::keygen::{load_params_file, read_secret_key};
@@ -34,6 +35,10 @@ pub struct Args {
     /// Timeout for connecting and for each read/write, seconds.
     #[arg(long, default_value_t = 5.0)]
     pub timeout_s: f64,
+    /// Send a parameter set whose calibration is marked poor (written with `--accept-poor`);
+    /// without it such a set is refused here.
+    #[arg(long)]
+    pub accept_poor: bool,
 }
 
 /// First retry delay; doubles per attempt up to [`MAX_BACKOFF`].
@@ -139,6 +144,30 @@ pub fn run(args: Args) -> Result<()> {
     let rig = loaded.rig;
     rig.validate()
         .with_context(|| format!("{}: parameters are not usable", path.display()))?;
+    if let Some(c) = &rig.calibration {
+        println!(
+            "{}: calibration {} of {} by {}: {}",
+            path.display(),
+            c.method,
+            crate::opencv_yaml::iso_utc(c.calibrated_unix_s),
+            c.tool_version,
+            c.verdict.as_str()
+        );
+        if c.verdict == CalVerdict::Poor {
+            if !args.accept_poor {
+                bail!(
+                    "{}: this calibration is marked poor, so it is not sent: {}. Calibrate again, or add \
+                     --accept-poor to push it anyway",
+                    path.display(),
+                    c.summary
+                );
+            }
+            eprintln!(
+                "warning: pushing a calibration marked poor (--accept-poor): {}",
+                c.summary
+            );
+        }
+    }
     let (blob, signature) = match (&args.sign_key, loaded.signed) {
         (Some(key_path), previous) => {
             let key = read_secret_key(key_path)?;

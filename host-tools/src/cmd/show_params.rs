@@ -114,6 +114,32 @@ pub fn describe(rig: &RigParams, source: &str) -> Result<String> {
             None => writeln!(s, "  tip none (the tool origin is reported)")?,
         }
     }
+    match &rig.calibration {
+        None => writeln!(
+            s,
+            "calibration:  no record (written before calibration records, or by hand)"
+        )?,
+        Some(c) => {
+            writeln!(
+                s,
+                "calibration:  {}, {} by {}, verdict {}",
+                c.method,
+                iso_utc(c.calibrated_unix_s),
+                c.tool_version,
+                c.verdict.as_str().to_uppercase()
+            )?;
+            if !c.rms_px.is_empty() {
+                let rms: Vec<String> = c.rms_px.iter().map(|v| format!("{v:.4}")).collect();
+                writeln!(s, "  RMS px:     {}", rms.join(", "))?;
+            }
+            for f in &c.figures {
+                writeln!(s, "  {}: {}", f.name, f.value)?;
+            }
+            if !c.summary.is_empty() {
+                writeln!(s, "  {}", c.summary)?;
+            }
+        }
+    }
     match rig.validate() {
         Ok(()) => writeln!(s, "validation:   OK")?,
         Err(e) => writeln!(s, "validation:   INVALID: {e}")?,

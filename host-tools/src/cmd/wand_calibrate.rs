@@ -10,7 +10,9 @@ use anyhow::{Context, Result, bail};
 use irtrack_core::params::RigParams;
 
 use crate::calib::detect::Board;
+use crate::calib::quality::now_unix_s;
 use crate::calib::wand::{self, Wand};
+use crate::calib::wand_quality::{self, WandRun};
 use crate::calib::{wand_boards, wand_report, wand_solve};
 
 /// Arguments.
@@ -61,6 +63,11 @@ pub struct Args {
     /// Rig id written into the parameters (default: wand-<unix time>).
     #[arg(long)]
     pub rig_id: Option<String>,
+    /// Write the result even when it fails a quality limit (docs/calibration.md, "Quality
+    /// gates"); it is marked poor in the parameters, and push-params then refuses it unless told
+    /// --accept-poor too.
+    #[arg(long)]
+    pub accept_poor: bool,
 }
 
 /// Runs the subcommand.
@@ -120,21 +127,52 @@ pub fn run(args: Args) -> Result<()> {
         fix_k3: args.fix_k3,
         huber_px: args.huber_px,
     };
-    let sol = wand_solve::solve(&models, &obs, &wand, &boards, options, |m| eprintln!("{m}"))?;
-    let now = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs())
-        .unwrap_or(0);
-    let rig = RigParams {
+    let sol = match wand_solve::solve(&models, &obs, &wand, &boards, options, |m| eprintln!("{m}")) {
+        Ok(sol) => sol,
+        Err(e) => {
+            // Say what the spots alone tell about the intrinsics, if anything.
+            let (causes, _) = wand_quality::intrinsics_causes(&models, &obs, &wand);
+            if causes.is_empty() {
+                return Err(e);
+            }
+            return Err(e.context(format!("Likely cause: {}", causes.join(". Also: "))));
+        }
+    };
+    let now = now_unix_s();
+    let mut rig = RigParams {
         rig_id: args.rig_id.clone().unwrap_or_else(|| format!("wand-{now}")),
         created_unix_s: now,
         cameras: sol.cameras.clone(),
         world_from_cam0: None,
         tools: Vec::new(),
+        calibration: None,
     };
     rig.validate()
         .context("wand calibration produced unusable parameters")?;
-    let (written, fig) = wand_report::write_outputs(&args.out_dir, &sol, &rig, &wand, &obs.frames)?;
+    let fig = wand_report::figures(&sol, &rig, &wand);
+    let gate = wand_quality::judge(&WandRun {
+        models: &models,
+        obs: &obs,
+        wand: &wand,
+        boards: &boards,
+        options,
+        sol: &sol,
+        fig: &fig,
+    });
+    print_figures(&rig, &sol, &fig)?;
+    gate.enforce(args.accept_poor)?;
+    rig.calibration = Some(gate.record(now));
+    rig.validate()
+        .context("wand calibration produced unusable parameters")?;
+    let (written, _) = wand_report::write_outputs(&args.out_dir, &sol, &rig, &wand, &obs.frames)?;
+    println!("done in {:.1} s", start.elapsed().as_secs_f64());
+    for p in written {
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}
+
+fn print_figures(rig: &RigParams, sol: &wand_solve::WandSolution, fig: &wand_report::Figures) -> Result<()> {
     for c in 0..rig.cameras.len() {
         let extra = if c == 0 {
             String::new()
@@ -171,9 +209,5 @@ pub fn run(args: Args) -> Result<()> {
         "wand length error over {} frames: mean {:+.4} mm, std {:.4} mm, max {:.4} mm",
         fig.frames_used, fig.length_mean_mm, fig.length_std_mm, fig.length_max_abs_mm
     );
-    println!("done in {:.1} s", start.elapsed().as_secs_f64());
-    for p in written {
-        println!("wrote {}", p.display());
-    }
     Ok(())
 }
