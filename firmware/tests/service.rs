@@ -109,9 +109,21 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
         t_mm: [1000.0, -200.0, 50.0],
         ..RigidTransform::IDENTITY
     };
+    let st = status_json(addrs.status).await;
+    assert!(st["params"]["calibration"].is_null(), "{st}");
     let mut rig_b = rig.clone();
     rig_b.rig_id = "rig-b".into();
     rig_b.world_from_cam0 = Some(world);
+    // rig-b carries a calibration record: written anyway as poor, a year ago.
+    rig_b.calibration = Some(irtrack_core::params::CalibrationInfo {
+        method: "wand".into(),
+        calibrated_unix_s: irtrack_firmware::calibration::now_unix_s() - 365 * 86_400,
+        tool_version: "host-tools 0.1.0".into(),
+        verdict: irtrack_core::params::Verdict::Poor,
+        summary: "POOR wand calibration: cam1 reprojection RMS 3.71 px (limit ≤ 1 px)".into(),
+        rms_px: vec![0.5, 3.71],
+        figures: vec![],
+    });
     assert_eq!(push(addrs.params, &rig_b.to_blob().unwrap()).await, "OK rig-b\n");
     let r = client
         .until(100, |r| r.status == TrackStatus::Ok && r.world_frame)
@@ -121,6 +133,22 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
     assert!(
         dist_mm(p, [t.x + 1000.0, t.y - 200.0, t.z + 50.0]) < 1.0,
         "{p:?} vs {t:?}"
+    );
+    // The status shows the active set's calibration: method, age, quality and a warning.
+    let st = status_json(addrs.status).await;
+    let cal = &st["params"]["calibration"];
+    assert_eq!(
+        (cal["method"].as_str(), cal["verdict"].as_str()),
+        (Some("wand"), Some("poor")),
+        "{st}"
+    );
+    assert!((cal["age_days"].as_f64().unwrap() - 365.0).abs() < 0.1, "{st}");
+    let warning = cal["warning"].as_str().unwrap();
+    assert!(
+        warning.contains("marked POOR")
+            && warning.contains("cam1 reprojection RMS")
+            && warning.contains("365 days old"),
+        "{warning}"
     );
 
     // Bad blobs: each rejected with its exact reason; rig-b stays active.

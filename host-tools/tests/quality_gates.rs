@@ -233,6 +233,23 @@ fn intrinsics_of_the_wrong_camera_or_order_are_named() {
         "swapped cameras",
     );
     assert!(e.contains("swapped camera order"), "{e}");
+
+    // Intrinsics for another image size: refused at the first frame, naming the camera.
+    let mut vga = truth.clone();
+    vga.cameras[1].model = CameraSpec::default().model(1);
+    let vga_yaml = s.dir.join("vga.yaml");
+    write_rig_yaml(&vga_yaml, &vga).unwrap();
+    let out = s.dir.join("vga");
+    let e = refused(
+        &wand_calibrate(&s.wave, &vga_yaml, "0,120,300", &out, &[]),
+        &out,
+        "intrinsics for another size",
+    );
+    assert!(
+        e.contains("752x480 px, but the intrinsics of camera 1 are for 640x480 px")
+            && e.contains("the intrinsics given for cam0 are for that size"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -306,6 +306,17 @@ async fn run(c: &Client, status: SocketAddr, out: &Path, downloads: &Path) {
         .unwrap();
     println!("previews live, one kept blob per camera, LED peak {peak} DN");
 
+    // The parameter panel says what is known of the active set's calibration (the simulator's
+    // set carries no quality record).
+    wait_for(
+        c,
+        "the calibration row of the parameter panel",
+        10,
+        "document.getElementById('params').textContent",
+        |v| v.as_str().is_some_and(|t| t.contains("no quality record")),
+    )
+    .await;
+
     // Threshold view: pixels above the threshold are tinted in the browser, around the LED.
     c.find(Locator::Id("threshold-view"))
         .await

@@ -491,15 +491,35 @@ pub fn observe(rec: &Recording, models: &[CameraModel], wand: &Wand) -> Result<W
             let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
             let pgm = pgm::decode(&bytes).with_context(|| format!("decoding {}", path.display()))?;
             let size = models[ci].image_size;
-            ensure!(
-                (pgm.width_px, pgm.height_px) == (size.width_px, size.height_px),
-                "{}: {}x{} px, but the intrinsics of camera {ci} are for {}x{} px",
-                path.display(),
-                pgm.width_px,
-                pgm.height_px,
-                size.width_px,
-                size.height_px
-            );
+            if (pgm.width_px, pgm.height_px) != (size.width_px, size.height_px) {
+                // Name the camera whose intrinsics would fit, if one does.
+                let fits: Vec<String> = models
+                    .iter()
+                    .enumerate()
+                    .filter(|(m, mm)| {
+                        *m != ci
+                            && (mm.image_size.width_px, mm.image_size.height_px)
+                                == (pgm.width_px, pgm.height_px)
+                    })
+                    .map(|(m, _)| format!("cam{m}"))
+                    .collect();
+                let hint = if fits.is_empty() {
+                    "intrinsics of another camera, or of another resolution or binning".to_string()
+                } else {
+                    format!(
+                        "the intrinsics given for {} are for that size: cameras in another order?",
+                        fits.join(", ")
+                    )
+                };
+                bail!(
+                    "{}: {}x{} px, but the intrinsics of camera {ci} are for {}x{} px ({hint})",
+                    path.display(),
+                    pgm.width_px,
+                    pgm.height_px,
+                    size.width_px,
+                    size.height_px
+                );
+            }
             let threshold_dn = (THRESHOLD_DN_8BIT as f64 * (pgm.maxval as f64 + 1.0) / 256.0).round() as u32;
             let cfg = BlobConfig {
                 threshold_dn,

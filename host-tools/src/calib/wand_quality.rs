@@ -22,7 +22,7 @@ pub const MAX_RMS_PX: f64 = 1.0;
 /// scale: the length is the only distance the wand fixes.
 pub const MAX_LENGTH_RMS_MM: f64 = 0.5;
 /// Fewest frames used (the wand identified in two or more cameras and kept by the adjustment).
-pub const MIN_FRAMES_USED: usize = 50;
+pub const MIN_FRAMES_USED: usize = 40;
 /// Smallest share of a camera's frames with the wand in view (at least as many spots as LEDs)
 /// in which the wand was identified.
 pub const MIN_IDENTIFIED: f64 = 0.5;
