@@ -215,12 +215,12 @@ fn start_params(
     let trusted_keys = cfg.params.load_keys()?;
     let store = ParamStore::open(&cfg.service.state_dir)?;
     let shape = RigShape::of_set(&source.allocate_set());
+    status.update_params_info(|p| p.calibration_max_age_days = cfg.params.calibration_max_age_days);
     let params = Arc::new(
         ParamService::new(store, shape, cfg.tracking, handle, status)
             .with_signature_policy(trusted_keys, cfg.params.policy())
             .with_pose_config(cfg.pose),
     );
-    status.update_params_info(|p| p.calibration_max_age_days = cfg.params.calibration_max_age_days);
     let loaded = params.load_stored();
     if !loaded
         && cfg.service.params_from_simulator
