@@ -1,5 +1,6 @@
 //! Rig parameters and their on-wire/on-disk blob format (see docs/param-blob.md).
 
+use alloc::boxed::Box;
 use alloc::format;
 use alloc::string::String;
 use alloc::vec::Vec;
@@ -195,8 +196,9 @@ pub struct RigParams {
     /// Rigid multi-LED tools for 6-DOF tracking.
     pub tools: Vec<ToolDefinition>,
     /// How the set was calibrated and how good it is; only blob format version 3 carries it,
-    /// sets without it are written as before (docs/param-blob.md).
-    pub calibration: Option<CalibrationInfo>,
+    /// sets without it are written as before (docs/param-blob.md). Boxed: most code never
+    /// looks at it, and the set stays small to move and clone.
+    pub calibration: Option<Box<CalibrationInfo>>,
 }
 
 /// First bytes of every parameter blob.

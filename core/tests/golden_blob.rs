@@ -241,7 +241,7 @@ fn every_single_byte_corruption_of_the_v2_blob_is_detected() {
 fn golden_rig_v3() -> RigParams {
     RigParams {
         rig_id: "golden3".into(),
-        calibration: Some(CalibrationInfo {
+        calibration: Some(Box::new(CalibrationInfo {
             method: "wand".into(),
             calibrated_unix_s: 1_700_000_100,
             tool_version: "host-tools 0.1.0".into(),
@@ -252,7 +252,7 @@ fn golden_rig_v3() -> RigParams {
                 name: "wand_length_rms_mm".into(),
                 value: 0.25,
             }],
-        }),
+        })),
         ..golden_rig()
     }
 }
@@ -648,7 +648,7 @@ fn rig() -> impl Strategy<Value = RigParams> {
                 cameras,
                 world_from_cam0,
                 tools,
-                calibration,
+                calibration: calibration.map(Box::new),
             },
         )
 }

@@ -232,7 +232,7 @@ impl ParamService {
             p.loaded = true;
             p.rig_id = Some(rig.rig_id.clone());
             p.created_unix_s = Some(rig.created_unix_s);
-            p.set_calibration(rig.calibration.as_ref());
+            p.set_calibration(rig.calibration.as_deref());
             p.origin = Some(origin.to_string());
             p.swaps += 1;
         });

@@ -115,7 +115,7 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
     rig_b.rig_id = "rig-b".into();
     rig_b.world_from_cam0 = Some(world);
     // rig-b carries a calibration record: written anyway as poor, a year ago.
-    rig_b.calibration = Some(irtrack_core::params::CalibrationInfo {
+    rig_b.calibration = Some(Box::new(irtrack_core::params::CalibrationInfo {
         method: "wand".into(),
         calibrated_unix_s: irtrack_firmware::calibration::now_unix_s() - 365 * 86_400,
         tool_version: "host-tools 0.1.0".into(),
@@ -123,7 +123,7 @@ async fn starts_without_params_then_push_swaps_live_and_bad_blobs_keep_last_good
         summary: "POOR wand calibration: cam1 reprojection RMS 3.71 px (limit ≤ 1 px)".into(),
         rms_px: vec![0.5, 3.71],
         figures: vec![],
-    });
+    }));
     assert_eq!(push(addrs.params, &rig_b.to_blob().unwrap()).await, "OK rig-b\n");
     let r = client
         .until(100, |r| r.status == TrackStatus::Ok && r.world_frame)

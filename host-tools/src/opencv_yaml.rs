@@ -426,7 +426,7 @@ fn read_all(fs: &FileStorage, fallback_rig_id: &str) -> Result<(RigParams, bool)
             cameras,
             world_from_cam0,
             tools,
-            calibration: read_calibration(fs)?,
+            calibration: read_calibration(fs)?.map(Box::new),
         },
         id_from_name,
     ))

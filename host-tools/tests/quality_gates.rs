@@ -138,7 +138,7 @@ fn refused(o: &Output, out: &Path, what: &str) -> String {
 fn record(path: &Path) -> irtrack_core::params::CalibrationInfo {
     let rig = RigParams::from_blob(&std::fs::read(path).unwrap()).unwrap();
     rig.validate().unwrap();
-    rig.calibration.expect("a calibration record")
+    *rig.calibration.expect("a calibration record")
 }
 
 #[test]
@@ -155,7 +155,7 @@ fn good_wave_passes_and_wrong_spacing_is_found() {
     assert!(r.figure("frames_used").is_some_and(|n| n >= 50.0), "{r:?}");
     // The YAML carries the same record.
     let yaml = irtrack_host_tools::opencv_yaml::read_rig_yaml(&good.join("rig.yaml")).unwrap();
-    assert_eq!(yaml.calibration.as_ref(), Some(&r));
+    assert_eq!(yaml.calibration.as_deref(), Some(&r));
 
     // The asymmetric typo of the issue: 0/100/300 given for a 0/120/300 wand.
     let bad = s.dir.join("spacing");

@@ -248,17 +248,17 @@ pub fn intrinsics_causes(
         }
         named[c] = true;
     }
-    for c in 0..n_cam {
+    for (c, named_c) in named.iter_mut().enumerate() {
         let Some(mine) = own_s(c) else { continue };
         let mut others: Vec<f64> = (0..n_cam).filter(|d| *d != c).filter_map(own_s).collect();
         let typical = median(&mut others);
-        if !named[c] && mine > STRAIGHT_PX && mine > STRAIGHT_FACTOR * typical {
+        if !*named_c && mine > STRAIGHT_PX && mine > STRAIGHT_FACTOR * typical {
             out.push(format!(
                 "cam{c}'s intrinsics do not fit its images: the spots of the straight wand lie {mine:.2} px off a \
                  straight line after undistortion (upper quartile over frames; the other cameras: {typical:.2} px): intrinsics \
                  (distortion) of another camera or lens, or for another resolution or binning"
             ));
-            named[c] = true;
+            *named_c = true;
         }
     }
     (out, named)

@@ -146,7 +146,7 @@ pub fn run(args: Args) -> Result<()> {
     }
     let gate = board_quality::judge(&cal, args.expect_baseline_mm)?;
     gate.enforce(args.accept_poor)?;
-    cal.rig.calibration = Some(gate.record(now));
+    cal.rig.calibration = Some(Box::new(gate.record(now)));
     cal.rig
         .validate()
         .map_err(|e| anyhow::anyhow!("calibration record: {e}"))?;

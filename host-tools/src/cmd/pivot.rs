@@ -141,7 +141,7 @@ pub fn judge(fit: &PivotFit, tool: &str, rig_poor: bool) -> Gate {
 pub fn add_to_record(rig: &mut RigParams, gate: &Gate) {
     let now = crate::calib::quality::now_unix_s();
     match &mut rig.calibration {
-        None => rig.calibration = Some(gate.record(now)),
+        None => rig.calibration = Some(Box::new(gate.record(now))),
         Some(rec) => {
             rec.figures
                 .retain(|f| !gate.figures.iter().any(|g| g.name == f.name));

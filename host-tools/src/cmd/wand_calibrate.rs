@@ -161,7 +161,7 @@ pub fn run(args: Args) -> Result<()> {
     });
     print_figures(&rig, &sol, &fig)?;
     gate.enforce(args.accept_poor)?;
-    rig.calibration = Some(gate.record(now));
+    rig.calibration = Some(Box::new(gate.record(now)));
     rig.validate()
         .context("wand calibration produced unusable parameters")?;
     let (written, _) = wand_report::write_outputs(&args.out_dir, &sol, &rig, &wand, &obs.frames)?;
