@@ -395,6 +395,19 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         None => engine,
     };
     let processing = spawn_loop(engine, cfg.realtime.clone(), status.clone())?;
+    // Whole-frame analysis for /status and its faults, off the loop; suggests a threshold at
+    // first start (no saved tuning).
+    {
+        let (tap, stop) = (tap.clone(), processing.stop.clone());
+        let first_start = !tuning.loaded_from_file;
+        std::thread::Builder::new()
+            .name("irtrackd-frames".into())
+            .spawn(move || crate::viewer::run_sampler(tap, first_start, stop))
+            .map_err(|e| FirmwareError::Thread {
+                what: "frame analysis",
+                reason: e.to_string(),
+            })?;
+    }
 
     let leds = devices
         .leds

@@ -677,7 +677,11 @@ impl Engine {
         while !stop.load(R) {
             match self.step() {
                 Ok(StepOutcome::EndOfStream) => {
-                    tracing::info!("frame source ended; processing loop stops");
+                    let why = self.end_reason();
+                    tracing::info!(summary = %why, "frame source ended; processing loop stops");
+                    if let Ok(mut r) = self.status.end_reason.lock() {
+                        *r = Some(why);
+                    }
                     self.status.source_ended.store(true, R);
                     return Ok(());
                 }
@@ -690,6 +694,24 @@ impl Engine {
             }
         }
         Ok(())
+    }
+
+    /// Why the stream ended, in words: the source's own summary plus the sets the loop
+    /// dropped as not newer than the one before (a recording whose timestamps do not rise).
+    fn end_reason(&self) -> String {
+        let mut s = self
+            .source
+            .end_summary()
+            .unwrap_or_else(|| format!("{} ended", self.source.describe()));
+        let processed = self.status.sets_processed.load(R);
+        s += &format!("; {processed} sets processed");
+        let stale = self.status.stale_sets.load(R);
+        if stale > 0 {
+            s += &format!(
+                "; {stale} sets dropped because their timestamps were not newer than the set before                  (check the recording's timestamps.csv, or its [source.replay] fps)"
+            );
+        }
+        s
     }
 
     pub fn source(&self) -> &dyn FrameSource {

@@ -5,6 +5,7 @@
 //! read; [`status::SharedStatus`] holds atomics that the LED driver, the status endpoint and the
 //! systemd watchdog read. See docs/irtrackd.md.
 
+pub mod advice;
 pub mod app;
 pub mod calibration;
 pub mod clock;

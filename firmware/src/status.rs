@@ -141,6 +141,8 @@ pub struct SharedStatus {
     pub alive: AtomicBool,
     /// The frame source ended (replay finished); the loop stopped on purpose.
     pub source_ended: AtomicBool,
+    /// Why it ended, in words (set once, when it ends).
+    pub end_reason: Mutex<Option<String>>,
 
     // LED driver output.
     led_levels: AtomicU8,
@@ -210,6 +212,7 @@ impl SharedStatus {
             deadline_fault: AtomicBool::new(false),
             alive: AtomicBool::new(false),
             source_ended: AtomicBool::new(false),
+            end_reason: Mutex::new(None),
             led_levels: AtomicU8::new(0),
             indication: Mutex::new(Indication::STARTING),
             stream_clients: AtomicU64::new(0),
@@ -371,6 +374,7 @@ impl SharedStatus {
                 stale_sets: self.stale_sets.load(R),
                 skewed_sets: self.skewed_sets.load(R),
                 source_ended: self.source_ended.load(R),
+                end_reason: self.end_reason.lock().ok().and_then(|r| r.clone()),
                 latency_us: latency_us.into_iter().collect(),
                 realtime: self.realtime.lock().map(|g| g.clone()).unwrap_or_default(),
             },
@@ -674,7 +678,8 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FaultText {
     /// Stable code: `camera_lost`, `no_params`, `deadline_misses`, `no_led`, `no_usable_blob`,
-    /// `skewed_sets`.
+    /// `skewed_sets`, and from the whole-frame analysis `background_above_threshold`,
+    /// `overloaded`, `too_many_spots`, `unreadable_frame`.
     pub code: &'static str,
     pub camera: Option<usize>,
     /// What is wrong and the next step, one sentence.
@@ -682,8 +687,15 @@ pub struct FaultText {
 }
 
 /// The active faults in plain words. `threshold_dn`: the detector's current threshold, when
-/// known (enables the "threshold above the LED" diagnosis).
-pub fn fault_texts(st: &SharedStatus, threshold_dn: Option<u32>) -> Vec<FaultText> {
+/// known (enables the "threshold above the LED" diagnosis). `analysis`: the newest whole-frame
+/// analysis of every camera, when fresh: it then describes each camera (background above the
+/// threshold, overload, no LED, stray light only), with or without a parameter set, in the
+/// same words the set-up view's camera cards show; without it the loop's counters are used.
+pub fn fault_texts(
+    st: &SharedStatus,
+    threshold_dn: Option<u32>,
+    analysis: Option<&[crate::advice::CameraAnalysis]>,
+) -> Vec<FaultText> {
     let mut out = Vec::new();
     let reconnects = st.reconnects.load(R);
     if st.camera_lost.load(R) {
@@ -713,7 +725,22 @@ pub fn fault_texts(st: &SharedStatus, threshold_dn: Option<u32>) -> Vec<FaultTex
             ),
         });
     }
-    let processing = st.sets_processed.load(R) > 0 && !st.camera_lost.load(R) && st.params_loaded.load(R);
+    if st.camera_lost.load(R) {
+        return out;
+    }
+    if let Some(cams) = analysis {
+        for a in cams {
+            if let Some(adv) = &a.advice {
+                out.push(FaultText {
+                    code: adv.code,
+                    camera: Some(a.camera),
+                    message: adv.message.clone(),
+                });
+            }
+        }
+        return out;
+    }
+    let processing = st.sets_processed.load(R) > 0 && st.params_loaded.load(R);
     if processing {
         for (i, c) in st.cameras.iter().enumerate() {
             if c.blobs_last.load(R) > 0 || c.frames.load(R) == 0 {
@@ -792,6 +819,8 @@ pub struct LoopReport {
     /// Sets published without a position because their cameras' timestamps were too far apart.
     pub skewed_sets: u64,
     pub source_ended: bool,
+    /// Why the source ended (replay: sets delivered of recorded, what was skipped and why).
+    pub end_reason: Option<String>,
     pub latency_us: std::collections::BTreeMap<&'static str, LatencySummary>,
     /// Real-time settings applied or refused (one line each).
     pub realtime: Vec<String>,

@@ -11,12 +11,13 @@
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
+use std::time::{Duration, Instant};
 
-use irtrack_core::blob::{Blob, BlobConfig, BlobDetector, BlobLimits};
-use irtrack_core::image::{GrayImage, Pixel};
+use irtrack_core::blob::Blob;
 use irtrack_core::pipeline::TrackerConfig;
 use serde::Serialize;
 
+use crate::advice::{CameraAnalysis, Suggestion};
 use crate::source::{Frame, FrameSet, Pixels};
 
 const R: Ordering = Ordering::Relaxed;
@@ -146,58 +147,30 @@ impl TapSet {
     /// area, roundness and edge limits would use are marked kept. Runs on the viewer's side, at
     /// the preview rate, never in the loop.
     pub fn blobs_with_full_search(&self) -> Vec<Vec<BlobView>> {
-        let cfg = &self.tracker_cfg;
-        let config = BlobConfig {
-            threshold_dn: cfg.threshold_dn,
-            saturation_dn: cfg.saturation_dn,
-            min_area_px: cfg.min_area_px,
-            max_area_px: cfg.max_area_px,
-        };
+        self.analyse().into_iter().map(|a| a.blobs).collect()
+    }
+
+    /// The whole-frame pass of every camera ([`crate::advice::CameraAnalysis`]): background,
+    /// every bright region kept or rejected with its reason, overload, advice in words.
+    pub fn analyse(&self) -> Vec<CameraAnalysis> {
         self.frames
             .iter()
             .enumerate()
             .map(|(camera, frame)| {
-                let listed: Vec<BlobView> = if self.detected {
-                    self.blobs.get(camera).cloned().unwrap_or_default()
-                } else {
-                    Vec::new()
-                };
-                let mut out = listed.clone();
-                let Some((found, by_area)) =
-                    full_frame_blobs(frame, &config, cfg.max_blobs.max(MAX_TAP_BLOBS))
-                else {
-                    return out;
-                };
-                // A listed blob inside a found blob's box is the same spot (a blob cut by the
-                // tracking window has another centroid than the whole spot).
-                let is_listed = |b: &Blob| {
-                    listed.iter().any(|l| {
-                        l.x_px >= f64::from(b.bbox.x_min_px) - 1.0
-                            && l.x_px <= f64::from(b.bbox.x_max_px) + 1.0
-                            && l.y_px >= f64::from(b.bbox.y_min_px) - 1.0
-                            && l.y_px <= f64::from(b.bbox.y_max_px) + 1.0
-                    })
-                };
-                let unexamined = if self.detected {
-                    Some(RejectReason::Window)
+                let listed = if self.detected {
+                    self.blobs.get(camera).map(Vec::as_slice)
                 } else {
                     None
                 };
-                for b in found.iter().filter(|b| !is_listed(b)) {
-                    let reason = if b.roundness < cfg.min_roundness {
-                        Some(RejectReason::Roundness)
-                    } else if cfg.reject_edge_blobs && b.touches_frame_edge {
-                        Some(RejectReason::Edge)
-                    } else {
-                        unexamined
-                    };
-                    out.push(BlobView::of(b, reason));
-                }
-                for b in by_area.iter().filter(|b| !is_listed(b)) {
-                    out.push(BlobView::of(b, Some(RejectReason::Area)));
-                }
-                out.truncate(MAX_TAP_BLOBS);
-                out
+                CameraAnalysis::of(
+                    camera,
+                    self.set_index,
+                    frame,
+                    &self.tracker_cfg,
+                    listed,
+                    MAX_TAP_BLOBS,
+                )
+                .unwrap_or_else(|| CameraAnalysis::unreadable(camera, self.set_index, &self.tracker_cfg))
             })
             .collect()
     }
@@ -218,31 +191,6 @@ impl BlobView {
     }
 }
 
-/// Blobs and area-rejected components of a whole frame; `None` if the frame cannot be
-/// searched (malformed, or an overloaded frame: the loop reports that itself).
-fn full_frame_blobs(frame: &Frame, config: &BlobConfig, max_blobs: usize) -> Option<(Vec<Blob>, Vec<Blob>)> {
-    fn run<P: Pixel>(
-        data: &[P],
-        frame: &Frame,
-        config: &BlobConfig,
-        max_blobs: usize,
-    ) -> Option<(Vec<Blob>, Vec<Blob>)> {
-        let image = GrayImage::new(data, frame.width_px, frame.height_px, frame.stride_px).ok()?;
-        let mut limits = BlobLimits::for_frame(frame.width_px, frame.height_px);
-        limits.max_blobs = max_blobs;
-        let mut detector = BlobDetector::new(limits).ok()?;
-        let found = detector.detect(&image, None, config).ok()?.to_vec();
-        if detector.stats().overloaded {
-            return None;
-        }
-        Some((found, detector.rejected_by_area().to_vec()))
-    }
-    match &frame.pixels {
-        Pixels::U8(p) => run(p, frame, config, max_blobs),
-        Pixels::U16(p) => run(p, frame, config, max_blobs),
-    }
-}
-
 /// Shared between the loop (writer) and the viewers (readers).
 #[derive(Debug)]
 pub struct ViewerTap {
@@ -260,6 +208,17 @@ pub struct ViewerTap {
     next_viewer: AtomicU64,
     /// The loop's frame-set shape, for allocating the copy.
     template: Mutex<Option<FrameSet>>,
+    /// The newest whole-frame analysis (by a viewer's render or the sampler).
+    analysis: Mutex<Option<LatestAnalysis>>,
+    /// The threshold suggestion made at first start (no saved tuning), if any.
+    startup_suggestion: Mutex<Option<Suggestion>>,
+}
+
+/// An analysis and when it was made.
+#[derive(Debug, Clone)]
+pub struct LatestAnalysis {
+    pub at: Instant,
+    pub cameras: Arc<Vec<CameraAnalysis>>,
 }
 
 impl Default for ViewerTap {
@@ -313,7 +272,54 @@ impl ViewerTap {
             viewers: Mutex::new(HashMap::new()),
             next_viewer: AtomicU64::new(1),
             template: Mutex::new(None),
+            analysis: Mutex::new(None),
+            startup_suggestion: Mutex::new(None),
         }
+    }
+
+    /// Keeps `cameras` as the newest analysis (unless a newer set's is already there).
+    pub fn store_analysis(&self, cameras: Vec<CameraAnalysis>) {
+        if let Ok(mut a) = self.analysis.lock() {
+            let newer = a.as_ref().is_none_or(|old| {
+                old.cameras.first().map(|c| c.set_index) <= cameras.first().map(|c| c.set_index)
+            });
+            if newer {
+                *a = Some(LatestAnalysis {
+                    at: Instant::now(),
+                    cameras: Arc::new(cameras),
+                });
+            }
+        }
+    }
+
+    /// The newest analysis if it is younger than `max_age`.
+    pub fn analysis(&self, max_age: Duration) -> Option<Arc<Vec<CameraAnalysis>>> {
+        let a = self.analysis.lock().ok()?;
+        a.as_ref()
+            .filter(|a| a.at.elapsed() <= max_age)
+            .map(|a| a.cameras.clone())
+    }
+
+    pub fn startup_suggestion(&self) -> Option<Suggestion> {
+        self.startup_suggestion.lock().ok().and_then(|s| s.clone())
+    }
+
+    /// Takes a copy of the loop's next set (attaching as a viewer for the moment), waiting up
+    /// to `wait`. Blocking: call from a blocking thread.
+    pub fn snapshot_blocking(self: &Arc<Self>, wait: Duration) -> Option<TapSet> {
+        let viewer = self.attach();
+        let seq0 = self.seq();
+        self.request_once();
+        let deadline = Instant::now() + wait;
+        while self.seq() == seq0 {
+            if Instant::now() >= deadline {
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let set = self.read()?.as_deref().cloned();
+        drop(viewer);
+        set
     }
 
     /// Called once by the loop's owner with the loop's (empty) frame set shape.
@@ -410,5 +416,64 @@ impl ViewerTap {
         self.copies.fetch_add(1, R);
         self.seq.fetch_add(1, Ordering::Release);
         true
+    }
+}
+
+/// How old an analysis may be and still describe a camera (status, faults).
+pub const ANALYSIS_MAX_AGE: Duration = Duration::from_secs(3);
+/// How often the sampler analyses a set when no page does.
+pub const SAMPLE_PERIOD: Duration = Duration::from_secs(1);
+
+/// Keeps the whole-frame analysis fresh when no set-up page is rendering previews (so `/status`
+/// and its faults describe what the cameras see with or without a viewer and a parameter set),
+/// and at first start (`first_start`: no saved tuning) suggests a threshold once, in the log and
+/// on the page. Runs on its own thread, off the processing loop; stops when `stop` is set.
+pub fn run_sampler(tap: Arc<ViewerTap>, first_start: bool, stop: Arc<AtomicBool>) {
+    let mut suggested = !first_start;
+    while !stop.load(R) {
+        std::thread::sleep(SAMPLE_PERIOD / 4);
+        let fresh = tap.analysis(SAMPLE_PERIOD).is_some();
+        if fresh && suggested {
+            continue;
+        }
+        if tap.template.lock().map(|t| t.is_none()).unwrap_or(true) {
+            continue;
+        }
+        let Some(set) = tap.snapshot_blocking(Duration::from_secs(2)) else {
+            continue;
+        };
+        let analysis = set.analyse();
+        for a in &analysis {
+            if let Some(adv) = a.advice.as_ref().filter(|_| !suggested) {
+                tracing::warn!(camera = a.camera, code = adv.code, "{}", adv.message);
+            }
+        }
+        if !suggested {
+            suggested = true;
+            // Only when the configured threshold does not give one clean spot per camera.
+            let suits = analysis.iter().all(|a| a.kept == 1 && a.advice.is_none());
+            if suits {
+                tracing::info!(
+                    threshold_dn = set.tracker_cfg.threshold_dn,
+                    "first start: the threshold suits these cameras"
+                );
+            } else {
+                let s = crate::advice::suggest(set.set_index, &set.frames, &set.tracker_cfg);
+                if let Some(v) = s.threshold_dn {
+                    tracing::warn!(
+                        current_dn = s.current_threshold_dn,
+                        suggested_dn = v,
+                        keeps_only_marker = s.keeps_only_marker,
+                        "first start: the threshold {} DN does not suit these cameras; suggested {v} DN ({}) — apply it on the set-up page (Suggest threshold) or set [tracking] threshold_dn",
+                        s.current_threshold_dn,
+                        s.reasoning.join("; ")
+                    );
+                }
+                if let Ok(mut g) = tap.startup_suggestion.lock() {
+                    *g = Some(s);
+                }
+            }
+        }
+        tap.store_analysis(analysis);
     }
 }

@@ -162,3 +162,60 @@ fn replay_at_recorded_speed_keeps_intervals_and_reports_bad_files() {
     let err = ReplaySource::open(&cfg).err().unwrap().to_string();
     assert!(err.contains("has no cam0/"), "{err}");
 }
+
+/// Without timestamps.csv and without `[source.replay] fps` the recording is paced at the
+/// stated default rate (said in the description), every set is processed, and the end says
+/// how many of how many were delivered.
+#[test]
+fn replay_without_timestamps_paces_at_the_default_rate_and_says_why_it_ended() {
+    use irtrack_firmware::source::replay::{DEFAULT_REPLAY_FPS, ReplayTiming};
+    let dir = TempDir::new("replay-no-ts");
+    record(dir.path());
+    std::fs::remove_file(dir.path().join("timestamps.csv")).unwrap();
+    // cam1 has no frame DROPPED_FRAME: that set is unreadable and skipped with a reason.
+    let cfg = ReplayConfig {
+        dir: dir.path().to_path_buf(),
+        speed: ReplaySpeed::Recorded,
+        repeat: false,
+        fps: None,
+    };
+    let source = ReplaySource::open(&cfg).unwrap();
+    assert_eq!(source.timing(), &ReplayTiming::DefaultFps(DEFAULT_REPLAY_FPS));
+    let described = source.describe();
+    assert!(
+        described.contains("no timestamps.csv: paced at the default 30 fps"),
+        "{described}"
+    );
+    let status = Arc::new(SharedStatus::new(2, described, "none".into()));
+    let (tx, _rx) = tokio::sync::watch::channel(None);
+    let mut engine = Engine::new(
+        Box::new(source),
+        TrackerConfig::default(),
+        Arc::new(ParamsHandle::new()),
+        tx,
+        status.clone(),
+        Duration::from_millis(33),
+    );
+    let t0 = Instant::now();
+    let mut published = 0;
+    let mut source_errors = 0;
+    loop {
+        match engine.step().unwrap() {
+            StepOutcome::Published(_) => published += 1,
+            StepOutcome::SourceError => source_errors += 1,
+            StepOutcome::EndOfStream => break,
+        }
+    }
+    // 12 frames, one unreadable: 11 sets at 30 fps take at least 10 intervals of 33 ms.
+    assert_eq!(published, FRAMES - 1);
+    assert_eq!(source_errors, 1);
+    assert_eq!(status.stale_sets.load(std::sync::atomic::Ordering::Relaxed), 0);
+    assert!(t0.elapsed() >= Duration::from_millis(320), "{:?}", t0.elapsed());
+    let end = engine.source().end_summary().unwrap();
+    assert!(
+        end.contains("11 of 12 recorded sets delivered")
+            && end.contains("1 sets skipped for unreadable frame files")
+            && end.contains("000005.pgm"),
+        "{end}"
+    );
+}

@@ -62,6 +62,7 @@ function onStatus(msg) {
   health.update(st);
   robot.update(st, state.session);
   if (st.tuning && typeof st.tuning === "object") controls.showLive(st.tuning);
+  if (st.threshold_suggestion) controls.showStartupSuggestion(st.threshold_suggestion);
   refreshFaults();
   loadScene(st);
   $("foot").textContent =
@@ -109,6 +110,10 @@ window.__irtrack = {
   session: () => state.session,
   tuningMessage: () => $("tuning-msg").textContent,
   captureMessage: () => $("capture-msg").textContent,
+  suggestion: () => ($("suggestion").hidden ? null : { text: $("suggestion-head").textContent, threshold_dn: controls.suggestion ? controls.suggestion.threshold_dn : null, why: Array.from(document.querySelectorAll("#suggestion-why li")).map((li) => li.textContent), keeps_only_marker: controls.suggestion ? controls.suggestion.keeps_only_marker : null }),
+  suggestNote: () => $("suggest-note").textContent,
+  health: () => Array.from(document.querySelectorAll("#camera-health tbody tr")).map((tr) => Array.from(tr.children).map((td) => td.textContent)),
+  headers: () => Array.from(document.querySelectorAll(".cam .stats")).map((e) => e.textContent),
   capturesSaved: () => capture.saved,
 };
 

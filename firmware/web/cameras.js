@@ -56,7 +56,8 @@ class CameraCard {
     this.blobList = el("div", "blob-list");
     this.summary = el("div", "summary", "");
     this.list = el("ul");
-    this.blobList.append(this.summary, this.list);
+    this.advice = el("div", "advice", "");
+    this.blobList.append(this.summary, this.advice, this.list);
     foot.append(zoomBox, this.blobList);
     this.root.append(head, this.view, foot);
     parent.append(this.root);
@@ -162,16 +163,27 @@ class CameraCard {
     const rejected = blobs.filter((b) => !b.kept);
     const fullW = Math.round(head.width_px / (head.scale || 1));
     const fullH = Math.round(head.height_px / (head.scale || 1));
+    const a = head.analysis;
     this.stats.textContent =
-      `${fullW}×${fullH} · set ${head.set_index} · peak ${head.peak_dn} DN · ` +
-      `threshold ${head.threshold_dn} · previews shown ${this.shown}` + (fps !== undefined ? ` at ≤ ${fps} fps` : "");
+      `${fullW}×${fullH} · set ${head.set_index} · ` +
+      (a ? `background ${a.background.median_dn} DN · ` : "") +
+      `peak ${head.peak_dn} DN · threshold ${head.threshold_dn} · previews shown ${this.shown}` +
+      (fps !== undefined ? ` at ≤ ${fps} fps` : "");
+    this.advice.textContent = a && a.advice ? a.advice.message : "";
+    this.root.dataset.advice = a && a.advice ? a.advice.code : "";
     const why = {};
     for (const b of rejected) why[reasonWords(b.reason)] = (why[reasonWords(b.reason)] || 0) + 1;
     const whyText = Object.entries(why)
       .map(([k, n]) => `${n} for ${k}`)
       .join(", ");
+    // Regions the list has no room for (and an overloaded frame's uncounted ones) are
+    // still counted: the analysis saw them.
+    const regions = a ? a.regions : blobs.length;
+    const unlisted = Math.max(0, regions - blobs.length);
     this.summary.textContent =
-      `${kept.length} kept, ${rejected.length} rejected` + (whyText ? ` (${whyText})` : "");
+      `${kept.length} kept, ${rejected.length + unlisted} rejected` +
+      (whyText ? ` (${whyText}${unlisted ? `, ${unlisted} not listed` : ""})` : unlisted ? ` (${unlisted} not listed)` : "") +
+      (a && (a.overloaded || a.too_many_spots) ? " — overloaded" : "");
     this.root.dataset.kept = String(kept.length);
     this.root.dataset.rejected = String(rejected.length);
     this.list.replaceChildren(
@@ -255,6 +267,9 @@ export class Cameras {
       set_index: c.last ? c.last.set_index : null,
       threshold_dn: c.last ? c.last.threshold_dn : null,
       peak_dn: c.last ? c.last.peak_dn : null,
+      background_dn: c.last && c.last.analysis ? c.last.analysis.background.median_dn : null,
+      regions: c.last && c.last.analysis ? c.last.analysis.regions : null,
+      advice: c.last && c.last.analysis ? c.last.analysis.advice : null,
       kept: c.last ? (c.last.blobs || []).filter((b) => b.kept).length : null,
       rejected: c.last ? (c.last.blobs || []).filter((b) => !b.kept).length : null,
       reasons: c.last ? (c.last.blobs || []).filter((b) => !b.kept).map((b) => b.reason) : [],

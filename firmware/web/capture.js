@@ -1,7 +1,9 @@
 // "Save frame set": the newest full-resolution frame of every camera (`GET /api/frameset`,
 // docs/http-api.md), saved by the browser as one PGM per camera — the views `host-tools
-// calibrate` reads (put them in cam0/, cam1/, ...). For many views, `host-tools capture` does
-// the same with a board check and coverage per camera.
+// calibrate` reads (put them in cam0/, cam1/, ...), plus `timestamps.csv` with every set saved
+// in this session (`frame,camera,timestamp_ns,dropped`, what irtrackd's replay reads to keep the
+// recorded intervals). For many views, `host-tools capture` does the same with a board check
+// and coverage per camera.
 
 import { explain } from "./api.js";
 
@@ -34,8 +36,13 @@ export function parseFrameset(buf) {
   return { head, frames };
 }
 
-function download(name, data) {
-  const url = URL.createObjectURL(new Blob([data], { type: "image/x-portable-graymap" }));
+/** `timestamps.csv` rows of one set: the set index is the frame number of the file names. */
+export function timestampRows(head) {
+  return head.cameras.map((c, i) => `${head.set_index},${i},${c.timestamp_ns},0\n`).join("");
+}
+
+function download(name, data, type = "image/x-portable-graymap") {
+  const url = URL.createObjectURL(new Blob([data], { type }));
   const a = document.createElement("a");
   a.href = url;
   a.download = name;
@@ -50,6 +57,7 @@ export class Capture {
     this.button = button;
     this.msg = msg;
     this.saved = 0;
+    this.timestamps = ""; // rows of every set saved in this session
     button.addEventListener("click", () => this.save());
   }
 
@@ -68,12 +76,15 @@ export class Capture {
       const index = String(head.set_index).padStart(6, "0");
       const names = frames.map((f) => `cam${f.camera}_${index}.pgm`);
       frames.forEach((f, i) => download(names[i], f.pgm));
+      this.timestamps += timestampRows(head);
+      download("timestamps.csv", "frame,camera,timestamp_ns,dropped\n" + this.timestamps, "text/csv");
       this.saved += 1;
       const f0 = frames[0];
       this.show(
         `Saved set ${head.set_index}: ${names.join(", ")} (${f0.width}×${f0.height}, ${f0.bits}-bit, ` +
           `pairing error ${Math.round((head.pairing_error_ns || 0) / 1000)} µs). ` +
-          `Move each into cam0/, cam1/, … of one folder; ${this.saved} set(s) this session.`,
+          `Move each into cam0/, cam1/, … of one folder (as NNNNNN.pgm) with the newest timestamps.csv ` +
+          `(all ${this.saved} set(s) of this session); irtrackd replays such a folder at the recorded pace.`,
       );
     } catch (e) {
       this.show(`Frame set not saved: ${e.message}`, true);

@@ -64,6 +64,76 @@ export class Controls {
       this.signIn();
     });
     $("signout-btn").addEventListener("click", () => this.signOut());
+    this.suggestion = null; // the last suggestion shown (board's answer)
+    $("suggest-btn").addEventListener("click", () => this.suggest());
+    $("suggest-apply").addEventListener("click", () => this.applySuggestion());
+    $("suggest-close").addEventListener("click", () => {
+      $("suggestion").hidden = true;
+    });
+  }
+
+  /** Asks the board for a threshold (operator only); shows it and its reasoning, applies
+   *  nothing until "Apply" is pressed. */
+  async suggest() {
+    const box = $("suggestion");
+    $("suggest-note").textContent = "computing from the newest frame set…";
+    try {
+      const s = await post("/api/tuning/suggest");
+      this.showSuggestion(s, "Suggested");
+      $("suggest-note").textContent = "";
+    } catch (e) {
+      box.hidden = true;
+      $("suggest-note").textContent = `No suggestion: ${e.message}`;
+      if (e.status === 401) await this.refreshSession();
+    }
+  }
+
+  /** Shows a suggestion (`POST /api/tuning/suggest`, or the board's first-start one). */
+  showSuggestion(s, label) {
+    this.suggestion = s;
+    const box = $("suggestion");
+    const v = s.threshold_dn;
+    $("suggestion-head").textContent =
+      v === null || v === undefined
+        ? `${label}: no threshold can be given for this frame set (now ${s.current_threshold_dn} DN).`
+        : `${label}: threshold ${v} DN (now ${s.current_threshold_dn} DN)` +
+          (s.keeps_only_marker ? " — in this frame set it keeps exactly the marker in every camera." : " — check the prediction below.");
+    const lines = [];
+    for (const c of s.cameras || []) for (const r of c.reasoning || []) lines.push(`camera ${c.camera}: ${r}`);
+    for (const r of s.reasoning || []) lines.push(r);
+    for (const r of s.predicted || []) lines.push(`prediction: ${r}`);
+    $("suggestion-why").replaceChildren(
+      ...lines.map((t) => {
+        const li = document.createElement("li");
+        li.textContent = t;
+        return li;
+      })
+    );
+    const apply = $("suggest-apply");
+    apply.hidden = v === null || v === undefined;
+    apply.textContent = `Apply ${v} DN`;
+    apply.disabled = !this.session.signed_in;
+    apply.title = this.session.signed_in ? "" : "sign in to apply";
+    box.hidden = false;
+    box.dataset.threshold = v === null || v === undefined ? "" : String(v);
+  }
+
+  /** The board's first-start suggestion from the status report, shown once until dismissed. */
+  showStartupSuggestion(s) {
+    if (!s || this.startupShown || !$("suggestion").hidden) return;
+    this.startupShown = true;
+    this.showSuggestion(s, "Suggested at first start");
+  }
+
+  applySuggestion() {
+    const v = this.suggestion && this.suggestion.threshold_dn;
+    if (v === null || v === undefined) return;
+    this.pairs.threshold_dn.set(v);
+    this.queue({ threshold_dn: v });
+    // The reasoning stays in view next to the result; the button says it was sent.
+    const apply = $("suggest-apply");
+    apply.disabled = true;
+    apply.textContent = `Applied ${v} DN`;
   }
 
   async start() {
@@ -101,6 +171,13 @@ export class Controls {
       outBtn.hidden = true;
     }
     document.body.dataset.signedIn = String(!!s.signed_in);
+    // Suggesting is an operator action (it takes a frame set from the loop).
+    const sb = $("suggest-btn");
+    sb.disabled = !s.signed_in;
+    sb.title = s.signed_in
+      ? "computes a threshold from each camera's histogram and the marker's peak; shows it before applying"
+      : "sign in as operator to get a threshold suggestion";
+    $("suggest-apply").disabled = !s.signed_in;
     this.onSession(s);
   }
 

@@ -59,21 +59,15 @@ export function serverFaults(st) {
 }
 
 /** Problems the page sees in the camera previews, in plain words with the next step; cameras
- *  in `skip` already have a fault from the board. */
+ *  in `skip` already have a fault from the board. The words come from the board's whole-frame
+ *  analysis of the previewed set (the same `advice` the status carries), so the camera cards
+ *  and the fault list never tell different stories. */
 export function previewWarnings(cams, skip = new Set()) {
   const out = [];
   for (const c of cams) {
     if (c.kept === null || skip.has(c.camera)) continue;
-    if (c.kept === 0 && c.rejected === 0) {
-      const above = c.peak_dn > c.threshold_dn;
-      out.push(
-        above
-          ? `Camera ${c.camera} sees no blob although pixels reach ${c.peak_dn} DN (threshold ${c.threshold_dn}) — check the blob area limits.`
-          : `Camera ${c.camera} sees no marker: its brightest pixel is ${c.peak_dn} DN, at or below the threshold ${c.threshold_dn} — lower the threshold or raise exposure or gain.`
-      );
-    } else if (c.kept === 0) {
-      const why = [...new Set(c.reasons.map((r) => r || "unknown"))].join(", ");
-      out.push(`Camera ${c.camera} finds ${c.rejected} blob(s) but rejects all of them (${why}) — adjust the blob area limits or remove the stray light.`);
+    if (c.advice) {
+      out.push(c.advice.message.charAt(0).toUpperCase() + c.advice.message.slice(1) + ".");
     } else if (c.kept > 1) {
       out.push(`Camera ${c.camera} keeps ${c.kept} blobs where one marker is expected — raise the threshold or cover the other light source.`);
     }
@@ -136,16 +130,29 @@ export class Health {
     const src = st.source || {};
     const proc = st.processing || {};
     // Cameras.
+    // Blobs, background and peak from the board's whole-frame analysis (the same account the
+    // camera cards show, with or without a parameter set); the loop's counters only without it.
+    const analysis = Array.isArray(st.frame_analysis) ? st.frame_analysis : [];
     const tbody = document.querySelector("#camera-health tbody");
     tbody.replaceChildren(
       ...(src.cameras || []).map((c) => {
+        const a = analysis.find((x) => x.camera === c.index);
         const tr = document.createElement("tr");
+        tr.dataset.camera = String(c.index);
+        if (a) {
+          tr.dataset.kept = String(a.kept);
+          tr.dataset.regions = String(a.regions);
+          tr.dataset.peak = String(a.background.peak_dn);
+          tr.dataset.background = String(a.background.median_dn);
+          tr.dataset.advice = a.advice ? a.advice.code : "";
+        }
         for (const v of [
           `camera ${c.index}`,
           fmt(c.fps, 1),
           fmt(c.frames),
-          fmt(c.blobs_last),
-          fmt(c.peak_dn),
+          a ? `${a.kept} / ${a.regions}${a.overloaded || a.too_many_spots ? " (overloaded)" : ""}` : fmt(c.blobs_last),
+          a ? fmt(a.background.median_dn) : "—",
+          a ? fmt(a.background.peak_dn) : fmt(c.peak_dn),
           c.width_px ? `${c.width_px}×${c.height_px}` : "—",
         ]) {
           const td = document.createElement("td");

@@ -5,6 +5,7 @@
 //! saturation, lens distortion, motion blur, ambient clutter and dropped frames, and gives the
 //! ground truth for every frame. [`resolution`] is the analytic planner behind `host-tools plan`.
 
+pub mod backdrop;
 pub mod cell;
 pub mod checkerboard;
 pub mod error;
@@ -16,6 +17,7 @@ pub mod tools;
 pub mod trajectory;
 pub mod wand;
 
+pub use backdrop::Backdrop;
 pub use error::SimError;
 pub use rig::{CameraSpec, RigPreset};
 pub use scenario::{

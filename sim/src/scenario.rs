@@ -21,6 +21,7 @@ use irtrack_core::params::RigParams;
 use nalgebra::{UnitQuaternion, Vector3};
 
 use crate::SimError;
+use crate::backdrop::Backdrop;
 use crate::noise::{PixelRng, hash_words, normal_table, unit_from_hash};
 use crate::rig::{CameraSpec, RigPreset, build_rig};
 use crate::trajectory::{Orientation, Trajectory};
@@ -171,6 +172,8 @@ pub struct SimConfig {
     pub seed: u64,
     /// Depth the scenario is meant to be written at (both renderers work regardless).
     pub bit_depth: BitDepth,
+    /// Realistic scene behind the markers (background level, floor, lamp); off by default.
+    pub backdrop: Backdrop,
 }
 
 impl SimConfig {
@@ -196,6 +199,7 @@ impl SimConfig {
             drop_rate: 0.0,
             seed: 1,
             bit_depth: BitDepth::Eight,
+            backdrop: Backdrop::default(),
         }
     }
 
@@ -397,17 +401,26 @@ struct Scratch {
 /// Output pixel types.
 trait Code: Copy {
     fn from_code(c: u16) -> Self;
+    fn code(self) -> u16;
 }
 impl Code for u8 {
     #[inline]
     fn from_code(c: u16) -> Self {
         c as u8
     }
+    #[inline]
+    fn code(self) -> u16 {
+        u16::from(self)
+    }
 }
 impl Code for u16 {
     #[inline]
     fn from_code(c: u16) -> Self {
         c
+    }
+    #[inline]
+    fn code(self) -> u16 {
+        self
     }
 }
 
@@ -420,6 +433,8 @@ pub struct Scenario {
     normal: Vec<f32>,
     tables: CodeTables,
     scratch: Scratch,
+    /// Per camera: the backdrop's static scene in 8-bit DN (empty without a backdrop).
+    backdrop_dn: Vec<Vec<f32>>,
 }
 
 impl Scenario {
@@ -485,6 +500,17 @@ impl Scenario {
                 return bad("clutter", format!("{c:?}: sigmas must be > 0.05 px, flux >= 0"));
             }
         }
+        cfg.backdrop.validate()?;
+        let backdrop_dn = if cfg.backdrop.is_active() {
+            (0..rig.cameras.len())
+                .map(|c| {
+                    cfg.backdrop
+                        .scene_dn(size.width_px as usize, size.height_px as usize, c, cfg.seed)
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
         let poses = rig.cameras.iter().map(|c| c.cam_from_cam0).collect();
         let normal = normal_table();
         let tables = CodeTables {
@@ -509,6 +535,7 @@ impl Scenario {
             normal,
             tables,
             scratch,
+            backdrop_dn,
         })
     }
 
@@ -678,6 +705,18 @@ impl Scenario {
                     let c = (e as f64 * gain).round().clamp(0.0, max_code as f64);
                     *d = P::from_code(c as u16);
                 }
+            }
+        }
+        if let Some(scene) = self.backdrop_dn.get(camera) {
+            let scale = f32::from(max_code) / 255.0;
+            let noise = self.cfg.backdrop.noise_dn as f32 * scale;
+            let max = f32::from(max_code);
+            for (d, s) in out.iter_mut().zip(scene) {
+                let z = self.normal[rng.next_u16() as usize];
+                let v = (f32::from(d.code()) + s * scale + noise * z)
+                    .round()
+                    .clamp(0.0, max);
+                *d = P::from_code(v as u16);
             }
         }
         Ok(info)

@@ -309,6 +309,9 @@ struct Rendered {
     zooms: Vec<(serde_json::Value, Bytes)>,
     blobs: Option<serde_json::Value>,
     set_index: u64,
+    /// The whole-frame analysis the previews and blob list come from (kept by the tap for
+    /// `/status`, so every part of the page shows the same account).
+    analysis: Vec<crate::advice::CameraAnalysis>,
 }
 
 /// A viewer reuses previews another viewer encoded this recently (with the same size and zoom)
@@ -350,7 +353,10 @@ fn render_for_viewer(
     let key = (sub.preview_max_width_px, sub.zoom_px);
     if !want_preview {
         let guard = tap.read()?;
-        return Some(render(guard.as_deref()?, sub, false));
+        let mut r = render(guard.as_deref()?, sub, false);
+        drop(guard);
+        tap.store_analysis(std::mem::take(&mut r.analysis));
+        return Some(r);
     }
     // Held through the encode: viewers that become due together wait here for the first one's
     // encode instead of all encoding the same set. Only viewer threads take this lock.
@@ -364,6 +370,7 @@ fn render_for_viewer(
         let guard = tap.read()?;
         let mut r = render(guard.as_deref()?, sub, false);
         drop(guard);
+        tap.store_analysis(std::mem::take(&mut r.analysis));
         r.previews = c.previews.clone();
         r.zooms = c.zooms.clone();
         if !sub.blobs {
@@ -374,7 +381,8 @@ fn render_for_viewer(
     // Hold the tap's copy only for a memcpy (the loop skips sets while it is held), then
     // downscale and encode outside that lock.
     let set = tap.read()?.as_deref()?.clone();
-    let r = render(&set, sub, true);
+    let mut r = render(&set, sub, true);
+    tap.store_analysis(std::mem::take(&mut r.analysis));
     share.encoded.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     *cache = Some(SharedPreviews {
         key,
@@ -568,8 +576,10 @@ fn render(set: &TapSet, sub: &Subscription, previews: bool) -> Rendered {
         zooms: Vec::new(),
         blobs: None,
         set_index: set.set_index,
+        analysis: Vec::new(),
     };
-    let lists = set.blobs_with_full_search();
+    let analysis = set.analyse();
+    let lists: Vec<Vec<BlobView>> = analysis.iter().map(|a| a.blobs.clone()).collect();
     for (camera, frame) in set.frames.iter().enumerate() {
         let blobs: &[BlobView] = lists.get(camera).map_or(&[], Vec::as_slice);
         if !previews {
@@ -610,6 +620,7 @@ fn render(set: &TapSet, sub: &Subscription, previews: bool) -> Rendered {
                 "peak_dn": frame_peak(frame),
                 "bit_depth": frame.bit_depth,
                 "blobs": blobs,
+                "analysis": analysis.get(camera),
             });
             out.previews.push((meta, Bytes::from(jpeg)));
         }
@@ -631,6 +642,7 @@ fn render(set: &TapSet, sub: &Subscription, previews: bool) -> Rendered {
             "truncated": set.blobs_truncated,
         }));
     }
+    out.analysis = analysis;
     out
 }
 

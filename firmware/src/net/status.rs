@@ -127,7 +127,14 @@ impl StatusService {
         let report = self.status.report();
         let tuning = self.tuning.as_ref().map(|t| t.report());
         let threshold_dn = tuning.as_ref().map(|t| t.threshold_dn);
-        let fault_texts = crate::status::fault_texts(&self.status, threshold_dn);
+        let analysis = self
+            .tap
+            .as_ref()
+            .and_then(|t| t.analysis(crate::viewer::ANALYSIS_MAX_AGE))
+            // Made before a threshold change: out of date (the next one comes within a second).
+            .filter(|a| threshold_dn.is_none_or(|thr| a.iter().all(|c| c.threshold_dn == thr)));
+        let fault_texts =
+            crate::status::fault_texts(&self.status, threshold_dn, analysis.as_deref().map(Vec::as_slice));
         let mut v = serde_json::to_value(&report).unwrap_or_default();
         let robot = self
             .control
@@ -139,6 +146,16 @@ impl StatusService {
             o.insert("fault_texts".into(), serde_json::json!(fault_texts));
             o.insert("robot".into(), robot.unwrap_or(serde_json::Value::Null));
             o.insert("tuning".into(), serde_json::to_value(&tuning).unwrap_or_default());
+            // The whole-frame analysis every part of the set-up view shows (crate::advice).
+            o.insert(
+                "frame_analysis".into(),
+                serde_json::to_value(analysis.as_deref()).unwrap_or_default(),
+            );
+            o.insert(
+                "threshold_suggestion".into(),
+                serde_json::to_value(self.tap.as_ref().and_then(|t| t.startup_suggestion()))
+                    .unwrap_or_default(),
+            );
             o.insert(
                 "viewers".into(),
                 serde_json::json!({
@@ -206,6 +223,7 @@ impl StatusService {
             .route("/api/logout", post(live::logout))
             .route("/api/tuning", get(live::tuning_get).post(live::tuning_post))
             .route("/api/tuning/save", post(live::tuning_save))
+            .route("/api/tuning/suggest", post(super::advice::suggest))
             .route("/api/scene", get(live::scene))
             .route("/api/frameset", get(live::frameset))
             .route("/api/live", get(live::live))

@@ -140,6 +140,10 @@ impl FrameSource for FaultySource {
         format!("{} with injected faults", self.inner.describe())
     }
 
+    fn end_summary(&self) -> Option<String> {
+        self.inner.end_summary()
+    }
+
     fn controls(&self) -> Vec<super::CameraControls> {
         self.inner.controls()
     }

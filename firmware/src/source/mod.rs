@@ -177,6 +177,11 @@ pub trait FrameSource: Send {
     fn stats(&self) -> SourceStats;
     /// Human-readable description for status and logs.
     fn describe(&self) -> String;
+    /// Why a finite source ended, in words (replay: sets delivered of recorded, and what was
+    /// skipped); said by the loop when the stream ends.
+    fn end_summary(&self) -> Option<String> {
+        None
+    }
     /// Exposure and gain of every camera (camera order); by default none are supported.
     fn controls(&self) -> Vec<CameraControls> {
         vec![CameraControls::default(); self.camera_count()]

@@ -38,9 +38,41 @@ pub struct ReplayConfig {
     /// Start again at the first frame after the last one instead of ending.
     #[serde(default)]
     pub repeat: bool,
-    /// Frame rate used at recorded speed when the directory has no timestamps.csv.
+    /// Frame rate used at recorded speed when the directory has no timestamps.csv
+    /// (default [`DEFAULT_REPLAY_FPS`], said at start).
     #[serde(default)]
     pub fps: Option<f64>,
+}
+
+/// Pace of a recording without `timestamps.csv` when `[source.replay] fps` is not set: the
+/// frame sets get this spacing, so each is newer than the one before (with period 0 the loop
+/// would drop every set after the first as "not newer").
+pub const DEFAULT_REPLAY_FPS: f64 = 30.0;
+
+/// Where the replay's timing comes from (said at start and in the status's description).
+#[derive(Debug, Clone, PartialEq)]
+pub enum ReplayTiming {
+    /// `timestamps.csv` of the recording.
+    Recorded,
+    /// No timestamps.csv: `[source.replay] fps`.
+    ConfiguredFps(f64),
+    /// No timestamps.csv and no `fps`: [`DEFAULT_REPLAY_FPS`].
+    DefaultFps(f64),
+}
+
+impl std::fmt::Display for ReplayTiming {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ReplayTiming::Recorded => write!(f, "recorded timestamps (timestamps.csv)"),
+            ReplayTiming::ConfiguredFps(fps) => {
+                write!(f, "no timestamps.csv: paced at {fps} fps ([source.replay] fps)")
+            }
+            ReplayTiming::DefaultFps(fps) => write!(
+                f,
+                "no timestamps.csv: paced at the default {fps} fps (set [source.replay] fps for another rate)"
+            ),
+        }
+    }
 }
 
 struct RecordedSet {
@@ -62,6 +94,11 @@ pub struct ReplaySource {
     /// (monotonic ns at the first delivered set, its recorded timestamp)
     epoch: Option<(u64, u64)>,
     template: FrameSet,
+    timing: ReplayTiming,
+    /// Sets skipped because a frame file could not be read or decoded (first path and reason
+    /// kept for the end-of-replay summary).
+    unreadable: u64,
+    first_unreadable: Option<String>,
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SourceError + '_ {
@@ -90,6 +127,19 @@ impl ReplaySource {
         }
         let ts_path = dir.join("timestamps.csv");
         let mut skipped_frames = 0;
+        let timing = if ts_path.exists() {
+            ReplayTiming::Recorded
+        } else {
+            match cfg.fps {
+                Some(f) if f.is_finite() && f > 0.0 => ReplayTiming::ConfiguredFps(f),
+                Some(f) => {
+                    return Err(SourceError::Config(format!(
+                        "[source.replay] fps = {f} must be a positive number of frame sets per second"
+                    )));
+                }
+                None => ReplayTiming::DefaultFps(DEFAULT_REPLAY_FPS),
+            }
+        };
         let sets = if ts_path.exists() {
             let text = std::fs::read_to_string(&ts_path).map_err(io(&ts_path))?;
             // frame -> per-camera (timestamp, dropped)
@@ -139,7 +189,11 @@ impl ReplaySource {
                 .filter_map(|e| e.file_name().to_str()?.strip_suffix(".pgm")?.parse().ok())
                 .collect();
             frames.sort_unstable();
-            let period_ns = cfg.fps.filter(|f| *f > 0.0).map_or(0, |f| (1e9 / f) as u64);
+            let fps = match timing {
+                ReplayTiming::ConfiguredFps(f) | ReplayTiming::DefaultFps(f) => f,
+                ReplayTiming::Recorded => DEFAULT_REPLAY_FPS,
+            };
+            let period_ns = (1e9 / fps) as u64;
             frames
                 .into_iter()
                 .map(|frame| RecordedSet {
@@ -156,6 +210,11 @@ impl ReplaySource {
                 dir.display()
             ))
         })?;
+        if let ReplayTiming::DefaultFps(_) = timing
+            && cfg.speed == ReplaySpeed::Recorded
+        {
+            tracing::warn!(dir = %dir.display(), "replay: {timing}");
+        }
         let mut buf = Vec::new();
         let mut frames = Vec::with_capacity(cameras);
         for (path, _) in &first.files {
@@ -180,7 +239,15 @@ impl ReplaySource {
             skipped_frames,
             epoch: None,
             template,
+            timing,
+            unreadable: 0,
+            first_unreadable: None,
         })
+    }
+
+    /// Where the replay's timing comes from.
+    pub fn timing(&self) -> &ReplayTiming {
+        &self.timing
     }
 
     /// Number of complete recorded sets.
@@ -211,6 +278,65 @@ impl FrameSource for ReplaySource {
     }
 
     fn next_set(&mut self, out: &mut FrameSet) -> Result<(), SourceError> {
+        let result = self.try_next_set(out);
+        // A frame file that cannot be read or decoded is reported (with its path) and its set
+        // passed over: the loop's retry then gets the next set instead of the same bad file.
+        if let Err(SourceError::CameraLost { device, reason, .. }) = &result {
+            if self.unreadable == 0 {
+                self.first_unreadable = Some(format!("{device}: {reason}"));
+            }
+            self.unreadable += 1;
+            self.next += 1;
+            self.stats.sets_dropped = self.skipped_frames + self.unreadable;
+        }
+        result
+    }
+
+    fn stats(&self) -> SourceStats {
+        self.stats.clone()
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "replay of {} ({} cameras, {} sets, {:?} speed{}; {})",
+            self.cfg.dir.display(),
+            self.cameras,
+            self.sets.len(),
+            self.cfg.speed,
+            if self.cfg.repeat { ", repeating" } else { "" },
+            if self.cfg.speed == ReplaySpeed::Max {
+                "as fast as processed".to_string()
+            } else {
+                self.timing.to_string()
+            }
+        )
+    }
+
+    fn end_summary(&self) -> Option<String> {
+        let mut s = format!(
+            "replay of {} ended: {} of {} recorded sets delivered",
+            self.cfg.dir.display(),
+            self.stats.sets_delivered,
+            self.sets.len() as u64 + self.skipped_frames
+        );
+        if self.skipped_frames > 0 {
+            s += &format!(
+                "; {} sets skipped because timestamps.csv marks a camera's frame dropped or missing",
+                self.skipped_frames
+            );
+        }
+        if let Some(first) = &self.first_unreadable {
+            s += &format!(
+                "; {} sets skipped for unreadable frame files (first: {first})",
+                self.unreadable
+            );
+        }
+        Some(s)
+    }
+}
+
+impl ReplaySource {
+    fn try_next_set(&mut self, out: &mut FrameSet) -> Result<(), SourceError> {
         if self.next >= self.sets.len() {
             if !self.cfg.repeat {
                 return Err(SourceError::EndOfStream);
@@ -235,7 +361,11 @@ impl FrameSource for ReplaySource {
         }
         let (mut min_ts, mut max_ts) = (u64::MAX, 0);
         for (camera, ((path, ts), frame)) in set.files.iter().zip(out.frames.iter_mut()).enumerate() {
-            read_file(path, &mut self.buf)?;
+            read_file(path, &mut self.buf).map_err(|e| SourceError::CameraLost {
+                camera,
+                device: path.display().to_string(),
+                reason: e.to_string(),
+            })?;
             frame.decode_pgm(&self.buf).map_err(|e| SourceError::CameraLost {
                 camera,
                 device: path.display().to_string(),
@@ -253,22 +383,7 @@ impl FrameSource for ReplaySource {
         out.pairing_error_ns = max_ts.saturating_sub(min_ts);
         self.next += 1;
         self.stats.sets_delivered += 1;
-        self.stats.sets_dropped = self.skipped_frames;
+        self.stats.sets_dropped = self.skipped_frames + self.unreadable;
         Ok(())
-    }
-
-    fn stats(&self) -> SourceStats {
-        self.stats.clone()
-    }
-
-    fn describe(&self) -> String {
-        format!(
-            "replay of {} ({} cameras, {} sets, {:?} speed{})",
-            self.cfg.dir.display(),
-            self.cameras,
-            self.sets.len(),
-            self.cfg.speed,
-            if self.cfg.repeat { ", repeating" } else { "" }
-        )
     }
 }

@@ -90,6 +90,53 @@ pub struct SimSourceConfig {
     /// rendered where robot-sim says the robot really put it (docs/simulator.md).
     #[serde(default)]
     pub cell: Option<SimCellConfig>,
+    /// What real IR cameras see behind the marker (`[source.sim.backdrop]`): a background
+    /// level with noise and vignetting, a textured floor with reflections, a lamp. Absent: a
+    /// dark background (docs/simulator.md).
+    #[serde(default)]
+    pub backdrop: Option<SimBackdropConfig>,
+}
+
+/// `[source.sim.backdrop]`: every key defaults to the realistic scene
+/// ([`irtrack_sim::Backdrop::realistic`]), so an empty table gives it whole.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimBackdropConfig {
+    /// Background at the frame's centre, 8-bit DN.
+    pub level_dn: f64,
+    /// Extra per-pixel noise (standard deviation), 8-bit DN.
+    pub noise_dn: f64,
+    /// Fraction of the level lost in the corners.
+    pub vignetting: f64,
+    /// Textured floor with specular reflections in the lower third.
+    pub floor: bool,
+    /// A saturated lamp cut by the top edge.
+    pub lamp: bool,
+}
+
+impl Default for SimBackdropConfig {
+    fn default() -> Self {
+        let b = irtrack_sim::Backdrop::realistic();
+        Self {
+            level_dn: b.level_dn,
+            noise_dn: b.noise_dn,
+            vignetting: b.vignetting,
+            floor: b.floor,
+            lamp: b.lamp,
+        }
+    }
+}
+
+impl SimBackdropConfig {
+    pub fn backdrop(&self) -> irtrack_sim::Backdrop {
+        irtrack_sim::Backdrop {
+            level_dn: self.level_dn,
+            noise_dn: self.noise_dn,
+            vignetting: self.vignetting,
+            floor: self.floor,
+            lamp: self.lamp,
+        }
+    }
 }
 
 /// `[source.sim.cell]`: simulator-only settings of the robot cell. The transform below is the
@@ -180,6 +227,7 @@ impl Default for SimSourceConfig {
             wand_mm: None,
             wand_frames: d_wand_frames(),
             cell: None,
+            backdrop: None,
         }
     }
 }
@@ -253,6 +301,11 @@ impl SimSourceConfig {
                 ));
             }
         }
+        if let Some(b) = &self.backdrop
+            && let Err(e) = b.backdrop().validate()
+        {
+            return bad(format!("source.sim.backdrop: {e}"));
+        }
         if !(0.0..1.0).contains(&self.drop_rate) {
             return bad(format!(
                 "source.sim.drop_rate must be in [0, 1), got {}",
@@ -322,6 +375,9 @@ impl SimSourceConfig {
         };
         if self.glare {
             cfg.add_glare();
+        }
+        if let Some(b) = &self.backdrop {
+            cfg.backdrop = b.backdrop();
         }
         if let Some(tool) = self.tool_definition() {
             cfg.set_tool(

@@ -252,6 +252,31 @@ fn save_set(out: &Path, index: u64, set: &FrameSet) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// File beside cam0/, cam1/, … with each saved frame's capture time (the board's clock), the
+/// format irtrackd's replay source reads: `frame,camera,timestamp_ns,dropped`.
+pub const TIMESTAMPS_FILE: &str = "timestamps.csv";
+
+/// Appends one set's rows to `DIR/timestamps.csv` (header written when the file is new), so a
+/// replay of the directory keeps the recorded frame intervals.
+pub fn append_timestamps(out: &Path, index: u64, set: &FrameSet) -> anyhow::Result<()> {
+    let path = out.join(TIMESTAMPS_FILE);
+    let new = !path.exists();
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&path)
+        .with_context(|| format!("opening {}", path.display()))?;
+    let mut rows = String::new();
+    if new {
+        rows.push_str("frame,camera,timestamp_ns,dropped\n");
+    }
+    for (c, cam) in set.header.cameras.iter().enumerate() {
+        rows.push_str(&format!("{index},{c},{},0\n", cam.timestamp_ns));
+    }
+    f.write_all(rows.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))
+}
+
 /// What happened to one saved set in checkerboard mode, per camera: corners found or not.
 pub fn detect_set(
     set: &FrameSet,
@@ -373,6 +398,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!("{}", describe_cameras(&args.from, &first.header));
     println!("capturing from {url} into {}: {mode}{limit}", args.out.display());
     let mut index = next_index(&args.out);
+    // Sets saved earlier without a timestamps file: rows for the new ones only would make a
+    // replay skip the old ones, so the directory stays without (replay paces it at a set rate).
+    let write_timestamps = index == 0 || args.out.join(TIMESTAMPS_FILE).exists();
+    if !write_timestamps {
+        eprintln!(
+            "capture: {} holds sets without {TIMESTAMPS_FILE}; continuing without it (a replay paces these sets at [source.replay] fps)",
+            args.out.display()
+        );
+    }
     let mut saved = 0u64;
     let mut both = 0u64;
     let mut last_set: Option<u64> = None;
@@ -424,6 +458,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             Some(_) => {}
         }
         save_set(&args.out, index, &set)?;
+        if write_timestamps {
+            append_timestamps(&args.out, index, &set)?;
+        }
         saved += 1;
         let name = format!("{index:06}");
         index += 1;
