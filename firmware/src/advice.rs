@@ -727,8 +727,10 @@ mod tests {
 
     #[test]
     fn no_led_keeps_its_words() {
-        let mut cfg = TrackerConfig::default();
-        cfg.threshold_dn = 254;
+        let cfg = TrackerConfig {
+            threshold_dn: 254,
+            ..TrackerConfig::default()
+        };
         let a = CameraAnalysis::of(1, 1, &scene(10), &cfg, None, 32).unwrap();
         let m = a.advice.unwrap().message;
         assert!(
@@ -751,9 +753,11 @@ mod tests {
                 }
             })
             .collect();
-        let mut cfg = TrackerConfig::default();
-        cfg.max_labels = 64;
-        cfg.min_area_px = 1;
+        let cfg = TrackerConfig {
+            max_labels: 64,
+            min_area_px: 1,
+            ..TrackerConfig::default()
+        };
         let a = CameraAnalysis::of(0, 1, &frame(w, h, px), &cfg, None, 32).unwrap();
         assert!(a.overloaded);
         let m = a.advice.unwrap();
