@@ -401,6 +401,11 @@ async fn run(c: &Client, status: SocketAddr, out: &Path, downloads: &Path) {
         );
         assert_eq!(bytes.len(), "P5\n640 480\n255\n".len() + 640 * 480, "{name}");
     }
+    // With the frames, timestamps.csv for a replay: a header and one row per camera.
+    let csv = std::fs::read_to_string(downloads.join("timestamps.csv")).unwrap_or_default();
+    let rows: Vec<&str> = csv.lines().collect();
+    assert_eq!(rows.first(), Some(&"frame,camera,timestamp_ns,dropped"), "{csv}");
+    assert_eq!(rows.len(), 3, "{csv}");
     println!("capture: {msg}");
     screenshot(c, &out.join("setup-view.png")).await;
 
