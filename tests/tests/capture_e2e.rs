@@ -143,19 +143,15 @@ fn a_capture_by_host_tools_replays_every_set() {
 
     // As a person would: `irtrackd --replay-dir DIR`, no config file.
     let run = |label: &str| {
-        let mut child = Command::new(bin("irtrackd"))
-            .arg("--replay-dir")
+        let mut cmd = Command::new(bin("irtrackd"));
+        cmd.arg("--replay-dir")
             .arg(&shots)
             .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
-            .arg(dir.join(format!("state-{label}")))
-            .stdout(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::null())
-            .spawn()
-            .unwrap();
-        let line = wait_line(&mut child, "irtrackd ready", std::time::Duration::from_secs(20));
-        let guard = Guard(child);
-        let st = wait_ended(addr_field(&line, "status="), 20);
-        drop(guard);
+            .arg(dir.join(format!("state-{label}")));
+        let d =
+            Irtrackd::spawn(&mut cmd, std::time::Duration::from_secs(20)).unwrap_or_else(|e| panic!("{e}"));
+        let st = wait_ended(addr_field(&d.ready().line, "status="), 20);
+        drop(d);
         st
     };
     let st = run("recorded");
