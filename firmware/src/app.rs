@@ -348,7 +348,7 @@ fn start_robot(
 pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     let resolved = cfg.validate()?;
     let listeners = bind_listeners(&cfg.listen).await?;
-    let outputs = crate::outputs::Outputs::bind(&cfg.outputs)?;
+    let outputs = crate::outputs::Outputs::bind(&cfg.outputs, &cfg.service.state_dir)?;
     let addrs = BoundAddrs {
         natnet: outputs.natnet_addr(),
         ..listeners.addrs

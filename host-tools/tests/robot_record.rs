@@ -14,7 +14,8 @@ fn rec(frame: u64) -> PositionRecord {
         frame,
         capture_ts_ns: 1_000_000_000 + frame * 10_000_000,
         position_mm: (!lost).then_some([frame as f64, 2.0 * frame as f64, 300.0]),
-        orientation_wxyz: None,
+        // The last records carry a tool orientation (6-DOF), the others are a single LED.
+        orientation_wxyz: (!lost && frame > 30).then_some([0.5, 0.5, -0.5, 0.5]),
         gap_mm: if lost { f64::NAN } else { 0.3 },
         status: if lost { TrackStatus::Lost } else { TrackStatus::Ok },
         cameras_used: if lost { 1 } else { 2 },
@@ -61,7 +62,8 @@ fn base_args(from: String, out: std::path::PathBuf, format: Format) -> record::A
     record::Args {
         from,
         format,
-        out,
+        out: Some(out),
+        mcap: None,
         duration_s: Some(10.0),
         points: false,
         max_points: None,
@@ -114,5 +116,84 @@ fn point_teach_marks_waypoints_from_the_mark_file() {
     // The waypoint is the newest valid position when the mark appeared (frame 20 or just after).
     let frame: u64 = rows[0][1].parse().unwrap();
     assert!((20..=24).contains(&frame), "waypoint frame {frame}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn mcap_recording_decodes_with_ros2_schemas_in_python() {
+    let dir = std::env::temp_dir().join(format!("irtrack-record-mcap-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("rec.mcap");
+    let addr = serve(false, 40, None);
+    let mut a = base_args(addr, dir.join("unused.csv"), Format::Ndjson);
+    a.out = None;
+    a.mcap = Some(file.clone());
+    let s = record::record(&a).unwrap();
+    let streamed: Vec<PositionRecord> = (1..=40).map(rec).collect();
+    let tracked = streamed.iter().filter(|r| r.status == TrackStatus::Ok).count();
+    let with_pose = streamed
+        .iter()
+        .filter(|r| r.status == TrackStatus::Ok && r.orientation_wxyz.is_some())
+        .count();
+    let c = s.mcap.unwrap();
+    assert_eq!(
+        (c.status, c.position, c.tf, c.pose),
+        (40, tracked as u64, tracked as u64, with_pose as u64)
+    );
+
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/../firmware/tests/py/check_mcap.py");
+    let out = std::process::Command::new("python3")
+        .arg(script)
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "check_mcap.py failed; are PyPI's mcap and mcap-ros2-support installed (cargo xtask setup)?\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let got: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(got["profile"], "ros2");
+    assert_eq!(got["monotonic"], true);
+    // Counts equal what was streamed: every record's status, every tracked position and tf,
+    // every tracked 6-DOF pose.
+    let counts = &got["counts"];
+    assert_eq!(counts["/irtrack/status"], 40);
+    assert_eq!(counts["/irtrack/position"], tracked);
+    assert_eq!(counts["/tf"], tracked);
+    assert_eq!(counts["/irtrack/pose"], with_pose);
+    assert_eq!(
+        got["schemas"]["/irtrack/pose"][0],
+        "geometry_msgs/msg/PoseStamped"
+    );
+    assert_eq!(got["schemas"]["/tf"][0], "tf2_msgs/msg/TFMessage");
+    assert_eq!(got["schemas"]["/irtrack/status"][1], "ros2msg");
+    assert_eq!(got["schemas"]["/irtrack/status"][2], "cdr");
+    // Decoded values equal the streamed records (metres), stamps keep the board's spacing.
+    let positions = got["positions"].as_array().unwrap();
+    let tracked_recs: Vec<&PositionRecord> =
+        streamed.iter().filter(|r| r.status == TrackStatus::Ok).collect();
+    let stamp = |p: &serde_json::Value| {
+        p[1].as_i64().unwrap() as i128 * 1_000_000_000 + p[2].as_i64().unwrap() as i128
+    };
+    for (p, r) in positions.iter().zip(&tracked_recs) {
+        assert_eq!(p[0], "irtrack_world");
+        let want = r.position_mm.unwrap();
+        for i in 0..3 {
+            assert!((p[3 + i].as_f64().unwrap() - want[i] / 1e3).abs() < 1e-12);
+        }
+        let dt = stamp(p) - stamp(&positions[0]);
+        assert_eq!(dt, i128::from(r.capture_ts_ns - tracked_recs[0].capture_ts_ns));
+    }
+    let pose = &got["poses"][0];
+    assert_eq!(
+        pose.as_array().unwrap()[3..],
+        [0.5, -0.5, 0.5, 0.5].map(serde_json::Value::from)
+    );
+    assert_eq!(got["tf"][0][1], "irtrack_led");
+    assert_eq!(got["tf"][tracked - 1][1], "irtrack_tool");
+    let lost = &got["status"][4];
+    assert_eq!((lost[0].as_u64(), lost[1].as_str()), (Some(1), Some("lost")));
+    assert_eq!(lost[2]["frame"], "5");
     let _ = std::fs::remove_dir_all(&dir);
 }

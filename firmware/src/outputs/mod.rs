@@ -4,7 +4,11 @@
 //! from the loop itself: a slow or absent consumer can only make an output skip records
 //! (counted in [`OutputStats`]), never slow the loop.
 
+#[cfg(feature = "mcap")]
+pub mod mcap;
 pub mod natnet;
+pub mod recording;
+pub mod ros2msg;
 pub mod scene;
 
 use std::future::Future;
@@ -26,6 +30,8 @@ use crate::status::SharedStatus;
 pub struct OutputsConfig {
     #[serde(default)]
     pub natnet: natnet::NatNetConfig,
+    #[serde(default)]
+    pub mcap: recording::McapConfig,
 }
 
 impl OutputsConfig {
@@ -34,7 +40,7 @@ impl OutputsConfig {
         if self.natnet.enabled {
             self.natnet.plan()?;
         }
-        Ok(())
+        self.mcap.validate()
     }
 }
 
@@ -60,6 +66,8 @@ pub struct OutputStats {
 #[derive(Debug, Clone, Default)]
 pub struct OutputsStats {
     pub natnet: Arc<OutputStats>,
+    /// `frames_sent`: records written; `send_drops`: records the full queue refused.
+    pub mcap: Arc<OutputStats>,
 }
 
 /// What outputs read: the latest-value slot, the active parameter set (for the models) and
@@ -73,12 +81,18 @@ pub struct Feed {
 /// The enabled outputs, bound (so a port in use fails at start) but not yet running.
 pub struct Outputs {
     natnet: Option<natnet::server::NatNetServer>,
+    #[cfg(feature = "mcap")]
+    mcap: Option<recording::Recorder>,
     pub stats: OutputsStats,
 }
 
 impl Outputs {
-    /// Checks the configuration and binds every enabled output's sockets.
-    pub fn bind(cfg: &OutputsConfig) -> Result<Self> {
+    /// Checks the configuration, binds every enabled output's sockets and creates its files
+    /// (relative paths under `state_dir`).
+    pub fn bind(cfg: &OutputsConfig, state_dir: &std::path::Path) -> Result<Self> {
+        cfg.validate()?;
+        #[cfg(not(feature = "mcap"))]
+        let _ = state_dir;
         let natnet = if cfg.natnet.enabled {
             Some(natnet::server::NatNetServer::bind(cfg.natnet.plan()?)?)
         } else {
@@ -86,6 +100,14 @@ impl Outputs {
         };
         Ok(Self {
             natnet,
+            #[cfg(feature = "mcap")]
+            mcap: match cfg.mcap.enabled {
+                true => Some(recording::Recorder::create(
+                    cfg.mcap.resolved_path(state_dir),
+                    cfg.mcap.queue_records,
+                )?),
+                false => None,
+            },
             stats: OutputsStats::default(),
         })
     }
@@ -108,6 +130,15 @@ impl Outputs {
                 feed.params.clone(),
                 feed.status.clone(),
                 self.stats.natnet.clone(),
+                shutdown(),
+            )));
+        }
+        #[cfg(feature = "mcap")]
+        if let Some(rec) = self.mcap {
+            tasks.push(tokio::spawn(rec.run(
+                feed.slot.clone(),
+                feed.status.clone(),
+                self.stats.mcap.clone(),
                 shutdown(),
             )));
         }

@@ -5,6 +5,11 @@
 //! on stdin, or by creating the `--mark-file` (a foot switch script can `touch` it; the recorder
 //! deletes it after marking). `q` + Enter stops. The newest valid position at the moment of the
 //! mark becomes the waypoint.
+//!
+//! `--mcap FILE` also records every record into an MCAP file with ROS 2 schemas (Foxglove,
+//! `ros2 bag`; docs/outputs.md). Its stamps are wall-clock times: the board's capture times
+//! shifted by (this PC's clock − the first record's capture time) when it arrives, so the
+//! spacing is the board's and the absolute time is this PC's, to within the stream latency.
 
 use std::io::{BufRead, BufReader, BufWriter, Read, Write};
 use std::net::TcpStream;
@@ -14,6 +19,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use irtrack_core::stream::{BINARY_FRAME_LEN, MAX_NDJSON_LINE, PositionRecord, TrackStatus};
+use irtrack_firmware::outputs::mcap::McapRecorder;
 
 /// Stream encoding to subscribe to.
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
@@ -33,8 +39,11 @@ pub struct Args {
     #[arg(long, value_enum, default_value_t = Format::Ndjson)]
     pub format: Format,
     /// Output CSV.
+    #[arg(long, required_unless_present = "mcap")]
+    pub out: Option<PathBuf>,
+    /// Also (or only) record into this MCAP file, ROS 2 message schemas (docs/outputs.md).
     #[arg(long)]
-    pub out: PathBuf,
+    pub mcap: Option<PathBuf>,
     /// Stop after this many seconds.
     #[arg(long)]
     pub duration_s: Option<f64>,
@@ -60,6 +69,8 @@ pub struct Summary {
     pub lost: u64,
     pub waypoints: usize,
     pub written_rows: u64,
+    /// Messages written to the MCAP file, per topic.
+    pub mcap: Option<irtrack_firmware::outputs::mcap::McapCounts>,
 }
 
 /// The orientation columns (6-DOF tools; empty for a single LED) come last so readers that
@@ -159,10 +170,22 @@ pub fn record(args: &Args) -> anyhow::Result<Summary> {
     // A short timeout lets the loop check the clock and commands while the stream is quiet.
     stream.set_read_timeout(Some(Duration::from_millis(200)))?;
     let mut rd = BufReader::new(stream);
-    let file =
-        std::fs::File::create(&args.out).with_context(|| format!("{}: cannot create", args.out.display()))?;
-    let mut out = BufWriter::new(file);
+    let mut out: Box<dyn Write> = match &args.out {
+        Some(path) => {
+            let file =
+                std::fs::File::create(path).with_context(|| format!("{}: cannot create", path.display()))?;
+            Box::new(BufWriter::new(file))
+        }
+        None => Box::new(std::io::sink()),
+    };
     writeln!(out, "{HEADER}")?;
+    let mcap_file = match &args.mcap {
+        Some(path) => {
+            Some(std::fs::File::create(path).with_context(|| format!("{}: cannot create", path.display()))?)
+        }
+        None => None,
+    };
+    let mut mcap: Option<McapRecorder<BufWriter<std::fs::File>>> = None;
     let (tx, cmds) = mpsc::channel();
     if !args.no_stdin {
         std::thread::spawn(move || {
@@ -233,6 +256,16 @@ pub fn record(args: &Args) -> anyhow::Result<Summary> {
         if let Some(r) = rec {
             s.records += 1;
             let t0 = *t0_ns.get_or_insert(r.capture_ts_ns);
+            if let Some(file) = mcap_file.as_ref().filter(|_| mcap.is_none()) {
+                let wall_ns = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.as_nanos() as i128);
+                let file = file.try_clone().context("MCAP file")?;
+                mcap = Some(McapRecorder::new(BufWriter::new(file), wall_ns - i128::from(t0))?);
+            }
+            if let Some(m) = mcap.as_mut() {
+                m.write(&r)?;
+            }
             let valid = r.status == TrackStatus::Ok && r.position_mm.is_some();
             if valid {
                 s.valid += 1;
@@ -283,6 +316,15 @@ pub fn record(args: &Args) -> anyhow::Result<Summary> {
         }
     }
     out.flush()?;
+    if mcap.is_none()
+        && let Some(file) = &mcap_file
+    {
+        // No record arrived: still leave a valid (empty) MCAP file with its channels.
+        mcap = Some(McapRecorder::new(BufWriter::new(file.try_clone()?), 0)?);
+    }
+    if let Some(m) = mcap {
+        s.mcap = Some(m.finish()?);
+    }
     eprintln!();
     Ok(s)
 }
@@ -299,15 +341,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     let s = record(&args)?;
-    println!(
-        "{} records ({} valid, {} lost), {} waypoints, {} rows written to {}",
-        s.records,
-        s.valid,
-        s.lost,
-        s.waypoints,
-        s.written_rows,
-        display(&args.out)
-    );
+    if let Some(out) = &args.out {
+        println!(
+            "{} records ({} valid, {} lost), {} waypoints, {} rows written to {}",
+            s.records,
+            s.valid,
+            s.lost,
+            s.waypoints,
+            s.written_rows,
+            display(out)
+        );
+    }
+    if let (Some(path), Some(c)) = (&args.mcap, s.mcap) {
+        println!(
+            "{} records into {}: {} positions, {} poses, {} tf, {} status messages",
+            s.records,
+            display(path),
+            c.position,
+            c.pose,
+            c.tf,
+            c.status
+        );
+    }
     Ok(())
 }
 
