@@ -159,6 +159,8 @@ async fn bind_listeners(listen: &ListenConfig) -> Result<Listeners> {
     let ndjson = bind("NDJSON stream", &listen.stream_ndjson).await?;
     let binary = bind("binary stream", &listen.stream_binary).await?;
     let status = bind("status", &listen.status).await?;
+    // The connection caps only hold if the descriptors they allow exist.
+    crate::net::limit::check_fd_limit(crate::net::limit::fds_needed(listen.max_stream_clients));
     let addrs = BoundAddrs {
         params: local("parameters", &params)?,
         stream_ndjson: local("NDJSON stream", &ndjson)?,
@@ -462,6 +464,7 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     let service = crate::net::status::StatusService::new(status.clone())
         .with_control(control)
         .with_auth(auth)
+        .with_view_policy(&cfg.status.allowed_hosts, cfg.status.public_view)
         .with_live(tap, tuning, slot_rx.clone(), handle)
         .with_workspace(
             cfg.robot

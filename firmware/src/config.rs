@@ -25,6 +25,9 @@ pub struct Config {
     pub service: ServiceConfig,
     #[serde(default)]
     pub listen: ListenConfig,
+    /// Who may view the status port's live data, and the names it answers to.
+    #[serde(default)]
+    pub status: StatusConfig,
     /// Who may push parameter sets.
     #[serde(default)]
     pub params: ParamsConfig,
@@ -85,6 +88,33 @@ impl Default for ServiceConfig {
             params_from_simulator: false,
             control: false,
             operator_password_hash: None,
+        }
+    }
+}
+
+/// `[status]`: viewing and naming rules of the status port (docs/security.md).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StatusConfig {
+    /// Previews, frame sets and positions without sign-in (default). `false`: only to a
+    /// signed-in operator.
+    #[serde(default = "default_true")]
+    pub public_view: bool,
+    /// Host names (DNS or mDNS names) the board is reached by, besides its addresses and its
+    /// own host name; requests naming any other host are refused (DNS rebinding).
+    #[serde(default)]
+    pub allowed_hosts: Vec<String>,
+}
+
+fn default_true() -> bool {
+    true
+}
+
+impl Default for StatusConfig {
+    fn default() -> Self {
+        Self {
+            public_view: true,
+            allowed_hosts: Vec::new(),
         }
     }
 }

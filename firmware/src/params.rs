@@ -81,6 +81,11 @@ fn reject(code: RejectCode, message: String) -> Verdict {
 }
 
 impl ParamService {
+    /// The service's shared status (counters of the parameter listener live there).
+    pub fn status(&self) -> &Arc<SharedStatus> {
+        &self.status
+    }
+
     pub fn new(
         store: ParamStore,
         shape: RigShape,

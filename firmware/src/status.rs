@@ -153,6 +153,8 @@ pub struct SharedStatus {
     pub stream_clients_total: AtomicU64,
     pub stream_dropped_slow: AtomicU64,
     pub stream_refused: AtomicU64,
+    /// Connection caps and sign-in throttle of the listeners (`/metrics`).
+    pub net: crate::net::limit::NetCounters,
     pub stream_records_sent: AtomicU64,
     pub slot_overwrites: AtomicU64,
     /// Open live WebSocket sessions (set-up view).
@@ -218,6 +220,7 @@ impl SharedStatus {
             stream_clients: AtomicU64::new(0),
             stream_clients_total: AtomicU64::new(0),
             stream_refused: AtomicU64::new(0),
+            net: crate::net::limit::NetCounters::default(),
             stream_dropped_slow: AtomicU64::new(0),
             stream_records_sent: AtomicU64::new(0),
             slot_overwrites: AtomicU64::new(0),
@@ -408,7 +411,7 @@ impl SharedStatus {
     pub fn prometheus(&self) -> String {
         let info = self.params_info();
         // Counter names without `_total`: the encoder appends it.
-        let counters: [(&'static str, &'static str, u64); 17] = [
+        let counters: [(&'static str, &'static str, u64); 18] = [
             (
                 "irtrackd_sets_processed",
                 "frame sets processed",
@@ -490,7 +493,20 @@ impl SharedStatus {
                 "parameter pushes rejected",
                 info.rejected,
             ),
+            (
+                "irtrackd_signin_throttled",
+                "operator sign-ins refused by the throttle",
+                self.net.signin_throttled.load(R),
+            ),
         ];
+        let listeners = self.net.listeners().map(|(name, c)| ListenerSnapshot {
+            name,
+            open: c.open.load(R),
+            accepted: c.accepted.load(R),
+            refused_listener_cap: c.refused_listener_cap.load(R),
+            refused_peer_cap: c.refused_peer_cap.load(R),
+            timeouts: c.timeouts.load(R),
+        });
         let snapshot = MetricsSnapshot {
             counters: counters.to_vec(),
             version: env!("CARGO_PKG_VERSION"),
@@ -505,6 +521,7 @@ impl SharedStatus {
             leds: self.led_levels(),
             faults: self.active_faults(),
             stages: self.stages.stages().map(|(name, h)| (name, h.snapshot())),
+            listeners,
         };
         let mut registry = prometheus_client::registry::Registry::default();
         registry.register_collector(Box::new(snapshot));
@@ -540,6 +557,18 @@ struct MetricsSnapshot {
     leds: [bool; 4],
     faults: Vec<Fault>,
     stages: [(&'static str, crate::metrics::HistogramSnapshot); STAGES],
+    listeners: [ListenerSnapshot; 4],
+}
+
+/// One listener's connection counters in a scrape.
+#[derive(Debug)]
+struct ListenerSnapshot {
+    name: &'static str,
+    open: u64,
+    accepted: u64,
+    refused_listener_cap: u64,
+    refused_peer_cap: u64,
+    timeouts: u64,
 }
 
 impl prometheus_client::collector::Collector for MetricsSnapshot {
@@ -606,6 +635,45 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
         for (i, n) in self.camera_frames.iter().enumerate() {
             let labels = [("camera", i.to_string())];
             ConstCounter::new(*n).encode(m.encode_family(&labels)?)?;
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_connections_open",
+            "connections open per listener",
+            None,
+            MetricType::Gauge,
+        )?;
+        for l in &self.listeners {
+            ConstGauge::new(l.open as i64).encode(m.encode_family(&[("listener", l.name)])?)?;
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_connections_accepted",
+            "connections accepted per listener",
+            None,
+            MetricType::Counter,
+        )?;
+        for l in &self.listeners {
+            ConstCounter::new(l.accepted).encode(m.encode_family(&[("listener", l.name)])?)?;
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_connections_refused",
+            "connections closed at once by a cap (reason: listener or peer)",
+            None,
+            MetricType::Counter,
+        )?;
+        for l in &self.listeners {
+            for (reason, n) in [("listener", l.refused_listener_cap), ("peer", l.refused_peer_cap)] {
+                let labels = [("listener", l.name), ("reason", reason)];
+                ConstCounter::new(n).encode(m.encode_family(&labels)?)?;
+            }
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_connection_timeouts",
+            "connections ended by a timeout per listener",
+            None,
+            MetricType::Counter,
+        )?;
+        for l in &self.listeners {
+            ConstCounter::new(l.timeouts).encode(m.encode_family(&[("listener", l.name)])?)?;
         }
         let mut m = enc.encode_descriptor("irtrackd_led_on", "status LED levels", None, MetricType::Gauge)?;
         for (led, on) in ["run", "track", "robot", "fault"].iter().zip(self.leds) {

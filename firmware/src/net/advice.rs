@@ -10,14 +10,19 @@ use axum::extract::State;
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::Response;
 
-use super::status::{StatusService, json_text, text};
+use super::http::{ConnInfo, json_text, text};
+use super::status::StatusService;
 
 /// How long the suggestion waits for the loop's next set.
 const SNAPSHOT_WAIT: Duration = Duration::from_secs(2);
 
-pub(super) async fn suggest(State(s): State<Arc<StatusService>>, headers: HeaderMap) -> Response {
-    if let Err(r) = s.auth.authorize(&headers).await {
-        return r.response();
+pub(super) async fn suggest(
+    State(s): State<Arc<StatusService>>,
+    axum::Extension(conn): axum::Extension<ConnInfo>,
+    headers: HeaderMap,
+) -> Response {
+    if let Err(r) = s.auth.authorize(&headers, conn.peer.ip()).await {
+        return s.refusal(r);
     }
     let (Some(tap), Some(tuning)) = (s.tap.clone(), s.tuning.clone()) else {
         return text(

@@ -18,7 +18,10 @@ use futures_util::{SinkExt, StreamExt};
 use serde::{Deserialize, Serialize};
 
 use super::auth::{SESSION_COOKIE, SESSION_TTL};
-use super::status::{StatusService, json_text, text};
+use super::http::{ConnInfo, json_line, json_text, text};
+use super::previews::{PREVIEW_EPOCH, PREVIEW_SHARE_WINDOW, PreviewShare, SharedPreviews};
+use super::server::{ConnSlot, MAX_REQUEST_BODY_BYTES};
+use super::status::StatusService;
 use crate::source::{Frame, Pixels};
 use crate::tuning::TuningChange;
 use crate::viewer::{BlobView, TapSet};
@@ -63,7 +66,23 @@ struct Login {
     password: String,
 }
 
-pub(super) async fn login(State(s): Shared, body: Bytes) -> Response {
+/// Reads a request body (after the caller checked what it could without it).
+async fn read_body(body: axum::body::Body) -> Result<Bytes, Response> {
+    axum::body::to_bytes(body, MAX_REQUEST_BODY_BYTES)
+        .await
+        .map_err(|_| {
+            text(
+                StatusCode::BAD_REQUEST,
+                "the request body was too large, too slow or cut off\n",
+            )
+        })
+}
+
+pub(super) async fn login(
+    State(s): Shared,
+    axum::Extension(conn): axum::Extension<ConnInfo>,
+    body: axum::body::Body,
+) -> Response {
     if !s.auth.configured() {
         return text(
             StatusCode::SERVICE_UNAVAILABLE,
@@ -71,15 +90,23 @@ pub(super) async fn login(State(s): Shared, body: Bytes) -> Response {
              in [service] operator_password_hash, then restart irtrackd\n",
         );
     }
+    // Refused before the body is read while this address waits out a pause.
+    if let Err(refusal) = s.auth.precheck(conn.peer.ip()) {
+        return s.refusal(refusal);
+    }
+    let body = match read_body(body).await {
+        Ok(b) => b,
+        Err(r) => return r,
+    };
     let Ok(Login { password }) = serde_json::from_slice::<Login>(&body) else {
         return text(
             StatusCode::BAD_REQUEST,
             "expected a JSON body {\"password\": \"...\"}\n",
         );
     };
-    if let Err(refusal) = s.auth.check_password(password).await {
-        tracing::warn!(?refusal, "operator sign-in refused");
-        return refusal.response();
+    if let Err(refusal) = s.auth.check_password(password, conn.peer.ip()).await {
+        tracing::warn!(peer = %conn.peer, ?refusal, "operator sign-in refused");
+        return s.refusal(refusal);
     }
     let token = s.auth.open_session();
     tracing::info!("operator signed in");
@@ -115,19 +142,35 @@ pub(super) async fn tuning_get(State(s): Shared) -> Response {
     }
 }
 
-pub(super) async fn tuning_post(State(s): Shared, headers: HeaderMap, body: Bytes) -> Response {
-    if let Err(r) = s.auth.authorize(&headers).await {
-        return r.response();
+pub(super) async fn tuning_post(
+    State(s): Shared,
+    axum::Extension(conn): axum::Extension<ConnInfo>,
+    headers: HeaderMap,
+    body: axum::body::Body,
+) -> Response {
+    // Credentials first: an unauthorized client's body is never read.
+    if let Err(r) = s.auth.authorize(&headers, conn.peer.ip()).await {
+        return s.refusal(r);
     }
     let Some(t) = &s.tuning else {
         return text(StatusCode::NOT_FOUND, "live tuning is not available here\n");
     };
+    let body = match read_body(body).await {
+        Ok(b) => b,
+        Err(r) => return r,
+    };
     let change: TuningChange = match serde_json::from_slice(&body) {
         Ok(c) => c,
         Err(e) => {
+            // Where it failed, not what was sent: answers never repeat request input.
             return text(
                 StatusCode::BAD_REQUEST,
-                format!("bad tuning request: {e} (see docs/http-api.md)\n"),
+                format!(
+                    "bad tuning request: not a tuning change (JSON error at line {} column {}; \
+                     fields: see docs/http-api.md)\n",
+                    e.line(),
+                    e.column()
+                ),
             );
         }
     };
@@ -143,9 +186,13 @@ pub(super) async fn tuning_post(State(s): Shared, headers: HeaderMap, body: Byte
     }
 }
 
-pub(super) async fn tuning_save(State(s): Shared, headers: HeaderMap) -> Response {
-    if let Err(r) = s.auth.authorize(&headers).await {
-        return r.response();
+pub(super) async fn tuning_save(
+    State(s): Shared,
+    axum::Extension(conn): axum::Extension<ConnInfo>,
+    headers: HeaderMap,
+) -> Response {
+    if let Err(r) = s.auth.authorize(&headers, conn.peer.ip()).await {
+        return s.refusal(r);
     }
     let Some(t) = s.tuning.clone() else {
         return text(StatusCode::NOT_FOUND, "live tuning is not available here\n");
@@ -298,9 +345,45 @@ struct ClientMessage {
     rest: serde_json::Value,
 }
 
-pub(super) async fn live(State(s): Shared, ws: WebSocketUpgrade) -> Response {
-    ws.max_message_size(64 * 1024)
-        .on_upgrade(move |socket| live_session(socket, s))
+/// Largest message or frame a viewer may send (a subscribe message is ~100 bytes).
+pub const MAX_CLIENT_MESSAGE_BYTES: usize = 64 * 1024;
+/// A send to a viewer that does not complete in this time ends the session (the viewer
+/// stopped reading; nothing piles up for it).
+pub const WS_SEND_TIMEOUT: Duration = Duration::from_secs(5);
+/// The board pings a viewer this often ...
+pub const WS_PING_PERIOD: Duration = Duration::from_secs(10);
+/// ... and ends the session when nothing (pong or message) came back for this long.
+pub const WS_SILENCE_LIMIT: Duration = Duration::from_secs(25);
+
+pub(super) async fn live(
+    State(s): Shared,
+    axum::Extension(slot): axum::Extension<ConnSlot>,
+    ws: WebSocketUpgrade,
+) -> Response {
+    // Oversized frames and messages, and unmasked client frames, end the session with an
+    // error (tungstenite's checks); the write buffer holds at most about one message because
+    // every send waits for its flush.
+    ws.max_message_size(MAX_CLIENT_MESSAGE_BYTES)
+        .max_frame_size(MAX_CLIENT_MESSAGE_BYTES)
+        .on_upgrade(move |socket| async move {
+            // The connection's slot stays taken while the session lives.
+            let _slot = slot;
+            live_session(socket, s).await;
+        })
+}
+
+/// Sends one message within [`WS_SEND_TIMEOUT`].
+async fn send_bounded(
+    tx: &mut futures_util::stream::SplitSink<WebSocket, Message>,
+    m: Message,
+) -> Result<(), axum::Error> {
+    match tokio::time::timeout(WS_SEND_TIMEOUT, tx.send(m)).await {
+        Ok(r) => r,
+        Err(_) => Err(axum::Error::new(std::io::Error::new(
+            std::io::ErrorKind::TimedOut,
+            "viewer did not take a message in time",
+        ))),
+    }
 }
 
 /// What one copy turns into for one viewer.
@@ -312,33 +395,6 @@ struct Rendered {
     /// The whole-frame analysis the previews and blob list come from (kept by the tap for
     /// `/status`, so every part of the page shows the same account).
     analysis: Vec<crate::advice::CameraAnalysis>,
-}
-
-/// A viewer reuses previews another viewer encoded this recently (with the same size and zoom)
-/// instead of encoding its own: N viewers cost about one encode per preview period, not N.
-/// Shorter than the fastest preview period, so nobody gets a stale picture twice.
-const PREVIEW_SHARE_WINDOW: Duration = Duration::from_millis(30);
-
-/// Start of the preview slots (see `live_session`).
-static PREVIEW_EPOCH: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
-
-/// Previews and zooms of one set, encoded once for every viewer with these settings.
-struct SharedPreviews {
-    key: (u32, u32),
-    encoded_at: Instant,
-    set_index: u64,
-    previews: Vec<(serde_json::Value, Bytes)>,
-    zooms: Vec<(serde_json::Value, Bytes)>,
-}
-
-/// The cache viewers share, and how often it saved an encode (reported under `viewers`).
-#[derive(Default)]
-pub struct PreviewShare {
-    cache: std::sync::Mutex<Option<SharedPreviews>>,
-    /// Preview sets encoded.
-    pub encoded: std::sync::atomic::AtomicU64,
-    /// Preview sets a viewer took from another viewer's encode.
-    pub shared: std::sync::atomic::AtomicU64,
 }
 
 /// Previews (and the blob list) for one viewer: from the shared cache when another viewer
@@ -423,10 +479,14 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
     let mut last_blob_set: Option<u64> = None;
     let mut dropped_sets = 0u64;
     let mut positions = s.positions.clone();
+    let mut ping = tokio::time::interval(WS_PING_PERIOD);
+    ping.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut last_heard = Instant::now();
     loop {
         let result = tokio::select! {
             msg = rx.next() => match msg {
                 Some(Ok(Message::Text(t))) => {
+                    last_heard = Instant::now();
                     match parse_subscribe(t.as_str()) {
                         Ok(new) => {
                             sub = new;
@@ -437,19 +497,29 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
                         }
                         Err(e) => {
                             let m = serde_json::json!({"type": "error", "message": e});
-                            tx.send(Message::Text(m.to_string().into())).await
+                            send_bounded(&mut tx, Message::Text(m.to_string().into())).await
                         }
                     }
                 }
                 Some(Ok(Message::Close(_))) | None | Some(Err(_)) => break,
-                Some(Ok(_)) => Ok(()),
+                Some(Ok(_)) => {
+                    last_heard = Instant::now();
+                    Ok(())
+                }
             },
+            _ = ping.tick() => {
+                if last_heard.elapsed() > WS_SILENCE_LIMIT {
+                    tracing::info!("live viewer silent too long (no pong); session closed");
+                    break;
+                }
+                send_bounded(&mut tx, Message::Ping(Bytes::new())).await
+            }
             _ = status_tick.tick() => {
                 let mut v = s.report_json();
                 if let Some(o) = v.as_object_mut() {
                     o.insert("type".into(), "status".into());
                 }
-                tx.send(Message::Text(v.to_string().into())).await
+                send_bounded(&mut tx, Message::Text(v.to_string().into())).await
             }
             changed = async {
                 match positions.as_mut() {
@@ -467,7 +537,7 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
                     (true, Some(rec)) => {
                         last_position = Some(Instant::now());
                         let m = format!("{{\"type\":\"position\",\"record\":{}}}", rec.to_ndjson_line().trim_end());
-                        tx.send(Message::Text(m.into())).await
+                        send_bounded(&mut tx, Message::Text(m.into())).await
                     }
                     _ => Ok(()),
                 }
@@ -515,16 +585,23 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
     drop(viewer);
 }
 
+/// Errors name the problem but never repeat what the client sent.
 fn parse_subscribe(text: &str) -> Result<Subscription, String> {
-    let msg: ClientMessage = serde_json::from_str(text).map_err(|e| format!("not a JSON message: {e}"))?;
+    let msg: ClientMessage = serde_json::from_str(text).map_err(|e| {
+        format!(
+            "not a JSON message with a \"type\" (error at line {} column {})",
+            e.line(),
+            e.column()
+        )
+    })?;
     if msg.kind != "subscribe" {
-        return Err(format!(
-            "unknown message type {:?}; only \"subscribe\" exists",
-            msg.kind
-        ));
+        return Err("unknown message type; only \"subscribe\" exists".into());
     }
-    let sub: Subscription =
-        serde_json::from_value(msg.rest).map_err(|e| format!("bad subscribe message: {e}"))?;
+    let sub: Subscription = serde_json::from_value(msg.rest).map_err(|_| {
+        "bad subscribe message: expected preview_fps, preview_max_width_px, zoom_px (numbers), \
+         positions, blobs (true/false)"
+            .to_string()
+    })?;
     Ok(sub.sanitized())
 }
 
@@ -534,18 +611,18 @@ async fn send_rendered(
     dropped: u64,
 ) -> Result<(), axum::Error> {
     for (meta, jpeg) in r.previews.drain(..) {
-        tx.send(Message::Text(meta.to_string().into())).await?;
-        tx.send(Message::Binary(jpeg)).await?;
+        send_bounded(tx, Message::Text(meta.to_string().into())).await?;
+        send_bounded(tx, Message::Binary(jpeg)).await?;
     }
     for (meta, png) in r.zooms.drain(..) {
-        tx.send(Message::Text(meta.to_string().into())).await?;
-        tx.send(Message::Binary(png)).await?;
+        send_bounded(tx, Message::Text(meta.to_string().into())).await?;
+        send_bounded(tx, Message::Binary(png)).await?;
     }
     if let Some(mut b) = r.blobs.take() {
         if let Some(o) = b.as_object_mut() {
             o.insert("dropped".into(), dropped.into());
         }
-        tx.send(Message::Text(b.to_string().into())).await?;
+        send_bounded(tx, Message::Text(b.to_string().into())).await?;
     }
     Ok(())
 }
@@ -684,8 +761,4 @@ fn zoom(
         "size_px": size,
     });
     Some((meta, Bytes::from(png_bytes)))
-}
-
-fn json_line<T: Serialize>(v: &T) -> String {
-    serde_json::to_string(v).unwrap_or_else(|_| "null".into()) + "\n"
 }

@@ -1,32 +1,25 @@
-//! Status listener (default port 7704) on axum/hyper: `GET /status` (JSON), `GET /metrics`
-//! (Prometheus text), the set-up page (`GET /`, `GET /web/<path>`, embedded at compile time),
-//! and with `[service] control = true` the robot control requests `POST /robot/enable`,
-//! `POST /robot/disable`, `POST /robot/deadman?pressed=1|0` and `POST /robot` (link state).
-//! Robot control moves the robot, so it is refused (403) unless the config opts in; see
-//! docs/security.md. The whole API is described in docs/http-api.md.
-//!
-//! Limits kept from the hand-written server this replaced: a request head of at most 8 KiB,
-//! 5 s to send it, and one request per connection (a WebSocket upgrade keeps its connection).
+//! The status listener's state ([`StatusService`]) and its own answers: `GET /status` (JSON),
+//! `GET /metrics` (Prometheus text), the set-up page (`GET /`, `GET /web/<path>`, embedded at
+//! compile time), and with `[service] control = true` the robot control requests
+//! `POST /robot/enable`, `POST /robot/disable` (also `/robot/hold`),
+//! `POST /robot/deadman?pressed=1|0` and `POST /robot` (link state). Robot control moves the
+//! robot, so it is refused (403) unless the config opts in; requests that make the robot safer
+//! (disable, hold, deadman released) need no sign-in and are never throttled. See
+//! docs/security.md; the whole API is in docs/http-api.md. The routes, limits and accept loop
+//! are in `server`; the set-up view's endpoints in `live`.
 
-use std::future::Future;
 use std::sync::{Arc, Weak};
-use std::time::Duration;
 
-use axum::Router;
 use axum::body::Body;
-use axum::extract::{DefaultBodyLimit, State};
+use axum::extract::State;
 use axum::http::{HeaderValue, Method, StatusCode, Uri, header};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
-use hyper_util::rt::{TokioIo, TokioTimer};
-use hyper_util::service::TowerToHyperService;
-use tokio::net::TcpListener;
 
 use irtrack_core::stream::PositionRecord;
 use tokio::sync::watch;
 
 use super::auth::OperatorAuth;
-use super::live;
+use super::http::{ConnInfo, HostPolicy, json_text, text};
 use crate::engine::ParamsHandle;
 use crate::robot::client::LinkState;
 use crate::robot::{RobotLink, TcpRobotLink};
@@ -44,13 +37,6 @@ pub struct RobotControl {
     /// Software deadman flag, when `[robot.deadman] kind = "flag"`.
     pub deadman_flag: Option<crate::robot::deadman::FlagDeadman>,
 }
-
-/// Largest request head (request line and headers); hyper's smallest allowed buffer.
-pub const MAX_REQUEST_HEAD_BYTES: usize = 8 * 1024;
-/// Largest request body (tuning and login JSON are a few hundred bytes).
-pub const MAX_REQUEST_BODY_BYTES: usize = 64 * 1024;
-/// Time a client has to send its request head.
-pub const READ_TIMEOUT: Duration = Duration::from_secs(5);
 
 /// Everything the status listener serves from.
 pub struct StatusService {
@@ -71,7 +57,11 @@ pub struct StatusService {
     /// `/api/frameset` serves one request at a time.
     pub(super) frameset_busy: tokio::sync::Mutex<()>,
     /// The newest encoded previews, shared by viewers with the same settings.
-    pub previews: Arc<super::live::PreviewShare>,
+    pub previews: Arc<super::previews::PreviewShare>,
+    /// Host names the board answers to besides its addresses (`[status] allowed_hosts`).
+    pub hosts: HostPolicy,
+    /// `[status] public_view`: previews, frames and positions without sign-in.
+    pub public_view: bool,
 }
 
 impl StatusService {
@@ -88,7 +78,16 @@ impl StatusService {
             workspace_mm: None,
             frameset_busy: tokio::sync::Mutex::new(()),
             previews: Arc::default(),
+            hosts: HostPolicy::new(&[]),
+            public_view: true,
         }
+    }
+
+    /// `[status]`: extra host names and whether viewing needs a sign-in.
+    pub fn with_view_policy(mut self, allowed_hosts: &[String], public_view: bool) -> Self {
+        self.hosts = HostPolicy::new(allowed_hosts);
+        self.public_view = public_view;
+        self
     }
 
     pub fn with_control(mut self, control: RobotControl) -> Self {
@@ -207,119 +206,11 @@ impl StatusService {
             "workspace_mm": self.workspace_mm.map(|(lo, hi)| serde_json::json!({"min": lo, "max": hi})),
         })
     }
-
-    /// The HTTP routes (also usable in-process with `tower::ServiceExt::oneshot`).
-    pub fn router(self) -> Router {
-        let state = Arc::new(self);
-        Router::new()
-            .route("/", get(index))
-            .route("/web/{*path}", get(asset))
-            .route("/status", get(status_json))
-            .route("/metrics", get(metrics))
-            .route("/robot", post(robot))
-            .route("/robot/{*action}", post(robot))
-            .route("/api/session", get(live::session))
-            .route("/api/login", post(live::login))
-            .route("/api/logout", post(live::logout))
-            .route("/api/tuning", get(live::tuning_get).post(live::tuning_post))
-            .route("/api/tuning/save", post(live::tuning_save))
-            .route("/api/tuning/suggest", post(super::advice::suggest))
-            .route("/api/scene", get(live::scene))
-            .route("/api/frameset", get(live::frameset))
-            .route("/api/live", get(live::live))
-            .fallback(fallback)
-            .method_not_allowed_fallback(fallback)
-            .layer(DefaultBodyLimit::max(MAX_REQUEST_BODY_BYTES))
-            .layer(axum::middleware::map_response(one_request_per_connection))
-            .with_state(state)
-    }
-
-    /// Serves `listener` until `shutdown` resolves; open connections (WebSockets too) end then.
-    pub async fn serve(self, listener: TcpListener, shutdown: impl Future<Output = ()>) {
-        serve_router(listener, self.router(), shutdown).await;
-    }
-}
-
-/// Accept loop with the listener's limits; `router` answers every request.
-pub async fn serve_router(listener: TcpListener, router: Router, shutdown: impl Future<Output = ()>) {
-    let mut conns = tokio::task::JoinSet::new();
-    tokio::pin!(shutdown);
-    loop {
-        tokio::select! {
-            _ = &mut shutdown => break,
-            accepted = listener.accept() => match accepted {
-                Ok((stream, _peer)) => {
-                    let svc = TowerToHyperService::new(router.clone());
-                    conns.spawn(async move {
-                        let mut http = hyper::server::conn::http1::Builder::new();
-                        http.timer(TokioTimer::new())
-                            .header_read_timeout(READ_TIMEOUT)
-                            .max_buf_size(MAX_REQUEST_HEAD_BYTES);
-                        let conn = http.serve_connection(TokioIo::new(stream), svc).with_upgrades();
-                        if let Err(e) = conn.await {
-                            tracing::debug!(error = %e, "status connection ended with an error");
-                        }
-                    });
-                }
-                Err(e) => {
-                    tracing::warn!(error = %e, "status accept failed");
-                    tokio::time::sleep(Duration::from_millis(50)).await;
-                }
-            },
-            Some(_) = conns.join_next(), if !conns.is_empty() => {}
-        }
-    }
-    conns.abort_all();
-    while conns.join_next().await.is_some() {}
-}
-
-/// One request per connection, as before the move to hyper: raw-socket clients read the answer
-/// to the end of the stream. `Connection: close` makes hyper end the connection after the
-/// answer; a WebSocket upgrade (101) keeps it (hyper's own keep-alive switch would add
-/// `close` to the upgrade answer too, which WebSocket clients reject).
-async fn one_request_per_connection(mut resp: Response) -> Response {
-    if resp.status() != StatusCode::SWITCHING_PROTOCOLS {
-        resp.headers_mut()
-            .insert(header::CONNECTION, HeaderValue::from_static("close"));
-    }
-    resp
-}
-
-pub async fn serve(listener: TcpListener, status: Arc<SharedStatus>, shutdown: impl Future<Output = ()>) {
-    StatusService::new(status).serve(listener, shutdown).await;
-}
-
-/// Like [`serve`], plus the robot control requests.
-pub async fn serve_with_control(
-    listener: TcpListener,
-    status: Arc<SharedStatus>,
-    control: RobotControl,
-    shutdown: impl Future<Output = ()>,
-) {
-    StatusService::new(status)
-        .with_control(control)
-        .serve(listener, shutdown)
-        .await;
 }
 
 type Shared = State<Arc<StatusService>>;
 
-/// A plain-text answer (every error is a sentence ending in a newline).
-pub(crate) fn text(code: StatusCode, body: impl Into<String>) -> Response {
-    (
-        code,
-        [(header::CONTENT_TYPE, "text/plain; charset=utf-8")],
-        body.into(),
-    )
-        .into_response()
-}
-
-/// A JSON answer with a trailing newline.
-pub(crate) fn json_text(code: StatusCode, body: String) -> Response {
-    (code, [(header::CONTENT_TYPE, "application/json")], body).into_response()
-}
-
-async fn status_json(State(s): Shared) -> Response {
+pub(super) async fn status_json(State(s): Shared) -> Response {
     match serde_json::to_string_pretty(&s.report_json()) {
         Ok(json) => json_text(StatusCode::OK, json + "\n"),
         Err(e) => text(
@@ -329,7 +220,7 @@ async fn status_json(State(s): Shared) -> Response {
     }
 }
 
-async fn metrics(State(s): Shared) -> Response {
+pub(super) async fn metrics(State(s): Shared) -> Response {
     (
         StatusCode::OK,
         [(
@@ -341,7 +232,7 @@ async fn metrics(State(s): Shared) -> Response {
         .into_response()
 }
 
-async fn fallback(method: Method) -> Response {
+pub(super) async fn fallback(method: Method) -> Response {
     if method == Method::GET || method == Method::HEAD {
         text(StatusCode::NOT_FOUND, "not found; try /, /status or /metrics\n")
     } else {
@@ -370,18 +261,19 @@ fn embedded(path: &str) -> Response {
                 .insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
             resp
         }
+        // Not the path itself: answers never repeat request input.
         None => text(
             StatusCode::NOT_FOUND,
-            format!("no file web/{path} in this irtrackd build\n"),
+            "no such file in this irtrackd build's set-up page\n",
         ),
     }
 }
 
-async fn index() -> Response {
+pub(super) async fn index() -> Response {
     embedded("index.html")
 }
 
-async fn asset(axum::extract::Path(path): axum::extract::Path<String>) -> Response {
+pub(super) async fn asset(axum::extract::Path(path): axum::extract::Path<String>) -> Response {
     embedded(&path)
 }
 
@@ -409,19 +301,57 @@ fn link_json(link: &TcpRobotLink, deadman: Option<bool>) -> String {
     v.to_string() + "\n"
 }
 
-async fn robot(State(s): Shared, uri: Uri, headers: axum::http::HeaderMap) -> Response {
-    // Refused outright when control is off (403), whoever asks; otherwise a sign-in is needed.
-    if s.control.allowed
-        && let Err(r) = s.auth.authorize(&headers).await
+pub(super) async fn robot(
+    State(s): Shared,
+    axum::Extension(conn): axum::Extension<ConnInfo>,
+    uri: Uri,
+    headers: axum::http::HeaderMap,
+) -> Response {
+    // Requests that make the robot safer are never refused by the sign-in or its throttle: a
+    // stop must work while someone is guessing passwords (docs/security.md).
+    let safe = is_safe_direction(uri.path(), uri.query());
+    if !safe
+        && s.control.allowed
+        && let Err(r) = s.auth.authorize(&headers, conn.peer.ip()).await
     {
-        return r.response();
+        return s.refusal(r);
     }
-    control(uri.path(), uri.query(), &s.control)
+    control(uri.path(), uri.query(), &s.control, safe)
+}
+
+/// Whether a control request only ever makes the robot safer: disable, hold, deadman released.
+pub fn is_safe_direction(path: &str, query: Option<&str>) -> bool {
+    match path {
+        "/robot/disable" | "/robot/hold" => true,
+        "/robot/deadman" => matches!(deadman_query(query), Some("0" | "false")),
+        _ => false,
+    }
+}
+
+fn deadman_query(query: Option<&str>) -> Option<&str> {
+    query
+        .into_iter()
+        .flat_map(|q| q.split('&'))
+        .find_map(|kv| kv.strip_prefix("pressed="))
+}
+
+impl StatusService {
+    /// The answer to a refused sign-in; throttled ones are counted in `/metrics`.
+    pub(super) fn refusal(&self, r: super::auth::Refusal) -> Response {
+        if matches!(r, super::auth::Refusal::Paused { .. }) {
+            self.status
+                .net
+                .signin_throttled
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+        r.response()
+    }
 }
 
 /// Answers a `POST /robot/...` request.
-fn control(path: &str, query: Option<&str>, ctl: &RobotControl) -> Response {
-    if !ctl.allowed {
+/// `safe`: a safe-direction request, answered whenever a robot link exists.
+fn control(path: &str, query: Option<&str>, ctl: &RobotControl, safe: bool) -> Response {
+    if !ctl.allowed && !safe {
         return text(
             StatusCode::FORBIDDEN,
             "robot control is disabled; set `[service] control = true` to allow it\n",
@@ -440,7 +370,7 @@ fn control(path: &str, query: Option<&str>, ctl: &RobotControl) -> Response {
     };
     match path {
         "/robot/enable" => link.enable(),
-        "/robot/disable" => link.disable(),
+        "/robot/disable" | "/robot/hold" => link.disable(),
         "/robot/deadman" => {
             let Some(flag) = &ctl.deadman_flag else {
                 return text(
@@ -448,11 +378,7 @@ fn control(path: &str, query: Option<&str>, ctl: &RobotControl) -> Response {
                     "the deadman is not the software flag ([robot.deadman] kind = \"flag\")\n",
                 );
             };
-            let pressed = query
-                .into_iter()
-                .flat_map(|q| q.split('&'))
-                .find_map(|kv| kv.strip_prefix("pressed="));
-            match pressed {
+            match deadman_query(query) {
                 Some("1" | "true") => flag.set(true),
                 Some("0" | "false") => flag.set(false),
                 _ => {
@@ -464,7 +390,7 @@ fn control(path: &str, query: Option<&str>, ctl: &RobotControl) -> Response {
         _ => {
             return text(
                 StatusCode::NOT_FOUND,
-                "not found; try /robot/enable, /robot/disable or /robot/deadman?pressed=1|0\n",
+                "not found; try /robot/enable, /robot/disable, /robot/hold or /robot/deadman?pressed=1|0\n",
             );
         }
     }

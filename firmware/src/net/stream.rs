@@ -90,12 +90,32 @@ pub async fn serve(
     hub: StreamHub,
     shutdown: impl Future<Output = ()>,
 ) {
+    let counters = match format {
+        StreamFormat::Ndjson => hub.status.net.stream_ndjson.clone(),
+        StreamFormat::Binary => hub.status.net.stream_binary.clone(),
+    };
+    let limiter = super::limit::ConnLimiter::new(super::limit::STREAM_LIMITS, counters);
+    let label = match format {
+        StreamFormat::Ndjson => "stream_ndjson",
+        StreamFormat::Binary => "stream_binary",
+    };
     tokio::pin!(shutdown);
     loop {
         tokio::select! {
             _ = &mut shutdown => break,
             accepted = listener.accept() => match accepted {
                 Ok((stream, peer)) => {
+                    // Per port and per client address first (a client never sends anything,
+                    // so holding a slot costs a descriptor and a queue cursor, no more).
+                    let permit = match limiter.admit(peer.ip()) {
+                        Ok(p) => p,
+                        Err(over) => {
+                            limiter.log_refusal(label, over);
+                            hub.status.stream_refused.fetch_add(1, Ordering::Relaxed);
+                            drop(stream);
+                            continue;
+                        }
+                    };
                     // Only this task and its twin on the other port add clients, so the check
                     // can overshoot by at most one connection per port.
                     if hub.status.stream_clients.load(Ordering::Relaxed) >= hub.max_clients {
@@ -107,13 +127,14 @@ pub async fn serve(
                         continue;
                     }
                     let _ = stream.set_nodelay(true);
-                    limit_send_buffer(&stream);
+                    limit_send_buffer(&stream, CLIENT_SNDBUF_BYTES);
                     let rx = hub.subscribe();
                     let status = hub.status.clone();
                     status.stream_clients.fetch_add(1, Ordering::Relaxed);
                     status.stream_clients_total.fetch_add(1, Ordering::Relaxed);
                     tracing::info!(%peer, ?format, "stream client connected");
                     tokio::spawn(async move {
+                        let _permit = permit;
                         let end = client(stream, format, rx, &status).await;
                         status.stream_clients.fetch_sub(1, Ordering::Relaxed);
                         match end {
@@ -140,9 +161,10 @@ pub async fn serve(
 /// in our own bounded queue within a fraction of a second.
 pub const CLIENT_SNDBUF_BYTES: libc::c_int = 32 * 1024;
 
-fn limit_send_buffer(stream: &TcpStream) {
+/// Sets the kernel send buffer of `stream` to `bytes` (see [`CLIENT_SNDBUF_BYTES`]).
+pub(crate) fn limit_send_buffer(stream: &TcpStream, bytes: libc::c_int) {
     use std::os::fd::AsRawFd;
-    let v = CLIENT_SNDBUF_BYTES;
+    let v = bytes;
     // SAFETY: valid socket fd owned by `stream`; option value is a c_int of the stated size.
     let rc = unsafe {
         libc::setsockopt(
