@@ -147,7 +147,10 @@ async fn page_assets_status_and_limits_on_the_new_server() {
     assert_eq!(a.code, 200);
     let a = get(addr, "/web/no-such-file.js").await;
     assert_eq!(a.code, 404);
-    assert!(a.text().contains("no-such-file.js"), "{}", a.text());
+    // A fixed sentence: error texts never repeat the request (issue 25).
+    assert!(a.text().contains("no such file"), "{}", a.text());
+    assert!(!a.text().contains("no-such-file.js"), "{}", a.text());
+    assert_eq!(a.header("x-content-type-options").as_deref(), Some("nosniff"));
     let a = get(addr, "/status").await;
     assert_eq!(a.code, 200);
     let st = a.json();
