@@ -102,7 +102,7 @@ impl HostPolicy {
         if name == "localhost" || name.ends_with(".localhost") {
             return local.is_loopback();
         }
-        self.names.iter().any(|n| *n == name)
+        self.names.contains(&name)
     }
 }
 

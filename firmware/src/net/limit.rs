@@ -189,6 +189,8 @@ pub fn fd_limit() -> Option<(u64, u64)> {
     };
     // SAFETY: getrlimit writes one rlimit struct we own.
     let rc = unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut r) };
+    // `rlim_t` is not u64 on every target (32-bit ones).
+    #[allow(clippy::unnecessary_cast)]
     (rc == 0).then_some((r.rlim_cur as u64, r.rlim_max as u64))
 }
 
