@@ -31,30 +31,63 @@ pub(crate) fn json_line<T: Serialize>(v: &T) -> String {
 }
 
 /// Content-Security-Policy of every answer: the set-up page loads its scripts, styles and
-/// images only from the board (`blob:` for the preview JPEGs the page decodes itself) and
-/// talks only to the board; no other page may frame it.
-pub const CONTENT_SECURITY_POLICY: &str = "default-src 'self'; img-src 'self' blob: data:; \
-     connect-src 'self'; style-src 'self'; script-src 'self'; object-src 'none'; \
-     base-uri 'none'; form-action 'self'; frame-ancestors 'none'";
+/// images only from the board (`blob:`/`data:` images for the previews the page decodes
+/// itself) and talks only to the board; no other page may frame it. `inline_script_hashes`:
+/// base64 SHA-256 of each inline script the page has (its import map), allowed by hash.
+pub fn content_security_policy(inline_script_hashes: &[String]) -> String {
+    let inline: String = inline_script_hashes
+        .iter()
+        .map(|h| format!(" 'sha256-{h}'"))
+        .collect();
+    format!(
+        "default-src 'self'; img-src 'self' blob: data:; connect-src 'self'; style-src 'self'; \
+         script-src 'self'{inline}; object-src 'none'; base-uri 'none'; form-action 'self'; \
+         frame-ancestors 'none'"
+    )
+}
 
-/// Headers added to every answer of the status listener (if the handler did not set them).
-pub fn security_headers() -> [(HeaderName, HeaderValue); 5] {
-    [
+/// Base64 SHA-256 of every inline `<script>` (one without `src`) in `html`, as CSP wants them.
+pub fn inline_script_hashes(html: &str) -> Vec<String> {
+    use base64::Engine as _;
+    use sha2::Digest as _;
+    let mut out = Vec::new();
+    let mut rest = html;
+    while let Some(start) = rest.find("<script") {
+        let after = &rest[start..];
+        let Some(open_end) = after.find('>') else { break };
+        let tag = &after[..open_end];
+        let body_and_more = &after[open_end + 1..];
+        let Some(close) = body_and_more.find("</script>") else {
+            break;
+        };
+        if !tag.contains("src=") {
+            let digest = sha2::Sha256::digest(body_and_more[..close].as_bytes());
+            out.push(base64::engine::general_purpose::STANDARD.encode(digest));
+        }
+        rest = &body_and_more[close..];
+    }
+    out
+}
+
+/// Headers added to every answer of the status listener (if the handler did not set them);
+/// `csp` from [`content_security_policy`].
+pub fn security_headers(csp: &str) -> Vec<(HeaderName, HeaderValue)> {
+    let mut h = vec![
         (
             header::X_CONTENT_TYPE_OPTIONS,
             HeaderValue::from_static("nosniff"),
         ),
         (header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY")),
-        (
-            header::CONTENT_SECURITY_POLICY,
-            HeaderValue::from_static(CONTENT_SECURITY_POLICY),
-        ),
         (header::REFERRER_POLICY, HeaderValue::from_static("no-referrer")),
         (
             HeaderName::from_static("cross-origin-resource-policy"),
             HeaderValue::from_static("same-origin"),
         ),
-    ]
+    ];
+    if let Ok(v) = HeaderValue::from_str(csp) {
+        h.push((header::CONTENT_SECURITY_POLICY, v));
+    }
+    h
 }
 
 /// The two ends of one accepted connection (a request extension set by the accept loop).
@@ -242,6 +275,17 @@ mod tests {
 
     const LO: IpAddr = IpAddr::V4(std::net::Ipv4Addr::LOCALHOST);
     const LAN: IpAddr = IpAddr::V4(std::net::Ipv4Addr::new(10, 0, 0, 5));
+
+    #[test]
+    fn inline_scripts_are_hashed_for_the_policy() {
+        let html = "<script src=\"/a.js\"></script>\n<script type=\"importmap\">\n{}\n</script>";
+        let hashes = inline_script_hashes(html);
+        // sha256("\n{}\n"), base64
+        assert_eq!(hashes, ["mStsuk6tXQZUQnBANrxib2jrZTl4uAW3mHJbbb97898="]);
+        let csp = content_security_policy(&hashes);
+        assert!(csp.contains("script-src 'self' 'sha256-mStsuk6tXQZUQnBANrxib2jrZTl4uAW3mHJbbb97898=';"));
+        assert!(csp.contains("frame-ancestors 'none'"));
+    }
 
     #[test]
     fn host_rule() {

@@ -33,7 +33,7 @@ use tower::ServiceExt as _;
 use tower_http::set_header::SetResponseHeaderLayer;
 use tower_http::timeout::{RequestBodyTimeoutLayer, TimeoutLayer};
 
-use super::http::{ConnInfo, check_request, security_headers};
+use super::http::{ConnInfo, check_request, content_security_policy, security_headers};
 use super::limit::{ConnLimiter, ConnPermit, STATUS_LIMITS};
 use super::status::{self as st, StatusService};
 use super::{live, status};
@@ -94,7 +94,8 @@ impl StatusService {
                 StatusCode::REQUEST_TIMEOUT,
                 HANDLER_TIMEOUT,
             ));
-        for (name, value) in security_headers() {
+        let csp = content_security_policy(&st::page_inline_script_hashes());
+        for (name, value) in security_headers(&csp) {
             router = router.layer(SetResponseHeaderLayer::if_not_present(name, value));
         }
         router.with_state(state)

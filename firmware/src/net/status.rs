@@ -269,6 +269,13 @@ fn embedded(path: &str) -> Response {
     }
 }
 
+/// Hashes of the set-up page's inline scripts (its import map) for the CSP.
+pub(super) fn page_inline_script_hashes() -> Vec<String> {
+    WebAssets::get("index.html")
+        .map(|f| super::http::inline_script_hashes(&String::from_utf8_lossy(&f.data)))
+        .unwrap_or_default()
+}
+
 pub(super) async fn index() -> Response {
     embedded("index.html")
 }
