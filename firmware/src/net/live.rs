@@ -479,7 +479,8 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
     let mut last_blob_set: Option<u64> = None;
     let mut dropped_sets = 0u64;
     let mut positions = s.positions.clone();
-    let mut ping = tokio::time::interval(WS_PING_PERIOD);
+    // The first ping one period in (an interval's first tick would come at once).
+    let mut ping = tokio::time::interval_at(tokio::time::Instant::now() + WS_PING_PERIOD, WS_PING_PERIOD);
     ping.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut last_heard = Instant::now();
     loop {
