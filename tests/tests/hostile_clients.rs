@@ -19,7 +19,6 @@ mod common;
 
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::PathBuf;
-use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::time::{Duration, Instant};
 
@@ -33,7 +32,7 @@ const FRESH_STATUS_MAX: Duration = Duration::from_millis(100);
 
 /// A running irtrackd child.
 struct Board {
-    _guard: Guard,
+    _irtrackd: Irtrackd,
     pid: u32,
     status: SocketAddr,
     params: SocketAddr,
@@ -73,13 +72,8 @@ fn start_board(name: &str, extra_service: &str, extra: &str, nofile: Option<u64>
     )
     .unwrap();
     let stderr = dir.join("stderr.log");
-    let mut cmd = Command::new(bin("irtrackd"));
-    cmd.arg("-c")
-        .arg(&config)
-        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
-        .arg(dir.join("state"))
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::piped())
+    let mut cmd = Irtrackd::command(&bin("irtrackd"), &config, &dir.join("state"));
+    cmd.env("RUST_LOG", "warn")
         .stderr(std::fs::File::create(&stderr).unwrap());
     if let Some(n) = nofile {
         use std::os::unix::process::CommandExt;
@@ -101,11 +95,11 @@ fn start_board(name: &str, extra_service: &str, extra: &str, nofile: Option<u64>
             });
         }
     }
-    let mut child = cmd.spawn().unwrap();
-    let line = wait_line(&mut child, "irtrackd ready", Duration::from_secs(20));
+    let irtrackd = Irtrackd::spawn(&mut cmd, Duration::from_secs(20)).unwrap_or_else(|e| panic!("{e}"));
+    let line = irtrackd.ready().line.clone();
     Board {
-        pid: child.id(),
-        _guard: Guard(child),
+        pid: irtrackd.pid(),
+        _irtrackd: irtrackd,
         status: addr_field(&line, "status="),
         params: addr_field(&line, "params="),
         ndjson: addr_field(&line, "stream="),
