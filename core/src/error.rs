@@ -165,6 +165,12 @@ pub enum Error {
         /// The limit (bytes).
         max: usize,
     },
+    /// A camera observation was refused (docs/observation-protocol.md).
+    #[error("observation refused: {problem}")]
+    Observation {
+        /// What was wrong with it.
+        problem: crate::observation::ObservationProblem,
+    },
     /// A protocol message is malformed.
     #[error("malformed {protocol} message: {reason}")]
     Protocol {

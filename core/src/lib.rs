@@ -15,6 +15,7 @@ pub mod error;
 pub mod filter;
 pub mod frameset;
 pub mod image;
+pub mod observation;
 pub mod param_wire;
 pub mod params;
 pub mod pgm;

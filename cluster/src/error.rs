@@ -1,0 +1,15 @@
+//! The crate's one error type.
+
+/// Errors of irtrack-cluster.
+#[derive(Debug, thiserror::Error)]
+pub enum ClusterError {
+    /// Settings that cannot work (camera count, endpoints, names).
+    #[error("cluster configuration: {reason}")]
+    Config { reason: String },
+    /// An observation did not encode (id too long, too many blobs).
+    #[error("observation: {0}")]
+    Observation(#[from] irtrack_core::Error),
+}
+
+/// Result alias for irtrack-cluster.
+pub type Result<T> = std::result::Result<T, ClusterError>;

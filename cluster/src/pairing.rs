@@ -1,0 +1,611 @@
+//! Pairing observations of many boards into frame sets (no network code here).
+//!
+//! Each camera's observation carries a capture timestamp on a clock the boards share (PTP or
+//! chrony) and, with a hardware trigger, the trigger's frame counter. The [`Pairer`] groups
+//! them by trigger counter when configured, otherwise by timestamps within a tolerance (half a
+//! frame period by default). A set closes when every camera that is not faulted contributed,
+//! when a newer set completed, or at its deadline; observations arriving for a closed set are
+//! counted late, cameras absent from a closed set are counted missing. Nothing is waited on
+//! without bound.
+//!
+//! Clocks: per board, `capture + send_delay − receive` is the board's clock offset from the
+//! receiver minus the one-way transit. Its maximum over a window (transit only subtracts) is
+//! the measured offset. A board whose offset exceeds the tolerance could be paired with the wrong
+//! frame, so it is faulted and its observations are kept out of every set until its offset is
+//! back within the tolerance: never a wrong pairing.
+//!
+//! Every buffer is allocated in [`Pairer::new`]; pushing and closing sets does not allocate.
+
+use irtrack_core::observation::{MAX_OBS_BLOBS, ObsBlob, Observation};
+use irtrack_core::params::MAX_CAMERAS;
+
+use crate::error::{ClusterError, Result};
+
+/// How observations of one instant are recognised.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PairingMode {
+    /// By the hardware trigger's frame counter (every observation must carry one).
+    Trigger,
+    /// By capture timestamps no further apart than `tolerance_ns`.
+    Timestamp { tolerance_ns: u64 },
+}
+
+/// Settings of a [`Pairer`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PairingConfig {
+    /// `camera_board[i]` is the board index of the rig's camera `i` (boards numbered from 0).
+    pub camera_board: Vec<usize>,
+    pub mode: PairingMode,
+    /// A set closes this long after its first observation arrived, complete or not.
+    pub deadline_ns: u64,
+    /// Largest clock offset of a board before it is faulted.
+    pub max_clock_offset_ns: u64,
+    /// Observations per board in one offset window (the maximum of two windows is used).
+    pub offset_window: u32,
+}
+
+impl PairingConfig {
+    /// Timestamp pairing at `fps`: tolerance and clock limit half a frame period, deadline
+    /// two periods.
+    pub fn for_fps(camera_board: Vec<usize>, fps: f64) -> PairingConfig {
+        let period_ns = (1e9 / fps) as u64;
+        PairingConfig {
+            camera_board,
+            mode: PairingMode::Timestamp {
+                tolerance_ns: period_ns / 2,
+            },
+            deadline_ns: 2 * period_ns,
+            max_clock_offset_ns: period_ns / 2,
+            offset_window: 64,
+        }
+    }
+}
+
+/// One camera's contribution to a set.
+#[derive(Debug, Clone, Copy)]
+pub struct CameraEntry {
+    pub present: bool,
+    pub sequence: u64,
+    pub capture_ts_ns: u64,
+    pub exposure_us: u32,
+    pub blob_count: usize,
+    pub blobs: [ObsBlob; MAX_OBS_BLOBS],
+}
+
+impl CameraEntry {
+    const EMPTY: CameraEntry = CameraEntry {
+        present: false,
+        sequence: 0,
+        capture_ts_ns: 0,
+        exposure_us: 0,
+        blob_count: 0,
+        blobs: [ObsBlob {
+            x_px: 0.0,
+            y_px: 0.0,
+            area_px: 0,
+            peak_dn: 0,
+            roundness: 0.0,
+            touches_frame_edge: false,
+            touches_roi_edge: false,
+            saturated: false,
+        }; MAX_OBS_BLOBS],
+    };
+
+    pub fn blobs(&self) -> &[ObsBlob] {
+        &self.blobs[..self.blob_count]
+    }
+}
+
+/// A closed frame set.
+#[derive(Debug, Clone)]
+pub struct PairedSet {
+    /// Trigger counter (trigger mode) or the first observation's timestamp.
+    pub key: u64,
+    /// Earliest capture timestamp in the set, ns.
+    pub capture_ts_ns: u64,
+    /// Receive time of the set's first observation, ns on the receiver's clock.
+    pub opened_ns: u64,
+    /// Cameras that contributed.
+    pub present: usize,
+    pub cameras: [CameraEntry; MAX_CAMERAS],
+}
+
+impl PairedSet {
+    fn empty() -> PairedSet {
+        PairedSet {
+            key: 0,
+            capture_ts_ns: 0,
+            opened_ns: 0,
+            present: 0,
+            cameras: [CameraEntry::EMPTY; MAX_CAMERAS],
+        }
+    }
+
+    fn clear(&mut self) {
+        for c in &mut self.cameras {
+            c.present = false;
+            c.blob_count = 0;
+        }
+        self.present = 0;
+    }
+}
+
+/// Counters of a [`Pairer`] (reported in `/status`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct PairStats {
+    pub sets_complete: u64,
+    pub sets_incomplete: u64,
+    /// Observations for a set already closed.
+    pub late: u64,
+    /// Camera slots empty in closed sets (per camera).
+    pub missing: [u64; MAX_CAMERAS],
+    /// A second observation of a camera for the same open set.
+    pub conflicting: u64,
+    /// Observations of a faulted board, kept out of every set.
+    pub refused_clock: u64,
+    /// Trigger mode: observations without a trigger counter.
+    pub no_trigger: u64,
+}
+
+/// What [`Pairer::push`] did with an observation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PushOutcome {
+    Added,
+    Late,
+    Conflicting,
+    ClockFault,
+    NoTrigger,
+}
+
+/// Clock state of one board.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct BoardClock {
+    /// Measured offset (board clock − receiver clock, less the smallest transit), ns; `None`
+    /// before the first observation.
+    pub offset_ns: Option<i64>,
+    /// The offset is beyond the limit: the board's observations are refused.
+    pub faulted: bool,
+    cur_max: i64,
+    cur_count: u32,
+    prev_max: Option<i64>,
+}
+
+/// The pairing state machine (see the module documentation).
+#[derive(Debug, Clone)]
+pub struct Pairer {
+    cfg: PairingConfig,
+    cameras: usize,
+    sets: Vec<PairedSet>,
+    open: Vec<bool>,
+    boards: Vec<BoardClock>,
+    /// Key of the newest closed set: anything at or before it is late.
+    closed_key: Option<u64>,
+    stats: PairStats,
+}
+
+impl Pairer {
+    /// Up to 8 sets are open at once (older ones are closed to make room).
+    pub const OPEN_SETS: usize = 8;
+
+    pub fn new(cfg: PairingConfig) -> Result<Pairer> {
+        let n = cfg.camera_board.len();
+        if !(1..=MAX_CAMERAS).contains(&n) {
+            return Err(ClusterError::Config {
+                reason: format!("{n} cameras; the solver pairs 1..={MAX_CAMERAS}"),
+            });
+        }
+        if cfg.deadline_ns == 0 || cfg.offset_window == 0 {
+            return Err(ClusterError::Config {
+                reason: "pairing deadline and offset window must be > 0".into(),
+            });
+        }
+        let boards = cfg.camera_board.iter().copied().max().unwrap_or(0) + 1;
+        Ok(Pairer {
+            cameras: n,
+            sets: (0..Self::OPEN_SETS).map(|_| PairedSet::empty()).collect(),
+            open: vec![false; Self::OPEN_SETS],
+            boards: vec![BoardClock::default(); boards],
+            closed_key: None,
+            stats: PairStats::default(),
+            cfg,
+        })
+    }
+
+    pub fn stats(&self) -> &PairStats {
+        &self.stats
+    }
+
+    pub fn boards(&self) -> &[BoardClock] {
+        &self.boards
+    }
+
+    pub fn camera_count(&self) -> usize {
+        self.cameras
+    }
+
+    fn board_of(&self, camera: usize) -> usize {
+        self.cfg.camera_board[camera]
+    }
+
+    /// Updates the board's offset estimate; returns whether it is faulted.
+    fn track_clock(&mut self, board: usize, offset_sample_ns: i64) -> bool {
+        let window = self.cfg.offset_window;
+        let limit = self.cfg.max_clock_offset_ns;
+        let b = &mut self.boards[board];
+        b.cur_max = if b.cur_count == 0 {
+            offset_sample_ns
+        } else {
+            b.cur_max.max(offset_sample_ns)
+        };
+        b.cur_count += 1;
+        // The estimate: the larger of this window's and the last full window's maximum, so a
+        // change shows within two windows and one slow packet never counts.
+        let est = b.prev_max.map_or(b.cur_max, |p| p.max(b.cur_max));
+        if b.cur_count >= window {
+            b.prev_max = Some(b.cur_max);
+            b.cur_count = 0;
+        }
+        b.offset_ns = Some(est);
+        b.faulted = est.unsigned_abs() > limit;
+        b.faulted
+    }
+
+    /// Adds the observation `obs` of the rig's camera `camera` (already checked by the
+    /// [`irtrack_core::observation::ObservationGate`]) received at `now_ns`.
+    pub fn push(&mut self, camera: usize, obs: &Observation<'_>, now_ns: u64) -> PushOutcome {
+        let h = &obs.header;
+        let board = self.board_of(camera);
+        let sample = i128::from(h.capture_ts_ns) + i128::from(h.send_delay_us) * 1000 - i128::from(now_ns);
+        let sample = sample.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64;
+        if self.track_clock(board, sample) {
+            self.stats.refused_clock += 1;
+            return PushOutcome::ClockFault;
+        }
+        let key = match self.cfg.mode {
+            PairingMode::Trigger => match h.trigger_count {
+                Some(t) => t,
+                None => {
+                    self.stats.no_trigger += 1;
+                    return PushOutcome::NoTrigger;
+                }
+            },
+            PairingMode::Timestamp { .. } => h.capture_ts_ns,
+        };
+        if let Some(closed) = self.closed_key
+            && !self.after_closed(key, closed)
+        {
+            self.stats.late += 1;
+            return PushOutcome::Late;
+        }
+        let slot = match self.find_open(key) {
+            Some(s) => s,
+            None => self.open_set(key, now_ns),
+        };
+        let set = &mut self.sets[slot];
+        let entry = &mut set.cameras[camera];
+        if entry.present {
+            self.stats.conflicting += 1;
+            return PushOutcome::Conflicting;
+        }
+        entry.present = true;
+        entry.sequence = h.sequence;
+        entry.capture_ts_ns = h.capture_ts_ns;
+        entry.exposure_us = h.exposure_us;
+        entry.blob_count = 0;
+        for b in obs.blobs().take(MAX_OBS_BLOBS) {
+            entry.blobs[entry.blob_count] = b;
+            entry.blob_count += 1;
+        }
+        set.present += 1;
+        set.capture_ts_ns = set.capture_ts_ns.min(h.capture_ts_ns);
+        PushOutcome::Added
+    }
+
+    /// Whether `key` belongs after the newest closed set's key.
+    fn after_closed(&self, key: u64, closed: u64) -> bool {
+        match self.cfg.mode {
+            PairingMode::Trigger => key > closed,
+            PairingMode::Timestamp { tolerance_ns } => key > closed.saturating_add(tolerance_ns),
+        }
+    }
+
+    fn matches(&self, set_key: u64, key: u64) -> bool {
+        match self.cfg.mode {
+            PairingMode::Trigger => set_key == key,
+            PairingMode::Timestamp { tolerance_ns } => set_key.abs_diff(key) <= tolerance_ns,
+        }
+    }
+
+    fn find_open(&self, key: u64) -> Option<usize> {
+        // The closest matching set, so that a tolerance wider than half a period still picks
+        // the right instant.
+        (0..self.sets.len())
+            .filter(|&i| self.open[i] && self.matches(self.sets[i].key, key))
+            .min_by_key(|&i| self.sets[i].key.abs_diff(key))
+    }
+
+    fn open_set(&mut self, key: u64, now_ns: u64) -> usize {
+        let slot = match self.open.iter().position(|o| !o) {
+            Some(s) => s,
+            None => {
+                // Full: the oldest set is closed as it is (counted; its content is lost since
+                // nobody polled it in time).
+                let oldest = self.oldest_open().unwrap_or(0);
+                self.close(oldest);
+                oldest
+            }
+        };
+        let set = &mut self.sets[slot];
+        set.clear();
+        set.key = key;
+        set.capture_ts_ns = u64::MAX;
+        set.opened_ns = now_ns;
+        self.open[slot] = true;
+        slot
+    }
+
+    fn oldest_open(&self) -> Option<usize> {
+        (0..self.sets.len())
+            .filter(|&i| self.open[i])
+            .min_by_key(|&i| self.sets[i].key)
+    }
+
+    /// Cameras a set waits for: those whose board is not faulted.
+    fn expected(&self) -> usize {
+        (0..self.cameras)
+            .filter(|&c| !self.boards[self.board_of(c)].faulted)
+            .count()
+    }
+
+    fn close(&mut self, slot: usize) {
+        self.open[slot] = false;
+        let set = &self.sets[slot];
+        self.closed_key = Some(self.closed_key.map_or(set.key, |k| k.max(set.key)));
+        if set.present >= self.cameras {
+            self.stats.sets_complete += 1;
+        } else {
+            self.stats.sets_incomplete += 1;
+            for (c, e) in set.cameras[..self.cameras].iter().enumerate() {
+                if !e.present {
+                    self.stats.missing[c] += 1;
+                }
+            }
+        }
+    }
+
+    /// Closes the oldest open set if it is complete, a newer set is complete, or its
+    /// deadline has passed, and returns it; `None` if no set is ready.
+    pub fn poll(&mut self, now_ns: u64) -> Option<&PairedSet> {
+        let oldest = self.oldest_open()?;
+        let expected = self.expected();
+        let ready = |s: &PairedSet| s.present >= expected.max(1);
+        let set = &self.sets[oldest];
+        let newer_complete =
+            (0..self.sets.len()).any(|i| self.open[i] && i != oldest && ready(&self.sets[i]));
+        if ready(set) || newer_complete || now_ns >= set.opened_ns.saturating_add(self.cfg.deadline_ns) {
+            self.close(oldest);
+            return Some(&self.sets[oldest]);
+        }
+        None
+    }
+
+    /// Forgets the clock state of `board` (restarted).
+    pub fn reset_board(&mut self, board: usize) {
+        if let Some(b) = self.boards.get_mut(board) {
+            *b = BoardClock::default();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use irtrack_core::observation::{MAX_OBS_LEN, ObsClock, ObsHeader, decode, encode};
+
+    const PERIOD: u64 = 10_000_000; // 100 fps
+
+    struct Msg {
+        buf: [u8; MAX_OBS_LEN],
+        len: usize,
+    }
+
+    fn msg(camera: u8, seq: u64, ts: u64, trigger: Option<u64>, x: f32) -> Msg {
+        let h = ObsHeader {
+            rig: "r",
+            board: "b",
+            camera,
+            sequence: seq,
+            trigger_count: trigger,
+            capture_ts_ns: ts,
+            clock: ObsClock::Realtime,
+            exposure_us: 100,
+            dropped: 0,
+            send_delay_us: 1000,
+        };
+        let blob = ObsBlob {
+            x_px: x,
+            y_px: 1.0,
+            area_px: 4,
+            peak_dn: 200,
+            roundness: 1.0,
+            ..ObsBlob::default()
+        };
+        let mut buf = [0u8; MAX_OBS_LEN];
+        let len = encode(&h, &[blob], &mut buf).unwrap();
+        Msg { buf, len }
+    }
+
+    fn push(p: &mut Pairer, camera: usize, m: &Msg, now: u64) -> PushOutcome {
+        p.push(camera, &decode(&m.buf[..m.len]).unwrap(), now)
+    }
+
+    fn cfg() -> PairingConfig {
+        PairingConfig::for_fps(vec![0, 0, 1, 1], 100.0)
+    }
+
+    /// Four cameras on two boards; frame k at k·PERIOD; received 2 ms after capture.
+    #[test]
+    fn pairs_by_timestamp_and_closes_complete_sets() {
+        let mut p = Pairer::new(cfg()).unwrap();
+        let t0 = 1_000 * PERIOD;
+        for k in 0..5u64 {
+            let t = t0 + k * PERIOD;
+            // Board 1 stamps 2 ms later (free-running cameras, phase offset): same instant.
+            for c in [2usize, 0, 3, 1] {
+                let ts = if c >= 2 { t + 2_000_000 } else { t };
+                let m = msg(c as u8 % 2, k, ts, None, (k * 10 + c as u64) as f32);
+                assert_eq!(push(&mut p, c, &m, ts + 2_000_000), PushOutcome::Added);
+            }
+            let set = p.poll(t + 4_000_000).expect("complete set");
+            assert_eq!(set.present, 4);
+            for c in 0..4 {
+                assert_eq!(set.cameras[c].sequence, k);
+                assert_eq!(set.cameras[c].blobs()[0].x_px, (k * 10 + c as u64) as f32);
+            }
+            assert!(p.poll(t + 4_000_000).is_none());
+        }
+        assert_eq!(p.stats().sets_complete, 5);
+        assert_eq!(p.stats().late, 0);
+    }
+
+    #[test]
+    fn deadline_closes_incomplete_sets_and_late_ones_are_counted() {
+        let mut p = Pairer::new(cfg()).unwrap();
+        let t = 500 * PERIOD;
+        for c in 0..3usize {
+            push(&mut p, c, &msg(c as u8, 1, t, None, 1.0), t + 1_000_000);
+        }
+        assert!(
+            p.poll(t + 1_500_000).is_none(),
+            "waits for camera 3 until the deadline"
+        );
+        let set = p.poll(t + 1_000_000 + 2 * PERIOD).expect("deadline");
+        assert_eq!(set.present, 3);
+        assert!(!set.cameras[3].present);
+        assert_eq!(p.stats().missing[3], 1);
+        // Camera 3's observation of that instant arrives after the close.
+        assert_eq!(
+            push(&mut p, 3, &msg(1, 1, t + 500_000, None, 1.0), t + 3 * PERIOD),
+            PushOutcome::Late
+        );
+        assert_eq!(p.stats().late, 1);
+    }
+
+    #[test]
+    fn newer_complete_set_closes_an_older_one() {
+        let mut p = Pairer::new(cfg()).unwrap();
+        let t = 700 * PERIOD;
+        push(&mut p, 0, &msg(0, 1, t, None, 1.0), t + 1_000_000);
+        for c in 0..4usize {
+            push(
+                &mut p,
+                c,
+                &msg(c as u8, 2, t + PERIOD, None, 2.0),
+                t + PERIOD + 1_000_000,
+            );
+        }
+        let first = p.poll(t + PERIOD + 1_000_000).unwrap();
+        assert_eq!((first.key, first.present), (t, 1));
+        let second = p.poll(t + PERIOD + 1_000_000).unwrap();
+        assert_eq!(second.present, 4);
+    }
+
+    #[test]
+    fn trigger_mode_pairs_by_counter_whatever_the_timestamps() {
+        let mut c = cfg();
+        c.mode = PairingMode::Trigger;
+        let mut p = Pairer::new(c).unwrap();
+        let t = 900 * PERIOD;
+        for cam in 0..4usize {
+            // Timestamps spread over 4 ms: the counter decides.
+            let ts = t + cam as u64 * 1_000_000;
+            push(&mut p, cam, &msg(cam as u8, 5, ts, Some(77), 0.0), ts + 1_000_000);
+        }
+        let set = p.poll(t + 5_000_000).unwrap();
+        assert_eq!((set.key, set.present), (77, 4));
+        assert_eq!(
+            push(&mut p, 0, &msg(0, 6, t, None, 0.0), t + 1_000_000),
+            PushOutcome::NoTrigger
+        );
+    }
+
+    /// Board 1's clock runs one frame period ahead: its frame k looks like frame k+1. It must
+    /// be faulted, and no set may ever hold its observations together with board 0's.
+    #[test]
+    fn clock_offset_beyond_tolerance_faults_and_never_pairs_wrongly() {
+        let mut p = Pairer::new(cfg()).unwrap();
+        let t0 = 2_000 * PERIOD;
+        let mut mixed = 0;
+        for k in 0..200u64 {
+            let t = t0 + k * PERIOD;
+            let recv = t + 2_000_000;
+            for c in 0..4usize {
+                let ts = if c >= 2 { t + PERIOD } else { t };
+                push(&mut p, c, &msg(c as u8 % 2, k, ts, None, k as f32), recv);
+            }
+            while let Some(set) = p.poll(recv + 3 * PERIOD) {
+                let board0 = set.cameras[0].present || set.cameras[1].present;
+                let board1 = set.cameras[2].present || set.cameras[3].present;
+                if board0 && board1 {
+                    mixed += 1;
+                }
+            }
+        }
+        assert_eq!(mixed, 0, "sets mixing board 0 and the offset board 1");
+        assert!(p.boards()[1].faulted);
+        assert!(!p.boards()[0].faulted);
+        let off = p.boards()[1].offset_ns.unwrap();
+        assert!((off - PERIOD as i64).abs() < 2_000_000, "offset {off}");
+        assert!(p.stats().refused_clock >= 390);
+    }
+
+    /// An offset within the tolerance (3 ms of 5) with 3 ms receive jitter still pairs.
+    #[test]
+    fn offset_within_tolerance_pairs_with_jitter() {
+        let mut p = Pairer::new(cfg()).unwrap();
+        let t0 = 3_000 * PERIOD;
+        let mut complete = 0;
+        let mut jitter = 12345u64;
+        for k in 0..100u64 {
+            let t = t0 + k * PERIOD;
+            for c in 0..4usize {
+                jitter = jitter
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                // Board 1 stamps 3 ms ahead of the true capture time t.
+                let ts = if c >= 2 { t + 3_000_000 } else { t };
+                let recv = t + 1_000_000 + (jitter >> 33) % 3_000_000;
+                push(&mut p, c, &msg(c as u8 % 2, k, ts, None, k as f32), recv);
+            }
+            while let Some(set) = p.poll(t + 8_000_000) {
+                let first = set.cameras[0].blobs()[0].x_px;
+                assert!(
+                    set.cameras[..4]
+                        .iter()
+                        .all(|e| !e.present || e.blobs()[0].x_px == first)
+                );
+                if set.present == 4 {
+                    complete += 1;
+                }
+            }
+        }
+        assert!(complete >= 95, "{complete} complete sets of 100");
+        assert!(!p.boards()[1].faulted);
+    }
+
+    #[test]
+    fn faulted_board_leaves_the_others_complete() {
+        let mut p = Pairer::new(cfg()).unwrap();
+        let t0 = 4_000 * PERIOD;
+        for k in 0..100u64 {
+            let t = t0 + k * PERIOD;
+            for c in 0..4usize {
+                let ts = if c >= 2 { t + 30 * PERIOD } else { t };
+                push(&mut p, c, &msg(c as u8 % 2, k, ts, None, 0.0), t + 1_000_000);
+            }
+        }
+        // Board 0's sets complete on their own once board 1 is faulted.
+        let set = p.poll(t0 + 100 * PERIOD).unwrap();
+        assert_eq!(set.present, 2);
+    }
+}
