@@ -17,18 +17,18 @@ use crate::engine::{Engine, ParamsHandle};
 use crate::error::{FirmwareError, Result};
 use crate::leds::StatusLeds;
 use crate::leds::driver::LedDriver;
+use crate::leds::indication::RobotIndication;
 use crate::leds::sim::{LedRecord, SimLeds};
 use crate::net::stream::{StreamFormat, StreamHub};
 use crate::params::{ParamService, RigShape};
-use crate::robot::client::MonotonicClock;
-use crate::robot::deadman::{DeadmanConfig, FlagDeadman};
-use crate::robot::{RobotConfig, TcpRobotLink};
 use crate::source::FrameSource;
 use crate::source::replay::ReplaySource;
 use crate::source::sim::SimSource;
 use crate::status::SharedStatus;
 use crate::storage::ParamStore;
 use crate::tuning::TuningHandle;
+use irtrack_robot::deadman::{DeadmanConfig, FlagDeadman};
+use irtrack_robot::{LinkHandle, MonotonicClock, RobotConfig};
 
 /// Actual addresses of the bound listeners.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -78,7 +78,7 @@ pub struct Running {
     loop_result: Option<oneshot::Receiver<Result<()>>>,
     leds: Option<LedDriver>,
     /// Shared only weakly with the status endpoint's control requests.
-    robot: Option<Arc<TcpRobotLink>>,
+    robot: Option<Arc<LinkHandle>>,
     /// Software deadman for `[robot.deadman] kind = "flag"` (set by a control front end).
     pub robot_deadman_flag: FlagDeadman,
     shutdown_tx: watch::Sender<bool>,
@@ -302,7 +302,7 @@ fn shutdown_future(rx: &watch::Receiver<bool>) -> impl std::future::Future<Outpu
 
 /// The robot link, when `[robot]` is configured.
 struct RobotParts {
-    link: Option<Arc<TcpRobotLink>>,
+    link: Option<Arc<LinkHandle>>,
     /// Software deadman for `[robot.deadman] kind = "flag"` (set by a control front end).
     deadman_flag: FlagDeadman,
 }
@@ -322,13 +322,13 @@ fn start_robot(
         });
     };
     let deadman = rc.deadman.open(&deadman_flag)?;
-    let link = crate::robot::spawn_link(rc.clone(), positions.clone(), MonotonicClock, deadman)?;
+    let link = irtrack_robot::spawn_link(rc.clone(), positions.clone(), MonotonicClock, deadman)?;
     let mut link_status = link.subscribe();
     let st = status.clone();
     tasks.push(tokio::spawn(async move {
         loop {
             let state = link_status.borrow_and_update().state;
-            st.set_robot(state.indication());
+            st.set_robot(RobotIndication::from(state));
             if link_status.changed().await.is_err() {
                 break;
             }
@@ -514,7 +514,7 @@ impl Running {
     }
 
     /// The robot link, when `[robot]` is configured (enable/disable/status via `RobotLink`).
-    pub fn robot(&self) -> Option<&TcpRobotLink> {
+    pub fn robot(&self) -> Option<&LinkHandle> {
         self.robot.as_deref()
     }
 

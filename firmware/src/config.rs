@@ -9,10 +9,10 @@ use irtrack_core::pipeline::TrackerConfig;
 
 use crate::error::{FirmwareError, Result};
 use crate::leds::gpio::GpioLedConfig;
-use crate::robot::RobotConfig;
 use crate::source::replay::ReplayConfig;
 use crate::source::sim::SimSourceConfig;
 use crate::source::v4l2::V4l2Config;
+use irtrack_robot::RobotConfig;
 
 /// Default location of the config file on the board.
 pub const DEFAULT_CONFIG_PATH: &str = "/etc/irtrack/irtrackd.toml";

@@ -36,7 +36,7 @@ pub enum FirmwareError {
     },
     /// The robot link could not be started.
     #[error("{0}")]
-    Robot(#[from] crate::robot::RobotError),
+    Robot(#[from] irtrack_robot::RobotError),
     /// An output (NatNet, recording) could not encode or refused input.
     #[error("{what}: {reason}")]
     Output { what: &'static str, reason: String },

@@ -17,7 +17,6 @@ pub mod metrics;
 pub mod net;
 pub mod outputs;
 pub mod params;
-pub mod robot;
 pub mod rt;
 pub mod soak;
 pub mod source;

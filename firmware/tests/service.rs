@@ -548,7 +548,7 @@ async fn status_json_and_metrics_report_the_running_service() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn robot_link_from_config_drives_the_robot_led() {
-    use irtrack_firmware::robot::sim::{SimRobotServer, SimServerConfig};
+    use irtrack_robot::sim::{SimRobotServer, SimServerConfig};
     let robot = SimRobotServer::start(SimServerConfig::default()).await.unwrap();
     let dir = TempDir::new("robot");
     let toml = format!(

@@ -11,11 +11,11 @@ use std::time::Duration;
 use common::*;
 use irtrack_core::pose6d::quaternion_angle_rad;
 use irtrack_core::robot_proto::HoldReason;
-use irtrack_core::robot_proto::SimRobotConfig;
 use irtrack_core::stream::TrackStatus;
 use irtrack_firmware::app::{self, Overrides};
-use irtrack_firmware::robot::sim::{SimRobotServer, SimServerConfig};
-use irtrack_firmware::robot::{LinkState, RobotLink};
+use irtrack_robot::sim::{SimRobotServer, SimServerConfig};
+use irtrack_robot::sim_robot::SimRobotConfig;
+use irtrack_robot::{LinkState, RobotLink};
 use nalgebra::Vector3;
 
 const FRAMES: u64 = 720;

@@ -3,8 +3,8 @@
 //! `EgmSensor` echoing its seqno with a finite pose.
 #![no_main]
 
-use irtrack_firmware::robot::egm::{self, EgmSensor};
-use irtrack_firmware::robot::udp::{Command, StreamConfig, StreamProto};
+use irtrack_robot::egm::{self, EgmSensor};
+use irtrack_robot::udp::{Command, StreamConfig, StreamProto};
 use libfuzzer_sys::fuzz_target;
 use prost::Message;
 

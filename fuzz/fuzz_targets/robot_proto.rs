@@ -4,7 +4,8 @@
 //! runs) with a sequence of lines and time steps.
 #![no_main]
 
-use irtrack_core::robot_proto::{RobotMsg, SimRobot, SimRobotConfig, TrackerMsg};
+use irtrack_core::robot_proto::{RobotMsg, TrackerMsg};
+use irtrack_robot::sim_robot::{SimRobot, SimRobotConfig};
 use libfuzzer_sys::fuzz_target;
 
 /// Quaternions the parser reads but the encoder refuses (components beyond ±1 or a norm away

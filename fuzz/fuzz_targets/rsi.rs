@@ -3,8 +3,8 @@
 //! echoes its IPOC.
 #![no_main]
 
-use irtrack_firmware::robot::rsi;
-use irtrack_firmware::robot::udp::{Command, StreamConfig, StreamProto};
+use irtrack_robot::rsi;
+use irtrack_robot::udp::{Command, StreamConfig, StreamProto};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

@@ -104,8 +104,8 @@ fn rapid_egm_module_structure_is_balanced() {
         ],
     );
     // The cycle the module documents is the one the simulated controller runs by default.
-    let sim = irtrack_firmware::robot::ctrl_sim::CtrlConfig::new(
-        irtrack_firmware::robot::ctrl_sim::CtrlKind::Egm,
+    let sim = irtrack_robot::ctrl_sim::CtrlConfig::new(
+        irtrack_robot::ctrl_sim::CtrlKind::Egm,
         "127.0.0.1:6510".parse().unwrap(),
     );
     assert_eq!(consts(&src).get("EGM_CYCLE_MS"), Some(&sim.cycle_ms));

@@ -1,6 +1,6 @@
 //! 6-DOF end to end: a rotating 4-LED tool rendered by the simulator in the convergent 90° VGA
 //! rig at 1 m → `BlobDetector` + `PoseTracker` per frame → `PositionRecord` with orientation in
-//! the world (robot) frame → the firmware's `TcpRobotLink` (safety supervisor, `Q` lines) →
+//! the world (robot) frame → the socket robot link (`irtrack_robot::LinkHandle`) (safety supervisor, `Q` lines) →
 //! `SimRobotServer` on 127.0.0.1. The targets the robot received are compared with the
 //! simulator's ground truth; the figures are printed (`cargo test -p irtrack-tests --test
 //! sixdof_e2e -- --nocapture`).
@@ -14,12 +14,12 @@ use irtrack_core::camera::RigidTransform;
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::ToolDefinition;
 use irtrack_core::pose6d::{PoseConfig, PoseStatus, PoseTracker, quaternion_angle_rad};
-use irtrack_core::robot_proto::{HoldReason, SimRobotConfig};
+use irtrack_core::robot_proto::HoldReason;
 use irtrack_core::stream::{PositionRecord, TrackStatus};
-use irtrack_firmware::robot::client::Clock;
-use irtrack_firmware::robot::deadman::NoDeadman;
-use irtrack_firmware::robot::sim::{SimRobotServer, SimServerConfig};
-use irtrack_firmware::robot::{DeadmanConfig, LinkState, RobotConfig, RobotLink, SafetyConfig, TcpRobotLink};
+use irtrack_robot::deadman::NoDeadman;
+use irtrack_robot::sim::{SimRobotServer, SimServerConfig};
+use irtrack_robot::sim_robot::SimRobotConfig;
+use irtrack_robot::{Clock, DeadmanConfig, LinkHandle, LinkState, RobotConfig, RobotLink, SafetyConfig};
 use irtrack_sim::{FrameTruth, Orientation, RigPreset, Scenario, SimConfig, Trajectory};
 use nalgebra::{Rotation3, UnitQuaternion, Vector3};
 use tokio::sync::watch;
@@ -160,7 +160,7 @@ async fn rotating_tool_tracked_in_6dof_to_the_simulated_robot() {
     };
     let (tx, rx) = watch::channel::<Option<PositionRecord>>(None);
     let now = Arc::new(AtomicU64::new(1_000_000_000));
-    let link = TcpRobotLink::spawn(link_cfg, rx, FrameClock(now.clone()), Arc::new(NoDeadman)).unwrap();
+    let link = LinkHandle::spawn_socket(link_cfg, rx, FrameClock(now.clone()), Arc::new(NoDeadman)).unwrap();
     let mut status = link.subscribe();
     // Every state the link passes through; a latched safety stop would show here.
     let states = Arc::new(Mutex::new(Vec::<LinkState>::new()));

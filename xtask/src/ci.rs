@@ -520,7 +520,7 @@ fn aarch64_tests(ctx: &Ctx) -> Outcome {
 
 /// Test-name filters skipped under qemu-aarch64 (they still run in the host phase).
 const EMULATION_SKIPS: &[&str] = &[
-    "robot::tests::",
+    "link_tests::",
     "sim_positions_match_truth",
     "starts_without_params_then_push",
     "led_states_follow",

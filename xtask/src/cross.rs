@@ -12,7 +12,7 @@ use crate::util::{self, Ctx, RunOpts};
 pub const TARGET: &str = "aarch64-unknown-linux-gnu";
 
 /// Crates that cross-build. host-tools, tests and xtask stay on the host (OpenCV).
-pub const CROSS_CRATES: &[&str] = &["irtrack-core", "irtrack-sim", "irtrack-firmware"];
+pub const CROSS_CRATES: &[&str] = &["irtrack-core", "irtrack-sim", "irtrack-robot", "irtrack-firmware"];
 
 /// Where Debian's rustc-web keeps its aarch64 std.
 const DEBIAN_AARCH64_STD: &str = "/usr/lib/rustlib/aarch64-unknown-linux-gnu";

@@ -42,6 +42,18 @@ pub enum RobotIndication {
     Holding,
 }
 
+impl From<irtrack_robot::LinkState> for RobotIndication {
+    /// What the robot status LED shows for a link state.
+    fn from(state: irtrack_robot::LinkState) -> Self {
+        use irtrack_robot::LinkState;
+        match state {
+            LinkState::Disconnected | LinkState::Connecting => RobotIndication::Disconnected,
+            LinkState::Holding(_) => RobotIndication::Holding,
+            LinkState::Moving => RobotIndication::Connected,
+        }
+    }
+}
+
 /// Faults shown on the fault LED, most important first.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]

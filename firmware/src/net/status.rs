@@ -21,11 +21,10 @@ use tokio::sync::watch;
 use super::auth::OperatorAuth;
 use super::http::{ConnInfo, HostPolicy, json_text, text};
 use crate::engine::ParamsHandle;
-use crate::robot::client::LinkState;
-use crate::robot::{RobotLink, TcpRobotLink};
 use crate::status::SharedStatus;
 use crate::tuning::TuningHandle;
 use crate::viewer::ViewerTap;
+use irtrack_robot::{LinkHandle, LinkState, RobotLink};
 
 /// What the control requests may act on.
 #[derive(Clone, Default)]
@@ -33,9 +32,9 @@ pub struct RobotControl {
     /// `[service] control`; false refuses every control request.
     pub allowed: bool,
     /// The robot link, owned by `Running` (weak so shutdown can still take it back).
-    pub link: Option<Weak<TcpRobotLink>>,
+    pub link: Option<Weak<LinkHandle>>,
     /// Software deadman flag, when `[robot.deadman] kind = "flag"`.
-    pub deadman_flag: Option<crate::robot::deadman::FlagDeadman>,
+    pub deadman_flag: Option<irtrack_robot::deadman::FlagDeadman>,
 }
 
 /// Everything the status listener serves from.
@@ -285,7 +284,7 @@ pub(super) async fn asset(axum::extract::Path(path): axum::extract::Path<String>
 }
 
 /// JSON view of the link state (what a control request reports back).
-fn link_json(link: &TcpRobotLink, deadman: Option<bool>) -> String {
+fn link_json(link: &LinkHandle, deadman: Option<bool>) -> String {
     let st = link.status();
     let (state, hold_reason) = match st.state {
         LinkState::Disconnected => ("disconnected", None),
@@ -373,7 +372,7 @@ fn control(path: &str, query: Option<&str>, ctl: &RobotControl, safe: bool) -> R
     let flag_state = |ctl: &RobotControl| {
         ctl.deadman_flag
             .as_ref()
-            .map(crate::robot::deadman::Deadman::pressed)
+            .map(irtrack_robot::deadman::Deadman::pressed)
     };
     match path {
         "/robot/enable" => link.enable(),

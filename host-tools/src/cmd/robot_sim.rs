@@ -17,9 +17,10 @@ use std::net::UdpSocket;
 use std::sync::{Arc, Mutex};
 
 use anyhow::{Context, bail};
-use irtrack_core::robot_proto::{MAX_LINE_BYTES, RobotMsg, SimEvent, SimRobot, SimRobotConfig};
-use irtrack_firmware::robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController};
-use irtrack_firmware::robot::udp::RsiMode;
+use irtrack_core::robot_proto::{MAX_LINE_BYTES, RobotMsg};
+use irtrack_robot::RsiMode;
+use irtrack_robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController};
+use irtrack_robot::sim_robot::{SimEvent, SimRobot, SimRobotConfig};
 use irtrack_sim::cell::{self, RobotErrorModel};
 
 /// Arguments.
@@ -274,7 +275,7 @@ pub fn serve(args: &Args, listener: TcpListener) -> anyhow::Result<()> {
     let _ = writeln!(
         stdout,
         "robot-sim clock t0_mono_ns={}",
-        irtrack_firmware::clock::monotonic_ns()
+        irtrack_robot::monotonic_ns()
     );
     let _ = stdout.flush();
     let mut robot = SimRobot::new(cfg);

@@ -5,13 +5,13 @@
 use std::net::{SocketAddr, UdpSocket};
 use std::time::Duration;
 
-use irtrack_firmware::robot::client::MonotonicClock;
-use irtrack_firmware::robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController};
-use irtrack_firmware::robot::deadman::NoDeadman;
-use irtrack_firmware::robot::egm::{self, EgmCartesian, EgmHeader, EgmPlanned, EgmPose, EgmRobot};
-use irtrack_firmware::robot::rsi;
-use irtrack_firmware::robot::udp::{Command, RsiMode, StreamConfig};
-use irtrack_firmware::robot::{
+use irtrack_robot::MonotonicClock;
+use irtrack_robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController};
+use irtrack_robot::deadman::NoDeadman;
+use irtrack_robot::egm::{self, EgmCartesian, EgmHeader, EgmPlanned, EgmPose, EgmRobot};
+use irtrack_robot::rsi;
+use irtrack_robot::udp::{Command, RsiMode, StreamConfig};
+use irtrack_robot::{
     DeadmanConfig, LinkHandle, LinkKind, LinkStatus, RobotConfig, RobotLink, SafetyConfig, spawn_link,
 };
 use prost::Message;
@@ -489,7 +489,7 @@ async fn gap_starts_held_session(kind: LinkKind) {
     assert_eq!(st.connects, 2, "{st:?}");
     assert_eq!(
         st.state,
-        irtrack_firmware::robot::LinkState::Holding(irtrack_core::robot_proto::HoldReason::NotEnabled)
+        irtrack_robot::LinkState::Holding(irtrack_core::robot_proto::HoldReason::NotEnabled)
     );
 }
 

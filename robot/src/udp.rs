@@ -17,11 +17,11 @@ use tokio::net::UdpSocket;
 use tokio::sync::watch;
 use tokio::time::Instant;
 
-use super::client::{Clock, LinkHandle, LinkState, LinkStatus, PositionFeed};
-use super::deadman::Deadman;
-use super::gate::Gate;
-use super::safety::{Sample, Verdict};
-use super::{LinkKind, RobotConfig, RobotError};
+use crate::deadman::Deadman;
+use crate::gate::Gate;
+use crate::link::{LinkHandle, LinkState, LinkStatus};
+use crate::safety::{Sample, Verdict};
+use crate::{Clock, LinkKind, PositionFeed, RobotConfig, RobotError};
 
 /// RSI correction mode.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]

@@ -14,8 +14,8 @@ use std::io::Write;
 use quick_xml::Reader;
 use quick_xml::events::{BytesStart, Event};
 
-use super::udp::{Command, RobotPacket, RsiMode, StreamConfig, StreamProto};
-use super::{LinkKind, RobotError};
+use crate::udp::{Command, RobotPacket, RsiMode, StreamConfig, StreamProto};
+use crate::{LinkKind, RobotError};
 
 /// Largest RSI datagram accepted (the controller's default receive buffer is 1024 bytes; a
 /// verbose `<Rob>` with many tags stays well below this).

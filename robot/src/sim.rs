@@ -1,16 +1,18 @@
 //! Simulated robot controller on tokio: the same [`SimRobot`] state machine `host-tools robot-sim`
 //! runs, behind a TCP listener, with fault injection (reply delay, disconnect after N targets).
-//! Used by the firmware's end-to-end tests and usable by integration tests of irtrackd.
+//! Used by the robot link's end-to-end tests and usable by integration tests of irtrackd.
 
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use irtrack_core::robot_proto::{RobotMsg, SimEvent, SimRobot, SimRobotConfig, TrackerMsg};
+use irtrack_core::robot_proto::{RobotMsg, TrackerMsg};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
+
+use crate::sim_robot::{SimEvent, SimRobot, SimRobotConfig};
 
 /// Server-side options around the robot model.
 #[derive(Debug, Clone)]

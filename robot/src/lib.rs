@@ -1,30 +1,101 @@
-//! Robot link: the tracker side of three robot interfaces (`[robot] kind`): the socket protocol
-//! (docs/robot-protocol.md), ABB EGM and KUKA RSI (docs/robot-streaming.md); the safety
-//! supervisor that decides what may be sent, the deadman input and simulated controllers.
+//! irtrack's robot side, shared by irtrackd (the board) and the PC tools: the tracker end of the
+//! three robot interfaces (`[robot] kind`): the socket protocol (docs/robot-protocol.md), ABB EGM
+//! and KUKA RSI (docs/robot-streaming.md); the safety supervisor that decides what may be sent
+//! and the deadman input; and the simulated controllers the tests and `host-tools robot-sim` run.
+//! The wire codecs themselves are no_std and live in `irtrack_core::robot_proto`.
 //!
-//! The [`RobotLink`] trait is the seam irtrackd uses; [`LinkHandle`] implements it for every
-//! kind, and [`spawn_link`] is the one place a link is built from the config. All kinds judge
-//! samples through the same [`gate::Gate`] (operator enable, deadman, supervisor).
+//! [`LinkHandle`] is the running link of any kind and implements [`RobotLink`], the seam irtrackd
+//! uses; [`spawn_link`] is the one place a link is built from the config. All kinds judge samples
+//! through the same [`gate::Gate`] (operator enable, deadman, supervisor), fed by a
+//! [`PositionFeed`] and timed by a [`Clock`].
 
 pub mod client;
 pub mod ctrl_sim;
 pub mod deadman;
 pub mod egm;
 pub mod gate;
+pub mod link;
 pub mod rsi;
 pub mod safety;
 pub mod sim;
-#[cfg(test)]
-mod tests;
+pub mod sim_robot;
 pub mod udp;
 
+#[cfg(test)]
+mod link_tests;
+
+use std::future::Future;
 use std::sync::Arc;
 
+use irtrack_core::stream::PositionRecord;
 use serde::Deserialize;
+use tokio::sync::watch;
 
-pub use client::{LinkHandle, LinkState, LinkStatus, TcpRobotLink};
 pub use deadman::{Deadman, DeadmanConfig};
-pub use safety::{SafetyConfig, Supervisor, Verdict};
+pub use link::{LinkHandle, LinkState, LinkStatus};
+pub use safety::{SafetyConfig, Sample, Supervisor, Verdict};
+pub use udp::{RsiMode, StreamConfig};
+
+/// Current CLOCK_MONOTONIC time in ns: the clock V4L2 stamps frames with, so simulated,
+/// replayed and real frames, the robot links and the simulated controllers share one time base.
+pub fn monotonic_ns() -> u64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `ts` is a valid out-pointer; CLOCK_MONOTONIC always exists on Linux.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    if rc != 0 {
+        return 0;
+    }
+    (ts.tv_sec as u64)
+        .saturating_mul(1_000_000_000)
+        .saturating_add(ts.tv_nsec as u64)
+}
+
+/// Time base of the samples' `capture_ts_ns` (CLOCK_MONOTONIC for irtrackd).
+pub trait Clock: Send + Sync + 'static {
+    fn now_ns(&self) -> u64;
+}
+
+/// CLOCK_MONOTONIC, the clock frames are stamped with.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct MonotonicClock;
+
+impl Clock for MonotonicClock {
+    fn now_ns(&self) -> u64 {
+        monotonic_ns()
+    }
+}
+
+/// Source of the newest tracker sample.
+pub trait PositionFeed: Send + Sync + 'static {
+    /// The newest sample, marking it seen.
+    fn latest(&mut self) -> Option<Sample>;
+    /// Resolves when a newer sample may be available; `false` once the feed is closed.
+    fn changed(&mut self) -> impl Future<Output = bool> + Send;
+    /// When the newest sample was published (same clock as its capture time), if known: the
+    /// start of the link's protocol wait.
+    fn published_ns(&self) -> Option<u64> {
+        None
+    }
+}
+
+/// irtrackd's latest-value slot of position records.
+impl PositionFeed for watch::Receiver<Option<PositionRecord>> {
+    fn latest(&mut self) -> Option<Sample> {
+        self.borrow_and_update().as_ref().map(Sample::from)
+    }
+    fn published_ns(&self) -> Option<u64> {
+        // The record carries capture → published (µs) in `latency_us`.
+        self.borrow()
+            .as_ref()
+            .map(|r| r.capture_ts_ns + u64::from(r.latency_us) * 1000)
+    }
+    async fn changed(&mut self) -> bool {
+        watch::Receiver::changed(self).await.is_ok()
+    }
+}
 
 /// Errors of the robot link (logged by the client, which keeps reconnecting).
 #[derive(Debug, thiserror::Error)]
@@ -199,15 +270,32 @@ impl RobotConfig {
     }
 }
 
+/// The `[robot]` section of an irtrackd config file (TOML; same keys as irtrackd reads), parsed
+/// and validated; `None` when the file has no `[robot]` section. Other sections are not looked
+/// at, so the PC tools can read the board's file without knowing irtrackd's whole config.
+pub fn robot_section(text: &str, origin: &str) -> Result<Option<RobotConfig>, RobotError> {
+    #[derive(Deserialize)]
+    struct File {
+        robot: Option<RobotConfig>,
+    }
+    let file: File = toml::from_str(text).map_err(|e| RobotError::Config {
+        reason: format!("{origin}: {e}"),
+    })?;
+    if let Some(robot) = &file.robot {
+        robot.validate()?;
+    }
+    Ok(file.robot)
+}
+
 /// Builds and starts the link `cfg.kind` names: the one place irtrackd creates a robot link.
-pub fn spawn_link<F: client::PositionFeed, C: client::Clock>(
+pub fn spawn_link<F: PositionFeed, C: Clock>(
     cfg: RobotConfig,
     feed: F,
     clock: C,
     deadman: Arc<dyn Deadman>,
 ) -> Result<LinkHandle, RobotError> {
     match cfg.kind {
-        LinkKind::Socket => LinkHandle::spawn(cfg, feed, clock, deadman),
+        LinkKind::Socket => LinkHandle::spawn_socket(cfg, feed, clock, deadman),
         LinkKind::Egm => udp::spawn::<egm::Egm, F, C>(cfg, feed, clock, deadman),
         LinkKind::Rsi => udp::spawn::<rsi::Rsi, F, C>(cfg, feed, clock, deadman),
     }
@@ -314,5 +402,31 @@ active_low = true
                 .to_string()
                 .contains("deadman")
         );
+    }
+
+    #[test]
+    fn robot_section_of_a_whole_irtrackd_file() {
+        let file = format!(
+            "[service]\ncontrol = true\n[source.sim]\nfps = 30.0\n{}",
+            GOOD.replace("address =", "[robot]\naddress =")
+                .replace("[safety]", "[robot.safety]")
+                .replace("[deadman]", "[robot.deadman]")
+        );
+        let r = robot_section(&file, "irtrackd.toml").unwrap().unwrap();
+        assert_eq!(r.address, "192.168.125.1:1025");
+        assert_eq!(r.safety.max_step_mm, 20.0);
+        assert_eq!(r.safety.workspace_max_mm, [500.0, 500.0, 800.0]);
+        assert!(
+            robot_section("[leds]\nbackend = \"none\"\n", "x.toml")
+                .unwrap()
+                .is_none()
+        );
+        // A typo inside [robot] is an error naming the key; values are validated too.
+        let typo = file.replace("max_age_ms = 100", "max_age_ms = 100\nmax_agee = 1");
+        let e = robot_section(&typo, "irtrackd.toml").unwrap_err().to_string();
+        assert!(e.contains("irtrackd.toml") && e.contains("max_agee"), "{e}");
+        let inverted = file.replace("[500.0, 500.0, 800.0]", "[500.0, -600.0, 800.0]");
+        let e = robot_section(&inverted, "irtrackd.toml").unwrap_err().to_string();
+        assert!(e.contains("workspace"), "{e}");
     }
 }

@@ -12,7 +12,7 @@ use gpiocdev::line::{Offset, Value};
 use gpiocdev::request::Request;
 use serde::Deserialize;
 
-use super::RobotError;
+use crate::RobotError;
 
 /// `[robot.deadman]`
 #[derive(Debug, Clone, PartialEq, Deserialize)]

@@ -89,7 +89,7 @@ impl SafetyConfig {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sample {
     pub frame: u64,
-    /// CLOCK_MONOTONIC capture time (the clock the client's [`super::client::Clock`] reads).
+    /// CLOCK_MONOTONIC capture time (the clock the client's [`crate::Clock`] reads).
     pub capture_ts_ns: u64,
     pub position_mm: Option<[f64; 3]>,
     pub orientation_wxyz: Option<[f64; 4]>,

@@ -13,12 +13,12 @@ use std::time::Duration;
 
 use irtrack_core::robot_proto::HoldReason;
 use irtrack_core::stream::{PositionRecord, TrackStatus};
-use irtrack_firmware::clock::monotonic_ns;
-use irtrack_firmware::robot::client::MonotonicClock;
-use irtrack_firmware::robot::ctrl_sim::{CtrlConfig, CtrlCycle, CtrlKind, SimController};
-use irtrack_firmware::robot::deadman::FlagDeadman;
-use irtrack_firmware::robot::udp::{RsiMode, StreamConfig};
-use irtrack_firmware::robot::{
+use irtrack_robot::MonotonicClock;
+use irtrack_robot::ctrl_sim::{CtrlConfig, CtrlCycle, CtrlKind, SimController};
+use irtrack_robot::deadman::FlagDeadman;
+use irtrack_robot::monotonic_ns;
+use irtrack_robot::udp::{RsiMode, StreamConfig};
+use irtrack_robot::{
     DeadmanConfig, LinkHandle, LinkKind, LinkState, LinkStatus, RobotConfig, RobotLink, SafetyConfig,
     spawn_link,
 };

@@ -17,10 +17,10 @@ use std::time::{Duration, Instant};
 
 use prost::Message;
 
-use super::RobotError;
-use super::egm::{self, EgmCartesian, EgmHeader, EgmPlanned, EgmPose, EgmQuaternion, EgmRobot, MessageType};
-use super::rsi;
-use super::udp::RsiMode;
+use crate::RobotError;
+use crate::egm::{self, EgmCartesian, EgmHeader, EgmPlanned, EgmPose, EgmQuaternion, EgmRobot, MessageType};
+use crate::rsi;
+use crate::udp::RsiMode;
 
 /// Which controller is simulated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -388,7 +388,7 @@ fn run(
             break;
         }
         id += id_step;
-        let t_ns = crate::clock::monotonic_ns();
+        let t_ns = crate::monotonic_ns();
         robot_packet(cfg.kind, id, t0.elapsed().as_millis() as u32, &servo, &mut out);
         if let Err(e) = sock.send_to(&out, cfg.sensor) {
             tracing::debug!("ctrl-sim: send: {e}");

@@ -1,21 +1,20 @@
-//! End-to-end tests: simulated marker feed → TcpRobotLink → simulated robot over 127.0.0.1.
+//! End-to-end tests: simulated marker feed → socket link (`LinkHandle::spawn_socket`) → simulated robot over 127.0.0.1.
 //! Every safety rule is exercised against the robot simulator, and the robot's own log is checked
 //! for violations (targets outside the box, jumps).
 
 use std::sync::Arc;
 use std::time::Duration;
 
-use irtrack_core::robot_proto::{HoldReason, SimEvent, SimRobotConfig};
+use irtrack_core::robot_proto::HoldReason;
 use irtrack_core::stream::{PositionRecord, TrackStatus};
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
-use super::client::{LinkState, LinkStatus, MonotonicClock};
-use super::deadman::{DeadmanConfig, FlagDeadman};
-use super::safety::SafetyConfig;
-use super::sim::{SimLog, SimRobotServer, SimServerConfig};
-use super::{RobotConfig, RobotLink, TcpRobotLink};
-use crate::clock::monotonic_ns;
+use crate::deadman::{DeadmanConfig, FlagDeadman};
+use crate::safety::SafetyConfig;
+use crate::sim::{SimLog, SimRobotServer, SimServerConfig};
+use crate::sim_robot::{SimEvent, SimRobotConfig};
+use crate::{LinkHandle, LinkState, LinkStatus, MonotonicClock, RobotConfig, RobotLink, monotonic_ns};
 
 const CENTER: [f64; 3] = [0.0, 0.0, 200.0];
 const RADIUS: f64 = 100.0;
@@ -115,7 +114,7 @@ fn circle(omega_rad_s: f64) -> impl Fn(f64) -> [f64; 3] + Send + Sync + Clone {
 
 struct Rig {
     sim: SimRobotServer,
-    link: TcpRobotLink,
+    link: LinkHandle,
     deadman: FlagDeadman,
     _feed: JoinHandle<()>,
 }
@@ -138,7 +137,7 @@ async fn rig_with(
     let mut cfg = link_cfg(sim.addr);
     tweak(&mut cfg);
     let dm = cfg.deadman.open(&deadman).unwrap();
-    let link = TcpRobotLink::spawn(cfg, rx, MonotonicClock, dm).unwrap();
+    let link = LinkHandle::spawn_socket(cfg, rx, MonotonicClock, dm).unwrap();
     Rig {
         sim,
         link,
@@ -147,7 +146,7 @@ async fn rig_with(
     }
 }
 
-async fn wait_for(link: &TcpRobotLink, what: &str, cond: impl Fn(&LinkStatus) -> bool) {
+async fn wait_for(link: &LinkHandle, what: &str, cond: impl Fn(&LinkStatus) -> bool) {
     let mut rx = link.subscribe();
     let r = tokio::time::timeout(Duration::from_secs(3), rx.wait_for(|s| cond(s))).await;
     assert!(
@@ -584,11 +583,11 @@ async fn unreachable_robot_backs_off_and_reports() {
         .local_addr()
         .unwrap();
     let (_tx, rx) = watch::channel(None);
-    let link = TcpRobotLink::spawn(
+    let link = LinkHandle::spawn_socket(
         link_cfg(port),
         rx,
         MonotonicClock,
-        Arc::new(super::deadman::NoDeadman),
+        Arc::new(crate::deadman::NoDeadman),
     )
     .unwrap();
     wait_for(&link, "connect error", |s| {

@@ -8,10 +8,9 @@ use std::sync::Arc;
 use irtrack_core::robot_proto::HoldReason;
 use tokio::sync::watch;
 
-use super::RobotConfig;
-use super::client::{Clock, PositionFeed};
-use super::deadman::Deadman;
-use super::safety::{Sample, Supervisor, Verdict};
+use crate::deadman::Deadman;
+use crate::safety::{Sample, Supervisor, Verdict};
+use crate::{Clock, PositionFeed, RobotConfig};
 
 /// Operator commands, shared by every link kind through a watch channel.
 #[derive(Debug, Clone, Copy, Default)]

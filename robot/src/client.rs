@@ -5,12 +5,10 @@
 //! Every (re)connection starts held: sequence state resets and motion resumes only after an
 //! explicit [`RobotLink::enable`] issued after the connection came up.
 
-use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 
 use irtrack_core::robot_proto::{self, HoldReason, PROTOCOL_VERSION, RobotMsg, TrackerMsg};
-use irtrack_core::stream::PositionRecord;
 use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
 use tokio::net::TcpStream;
 use tokio::net::tcp::OwnedWriteHalf;
@@ -18,145 +16,24 @@ use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 use tokio::time::{Instant, timeout};
 
-use super::deadman::Deadman;
-use super::gate::{Control, Gate};
-use super::safety::{Sample, Verdict};
-use super::{RobotConfig, RobotError, RobotLink};
+use crate::deadman::Deadman;
+use crate::gate::Gate;
+use crate::link::{LinkHandle, LinkState, LinkStatus};
+use crate::safety::Verdict;
+use crate::{Clock, LinkKind, PositionFeed, RobotConfig, RobotError};
 
-/// Time base of the samples' `capture_ts_ns` (CLOCK_MONOTONIC for irtrackd).
-pub trait Clock: Send + Sync + 'static {
-    fn now_ns(&self) -> u64;
-}
-
-/// CLOCK_MONOTONIC, the clock frames are stamped with.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct MonotonicClock;
-
-impl Clock for MonotonicClock {
-    fn now_ns(&self) -> u64 {
-        crate::clock::monotonic_ns()
-    }
-}
-
-/// Source of the newest tracker sample.
-pub trait PositionFeed: Send + Sync + 'static {
-    /// The newest sample, marking it seen.
-    fn latest(&mut self) -> Option<Sample>;
-    /// Resolves when a newer sample may be available; `false` once the feed is closed.
-    fn changed(&mut self) -> impl Future<Output = bool> + Send;
-    /// When the newest sample was published (same clock as its capture time), if known: the
-    /// start of the link's protocol wait.
-    fn published_ns(&self) -> Option<u64> {
-        None
-    }
-}
-
-impl PositionFeed for watch::Receiver<Option<PositionRecord>> {
-    fn latest(&mut self) -> Option<Sample> {
-        self.borrow_and_update().as_ref().map(Sample::from)
-    }
-    fn published_ns(&self) -> Option<u64> {
-        // The record carries capture → published (µs) in `latency_us`.
-        self.borrow()
-            .as_ref()
-            .map(|r| r.capture_ts_ns + u64::from(r.latency_us) * 1000)
-    }
-    async fn changed(&mut self) -> bool {
-        watch::Receiver::changed(self).await.is_ok()
-    }
-}
-
-/// Connection and motion state.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum LinkState {
-    /// Not connected (between attempts).
-    Disconnected,
-    /// Connecting or waiting for the robot's ready.
-    Connecting,
-    /// Connected, robot held for this reason.
-    Holding(HoldReason),
-    /// Connected and sending targets.
-    Moving,
-}
-
-impl LinkState {
-    /// What the robot status LED shows for this state.
-    pub fn indication(self) -> crate::leds::indication::RobotIndication {
-        use crate::leds::indication::RobotIndication;
-        match self {
-            LinkState::Disconnected | LinkState::Connecting => RobotIndication::Disconnected,
-            LinkState::Holding(_) => RobotIndication::Holding,
-            LinkState::Moving => RobotIndication::Connected,
-        }
-    }
-}
-
-/// State and counters, published on every change.
-#[derive(Debug, Clone, PartialEq)]
-pub struct LinkStatus {
-    /// Which interface this link speaks.
-    pub kind: super::LinkKind,
-    pub state: LinkState,
-    /// Name the robot gave in HELLO.
-    pub robot_name: Option<String>,
-    /// Robot TCP from its last credit line.
-    pub robot_pos_mm: Option<[f64; 3]>,
-    pub connects: u64,
-    pub targets_sent: u64,
-    pub holds_sent: u64,
-    pub rejects: u64,
-    /// Streaming kinds: controller packets answered.
-    pub packets_answered: u64,
-    /// Streaming kinds: packets that could not be decoded (not answered).
-    pub bad_packets: u64,
-    /// Streaming kinds: duplicated or reordered packets (older sequence number; not answered).
-    pub out_of_order: u64,
-    /// Streaming kinds: the UDP address irtrackd listens on.
-    pub local_addr: Option<std::net::SocketAddr>,
-    pub last_error: Option<String>,
-}
-
-impl Default for LinkStatus {
-    fn default() -> Self {
-        Self {
-            kind: super::LinkKind::Socket,
-            state: LinkState::Disconnected,
-            robot_name: None,
-            robot_pos_mm: None,
-            connects: 0,
-            targets_sent: 0,
-            holds_sent: 0,
-            rejects: 0,
-            packets_answered: 0,
-            bad_packets: 0,
-            out_of_order: 0,
-            local_addr: None,
-            last_error: None,
-        }
-    }
-}
-
-/// A running link of any kind (a tokio task) and its control handle.
-pub struct LinkHandle {
-    ctl: watch::Sender<Control>,
-    status: watch::Receiver<LinkStatus>,
-    task: Option<JoinHandle<()>>,
-}
-
-/// The socket protocol's link; the same handle type serves every kind.
-pub type TcpRobotLink = LinkHandle;
-
+/// The socket protocol's client task behind a [`LinkHandle`].
 impl LinkHandle {
     /// Validates the config and starts the socket-protocol client task on the current tokio
-    /// runtime (use [`super::spawn_link`] to start whatever `cfg.kind` names).
-    pub fn spawn<F: PositionFeed, C: Clock>(
+    /// runtime (use [`crate::spawn_link`] to start whatever `cfg.kind` names).
+    pub fn spawn_socket<F: PositionFeed, C: Clock>(
         cfg: RobotConfig,
         feed: F,
         clock: C,
         deadman: Arc<dyn Deadman>,
     ) -> Result<Self, RobotError> {
         cfg.validate()?;
-        if cfg.kind != super::LinkKind::Socket {
+        if cfg.kind != LinkKind::Socket {
             return Err(RobotError::Config {
                 reason: format!("robot.kind = \"{}\" is not the socket protocol", cfg.kind.name()),
             });
@@ -169,61 +46,6 @@ impl LinkHandle {
             };
             async move { client.run().await }
         }))
-    }
-
-    /// Starts `task` with a fresh control channel and status.
-    pub(crate) fn start<T, Fut>(task: T) -> Self
-    where
-        T: FnOnce(watch::Receiver<Control>, watch::Sender<LinkStatus>) -> Fut,
-        Fut: Future<Output = ()> + Send + 'static,
-    {
-        let (ctl, ctl_rx) = watch::channel(Control::default());
-        let (status_tx, status) = watch::channel(LinkStatus::default());
-        let task = tokio::spawn(task(ctl_rx, status_tx));
-        Self {
-            ctl,
-            status,
-            task: Some(task),
-        }
-    }
-
-    /// A receiver that sees every status change (for LEDs and the status endpoint).
-    pub fn subscribe(&self) -> watch::Receiver<LinkStatus> {
-        self.status.clone()
-    }
-
-    /// Holds the robot, says BYE and ends the task.
-    pub async fn shutdown(mut self) {
-        self.ctl.send_modify(|c| c.stop = true);
-        if let Some(task) = self.task.take() {
-            let _ = timeout(Duration::from_secs(2), task).await;
-        }
-    }
-}
-
-impl Drop for LinkHandle {
-    fn drop(&mut self) {
-        if let Some(task) = &self.task {
-            task.abort();
-        }
-    }
-}
-
-impl RobotLink for LinkHandle {
-    fn enable(&self) {
-        self.ctl.send_modify(|c| {
-            c.generation += 1;
-            c.enabled = true;
-        });
-    }
-    fn disable(&self) {
-        self.ctl.send_modify(|c| {
-            c.generation += 1;
-            c.enabled = false;
-        });
-    }
-    fn status(&self) -> LinkStatus {
-        self.status.borrow().clone()
     }
 }
 

@@ -9,8 +9,8 @@
 //! undeclared fields, so the joint arrays a controller also sends are passed over without
 //! being stored (decoding a packet allocates nothing).
 
-use super::udp::{Command, RobotPacket, StreamConfig, StreamProto};
-use super::{LinkKind, RobotError};
+use crate::udp::{Command, RobotPacket, StreamConfig, StreamProto};
+use crate::{LinkKind, RobotError};
 use prost::Message;
 
 /// `EgmHeader.MessageType`.
