@@ -272,11 +272,11 @@ mod tests {
         let leds = &m.tool.leds_mm;
         assert_eq!(leds.len(), 4);
         // Every true distance appears among the measured ones (LEDs are reordered).
-        for i in 0..4 {
-            for j in i + 1..4 {
-                let want = dist(&LAYOUT[i], &LAYOUT[j]);
+        for (i, a) in LAYOUT.iter().enumerate() {
+            for b in &LAYOUT[i + 1..] {
+                let want = dist(a, b);
                 let found =
-                    (0..4).any(|a| (0..4).any(|b| a != b && (dist(&leds[a], &leds[b]) - want).abs() < 1e-6));
+                    (0..4).any(|x| (0..4).any(|y| x != y && (dist(&leds[x], &leds[y]) - want).abs() < 1e-6));
                 assert!(found, "distance {want} missing from {leds:?}");
             }
         }
