@@ -182,11 +182,16 @@ fn robot_control_is_refused_unless_the_config_allows_it() {
     .unwrap();
     let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
     let status = addr_field(&ready, "status=");
-    for path in ["/robot/enable", "/robot/deadman?pressed=1", "/robot/disable"] {
+    for path in ["/robot/enable", "/robot/deadman?pressed=1"] {
         let (code, body) = http_operator(status, "POST", path);
         assert_eq!(code, 403, "{path}: {body}");
         assert!(body.contains("control = true"), "{path}: {body}");
     }
+    // A stop is never refused for want of control (docs/security.md); with no robot link at
+    // all there is nothing to stop, and the answer says so instead of pretending to act.
+    let (code, body) = http_operator(status, "POST", "/robot/disable");
+    assert_eq!(code, 409, "/robot/disable: {body}");
+    assert!(body.contains("no robot link"), "/robot/disable: {body}");
     let (code, body) = http(status, "GET", "/status");
     assert_eq!(code, 200, "{body}");
 }
