@@ -780,7 +780,7 @@ pub fn fault_texts(
         out.push(FaultText {
             code: "no_params",
             camera: None,
-            message: "no calibration (parameter set) is loaded, so no positions are computed — push one with `host-tools push`".into(),
+            message: "no calibration (parameter set) is loaded, so no positions are computed — push one with `host-tools push-params`".into(),
         });
     }
     if st.deadline_fault.load(R) {
