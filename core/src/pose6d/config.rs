@@ -1,6 +1,7 @@
 //! Limits and settings of the 6-DOF tracker ([`PoseConfig`], the `[pose]` config section).
 
 use alloc::format;
+use alloc::string::String;
 
 use serde::{Deserialize, Serialize};
 

@@ -2,6 +2,7 @@
 //! tool ([`measure_tool_layout`]).
 
 use alloc::format;
+use alloc::string::String;
 use alloc::vec::Vec;
 
 use nalgebra::{Matrix3, Vector3};
