@@ -105,18 +105,7 @@ fn pivot_from_simulated_frames_finds_the_tip_within_0_1_mm() {
     let o = host_tools(&["show-params", p(&out)]);
     assert!(text(&o).0.contains("tip ["), "{}", text(&o).0);
 
-    let truth = std::fs::read_to_string(dir.join("truth.csv")).unwrap();
-    let mut rec = String::from("t_s,frame,capture_ts_ns,x_mm,y_mm,z_mm,gap_mm,status,waypoint,qw,qx,qy,qz\n");
-    for line in truth.lines().skip(1) {
-        let f: Vec<f64> = line.split(',').map(|v| v.parse().unwrap()).collect();
-        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(f[6], f[7], f[8], f[9]));
-        // What irtrackd would report with the fitted tip: origin + R · tip.
-        let at = Vector3::new(f[2], f[3], f[4]) + q * fitted;
-        rec.push_str(&format!(
-            "{},{},0,{},{},{},0.05,ok,0,{},{},{},{}\n",
-            f[1], f[0], at.x, at.y, at.z, f[6], f[7], f[8], f[9]
-        ));
-    }
+    let rec = record_from_truth(&dir, &fitted, |_| Vector3::zeros());
     let rec_path = dir.join("record.csv");
     std::fs::write(&rec_path, rec).unwrap();
     let out2 = dir.join("again.irp");
@@ -133,6 +122,78 @@ fn pivot_from_simulated_frames_finds_the_tip_within_0_1_mm() {
     assert!(o.status.success(), "{stdout}\n{stderr}");
     let again = fitted_tip(&out2);
     assert!((again - tip).norm() < 1e-3, "again {again:?} vs {tip:?}");
+}
+
+/// A tracking record (`track --record` CSV) built from the simulator's truth poses as irtrackd
+/// would report them with tip `tip_mm`, each pose's point moved by `slip_mm(pose index)`.
+fn record_from_truth(dir: &Path, tip_mm: &Vector3<f64>, slip_mm: impl Fn(usize) -> Vector3<f64>) -> String {
+    let truth = std::fs::read_to_string(dir.join("truth.csv")).unwrap();
+    let mut rec = String::from("t_s,frame,capture_ts_ns,x_mm,y_mm,z_mm,gap_mm,status,waypoint,qw,qx,qy,qz\n");
+    for (i, line) in truth.lines().skip(1).enumerate() {
+        let f: Vec<f64> = line.split(',').map(|v| v.parse().unwrap()).collect();
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(f[6], f[7], f[8], f[9]));
+        // What irtrackd would report with the tip: origin + R · tip.
+        let at = Vector3::new(f[2], f[3], f[4]) + q * tip_mm + slip_mm(i);
+        rec.push_str(&format!(
+            "{},{},0,{},{},{},0.05,ok,0,{},{},{},{}\n",
+            f[1], f[0], at.x, at.y, at.z, f[6], f[7], f[8], f[9]
+        ));
+    }
+    rec
+}
+
+#[test]
+fn a_tip_that_slips_in_its_divot_is_refused_then_written_marked_poor() {
+    let dir = scratch("slip");
+    let (tip, _) = render_pivot(&dir, 120);
+    // A parameter set with the true tip, as a first good pivot would have left it.
+    let good = dir.join("good.irp");
+    let o = host_tools(&["pivot", "--frames", p(&dir), "--out", p(&good)]);
+    assert!(o.status.success(), "{}", text(&o).1);
+    // Every third pose the tip sits 3 mm beside the divot: the poses no longer share one pivot.
+    let rec = record_from_truth(&dir, &tip, |i| {
+        if i % 3 == 0 {
+            Vector3::new(3.0, -2.0, 0.0)
+        } else {
+            Vector3::zeros()
+        }
+    });
+    let rec_path = dir.join("slipped.csv");
+    std::fs::write(&rec_path, rec).unwrap();
+    let out = dir.join("slipped.irp");
+    let args = [
+        "pivot",
+        "--poses",
+        p(&rec_path),
+        "--params",
+        p(&good),
+        "--out",
+        p(&out),
+    ];
+    let o = host_tools(&args);
+    let (stdout, stderr) = text(&o);
+    assert!(
+        !o.status.success(),
+        "a slipping tip passed the gate:\n{stdout}\n{stderr}"
+    );
+    assert!(stderr.contains("Nothing was written"), "{stderr}");
+    assert!(
+        stderr.contains("the tip slipped") || stderr.contains("scatter by"),
+        "the cause is not named:\n{stderr}"
+    );
+    assert!(!out.exists(), "a refused fit left {}", out.display());
+
+    let mut poor_args = args.to_vec();
+    poor_args.push("--accept-poor");
+    let o = host_tools(&poor_args);
+    let (stdout, stderr) = text(&o);
+    assert!(o.status.success(), "{stdout}\n{stderr}");
+    assert!(stdout.contains("verdict: POOR"), "{stdout}");
+    let record = RigParams::from_blob(&std::fs::read(&out).unwrap())
+        .unwrap()
+        .calibration
+        .unwrap();
+    assert_eq!(record.verdict, irtrack_core::params::Verdict::Poor, "{record:?}");
 }
 
 #[test]
