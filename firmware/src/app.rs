@@ -411,10 +411,11 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
             })?;
     }
 
-    let leds = devices
-        .leds
-        .map(|l| LedDriver::start(l, status.clone()))
-        .transpose()?;
+    // Without LEDs the driver runs on `NoLeds`: its indication still reaches /status and the page.
+    let leds = Some(LedDriver::start(
+        devices.leds.unwrap_or_else(|| Box::new(crate::leds::NoLeds)),
+        status.clone(),
+    )?);
 
     // Step 6: the parameter and stream services.
     let (shutdown_tx, shutdown_rx) = watch::channel(false);

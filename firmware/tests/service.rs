@@ -305,6 +305,27 @@ async fn led_states_follow_faults_and_tracking() {
     }
 }
 
+/// A board without LEDs still shows what they would show: the page's LED row reads `/status`'s
+/// levels, which stayed all off (grey) when no driver ran.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_leds_the_status_still_carries_the_indication() {
+    let dir = TempDir::new("no-leds");
+    let mut cfg = test_config(dir.path());
+    cfg.leds.backend = irtrack_firmware::config::LedBackend::None;
+    cfg.service.params_from_simulator = true;
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    assert!(running.led_record.is_none(), "no LED back end was asked for");
+    let status = running.status.clone();
+    eventually(5, || status.indication().alive).await;
+    // The marker is tracked in both cameras: the track level is on, as on a board with LEDs.
+    eventually(5, || status.led_levels()[1]).await;
+    let st = status_json(running.addrs.status).await;
+    assert_eq!(st["leds"]["backend"], "none");
+    assert_eq!(st["leds"]["indication"]["alive"], true);
+    assert_eq!(st["leds"]["on"]["track"], true);
+    running.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn slow_stream_client_is_dropped_without_stalling_others() {
     let dir = TempDir::new("slow");

@@ -27,6 +27,19 @@ pub trait StatusLeds: Send {
     fn describe(&self) -> String;
 }
 
+/// No LEDs on the board (`[leds] kind = "none"`). The driver still runs on it, so `/status`
+/// and the set-up page show what the LEDs would show (the indication) on boards without them.
+pub struct NoLeds;
+
+impl StatusLeds for NoLeds {
+    fn set(&mut self, _led: Led, _on: bool) -> Result<(), LedError> {
+        Ok(())
+    }
+    fn describe(&self) -> String {
+        "none".to_string()
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum LedError {
     #[error("GPIO {what}: {reason}")]
