@@ -2,4 +2,5 @@
 
 pub mod calib;
 pub mod cmd;
+pub mod frames;
 pub mod opencv_yaml;

@@ -5,7 +5,6 @@
 //! its own intrinsics and with every other camera's), and the wave's length, tilt and image coverage.
 
 use irtrack_core::camera::CameraModel;
-use irtrack_core::triangulate::{Ray, least_squares_rays};
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 use super::quality::{Check, Gate, median};
@@ -44,26 +43,9 @@ pub fn fitted_spacing_mm(sol: &WandSolution, wand: &Wand) -> Option<Vec<f64>> {
     let k = wand.len();
     let mut fractions: Vec<Vec<f64>> = vec![Vec::new(); k];
     for row in &sol.views {
-        let v: Vec<(usize, &Vec<nalgebra::Vector2<f64>>)> = row
-            .iter()
-            .enumerate()
-            .filter_map(|(c, r)| r.as_ref().ok().map(|p| (c, p)))
-            .collect();
-        if v.len() < 2 {
+        let Some(pts) = wand_solve::free_leds_mm(sol, row, k) else {
             continue;
-        }
-        let led = |i: usize| {
-            let rays: Vec<Ray> = v
-                .iter()
-                .map(|(c, px)| {
-                    let cam = &sol.cameras[*c];
-                    Ray::from_pixel(&cam.model, &cam.cam_from_cam0, px[i].x, px[i].y)
-                })
-                .collect();
-            least_squares_rays(&rays).ok().map(|r| r.0)
         };
-        let pts: Option<Vec<Vector3<f64>>> = (0..k).map(led).collect();
-        let Some(pts) = pts else { continue };
         let axis = pts[k - 1] - pts[0];
         let l2 = axis.norm_squared();
         if l2 < 1e-6 {

@@ -1207,21 +1207,24 @@ pub fn solve(
     })
 }
 
-/// Wand length error per used frame (mm): both ends triangulated freely (no wand constraint)
-/// with the calibrated rig from the frame's used views, minus the true length.
-pub fn length_errors_mm(sol: &WandSolution, wand: &Wand) -> Vec<f64> {
-    let last = wand.len() - 1;
-    let mut out = Vec::new();
-    for row in &sol.views {
-        let v: Vec<(usize, &LedPixels)> = row
-            .iter()
-            .enumerate()
-            .filter_map(|(c, r)| r.as_ref().ok().map(|p| (c, p)))
-            .collect();
-        if v.len() < 2 {
-            continue;
-        }
-        let end = |k: usize| {
+/// The wand's LEDs of one frame triangulated freely (no wand constraint) with the calibrated
+/// rig from the frame's used views, in camera 0's frame (mm). `None` when fewer than two
+/// cameras saw the frame or an LED's rays do not meet.
+pub fn free_leds_mm(
+    sol: &WandSolution,
+    row: &[std::result::Result<LedPixels, Rejection>],
+    led_count: usize,
+) -> Option<Vec<Vector3<f64>>> {
+    let v: Vec<(usize, &LedPixels)> = row
+        .iter()
+        .enumerate()
+        .filter_map(|(c, r)| r.as_ref().ok().map(|p| (c, p)))
+        .collect();
+    if v.len() < 2 {
+        return None;
+    }
+    (0..led_count)
+        .map(|k| {
             let rays: Vec<Ray> = v
                 .iter()
                 .map(|(c, px)| {
@@ -1230,12 +1233,19 @@ pub fn length_errors_mm(sol: &WandSolution, wand: &Wand) -> Vec<f64> {
                 })
                 .collect();
             least_squares_rays(&rays).ok().map(|r| r.0)
-        };
-        if let (Some(a), Some(b)) = (end(0), end(last)) {
-            out.push((b - a).norm() - wand.length_mm());
-        }
-    }
-    out
+        })
+        .collect()
+}
+
+/// Wand length error per used frame (mm): both ends triangulated freely (no wand constraint)
+/// with the calibrated rig from the frame's used views, minus the true length.
+pub fn length_errors_mm(sol: &WandSolution, wand: &Wand) -> Vec<f64> {
+    let last = wand.len() - 1;
+    sol.views
+        .iter()
+        .filter_map(|row| free_leds_mm(sol, row, wand.len()))
+        .map(|pts| (pts[last] - pts[0]).norm() - wand.length_mm())
+        .collect()
 }
 
 #[cfg(test)]

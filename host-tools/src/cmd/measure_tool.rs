@@ -8,14 +8,10 @@
 //! (docs/six-dof.md). The parameters are written back with the new `ToolDefinition` added to
 //! `RigParams.tools`.
 
-use std::collections::BTreeSet;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use anyhow::{Context, bail, ensure};
-use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
-use irtrack_core::image::GrayImage;
+use anyhow::{Context, ensure};
 use irtrack_core::params::RigParams;
-use irtrack_core::pgm::{self, PgmPixels};
 use irtrack_core::pose6d::{
     LayoutOrigin, MeasuredLayout, PointMatcher, PoseConfig, TriangulatedPoint, measure_tool_layout,
 };
@@ -63,35 +59,6 @@ pub struct Args {
     pub replace: bool,
 }
 
-/// Frame indices present in every camera directory, ascending.
-pub(crate) fn common_frames(dir: &Path, n_cam: usize) -> anyhow::Result<Vec<u64>> {
-    let mut common: Option<BTreeSet<u64>> = None;
-    for c in 0..n_cam {
-        let d = dir.join(format!("cam{c}"));
-        let mut set = BTreeSet::new();
-        for e in std::fs::read_dir(&d).with_context(|| {
-            format!(
-                "listing {} (the parameters describe {n_cam} cameras)",
-                d.display()
-            )
-        })? {
-            let name = e?.file_name();
-            if let Some(i) = name
-                .to_string_lossy()
-                .strip_suffix(".pgm")
-                .and_then(|s| s.parse().ok())
-            {
-                set.insert(i);
-            }
-        }
-        common = Some(match common {
-            None => set,
-            Some(c) => c.intersection(&set).copied().collect(),
-        });
-    }
-    Ok(common.unwrap_or_default().into_iter().collect())
-}
-
 /// Measures the layout; returns it with the parameters it was measured in.
 pub fn measure(args: &Args) -> anyhow::Result<(RigParams, MeasuredLayout, usize)> {
     let params_path = args.params.clone().unwrap_or_else(|| args.frames.join("rig.irp"));
@@ -99,7 +66,7 @@ pub fn measure(args: &Args) -> anyhow::Result<(RigParams, MeasuredLayout, usize)
     let n_cam = rig.cameras.len();
     ensure!(n_cam >= 2, "{}: need at least 2 cameras", params_path.display());
     ensure!(args.max_frames >= 2, "--max-frames must be at least 2");
-    let indices = common_frames(&args.frames, n_cam)?;
+    let indices = crate::frames::common_frames(&args.frames, n_cam)?;
     ensure!(
         indices.len() >= 2,
         "{}: need frames of at least 2 indices present in every cam*/ directory, found {}",
@@ -108,45 +75,10 @@ pub fn measure(args: &Args) -> anyhow::Result<(RigParams, MeasuredLayout, usize)
     );
     let config = PoseConfig::default();
     let mut matcher = PointMatcher::new(&rig, &config)?;
-    let mut detectors: Vec<BlobDetector> = Vec::with_capacity(n_cam);
+    let mut detector = crate::frames::FolderDetector::new(&args.frames, &rig, args.threshold_dn);
     let mut frames: Vec<Vec<TriangulatedPoint>> = Vec::new();
     for &index in indices.iter().take(args.max_frames) {
-        let mut pgms = Vec::with_capacity(n_cam);
-        for c in 0..n_cam {
-            let path = args.frames.join(format!("cam{c}/{index:06}.pgm"));
-            let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-            pgms.push(pgm::decode(&bytes).with_context(|| format!("decoding {}", path.display()))?);
-        }
-        for (c, pgm) in pgms.iter().enumerate() {
-            let size = rig.cameras[c].model.image_size;
-            if (pgm.width_px, pgm.height_px) != (size.width_px, size.height_px) {
-                bail!(
-                    "frame {index} camera {c}: {}x{} px, the parameters say {}x{}",
-                    pgm.width_px,
-                    pgm.height_px,
-                    size.width_px,
-                    size.height_px
-                );
-            }
-            if detectors.len() <= c {
-                detectors.push(BlobDetector::new(BlobLimits::for_frame(
-                    pgm.width_px,
-                    pgm.height_px,
-                ))?);
-            }
-            let scale = (pgm.maxval as f64 + 1.0) / 256.0;
-            let cfg = BlobConfig {
-                threshold_dn: args.threshold_dn.unwrap_or((30.0 * scale).round() as u32),
-                saturation_dn: Some(pgm.maxval as u32),
-                ..BlobConfig::default()
-            };
-            let (w, h) = (pgm.width_px, pgm.height_px);
-            match &pgm.pixels {
-                PgmPixels::U8(v) => detectors[c].detect(&GrayImage::new(v, w, h, w)?, None, &cfg)?,
-                PgmPixels::U16(v) => detectors[c].detect(&GrayImage::new(v, w, h, w)?, None, &cfg)?,
-            };
-        }
-        let blobs: Vec<_> = detectors.iter().map(|d| d.blobs()).collect();
+        let blobs = detector.detect(index)?;
         let points = matcher
             .solve(&blobs)
             .with_context(|| format!("matching blobs of frame {index}"))?;

@@ -17,10 +17,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail, ensure};
-use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
-use irtrack_core::image::GrayImage;
 use irtrack_core::params::{RigParams, Verdict};
-use irtrack_core::pgm::{self, PgmPixels};
 use irtrack_core::pose6d::{PoseConfig, PoseStatus, PoseTracker};
 use irtrack_core::stream::{PositionRecord, TrackStatus};
 use nalgebra::{DMatrix, DVector, Matrix3, Quaternion, UnitQuaternion, Vector3};
@@ -389,7 +386,7 @@ pub fn track_poses(
     threshold_dn: Option<u32>,
 ) -> anyhow::Result<(Vec<ToolPose>, usize)> {
     let n_cam = rig.cameras.len();
-    let indices = crate::cmd::measure_tool::common_frames(dir, n_cam)?;
+    let indices = crate::frames::common_frames(dir, n_cam)?;
     ensure!(
         !indices.is_empty(),
         "{}: no frame index present in every cam*/ directory",
@@ -397,42 +394,10 @@ pub fn track_poses(
     );
     let mut tracker = PoseTracker::new(rig, &rig.tools[tool_index], PoseConfig::default())
         .with_context(|| format!("tool {:?}", rig.tools[tool_index].name))?;
-    let mut detectors: Vec<BlobDetector> = Vec::with_capacity(n_cam);
+    let mut detector = crate::frames::FolderDetector::new(dir, rig, threshold_dn);
     let mut poses = Vec::new();
     for &index in &indices {
-        for c in 0..n_cam {
-            let path = dir.join(format!("cam{c}/{index:06}.pgm"));
-            let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-            let pgm = pgm::decode(&bytes).with_context(|| format!("decoding {}", path.display()))?;
-            let size = rig.cameras[c].model.image_size;
-            ensure!(
-                (pgm.width_px, pgm.height_px) == (size.width_px, size.height_px),
-                "{}: {}x{} px, the parameters say {}x{}",
-                path.display(),
-                pgm.width_px,
-                pgm.height_px,
-                size.width_px,
-                size.height_px
-            );
-            if detectors.len() <= c {
-                detectors.push(BlobDetector::new(BlobLimits::for_frame(
-                    pgm.width_px,
-                    pgm.height_px,
-                ))?);
-            }
-            let scale = (pgm.maxval as f64 + 1.0) / 256.0;
-            let cfg = BlobConfig {
-                threshold_dn: threshold_dn.unwrap_or((30.0 * scale).round() as u32),
-                saturation_dn: Some(pgm.maxval as u32),
-                ..BlobConfig::default()
-            };
-            let (w, h) = (pgm.width_px, pgm.height_px);
-            match &pgm.pixels {
-                PgmPixels::U8(v) => detectors[c].detect(&GrayImage::new(v, w, h, w)?, None, &cfg)?,
-                PgmPixels::U16(v) => detectors[c].detect(&GrayImage::new(v, w, h, w)?, None, &cfg)?,
-            };
-        }
-        let blobs: Vec<_> = detectors.iter().map(|d| d.blobs()).collect();
+        let blobs = detector.detect(index)?;
         let pose = tracker
             .process(&blobs)
             .with_context(|| format!("6-DOF tracking of frame {index}"))?;
