@@ -376,6 +376,8 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         handle.clone(),
         status.clone(),
     )?;
+    // Tools named by outputs exist in the set irtrackd starts with.
+    outputs.check_params(&handle)?;
     let (tracking, tuning) = load_tuning(&cfg)?;
     let tap = Arc::new(crate::viewer::ViewerTap::new());
     let auth = crate::net::auth::OperatorAuth::new(cfg.service.operator_password_hash.clone())?;

@@ -1,5 +1,5 @@
 //! irtrackd's `[outputs.mcap]` recording read back by PyPI's `mcap` + `mcap-ros2-support`
-//! (firmware/tests/py/check_mcap.py, a separate process): every message decodes with its
+//! (`irtrack_testkit::mcap_check`, a separate process): every message decodes with its
 //! ROS 2 schema, log times are monotonic, the counts equal what irtrackd recorded, and the
 //! positions equal irtrackd's own NDJSON stream. Needs the `mcap` feature (host-tools enables
 //! it in workspace builds).
@@ -14,8 +14,6 @@ use std::time::Duration;
 use common::*;
 use irtrack_core::stream::TrackStatus;
 use irtrack_firmware::app::{self, Overrides};
-
-const CHECK: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/py/check_mcap.py");
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn irtrackd_records_tool_poses_into_mcap_readable_by_python() {
@@ -43,19 +41,8 @@ async fn irtrackd_records_tool_poses_into_mcap_readable_by_python() {
     running.shutdown().await;
 
     let file = dir.path().join("rec.mcap");
-    let out = std::process::Command::new("python3")
-        .arg(CHECK)
-        .arg(&file)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "check_mcap.py failed; are PyPI's mcap and mcap-ros2-support installed (cargo xtask setup)?\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let got: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert_eq!(got["profile"], "ros2");
-    assert_eq!(got["monotonic"], true);
+    // PyPI's reader in a separate process; it checks the ros2 profile and monotonic log times.
+    let got = irtrack_testkit::mcap_check::read_mcap_with_python(&file).unwrap();
     let written = stats.frames_sent.load(Ordering::Relaxed);
     let (skips, drops) = (
         stats.slot_skips.load(Ordering::Relaxed),

@@ -141,20 +141,8 @@ fn mcap_recording_decodes_with_ros2_schemas_in_python() {
         (40, tracked as u64, tracked as u64, with_pose as u64)
     );
 
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/../firmware/tests/py/check_mcap.py");
-    let out = std::process::Command::new("python3")
-        .arg(script)
-        .arg(&file)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "check_mcap.py failed; are PyPI's mcap and mcap-ros2-support installed (cargo xtask setup)?\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let got: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert_eq!(got["profile"], "ros2");
-    assert_eq!(got["monotonic"], true);
+    // PyPI's reader in a separate process; it checks the ros2 profile and monotonic log times.
+    let got = irtrack_testkit::mcap_check::read_mcap_with_python(&file).unwrap();
     // Counts equal what was streamed: every record's status, every tracked position and tf,
     // every tracked 6-DOF pose.
     let counts = &got["counts"];

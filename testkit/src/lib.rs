@@ -5,6 +5,9 @@
 //! to them (HTTP, WebSocket, operator sign-in); the system tests in `tests/` and xtask's demo,
 //! soak and image system test use it.
 //!
+//! With `mcap-check`, [`mcap_check`] reads MCAP recordings back with PyPI's independent
+//! reader in a separate process.
+//!
 //! [`CountingAlloc`] proves "no allocation per frame": install it as the global allocator of a
 //! test binary and compare [`allocations`] before and after the code under test.
 //!
@@ -20,6 +23,8 @@
 
 #[cfg(feature = "harness")]
 pub mod harness;
+#[cfg(feature = "mcap-check")]
+pub mod mcap_check;
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;

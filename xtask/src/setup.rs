@@ -82,6 +82,14 @@ const PACKAGES: &[Pkg] = &[
         ..pkg("busybox-static:arm64", "aarch64 userland of the test image")
     },
     pkg("systemd", "systemd-analyze verifies the unit files in systemd/"),
+    pkg(
+        "iproute2",
+        "`ip` sets up loopback multicast in the DDS test's own network namespace (firmware/tests/ros2_dds.rs)",
+    ),
+    pkg(
+        "util-linux",
+        "`unshare -rn` gives the DDS test a network namespace of its own (firmware/tests/ros2_dds.rs)",
+    ),
     Pkg {
         backports: true,
         ..pkg("qemu-user", "qemu-aarch64 runs the aarch64 test binaries")
@@ -183,11 +191,33 @@ const PIP_PACKAGE: &str = "oelint-adv";
 const PIP_WHY: &str = "lints the Yocto layer's BitBake recipes";
 
 /// Python modules the interop tests import: (PyPI package, module to import, why).
-const PY_MODULES: &[(&str, &str, &str)] = &[(
-    "natnet",
-    "natnet",
-    "independent NatNet client for irtrackd's NatNet output (firmware/tests/natnet.rs)",
-)];
+const PY_MODULES: &[(&str, &str, &str)] = &[
+    (
+        "natnet",
+        "natnet",
+        "independent NatNet client for irtrackd's NatNet output (firmware/tests/natnet.rs)",
+    ),
+    (
+        "mcap",
+        "mcap",
+        "independent MCAP reader for the recordings (testkit/py/check_mcap.py)",
+    ),
+    (
+        "mcap-ros2-support",
+        "mcap_ros2",
+        "decodes the recordings' ROS 2 messages (testkit/py/check_mcap.py)",
+    ),
+    (
+        "cyclonedds==11.0.1",
+        "cyclonedds",
+        "independent DDS (ROS 2's rmw_cyclonedds) subscribing to irtrackd's ROS 2 output (firmware/tests/ros2_dds.rs)",
+    ),
+    (
+        "rosbags==0.11.9",
+        "rosbags",
+        "CDR decoding of ROS 2 messages without ROS for the DDS subscriber (firmware/tests/py/ros2_subscriber.py)",
+    ),
+];
 
 /// The PyPI packages of [`PY_MODULES`] whose module python3 cannot import.
 fn missing_py_modules() -> Vec<&'static (&'static str, &'static str, &'static str)> {

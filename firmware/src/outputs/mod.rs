@@ -1,14 +1,13 @@
-//! Standard outputs that existing tools read (docs/outputs.md): NatNet for OptiTrack clients.
+//! Standard outputs that existing tools read (docs/outputs.md): NatNet for OptiTrack clients,
+//! ROS 2 over DDS, MCAP recordings.
 //!
 //! Every output is fed from the processing loop's latest-value slot on the async side, never
 //! from the loop itself: a slow or absent consumer can only make an output skip records
 //! (counted in [`OutputStats`]), never slow the loop.
 
-#[cfg(feature = "mcap")]
-pub mod mcap;
 pub mod natnet;
 pub mod recording;
-pub mod ros2msg;
+pub mod ros2;
 pub mod scene;
 
 use std::future::Future;
@@ -32,6 +31,8 @@ pub struct OutputsConfig {
     pub natnet: natnet::NatNetConfig,
     #[serde(default)]
     pub mcap: recording::McapConfig,
+    #[serde(default)]
+    pub ros2: ros2::Ros2Config,
 }
 
 impl OutputsConfig {
@@ -40,7 +41,8 @@ impl OutputsConfig {
         if self.natnet.enabled {
             self.natnet.plan()?;
         }
-        self.mcap.validate()
+        self.mcap.validate()?;
+        self.ros2.validate()
     }
 }
 
@@ -68,6 +70,9 @@ pub struct OutputsStats {
     pub natnet: Arc<OutputStats>,
     /// `frames_sent`: records written; `send_drops`: records the full queue refused.
     pub mcap: Arc<OutputStats>,
+    /// `frames_sent`: messages published; `send_drops`: publishes refused (send window full);
+    /// `clients`: matched subscriptions.
+    pub ros2: Arc<OutputStats>,
 }
 
 /// What outputs read: the latest-value slot, the active parameter set (for the models) and
@@ -83,6 +88,9 @@ pub struct Outputs {
     natnet: Option<natnet::server::NatNetServer>,
     #[cfg(feature = "mcap")]
     mcap: Option<recording::Recorder>,
+    #[cfg(feature = "ros2")]
+    ros2: Option<ros2::Ros2Output>,
+    ros2_cfg: ros2::Ros2Config,
     pub stats: OutputsStats,
 }
 
@@ -108,8 +116,29 @@ impl Outputs {
                 )?),
                 false => None,
             },
+            #[cfg(feature = "ros2")]
+            ros2: match cfg.ros2.enabled {
+                true => Some(ros2::Ros2Output::start(&cfg.ros2)?),
+                false => None,
+            },
+            ros2_cfg: cfg.ros2.clone(),
             stats: OutputsStats::default(),
         })
+    }
+
+    /// Checks the outputs' tool names against the parameter set irtrackd starts with (an
+    /// unknown tool fails the start, naming the tools the set has). Without a set nothing is
+    /// checked; a later set without a named tool is logged and that tool not published.
+    pub fn check_params(&self, params: &ParamsHandle) -> Result<()> {
+        if !self.ros2_cfg.enabled {
+            return Ok(());
+        }
+        match params.current() {
+            Some(p) => self
+                .ros2_cfg
+                .check_tools(p.rig.tools.iter().map(|t| t.name.as_str())),
+            None => Ok(()),
+        }
     }
 
     /// The NatNet command socket's address, when enabled.
@@ -141,6 +170,26 @@ impl Outputs {
                 self.stats.mcap.clone(),
                 shutdown(),
             )));
+        }
+        #[cfg(feature = "ros2")]
+        if let Some(out) = self.ros2 {
+            let started = out.spawn(
+                tokio::runtime::Handle::current(),
+                feed.slot.clone(),
+                feed.params.clone(),
+                feed.status.clone(),
+                self.stats.ros2.clone(),
+                shutdown(),
+            );
+            match started {
+                // The thread ends with the shutdown future; a task waits for it.
+                Ok(thread) => tasks.push(tokio::task::spawn_blocking(move || {
+                    if thread.join().is_err() {
+                        tracing::error!("ROS 2 output thread panicked");
+                    }
+                })),
+                Err(e) => tracing::error!(error = %e, "ROS 2 output not started"),
+            }
         }
         tasks
     }

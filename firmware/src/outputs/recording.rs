@@ -1,5 +1,5 @@
 //! `[outputs.mcap]`: irtrackd records its own position records into an MCAP file with ROS 2
-//! schemas (writer: [`super::mcap`], feature `mcap`). A task reads the latest-value slot and
+//! schemas (writer: `irtrack_interop::mcap`, feature `mcap`). A task reads the latest-value slot and
 //! hands records to a writer thread through a bounded queue; when the disk stalls the queue
 //! fills and further records are dropped and counted, never waited for. The file is finished
 //! (summary and indexes written) when irtrackd shuts down.
@@ -88,8 +88,8 @@ mod imp {
 
     use crate::error::{FirmwareError, Result};
     use crate::outputs::OutputStats;
-    use crate::outputs::mcap::{McapRecorder, local_wall_offset_ns};
     use crate::status::SharedStatus;
+    use irtrack_interop::mcap::McapRecorder;
 
     const R: Ordering = Ordering::Relaxed;
 
@@ -106,7 +106,12 @@ mod imp {
             let file = std::fs::File::create(&path).map_err(|e| FirmwareError::Config {
                 reason: format!("outputs.mcap.path: cannot create {}: {e}", path.display()),
             })?;
-            let writer = McapRecorder::new(BufWriter::new(file), local_wall_offset_ns())?;
+            let writer = McapRecorder::new(BufWriter::new(file), local_wall_offset_ns()).map_err(|e| {
+                FirmwareError::Output {
+                    what: "MCAP recording",
+                    reason: e.to_string(),
+                }
+            })?;
             Ok(Self {
                 path,
                 writer,
@@ -188,5 +193,14 @@ mod imp {
                 _ => tracing::error!(path = %path.display(), "MCAP writer thread failed"),
             }
         }
+    }
+
+    /// Wall clock minus the monotonic clock, now: the offset that turns capture times (this
+    /// machine's monotonic clock) into the wall-clock stamps ROS tools expect.
+    fn local_wall_offset_ns() -> i128 {
+        let wall = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as i128);
+        wall - i128::from(crate::clock::monotonic_ns())
     }
 }

@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use irtrack_core::stream::{BINARY_FRAME_LEN, MAX_NDJSON_LINE, PositionRecord, TrackStatus};
-use irtrack_firmware::outputs::mcap::McapRecorder;
+use irtrack_interop::mcap::McapRecorder;
 
 /// Stream encoding to subscribe to.
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
@@ -70,7 +70,7 @@ pub struct Summary {
     pub waypoints: usize,
     pub written_rows: u64,
     /// Messages written to the MCAP file, per topic.
-    pub mcap: Option<irtrack_firmware::outputs::mcap::McapCounts>,
+    pub mcap: Option<irtrack_interop::mcap::McapCounts>,
 }
 
 /// The orientation columns (6-DOF tools; empty for a single LED) come last so readers that

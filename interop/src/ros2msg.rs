@@ -1,11 +1,17 @@
 //! ROS 2 messages without ROS: the message definitions (`ros2msg` schema text, as ROS 2 tools
-//! store them in bags) and their CDR encoding (XCDR1, little-endian), for the MCAP recorder.
+//! store them in bags) and their CDR encoding (XCDR1, little-endian), for MCAP recordings.
 //!
 //! CDR rules used here: a 4-byte encapsulation header `00 01 00 00` (CDR_LE); every primitive
 //! aligned to its size relative to the end of that header; strings as u32 length (including
 //! the NUL), bytes, NUL; sequences as u32 count then elements.
 
 use irtrack_core::stream::PositionRecord;
+
+/// Frame id of records in camera 0's frame, the tracker frame (REP 103's optical axes: x
+/// right, y down, z ahead).
+pub const FRAME_CAMERA0: &str = "irtrack_camera0_optical";
+/// Frame id of records in the registered world (robot base) frame.
+pub const FRAME_WORLD: &str = "irtrack_world";
 
 /// `geometry_msgs/msg/PointStamped`.
 pub const POINT_STAMPED: &str = "geometry_msgs/msg/PointStamped";
@@ -76,21 +82,26 @@ impl<'a> CdrWriter<'a> {
         let pad = (n - pos % n) % n;
         self.buf.resize(self.buf.len() + pad, 0);
     }
+    /// A `byte`/`uint8`.
     pub fn u8(&mut self, v: u8) {
         self.buf.push(v);
     }
+    /// An `int32`, 4-aligned.
     pub fn i32(&mut self, v: i32) {
         self.align(4);
         self.buf.extend_from_slice(&v.to_le_bytes());
     }
+    /// A `uint32`, 4-aligned.
     pub fn u32(&mut self, v: u32) {
         self.align(4);
         self.buf.extend_from_slice(&v.to_le_bytes());
     }
+    /// A `float64`, 8-aligned.
     pub fn f64(&mut self, v: f64) {
         self.align(8);
         self.buf.extend_from_slice(&v.to_le_bytes());
     }
+    /// A `string`: u32 length including the NUL, the bytes, NUL.
     pub fn string(&mut self, s: &str) {
         self.u32(s.len() as u32 + 1);
         self.buf.extend_from_slice(s.as_bytes());
@@ -102,6 +113,7 @@ impl<'a> CdrWriter<'a> {
         self.u32((stamp_ns % 1_000_000_000) as u32);
         self.string(frame_id);
     }
+    /// Three `float64` (`geometry_msgs/Point` or `Vector3`).
     pub fn vec3(&mut self, v: &[f64; 3]) {
         for c in v {
             self.f64(*c);

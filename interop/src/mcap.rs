@@ -2,34 +2,42 @@
 //! open them: positions (`geometry_msgs/msg/PointStamped`), tool poses (`PoseStamped`), `/tf`
 //! (`tf2_msgs/msg/TFMessage`) and per-record status (`diagnostic_msgs/msg/DiagnosticStatus`),
 //! every payload CDR. Used by `host-tools record --mcap` and irtrackd's `[outputs.mcap]`.
+//! The per-record path reuses one buffer; only the MCAP writer's own index grows.
 
 use std::collections::BTreeMap;
 use std::io::{Seek, Write};
 
 use irtrack_core::stream::{PositionRecord, TrackStatus};
 
-use super::ros2msg;
-use crate::error::{FirmwareError, Result};
+use crate::ros2msg;
+use crate::{InteropError, Result};
 
+/// Topic of every tracked record's position (`geometry_msgs/msg/PointStamped`).
 pub const TOPIC_POSITION: &str = "/irtrack/position";
+/// Topic of every tracked 6-DOF record's pose (`geometry_msgs/msg/PoseStamped`).
 pub const TOPIC_POSE: &str = "/irtrack/pose";
+/// Topic of the transforms (`tf2_msgs/msg/TFMessage`).
 pub const TOPIC_TF: &str = "/tf";
+/// Topic of every record's status (`diagnostic_msgs/msg/DiagnosticStatus`).
 pub const TOPIC_STATUS: &str = "/irtrack/status";
 
-/// Frame id of records in camera 0's frame (REP 103's optical axes: x right, y down, z ahead).
-pub const FRAME_CAMERA0: &str = "irtrack_camera0_optical";
-/// Frame id of records in the registered world (robot base) frame.
-pub const FRAME_WORLD: &str = "irtrack_world";
+pub use crate::ros2msg::{FRAME_CAMERA0, FRAME_WORLD};
+
 /// Child frame of `/tf` for a tool (6-DOF) and for the single LED.
 pub const FRAME_TOOL: &str = "irtrack_tool";
+/// Child frame of `/tf` for the single LED (identity rotation).
 pub const FRAME_LED: &str = "irtrack_led";
 
 /// Messages written per topic.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct McapCounts {
+    /// On [`TOPIC_POSITION`].
     pub position: u64,
+    /// On [`TOPIC_POSE`].
     pub pose: u64,
+    /// On [`TOPIC_TF`].
     pub tf: u64,
+    /// On [`TOPIC_STATUS`].
     pub status: u64,
 }
 
@@ -41,12 +49,13 @@ pub struct McapRecorder<W: Write + Seek> {
     /// Added to the records' monotonic capture times to give wall-clock stamps.
     offset_ns: i128,
     buf: Vec<u8>,
+    /// Messages written so far.
     pub counts: McapCounts,
 }
 
-fn err(e: impl std::fmt::Display) -> FirmwareError {
-    FirmwareError::Output {
-        what: "MCAP recording",
+fn err(what: &str) -> impl FnOnce(mcap::McapError) -> InteropError + '_ {
+    move |e| InteropError::Mcap {
+        what: what.to_string(),
         reason: e.to_string(),
     }
 }
@@ -60,7 +69,7 @@ impl<W: Write + Seek> McapRecorder<W> {
             .library(concat!("irtrack ", env!("CARGO_PKG_VERSION")))
             // No compression: the appliance build stays free of C compression libraries.
             .compression(None);
-        let mut writer = opts.create(out).map_err(err)?;
+        let mut writer = opts.create(out).map_err(err("header"))?;
         let mut channels = [0u16; 4];
         for (slot, (topic, ty)) in channels.iter_mut().zip([
             (TOPIC_POSITION, ros2msg::POINT_STAMPED),
@@ -68,11 +77,15 @@ impl<W: Write + Seek> McapRecorder<W> {
             (TOPIC_TF, ros2msg::TF_MESSAGE),
             (TOPIC_STATUS, ros2msg::DIAGNOSTIC_STATUS),
         ]) {
-            let text = ros2msg::schema(ty).ok_or_else(|| err(format!("no schema for {ty}")))?;
-            let schema = writer.add_schema(ty, "ros2msg", text.as_bytes()).map_err(err)?;
+            let text = ros2msg::schema(ty).ok_or_else(|| InteropError::UnknownType {
+                type_name: ty.to_string(),
+            })?;
+            let schema = writer
+                .add_schema(ty, "ros2msg", text.as_bytes())
+                .map_err(err(ty))?;
             *slot = writer
                 .add_channel(schema, topic, "cdr", &BTreeMap::new())
-                .map_err(err)?;
+                .map_err(err(topic))?;
         }
         Ok(Self {
             writer,
@@ -94,7 +107,7 @@ impl<W: Write + Seek> McapRecorder<W> {
         };
         self.writer
             .write_to_known_channel(&header, &self.buf)
-            .map_err(err)
+            .map_err(err("message"))
     }
 
     fn wall(&self, mono_ns: u64) -> u64 {
@@ -137,16 +150,7 @@ impl<W: Write + Seek> McapRecorder<W> {
 
     /// Writes the summary and index sections; the file is complete after this.
     pub fn finish(mut self) -> Result<McapCounts> {
-        self.writer.finish().map_err(err)?;
+        self.writer.finish().map_err(err("summary"))?;
         Ok(self.counts)
     }
-}
-
-/// Wall clock minus the monotonic clock, now: the offset for [`McapRecorder::new`] on the
-/// machine whose clock stamped the records.
-pub fn local_wall_offset_ns() -> i128 {
-    let wall = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as i128);
-    wall - i128::from(crate::clock::monotonic_ns())
 }

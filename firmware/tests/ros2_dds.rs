@@ -1,0 +1,392 @@
+//! irtrackd's ROS 2 output (`[outputs.ros2]`, ros2-client on rustdds) against an independent
+//! DDS: Cyclone DDS (PyPI `cyclonedds`, the DDS of ROS 2's rmw_cyclonedds) in a separate
+//! Python process subscribes to `rt/<topic>` with ROS 2's type names; PyPI `rosbags` decodes the
+//! CDR (firmware/tests/py/ros2_subscriber.py). What it decodes must equal irtrackd's own NDJSON
+//! stream.
+//!
+//! DDS discovery is multicast: each test runs itself again inside a network namespace of its
+//! own (`unshare -rn`, loopback only, multicast on, a route for 239.0.0.0/8), so nothing leaves
+//! the machine and parallel tests do not see each other. Needs the `ros2` feature (workspace
+//! builds enable it through irtrack-tests).
+#![cfg(feature = "ros2")]
+
+mod common;
+
+use std::collections::HashMap;
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use common::*;
+use irtrack_core::stream::{PositionRecord, TrackStatus};
+use irtrack_firmware::app::{self, Overrides};
+use serde_json::Value;
+
+const SUBSCRIBER: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/py/ros2_subscriber.py");
+const INSIDE: &str = "IRTRACK_TEST_NETNS";
+
+/// Outside the namespace: runs `test` of this binary again inside a fresh one and checks it
+/// passed; returns false (the caller returns). Inside: sets up loopback multicast and returns
+/// true (the caller runs the test body).
+fn in_own_netns(test: &str) -> bool {
+    if std::env::var_os(INSIDE).is_some() {
+        for args in [
+            &["link", "set", "lo", "up", "multicast", "on"][..],
+            &["route", "add", "239.0.0.0/8", "dev", "lo"][..],
+        ] {
+            let st = Command::new("ip").args(args).status().expect("ip runs");
+            assert!(st.success(), "ip {args:?} failed in the test's network namespace");
+        }
+        return true;
+    }
+    let exe = std::env::current_exe().unwrap();
+    let out = Command::new("unshare")
+        .arg("-rn")
+        .arg(exe)
+        .args([test, "--exact", "--nocapture", "--test-threads=1"])
+        .env(INSIDE, "1")
+        .output()
+        .expect("unshare (util-linux) runs");
+    print!("{}", String::from_utf8_lossy(&out.stdout));
+    eprint!("{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{test} inside `unshare -rn` failed ({})",
+        out.status
+    );
+    assert!(
+        String::from_utf8_lossy(&out.stdout).contains("1 passed"),
+        "{test} did not run inside the namespace"
+    );
+    false
+}
+
+/// The Python subscriber, started; its JSON lines are read by a thread.
+struct Subscriber {
+    child: std::process::Child,
+    lines: std::sync::mpsc::Receiver<Value>,
+}
+
+impl Subscriber {
+    fn start(args: &[&str]) -> Self {
+        let mut child = Command::new("python3")
+            .arg(SUBSCRIBER)
+            .args(args)
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("python3 runs");
+        let stdout = child.stdout.take().unwrap();
+        let (tx, lines) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                match serde_json::from_str::<Value>(&line) {
+                    Ok(v) => {
+                        if tx.send(v).is_err() {
+                            break;
+                        }
+                    }
+                    Err(_) => eprintln!("subscriber: {line}"),
+                }
+            }
+        });
+        let s = Self { child, lines };
+        let ready = s
+            .lines
+            .recv_timeout(Duration::from_secs(20))
+            .expect("subscriber ready (are PyPI's cyclonedds and rosbags installed? cargo xtask setup)");
+        assert!(ready.get("ready").is_some(), "{ready}");
+        s
+    }
+
+    /// Every sample until the subscriber's `done` line (or `timeout`).
+    fn samples(&self, timeout: Duration) -> (Vec<Value>, Value) {
+        let end = Instant::now() + timeout;
+        let mut got = Vec::new();
+        while let Some(left) = end.checked_duration_since(Instant::now()) {
+            match self.lines.recv_timeout(left) {
+                Ok(v) if v.get("done").is_some() => return (got, v),
+                Ok(v) => got.push(v),
+                Err(_) => break,
+            }
+        }
+        (got, Value::Null)
+    }
+}
+
+impl Drop for Subscriber {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+async fn start(dir: &TempDir, sim_toml: &str, ros2_toml: &str) -> app::Running {
+    let toml = format!(
+        "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n[outputs.ros2]\nenabled = true\n{ros2_toml}"
+    );
+    let mut cfg = irtrack_firmware::config::Config::from_toml(&toml, "ros2.toml").unwrap();
+    let base = test_config(dir.path());
+    cfg.service.state_dir = base.service.state_dir;
+    cfg.listen = base.listen;
+    cfg.source.sim = Some(toml::from_str(sim_toml).unwrap());
+    app::start(cfg, Overrides::default()).await.unwrap()
+}
+
+fn f(v: &Value) -> f64 {
+    v.as_f64().unwrap()
+}
+
+fn stamp_ns(header: &Value) -> i128 {
+    i128::from(header["stamp"]["sec"].as_i64().unwrap()) * 1_000_000_000
+        + i128::from(header["stamp"]["nanosec"].as_i64().unwrap())
+}
+
+/// Collects NDJSON records until `stop` fires.
+fn collect_ndjson(
+    addr: std::net::SocketAddr,
+    stop: tokio::sync::oneshot::Receiver<()>,
+) -> tokio::task::JoinHandle<Vec<PositionRecord>> {
+    tokio::spawn(async move {
+        let mut client = NdjsonClient::connect(addr).await;
+        let mut all = Vec::new();
+        tokio::pin!(stop);
+        loop {
+            tokio::select! {
+                _ = &mut stop => break,
+                r = client.next() => all.push(r),
+            }
+        }
+        all
+    })
+}
+
+const TOOL_SIM: &str = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nperiod_s = 6.0\nfps = 120.0\nseed = 6\ntool = \"probe4\"\ntool_rotation_deg = 20.0\nframes = 2400\n";
+
+#[test]
+fn ros2_tool_poses_and_tf_reach_cyclone_dds_equal_to_the_ndjson_stream() {
+    if !in_own_netns("ros2_tool_poses_and_tf_reach_cyclone_dds_equal_to_the_ndjson_stream") {
+        return;
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let dir = TempDir::new("ros2-tool");
+        let sub = Subscriber::start(&[
+            "--domain",
+            "7",
+            "--count",
+            "300",
+            "--seconds",
+            "15",
+            "/irtrack/probe4/pose=geometry_msgs/msg/PoseStamped",
+            "/tf=tf2_msgs/msg/TFMessage",
+        ]);
+        let running = start(&dir, TOOL_SIM, "domain_id = 7\n").await;
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel();
+        let ndjson = collect_ndjson(running.addrs.stream_ndjson, stop_rx);
+        let (samples, done) = tokio::task::spawn_blocking(move || {
+            let r = sub.samples(Duration::from_secs(20));
+            drop(sub);
+            r
+        })
+        .await
+        .unwrap();
+        let _ = stop_tx.send(());
+        let records = ndjson.await.unwrap();
+        let stats = running.outputs.ros2.clone();
+        let published = running.status.published.load(Ordering::Relaxed);
+        running.shutdown().await;
+        println!(
+            "ROS 2: subscriber {done}; irtrackd sent {} messages, {} dropped, {} records skipped of {published}",
+            stats.frames_sent.load(Ordering::Relaxed),
+            stats.send_drops.load(Ordering::Relaxed),
+            stats.slot_skips.load(Ordering::Relaxed),
+        );
+        assert!(samples.len() >= 300, "only {} samples: {done}", samples.len());
+
+        // Stamps are capture times on the wall clock: one constant offset for every record.
+        let tracked: Vec<&PositionRecord> = records
+            .iter()
+            .filter(|r| r.status == TrackStatus::Ok && r.orientation_wxyz.is_some())
+            .collect();
+        let by_capture: HashMap<u64, &PositionRecord> =
+            tracked.iter().map(|r| (r.capture_ts_ns, *r)).collect();
+        let poses: Vec<&Value> = samples
+            .iter()
+            .filter(|s| s["topic"] == "/irtrack/probe4/pose")
+            .map(|s| &s["msg"])
+            .collect();
+        let tfs: Vec<&Value> = samples
+            .iter()
+            .filter(|s| s["topic"] == "/tf")
+            .map(|s| &s["msg"])
+            .collect();
+        assert!(poses.len() >= 100 && tfs.len() >= 100, "{} poses, {} tf", poses.len(), tfs.len());
+        // The offset from the first pose whose position equals a tracked record's exactly.
+        let first = poses[0];
+        let p0 = &first["pose"]["position"];
+        let anchor = tracked
+            .iter()
+            .find(|r| {
+                let p = r.position_mm.unwrap();
+                (f(&p0["x"]) - p[0] / 1e3).abs() < 1e-12
+                    && (f(&p0["y"]) - p[1] / 1e3).abs() < 1e-12
+                    && (f(&p0["z"]) - p[2] / 1e3).abs() < 1e-12
+            })
+            .expect("the first pose equals a record of the NDJSON stream");
+        let offset = stamp_ns(&first["header"]) - i128::from(anchor.capture_ts_ns);
+        let (mut worst_m, mut worst_q) = (0.0f64, 0.0f64);
+        for m in &poses {
+            assert_eq!(m["header"]["frame_id"], "irtrack_camera0_optical");
+            let capture = u64::try_from(stamp_ns(&m["header"]) - offset).unwrap();
+            let rec = by_capture
+                .get(&capture)
+                .unwrap_or_else(|| panic!("pose stamped {capture} is no tracked NDJSON record"));
+            let p = rec.position_mm.unwrap();
+            let q = rec.orientation_wxyz.unwrap();
+            let pos = &m["pose"]["position"];
+            let ori = &m["pose"]["orientation"];
+            for (k, want) in ["x", "y", "z"].iter().zip(p) {
+                worst_m = worst_m.max((f(&pos[k]) - want / 1e3).abs());
+            }
+            for (k, want) in ["x", "y", "z", "w"].iter().zip([q[1], q[2], q[3], q[0]]) {
+                worst_q = worst_q.max((f(&ori[k]) - want).abs());
+            }
+        }
+        for m in &tfs {
+            let t = &m["transforms"][0];
+            assert_eq!(t["header"]["frame_id"], "irtrack_camera0_optical");
+            assert_eq!(t["child_frame_id"], "irtrack_probe4");
+            let capture = u64::try_from(stamp_ns(&t["header"]) - offset).unwrap();
+            let rec = by_capture.get(&capture).expect("tf of a tracked record");
+            let p = rec.position_mm.unwrap();
+            let tr = &t["transform"]["translation"];
+            for (k, want) in ["x", "y", "z"].iter().zip(p) {
+                worst_m = worst_m.max((f(&tr[k]) - want / 1e3).abs());
+            }
+        }
+        println!(
+            "ROS 2 vs NDJSON: {} poses, {} tf compared; largest difference {worst_m:.1e} m, quaternion {worst_q:.1e}",
+            poses.len(),
+            tfs.len()
+        );
+        assert!(worst_m < 1e-9, "{worst_m}");
+        assert!(worst_q < 1e-9, "{worst_q}");
+    });
+}
+
+#[test]
+fn ros2_single_led_is_a_point_stamped_reliable() {
+    if !in_own_netns("ros2_single_led_is_a_point_stamped_reliable") {
+        return;
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let dir = TempDir::new("ros2-led");
+        let sub = Subscriber::start(&[
+            "--domain",
+            "3",
+            "--reliable",
+            "--count",
+            "100",
+            "--seconds",
+            "15",
+            "/cell/irtrack/led/point=geometry_msgs/msg/PointStamped",
+        ]);
+        let sim = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nfps = 120.0\nseed = 3\nframes = 2400\n";
+        let running = start(&dir, sim, "domain_id = 3\nnamespace = \"/cell/irtrack\"\nqos = \"reliable\"\n").await;
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel();
+        let ndjson = collect_ndjson(running.addrs.stream_ndjson, stop_rx);
+        let (samples, done) = tokio::task::spawn_blocking(move || {
+            let r = sub.samples(Duration::from_secs(20));
+            drop(sub);
+            r
+        })
+        .await
+        .unwrap();
+        let _ = stop_tx.send(());
+        let records = ndjson.await.unwrap();
+        let clients = running.outputs.ros2.clients.load(Ordering::Relaxed);
+        running.shutdown().await;
+        assert_eq!(samples.len(), 100, "{done}");
+        let tracked: Vec<[f64; 3]> = records
+            .iter()
+            .filter(|r| r.status == TrackStatus::Ok)
+            .filter_map(|r| r.position_mm)
+            .collect();
+        // Every point equals (in metres) a tracked record's position, in its order.
+        let mut next = 0usize;
+        for s in &samples {
+            let m = &s["msg"];
+            assert_eq!(m["header"]["frame_id"], "irtrack_camera0_optical");
+            let p = [f(&m["point"]["x"]), f(&m["point"]["y"]), f(&m["point"]["z"])];
+            let at = tracked[next..]
+                .iter()
+                .position(|t| (0..3).all(|i| (p[i] - t[i] / 1e3).abs() < 1e-12))
+                .unwrap_or_else(|| panic!("point {p:?} is not on the NDJSON stream (after #{next})"));
+            next += at + 1;
+        }
+        println!("ROS 2 single LED: {} points equal the NDJSON stream; {clients} subscription(s) matched", samples.len());
+    });
+}
+
+#[test]
+fn ros2_configuration_errors_name_the_problem() {
+    // The unknown-tool case joins a DDS domain before the tools are checked: kept in a
+    // namespace too.
+    if !in_own_netns("ros2_configuration_errors_name_the_problem") {
+        return;
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(bad_configs());
+}
+
+async fn bad_configs() {
+    let dir = TempDir::new("ros2-bad");
+    let sim = "rig = \"convergent\"\nfps = 120.0\ntool = \"probe4\"\nframes = 10\n";
+    for (ros2, want) in [
+        (
+            "domain_id = 300\n",
+            "outputs.ros2.domain_id: 300 is not a DDS domain id",
+        ),
+        ("namespace = \"irtrack\"\n", "outputs.ros2.namespace"),
+        (
+            "tools = [\"wand\"]\n",
+            "outputs.ros2.tools: unknown tool \"wand\"; the parameter set has probe4",
+        ),
+    ] {
+        let toml = format!(
+            "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n[outputs.ros2]\nenabled = true\n{ros2}"
+        );
+        let err = match irtrack_firmware::config::Config::from_toml(&toml, "ros2.toml") {
+            Err(e) => e.to_string(),
+            Ok(mut cfg) => {
+                let base = test_config(dir.path());
+                cfg.service.state_dir = base.service.state_dir;
+                cfg.listen = base.listen;
+                cfg.source.sim = Some(toml::from_str(sim).unwrap());
+                match app::start(cfg, Overrides::default()).await {
+                    Ok(r) => {
+                        r.shutdown().await;
+                        panic!("{ros2} was accepted")
+                    }
+                    Err(e) => e.to_string(),
+                }
+            }
+        };
+        assert!(err.contains(want), "{ros2}: {err}");
+    }
+}
