@@ -164,3 +164,94 @@ fn steady_state_processing_allocates_nothing() {
         20 * (views8.len() + 2)
     );
 }
+
+/// Several tools and a loose LED through `MultiTracker` (identification per tool, blob claims,
+/// loose-LED association, the predictor over a gap): no allocation per frame set.
+#[test]
+fn multi_tool_tracking_allocates_nothing() {
+    use irtrack_core::blob::Blob;
+    use irtrack_core::params::ToolDefinition;
+    use irtrack_core::pose6d::{MultiTracker, PoseConfig, PoseStatus};
+    use nalgebra::UnitQuaternion;
+
+    let r = rig();
+    let tool = |name: &str, leds: &[[f64; 3]]| ToolDefinition {
+        name: name.into(),
+        leds_mm: leds.to_vec(),
+        tip_mm: None,
+    };
+    let tools = [
+        tool(
+            "probe4",
+            &[
+                [0.0, 0.0, 0.0],
+                [99.0, 0.0, 0.0],
+                [3.0, 85.0, 0.0],
+                [62.0, 11.0, 32.0],
+            ],
+        ),
+        tool("tri3", &[[0.0, 0.0, 0.0], [110.0, 0.0, 0.0], [81.8, 60.0, 0.0]]),
+    ];
+    // Pre-compute every frame set's blobs (building them allocates; processing must not).
+    let sets: Vec<[Vec<Blob>; 2]> = (0..40)
+        .map(|k| {
+            let f = k as f64;
+            let mut pts = Vec::new();
+            let poses = [
+                (
+                    UnitQuaternion::from_euler_angles(0.3, -0.2 + 0.01 * f, 0.1),
+                    Vector3::new(-150.0 + f, -60.0, 900.0),
+                ),
+                (
+                    UnitQuaternion::from_euler_angles(-0.4, 0.2, 0.7 + 0.01 * f),
+                    Vector3::new(40.0 - f, 40.0, 950.0),
+                ),
+            ];
+            for (t, (q, p)) in tools.iter().zip(&poses) {
+                // The first tool disappears for frames 20..24 (the predictor coasts).
+                if t.name == "probe4" && (20..24).contains(&k) {
+                    continue;
+                }
+                for l in &t.leds_mm {
+                    pts.push(q * Vector3::from(*l) + p);
+                }
+            }
+            pts.push(Vector3::new(-10.0 + f, -100.0, 1000.0));
+            [0, 1].map(|c| {
+                pts.iter()
+                    .map(|p| {
+                        let (x, y) = project(&r, c, p);
+                        Blob {
+                            x_px: x,
+                            y_px: y,
+                            area_px: 9,
+                            roundness: 1.0,
+                            ..Blob::default()
+                        }
+                    })
+                    .collect()
+            })
+        })
+        .collect();
+    let mut tracker = MultiTracker::new(&r, &tools, PoseConfig::default()).unwrap();
+    fn lists(s: &[Vec<Blob>; 2]) -> [&[Blob]; 2] {
+        [s[0].as_slice(), s[1].as_slice()]
+    }
+    tracker.process(&lists(&sets[0])).unwrap();
+    let before = allocations();
+    let mut tracked = [0; 2];
+    let mut loose = 0;
+    for s in &sets[1..] {
+        tracker.process(&lists(s)).unwrap();
+        for (i, n) in tracked.iter_mut().enumerate() {
+            if tracker.pose(i).unwrap().status == PoseStatus::Tracked {
+                *n += 1;
+            }
+        }
+        loose += tracker.loose_leds().len();
+    }
+    let n = allocations() - before;
+    assert_eq!(n, 0, "{n} allocations in 39 multi-tool frame sets");
+    assert!(tracked[0] >= 30 && tracked[1] >= 35, "tracked {tracked:?} of 39");
+    assert!(loose >= 35, "loose LED reported {loose} times");
+}

@@ -5,7 +5,7 @@ use std::sync::Arc;
 use irtrack_core::param_wire::{RejectCode, Verdict};
 use irtrack_core::params::{BlobHeader, RigParams};
 use irtrack_core::pipeline::{Tracker, TrackerConfig};
-use irtrack_core::pose6d::{PoseConfig, PoseTracker};
+use irtrack_core::pose6d::{MultiTracker, PoseConfig, PoseTracker};
 use irtrack_core::signing::{self, KeyId, SignaturePolicy, SignatureStatus, VerifyingKey};
 
 use crate::engine::{ActiveParams, ParamsHandle};
@@ -184,15 +184,25 @@ impl ParamService {
         // Building a tracker here means the loop's swap cannot fail later.
         Tracker::new(rig, self.tracker_cfg)
             .map_err(|e| reject(RejectCode::InvalidParams, format!("tracker refuses the set: {e}")))?;
-        // The loop tracks the first tool in 6-DOF; a tool it cannot identify (symmetric layout,
-        // LEDs too close) must not be accepted only to fall back to single-marker output.
+        // The loop tracks every tool in 6-DOF; a tool it cannot identify (symmetric layout,
+        // LEDs too close) or two tools it could confuse must not be accepted only to fall back
+        // to single-marker output.
         if let Some(tool) = rig.tools.first() {
-            PoseTracker::new(rig, tool, self.pose_cfg).map_err(|e| {
-                reject(
-                    RejectCode::InvalidParams,
-                    format!("6-DOF tracker refuses tool `{}`: {e}", tool.name),
-                )
-            })?;
+            if rig.tools.len() == 1 {
+                PoseTracker::new(rig, tool, self.pose_cfg).map_err(|e| {
+                    reject(
+                        RejectCode::InvalidParams,
+                        format!("6-DOF tracker refuses tool `{}`: {e}", tool.name),
+                    )
+                })?;
+            } else {
+                MultiTracker::new(rig, &rig.tools, self.pose_cfg).map_err(|e| {
+                    reject(
+                        RejectCode::InvalidParams,
+                        format!("6-DOF tracker refuses the tools: {e}"),
+                    )
+                })?;
+            }
         }
         Ok(())
     }

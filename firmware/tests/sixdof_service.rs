@@ -257,6 +257,40 @@ async fn push_with_an_ambiguous_tool_is_rejected() {
     running.shutdown().await;
 }
 
+/// Two tools that the tracker could take for each other (three LEDs of `probe4` make a
+/// second tool) are refused at push time, naming both.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn push_with_confusable_tools_is_rejected_naming_both() {
+    use irtrack_core::param_wire::{RejectCode, Verdict};
+    use irtrack_core::params::ToolDefinition;
+    let dir = TempDir::new("sixdof-confusable");
+    let cfg = test_config(dir.path());
+    let sim = cfg.source.sim.clone().unwrap();
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let mut rig = scenario(&sim).rig().clone();
+    rig.rig_id = "confusable-tools".into();
+    let probe = irtrack_sim::tools::builtin_tool("probe4").unwrap();
+    rig.tools.push(probe.clone());
+    rig.tools.push(ToolDefinition {
+        name: "probe-corner".into(),
+        leds_mm: probe.leds_mm[1..].to_vec(),
+        tip_mm: None,
+    });
+    match push_verdict(running.addrs.params, &rig.to_blob().unwrap()).await {
+        Verdict::Rejected { code, message } => {
+            assert_eq!(code, RejectCode::InvalidParams);
+            assert!(
+                message.contains("probe-corner")
+                    && message.contains(&probe.name)
+                    && message.contains("cross-tool"),
+                "{message}"
+            );
+        }
+        v => panic!("confusable tools accepted: {v:?}"),
+    }
+    running.shutdown().await;
+}
+
 /// A pivot-calibrated tool (a tip in its definition, blob version 2) is reported at its tip:
 /// the stream's positions follow the simulator's true tip, not the tool origin (LED 0).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

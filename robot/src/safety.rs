@@ -14,6 +14,13 @@
 //! resuming still has to pass the step check against the last target, so the robot never jumps.
 //! Violations that indicate a wrong target (workspace, step, speed) latch: motion stays held until
 //! the operator enables again.
+//!
+//! Reacquisition after a tracking gap (marker lost, poor quality, stale samples since the last
+//! target): the tool moved on while it was not seen, so the first target after the gap may lie
+//! up to `max_speed_mm_s × gap` from the last one (the gap counted up to
+//! [`REACQUIRE_MAX_GAP_S`]) instead of `max_step_mm`; the implied speed and the rotation step
+//! are checked as always. Within that, motion resumes without a new enable; beyond it the
+//! jump latches as before.
 
 use irtrack_core::robot_proto::HoldReason;
 use irtrack_core::stream::{PositionRecord, TrackStatus};
@@ -85,6 +92,10 @@ impl SafetyConfig {
     }
 }
 
+/// Longest tracking gap (s) that widens the step allowance on reacquisition: after a longer gap
+/// the first target may still lie `max_speed_mm_s × REACQUIRE_MAX_GAP_S` away, no further.
+pub const REACQUIRE_MAX_GAP_S: f64 = 0.5;
+
 /// What the supervisor needs from a tracker record.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sample {
@@ -147,6 +158,9 @@ pub struct Supervisor {
     last_orientation: Option<[f64; 4]>,
     /// Where the robot reported its TCP; the step reference right after an enable.
     robot_pos_mm: Option<[f64; 3]>,
+    /// Samples were held for a tracking reason (lost, poor quality, stale) since the last
+    /// target: the next target is a reacquisition.
+    tracking_gap: bool,
 }
 
 impl Supervisor {
@@ -159,6 +173,7 @@ impl Supervisor {
             last_target: None,
             last_orientation: None,
             robot_pos_mm: None,
+            tracking_gap: false,
         }
     }
 
@@ -184,6 +199,7 @@ impl Supervisor {
         self.last_target = None;
         self.last_orientation = None;
         self.robot_pos_mm = Some(robot_pos_mm);
+        self.tracking_gap = false;
     }
 
     /// The robot reported its position (credit line).
@@ -198,6 +214,7 @@ impl Supervisor {
         self.latched = None;
         self.last_target = None;
         self.last_orientation = None;
+        self.tracking_gap = false;
     }
 
     /// Operator disable or any latched stop.
@@ -208,6 +225,29 @@ impl Supervisor {
 
     /// Judges the newest sample at `now_ns`. Latching rules disarm the supervisor.
     pub fn check(&mut self, s: &Sample, now_ns: u64, deadman_pressed: bool) -> Verdict {
+        let v = self.judge(s, now_ns, deadman_pressed);
+        if let Verdict::Hold(HoldReason::MarkerLost | HoldReason::PoorQuality | HoldReason::Stale) = v
+            && self.armed
+            && self.last_target.is_some()
+        {
+            self.tracking_gap = true;
+        }
+        v
+    }
+
+    /// Step allowance (mm) for a target captured at `capture_ts_ns`: `max_step_mm`, widened
+    /// to `max_speed_mm_s × gap` on reacquisition after a tracking gap.
+    fn step_allowance_mm(&self, capture_ts_ns: u64) -> f64 {
+        match self.last_target {
+            Some((_, t_ns)) if self.tracking_gap && capture_ts_ns > t_ns => {
+                let gap_s = ((capture_ts_ns - t_ns) as f64 * 1e-9).min(REACQUIRE_MAX_GAP_S);
+                self.cfg.max_step_mm.max(self.cfg.max_speed_mm_s * gap_s)
+            }
+            _ => self.cfg.max_step_mm,
+        }
+    }
+
+    fn judge(&mut self, s: &Sample, now_ns: u64, deadman_pressed: bool) -> Verdict {
         if !self.armed {
             return Verdict::Hold(self.latched.unwrap_or(HoldReason::NotEnabled));
         }
@@ -249,7 +289,7 @@ impl Supervisor {
             return Verdict::Hold(HoldReason::NotEnabled);
         };
         let step = dist(p, reference);
-        if step > self.cfg.max_step_mm {
+        if step > self.step_allowance_mm(s.capture_ts_ns) {
             self.disarm(HoldReason::StepTooLarge);
             return Verdict::Hold(HoldReason::StepTooLarge);
         }
@@ -286,6 +326,7 @@ impl Supervisor {
     pub fn committed(&mut self, pos_mm: [f64; 3], quat_wxyz: Option<[f64; 4]>, capture_ts_ns: u64) {
         self.last_target = Some((pos_mm, capture_ts_ns));
         self.last_orientation = quat_wxyz;
+        self.tracking_gap = false;
     }
 }
 
@@ -454,6 +495,55 @@ mod tests {
             s.check(&sample(700, [8.0, 0.0, 100.0]), 700 * MS, true),
             Verdict::Send { .. }
         ));
+    }
+
+    #[test]
+    fn reacquisition_after_a_gap_resumes_within_speed_times_gap() {
+        // max_step 10 mm, max_speed 200 mm/s.
+        let mut s = armed();
+        s.committed([0.0, 0.0, 100.0], None, 100 * MS);
+        let mut lost = sample(110, [0.0, 0.0, 100.0]);
+        lost.status = TrackStatus::Lost;
+        lost.position_mm = None;
+        assert_eq!(
+            s.check(&lost, 110 * MS, true),
+            Verdict::Hold(HoldReason::MarkerLost)
+        );
+        // Back 150 ms after the last target, 25 mm away: more than a step, less than
+        // 200 mm/s × 0.15 s = 30 mm. Resumes without a new enable.
+        assert!(matches!(
+            s.check(&sample(250, [25.0, 0.0, 100.0]), 250 * MS, true),
+            Verdict::Send { .. }
+        ));
+        s.committed([25.0, 0.0, 100.0], None, 250 * MS);
+        // The allowance ends with the gap: the next frame is held to the step limit again.
+        assert_eq!(
+            s.check(&sample(260, [37.0, 0.0, 100.0]), 260 * MS, true),
+            Verdict::Hold(HoldReason::StepTooLarge)
+        );
+        // Beyond max_speed × gap after a gap: held and latched as before.
+        s.enable();
+        s.committed([0.0, 0.0, 100.0], None, 300 * MS);
+        assert_eq!(
+            s.check(&lost, 310 * MS, true),
+            Verdict::Hold(HoldReason::MarkerLost)
+        );
+        assert_eq!(
+            s.check(&sample(400, [25.0, 0.0, 100.0]), 400 * MS, true),
+            Verdict::Hold(HoldReason::StepTooLarge)
+        );
+        assert_eq!(s.latched(), Some(HoldReason::StepTooLarge));
+        // A gap of minutes widens the allowance only up to REACQUIRE_MAX_GAP_S (100 mm here).
+        s.enable();
+        s.committed([0.0, 0.0, 100.0], None, 1000 * MS);
+        assert_eq!(
+            s.check(&lost, 1010 * MS, true),
+            Verdict::Hold(HoldReason::MarkerLost)
+        );
+        assert_eq!(
+            s.check(&sample(100_000, [0.0, 0.0, 210.0]), 100_000 * MS, true),
+            Verdict::Hold(HoldReason::StepTooLarge)
+        );
     }
 
     #[test]

@@ -21,6 +21,6 @@ pub use backdrop::Backdrop;
 pub use error::SimError;
 pub use rig::{CameraSpec, RigPreset};
 pub use scenario::{
-    BitDepth, Clutter, FrameInfo, FrameTruth, MarkerSpec, MarkerTruth, Scenario, SensorSpec, SimConfig,
+    BitDepth, Body, Clutter, FrameInfo, FrameTruth, MarkerSpec, MarkerTruth, Scenario, SensorSpec, SimConfig,
 };
 pub use trajectory::{Orientation, Trajectory};

@@ -26,8 +26,9 @@ use crate::noise::{PixelRng, hash_words, normal_table, unit_from_hash};
 use crate::rig::{CameraSpec, RigPreset, build_rig};
 use crate::trajectory::{Orientation, Trajectory};
 
-/// Most markers a scenario may carry (ground truth uses fixed-size storage).
-pub const MAX_MARKERS: usize = 8;
+/// Most markers a scenario may carry (ground truth uses fixed-size storage): eight tools of
+/// four LEDs plus loose LEDs.
+pub const MAX_MARKERS: usize = 40;
 /// Most cameras a scenario may have (visibility is a bit mask).
 pub const MAX_CAMERAS: usize = 32;
 /// Side of the largest window rendered around one marker or clutter source (px).
@@ -98,11 +99,15 @@ pub struct MarkerSpec {
     pub psf_sigma_px: f64,
     /// Electrons collected over the whole spot at 1 m from the camera, per exposure.
     pub flux_e_at_1m: f64,
+    /// The body the marker is on: 0 = the scenario's own trajectory and orientation,
+    /// k ≥ 1 = `SimConfig::bodies[k − 1]` (several tools and loose LEDs in one scene).
+    pub body: usize,
 }
 
 impl Default for MarkerSpec {
     fn default() -> Self {
         MarkerSpec {
+            body: 0,
             offset_mm: Vector3::zeros(),
             radius_mm: 1.5,
             psf_sigma_px: 0.9,
@@ -145,6 +150,16 @@ pub struct Clutter {
     pub flux_e: f64,
 }
 
+/// A further rigid body moving on its own (another tool, a loose LED): markers with
+/// `body = k` follow `bodies[k − 1]` the way body 0 follows the scenario's trajectory.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Body {
+    /// Path of the body's origin.
+    pub trajectory: Trajectory,
+    /// Its orientation; `None`: the markers only translate (a loose LED).
+    pub orientation: Option<Orientation>,
+}
+
 /// Everything a scenario is made of.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SimConfig {
@@ -158,6 +173,8 @@ pub struct SimConfig {
     pub orientation: Option<Orientation>,
     /// The LEDs, positions on the tool.
     pub markers: Vec<MarkerSpec>,
+    /// Further bodies (see [`Body`], [`SimConfig::add_tool`]); empty for one tool.
+    pub bodies: Vec<Body>,
     /// Sensor: exposure, noise, saturation, bit depth.
     pub sensor: SensorSpec,
     /// Ambient bright spots that are not markers.
@@ -192,6 +209,7 @@ impl SimConfig {
             camera: CameraSpec::default(),
             orientation: None,
             markers: vec![MarkerSpec::default()],
+            bodies: Vec::new(),
             sensor: SensorSpec::default(),
             clutter: Vec::new(),
             fps: 120.0,
@@ -218,6 +236,42 @@ impl SimConfig {
         self.orientation = Some(orientation);
     }
 
+    /// Adds a further rigid tool moving on its own: one marker per LED (optics copied from
+    /// the first marker). Returns its body number (for [`SimConfig::body_pose`]).
+    pub fn add_tool(
+        &mut self,
+        leds_mm: &[[f64; 3]],
+        trajectory: Trajectory,
+        orientation: Orientation,
+    ) -> usize {
+        self.add_body(leds_mm, trajectory, Some(orientation))
+    }
+
+    /// Adds a single LED on its own path; returns its body number.
+    pub fn add_loose_led(&mut self, trajectory: Trajectory) -> usize {
+        self.add_body(&[[0.0; 3]], trajectory, None)
+    }
+
+    fn add_body(
+        &mut self,
+        leds_mm: &[[f64; 3]],
+        trajectory: Trajectory,
+        orientation: Option<Orientation>,
+    ) -> usize {
+        let template = self.markers.first().copied().unwrap_or_default();
+        self.bodies.push(Body {
+            trajectory,
+            orientation,
+        });
+        let body = self.bodies.len();
+        self.markers.extend(leds_mm.iter().map(|p| MarkerSpec {
+            offset_mm: Vector3::from(*p),
+            body,
+            ..template
+        }));
+        body
+    }
+
     /// Pose of the tool frame at `t_s`: origin and rotation (tool to camera 0).
     pub fn tool_pose(&self, t_s: f64) -> (Vector3<f64>, UnitQuaternion<f64>) {
         let q = self
@@ -227,8 +281,26 @@ impl SimConfig {
         (self.trajectory.position(t_s), q)
     }
 
+    /// Pose of body `body` at `t_s` (0: [`SimConfig::tool_pose`]); `None` for an unknown body.
+    pub fn body_pose(&self, body: usize, t_s: f64) -> Option<(Vector3<f64>, UnitQuaternion<f64>)> {
+        if body == 0 {
+            return Some(self.tool_pose(t_s));
+        }
+        let b = self.bodies.get(body - 1)?;
+        let q = b
+            .orientation
+            .as_ref()
+            .map_or_else(UnitQuaternion::identity, |o| o.rotation(t_s));
+        Some((b.trajectory.position(t_s), q))
+    }
+
     /// Position of `marker` (camera 0 frame) at `t_s`.
     pub fn marker_position(&self, marker: &MarkerSpec, t_s: f64) -> Vector3<f64> {
+        if marker.body > 0
+            && let Some((origin, q)) = self.body_pose(marker.body, t_s)
+        {
+            return origin + q * marker.offset_mm;
+        }
         let origin = self.trajectory.position(t_s);
         match &self.orientation {
             // Without a tool the offset is already in camera 0's frame (kept bit-exact).
@@ -474,6 +546,22 @@ impl Scenario {
         cfg.trajectory.validate()?;
         if let Some(o) = &cfg.orientation {
             o.validate()?;
+        }
+        for b in &cfg.bodies {
+            b.trajectory.validate()?;
+            if let Some(o) = &b.orientation {
+                o.validate()?;
+            }
+        }
+        if let Some(m) = cfg.markers.iter().find(|m| m.body > cfg.bodies.len()) {
+            return bad(
+                "markers",
+                format!(
+                    "marker on body {} but only {} further bodies",
+                    m.body,
+                    cfg.bodies.len()
+                ),
+            );
         }
         let rig = build_rig(&cfg.rig, &cfg.camera)?;
         if rig.cameras.len() > MAX_CAMERAS {

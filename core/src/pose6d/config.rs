@@ -41,8 +41,12 @@ pub struct PoseConfig {
     pub min_led_separation_mm: f64,
     /// Largest RMS residual (mm) of the layout fit for a plausible pose.
     pub max_residual_mm: f64,
-    /// Accept a pose with one LED missing (tools with ≥ 4 LEDs; ≥ 3 must remain).
+    /// Accept a pose with LEDs missing (tools with ≥ 4 LEDs; ≥ 3 must remain).
     pub allow_missing_led: bool,
+    /// With `allow_missing_led`: at most this many LEDs may be missing (poses from any 3 or
+    /// more LEDs by default). Every LED subset of that size must identify the tool, so a
+    /// large tool that is ambiguous from 3 of its LEDs needs a smaller value.
+    pub max_missing_leds: usize,
     /// Two poses agree when they differ by less than this rotation (deg) ...
     pub agree_rotation_deg: f64,
     /// ... and their LED centroids by less than this (mm).
@@ -77,6 +81,7 @@ impl Default for PoseConfig {
             min_led_separation_mm: 15.0,
             max_residual_mm: 1.5,
             allow_missing_led: true,
+            max_missing_leds: MAX_TOOL_LEDS,
             agree_rotation_deg: 2.0,
             agree_translation_mm: 3.0,
             max_rotation_step_deg: 30.0,

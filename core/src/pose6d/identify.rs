@@ -66,16 +66,21 @@ impl ToolModel {
                 }
             }
         }
+        // Poses come from any 3 or more LEDs when LEDs may be missing (docs/six-dof.md).
         let min_leds = if config.allow_missing_led && n >= 4 {
-            n - 1
+            n.saturating_sub(config.max_missing_leds).max(3)
         } else {
             n
         };
-        // Every LED subset the tracker may fit must fix a rotation.
+        // Every LED subset the tracker may fit must fix a rotation (a subset's supersets are
+        // no closer to a line, so the smallest subsets are the ones to check).
         let mut subset = [0usize; MAX_TOOL_LEDS];
-        for skip in (0..=n).filter(|&s| s == n || min_leds < n) {
+        for mask in 0u32..(1 << n) {
+            if mask.count_ones() as usize != min_leds {
+                continue;
+            }
             let mut k = 0;
-            for i in (0..n).filter(|&i| i != skip) {
+            for i in (0..n).filter(|&i| mask & (1 << i) != 0) {
                 subset[k] = i;
                 k += 1;
             }
@@ -103,7 +108,7 @@ impl ToolModel {
         if !model.tip_mm.iter().all(|v| v.is_finite()) {
             return bad(format!("tool {:?}: the tip has a non-finite position", tool.name));
         }
-        let (margin, worst) = model.identification_margin();
+        let (margin, worst) = min_mismatch(&model, &model, true);
         model.margin_mm = margin;
         if margin < config.min_margin_mm {
             let shown: Vec<String> = worst
@@ -115,7 +120,8 @@ impl ToolModel {
                 .collect();
             return bad(format!(
                 "tool {:?} is ambiguous: the LED assignment [{}] reproduces every distance within \
-                 {margin:.2} mm (need a margin ≥ {} mm); make the layout asymmetric",
+                 {margin:.2} mm (need a margin ≥ {} mm); make the layout asymmetric (or allow \
+                 fewer missing LEDs, [pose] max_missing_leds)",
                 tool.name,
                 shown.join(", "),
                 config.min_margin_mm
@@ -156,58 +162,76 @@ impl ToolModel {
         self.margin_mm
     }
 
-    /// Exhaustive search of injective maps σ from a visible subset to the LEDs; returns the
-    /// smallest max |d(i,j) − d(σi,σj)| over non-identity maps and the map reaching it.
-    fn identification_margin(&self) -> (f64, [u8; MAX_TOOL_LEDS]) {
-        struct Search<'a> {
-            m: &'a ToolModel,
-            map: [u8; MAX_TOOL_LEDS],
-            best: f64,
-            best_map: [u8; MAX_TOOL_LEDS],
-        }
-        fn rec(s: &mut Search<'_>, led: usize, missing: usize, used: u32, worst: f64) {
-            let n = s.m.led_count;
-            if worst >= s.best {
-                return;
-            }
-            if led == n {
-                let identity = (0..n).all(|i| s.map[i] == NO_LED || s.map[i] as usize == i);
-                if !identity {
-                    s.best = worst;
-                    s.best_map = s.map;
-                }
-                return;
-            }
-            if n - missing > s.m.min_leds {
-                s.map[led] = NO_LED;
-                rec(s, led + 1, missing + 1, used, worst);
-            }
-            for target in 0..n {
-                if used & (1 << target) != 0 {
-                    continue;
-                }
-                let mut w = worst;
-                for prev in 0..led {
-                    let tp = s.map[prev];
-                    if tp != NO_LED {
-                        let d = libm::fabs(s.m.dist_mm[prev][led] - s.m.dist_mm[tp as usize][target]);
-                        w = w.max(d);
-                    }
-                }
-                s.map[led] = target as u8;
-                rec(s, led + 1, missing, used | (1 << target), w);
-            }
-            s.map[led] = NO_LED;
-        }
-        let mut s = Search {
-            m: self,
-            map: [NO_LED; MAX_TOOL_LEDS],
-            best: f64::INFINITY,
-            best_map: [NO_LED; MAX_TOOL_LEDS],
-        };
-        rec(&mut s, 0, 0, 0, 0.0);
-        (s.best, s.best_map)
+    /// Centroid of the LED layout in the tool frame (mm).
+    pub fn centroid_mm(&self) -> Vector3<f64> {
+        self.leds_mm().iter().sum::<Vector3<f64>>() / self.led_count as f64
     }
+
+    /// Cross-tool identification margin (mm): how well any `min_leds` or more LEDs of
+    /// `other` can pose as this tool — the smallest, over every injective map σ from a subset
+    /// of this tool's LEDs (as many as a pose needs) onto `other`'s LEDs, of the largest
+    /// distance mismatch. Small means the tracker of this tool could take `other` for it.
+    pub fn cross_margin_mm(&self, other: &ToolModel) -> f64 {
+        min_mismatch(self, other, false).0
+    }
+}
+
+/// Exhaustive search of injective maps σ from a visible subset of `x`'s LEDs (all, down to
+/// `x.min_leds`) onto `y`'s LEDs; returns the smallest max |d_x(i,j) − d_y(σi,σj)| (over
+/// non-identity maps when `skip_identity`, for `x` = `y`) and the map reaching it.
+fn min_mismatch(x: &ToolModel, y: &ToolModel, skip_identity: bool) -> (f64, [u8; MAX_TOOL_LEDS]) {
+    struct Search<'a> {
+        x: &'a ToolModel,
+        y: &'a ToolModel,
+        skip_identity: bool,
+        map: [u8; MAX_TOOL_LEDS],
+        best: f64,
+        best_map: [u8; MAX_TOOL_LEDS],
+    }
+    fn rec(s: &mut Search<'_>, led: usize, missing: usize, used: u32, worst: f64) {
+        let n = s.x.led_count;
+        if worst >= s.best {
+            return;
+        }
+        if led == n {
+            let identity = (0..n).all(|i| s.map[i] == NO_LED || s.map[i] as usize == i);
+            if !(s.skip_identity && identity) {
+                s.best = worst;
+                s.best_map = s.map;
+            }
+            return;
+        }
+        if n - missing > s.x.min_leds {
+            s.map[led] = NO_LED;
+            rec(s, led + 1, missing + 1, used, worst);
+        }
+        for target in 0..s.y.led_count {
+            if used & (1 << target) != 0 {
+                continue;
+            }
+            let mut w = worst;
+            for prev in 0..led {
+                let tp = s.map[prev];
+                if tp != NO_LED {
+                    let d = libm::fabs(s.x.dist_mm[prev][led] - s.y.dist_mm[tp as usize][target]);
+                    w = w.max(d);
+                }
+            }
+            s.map[led] = target as u8;
+            rec(s, led + 1, missing, used | (1 << target), w);
+        }
+        s.map[led] = NO_LED;
+    }
+    let mut s = Search {
+        x,
+        y,
+        skip_identity,
+        map: [NO_LED; MAX_TOOL_LEDS],
+        best: f64::INFINITY,
+        best_map: [NO_LED; MAX_TOOL_LEDS],
+    };
+    rec(&mut s, 0, 0, 0, 0.0);
+    (s.best, s.best_map)
 }
 
 /// Marks "this LED is missing" in an assignment.
@@ -263,6 +287,7 @@ pub(super) fn find_assignments(
         assign: [NO_LED; MAX_TOOL_LEDS],
         out,
         overflow: &mut overflow,
+        best_count: 0,
     };
     assign_rec(&mut st, 0, 0);
     overflow
@@ -275,6 +300,8 @@ struct SearchState<'a> {
     assign: [u8; MAX_TOOL_LEDS],
     out: &'a mut Vec<Hypothesis>,
     overflow: &'a mut bool,
+    /// Most LEDs of any assignment found so far.
+    best_count: usize,
 }
 
 fn assign_rec(st: &mut SearchState<'_>, led: usize, missing: usize) {
@@ -285,10 +312,6 @@ fn assign_rec(st: &mut SearchState<'_>, led: usize, missing: usize) {
     if led == n {
         emit_hypothesis(st);
         return;
-    }
-    if n - missing > st.tool.min_leds {
-        st.assign[led] = NO_LED;
-        assign_rec(st, led + 1, missing + 1);
     }
     for (ci, cand) in st.points.iter().enumerate().take(NO_LED as usize) {
         let ok = (0..led).all(|prev| {
@@ -308,6 +331,12 @@ fn assign_rec(st: &mut SearchState<'_>, led: usize, missing: usize) {
             assign_rec(st, led + 1, missing);
         }
     }
+    // Leave this LED out only while a pose with fewer LEDs may still compete: once an
+    // assignment with more LEDs exists, smaller ones never win (and would fill the buffer).
+    if n - missing > st.tool.min_leds && n - missing > st.best_count {
+        st.assign[led] = NO_LED;
+        assign_rec(st, led + 1, missing + 1);
+    }
     st.assign[led] = NO_LED;
 }
 
@@ -326,15 +355,28 @@ fn emit_hypothesis(st: &mut SearchState<'_>) {
     let Some(fit) = fit_rigid_horn(&model[..k], &measured[..k]) else {
         return;
     };
-    if st.out.len() == st.out.capacity() {
-        *st.overflow = true;
-        return;
-    }
-    st.out.push(Hypothesis {
+    let h = Hypothesis {
         assign: st.assign,
         count: k as u32,
         fit,
-    });
+    };
+    st.best_count = st.best_count.max(k);
+    if st.out.len() == st.out.capacity() {
+        // Full: a hypothesis with fewer LEDs gives way (it cannot win against this one);
+        // otherwise the frame has too many plausible readings (overflow).
+        let weakest = st
+            .out
+            .iter()
+            .enumerate()
+            .min_by_key(|(_, h)| h.count)
+            .map(|(i, h)| (i, h.count));
+        match weakest {
+            Some((i, c)) if (c as usize) < k => st.out[i] = h,
+            _ => *st.overflow = true,
+        }
+        return;
+    }
+    st.out.push(h);
 }
 
 #[cfg(test)]
