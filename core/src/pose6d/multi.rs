@@ -258,7 +258,107 @@ impl MultiTracker {
             self.track_tool(ti as usize);
         }
         self.track_loose();
+        for ti in 0..n {
+            self.audit_merges(ti);
+            let slot = &mut self.tools[ti];
+            if slot.pose.status == PoseStatus::Tracked {
+                slot.reference = Some(Reference::after(
+                    slot.reference.as_ref(),
+                    slot.pose.quaternion_wxyz,
+                    layout_centroid(&slot.pose, &slot.centroid_mm),
+                ));
+                slot.frames_since_tracked = 0;
+            }
+        }
         Ok(())
+    }
+
+    /// Where tool `ti`'s LED `led` is this frame: from its pose if tracked, else predicted
+    /// from its reference; `None` when unknown.
+    fn led_estimate_mm(&self, ti: usize, led: usize) -> Option<Vector3<f64>> {
+        let slot = &self.tools[ti];
+        let l = slot.model.leds_mm().get(led)?;
+        if slot.pose.status == PoseStatus::Tracked {
+            let r = nalgebra::Matrix3::from_row_slice(&slot.pose.r_row_major);
+            return Some(r * l + Vector3::from(slot.pose.position_mm));
+        }
+        let (q, c) = slot.reference.as_ref()?.predicted();
+        let q = super::unit_quaternion(&q);
+        Some(q * (l - slot.centroid_mm) + c)
+    }
+
+    /// LEDs of tracked tool `ti` whose image in some camera lies within `merge_radius_px` of
+    /// another tool's LED or a loose LED: their blob is probably two spots merged, with a
+    /// biased centroid. The pose is refitted without them when 3 or more LEDs remain, else
+    /// the frame is `LedsMerged` for this tool.
+    fn audit_merges(&mut self, ti: usize) {
+        let pose = self.tools[ti].pose;
+        if pose.status != PoseStatus::Tracked {
+            return;
+        }
+        let radius = self.config.merge_radius_px;
+        let mut suspect = 0u32;
+        let mut first: Option<(u32, u32)> = None;
+        for led in (0..MAX_TOOL_LEDS).filter(|l| pose.led_mask & (1 << l) != 0) {
+            let p = self
+                .led_estimate_mm(ti, led)
+                .unwrap_or_else(|| Vector3::from(pose.leds_mm[led]));
+            for (c, cam) in self.matcher.cams.iter().enumerate() {
+                let Ok(px) = cam.model.project(&cam.cam_from_cam0.apply(&p)) else {
+                    continue;
+                };
+                let near = |q: &Vector3<f64>| {
+                    cam.model
+                        .project(&cam.cam_from_cam0.apply(q))
+                        .is_ok_and(|qx| (qx - px).norm() < radius)
+                };
+                let mut hit = self.loose.iter().any(|l| near(&Vector3::from(l.position_mm)));
+                for other in (0..self.tools.len()).filter(|&o| o != ti) {
+                    for ol in 0..self.tools[other].model.led_count() {
+                        hit |= self.led_estimate_mm(other, ol).is_some_and(|q| near(&q));
+                    }
+                }
+                if hit {
+                    suspect |= 1 << led;
+                    first.get_or_insert((led as u32, c as u32));
+                }
+            }
+        }
+        if suspect == 0 {
+            return;
+        }
+        let slot = &mut self.tools[ti];
+        let keep = pose.led_mask & !suspect;
+        let mut model = [Vector3::zeros(); MAX_TOOL_LEDS];
+        let mut measured = [Vector3::zeros(); MAX_TOOL_LEDS];
+        let mut k = 0;
+        for led in (0..MAX_TOOL_LEDS).filter(|l| keep & (1 << l) != 0) {
+            model[k] = slot.model.leds_mm()[led];
+            measured[k] = Vector3::from(pose.leds_mm[led]);
+            k += 1;
+        }
+        let fit = (k >= 3)
+            .then(|| super::fit::fit_rigid_horn(&model[..k], &measured[..k]))
+            .flatten()
+            .filter(|f| f.rms_mm <= self.config.max_residual_mm);
+        let Some(f) = fit else {
+            let (led, camera) = first.unwrap_or((0, 0));
+            slot.pose.status = PoseStatus::LedsMerged { led, camera };
+            return;
+        };
+        let p = &mut slot.pose;
+        p.position_mm = f.translation_mm.into();
+        p.tip_mm = (f.rotation * slot.model.tip_mm + f.translation_mm).into();
+        p.quaternion_wxyz = f.quaternion_wxyz;
+        for i in 0..3 {
+            for j in 0..3 {
+                p.r_row_major[i * 3 + j] = f.rotation[(i, j)];
+            }
+        }
+        p.residual_rms_mm = f.rms_mm;
+        p.residual_max_mm = f.max_mm;
+        p.led_mask = keep;
+        p.leds_used = k as u32;
     }
 
     fn track_tool(&mut self, ti: usize) {
@@ -291,16 +391,8 @@ impl MultiTracker {
                 }
             }
         }
-        let slot = &mut self.tools[ti];
-        slot.pose = pose;
-        if pose.status == PoseStatus::Tracked {
-            slot.reference = Some(Reference::after(
-                slot.reference.as_ref(),
-                pose.quaternion_wxyz,
-                layout_centroid(&pose, &slot.centroid_mm),
-            ));
-            slot.frames_since_tracked = 0;
-        }
+        // The reference is updated after the merge audit (in `process`).
+        self.tools[ti].pose = pose;
     }
 
     fn is_claimed(&self, p: &TriangulatedPoint) -> bool {
