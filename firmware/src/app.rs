@@ -367,6 +367,8 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         led_desc,
     ));
     tracing::info!(source = %devices.source.describe(), leds = %status.led_backend, "starting");
+    // /status and /metrics show the outputs' counters.
+    let _ = status.outputs.set(outputs.stats.clone());
 
     let handle = Arc::new(ParamsHandle::new());
     let params = start_params(

@@ -162,6 +162,8 @@ pub struct SharedStatus {
 
     pub params: Mutex<ParamsInfo>,
     pub realtime: Mutex<Vec<String>>,
+    /// Counters of the standard outputs (set once by `app::start`).
+    pub outputs: std::sync::OnceLock<crate::outputs::OutputsStats>,
 }
 
 fn track_to_u8(t: TrackIndication) -> u8 {
@@ -183,6 +185,7 @@ fn robot_to_u8(r: RobotIndication) -> u8 {
 impl SharedStatus {
     pub fn new(camera_count: usize, source_description: String, led_backend: String) -> Self {
         Self {
+            outputs: std::sync::OnceLock::new(),
             started: Instant::now(),
             source_description,
             led_backend,
@@ -525,6 +528,9 @@ impl SharedStatus {
         };
         let mut registry = prometheus_client::registry::Registry::default();
         registry.register_collector(Box::new(snapshot));
+        if let Some(outputs) = self.outputs.get() {
+            registry.register_collector(Box::new(outputs.metrics()));
+        }
         let mut s = String::with_capacity(8 * 1024);
         // Writing into a String cannot fail; an encoder error would be a bug in a metric.
         if let Err(e) = prometheus_client::encoding::text::encode(&mut s, &registry) {

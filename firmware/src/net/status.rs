@@ -143,6 +143,13 @@ impl StatusService {
         if let Some(o) = v.as_object_mut() {
             o.insert("fault_texts".into(), serde_json::json!(fault_texts));
             o.insert("robot".into(), robot.unwrap_or(serde_json::Value::Null));
+            o.insert(
+                "outputs".into(),
+                self.status
+                    .outputs
+                    .get()
+                    .map_or(serde_json::Value::Null, |s| s.report_json()),
+            );
             o.insert("tuning".into(), serde_json::to_value(&tuning).unwrap_or_default());
             // The whole-frame analysis every part of the set-up view shows (crate::advice).
             o.insert(

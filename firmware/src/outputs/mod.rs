@@ -9,11 +9,14 @@ pub mod natnet;
 pub mod recording;
 pub mod ros2;
 pub mod scene;
+pub mod stats;
+
+pub use stats::{OutputStats, OutputsStats};
 
 use std::future::Future;
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::sync::atomic::AtomicU64;
+use std::sync::atomic::Ordering;
 
 use irtrack_core::stream::PositionRecord;
 use serde::Deserialize;
@@ -44,35 +47,6 @@ impl OutputsConfig {
         self.mcap.validate()?;
         self.ros2.validate()
     }
-}
-
-/// Counters of one output (read by tests and the status endpoint).
-#[derive(Debug, Default)]
-pub struct OutputStats {
-    /// Datagrams (or messages) handed to the kernel.
-    pub frames_sent: AtomicU64,
-    /// Sends that failed or would have blocked; the packet was dropped, not queued.
-    pub send_drops: AtomicU64,
-    /// Records the loop published that this output never saw (the slot was overwritten first).
-    pub slot_skips: AtomicU64,
-    /// Clients currently served (unicast).
-    pub clients: AtomicU64,
-    /// Clients refused by the client limit.
-    pub refused: AtomicU64,
-    pub requests: AtomicU64,
-    /// Malformed or unknown requests.
-    pub bad_requests: AtomicU64,
-}
-
-/// Counters of every output.
-#[derive(Debug, Clone, Default)]
-pub struct OutputsStats {
-    pub natnet: Arc<OutputStats>,
-    /// `frames_sent`: records written; `send_drops`: records the full queue refused.
-    pub mcap: Arc<OutputStats>,
-    /// `frames_sent`: messages published; `send_drops`: publishes refused (send window full);
-    /// `clients`: matched subscriptions.
-    pub ros2: Arc<OutputStats>,
 }
 
 /// What outputs read: the latest-value slot, the active parameter set (for the models) and
@@ -122,7 +96,13 @@ impl Outputs {
                 false => None,
             },
             ros2_cfg: cfg.ros2.clone(),
-            stats: OutputsStats::default(),
+            stats: {
+                let stats = OutputsStats::default();
+                stats.natnet.enabled.store(cfg.natnet.enabled, Ordering::Relaxed);
+                stats.mcap.enabled.store(cfg.mcap.enabled, Ordering::Relaxed);
+                stats.ros2.enabled.store(cfg.ros2.enabled, Ordering::Relaxed);
+                stats
+            },
         })
     }
 

@@ -72,7 +72,7 @@ impl McapConfig {
 }
 
 #[cfg(feature = "mcap")]
-pub use imp::Recorder;
+pub use imp::{Recorder, SeekWrite};
 
 #[cfg(feature = "mcap")]
 mod imp {
@@ -93,10 +93,14 @@ mod imp {
 
     const R: Ordering = Ordering::Relaxed;
 
+    /// Where a recording goes: a file, or (tests) any seekable sink.
+    pub trait SeekWrite: std::io::Write + std::io::Seek + Send {}
+    impl<T: std::io::Write + std::io::Seek + Send> SeekWrite for T {}
+
     /// A created recording, not yet running.
     pub struct Recorder {
         path: PathBuf,
-        writer: McapRecorder<BufWriter<std::fs::File>>,
+        writer: McapRecorder<Box<dyn SeekWrite>>,
         queue: usize,
     }
 
@@ -106,14 +110,18 @@ mod imp {
             let file = std::fs::File::create(&path).map_err(|e| FirmwareError::Config {
                 reason: format!("outputs.mcap.path: cannot create {}: {e}", path.display()),
             })?;
-            let writer = McapRecorder::new(BufWriter::new(file), local_wall_offset_ns()).map_err(|e| {
-                FirmwareError::Output {
+            Self::with_sink(path, Box::new(BufWriter::new(file)), queue)
+        }
+
+        /// A recording into `sink` (`label` names it in logs).
+        pub fn with_sink(label: PathBuf, sink: Box<dyn SeekWrite>, queue: usize) -> Result<Self> {
+            let writer =
+                McapRecorder::new(sink, local_wall_offset_ns()).map_err(|e| FirmwareError::Output {
                     what: "MCAP recording",
                     reason: e.to_string(),
-                }
-            })?;
+                })?;
             Ok(Self {
-                path,
+                path: label,
                 writer,
                 queue: queue.max(1),
             })
@@ -141,6 +149,8 @@ mod imp {
                         match writer.write(&rec) {
                             Ok(()) => {
                                 stats2.frames_sent.fetch_add(1, R);
+                                // Capture → written into the file's buffer.
+                                stats2.record_latency(rec.capture_ts_ns);
                             }
                             Err(e) => {
                                 tracing::error!(error = %e, "MCAP recording stopped");

@@ -554,6 +554,8 @@ mod imp {
                 && let Some(p) = &self.tf
             {
                 self.sent(p.publish(tf));
+                // Capture → the record's messages handed to the DDS stack.
+                self.stats.record_latency(rec.capture_ts_ns);
             }
         }
 

@@ -340,19 +340,21 @@ impl State {
             return;
         }
         let frame = std::mem::take(&mut self.last_frame);
+        let mut sent = 0u64;
         match self.plan.multicast {
             Some((group, port)) => {
-                if self.send(socket, &frame, SocketAddr::from((group, port))) {
-                    self.stats.frames_sent.fetch_add(1, R);
-                }
+                sent += u64::from(self.send(socket, &frame, SocketAddr::from((group, port))));
             }
             None => {
                 for c in &self.clients {
-                    if self.send(socket, &frame, c.addr) {
-                        self.stats.frames_sent.fetch_add(1, R);
-                    }
+                    sent += u64::from(self.send(socket, &frame, c.addr));
                 }
             }
+        }
+        if sent > 0 {
+            self.stats.frames_sent.fetch_add(sent, R);
+            // Capture → the frame's datagrams handed to the kernel.
+            self.stats.record_latency(rec.capture_ts_ns);
         }
         self.last_frame = frame;
     }
