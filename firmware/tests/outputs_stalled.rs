@@ -39,7 +39,22 @@ async fn start(dir: &TempDir, outputs_toml: &str) -> app::Running {
     app::start(cfg, Overrides::default()).await.unwrap()
 }
 
+/// One machine-readable line for `cargo xtask bench --latency`'s output rows (µs).
+fn latency_line(label: &str, stats: &irtrack_firmware::outputs::OutputStats) {
+    let s = stats.latency.snapshot().summary();
+    let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}"));
+    println!(
+        "OUTPUT-LATENCY|{label}|{}|{}|{}|{}|{}",
+        s.count,
+        f(s.p50_us),
+        f(s.p90_us),
+        f(s.p99_us),
+        f(s.max_us)
+    );
+}
+
 fn report(name: &str, before: f64, during: f64, status: &Arc<irtrack_firmware::outputs::OutputStats>) {
+    latency_line(name, status);
     println!(
         "{name} stalled: loop {before:.1} → {during:.1} sets/s; sent {}, dropped {}, skipped {}, clients {}, capture→sent p50 {:?} µs",
         status.frames_sent.load(R),
@@ -74,7 +89,12 @@ async fn natnet_clients_that_never_read_do_not_slow_the_loop() {
     assert_eq!(stats.clients.load(R), 8);
     let sent0 = stats.frames_sent.load(R);
     let during = sets_per_s(&running.status, 3.0).await;
-    report("NatNet, 8 clients", before, during, &stats);
+    report(
+        "NatNet, unicast, 8 clients (never reading)",
+        before,
+        during,
+        &stats,
+    );
     // Every frame still went to all eight (the kernel takes it; the full buffers drop it).
     assert!(
         stats.frames_sent.load(R) - sent0 >= 8 * 300,
@@ -196,7 +216,12 @@ async fn mcap_recording_into_a_blocked_sink_drops_and_counts_without_slowing_the
     assert!(written0 > 100, "{written0}");
     stall.store(true, R);
     let during = sets_per_s(&status, 3.0).await;
-    report("MCAP sink blocked", before, during, &stats);
+    report(
+        "MCAP recording, queue 16 (sink blocked half way)",
+        before,
+        during,
+        &stats,
+    );
     let dropped = stats.send_drops.load(R);
     // The writer is stuck (at most the queue and the record in its hands go through); the
     // rest is dropped and counted.

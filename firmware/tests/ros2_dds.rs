@@ -452,6 +452,17 @@ fn ros2_stalled_subscriber_does_not_slow_the_loop() {
             sent - sent0,
             stats.latency.snapshot().summary().p50_us,
         );
+        let l = stats.latency.snapshot().summary();
+        let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}"));
+        // For `cargo xtask bench --latency`'s output rows (µs).
+        println!(
+            "OUTPUT-LATENCY|ROS 2 over DDS, reliable, 1 subscriber (stopped half way)|{}|{}|{}|{}|{}",
+            l.count,
+            f(l.p50_us),
+            f(l.p90_us),
+            f(l.p99_us),
+            f(l.max_us)
+        );
         drop(sub);
         running.shutdown().await;
         assert!(during >= 0.95 * before, "loop slowed: {before:.1} → {during:.1} sets/s");

@@ -87,7 +87,8 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         return aarch64_bench(ctx, quick);
     }
     if latency == Some(true) {
-        return latency_table(ctx, 8);
+        latency_table(ctx, 8)?;
+        return output_latency_table(ctx);
     }
     // The latency run builds the firmware in release and takes ~20 s of wall time: not in the
     // quick (CI) run.
@@ -113,6 +114,7 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
     }
     if latency {
         latency_table(ctx, 8)?;
+        output_latency_table(ctx)?;
     } else {
         println!();
         println!(
@@ -309,6 +311,64 @@ fn latency_table(ctx: &Ctx, seconds: u32) -> Result<()> {
             r.latency.p99_us,
             r.latency.p999_us,
             q(r.split.render),
+        );
+    }
+    Ok(())
+}
+
+/// Capture → sent per standard output (NatNet, MCAP, ROS 2), from the outputs' own
+/// histograms in their stalled-consumer tests (test profile; irtrackd on the simulated
+/// cameras at 120 fps; the ROS 2 test runs in a network namespace of its own). Kept apart from
+/// [`latency_table`] (the loop and robot-link rows).
+fn output_latency_table(ctx: &Ctx) -> Result<()> {
+    let mut cmd = ctx.cargo();
+    cmd.args([
+        "test",
+        "-p",
+        "irtrack-firmware",
+        "--features",
+        "mcap,ros2",
+        "--test",
+        "outputs_stalled",
+        "--test",
+        "ros2_dds",
+        "stalled",
+        "--",
+        "--nocapture",
+        "--test-threads=1",
+    ]);
+    let out = util::run(
+        &mut cmd,
+        RunOpts {
+            capture_stdout: true,
+            timeout: Some(Duration::from_secs(1800)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("the outputs' stalled-consumer tests {}", out.describe());
+    }
+    let rows: Vec<Vec<&str>> = out
+        .stdout
+        .lines()
+        .filter_map(|l| l.strip_prefix("OUTPUT-LATENCY|"))
+        .map(|l| l.split('|').collect::<Vec<_>>())
+        .filter(|v| v.len() == 6)
+        .collect();
+    if rows.len() < 3 {
+        bail!("expected 3 output latency rows, got {}", rows.len());
+    }
+    println!();
+    println!(
+        "Capture → sent per output (handed to the kernel / DDS stack / file buffer; test profile, simulated 120 fps, with a stalled consumer):"
+    );
+    println!();
+    println!("| output | records | p50 | p90 | p99 | max | measured by |");
+    println!("|---|---|---|---|---|---|---|");
+    for r in rows {
+        println!(
+            "| {} | {} | {} µs | {} µs | {} µs | {} µs | `cargo test -p irtrack-firmware --features mcap,ros2 --test outputs_stalled --test ros2_dds stalled` |",
+            r[0], r[1], r[2], r[3], r[4], r[5]
         );
     }
     Ok(())
