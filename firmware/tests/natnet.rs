@@ -244,3 +244,50 @@ async fn natnet_configuration_errors_name_the_problem() {
     assert!(running.addrs.natnet.is_none() && !running.addrs.ready_line().contains("natnet"));
     running.shutdown().await;
 }
+
+/// Multicast (NatNet's default transport): frames go to 239.255.42.99:1511 on loopback, the
+/// Python client joins the group. Runs inside a network namespace of its own (multicast on its
+/// `lo`), so nothing reaches the real network.
+#[test]
+fn natnet_multicast_frames_reach_a_client_that_joined_the_group() {
+    if !in_own_netns("natnet_multicast_frames_reach_a_client_that_joined_the_group") {
+        return;
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let dir = TempDir::new("natnet-multicast");
+        let sim = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nperiod_s = 6.0\nfps = 120.0\nseed = 6\ntool = \"probe4\"\ntool_rotation_deg = 20.0\nframes = 900\n";
+        let running = start(
+            &dir,
+            sim,
+            "transport = \"multicast\"\nmulticast_group = \"239.255.42.99\"\nmulticast_interface = \"127.0.0.1\"\ndata_port = 1511\n",
+        )
+        .await;
+        let natnet = running.addrs.natnet.unwrap();
+        let ndjson = collect_ndjson(running.addrs.stream_ndjson).await;
+        let extra = ["multicast".to_string(), "239.255.42.99".into(), "1511".into()];
+        let got = python_client(natnet, 120, 10.0, &extra).await;
+        let by_frame = ndjson.await.unwrap();
+        let sent = running.outputs.natnet.frames_sent.load(std::sync::atomic::Ordering::Relaxed);
+        running.shutdown().await;
+        assert_eq!(got["complete"], true, "{got}");
+        let (mut compared, mut worst_m) = (0usize, 0.0f64);
+        for fr in got["frames"].as_array().unwrap() {
+            let n = fr["frame"].as_u64().unwrap() as u32;
+            let Some(rec) = by_frame.get(&n) else { continue };
+            let Some(p) = rec.position_mm.filter(|_| rec.status == TrackStatus::Ok) else { continue };
+            let pos = vec3(&fr["rigid_bodies"][0]["pos"]);
+            for i in 0..3 {
+                worst_m = worst_m.max((pos[i] - p[i] / 1e3).abs());
+            }
+            compared += 1;
+        }
+        println!("NatNet multicast: {compared} tracked frames compared, largest difference {worst_m:.2e} m; {sent} frames sent to the group");
+        assert!(compared >= 80, "{compared}");
+        assert!(worst_m <= 1e-4, "{worst_m}");
+    });
+}

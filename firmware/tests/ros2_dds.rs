@@ -24,44 +24,6 @@ use irtrack_firmware::app::{self, Overrides};
 use serde_json::Value;
 
 const SUBSCRIBER: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/py/ros2_subscriber.py");
-const INSIDE: &str = "IRTRACK_TEST_NETNS";
-
-/// Outside the namespace: runs `test` of this binary again inside a fresh one and checks it
-/// passed; returns false (the caller returns). Inside: sets up loopback multicast and returns
-/// true (the caller runs the test body).
-fn in_own_netns(test: &str) -> bool {
-    if std::env::var_os(INSIDE).is_some() {
-        for args in [
-            &["link", "set", "lo", "up", "multicast", "on"][..],
-            &["route", "add", "239.0.0.0/8", "dev", "lo"][..],
-        ] {
-            let st = Command::new("ip").args(args).status().expect("ip runs");
-            assert!(st.success(), "ip {args:?} failed in the test's network namespace");
-        }
-        return true;
-    }
-    let exe = std::env::current_exe().unwrap();
-    let out = Command::new("unshare")
-        .arg("-rn")
-        .arg(exe)
-        .args([test, "--exact", "--nocapture", "--test-threads=1"])
-        .env(INSIDE, "1")
-        .output()
-        .expect("unshare (util-linux) runs");
-    print!("{}", String::from_utf8_lossy(&out.stdout));
-    eprint!("{}", String::from_utf8_lossy(&out.stderr));
-    assert!(
-        out.status.success(),
-        "{test} inside `unshare -rn` failed ({})",
-        out.status
-    );
-    assert!(
-        String::from_utf8_lossy(&out.stdout).contains("1 passed"),
-        "{test} did not run inside the namespace"
-    );
-    false
-}
-
 /// The Python subscriber, started; its JSON lines are read by a thread.
 struct Subscriber {
     child: std::process::Child,

@@ -149,3 +149,45 @@ pub async fn status_json(addr: SocketAddr) -> serde_json::Value {
 pub fn dist_mm(a: [f64; 3], b: [f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
+
+/// Set in the re-run test inside its network namespace.
+const INSIDE: &str = "IRTRACK_TEST_NETNS";
+
+/// Outside the namespace: runs `test` of this binary again inside a fresh one and checks it
+/// passed; returns false (the caller returns). Inside: sets up loopback multicast and returns
+/// true (the caller runs the test body).
+pub fn in_own_netns(test: &str) -> bool {
+    if std::env::var_os(INSIDE).is_some() {
+        for args in [
+            &["link", "set", "lo", "up", "multicast", "on"][..],
+            &["route", "add", "239.0.0.0/8", "dev", "lo"][..],
+        ] {
+            let st = std::process::Command::new("ip")
+                .args(args)
+                .status()
+                .expect("ip runs");
+            assert!(st.success(), "ip {args:?} failed in the test's network namespace");
+        }
+        return true;
+    }
+    let exe = std::env::current_exe().unwrap();
+    let out = std::process::Command::new("unshare")
+        .arg("-rn")
+        .arg(exe)
+        .args([test, "--exact", "--nocapture", "--test-threads=1"])
+        .env(INSIDE, "1")
+        .output()
+        .expect("unshare (util-linux) runs");
+    print!("{}", String::from_utf8_lossy(&out.stdout));
+    eprint!("{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{test} inside `unshare -rn` failed ({})",
+        out.status
+    );
+    assert!(
+        String::from_utf8_lossy(&out.stdout).contains("1 passed"),
+        "{test} did not run inside the namespace"
+    );
+    false
+}
