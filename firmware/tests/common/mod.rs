@@ -171,8 +171,12 @@ pub fn in_own_netns(test: &str) -> bool {
         return true;
     }
     let exe = std::env::current_exe().unwrap();
+    // Cross-built runs (aarch64 under QEMU) set IRTRACK_TEST_RUNNER: a foreign binary is
+    // started through it.
+    let runner = std::env::var("IRTRACK_TEST_RUNNER").unwrap_or_default();
     let out = std::process::Command::new("unshare")
         .arg("-rn")
+        .args(runner.split_whitespace())
         .arg(exe)
         .args([test, "--exact", "--nocapture", "--test-threads=1"])
         .env(INSIDE, "1")
