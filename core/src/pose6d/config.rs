@@ -41,6 +41,11 @@ pub struct PoseConfig {
     pub min_led_separation_mm: f64,
     /// Largest RMS residual (mm) of the layout fit for a plausible pose.
     pub max_residual_mm: f64,
+    /// Several tools: a pose from 4 or more LEDs whose RMS residual exceeds this (mm) has
+    /// probably one LED biased by another tool's spot merging with it in some camera; the LED
+    /// whose removal fits best is dropped when the rest then fits within this (a 3-LED pose
+    /// above it is refused: it cannot tell which LED is off).
+    pub outlier_residual_mm: f64,
     /// Accept a pose with LEDs missing (tools with ≥ 4 LEDs; ≥ 3 must remain).
     pub allow_missing_led: bool,
     /// With `allow_missing_led`: at most this many LEDs may be missing (poses from any 3 or
@@ -80,6 +85,7 @@ impl Default for PoseConfig {
             min_margin_mm: 6.0,
             min_led_separation_mm: 15.0,
             max_residual_mm: 1.5,
+            outlier_residual_mm: 0.15,
             allow_missing_led: true,
             max_missing_leds: MAX_TOOL_LEDS,
             agree_rotation_deg: 2.0,
@@ -103,6 +109,7 @@ impl PoseConfig {
             ("min_margin_mm", self.min_margin_mm),
             ("min_led_separation_mm", self.min_led_separation_mm),
             ("max_residual_mm", self.max_residual_mm),
+            ("outlier_residual_mm", self.outlier_residual_mm),
             ("agree_rotation_deg", self.agree_rotation_deg),
             ("agree_translation_mm", self.agree_translation_mm),
             ("max_rotation_step_deg", self.max_rotation_step_deg),

@@ -324,28 +324,49 @@ impl MultiTracker {
                 }
             }
         }
-        if suspect == 0 {
-            return;
-        }
         let slot = &mut self.tools[ti];
-        let keep = pose.led_mask & !suspect;
-        let mut model = [Vector3::zeros(); MAX_TOOL_LEDS];
-        let mut measured = [Vector3::zeros(); MAX_TOOL_LEDS];
-        let mut k = 0;
-        for led in (0..MAX_TOOL_LEDS).filter(|l| keep & (1 << l) != 0) {
-            model[k] = slot.model.leds_mm()[led];
-            measured[k] = Vector3::from(pose.leds_mm[led]);
-            k += 1;
+        let cfg = &self.config;
+        let fit_of = |mask: u32| {
+            let mut model = [Vector3::zeros(); MAX_TOOL_LEDS];
+            let mut measured = [Vector3::zeros(); MAX_TOOL_LEDS];
+            let mut k = 0;
+            for led in (0..MAX_TOOL_LEDS).filter(|l| mask & (1 << l) != 0) {
+                model[k] = slot.model.leds_mm()[led];
+                measured[k] = Vector3::from(pose.leds_mm[led]);
+                k += 1;
+            }
+            (k >= 3)
+                .then(|| super::fit::fit_rigid_horn(&model[..k], &measured[..k]))
+                .flatten()
+        };
+        let mut keep = pose.led_mask & !suspect;
+        if suspect == 0 {
+            // No known neighbour, but a residual far above the noise from 4+ LEDs: one LED is
+            // probably biased (a spot merged with something the tracker does not know).
+            if pose.residual_rms_mm <= cfg.outlier_residual_mm {
+                return;
+            }
+            if pose.leds_used < 4 {
+                // Three LEDs cannot tell which one is biased: no pose rather than a skewed one.
+                slot.pose.status = PoseStatus::ResidualTooLarge;
+                return;
+            }
+            let best = (0..MAX_TOOL_LEDS)
+                .filter(|l| pose.led_mask & (1 << l) != 0)
+                .filter_map(|l| fit_of(pose.led_mask & !(1 << l)).map(|f| (l, f.rms_mm)))
+                .min_by(|a, b| a.1.total_cmp(&b.1));
+            match best {
+                Some((l, rms)) if rms <= cfg.outlier_residual_mm => keep = pose.led_mask & !(1 << l),
+                _ => return,
+            }
         }
-        let fit = (k >= 3)
-            .then(|| super::fit::fit_rigid_horn(&model[..k], &measured[..k]))
-            .flatten()
-            .filter(|f| f.rms_mm <= self.config.max_residual_mm);
+        let fit = fit_of(keep).filter(|f| f.rms_mm <= cfg.max_residual_mm);
         let Some(f) = fit else {
             let (led, camera) = first.unwrap_or((0, 0));
             slot.pose.status = PoseStatus::LedsMerged { led, camera };
             return;
         };
+        let k = keep.count_ones();
         let p = &mut slot.pose;
         p.position_mm = f.translation_mm.into();
         p.tip_mm = (f.rotation * slot.model.tip_mm + f.translation_mm).into();
@@ -358,7 +379,7 @@ impl MultiTracker {
         p.residual_rms_mm = f.rms_mm;
         p.residual_max_mm = f.max_mm;
         p.led_mask = keep;
-        p.leds_used = k as u32;
+        p.leds_used = k;
     }
 
     fn track_tool(&mut self, ti: usize) {
