@@ -4,12 +4,16 @@
 //! its status listener on 127.0.0.1, records per set the timestamps of its path
 //! (`Engine::last_times`: rendering, driver = capture → dequeued, ours = dequeued → published,
 //! the whole processing time incl. the viewers' copy, capture → published) for `--seconds`
-//! (default 10) with no viewer, then the same with 3 WebSocket viewers asking for 30 fps
-//! full-width previews, 64 px zooms and every set's blob lists, and prints percentiles (the
-//! product's own log-linear histogram) and the ratios.
+//! (default 10) with no viewer and `--seconds` with 3 WebSocket viewers asking for 30 fps
+//! full-width previews, 64 px zooms and every set's blob lists — side by side in one run:
+//! the two conditions alternate in `--rounds` (default 4) slices, so a change in the machine's
+//! load (other builds on a shared machine) hits both alike — and prints percentiles (the
+//! product's own log-linear histogram) and the ratios. `--fifo-priority N` runs the loop thread
+//! SCHED_FIFO (as irtrackd's `[realtime] fifo_priority`) where permitted; the output says
+//! whether it was.
 //!
 //! ```sh
-//! cargo run --release -p irtrack-firmware --example viewers [-- --seconds 10 --fps 100]
+//! cargo run --release -p irtrack-firmware --example viewers [-- --seconds 10 --fps 100 --fifo-priority 50]
 //! ```
 
 use std::net::SocketAddr;
@@ -129,11 +133,24 @@ fn main() -> anyhow::Result<()> {
     .with_viewer_tap(tap.clone())
     .with_tuning(tuning.clone());
 
-    // Phase switch: the loop thread records into phase 0 or 1.
-    let phase = Arc::new(AtomicU64::new(0));
+    // Phase switch: the loop thread records into phase 0 (no viewer) or 1 (3 viewers); 2 =
+    // not recorded (warm-up, viewers connecting or leaving).
+    let phase = Arc::new(AtomicU64::new(2));
     let stop = Arc::new(AtomicBool::new(false));
     let (phase2, stop2) = (phase.clone(), stop.clone());
+    let fifo = arg("--fifo-priority", 0.0) as i32;
+    let (sched_tx, sched_rx) = std::sync::mpsc::channel();
     let loop_thread = std::thread::spawn(move || -> anyhow::Result<[Phase; 2]> {
+        let sched = if fifo > 0 {
+            irtrack_firmware::rt::apply(&irtrack_firmware::config::RealtimeConfig {
+                fifo_priority: Some(fifo),
+                ..Default::default()
+            })
+            .join("; ")
+        } else {
+            "normal scheduling (no --fifo-priority)".to_string()
+        };
+        let _ = sched_tx.send(sched);
         let phases = [Phase::default(), Phase::default()];
         while !stop2.load(Ordering::Relaxed) {
             let outcome = engine.step()?;
@@ -158,26 +175,37 @@ fn main() -> anyhow::Result<()> {
             let _ = stop_rx.await;
         }));
         tokio::time::sleep(Duration::from_secs(1)).await; // warm up
-        phase.store(0, Ordering::Relaxed);
-        tokio::time::sleep(Duration::from_secs_f64(seconds)).await;
+        let rounds = arg("--rounds", 4.0).max(1.0) as u32;
+        let slice = Duration::from_secs_f64(seconds / f64::from(rounds));
         let received = Arc::new(AtomicU64::new(0));
-        let viewers: Vec<_> = (0..3)
-            .map(|_| tokio::spawn(viewer(addr, received.clone())))
-            .collect();
-        tokio::time::sleep(Duration::from_millis(500)).await;
-        phase.store(1, Ordering::Relaxed);
-        let copies0 = tap.copies();
-        tokio::time::sleep(Duration::from_secs_f64(seconds)).await;
-        phase.store(2, Ordering::Relaxed);
-        let copies = tap.copies() - copies0;
-        for v in viewers {
-            v.abort();
+        let (mut copies, mut blob_copies) = (0, 0);
+        for _ in 0..rounds {
+            phase.store(0, Ordering::Relaxed);
+            tokio::time::sleep(slice).await;
+            phase.store(2, Ordering::Relaxed);
+            let viewers: Vec<_> = (0..3)
+                .map(|_| tokio::spawn(viewer(addr, received.clone())))
+                .collect();
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            let (c0, b0) = (tap.copies(), tap.blob_copies());
+            phase.store(1, Ordering::Relaxed);
+            tokio::time::sleep(slice).await;
+            phase.store(2, Ordering::Relaxed);
+            copies += tap.copies() - c0;
+            blob_copies += tap.blob_copies() - b0;
+            for v in viewers {
+                v.abort();
+            }
+            // The sessions end and detach before the next no-viewer slice.
+            tokio::time::sleep(Duration::from_millis(300)).await;
         }
         let _ = stop_tx.send(());
         let _ = server.await;
         println!(
-            "viewer phase: the loop made {copies} copies for the viewers; {} busy skips",
-            tap.busy_skips()
+            "viewer phases: the loop made {copies} frame copies and {blob_copies} blob copies for the viewers; {} frame / {} blob copies skipped (slot busy); {} sets not sent by the blob viewers",
+            tap.busy_skips(),
+            tap.blob_busy_skips(),
+            tap.viewer_dropped_sets(),
         );
         println!("viewers received {} bytes", received.load(Ordering::Relaxed));
         anyhow::Ok(())
@@ -188,7 +216,11 @@ fn main() -> anyhow::Result<()> {
         .map_err(|_| anyhow::anyhow!("loop thread panicked"))??;
 
     println!(
-        "processing loop, simulated 2 × 640x480 at {fps} fps, {seconds} s per phase (cargo run --release -p irtrack-firmware --example viewers)"
+        "processing loop, simulated 2 × 640x480 at {fps} fps, {seconds} s per condition in alternating slices (cargo run --release -p irtrack-firmware --example viewers)"
+    );
+    println!(
+        "scheduling of the loop thread: {}",
+        sched_rx.recv().unwrap_or_default()
     );
     println!(
         "{:<34} {:>8} {:>9} {:>9} {:>9} {:>9} {:>9}",

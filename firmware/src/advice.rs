@@ -241,6 +241,10 @@ pub struct CameraAnalysis {
     /// Every region marked kept or rejected with its reason (the preview's overlay).
     #[serde(skip)]
     pub blobs: Vec<BlobView>,
+    /// How many of `blobs` (the first ones) are the loop's own list; the rest come from the
+    /// whole-frame pass.
+    #[serde(skip)]
+    pub from_loop: usize,
 }
 
 fn reason_words(r: RejectReason) -> &'static str {
@@ -299,6 +303,7 @@ impl CameraAnalysis {
                 ),
             }),
             blobs: Vec::new(),
+            from_loop: 0,
         }
     }
 
@@ -343,6 +348,7 @@ impl CameraAnalysis {
             blobs.push(BlobView::of(b, Some(RejectReason::Area)));
         }
         blobs.truncate(list_max);
+        let loop_listed = listed.map_or(0, |l| l.len().min(blobs.len()));
         let kept = blobs.iter().filter(|b| b.kept).count() as u32;
         let regions = det.stats.components.max(blobs.len() as u32);
         let rejected = regions.saturating_sub(kept);
@@ -361,6 +367,7 @@ impl CameraAnalysis {
             max_blobs: cfg.max_blobs,
             advice: None,
             blobs,
+            from_loop: loop_listed,
         };
         a.advice = a.advise(above);
         Some(a)

@@ -33,7 +33,7 @@ use crate::leds::indication::TrackIndication;
 use crate::source::{FrameSet, FrameSource, Pixels, SourceError};
 use crate::status::SharedStatus;
 use crate::tuning::TuningHandle;
-use crate::viewer::{BlobView, RejectReason, TapSet, ViewerTap};
+use crate::viewer::{BlobCopy, BlobView, RejectReason, TapSet, ViewerTap};
 
 const R: Ordering = Ordering::Relaxed;
 
@@ -251,15 +251,30 @@ impl Engine {
         );
     }
 
-    /// Copies the set just processed into the viewer tap if a viewer asked (never waits).
-    /// `detected`: the tracker's blob lists belong to this set.
+    /// Copies what viewers asked for into the viewer tap (never waits): the blob lists of
+    /// every set while a viewer wants them (a few kB), the frames only when a frame copy is
+    /// due (the fastest preview rate asked for, or a one-off request). `detected`: the
+    /// tracker's blob lists belong to this set.
     fn feed_tap(&mut self, detected: bool) {
         let Some(tap) = &self.tap else { return };
+        let (set, tracker, six_dof) = (&self.set, self.tracker.as_ref(), self.pose.is_some());
+        let lists = tracker.filter(|_| detected);
+        if tap.wants_blobs() {
+            tap.try_fill_blobs(|buf: &mut BlobCopy| {
+                if !buf.begin(set) {
+                    return false;
+                }
+                if let Some(tracker) = lists {
+                    fill_blob_views(tracker, six_dof, |c, b| buf.push_blob(c, b));
+                    buf.detected = true;
+                }
+                true
+            });
+        }
         let now_ns = clock::monotonic_ns();
         if !tap.wants_copy(now_ns, self.tap_last_ns) {
             return;
         }
-        let (set, tracker, six_dof) = (&self.set, self.tracker.as_ref(), self.pose.is_some());
         let tracker_cfg = self.tracker_cfg;
         let copied = tap.try_fill(|buf: &mut TapSet| {
             if !buf.copy_frames_from(set) {
@@ -267,14 +282,23 @@ impl Engine {
             }
             buf.threshold_dn = tracker_cfg.threshold_dn;
             buf.tracker_cfg = tracker_cfg;
-            if let (true, Some(tracker)) = (detected, tracker) {
-                fill_blob_views(buf, tracker, six_dof);
+            if let Some(tracker) = lists {
+                fill_blob_views(tracker, six_dof, |c, b| buf.push_blob(c, b));
                 buf.detected = true;
             }
             true
         });
         if copied {
-            self.tap_last_ns = now_ns;
+            // Due times on a grid of the interval, so the copies keep the asked rate on
+            // average even though sets arrive at the camera's rate; after a pause (no
+            // viewer, a skipped copy) the grid restarts now.
+            let interval = tap.interval_ns();
+            let next_from_grid = self.tap_last_ns.saturating_add(interval);
+            self.tap_last_ns = if interval > 0 && now_ns.saturating_sub(self.tap_last_ns) < 2 * interval {
+                next_from_grid
+            } else {
+                now_ns
+            };
         }
     }
 
@@ -732,8 +756,9 @@ fn peak_dn(blobs: &[Blob], frame: &crate::source::Frame) -> u32 {
     }
 }
 
-/// Lists every blob of the tracker's last detection with why it was (not) used.
-fn fill_blob_views(buf: &mut TapSet, tracker: &Tracker, six_dof: bool) {
+/// Lists every blob of the tracker's last detection with why it was (not) used, through
+/// `push(camera, blob)`.
+fn fill_blob_views(tracker: &Tracker, six_dof: bool, mut push: impl FnMut(usize, BlobView)) {
     let cfg = *tracker.config();
     let m = tracker.measurement();
     for camera in 0..tracker.camera_count() {
@@ -748,10 +773,10 @@ fn fill_blob_views(buf: &mut TapSet, tracker: &Tracker, six_dof: bool) {
             } else {
                 Some(RejectReason::Gate)
             };
-            buf.push_blob(camera, BlobView::of(b, reason));
+            push(camera, BlobView::of(b, reason));
         }
         for b in tracker.rejected_by_area(camera) {
-            buf.push_blob(camera, BlobView::of(b, Some(RejectReason::Area)));
+            push(camera, BlobView::of(b, Some(RejectReason::Area)));
         }
     }
 }

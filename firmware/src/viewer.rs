@@ -1,12 +1,21 @@
 //! The viewer tap: a latest-only copy of a frame set and its blob lists for the set-up view
 //! (`/api/live`) and frame-set capture (`/api/frameset`).
 //!
-//! The processing loop never waits for a viewer: after publishing a set it copies that set
-//! into the tap only when a viewer has asked (a rate, or one set on request), and only if it
-//! gets the tap's lock at once (`try_lock`); a viewer still reading the previous copy simply
-//! makes it skip this set. The buffer is allocated on the viewer's side when the first viewer
-//! arrives and freed when the last leaves, so the loop only ever copies into memory that
-//! already exists (checked by `tests/no_alloc.rs` with a viewer attached).
+//! The processing loop never waits for a viewer: after publishing a set it copies into the tap
+//! only what a viewer has asked for, into latest-value slots it fills only if it gets their
+//! lock at once (`try_lock`); a viewer still reading the previous copy simply makes it skip
+//! this set, and the skip is counted. Two slots, so a viewer never makes the loop copy more
+//! than it needs:
+//!
+//! - the **frame copy** ([`TapSet`]: both frames and the loop's blob lists), made only at the
+//!   fastest preview rate a viewer asked for (or once, on request: `/api/frameset`, the
+//!   sampler) — never for every set;
+//! - the **blob copy** ([`BlobCopy`]: the loop's blob lists and the cameras' timestamps, a few
+//!   kB), made for every set while a viewer asks for every set's blobs.
+//!
+//! The buffers are allocated on the viewer's side when the first viewer arrives and freed when
+//! the last leaves, so the loop only ever copies into memory that already exists (checked by
+//! `tests/no_alloc.rs` with viewers attached).
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -191,12 +200,125 @@ impl BlobView {
     }
 }
 
+/// The loop's blob lists of one set, without its frames (for viewers that ask for every set's
+/// blobs: a few kB copied instead of both full frames).
+#[derive(Debug, Clone, PartialEq)]
+pub struct BlobCopy {
+    pub set_index: u64,
+    pub pairing_error_ns: u64,
+    /// Per camera: the frame's capture timestamp.
+    pub timestamps_ns: Vec<u64>,
+    /// Per camera: kept and rejected blobs (at most [`MAX_TAP_BLOBS`] each).
+    pub blobs: Vec<Vec<BlobView>>,
+    /// Blobs left out of `blobs` for lack of room.
+    pub blobs_truncated: u32,
+    /// `blobs` holds the loop's detection of this set (false before a parameter set exists).
+    pub detected: bool,
+}
+
+impl BlobCopy {
+    fn shaped_like(set: &FrameSet) -> Self {
+        Self {
+            set_index: 0,
+            pairing_error_ns: 0,
+            timestamps_ns: vec![0; set.frames.len()],
+            blobs: set
+                .frames
+                .iter()
+                .map(|_| Vec::with_capacity(MAX_TAP_BLOBS))
+                .collect(),
+            blobs_truncated: 0,
+            detected: false,
+        }
+    }
+
+    /// Starts the copy of `set` (no allocation while the camera count matches): its index and
+    /// timestamps, empty lists. Returns false if the shapes differ.
+    pub fn begin(&mut self, set: &FrameSet) -> bool {
+        if set.frames.len() != self.timestamps_ns.len() {
+            return false;
+        }
+        for (t, f) in self.timestamps_ns.iter_mut().zip(&set.frames) {
+            *t = f.timestamp_ns;
+        }
+        self.set_index = set.index;
+        self.pairing_error_ns = set.pairing_error_ns;
+        for b in &mut self.blobs {
+            b.clear();
+        }
+        self.blobs_truncated = 0;
+        self.detected = false;
+        true
+    }
+
+    /// Adds a blob to `camera`'s list within the fixed capacity.
+    pub fn push_blob(&mut self, camera: usize, blob: BlobView) {
+        match self.blobs.get_mut(camera) {
+            Some(list) if list.len() < list.capacity() => list.push(blob),
+            _ => self.blobs_truncated += 1,
+        }
+    }
+
+    /// Per camera: the loop's list plus the spots a recent whole-frame pass (`analysis`, made
+    /// on the viewer's side at the preview rate or by the sampler, possibly of an earlier set)
+    /// found outside it — a lamp, a reflection — so a blob list shows them as a preview does.
+    /// A spot from the pass that lies on one of this set's listed blobs is the same spot and
+    /// left out. Before a parameter set exists (nothing detected) the lists are the pass's.
+    /// `None` when nothing was detected and there is no analysis to show instead.
+    pub fn with_full_search(&self, analysis: Option<&[CameraAnalysis]>) -> Option<(Vec<Vec<BlobView>>, u32)> {
+        let mut truncated = self.blobs_truncated;
+        let mut out = Vec::with_capacity(self.blobs.len());
+        for (camera, listed) in self.blobs.iter().enumerate() {
+            let a = analysis.and_then(|a| a.iter().find(|c| c.camera == camera));
+            if !self.detected {
+                out.push(a?.blobs.clone());
+                continue;
+            }
+            let mut list = listed.clone();
+            for extra in a.map_or(&[][..], |a| &a.blobs[a.from_loop.min(a.blobs.len())..]) {
+                let r_px = f64::from(extra.area_px).sqrt().max(3.0);
+                let same = listed
+                    .iter()
+                    .any(|l| (l.x_px - extra.x_px).hypot(l.y_px - extra.y_px) <= r_px);
+                if same {
+                    continue;
+                }
+                let mut e = *extra;
+                // Found by a pass made without the loop's list: usable, but not examined.
+                if e.kept {
+                    e.kept = false;
+                    e.reason = Some(RejectReason::Window);
+                }
+                if list.len() < MAX_TAP_BLOBS {
+                    list.push(e);
+                } else {
+                    truncated += 1;
+                }
+            }
+            out.push(list);
+        }
+        Some((out, truncated))
+    }
+}
+
 /// Shared between the loop (writer) and the viewers (readers).
 #[derive(Debug)]
 pub struct ViewerTap {
     slot: Mutex<Option<Box<TapSet>>>,
-    /// Smallest interval (ns) any streaming viewer asked for; 0 = none streams.
+    /// Smallest preview interval (ns) any viewer asked for; 0 = none streams previews.
     interval_ns: AtomicU64,
+    /// The blob copy of the latest set (see [`BlobCopy`]).
+    blob_slot: Mutex<Option<Box<BlobCopy>>>,
+    /// Viewers asking for every set's blob lists.
+    blob_viewers: AtomicU64,
+    /// Bumped after every completed blob copy.
+    blob_seq: AtomicU64,
+    blob_copies: AtomicU64,
+    /// Sets whose blob copy the loop skipped because a viewer held the slot.
+    blob_busy_skips: AtomicU64,
+    /// Sets a blob viewer did not send (it was still sending an earlier one, or the loop
+    /// skipped the copy): the viewers' side of the latest-value hand-off.
+    viewer_dropped_sets: AtomicU64,
     /// A one-off copy was requested (`/api/frameset`).
     once: AtomicBool,
     /// Bumped after every completed copy.
@@ -204,7 +326,8 @@ pub struct ViewerTap {
     /// Sets skipped because a viewer held the copy.
     busy_skips: AtomicU64,
     copies: AtomicU64,
-    viewers: Mutex<HashMap<u64, u64>>,
+    /// Per viewer: its preview interval (ns, 0 = none) and whether it wants every set's blobs.
+    viewers: Mutex<HashMap<u64, Want>>,
     next_viewer: AtomicU64,
     /// The loop's frame-set shape, for allocating the copy.
     template: Mutex<Option<FrameSet>>,
@@ -212,6 +335,13 @@ pub struct ViewerTap {
     analysis: Mutex<Option<LatestAnalysis>>,
     /// The threshold suggestion made at first start (no saved tuning), if any.
     startup_suggestion: Mutex<Option<Suggestion>>,
+}
+
+/// What one viewer asked the loop for.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+struct Want {
+    interval_ns: u64,
+    blobs: bool,
 }
 
 /// An analysis and when it was made.
@@ -235,10 +365,29 @@ pub struct ViewerGuard {
 }
 
 impl ViewerGuard {
-    /// Changes this viewer's wanted interval (0 = no periodic copies for it).
+    /// Changes this viewer's wanted frame-copy interval (0 = no periodic frame copies for it);
+    /// it keeps its blob wish.
     pub fn set_interval_ns(&self, interval_ns: u64) {
+        let blobs = self
+            .tap
+            .viewers
+            .lock()
+            .map(|v| v.get(&self.id).is_some_and(|w| w.blobs))
+            .unwrap_or(false);
+        self.set_wants(interval_ns, blobs);
+    }
+
+    /// What this viewer wants: frame copies every `preview_interval_ns` (0 = none) and, with
+    /// `every_set_blobs`, a blob copy of every set.
+    pub fn set_wants(&self, preview_interval_ns: u64, every_set_blobs: bool) {
         if let Ok(mut v) = self.tap.viewers.lock() {
-            v.insert(self.id, interval_ns);
+            v.insert(
+                self.id,
+                Want {
+                    interval_ns: preview_interval_ns,
+                    blobs: every_set_blobs,
+                },
+            );
         }
         self.tap.update_interval();
     }
@@ -254,8 +403,13 @@ impl Drop for ViewerGuard {
             Err(_) => false,
         };
         self.tap.update_interval();
-        if empty && let Ok(mut s) = self.tap.slot.lock() {
-            *s = None;
+        if empty {
+            if let Ok(mut s) = self.tap.slot.lock() {
+                *s = None;
+            }
+            if let Ok(mut s) = self.tap.blob_slot.lock() {
+                *s = None;
+            }
         }
     }
 }
@@ -265,6 +419,12 @@ impl ViewerTap {
         Self {
             slot: Mutex::new(None),
             interval_ns: AtomicU64::new(0),
+            blob_slot: Mutex::new(None),
+            blob_viewers: AtomicU64::new(0),
+            blob_seq: AtomicU64::new(0),
+            blob_copies: AtomicU64::new(0),
+            blob_busy_skips: AtomicU64::new(0),
+            viewer_dropped_sets: AtomicU64::new(0),
             once: AtomicBool::new(false),
             seq: AtomicU64::new(0),
             busy_skips: AtomicU64::new(0),
@@ -333,14 +493,21 @@ impl ViewerTap {
     pub fn attach(self: &Arc<Self>) -> ViewerGuard {
         let id = self.next_viewer.fetch_add(1, R);
         if let Ok(mut v) = self.viewers.lock() {
-            v.insert(id, 0);
+            v.insert(id, Want::default());
         }
-        if let Ok(mut s) = self.slot.lock()
-            && s.is_none()
-            && let Ok(t) = self.template.lock()
+        if let Ok(t) = self.template.lock()
             && let Some(t) = t.as_ref()
         {
-            *s = Some(Box::new(TapSet::shaped_like(t)));
+            if let Ok(mut s) = self.slot.lock()
+                && s.is_none()
+            {
+                *s = Some(Box::new(TapSet::shaped_like(t)));
+            }
+            if let Ok(mut s) = self.blob_slot.lock()
+                && s.is_none()
+            {
+                *s = Some(Box::new(BlobCopy::shaped_like(t)));
+            }
         }
         ViewerGuard {
             tap: self.clone(),
@@ -349,12 +516,27 @@ impl ViewerTap {
     }
 
     fn update_interval(&self) {
-        let min = self
+        let (min, blobs) = self
             .viewers
             .lock()
-            .map(|v| v.values().copied().filter(|&i| i > 0).min().unwrap_or(0))
-            .unwrap_or(0);
+            .map(|v| {
+                (
+                    v.values()
+                        .map(|w| w.interval_ns)
+                        .filter(|&i| i > 0)
+                        .min()
+                        .unwrap_or(0),
+                    v.values().filter(|w| w.blobs).count() as u64,
+                )
+            })
+            .unwrap_or((0, 0));
         self.interval_ns.store(min, R);
+        self.blob_viewers.store(blobs, R);
+    }
+
+    /// The frame-copy interval the viewers asked for (ns; 0 = none).
+    pub fn interval_ns(&self) -> u64 {
+        self.interval_ns.load(R)
     }
 
     /// Asks the loop for one copy of its next set (in addition to any periodic copies).
@@ -385,7 +567,63 @@ impl ViewerTap {
         self.slot.lock().ok()
     }
 
-    /// Loop side: whether a copy is due now (cheap; atomics only).
+    /// Completed blob copies so far (a new value means a new blob copy is in its slot).
+    pub fn blob_seq(&self) -> u64 {
+        self.blob_seq.load(Ordering::Acquire)
+    }
+
+    pub fn blob_copies(&self) -> u64 {
+        self.blob_copies.load(R)
+    }
+
+    /// Sets whose blob copy the loop skipped because a viewer was reading the slot.
+    pub fn blob_busy_skips(&self) -> u64 {
+        self.blob_busy_skips.load(R)
+    }
+
+    /// Sets the blob viewers did not send, summed over viewers.
+    pub fn viewer_dropped_sets(&self) -> u64 {
+        self.viewer_dropped_sets.load(R)
+    }
+
+    /// Viewer side: counts sets a viewer did not send.
+    pub fn count_viewer_drops(&self, sets: u64) {
+        self.viewer_dropped_sets.fetch_add(sets, R);
+    }
+
+    /// Reader side: a copy of the latest blob copy (holds the slot only for that copy).
+    pub fn read_blobs(&self) -> Option<BlobCopy> {
+        self.blob_slot.lock().ok()?.as_deref().cloned()
+    }
+
+    /// Loop side: whether a viewer wants this set's blob lists (an atomic load).
+    pub fn wants_blobs(&self) -> bool {
+        self.blob_viewers.load(R) > 0
+    }
+
+    /// Loop side: fills the blob copy through `fill` if its slot is free at once; never waits.
+    pub fn try_fill_blobs(&self, fill: impl FnOnce(&mut BlobCopy) -> bool) -> bool {
+        let mut guard = match self.blob_slot.try_lock() {
+            Ok(g) => g,
+            Err(TryLockError::WouldBlock) => {
+                self.blob_busy_skips.fetch_add(1, R);
+                return false;
+            }
+            Err(TryLockError::Poisoned(_)) => return false,
+        };
+        let Some(buf) = guard.as_mut() else {
+            return false;
+        };
+        if !fill(buf) {
+            return false;
+        }
+        drop(guard);
+        self.blob_copies.fetch_add(1, R);
+        self.blob_seq.fetch_add(1, Ordering::Release);
+        true
+    }
+
+    /// Loop side: whether a frame copy is due now (cheap; atomics only).
     pub fn wants_copy(&self, now_ns: u64, last_copy_ns: u64) -> bool {
         if self.once.load(Ordering::Acquire) {
             return true;
@@ -475,5 +713,98 @@ pub fn run_sampler(tap: Arc<ViewerTap>, first_start: bool, stop: Arc<AtomicBool>
             }
         }
         tap.store_analysis(analysis);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::advice::Background;
+
+    fn blob(x_px: f64, y_px: f64, reason: Option<RejectReason>) -> BlobView {
+        BlobView {
+            x_px,
+            y_px,
+            area_px: 30,
+            peak_dn: 200,
+            roundness: 0.9,
+            kept: reason.is_none(),
+            reason,
+        }
+    }
+
+    fn analysis(camera: usize, blobs: Vec<BlobView>, from_loop: usize) -> CameraAnalysis {
+        let mut a = CameraAnalysis::unreadable(camera, 7, &TrackerConfig::default());
+        a.background = Background {
+            median_dn: 10,
+            noise_dn: 1.0,
+            bright_dn: 12,
+            peak_dn: 200,
+            max_dn: 255,
+            safe_threshold_dn: 20,
+        };
+        a.advice = None;
+        a.blobs = blobs;
+        a.from_loop = from_loop;
+        a
+    }
+
+    fn copy(detected: bool, lists: Vec<Vec<BlobView>>) -> BlobCopy {
+        BlobCopy {
+            set_index: 9,
+            pairing_error_ns: 0,
+            timestamps_ns: vec![1; lists.len()],
+            blobs: lists,
+            blobs_truncated: 0,
+            detected,
+        }
+    }
+
+    #[test]
+    fn blob_lists_gain_the_full_search_spots_the_loop_did_not_list() {
+        // Set 9: the LED moved 2 px since the analysed set 7; a lamp far away was found by the
+        // whole-frame pass of set 7.
+        let c = copy(true, vec![vec![blob(102.0, 50.0, None)]]);
+        let a = [analysis(
+            0,
+            vec![
+                blob(100.0, 50.0, None),                          // the loop's LED in set 7
+                blob(101.0, 50.0, Some(RejectReason::Window)),    // the same spot, seen whole
+                blob(400.0, 300.0, Some(RejectReason::Window)),   // a lamp
+                blob(500.0, 20.0, Some(RejectReason::Roundness)), // a streak
+            ],
+            1,
+        )];
+        let (lists, truncated) = c.with_full_search(Some(&a)).unwrap();
+        assert_eq!(truncated, 0);
+        let l = &lists[0];
+        assert_eq!(l.len(), 3, "{l:?}");
+        assert_eq!(l[0], blob(102.0, 50.0, None), "the loop's own list comes first");
+        assert_eq!(l[1].reason, Some(RejectReason::Window));
+        assert_eq!(l[2].reason, Some(RejectReason::Roundness));
+        // Without an analysis: the loop's list alone.
+        assert_eq!(c.with_full_search(None).unwrap().0, c.blobs);
+    }
+
+    #[test]
+    fn before_detection_the_lists_are_the_full_search() {
+        let c = copy(false, vec![Vec::new(), Vec::new()]);
+        assert!(c.with_full_search(None).is_none(), "nothing to list yet");
+        let a = [
+            analysis(0, vec![blob(10.0, 10.0, None)], 0),
+            analysis(1, vec![blob(20.0, 20.0, None)], 0),
+        ];
+        let (lists, _) = c.with_full_search(Some(&a)).unwrap();
+        assert_eq!(
+            lists,
+            vec![vec![blob(10.0, 10.0, None)], vec![blob(20.0, 20.0, None)]]
+        );
+        // Spots of a pass made without the loop's list are not "kept" once the loop detects.
+        let c = copy(true, vec![vec![blob(10.0, 10.0, None)], Vec::new()]);
+        let (lists, _) = c.with_full_search(Some(&a)).unwrap();
+        assert_eq!(lists[0], vec![blob(10.0, 10.0, None)]);
+        assert_eq!(lists[1].len(), 1);
+        assert!(!lists[1][0].kept);
+        assert_eq!(lists[1][0].reason, Some(RejectReason::Window));
     }
 }

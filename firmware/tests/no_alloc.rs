@@ -156,6 +156,51 @@ fn steady_state_with_a_viewer_attached_does_not_allocate() {
     drop(viewer);
 }
 
+/// A viewer that asks for every set's blob lists but no previews gets a blob copy of every set
+/// and makes the loop copy no frame at all; with a preview rate, frames are copied only at that
+/// rate. Neither allocates in the loop.
+#[test]
+fn blob_viewers_get_every_set_without_frame_copies() {
+    use irtrack_firmware::viewer::ViewerTap;
+    let (e, _rx) = engine(true, 8);
+    let tap = Arc::new(ViewerTap::new());
+    let mut e = e.with_viewer_tap(tap.clone());
+    let viewer = tap.attach();
+    viewer.set_wants(0, true);
+    let (n, ok) = measure(&mut e, 10, 60);
+    assert!(ok >= 55, "only {ok} of 60 sets tracked with a blob viewer");
+    assert_eq!(n, 0, "{n} allocations in 60 sets with a blob viewer");
+    assert_eq!(tap.blob_copies(), 70, "a blob copy of every set");
+    assert_eq!(tap.copies(), 0, "no frame copy for a blob-only viewer");
+    let copy = tap.read_blobs().expect("a blob copy");
+    assert!(copy.detected);
+    for (camera, blobs) in copy.blobs.iter().enumerate() {
+        assert_eq!(
+            blobs.iter().filter(|b| b.kept).count(),
+            1,
+            "camera {camera}: {blobs:?}"
+        );
+    }
+    assert_eq!(copy.timestamps_ns.len(), 2);
+    assert!(copy.timestamps_ns.iter().all(|&t| t > 0));
+    // Previews at 2 per second besides: the frames are copied on that grid only (the
+    // unpaced source runs far faster than 2 sets/s).
+    viewer.set_wants(500_000_000, true);
+    let t0 = std::time::Instant::now();
+    let (n, _) = measure(&mut e, 0, 60);
+    let secs = t0.elapsed().as_secs_f64();
+    assert_eq!(n, 0, "{n} allocations with a preview-rate viewer");
+    assert_eq!(tap.blob_copies(), 130);
+    let most = (secs * 2.0).ceil() as u64 + 1;
+    assert!(
+        (1..=most).contains(&tap.copies()),
+        "{} frame copies in {secs:.3} s at 2 per second",
+        tap.copies()
+    );
+    drop(viewer);
+    assert!(!tap.wants_blobs(), "the last viewer left");
+}
+
 #[test]
 fn no_params_path_does_not_allocate() {
     let (mut e, rx) = engine(false, 8);

@@ -84,6 +84,9 @@ pub struct CtrlCycle {
     pub cmd_mm: [f64; 3],
     /// The answer to this cycle arrived within it.
     pub answered: bool,
+    /// CLOCK_MONOTONIC when that answer arrived (0 = none): at most a loopback hop after
+    /// irtrackd sent it, so the marker's true position then is what the command should be.
+    pub answer_ns: u64,
 }
 
 /// Counters and (optionally) the path.
@@ -395,6 +398,7 @@ fn run(
         }
         let deadline = next + cycle;
         let mut answered = false;
+        let mut answer_ns = 0;
         let (mut late, mut malformed) = (0, 0);
         loop {
             let now = Instant::now();
@@ -413,6 +417,7 @@ fn run(
                 Ok((rid, cmd)) if rid == id => {
                     servo.cmd_mm = cmd;
                     answered = true;
+                    answer_ns = crate::monotonic_ns();
                     // Keep waiting out the cycle: the controller's clock, not the answer, paces it.
                 }
                 Ok(_) => late += 1,
@@ -434,6 +439,7 @@ fn run(
             pos_mm: servo.pos_mm,
             cmd_mm: servo.cmd_mm,
             answered,
+            answer_ns,
         };
         if let Some(l) = log.as_mut() {
             let _ = writeln!(

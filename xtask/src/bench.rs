@@ -87,8 +87,7 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         return aarch64_bench(ctx, quick);
     }
     if latency == Some(true) {
-        latency_table(ctx, 8)?;
-        return output_latency_table(ctx);
+        return crate::bench_latency::table(ctx, 8);
     }
     // The latency run builds the firmware in release and takes ~20 s of wall time: not in the
     // quick (CI) run.
@@ -113,8 +112,7 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         instruction_table(&bin, ctx, quick)?;
     }
     if latency {
-        latency_table(ctx, 8)?;
-        output_latency_table(ctx)?;
+        crate::bench_latency::table(ctx, 8)?;
     } else {
         println!();
         println!(
@@ -173,204 +171,6 @@ fn instruction_table(bin: &Path, ctx: &Ctx, quick: bool) -> Result<()> {
         );
     }
     let _ = std::fs::remove_file(&scratch);
-    Ok(())
-}
-
-/// Quantiles (µs) of one row of the `viewers` example's output.
-struct LatencyRow {
-    sets: u64,
-    p50: f64,
-    p90: f64,
-    p99: f64,
-    p999: f64,
-    max: f64,
-}
-
-/// Finds the row starting with `label` in the `viewers` example's table.
-fn latency_row(text: &str, label: &str) -> Result<LatencyRow> {
-    let line = text
-        .lines()
-        .find(|l| l.starts_with(label))
-        .with_context(|| format!("no `{label}` row in the viewers example's output"))?;
-    let v: Vec<f64> = line[label.len()..]
-        .split_whitespace()
-        .map(|w| w.parse::<f64>())
-        .collect::<Result<_, _>>()
-        .with_context(|| format!("parsing `{line}`"))?;
-    let [sets, p50, p90, p99, p999, max] = v[..] else {
-        bail!("`{line}`: expected 6 numbers");
-    };
-    Ok(LatencyRow {
-        sets: sets as u64,
-        p50,
-        p90,
-        p99,
-        p999,
-        max,
-    })
-}
-
-/// One latency table: the processing loop with 0 and 3 viewers (the firmware's `viewers`
-/// example, `seconds` per phase, simulated 2 × VGA at 100 fps) and a row per robot link kind.
-fn latency_table(ctx: &Ctx, seconds: u32) -> Result<()> {
-    let mut cmd = ctx.cargo();
-    cmd.args([
-        "run",
-        "--release",
-        "-p",
-        "irtrack-firmware",
-        "--example",
-        "viewers",
-        "--",
-        "--seconds",
-        &seconds.to_string(),
-        "--fps",
-        "100",
-    ]);
-    let out = util::run(
-        &mut cmd,
-        RunOpts {
-            capture_stdout: true,
-            timeout: Some(Duration::from_secs(1800)),
-            ..RunOpts::default()
-        },
-    )?;
-    if !out.success() {
-        bail!("the viewers example {}", out.describe());
-    }
-    let mut rows = Vec::new();
-    for v in [0, 3] {
-        rows.extend([
-            (
-                format!("simulator rendering (ahead of capture), {v} viewers"),
-                format!("render (simulator), {v} viewers"),
-            ),
-            (
-                format!("driver: capture → dequeued, {v} viewers"),
-                format!("driver, {v} viewers"),
-            ),
-            (
-                format!("ours: dequeued → published, {v} viewers"),
-                format!("ours, {v} viewers"),
-            ),
-            (
-                format!("whole set incl. viewer copy, {v} viewers"),
-                format!("process time, {v} viewers"),
-            ),
-            (
-                format!("capture → published record, {v} viewers"),
-                format!("capture→publish, {v} viewers"),
-            ),
-        ]);
-    }
-    println!();
-    println!(
-        "Latency, one table (simulated 2 × VGA at 100 fps, {seconds} s per phase; viewers: 3 WebSockets asking for 30 fps full-width previews, 64 px zooms and every set's blobs):"
-    );
-    println!();
-    println!("| path | sets | p50 | p90 | p99 | p99.9 | max | measured by |");
-    println!("|---|---|---|---|---|---|---|---|");
-    for (name, label) in rows {
-        let r = latency_row(&out.stdout, &label)?;
-        println!(
-            "| {name} | {} | {:.1} µs | {:.1} µs | {:.1} µs | {:.1} µs | {:.1} µs | `cargo run --release -p irtrack-firmware --example viewers` |",
-            r.sets, r.p50, r.p90, r.p99, r.p999, r.max
-        );
-    }
-    // The robot links: irtrackd and robot-sim as separate processes, each link kind with 0
-    // and with 3 viewers (the same example, `--connect`, against irtrackd's status port).
-    let viewers_bin = ctx.target_dir().join("release").join("examples").join("viewers");
-    let load = crate::bench_links::ViewerLoad {
-        bin: &viewers_bin,
-        count: 3,
-    };
-    let links = crate::bench_links::decomposition(ctx, f64::from(seconds), &load)?;
-    println!();
-    println!(
-        "Capture → robot packet, decomposed (irtrackd release + robot-sim as separate processes; marker on a 100 mm circle at 250 mm/s, 120 fps; robot-sim's socket robot asks every 4 ms, EGM/RSI cycle 4 ms; {seconds} s per row). \
-         driver = capture → dequeued, ours = dequeued → published, protocol wait = published → on the wire (p50 / p99, µs):"
-    );
-    println!();
-    println!(
-        "| link | viewers | targets | driver | ours | capture → published | protocol wait | capture → packet (sample age when it left) | p99.9 age | (simulator rendering, ahead of capture) |"
-    );
-    println!("|---|---|---|---|---|---|---|---|---|---|");
-    for r in &links {
-        let q = |x: crate::bench_links::Quantiles| format!("{:.1} / {:.1}", x.p50_us, x.p99_us);
-        println!(
-            "| {} | {} | {} | {} | {} | {} | {} / {} | {} / {} | {} | {} |",
-            r.kind,
-            r.viewers,
-            r.latency.n,
-            q(r.split.driver),
-            q(r.split.ours),
-            q(r.split.end_to_end),
-            r.latency.wait_p50_us,
-            r.latency.wait_p99_us,
-            r.latency.p50_us,
-            r.latency.p99_us,
-            r.latency.p999_us,
-            q(r.split.render),
-        );
-    }
-    Ok(())
-}
-
-/// Capture → sent per standard output (NatNet, MCAP, ROS 2), from the outputs' own
-/// histograms in their stalled-consumer tests (test profile; irtrackd on the simulated
-/// cameras at 120 fps; the ROS 2 test runs in a network namespace of its own). Kept apart from
-/// [`latency_table`] (the loop and robot-link rows).
-fn output_latency_table(ctx: &Ctx) -> Result<()> {
-    let mut cmd = ctx.cargo();
-    cmd.args([
-        "test",
-        "-p",
-        "irtrack-firmware",
-        "--features",
-        "mcap,ros2",
-        "--test",
-        "outputs_stalled",
-        "--test",
-        "ros2_dds",
-        "stalled",
-        "--",
-        "--nocapture",
-        "--test-threads=1",
-    ]);
-    let out = util::run(
-        &mut cmd,
-        RunOpts {
-            capture_stdout: true,
-            timeout: Some(Duration::from_secs(1800)),
-            ..RunOpts::default()
-        },
-    )?;
-    if !out.success() {
-        bail!("the outputs' stalled-consumer tests {}", out.describe());
-    }
-    let rows: Vec<Vec<&str>> = out
-        .stdout
-        .lines()
-        .filter_map(|l| l.strip_prefix("OUTPUT-LATENCY|"))
-        .map(|l| l.split('|').collect::<Vec<_>>())
-        .filter(|v| v.len() == 6)
-        .collect();
-    if rows.len() < 3 {
-        bail!("expected 3 output latency rows, got {}", rows.len());
-    }
-    println!();
-    println!(
-        "Capture → sent per output (handed to the kernel / DDS stack / file buffer; test profile, simulated 120 fps, with a stalled consumer):"
-    );
-    println!();
-    println!("| output | records | p50 | p90 | p99 | max | measured by |");
-    println!("|---|---|---|---|---|---|---|");
-    for r in rows {
-        println!(
-            "| {} | {} | {} µs | {} µs | {} µs | {} µs | `cargo test -p irtrack-firmware --features mcap,ros2 --test outputs_stalled --test ros2_dds stalled` |",
-            r[0], r[1], r[2], r[3], r[4], r[5]
-        );
-    }
     Ok(())
 }
 

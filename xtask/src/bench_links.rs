@@ -69,14 +69,18 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
     let result = (|| -> Result<()> {
         for kind in ["socket", "egm", "rsi"] {
             println!("-- {kind}: {} s following", o.secs);
+            let run = Run {
+                secs: o.secs,
+                viewers: None,
+                fifo_priority: None,
+            };
             rows.push(run_one(
                 kind,
                 &irtrackd,
                 &host_tools,
                 &hash,
                 &dir.join(kind),
-                o.secs,
-                None,
+                &run,
             )?);
         }
         Ok(())
@@ -115,7 +119,8 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
 
 /// Every link kind with 0 and with `viewers.count` viewers, `secs` each, release build of
 /// irtrackd: the rows of `cargo xtask bench --latency`'s decomposition.
-pub fn decomposition(ctx: &Ctx, secs: f64, viewers: &ViewerLoad) -> Result<Vec<Row>> {
+/// The loop runs SCHED_FIFO at `fifo_priority` where permitted.
+pub fn decomposition(ctx: &Ctx, secs: f64, viewers: &ViewerLoad, fifo_priority: u32) -> Result<Vec<Row>> {
     let (irtrackd, host_tools) = build(ctx, true)?;
     let hash = operator_hash(&irtrackd)?;
     let dir = std::env::temp_dir().join(format!("irtrack-bench-latency-{}", std::process::id()));
@@ -127,7 +132,12 @@ pub fn decomposition(ctx: &Ctx, secs: f64, viewers: &ViewerLoad) -> Result<Vec<R
                 let n = v.map_or(0, |v| v.count);
                 println!("-- {kind}, {n} viewers: {secs} s following");
                 let sub = dir.join(format!("{kind}-{n}"));
-                rows.push(run_one(kind, &irtrackd, &host_tools, &hash, &sub, secs, v)?);
+                let run = Run {
+                    secs,
+                    viewers: v,
+                    fifo_priority: Some(fifo_priority),
+                };
+                rows.push(run_one(kind, &irtrackd, &host_tools, &hash, &sub, &run)?);
             }
         }
         Ok(())
@@ -204,8 +214,9 @@ pub struct Row {
     jerk_max_m_s3: f64,
 }
 
-fn config(kind: &str, robot: SocketAddr, hash: &str) -> String {
+fn config(kind: &str, robot: SocketAddr, hash: &str, fifo_priority: Option<u32>) -> String {
     let period_s = 2.0 * std::f64::consts::PI * RADIUS_MM / SPEED_MM_S;
+    let realtime = fifo_priority.map_or(String::new(), |p| format!("[realtime]\nfifo_priority = {p}\n"));
     format!(
         r#"# Written by `cargo xtask bench-links`.
 [service]
@@ -232,7 +243,7 @@ max_age_ms = 200
 require_world_frame = false
 [robot.deadman]
 kind = "flag"
-"#
+{realtime}"#
     )
 }
 
@@ -303,19 +314,26 @@ pub struct ViewerLoad<'a> {
     pub count: usize,
 }
 
+/// One measured run's conditions.
+struct Run<'a> {
+    secs: f64,
+    viewers: Option<&'a ViewerLoad<'a>>,
+    fifo_priority: Option<u32>,
+}
+
 fn run_one(
     kind: &'static str,
     irtrackd: &Path,
     host_tools: &Path,
     hash: &str,
     dir: &Path,
-    secs: f64,
-    viewers: Option<&ViewerLoad>,
+    run: &Run,
 ) -> Result<Row> {
+    let (secs, viewers) = (run.secs, run.viewers);
     std::fs::create_dir_all(dir)?;
     let robot_addr = free_port(kind)?;
     let cfg_path = dir.join("irtrackd.toml");
-    std::fs::write(&cfg_path, config(kind, robot_addr, hash))?;
+    std::fs::write(&cfg_path, config(kind, robot_addr, hash, run.fifo_priority))?;
     let err_log = dir.join("irtrackd.log");
     let mut child = Command::new(irtrackd)
         .arg("-c")

@@ -325,11 +325,10 @@ impl Subscription {
         self
     }
 
-    /// Interval at which this viewer needs the loop's copies (0 = none).
+    /// Interval at which this viewer needs the loop's frame copies (0 = none): its preview
+    /// rate. Every set's blob lists come through the blob copy, without frames.
     fn tap_interval_ns(&self) -> u64 {
-        if self.blobs {
-            1 // every processed set
-        } else if self.preview_fps > 0.0 {
+        if self.preview_fps > 0.0 {
             (1e9 / self.preview_fps) as u64
         } else {
             0
@@ -386,34 +385,22 @@ async fn send_bounded(
     }
 }
 
-/// What one copy turns into for one viewer.
+/// What one frame copy turns into for one viewer.
 struct Rendered {
     previews: Vec<(serde_json::Value, Bytes)>,
     zooms: Vec<(serde_json::Value, Bytes)>,
-    blobs: Option<serde_json::Value>,
-    set_index: u64,
-    /// The whole-frame analysis the previews and blob list come from (kept by the tap for
-    /// `/status`, so every part of the page shows the same account).
-    analysis: Vec<crate::advice::CameraAnalysis>,
 }
 
-/// Previews (and the blob list) for one viewer: from the shared cache when another viewer
-/// encoded them within [`PREVIEW_SHARE_WINDOW`], else encoded from a copy of the tap's set and
-/// offered to the others. `None` when the tap holds no set.
+/// Previews for one viewer: from the shared cache when another viewer encoded them within
+/// [`PREVIEW_SHARE_WINDOW`] (no frame touched at all), else encoded from a copy of the tap's
+/// frame copy and offered to the others; the whole-frame analysis made on the way is kept by
+/// the tap (for `/status` and the blob lists). `None` when the tap holds no set.
 fn render_for_viewer(
     tap: &crate::viewer::ViewerTap,
     share: &PreviewShare,
     sub: &Subscription,
-    want_preview: bool,
 ) -> Option<Rendered> {
     let key = (sub.preview_max_width_px, sub.zoom_px);
-    if !want_preview {
-        let guard = tap.read()?;
-        let mut r = render(guard.as_deref()?, sub, false);
-        drop(guard);
-        tap.store_analysis(std::mem::take(&mut r.analysis));
-        return Some(r);
-    }
     // Held through the encode: viewers that become due together wait here for the first one's
     // encode instead of all encoding the same set. Only viewer threads take this lock.
     let mut cache = share.cache.lock().ok()?;
@@ -422,32 +409,41 @@ fn render_for_viewer(
         .filter(|c| c.key == key && c.encoded_at.elapsed() < PREVIEW_SHARE_WINDOW)
     {
         share.shared.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        // The blob list only: built under the tap's lock, no frame copied.
-        let guard = tap.read()?;
-        let mut r = render(guard.as_deref()?, sub, false);
-        drop(guard);
-        tap.store_analysis(std::mem::take(&mut r.analysis));
-        r.previews = c.previews.clone();
-        r.zooms = c.zooms.clone();
-        if !sub.blobs {
-            r.set_index = c.set_index;
-        }
-        return Some(r);
+        return Some(Rendered {
+            previews: c.previews.clone(),
+            zooms: c.zooms.clone(),
+        });
     }
     // Hold the tap's copy only for a memcpy (the loop skips sets while it is held), then
-    // downscale and encode outside that lock.
+    // analyse, downscale and encode outside that lock.
     let set = tap.read()?.as_deref()?.clone();
-    let mut r = render(&set, sub, true);
-    tap.store_analysis(std::mem::take(&mut r.analysis));
+    let (r, analysis) = render(&set, sub);
+    tap.store_analysis(analysis);
     share.encoded.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     *cache = Some(SharedPreviews {
         key,
         encoded_at: Instant::now(),
-        set_index: r.set_index,
         previews: r.previews.clone(),
         zooms: r.zooms.clone(),
     });
     Some(r)
+}
+
+/// The `blobs` message of the tap's latest blob copy (see [`crate::viewer::BlobCopy`]), with
+/// the spots of the newest whole-frame analysis added; `None` while there is nothing to list.
+fn blob_message(tap: &crate::viewer::ViewerTap, copy: &crate::viewer::BlobCopy) -> Option<serde_json::Value> {
+    let analysis = tap.analysis(crate::viewer::ANALYSIS_MAX_AGE);
+    let (lists, truncated) = copy.with_full_search(analysis.as_deref().map(Vec::as_slice))?;
+    let searched = analysis.as_deref().and_then(|a| a.first()).map(|a| a.set_index);
+    Some(serde_json::json!({
+        "type": "blobs",
+        "set_index": copy.set_index,
+        "timestamps_ns": copy.timestamps_ns,
+        "pairing_error_ns": copy.pairing_error_ns,
+        "cameras": lists,
+        "truncated": truncated,
+        "full_search_set_index": searched,
+    }))
 }
 
 async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
@@ -461,7 +457,7 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
         ..Subscription::default()
     };
     if let Some(v) = &viewer {
-        v.set_interval_ns(sub.tap_interval_ns());
+        v.set_wants(sub.tap_interval_ns(), sub.blobs);
     }
     s.status
         .live_viewers
@@ -471,6 +467,7 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
     let mut poll = tokio::time::interval(Duration::from_millis(5));
     poll.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut last_seq = s.tap.as_ref().map_or(0, |t| t.seq());
+    let mut last_blob_seq = s.tap.as_ref().map_or(0, |t| t.blob_seq());
     // Preview slots on one clock for every viewer: viewers at the same rate become due together,
     // so the first one's encode is shared by the others (see PREVIEW_SHARE_WINDOW).
     let epoch = *PREVIEW_EPOCH.get_or_init(Instant::now);
@@ -492,7 +489,7 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
                         Ok(new) => {
                             sub = new;
                             if let Some(v) = &viewer {
-                                v.set_interval_ns(sub.tap_interval_ns());
+                                v.set_wants(sub.tap_interval_ns(), sub.blobs);
                             }
                             Ok(())
                         }
@@ -545,35 +542,50 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
             }
             _ = poll.tick(), if viewer.is_some() => {
                 let Some(tap) = s.tap.clone() else { continue };
+                // Every set's blob lists: a small copy, turned into JSON here.
+                let blob_seq = tap.blob_seq();
+                if sub.blobs && blob_seq != last_blob_seq {
+                    last_blob_seq = blob_seq;
+                    let msg = tap.read_blobs().and_then(|copy| {
+                        let m = blob_message(&tap, &copy)?;
+                        Some((copy.set_index, m))
+                    });
+                    if let Some((set_index, mut m)) = msg {
+                        if let Some(prev) = last_blob_set {
+                            let gap = set_index.saturating_sub(prev + 1);
+                            dropped_sets += gap;
+                            tap.count_viewer_drops(gap);
+                        }
+                        last_blob_set = Some(set_index);
+                        if let Some(o) = m.as_object_mut() {
+                            o.insert("dropped".into(), dropped_sets.into());
+                        }
+                        if send_bounded(&mut tx, Message::Text(m.to_string().into())).await.is_err() {
+                            break;
+                        }
+                    }
+                }
+                // Previews from the frame copy, at the viewer's preview rate.
                 let seq = tap.seq();
                 if seq == last_seq {
                     continue;
                 }
                 last_seq = seq;
                 let slot = (epoch.elapsed().as_secs_f64() * sub.preview_fps) as u64;
-                let want_preview = sub.preview_fps > 0.0 && last_slot != Some(slot);
-                if !want_preview && !sub.blobs {
+                if sub.preview_fps <= 0.0 || last_slot == Some(slot) {
                     continue;
                 }
                 let sub_now = sub;
                 let share = s.previews.clone();
                 let rendered = tokio::task::spawn_blocking(move || {
-                    render_for_viewer(&tap, &share, &sub_now, want_preview)
+                    render_for_viewer(&tap, &share, &sub_now)
                 })
                 .await
                 .ok()
                 .flatten();
                 let Some(mut r) = rendered else { continue };
-                if want_preview {
-                    last_slot = Some(slot);
-                }
-                if let Some(prev) = last_blob_set {
-                    dropped_sets += r.set_index.saturating_sub(prev + 1);
-                }
-                if sub.blobs {
-                    last_blob_set = Some(r.set_index);
-                }
-                send_rendered(&mut tx, &mut r, dropped_sets).await
+                last_slot = Some(slot);
+                send_rendered(&mut tx, &mut r).await
             }
         };
         if result.is_err() {
@@ -609,7 +621,6 @@ fn parse_subscribe(text: &str) -> Result<Subscription, String> {
 async fn send_rendered(
     tx: &mut futures_util::stream::SplitSink<WebSocket, Message>,
     r: &mut Rendered,
-    dropped: u64,
 ) -> Result<(), axum::Error> {
     for (meta, jpeg) in r.previews.drain(..) {
         send_bounded(tx, Message::Text(meta.to_string().into())).await?;
@@ -618,12 +629,6 @@ async fn send_rendered(
     for (meta, png) in r.zooms.drain(..) {
         send_bounded(tx, Message::Text(meta.to_string().into())).await?;
         send_bounded(tx, Message::Binary(png)).await?;
-    }
-    if let Some(mut b) = r.blobs.take() {
-        if let Some(o) = b.as_object_mut() {
-            o.insert("dropped".into(), dropped.into());
-        }
-        send_bounded(tx, Message::Text(b.to_string().into())).await?;
     }
     Ok(())
 }
@@ -647,22 +652,16 @@ fn frame_peak(frame: &Frame) -> u32 {
     }
 }
 
-/// Downscales (box filter, integer factor) and encodes previews, crops zooms, lists blobs.
-fn render(set: &TapSet, sub: &Subscription, previews: bool) -> Rendered {
+/// Analyses the frames in full, downscales (box filter, integer factor) and encodes previews,
+/// crops zooms.
+fn render(set: &TapSet, sub: &Subscription) -> (Rendered, Vec<crate::advice::CameraAnalysis>) {
     let mut out = Rendered {
         previews: Vec::new(),
         zooms: Vec::new(),
-        blobs: None,
-        set_index: set.set_index,
-        analysis: Vec::new(),
     };
     let analysis = set.analyse();
-    let lists: Vec<Vec<BlobView>> = analysis.iter().map(|a| a.blobs.clone()).collect();
     for (camera, frame) in set.frames.iter().enumerate() {
-        let blobs: &[BlobView] = lists.get(camera).map_or(&[], Vec::as_slice);
-        if !previews {
-            break;
-        }
+        let blobs: &[BlobView] = analysis.get(camera).map_or(&[], |a| a.blobs.as_slice());
         let (w, h) = (frame.width_px as usize, frame.height_px as usize);
         let factor = w.div_ceil(sub.preview_max_width_px as usize).max(1);
         let (pw, ph) = (w / factor, h / factor);
@@ -709,19 +708,7 @@ fn render(set: &TapSet, sub: &Subscription, previews: bool) -> Rendered {
             out.zooms.push(z);
         }
     }
-    if sub.blobs {
-        let timestamps: Vec<u64> = set.frames.iter().map(|f| f.timestamp_ns).collect();
-        out.blobs = Some(serde_json::json!({
-            "type": "blobs",
-            "set_index": set.set_index,
-            "timestamps_ns": timestamps,
-            "pairing_error_ns": set.pairing_error_ns,
-            "cameras": lists,
-            "truncated": set.blobs_truncated,
-        }));
-    }
-    out.analysis = analysis;
-    out
+    (out, analysis)
 }
 
 /// A full-resolution crop around `blob` as an 8-bit grey PNG.

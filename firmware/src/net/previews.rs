@@ -16,7 +16,6 @@ pub(super) static PREVIEW_EPOCH: std::sync::OnceLock<Instant> = std::sync::OnceL
 pub(super) struct SharedPreviews {
     pub(super) key: (u32, u32),
     pub(super) encoded_at: Instant,
-    pub(super) set_index: u64,
     pub(super) previews: Vec<(serde_json::Value, Bytes)>,
     pub(super) zooms: Vec<(serde_json::Value, Bytes)>,
 }
