@@ -17,6 +17,19 @@ const STAGE_WORDS = {
   end_to_end: "capture → published",
 };
 
+/** One line: capture → robot packet split into driver, ours and the link's protocol wait (p50),
+ *  or what is missing for it. */
+export function latencySplit(lat, link) {
+  const p50 = (s) => (s && s.count > 0 ? s.p50_us : null);
+  const driver = p50(lat.driver);
+  const ours = p50(lat.ours);
+  if (driver === null || ours === null) return "capture → robot packet: no processed sets yet.";
+  if (!link || !(link.count > 0)) {
+    return `capture → published (p50): driver ${us(driver)} µs + ours ${us(ours)} µs; no robot link is sending targets, so there is no protocol wait.`;
+  }
+  return `capture → robot packet (p50): driver ${us(driver)} µs + ours ${us(ours)} µs + protocol wait ${us(link.wait_p50_us)} µs; the sample's age when it left: ${us(link.p50_us)} µs.`;
+}
+
 /** Rows of the active calibration's record (`/status` params.calibration, docs/calibration.md):
  *  method, age, quality; marked bad when poor or older than the configured age. */
 export function calibrationRows(c) {
@@ -185,22 +198,36 @@ export class Health {
         ? [["page viewers", `${fmt(st.viewers.live)} (sets copied ${fmt(st.viewers.copies)}, skipped while busy ${fmt(st.viewers.busy_skips)}; previews encoded ${fmt(st.viewers.previews_encoded)}, shared ${fmt(st.viewers.previews_shared)})`]]
         : []
     ));
-    // Latency table.
+    // Latency table: the loop's stages, then the robot link's share (the same split as
+    // `cargo xtask bench --latency`: driver + ours + protocol wait = the sample's age).
     const lat = proc.latency_us || {};
+    const row = (cells, cls) => {
+      const tr = document.createElement("tr");
+      if (cls) tr.className = cls;
+      for (const v of cells) {
+        const td = document.createElement("td");
+        td.textContent = v;
+        tr.append(td);
+      }
+      return tr;
+    };
+    const link = (st.robot || {}).latency_us;
+    const linkRows = link && link.count > 0
+      ? [
+          row(["robot link: protocol wait (published → on the wire)", us(link.wait_p50_us), "—", us(link.wait_p99_us), us(link.wait_max_us), fmt(link.count)], "link-row"),
+          row(["robot link: capture → on the wire (sample age)", us(link.p50_us), "—", us(link.p99_us), us(link.max_us), fmt(link.count)], "link-row"),
+        ]
+      : [];
     document.querySelector("#latency tbody").replaceChildren(
       ...Object.keys(STAGE_WORDS)
         .filter((k) => lat[k] && lat[k].count > 0)
         .map((k) => {
           const s = lat[k];
-          const tr = document.createElement("tr");
-          for (const v of [STAGE_WORDS[k], us(s.p50_us), us(s.p90_us), us(s.p99_us), us(s.max_us), fmt(s.count)]) {
-            const td = document.createElement("td");
-            td.textContent = v;
-            tr.append(td);
-          }
-          return tr;
-        })
+          return row([STAGE_WORDS[k], us(s.p50_us), us(s.p90_us), us(s.p99_us), us(s.max_us), fmt(s.count)]);
+        }),
+      ...linkRows
     );
+    document.getElementById("latency-split").textContent = latencySplit(lat, link);
     this.params(st);
     this.plotPoint(lat);
   }

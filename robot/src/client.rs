@@ -397,9 +397,13 @@ impl<F: PositionFeed, C: Clock> Client<F, C> {
                 s.last_sent_seq = seq;
                 s.last_sent_ts_ns = Some(sample.capture_ts_ns);
                 s.holding = None;
+                let latency = self.gate.latency_summary_due();
                 self.status.send_modify(|st| {
                     st.targets_sent += 1;
                     st.state = LinkState::Moving;
+                    if latency.is_some() {
+                        st.latency = latency;
+                    }
                 });
             }
         }

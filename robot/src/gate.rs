@@ -31,7 +31,7 @@ pub struct Latency {
 }
 
 /// Percentiles of [`Latency`] (µs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 pub struct LatencySummary {
     pub count: u64,
     pub p50_us: u64,
@@ -95,7 +95,13 @@ pub struct Gate<F, C> {
     pub(crate) feed_open: bool,
     send_orientation: bool,
     pub(crate) latency: Latency,
+    /// When [`Gate::latency_summary_due`] last gave a summary (clock ns).
+    summary_at_ns: u64,
 }
+
+/// How often the links copy their latency percentiles into their status (for `/status` and
+/// the set-up page; reading percentiles costs a pass over the histogram).
+pub const LATENCY_SUMMARY_PERIOD_NS: u64 = 500_000_000;
 
 impl<F: PositionFeed, C: Clock> Gate<F, C> {
     pub fn new(
@@ -116,6 +122,7 @@ impl<F: PositionFeed, C: Clock> Gate<F, C> {
             feed_open: true,
             send_orientation: cfg.send_orientation,
             latency: Latency::new(),
+            summary_at_ns: 0,
         }
     }
 
@@ -190,6 +197,17 @@ impl<F: PositionFeed, C: Clock> Gate<F, C> {
             _ => None,
         };
         self.latency.record(age_ns / 1000, wait_ns.map(|w| w / 1000));
+    }
+
+    /// The latency percentiles so far, at most every [`LATENCY_SUMMARY_PERIOD_NS`] (`None`
+    /// in between): for the link's status.
+    pub fn latency_summary_due(&mut self) -> Option<LatencySummary> {
+        let now = self.clock.now_ns();
+        if now.saturating_sub(self.summary_at_ns) < LATENCY_SUMMARY_PERIOD_NS {
+            return None;
+        }
+        self.summary_at_ns = now;
+        Some(self.latency.summary())
     }
 
     /// Logs the latency summary (read by `cargo xtask bench-links`).

@@ -49,6 +49,9 @@ pub struct LinkStatus {
     /// Streaming kinds: the UDP address irtrackd listens on.
     pub local_addr: Option<std::net::SocketAddr>,
     pub last_error: Option<String>,
+    /// Targets sent so far: the sample's age when it left and the protocol wait (published →
+    /// on the wire), refreshed about twice a second.
+    pub latency: Option<crate::gate::LatencySummary>,
 }
 
 impl Default for LinkStatus {
@@ -67,6 +70,7 @@ impl Default for LinkStatus {
             out_of_order: 0,
             local_addr: None,
             last_error: None,
+            latency: None,
         }
     }
 }

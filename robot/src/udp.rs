@@ -410,9 +410,13 @@ impl<P: StreamProto, F: PositionFeed, C: Clock> Streamer<P, F, C> {
             Verdict::Send { .. } => LinkState::Moving,
             Verdict::Hold(r) => LinkState::Holding(r),
         };
+        let latency = self.gate.latency_summary_due();
         // Counters change every cycle; subscribers (LEDs) are woken only by state changes.
         self.status.send_if_modified(|st| {
             st.packets_answered += 1;
+            if latency.is_some() {
+                st.latency = latency;
+            }
             st.robot_pos_mm = Some(pkt.pos_mm);
             match verdict {
                 Verdict::Send { .. } => st.targets_sent += 1,

@@ -935,3 +935,150 @@ async fn realistic_run(c: &Client, status: SocketAddr, params: bool, out: &Path)
     let errors = js(c, "window.__irtrackErrors").await;
     assert_eq!(errors, json!([]), "the page logged errors ({label})");
 }
+
+/// The latency panel with a robot link sending targets (issue 30): the page shows the robot
+/// link's protocol wait and the sample's age beside the loop's stages, and one line splitting
+/// capture → robot packet into driver + ours + protocol wait — the split `cargo xtask bench
+/// --latency` prints. irtrackd streams to a simulated EGM controller (4 ms cycle) that this
+/// test runs over UDP on 127.0.0.1.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn latency_panel_splits_capture_to_robot_packet_in_headless_chromium() {
+    use irtrack_robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController};
+    require_browser();
+    let dir = temp_dir("browser-latency");
+    let out = out_dir();
+    let egm_port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let config = dir.join("irtrackd.toml");
+    std::fs::write(
+        &config,
+        format!(
+            r#"
+[service]
+params_from_simulator = true
+control = true
+{}
+[source.sim]
+fps = 60.0
+[leds]
+backend = "none"
+[robot]
+kind = "egm"
+address = "{egm_port}"
+[robot.safety]
+workspace_min_mm = [-4000.0, -4000.0, -4000.0]
+workspace_max_mm = [4000.0, 4000.0, 4000.0]
+max_step_mm = 250.0
+max_speed_mm_s = 1000.0
+max_gap_mm = 2.0
+max_age_ms = 200
+require_world_frame = false
+[robot.deadman]
+kind = "flag"
+"#,
+            operator_hash_line()
+        ),
+    )
+    .unwrap();
+    let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
+    let status = addr_field(&ready, "status=");
+    // The controller starts where the marker is (one stream record), so the enable picks it up.
+    let stream = std::net::TcpStream::connect(addr_field(&ready, "stream=")).unwrap();
+    let mut line = String::new();
+    let mut reader = std::io::BufReader::new(stream);
+    let home = loop {
+        line.clear();
+        std::io::BufRead::read_line(&mut reader, &mut line).unwrap();
+        let v: Value = serde_json::from_str(&line).unwrap();
+        if let Some(p) = v["position_mm"].as_array() {
+            break [0, 1, 2].map(|i| p[i].as_f64().unwrap());
+        }
+    };
+    drop(reader);
+    let ctrl = SimController::spawn(
+        CtrlConfig {
+            home_mm: home,
+            max_missed: 0,
+            ..CtrlConfig::new(CtrlKind::Egm, egm_port)
+        },
+        None,
+    )
+    .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let (code, body) = http_operator(status, "POST", "/robot");
+        assert_eq!(code, 200, "{body}");
+        if body.contains("\"state\":\"holding\"") {
+            break;
+        }
+        assert!(Instant::now() < deadline, "the EGM link never came up: {body}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    for path in ["/robot/enable", "/robot/deadman?pressed=1"] {
+        let (code, body) = http_operator(status, "POST", path);
+        assert_eq!(code, 200, "{path}: {body}");
+    }
+
+    let (_driver, driver_url) = start_chromedriver(&dir);
+    let downloads = dir.join("downloads");
+    std::fs::create_dir_all(&downloads).unwrap();
+    let c = browser(&driver_url, &dir.join("profile"), &downloads).await;
+    let result = tokio::time::timeout(Duration::from_secs(60), async {
+        c.goto(&format!("http://{status}/")).await.unwrap();
+        wait_for(
+            &c,
+            "page ready",
+            20,
+            "window.__irtrack && window.__irtrack.ready",
+            |v| v == true,
+        )
+        .await;
+        let rows = wait_for(
+            &c,
+            "the robot link's rows in the latency table",
+            20,
+            "Array.from(document.querySelectorAll('#latency tbody tr.link-row')).map((tr) => \
+             Array.from(tr.cells).map((td) => td.textContent))",
+            |v| v.as_array().is_some_and(|a| a.len() == 2),
+        )
+        .await;
+        println!("latency table, robot link rows: {rows}");
+        let num = |s: &Value| -> f64 {
+            s.as_str()
+                .unwrap()
+                .replace(',', "")
+                .parse()
+                .unwrap_or_else(|_| panic!("not a number: {s}"))
+        };
+        let (wait, age) = (&rows[0], &rows[1]);
+        assert!(wait[0].as_str().unwrap().contains("protocol wait"), "{wait}");
+        assert!(age[0].as_str().unwrap().contains("sample age"), "{age}");
+        let (wait_p50, age_p50) = (num(&wait[1]), num(&age[1]));
+        // EGM answers every 4 ms cycle with the newest sample, which is new every 1/60 s: a
+        // target waits at most a frame period plus a cycle after its sample was published.
+        assert!(
+            wait_p50 > 0.0 && wait_p50 <= 1e6 / 60.0 + 4_000.0,
+            "protocol wait p50 {wait_p50} µs"
+        );
+        assert!(age_p50 >= wait_p50, "age {age_p50} µs < wait {wait_p50} µs");
+        let split = js(&c, "document.getElementById('latency-split').textContent").await;
+        println!("latency split: {split}");
+        let split = split.as_str().unwrap();
+        for part in ["driver", "ours", "protocol wait", "age when it left"] {
+            assert!(split.contains(part), "the split line lacks {part:?}: {split}");
+        }
+        js(
+            &c,
+            "document.getElementById('latency').scrollIntoView({block: 'center'})",
+        )
+        .await;
+        screenshot(&c, &out.join("latency-panel.png")).await;
+    })
+    .await;
+    let _ = c.close().await;
+    let record = ctrl.stop();
+    result.expect("latency panel test took longer than 60 s");
+    assert!(record.answered > 100, "{record:?}");
+}

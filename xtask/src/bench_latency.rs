@@ -6,9 +6,11 @@
 //!    permitted);
 //! 2. [`links_section`]: capture → robot packet split into driver, ours and protocol wait per
 //!    robot link kind (socket, EGM, RSI), with 0 and 3 viewers (irtrackd and `host-tools
-//!    robot-sim` as separate processes, [`crate::bench_links::decomposition`]), and for EGM/RSI
-//!    with `predict = true` the extrapolated target's error against the simulator's truth;
-//! 3. [`output_latency_table`]: capture → sent per standard output (NatNet, MCAP, ROS 2).
+//!    robot-sim` as separate processes, [`crate::bench_links::decomposition`]);
+//! 3. [`prediction_section`]: EGM/RSI with `predict = true`, the extrapolated target's error
+//!    at 250 mm/s against the simulator's truth at send time (the firmware's `prediction`
+//!    test, release build, its result lines reprinted);
+//! 4. [`output_latency_table`]: capture → sent per standard output (NatNet, MCAP, ROS 2).
 //!
 //! A further section is one more function here,
 //! called from [`table`]; the sections share nothing but the run length.
@@ -28,6 +30,7 @@ pub const FIFO_PRIORITY: u32 = 50;
 pub fn table(ctx: &Ctx, seconds: u32) -> Result<()> {
     loop_section(ctx, seconds)?;
     links_section(ctx, seconds)?;
+    prediction_section(ctx)?;
     output_latency_table(ctx)?;
     Ok(())
 }
@@ -218,6 +221,70 @@ fn links_section(ctx: &Ctx, seconds: u32) -> Result<()> {
             }
         );
     }
+    Ok(())
+}
+
+/// Section 3: the prediction error of EGM and RSI against the simulator's truth.
+fn prediction_section(ctx: &Ctx) -> Result<()> {
+    let mut cmd = ctx.cargo();
+    cmd.args([
+        "test",
+        "--release",
+        "-p",
+        "irtrack-firmware",
+        "--test",
+        "prediction",
+        "--",
+        "--nocapture",
+        "--test-threads",
+        "1",
+    ]);
+    let out = util::run(
+        &mut cmd,
+        RunOpts {
+            capture_stdout: true,
+            timeout: Some(Duration::from_secs(1800)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("the prediction test {}", out.describe());
+    }
+    println!();
+    println!(
+        "EGM/RSI target error against the simulator's truth at send time (marker on a 100 mm circle at 250 mm/s, 120 fps, controller cycle 4 ms, irtrackd in-process, release; goal with predict = true: ≤ 0.3 mm RMS):"
+    );
+    println!();
+    println!("| link | predict | answered cycles | RMS | p99 | max |");
+    println!("|---|---|---|---|---|---|");
+    let mut rows = 0;
+    for line in out.stdout.lines() {
+        // libtest may print `test NAME ... ` before a line the test prints.
+        const MARK: &str = "prediction error vs simulator truth: ";
+        let Some(rest) = line.find(MARK).map(|i| &line[i + MARK.len()..]) else {
+            continue;
+        };
+        let f = |k: &str| {
+            rest.split_whitespace()
+                .find_map(|w| w.strip_prefix(k))
+                .unwrap_or("?")
+                .to_string()
+        };
+        println!(
+            "| {} | {} | {} | {} mm | {} mm | {} mm |",
+            f("kind="),
+            f("predict="),
+            f("cycles="),
+            f("rms_mm="),
+            f("p99_mm="),
+            f("max_mm=")
+        );
+        rows += 1;
+    }
+    if rows == 0 {
+        bail!("the prediction test printed no result line");
+    }
+    println!("(measured by `cargo test --release -p irtrack-firmware --test prediction -- --nocapture`)");
     Ok(())
 }
 

@@ -313,6 +313,9 @@ fn link_json(link: &LinkHandle, deadman: Option<bool>) -> String {
         "rejects": st.rejects,
         "last_error": st.last_error,
         "deadman_flag_pressed": deadman,
+        // Per target sent (µs): the sample's age when it left (capture → on the wire) and the
+        // protocol wait (published → on the wire).
+        "latency_us": st.latency,
     });
     v.to_string() + "\n"
 }
