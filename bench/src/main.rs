@@ -200,6 +200,7 @@ fn synthetic<P: Px>(label: &str, w: u32, h: u32, f_px: f64, scale: u32) -> Resul
         world_from_cam0: None,
         tools: vec![],
         calibration: None,
+        placement: Vec::new(),
     };
     let truth_mm = Vector3::new(40.0, -25.0, 800.0);
     let max_code = (255 * scale).min(P::MAX_DN) as f64;

@@ -1,13 +1,16 @@
-//! irtrack-cluster: camera boards and one solver (docs/cluster.md, issue 27).
+//! irtrack-cluster: camera boards and one solver over Zenoh (docs/cluster.md).
 //!
 //! - [`pairing`]: grouping observations of many boards into frame sets (plain code, no
-//!   network), with clock-offset faults.
+//!   network), with clock-offset faults;
+//! - [`transport`] (feature `zenoh`): a publisher per board camera on
+//!   `irtrack/<rig>/<board>/cam/<i>/obs` and the solver's subscriber, in peer mode with
+//!   configured endpoints (multicast scouting optional).
 //!
-//! The message itself is `irtrack_core::observation` (docs/observation-protocol.md). The Zenoh
-//! transport and irtrackd's camera/solver roles are not on main yet (docs/observation-protocol.md
-//! says what is missing).
+//! The message itself is `irtrack_core::observation` (docs/observation-protocol.md).
 
 pub mod error;
 pub mod pairing;
+#[cfg(feature = "zenoh")]
+pub mod transport;
 
 pub use error::{ClusterError, Result};

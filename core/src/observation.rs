@@ -568,14 +568,7 @@ pub fn decode(bytes: &[u8]) -> Result<Observation<'_>> {
     })
 }
 
-/// A camera's board and its index on that board: where the rig's camera `i` is captured.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct CameraPlace {
-    /// The camera board's name (as in its observations).
-    pub board: alloc::string::String,
-    /// The camera's index on that board.
-    pub local_index: u8,
-}
+pub use crate::params::CameraPlace;
 
 /// The solver's checks of decoded observations against the rig's layout and history:
 /// maps (board, local index) to the rig's camera index and refuses another rig, an unknown

@@ -96,9 +96,59 @@ impl From<RigV2> for RigParams {
             world_from_cam0: v.world_from_cam0,
             tools: v.tools,
             calibration: None,
+            placement: Vec::new(),
         }
     }
 }
+
+/// Version-3 body (a calibration record, no camera placement), borrowed for writing.
+#[derive(Serialize)]
+struct RigV3Ref<'a> {
+    rig_id: &'a str,
+    created_unix_s: u64,
+    cameras: &'a [CameraParams],
+    world_from_cam0: &'a Option<RigidTransform>,
+    tools: &'a [ToolDefinition],
+    calibration: &'a Option<Box<CalibrationInfo>>,
+}
+
+/// Version-3 body as read.
+#[derive(Deserialize)]
+struct RigV3 {
+    rig_id: String,
+    created_unix_s: u64,
+    cameras: Vec<CameraParams>,
+    world_from_cam0: Option<RigidTransform>,
+    tools: Vec<ToolDefinition>,
+    calibration: Option<Box<CalibrationInfo>>,
+}
+
+impl From<RigV3> for RigParams {
+    fn from(v: RigV3) -> Self {
+        RigParams {
+            rig_id: v.rig_id,
+            created_unix_s: v.created_unix_s,
+            cameras: v.cameras,
+            world_from_cam0: v.world_from_cam0,
+            tools: v.tools,
+            calibration: v.calibration,
+            placement: Vec::new(),
+        }
+    }
+}
+
+/// A camera's board and its index on that board: where the rig's camera `i` is captured when
+/// the cameras sit on several boards (cluster solver, docs/cluster.md).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CameraPlace {
+    /// The camera board's name (as in its observations and its `[cluster] board`).
+    pub board: String,
+    /// The camera's index on that board.
+    pub local_index: u8,
+}
+
+/// Longest board name in a placement, bytes (it travels in observations and key expressions).
+pub const MAX_BOARD_NAME_LEN: usize = 32;
 
 /// The judgement of a calibration against its quality limits (docs/calibration.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -178,6 +228,7 @@ impl From<RigV1> for RigParams {
                 })
                 .collect(),
             calibration: None,
+            placement: Vec::new(),
         }
     }
 }
@@ -199,14 +250,21 @@ pub struct RigParams {
     /// sets without it are written as before (docs/param-blob.md). Boxed: most code never
     /// looks at it, and the set stays small to move and clone.
     pub calibration: Option<Box<CalibrationInfo>>,
+    /// Where each camera is when the cameras sit on several boards (docs/cluster.md):
+    /// `placement[i]` is camera `i`'s board and its index there. Empty for a single board.
+    /// Only blob format version 4 carries it; sets without it are written as before.
+    pub placement: Vec<CameraPlace>,
 }
 
 /// First bytes of every parameter blob.
 pub const BLOB_MAGIC: [u8; 4] = *b"IRPB";
-/// The newest blob format version this build reads and writes (3: a calibration record;
+/// The newest blob format version this build reads and writes (4: cameras placed on boards;
+/// 3: a calibration record;
 /// 2: tools may carry a tip). A set is written in the oldest version that carries it, so a set
 /// without tool tips and without a calibration record is version 1 and older readers take it.
-pub const BLOB_FORMAT_VERSION: u16 = 3;
+pub const BLOB_FORMAT_VERSION: u16 = 4;
+/// The version that added the calibration record (and no camera placement).
+pub const BLOB_CALIBRATION_VERSION: u16 = 3;
 /// The version whose tools may carry a tip (and no calibration record).
 pub const BLOB_TIPS_VERSION: u16 = 2;
 /// The oldest blob format version this build reads (1: tools without tips).
@@ -363,6 +421,7 @@ pub(crate) fn decode_body(version: u16, body: &[u8]) -> Result<RigParams> {
     let rig = match version {
         BLOB_OLDEST_VERSION => RigParams::from(take_all::<RigV1>(body)?),
         BLOB_TIPS_VERSION => RigParams::from(take_all::<RigV2>(body)?),
+        BLOB_CALIBRATION_VERSION => RigParams::from(take_all::<RigV3>(body)?),
         _ => take_all::<RigParams>(body)?,
     };
     // postcard accepts over-long varints; refuse any body that is not the canonical encoding
@@ -371,10 +430,12 @@ pub(crate) fn decode_body(version: u16, body: &[u8]) -> Result<RigParams> {
     let (canonical_version, canonical) = rig.encode_body()?;
     if canonical_version != version {
         return Err(Error::BlobBody {
-            reason: if version == BLOB_TIPS_VERSION {
-                "version-2 body without a tool tip (such a set is written as version 1)"
-            } else {
-                "version-3 body without a calibration record (such a set is written as version 1 or 2)"
+            reason: match version {
+                BLOB_TIPS_VERSION => "version-2 body without a tool tip (such a set is written as version 1)",
+                BLOB_CALIBRATION_VERSION => {
+                    "version-3 body without a calibration record (such a set is written as version 1 or 2)"
+                }
+                _ => "version-4 body without a camera placement (such a set is written as version 1, 2 or 3)",
             },
         });
     }
@@ -423,6 +484,36 @@ fn check_transform(what: &str, t: &RigidTransform) -> Result<()> {
         return Err(invalid(format!(
             "{what}: rotation is not a proper rotation (orthonormal, det +1) within {ROTATION_TOL:e}"
         )));
+    }
+    Ok(())
+}
+
+/// A placement is empty (one board) or names every camera's board, each (board, index) once.
+fn check_placement(placement: &[CameraPlace], n_cameras: usize) -> Result<()> {
+    if !placement.is_empty() && placement.len() != n_cameras {
+        return Err(invalid(format!(
+            "placement lists {} cameras, the rig has {n_cameras}",
+            placement.len()
+        )));
+    }
+    for (i, p) in placement.iter().enumerate() {
+        let name_ok = !p.board.is_empty()
+            && p.board.len() <= MAX_BOARD_NAME_LEN
+            && p.board
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+        if !name_ok {
+            return Err(invalid(format!(
+                "camera {i}: board name {:?} must be 1..={MAX_BOARD_NAME_LEN} characters of A-Z a-z 0-9 _ -",
+                p.board
+            )));
+        }
+        if placement[..i].contains(p) {
+            return Err(invalid(format!(
+                "camera {i}: board {:?} camera {} is placed twice",
+                p.board, p.local_index
+            )));
+        }
     }
     Ok(())
 }
@@ -513,12 +604,15 @@ impl RigParams {
         self.encode_blob(0, 0)
     }
 
-    /// The format version this set is written in: the oldest that carries it (3 with a
-    /// calibration record, else 2 if a tool has a tip, else 1), so that readers that only know
-    /// older versions still take every set that needs nothing newer.
+    /// The format version this set is written in: the oldest that carries it (4 with a
+    /// camera placement, else 3 with a calibration record, else 2 if a tool has a tip, else
+    /// 1), so that readers that only know older versions still take every set that needs
+    /// nothing newer.
     pub fn blob_version(&self) -> u16 {
-        if self.calibration.is_some() {
+        if !self.placement.is_empty() {
             BLOB_FORMAT_VERSION
+        } else if self.calibration.is_some() {
+            BLOB_CALIBRATION_VERSION
         } else if self.tools.iter().any(|t| t.tip_mm.is_some()) {
             BLOB_TIPS_VERSION
         } else {
@@ -551,6 +645,15 @@ impl RigParams {
                         leds_mm: &t.leds_mm,
                     })
                     .collect(),
+            })
+        } else if version == BLOB_CALIBRATION_VERSION {
+            postcard::to_allocvec(&RigV3Ref {
+                rig_id: &self.rig_id,
+                created_unix_s: self.created_unix_s,
+                cameras: &self.cameras,
+                world_from_cam0: &self.world_from_cam0,
+                tools: &self.tools,
+                calibration: &self.calibration,
             })
         } else {
             postcard::to_allocvec(self)
@@ -665,7 +768,7 @@ impl RigParams {
         if let Some(c) = &self.calibration {
             check_calibration(c, n)?;
         }
-        Ok(())
+        check_placement(&self.placement, n)
     }
 
     /// Number of cameras.
@@ -767,6 +870,7 @@ mod tests {
             world_from_cam0: None,
             tools: vec![],
             calibration: None,
+            placement: Vec::new(),
         }
     }
 

@@ -228,6 +228,10 @@ struct Hypothesis {
 #[derive(Debug, Clone)]
 struct CameraState {
     detector: BlobDetector,
+    /// Blobs given by [`Tracker::set_blobs`] (a camera board's observation), used instead of
+    /// the detector's when `external` is set. Capacity `max_blobs`, allocated once.
+    external_blobs: Vec<Blob>,
+    external: bool,
     model: CameraModel,
     cam_from_cam0: RigidTransform,
     candidates: Vec<Candidate>,
@@ -293,6 +297,8 @@ impl Tracker {
                 model: c.model,
                 cam_from_cam0: c.cam_from_cam0,
                 candidates: Vec::with_capacity(self.config.max_blobs),
+                external_blobs: Vec::with_capacity(self.config.max_blobs),
+                external: false,
                 last_px: None,
                 used_roi: false,
                 detected: false,
@@ -326,7 +332,13 @@ impl Tracker {
     pub fn rejected_by_area(&self, camera: usize) -> &[Blob] {
         self.cams
             .get(camera)
-            .map(|c| c.detector.rejected_by_area())
+            .map(|c| {
+                if c.external {
+                    &[]
+                } else {
+                    c.detector.rejected_by_area()
+                }
+            })
             .unwrap_or(&[])
     }
 
@@ -342,7 +354,7 @@ impl Tracker {
 
     /// All blobs of `camera`'s last detection (diagnostics; empty for a bad index).
     pub fn blobs(&self, camera: usize) -> &[Blob] {
-        self.cams.get(camera).map(|c| c.detector.blobs()).unwrap_or(&[])
+        self.cams.get(camera).map(|c| c.blobs()).unwrap_or(&[])
     }
 
     /// The last measurement.
@@ -368,6 +380,27 @@ impl Tracker {
     /// the frame's DN).
     pub fn detect_u16(&mut self, camera: usize, image: &GrayImage<'_, u16>) -> Result<usize> {
         self.detect_impl(camera, image, true)
+    }
+
+    /// Gives `camera` blobs found elsewhere (a camera board's observation, in the distorted
+    /// image of this camera) instead of detecting them in a frame: the cluster solver's path.
+    /// An empty list means the camera saw nothing or its observation did not arrive; the solve
+    /// goes on with the others. Keeps at most `max_blobs` and never allocates. Returns the
+    /// number of usable candidates.
+    pub fn set_blobs(&mut self, camera: usize, blobs: impl IntoIterator<Item = Blob>) -> Result<usize> {
+        let cfg = self.config;
+        let cam = self.cams.get_mut(camera).ok_or(Error::BadFrame {
+            what: "camera index beyond the rig's camera count",
+        })?;
+        cam.external_blobs.clear();
+        let cap = cam.external_blobs.capacity();
+        for b in blobs.into_iter().take(cap) {
+            cam.external_blobs.push(b);
+        }
+        cam.external = true;
+        cam.used_roi = false;
+        cam.detected = true;
+        Ok(cam.collect_candidates(&cfg))
     }
 
     /// Undistorts, triangulates and gates the blobs of the frames detected since the last
@@ -427,6 +460,7 @@ impl Tracker {
         }
         cam.detected = false;
         cam.used_roi = false;
+        cam.external = false;
         cam.candidates.clear();
         if let (true, true, Some((x, y))) = (allow_roi, cfg.roi_half_px > 0, cam.last_px) {
             let roi = Roi::around(x, y, cfg.roi_half_px, size.width_px, size.height_px);
@@ -450,9 +484,9 @@ impl Tracker {
         let m = &mut self.measurement;
         *m = Measurement::empty(n);
         for (o, c) in m.cameras.iter_mut().zip(&self.cams) {
-            let st = c.detector.stats();
+            let st = c.stats();
             *o = CameraObservation {
-                blob_count: c.detector.blobs().len() as u32,
+                blob_count: c.blobs().len() as u32,
                 candidate_count: c.candidates.len() as u32,
                 dropped_blobs: st.dropped_blobs,
                 used_roi: c.used_roi,
@@ -473,12 +507,12 @@ impl Tracker {
             m.status = if self
                 .cams
                 .iter()
-                .any(|c| c.candidates.is_empty() && c.detector.stats().overloaded)
+                .any(|c| c.candidates.is_empty() && c.stats().overloaded)
             {
                 let camera = self
                     .cams
                     .iter()
-                    .position(|c| c.candidates.is_empty() && c.detector.stats().overloaded)
+                    .position(|c| c.candidates.is_empty() && c.stats().overloaded)
                     .unwrap_or(camera);
                 TrackStatus::Overloaded { camera }
             } else {
@@ -534,7 +568,7 @@ impl Tracker {
                     let blob = c
                         .candidates
                         .get(member as usize)
-                        .and_then(|cd| c.detector.blobs().get(cd.blob));
+                        .and_then(|cd| c.blobs().get(cd.blob));
                     m.cameras[i].marker = blob.copied();
                     m.used_roi |= blob.is_some() && c.used_roi;
                     c.last_px = blob.map(|b| (b.x_px, b.y_px));
@@ -554,10 +588,31 @@ impl Tracker {
 }
 
 impl CameraState {
+    fn blobs(&self) -> &[Blob] {
+        if self.external {
+            &self.external_blobs
+        } else {
+            self.detector.blobs()
+        }
+    }
+
+    fn stats(&self) -> crate::blob::DetectStats {
+        if self.external {
+            crate::blob::DetectStats::default()
+        } else {
+            self.detector.stats()
+        }
+    }
+
     /// Quality gate and ray for each blob of the last detection. Returns the count.
     fn collect_candidates(&mut self, cfg: &TrackerConfig) -> usize {
         self.candidates.clear();
-        for (i, b) in self.detector.blobs().iter().enumerate() {
+        let blobs = if self.external {
+            &self.external_blobs[..]
+        } else {
+            self.detector.blobs()
+        };
+        for (i, b) in blobs.iter().enumerate() {
             let usable = b.roundness >= cfg.min_roundness
                 && !(cfg.reject_edge_blobs && b.touches_frame_edge)
                 && !b.touches_roi_edge;
@@ -721,6 +776,7 @@ mod tests {
             world_from_cam0: None,
             tools: vec![],
             calibration: None,
+            placement: Vec::new(),
         }
     }
 
@@ -746,6 +802,52 @@ mod tests {
             RigidTransform::IDENTITY,
             looking_at(Vector3::new(600.0, 0.0, 600.0), target),
         ])
+    }
+
+    /// The cluster solver's path: blobs given per camera (no frames) triangulate like detected
+    /// ones; a camera with no blobs (its board stopped) leaves the others to carry on.
+    #[test]
+    fn set_blobs_triangulates_and_survives_a_missing_camera() {
+        let target = Vector3::new(0.0, 0.0, 600.0);
+        let r = rig(&[
+            RigidTransform::IDENTITY,
+            looking_at(Vector3::new(600.0, 0.0, 600.0), target),
+            looking_at(Vector3::new(-600.0, 0.0, 600.0), target),
+        ]);
+        let mut t = Tracker::new(&r, TrackerConfig::default()).unwrap();
+        let p = Vector3::new(10.0, -5.0, 590.0);
+        let blob = |cam: usize| {
+            let (x, y) = project(&r, cam, &p);
+            Blob {
+                x_px: x,
+                y_px: y,
+                area_px: 9,
+                peak_dn: 200,
+                roundness: 1.0,
+                sigma_major_px: 1.0,
+                sigma_minor_px: 1.0,
+                ..Blob::default()
+            }
+        };
+        for c in 0..3 {
+            assert_eq!(t.set_blobs(c, [blob(c)]).unwrap(), 1);
+        }
+        let m = *t.solve();
+        assert_eq!((m.status, m.cameras_used), (TrackStatus::Tracked, 3));
+        assert!((m.point_cam0_mm.unwrap() - p).norm() < 1e-6);
+        t.set_blobs(0, [blob(0)]).unwrap();
+        t.set_blobs(1, [blob(1)]).unwrap();
+        t.set_blobs(2, []).unwrap();
+        let m = *t.solve();
+        assert_eq!((m.status, m.cameras_used), (TrackStatus::Tracked, 2));
+        assert!((m.point_cam0_mm.unwrap() - p).norm() < 1e-6);
+        t.set_blobs(0, [blob(0)]).unwrap();
+        t.set_blobs(1, []).unwrap();
+        t.set_blobs(2, []).unwrap();
+        assert!(
+            t.solve().point_cam0_mm.is_none(),
+            "one camera never gives a point"
+        );
     }
 
     fn project(r: &RigParams, cam: usize, p: &Vector3<f64>) -> (f64, f64) {

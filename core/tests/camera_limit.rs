@@ -46,6 +46,7 @@ fn rig_with(n: usize) -> RigParams {
         world_from_cam0: None,
         tools: vec![],
         calibration: None,
+        placement: Vec::new(),
     }
 }
 

@@ -141,6 +141,7 @@ fn small_rig() -> RigParams {
         world_from_cam0: None,
         tools: vec![],
         calibration: None,
+        placement: Vec::new(),
     }
 }
 

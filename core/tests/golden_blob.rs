@@ -3,8 +3,8 @@
 use irtrack_core::Error;
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use irtrack_core::params::{
-    BLOB_FORMAT_VERSION, BLOB_HEADER_LEN, BlobHeader, CalibrationInfo, CameraParams, Figure, RigParams,
-    ToolDefinition, Verdict,
+    BLOB_FORMAT_VERSION, BLOB_HEADER_LEN, BlobHeader, CalibrationInfo, CameraParams, CameraPlace, Figure,
+    RigParams, ToolDefinition, Verdict,
 };
 use proptest::prelude::*;
 
@@ -57,6 +57,7 @@ fn golden_rig() -> RigParams {
         world_from_cam0: None,
         tools: vec![],
         calibration: None,
+        placement: Vec::new(),
     }
 }
 
@@ -313,6 +314,7 @@ fn golden_v3_encode_decode() {
     // The same set without its record is the version-1 golden blob's cameras again.
     let plain = RigParams {
         calibration: None,
+        placement: Vec::new(),
         ..rig
     };
     assert_eq!(plain.blob_version(), 1);
@@ -367,6 +369,158 @@ fn calibration_records_are_validated() {
     c.method.clear();
     let e = rig.validate().unwrap_err().to_string();
     assert!(e.contains("calibration method"), "{e}");
+}
+
+/// The version-4 golden rig: the version-1 cameras placed on two camera boards (a cluster
+/// solver's set, docs/cluster.md), without a calibration record.
+fn golden_rig_v4() -> RigParams {
+    RigParams {
+        rig_id: "golden4".into(),
+        placement: vec![
+            CameraPlace {
+                board: "b0".into(),
+                local_index: 0,
+            },
+            CameraPlace {
+                board: "b1".into(),
+                local_index: 2,
+            },
+        ],
+        ..golden_rig()
+    }
+}
+
+/// Independently assembled (Python: struct.pack + zlib.crc32) from docs/param-blob.md; the
+/// camera bytes are those of [`GOLDEN_HEX`].
+const GOLDEN_V4_HEAD: &[&str] = &[
+    "49525042",         // magic "IRPB"
+    "0400",             // format version 4 (a camera placement)
+    "0000",             // flags
+    "72010000",         // body length 370
+    "338ca674",         // CRC-32 0x74a68c33 over bytes 0..12 + body
+    "07676f6c64656e34", // rig_id: varint 7, "golden4"
+    "80e2cfaa06",       // created_unix_s 1700000000 (varint)
+    "02",               // 2 cameras
+];
+const GOLDEN_V4_TAIL: &[&str] = &[
+    "00",     // world_from_cam0: None
+    "00",     // no tools
+    "00",     // calibration: None
+    "02",     // placement: 2 cameras
+    "026230", // board: varint 2, "b0"
+    "00",     // local_index 0 (u8, one byte)
+    "026231", // board "b1"
+    "02",     // local_index 2
+];
+
+fn golden_v4_bytes() -> Vec<u8> {
+    let cameras = &GOLDEN_HEX[8..GOLDEN_HEX.len() - 2];
+    let hex = [GOLDEN_V4_HEAD, cameras, GOLDEN_V4_TAIL].concat().concat();
+    from_hex(&hex)
+}
+
+#[test]
+fn golden_v4_encode_decode() {
+    let rig = golden_rig_v4();
+    assert_eq!(rig.blob_version(), 4);
+    assert_eq!(rig.to_blob().unwrap(), golden_v4_bytes());
+    let back = RigParams::from_blob(&golden_v4_bytes()).unwrap();
+    assert_eq!(back, rig);
+    back.validate().unwrap();
+    let h = BlobHeader::parse(&golden_v4_bytes()).unwrap();
+    assert_eq!(
+        (h.version, h.body_len, h.blob_len(), h.crc32),
+        (4, 370, 386, 0x74a6_8c33)
+    );
+    // With a calibration record too it stays version 4; without the placement it is what it
+    // was before version 4 existed.
+    let both = RigParams {
+        calibration: golden_rig_v3().calibration,
+        ..rig.clone()
+    };
+    assert_eq!(both.blob_version(), 4);
+    assert_eq!(RigParams::from_blob(&both.to_blob().unwrap()).unwrap(), both);
+    let without = RigParams {
+        placement: Vec::new(),
+        ..both
+    };
+    assert_eq!(without.blob_version(), 3);
+    assert_eq!(
+        without.to_blob().unwrap(),
+        RigParams {
+            rig_id: "golden4".into(),
+            ..golden_rig_v3()
+        }
+        .to_blob()
+        .unwrap()
+    );
+}
+
+#[test]
+fn older_blobs_still_load_next_to_version_4() {
+    for (bytes, version) in [
+        (golden_bytes(), 1),
+        (golden_v2_bytes(), 2),
+        (golden_v3_bytes(), 3),
+    ] {
+        let rig = RigParams::from_blob(&bytes).unwrap();
+        assert!(rig.placement.is_empty());
+        assert_eq!(rig.blob_version(), version);
+        assert_eq!(
+            rig.to_blob().unwrap(),
+            bytes,
+            "version {version} re-encodes unchanged"
+        );
+    }
+}
+
+#[test]
+fn version_4_body_without_a_placement_is_not_canonical() {
+    // The version-1 golden body + `None` record + empty placement, relabelled as version 4.
+    let mut b = golden_bytes();
+    b[4] = 4;
+    b.extend_from_slice(&[0, 0]);
+    let len = (b.len() - BLOB_HEADER_LEN) as u32;
+    b[8..12].copy_from_slice(&len.to_le_bytes());
+    assert_eq!(
+        RigParams::from_blob(&reseal(b)),
+        Err(Error::BlobBody {
+            reason: "version-4 body without a camera placement (such a set is written as version 1, 2 or 3)"
+        })
+    );
+}
+
+#[test]
+fn every_single_byte_corruption_of_the_v4_blob_is_detected() {
+    let good = golden_v4_bytes();
+    for i in 0..good.len() {
+        for x in 1..=255u8 {
+            let mut b = good.clone();
+            b[i] ^= x;
+            assert!(
+                RigParams::from_blob(&b).is_err(),
+                "byte {i} xor {x:#04x} undetected"
+            );
+        }
+    }
+}
+
+#[test]
+fn placements_are_validated() {
+    let mut rig = golden_rig_v4();
+    rig.validate().unwrap();
+    rig.placement.pop();
+    let e = rig.validate().unwrap_err().to_string();
+    assert!(e.contains("placement lists 1 cameras, the rig has 2"), "{e}");
+    rig.placement.push(rig.placement[0].clone());
+    let e = rig.validate().unwrap_err().to_string();
+    assert!(e.contains("placed twice"), "{e}");
+    rig.placement[1] = CameraPlace {
+        board: "b 1".into(),
+        local_index: 0,
+    };
+    let e = rig.validate().unwrap_err().to_string();
+    assert!(e.contains("board name"), "{e}");
 }
 
 #[test]
@@ -441,11 +595,11 @@ fn wrong_magic() {
 #[test]
 fn wrong_version() {
     let mut b = golden_bytes();
-    b[4] = 4;
+    b[4] = 5;
     assert_eq!(
         RigParams::from_blob(&b),
         Err(Error::BlobUnsupportedVersion {
-            found: 4,
+            found: 5,
             supported: BLOB_FORMAT_VERSION
         })
     );
@@ -640,15 +794,20 @@ fn rig() -> impl Strategy<Value = RigParams> {
         prop::option::of(transform()),
         prop::collection::vec(tool(), 0..3),
         prop::option::of(calibration()),
+        prop::collection::vec(("[a-z0-9_-]{1,8}", any::<u8>()), 0..4),
     )
         .prop_map(
-            |(rig_id, created_unix_s, cameras, world_from_cam0, tools, calibration)| RigParams {
+            |(rig_id, created_unix_s, cameras, world_from_cam0, tools, calibration, placement)| RigParams {
                 rig_id,
                 created_unix_s,
                 cameras,
                 world_from_cam0,
                 tools,
                 calibration: calibration.map(Box::new),
+                placement: placement
+                    .into_iter()
+                    .map(|(board, local_index)| CameraPlace { board, local_index })
+                    .collect(),
             },
         )
 }

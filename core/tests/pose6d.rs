@@ -75,6 +75,7 @@ fn convergent_rig() -> RigParams {
         world_from_cam0: None,
         tools: vec![],
         calibration: None,
+        placement: Vec::new(),
     }
 }
 

@@ -66,6 +66,7 @@ fn rig() -> RigParams {
         world_from_cam0: None,
         tools: vec![],
         calibration: None,
+        placement: Vec::new(),
     }
 }
 

@@ -108,7 +108,7 @@ pub fn open_source(source: &Source) -> Result<(Box<dyn FrameSource>, Option<RigP
     Ok(match source {
         Source::Sim(sim_cfg) => {
             let s = SimSource::new(sim_cfg)?;
-            let mut rig = s.scenario().rig().clone();
+            let mut rig = sim_cfg.rendered_rig(s.scenario().rig());
             // The simulator's truth includes the tool it renders (6-DOF demo and tests).
             rig.tools.extend(sim_cfg.tool_definition());
             (Box::new(s), Some(rig))
@@ -186,10 +186,20 @@ struct Devices {
     led_record: Option<LedRecord>,
 }
 
-/// Step 2: opens the source and the LED back end.
-fn open_devices(resolved: &Resolved, overrides: Overrides) -> Result<Devices> {
+/// Step 2: opens the source (a cluster solver's: the camera boards) and the LED back end.
+fn open_devices(
+    cfg: &Config,
+    resolved: &Resolved,
+    overrides: Overrides,
+    handle: &Arc<ParamsHandle>,
+    cluster: &Option<crate::cluster::SharedReport>,
+) -> Result<Devices> {
     let (source, sim_rig) = match overrides.source {
         Some(s) => (s, None),
+        None if cfg.cluster.role == crate::cluster::Role::Solver => (
+            crate::cluster::solver_source(&cfg.cluster, handle.clone(), cluster.clone().unwrap_or_default())?,
+            None,
+        ),
         None => open_source(&resolved.source)?,
     };
     let (leds, led_record) = match overrides.leds {
@@ -356,7 +366,9 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         ..listeners.addrs
     };
 
-    let devices = open_devices(&resolved, overrides)?;
+    let handle = Arc::new(ParamsHandle::new());
+    let cluster = crate::cluster::new_report(&cfg.cluster);
+    let devices = open_devices(&cfg, &resolved, overrides, &handle, &cluster)?;
     let led_desc = devices
         .leds
         .as_ref()
@@ -366,11 +378,11 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         devices.source.describe(),
         led_desc,
     ));
+    crate::cluster::register(&status, &cluster);
     tracing::info!(source = %devices.source.describe(), leds = %status.led_backend, "starting");
     // /status and /metrics show the outputs' counters.
     let _ = status.outputs.set(outputs.stats.clone());
 
-    let handle = Arc::new(ParamsHandle::new());
     let params = start_params(
         &cfg,
         devices.source.as_ref(),
@@ -400,6 +412,7 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         Some(us) => engine.with_max_pairing_error(Duration::from_micros(us)),
         None => engine,
     };
+    let engine = crate::cluster::with_role(engine, &cfg.cluster, &cluster)?;
     let processing = spawn_loop(engine, cfg.realtime.clone(), status.clone())?;
     // Whole-frame analysis for /status and its faults, off the loop; suggests a threshold at
     // first start (no saved tuning).

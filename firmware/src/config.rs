@@ -50,6 +50,9 @@ pub struct Config {
     /// Standard outputs (NatNet, ...), all off by default (docs/outputs.md).
     #[serde(default)]
     pub outputs: crate::outputs::OutputsConfig,
+    /// Multi-board rigs (docs/cluster.md); standalone by default.
+    #[serde(default)]
+    pub cluster: crate::cluster::ClusterConfig,
 }
 
 /// `[service]`
@@ -365,6 +368,7 @@ impl Config {
         }
         check_tracker_config(&self.tracking)?;
         self.outputs.validate()?;
+        self.cluster.validate()?;
         if let Some(h) = &self.service.operator_password_hash {
             crate::net::auth::check_hash(h)?;
         }
@@ -537,6 +541,7 @@ fn check_tracker_config(cfg: &TrackerConfig) -> Result<()> {
         world_from_cam0: None,
         tools: Vec::new(),
         calibration: None,
+        placement: Vec::new(),
     };
     irtrack_core::pipeline::Tracker::new(&rig, *cfg)
         .map(|_| ())

@@ -150,6 +150,14 @@ pub struct Engine {
     reconnects_seen: u64,
     /// Timestamps of the last processed set.
     times: SetTimes,
+    /// Cluster camera role: every camera's blobs go to the solver (docs/cluster.md).
+    observation_sink: Option<Box<dyn ObservationSink>>,
+}
+
+/// Receives each camera's blobs right after detection (cluster role "camera": publishes them).
+pub trait ObservationSink: Send {
+    /// `camera`'s `frame` was detected with `blobs`; `dropped`: sets the source skipped so far.
+    fn observe(&mut self, camera: usize, frame: &crate::source::Frame, blobs: &[Blob], dropped: u64);
 }
 
 impl Engine {
@@ -191,12 +199,19 @@ impl Engine {
             tuning_seen: 0,
             reconnects_seen: 0,
             times: SetTimes::default(),
+            observation_sink: None,
         }
     }
 
     /// Timestamps of the last processed set's path.
     pub fn last_times(&self) -> SetTimes {
         self.times
+    }
+
+    /// Hands every camera's detected blobs to `sink` (cluster camera role).
+    pub fn with_observation_sink(mut self, sink: Box<dyn ObservationSink>) -> Self {
+        self.observation_sink = Some(sink);
+        self
     }
 
     /// Feeds `tap` with copies of processed sets while viewers ask for them.
@@ -455,13 +470,17 @@ impl Engine {
                     // All LEDs must be found, not only those near the last single marker.
                     tracker.reset_tracking();
                 }
+                let dropped = self.status.sets_dropped.load(R);
                 for (camera, frame) in self.set.frames.iter().enumerate() {
-                    let detected = match &frame.pixels {
-                        Pixels::U8(px) => {
+                    // A cluster solver's source brings other boards' blobs (no pixels).
+                    let remote = self.source.remote_blobs(camera);
+                    let detected = match (&frame.pixels, remote) {
+                        (_, Some(blobs)) => tracker.set_blobs(camera, blobs.iter().copied()),
+                        (Pixels::U8(px), None) => {
                             GrayImage::new(px, frame.width_px, frame.height_px, frame.stride_px)
                                 .and_then(|img| tracker.detect_u8(camera, &img))
                         }
-                        Pixels::U16(px) => {
+                        (Pixels::U16(px), None) => {
                             GrayImage::new(px, frame.width_px, frame.height_px, frame.stride_px)
                                 .and_then(|img| tracker.detect_u16(camera, &img))
                         }
@@ -470,8 +489,14 @@ impl Engine {
                         Ok(n) => {
                             if let Some(c) = self.status.cameras.get(camera) {
                                 c.blobs_last.store(n as u64, R);
-                                c.peak_dn
-                                    .store(u64::from(peak_dn(tracker.blobs(camera), frame)), R);
+                                let peak = match remote {
+                                    Some(b) => b.iter().map(|b| b.peak_dn).max().unwrap_or(0),
+                                    None => peak_dn(tracker.blobs(camera), frame),
+                                };
+                                c.peak_dn.store(u64::from(peak), R);
+                            }
+                            if let Some(sink) = self.observation_sink.as_mut() {
+                                sink.observe(camera, frame, tracker.blobs(camera), dropped);
                             }
                         }
                         Err(e) => {

@@ -9,6 +9,7 @@ pub mod advice;
 pub mod app;
 pub mod calibration;
 pub mod clock;
+pub mod cluster;
 pub mod config;
 pub mod engine;
 pub mod error;

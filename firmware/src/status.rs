@@ -1,8 +1,8 @@
 //! Shared run-time status: written by the processing loop (atomics only, so it never blocks or
 //! allocates), the LED driver and the services; read by the status endpoint and the watchdog.
 
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use serde::Serialize;
@@ -164,6 +164,8 @@ pub struct SharedStatus {
     pub realtime: Mutex<Vec<String>>,
     /// Counters of the standard outputs (set once by `app::start`).
     pub outputs: std::sync::OnceLock<crate::outputs::OutputsStats>,
+    /// Camera and solver roles: the cluster's state (docs/cluster.md); `None` standalone.
+    pub cluster: Mutex<Option<Arc<Mutex<crate::cluster::ClusterReport>>>>,
 }
 
 fn track_to_u8(t: TrackIndication) -> u8 {
@@ -230,6 +232,7 @@ impl SharedStatus {
             live_viewers: AtomicU64::new(0),
             params: Mutex::new(ParamsInfo::default()),
             realtime: Mutex::new(Vec::new()),
+            cluster: Mutex::new(None),
         }
     }
 
@@ -406,7 +409,15 @@ impl SharedStatus {
                 },
             },
             faults: self.active_faults(),
+            cluster: self.cluster_report(),
         }
+    }
+
+    /// A copy of the cluster state, when this irtrackd is a camera board or a solver.
+    pub fn cluster_report(&self) -> Option<crate::cluster::ClusterReport> {
+        let shared = self.cluster.lock().ok()?.clone()?;
+        let r = shared.lock().ok()?.clone();
+        Some(r)
     }
 
     /// OpenMetrics text exposition, encoded by `prometheus-client` from a snapshot of the
@@ -799,6 +810,15 @@ pub fn fault_texts(
             ),
         });
     }
+    if let Some(c) = st.cluster_report() {
+        for (code, message) in c.fault_texts() {
+            out.push(FaultText {
+                code,
+                camera: None,
+                message,
+            });
+        }
+    }
     if st.camera_lost.load(R) {
         return out;
     }
@@ -938,4 +958,6 @@ pub struct StatusReport {
     pub stream: StreamReport,
     pub leds: LedReport,
     pub faults: Vec<Fault>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cluster: Option<crate::cluster::ClusterReport>,
 }

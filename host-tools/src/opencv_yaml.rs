@@ -427,6 +427,7 @@ fn read_all(fs: &FileStorage, fallback_rig_id: &str) -> Result<(RigParams, bool)
             world_from_cam0,
             tools,
             calibration: read_calibration(fs)?.map(Box::new),
+            placement: Vec::new(),
         },
         id_from_name,
     ))

@@ -89,6 +89,7 @@ fn rig3() -> RigParams {
             tip_mm: None,
         }],
         calibration: None,
+        placement: Vec::new(),
     }
 }
 

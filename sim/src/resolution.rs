@@ -90,6 +90,7 @@ pub fn ideal_rig(cam: CameraModel, cam1_from_cam0: RigidTransform) -> RigParams 
         world_from_cam0: None,
         tools: Vec::new(),
         calibration: None,
+        placement: Vec::new(),
     }
 }
 

@@ -188,6 +188,7 @@ pub fn build_rig(preset: &RigPreset, spec: &CameraSpec) -> Result<RigParams, Sim
         world_from_cam0: None,
         tools: Vec::new(),
         calibration: None,
+        placement: Vec::new(),
     })
 }
 

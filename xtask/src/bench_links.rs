@@ -114,6 +114,37 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
             r.jerk_max_m_s3
         );
     }
+    println!();
+    cluster_bench(ctx, o.release, o.secs.min(5.0))
+}
+
+/// The cluster's observation hop, message size and solver cost (docs/cluster.md), printed by
+/// `irtrack-firmware`'s `cluster_bench` example.
+fn cluster_bench(ctx: &Ctx, release: bool, secs: f64) -> Result<()> {
+    let mut cmd = ctx.cargo();
+    cmd.args([
+        "run",
+        "-p",
+        "irtrack-firmware",
+        "--features",
+        "cluster",
+        "--example",
+        "cluster_bench",
+    ]);
+    if release {
+        cmd.arg("--release");
+    }
+    cmd.args(["--", "--secs", &format!("{secs}")]);
+    let out = util::run(
+        &mut cmd,
+        RunOpts {
+            timeout: Some(Duration::from_secs(3600)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("cluster benchmark {}", out.describe());
+    }
     Ok(())
 }
 

@@ -61,8 +61,8 @@ const fn phase(
 pub const PHASES: &[Phase] = &[
     phase("setup", "install missing system packages", "", setup_phase, 30, &[]),
     phase("fmt", "cargo fmt --all --check", "", fmt, 5, &[]),
-    phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", clippy, 60, &["debug"]),
-    phase("host-tests", "cargo test --workspace (all crates, host)", "host", host_tests, 25, &["debug"]),
+    phase("clippy", "cargo clippy --workspace --all-targets (+ Zenoh features) -- -D warnings", "", clippy, 60, &["debug"]),
+    phase("host-tests", "cargo test --workspace (all crates, host, + Zenoh features)", "host", host_tests, 25, &["debug"]),
     phase("no-std", "irtrack-core without its std feature", "", no_std, 30, &["debug"]),
     // The image runs right after the host phases: its system test runs host-tools from
     // target/debug, and with that phase done a machine short of disk can drop target/debug
@@ -401,7 +401,14 @@ fn fmt(ctx: &Ctx) -> Outcome {
 
 fn clippy(ctx: &Ctx) -> Outcome {
     let mut cmd = ctx.cargo();
-    cmd.args(["clippy", "--workspace", "--all-targets", "--", "-D", "warnings"]);
+    cmd.args([
+        "clippy",
+        "--workspace",
+        "--all-targets",
+        "--features",
+        CLUSTER_FEATURES,
+    ]);
+    cmd.args(["--", "-D", "warnings"]);
     check(cmd, "cargo clippy")
 }
 
@@ -409,10 +416,21 @@ fn host_tests(ctx: &Ctx) -> Outcome {
     cargo_test(|| {
         let mut cmd = ctx.cargo();
         // --no-fail-fast: one failing binary must not hide the counts of the others.
-        cmd.args(["test", "--workspace", "--no-fail-fast"]);
+        cmd.args([
+            "test",
+            "--workspace",
+            "--no-fail-fast",
+            "--features",
+            CLUSTER_FEATURES,
+        ]);
         Ok(cmd)
     })
 }
+
+/// The host phases build the Zenoh parts too (off by default, docs/cluster.md): the cluster
+/// crate's transport, irtrackd's camera/solver roles and the multi-process tests. The aarch64
+/// and fuzz phases leave them out (docs/development.md).
+pub const CLUSTER_FEATURES: &str = "irtrack-cluster/zenoh,irtrack-firmware/cluster,irtrack-tests/cluster";
 
 /// Feature names by which crates switch std on.
 const STD_FEATURES: &[&str] = &["std", "use-std", "use_std"];

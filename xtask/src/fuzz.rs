@@ -26,6 +26,7 @@ pub const TARGETS: &[&str] = &[
     "param_wire",
     "egm",
     "rsi",
+    "observation",
 ];
 const QUICK_SECS: u64 = 25;
 /// The documented long run (docs/fuzzing.md).

@@ -217,6 +217,11 @@ const PY_MODULES: &[(&str, &str, &str)] = &[
         "rosbags",
         "CDR decoding of ROS 2 messages without ROS for the DDS subscriber (firmware/tests/py/ros2_subscriber.py)",
     ),
+    (
+        "eclipse-zenoh==1.10.2",
+        "zenoh",
+        "independent Zenoh subscriber of the cluster tests (docs/cluster.md)",
+    ),
 ];
 
 /// The PyPI packages of [`PY_MODULES`] whose module python3 cannot import.

@@ -287,6 +287,7 @@ mod tests {
             world_from_cam0: None,
             tools: Vec::new(),
             calibration: None,
+            placement: Vec::new(),
         }
     }
 

@@ -182,6 +182,12 @@ pub trait FrameSource: Send {
     fn end_summary(&self) -> Option<String> {
         None
     }
+    /// Blobs of `camera` for the set just delivered, found elsewhere (a cluster solver's
+    /// camera boards): the loop uses them instead of detecting in the frame. `None`: detect.
+    fn remote_blobs(&self, _camera: usize) -> Option<&[irtrack_core::blob::Blob]> {
+        None
+    }
+
     /// Exposure and gain of every camera (camera order); by default none are supported.
     fn controls(&self) -> Vec<CameraControls> {
         vec![CameraControls::default(); self.camera_count()]

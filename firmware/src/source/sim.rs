@@ -11,6 +11,7 @@
 use nalgebra::Vector3;
 use serde::Deserialize;
 
+use irtrack_core::params::RigParams;
 use irtrack_sim::cell::CellFeed;
 use irtrack_sim::wand::{WandConfig, WandWave};
 use irtrack_sim::{BitDepth, FrameInfo, RigPreset, Scenario, SimConfig, Trajectory};
@@ -31,6 +32,9 @@ pub enum SimRig {
     Convergent,
     /// Two parallel cameras `baseline_mm` apart.
     Parallel,
+    /// `ring_cameras` cameras on a circle of radius `distance_mm` around the workspace centre,
+    /// all looking at it (multi-board rigs, docs/cluster.md).
+    Ring,
 }
 
 /// `[source.sim]`
@@ -86,6 +90,17 @@ pub struct SimSourceConfig {
     /// With `wand_mm`: frames in one wave (it repeats).
     #[serde(default = "d_wand_frames")]
     pub wand_frames: u64,
+    /// With `rig = "ring"`: number of cameras (2..=8).
+    #[serde(default = "d_ring_cameras")]
+    pub ring_cameras: usize,
+    /// The rig's cameras this source renders (a camera board's share of a multi-board rig);
+    /// all by default. The simulator's parameter set is then that share, re-based on the first.
+    #[serde(default)]
+    pub cameras: Option<Vec<usize>>,
+    /// Frame `k` is captured at CLOCK_REALTIME `k / fps` and numbered `k`, so that sources in
+    /// separate processes (simulated camera boards) render the same instants.
+    #[serde(default)]
+    pub wall_clock: bool,
     /// The simulated robot cell: the LED is carried by `host-tools robot-sim`'s flange and is
     /// rendered where robot-sim says the robot really put it (docs/simulator.md).
     #[serde(default)]
@@ -171,6 +186,10 @@ fn d_cell_timeout() -> u64 {
     20
 }
 
+fn d_ring_cameras() -> usize {
+    4
+}
+
 fn d_wand_frames() -> u64 {
     900
 }
@@ -226,6 +245,9 @@ impl Default for SimSourceConfig {
             tool_rotation_deg: d_tool_rotation(),
             wand_mm: None,
             wand_frames: d_wand_frames(),
+            ring_cameras: d_ring_cameras(),
+            cameras: None,
+            wall_clock: false,
             cell: None,
             backdrop: None,
         }
@@ -306,6 +328,28 @@ impl SimSourceConfig {
         {
             return bad(format!("source.sim.backdrop: {e}"));
         }
+        if self.rig == SimRig::Ring && !(2..=irtrack_core::params::MAX_CAMERAS).contains(&self.ring_cameras) {
+            return bad(format!(
+                "source.sim.ring_cameras must be in 2..={}, got {}",
+                irtrack_core::params::MAX_CAMERAS,
+                self.ring_cameras
+            ));
+        }
+        if let Some(cams) = &self.cameras {
+            let total = if self.rig == SimRig::Ring {
+                self.ring_cameras
+            } else {
+                2
+            };
+            if cams.is_empty()
+                || cams.iter().any(|&c| c >= total)
+                || (1..cams.len()).any(|i| cams[..i].contains(&cams[i]))
+            {
+                return bad(format!(
+                    "source.sim.cameras = {cams:?}: distinct indices below the rig's {total} cameras"
+                ));
+            }
+        }
         if !(0.0..1.0).contains(&self.drop_rate) {
             return bad(format!(
                 "source.sim.drop_rate must be in [0, 1), got {}",
@@ -341,6 +385,7 @@ impl SimSourceConfig {
             SimRig::Parallel => RigPreset::Parallel {
                 baseline_mm: self.baseline_mm,
             },
+            SimRig::Ring => RigPreset::Custom(ring_rig(self.ring_cameras, self.distance_mm)),
         };
         let mut cfg = SimConfig::preset(preset, self.distance_mm, self.radius_mm);
         if let Trajectory::Circle {
@@ -388,9 +433,64 @@ impl SimSourceConfig {
         cfg
     }
 
+    /// The parameter set of the cameras this source renders: the whole rig, or with
+    /// `cameras` that share re-based on its first camera.
+    pub fn rendered_rig(&self, full: &RigParams) -> RigParams {
+        let Some(cams) = &self.cameras else {
+            return full.clone();
+        };
+        let base = &full.cameras[cams[0]].cam_from_cam0;
+        let rb = nalgebra::Matrix3::from_row_slice(&base.r_row_major);
+        let tb = Vector3::from(base.t_mm);
+        let mut rig = full.clone();
+        rig.rig_id = format!(
+            "{}-cams{}",
+            full.rig_id,
+            cams.iter().map(|c| c.to_string()).collect::<Vec<_>>().join("-")
+        );
+        rig.cameras = cams
+            .iter()
+            .map(|&c| {
+                let p = &full.cameras[c];
+                let r = nalgebra::Matrix3::from_row_slice(&p.cam_from_cam0.r_row_major) * rb.transpose();
+                let t = Vector3::from(p.cam_from_cam0.t_mm) - r * tb;
+                irtrack_core::params::CameraParams {
+                    model: p.model,
+                    cam_from_cam0: irtrack_core::camera::RigidTransform::from_parts(&r, &t),
+                }
+            })
+            .collect();
+        rig.world_from_cam0 = None;
+        rig
+    }
+
     /// The multi-LED tool this source renders, if any.
     pub fn tool_definition(&self) -> Option<irtrack_core::params::ToolDefinition> {
         self.tool.as_deref().and_then(irtrack_sim::tools::builtin_tool)
+    }
+}
+
+/// `n` cameras evenly on a circle of radius `distance_mm` around (0, 0, `distance_mm`) in
+/// camera 0's frame, all looking at that centre (camera `i` turned by `i·360°/n` about y).
+pub fn ring_rig(n: usize, distance_mm: f64) -> RigParams {
+    let spec = irtrack_sim::CameraSpec::default();
+    RigParams {
+        rig_id: format!("sim-ring{n}-d{distance_mm}"),
+        created_unix_s: 0,
+        cameras: (0..n)
+            .map(|i| irtrack_core::params::CameraParams {
+                model: spec.model(i),
+                cam_from_cam0: if i == 0 {
+                    irtrack_core::camera::RigidTransform::IDENTITY
+                } else {
+                    irtrack_sim::rig::convergent_pose(distance_mm, 360.0 * i as f64 / n as f64)
+                },
+            })
+            .collect(),
+        world_from_cam0: None,
+        tools: Vec::new(),
+        calibration: None,
+        placement: Vec::new(),
     }
 }
 
@@ -433,6 +533,8 @@ pub struct SimSource {
     /// Paced mode renders this long before a frame's capture instant, so that the frame is
     /// handed over at that instant like a camera's (adapted to the recent rendering times).
     render_lead_ns: u64,
+    /// The scenario's cameras this source renders, in frame order.
+    render_cams: Vec<usize>,
 }
 
 /// Where a dark LED is put: so far away that its spot carries no light.
@@ -509,13 +611,18 @@ impl SimSource {
     /// Runs an existing scenario (tests keep a copy of the same scenario for ground truth).
     pub fn from_scenario(scenario: Scenario, cfg: &SimSourceConfig) -> Self {
         let fps = scenario.config().fps;
+        let render_cams = cfg
+            .cameras
+            .clone()
+            .unwrap_or_else(|| (0..scenario.camera_count()).collect());
         Self {
             cfg: SimSourceConfig { fps, ..cfg.clone() },
             period_ns: (1e9 / fps).round() as u64,
             epoch_ns: None,
             next_index: 0,
             stats: SourceStats::default(),
-            controls: vec![SimControls::NOMINAL; scenario.camera_count()],
+            controls: vec![SimControls::NOMINAL; render_cams.len()],
+            render_cams,
             noise_state: 0x9E37_79B9_7F4A_7C15,
             render_lead_ns: ((1e9 / fps) as u64 / 2).min(3_000_000),
             scenario,
@@ -531,7 +638,7 @@ impl SimSource {
 
 impl FrameSource for SimSource {
     fn camera_count(&self) -> usize {
-        self.scenario.camera_count()
+        self.render_cams.len()
     }
 
     fn allocate_set(&self) -> FrameSet {
@@ -567,7 +674,25 @@ impl FrameSource for SimSource {
             if self.cfg.frames.is_some_and(|n| index >= n) {
                 return Err(SourceError::EndOfStream);
             }
-            let capture_ns = if self.cfg.paced {
+            let capture_ns = if self.cfg.paced && self.cfg.wall_clock {
+                // Frame k at CLOCK_REALTIME k / fps, expressed on CLOCK_MONOTONIC.
+                let rt_now = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.as_nanos() as u64);
+                let mono_now = clock::monotonic_ns();
+                let rt_minus_mono = rt_now.saturating_sub(mono_now);
+                let current = rt_now / self.period_ns;
+                if index == 0 || current > index + 1 {
+                    if index != 0 {
+                        self.stats.sets_dropped += current - index;
+                    }
+                    self.next_index = current + 1;
+                    continue;
+                }
+                let due = self.scenario.timestamp_ns(index).saturating_sub(rt_minus_mono);
+                clock::sleep_until_ns(due.saturating_sub(self.render_lead_ns));
+                Some(due)
+            } else if self.cfg.paced {
                 let epoch = *self.epoch_ns.get_or_insert_with(clock::monotonic_ns);
                 let due = epoch + self.scenario.timestamp_ns(index);
                 let now = clock::monotonic_ns();
@@ -588,7 +713,7 @@ impl FrameSource for SimSource {
             };
             let render_start_ns = clock::monotonic_ns();
             self.next_index = index + 1;
-            if out.frames.len() != self.camera_count() {
+            if out.frames.len() != self.render_cams.len() {
                 return Err(SourceError::Config(format!(
                     "frame set has {} frames, simulator has {} cameras",
                     out.frames.len(),
@@ -607,7 +732,8 @@ impl FrameSource for SimSource {
             }
             let mut dropped = 0usize;
             let (mut min_ts, mut max_ts) = (u64::MAX, 0u64);
-            for (camera, frame) in out.frames.iter_mut().enumerate() {
+            for (slot, frame) in out.frames.iter_mut().enumerate() {
+                let camera = self.render_cams[slot];
                 let lost = |e: irtrack_sim::SimError| SourceError::CameraLost {
                     camera,
                     device: "simulator".into(),
@@ -643,7 +769,7 @@ impl FrameSource for SimSource {
                 if info.dropped {
                     dropped += 1;
                 }
-                if let Some(&c) = self.controls.get(camera) {
+                if let Some(&c) = self.controls.get(slot) {
                     let max_dn = if frame.bit_depth == 10 { 1023.0 } else { 255.0 };
                     apply_sim_controls(&mut frame.pixels, c, max_dn, &mut self.noise_state);
                 }

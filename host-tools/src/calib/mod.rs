@@ -307,6 +307,7 @@ pub fn calibrate(
         world_from_cam0: None,
         tools: Vec::new(),
         calibration: None,
+        placement: Vec::new(),
     };
     rig.validate()
         .map_err(|e| anyhow::anyhow!("calibration produced unusable parameters: {e}"))?;

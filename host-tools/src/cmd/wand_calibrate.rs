@@ -146,6 +146,7 @@ pub fn run(args: Args) -> Result<()> {
         world_from_cam0: None,
         tools: Vec::new(),
         calibration: None,
+        placement: Vec::new(),
     };
     rig.validate()
         .context("wand calibration produced unusable parameters")?;

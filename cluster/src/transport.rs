@@ -1,0 +1,266 @@
+//! Zenoh transport of observations: one publisher per board camera, one subscriber in the
+//! solver. Peer mode with configured endpoints by default; multicast scouting only when asked
+//! for (it floods the subnet and needs a multicast route), a `zenohd` router only across
+//! subnets (docs/cluster.md).
+//!
+//! The solver's subscriber copies each payload into a fixed-size message and hands it to the
+//! solver thread through a bounded channel, so the hand-over allocates nothing per
+//! observation; when the solver falls behind, the newest observations are dropped and counted.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
+
+use irtrack_core::observation::{MAX_OBS_LEN, ObsBlob, ObsHeader, encode};
+use zenoh::Wait;
+
+use crate::error::{ClusterError, Result};
+
+/// Key expression of one camera's observations.
+pub fn observation_key(rig: &str, board: &str, camera: usize) -> String {
+    format!("irtrack/{rig}/{board}/cam/{camera}/obs")
+}
+
+/// Key expression the solver subscribes to: every board and camera of the rig.
+pub fn rig_observations_key(rig: &str) -> String {
+    format!("irtrack/{rig}/*/cam/*/obs")
+}
+
+/// Checks a rig or board name for use in a key expression: 1..=32 bytes of `[A-Za-z0-9_-]`.
+pub fn check_name(what: &str, name: &str) -> Result<()> {
+    let ok = !name.is_empty()
+        && name.len() <= irtrack_core::observation::MAX_OBS_ID_LEN
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+    if ok {
+        Ok(())
+    } else {
+        Err(ClusterError::Config {
+            reason: format!("{what} name {name:?} must be 1..=32 characters of A-Z a-z 0-9 _ -"),
+        })
+    }
+}
+
+/// How a node joins the Zenoh network.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct TransportConfig {
+    /// Endpoints this node listens on, e.g. `tcp/0.0.0.0:7447`.
+    pub listen: Vec<String>,
+    /// Endpoints of peers (or a router) to connect to, e.g. `tcp/10.0.0.2:7447`.
+    pub connect: Vec<String>,
+    /// Multicast scouting (off by default: endpoints are configured).
+    pub multicast_scouting: bool,
+}
+
+impl TransportConfig {
+    fn zenoh_config(&self) -> Result<zenoh::Config> {
+        let bad = |e: Box<dyn std::error::Error + Send + Sync>| ClusterError::Transport {
+            what: "configuration",
+            reason: e.to_string(),
+        };
+        let list = |v: &[String]| {
+            let quoted: Vec<String> = v.iter().map(|e| format!("{e:?}")).collect();
+            format!("[{}]", quoted.join(","))
+        };
+        for e in self.listen.iter().chain(&self.connect) {
+            if !(e.starts_with("tcp/") || e.starts_with("udp/")) || e.contains('"') {
+                return Err(ClusterError::Config {
+                    reason: format!("endpoint {e:?} must look like tcp/<ip>:<port> (or udp/...)"),
+                });
+            }
+        }
+        let mut c = zenoh::Config::default();
+        c.insert_json5("mode", "\"peer\"").map_err(bad)?;
+        c.insert_json5("listen/endpoints", &list(&self.listen))
+            .map_err(bad)?;
+        c.insert_json5("connect/endpoints", &list(&self.connect))
+            .map_err(bad)?;
+        let scout = if self.multicast_scouting { "true" } else { "false" };
+        c.insert_json5("scouting/multicast/enabled", scout).map_err(bad)?;
+        Ok(c)
+    }
+}
+
+/// An open Zenoh session.
+#[derive(Clone)]
+pub struct Session {
+    inner: zenoh::Session,
+}
+
+impl std::fmt::Debug for Session {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("zenoh::Session")
+    }
+}
+
+fn transport(what: &'static str) -> impl Fn(Box<dyn std::error::Error + Send + Sync>) -> ClusterError {
+    move |e| ClusterError::Transport {
+        what,
+        reason: e.to_string(),
+    }
+}
+
+impl Session {
+    /// Opens a session (blocking; call from a plain thread or with `spawn_blocking`).
+    pub fn open(cfg: &TransportConfig) -> Result<Session> {
+        let inner = zenoh::open(cfg.zenoh_config()?)
+            .wait()
+            .map_err(transport("open"))?;
+        Ok(Session { inner })
+    }
+
+    /// Closes the session (blocking).
+    pub fn close(&self) {
+        let _ = self.inner.close().wait();
+    }
+}
+
+/// Publishes one camera's observations; encodes into its own buffer.
+pub struct ObsPublisher {
+    publisher: zenoh::pubsub::Publisher<'static>,
+    buf: Box<[u8; MAX_OBS_LEN]>,
+    sent: u64,
+}
+
+impl std::fmt::Debug for ObsPublisher {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "ObsPublisher({})", self.publisher.key_expr())
+    }
+}
+
+impl ObsPublisher {
+    /// Declares the publisher of `irtrack/<rig>/<board>/cam/<camera>/obs` (blocking).
+    pub fn new(session: &Session, rig: &str, board: &str, camera: usize) -> Result<ObsPublisher> {
+        check_name("rig", rig)?;
+        check_name("board", board)?;
+        let publisher = session
+            .inner
+            .declare_publisher(observation_key(rig, board, camera))
+            // Low latency: an observation is small and stale after one frame.
+            .congestion_control(zenoh::qos::CongestionControl::Drop)
+            .priority(zenoh::qos::Priority::RealTime)
+            .express(true)
+            .wait()
+            .map_err(transport("declare publisher"))?;
+        Ok(ObsPublisher {
+            publisher,
+            buf: Box::new([0u8; MAX_OBS_LEN]),
+            sent: 0,
+        })
+    }
+
+    /// Encodes and sends one observation; returns its size in bytes.
+    pub fn publish(&mut self, header: &ObsHeader<'_>, blobs: &[ObsBlob]) -> Result<usize> {
+        let n = encode(header, blobs, &mut self.buf[..])?;
+        // Zenoh takes an owned payload: one small copy per observation on the board.
+        self.publisher
+            .put(self.buf[..n].to_vec())
+            .wait()
+            .map_err(transport("put"))?;
+        self.sent += 1;
+        Ok(n)
+    }
+
+    /// Sends bytes as they are (tests of the solver's handling of bad input).
+    pub fn publish_raw(&mut self, bytes: &[u8]) -> Result<()> {
+        self.publisher
+            .put(bytes.to_vec())
+            .wait()
+            .map_err(transport("put"))?;
+        self.sent += 1;
+        Ok(())
+    }
+
+    pub fn sent(&self) -> u64 {
+        self.sent
+    }
+}
+
+/// One received observation, copied out of Zenoh's buffer.
+#[derive(Clone)]
+pub struct Received {
+    pub len: usize,
+    /// Receive time on the solver's pairing clock, ns.
+    pub received_ns: u64,
+    pub bytes: [u8; MAX_OBS_LEN],
+    /// The payload did not fit: longer than any valid observation (decoding names it).
+    pub oversize: bool,
+}
+
+impl Received {
+    pub fn payload(&self) -> &[u8] {
+        &self.bytes[..self.len]
+    }
+}
+
+/// Counters of a subscriber.
+#[derive(Debug, Default)]
+pub struct SubscriberStats {
+    pub received: AtomicU64,
+    /// Dropped because the solver's queue was full.
+    pub overflow: AtomicU64,
+}
+
+/// The solver's subscription to every camera of a rig.
+pub struct ObsSubscriber {
+    _subscriber: zenoh::pubsub::Subscriber<()>,
+    pub stats: Arc<SubscriberStats>,
+}
+
+impl std::fmt::Debug for ObsSubscriber {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ObsSubscriber")
+    }
+}
+
+impl ObsSubscriber {
+    /// Subscribes to `irtrack/<rig>/*/cam/*/obs`; observations arrive on the returned
+    /// receiver (capacity `queue`), stamped by `clock_ns` on arrival (blocking).
+    pub fn new(
+        session: &Session,
+        rig: &str,
+        queue: usize,
+        clock_ns: fn() -> u64,
+    ) -> Result<(ObsSubscriber, Receiver<Received>)> {
+        check_name("rig", rig)?;
+        let (tx, rx): (SyncSender<Received>, Receiver<Received>) = sync_channel(queue.max(1));
+        let stats = Arc::new(SubscriberStats::default());
+        let st = stats.clone();
+        let subscriber = session
+            .inner
+            .declare_subscriber(rig_observations_key(rig))
+            .callback(move |sample| {
+                let received_ns = clock_ns();
+                let payload = sample.payload().to_bytes();
+                let mut msg = Received {
+                    len: payload.len().min(MAX_OBS_LEN),
+                    received_ns,
+                    bytes: [0u8; MAX_OBS_LEN],
+                    oversize: payload.len() > MAX_OBS_LEN,
+                };
+                msg.bytes[..msg.len].copy_from_slice(&payload[..msg.len]);
+                st.received.fetch_add(1, Ordering::Relaxed);
+                if let Err(TrySendError::Full(_)) = tx.try_send(msg) {
+                    st.overflow.fetch_add(1, Ordering::Relaxed);
+                }
+            })
+            .wait()
+            .map_err(transport("declare subscriber"))?;
+        Ok((
+            ObsSubscriber {
+                _subscriber: subscriber,
+                stats,
+            },
+            rx,
+        ))
+    }
+}
+
+/// CLOCK_REALTIME in ns (the boards' shared clock when PTP or chrony disciplines it).
+pub fn realtime_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0)
+}

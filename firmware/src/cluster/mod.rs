@@ -1,0 +1,394 @@
+//! Cluster roles (docs/cluster.md): a camera board publishes its cameras' blobs, a solver
+//! pairs every board's observations and runs the usual pipeline on them.
+//!
+//! `[cluster]` is always parsed; the roles other than `standalone` need the `cluster` feature
+//! (Zenoh, through `irtrack-cluster`).
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{FirmwareError, Result};
+
+#[cfg(feature = "cluster")]
+pub mod camera;
+#[cfg(feature = "cluster")]
+pub mod solver;
+
+/// What this irtrackd does in a multi-board rig.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Role {
+    /// One board: its own cameras, its own solution (today's behaviour).
+    #[default]
+    Standalone,
+    /// Captures and detects on its cameras and publishes the blobs; keeps its set-up view.
+    Camera,
+    /// Subscribes to the camera boards, pairs, triangulates all cameras, runs the outputs.
+    Solver,
+}
+
+/// `[cluster]`
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClusterConfig {
+    #[serde(default)]
+    pub role: Role,
+    /// The rig's name (the parameter set's rig id); part of every key expression.
+    #[serde(default = "d_rig")]
+    pub rig: String,
+    /// This board's name (camera role); the solver's parameter set places cameras by it.
+    #[serde(default = "d_board")]
+    pub board: String,
+    /// Zenoh endpoints to listen on, e.g. `["tcp/0.0.0.0:7447"]`.
+    #[serde(default)]
+    pub listen: Vec<String>,
+    /// Zenoh endpoints to connect to (the solver's, other boards', or a `zenohd` router).
+    #[serde(default)]
+    pub connect: Vec<String>,
+    /// Find peers by UDP multicast instead of (or besides) the endpoints. Off by default.
+    #[serde(default)]
+    pub multicast_scouting: bool,
+    /// Solver: pair by the hardware trigger's frame counter (cameras triggered) instead of
+    /// timestamps.
+    #[serde(default)]
+    pub trigger: bool,
+    /// Solver: the boards' nominal frame rate; sets the default tolerance (half a period).
+    #[serde(default = "d_fps")]
+    pub fps: f64,
+    /// Solver: timestamp tolerance, ms (default half a frame period).
+    #[serde(default)]
+    pub tolerance_ms: Option<f64>,
+    /// Solver: a set closes this long after its first observation, ms (default two periods).
+    #[serde(default)]
+    pub set_deadline_ms: Option<f64>,
+    /// Solver: a board whose clock is further off than this is faulted, ms (default: the
+    /// tolerance).
+    #[serde(default)]
+    pub max_clock_offset_ms: Option<f64>,
+    /// Solver: a board silent this long is reported down, ms.
+    #[serde(default = "d_board_timeout")]
+    pub board_timeout_ms: f64,
+    /// Solver: image size of each of the rig's cameras, in the parameter set's camera order
+    /// (what the parameter set must match, as a local source's cameras are).
+    #[serde(default)]
+    pub image_sizes_px: Vec<[u32; 2]>,
+    /// Camera role, tests: probability of not sending an observation (loss injection).
+    #[serde(default)]
+    pub inject_loss: f64,
+    /// Camera role, tests: largest extra random delay before sending, ms (jitter injection).
+    #[serde(default)]
+    pub inject_jitter_ms: f64,
+    /// Camera role, simulation and tests: this board's clock error, ms (added to the capture
+    /// timestamps it sends, as a board with an unsynchronised clock would).
+    #[serde(default)]
+    pub clock_offset_ms: f64,
+    /// Camera role, simulation and tests: this board's clock drift, ppm.
+    #[serde(default)]
+    pub clock_drift_ppm: f64,
+}
+
+fn d_rig() -> String {
+    "rig".into()
+}
+fn d_board() -> String {
+    "board0".into()
+}
+fn d_fps() -> f64 {
+    60.0
+}
+fn d_board_timeout() -> f64 {
+    500.0
+}
+
+impl Default for ClusterConfig {
+    fn default() -> Self {
+        ClusterConfig {
+            role: Role::Standalone,
+            rig: d_rig(),
+            board: d_board(),
+            listen: Vec::new(),
+            connect: Vec::new(),
+            multicast_scouting: false,
+            trigger: false,
+            fps: d_fps(),
+            tolerance_ms: None,
+            set_deadline_ms: None,
+            max_clock_offset_ms: None,
+            board_timeout_ms: d_board_timeout(),
+            image_sizes_px: Vec::new(),
+            inject_loss: 0.0,
+            inject_jitter_ms: 0.0,
+            clock_offset_ms: 0.0,
+            clock_drift_ppm: 0.0,
+        }
+    }
+}
+
+impl ClusterConfig {
+    pub fn validate(&self) -> Result<()> {
+        let bad = |reason: String| Err(FirmwareError::Config { reason });
+        if self.role == Role::Standalone {
+            return Ok(());
+        }
+        if !cfg!(feature = "cluster") {
+            return bad(format!(
+                "cluster.role = {:?} needs irtrackd built with the `cluster` feature",
+                self.role
+            ));
+        }
+        for (what, name) in [("cluster.rig", &self.rig), ("cluster.board", &self.board)] {
+            let ok = !name.is_empty()
+                && name.len() <= irtrack_core::params::MAX_BOARD_NAME_LEN
+                && name
+                    .bytes()
+                    .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+            if !ok {
+                return bad(format!(
+                    "{what} = {name:?} must be 1..=32 characters of A-Z a-z 0-9 _ -"
+                ));
+            }
+        }
+        if self.listen.is_empty() && self.connect.is_empty() && !self.multicast_scouting {
+            return bad(
+                "cluster: give listen and/or connect endpoints (or multicast_scouting = true)".into(),
+            );
+        }
+        if !(self.fps.is_finite() && self.fps > 0.0) {
+            return bad(format!("cluster.fps must be > 0, got {}", self.fps));
+        }
+        for (key, v) in [
+            ("tolerance_ms", self.tolerance_ms),
+            ("set_deadline_ms", self.set_deadline_ms),
+            ("max_clock_offset_ms", self.max_clock_offset_ms),
+            ("board_timeout_ms", Some(self.board_timeout_ms)),
+        ] {
+            if let Some(v) = v
+                && !(v.is_finite() && v > 0.0)
+            {
+                return bad(format!("cluster.{key} must be > 0, got {v}"));
+            }
+        }
+        if !(0.0..1.0).contains(&self.inject_loss) {
+            return bad(format!(
+                "cluster.inject_loss must be in [0, 1), got {}",
+                self.inject_loss
+            ));
+        }
+        if !(self.inject_jitter_ms.is_finite() && (0.0..=1000.0).contains(&self.inject_jitter_ms)) {
+            return bad(format!(
+                "cluster.inject_jitter_ms must be in 0..=1000, got {}",
+                self.inject_jitter_ms
+            ));
+        }
+        if !(self.clock_offset_ms.is_finite() && self.clock_drift_ppm.is_finite()) {
+            return bad("cluster.clock_offset_ms and clock_drift_ppm must be finite".into());
+        }
+        if self.role == Role::Solver {
+            let n = self.image_sizes_px.len();
+            if !(2..=irtrack_core::params::MAX_CAMERAS).contains(&n) {
+                return bad(format!(
+                    "cluster.image_sizes_px lists {n} cameras; a solver needs 2..={}",
+                    irtrack_core::params::MAX_CAMERAS
+                ));
+            }
+            if self.image_sizes_px.iter().any(|[w, h]| *w == 0 || *h == 0) {
+                return bad("cluster.image_sizes_px: every size must be non-zero".into());
+            }
+        }
+        Ok(())
+    }
+
+    /// Frame period at `fps`, ns.
+    pub fn period_ns(&self) -> u64 {
+        (1e9 / self.fps) as u64
+    }
+
+    fn ms_ns(ms: f64) -> u64 {
+        (ms * 1e6) as u64
+    }
+
+    pub fn tolerance_ns(&self) -> u64 {
+        self.tolerance_ms.map_or(self.period_ns() / 2, Self::ms_ns)
+    }
+
+    pub fn set_deadline_ns(&self) -> u64 {
+        self.set_deadline_ms.map_or(2 * self.period_ns(), Self::ms_ns)
+    }
+
+    pub fn max_clock_offset_ns(&self) -> u64 {
+        self.max_clock_offset_ms.map_or(self.tolerance_ns(), Self::ms_ns)
+    }
+}
+
+/// One board as the solver sees it (`/status` → `cluster.boards`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BoardReport {
+    pub name: String,
+    /// The rig's cameras on this board.
+    pub cameras: Vec<usize>,
+    /// Time since its last observation, ms; `None`: never heard from.
+    pub last_seen_ms: Option<f64>,
+    /// Its clock minus the solver's (less the smallest transit), ms.
+    pub clock_offset_ms: Option<f64>,
+    /// Clock offset beyond the limit: its observations are kept out of every set.
+    pub clock_fault: bool,
+    /// Silent longer than `board_timeout_ms`.
+    pub down: bool,
+}
+
+/// `/status` → `cluster` (camera and solver roles).
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct ClusterReport {
+    pub role: &'static str,
+    pub rig: String,
+    pub board: String,
+    /// Camera role: observations sent, and those dropped by loss injection.
+    pub published: u64,
+    pub publish_errors: u64,
+    pub injected_losses: u64,
+    /// Solver.
+    pub boards: Vec<BoardReport>,
+    pub received: u64,
+    pub sets_complete: u64,
+    pub sets_incomplete: u64,
+    pub late: u64,
+    pub conflicting: u64,
+    pub refused_clock: u64,
+    pub queue_overflow: u64,
+    /// Empty slots in closed sets, per camera.
+    pub missing: Vec<u64>,
+    /// Refused observations by problem code (docs/observation-protocol.md).
+    pub refused: std::collections::BTreeMap<&'static str, u64>,
+    /// The parameter set does not place the cameras on boards (solver cannot pair).
+    pub no_placement: bool,
+}
+
+impl ClusterReport {
+    /// Faults in plain words for the set-up view (`code`, message).
+    pub fn fault_texts(&self) -> Vec<(&'static str, String)> {
+        let mut out = Vec::new();
+        if self.no_placement {
+            out.push((
+                "cluster_no_placement",
+                "the parameter set does not say which board each camera is on — push a set with a placement (docs/cluster.md)".to_string(),
+            ));
+        }
+        for b in &self.boards {
+            if b.down {
+                out.push((
+                    "board_down",
+                    format!(
+                        "camera board {} (cameras {:?}) sends nothing{} — check its power and network; tracking goes on with the other cameras",
+                        b.name,
+                        b.cameras,
+                        b.last_seen_ms.map_or(String::new(), |ms| format!(" for {:.1} s", ms / 1e3))
+                    ),
+                ));
+            }
+            if b.clock_fault {
+                out.push((
+                    "clock_offset",
+                    format!(
+                        "camera board {}: its clock is {:.1} ms off — its observations are left out; check PTP/chrony on it",
+                        b.name,
+                        b.clock_offset_ms.unwrap_or(f64::NAN)
+                    ),
+                ));
+            }
+        }
+        let refused: u64 = self.refused.values().sum();
+        if refused > 0 {
+            let list: Vec<String> = self.refused.iter().map(|(k, v)| format!("{k} {v}")).collect();
+            out.push((
+                "observations_refused",
+                format!("{refused} observations refused ({})", list.join(", ")),
+            ));
+        }
+        out
+    }
+}
+
+/// Shared cluster state (camera and solver roles); `None` standalone.
+pub type SharedReport = std::sync::Arc<std::sync::Mutex<ClusterReport>>;
+
+/// The cluster state for `/status`, when the role is not standalone.
+pub fn new_report(cfg: &ClusterConfig) -> Option<SharedReport> {
+    (cfg.role != Role::Standalone)
+        .then(|| std::sync::Arc::new(std::sync::Mutex::new(ClusterReport::default())))
+}
+
+/// Shows `report` in `/status` and on the set-up page.
+pub fn register(status: &crate::status::SharedStatus, report: &Option<SharedReport>) {
+    if let (Some(r), Ok(mut g)) = (report, status.cluster.lock()) {
+        *g = Some(r.clone());
+    }
+}
+
+/// Runs a blocking Zenoh call on a plain thread: Zenoh's blocking API must not run on a
+/// tokio worker (irtrackd's start is async).
+#[cfg(feature = "cluster")]
+fn off_runtime<T: Send>(f: impl FnOnce() -> Result<T> + Send) -> Result<T> {
+    std::thread::scope(|s| {
+        s.spawn(f).join().unwrap_or_else(|_| {
+            Err(FirmwareError::Thread {
+                what: "zenoh session",
+                reason: "panicked while opening".into(),
+            })
+        })
+    })
+}
+
+/// Solver role: the frame source made of the camera boards.
+#[cfg(feature = "cluster")]
+pub fn solver_source(
+    cfg: &ClusterConfig,
+    params: std::sync::Arc<crate::engine::ParamsHandle>,
+    report: SharedReport,
+) -> Result<Box<dyn crate::source::FrameSource>> {
+    off_runtime(|| {
+        Ok(Box::new(solver::ClusterSource::new(cfg, params, report)?) as Box<dyn crate::source::FrameSource>)
+    })
+}
+
+#[cfg(not(feature = "cluster"))]
+pub fn solver_source(
+    _cfg: &ClusterConfig,
+    _params: std::sync::Arc<crate::engine::ParamsHandle>,
+    _report: SharedReport,
+) -> Result<Box<dyn crate::source::FrameSource>> {
+    Err(FirmwareError::Config {
+        reason: "cluster.role = \"solver\" needs irtrackd built with the `cluster` feature".into(),
+    })
+}
+
+/// The loop's part of the role: a camera board publishes every camera's blobs; a solver
+/// refuses sets whose observations are further apart than the pairing tolerance.
+#[cfg(feature = "cluster")]
+pub fn with_role(
+    engine: crate::engine::Engine,
+    cfg: &ClusterConfig,
+    report: &Option<SharedReport>,
+) -> Result<crate::engine::Engine> {
+    let Some(report) = report else { return Ok(engine) };
+    Ok(match cfg.role {
+        Role::Camera => {
+            let cameras = engine.source().camera_count();
+            let r = report.clone();
+            let sink = off_runtime(|| {
+                Ok(Box::new(camera::CameraPublisher::new(cfg, cameras, r)?)
+                    as Box<dyn crate::engine::ObservationSink>)
+            })?;
+            engine.with_observation_sink(sink)
+        }
+        Role::Solver => engine.with_max_pairing_error(std::time::Duration::from_nanos(cfg.tolerance_ns())),
+        Role::Standalone => engine,
+    })
+}
+
+#[cfg(not(feature = "cluster"))]
+pub fn with_role(
+    engine: crate::engine::Engine,
+    _cfg: &ClusterConfig,
+    _report: &Option<SharedReport>,
+) -> Result<crate::engine::Engine> {
+    Ok(engine)
+}

@@ -1,0 +1,413 @@
+//! Solver role: a [`FrameSource`] whose cameras are other boards' cameras. It subscribes to
+//! the rig's observations, checks them ([`ObservationGate`]), pairs them into sets
+//! ([`Pairer`]) and delivers each set with the boards' blobs as [`FrameSource::remote_blobs`];
+//! the processing loop then triangulates and runs everything downstream as for local cameras.
+//!
+//! The camera ↔ board mapping is the active parameter set's placement (blob version 3). The
+//! frames carry no pixels worth looking at (zeros of the calibrated size, so the parameter
+//! service checks image sizes as for local cameras). Buffers are allocated when the parameter
+//! set changes; receiving, pairing and delivering a set does not allocate.
+
+use std::sync::mpsc::{Receiver, RecvTimeoutError};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use irtrack_cluster::pairing::{Pairer, PairingConfig, PairingMode, PushOutcome};
+use irtrack_cluster::transport::{ObsSubscriber, Received, Session, realtime_ns};
+use irtrack_core::blob::Blob;
+use irtrack_core::observation::{MAX_OBS_BLOBS, ObsClock, ObservationGate, ObservationProblem, decode};
+
+use super::{BoardReport, ClusterConfig, ClusterReport};
+use crate::clock;
+use crate::engine::ParamsHandle;
+use crate::error::{FirmwareError, Result};
+use crate::source::{Frame, FrameSet, FrameSource, Pixels, SourceError, SourceStats};
+
+/// Observations further than this from the solver's clock are refused outright (a board
+/// with a clock this wrong is not synchronised at all).
+const MAX_TIMESTAMP_OFFSET_NS: u64 = 1_000_000_000;
+/// How often `/status` gets a fresh copy of the counters.
+const REPORT_INTERVAL_NS: u64 = 200_000_000;
+/// With no observation at all for this long, the source reports a timeout (camera fault).
+const SILENCE_TIMEOUT_NS: u64 = 1_000_000_000;
+
+/// The rig's layout from the active parameter set.
+struct Layout {
+    gate: ObservationGate,
+    pairer: Pairer,
+    boards: Vec<String>,
+    board_cameras: Vec<Vec<usize>>,
+}
+
+/// The solver's [`FrameSource`].
+pub struct ClusterSource {
+    cfg: ClusterConfig,
+    session: Session,
+    sub: ObsSubscriber,
+    rx: Receiver<Received>,
+    params: Arc<ParamsHandle>,
+    seen_generation: u64,
+    layout: Option<Layout>,
+    board_last_ns: Vec<Option<u64>>,
+    remote: Vec<Vec<Blob>>,
+    stats: SourceStats,
+    report: Arc<Mutex<ClusterReport>>,
+    refused: [u64; ObservationProblem::CODES.len()],
+    received: u64,
+    last_any_ns: u64,
+    last_report_ns: u64,
+    last_index: u64,
+}
+
+impl ClusterSource {
+    /// Opens the session and subscribes (blocking).
+    pub fn new(
+        cfg: &ClusterConfig,
+        params: Arc<ParamsHandle>,
+        report: Arc<Mutex<ClusterReport>>,
+    ) -> Result<Self> {
+        let session = super::camera::open_session(cfg)?;
+        let (sub, rx) =
+            ObsSubscriber::new(&session, &cfg.rig, 1024, realtime_ns).map_err(|e| FirmwareError::Config {
+                reason: format!("cluster: {e}"),
+            })?;
+        let n = cfg.image_sizes_px.len();
+        if let Ok(mut r) = report.lock() {
+            r.role = "solver";
+            r.rig = cfg.rig.clone();
+            r.missing = vec![0; n];
+        }
+        tracing::info!(rig = %cfg.rig, cameras = n, "cluster solver: subscribed to the camera boards");
+        Ok(ClusterSource {
+            cfg: cfg.clone(),
+            session,
+            sub,
+            rx,
+            params,
+            seen_generation: 0,
+            layout: None,
+            board_last_ns: Vec::new(),
+            remote: (0..n).map(|_| Vec::with_capacity(MAX_OBS_BLOBS)).collect(),
+            stats: SourceStats::default(),
+            report,
+            refused: [0; ObservationProblem::CODES.len()],
+            received: 0,
+            last_any_ns: realtime_ns(),
+            last_report_ns: 0,
+            last_index: 0,
+        })
+    }
+
+    /// Rebuilds gate and pairer when the parameter set changed (allocates; only then).
+    fn refresh_layout(&mut self) {
+        let generation = self.params.generation();
+        if generation == self.seen_generation {
+            return;
+        }
+        self.seen_generation = generation;
+        self.layout = None;
+        let Some(p) = self.params.current() else { return };
+        let placement = &p.rig.placement;
+        if placement.len() != self.remote.len() {
+            tracing::error!(
+                rig_id = %p.rig.rig_id,
+                placed = placement.len(),
+                cameras = self.remote.len(),
+                "parameter set does not place every camera on a board; the solver cannot pair"
+            );
+            return;
+        }
+        let mut boards: Vec<String> = Vec::new();
+        let mut camera_board = Vec::with_capacity(placement.len());
+        for pl in placement {
+            let b = match boards.iter().position(|b| *b == pl.board) {
+                Some(b) => b,
+                None => {
+                    boards.push(pl.board.clone());
+                    boards.len() - 1
+                }
+            };
+            camera_board.push(b);
+        }
+        let board_cameras = (0..boards.len())
+            .map(|b| {
+                (0..camera_board.len())
+                    .filter(|&c| camera_board[c] == b)
+                    .collect()
+            })
+            .collect();
+        let mode = if self.cfg.trigger {
+            PairingMode::Trigger
+        } else {
+            PairingMode::Timestamp {
+                tolerance_ns: self.cfg.tolerance_ns(),
+            }
+        };
+        let pairing = PairingConfig {
+            camera_board,
+            mode,
+            deadline_ns: self.cfg.set_deadline_ns(),
+            max_clock_offset_ns: self.cfg.max_clock_offset_ns(),
+            offset_window: 64,
+        };
+        let built = ObservationGate::new(
+            &self.cfg.rig,
+            placement,
+            ObsClock::Realtime,
+            MAX_TIMESTAMP_OFFSET_NS,
+        )
+        .map_err(|e| e.to_string())
+        .and_then(|gate| {
+            Pairer::new(pairing)
+                .map(|pairer| (gate, pairer))
+                .map_err(|e| e.to_string())
+        });
+        match built {
+            Ok((gate, pairer)) => {
+                tracing::info!(rig_id = %p.rig.rig_id, boards = ?boards, "cluster solver: camera placement loaded");
+                self.board_last_ns = vec![None; boards.len()];
+                self.layout = Some(Layout {
+                    gate,
+                    pairer,
+                    boards,
+                    board_cameras,
+                });
+            }
+            Err(e) => tracing::error!(error = %e, "cluster solver: placement refused"),
+        }
+    }
+
+    fn refuse(&mut self, problem: ObservationProblem) {
+        let i = problem.index();
+        if self.refused[i] == 0 {
+            tracing::warn!(problem = %problem, "observation refused");
+        }
+        self.refused[i] += 1;
+    }
+
+    fn handle(&mut self, m: &Received) {
+        self.received += 1;
+        self.last_any_ns = m.received_ns;
+        let Some(layout) = self.layout.as_mut() else {
+            return;
+        };
+        let obs = match decode(m.payload()) {
+            Ok(o) => o,
+            Err(irtrack_core::Error::Observation { problem }) => return self.refuse(problem),
+            Err(_) => return,
+        };
+        // A board heard again after being silent restarted: forget its sequences and clock.
+        if let Some(c) = layout.gate.camera_of(obs.header.board, obs.header.camera) {
+            let board = layout.pairer.boards().len().min(self.board_last_ns.len());
+            let b = (0..board).find(|&b| layout.board_cameras[b].contains(&c));
+            if let Some(b) = b {
+                let silent = self.board_last_ns[b].is_none_or(|t| {
+                    m.received_ns.saturating_sub(t) > (self.cfg.board_timeout_ms * 1e6) as u64
+                });
+                if silent && self.board_last_ns[b].is_some() {
+                    tracing::info!(board = %layout.boards[b], "camera board back");
+                    for &cam in &layout.board_cameras[b] {
+                        layout.gate.reset_camera(cam);
+                    }
+                    layout.pairer.reset_board(b);
+                }
+            }
+        }
+        let camera = match layout.gate.check(&obs, m.received_ns) {
+            Ok(c) => c,
+            Err(irtrack_core::Error::Observation { problem }) => return self.refuse(problem),
+            Err(_) => return,
+        };
+        if let Some(b) = (0..layout.board_cameras.len()).find(|&b| layout.board_cameras[b].contains(&camera))
+        {
+            self.board_last_ns[b] = Some(m.received_ns);
+        }
+        // Late, conflicting or clock-faulted observations are counted by the pairer.
+        let _: PushOutcome = layout.pairer.push(camera, &obs, m.received_ns);
+    }
+
+    fn update_report(&mut self, now_ns: u64) {
+        if now_ns.saturating_sub(self.last_report_ns) < REPORT_INTERVAL_NS {
+            return;
+        }
+        self.last_report_ns = now_ns;
+        let Ok(mut r) = self.report.try_lock() else { return };
+        r.received = self.received;
+        r.queue_overflow = self.sub.stats.overflow.load(std::sync::atomic::Ordering::Relaxed);
+        for (i, code) in ObservationProblem::CODES.iter().enumerate() {
+            if self.refused[i] > 0 {
+                r.refused.insert(*code, self.refused[i]);
+            }
+        }
+        r.no_placement = self.params.current().is_some() && self.layout.is_none();
+        let Some(layout) = &self.layout else {
+            r.boards.clear();
+            return;
+        };
+        let st = layout.pairer.stats();
+        r.sets_complete = st.sets_complete;
+        r.sets_incomplete = st.sets_incomplete;
+        r.late = st.late;
+        r.conflicting = st.conflicting;
+        r.refused_clock = st.refused_clock;
+        r.missing = st.missing[..layout.pairer.camera_count()].to_vec();
+        let timeout_ns = (self.cfg.board_timeout_ms * 1e6) as u64;
+        r.boards = layout
+            .boards
+            .iter()
+            .enumerate()
+            .map(|(b, name)| {
+                let clock = layout.pairer.boards().get(b).copied().unwrap_or_default();
+                let last = self.board_last_ns.get(b).copied().flatten();
+                BoardReport {
+                    name: name.clone(),
+                    cameras: layout.board_cameras[b].clone(),
+                    last_seen_ms: last.map(|t| now_ns.saturating_sub(t) as f64 / 1e6),
+                    clock_offset_ms: clock.offset_ns.map(|o| o as f64 / 1e6),
+                    clock_fault: clock.faulted,
+                    down: last.is_none_or(|t| now_ns.saturating_sub(t) > timeout_ns),
+                }
+            })
+            .collect();
+    }
+
+    /// Fills `out` from the pairer's closed set, if one is ready.
+    fn take_set(&mut self, now_ns: u64, out: &mut FrameSet) -> bool {
+        let Some(layout) = self.layout.as_mut() else {
+            return false;
+        };
+        let Some(set) = layout.pairer.poll(now_ns) else {
+            return false;
+        };
+        let rt_minus_mono = i128::from(realtime_ns()) - i128::from(clock::monotonic_ns());
+        let to_mono = |rt: u64| (i128::from(rt) - rt_minus_mono).max(0) as u64;
+        let (mut lo, mut hi) = (u64::MAX, 0u64);
+        let mut index = None;
+        for (c, (frame, remote)) in out.frames.iter_mut().zip(self.remote.iter_mut()).enumerate() {
+            let e = &set.cameras[c];
+            remote.clear();
+            if e.present {
+                remote.extend(e.blobs().iter().map(|b| b.to_blob()));
+                lo = lo.min(e.capture_ts_ns);
+                hi = hi.max(e.capture_ts_ns);
+                index.get_or_insert(e.sequence);
+                frame.sequence = e.sequence;
+                frame.timestamp_ns = to_mono(e.capture_ts_ns);
+            } else {
+                frame.timestamp_ns = to_mono(set.capture_ts_ns);
+            }
+        }
+        // Frame 0's time is the set's time in the loop: the earliest capture in the set.
+        if let Some(f0) = out.frames.first_mut() {
+            f0.timestamp_ns = to_mono(set.capture_ts_ns);
+        }
+        // The boards' frame counter (simulated boards share one); else our own count.
+        let index = index.unwrap_or(self.last_index + 1).max(self.last_index + 1);
+        self.last_index = index;
+        out.index = index;
+        out.pairing_error_ns = hi.saturating_sub(lo.min(hi));
+        self.stats.sets_delivered += 1;
+        true
+    }
+}
+
+impl Drop for ClusterSource {
+    fn drop(&mut self) {
+        self.session.close();
+    }
+}
+
+impl FrameSource for ClusterSource {
+    fn camera_count(&self) -> usize {
+        self.cfg.image_sizes_px.len()
+    }
+
+    fn allocate_set(&self) -> FrameSet {
+        FrameSet {
+            index: 0,
+            frames: self
+                .cfg
+                .image_sizes_px
+                .iter()
+                .map(|&[w, h]| Frame {
+                    width_px: w,
+                    height_px: h,
+                    stride_px: w,
+                    bit_depth: 8,
+                    pixels: Pixels::U8(vec![0; w as usize * h as usize]),
+                    timestamp_ns: 0,
+                    sequence: 0,
+                })
+                .collect(),
+            pairing_error_ns: 0,
+            render_ns: 0,
+        }
+    }
+
+    fn next_set(&mut self, out: &mut FrameSet) -> std::result::Result<(), SourceError> {
+        self.refresh_layout();
+        let period = Duration::from_nanos(self.cfg.period_ns().max(1));
+        loop {
+            let now = realtime_ns();
+            self.update_report(now);
+            if self.take_set(now, out) {
+                return Ok(());
+            }
+            if self.layout.is_none() {
+                // Nothing to pair with: drain, and deliver an empty set per period so the
+                // loop reports the state (no parameters / no placement) instead of hanging.
+                while let Ok(m) = self.rx.try_recv() {
+                    self.received += 1;
+                    self.last_any_ns = m.received_ns;
+                }
+                std::thread::sleep(period);
+                for r in &mut self.remote {
+                    r.clear();
+                }
+                self.last_index += 1;
+                out.index = self.last_index;
+                let t = clock::monotonic_ns();
+                for f in &mut out.frames {
+                    f.timestamp_ns = t;
+                }
+                out.pairing_error_ns = 0;
+                return Ok(());
+            }
+            match self.rx.recv_timeout(Duration::from_millis(2)) {
+                Ok(m) => self.handle(&m),
+                Err(RecvTimeoutError::Timeout) => {
+                    if now.saturating_sub(self.last_any_ns) > SILENCE_TIMEOUT_NS {
+                        // Every board is silent: a camera fault (the robot link holds).
+                        self.last_any_ns = now;
+                        return Err(SourceError::Timeout {
+                            timeout_ms: SILENCE_TIMEOUT_NS / 1_000_000,
+                        });
+                    }
+                }
+                Err(RecvTimeoutError::Disconnected) => {
+                    return Err(SourceError::CameraLost {
+                        camera: 0,
+                        device: format!("zenoh subscription irtrack/{}/**", self.cfg.rig),
+                        reason: "subscriber closed".into(),
+                    });
+                }
+            }
+        }
+    }
+
+    fn stats(&self) -> SourceStats {
+        self.stats.clone()
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "cluster solver of rig {} ({} cameras over Zenoh)",
+            self.cfg.rig,
+            self.cfg.image_sizes_px.len()
+        )
+    }
+
+    fn remote_blobs(&self, camera: usize) -> Option<&[Blob]> {
+        self.remote.get(camera).map(|v| &v[..])
+    }
+}
