@@ -561,6 +561,7 @@ mod tests {
             world_from_cam0: None,
             tools: Vec::new(),
             calibration: None,
+            placement: Vec::new(),
         }
     }
 
