@@ -3,7 +3,7 @@
 //! ([`Pairer`]) and delivers each set with the boards' blobs as [`FrameSource::remote_blobs`];
 //! the processing loop then triangulates and runs everything downstream as for local cameras.
 //!
-//! The camera ↔ board mapping is the active parameter set's placement (blob version 3). The
+//! The camera ↔ board mapping is the active parameter set's placement (blob version 4). The
 //! frames carry no pixels worth looking at (zeros of the calibrated size, so the parameter
 //! service checks image sizes as for local cameras). Buffers are allocated when the parameter
 //! set changes; receiving, pairing and delivering a set does not allocate.
