@@ -61,7 +61,7 @@ const fn phase(
 pub const PHASES: &[Phase] = &[
     phase("setup", "install missing system packages", "", setup_phase, 30, &[]),
     phase("fmt", "cargo fmt --all --check", "", fmt, 5, &[]),
-    phase("clippy", "cargo clippy --workspace --all-targets (+ Zenoh features) -- -D warnings", "", clippy, 60, &["debug"]),
+    phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", clippy, 60, &["debug"]),
     phase("host-tests", "cargo test --workspace (all crates, host, + Zenoh features)", "host", host_tests, 25, &["debug"]),
     phase("no-std", "irtrack-core without its std feature", "", no_std, 30, &["debug"]),
     // The image runs right after the host phases: its system test runs host-tools from
@@ -427,7 +427,7 @@ fn host_tests(ctx: &Ctx) -> Outcome {
     })
 }
 
-/// The host phases build the Zenoh parts too (off by default, docs/cluster.md): the cluster
+/// The host tests build the Zenoh parts too (off by default, docs/cluster.md): the cluster
 /// crate's transport, irtrackd's camera/solver roles and the multi-process tests. The aarch64
 /// and fuzz phases leave them out (docs/development.md).
 pub const CLUSTER_FEATURES: &str = "irtrack-cluster/zenoh,irtrack-firmware/cluster,irtrack-tests/cluster";
