@@ -36,7 +36,7 @@ fn header(seq: u64, camera: u8) -> ObsHeader<'static> {
         board: "b0",
         camera,
         sequence: seq,
-        trigger_count: (seq % 2 == 0).then_some(seq * 10),
+        trigger_count: seq.is_multiple_of(2).then_some(seq * 10),
         capture_ts_ns: realtime_ns(),
         clock: ObsClock::Realtime,
         exposure_us: 250,
@@ -54,7 +54,7 @@ fn blob(seq: u64) -> ObsBlob {
         roundness: 1.0,
         touches_frame_edge: false,
         touches_roi_edge: true,
-        saturated: seq % 3 == 0,
+        saturated: seq.is_multiple_of(3),
     }
 }
 
@@ -188,7 +188,10 @@ fn python_eclipse_zenoh_decodes_observations() {
         let b = &v["blobs"][0];
         assert_eq!(b["x_px"].as_f64().unwrap(), f64::from(blob(s).x_px));
         assert_eq!(b["area_px"], 9);
-        assert_eq!(b["flags"].as_u64().unwrap(), 2 | if s % 3 == 0 { 4 } else { 0 });
+        assert_eq!(
+            b["flags"].as_u64().unwrap(),
+            2 | if s.is_multiple_of(3) { 4 } else { 0 }
+        );
     }
     board.close();
 }

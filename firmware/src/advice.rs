@@ -12,8 +12,8 @@ use irtrack_core::image::{GrayImage, Pixel};
 use irtrack_core::pipeline::TrackerConfig;
 use serde::Serialize;
 
+use crate::blob_view::{BlobView, RejectReason};
 use crate::source::{Frame, Pixels};
-use crate::viewer::{BlobView, RejectReason};
 
 /// Share of the frame above the threshold beyond which the background, not a light, is the
 /// problem (an LED covers well under 0.1 % of a frame).

@@ -80,24 +80,6 @@ impl CalibrationStatus {
     }
 }
 
-impl crate::status::ParamsInfo {
-    /// Takes the active set's record (on activation).
-    pub fn set_calibration(&mut self, record: Option<&CalibrationInfo>) {
-        self.calibration_record = record.cloned();
-        self.calibration = None;
-    }
-
-    /// The info with the calibration's age and warning as of `now_unix_s`.
-    pub fn aged(mut self, now_unix_s: u64) -> Self {
-        let max = self.calibration_max_age_days.unwrap_or(DEFAULT_MAX_AGE_DAYS);
-        self.calibration = self
-            .calibration_record
-            .as_ref()
-            .map(|r| CalibrationStatus::of(r, now_unix_s, max));
-        self
-    }
-}
-
 /// Seconds since the Unix epoch (0 if the clock is before it).
 pub fn now_unix_s() -> u64 {
     std::time::SystemTime::now()

@@ -7,6 +7,7 @@
 
 pub mod advice;
 pub mod app;
+pub mod blob_view;
 pub mod calibration;
 pub mod clock;
 pub mod cluster;

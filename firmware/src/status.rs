@@ -96,6 +96,26 @@ pub struct ParamsInfo {
     pub calibration_max_age_days: Option<f64>,
 }
 
+impl ParamsInfo {
+    /// Takes the active set's record (on activation).
+    pub fn set_calibration(&mut self, record: Option<&irtrack_core::params::CalibrationInfo>) {
+        self.calibration_record = record.cloned();
+        self.calibration = None;
+    }
+
+    /// The info with the calibration's age and warning as of `now_unix_s`.
+    pub fn aged(mut self, now_unix_s: u64) -> Self {
+        let max = self
+            .calibration_max_age_days
+            .unwrap_or(crate::calibration::DEFAULT_MAX_AGE_DAYS);
+        self.calibration = self
+            .calibration_record
+            .as_ref()
+            .map(|r| crate::calibration::CalibrationStatus::of(r, now_unix_s, max));
+        self
+    }
+}
+
 /// All shared counters and state.
 #[derive(Debug)]
 pub struct SharedStatus {
@@ -163,9 +183,9 @@ pub struct SharedStatus {
     pub params: Mutex<ParamsInfo>,
     pub realtime: Mutex<Vec<String>>,
     /// Counters of the standard outputs (set once by `app::start`).
-    pub outputs: std::sync::OnceLock<crate::outputs::OutputsStats>,
+    pub outputs: std::sync::OnceLock<crate::outputs::stats::OutputsStats>,
     /// Camera and solver roles: the cluster's state (docs/cluster.md); `None` standalone.
-    pub cluster: Mutex<Option<Arc<Mutex<crate::cluster::ClusterReport>>>>,
+    pub cluster: Mutex<Option<Arc<Mutex<crate::cluster::report::ClusterReport>>>>,
 }
 
 fn track_to_u8(t: TrackIndication) -> u8 {
@@ -414,7 +434,7 @@ impl SharedStatus {
     }
 
     /// A copy of the cluster state, when this irtrackd is a camera board or a solver.
-    pub fn cluster_report(&self) -> Option<crate::cluster::ClusterReport> {
+    pub fn cluster_report(&self) -> Option<crate::cluster::report::ClusterReport> {
         let shared = self.cluster.lock().ok()?.clone()?;
         let r = shared.lock().ok()?.clone();
         Some(r)
@@ -959,5 +979,5 @@ pub struct StatusReport {
     pub leds: LedReport,
     pub faults: Vec<Fault>,
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub cluster: Option<crate::cluster::ClusterReport>,
+    pub cluster: Option<crate::cluster::report::ClusterReport>,
 }

@@ -22,47 +22,16 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
 use std::time::{Duration, Instant};
 
-use irtrack_core::blob::Blob;
 use irtrack_core::pipeline::TrackerConfig;
-use serde::Serialize;
 
 use crate::advice::{CameraAnalysis, Suggestion};
+pub use crate::blob_view::{BlobView, RejectReason};
 use crate::source::{Frame, FrameSet, Pixels};
 
 const R: Ordering = Ordering::Relaxed;
 
 /// Blobs listed per camera in a copy; more are counted in [`TapSet::blobs_truncated`].
 pub const MAX_TAP_BLOBS: usize = 32;
-
-/// Why a blob was not used for the position.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum RejectReason {
-    /// Outside `[min_area_px, max_area_px]`.
-    Area,
-    /// Less round than `min_roundness` (a streak or reflection).
-    Roundness,
-    /// Cut by the frame border (or the tracking window), so its centroid is biased.
-    Edge,
-    /// Usable, but not consistent with the other cameras (the ray gate chose another spot).
-    Gate,
-    /// Not examined by the loop for this set: outside the tracking window while the marker
-    /// is tracked (the loop looks there again when it loses the marker), or beyond the blobs
-    /// it keeps per camera. Found by the viewer's own full-frame search.
-    Window,
-}
-
-/// One blob as the set-up view draws it (full-resolution pixel coordinates).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct BlobView {
-    pub x_px: f64,
-    pub y_px: f64,
-    pub area_px: u32,
-    pub peak_dn: u32,
-    pub roundness: f64,
-    pub kept: bool,
-    pub reason: Option<RejectReason>,
-}
 
 /// A copy of one processed frame set.
 #[derive(Debug, Clone)]
@@ -182,21 +151,6 @@ impl TapSet {
                 .unwrap_or_else(|| CameraAnalysis::unreadable(camera, self.set_index, &self.tracker_cfg))
             })
             .collect()
-    }
-}
-
-impl BlobView {
-    /// A detected blob, kept when there is no reason against it.
-    pub fn of(b: &Blob, reason: Option<RejectReason>) -> Self {
-        BlobView {
-            x_px: b.x_px,
-            y_px: b.y_px,
-            area_px: b.area_px,
-            peak_dn: b.peak_dn,
-            roundness: b.roundness,
-            kept: reason.is_none(),
-            reason,
-        }
     }
 }
 

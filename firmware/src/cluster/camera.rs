@@ -186,7 +186,7 @@ impl ObservationSink for CameraPublisher {
         for (o, b) in self.blobs.iter_mut().zip(blobs) {
             *o = ObsBlob::from_blob(b);
         }
-        self.blobs[..n].sort_unstable_by(|a, b| b.area_px.cmp(&a.area_px));
+        self.blobs[..n].sort_unstable_by_key(|b| std::cmp::Reverse(b.area_px));
         let rt = self.capture_rt_ns(frame.timestamp_ns);
         let dropped = u32::try_from(dropped).unwrap_or(u32::MAX);
         if self.jitter_tx.is_some() {
@@ -223,7 +223,7 @@ impl ObservationSink for CameraPublisher {
             }
             None => self.errors += 1,
         }
-        if self.published % 32 == 0 {
+        if self.published.is_multiple_of(32) {
             self.update_report();
         }
     }
@@ -254,7 +254,7 @@ fn jitter_thread(
         {
             sent += 1;
         }
-        if sent % 32 == 0
+        if sent.is_multiple_of(32)
             && let Ok(mut r) = report.try_lock()
         {
             r.published = sent;

@@ -10,6 +10,8 @@ use crate::error::{FirmwareError, Result};
 
 #[cfg(feature = "cluster")]
 pub mod camera;
+pub mod report;
+pub use report::{BoardReport, ClusterReport};
 #[cfg(feature = "cluster")]
 pub mod solver;
 
@@ -216,94 +218,6 @@ impl ClusterConfig {
 
     pub fn max_clock_offset_ns(&self) -> u64 {
         self.max_clock_offset_ms.map_or(self.tolerance_ns(), Self::ms_ns)
-    }
-}
-
-/// One board as the solver sees it (`/status` → `cluster.boards`).
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct BoardReport {
-    pub name: String,
-    /// The rig's cameras on this board.
-    pub cameras: Vec<usize>,
-    /// Time since its last observation, ms; `None`: never heard from.
-    pub last_seen_ms: Option<f64>,
-    /// Its clock minus the solver's (less the smallest transit), ms.
-    pub clock_offset_ms: Option<f64>,
-    /// Clock offset beyond the limit: its observations are kept out of every set.
-    pub clock_fault: bool,
-    /// Silent longer than `board_timeout_ms`.
-    pub down: bool,
-}
-
-/// `/status` → `cluster` (camera and solver roles).
-#[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct ClusterReport {
-    pub role: &'static str,
-    pub rig: String,
-    pub board: String,
-    /// Camera role: observations sent, and those dropped by loss injection.
-    pub published: u64,
-    pub publish_errors: u64,
-    pub injected_losses: u64,
-    /// Solver.
-    pub boards: Vec<BoardReport>,
-    pub received: u64,
-    pub sets_complete: u64,
-    pub sets_incomplete: u64,
-    pub late: u64,
-    pub conflicting: u64,
-    pub refused_clock: u64,
-    pub queue_overflow: u64,
-    /// Empty slots in closed sets, per camera.
-    pub missing: Vec<u64>,
-    /// Refused observations by problem code (docs/observation-protocol.md).
-    pub refused: std::collections::BTreeMap<&'static str, u64>,
-    /// The parameter set does not place the cameras on boards (solver cannot pair).
-    pub no_placement: bool,
-}
-
-impl ClusterReport {
-    /// Faults in plain words for the set-up view (`code`, message).
-    pub fn fault_texts(&self) -> Vec<(&'static str, String)> {
-        let mut out = Vec::new();
-        if self.no_placement {
-            out.push((
-                "cluster_no_placement",
-                "the parameter set does not say which board each camera is on — push a set with a placement (docs/cluster.md)".to_string(),
-            ));
-        }
-        for b in &self.boards {
-            if b.down {
-                out.push((
-                    "board_down",
-                    format!(
-                        "camera board {} (cameras {:?}) sends nothing{} — check its power and network; tracking goes on with the other cameras",
-                        b.name,
-                        b.cameras,
-                        b.last_seen_ms.map_or(String::new(), |ms| format!(" for {:.1} s", ms / 1e3))
-                    ),
-                ));
-            }
-            if b.clock_fault {
-                out.push((
-                    "clock_offset",
-                    format!(
-                        "camera board {}: its clock is {:.1} ms off — its observations are left out; check PTP/chrony on it",
-                        b.name,
-                        b.clock_offset_ms.unwrap_or(f64::NAN)
-                    ),
-                ));
-            }
-        }
-        let refused: u64 = self.refused.values().sum();
-        if refused > 0 {
-            let list: Vec<String> = self.refused.iter().map(|(k, v)| format!("{k} {v}")).collect();
-            out.push((
-                "observations_refused",
-                format!("{refused} observations refused ({})", list.join(", ")),
-            ));
-        }
-        out
     }
 }
 

@@ -40,6 +40,11 @@ pub const STREAM_LIMITS: ConnLimits = ConnLimits {
 /// listeners, the robot link, runtime internals), with room to spare.
 pub const FDS_BESIDES_CONNECTIONS: u64 = 128;
 
+/// Kept by the connection and by a WebSocket session made from it, so a WebSocket counts
+/// against the caps for as long as it lives.
+#[derive(Clone, Default)]
+pub struct ConnSlot(pub Option<Arc<ConnPermit>>);
+
 /// Counters of one listener, exported in `/metrics`.
 #[derive(Debug, Default)]
 pub struct ListenerCounters {

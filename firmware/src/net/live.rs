@@ -18,9 +18,10 @@ use futures_util::{SinkExt, StreamExt};
 use serde::{Deserialize, Serialize};
 
 use super::auth::{SESSION_COOKIE, SESSION_TTL};
+use super::http::MAX_REQUEST_BODY_BYTES;
 use super::http::{ConnInfo, json_line, json_text, text};
+use super::limit::ConnSlot;
 use super::previews::{PREVIEW_EPOCH, PREVIEW_SHARE_WINDOW, PreviewShare, SharedPreviews};
-use super::server::{ConnSlot, MAX_REQUEST_BODY_BYTES};
 use super::status::StatusService;
 use crate::source::{Frame, Pixels};
 use crate::tuning::TuningChange;

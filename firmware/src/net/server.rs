@@ -33,16 +33,16 @@ use tower::ServiceExt as _;
 use tower_http::set_header::SetResponseHeaderLayer;
 use tower_http::timeout::{RequestBodyTimeoutLayer, TimeoutLayer};
 
-use super::http::{ConnInfo, check_request, content_security_policy, security_headers};
-use super::limit::{ConnLimiter, ConnPermit, STATUS_LIMITS};
+use super::http::{
+    ConnInfo, MAX_REQUEST_BODY_BYTES, check_request, content_security_policy, security_headers,
+};
+use super::limit::{ConnLimiter, ConnSlot, STATUS_LIMITS};
 use super::status::{self as st, StatusService};
 use super::{live, status};
 use crate::status::SharedStatus;
 
 /// Largest request head (request line and headers); hyper's smallest allowed buffer.
 pub const MAX_REQUEST_HEAD_BYTES: usize = 8 * 1024;
-/// Largest request body (tuning and login JSON are a few hundred bytes).
-pub const MAX_REQUEST_BODY_BYTES: usize = 64 * 1024;
 /// Time a client has to send its request head (from the moment it connects).
 pub const HEAD_TIMEOUT: Duration = Duration::from_secs(5);
 /// A request body that delivers nothing for this long fails.
@@ -55,11 +55,6 @@ pub const HTTP_EXCHANGE_LIMIT: Duration = Duration::from_secs(30);
 /// Kernel send buffer of a status connection: a WebSocket reader that stops shows up as a
 /// blocked send within a fraction of a second instead of after megabytes of stale previews.
 pub const STATUS_SNDBUF_BYTES: libc::c_int = 64 * 1024;
-
-/// Kept by the connection and by a WebSocket session made from it, so a WebSocket counts
-/// against the caps for as long as it lives.
-#[derive(Clone, Default)]
-pub struct ConnSlot(pub Option<Arc<ConnPermit>>);
 
 type Shared = State<Arc<StatusService>>;
 

@@ -1,0 +1,51 @@
+//! One blob as the set-up view shows it, kept or rejected with its reason: what the loop's
+//! copies for viewers ([`crate::viewer`]) and the whole-frame analysis ([`crate::advice`]) both
+//! list. Its own module so that neither of the two has to import the other for it.
+
+use irtrack_core::blob::Blob;
+use serde::Serialize;
+
+/// Why a blob was not used for the position.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RejectReason {
+    /// Outside `[min_area_px, max_area_px]`.
+    Area,
+    /// Less round than `min_roundness` (a streak or reflection).
+    Roundness,
+    /// Cut by the frame border (or the tracking window), so its centroid is biased.
+    Edge,
+    /// Usable, but not consistent with the other cameras (the ray gate chose another spot).
+    Gate,
+    /// Not examined by the loop for this set: outside the tracking window while the marker
+    /// is tracked (the loop looks there again when it loses the marker), or beyond the blobs
+    /// it keeps per camera. Found by the viewer's own full-frame search.
+    Window,
+}
+
+/// One blob as the set-up view draws it (full-resolution pixel coordinates).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct BlobView {
+    pub x_px: f64,
+    pub y_px: f64,
+    pub area_px: u32,
+    pub peak_dn: u32,
+    pub roundness: f64,
+    pub kept: bool,
+    pub reason: Option<RejectReason>,
+}
+
+impl BlobView {
+    /// A detected blob, kept when there is no reason against it.
+    pub fn of(b: &Blob, reason: Option<RejectReason>) -> Self {
+        BlobView {
+            x_px: b.x_px,
+            y_px: b.y_px,
+            area_px: b.area_px,
+            peak_dn: b.peak_dn,
+            roundness: b.roundness,
+            kept: reason.is_none(),
+            reason,
+        }
+    }
+}
