@@ -149,6 +149,9 @@ pub struct CameraPlace {
 
 /// Longest board name in a placement, bytes (it travels in observations and key expressions).
 pub const MAX_BOARD_NAME_LEN: usize = 32;
+/// Longest tool name (bytes): per-tool stream records carry it in a fixed field
+/// (docs/stream-protocol.md).
+pub const MAX_TOOL_NAME_LEN: usize = 32;
 
 /// The judgement of a calibration against its quality limits (docs/calibration.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -744,6 +747,19 @@ impl RigParams {
         for (ti, tool) in self.tools.iter().enumerate() {
             if tool.name.is_empty() {
                 return Err(invalid(format!("tool {ti} has an empty name")));
+            }
+            // Printable ASCII without quote and backslash: the name goes verbatim into the
+            // stream's per-tool records (NDJSON string, fixed binary field).
+            if tool.name.len() > MAX_TOOL_NAME_LEN
+                || !tool
+                    .name
+                    .bytes()
+                    .all(|b| (0x20..0x7f).contains(&b) && b != b'"' && b != b'\\')
+            {
+                return Err(invalid(format!(
+                    "tool name {:?} must be 1..={MAX_TOOL_NAME_LEN} printable ASCII characters without \" or \\",
+                    tool.name
+                )));
             }
             if self.tools[..ti].iter().any(|t| t.name == tool.name) {
                 return Err(invalid(format!("tool name {:?} used twice", tool.name)));

@@ -244,6 +244,14 @@ impl PositionRecord {
     /// newer servers can add fields; `orientation_wxyz`, `world_frame` and `params_crc` may
     /// be absent (None / false / 0); the other fields are required.
     pub fn from_ndjson_line(line: &str) -> Result<PositionRecord> {
+        Self::parse_ndjson(line, |_, _| Ok(()))
+    }
+
+    /// [`PositionRecord::from_ndjson_line`], handing every key it does not know to `extra`.
+    fn parse_ndjson<'a>(
+        line: &'a str,
+        mut extra: impl FnMut(&str, &Value<'a>) -> Result<()>,
+    ) -> Result<PositionRecord> {
         if line.len() > MAX_NDJSON_LINE {
             return Err(ndjson_err(format!("line of {} bytes is too long", line.len())));
         }
@@ -289,7 +297,7 @@ impl PositionRecord {
                     "world_frame" => world = v.bool(key)?,
                     "latency_us" => latency = Some(narrow(key, v.uint(key)?)?),
                     "params_crc" => crc = narrow(key, v.uint(key)?)?,
-                    _ => {}
+                    _ => extra(key, &v)?,
                 }
                 p.ws();
                 if p.eat(b',') {
@@ -424,6 +432,199 @@ impl PositionRecord {
     }
 }
 
+/// Magic of a per-tool binary frame.
+pub const TOOL_BINARY_MAGIC: [u8; 4] = *b"IRTL";
+/// Per-tool binary framing version.
+pub const TOOL_BINARY_VERSION: u8 = 1;
+/// Payload bytes of a per-tool frame between the 8-byte header and the CRC.
+pub const TOOL_BINARY_PAYLOAD_LEN: usize = 128;
+/// Total size of one per-tool binary frame.
+pub const TOOL_BINARY_FRAME_LEN: usize = 8 + TOOL_BINARY_PAYLOAD_LEN + 4;
+/// Bytes of the name field of a per-tool record (`params::MAX_TOOL_NAME_LEN`).
+pub const TOOL_NAME_FIELD_LEN: usize = crate::params::MAX_TOOL_NAME_LEN;
+
+/// The pose of one tool of the parameter set in one frame set: a [`PositionRecord`] with the
+/// tool's index (`tool_id`, definition order in the parameter set) and name. Sent to stream
+/// clients that ask for per-tool records (docs/stream-protocol.md). Fixed size, `Copy`: the
+/// name lives in a fixed field, so publishing needs no allocation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ToolRecord {
+    /// Index of the tool in the parameter set's tool list.
+    pub tool_id: u8,
+    /// Number of tools in the parameter set (records of one frame set: ids 0..tool_count).
+    pub tool_count: u8,
+    name: [u8; TOOL_NAME_FIELD_LEN],
+    name_len: u8,
+    /// The tool's pose, status and quality, as in the main record.
+    pub record: PositionRecord,
+}
+
+impl ToolRecord {
+    /// A record for tool `tool_id` called `name` (at most [`TOOL_NAME_FIELD_LEN`] bytes of
+    /// printable ASCII without `"` or `\`, as `RigParams::validate` demands).
+    pub fn new(tool_id: u8, tool_count: u8, name: &str, record: PositionRecord) -> Result<ToolRecord> {
+        if name.is_empty()
+            || name.len() > TOOL_NAME_FIELD_LEN
+            || !name
+                .bytes()
+                .all(|b| (0x20..0x7f).contains(&b) && b != b'"' && b != b'\\')
+        {
+            return Err(Error::InvalidParams {
+                reason: format!(
+                    "tool name {name:?} must be 1..={TOOL_NAME_FIELD_LEN} printable ASCII characters without \" or \\"
+                ),
+            });
+        }
+        let mut field = [0u8; TOOL_NAME_FIELD_LEN];
+        field[..name.len()].copy_from_slice(name.as_bytes());
+        Ok(ToolRecord {
+            tool_id,
+            tool_count,
+            name: field,
+            name_len: name.len() as u8,
+            record,
+        })
+    }
+
+    /// The tool's name.
+    pub fn name(&self) -> &str {
+        // Only ASCII is ever stored (checked in `new` and when decoding).
+        core::str::from_utf8(&self.name[..usize::from(self.name_len)]).unwrap_or("")
+    }
+
+    /// Appends the NDJSON line (with `\n`) to `out`: the tool's keys first, then the
+    /// position record's keys in their usual order.
+    pub fn write_ndjson(&self, out: &mut String) {
+        let _ = write!(
+            out,
+            "{{\"tool_id\":{},\"tool\":\"{}\",\"tool_count\":{},",
+            self.tool_id,
+            self.name(),
+            self.tool_count
+        );
+        let start = out.len();
+        self.record.write_ndjson(out);
+        // The record's own opening brace is replaced by the tool keys written above.
+        out.remove(start);
+    }
+
+    /// The NDJSON line as a new string.
+    pub fn to_ndjson_line(&self) -> String {
+        let mut s = String::with_capacity(320);
+        self.write_ndjson(&mut s);
+        s
+    }
+
+    /// Parses a per-tool NDJSON line; `tool_id`, `tool` and `tool_count` are required besides
+    /// the position record's required keys.
+    pub fn from_ndjson_line(line: &str) -> Result<ToolRecord> {
+        let mut id = None;
+        let mut name: Option<&str> = None;
+        let mut count = None;
+        let record = PositionRecord::parse_ndjson(line, |key, v| {
+            match key {
+                "tool_id" => id = Some(narrow::<u8>(key, v.uint(key)?)?),
+                "tool_count" => count = Some(narrow::<u8>(key, v.uint(key)?)?),
+                "tool" => name = Some(v.str(key)?),
+                _ => {}
+            }
+            Ok(())
+        })?;
+        let missing = |k: &str| ndjson_err(format!("missing field \"{k}\""));
+        let name = name.ok_or_else(|| missing("tool"))?;
+        ToolRecord::new(
+            id.ok_or_else(|| missing("tool_id"))?,
+            count.ok_or_else(|| missing("tool_count"))?,
+            name,
+            record,
+        )
+        .map_err(|_| ndjson_err(format!("bad tool name {name:?}")))
+    }
+
+    /// Writes the per-tool binary frame into `out` (layout in docs/stream-protocol.md): the
+    /// position frame's fields at the same offsets, then tool id, count and name.
+    pub fn encode_binary(&self, out: &mut [u8; TOOL_BINARY_FRAME_LEN]) {
+        let mut base = [0u8; BINARY_FRAME_LEN];
+        self.record.encode_binary(&mut base);
+        out[0..4].copy_from_slice(&TOOL_BINARY_MAGIC);
+        out[4] = TOOL_BINARY_VERSION;
+        out[5] = base[5];
+        out[6..8].copy_from_slice(&(TOOL_BINARY_PAYLOAD_LEN as u16).to_le_bytes());
+        out[8..100].copy_from_slice(&base[8..100]);
+        out[100] = self.tool_id;
+        out[101] = self.tool_count;
+        out[102] = self.name_len;
+        out[103] = 0;
+        out[104..136].copy_from_slice(&self.name);
+        let mut c = Crc32::new();
+        c.update(&out[..136]);
+        out[136..140].copy_from_slice(&c.finish().to_le_bytes());
+    }
+
+    /// The binary frame as a new array.
+    pub fn to_binary(&self) -> [u8; TOOL_BINARY_FRAME_LEN] {
+        let mut out = [0u8; TOOL_BINARY_FRAME_LEN];
+        self.encode_binary(&mut out);
+        out
+    }
+
+    /// Decodes one per-tool binary frame (exactly [`TOOL_BINARY_FRAME_LEN`] bytes).
+    pub fn decode_binary(bytes: &[u8]) -> Result<ToolRecord> {
+        if bytes.len() != TOOL_BINARY_FRAME_LEN {
+            return Err(binary_err(format!(
+                "tool frame is {} bytes, expected {TOOL_BINARY_FRAME_LEN}",
+                bytes.len()
+            )));
+        }
+        if bytes[0..4] != TOOL_BINARY_MAGIC {
+            return Err(binary_err(format!("bad tool-frame magic {:02x?}", &bytes[0..4])));
+        }
+        if bytes[4] != TOOL_BINARY_VERSION {
+            return Err(binary_err(format!(
+                "tool-frame version {} unsupported (this build reads {TOOL_BINARY_VERSION})",
+                bytes[4]
+            )));
+        }
+        let payload_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
+        if payload_len != TOOL_BINARY_PAYLOAD_LEN {
+            return Err(binary_err(format!(
+                "tool-frame payload length {payload_len}, expected {TOOL_BINARY_PAYLOAD_LEN}"
+            )));
+        }
+        let mut c = Crc32::new();
+        c.update(&bytes[..136]);
+        let computed = c.finish();
+        let found = u32::from_le_bytes([bytes[136], bytes[137], bytes[138], bytes[139]]);
+        if found != computed {
+            return Err(binary_err(format!("CRC-32 {found:08x}, computed {computed:08x}")));
+        }
+        // Rebuild the position frame the fields came from and let its decoder check them.
+        let mut base = [0u8; BINARY_FRAME_LEN];
+        base[0..4].copy_from_slice(&BINARY_MAGIC);
+        base[4] = BINARY_VERSION;
+        base[5] = bytes[5];
+        base[6..8].copy_from_slice(&(BINARY_PAYLOAD_LEN as u16).to_le_bytes());
+        base[8..100].copy_from_slice(&bytes[8..100]);
+        let mut c = Crc32::new();
+        c.update(&base[..100]);
+        base[100..104].copy_from_slice(&c.finish().to_le_bytes());
+        let record = PositionRecord::decode_binary(&base)?;
+        let name_len = usize::from(bytes[102]);
+        let name = bytes
+            .get(104..104 + name_len)
+            .filter(|_| name_len <= TOOL_NAME_FIELD_LEN)
+            .and_then(|n| core::str::from_utf8(n).ok())
+            .ok_or_else(|| binary_err(format!("tool name length {name_len} out of range")))?;
+        if bytes[104 + name_len..136].iter().any(|&b| b != 0) || bytes[103] != 0 {
+            return Err(binary_err(
+                "tool frame: padding after the name is not zero".into(),
+            ));
+        }
+        ToolRecord::new(bytes[100], bytes[101], name, record)
+            .map_err(|_| binary_err(format!("bad tool name {name:?}")))
+    }
+}
+
 fn ndjson_err(reason: String) -> Error {
     Error::Protocol {
         protocol: NDJSON,
@@ -457,7 +658,7 @@ enum Value<'a> {
     Other,
 }
 
-impl Value<'_> {
+impl<'a> Value<'a> {
     fn uint(&self, key: &str) -> Result<u64> {
         match self {
             Value::Num(s) if s.bytes().all(|b| b.is_ascii_digit()) => s
@@ -475,8 +676,8 @@ impl Value<'_> {
         }
     }
 
-    fn str(&self, key: &str) -> Result<&str> {
-        match self {
+    fn str(&self, key: &str) -> Result<&'a str> {
+        match *self {
             Value::Str(s) => Ok(s),
             _ => Err(ndjson_err(format!("\"{key}\" must be a string"))),
         }

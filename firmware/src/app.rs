@@ -110,7 +110,7 @@ pub fn open_source(source: &Source) -> Result<(Box<dyn FrameSource>, Option<RigP
             let s = SimSource::new(sim_cfg)?;
             let mut rig = sim_cfg.rendered_rig(s.scenario().rig());
             // The simulator's truth includes the tool it renders (6-DOF demo and tests).
-            rig.tools.extend(sim_cfg.tool_definition());
+            rig.tools.extend(sim_cfg.tool_definitions());
             (Box::new(s), Some(rig))
         }
         Source::Replay(r) => (Box::new(ReplaySource::open(r)?), None),
@@ -231,7 +231,8 @@ fn start_params(
     let params = Arc::new(
         ParamService::new(store, shape, cfg.tracking, handle, status)
             .with_signature_policy(trusted_keys, cfg.params.policy())
-            .with_pose_config(cfg.pose),
+            .with_pose_config(cfg.pose)
+            .with_robot_tool(cfg.robot.as_ref().and_then(|r| r.tool.clone())),
     );
     let loaded = params.load_stored();
     if !loaded
@@ -397,6 +398,12 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     let auth = crate::net::auth::OperatorAuth::new(cfg.service.operator_password_hash.clone())?;
 
     let (slot_tx, slot_rx) = watch::channel(None);
+    let (tools_tx, tools_rx) = watch::channel(crate::engine::ToolSet {
+        frame: u64::MAX,
+        count: 0,
+        tools: [None; irtrack_core::pose6d::MAX_TOOLS],
+        loose_leds: 0,
+    });
     let engine = Engine::new(
         devices.source,
         tracking,
@@ -406,6 +413,8 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         deadline(&cfg.realtime, &resolved.source),
     )
     .with_pose_config(cfg.pose)
+    .with_robot_tool(cfg.robot.as_ref().and_then(|r| r.tool.clone()))
+    .with_tool_slot(tools_tx)
     .with_viewer_tap(tap.clone())
     .with_tuning(tuning.clone());
     let engine = match cfg.source.max_pairing_error_us {
@@ -436,8 +445,13 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
 
     // Step 6: the parameter and stream services.
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
-    let hub = StreamHub::start(slot_rx.clone(), cfg.listen.client_queue_records, status.clone())
-        .with_max_clients(cfg.listen.max_stream_clients);
+    let hub = StreamHub::start_with_tools(
+        slot_rx.clone(),
+        Some(tools_rx.clone()),
+        cfg.listen.client_queue_records,
+        status.clone(),
+    )
+    .with_max_clients(cfg.listen.max_stream_clients);
     let mut tasks = vec![
         tokio::spawn(crate::net::params::serve(
             listeners.params,

@@ -7,10 +7,12 @@
 //! state does not allocate (checked by `tests/no_alloc.rs`). Parameter swaps are picked up
 //! between sets by comparing a generation counter; only then does the loop take a lock.
 //!
-//! When the active parameter set defines a multi-LED tool (`RigParams.tools`), the loop runs
+//! When the active parameter set defines multi-LED tools (`RigParams.tools`), the loop runs
 //! in 6-DOF mode: every frame is searched in full (the single-marker tracking window would
-//! cut off the other LEDs), the tracker's blob lists go to a [`PoseTracker`], and the record
-//! carries the tool's pose (position of the tool origin and orientation quaternion).
+//! cut off the other LEDs) and the tracker's blob lists go to a [`MultiTracker`], which tracks
+//! every tool of the set (up to [`MAX_TOOLS`]) plus loose single LEDs. The main record carries
+//! the pose of the robot's tool (`[robot] tool`, default the first tool); the records of all
+//! tools go to the per-tool slot ([`ToolSet`], see [`Engine::with_tool_slot`]).
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -23,8 +25,8 @@ use irtrack_core::params::RigParams;
 use irtrack_core::pipeline::{
     MAX_CAMERAS, Measurement, TrackStatus as MeasureStatus, Tracker, TrackerConfig,
 };
-use irtrack_core::pose6d::{Pose6d, PoseConfig, PoseStatus, PoseTracker};
-use irtrack_core::stream::{PositionRecord, TrackStatus};
+use irtrack_core::pose6d::{MAX_TOOLS, MultiTracker, Pose6d, PoseConfig, PoseStatus};
+use irtrack_core::stream::{PositionRecord, ToolRecord, TrackStatus};
 use tokio::sync::watch;
 
 use crate::clock;
@@ -106,6 +108,51 @@ impl SetTimes {
     }
 }
 
+/// The records of every tool of one frame set (fixed size, `Copy`: handed over through a
+/// latest-value slot without allocation).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ToolSet {
+    /// Frame-set number (the main record's `frame`).
+    pub frame: u64,
+    /// Tools of the parameter set; `tools[..count]` are filled, in definition order.
+    pub count: u8,
+    /// The records (`None` past `count`).
+    pub tools: [Option<ToolRecord>; MAX_TOOLS],
+    /// Loose single LEDs seen in this set (belonging to no tool).
+    pub loose_leds: u8,
+}
+
+impl ToolSet {
+    /// The filled records, in definition order.
+    pub fn records(&self) -> impl Iterator<Item = &ToolRecord> {
+        self.tools.iter().take(usize::from(self.count)).flatten()
+    }
+}
+
+/// Index of the robot's tool among `names`: the one called `wanted`, else the first. An
+/// unknown name is an error naming it and the known names.
+pub fn robot_tool_index<'a>(
+    wanted: Option<&str>,
+    names: impl Iterator<Item = &'a str> + Clone,
+) -> std::result::Result<usize, String> {
+    let Some(w) = wanted else { return Ok(0) };
+    names.clone().position(|n| n == w).ok_or_else(|| {
+        let known: Vec<&str> = names.collect();
+        format!(
+            "[robot] tool = {w:?} is not a tool of the parameter set (its tools: {})",
+            if known.is_empty() {
+                "none".to_string()
+            } else {
+                known
+                    .iter()
+                    .map(|n| format!("{n:?}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            }
+        )
+    })
+}
+
 /// What one [`Engine::step`] did.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum StepOutcome {
@@ -124,9 +171,15 @@ pub struct Engine {
     set: FrameSet,
     tracker_cfg: TrackerConfig,
     tracker: Option<Tracker>,
-    /// 6-DOF mode: the tracker of the active set's first tool.
+    /// 6-DOF mode: the tracker of every tool of the active set.
     pose_cfg: PoseConfig,
-    pose: Option<PoseTracker>,
+    pose: Option<MultiTracker>,
+    /// `[robot] tool`: the tool whose pose the main record carries (None: the first).
+    robot_tool_name: Option<String>,
+    /// Its index in the active set (None: the set lacks it; the main record is a fault).
+    robot_tool: Option<usize>,
+    /// Every tool's record per set (see [`ToolSet`]).
+    tool_out: Option<watch::Sender<ToolSet>>,
     params: Arc<ParamsHandle>,
     seen_generation: u64,
     world_from_cam0: Option<RigidTransform>,
@@ -183,6 +236,9 @@ impl Engine {
             tracker: None,
             pose_cfg: PoseConfig::default(),
             pose: None,
+            robot_tool_name: None,
+            robot_tool: Some(0),
+            tool_out: None,
             params,
             seen_generation: 0,
             world_from_cam0: None,
@@ -241,8 +297,16 @@ impl Engine {
         self.tuning_seen = generation;
         let Some(req) = tuning.take() else { return };
         let mut error = None;
+        let mut tracking = req.tracking;
+        let six_dof = self.pose.is_some();
         match &mut self.tracker {
-            Some(t) => match t.set_config(req.tracking) {
+            Some(t) => match t.set_config({
+                // In 6-DOF mode the blob limit follows the tools (see `refresh_params`).
+                if six_dof {
+                    tracking.max_blobs = t.config().max_blobs;
+                }
+                tracking
+            }) {
                 Ok(()) => self.tracker_cfg = req.tracking,
                 Err(e) => error = Some(format!("detector settings refused: {e}")),
             },
@@ -317,6 +381,20 @@ impl Engine {
         }
     }
 
+    /// The tool the main record (and so the robot link) follows: `[robot] tool`; None = the
+    /// set's first tool.
+    pub fn with_robot_tool(mut self, name: Option<String>) -> Self {
+        self.robot_tool_name = name;
+        self
+    }
+
+    /// Publishes every tool's record of each set to `slot` (6-DOF mode only), just before the
+    /// main record.
+    pub fn with_tool_slot(mut self, slot: watch::Sender<ToolSet>) -> Self {
+        self.tool_out = Some(slot);
+        self
+    }
+
     /// Settings of the 6-DOF tracker (`[pose]`), used for sets that define a tool.
     pub fn with_pose_config(mut self, cfg: PoseConfig) -> Self {
         self.pose_cfg = cfg;
@@ -335,20 +413,21 @@ impl Engine {
         self.pose.is_some()
     }
 
-    /// Builds the 6-DOF tracker for a set's first tool (none without tools). A tool the
-    /// tracker refuses leaves single-marker tracking on, loudly: the set itself is usable.
-    fn pose_tracker_for(&self, rig: &RigParams) -> Option<PoseTracker> {
-        let tool = rig.tools.first()?;
-        if rig.tools.len() > 1 {
-            tracing::warn!(tool = %tool.name, count = rig.tools.len(), "several tools defined; tracking the first one");
+    /// Builds the 6-DOF tracker for every tool of a set (none without tools). Tools the
+    /// tracker refuses leave single-marker tracking on, loudly: the set itself is usable (the
+    /// parameter service refuses such sets, so this is for sets loaded otherwise).
+    fn pose_tracker_for(&self, rig: &RigParams) -> Option<MultiTracker> {
+        if rig.tools.is_empty() {
+            return None;
         }
-        match PoseTracker::new(rig, tool, self.pose_cfg) {
+        match MultiTracker::new(rig, &rig.tools, self.pose_cfg) {
             Ok(t) => {
-                tracing::info!(tool = %tool.name, leds = tool.leds_mm.len(), "6-DOF tracking of tool");
+                let names: Vec<&str> = rig.tools.iter().map(|t| t.name.as_str()).collect();
+                tracing::info!(tools = ?names, "6-DOF tracking of every tool");
                 Some(t)
             }
             Err(e) => {
-                tracing::error!(tool = %tool.name, error = %e, "tool refused; tracking a single marker instead");
+                tracing::error!(error = %e, "tools refused; tracking a single marker instead");
                 None
             }
         }
@@ -362,13 +441,32 @@ impl Engine {
         }
         self.seen_generation = generation;
         let Some(p) = self.params.current() else { return };
+        // In 6-DOF mode the detector must keep every LED of every tool (plus a few spares):
+        // the blob limit is raised to what the pose tracker takes per camera.
+        let pose = self.pose_tracker_for(&p.rig);
+        let mut cfg = self.tracker_cfg;
+        if let Some(pt) = &pose {
+            cfg.max_blobs = cfg.max_blobs.max(pt.config().max_blobs_per_camera);
+        }
         let result = match &mut self.tracker {
-            Some(t) => t.set_params(&p.rig),
-            None => Tracker::new(&p.rig, self.tracker_cfg).map(|t| self.tracker = Some(t)),
+            Some(t) if t.config().max_blobs == cfg.max_blobs => t.set_params(&p.rig),
+            _ => Tracker::new(&p.rig, cfg).map(|t| self.tracker = Some(t)),
         };
         match result {
             Ok(()) => {
-                self.pose = self.pose_tracker_for(&p.rig);
+                self.pose = pose;
+                self.robot_tool = match robot_tool_index(
+                    self.robot_tool_name.as_deref(),
+                    p.rig.tools.iter().map(|t| t.name.as_str()),
+                ) {
+                    Ok(i) => Some(i),
+                    Err(e) => {
+                        // The parameter service and the start-up check refuse this; a set
+                        // that still lacks the tool sends no pose rather than another tool's.
+                        tracing::error!(error = %e, "robot tool missing; main record without a pose");
+                        None
+                    }
+                };
                 self.world_from_cam0 = p.rig.world_from_cam0;
                 self.params_crc = p.crc;
                 self.status.params_loaded.store(true, R);
@@ -434,6 +532,7 @@ impl Engine {
 
         let skewed = self.set.pairing_error_ns > self.max_pairing_error_ns;
         let mut detected = false;
+        let mut tools: Option<ToolSet> = None;
         let (mut rec, t_detect, t_solve) = match self
             .tracker
             .as_mut()
@@ -521,18 +620,53 @@ impl Engine {
                         }
                         let seen = lists[..cameras].iter().filter(|l| !l.is_empty()).count();
                         match pose_tracker.process(&lists[..cameras]) {
-                            Ok(pose) => {
-                                self.status.set_track(pose_indication(pose, seen, cameras));
-                                // A pivot-calibrated tool is reported (and sent) at its tip.
-                                let mut rec = PositionRecord::from_pose(
-                                    self.set.index,
-                                    capture_ns,
-                                    &pose.at_tip(),
-                                    self.world_from_cam0.as_ref(),
-                                    u8::try_from(seen).unwrap_or(u8::MAX),
-                                );
-                                rec.params_crc = self.params_crc;
-                                rec
+                            Ok(()) => {
+                                let seen_u8 = u8::try_from(seen).unwrap_or(u8::MAX);
+                                let count = pose_tracker.tool_count().min(MAX_TOOLS);
+                                let mut set = ToolSet {
+                                    frame: self.set.index,
+                                    count: count as u8,
+                                    tools: [None; MAX_TOOLS],
+                                    loose_leds: u8::try_from(pose_tracker.loose_leds().len())
+                                        .unwrap_or(u8::MAX),
+                                };
+                                for (i, slot) in set.tools.iter_mut().enumerate().take(count) {
+                                    let (Some(pose), Some(tool)) =
+                                        (pose_tracker.pose(i), pose_tracker.tool(i))
+                                    else {
+                                        continue;
+                                    };
+                                    // A pivot-calibrated tool is reported (and sent) at its tip.
+                                    let mut rec = PositionRecord::from_pose(
+                                        self.set.index,
+                                        capture_ns,
+                                        &pose.at_tip(),
+                                        self.world_from_cam0.as_ref(),
+                                        seen_u8,
+                                    );
+                                    rec.params_crc = self.params_crc;
+                                    // Names were checked when the set was accepted.
+                                    *slot = ToolRecord::new(i as u8, count as u8, tool.name(), rec).ok();
+                                }
+                                tools = Some(set);
+                                let robot = self
+                                    .robot_tool
+                                    .and_then(|i| Some((pose_tracker.pose(i)?, set.tools[i]?)));
+                                match robot {
+                                    Some((pose, tr)) => {
+                                        self.status.set_track(pose_indication(pose, seen, cameras));
+                                        tr.record
+                                    }
+                                    None => {
+                                        self.status.set_track(TrackIndication::None);
+                                        Self::blank_record(
+                                            self.set.index,
+                                            capture_ns,
+                                            self.params_crc,
+                                            TrackStatus::Fault,
+                                        )
+                                    }
+                                }
                             }
                             Err(e) => {
                                 if self.status.pipeline_errors.fetch_add(1, R) == 0 {
@@ -591,6 +725,12 @@ impl Engine {
         let now_ns = clock::monotonic_ns();
         let e2e_ns = now_ns.saturating_sub(capture_ns);
         rec.latency_us = u32::try_from(e2e_ns / 1000).unwrap_or(u32::MAX);
+        if let (Some(out), Some(mut set)) = (&self.tool_out, tools) {
+            for r in set.tools.iter_mut().flatten() {
+                r.record.latency_us = rec.latency_us;
+            }
+            out.send_replace(set);
+        }
         self.out.send_replace(Some(rec));
         let t_published = Instant::now();
         self.status.published.fetch_add(1, R);

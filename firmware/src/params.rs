@@ -5,7 +5,7 @@ use std::sync::Arc;
 use irtrack_core::param_wire::{RejectCode, Verdict};
 use irtrack_core::params::{BlobHeader, RigParams};
 use irtrack_core::pipeline::{Tracker, TrackerConfig};
-use irtrack_core::pose6d::{MultiTracker, PoseConfig, PoseTracker};
+use irtrack_core::pose6d::{MultiTracker, PoseConfig};
 use irtrack_core::signing::{self, KeyId, SignaturePolicy, SignatureStatus, VerifyingKey};
 
 use crate::engine::{ActiveParams, ParamsHandle};
@@ -66,6 +66,8 @@ pub struct ParamService {
     policy: SignaturePolicy,
     /// Settings the loop's 6-DOF tracker uses; a set whose tool they refuse is rejected.
     pose_cfg: PoseConfig,
+    /// `[robot] tool`: a set without a tool of this name is rejected.
+    robot_tool: Option<String>,
 }
 
 /// The policy's name in status and logs.
@@ -104,6 +106,7 @@ impl ParamService {
             trusted_keys: Vec::new(),
             policy: SignaturePolicy::AllowUnsigned,
             pose_cfg: PoseConfig::default(),
+            robot_tool: None,
         }
     }
 
@@ -111,6 +114,13 @@ impl ParamService {
     /// the same limits the loop applies.
     pub fn with_pose_config(mut self, cfg: PoseConfig) -> Self {
         self.pose_cfg = cfg;
+        self
+    }
+
+    /// The robot link's tool (`[robot] tool`): sets that lack it are refused, naming it and
+    /// the set's tools.
+    pub fn with_robot_tool(mut self, name: Option<String>) -> Self {
+        self.robot_tool = name;
         self
     }
 
@@ -187,22 +197,20 @@ impl ParamService {
         // The loop tracks every tool in 6-DOF; a tool it cannot identify (symmetric layout,
         // LEDs too close) or two tools it could confuse must not be accepted only to fall back
         // to single-marker output.
-        if let Some(tool) = rig.tools.first() {
-            if rig.tools.len() == 1 {
-                PoseTracker::new(rig, tool, self.pose_cfg).map_err(|e| {
-                    reject(
-                        RejectCode::InvalidParams,
-                        format!("6-DOF tracker refuses tool `{}`: {e}", tool.name),
-                    )
-                })?;
-            } else {
-                MultiTracker::new(rig, &rig.tools, self.pose_cfg).map_err(|e| {
-                    reject(
-                        RejectCode::InvalidParams,
-                        format!("6-DOF tracker refuses the tools: {e}"),
-                    )
-                })?;
-            }
+        crate::engine::robot_tool_index(
+            self.robot_tool.as_deref(),
+            rig.tools.iter().map(|t| t.name.as_str()),
+        )
+        .map_err(|m| reject(RejectCode::InvalidParams, m))?;
+        // The same tracker the loop builds (every tool at once; a single tool is named).
+        if !rig.tools.is_empty() {
+            MultiTracker::new(rig, &rig.tools, self.pose_cfg).map_err(|e| {
+                let message = match rig.tools.as_slice() {
+                    [one] => format!("6-DOF tracker refuses tool `{}`: {e}", one.name),
+                    _ => format!("6-DOF tracker refuses the tools: {e}"),
+                };
+                reject(RejectCode::InvalidParams, message)
+            })?;
         }
         Ok(())
     }

@@ -23,7 +23,7 @@ fn engine(
     Engine,
     tokio::sync::watch::Receiver<Option<irtrack_core::stream::PositionRecord>>,
 ) {
-    engine_with(with_params, bit_depth, None)
+    engine_with(with_params, bit_depth, None, &[])
 }
 
 /// `tool`: render this built-in multi-LED tool; the set then runs the loop in 6-DOF mode.
@@ -31,6 +31,7 @@ fn engine_with(
     with_params: bool,
     bit_depth: u8,
     tool: Option<&str>,
+    extra_tools: &[&str],
 ) -> (
     Engine,
     tokio::sync::watch::Receiver<Option<irtrack_core::stream::PositionRecord>>,
@@ -40,6 +41,7 @@ fn engine_with(
         fps: 100.0,
         bit_depth,
         tool: tool.map(str::to_string),
+        extra_tools: extra_tools.iter().map(|t| t.to_string()).collect(),
         distance_mm: if tool.is_some() { 1000.0 } else { 600.0 },
         tool_rotation_deg: 20.0,
         ..SimSourceConfig::default()
@@ -48,7 +50,7 @@ fn engine_with(
     let handle = Arc::new(ParamsHandle::new());
     if with_params {
         let mut rig = source.scenario().rig().clone();
-        rig.tools.extend(cfg.tool_definition());
+        rig.tools.extend(cfg.tool_definitions());
         handle.install(ActiveParams { rig, crc: 1 });
     }
     let status = Arc::new(SharedStatus::new(
@@ -112,7 +114,7 @@ fn steady_state_processing_does_not_allocate() {
 
 #[test]
 fn six_dof_processing_does_not_allocate() {
-    let (mut e, rx) = engine_with(true, 8, Some("probe4"));
+    let (mut e, rx) = engine_with(true, 8, Some("probe4"), &[]);
     let (n, ok) = measure(&mut e, 10, 60);
     assert!(
         e.tracks_pose(),
@@ -121,6 +123,25 @@ fn six_dof_processing_does_not_allocate() {
     assert!(ok >= 55, "only {ok} of 60 sets tracked in 6-DOF");
     assert_eq!(n, 0, "{n} allocations in 60 6-DOF frame sets");
     assert!(rx.borrow().unwrap().orientation_wxyz.is_some());
+}
+
+#[test]
+fn three_tools_in_the_loop_do_not_allocate() {
+    let (e, rx) = engine_with(true, 8, Some("probe4"), &["tri3", "wing4"]);
+    let (tools_tx, tools_rx) = tokio::sync::watch::channel(irtrack_firmware::engine::ToolSet {
+        frame: u64::MAX,
+        count: 0,
+        tools: [None; irtrack_core::pose6d::MAX_TOOLS],
+        loose_leds: 0,
+    });
+    let mut e = e.with_tool_slot(tools_tx);
+    let (n, _) = measure(&mut e, 10, 60);
+    assert_eq!(n, 0, "{n} allocations in 60 frame sets with three tools");
+    let set = *tools_rx.borrow();
+    assert_eq!(set.count, 3);
+    assert_eq!(set.frame, rx.borrow().unwrap().frame);
+    let names: Vec<&str> = set.records().map(|r| r.name()).collect();
+    assert_eq!(names, ["probe4", "tri3", "wing4"]);
 }
 
 #[test]

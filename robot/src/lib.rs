@@ -217,6 +217,10 @@ pub struct RobotConfig {
     pub backoff_min_ms: u64,
     #[serde(default = "default_backoff_max_ms")]
     pub backoff_max_ms: u64,
+    /// The tool of the parameter set whose pose the link follows (`[robot] tool = "name"`);
+    /// absent: the set's first tool. irtrackd refuses parameter sets without this tool.
+    #[serde(default)]
+    pub tool: Option<String>,
     /// Send 6-DOF `Q` lines when the record has an orientation.
     #[serde(default)]
     pub send_orientation: bool,
@@ -233,6 +237,17 @@ impl RobotConfig {
     /// Checks values a TOML parser cannot.
     pub fn validate(&self) -> Result<(), RobotError> {
         let bad = |reason: String| Err(RobotError::Config { reason });
+        if let Some(t) = &self.tool
+            && (t.is_empty()
+                || t.len() > 32
+                || !t
+                    .bytes()
+                    .all(|b| (0x20..0x7f).contains(&b) && b != b'"' && b != b'\\'))
+        {
+            return bad(format!(
+                "robot.tool {t:?} must be 1..=32 printable ASCII characters without \" or \\ (a tool name of the parameter set)"
+            ));
+        }
         if self.address.is_empty() {
             return bad("robot.address is empty".into());
         }

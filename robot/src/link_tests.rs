@@ -34,6 +34,7 @@ fn safety() -> SafetyConfig {
 
 fn link_cfg(addr: std::net::SocketAddr) -> RobotConfig {
     RobotConfig {
+        tool: None,
         address: addr.to_string(),
         name: "irtrackd-test".into(),
         connect_timeout_ms: 500,

@@ -286,6 +286,7 @@ fn rsi_malformed_packets_are_clear_errors() {
 
 fn link_cfg(kind: LinkKind, session_timeout_ms: u64) -> RobotConfig {
     RobotConfig {
+        tool: None,
         kind,
         address: "127.0.0.1:0".into(),
         name: "irtrackd".into(),

@@ -51,6 +51,7 @@ fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
 
 fn cfg(kind: LinkKind, mode: RsiMode) -> RobotConfig {
     RobotConfig {
+        tool: None,
         kind,
         address: "127.0.0.1:0".into(),
         name: "irtrackd-test".into(),

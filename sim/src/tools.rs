@@ -7,11 +7,13 @@ use nalgebra::{UnitQuaternion, Vector3};
 use crate::trajectory::{Orientation, Trajectory};
 
 /// Names accepted by [`builtin_tool`].
-pub const BUILTIN_TOOLS: &[&str] = &["probe4", "tri3"];
+pub const BUILTIN_TOOLS: &[&str] = &["probe4", "tri3", "wing4"];
 
 /// A built-in tool definition by name (tool frame, mm; the origin is LED 0).
 /// `probe4`: four LEDs, non-planar, asymmetric (identification margin 13.9 mm).
 /// `tri3`: a scalene triangle with sides of 110, 101.4 and 66.3 mm (all three LEDs needed).
+/// `wing4`: four LEDs whose layout is far from the other two (cross-tool margin 21 mm), so
+/// all three can be tracked together.
 pub fn builtin_tool(name: &str) -> Option<ToolDefinition> {
     let leds_mm = match name {
         "probe4" => vec![
@@ -21,6 +23,12 @@ pub fn builtin_tool(name: &str) -> Option<ToolDefinition> {
             [62.0, 11.0, 32.0],
         ],
         "tri3" => vec![[0.0, 0.0, 0.0], [110.0, 0.0, 0.0], [81.8, 60.0, 0.0]],
+        "wing4" => vec![
+            [0.0, 0.0, 0.0],
+            [166.0, 66.0, 27.0],
+            [15.0, -75.0, 24.0],
+            [122.0, 20.0, 1.0],
+        ],
         _ => return None,
     };
     Some(ToolDefinition {

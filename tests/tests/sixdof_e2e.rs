@@ -136,6 +136,7 @@ async fn rotating_tool_tracked_in_6dof_to_the_simulated_robot() {
     .await
     .unwrap();
     let link_cfg = RobotConfig {
+        tool: None,
         kind: Default::default(),
         stream: Default::default(),
         address: sim.addr.to_string(),

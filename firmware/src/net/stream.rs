@@ -5,18 +5,34 @@
 //! the ring at its own pace. A client that falls a whole ring behind, or whose socket does not
 //! take a write within [`WRITE_TIMEOUT`], is disconnected and counted as dropped: one slow
 //! reader can delay nobody but itself.
+//!
+//! Per-tool records (docs/stream-protocol.md): a client that sends the line `tools\n` gets,
+//! from then on, before each main record the records of every tool of the set (NDJSON lines
+//! with `tool_id`/`tool`, or `IRTL` binary frames). Clients that send nothing get exactly the
+//! main records as before, so existing readers keep working.
 
 use std::future::Future;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use irtrack_core::stream::{BINARY_FRAME_LEN, PositionRecord};
-use tokio::io::AsyncWriteExt;
+use irtrack_core::stream::{BINARY_FRAME_LEN, PositionRecord, TOOL_BINARY_FRAME_LEN};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{broadcast, watch};
 
+use crate::engine::ToolSet;
 use crate::status::SharedStatus;
+
+/// What a client asks for by sending this line: per-tool records as well.
+pub const TOOLS_REQUEST: &[u8] = b"tools\n";
+
+/// One set in the broadcast ring: the main record and, in 6-DOF mode, every tool's record.
+#[derive(Debug, Clone, Copy)]
+pub struct StreamItem {
+    pub main: PositionRecord,
+    pub tools: Option<ToolSet>,
+}
 
 /// A client whose socket accepts nothing for this long is dropped.
 pub const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
@@ -31,7 +47,7 @@ pub enum StreamFormat {
 /// Fan-out point shared by both stream ports.
 #[derive(Debug, Clone)]
 pub struct StreamHub {
-    tx: broadcast::Sender<PositionRecord>,
+    tx: broadcast::Sender<StreamItem>,
     status: Arc<SharedStatus>,
     /// Clients served at once over both ports; more are closed at once and counted.
     max_clients: u64,
@@ -43,7 +59,18 @@ pub const DEFAULT_MAX_CLIENTS: u64 = 32;
 impl StreamHub {
     /// Starts the distributor task reading `slot`; it ends when the slot's sender is dropped.
     pub fn start(
+        slot: watch::Receiver<Option<PositionRecord>>,
+        queue_records: usize,
+        status: Arc<SharedStatus>,
+    ) -> Self {
+        Self::start_with_tools(slot, None, queue_records, status)
+    }
+
+    /// [`StreamHub::start`], also carrying the per-tool records of `tools` (the engine's
+    /// tool slot, written just before the main record of the same set).
+    pub fn start_with_tools(
         mut slot: watch::Receiver<Option<PositionRecord>>,
+        tools: Option<watch::Receiver<ToolSet>>,
         queue_records: usize,
         status: Arc<SharedStatus>,
     ) -> Self {
@@ -64,8 +91,14 @@ impl StreamHub {
                     status
                         .slot_overwrites
                         .store(published.saturating_sub(received), Ordering::Relaxed);
+                    // The engine writes a set's tool records before its main record, so the
+                    // tool slot holds this frame's (or a newer one's: then none are sent).
+                    let tools = tools
+                        .as_ref()
+                        .map(|t| *t.borrow())
+                        .filter(|t| t.frame == rec.frame);
                     // No subscribers is fine: nothing to deliver.
-                    let _ = tx.send(rec);
+                    let _ = tx.send(StreamItem { main: rec, tools });
                 }
             }
         });
@@ -78,7 +111,7 @@ impl StreamHub {
         self
     }
 
-    pub fn subscribe(&self) -> broadcast::Receiver<PositionRecord> {
+    pub fn subscribe(&self) -> broadcast::Receiver<StreamItem> {
         self.tx.subscribe()
     }
 }
@@ -187,21 +220,68 @@ enum ClientEnd {
 }
 
 async fn client(
-    mut stream: TcpStream,
+    stream: TcpStream,
     format: StreamFormat,
-    mut rx: broadcast::Receiver<PositionRecord>,
+    mut rx: broadcast::Receiver<StreamItem>,
     status: &SharedStatus,
 ) -> ClientEnd {
+    let (mut reader, mut writer) = stream.into_split();
     let mut text = String::with_capacity(512);
     let mut bin = [0u8; BINARY_FRAME_LEN];
+    let mut tool_bin = [0u8; TOOL_BINARY_FRAME_LEN];
+    // What the client sent so far (only `tools\n` means anything; the rest is ignored).
+    let mut request = [0u8; 64];
+    let mut request_len = 0usize;
+    let mut want_tools = false;
+    let mut reading = true;
     loop {
-        let rec = match rx.recv().await {
-            Ok(r) => r,
-            Err(broadcast::error::RecvError::Lagged(n)) => {
-                return ClientEnd::TooSlow(format!("fell {n} records behind the queue"));
+        let item = tokio::select! {
+            r = rx.recv() => match r {
+                Ok(r) => r,
+                Err(broadcast::error::RecvError::Lagged(n)) => {
+                    return ClientEnd::TooSlow(format!("fell {n} records behind the queue"));
+                }
+                Err(broadcast::error::RecvError::Closed) => return ClientEnd::Closed,
+            },
+            n = reader.read(&mut request[request_len..]), if reading => {
+                match n {
+                    // A half-closed socket still takes records.
+                    Ok(0) | Err(_) => reading = false,
+                    Ok(n) => {
+                        request_len += n;
+                        if request[..request_len].windows(TOOLS_REQUEST.len()).any(|w| w == TOOLS_REQUEST) {
+                            want_tools = true;
+                        }
+                        // Keep the tail in case the request is split across reads.
+                        if request_len == request.len() {
+                            let keep = TOOLS_REQUEST.len() - 1;
+                            request.copy_within(request_len - keep.., 0);
+                            request_len = keep;
+                        }
+                    }
+                }
+                continue;
             }
-            Err(broadcast::error::RecvError::Closed) => return ClientEnd::Closed,
         };
+        if want_tools && let Some(tools) = &item.tools {
+            for t in tools.records() {
+                let bytes: &[u8] = match format {
+                    StreamFormat::Ndjson => {
+                        text.clear();
+                        t.write_ndjson(&mut text);
+                        text.as_bytes()
+                    }
+                    StreamFormat::Binary => {
+                        t.encode_binary(&mut tool_bin);
+                        &tool_bin
+                    }
+                };
+                if let Some(end) = write(&mut writer, bytes, status).await {
+                    return end;
+                }
+            }
+        }
+        let rec = item.main;
         let bytes: &[u8] = match format {
             StreamFormat::Ndjson => {
                 text.clear();
@@ -213,12 +293,27 @@ async fn client(
                 &bin
             }
         };
-        match tokio::time::timeout(WRITE_TIMEOUT, stream.write_all(bytes)).await {
-            Err(_) => return ClientEnd::TooSlow(format!("socket blocked for {} s", WRITE_TIMEOUT.as_secs())),
-            Ok(Err(_)) => return ClientEnd::Gone,
-            Ok(Ok(())) => {
-                status.stream_records_sent.fetch_add(1, Ordering::Relaxed);
-            }
+        if let Some(end) = write(&mut writer, bytes, status).await {
+            return end;
+        }
+    }
+}
+
+/// Writes one record; `Some` when the client is to be dropped.
+async fn write(
+    writer: &mut tokio::net::tcp::OwnedWriteHalf,
+    bytes: &[u8],
+    status: &SharedStatus,
+) -> Option<ClientEnd> {
+    match tokio::time::timeout(WRITE_TIMEOUT, writer.write_all(bytes)).await {
+        Err(_) => Some(ClientEnd::TooSlow(format!(
+            "socket blocked for {} s",
+            WRITE_TIMEOUT.as_secs()
+        ))),
+        Ok(Err(_)) => Some(ClientEnd::Gone),
+        Ok(Ok(())) => {
+            status.stream_records_sent.fetch_add(1, Ordering::Relaxed);
+            None
         }
     }
 }

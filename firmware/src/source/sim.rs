@@ -79,6 +79,11 @@ pub struct SimSourceConfig {
     /// definition is part of the simulator's parameter set, so irtrackd tracks it in 6-DOF.
     #[serde(default)]
     pub tool: Option<String>,
+    /// With `tool`: more built-in tools rendered at once, each on its own circle crossing the
+    /// first tool's path (several tools tracked together, docs/six-dof.md). Also part of the
+    /// simulator's parameter set, after `tool`.
+    #[serde(default)]
+    pub extra_tools: Vec<String>,
     /// With `tool`: amplitude (deg) of the tool's turning about its own axes; 0 = fixed.
     #[serde(default = "d_tool_rotation")]
     pub tool_rotation_deg: f64,
@@ -242,6 +247,7 @@ impl Default for SimSourceConfig {
             glare: false,
             frames: None,
             tool: None,
+            extra_tools: Vec::new(),
             tool_rotation_deg: d_tool_rotation(),
             wand_mm: None,
             wand_frames: d_wand_frames(),
@@ -273,6 +279,20 @@ impl SimSourceConfig {
                 "source.sim.tool = {name:?} is not a built-in tool (use {})",
                 irtrack_sim::tools::BUILTIN_TOOLS.join(" or ")
             ));
+        }
+        for (i, name) in self.extra_tools.iter().enumerate() {
+            if self.tool.is_none() {
+                return bad("source.sim.extra_tools needs source.sim.tool (the first tool)".into());
+            }
+            if irtrack_sim::tools::builtin_tool(name).is_none() {
+                return bad(format!(
+                    "source.sim.extra_tools: {name:?} is not a built-in tool (use {})",
+                    irtrack_sim::tools::BUILTIN_TOOLS.join(" or ")
+                ));
+            }
+            if self.tool.as_ref() == Some(name) || self.extra_tools[..i].contains(name) {
+                return bad(format!("source.sim.extra_tools: tool {name:?} is listed twice"));
+            }
         }
         if !(self.tool_rotation_deg.is_finite() && (0.0..=90.0).contains(&self.tool_rotation_deg)) {
             return bad(format!(
@@ -429,6 +449,27 @@ impl SimSourceConfig {
                 &tool.leds_mm,
                 irtrack_sim::tools::turning(self.tool_rotation_deg, self.period_s),
             );
+            let centre = cfg.rig.workspace_centre_mm(self.distance_mm);
+            for (i, t) in self.tool_definitions().iter().enumerate().skip(1) {
+                // Each on its own tilted circle through the work volume, slower than the
+                // first: the paths cross, the tools do not collide every lap.
+                let k = i as f64;
+                cfg.add_tool(
+                    &t.leds_mm,
+                    Trajectory::Circle {
+                        centre_mm: centre + Vector3::new(20.0 * k, -15.0 * k, -10.0 * k),
+                        radius_mm: self.radius_mm.max(1.0) * (1.0 + 0.3 * k),
+                        normal: Vector3::new(-0.2 * k, 1.0, 0.3 * k),
+                        period_s: self.period_s * (1.0 + 0.45 * k),
+                    },
+                    irtrack_sim::Orientation::Wobble {
+                        base: nalgebra::UnitQuaternion::from_euler_angles(0.5 * k, -0.3 * k, 0.9 * k),
+                        amplitude_deg: Vector3::repeat(self.tool_rotation_deg * 0.8),
+                        period_s: Vector3::new(5.0, 6.5, 8.0) * (1.0 + 0.2 * k),
+                        phase_rad: Vector3::new(0.5 * k, 0.0, 1.5),
+                    },
+                );
+            }
         }
         cfg
     }
@@ -467,6 +508,20 @@ impl SimSourceConfig {
     /// The multi-LED tool this source renders, if any.
     pub fn tool_definition(&self) -> Option<irtrack_core::params::ToolDefinition> {
         self.tool.as_deref().and_then(irtrack_sim::tools::builtin_tool)
+    }
+
+    /// Every tool this source renders: `tool`, then `extra_tools` (empty without `tool`).
+    pub fn tool_definitions(&self) -> Vec<irtrack_core::params::ToolDefinition> {
+        let Some(first) = self.tool_definition() else {
+            return Vec::new();
+        };
+        let mut all = vec![first];
+        all.extend(
+            self.extra_tools
+                .iter()
+                .filter_map(|n| irtrack_sim::tools::builtin_tool(n)),
+        );
+        all
     }
 }
 
