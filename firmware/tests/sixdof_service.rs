@@ -20,10 +20,24 @@ use nalgebra::Vector3;
 
 const FRAMES: u64 = 720;
 const MAX_STEP_MM: f64 = 20.0;
+const MAX_SPEED_MM_S: f64 = 1000.0;
 const MAX_ROTATION_STEP_DEG: f64 = 15.0;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn turning_tool_is_tracked_in_6dof_by_irtrackd_and_drives_the_robot() {
+    turning_tool_drives_the_robot(20.0).await;
+}
+
+/// docs/six-dof.md's 30° case: LED images pass in front of each other for stretches of frames,
+/// so some sets give no pose. Before the multi-tool tracker and the reacquisition rule the
+/// link latched on `StepTooLarge` after the first such gap and needed a new enable; now it
+/// must follow the whole run.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn thirty_degree_turning_keeps_the_robot_link_running() {
+    turning_tool_drives_the_robot(30.0).await;
+}
+
+async fn turning_tool_drives_the_robot(rotation_deg: f64) {
     let dir = TempDir::new("sixdof-service");
     let sim_toml = format!(
         r#"
@@ -34,7 +48,7 @@ period_s = 6.0
 fps = 120.0
 seed = 6
 tool = "probe4"
-tool_rotation_deg = 20.0
+tool_rotation_deg = {rotation_deg}
 frames = {FRAMES}
 "#
     );
@@ -72,7 +86,7 @@ heartbeat_ms = 50
 workspace_min_mm = [{}, {}, {}]
 workspace_max_mm = [{}, {}, {}]
 max_step_mm = {MAX_STEP_MM}
-max_speed_mm_s = 1000.0
+max_speed_mm_s = {MAX_SPEED_MM_S}
 max_gap_mm = 1.5
 max_age_ms = 200
 require_world_frame = false
@@ -136,7 +150,7 @@ kind = "none"
     let rot_rms = (rot_sq / tracked.max(1) as f64).sqrt();
     let pos_rms = (pos_sq / tracked.max(1) as f64).sqrt();
     println!(
-        "irtrackd 6-DOF stream: {tracked} tracked records, {other} others, orientation RMS {rot_rms:.3}° \
+        "irtrackd 6-DOF stream, {rotation_deg}° turning: {tracked} tracked records, {other} others, orientation RMS {rot_rms:.3}° \
          (max {rot_max:.3}°), position RMS {pos_rms:.3} mm (max {pos_max:.3} mm), {jumps} jumps"
     );
     assert!(tracked >= 100, "only {tracked} tracked records ({other} others)");
@@ -163,7 +177,10 @@ kind = "none"
     let truth_frames: Vec<_> = (0..FRAMES).map(|k| truth.truth(k)).collect();
     let (mut rq_sq, mut rp_sq, mut rq_max, mut step_max, mut rot_step_max) =
         (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64);
-    let mut prev: Option<([f64; 3], [f64; 4])> = None;
+    let mut prev: Option<([f64; 3], [f64; 4], u64)> = None;
+    // Steps after a tracking gap (more than one frame between targets): the reacquisition
+    // rule allows up to max_speed_mm_s × gap there instead of max_step_mm.
+    let (mut reacquired, mut excess_steps) = (0usize, 0usize);
     for r in &received {
         let q = r.quat_wxyz.expect("6-DOF target sent as a Q line");
         let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
@@ -182,17 +199,27 @@ kind = "none"
         rq_sq += e_rot * e_rot;
         rp_sq += e_pos * e_pos;
         rq_max = rq_max.max(e_rot);
-        if let Some((pp, pq)) = prev {
-            step_max = step_max.max((p - Vector3::from(pp)).norm());
+        if let Some((pp, pq, pk)) = prev {
+            let step = (p - Vector3::from(pp)).norm();
+            let frames = t.index.saturating_sub(pk).max(1);
+            let allowed = if frames > 1 {
+                reacquired += usize::from(step > MAX_STEP_MM);
+                MAX_STEP_MM.max(MAX_SPEED_MM_S * frames as f64 / 120.0)
+            } else {
+                MAX_STEP_MM
+            };
+            excess_steps += usize::from(step > allowed);
+            step_max = step_max.max(step);
             rot_step_max = rot_step_max.max(quaternion_angle_rad(&q, &pq).to_degrees());
         }
-        prev = Some((r.pos_mm, q));
+        prev = Some((r.pos_mm, q, t.index));
     }
     let n = received.len().max(1) as f64;
     let (rq_rms, rp_rms) = ((rq_sq / n).sqrt(), (rp_sq / n).sqrt());
     println!(
-        "robot-sim received {} Q targets: orientation RMS {rq_rms:.3}° (max {rq_max:.3}°), position RMS \
-         {rp_rms:.3} mm, largest step {step_max:.2} mm, largest rotation step {rot_step_max:.2}°; link {:?}",
+        "robot-sim ({rotation_deg}°) received {} Q targets: orientation RMS {rq_rms:.3}° (max {rq_max:.3}°), position RMS \
+         {rp_rms:.3} mm, largest step {step_max:.2} mm ({reacquired} steps over {MAX_STEP_MM} mm after a gap), \
+         largest rotation step {rot_step_max:.2}°; link {:?}",
         received.len(),
         link_status.state
     );
@@ -213,7 +240,10 @@ kind = "none"
     );
     assert!(rq_rms <= 0.3, "robot orientation RMS {rq_rms}°");
     assert!(rp_rms <= 0.6, "robot position RMS {rp_rms} mm");
-    assert!(step_max <= MAX_STEP_MM, "step {step_max} mm");
+    assert_eq!(
+        excess_steps, 0,
+        "steps beyond max_step_mm (or max_speed × gap after a gap); largest {step_max} mm"
+    );
     assert!(
         rot_step_max <= MAX_ROTATION_STEP_DEG,
         "rotation step {rot_step_max}°"
