@@ -540,6 +540,7 @@ impl SharedStatus {
             refused_listener_cap: c.refused_listener_cap.load(R),
             refused_peer_cap: c.refused_peer_cap.load(R),
             timeouts: c.timeouts.load(R),
+            evicted: c.evicted.load(R),
         });
         let snapshot = MetricsSnapshot {
             counters: counters.to_vec(),
@@ -556,6 +557,10 @@ impl SharedStatus {
             faults: self.active_faults(),
             stages: self.stages.stages().map(|(name, h)| (name, h.snapshot())),
             listeners,
+            ws_timeouts: [
+                ("send", self.net.ws_send_timeouts.load(R)),
+                ("silence", self.net.ws_silence_timeouts.load(R)),
+            ],
         };
         let mut registry = prometheus_client::registry::Registry::default();
         registry.register_collector(Box::new(snapshot));
@@ -595,6 +600,8 @@ struct MetricsSnapshot {
     faults: Vec<Fault>,
     stages: [(&'static str, crate::metrics::HistogramSnapshot); STAGES],
     listeners: [ListenerSnapshot; 4],
+    /// Live WebSocket sessions ended by a timeout, by reason (`send`, `silence`).
+    ws_timeouts: [(&'static str, u64); 2],
 }
 
 /// One listener's connection counters in a scrape.
@@ -606,6 +613,7 @@ struct ListenerSnapshot {
     refused_listener_cap: u64,
     refused_peer_cap: u64,
     timeouts: u64,
+    evicted: u64,
 }
 
 impl prometheus_client::collector::Collector for MetricsSnapshot {
@@ -693,12 +701,17 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
         }
         let mut m = enc.encode_descriptor(
             "irtrackd_connections_refused",
-            "connections closed at once by a cap (reason: listener or peer)",
+            "connections closed by a cap (reason: listener or peer = refused at once; evicted = \
+             an unanswered exchange closed to admit a new connection at the listener cap)",
             None,
             MetricType::Counter,
         )?;
         for l in &self.listeners {
-            for (reason, n) in [("listener", l.refused_listener_cap), ("peer", l.refused_peer_cap)] {
+            for (reason, n) in [
+                ("listener", l.refused_listener_cap),
+                ("peer", l.refused_peer_cap),
+                ("evicted", l.evicted),
+            ] {
                 let labels = [("listener", l.name), ("reason", reason)];
                 ConstCounter::new(n).encode(m.encode_family(&labels)?)?;
             }
@@ -711,6 +724,16 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
         )?;
         for l in &self.listeners {
             ConstCounter::new(l.timeouts).encode(m.encode_family(&[("listener", l.name)])?)?;
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_websocket_timeouts",
+            "live WebSocket sessions ended by a timeout (reason: send = a message not taken in \
+             time, silence = no pong or message back in time)",
+            None,
+            MetricType::Counter,
+        )?;
+        for (reason, n) in self.ws_timeouts {
+            ConstCounter::new(n).encode(m.encode_family(&[("reason", reason)])?)?;
         }
         let mut m = enc.encode_descriptor("irtrackd_led_on", "status LED levels", None, MetricType::Gauge)?;
         for (led, on) in ["run", "track", "robot", "fault"].iter().zip(self.leds) {

@@ -11,8 +11,8 @@
 //! - the active parameter set is unchanged (rig id and swap count);
 //! - irtrackd's RSS stays within the bound the probe states.
 //!
-//! Attackers use addresses of 127.0.2.0/24 .. 127.0.8.0/24 (Linux answers all of 127/8 on
-//! loopback), fresh clients 127.0.9.0/24, so the per-address caps and throttles act as they
+//! Attackers use addresses of 127.0.2.0/24 .. 127.0.8.0/24 and 127.0.10.0/24 (Linux answers
+//! all of 127/8 on loopback), fresh clients 127.0.9.0/24, so the per-address caps and throttles act as they
 //! would on a network. Needs the irtrackd binary (`cargo build -p irtrack-firmware`).
 
 mod common;
@@ -384,6 +384,38 @@ async fn two_thousand_idle_connections_under_a_1024_file_limit() {
     eprintln!("held {} of 2,000 connections on the client side", held.len());
 }
 
+/// Probe: slow request heads from ten addresses, 32 each (the per-address cap): together more
+/// than the status port's 256 slots, held for the whole 5 s head timeout. A fresh client is
+/// still answered at once: at the cap the board closes the oldest unanswered exchange of the
+/// address that holds the most.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_slot_flood_from_ten_addresses_leaves_status_answering() {
+    let b = start_board("slotflood", "", "", None);
+    let base = baseline(&b).await;
+    let t0 = Instant::now();
+    let held = hold(&attackers(10, 10), b.status, 32, b"GET /status HTTP/1.1\r\nHo").await;
+    assert!(held.len() >= 256, "only {} connections were made", held.len());
+    invariants(&b, &base, 20 * 1024, "256 status slots held by 10 addresses").await;
+    assert!(
+        t0.elapsed() < Duration::from_secs(5),
+        "the probe outlived the head timeout ({:?}); it proves nothing",
+        t0.elapsed()
+    );
+    let evicted = metric(
+        &b,
+        "irtrackd_connections_refused_total{listener=\"status\",reason=\"evicted\"}",
+    )
+    .await;
+    assert!(
+        evicted >= 1.0,
+        "no unanswered exchange was closed for a fresh client"
+    );
+    eprintln!(
+        "{} slow heads held, {evicted} closed for fresh clients",
+        held.len()
+    );
+}
+
 /// Probes: a lock-out attempt on the operator sign-in, and stop requests during a throttle.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn signin_lockout_fails_and_stop_requests_pass_the_throttle() {
@@ -713,6 +745,11 @@ async fn bad_frames_and_stalled_readers_end_their_sessions() {
         closed_within(&mut unmasked, Duration::from_secs(3)).await,
         "unmasked frame not refused"
     );
+    // A deaf viewer reads everything but never answers a ping: it is closed once 25 s pass
+    // without a frame back (at the third ping, 30 s in). Opened first; checked last.
+    let mut deaf = open(fresh_addr()).await;
+    let deaf_opened = Instant::now();
+    let deaf_closed = tokio::spawn(async move { closed_within(&mut deaf, Duration::from_secs(40)).await });
     // Twenty viewers ask for previews, zooms, blobs and positions, then never read again.
     let subscribe = br#"{"type":"subscribe","preview_fps":10,"zoom_px":64,"blobs":true,"positions":true}"#;
     let mut stalled = Vec::new();
@@ -740,12 +777,23 @@ async fn bad_frames_and_stalled_readers_end_their_sessions() {
     }
     eprintln!("20 stalled viewers dropped after {:?}", t0.elapsed());
     invariants(&b, &base, 60 * 1024, "after the stalled readers").await;
+    let send_timeouts = metric(&b, "irtrackd_websocket_timeouts_total{reason=\"send\"}").await;
+    assert!(send_timeouts >= 20.0, "stalled readers counted: {send_timeouts}");
+    assert!(
+        deaf_closed.await.unwrap(),
+        "a viewer that never answers pings was kept for 40 s"
+    );
+    eprintln!("deaf viewer closed after {:?}", deaf_opened.elapsed());
+    assert!(deaf_opened.elapsed() >= Duration::from_secs(25));
+    let silence = metric(&b, "irtrackd_websocket_timeouts_total{reason=\"silence\"}").await;
+    assert!(silence >= 1.0, "deaf viewer not counted: {silence}");
 }
 
 /// Probe: 300 concurrent pushes announcing 1 MiB each, some over the limit.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn concurrent_oversize_parameter_pushes() {
-    let b = start_board("push", "", "", None);
+    // Unsigned blobs allowed (development mode), so a bad blob reaches the decoder's verdict.
+    let b = start_board("push", "", "[params]\nallow_unsigned = true", None);
     let base = baseline(&b).await;
     let mut header = b"IRPP".to_vec();
     header.extend_from_slice(&(1024u32 * 1024).to_le_bytes());
@@ -779,6 +827,29 @@ async fn concurrent_oversize_parameter_pushes() {
         .expect("no verdict")
         .unwrap();
     assert!(verdict.starts_with("ERR TOO_LARGE"), "{verdict:?}");
+    // A blob that is markup with a line break and a forged verdict: the answer is one line
+    // naming the problem, with the 4 magic bytes it found as hex, and none of the input.
+    let forged = b"<sc\nript>alert(1)</script>\r\nOK forged-rig\n".repeat(4);
+    let mut push = b"IRPP".to_vec();
+    push.extend_from_slice(&(forged.len() as u32).to_le_bytes());
+    push.extend_from_slice(&forged);
+    let mut s = connect_from(fresh_addr(), b.params).await.unwrap();
+    s.write_all(&push).await.unwrap();
+    let mut verdict = String::new();
+    tokio::time::timeout(Duration::from_secs(5), s.read_to_string(&mut verdict))
+        .await
+        .expect("no verdict")
+        .unwrap();
+    assert!(verdict.starts_with("ERR BAD_BLOB "), "{verdict:?}");
+    assert!(verdict.contains("[3c, 73, 63, 0a]"), "{verdict:?}");
+    assert_eq!(verdict.matches('\n').count(), 1, "{verdict:?}");
+    assert!(verdict.ends_with('\n'), "{verdict:?}");
+    for echoed in ["<sc", "script", "forged", "OK "] {
+        assert!(
+            !verdict.contains(echoed),
+            "the verdict echoes the push: {verdict:?}"
+        );
+    }
     let (_, v) = fresh_status(&b).await;
     assert_eq!(rig(&v), base.rig);
 }

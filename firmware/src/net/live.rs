@@ -7,6 +7,7 @@
 //! latest copy (see [`crate::viewer`]); the processing loop never waits for any of this.
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
@@ -20,7 +21,7 @@ use serde::{Deserialize, Serialize};
 use super::auth::{SESSION_COOKIE, SESSION_TTL};
 use super::http::MAX_REQUEST_BODY_BYTES;
 use super::http::{ConnInfo, json_line, json_text, text};
-use super::limit::ConnSlot;
+use super::limit::{ConnSlot, NetCounters};
 use super::previews::{PREVIEW_EPOCH, PREVIEW_SHARE_WINDOW, PreviewShare, SharedPreviews};
 use super::status::StatusService;
 use crate::source::{Frame, Pixels};
@@ -363,6 +364,14 @@ pub(super) async fn live(
     // Oversized frames and messages, and unmasked client frames, end the session with an
     // error (tungstenite's checks); the write buffer holds at most about one message because
     // every send waits for its flush.
+    // A session holds its slot for long: within the listener's long-lived share, so the other
+    // slots stay for plain requests (net::limit).
+    if !slot.hold_long() {
+        return text(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "too many live sessions at once; try again later\n",
+        );
+    }
     ws.max_message_size(MAX_CLIENT_MESSAGE_BYTES)
         .max_frame_size(MAX_CLIENT_MESSAGE_BYTES)
         .on_upgrade(move |socket| async move {
@@ -372,18 +381,34 @@ pub(super) async fn live(
         })
 }
 
-/// Sends one message within [`WS_SEND_TIMEOUT`].
-async fn send_bounded(
-    tx: &mut futures_util::stream::SplitSink<WebSocket, Message>,
-    m: Message,
-) -> Result<(), axum::Error> {
-    match tokio::time::timeout(WS_SEND_TIMEOUT, tx.send(m)).await {
-        Ok(r) => r,
-        Err(_) => Err(axum::Error::new(std::io::Error::new(
-            std::io::ErrorKind::TimedOut,
-            "viewer did not take a message in time",
-        ))),
+/// The sending half of a live session, with the counters its timeouts go to.
+struct ViewerTx<'a> {
+    tx: futures_util::stream::SplitSink<WebSocket, Message>,
+    net: &'a NetCounters,
+}
+
+impl ViewerTx<'_> {
+    /// Sends one message within [`WS_SEND_TIMEOUT`]; a send not taken in time is counted
+    /// (`irtrackd_websocket_timeouts_total{reason="send"}`) and ends the session.
+    async fn send(&mut self, m: Message) -> Result<(), axum::Error> {
+        match tokio::time::timeout(WS_SEND_TIMEOUT, self.tx.send(m)).await {
+            Ok(r) => r,
+            Err(_) => {
+                count_ws_timeout(self.net, &self.net.ws_send_timeouts);
+                tracing::info!("live viewer did not take a message in time; session closed");
+                Err(axum::Error::new(std::io::Error::new(
+                    std::io::ErrorKind::TimedOut,
+                    "viewer did not take a message in time",
+                )))
+            }
+        }
     }
+}
+
+/// Counts a WebSocket timeout under its reason and as a status-listener timeout.
+fn count_ws_timeout(net: &NetCounters, reason: &AtomicU64) {
+    reason.fetch_add(1, Ordering::Relaxed);
+    net.status.timeouts.fetch_add(1, Ordering::Relaxed);
 }
 
 /// What one frame copy turns into for one viewer.
@@ -448,7 +473,11 @@ fn blob_message(tap: &crate::viewer::ViewerTap, copy: &crate::viewer::BlobCopy) 
 }
 
 async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
-    let (mut tx, mut rx) = socket.split();
+    let (tx, mut rx) = socket.split();
+    let mut tx = ViewerTx {
+        tx,
+        net: &s.status.net,
+    };
     let viewer = s.tap.as_ref().map(|t| t.attach());
     // Status reports only until the client says what it wants: nothing is encoded for a
     // client that is about to ask for other sizes (the page subscribes on open).
@@ -496,7 +525,7 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
                         }
                         Err(e) => {
                             let m = serde_json::json!({"type": "error", "message": e});
-                            send_bounded(&mut tx, Message::Text(m.to_string().into())).await
+                            tx.send(Message::Text(m.to_string().into())).await
                         }
                     }
                 }
@@ -508,17 +537,18 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
             },
             _ = ping.tick() => {
                 if last_heard.elapsed() > WS_SILENCE_LIMIT {
+                    count_ws_timeout(&s.status.net, &s.status.net.ws_silence_timeouts);
                     tracing::info!("live viewer silent too long (no pong); session closed");
                     break;
                 }
-                send_bounded(&mut tx, Message::Ping(Bytes::new())).await
+                tx.send(Message::Ping(Bytes::new())).await
             }
             _ = status_tick.tick() => {
                 let mut v = s.report_json();
                 if let Some(o) = v.as_object_mut() {
                     o.insert("type".into(), "status".into());
                 }
-                send_bounded(&mut tx, Message::Text(v.to_string().into())).await
+                tx.send(Message::Text(v.to_string().into())).await
             }
             changed = async {
                 match positions.as_mut() {
@@ -536,7 +566,7 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
                     (true, Some(rec)) => {
                         last_position = Some(Instant::now());
                         let m = format!("{{\"type\":\"position\",\"record\":{}}}", rec.to_ndjson_line().trim_end());
-                        send_bounded(&mut tx, Message::Text(m.into())).await
+                        tx.send(Message::Text(m.into())).await
                     }
                     _ => Ok(()),
                 }
@@ -561,7 +591,7 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
                         if let Some(o) = m.as_object_mut() {
                             o.insert("dropped".into(), dropped_sets.into());
                         }
-                        if send_bounded(&mut tx, Message::Text(m.to_string().into())).await.is_err() {
+                        if tx.send(Message::Text(m.to_string().into())).await.is_err() {
                             break;
                         }
                     }
@@ -619,17 +649,14 @@ fn parse_subscribe(text: &str) -> Result<Subscription, String> {
     Ok(sub.sanitized())
 }
 
-async fn send_rendered(
-    tx: &mut futures_util::stream::SplitSink<WebSocket, Message>,
-    r: &mut Rendered,
-) -> Result<(), axum::Error> {
+async fn send_rendered(tx: &mut ViewerTx<'_>, r: &mut Rendered) -> Result<(), axum::Error> {
     for (meta, jpeg) in r.previews.drain(..) {
-        send_bounded(tx, Message::Text(meta.to_string().into())).await?;
-        send_bounded(tx, Message::Binary(jpeg)).await?;
+        tx.send(Message::Text(meta.to_string().into())).await?;
+        tx.send(Message::Binary(jpeg)).await?;
     }
     for (meta, png) in r.zooms.drain(..) {
-        send_bounded(tx, Message::Text(meta.to_string().into())).await?;
-        send_bounded(tx, Message::Binary(png)).await?;
+        tx.send(Message::Text(meta.to_string().into())).await?;
+        tx.send(Message::Binary(png)).await?;
     }
     Ok(())
 }

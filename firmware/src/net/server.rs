@@ -2,7 +2,10 @@
 //!
 //! Every phase of a connection has a bound (docs/security.md, "Connections"):
 //! - connections: at most [`STATUS_LIMITS`] at once per listener and per client address;
-//!   over that they are closed right after `accept`, counted in `/metrics`;
+//!   over that they are closed right after `accept`, counted in `/metrics`; at the listener
+//!   cap a new connection instead closes the oldest unanswered exchange of the address that
+//!   holds the most slots (`ConnLimiter::admit_evicting`), so a flood spread over many
+//!   addresses cannot keep a fresh `/status` client out;
 //! - request head: 8 KiB within [`HEAD_TIMEOUT`] (hyper's header read timeout, which also
 //!   covers a connection that never sends anything);
 //! - request body: 64 KiB; a body that stops for [`BODY_IDLE_TIMEOUT`] fails (tower-http), and
@@ -159,8 +162,10 @@ pub async fn serve_router(
             _ = &mut shutdown => break,
             accepted = listener.accept() => match accepted {
                 Ok((stream, peer)) => {
-                    let permit = match limiter.admit(peer.ip()) {
-                        Ok(p) => Arc::new(p),
+                    // At the cap, the oldest unanswered exchange of the biggest holder makes
+                    // room (net::limit): a fresh client is answered during a slot flood.
+                    let (permit, evict) = match limiter.admit_evicting(peer.ip()) {
+                        Ok((p, evict)) => (Arc::new(p), evict),
                         Err(over) => {
                             limiter.log_refusal("status", over);
                             drop(stream);
@@ -186,7 +191,15 @@ pub async fn serve_router(
                             .header_read_timeout(HEAD_TIMEOUT)
                             .max_buf_size(MAX_REQUEST_HEAD_BYTES);
                         let conn = http.serve_connection(TokioIo::new(stream), svc).with_upgrades();
-                        match tokio::time::timeout(HTTP_EXCHANGE_LIMIT, conn).await {
+                        let timed = tokio::time::timeout(HTTP_EXCHANGE_LIMIT, conn);
+                        let ended = tokio::select! {
+                            r = timed => r,
+                            _ = evict.notified() => {
+                                tracing::debug!(%peer, "status exchange closed for a fresh client at the cap");
+                                return;
+                            }
+                        };
+                        match ended {
                             Err(_) => {
                                 limiter.counters().timeouts.fetch_add(1, Ordering::Relaxed);
                                 tracing::debug!(%peer, "status connection timed out");
