@@ -6,7 +6,7 @@ use std::net::UdpSocket;
 
 use irtrack_firmware::source::FrameSource;
 use irtrack_firmware::source::sim::{SimCellConfig, SimSource, SimSourceConfig};
-use irtrack_sim::cell::{FEED_REQUEST, encode_feed_answer};
+use irtrack_robot::cell::{FEED_REQUEST, encode_feed_answer};
 use nalgebra::{Point3, Vector3};
 
 fn cell_cfg(robot: String) -> SimSourceConfig {

@@ -1,7 +1,8 @@
 //! irtrack's robot side, shared by irtrackd (the board) and the PC tools: the tracker end of the
 //! three robot interfaces (`[robot] kind`): the socket protocol (docs/robot-protocol.md), ABB EGM
 //! and KUKA RSI (docs/robot-streaming.md); the safety supervisor that decides what may be sent
-//! and the deadman input; and the simulated controllers the tests and `host-tools robot-sim` run.
+//! and the deadman input; and the simulated controllers the tests and `host-tools robot-sim` run
+//! (socket, EGM, RSI, and the cell robot with its error model, [`cell`]).
 //! The wire codecs themselves are no_std and live in `irtrack_core::robot_proto`.
 //!
 //! [`LinkHandle`] is the running link of any kind and implements [`RobotLink`], the seam irtrackd
@@ -9,6 +10,7 @@
 //! through the same [`gate::Gate`] (operator enable, deadman, supervisor), fed by a
 //! [`PositionFeed`] and timed by a [`Clock`].
 
+pub mod cell;
 pub mod client;
 pub mod ctrl_sim;
 pub mod deadman;
@@ -128,6 +130,15 @@ pub enum RobotError {
     /// Invalid configuration.
     #[error("robot config: {reason}")]
     Config { reason: String },
+    /// A simulated controller's setting (the cell robot's error model) or simulator-only
+    /// message (the cell feed) is unusable; the message names the field.
+    #[error("invalid simulator configuration: {field}: {reason}")]
+    Simulator {
+        /// The key or channel.
+        field: &'static str,
+        /// What is wrong with it.
+        reason: String,
+    },
     /// A streaming-interface packet (EGM or RSI) that cannot be decoded.
     #[error("{protocol} packet ({len} bytes): {reason}")]
     Packet {

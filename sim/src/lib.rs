@@ -6,7 +6,6 @@
 //! ground truth for every frame. [`resolution`] is the analytic planner behind `host-tools plan`.
 
 pub mod backdrop;
-pub mod cell;
 pub mod checkerboard;
 pub mod error;
 pub mod noise;

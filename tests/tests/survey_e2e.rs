@@ -25,8 +25,8 @@ use irtrack_core::params::RigParams;
 use irtrack_core::registration;
 use irtrack_core::stream::{PositionRecord, TrackStatus};
 use irtrack_firmware::source::sim::{SimCellConfig, SimSourceConfig};
+use irtrack_robot::cell::{RobotErrorModel, led_position_mm};
 use irtrack_sim::Scenario;
-use irtrack_sim::cell::{RobotErrorModel, led_position_mm};
 use nalgebra::{UnitQuaternion, Vector3};
 
 /// The simulated robot's errors (robot-sim's flags below say the same).

@@ -12,7 +12,7 @@ use nalgebra::Vector3;
 use serde::Deserialize;
 
 use irtrack_core::params::RigParams;
-use irtrack_sim::cell::CellFeed;
+use irtrack_robot::cell::CellFeed;
 use irtrack_sim::wand::{WandConfig, WandWave};
 use irtrack_sim::{BitDepth, FrameInfo, RigPreset, Scenario, SimConfig, Trajectory};
 

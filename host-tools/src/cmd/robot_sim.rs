@@ -19,9 +19,9 @@ use std::sync::{Arc, Mutex};
 use anyhow::{Context, bail};
 use irtrack_core::robot_proto::{MAX_LINE_BYTES, RobotMsg};
 use irtrack_robot::RsiMode;
+use irtrack_robot::cell::{self, RobotErrorModel};
 use irtrack_robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController};
 use irtrack_robot::sim_robot::{SimEvent, SimRobot, SimRobotConfig};
-use irtrack_sim::cell::{self, RobotErrorModel};
 
 /// Arguments.
 #[derive(clap::Args, Debug, Clone)]

@@ -1,4 +1,5 @@
 //! The simulated robot cell: a robot whose flange carries the LED, with a real robot's errors.
+//! (It lives with the other simulated controllers; the simulator crate gives it its noise.)
 //!
 //! The robot controller believes its TCP is where it was commanded (that is what RAPID's
 //! `CRobT` and robot-sim's `A` answer report). The flange is really somewhere slightly
@@ -17,8 +18,9 @@ use std::time::Duration;
 
 use nalgebra::{UnitQuaternion, Vector3};
 
-use crate::SimError;
-use crate::noise::{hash_words, normal_quantile, unit_from_hash};
+use irtrack_sim::noise::{hash_words, normal_quantile, unit_from_hash};
+
+use crate::RobotError;
 
 /// Terms of the smooth error field per axis.
 const FIELD_TERMS: usize = 3;
@@ -61,8 +63,8 @@ impl RobotErrorModel {
     }
 
     /// Checks the values are usable; the message names the field.
-    pub fn validate(&self) -> Result<(), SimError> {
-        let bad = |field, reason: String| Err(SimError::Config { field, reason });
+    pub fn validate(&self) -> Result<(), RobotError> {
+        let bad = |field, reason: String| Err(RobotError::Simulator { field, reason });
         if !(self.repeatability_mm.is_finite() && self.repeatability_mm >= 0.0) {
             return bad(
                 "repeatability_mm",
@@ -165,8 +167,8 @@ pub fn encode_feed_answer(led_mm: Option<[f64; 3]>) -> String {
 }
 
 /// Decodes an answer of [`encode_feed_answer`]: `Ok(None)` for `LED off`.
-pub fn decode_feed_answer(text: &str) -> Result<Option<[f64; 3]>, SimError> {
-    let bad = |reason: String| SimError::Config {
+pub fn decode_feed_answer(text: &str) -> Result<Option<[f64; 3]>, RobotError> {
+    let bad = |reason: String| RobotError::Simulator {
         field: "cell feed",
         reason,
     };
