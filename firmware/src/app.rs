@@ -480,6 +480,7 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         slot: slot_rx.clone(),
         params: handle.clone(),
         status: status.clone(),
+        tools: Some(tools_rx.clone()),
     };
     tasks.extend(outputs.spawn(&feed, || shutdown_future(&shutdown_rx)));
 

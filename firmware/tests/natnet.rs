@@ -291,3 +291,103 @@ fn natnet_multicast_frames_reach_a_client_that_joined_the_group() {
         assert!(worst_m <= 1e-4, "{worst_m}");
     });
 }
+
+/// Collects every per-tool NDJSON record (the client asks with `tools\n`) by (frame, tool id)
+/// until the stream is quiet for 2 s; returns once the first tool record arrived.
+async fn collect_tool_records(
+    addr: SocketAddr,
+) -> tokio::task::JoinHandle<HashMap<(u32, u8), irtrack_core::stream::ToolRecord>> {
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(b"tools\n").await.unwrap();
+    let mut lines = tokio::io::BufReader::new(s).lines();
+    let mut by_key = HashMap::new();
+    loop {
+        let line = tokio::time::timeout(Duration::from_secs(10), lines.next_line())
+            .await
+            .expect("no record within 10 s")
+            .unwrap()
+            .unwrap();
+        if line.starts_with("{\"tool_id\"") {
+            let t = irtrack_core::stream::ToolRecord::from_ndjson_line(&line).unwrap();
+            by_key.insert((t.record.frame as u32, t.tool_id), t);
+            break;
+        }
+    }
+    tokio::spawn(async move {
+        while let Ok(Ok(Some(line))) = tokio::time::timeout(Duration::from_secs(2), lines.next_line()).await {
+            if line.starts_with("{\"tool_id\"") {
+                let t = irtrack_core::stream::ToolRecord::from_ndjson_line(&line).unwrap();
+                by_key.insert((t.record.frame as u32, t.tool_id), t);
+            }
+        }
+        by_key
+    })
+}
+
+/// Two tools at once: a rigid body per tool in the model definitions and in every frame, each
+/// equal to that tool's per-tool record on the NDJSON stream.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn natnet_client_reads_a_rigid_body_per_tool() {
+    let dir = TempDir::new("natnet-two-tools");
+    let sim = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nperiod_s = 6.0\nfps = 120.0\nseed = 6\ntool = \"probe4\"\nextra_tools = [\"tri3\"]\ntool_rotation_deg = 20.0\nframes = 900\n";
+    let running = start(&dir, sim, "transport = \"unicast\"\n").await;
+    let natnet = running.addrs.natnet.expect("NatNet enabled");
+    let tools = collect_tool_records(running.addrs.stream_ndjson).await;
+    let got = python_client(natnet, 150, 10.0, &[]).await;
+    let by_key = tools.await.unwrap();
+    running.shutdown().await;
+
+    assert_eq!(got["complete"], true, "{got}");
+    let models = &got["models"][0];
+    let names: Vec<(&str, u64, usize)> = models["rigid_bodies"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|b| {
+            (
+                b["name"].as_str().unwrap(),
+                b["id"].as_u64().unwrap(),
+                b["markers"].as_array().unwrap().len(),
+            )
+        })
+        .collect();
+    assert_eq!(names, [("probe4", 1, 4), ("tri3", 2, 3)]);
+    assert_eq!(models["marker_sets"][1][0], "tri3");
+
+    let (mut compared, mut worst_m, mut worst_q) = ([0usize; 2], 0.0f64, 0.0f64);
+    for fr in got["frames"].as_array().unwrap() {
+        let n = fr["frame"].as_u64().unwrap() as u32;
+        let bodies = fr["rigid_bodies"].as_array().unwrap();
+        assert_eq!(bodies.len(), 2, "frame {n}");
+        for (k, body) in bodies.iter().enumerate() {
+            assert_eq!(body["id"].as_u64(), Some(k as u64 + 1));
+            let Some(t) = by_key.get(&(n, k as u8)) else {
+                panic!("frame {n} tool {k} not on the NDJSON stream")
+            };
+            let tracked = t.record.status == TrackStatus::Ok;
+            assert_eq!(body["valid"], tracked, "frame {n} tool {k}");
+            if !tracked {
+                continue;
+            }
+            let p = t.record.position_mm.unwrap();
+            let q = t.record.orientation_wxyz.unwrap();
+            let pos = vec3(&body["pos"]);
+            for i in 0..3 {
+                worst_m = worst_m.max((pos[i] - p[i] / 1e3).abs());
+            }
+            let rot = body["rot"].as_array().unwrap();
+            for (i, c) in [q[1], q[2], q[3], q[0]].iter().enumerate() {
+                worst_q = worst_q.max((f(&rot[i]) - c).abs());
+            }
+            compared[k] += 1;
+        }
+    }
+    println!(
+        "NatNet, two tools: probe4 {} and tri3 {} tracked frames compared, largest difference {worst_m:.2e} m, \
+         quaternion {worst_q:.2e}",
+        compared[0], compared[1]
+    );
+    assert!(compared[0] >= 100 && compared[1] >= 50, "{compared:?}");
+    assert!(worst_m <= 1e-4 && worst_q <= 1e-4, "{worst_m} m {worst_q}");
+}

@@ -55,6 +55,8 @@ pub struct Feed {
     pub slot: watch::Receiver<Option<PositionRecord>>,
     pub params: Arc<ParamsHandle>,
     pub status: Arc<SharedStatus>,
+    /// The loop's per-tool records (every tool as its own body); `None`: main record only.
+    pub tools: Option<watch::Receiver<crate::engine::ToolSet>>,
 }
 
 /// The enabled outputs, bound (so a port in use fails at start) but not yet running.
@@ -134,7 +136,7 @@ impl Outputs {
     {
         let mut tasks = Vec::new();
         if let Some(server) = self.natnet {
-            tasks.push(tokio::spawn(server.serve(
+            tasks.push(tokio::spawn(server.with_tools(feed.tools.clone()).serve(
                 feed.slot.clone(),
                 feed.params.clone(),
                 feed.status.clone(),
@@ -153,7 +155,7 @@ impl Outputs {
         }
         #[cfg(feature = "ros2")]
         if let Some(out) = self.ros2 {
-            let started = out.spawn(
+            let started = out.with_tools(feed.tools.clone()).spawn(
                 tokio::runtime::Handle::current(),
                 feed.slot.clone(),
                 feed.params.clone(),

@@ -197,6 +197,7 @@ mod imp {
     pub struct Ros2Output {
         cfg: Ros2Config,
         node: Node,
+        tools: Option<watch::Receiver<crate::engine::ToolSet>>,
     }
 
     /// The publishers of one model (a tool, or the single LED).
@@ -239,7 +240,14 @@ mod imp {
             Ok(Self {
                 cfg: cfg.clone(),
                 node,
+                tools: None,
             })
+        }
+
+        /// Publishes every tool's pose from the loop's per-tool slot.
+        pub fn with_tools(mut self, tools: Option<watch::Receiver<crate::engine::ToolSet>>) -> Self {
+            self.tools = tools;
+            self
         }
 
         /// Publishes every record the slot shows until `shutdown`. Runs on a thread of its own
@@ -333,7 +341,7 @@ mod imp {
                 status,
                 stats,
                 generation: u64::MAX,
-                builder: SceneBuilder::new(Models::default(), Axes::Tracker),
+                builder: SceneBuilder::new(Models::default(), Axes::Tracker).with_tools(out.tools),
                 scene: SceneFrame::default(),
                 models: Vec::new(),
                 tf: None,

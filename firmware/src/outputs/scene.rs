@@ -2,13 +2,17 @@
 //! as rigid bodies, or the single LED) and, per position record, a [`SceneFrame`] in metres in
 //! the output's axes.
 //!
-//! irtrackd tracks one tool today (docs/six-dof.md), but the types carry lists of bodies and
-//! markers so that several tools fit without a change to any encoder.
+//! Every tool of the parameter set is a model (rigid body id = tool index + 1); with the loop's
+//! per-tool slot ([`SceneBuilder::with_tools`]) each body gets its own tool's pose, so the
+//! encoders send a body per tool.
 
 use irtrack_core::params::RigParams;
 use irtrack_core::stream::{PositionRecord, TrackStatus};
 use nalgebra::{Matrix3, Quaternion, Rotation3, UnitQuaternion, Vector3};
 use serde::Deserialize;
+use tokio::sync::watch;
+
+use crate::engine::ToolSet;
 
 /// Axes of an output (`axes = "..."` in an output's table).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
@@ -59,30 +63,35 @@ pub struct Models {
 pub const SINGLE_LED_NAME: &str = "led";
 
 impl Models {
-    /// The tools the loop tracks (today the first one, docs/six-dof.md), else the single LED.
+    /// The tools the loop tracks (every tool of the set, ids 1, 2, … in definition order),
+    /// else the single LED.
     pub fn of_rig(rig: Option<&RigParams>) -> Models {
-        let tool = rig.and_then(|r| r.tools.first());
-        let list = match tool {
-            Some(t) => {
-                let tip = t.tip_mm.unwrap_or([0.0; 3]);
-                vec![ModelDef {
-                    id: 1,
-                    name: t.name.clone(),
-                    markers_m: t
-                        .leds_mm
-                        .iter()
-                        .map(|l| {
-                            [
-                                (l[0] - tip[0]) / 1e3,
-                                (l[1] - tip[1]) / 1e3,
-                                (l[2] - tip[2]) / 1e3,
-                            ]
-                        })
-                        .collect(),
-                    rigid_body: true,
-                }]
-            }
-            None => vec![ModelDef {
+        let tools = rig.map_or(&[][..], |r| r.tools.as_slice());
+        let list = match tools {
+            [_, ..] => tools
+                .iter()
+                .enumerate()
+                .map(|(i, t)| {
+                    let tip = t.tip_mm.unwrap_or([0.0; 3]);
+                    ModelDef {
+                        id: i as u32 + 1,
+                        name: t.name.clone(),
+                        markers_m: t
+                            .leds_mm
+                            .iter()
+                            .map(|l| {
+                                [
+                                    (l[0] - tip[0]) / 1e3,
+                                    (l[1] - tip[1]) / 1e3,
+                                    (l[2] - tip[2]) / 1e3,
+                                ]
+                            })
+                            .collect(),
+                        rigid_body: true,
+                    }
+                })
+                .collect(),
+            [] => vec![ModelDef {
                 id: 0,
                 name: SINGLE_LED_NAME.into(),
                 markers_m: vec![[0.0; 3]],
@@ -144,11 +153,24 @@ pub struct SceneFrame {
 pub struct SceneBuilder {
     pub models: Models,
     pub axes: Axes,
+    /// The loop's per-tool records; without them (or for a set without them) only a set with
+    /// a single tool has a tracked body, from the main record.
+    pub tools: Option<watch::Receiver<ToolSet>>,
 }
 
 impl SceneBuilder {
     pub fn new(models: Models, axes: Axes) -> Self {
-        Self { models, axes }
+        Self {
+            models,
+            axes,
+            tools: None,
+        }
+    }
+
+    /// Reads every tool's pose from the loop's per-tool slot (`engine::Engine::with_tool_slot`).
+    pub fn with_tools(mut self, tools: Option<watch::Receiver<ToolSet>>) -> Self {
+        self.tools = tools;
+        self
     }
 
     /// A record's position in the output axes, metres (the transform applied to every point).
@@ -169,27 +191,45 @@ impl SceneBuilder {
         out.unlabelled_m.clear();
         out.marker_sets.resize_with(self.models.list.len(), Vec::new);
         let rot = self.axes.rotation(rec.world_frame);
-        let tracked = rec.status == TrackStatus::Ok && rec.position_mm.is_some();
-        let p_m = rec
-            .position_mm
-            .map(|p| rot * Vector3::from(p) / 1e3)
-            .unwrap_or_else(Vector3::zeros);
-        let error_m = if rec.gap_mm.is_finite() {
-            rec.gap_mm / 1e3
-        } else {
-            0.0
+        let sample = |r: &PositionRecord| {
+            let tracked = r.status == TrackStatus::Ok && r.position_mm.is_some();
+            let p_m = r
+                .position_mm
+                .map(|p| rot * Vector3::from(p) / 1e3)
+                .unwrap_or_else(Vector3::zeros);
+            let error_m = if r.gap_mm.is_finite() { r.gap_mm / 1e3 } else { 0.0 };
+            (tracked, p_m, error_m)
         };
+        // The tool records of this very set (a newer set's are not mixed in).
+        let tool_set = self
+            .tools
+            .as_ref()
+            .map(|t| *t.borrow())
+            .filter(|t| t.frame == rec.frame && t.count > 0);
+        let single_body = self.models.rigid_bodies().count() == 1;
         for (model, set) in self.models.list.iter().zip(out.marker_sets.iter_mut()) {
             set.clear();
+            let body_rec = match &tool_set {
+                Some(ts) if model.rigid_body => ts
+                    .tools
+                    .get(model.id.saturating_sub(1) as usize)
+                    .and_then(|t| t.as_ref())
+                    .map(|t| t.record),
+                // Without per-tool records the main record is the (only) tool's.
+                _ if !model.rigid_body || single_body => Some(*rec),
+                _ => None,
+            };
+            let (tracked, p_m, error_m) = body_rec.as_ref().map_or((false, Vector3::zeros(), 0.0), sample);
+            let orientation = body_rec.and_then(|r| r.orientation_wxyz);
             if model.rigid_body {
-                let q = match (tracked, rec.orientation_wxyz) {
+                let q = match (tracked, orientation) {
                     (true, Some(q)) => {
                         let q_rec = UnitQuaternion::from_quaternion(Quaternion::new(q[0], q[1], q[2], q[3]));
                         UnitQuaternion::from_rotation_matrix(&rot) * q_rec
                     }
                     _ => UnitQuaternion::identity(),
                 };
-                let ok = tracked && rec.orientation_wxyz.is_some();
+                let ok = tracked && orientation.is_some();
                 let pos = if ok { p_m } else { Vector3::zeros() };
                 out.bodies.push(BodySample {
                     id: model.id,

@@ -26,6 +26,7 @@ pub struct NatNetServer {
     socket: UdpSocket,
     plan: NatNetPlan,
     local: SocketAddr,
+    tools: Option<watch::Receiver<crate::engine::ToolSet>>,
 }
 
 /// Sets `IP_MULTICAST_IF` (std and tokio have no setter for it).
@@ -81,7 +82,18 @@ impl NatNetServer {
         std_socket.set_nonblocking(true).map_err(bind_err)?;
         let socket = UdpSocket::from_std(std_socket).map_err(bind_err)?;
         let local = socket.local_addr().map_err(bind_err)?;
-        Ok(Self { socket, plan, local })
+        Ok(Self {
+            socket,
+            plan,
+            local,
+            tools: None,
+        })
+    }
+
+    /// Sends every tool as its own rigid body, from the loop's per-tool slot.
+    pub fn with_tools(mut self, tools: Option<watch::Receiver<crate::engine::ToolSet>>) -> Self {
+        self.tools = tools;
+        self
     }
 
     pub fn local_addr(&self) -> SocketAddr {
@@ -100,6 +112,7 @@ impl NatNetServer {
     ) {
         tokio::pin!(shutdown);
         let mut state = State::new(self.plan, self.local, params, status, stats);
+        state.builder.tools = self.tools;
         let mut buf = vec![0u8; 2048];
         let mut tick = tokio::time::interval(Duration::from_secs(1));
         tracing::info!(command = %self.local, multicast = ?state.plan.multicast, axes = ?state.plan.axes, "NatNet server started");
