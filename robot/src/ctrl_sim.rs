@@ -336,11 +336,11 @@ fn answer(
     }
 }
 
-/// Waits until `sock` is readable or `timeout` passes. `ppoll` sleeps on a high-resolution
-/// timer; a socket read timeout (`SO_RCVTIMEO`) is rounded up to scheduler ticks (4 ms at
-/// HZ=250), a whole EGM cycle.
-fn wait_readable(sock: &UdpSocket, timeout: Duration) -> bool {
-    use std::os::fd::AsRawFd;
+/// Waits until `sock` is readable (data, or a TCP peer that hung up) or `timeout` passes; true
+/// when a read will not block. `ppoll` sleeps on a high-resolution timer; a socket read timeout
+/// (`SO_RCVTIMEO`) is rounded up to scheduler ticks (4 ms at HZ=250, a whole EGM cycle; it woke
+/// the socket robot-sim every 8-12 ms for its 4 ms tick). Also used by `host-tools robot-sim`.
+pub fn wait_readable(sock: &impl std::os::fd::AsRawFd, timeout: Duration) -> bool {
     let mut fd = libc::pollfd {
         fd: sock.as_raw_fd(),
         events: libc::POLLIN,
@@ -352,7 +352,7 @@ fn wait_readable(sock: &UdpSocket, timeout: Duration) -> bool {
     };
     // SAFETY: one valid pollfd, a valid timespec, no signal mask; both outlive the call.
     let rc = unsafe { libc::ppoll(&mut fd, 1, &ts, std::ptr::null()) };
-    rc > 0 && fd.revents & libc::POLLIN != 0
+    rc > 0 && fd.revents & (libc::POLLIN | libc::POLLHUP) != 0
 }
 
 fn run(

@@ -20,7 +20,7 @@ use anyhow::{Context, bail};
 use irtrack_core::robot_proto::{MAX_LINE_BYTES, RobotMsg};
 use irtrack_robot::RsiMode;
 use irtrack_robot::cell::{self, RobotErrorModel};
-use irtrack_robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController};
+use irtrack_robot::ctrl_sim::{CtrlConfig, CtrlKind, SimController, wait_readable};
 use irtrack_robot::sim_robot::{SimEvent, SimRobot, SimRobotConfig};
 
 /// Arguments.
@@ -345,9 +345,12 @@ fn connection(
     cell: &SharedCell,
 ) -> String {
     let _ = stream.set_nodelay(true);
-    if let Err(e) = stream.set_read_timeout(Some(Duration::from_millis(args.tick_ms.max(1)))) {
-        return format!("socket setup: {e}");
-    }
+    // Motion is advanced on a fixed tick (and on every line). The wait for the next line or tick
+    // is poll(2) on a high-resolution timer: a socket read timeout (SO_RCVTIMEO) counts in kernel
+    // ticks (4 ms at HZ=250) and woke this loop every 8-12 ms for a 4 ms tick, so the robot
+    // answered up to three ticks late (docs/performance.md: the socket link's protocol wait).
+    let tick = Duration::from_millis(args.tick_ms.max(1));
+    let mut next_tick = Instant::now() + tick;
     if let Err(e) = send(&mut stream, &robot.connect()) {
         return format!("write: {e}");
     }
@@ -360,7 +363,20 @@ fn connection(
     let mut last_rx = Instant::now();
     loop {
         let mut replies = Vec::new();
-        match stream.read(&mut buf) {
+        let now = Instant::now();
+        if now >= next_tick {
+            next_tick += tick;
+            if next_tick <= now {
+                // Fell behind by more than a tick (a stalled machine): start afresh from now.
+                next_tick = now + tick;
+            }
+        }
+        let got = if wait_readable(&stream, next_tick.saturating_duration_since(now)) {
+            stream.read(&mut buf)
+        } else {
+            Err(ErrorKind::WouldBlock.into())
+        };
+        match got {
             Ok(0) => return "closed by the tracker".into(),
             Ok(n) => {
                 last_rx = Instant::now();
