@@ -395,6 +395,8 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     outputs.check_params(&handle)?;
     let (tracking, tuning) = load_tuning(&cfg)?;
     let tap = Arc::new(crate::viewer::ViewerTap::new());
+    // /metrics shows the viewers' copies and drops.
+    let _ = status.viewer_tap.set(tap.clone());
     let auth = crate::net::auth::OperatorAuth::new(cfg.service.operator_password_hash.clone())?;
 
     let (slot_tx, slot_rx) = watch::channel(None);

@@ -184,6 +184,9 @@ pub struct SharedStatus {
     pub realtime: Mutex<Vec<String>>,
     /// Counters of the standard outputs (set once by `app::start`).
     pub outputs: std::sync::OnceLock<crate::outputs::stats::OutputsStats>,
+    /// The viewers' hand-off from the loop, for its copy and drop counters on `/metrics` (set
+    /// once by `app::start`).
+    pub viewer_tap: std::sync::OnceLock<Arc<crate::viewer::ViewerTap>>,
     /// Camera and solver roles: the cluster's state (docs/cluster.md); `None` standalone.
     pub cluster: Mutex<Option<Arc<Mutex<crate::cluster::report::ClusterReport>>>>,
 }
@@ -208,6 +211,7 @@ impl SharedStatus {
     pub fn new(camera_count: usize, source_description: String, led_backend: String) -> Self {
         Self {
             outputs: std::sync::OnceLock::new(),
+            viewer_tap: std::sync::OnceLock::new(),
             started: Instant::now(),
             source_description,
             led_backend,
@@ -542,8 +546,39 @@ impl SharedStatus {
             timeouts: c.timeouts.load(R),
             evicted: c.evicted.load(R),
         });
+        let mut counters = counters.to_vec();
+        if let Some(tap) = self.viewer_tap.get() {
+            counters.extend([
+                (
+                    "irtrackd_viewer_frame_copies",
+                    "frame copies the loop made for viewers (at the preview rate)",
+                    tap.copies(),
+                ),
+                (
+                    "irtrackd_viewer_frame_copy_skips",
+                    "frame copies the loop skipped because a viewer held the copy",
+                    tap.busy_skips(),
+                ),
+                (
+                    "irtrackd_viewer_blob_copies",
+                    "blob-only copies the loop made for viewers",
+                    tap.blob_copies(),
+                ),
+                (
+                    "irtrackd_viewer_blob_copy_skips",
+                    "blob copies the loop skipped because a viewer held the copy",
+                    tap.blob_busy_skips(),
+                ),
+                (
+                    "irtrackd_viewer_sets_dropped",
+                    "sets whose blob lists a viewer did not send (it saw only a newer set), summed over viewers",
+                    tap.viewer_dropped_sets(),
+                ),
+            ]);
+        }
         let snapshot = MetricsSnapshot {
-            counters: counters.to_vec(),
+            live_viewers: self.live_viewers.load(R),
+            counters,
             version: env!("CARGO_PKG_VERSION"),
             rig_id: info.rig_id.unwrap_or_default(),
             params_loaded: info.loaded,
@@ -593,6 +628,7 @@ struct MetricsSnapshot {
     rig_id: String,
     params_loaded: bool,
     stream_clients: u64,
+    live_viewers: u64,
     pairing_error_s: f64,
     camera_fps: Vec<f64>,
     camera_frames: Vec<u64>,
@@ -651,6 +687,13 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
         g.encode(enc.encode_descriptor(
             "irtrackd_stream_clients",
             "connected stream clients",
+            None,
+            g.metric_type(),
+        )?)?;
+        let g = ConstGauge::new(self.live_viewers as i64);
+        g.encode(enc.encode_descriptor(
+            "irtrackd_live_viewers",
+            "open live WebSocket sessions (set-up views)",
             None,
             g.metric_type(),
         )?)?;

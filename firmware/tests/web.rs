@@ -844,3 +844,65 @@ async fn scene_has_camera_poses_and_the_workspace_box() {
     assert!(s["workspace_mm"].is_null(), "no [robot] configured");
     running.shutdown().await;
 }
+
+/// The value of an unlabelled metric in `/metrics` text.
+fn metric(text: &str, name: &str) -> Option<f64> {
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' '))
+        .and_then(|v| v.trim().parse().ok())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn viewer_drops_and_copies_are_on_metrics() {
+    let dir = TempDir::new("web-viewer-metrics");
+    let mut cfg = config(&dir, None);
+    // Sets every 2.5 ms against the viewer's 5 ms poll: a blob viewer cannot send them all.
+    if let Some(sim) = cfg.source.sim.as_mut() {
+        sim.fps = 400.0;
+    }
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let addr = running.addrs.status;
+    let st = running.status.clone();
+    assert!(eventually(10, async || st.tracked.load(Relaxed) > 10).await);
+    let mut ws = connect_live(addr, r#"{"type": "subscribe", "blobs": true}"#).await;
+    let (mut blob_sets, mut dropped) = (0u64, 0u64);
+    let end = Instant::now() + Duration::from_millis(1500);
+    while Instant::now() < end {
+        let Ok(Some(Ok(Message::Text(t)))) = tokio::time::timeout(Duration::from_secs(5), ws.next()).await
+        else {
+            continue;
+        };
+        let v: serde_json::Value = serde_json::from_str(t.as_str()).unwrap();
+        if v["type"] == "blobs" {
+            blob_sets += 1;
+            dropped = v["dropped"].as_u64().unwrap();
+        }
+    }
+    let (code, text) = http_get(addr, "/metrics").await;
+    assert_eq!(code, 200);
+    let status = status_json(addr).await;
+    running.shutdown().await;
+    let m = |name: &str| metric(&text, name).unwrap_or_else(|| panic!("no {name} in /metrics:\n{text}"));
+    let on_metrics = m("irtrackd_viewer_sets_dropped_total");
+    println!(
+        "blob viewer: {blob_sets} sets sent, {dropped} dropped (its own count); /metrics: dropped {on_metrics}, blob copies {}, live viewers {}",
+        m("irtrackd_viewer_blob_copies_total"),
+        m("irtrackd_live_viewers")
+    );
+    assert!(
+        blob_sets > 10 && dropped > 0,
+        "{blob_sets} sent, {dropped} dropped"
+    );
+    // /metrics was read after the viewer's last message and before /status.
+    assert!(on_metrics >= dropped as f64, "{on_metrics} < {dropped}");
+    assert!(status["viewers"]["blob_sets_dropped"].as_f64().unwrap() >= on_metrics);
+    assert_eq!(m("irtrackd_live_viewers"), 1.0);
+    assert!(m("irtrackd_viewer_blob_copies_total") >= blob_sets as f64);
+    for name in [
+        "irtrackd_viewer_frame_copies_total",
+        "irtrackd_viewer_frame_copy_skips_total",
+        "irtrackd_viewer_blob_copy_skips_total",
+    ] {
+        m(name);
+    }
+}
