@@ -289,13 +289,14 @@ fn prediction_section(ctx: &Ctx) -> Result<()> {
 }
 
 /// Capture → sent per standard output (NatNet, MCAP, ROS 2), from the outputs' own
-/// histograms in their stalled-consumer tests (test profile; irtrackd on the simulated
-/// cameras at 120 fps; the ROS 2 test runs in a network namespace of its own). A section of
-/// [`table`].
+/// histograms in their stalled-consumer tests (release build, like the other sections; irtrackd
+/// on the simulated cameras at 120 fps; the ROS 2 test runs in a network namespace of its own).
+/// A section of [`table`].
 fn output_latency_table(ctx: &Ctx) -> Result<()> {
     let mut cmd = ctx.cargo();
     cmd.args([
         "test",
+        "--release",
         "-p",
         "irtrack-firmware",
         "--features",
@@ -332,14 +333,14 @@ fn output_latency_table(ctx: &Ctx) -> Result<()> {
     }
     println!();
     println!(
-        "Capture → sent per output (handed to the kernel / DDS stack / file buffer; test profile, simulated 120 fps, with a stalled consumer):"
+        "Capture → sent per output (handed to the kernel / DDS stack / file buffer; release build, simulated 120 fps, with a stalled consumer):"
     );
     println!();
     println!("| output | records | p50 | p90 | p99 | max | measured by |");
     println!("|---|---|---|---|---|---|---|");
     for r in rows {
         println!(
-            "| {} | {} | {} µs | {} µs | {} µs | {} µs | `cargo test -p irtrack-firmware --features mcap,ros2 --test outputs_stalled --test ros2_dds stalled` |",
+            "| {} | {} | {} µs | {} µs | {} µs | {} µs | `cargo test --release -p irtrack-firmware --features mcap,ros2 --test outputs_stalled --test ros2_dds stalled` |",
             r[0], r[1], r[2], r[3], r[4], r[5]
         );
     }
