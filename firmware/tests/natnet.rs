@@ -37,18 +37,14 @@ async fn python_client(addr: SocketAddr, frames: usize, timeout_s: f64, extra: &
     serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("client output: {e}\n{stderr}"))
 }
 
-/// Collects every NDJSON record by frame number until the stream is quiet for 2 s; returns
-/// once the first record arrived (so the NatNet client starts after the collector).
-async fn collect_ndjson(addr: SocketAddr) -> tokio::task::JoinHandle<HashMap<u32, PositionRecord>> {
-    let mut client = NdjsonClient::connect(addr).await;
-    let first = client.next().await;
-    tokio::spawn(async move {
-        let mut by_frame = HashMap::from([(first.frame as u32, first)]);
-        while let Ok(r) = tokio::time::timeout(Duration::from_secs(2), client.next()).await {
-            by_frame.insert(r.frame as u32, r);
-        }
-        by_frame
-    })
+/// irtrackd's own stream from the collector's start until `finish`, by frame number.
+async fn by_frame(ndjson: NdjsonCollector) -> HashMap<u32, PositionRecord> {
+    ndjson
+        .finish()
+        .await
+        .into_iter()
+        .map(|r| (r.frame as u32, r))
+        .collect()
 }
 
 fn f(v: &Value) -> f64 {
@@ -59,16 +55,11 @@ fn vec3(v: &Value) -> [f64; 3] {
     [f(&v[0]), f(&v[1]), f(&v[2])]
 }
 
+/// irtrackd with `[outputs.natnet]` enabled, its command socket on 127.0.0.1:0, and
+/// `natnet_toml` in that table.
 async fn start(dir: &TempDir, sim_toml: &str, natnet_toml: &str) -> app::Running {
-    let toml = format!(
-        "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n[outputs.natnet]\nenabled = true\ncommand = \"127.0.0.1:0\"\n{natnet_toml}"
-    );
-    let mut cfg = irtrack_firmware::config::Config::from_toml(&toml, "natnet.toml").unwrap();
-    let base = test_config(dir.path());
-    cfg.service.state_dir = base.service.state_dir;
-    cfg.listen = base.listen;
-    cfg.source.sim = Some(toml::from_str(sim_toml).unwrap());
-    app::start(cfg, Overrides::default()).await.unwrap()
+    let table = format!("[outputs.natnet]\nenabled = true\ncommand = \"127.0.0.1:0\"\n{natnet_toml}");
+    start_with(dir, sim_toml, &table).await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -78,10 +69,10 @@ async fn natnet_client_reads_tool_rigid_bodies_equal_to_the_ndjson_stream() {
     let running = start(&dir, sim, "transport = \"unicast\"\n").await;
     let natnet = running.addrs.natnet.expect("NatNet enabled");
     assert!(running.addrs.ready_line().ends_with(&format!(" natnet={natnet}")));
-    let ndjson = collect_ndjson(running.addrs.stream_ndjson).await;
+    let ndjson = NdjsonCollector::start(running.addrs.stream_ndjson).await;
 
     let got = python_client(natnet, 150, 10.0, &[]).await;
-    let by_frame = ndjson.await.unwrap();
+    let by_frame = by_frame(ndjson).await;
     let stats = running.outputs.natnet.clone();
     running.shutdown().await;
 
@@ -165,9 +156,9 @@ async fn natnet_single_led_is_an_unlabelled_marker_in_y_up_axes() {
     let sim = "fps = 200.0\nframes = 900\n";
     let running = start(&dir, sim, "transport = \"unicast\"\naxes = \"y_up\"\n").await;
     let natnet = running.addrs.natnet.unwrap();
-    let ndjson = collect_ndjson(running.addrs.stream_ndjson).await;
+    let ndjson = NdjsonCollector::start(running.addrs.stream_ndjson).await;
     let got = python_client(natnet, 150, 10.0, &[]).await;
-    let by_frame = ndjson.await.unwrap();
+    let by_frame = by_frame(ndjson).await;
     running.shutdown().await;
 
     let models = &got["models"][0];
@@ -250,46 +241,49 @@ async fn natnet_configuration_errors_name_the_problem() {
 /// `lo`), so nothing reaches the real network.
 #[test]
 fn natnet_multicast_frames_reach_a_client_that_joined_the_group() {
-    if !in_own_netns("natnet_multicast_frames_reach_a_client_that_joined_the_group") {
-        return;
-    }
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    rt.block_on(async {
-        let dir = TempDir::new("natnet-multicast");
-        let sim = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nperiod_s = 6.0\nfps = 120.0\nseed = 6\ntool = \"probe4\"\ntool_rotation_deg = 20.0\nframes = 900\n";
-        let running = start(
+    run_in_own_netns(
+        "natnet_multicast_frames_reach_a_client_that_joined_the_group",
+        || async {
+            let dir = TempDir::new("natnet-multicast");
+            let sim = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nperiod_s = 6.0\nfps = 120.0\nseed = 6\ntool = \"probe4\"\ntool_rotation_deg = 20.0\nframes = 900\n";
+            let running = start(
             &dir,
             sim,
             "transport = \"multicast\"\nmulticast_group = \"239.255.42.99\"\nmulticast_interface = \"127.0.0.1\"\ndata_port = 1511\n",
         )
         .await;
-        let natnet = running.addrs.natnet.unwrap();
-        let ndjson = collect_ndjson(running.addrs.stream_ndjson).await;
-        let extra = ["multicast".to_string(), "239.255.42.99".into(), "1511".into()];
-        let got = python_client(natnet, 120, 10.0, &extra).await;
-        let by_frame = ndjson.await.unwrap();
-        let sent = running.outputs.natnet.frames_sent.load(std::sync::atomic::Ordering::Relaxed);
-        running.shutdown().await;
-        assert_eq!(got["complete"], true, "{got}");
-        let (mut compared, mut worst_m) = (0usize, 0.0f64);
-        for fr in got["frames"].as_array().unwrap() {
-            let n = fr["frame"].as_u64().unwrap() as u32;
-            let Some(rec) = by_frame.get(&n) else { continue };
-            let Some(p) = rec.position_mm.filter(|_| rec.status == TrackStatus::Ok) else { continue };
-            let pos = vec3(&fr["rigid_bodies"][0]["pos"]);
-            for i in 0..3 {
-                worst_m = worst_m.max((pos[i] - p[i] / 1e3).abs());
+            let natnet = running.addrs.natnet.unwrap();
+            let ndjson = NdjsonCollector::start(running.addrs.stream_ndjson).await;
+            let extra = ["multicast".to_string(), "239.255.42.99".into(), "1511".into()];
+            let got = python_client(natnet, 120, 10.0, &extra).await;
+            let by_frame = by_frame(ndjson).await;
+            let sent = running
+                .outputs
+                .natnet
+                .frames_sent
+                .load(std::sync::atomic::Ordering::Relaxed);
+            running.shutdown().await;
+            assert_eq!(got["complete"], true, "{got}");
+            let (mut compared, mut worst_m) = (0usize, 0.0f64);
+            for fr in got["frames"].as_array().unwrap() {
+                let n = fr["frame"].as_u64().unwrap() as u32;
+                let Some(rec) = by_frame.get(&n) else { continue };
+                let Some(p) = rec.position_mm.filter(|_| rec.status == TrackStatus::Ok) else {
+                    continue;
+                };
+                let pos = vec3(&fr["rigid_bodies"][0]["pos"]);
+                for i in 0..3 {
+                    worst_m = worst_m.max((pos[i] - p[i] / 1e3).abs());
+                }
+                compared += 1;
             }
-            compared += 1;
-        }
-        println!("NatNet multicast: {compared} tracked frames compared, largest difference {worst_m:.2e} m; {sent} frames sent to the group");
-        assert!(compared >= 80, "{compared}");
-        assert!(worst_m <= 1e-4, "{worst_m}");
-    });
+            println!(
+                "NatNet multicast: {compared} tracked frames compared, largest difference {worst_m:.2e} m; {sent} frames sent to the group"
+            );
+            assert!(compared >= 80, "{compared}");
+            assert!(worst_m <= 1e-4, "{worst_m}");
+        },
+    );
 }
 
 /// Collects every per-tool NDJSON record (the client asks with `tools\n`) by (frame, tool id)

@@ -13,8 +13,6 @@
 mod common;
 
 use std::collections::HashMap;
-use std::io::{BufRead, BufReader};
-use std::process::{Command, Stdio};
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
@@ -23,77 +21,33 @@ use irtrack_core::stream::{PositionRecord, TrackStatus};
 use irtrack_firmware::app::{self, Overrides};
 use serde_json::Value;
 
-const SUBSCRIBER: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/py/ros2_subscriber.py");
-/// The Python subscriber, started; its JSON lines are read by a thread.
-struct Subscriber {
-    child: std::process::Child,
-    lines: std::sync::mpsc::Receiver<Value>,
+/// The Cyclone DDS subscriber (firmware/tests/py/ros2_subscriber.py), started; returns once it
+/// says it is ready.
+fn subscriber(args: &[&str]) -> JsonLinesChild {
+    let sub = JsonLinesChild::spawn("ros2_subscriber.py", args);
+    let ready = sub
+        .next(Duration::from_secs(20))
+        .expect("subscriber ready (are PyPI's cyclonedds and rosbags installed? cargo xtask setup)");
+    assert!(ready.get("ready").is_some(), "{ready}");
+    sub
 }
 
-impl Subscriber {
-    fn start(args: &[&str]) -> Self {
-        let mut child = Command::new("python3")
-            .arg(SUBSCRIBER)
-            .args(args)
-            .stdout(Stdio::piped())
-            .spawn()
-            .expect("python3 runs");
-        let stdout = child.stdout.take().unwrap();
-        let (tx, lines) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                match serde_json::from_str::<Value>(&line) {
-                    Ok(v) => {
-                        if tx.send(v).is_err() {
-                            break;
-                        }
-                    }
-                    Err(_) => eprintln!("subscriber: {line}"),
-                }
-            }
-        });
-        let s = Self { child, lines };
-        let ready = s
-            .lines
-            .recv_timeout(Duration::from_secs(20))
-            .expect("subscriber ready (are PyPI's cyclonedds and rosbags installed? cargo xtask setup)");
-        assert!(ready.get("ready").is_some(), "{ready}");
-        s
-    }
-
-    /// Every sample until the subscriber's `done` line (or `timeout`).
-    fn samples(&self, timeout: Duration) -> (Vec<Value>, Value) {
-        let end = Instant::now() + timeout;
-        let mut got = Vec::new();
-        while let Some(left) = end.checked_duration_since(Instant::now()) {
-            match self.lines.recv_timeout(left) {
-                Ok(v) if v.get("done").is_some() => return (got, v),
-                Ok(v) => got.push(v),
-                Err(_) => break,
-            }
-        }
-        (got, Value::Null)
-    }
-}
-
-impl Drop for Subscriber {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
+/// irtrackd with `[outputs.ros2]` enabled and `ros2_toml` in that table.
 async fn start(dir: &TempDir, sim_toml: &str, ros2_toml: &str) -> app::Running {
-    let toml = format!(
-        "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n[outputs.ros2]\nenabled = true\n{ros2_toml}"
-    );
-    let mut cfg = irtrack_firmware::config::Config::from_toml(&toml, "ros2.toml").unwrap();
-    let base = test_config(dir.path());
-    cfg.service.state_dir = base.service.state_dir;
-    cfg.listen = base.listen;
-    cfg.source.sim = Some(toml::from_str(sim_toml).unwrap());
-    app::start(cfg, Overrides::default()).await.unwrap()
+    start_with(
+        dir,
+        sim_toml,
+        &format!("[outputs.ros2]\nenabled = true\n{ros2_toml}"),
+    )
+    .await
+}
+
+/// Every sample the subscriber prints until its `done` line (20 s at most), and that line;
+/// the subscriber is stopped after.
+async fn read_samples(sub: JsonLinesChild) -> (Vec<Value>, Value) {
+    tokio::task::spawn_blocking(move || sub.until("done", Duration::from_secs(20)))
+        .await
+        .unwrap()
 }
 
 fn f(v: &Value) -> f64 {
@@ -105,162 +59,132 @@ fn stamp_ns(header: &Value) -> i128 {
         + i128::from(header["stamp"]["nanosec"].as_i64().unwrap())
 }
 
-/// Collects NDJSON records until `stop` fires.
-fn collect_ndjson(
-    addr: std::net::SocketAddr,
-    stop: tokio::sync::oneshot::Receiver<()>,
-) -> tokio::task::JoinHandle<Vec<PositionRecord>> {
-    tokio::spawn(async move {
-        let mut client = NdjsonClient::connect(addr).await;
-        let mut all = Vec::new();
-        tokio::pin!(stop);
-        loop {
-            tokio::select! {
-                _ = &mut stop => break,
-                r = client.next() => all.push(r),
-            }
-        }
-        all
-    })
-}
-
 const TOOL_SIM: &str = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nperiod_s = 6.0\nfps = 120.0\nseed = 6\ntool = \"probe4\"\ntool_rotation_deg = 20.0\nframes = 2400\n";
 
 #[test]
 fn ros2_tool_poses_and_tf_reach_cyclone_dds_equal_to_the_ndjson_stream() {
-    if !in_own_netns("ros2_tool_poses_and_tf_reach_cyclone_dds_equal_to_the_ndjson_stream") {
-        return;
-    }
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    rt.block_on(async {
-        let dir = TempDir::new("ros2-tool");
-        let sub = Subscriber::start(&[
-            "--domain",
-            "7",
-            "--count",
-            "300",
-            "--seconds",
-            "15",
-            "/irtrack/probe4/pose=geometry_msgs/msg/PoseStamped",
-            "/tf=tf2_msgs/msg/TFMessage",
-        ]);
-        let running = start(&dir, TOOL_SIM, "domain_id = 7\n").await;
-        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel();
-        let ndjson = collect_ndjson(running.addrs.stream_ndjson, stop_rx);
-        let (samples, done) = tokio::task::spawn_blocking(move || {
-            let r = sub.samples(Duration::from_secs(20));
-            drop(sub);
-            r
-        })
-        .await
-        .unwrap();
-        let _ = stop_tx.send(());
-        let records = ndjson.await.unwrap();
-        let stats = running.outputs.ros2.clone();
-        let published = running.status.published.load(Ordering::Relaxed);
-        running.shutdown().await;
-        println!(
-            "ROS 2: subscriber {done}; irtrackd sent {} messages, {} dropped, {} records skipped of {published}",
-            stats.frames_sent.load(Ordering::Relaxed),
-            stats.send_drops.load(Ordering::Relaxed),
-            stats.slot_skips.load(Ordering::Relaxed),
-        );
-        assert!(samples.len() >= 300, "only {} samples: {done}", samples.len());
+    run_in_own_netns(
+        "ros2_tool_poses_and_tf_reach_cyclone_dds_equal_to_the_ndjson_stream",
+        || async {
+            let dir = TempDir::new("ros2-tool");
+            let sub = subscriber(&[
+                "--domain",
+                "7",
+                "--count",
+                "300",
+                "--seconds",
+                "15",
+                "/irtrack/probe4/pose=geometry_msgs/msg/PoseStamped",
+                "/tf=tf2_msgs/msg/TFMessage",
+            ]);
+            let running = start(&dir, TOOL_SIM, "domain_id = 7\n").await;
+            let ndjson = NdjsonCollector::start(running.addrs.stream_ndjson).await;
+            let (samples, done) = read_samples(sub).await;
+            let records = ndjson.finish().await;
+            let stats = running.outputs.ros2.clone();
+            let published = running.status.published.load(Ordering::Relaxed);
+            running.shutdown().await;
+            println!(
+                "ROS 2: subscriber {done}; irtrackd sent {} messages, {} dropped, {} records skipped of {published}",
+                stats.frames_sent.load(Ordering::Relaxed),
+                stats.send_drops.load(Ordering::Relaxed),
+                stats.slot_skips.load(Ordering::Relaxed),
+            );
+            assert!(samples.len() >= 300, "only {} samples: {done}", samples.len());
 
-        // Stamps are capture times on the wall clock: one constant offset for every record.
-        let tracked: Vec<&PositionRecord> = records
-            .iter()
-            .filter(|r| r.status == TrackStatus::Ok && r.orientation_wxyz.is_some())
-            .collect();
-        let by_capture: HashMap<u64, &PositionRecord> =
-            tracked.iter().map(|r| (r.capture_ts_ns, *r)).collect();
-        let poses: Vec<&Value> = samples
-            .iter()
-            .filter(|s| s["topic"] == "/irtrack/probe4/pose")
-            .map(|s| &s["msg"])
-            .collect();
-        let tfs: Vec<&Value> = samples
-            .iter()
-            .filter(|s| s["topic"] == "/tf")
-            .map(|s| &s["msg"])
-            .collect();
-        assert!(poses.len() >= 100 && tfs.len() >= 100, "{} poses, {} tf", poses.len(), tfs.len());
-        // The offset from the first pose whose position equals a tracked record's exactly.
-        let first = poses[0];
-        let p0 = &first["pose"]["position"];
-        let anchor = tracked
-            .iter()
-            .find(|r| {
-                let p = r.position_mm.unwrap();
-                (f(&p0["x"]) - p[0] / 1e3).abs() < 1e-12
-                    && (f(&p0["y"]) - p[1] / 1e3).abs() < 1e-12
-                    && (f(&p0["z"]) - p[2] / 1e3).abs() < 1e-12
-            })
-            .expect("the first pose equals a record of the NDJSON stream");
-        let offset = stamp_ns(&first["header"]) - i128::from(anchor.capture_ts_ns);
-        let (mut worst_m, mut worst_q) = (0.0f64, 0.0f64);
-        // A record the NDJSON client missed (a slow test client is dropped records, counted by
-        // irtrackd) cannot be compared; every pose that has its record must equal it.
-        let (mut compared, mut missing) = (0usize, 0usize);
-        for m in &poses {
-            assert_eq!(m["header"]["frame_id"], "irtrack_camera0_optical");
-            let capture = u64::try_from(stamp_ns(&m["header"]) - offset).unwrap();
-            let Some(rec) = by_capture.get(&capture) else {
-                missing += 1;
-                continue;
-            };
-            compared += 1;
-            let p = rec.position_mm.unwrap();
-            let q = rec.orientation_wxyz.unwrap();
-            let pos = &m["pose"]["position"];
-            let ori = &m["pose"]["orientation"];
-            for (k, want) in ["x", "y", "z"].iter().zip(p) {
-                worst_m = worst_m.max((f(&pos[k]) - want / 1e3).abs());
+            // Stamps are capture times on the wall clock: one constant offset for every record.
+            let tracked: Vec<&PositionRecord> = records
+                .iter()
+                .filter(|r| r.status == TrackStatus::Ok && r.orientation_wxyz.is_some())
+                .collect();
+            let by_capture: HashMap<u64, &PositionRecord> =
+                tracked.iter().map(|r| (r.capture_ts_ns, *r)).collect();
+            let poses: Vec<&Value> = samples
+                .iter()
+                .filter(|s| s["topic"] == "/irtrack/probe4/pose")
+                .map(|s| &s["msg"])
+                .collect();
+            let tfs: Vec<&Value> = samples
+                .iter()
+                .filter(|s| s["topic"] == "/tf")
+                .map(|s| &s["msg"])
+                .collect();
+            assert!(
+                poses.len() >= 100 && tfs.len() >= 100,
+                "{} poses, {} tf",
+                poses.len(),
+                tfs.len()
+            );
+            // The offset from the first pose whose position equals a tracked record's exactly.
+            let first = poses[0];
+            let p0 = &first["pose"]["position"];
+            let anchor = tracked
+                .iter()
+                .find(|r| {
+                    let p = r.position_mm.unwrap();
+                    (f(&p0["x"]) - p[0] / 1e3).abs() < 1e-12
+                        && (f(&p0["y"]) - p[1] / 1e3).abs() < 1e-12
+                        && (f(&p0["z"]) - p[2] / 1e3).abs() < 1e-12
+                })
+                .expect("the first pose equals a record of the NDJSON stream");
+            let offset = stamp_ns(&first["header"]) - i128::from(anchor.capture_ts_ns);
+            let (mut worst_m, mut worst_q) = (0.0f64, 0.0f64);
+            // A record the NDJSON client missed (a slow test client is dropped records, counted by
+            // irtrackd) cannot be compared; every pose that has its record must equal it.
+            let (mut compared, mut missing) = (0usize, 0usize);
+            for m in &poses {
+                assert_eq!(m["header"]["frame_id"], "irtrack_camera0_optical");
+                let capture = u64::try_from(stamp_ns(&m["header"]) - offset).unwrap();
+                let Some(rec) = by_capture.get(&capture) else {
+                    missing += 1;
+                    continue;
+                };
+                compared += 1;
+                let p = rec.position_mm.unwrap();
+                let q = rec.orientation_wxyz.unwrap();
+                let pos = &m["pose"]["position"];
+                let ori = &m["pose"]["orientation"];
+                for (k, want) in ["x", "y", "z"].iter().zip(p) {
+                    worst_m = worst_m.max((f(&pos[k]) - want / 1e3).abs());
+                }
+                for (k, want) in ["x", "y", "z", "w"].iter().zip([q[1], q[2], q[3], q[0]]) {
+                    worst_q = worst_q.max((f(&ori[k]) - want).abs());
+                }
             }
-            for (k, want) in ["x", "y", "z", "w"].iter().zip([q[1], q[2], q[3], q[0]]) {
-                worst_q = worst_q.max((f(&ori[k]) - want).abs());
+            for m in &tfs {
+                let t = &m["transforms"][0];
+                assert_eq!(t["header"]["frame_id"], "irtrack_camera0_optical");
+                assert_eq!(t["child_frame_id"], "irtrack_probe4");
+                let capture = u64::try_from(stamp_ns(&t["header"]) - offset).unwrap();
+                let Some(rec) = by_capture.get(&capture) else {
+                    continue;
+                };
+                let p = rec.position_mm.unwrap();
+                let tr = &t["transform"]["translation"];
+                for (k, want) in ["x", "y", "z"].iter().zip(p) {
+                    worst_m = worst_m.max((f(&tr[k]) - want / 1e3).abs());
+                }
             }
-        }
-        for m in &tfs {
-            let t = &m["transforms"][0];
-            assert_eq!(t["header"]["frame_id"], "irtrack_camera0_optical");
-            assert_eq!(t["child_frame_id"], "irtrack_probe4");
-            let capture = u64::try_from(stamp_ns(&t["header"]) - offset).unwrap();
-            let Some(rec) = by_capture.get(&capture) else { continue };
-            let p = rec.position_mm.unwrap();
-            let tr = &t["transform"]["translation"];
-            for (k, want) in ["x", "y", "z"].iter().zip(p) {
-                worst_m = worst_m.max((f(&tr[k]) - want / 1e3).abs());
-            }
-        }
-        println!(
-            "ROS 2 vs NDJSON: {compared} of {} poses compared ({missing} without their NDJSON record), {} tf; largest difference {worst_m:.1e} m, quaternion {worst_q:.1e}",
-            poses.len(),
-            tfs.len()
-        );
-        assert!(compared >= 100 && missing * 10 <= poses.len(), "{compared} compared, {missing} missing");
-        assert!(worst_m < 1e-9, "{worst_m}");
-        assert!(worst_q < 1e-9, "{worst_q}");
-    });
+            println!(
+                "ROS 2 vs NDJSON: {compared} of {} poses compared ({missing} without their NDJSON record), {} tf; largest difference {worst_m:.1e} m, quaternion {worst_q:.1e}",
+                poses.len(),
+                tfs.len()
+            );
+            assert!(
+                compared >= 100 && missing * 10 <= poses.len(),
+                "{compared} compared, {missing} missing"
+            );
+            assert!(worst_m < 1e-9, "{worst_m}");
+            assert!(worst_q < 1e-9, "{worst_q}");
+        },
+    );
 }
 
 #[test]
 fn ros2_single_led_is_a_point_stamped_reliable() {
-    if !in_own_netns("ros2_single_led_is_a_point_stamped_reliable") {
-        return;
-    }
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    rt.block_on(async {
+    run_in_own_netns("ros2_single_led_is_a_point_stamped_reliable", || async {
         let dir = TempDir::new("ros2-led");
-        let sub = Subscriber::start(&[
+        let sub = subscriber(&[
             "--domain",
             "3",
             "--reliable",
@@ -271,18 +195,15 @@ fn ros2_single_led_is_a_point_stamped_reliable() {
             "/cell/irtrack/led/point=geometry_msgs/msg/PointStamped",
         ]);
         let sim = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nfps = 120.0\nseed = 3\nframes = 2400\n";
-        let running = start(&dir, sim, "domain_id = 3\nnamespace = \"/cell/irtrack\"\nqos = \"reliable\"\n").await;
-        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel();
-        let ndjson = collect_ndjson(running.addrs.stream_ndjson, stop_rx);
-        let (samples, done) = tokio::task::spawn_blocking(move || {
-            let r = sub.samples(Duration::from_secs(20));
-            drop(sub);
-            r
-        })
-        .await
-        .unwrap();
-        let _ = stop_tx.send(());
-        let records = ndjson.await.unwrap();
+        let running = start(
+            &dir,
+            sim,
+            "domain_id = 3\nnamespace = \"/cell/irtrack\"\nqos = \"reliable\"\n",
+        )
+        .await;
+        let ndjson = NdjsonCollector::start(running.addrs.stream_ndjson).await;
+        let (samples, done) = read_samples(sub).await;
+        let records = ndjson.finish().await;
         let clients = running.outputs.ros2.clients.load(Ordering::Relaxed);
         running.shutdown().await;
         assert_eq!(samples.len(), 100, "{done}");
@@ -303,7 +224,10 @@ fn ros2_single_led_is_a_point_stamped_reliable() {
                 .unwrap_or_else(|| panic!("point {p:?} is not on the NDJSON stream (after #{next})"));
             next += at + 1;
         }
-        println!("ROS 2 single LED: {} points equal the NDJSON stream; {clients} subscription(s) matched", samples.len());
+        println!(
+            "ROS 2 single LED: {} points equal the NDJSON stream; {clients} subscription(s) matched",
+            samples.len()
+        );
     });
 }
 
@@ -311,15 +235,7 @@ fn ros2_single_led_is_a_point_stamped_reliable() {
 fn ros2_configuration_errors_name_the_problem() {
     // The unknown-tool case joins a DDS domain before the tools are checked: kept in a
     // namespace too.
-    if !in_own_netns("ros2_configuration_errors_name_the_problem") {
-        return;
-    }
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    rt.block_on(bad_configs());
+    run_in_own_netns("ros2_configuration_errors_name_the_problem", bad_configs);
 }
 
 async fn bad_configs() {
@@ -368,19 +284,11 @@ async fn sets_per_s(status: &irtrack_firmware::status::SharedStatus, secs: f64) 
 
 #[test]
 fn ros2_stalled_subscriber_does_not_slow_the_loop() {
-    if !in_own_netns("ros2_stalled_subscriber_does_not_slow_the_loop") {
-        return;
-    }
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    rt.block_on(async {
+    run_in_own_netns("ros2_stalled_subscriber_does_not_slow_the_loop", || async {
         let dir = TempDir::new("ros2-stalled");
         // A reliable subscriber: once it stops (SIGSTOP) it acknowledges nothing, so the
         // reliable writer's window fills.
-        let sub = Subscriber::start(&[
+        let sub = subscriber(&[
             "--domain",
             "5",
             "--reliable",
@@ -395,7 +303,7 @@ fn ros2_stalled_subscriber_does_not_slow_the_loop() {
         let stats = running.outputs.ros2.clone();
         // It receives, then stops dead.
         for _ in 0..20 {
-            let v = sub.lines.recv_timeout(Duration::from_secs(15)).expect("samples arrive");
+            let v = sub.next(Duration::from_secs(15)).expect("samples arrive");
             assert!(v.get("topic").is_some(), "{v}");
         }
         let before = sets_per_s(&running.status, 1.5).await;
@@ -427,7 +335,10 @@ fn ros2_stalled_subscriber_does_not_slow_the_loop() {
         );
         drop(sub);
         running.shutdown().await;
-        assert!(during >= 0.95 * before, "loop slowed: {before:.1} → {during:.1} sets/s");
+        assert!(
+            during >= 0.95 * before,
+            "loop slowed: {before:.1} → {during:.1} sets/s"
+        );
         // The publisher kept going while the reader was stopped (published or dropped).
         assert!(sent - sent0 + dropped >= 300, "{sent} {sent0} {dropped}");
     });

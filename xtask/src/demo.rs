@@ -28,6 +28,9 @@ enum Action {
     /// irtrackd on simulated cameras; headless Chromium saves a picture of its set-up page
     /// ([`crate::demo_view`]).
     SetupView,
+    /// irtrackd's NatNet and ROS 2 outputs read by independent clients
+    /// ([`crate::demo_outputs`]).
+    StandardOutputs,
 }
 
 struct Step {
@@ -104,6 +107,14 @@ fn steps() -> Vec<Step> {
             produces: &["survey/report/survey.md", "survey/report/error-vs-distance.png"],
         },
         Step {
+            title: "standard outputs (NatNet, ROS 2)",
+            explain: "Start irtrackd on simulated cameras with its NatNet and ROS 2 outputs; PyPI's \
+                      NatNet client and a Cyclone DDS subscriber (PyPI cyclonedds + rosbags), each a \
+                      separate process, print the tool's live poses beside irtrackd's own stream.",
+            action: Action::StandardOutputs,
+            produces: &["outputs/poses.md"],
+        },
+        Step {
             title: "set-up view",
             explain: "Start irtrackd on simulated cameras and open its set-up page (http://BOARD:7704/ \
                       on a board) in headless Chromium: live previews with the blob overlay, \
@@ -123,10 +134,17 @@ pub struct Args {
     /// Only irtrackd and its set-up page, until Ctrl-C.
     #[arg(long)]
     pub view: bool,
+    /// Internal: the standard-outputs step's live part inside its network namespace
+    /// (`unshare -rn`), with the directory holding irtrackd.
+    #[arg(long, hide = true, value_name = "BIN_DIR")]
+    pub outputs_in_netns: Option<PathBuf>,
 }
 
 pub fn run(ctx: &Ctx, args: &Args) -> Result<()> {
     let (skip_setup, view) = (args.skip_setup, args.view);
+    if let Some(bin_dir) = &args.outputs_in_netns {
+        return crate::demo_outputs::inside_netns(bin_dir, &ctx.root.join("out/demo"));
+    }
     if view {
         return run_view(ctx, skip_setup);
     }
@@ -192,6 +210,9 @@ pub fn run(ctx: &Ctx, args: &Args) -> Result<()> {
             }
             Action::SetupView => {
                 crate::demo_view::screenshot(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
+            }
+            Action::StandardOutputs => {
+                crate::demo_outputs::standard_outputs(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
             }
         }
         for rel in step.produces {
@@ -276,6 +297,9 @@ fn build_host_tools(ctx: &Ctx) -> Result<PathBuf> {
         "irtrack-firmware",
         "--bin",
         "irtrackd",
+        // The standard-outputs step's ROS 2 output.
+        "--features",
+        "irtrack-firmware/ros2",
     ]);
     let out = util::run(&mut cmd, RunOpts::default())?;
     if !out.success() {

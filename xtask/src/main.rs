@@ -10,6 +10,7 @@ mod ci;
 mod cross;
 mod demo;
 mod demo_live;
+mod demo_outputs;
 mod demo_view;
 mod disk;
 mod fuzz;

@@ -1,12 +1,17 @@
 //! Helpers shared by the firmware integration tests.
 #![allow(dead_code)]
 
+use std::future::Future;
+use std::io::BufRead as _;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
+use std::process::{Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
 
 use irtrack_core::param_wire::{Verdict, encode_push};
 use irtrack_core::stream::{BINARY_FRAME_LEN, PositionRecord};
+use irtrack_firmware::app::{self, Overrides};
 use irtrack_firmware::config::Config;
 use irtrack_firmware::source::sim::SimSourceConfig;
 use irtrack_sim::Scenario;
@@ -194,4 +199,134 @@ pub fn in_own_netns(test: &str) -> bool {
         "{test} did not run inside the namespace"
     );
     false
+}
+
+/// Runs `body` on a 2-worker tokio runtime inside a network namespace of the test's own (see
+/// [`in_own_netns`]; outside it, runs the test again in there and checks it passed).
+pub fn run_in_own_netns<F: Future<Output = ()>>(test: &str, body: impl FnOnce() -> F) {
+    if !in_own_netns(test) {
+        return;
+    }
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap()
+        .block_on(body());
+}
+
+/// irtrackd in this process on the simulated cameras (`sim_toml`: `[source.sim]` keys), its
+/// parameters from the simulator, no status LEDs, every listener on 127.0.0.1:0, plus
+/// `extra_toml` (the output under test, e.g. an `[outputs.natnet]` table).
+pub async fn start_with(dir: &TempDir, sim_toml: &str, extra_toml: &str) -> app::Running {
+    let toml = format!("[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n{extra_toml}");
+    let mut cfg = Config::from_toml(&toml, "test.toml").unwrap();
+    let base = test_config(dir.path());
+    cfg.service.state_dir = base.service.state_dir;
+    cfg.listen = base.listen;
+    cfg.source.sim = Some(toml::from_str(sim_toml).unwrap());
+    app::start(cfg, Overrides::default()).await.unwrap()
+}
+
+/// irtrackd's own NDJSON stream, read in the background: what an output is compared with.
+pub struct NdjsonCollector {
+    stop: tokio::sync::oneshot::Sender<()>,
+    task: tokio::task::JoinHandle<Vec<PositionRecord>>,
+}
+
+impl NdjsonCollector {
+    /// Connects and returns once the first record arrived (so a client started next sees
+    /// nothing the collector missed).
+    pub async fn start(addr: SocketAddr) -> Self {
+        let mut client = NdjsonClient::connect(addr).await;
+        let first = client.next().await;
+        let (stop, mut stopped) = tokio::sync::oneshot::channel();
+        let task = tokio::spawn(async move {
+            let mut all = vec![first];
+            loop {
+                tokio::select! {
+                    _ = &mut stopped => break,
+                    r = client.lines.next_line() => match r {
+                        Ok(Some(line)) => all.push(PositionRecord::from_ndjson_line(&line).unwrap()),
+                        _ => break,
+                    },
+                }
+            }
+            all
+        });
+        Self { stop, task }
+    }
+
+    /// Every record so far; waits a moment first for records already on their way.
+    pub async fn finish(self) -> Vec<PositionRecord> {
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let _ = self.stop.send(());
+        self.task.await.unwrap()
+    }
+}
+
+/// One of the Python interop clients (firmware/tests/py/), a separate process printing one
+/// JSON document per line, read by a thread. Killed on drop.
+pub struct JsonLinesChild {
+    pub child: std::process::Child,
+    lines: mpsc::Receiver<serde_json::Value>,
+}
+
+impl JsonLinesChild {
+    /// `python3 firmware/tests/py/<script> <args...>`.
+    pub fn spawn(script: &str, args: &[&str]) -> Self {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/py")
+            .join(script);
+        let mut child = Command::new("python3")
+            .arg(&path)
+            .args(args)
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("python3 runs");
+        let stdout = child.stdout.take().unwrap();
+        let (tx, lines) = mpsc::channel();
+        let script = script.to_string();
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                match serde_json::from_str(&line) {
+                    Ok(v) => {
+                        if tx.send(v).is_err() {
+                            break;
+                        }
+                    }
+                    Err(_) => eprintln!("{script}: {line}"),
+                }
+            }
+        });
+        Self { child, lines }
+    }
+
+    /// The next document, or `None` after `timeout` or at the end of the output.
+    pub fn next(&self, timeout: Duration) -> Option<serde_json::Value> {
+        self.lines.recv_timeout(timeout).ok()
+    }
+
+    /// Every document until one with the key `end` (returned separately; `Null` if none came
+    /// within `timeout`).
+    pub fn until(&self, end: &str, timeout: Duration) -> (Vec<serde_json::Value>, serde_json::Value) {
+        let deadline = Instant::now() + timeout;
+        let mut got = Vec::new();
+        while let Some(left) = deadline.checked_duration_since(Instant::now()) {
+            match self.next(left) {
+                Some(v) if v.get(end).is_some() => return (got, v),
+                Some(v) => got.push(v),
+                None => break,
+            }
+        }
+        (got, serde_json::Value::Null)
+    }
+}
+
+impl Drop for JsonLinesChild {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
 }

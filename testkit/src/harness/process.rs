@@ -96,6 +96,12 @@ impl Proc {
         Ok(found.into_iter().flatten().collect())
     }
 
+    /// The next stdout line, or `None` when none came within `timeout` or the output ended
+    /// (a JSON-lines child such as the interop clients: one message per line).
+    pub fn next_line(&mut self, timeout: Duration) -> Option<String> {
+        self.lines.as_ref()?.recv_timeout(timeout).ok()
+    }
+
     fn no_line(&mut self, prefix: String, timeout: Duration) -> Error {
         let ended = match self.child.try_wait() {
             Ok(Some(s)) => format!(", it exited ({s})"),
@@ -258,6 +264,15 @@ mod tests {
         assert!(e.to_string().contains("sh: no `never` line"), "{e}");
         let how = p.terminate(Duration::from_secs(2)).unwrap();
         assert!(how.contains("SIGTERM"), "{how}");
+    }
+
+    #[test]
+    fn lines_one_by_one_until_the_output_ends() {
+        let mut p = Proc::spawn(Command::new("sh").args(["-c", "echo one; echo two"]), "sh").unwrap();
+        let t = Duration::from_secs(5);
+        assert_eq!(p.next_line(t).as_deref(), Some("one"));
+        assert_eq!(p.next_line(t).as_deref(), Some("two"));
+        assert_eq!(p.next_line(t), None);
     }
 
     #[test]
