@@ -5,10 +5,18 @@
 pub enum ClusterError {
     /// Settings that cannot work (camera count, endpoints, names).
     #[error("cluster configuration: {reason}")]
-    Config { reason: String },
+    Config {
+        /// What is wrong.
+        reason: String,
+    },
     /// Zenoh refused to open a session or declare a publisher/subscriber.
     #[error("zenoh {what}: {reason}")]
-    Transport { what: &'static str, reason: String },
+    Transport {
+        /// What was being opened or declared.
+        what: &'static str,
+        /// Zenoh's error text.
+        reason: String,
+    },
     /// An observation did not encode (id too long, too many blobs).
     #[error("observation: {0}")]
     Observation(#[from] irtrack_core::Error),

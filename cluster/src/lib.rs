@@ -8,6 +8,9 @@
 //!
 //! The message itself is `irtrack_core::observation` (docs/observation-protocol.md).
 
+// Every public item says what it is for (issue 24).
+#![deny(missing_docs)]
+
 pub mod error;
 pub mod pairing;
 #[cfg(feature = "zenoh")]

@@ -27,7 +27,10 @@ pub enum PairingMode {
     /// By the hardware trigger's frame counter (every observation must carry one).
     Trigger,
     /// By capture timestamps no further apart than `tolerance_ns`.
-    Timestamp { tolerance_ns: u64 },
+    Timestamp {
+        /// Largest capture-time difference within one set, ns.
+        tolerance_ns: u64,
+    },
 }
 
 /// Settings of a [`Pairer`].
@@ -35,6 +38,7 @@ pub enum PairingMode {
 pub struct PairingConfig {
     /// `camera_board[i]` is the board index of the rig's camera `i` (boards numbered from 0).
     pub camera_board: Vec<usize>,
+    /// How observations of one instant are recognised.
     pub mode: PairingMode,
     /// A set closes this long after its first observation arrived, complete or not.
     pub deadline_ns: u64,
@@ -64,11 +68,17 @@ impl PairingConfig {
 /// One camera's contribution to a set.
 #[derive(Debug, Clone, Copy)]
 pub struct CameraEntry {
+    /// The camera's observation arrived for this set.
     pub present: bool,
+    /// The observation's sequence number (per board and camera).
     pub sequence: u64,
+    /// Capture time on the sending board's clock, ns.
     pub capture_ts_ns: u64,
+    /// Exposure of the frame, µs.
     pub exposure_us: u32,
+    /// How many of `blobs` are valid.
     pub blob_count: usize,
+    /// The observed blobs (fixed storage: no allocation per set).
     pub blobs: [ObsBlob; MAX_OBS_BLOBS],
 }
 
@@ -91,6 +101,7 @@ impl CameraEntry {
         }; MAX_OBS_BLOBS],
     };
 
+    /// The valid blobs.
     pub fn blobs(&self) -> &[ObsBlob] {
         &self.blobs[..self.blob_count]
     }
@@ -107,6 +118,7 @@ pub struct PairedSet {
     pub opened_ns: u64,
     /// Cameras that contributed.
     pub present: usize,
+    /// Per rig camera (only the first `Pairer::camera_count` are used).
     pub cameras: [CameraEntry; MAX_CAMERAS],
 }
 
@@ -133,7 +145,9 @@ impl PairedSet {
 /// Counters of a [`Pairer`] (reported in `/status`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct PairStats {
+    /// Sets closed with every camera present.
     pub sets_complete: u64,
+    /// Sets closed with a camera missing (at their deadline or to make room).
     pub sets_incomplete: u64,
     /// Observations for a set already closed.
     pub late: u64,
@@ -150,10 +164,15 @@ pub struct PairStats {
 /// What [`Pairer::push`] did with an observation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PushOutcome {
+    /// Put into an open set (or a new one).
     Added,
+    /// For a set already closed: dropped, counted in `late`.
     Late,
+    /// A second observation of that camera for the same open set: dropped.
     Conflicting,
+    /// From a board whose clock offset is over the limit: refused.
     ClockFault,
+    /// Trigger mode, but the observation carries no trigger counter: refused.
     NoTrigger,
 }
 
@@ -187,6 +206,8 @@ impl Pairer {
     /// Up to 8 sets are open at once (older ones are closed to make room).
     pub const OPEN_SETS: usize = 8;
 
+    /// A pairer for `cfg`; refuses a camera count outside 1..=`MAX_CAMERAS` and a zero
+    /// deadline or offset window.
     pub fn new(cfg: PairingConfig) -> Result<Pairer> {
         let n = cfg.camera_board.len();
         if !(1..=MAX_CAMERAS).contains(&n) {
@@ -211,14 +232,17 @@ impl Pairer {
         })
     }
 
+    /// Counters so far.
     pub fn stats(&self) -> &PairStats {
         &self.stats
     }
 
+    /// Clock state per board.
     pub fn boards(&self) -> &[BoardClock] {
         &self.boards
     }
 
+    /// Cameras in the rig (`camera_board.len()`).
     pub fn camera_count(&self) -> usize {
         self.cameras
     }

@@ -172,6 +172,7 @@ impl ObsPublisher {
         Ok(())
     }
 
+    /// Observations (and raw payloads) put so far.
     pub fn sent(&self) -> u64 {
         self.sent
     }
@@ -180,15 +181,18 @@ impl ObsPublisher {
 /// One received observation, copied out of Zenoh's buffer.
 #[derive(Clone)]
 pub struct Received {
+    /// Valid bytes in `bytes`.
     pub len: usize,
     /// Receive time on the solver's pairing clock, ns.
     pub received_ns: u64,
+    /// The payload (fixed storage: no allocation per observation).
     pub bytes: [u8; MAX_OBS_LEN],
     /// The payload did not fit: longer than any valid observation (decoding names it).
     pub oversize: bool,
 }
 
 impl Received {
+    /// The received bytes.
     pub fn payload(&self) -> &[u8] {
         &self.bytes[..self.len]
     }
@@ -197,6 +201,7 @@ impl Received {
 /// Counters of a subscriber.
 #[derive(Debug, Default)]
 pub struct SubscriberStats {
+    /// Samples received from Zenoh.
     pub received: AtomicU64,
     /// Dropped because the solver's queue was full.
     pub overflow: AtomicU64,
@@ -205,6 +210,7 @@ pub struct SubscriberStats {
 /// The solver's subscription to every camera of a rig.
 pub struct ObsSubscriber {
     _subscriber: zenoh::pubsub::Subscriber<()>,
+    /// Its counters (shared with Zenoh's callback).
     pub stats: Arc<SubscriberStats>,
 }
 

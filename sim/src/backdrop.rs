@@ -46,6 +46,7 @@ impl Backdrop {
         self.level_dn > 0.0 || self.noise_dn > 0.0 || self.floor || self.lamp
     }
 
+    /// Checks the values are usable; the error names the backdrop and the problem.
     pub fn validate(&self) -> Result<(), SimError> {
         let bad = |reason: String| {
             Err(SimError::Config {

@@ -5,6 +5,9 @@
 //! saturation, lens distortion, motion blur, ambient clutter and dropped frames, and gives the
 //! ground truth for every frame. [`resolution`] is the analytic planner behind `host-tools plan`.
 
+// Every public item says what it is for (issue 24).
+#![deny(missing_docs)]
+
 pub mod backdrop;
 pub mod checkerboard;
 pub mod error;
