@@ -52,6 +52,7 @@ pub enum ObsClock {
 }
 
 impl ObsClock {
+    /// The clock's code on the wire.
     pub fn as_u8(self) -> u8 {
         match self {
             ObsClock::Realtime => 1,
@@ -60,6 +61,7 @@ impl ObsClock {
         }
     }
 
+    /// The clock of a wire code; `None` for a code this build does not know.
     pub fn from_u8(code: u8) -> Option<ObsClock> {
         match code {
             1 => Some(ObsClock::Realtime),
@@ -69,6 +71,7 @@ impl ObsClock {
         }
     }
 
+    /// Lower-case name (config values, status reports).
     pub fn as_str(self) -> &'static str {
         match self {
             ObsClock::Realtime => "realtime",
@@ -83,39 +86,102 @@ impl ObsClock {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ObservationProblem {
     /// Fewer bytes than the header or the declared contents need.
-    Truncated { needed: usize, got: usize },
+    Truncated {
+        /// Bytes needed.
+        needed: usize,
+        /// Bytes there are.
+        got: usize,
+    },
     /// Not an observation.
-    BadMagic { found: [u8; 2] },
+    BadMagic {
+        /// The first two bytes received.
+        found: [u8; 2],
+    },
     /// A version this build does not read.
-    UnsupportedVersion { found: u8, supported: u8 },
+    UnsupportedVersion {
+        /// The message's version.
+        found: u8,
+        /// The newest version this build reads.
+        supported: u8,
+    },
     /// Header flags this build does not know.
-    UnknownFlags { flags: u8 },
+    UnknownFlags {
+        /// The header's flags.
+        flags: u8,
+    },
     /// Clock code this build does not know.
-    UnknownClock { code: u8 },
+    UnknownClock {
+        /// The clock code received.
+        code: u8,
+    },
     /// Rig or board id empty, too long or not UTF-8.
-    BadId { what: &'static str, len: usize },
+    BadId {
+        /// Which id (`rig` or `board`).
+        what: &'static str,
+        /// Its length in bytes.
+        len: usize,
+    },
     /// More blobs than [`MAX_OBS_BLOBS`].
-    TooManyBlobs { count: usize, max: usize },
+    TooManyBlobs {
+        /// Blobs in the message.
+        count: usize,
+        /// The most a message may carry.
+        max: usize,
+    },
     /// A blob with a non-finite centroid, unknown flags or a nonzero reserved byte.
-    BadBlob { index: usize },
+    BadBlob {
+        /// Position of the blob in the message.
+        index: usize,
+    },
     /// CRC mismatch: corrupted on the way.
-    BadCrc { found: u32, computed: u32 },
+    BadCrc {
+        /// The CRC in the message.
+        found: u32,
+        /// The CRC computed over the received bytes.
+        computed: u32,
+    },
     /// Bytes after the CRC.
-    TrailingBytes { extra: usize },
+    TrailingBytes {
+        /// How many bytes follow the CRC.
+        extra: usize,
+    },
     /// The buffer given to the encoder is too small.
-    BufferTooSmall { needed: usize, have: usize },
+    BufferTooSmall {
+        /// Bytes the message needs.
+        needed: usize,
+        /// Bytes the buffer has.
+        have: usize,
+    },
     /// From another rig than the receiver's.
     UnknownRig,
     /// A board/camera pair the rig's parameters do not list.
-    UnknownCamera { local_index: u8 },
+    UnknownCamera {
+        /// The camera's index on its board.
+        local_index: u8,
+    },
     /// The sequence number is not newer than the last one of that camera.
-    DuplicateSequence { camera: usize, sequence: u64, last: u64 },
+    DuplicateSequence {
+        /// The rig's camera index.
+        camera: usize,
+        /// The sequence number received.
+        sequence: u64,
+        /// The newest sequence number seen of that camera.
+        last: u64,
+    },
     /// A different clock than the receiver pairs on.
-    WrongClock { found: ObsClock, expected: ObsClock },
+    WrongClock {
+        /// The message's clock.
+        found: ObsClock,
+        /// The clock the receiver pairs on.
+        expected: ObsClock,
+    },
     /// The timestamp is further from the receiver's clock than allowed.
     TimestampOff {
+        /// The rig's camera index.
         camera: usize,
+        /// Capture time minus the receiver's clock, ns.
         offset_ns: i64,
+        /// The largest distance allowed, ns.
         limit_ns: u64,
     },
 }
@@ -246,6 +312,7 @@ fn err(problem: ObservationProblem) -> Error {
 pub struct ObsBlob {
     /// Intensity-weighted centroid in the distorted image, px (pixel centres at integers).
     pub x_px: f32,
+    /// Centroid row, px (see `x_px`).
     pub y_px: f32,
     /// Pixels above threshold (saturates at 65 535).
     pub area_px: u16,
@@ -253,7 +320,9 @@ pub struct ObsBlob {
     pub peak_dn: u16,
     /// Quality: `sigma_minor / sigma_major` in [0, 1], sent in 1/65 535 steps.
     pub roundness: f32,
+    /// The blob touches the frame's border (its centroid may be cut off).
     pub touches_frame_edge: bool,
+    /// The blob touches the border of the region the detector searched.
     pub touches_roi_edge: bool,
     /// Some pixels reached the saturation level.
     pub saturated: bool,
@@ -358,6 +427,7 @@ pub struct ObsHeader<'a> {
     pub trigger_count: Option<u64>,
     /// Start of exposure, ns on `clock`.
     pub capture_ts_ns: u64,
+    /// The clock `capture_ts_ns` is read on.
     pub clock: ObsClock,
     /// Exposure time, µs.
     pub exposure_us: u32,
@@ -372,11 +442,13 @@ pub struct ObsHeader<'a> {
 /// A decoded observation borrowing the received bytes.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Observation<'a> {
+    /// Everything but the blobs.
     pub header: ObsHeader<'a>,
     blob_bytes: &'a [u8],
 }
 
 impl<'a> Observation<'a> {
+    /// Number of blobs carried.
     pub fn blob_count(&self) -> usize {
         self.blob_bytes.len() / OBS_BLOB_LEN
     }
@@ -613,6 +685,7 @@ impl ObservationGate {
             .position(|p| p.board == board && p.local_index == local_index)
     }
 
+    /// Cameras the rig lists.
     pub fn camera_count(&self) -> usize {
         self.places.len()
     }

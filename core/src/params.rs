@@ -176,7 +176,9 @@ impl Verdict {
 /// (names carry their unit; docs/param-blob.md lists those the tools write).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Figure {
+    /// Its name, with the unit as suffix.
     pub name: String,
+    /// Its value, in that unit.
     pub value: f64,
 }
 
@@ -190,6 +192,7 @@ pub struct CalibrationInfo {
     pub calibrated_unix_s: u64,
     /// The tool that computed it, e.g. `host-tools 0.1.0`.
     pub tool_version: String,
+    /// Whether the calibration met its limits.
     pub verdict: Verdict,
     /// The verdict in plain words with the most likely cause of a failed limit (empty when
     /// every limit held).

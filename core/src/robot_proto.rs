@@ -40,12 +40,15 @@ pub const COORD_LEN: usize = 8;
 pub const QUAT_LEN: usize = 9;
 /// `T`/`Q`: columns of x, y, z.
 pub const T_X_COL: usize = 10;
+/// `T`/`Q`: column of y.
 pub const T_Y_COL: usize = 19;
+/// `T`/`Q`: column of z.
 pub const T_Z_COL: usize = 28;
 /// `Q`: column of the first quaternion component (q1 = w); the others follow every 10 columns.
 pub const Q_Q1_COL: usize = 37;
 /// `C`: column of the window field and of x, y, z.
 pub const C_WIN_COL: usize = 10;
+/// `C`: column of x (y and z follow every 9 columns, as in `T`).
 pub const C_X_COL: usize = 13;
 /// `HOLD`: column of the reason code.
 pub const HOLD_CODE_COL: usize = 6;
@@ -55,6 +58,7 @@ pub const BEAT_COL: usize = 6;
 pub const POSE_COL: usize = 6;
 /// `A`: columns of x, y, z and q1 (same layout as `Q`).
 pub const A_X_COL: usize = T_X_COL;
+/// `A`: column of q1 (as `Q`).
 pub const A_Q1_COL: usize = Q_Q1_COL;
 
 const PROTO: &str = "robot";
@@ -204,22 +208,44 @@ impl HoldReason {
 #[derive(Debug, Clone, PartialEq)]
 pub enum TrackerMsg {
     /// `HELLO 01 TRACKER name`
-    Hello { version: u8, name: String },
+    Hello {
+        /// Protocol version the tracker speaks.
+        version: u8,
+        /// The tracker's name (one word).
+        name: String,
+    },
     /// `T ssssss ±xxxx.xx ±yyyy.yy ±zzzz.zz` — position target in the robot base frame.
-    Target { seq: u32, pos_mm: [f64; 3] },
+    Target {
+        /// Target sequence number.
+        seq: u32,
+        /// Target position, robot base frame, mm.
+        pos_mm: [f64; 3],
+    },
     /// `Q ssssss x y z q1 q2 q3 q4` — 6-DOF target; quaternion w, x, y, z as in RAPID's `orient`.
     Pose {
+        /// Target sequence number.
         seq: u32,
+        /// Target position, robot base frame, mm.
         pos_mm: [f64; 3],
+        /// Target orientation, unit quaternion w, x, y, z.
         quat_wxyz: [f64; 4],
     },
     /// `HOLD nn TEXT` — stop, drop queued targets, wait.
-    Hold { reason: HoldReason },
+    Hold {
+        /// Why the robot must hold.
+        reason: HoldReason,
+    },
     /// `BEAT nnnnnn`
-    Beat { counter: u32 },
+    Beat {
+        /// Heartbeat counter.
+        counter: u32,
+    },
     /// `POSE nnnnnn` — ask for the robot's actual TCP pose (answered with `A nnnnnn …`, the same
     /// counter). Used by `host-tools survey`; no credit needed, the robot answers at standstill.
-    PoseRequest { counter: u32 },
+    PoseRequest {
+        /// Request counter, repeated in the answer.
+        counter: u32,
+    },
     /// `BYE`
     Bye,
 }
@@ -228,27 +254,48 @@ pub enum TrackerMsg {
 #[derive(Debug, Clone, PartialEq)]
 pub enum RobotMsg {
     /// `HELLO 01 ROBOT name`
-    Hello { version: u8, name: String },
+    Hello {
+        /// Protocol version the robot speaks.
+        version: u8,
+        /// The robot's name (one word).
+        name: String,
+    },
     /// `C ssssss ww ±x ±y ±z` — everything up to `ack_seq` is done; the tracker may have `window`
     /// targets outstanding beyond it; the robot's current TCP position. `C 000000 ..` right after
     /// `HELLO` is the "ready" signal.
     Credit {
+        /// Every target up to this sequence number is done.
         ack_seq: u32,
+        /// Targets the tracker may have outstanding beyond `ack_seq`.
         window: u8,
+        /// The robot's current TCP position, base frame, mm.
         pos_mm: [f64; 3],
     },
     /// `X ssssss nn TEXT` — target `seq` rejected (it still counts as consumed).
-    Reject { seq: u32, code: u8, reason: String },
+    Reject {
+        /// The rejected target's sequence number.
+        seq: u32,
+        /// Reason code (docs/robot-protocol.md).
+        code: u8,
+        /// The reason in words.
+        reason: String,
+    },
     /// `A nnnnnn ±x ±y ±z q1 q2 q3 q4` — answer to `POSE nnnnnn`: the robot's actual TCP pose as
     /// the controller knows it (RAPID `CRobT`), position in the base frame and orientation
     /// w, x, y, z (RAPID `orient`). Same columns as `Q`.
     Actual {
+        /// The counter of the `POSE` request answered.
         counter: u32,
+        /// TCP position, base frame, mm.
         pos_mm: [f64; 3],
+        /// TCP orientation, unit quaternion w, x, y, z.
         quat_wxyz: [f64; 4],
     },
     /// `BEAT nnnnnn`
-    Beat { counter: u32 },
+    Beat {
+        /// Heartbeat counter.
+        counter: u32,
+    },
     /// `BYE`
     Bye,
 }

@@ -29,6 +29,7 @@ pub struct PoseConfig {
     pub max_gap_mm: f64,
     /// Working range: distance (mm) along each ray from its camera to the point.
     pub min_range_mm: f64,
+    /// Far end of the working range (mm).
     pub max_range_mm: f64,
     /// Candidate 3-D points kept per frame (the smallest gaps win when there are more).
     pub max_candidates: usize,

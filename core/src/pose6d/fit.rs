@@ -7,9 +7,13 @@ use nalgebra::{Matrix3, Matrix4, Quaternion, UnitQuaternion, Vector3};
 pub struct RigidFit {
     /// Unit quaternion of R, (w, x, y, z) with w ≥ 0.
     pub quaternion_wxyz: [f64; 4],
+    /// R as a matrix.
     pub rotation: Matrix3<f64>,
+    /// t (mm).
     pub translation_mm: Vector3<f64>,
+    /// RMS distance between `R · model + t` and the measured points (mm).
     pub rms_mm: f64,
+    /// Largest of those distances (mm).
     pub max_mm: f64,
 }
 

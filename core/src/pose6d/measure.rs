@@ -35,6 +35,7 @@ pub struct MeasuredLayout {
     pub cam0_from_tool: RigidTransform,
     /// Per LED: frames in which it was seen, and RMS scatter (mm) around its mean.
     pub observations: Vec<usize>,
+    /// Per LED: RMS scatter (mm) around its mean position.
     pub spread_rms_mm: Vec<f64>,
     /// Largest per-LED RMS scatter (mm).
     pub max_spread_rms_mm: f64,

@@ -56,10 +56,18 @@ pub enum PoseStatus {
     Tracked,
     /// No LED assignment with at least `needed` LEDs matches the layout; `points` candidate
     /// 3-D points were found.
-    TooFewLeds { points: u32, needed: u32 },
+    TooFewLeds {
+        /// Candidate 3-D points found.
+        points: u32,
+        /// LEDs a pose needs.
+        needed: u32,
+    },
     /// Several plausible assignments give different poses and the previous pose does not
     /// decide between them (symmetric view, ghost points): no pose rather than a swap.
-    Ambiguous { hypotheses: u32 },
+    Ambiguous {
+        /// Plausible assignments that disagree.
+        hypotheses: u32,
+    },
     /// Assignments were found but none fits the layout within `max_residual_mm`.
     ResidualTooLarge,
     /// The only plausible pose jumps further than the step limits from the previous one.
@@ -67,12 +75,18 @@ pub enum PoseStatus {
     /// One LED is missing and its predicted image in `camera` lies within
     /// `merge_radius_px` of LED `led`'s: the two spots probably merged into one blob whose
     /// centroid is biased, so the pose would be off by degrees.
-    LedsMerged { led: u32, camera: u32 },
+    LedsMerged {
+        /// The seen LED the missing one probably merged with.
+        led: u32,
+        /// The camera where the two images meet.
+        camera: u32,
+    },
 }
 
 /// Full pose of the tool in the camera-0 frame: `p_cam0 = R p_tool + t`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Pose6d {
+    /// Whether a pose was found, and why not.
     pub status: PoseStatus,
     /// Tool origin in the camera-0 frame (mm), i.e. t.
     pub position_mm: [f64; 3],
@@ -85,14 +99,17 @@ pub struct Pose6d {
     pub r_row_major: [f64; 9],
     /// RMS and largest distance (mm) between the fitted layout and the measured LEDs.
     pub residual_rms_mm: f64,
+    /// Largest of those distances (mm).
     pub residual_max_mm: f64,
     /// Number of LEDs used, and which ones (bit i = LED i).
     pub leds_used: u32,
+    /// Bit i set: LED i was used.
     pub led_mask: u32,
     /// Measured LED positions (camera-0 frame, mm), valid where `led_mask` is set.
     pub leds_mm: [[f64; 3]; MAX_TOOL_LEDS],
     /// Candidate 3-D points and plausible assignments of this frame (diagnostics).
     pub candidates: u32,
+    /// Plausible assignments of this frame.
     pub hypotheses: u32,
     /// The previous pose decided between disagreeing assignments.
     pub resolved_by_continuity: bool,
