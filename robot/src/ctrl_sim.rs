@@ -25,13 +25,16 @@ use crate::udp::RsiMode;
 /// Which controller is simulated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum CtrlKind {
+    /// An ABB controller speaking EGM.
     Egm,
+    /// A KUKA controller speaking RSI, with its correction mode.
     Rsi(RsiMode),
 }
 
 /// Settings of a simulated controller.
 #[derive(Debug, Clone)]
 pub struct CtrlConfig {
+    /// Which controller.
     pub kind: CtrlKind,
     /// irtrackd's UDP address.
     pub sensor: SocketAddr,
@@ -43,7 +46,9 @@ pub struct CtrlConfig {
     pub home_mm: [f64; 3],
     /// Time constant of the servo's first-order lag.
     pub servo_lag_ms: f64,
+    /// Speed limit of the TCP (mm/s).
     pub max_speed_mm_s: f64,
+    /// Acceleration limit of the TCP (mm/s²).
     pub max_accel_mm_s2: f64,
     /// Missed cycles in a row that stop the session (0 = never stop).
     pub max_missed: u32,
@@ -77,6 +82,7 @@ impl CtrlConfig {
 pub struct CtrlCycle {
     /// CLOCK_MONOTONIC when the cycle's packet was sent (the clock irtrackd stamps frames with).
     pub t_ns: u64,
+    /// The packet's number: EGM's `seqno` (from 1) or RSI's IPOC (ms-based).
     pub id: u64,
     /// Actual TCP.
     pub pos_mm: [f64; 3],
@@ -92,7 +98,9 @@ pub struct CtrlCycle {
 /// Counters and (optionally) the path.
 #[derive(Debug, Clone, Default)]
 pub struct CtrlRecord {
+    /// Cycles sent.
     pub cycles: u64,
+    /// Cycles answered within the cycle.
     pub answered: u64,
     /// Cycles without their answer.
     pub missed: u64,
@@ -104,6 +112,7 @@ pub struct CtrlRecord {
     pub max_missed_run: u32,
     /// Why the session stopped on its own (missed limit), if it did.
     pub stopped: Option<String>,
+    /// Every cycle, when the path is kept.
     pub path: Vec<CtrlCycle>,
     /// Latest cycle (also when the path is not kept).
     pub last: Option<CtrlCycle>,
@@ -112,8 +121,11 @@ pub struct CtrlRecord {
 /// Servo model: first-order lag toward the command, then speed and acceleration limits.
 #[derive(Debug, Clone, Copy)]
 pub struct Servo {
+    /// Actual TCP (mm).
     pub pos_mm: [f64; 3],
+    /// Actual TCP velocity (mm/s).
     pub vel_mm_s: [f64; 3],
+    /// Commanded TCP (mm).
     pub cmd_mm: [f64; 3],
     lag_s: f64,
     max_speed: f64,
@@ -125,6 +137,8 @@ fn norm(v: [f64; 3]) -> f64 {
 }
 
 impl Servo {
+    /// A servo at rest at `home_mm` commanded to stay there; `lag_ms` is the lag's time
+    /// constant, `max_speed` (mm/s) and `max_accel` (mm/s²) its limits.
     pub fn new(home_mm: [f64; 3], lag_ms: f64, max_speed: f64, max_accel: f64) -> Self {
         Self {
             pos_mm: home_mm,
@@ -163,6 +177,7 @@ impl Servo {
 
 /// A simulated controller running on its own thread.
 pub struct SimController {
+    /// The address the controller sends from.
     pub local: SocketAddr,
     record: Arc<Mutex<CtrlRecord>>,
     stop: Arc<AtomicBool>,

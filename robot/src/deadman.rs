@@ -22,7 +22,9 @@ pub enum DeadmanConfig {
     Gpio {
         /// Chip path (`/dev/gpiochip0`) or name (`gpiochip0`).
         chip: String,
+        /// Line offset on that chip.
         line: Offset,
+        /// Pressed reads as low (a switch to ground).
         #[serde(default)]
         active_low: bool,
     },

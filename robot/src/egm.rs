@@ -17,6 +17,7 @@ use prost::Message;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
 #[repr(i32)]
 pub enum MessageType {
+    /// Not set.
     Undefined = 0,
     /// Reserved by ABB.
     Command = 1,
@@ -31,10 +32,13 @@ pub enum MessageType {
 /// `EgmHeader`: 1 seqno, 2 tm (controller time stamp, ms), 3 mtype.
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmHeader {
+    /// Sequence number of the message.
     #[prost(uint32, optional, tag = "1")]
     pub seqno: Option<u32>,
+    /// Controller time stamp (ms).
     #[prost(uint32, optional, tag = "2")]
     pub tm: Option<u32>,
+    /// A [`MessageType`].
     #[prost(enumeration = "MessageType", optional, tag = "3")]
     pub mtype: Option<i32>,
 }
@@ -42,10 +46,13 @@ pub struct EgmHeader {
 /// `EgmCartesian` (mm): 1 x, 2 y, 3 z, all required.
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmCartesian {
+    /// X (mm).
     #[prost(double, required, tag = "1")]
     pub x: f64,
+    /// Y (mm).
     #[prost(double, required, tag = "2")]
     pub y: f64,
+    /// Z (mm).
     #[prost(double, required, tag = "3")]
     pub z: f64,
 }
@@ -54,11 +61,15 @@ pub struct EgmCartesian {
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmQuaternion {
     #[prost(double, required, tag = "1")]
+    /// Scalar part (w).
     pub u0: f64,
+    /// x part.
     #[prost(double, required, tag = "2")]
     pub u1: f64,
+    /// y part.
     #[prost(double, required, tag = "3")]
     pub u2: f64,
+    /// z part.
     #[prost(double, required, tag = "4")]
     pub u3: f64,
 }
@@ -66,10 +77,13 @@ pub struct EgmQuaternion {
 /// `EgmEuler` (degrees): 1 x, 2 y, 3 z. When a pose carries both, the controller uses Euler.
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmEuler {
+    /// Rotation about x (degrees).
     #[prost(double, required, tag = "1")]
     pub x: f64,
+    /// Rotation about y (degrees).
     #[prost(double, required, tag = "2")]
     pub y: f64,
+    /// Rotation about z (degrees).
     #[prost(double, required, tag = "3")]
     pub z: f64,
 }
@@ -77,10 +91,13 @@ pub struct EgmEuler {
 /// `EgmPose`: 1 pos, 2 orient (quaternion), 3 euler.
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmPose {
+    /// Position.
     #[prost(message, optional, tag = "1")]
     pub pos: Option<EgmCartesian>,
+    /// Orientation as a quaternion.
     #[prost(message, optional, tag = "2")]
     pub orient: Option<EgmQuaternion>,
+    /// Orientation as Euler angles.
     #[prost(message, optional, tag = "3")]
     pub euler: Option<EgmEuler>,
 }
@@ -89,7 +106,9 @@ pub struct EgmPose {
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmClock {
     #[prost(uint64, required, tag = "1")]
+    /// Seconds.
     pub sec: u64,
+    /// Microseconds within the second.
     #[prost(uint64, required, tag = "2")]
     pub usec: u64,
 }
@@ -98,8 +117,10 @@ pub struct EgmClock {
 /// 4 time. The joint arrays (1, 3) are not declared (position guidance in Cartesian space).
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmPlanned {
+    /// The Cartesian pose.
     #[prost(message, optional, tag = "2")]
     pub cartesian: Option<EgmPose>,
+    /// When the pose holds.
     #[prost(message, optional, tag = "4")]
     pub time: Option<EgmClock>,
 }
@@ -111,14 +132,18 @@ pub type EgmFeedBack = EgmPlanned;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
 #[repr(i32)]
 pub enum MotorState {
+    /// Not set.
     Undefined = 0,
+    /// Motors on.
     On = 1,
+    /// Motors off.
     Off = 2,
 }
 
 /// `EgmMotorState`: 1 state (required).
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmMotorState {
+    /// A [`MotorState`].
     #[prost(enumeration = "MotorState", required, tag = "1")]
     pub state: i32,
 }
@@ -127,15 +152,20 @@ pub struct EgmMotorState {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
 #[repr(i32)]
 pub enum MciState {
+    /// Not set.
     Undefined = 0,
+    /// The EGM instruction failed.
     Error = 1,
+    /// Not guiding.
     Stopped = 2,
+    /// Guiding: the sensor's answers move the robot.
     Running = 3,
 }
 
 /// `EgmMCIState`: 1 state (required).
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmMciState {
+    /// A [`MciState`].
     #[prost(enumeration = "MciState", required, tag = "1")]
     pub state: i32,
 }
@@ -145,18 +175,25 @@ pub struct EgmMciState {
 /// are not declared).
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmRobot {
+    /// Sequence number, time stamp, message type.
     #[prost(message, optional, tag = "1")]
     pub header: Option<EgmHeader>,
     #[prost(message, optional, tag = "2")]
+    /// Where the robot is.
     pub feed_back: Option<EgmFeedBack>,
+    /// Where the controller plans to be.
     #[prost(message, optional, tag = "3")]
     pub planned: Option<EgmPlanned>,
+    /// Motors on or off.
     #[prost(message, optional, tag = "4")]
     pub motor_state: Option<EgmMotorState>,
+    /// State of the EGM instruction.
     #[prost(message, optional, tag = "5")]
     pub mci_state: Option<EgmMciState>,
+    /// The robot reached the guided position within the convergence criteria.
     #[prost(bool, optional, tag = "6")]
     pub mci_convergence_met: Option<bool>,
+    /// Utilisation rate as the controller reports it.
     #[prost(double, optional, tag = "10")]
     pub utilization_rate: Option<f64>,
 }
@@ -164,8 +201,10 @@ pub struct EgmRobot {
 /// `EgmSensor`, sensor → controller: 1 header, 2 planned (3 speedRef is not declared).
 #[derive(Clone, Copy, PartialEq, Message)]
 pub struct EgmSensor {
+    /// Sequence number, time stamp, message type.
     #[prost(message, optional, tag = "1")]
     pub header: Option<EgmHeader>,
+    /// The pose to go to next.
     #[prost(message, optional, tag = "2")]
     pub planned: Option<EgmPlanned>,
 }

@@ -17,7 +17,9 @@ use crate::{Clock, PositionFeed, RobotConfig};
 pub struct Control {
     /// Bumped on every enable/disable so each command is seen once.
     pub generation: u64,
+    /// The operator enabled the link.
     pub enabled: bool,
+    /// The link must hold the robot, say goodbye and end (`LinkHandle::shutdown`).
     pub stop: bool,
 }
 
@@ -33,14 +35,21 @@ pub struct Latency {
 /// Percentiles of [`Latency`] (µs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 pub struct LatencySummary {
+    /// Targets recorded.
     pub count: u64,
+    /// Sample age (capture → on the wire), median.
     pub p50_us: u64,
+    /// Sample age, 99th percentile.
     pub p99_us: u64,
+    /// Sample age, 99.9th percentile.
     pub p999_us: u64,
+    /// Sample age, largest.
     pub max_us: u64,
     /// Protocol wait, published → on the wire.
     pub wait_p50_us: u64,
+    /// Protocol wait, 99th percentile.
     pub wait_p99_us: u64,
+    /// Protocol wait, largest.
     pub wait_max_us: u64,
 }
 
@@ -104,6 +113,8 @@ pub struct Gate<F, C> {
 pub const LATENCY_SUMMARY_PERIOD_NS: u64 = 500_000_000;
 
 impl<F: PositionFeed, C: Clock> Gate<F, C> {
+    /// A gate judging `feed`'s samples by `cfg`'s safety limits, timed by `clock`, with the
+    /// `deadman` input and the operator's commands on `ctl`.
     pub fn new(
         cfg: &RobotConfig,
         feed: F,

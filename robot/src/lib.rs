@@ -10,6 +10,9 @@
 //! through the same [`gate::Gate`] (operator enable, deadman, supervisor), fed by a
 //! [`PositionFeed`] and timed by a [`Clock`].
 
+// Every public item says what it is for (issue 24).
+#![deny(missing_docs)]
+
 pub mod cell;
 pub mod client;
 pub mod ctrl_sim;
@@ -57,6 +60,7 @@ pub fn monotonic_ns() -> u64 {
 
 /// Time base of the samples' `capture_ts_ns` (CLOCK_MONOTONIC for irtrackd).
 pub trait Clock: Send + Sync + 'static {
+    /// Now, ns on the clock the samples' capture times are read on.
     fn now_ns(&self) -> u64;
 }
 
@@ -105,31 +109,59 @@ pub enum RobotError {
     /// Connecting, reading or writing failed.
     #[error("robot link {addr}: {what}: {source}")]
     Io {
+        /// The robot's (or listening) address.
         addr: String,
+        /// What was being done.
         what: &'static str,
+        /// The operating system's error.
         source: std::io::Error,
     },
     /// The robot sent something the protocol does not allow.
     #[error("robot link {addr}: {source}")]
     Protocol {
+        /// The robot's address.
         addr: String,
+        /// The codec's error, naming the line's problem.
         source: irtrack_core::Error,
     },
     /// The robot speaks another protocol version.
     #[error("robot link {addr}: robot speaks protocol version {found}, this build speaks {supported}")]
-    Version { addr: String, found: u8, supported: u8 },
+    Version {
+        /// The robot's address.
+        addr: String,
+        /// The version the robot sent in HELLO.
+        found: u8,
+        /// The version this build speaks.
+        supported: u8,
+    },
     /// Nothing heard from the robot within the timeout.
     #[error("robot link {addr}: no message from the robot for {ms} ms")]
-    Timeout { addr: String, ms: u64 },
+    Timeout {
+        /// The robot's address.
+        addr: String,
+        /// The silence limit, ms.
+        ms: u64,
+    },
     /// The robot closed the connection.
     #[error("robot link {addr}: connection closed by the robot")]
-    Closed { addr: String },
+    Closed {
+        /// The robot's address.
+        addr: String,
+    },
     /// The deadman GPIO line could not be opened or read.
     #[error("deadman input {what}: {reason}")]
-    Deadman { what: String, reason: String },
+    Deadman {
+        /// The chip and line.
+        what: String,
+        /// Why it failed.
+        reason: String,
+    },
     /// Invalid configuration.
     #[error("robot config: {reason}")]
-    Config { reason: String },
+    Config {
+        /// What is wrong, naming the key.
+        reason: String,
+    },
     /// A simulated controller's setting (the cell robot's error model) or simulator-only
     /// message (the cell feed) is unusable; the message names the field.
     #[error("invalid simulator configuration: {field}: {reason}")]
@@ -142,8 +174,11 @@ pub enum RobotError {
     /// A streaming-interface packet (EGM or RSI) that cannot be decoded.
     #[error("{protocol} packet ({len} bytes): {reason}")]
     Packet {
+        /// `EGM` or `RSI`.
         protocol: &'static str,
+        /// The datagram's length in bytes.
         len: usize,
+        /// What does not decode.
         reason: String,
     },
 }
@@ -215,6 +250,7 @@ pub struct RobotConfig {
     /// Name sent in HELLO (1..=24 of `[A-Za-z0-9._-]`).
     #[serde(default = "default_name")]
     pub name: String,
+    /// A connection attempt (socket link) fails after this long.
     #[serde(default = "default_connect_timeout_ms")]
     pub connect_timeout_ms: u64,
     /// Heartbeat period towards the robot.
@@ -226,6 +262,7 @@ pub struct RobotConfig {
     /// Reconnect backoff: first delay, doubled up to the maximum.
     #[serde(default = "default_backoff_min_ms")]
     pub backoff_min_ms: u64,
+    /// Reconnect backoff: the longest delay.
     #[serde(default = "default_backoff_max_ms")]
     pub backoff_max_ms: u64,
     /// The tool of the parameter set whose pose the link follows (`[robot] tool = "name"`);

@@ -31,14 +31,19 @@ pub enum LinkState {
 pub struct LinkStatus {
     /// Which interface this link speaks.
     pub kind: LinkKind,
+    /// Where the link is (disconnected, connecting, holding, moving).
     pub state: LinkState,
     /// Name the robot gave in HELLO.
     pub robot_name: Option<String>,
     /// Robot TCP from its last credit line.
     pub robot_pos_mm: Option<[f64; 3]>,
+    /// Connections (or streaming sessions) made.
     pub connects: u64,
+    /// Targets sent to the robot.
     pub targets_sent: u64,
+    /// Hold commands sent.
     pub holds_sent: u64,
+    /// Targets the robot rejected.
     pub rejects: u64,
     /// Streaming kinds: controller packets answered.
     pub packets_answered: u64,
@@ -48,6 +53,7 @@ pub struct LinkStatus {
     pub out_of_order: u64,
     /// Streaming kinds: the UDP address irtrackd listens on.
     pub local_addr: Option<std::net::SocketAddr>,
+    /// The newest error, in words.
     pub last_error: Option<String>,
     /// Targets sent so far: the sample's age when it left and the protocol wait (published →
     /// on the wire), refreshed about twice a second.

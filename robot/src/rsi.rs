@@ -32,6 +32,7 @@ fn bad(len: usize, reason: impl Into<String>) -> RobotError {
 /// What a `<Rob>` datagram says.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RobFrame {
+    /// The cycle's IPOC time stamp, echoed in the answer.
     pub ipoc: u64,
     /// `RIst` X, Y, Z (mm).
     pub pos_mm: [f64; 3],
@@ -185,8 +186,11 @@ pub fn write_sen(out: &mut Vec<u8>, sen_type: &str, korr_mm: [f64; 3], korr_deg:
 /// What a `<Sen>` datagram says (the simulated controller's side).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SenFrame {
+    /// The IPOC of the `<Rob>` answered.
     pub ipoc: u64,
+    /// `RKorr` X, Y, Z (mm).
     pub korr_mm: [f64; 3],
+    /// `RKorr` A, B, C (degrees).
     pub korr_deg: [f64; 3],
 }
 

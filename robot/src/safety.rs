@@ -99,13 +99,19 @@ pub const REACQUIRE_MAX_GAP_S: f64 = 0.5;
 /// What the supervisor needs from a tracker record.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sample {
+    /// The tracker's frame-set number.
     pub frame: u64,
     /// CLOCK_MONOTONIC capture time (the clock the client's [`crate::Clock`] reads).
     pub capture_ts_ns: u64,
+    /// The tracked position (mm); `None` when nothing was tracked.
     pub position_mm: Option<[f64; 3]>,
+    /// The tool's orientation (w, x, y, z) for a 6-DOF sample.
     pub orientation_wxyz: Option<[f64; 4]>,
+    /// Quality of the position: ray gap or RMS ray distance (mm); NaN when none.
     pub gap_mm: f64,
+    /// The tracker's status for this set.
     pub status: TrackStatus,
+    /// The position is in the robot's frame (a registration is applied).
     pub world_frame: bool,
 }
 
@@ -128,7 +134,9 @@ impl From<&PositionRecord> for Sample {
 pub enum Verdict {
     /// This position (and orientation, for a 6-DOF sample) may be sent as the next target.
     Send {
+        /// The target position (mm).
         pos_mm: [f64; 3],
+        /// The target orientation, for a 6-DOF sample.
         quat_wxyz: Option<[f64; 4]>,
     },
     /// The robot must hold.

@@ -17,6 +17,7 @@ use crate::sim_robot::{SimEvent, SimRobot, SimRobotConfig};
 /// Server-side options around the robot model.
 #[derive(Debug, Clone)]
 pub struct SimServerConfig {
+    /// The robot model.
     pub robot: SimRobotConfig,
     /// Motion update period.
     pub tick_ms: u64,
@@ -47,10 +48,13 @@ impl Default for SimServerConfig {
 /// One log entry.
 #[derive(Debug, Clone, PartialEq)]
 pub enum SimLog {
+    /// A tracker connected.
     Connected,
+    /// The tracker's connection ended.
     Disconnected,
     /// The server sent garbage (`garbage_after`).
     GarbageSent,
+    /// The robot model did something.
     Event(SimEvent),
 }
 
@@ -70,8 +74,11 @@ pub struct SimRecord {
 pub struct ReceivedTarget {
     /// Seconds since the server started.
     pub t_s: f64,
+    /// Connection number (from 1).
     pub conn: u32,
+    /// The target's sequence number.
     pub seq: u32,
+    /// The target position (mm).
     pub pos_mm: [f64; 3],
     /// Orientation of a 6-DOF `Q` target (w, x, y, z); `None` for a position-only `T`.
     pub quat_wxyz: Option<[f64; 4]>,
@@ -79,7 +86,9 @@ pub struct ReceivedTarget {
 
 /// A running simulated robot server.
 pub struct SimRobotServer {
+    /// The address it listens on.
     pub addr: SocketAddr,
+    /// What it saw and did so far.
     pub record: Arc<Mutex<SimRecord>>,
     task: JoinHandle<()>,
 }

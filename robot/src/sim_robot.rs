@@ -43,15 +43,34 @@ impl Default for SimRobotConfig {
 #[derive(Debug, Clone, PartialEq)]
 pub enum SimEvent {
     /// Target accepted into the queue.
-    Target { seq: u32, target_mm: [f64; 3] },
+    Target {
+        /// The target's sequence number.
+        seq: u32,
+        /// The target position (mm).
+        target_mm: [f64; 3],
+    },
     /// Target reached and acknowledged.
-    Reached { seq: u32 },
+    Reached {
+        /// The target's sequence number.
+        seq: u32,
+    },
     /// Target rejected (code from [`reject`]).
-    Rejected { seq: u32, code: u8 },
+    Rejected {
+        /// The target's sequence number.
+        seq: u32,
+        /// The reject code sent.
+        code: u8,
+    },
     /// `HOLD` received: motion stopped, queue cleared.
-    Hold { reason: HoldReason },
+    Hold {
+        /// The tracker's reason.
+        reason: HoldReason,
+    },
     /// Malformed or unexpected line.
-    Malformed { reason: String },
+    Malformed {
+        /// What was wrong with it.
+        reason: String,
+    },
 }
 
 /// The robot side of the protocol with a point that moves at a bounded speed.

@@ -124,13 +124,17 @@ pub struct RobotPacket {
 /// Position (and orientation) a reply commands.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Command {
+    /// Target position (mm).
     pub pos_mm: [f64; 3],
+    /// Target orientation (w, x, y, z).
     pub quat_wxyz: [f64; 4],
 }
 
 /// One streaming protocol.
 pub trait StreamProto: Send + 'static {
+    /// The `[robot] kind` this protocol serves.
     const KIND: LinkKind;
+    /// The protocol's state for one link.
     fn new(cfg: &StreamConfig) -> Self;
     /// Decodes a controller packet; a clear error for anything malformed.
     fn decode(&mut self, bytes: &[u8]) -> Result<RobotPacket, RobotError>;
