@@ -175,9 +175,7 @@ const GOLDEN_V2_TAIL: &[&str] = &[
 ];
 
 fn golden_v2_bytes() -> Vec<u8> {
-    let cameras = &GOLDEN_HEX[8..GOLDEN_HEX.len() - 2];
-    let hex = [GOLDEN_V2_HEAD, cameras, GOLDEN_V2_TAIL].concat().concat();
-    from_hex(&hex)
+    with_golden_cameras(GOLDEN_V2_HEAD, GOLDEN_V2_TAIL)
 }
 
 #[test]
@@ -212,10 +210,8 @@ fn old_blob_still_loads_and_sets_without_tips_stay_version_1() {
 fn version_2_body_without_a_tip_is_not_canonical() {
     // The version-1 golden blob relabelled as version 2 (CRC fixed): without tools its body is
     // also a valid version-2 encoding, of a set that must be written as version 1.
-    let mut b = golden_bytes();
-    b[4] = 2;
     assert_eq!(
-        RigParams::from_blob(&reseal(b)),
+        RigParams::from_blob(&relabelled_golden(2, &[])),
         Err(Error::BlobBody {
             reason: "version-2 body without a tool tip (such a set is written as version 1)"
         })
@@ -224,17 +220,7 @@ fn version_2_body_without_a_tip_is_not_canonical() {
 
 #[test]
 fn every_single_byte_corruption_of_the_v2_blob_is_detected() {
-    let good = golden_v2_bytes();
-    for i in 0..good.len() {
-        for x in 1..=255u8 {
-            let mut b = good.clone();
-            b[i] ^= x;
-            assert!(
-                RigParams::from_blob(&b).is_err(),
-                "byte {i} xor {x:#04x} undetected"
-            );
-        }
-    }
+    assert_every_single_byte_corruption_is_detected(&golden_v2_bytes());
 }
 
 /// The version-3 golden rig: the version-1 cameras with a calibration record (a wand
@@ -288,9 +274,7 @@ const GOLDEN_V3_TAIL: &[&str] = &[
 ];
 
 fn golden_v3_bytes() -> Vec<u8> {
-    let cameras = &GOLDEN_HEX[8..GOLDEN_HEX.len() - 2];
-    let hex = [GOLDEN_V3_HEAD, cameras, GOLDEN_V3_TAIL].concat().concat();
-    from_hex(&hex)
+    with_golden_cameras(GOLDEN_V3_HEAD, GOLDEN_V3_TAIL)
 }
 
 #[test]
@@ -323,13 +307,8 @@ fn golden_v3_encode_decode() {
 #[test]
 fn version_3_body_without_a_record_is_not_canonical() {
     // The version-1 golden body + a `None` record byte, relabelled as version 3.
-    let mut b = golden_bytes();
-    b[4] = 3;
-    b.push(0);
-    let len = (b.len() - BLOB_HEADER_LEN) as u32;
-    b[8..12].copy_from_slice(&len.to_le_bytes());
     assert_eq!(
-        RigParams::from_blob(&reseal(b)),
+        RigParams::from_blob(&relabelled_golden(3, &[0])),
         Err(Error::BlobBody {
             reason: "version-3 body without a calibration record (such a set is written as version 1 or 2)"
         })
@@ -338,17 +317,7 @@ fn version_3_body_without_a_record_is_not_canonical() {
 
 #[test]
 fn every_single_byte_corruption_of_the_v3_blob_is_detected() {
-    let good = golden_v3_bytes();
-    for i in 0..good.len() {
-        for x in 1..=255u8 {
-            let mut b = good.clone();
-            b[i] ^= x;
-            assert!(
-                RigParams::from_blob(&b).is_err(),
-                "byte {i} xor {x:#04x} undetected"
-            );
-        }
-    }
+    assert_every_single_byte_corruption_is_detected(&golden_v3_bytes());
 }
 
 #[test]
@@ -414,9 +383,7 @@ const GOLDEN_V4_TAIL: &[&str] = &[
 ];
 
 fn golden_v4_bytes() -> Vec<u8> {
-    let cameras = &GOLDEN_HEX[8..GOLDEN_HEX.len() - 2];
-    let hex = [GOLDEN_V4_HEAD, cameras, GOLDEN_V4_TAIL].concat().concat();
-    from_hex(&hex)
+    with_golden_cameras(GOLDEN_V4_HEAD, GOLDEN_V4_TAIL)
 }
 
 #[test]
@@ -477,13 +444,8 @@ fn older_blobs_still_load_next_to_version_4() {
 #[test]
 fn version_4_body_without_a_placement_is_not_canonical() {
     // The version-1 golden body + `None` record + empty placement, relabelled as version 4.
-    let mut b = golden_bytes();
-    b[4] = 4;
-    b.extend_from_slice(&[0, 0]);
-    let len = (b.len() - BLOB_HEADER_LEN) as u32;
-    b[8..12].copy_from_slice(&len.to_le_bytes());
     assert_eq!(
-        RigParams::from_blob(&reseal(b)),
+        RigParams::from_blob(&relabelled_golden(4, &[0, 0])),
         Err(Error::BlobBody {
             reason: "version-4 body without a camera placement (such a set is written as version 1, 2 or 3)"
         })
@@ -492,17 +454,7 @@ fn version_4_body_without_a_placement_is_not_canonical() {
 
 #[test]
 fn every_single_byte_corruption_of_the_v4_blob_is_detected() {
-    let good = golden_v4_bytes();
-    for i in 0..good.len() {
-        for x in 1..=255u8 {
-            let mut b = good.clone();
-            b[i] ^= x;
-            assert!(
-                RigParams::from_blob(&b).is_err(),
-                "byte {i} xor {x:#04x} undetected"
-            );
-        }
-    }
+    assert_every_single_byte_corruption_is_detected(&golden_v4_bytes());
 }
 
 #[test]
@@ -654,6 +606,39 @@ fn reseal(mut b: Vec<u8>) -> Vec<u8> {
     let crc = irtrack_core::crc::crc32(&covered);
     b[12..16].copy_from_slice(&crc.to_le_bytes());
     b
+}
+
+/// A later version's golden blob: its own head and tail (header and the fields before and
+/// after the cameras) around the cameras of [`GOLDEN_HEX`] (without its trailing `None` and
+/// no-tools bytes).
+fn with_golden_cameras(head: &[&str], tail: &[&str]) -> Vec<u8> {
+    let cameras = &GOLDEN_HEX[8..GOLDEN_HEX.len() - 2];
+    from_hex(&[head, cameras, tail].concat().concat())
+}
+
+/// The version-1 golden blob relabelled as `version`, with `extra` body bytes appended and
+/// the length and CRC made consistent: a body the decoder must judge on its content.
+fn relabelled_golden(version: u8, extra: &[u8]) -> Vec<u8> {
+    let mut b = golden_bytes();
+    b[4] = version;
+    b.extend_from_slice(extra);
+    let len = (b.len() - BLOB_HEADER_LEN) as u32;
+    b[8..12].copy_from_slice(&len.to_le_bytes());
+    reseal(b)
+}
+
+/// Every change of a single byte of `good` (each of the 255 xor values) makes the blob fail.
+fn assert_every_single_byte_corruption_is_detected(good: &[u8]) {
+    for i in 0..good.len() {
+        for x in 1..=255u8 {
+            let mut b = good.to_vec();
+            b[i] ^= x;
+            assert!(
+                RigParams::from_blob(&b).is_err(),
+                "byte {i} xor {x:#04x} undetected"
+            );
+        }
+    }
 }
 
 #[test]
