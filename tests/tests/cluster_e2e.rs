@@ -4,17 +4,22 @@
 //! 3 ms jitter injected in a board's sender, and a board whose clock is off by more than the
 //! tolerance (fault, never a wrong pairing).
 //!
-//! Network: explicit `tcp/` endpoints, no multicast. With root and `ip netns`, each camera
-//! board runs in its own network namespace joined to the test's namespace by a veth link
-//! (10.231.<k>.0/30; the solver, in the test's namespace, listens on every interface and each
-//! board connects to its link's far end: no forwarding needed); otherwise everything runs on
-//! 127.0.0.1 (the plain-loopback variant; `IRTRACK_CLUSTER_LOOPBACK=1` forces it). Build the
-//! binaries first: `cargo build -p irtrack-firmware`.
+//! Network: explicit `tcp/` endpoints, no multicast. Two tests, run one after the other:
+//! - with root and `ip netns`, each camera board runs in its own network namespace joined to
+//!   the test's namespace by a veth link (10.231.<n>.0/30, n chosen per process); the solver,
+//!   in the test's namespace, listens on its side of each link and each board connects to it
+//!   (no forwarding, nothing leaves the links). Without namespaces this test says it skipped,
+//!   or fails when `IRTRACK_REQUIRE_NETNS` is set (CI);
+//! - the plain-loopback variant runs everything on 127.0.0.1.
+//!
+//! Build the binaries first, with the same features as this test:
+//! `cargo build -p irtrack-firmware -p irtrack-tests --features irtrack-tests/cluster --bins`.
 
 #![cfg(feature = "cluster")]
 
 mod common;
 
+use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader};
 use std::net::{SocketAddr, TcpStream};
 use std::path::Path;
@@ -83,7 +88,6 @@ struct Node {
     _proc: Proc,
     status: SocketAddr,
     records: Arc<Mutex<Vec<serde_json::Value>>>,
-    netns: Option<String>,
 }
 
 fn spawn(dir: &Path, name: &str, config: &str, netns: Option<&str>, host_ip: &str) -> Node {
@@ -113,7 +117,6 @@ fn spawn(dir: &Path, name: &str, config: &str, netns: Option<&str>, host_ip: &st
     let stream = addr_field(&line, "stream=");
     let records = Arc::new(Mutex::new(Vec::new()));
     let r2 = records.clone();
-    let ns = netns.map(str::to_string);
     std::thread::spawn(move || {
         // The stream port is reached from the host's namespace through the node's veth
         // address, or on loopback.
@@ -125,13 +128,11 @@ fn spawn(dir: &Path, name: &str, config: &str, netns: Option<&str>, host_ip: &st
                 g.push(v);
             }
         }
-        let _ = ns;
     });
     Node {
         _proc: child,
         status,
         records,
-        netns: netns.map(str::to_string),
     }
 }
 
@@ -151,26 +152,49 @@ impl Node {
     }
 }
 
-/// Errors (mm) of the tracked records against the simulator's truth, and the cameras used.
-fn errors(records: &[serde_json::Value], scenario: &Scenario) -> (Vec<f64>, Vec<u64>) {
-    let mut err = Vec::new();
-    let mut used = Vec::new();
+/// Error (mm) against the simulator's truth and cameras used, per tracked record's frame.
+fn errors(records: &[serde_json::Value], scenario: &Scenario) -> BTreeMap<u64, (f64, u64)> {
+    let mut out = BTreeMap::new();
     for r in records {
         if r["status"] != "ok" {
             continue;
         }
-        let p = r["position_mm"].as_array().unwrap();
+        let p = r["position_mm"].as_array().expect("position_mm");
         let p = nalgebra::Vector3::new(
             p[0].as_f64().unwrap(),
             p[1].as_f64().unwrap(),
             p[2].as_f64().unwrap(),
         );
-        let frame = r["frame"].as_u64().unwrap();
+        let frame = r["frame"].as_u64().expect("frame");
         let truth = scenario.truth(frame).markers[0].p_cam0_mm;
-        err.push((p - truth).norm());
-        used.push(r["cameras_used"].as_u64().unwrap());
+        out.insert(frame, ((p - truth).norm(), r["cameras_used"].as_u64().expect("cameras_used")));
     }
-    (err, used)
+    out
+}
+
+fn errs(m: &BTreeMap<u64, (f64, u64)>) -> Vec<f64> {
+    m.values().map(|v| v.0).collect()
+}
+
+fn used(m: &BTreeMap<u64, (f64, u64)>) -> Vec<u64> {
+    m.values().map(|v| v.1).collect()
+}
+
+/// RMS errors of `a` and `b` over the frames both tracked (the same instants), and how many.
+fn matched_rms(a: &BTreeMap<u64, (f64, u64)>, b: &BTreeMap<u64, (f64, u64)>) -> (f64, f64, usize) {
+    let common: Vec<(f64, f64)> = a
+        .iter()
+        .filter_map(|(f, x)| b.get(f).map(|y| (x.0, y.0)))
+        .collect();
+    let ea: Vec<f64> = common.iter().map(|c| c.0).collect();
+    let eb: Vec<f64> = common.iter().map(|c| c.1).collect();
+    (rms(&ea), rms(&eb), common.len())
+}
+
+/// No tracked record anywhere near a wrong pairing or a stale position.
+fn assert_no_wrong_position(phase: &str, m: &BTreeMap<u64, (f64, u64)>) {
+    let worst = m.values().map(|v| v.0).fold(0.0, f64::max);
+    assert!(worst < 1.0, "{phase}: a position {worst:.3} mm from the truth");
 }
 
 fn rms(v: &[f64]) -> f64 {
@@ -201,111 +225,128 @@ fn board(st: &serde_json::Value, name: &str) -> serde_json::Value {
 /// Network namespaces of this test (deleted on drop), when `ip netns` works here.
 struct Netns {
     names: Vec<String>,
+    /// Third octet of the first link's 10.231.<octet>.0/30; one per process, so concurrent
+    /// runs of this test on one machine do not share addresses.
+    base: usize,
 }
 
 impl Netns {
     /// A namespace per node and a veth link from each to the test's namespace, on
-    /// 10.231.<k>.0/30: the node is .2, the test's side .1.
+    /// 10.231.<base + k>.0/30: the node is .2, the test's side .1.
     fn try_new(nodes: &[&str]) -> Option<Netns> {
-        let pid = std::process::id() % 10_000;
-        let mut n = Netns { names: Vec::new() };
+        let pid = std::process::id();
+        let mut n = Netns {
+            names: Vec::new(),
+            base: (pid as usize % 60) * 4,
+        };
+        let ip = |args: &[&str]| {
+            Command::new("ip")
+                .args(args)
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .status()
+                .is_ok_and(|s| s.success())
+        };
         for (k, node) in nodes.iter().enumerate() {
-            let ns = format!("irt{pid}{node}");
-            let host_if = format!("irh{pid}{k}");
-            let ok = [
-                vec!["netns", "add", &ns],
-                vec![
-                    "link", "add", &host_if, "type", "veth", "peer", "name", "eth0", "netns", &ns,
-                ],
-            ]
-            .iter()
-            .all(|args| {
-                Command::new("ip")
-                    .args(args)
-                    .stderr(Stdio::null())
-                    .status()
-                    .is_ok_and(|s| s.success())
-            });
-            n.names.push(ns.clone());
-            if !ok {
+            let ns = format!("irt{}{node}", pid % 100_000);
+            let host_if = format!("irh{}{k}", pid % 100_000);
+            if !ip(&["netns", "add", &ns]) {
                 return None;
             }
-            let host_ip = format!("10.231.{k}.1/30");
-            let node_ip = format!("10.231.{k}.2/30");
-            let cmds: Vec<Vec<&str>> = vec![
-                vec!["addr", "add", &host_ip, "dev", &host_if],
-                vec!["link", "set", &host_if, "up"],
-                vec!["netns", "exec", &ns, "ip", "addr", "add", &node_ip, "dev", "eth0"],
-                vec!["netns", "exec", &ns, "ip", "link", "set", "eth0", "up"],
-                vec!["netns", "exec", &ns, "ip", "link", "set", "lo", "up"],
-            ];
-            for args in cmds {
-                if !Command::new("ip")
-                    .args(&args)
-                    .stderr(Stdio::null())
-                    .status()
-                    .is_ok_and(|s| s.success())
-                {
-                    return None;
-                }
+            n.names.push(ns.clone());
+            let host_ip = format!("{}/30", n.host_ip(k));
+            let node_ip = format!("{}/30", n.node_ip(k));
+            let ok = ip(&[
+                "link", "add", &host_if, "type", "veth", "peer", "name", "eth0", "netns", &ns,
+            ]) && ip(&["addr", "add", &host_ip, "dev", &host_if])
+                && ip(&["link", "set", &host_if, "up"])
+                && ip(&["netns", "exec", &ns, "ip", "addr", "add", &node_ip, "dev", "eth0"])
+                && ip(&["netns", "exec", &ns, "ip", "link", "set", "eth0", "up"])
+                && ip(&["netns", "exec", &ns, "ip", "link", "set", "lo", "up"]);
+            if !ok {
+                return None;
             }
         }
         Some(n)
     }
 
-    fn node_ip(k: usize) -> String {
-        format!("10.231.{k}.2")
+    fn node_ip(&self, k: usize) -> String {
+        format!("10.231.{}.2", self.base + k)
     }
 
-    fn host_ip(k: usize) -> String {
-        format!("10.231.{k}.1")
+    fn host_ip(&self, k: usize) -> String {
+        format!("10.231.{}.1", self.base + k)
     }
 }
 
 impl Drop for Netns {
     fn drop(&mut self) {
+        // Deleting a namespace deletes its end of the veth pair, and with it the test's end.
         for ns in &self.names {
             let _ = Command::new("ip").args(["netns", "del", ns]).status();
         }
     }
 }
 
+/// The tests start several irtrackd processes each: one at a time on a small machine.
+static SERIAL: Mutex<()> = Mutex::new(());
+
+/// Boards in network namespaces of their own, joined to the solver's by veth links. Without
+/// namespaces (not root, no iproute2) this says so and leaves the work to the loopback test,
+/// unless `IRTRACK_REQUIRE_NETNS=1` (CI) makes that a failure.
 #[test]
-fn two_camera_boards_and_a_solver_track_like_one_board() {
+fn boards_in_network_namespaces_over_veth_track_like_one_board() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    match Netns::try_new(&["b0", "b1"]) {
+        Some(n) => run_cluster(Some(&n)),
+        None if std::env::var_os("IRTRACK_REQUIRE_NETNS").is_some() => {
+            panic!("IRTRACK_REQUIRE_NETNS is set but `ip netns` with veth links does not work here")
+        }
+        None => eprintln!(
+            "SKIPPED: network namespaces are not available here (root and iproute2 needed); \
+             boards_on_plain_loopback_track_like_one_board covers the rest"
+        ),
+    }
+}
+
+/// The plain-loopback variant: every process on 127.0.0.1.
+#[test]
+fn boards_on_plain_loopback_track_like_one_board() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    run_cluster(None);
+}
+
+fn run_cluster(netns: Option<&Netns>) {
     let t0 = Instant::now();
-    let dir = temp_dir("cluster");
+    let dir = temp_dir(if netns.is_some() { "cluster-netns" } else { "cluster-lo" });
     let scenario = Scenario::new(sim_cfg().scenario_config()).unwrap();
     let port = {
         let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         l.local_addr().unwrap().port()
     };
-    // Namespaces when available (root, iproute2, forwarding on); else loopback.
-    let netns = if std::env::var_os("IRTRACK_CLUSTER_LOOPBACK").is_none() {
-        Netns::try_new(&["b0", "b1"])
-    } else {
-        None
-    };
-    // Per board: its namespace, its own address, and the solver's endpoint as it sees it.
-    let (ns, ips, solver_eps): ([Option<String>; 3], [String; 3], [String; 3]) = match &netns {
-        Some(n) => (
-            [None, Some(n.names[0].clone()), Some(n.names[1].clone())],
-            ["127.0.0.1".into(), Netns::node_ip(0), Netns::node_ip(1)],
-            [
-                format!("tcp/0.0.0.0:{port}"),
-                format!("tcp/{}:{port}", Netns::host_ip(0)),
-                format!("tcp/{}:{port}", Netns::host_ip(1)),
-            ],
-        ),
-        None => (
-            [None, None, None],
-            ["127.0.0.1".into(), "127.0.0.1".into(), "127.0.0.1".into()],
-            [
+    // Per node (solver, b0, b1): its namespace, its own address, and its Zenoh endpoints (the
+    // solver listens on its side of each link only; a board connects to that address).
+    let (ns, ips, solver_listen, board_connect): ([Option<String>; 3], [String; 3], String, [String; 2]) =
+        match netns {
+            Some(n) => (
+                [None, Some(n.names[0].clone()), Some(n.names[1].clone())],
+                ["127.0.0.1".into(), n.node_ip(0), n.node_ip(1)],
+                format!("tcp/{}:{port}\", \"tcp/{}:{port}", n.host_ip(0), n.host_ip(1)),
+                [
+                    format!("tcp/{}:{port}", n.host_ip(0)),
+                    format!("tcp/{}:{port}", n.host_ip(1)),
+                ],
+            ),
+            None => (
+                [None, None, None],
+                ["127.0.0.1".into(), "127.0.0.1".into(), "127.0.0.1".into()],
                 format!("tcp/127.0.0.1:{port}"),
-                format!("tcp/127.0.0.1:{port}"),
-                format!("tcp/127.0.0.1:{port}"),
-            ],
-        ),
-    };
+                [
+                    format!("tcp/127.0.0.1:{port}"),
+                    format!("tcp/127.0.0.1:{port}"),
+                ],
+            ),
+        };
     eprintln!(
         "cluster test: {}",
         if netns.is_some() {
@@ -316,18 +357,18 @@ fn two_camera_boards_and_a_solver_track_like_one_board() {
     );
 
     solver_params(&dir.join("solver-state"));
-    let solver = spawn(&dir, "solver", &solver_config(&solver_eps[0]), None, &ips[0]);
+    let solver = spawn(&dir, "solver", &solver_config(&solver_listen), None, &ips[0]);
     let b0 = spawn(
         &dir,
         "b0",
-        &board_config("b0", [0, 1], &solver_eps[1], ""),
+        &board_config("b0", [0, 1], &board_connect[0], ""),
         ns[1].as_deref(),
         &ips[1],
     );
     let b1 = spawn(
         &dir,
         "b1",
-        &board_config("b1", [2, 3], &solver_eps[2], ""),
+        &board_config("b1", [2, 3], &board_connect[1], ""),
         ns[2].as_deref(),
         &ips[2],
     );
@@ -337,7 +378,8 @@ fn two_camera_boards_and_a_solver_track_like_one_board() {
     );
     let single = spawn(&dir, "single", &single_cfg, None, "127.0.0.1");
 
-    // 1. Accuracy: all four cameras through the solver vs one board with the same cameras.
+    // 1. Accuracy: all four cameras through the solver vs one board with the same cameras,
+    //    over the same frames (both number frames by the wall clock).
     wait_for("solver tracks with 4 cameras", Duration::from_secs(20), || {
         solver
             .take_records()
@@ -346,29 +388,38 @@ fn two_camera_boards_and_a_solver_track_like_one_board() {
     });
     single.take_records();
     std::thread::sleep(Duration::from_secs(3));
-    let (e_cluster, used) = errors(&solver.take_records(), &scenario);
-    let (e_single, _) = errors(&single.take_records(), &scenario);
-    let (rms_c, rms_s) = (rms(&e_cluster), rms(&e_single));
+    let cluster = errors(&solver.take_records(), &scenario);
+    let one = errors(&single.take_records(), &scenario);
+    let (rms_c, rms_s, n) = matched_rms(&cluster, &one);
     eprintln!(
-        "cluster: {} positions, RMS {rms_c:.4} mm; one board: {} positions, RMS {rms_s:.4} mm",
-        e_cluster.len(),
-        e_single.len()
+        "accuracy: cluster {} positions, one board {}; over the {n} frames both tracked: \
+         RMS cluster {rms_c:.4} mm, one board {rms_s:.4} mm",
+        cluster.len(),
+        one.len()
     );
     assert!(
-        e_cluster.len() as f64 >= 0.6 * 3.0 * FPS,
+        cluster.len() as f64 >= 0.6 * 3.0 * FPS,
         "only {} positions in 3 s",
-        e_cluster.len()
+        cluster.len()
     );
-    assert!(e_single.len() as f64 >= 0.6 * 3.0 * FPS);
-    assert!(used.iter().filter(|&&u| u == 4).count() as f64 >= 0.9 * used.len() as f64);
+    assert!(n as f64 >= 0.5 * 3.0 * FPS, "only {n} frames tracked by both");
+    let u = used(&cluster);
     assert!(
-        rms_c <= 1.1 * rms_s + 0.01,
-        "cluster RMS {rms_c} mm vs one board {rms_s} mm"
+        u.iter().filter(|&&c| c == 4).count() as f64 >= 0.9 * u.len() as f64,
+        "cameras used: {u:?}"
     );
+    assert!(
+        rms_c <= 1.1 * rms_s,
+        "cluster RMS {rms_c} mm vs one board {rms_s} mm (more than 10 % worse)"
+    );
+    assert_no_wrong_position("accuracy", &cluster);
     let st = solver.status();
     assert_eq!(st["cluster"]["role"], "solver");
-    assert!(board(&st, "b0")["clock_offset_ms"].as_f64().unwrap().abs() < 5.0);
-    drop(single);
+    for b in ["b0", "b1"] {
+        let off = board(&st, b)["clock_offset_ms"].as_f64();
+        assert!(off.is_some_and(|o| o.abs() < 5.0), "{b}: measured clock offset {off:?} ms");
+        assert_eq!(board(&st, b)["down"], false);
+    }
 
     // 2. Board b1 stops: the solver goes on with b0's two cameras and says so.
     b1.kill();
@@ -377,16 +428,22 @@ fn two_camera_boards_and_a_solver_track_like_one_board() {
     });
     let st = solver.status();
     assert!(has_fault(&st, "board_down"), "{}", st["fault_texts"]);
-    solver.take_records();
+    let transition = errors(&solver.take_records(), &scenario);
+    assert_no_wrong_position("board stopping", &transition);
     std::thread::sleep(Duration::from_secs(1));
-    let (e, used) = errors(&solver.take_records(), &scenario);
-    assert!(
-        e.len() as f64 >= 0.5 * FPS,
-        "{} positions in 1 s with one board",
-        e.len()
+    let down = errors(&solver.take_records(), &scenario);
+    eprintln!(
+        "one board down: {} positions in 1 s, RMS {:.4} mm",
+        down.len(),
+        rms(&errs(&down))
     );
-    assert!(used.iter().all(|&u| u == 2), "{used:?}");
-    assert!(rms(&e) < 1.0, "RMS {} mm with two cameras", rms(&e));
+    assert!(
+        down.len() as f64 >= 0.5 * FPS,
+        "{} positions in 1 s with one board",
+        down.len()
+    );
+    assert!(used(&down).iter().all(|&u| u == 2), "{:?}", used(&down));
+    assert_no_wrong_position("one board down", &down);
 
     // 3. Restarted, with 5 % loss and 3 ms jitter injected in its sender.
     let b1 = spawn(
@@ -395,7 +452,7 @@ fn two_camera_boards_and_a_solver_track_like_one_board() {
         &board_config(
             "b1",
             [2, 3],
-            &solver_eps[2],
+            &board_connect[1],
             "inject_loss = 0.05\ninject_jitter_ms = 3.0",
         ),
         ns[2].as_deref(),
@@ -404,27 +461,42 @@ fn two_camera_boards_and_a_solver_track_like_one_board() {
     wait_for("board b1 back", Duration::from_secs(20), || {
         solver.take_records().iter().any(|r| r["cameras_used"] == 4)
     });
+    // `/status` takes a fresh copy of the counters every 200 ms.
+    wait_for("board b1 reported up", Duration::from_secs(2), || {
+        board(&solver.status(), "b1")["down"] == false
+    });
+    let before = solver.status()["cluster"]["sets_incomplete"].as_u64().unwrap_or(0);
+    single.take_records();
     std::thread::sleep(Duration::from_secs(3));
-    let (e, used) = errors(&solver.take_records(), &scenario);
-    let four = used.iter().filter(|&&u| u == 4).count();
+    let lossy = errors(&solver.take_records(), &scenario);
+    let one = errors(&single.take_records(), &scenario);
+    let four: BTreeMap<u64, (f64, u64)> = lossy
+        .iter()
+        .filter(|(_, v)| v.1 == 4)
+        .map(|(k, v)| (*k, *v))
+        .collect();
+    let (rms_4, rms_s4, n4) = matched_rms(&four, &one);
     eprintln!(
-        "loss/jitter: {} positions, {four} with 4 cameras, RMS {:.4} mm",
-        e.len(),
-        rms(&e)
+        "loss and jitter: {} positions, {} with 4 cameras (RMS {rms_4:.4} mm vs one board \
+         {rms_s4:.4} mm over {n4} frames), all RMS {:.4} mm",
+        lossy.len(),
+        four.len(),
+        rms(&errs(&lossy))
     );
-    assert!(e.len() as f64 >= 0.6 * 3.0 * FPS);
-    assert!(four as f64 >= 0.7 * e.len() as f64, "{four} of {}", e.len());
+    assert!(lossy.len() as f64 >= 0.6 * 3.0 * FPS);
     assert!(
-        rms(&e) <= 1.1 * rms_s + 0.05,
-        "RMS {} mm under loss and jitter",
-        rms(&e)
+        four.len() as f64 >= 0.7 * lossy.len() as f64,
+        "{} of {}",
+        four.len(),
+        lossy.len()
     );
+    assert!(rms_4 <= 1.1 * rms_s4, "4-camera sets under loss/jitter: RMS {rms_4} mm");
+    assert_no_wrong_position("loss and jitter", &lossy);
     let st = solver.status();
-    assert!(
-        st["cluster"]["sets_incomplete"].as_u64().unwrap() > 0,
-        "loss shows as incomplete sets"
-    );
-    assert!(!board(&st, "b1")["clock_fault"].as_bool().unwrap());
+    let after = st["cluster"]["sets_incomplete"].as_u64().unwrap_or(0);
+    assert!(after > before, "5 % loss shows as incomplete sets ({before} → {after})");
+    assert_eq!(board(&st, "b1")["clock_fault"], false);
+    drop(single);
     b1.kill();
 
     // 4. b1's clock 50 ms off (more than the 16.7 ms tolerance at 30 fps): fault, and no set
@@ -432,7 +504,7 @@ fn two_camera_boards_and_a_solver_track_like_one_board() {
     let b1 = spawn(
         &dir,
         "b1",
-        &board_config("b1", [2, 3], &solver_eps[2], "clock_offset_ms = 50.0"),
+        &board_config("b1", [2, 3], &board_connect[1], "clock_offset_ms = 50.0"),
         ns[2].as_deref(),
         &ips[2],
     );
@@ -441,22 +513,21 @@ fn two_camera_boards_and_a_solver_track_like_one_board() {
     });
     solver.take_records();
     std::thread::sleep(Duration::from_secs(2));
-    let (e, used) = errors(&solver.take_records(), &scenario);
+    let skewed = errors(&solver.take_records(), &scenario);
+    assert!(skewed.len() as f64 >= 0.5 * 2.0 * FPS, "{} positions in 2 s", skewed.len());
     assert!(
-        used.iter().all(|&u| u == 2),
-        "a set used the offset board: {used:?}"
+        used(&skewed).iter().all(|&u| u == 2),
+        "a set used the offset board: {:?}",
+        used(&skewed)
     );
-    assert!(
-        e.iter().all(|&x| x < 2.0),
-        "a wrong position: {:?}",
-        e.iter().cloned().fold(0.0, f64::max)
-    );
+    assert_no_wrong_position("clock offset", &skewed);
     let st = solver.status();
     let off = board(&st, "b1")["clock_offset_ms"].as_f64().unwrap();
+    eprintln!("clock offset: b1 measured at {off:.2} ms, faulted");
     assert!((off - 50.0).abs() < 10.0, "measured offset {off} ms");
     assert!(has_fault(&st, "clock_offset"), "{}", st["fault_texts"]);
+    assert!(st["cluster"]["refused_clock"].as_u64().unwrap_or(0) > 0);
     drop(b1);
     drop(b0);
     eprintln!("cluster test took {:.1} s", t0.elapsed().as_secs_f64());
-    let _ = solver.netns;
 }

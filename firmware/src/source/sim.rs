@@ -736,7 +736,10 @@ impl FrameSource for SimSource {
                     .map_or(0, |d| d.as_nanos() as u64);
                 let mono_now = clock::monotonic_ns();
                 let rt_minus_mono = rt_now.saturating_sub(mono_now);
-                let current = rt_now / self.period_ns;
+                // The frame being captured now, by the scenario's own time base (frame k at
+                // k * 1e9 / fps ns): an integer period would drift from it by seconds at
+                // today's frame numbers (~5e10 at 30 fps).
+                let current = (rt_now as f64 * self.cfg.fps / 1e9).floor() as u64;
                 if index == 0 || current > index + 1 {
                     if index != 0 {
                         self.stats.sets_dropped += current - index;
