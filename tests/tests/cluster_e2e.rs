@@ -20,207 +20,13 @@
 mod common;
 
 use std::collections::BTreeMap;
-use std::io::{BufRead, BufReader};
-use std::net::{SocketAddr, TcpStream};
-use std::path::Path;
 use std::process::{Command, Stdio};
-use std::sync::{Arc, Mutex};
+use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use common::*;
-use irtrack_core::params::{CameraPlace, RigParams};
-use irtrack_firmware::source::sim::{SimRig, SimSourceConfig, ring_rig};
+use common::cluster::*;
+use common::temp_dir;
 use irtrack_sim::Scenario;
-
-const FPS: f64 = 30.0;
-const DISTANCE_MM: f64 = 600.0;
-const RIG: &str = "cell1";
-
-fn sim_cfg() -> SimSourceConfig {
-    SimSourceConfig {
-        rig: SimRig::Ring,
-        ring_cameras: 4,
-        distance_mm: DISTANCE_MM,
-        fps: FPS,
-        wall_clock: true,
-        ..Default::default()
-    }
-}
-
-fn sim_section(cameras: Option<[usize; 2]>) -> String {
-    format!(
-        "[source.sim]\nrig = \"ring\"\nring_cameras = 4\ndistance_mm = {DISTANCE_MM}\nfps = {FPS}\nwall_clock = true\n{}",
-        cameras.map_or(String::new(), |c| format!("cameras = [{}, {}]\n", c[0], c[1]))
-    )
-}
-
-fn board_config(board: &str, cameras: [usize; 2], solver: &str, extra: &str) -> String {
-    format!(
-        "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n{}\n[cluster]\nrole = \"camera\"\nrig = \"{RIG}\"\nboard = \"{board}\"\nconnect = [\"{solver}\"]\nfps = {FPS}\n{extra}\n",
-        sim_section(Some(cameras))
-    )
-}
-
-fn solver_config(listen: &str) -> String {
-    format!(
-        "[params]\nallow_unsigned = true\n[leds]\nbackend = \"none\"\n[cluster]\nrole = \"solver\"\nrig = \"{RIG}\"\nlisten = [\"{listen}\"]\nfps = {FPS}\nboard_timeout_ms = 300\nimage_sizes_px = [[640, 480], [640, 480], [640, 480], [640, 480]]\n"
-    )
-}
-
-/// The solver's parameter set: the ring rig, cameras 0 and 1 on board b0, 2 and 3 on b1.
-fn solver_params(state: &Path) {
-    let mut rig: RigParams = ring_rig(4, DISTANCE_MM);
-    rig.rig_id = RIG.into();
-    rig.placement = [("b0", 0), ("b0", 1), ("b1", 0), ("b1", 1)]
-        .iter()
-        .map(|(b, i)| CameraPlace {
-            board: (*b).into(),
-            local_index: *i,
-        })
-        .collect();
-    rig.validate().unwrap();
-    std::fs::create_dir_all(state).unwrap();
-    std::fs::write(state.join("params.irp"), rig.to_blob().unwrap()).unwrap();
-}
-
-/// A running irtrackd, optionally inside a network namespace.
-struct Node {
-    _proc: Proc,
-    status: SocketAddr,
-    records: Arc<Mutex<Vec<serde_json::Value>>>,
-}
-
-fn spawn(dir: &Path, name: &str, config: &str, netns: Option<&str>, host_ip: &str) -> Node {
-    let cfg = dir.join(format!("{name}.toml"));
-    std::fs::write(&cfg, config).unwrap();
-    let state = dir.join(format!("{name}-state"));
-    std::fs::create_dir_all(&state).unwrap();
-    let mut cmd = match netns {
-        Some(ns) => {
-            // `ip netns exec` execs irtrackd: the child's pid is irtrackd's (killed on drop).
-            let mut c = Command::new("ip");
-            c.args(["netns", "exec", ns]).arg(bin("irtrackd"));
-            c
-        }
-        None => Command::new(bin("irtrackd")),
-    };
-    cmd.arg("-c")
-        .arg(&cfg)
-        .args(["--ephemeral-ports", host_ip, "--state-dir"])
-        .arg(&state)
-        .stderr(std::fs::File::create(dir.join(format!("{name}.log"))).unwrap());
-    let mut child = common::spawn(&mut cmd, name);
-    let line = child
-        .wait_line("irtrackd ready", Duration::from_secs(30))
-        .unwrap_or_else(|e| panic!("{name}: {e}"));
-    let status = addr_field(&line, "status=");
-    let stream = addr_field(&line, "stream=");
-    let records = Arc::new(Mutex::new(Vec::new()));
-    let r2 = records.clone();
-    std::thread::spawn(move || {
-        // The stream port is reached from the host's namespace through the node's veth
-        // address, or on loopback.
-        let Ok(s) = TcpStream::connect(stream) else { return };
-        for line in BufReader::new(s).lines().map_while(Result::ok) {
-            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line)
-                && let Ok(mut g) = r2.lock()
-            {
-                g.push(v);
-            }
-        }
-    });
-    Node {
-        _proc: child,
-        status,
-        records,
-    }
-}
-
-impl Node {
-    fn take_records(&self) -> Vec<serde_json::Value> {
-        std::mem::take(&mut *self.records.lock().unwrap())
-    }
-
-    fn status(&self) -> serde_json::Value {
-        let (code, body) = http(self.status, "GET", "/status");
-        assert_eq!(code, 200, "{body}");
-        serde_json::from_str(&body).unwrap()
-    }
-
-    fn kill(self) {
-        drop(self);
-    }
-}
-
-/// Error (mm) against the simulator's truth and cameras used, per tracked record's frame.
-fn errors(records: &[serde_json::Value], scenario: &Scenario) -> BTreeMap<u64, (f64, u64)> {
-    let mut out = BTreeMap::new();
-    for r in records {
-        if r["status"] != "ok" {
-            continue;
-        }
-        let p = r["position_mm"].as_array().expect("position_mm");
-        let p = nalgebra::Vector3::new(
-            p[0].as_f64().unwrap(),
-            p[1].as_f64().unwrap(),
-            p[2].as_f64().unwrap(),
-        );
-        let frame = r["frame"].as_u64().expect("frame");
-        let truth = scenario.truth(frame).markers[0].p_cam0_mm;
-        out.insert(frame, ((p - truth).norm(), r["cameras_used"].as_u64().expect("cameras_used")));
-    }
-    out
-}
-
-fn errs(m: &BTreeMap<u64, (f64, u64)>) -> Vec<f64> {
-    m.values().map(|v| v.0).collect()
-}
-
-fn used(m: &BTreeMap<u64, (f64, u64)>) -> Vec<u64> {
-    m.values().map(|v| v.1).collect()
-}
-
-/// RMS errors of `a` and `b` over the frames both tracked (the same instants), and how many.
-fn matched_rms(a: &BTreeMap<u64, (f64, u64)>, b: &BTreeMap<u64, (f64, u64)>) -> (f64, f64, usize) {
-    let common: Vec<(f64, f64)> = a
-        .iter()
-        .filter_map(|(f, x)| b.get(f).map(|y| (x.0, y.0)))
-        .collect();
-    let ea: Vec<f64> = common.iter().map(|c| c.0).collect();
-    let eb: Vec<f64> = common.iter().map(|c| c.1).collect();
-    (rms(&ea), rms(&eb), common.len())
-}
-
-/// No tracked record anywhere near a wrong pairing or a stale position.
-fn assert_no_wrong_position(phase: &str, m: &BTreeMap<u64, (f64, u64)>) {
-    let worst = m.values().map(|v| v.0).fold(0.0, f64::max);
-    assert!(worst < 1.0, "{phase}: a position {worst:.3} mm from the truth");
-}
-
-fn rms(v: &[f64]) -> f64 {
-    (v.iter().map(|e| e * e).sum::<f64>() / v.len().max(1) as f64).sqrt()
-}
-
-fn wait_for(what: &str, timeout: Duration, mut f: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !f() {
-        assert!(start.elapsed() < timeout, "{what}: not within {timeout:?}");
-        std::thread::sleep(Duration::from_millis(100));
-    }
-}
-
-fn has_fault(st: &serde_json::Value, code: &str) -> bool {
-    st["fault_texts"]
-        .as_array()
-        .is_some_and(|f| f.iter().any(|t| t["code"] == code))
-}
-
-fn board(st: &serde_json::Value, name: &str) -> serde_json::Value {
-    st["cluster"]["boards"]
-        .as_array()
-        .and_then(|b| b.iter().find(|b| b["name"] == name).cloned())
-        .unwrap_or(serde_json::Value::Null)
-}
 
 /// Network namespaces of this test (deleted on drop), when `ip netns` works here.
 struct Netns {
@@ -318,7 +124,11 @@ fn boards_on_plain_loopback_track_like_one_board() {
 
 fn run_cluster(netns: Option<&Netns>) {
     let t0 = Instant::now();
-    let dir = temp_dir(if netns.is_some() { "cluster-netns" } else { "cluster-lo" });
+    let dir = temp_dir(if netns.is_some() {
+        "cluster-netns"
+    } else {
+        "cluster-lo"
+    });
     let scenario = Scenario::new(sim_cfg().scenario_config()).unwrap();
     let port = {
         let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
@@ -341,10 +151,7 @@ fn run_cluster(netns: Option<&Netns>) {
                 [None, None, None],
                 ["127.0.0.1".into(), "127.0.0.1".into(), "127.0.0.1".into()],
                 format!("tcp/127.0.0.1:{port}"),
-                [
-                    format!("tcp/127.0.0.1:{port}"),
-                    format!("tcp/127.0.0.1:{port}"),
-                ],
+                [format!("tcp/127.0.0.1:{port}"), format!("tcp/127.0.0.1:{port}")],
             ),
         };
     eprintln!(
@@ -414,10 +221,34 @@ fn run_cluster(netns: Option<&Netns>) {
     );
     assert_no_wrong_position("accuracy", &cluster);
     let st = solver.status();
+    // Capture → published position (`/status` → processing.latency_us.end_to_end): the
+    // solver's includes the board's detection, the hop and the wait for the set to close.
+    let e2e = |st: &serde_json::Value, p: &str| {
+        st["processing"]["latency_us"]["end_to_end"][p]
+            .as_f64()
+            .unwrap_or(f64::NAN)
+            / 1e3
+    };
+    let st1 = single.status();
+    eprintln!(
+        "capture → published position: solver p50 {:.2} ms p99 {:.2} ms; one board p50 {:.2} ms \
+         p99 {:.2} ms ({FPS} fps, test build)",
+        e2e(&st, "p50_us"),
+        e2e(&st, "p99_us"),
+        e2e(&st1, "p50_us"),
+        e2e(&st1, "p99_us")
+    );
+    assert!(
+        e2e(&st, "p50_us") <= e2e(&st1, "p50_us") + 10.0,
+        "the solver's capture → position p50 is more than 10 ms over one board's"
+    );
     assert_eq!(st["cluster"]["role"], "solver");
     for b in ["b0", "b1"] {
         let off = board(&st, b)["clock_offset_ms"].as_f64();
-        assert!(off.is_some_and(|o| o.abs() < 5.0), "{b}: measured clock offset {off:?} ms");
+        assert!(
+            off.is_some_and(|o| o.abs() < 5.0),
+            "{b}: measured clock offset {off:?} ms"
+        );
         assert_eq!(board(&st, b)["down"], false);
     }
 
@@ -465,7 +296,9 @@ fn run_cluster(netns: Option<&Netns>) {
     wait_for("board b1 reported up", Duration::from_secs(2), || {
         board(&solver.status(), "b1")["down"] == false
     });
-    let before = solver.status()["cluster"]["sets_incomplete"].as_u64().unwrap_or(0);
+    let before = solver.status()["cluster"]["sets_incomplete"]
+        .as_u64()
+        .unwrap_or(0);
     single.take_records();
     std::thread::sleep(Duration::from_secs(3));
     let lossy = errors(&solver.take_records(), &scenario);
@@ -490,11 +323,17 @@ fn run_cluster(netns: Option<&Netns>) {
         four.len(),
         lossy.len()
     );
-    assert!(rms_4 <= 1.1 * rms_s4, "4-camera sets under loss/jitter: RMS {rms_4} mm");
+    assert!(
+        rms_4 <= 1.1 * rms_s4,
+        "4-camera sets under loss/jitter: RMS {rms_4} mm"
+    );
     assert_no_wrong_position("loss and jitter", &lossy);
     let st = solver.status();
     let after = st["cluster"]["sets_incomplete"].as_u64().unwrap_or(0);
-    assert!(after > before, "5 % loss shows as incomplete sets ({before} → {after})");
+    assert!(
+        after > before,
+        "5 % loss shows as incomplete sets ({before} → {after})"
+    );
     assert_eq!(board(&st, "b1")["clock_fault"], false);
     drop(single);
     b1.kill();
@@ -514,7 +353,11 @@ fn run_cluster(netns: Option<&Netns>) {
     solver.take_records();
     std::thread::sleep(Duration::from_secs(2));
     let skewed = errors(&solver.take_records(), &scenario);
-    assert!(skewed.len() as f64 >= 0.5 * 2.0 * FPS, "{} positions in 2 s", skewed.len());
+    assert!(
+        skewed.len() as f64 >= 0.5 * 2.0 * FPS,
+        "{} positions in 2 s",
+        skewed.len()
+    );
     assert!(
         used(&skewed).iter().all(|&u| u == 2),
         "a set used the offset board: {:?}",

@@ -423,15 +423,21 @@ fn host_tests(ctx: &Ctx) -> Outcome {
             "--features",
             CLUSTER_FEATURES,
         ]);
+        // As root, the multi-board test must get its network namespaces (tests/tests/
+        // cluster_e2e.rs); it may not quietly fall back to its loopback variant alone.
+        if util::is_root() {
+            cmd.env("IRTRACK_REQUIRE_NETNS", "1");
+        }
         Ok(cmd)
     })
 }
 
 /// The host tests build the Zenoh parts too (off by default, docs/cluster.md): the cluster
-/// crate's transport (with the PyPI subscriber test) and irtrackd's camera/solver roles (with
-/// the in-process solver test). The multi-process test (`irtrack-tests/cluster`) joins once it
-/// has run here. The aarch64 and fuzz phases leave them out (docs/development.md).
-pub const CLUSTER_FEATURES: &str = "irtrack-cluster/zenoh,irtrack-firmware/cluster";
+/// crate's transport (with the PyPI subscriber test), irtrackd's camera/solver roles (with
+/// the in-process solver test) and the multi-process test (`irtrack-tests/cluster`: camera
+/// boards and a solver as separate irtrackd processes, in network namespaces and on
+/// loopback). The aarch64 and fuzz phases leave them out (docs/development.md).
+pub const CLUSTER_FEATURES: &str = "irtrack-cluster/zenoh,irtrack-firmware/cluster,irtrack-tests/cluster";
 
 /// Feature names by which crates switch std on.
 const STD_FEATURES: &[&str] = &["std", "use-std", "use_std"];

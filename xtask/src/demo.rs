@@ -31,6 +31,9 @@ enum Action {
     /// irtrackd's NatNet and ROS 2 outputs read by independent clients
     /// ([`crate::demo_outputs`]).
     StandardOutputs,
+    /// Two camera boards and a solver (irtrackd with the `cluster` feature), positions against
+    /// the simulator's truth ([`run_cluster`]).
+    Cluster,
 }
 
 struct Step {
@@ -121,6 +124,15 @@ fn steps() -> Vec<Step> {
                       controls, health and the 3-D view; save a screenshot.",
             action: Action::SetupView,
             produces: &["setup-view.png"],
+        },
+        Step {
+            title: "more cameras than one board",
+            explain: "Build irtrackd with the `cluster` feature (Zenoh) and start two simulated camera \
+                      boards (cameras 0-1 and 2-3 of a four-camera ring) and a solver: the boards \
+                      publish their blobs, the solver triangulates all four cameras; its positions \
+                      are printed against the simulator's truth, then one board is stopped.",
+            action: Action::Cluster,
+            produces: &["cluster/solver.log", "cluster/b0.log", "cluster/b1.log"],
         },
     ]
 }
@@ -214,6 +226,7 @@ pub fn run(ctx: &Ctx, args: &Args) -> Result<()> {
             Action::StandardOutputs => {
                 crate::demo_outputs::standard_outputs(&crate::demo_live::bin_dir(&host_tools), &out_dir)?
             }
+            Action::Cluster => run_cluster(ctx, &out_dir)?,
         }
         for rel in step.produces {
             let p = out_dir.join(rel);
@@ -335,6 +348,41 @@ fn build_views_tool(ctx: &Ctx) -> Result<PathBuf> {
         bail!("{} missing after a successful build", bin.display());
     }
     Ok(bin)
+}
+
+/// Builds irtrackd with the camera and solver roles and the `cluster_demo` example (both in
+/// target/debug; this irtrackd replaces the one built without the feature), then runs it.
+fn run_cluster(ctx: &Ctx, out_dir: &Path) -> Result<()> {
+    let mut cmd = ctx.cargo();
+    cmd.args([
+        "build",
+        "-p",
+        "irtrack-firmware",
+        "-p",
+        "irtrack-tests",
+        "--features",
+        "irtrack-tests/cluster",
+        "--bin",
+        "irtrackd",
+        "--example",
+        "cluster_demo",
+    ]);
+    let out = util::run(&mut cmd, RunOpts::default())?;
+    if !out.success() {
+        bail!("building irtrackd with the cluster feature {}", out.describe());
+    }
+    let bin = ctx.target_dir().join("debug/examples/cluster_demo");
+    let mut cmd = Command::new(&bin);
+    cmd.arg(out_dir.join("cluster")).current_dir(&ctx.root);
+    let opts = RunOpts {
+        timeout: Some(std::time::Duration::from_secs(120)),
+        ..RunOpts::default()
+    };
+    let out = util::run(&mut cmd, opts)?;
+    if !out.success() {
+        bail!("the cluster demo {}; see its output above", out.describe());
+    }
+    Ok(())
 }
 
 #[cfg(test)]

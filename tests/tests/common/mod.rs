@@ -8,6 +8,8 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use irtrack_testkit::harness::{self, irtrackd};
+
+pub mod cluster;
 #[allow(unused_imports)] // each test binary uses a different subset
 pub use irtrack_testkit::harness::{Http, Irtrackd, IrtrackdConfig, Proc, TempDir};
 

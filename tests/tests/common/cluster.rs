@@ -1,0 +1,214 @@
+//! Camera boards and a solver as separate irtrackd processes on simulated cameras (docs/
+//! cluster.md): their configurations, the solver's parameter set with the placement, the
+//! processes with their position streams, and the errors against the simulator's truth.
+//! Shared by `tests/cluster_e2e.rs` and the `cluster_demo` example (`cargo xtask demo`).
+
+use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader};
+use std::net::{SocketAddr, TcpStream};
+use std::path::Path;
+use std::process::Command;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use irtrack_core::params::{CameraPlace, RigParams};
+use irtrack_firmware::source::sim::{SimRig, SimSourceConfig, ring_rig};
+use irtrack_sim::Scenario;
+
+use super::{Proc, addr_field, bin, http};
+
+pub const FPS: f64 = 30.0;
+pub const DISTANCE_MM: f64 = 600.0;
+pub const RIG: &str = "cell1";
+
+pub fn sim_cfg() -> SimSourceConfig {
+    SimSourceConfig {
+        rig: SimRig::Ring,
+        ring_cameras: 4,
+        distance_mm: DISTANCE_MM,
+        fps: FPS,
+        wall_clock: true,
+        ..Default::default()
+    }
+}
+
+pub fn sim_section(cameras: Option<[usize; 2]>) -> String {
+    format!(
+        "[source.sim]\nrig = \"ring\"\nring_cameras = 4\ndistance_mm = {DISTANCE_MM}\nfps = {FPS}\nwall_clock = true\n{}",
+        cameras.map_or(String::new(), |c| format!("cameras = [{}, {}]\n", c[0], c[1]))
+    )
+}
+
+pub fn board_config(board: &str, cameras: [usize; 2], solver: &str, extra: &str) -> String {
+    format!(
+        "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n{}\n[cluster]\nrole = \"camera\"\nrig = \"{RIG}\"\nboard = \"{board}\"\nconnect = [\"{solver}\"]\nfps = {FPS}\n{extra}\n",
+        sim_section(Some(cameras))
+    )
+}
+
+pub fn solver_config(listen: &str) -> String {
+    format!(
+        "[params]\nallow_unsigned = true\n[leds]\nbackend = \"none\"\n[cluster]\nrole = \"solver\"\nrig = \"{RIG}\"\nlisten = [\"{listen}\"]\nfps = {FPS}\nboard_timeout_ms = 300\nimage_sizes_px = [[640, 480], [640, 480], [640, 480], [640, 480]]\n"
+    )
+}
+
+/// The solver's parameter set: the ring rig, cameras 0 and 1 on board b0, 2 and 3 on b1.
+pub fn solver_params(state: &Path) {
+    let mut rig: RigParams = ring_rig(4, DISTANCE_MM);
+    rig.rig_id = RIG.into();
+    rig.placement = [("b0", 0), ("b0", 1), ("b1", 0), ("b1", 1)]
+        .iter()
+        .map(|(b, i)| CameraPlace {
+            board: (*b).into(),
+            local_index: *i,
+        })
+        .collect();
+    rig.validate().unwrap();
+    std::fs::create_dir_all(state).unwrap();
+    std::fs::write(state.join("params.irp"), rig.to_blob().unwrap()).unwrap();
+}
+
+/// A running irtrackd, optionally inside a network namespace.
+pub struct Node {
+    _proc: Proc,
+    pub status: SocketAddr,
+    records: Arc<Mutex<Vec<serde_json::Value>>>,
+}
+
+pub fn spawn(dir: &Path, name: &str, config: &str, netns: Option<&str>, host_ip: &str) -> Node {
+    let cfg = dir.join(format!("{name}.toml"));
+    std::fs::write(&cfg, config).unwrap();
+    let state = dir.join(format!("{name}-state"));
+    std::fs::create_dir_all(&state).unwrap();
+    let mut cmd = match netns {
+        Some(ns) => {
+            // `ip netns exec` execs irtrackd: the child's pid is irtrackd's (killed on drop).
+            let mut c = Command::new("ip");
+            c.args(["netns", "exec", ns]).arg(bin("irtrackd"));
+            c
+        }
+        None => Command::new(bin("irtrackd")),
+    };
+    cmd.arg("-c")
+        .arg(&cfg)
+        .args(["--ephemeral-ports", host_ip, "--state-dir"])
+        .arg(&state)
+        .stderr(std::fs::File::create(dir.join(format!("{name}.log"))).unwrap());
+    let mut child = super::spawn(&mut cmd, name);
+    let line = child
+        .wait_line("irtrackd ready", Duration::from_secs(30))
+        .unwrap_or_else(|e| panic!("{name}: {e}"));
+    let status = addr_field(&line, "status=");
+    let stream = addr_field(&line, "stream=");
+    let records = Arc::new(Mutex::new(Vec::new()));
+    let r2 = records.clone();
+    std::thread::spawn(move || {
+        // The stream port is reached from the host's namespace through the node's veth
+        // address, or on loopback.
+        let Ok(s) = TcpStream::connect(stream) else { return };
+        for line in BufReader::new(s).lines().map_while(Result::ok) {
+            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line)
+                && let Ok(mut g) = r2.lock()
+            {
+                g.push(v);
+            }
+        }
+    });
+    Node {
+        _proc: child,
+        status,
+        records,
+    }
+}
+
+impl Node {
+    pub fn take_records(&self) -> Vec<serde_json::Value> {
+        std::mem::take(&mut *self.records.lock().unwrap())
+    }
+
+    pub fn status(&self) -> serde_json::Value {
+        let (code, body) = http(self.status, "GET", "/status");
+        assert_eq!(code, 200, "{body}");
+        serde_json::from_str(&body).unwrap()
+    }
+
+    pub fn kill(self) {
+        drop(self);
+    }
+}
+
+/// Error (mm) against the simulator's truth and cameras used, per tracked record's frame.
+pub fn errors(records: &[serde_json::Value], scenario: &Scenario) -> BTreeMap<u64, (f64, u64)> {
+    let mut out = BTreeMap::new();
+    for r in records {
+        if r["status"] != "ok" {
+            continue;
+        }
+        let p = r["position_mm"].as_array().expect("position_mm");
+        let p = nalgebra::Vector3::new(
+            p[0].as_f64().unwrap(),
+            p[1].as_f64().unwrap(),
+            p[2].as_f64().unwrap(),
+        );
+        let frame = r["frame"].as_u64().expect("frame");
+        let truth = scenario.truth(frame).markers[0].p_cam0_mm;
+        out.insert(
+            frame,
+            (
+                (p - truth).norm(),
+                r["cameras_used"].as_u64().expect("cameras_used"),
+            ),
+        );
+    }
+    out
+}
+
+pub fn errs(m: &BTreeMap<u64, (f64, u64)>) -> Vec<f64> {
+    m.values().map(|v| v.0).collect()
+}
+
+pub fn used(m: &BTreeMap<u64, (f64, u64)>) -> Vec<u64> {
+    m.values().map(|v| v.1).collect()
+}
+
+/// RMS errors of `a` and `b` over the frames both tracked (the same instants), and how many.
+pub fn matched_rms(a: &BTreeMap<u64, (f64, u64)>, b: &BTreeMap<u64, (f64, u64)>) -> (f64, f64, usize) {
+    let common: Vec<(f64, f64)> = a
+        .iter()
+        .filter_map(|(f, x)| b.get(f).map(|y| (x.0, y.0)))
+        .collect();
+    let ea: Vec<f64> = common.iter().map(|c| c.0).collect();
+    let eb: Vec<f64> = common.iter().map(|c| c.1).collect();
+    (rms(&ea), rms(&eb), common.len())
+}
+
+/// No tracked record anywhere near a wrong pairing or a stale position.
+pub fn assert_no_wrong_position(phase: &str, m: &BTreeMap<u64, (f64, u64)>) {
+    let worst = m.values().map(|v| v.0).fold(0.0, f64::max);
+    assert!(worst < 1.0, "{phase}: a position {worst:.3} mm from the truth");
+}
+
+pub fn rms(v: &[f64]) -> f64 {
+    (v.iter().map(|e| e * e).sum::<f64>() / v.len().max(1) as f64).sqrt()
+}
+
+pub fn wait_for(what: &str, timeout: Duration, mut f: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !f() {
+        assert!(start.elapsed() < timeout, "{what}: not within {timeout:?}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+pub fn has_fault(st: &serde_json::Value, code: &str) -> bool {
+    st["fault_texts"]
+        .as_array()
+        .is_some_and(|f| f.iter().any(|t| t["code"] == code))
+}
+
+pub fn board(st: &serde_json::Value, name: &str) -> serde_json::Value {
+    st["cluster"]["boards"]
+        .as_array()
+        .and_then(|b| b.iter().find(|b| b["name"] == name).cloned())
+        .unwrap_or(serde_json::Value::Null)
+}
