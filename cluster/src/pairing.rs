@@ -617,6 +617,46 @@ mod tests {
         assert!(!p.boards()[1].faulted);
     }
 
+    /// Board 1's clock drifts 2000 ppm (2 ms/s, a board whose PTP daemon stopped): while its
+    /// offset is inside the 5 ms tolerance its frames pair with board 0's same frames; beyond
+    /// it the board is faulted. At no point does a set hold two different frames.
+    #[test]
+    fn drifting_clock_pairs_while_inside_tolerance_then_faults_never_wrongly() {
+        let mut p = Pairer::new(cfg()).unwrap();
+        let t0 = 5_000 * PERIOD;
+        let (mut complete_early, mut mixed_frames) = (0, 0);
+        for k in 0..600u64 {
+            let t = t0 + k * PERIOD;
+            let drift_ns = k * PERIOD * 2_000 / 1_000_000;
+            for c in 0..4usize {
+                let ts = if c >= 2 { t + drift_ns } else { t };
+                push(&mut p, c, &msg(c as u8 % 2, k, ts, None, k as f32), t + 2_000_000);
+            }
+            while let Some(set) = p.poll(t + 2_000_000 + 3 * PERIOD) {
+                let frames: Vec<f32> = set.cameras[..4]
+                    .iter()
+                    .filter(|e| e.present)
+                    .map(|e| e.blobs()[0].x_px)
+                    .collect();
+                if frames.iter().any(|&x| x != frames[0]) {
+                    mixed_frames += 1;
+                }
+                // Frames 0..200: drift below 4 ms.
+                if set.present == 4 && frames[0] < 200.0 {
+                    complete_early += 1;
+                }
+            }
+        }
+        assert_eq!(mixed_frames, 0, "sets holding two different frames");
+        assert!(
+            complete_early >= 190,
+            "{complete_early} complete sets of the first 200"
+        );
+        assert!(p.boards()[1].faulted, "12 ms off at the end, not faulted");
+        assert!(!p.boards()[0].faulted);
+        assert!(p.stats().refused_clock > 0);
+    }
+
     #[test]
     fn faulted_board_leaves_the_others_complete() {
         let mut p = Pairer::new(cfg()).unwrap();

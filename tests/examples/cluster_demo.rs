@@ -21,8 +21,8 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use common::cluster::{
-    FPS, Node, board, board_config, errors, errs as errs_mm, rms, sim_cfg, solver_config, solver_params,
-    spawn, wait_for,
+    FPS, Node, board, board_config, errors, errs as errs_mm, latency_ms, rms, sim_cfg, solver_config,
+    solver_params, spawn, wait_for,
 };
 use irtrack_sim::Scenario;
 
@@ -139,8 +139,10 @@ fn watch(solver: &Node, scenario: &Scenario, what: &str, secs: f64) -> (usize, f
         }
     }
     let rms_mm = rms(&errs_mm(&errs));
+    let (p50, p99) = latency_ms(&records);
     println!(
-        "{what}: {} positions in {secs} s ({} records), RMS error against the truth {rms_mm:.4} mm",
+        "{what}: {} positions in {secs} s ({} records), RMS error against the truth {rms_mm:.4} mm, \
+         capture → published position p50 {p50:.2} ms, p99 {p99:.2} ms",
         errs.len(),
         records.len()
     );

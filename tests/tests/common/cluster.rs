@@ -188,6 +188,17 @@ pub fn assert_no_wrong_position(phase: &str, m: &BTreeMap<u64, (f64, u64)>) {
     assert!(worst < 1.0, "{phase}: a position {worst:.3} mm from the truth");
 }
 
+/// p50 and p99 of the records' capture → publication latency (`latency_us`), ms.
+pub fn latency_ms(records: &[serde_json::Value]) -> (f64, f64) {
+    let mut v: Vec<f64> = records.iter().filter_map(|r| r["latency_us"].as_f64()).collect();
+    if v.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    v.sort_by(f64::total_cmp);
+    let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize] / 1e3;
+    (q(0.5), q(0.99))
+}
+
 pub fn rms(v: &[f64]) -> f64 {
     (v.iter().map(|e| e * e).sum::<f64>() / v.len().max(1) as f64).sqrt()
 }
