@@ -501,6 +501,7 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         .with_auth(auth)
         .with_view_policy(&cfg.status.allowed_hosts, cfg.status.public_view)
         .with_live(tap, tuning, slot_rx.clone(), handle)
+        .with_tools(tools_rx.clone())
         .with_workspace(
             cfg.robot
                 .as_ref()

@@ -33,6 +33,10 @@ pub struct BlobView {
     pub roundness: f64,
     pub kept: bool,
     pub reason: Option<RejectReason>,
+    /// 6-DOF mode: the tool (index in the parameter set) this blob was assigned to.
+    pub tool: Option<u8>,
+    /// 6-DOF mode: the blob is a loose single LED (belongs to no tool).
+    pub loose: bool,
 }
 
 impl BlobView {
@@ -46,6 +50,8 @@ impl BlobView {
             roundness: b.roundness,
             kept: reason.is_none(),
             reason,
+            tool: None,
+            loose: false,
         }
     }
 }

@@ -25,7 +25,7 @@ use irtrack_core::params::RigParams;
 use irtrack_core::pipeline::{
     MAX_CAMERAS, Measurement, TrackStatus as MeasureStatus, Tracker, TrackerConfig,
 };
-use irtrack_core::pose6d::{MAX_TOOLS, MultiTracker, Pose6d, PoseConfig, PoseStatus};
+use irtrack_core::pose6d::{LOOSE_LED, MAX_TOOLS, MultiTracker, NO_TOOL, Pose6d, PoseConfig, PoseStatus};
 use irtrack_core::stream::{PositionRecord, ToolRecord, TrackStatus};
 use tokio::sync::watch;
 
@@ -336,7 +336,7 @@ impl Engine {
     /// tracker's blob lists belong to this set.
     fn feed_tap(&mut self, detected: bool) {
         let Some(tap) = &self.tap else { return };
-        let (set, tracker, six_dof) = (&self.set, self.tracker.as_ref(), self.pose.is_some());
+        let (set, tracker, six_dof) = (&self.set, self.tracker.as_ref(), self.pose.as_ref());
         let lists = tracker.filter(|_| detected);
         if tap.wants_blobs() {
             tap.try_fill_blobs(|buf: &mut BlobCopy| {
@@ -354,7 +354,8 @@ impl Engine {
         if !tap.wants_copy(now_ns, self.tap_last_ns) {
             return;
         }
-        let tracker_cfg = self.tracker_cfg;
+        // The limits in force (6-DOF mode raises the blob limit): what the advice must judge by.
+        let tracker_cfg = self.tracker.as_ref().map_or(self.tracker_cfg, |t| *t.config());
         let copied = tap.try_fill(|buf: &mut TapSet| {
             if !buf.copy_frames_from(set) {
                 return false;
@@ -923,12 +924,13 @@ fn peak_dn(blobs: &[Blob], frame: &crate::source::Frame) -> u32 {
 
 /// Lists every blob of the tracker's last detection with why it was (not) used, through
 /// `push(camera, blob)`.
-fn fill_blob_views(tracker: &Tracker, six_dof: bool, mut push: impl FnMut(usize, BlobView)) {
+fn fill_blob_views(tracker: &Tracker, pose: Option<&MultiTracker>, mut push: impl FnMut(usize, BlobView)) {
+    let six_dof = pose.is_some();
     let cfg = *tracker.config();
     let m = tracker.measurement();
     for camera in 0..tracker.camera_count() {
         let marker = m.cameras().get(camera).and_then(|o| o.marker);
-        for b in tracker.blobs(camera) {
+        for (index, b) in tracker.blobs(camera).iter().enumerate() {
             let reason = if b.roundness < cfg.min_roundness {
                 Some(RejectReason::Roundness)
             } else if (cfg.reject_edge_blobs && b.touches_frame_edge) || b.touches_roi_edge {
@@ -938,7 +940,15 @@ fn fill_blob_views(tracker: &Tracker, six_dof: bool, mut push: impl FnMut(usize,
             } else {
                 Some(RejectReason::Gate)
             };
-            push(camera, BlobView::of(b, reason));
+            let mut view = BlobView::of(b, reason);
+            if let Some(p) = pose {
+                match p.blob_owner(camera, index) {
+                    LOOSE_LED => view.loose = true,
+                    NO_TOOL => {}
+                    t => view.tool = Some(t),
+                }
+            }
+            push(camera, view);
         }
         for b in tracker.rejected_by_area(camera) {
             push(camera, BlobView::of(b, Some(RejectReason::Area)));

@@ -684,6 +684,8 @@ mod tests {
             roundness: 0.9,
             kept: reason.is_none(),
             reason,
+            tool: None,
+            loose: false,
         }
     }
 

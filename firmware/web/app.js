@@ -1,7 +1,7 @@
 // The set-up view: wires the live WebSocket to the panels. See docs/setup-view.md.
 
 import { getJson } from "./api.js";
-import { Cameras } from "./cameras.js";
+import { Cameras, setToolNames } from "./cameras.js";
 import { Capture } from "./capture.js";
 import { Controls } from "./controls.js";
 import { Health, serverFaults } from "./health.js";
@@ -80,10 +80,12 @@ const live = new Live({
   onError: (message) => {
     $("conn").title = `irtrackd: ${message}`;
   },
-  onPosition: (rec) => {
+  onPosition: (rec, tools) => {
     state.positions += 1;
     health.position(rec);
     scene.position(rec);
+    if (tools.length) setToolNames(tools.map((t) => t.tool));
+    scene.tools(tools);
   },
   onState: (s, detail) => {
     const c = $("conn");
@@ -106,7 +108,7 @@ window.__irtrack = {
   serverFaults: () => (state.status ? serverFaults(state.status) : []),
   statusReports: () => state.statusCount,
   positions: () => state.positions,
-  scene: () => ({ webgl: scene.ok, records: scene.records, rigCameras: scene.rig ? scene.rig.cameras.length : 0, workspace: !!scene.workspace }),
+  scene: () => ({ webgl: scene.ok, records: scene.records, rigCameras: scene.rig ? scene.rig.cameras.length : 0, workspace: !!scene.workspace, tools: scene.toolSummary() }),
   session: () => state.session,
   tuningMessage: () => $("tuning-msg").textContent,
   captureMessage: () => $("capture-msg").textContent,

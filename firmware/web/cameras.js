@@ -20,6 +20,19 @@ function el(tag, cls, text) {
 }
 
 /** Plain words for why a blob was rejected. */
+/** Colours of tools 0..7, shared with the 3-D view. */
+export const TOOL_COLORS = ["#4fc3f7", "#ffb74d", "#ce93d8", "#aed581", "#f06292", "#fff176", "#90a4ae", "#bcaaa4"];
+let toolNames = [];
+/** Names of the set's tools by id (from the live position messages). */
+export function setToolNames(names) {
+  toolNames = names;
+}
+/** Which tool a blob went to, in words: the tool's name, "loose LED", or null. */
+export function blobOwner(b) {
+  if (b.tool !== null && b.tool !== undefined) return toolNames[b.tool] || `tool ${b.tool}`;
+  return b.loose ? "loose LED" : null;
+}
+
 export function reasonWords(reason) {
   return REASON_WORDS[reason] || (reason ? String(reason) : "rejected");
 }
@@ -131,7 +144,8 @@ class CameraCard {
       const x = b.x_px * scale;
       const y = b.y_px * scale;
       const r = Math.max(4 * lw, Math.sqrt(Math.max(b.area_px, 1) / Math.PI) * scale * 1.6);
-      const color = b.kept ? KEPT : REJECTED;
+      const owner = blobOwner(b);
+      const color = b.kept ? (b.tool !== null && b.tool !== undefined ? TOOL_COLORS[b.tool % TOOL_COLORS.length] : KEPT) : REJECTED;
       ctx.strokeStyle = color;
       ctx.beginPath();
       ctx.arc(x, y, r, 0, 2 * Math.PI);
@@ -147,7 +161,7 @@ class CameraCard {
       ctx.moveTo(x, y + r * 0.4);
       ctx.lineTo(x, y + c);
       ctx.stroke();
-      const label = b.kept ? "kept" : reasonWords(b.reason);
+      const label = b.kept ? owner || "kept" : reasonWords(b.reason);
       const tx = Math.min(x + c + 2, this.canvas.width - ctx.measureText(label).width - 2);
       const ty = y - c > 14 * lw ? y - c : y + c + 12 * lw;
       ctx.fillStyle = "rgba(0,0,0,.6)";
@@ -192,7 +206,8 @@ class CameraCard {
         li.textContent =
           `(${b.x_px.toFixed(1)}, ${b.y_px.toFixed(1)}) px · area ${b.area_px} px · ` +
           `round ${Number(b.roundness).toFixed(2)} · peak ${b.peak_dn}` +
-          (b.kept ? " · kept" : ` · rejected: ${reasonWords(b.reason)}`);
+          (b.kept ? " · kept" : ` · rejected: ${reasonWords(b.reason)}`) +
+          (blobOwner(b) ? ` · ${blobOwner(b)}` : "");
         return li;
       })
     );
@@ -273,6 +288,7 @@ export class Cameras {
       kept: c.last ? (c.last.blobs || []).filter((b) => b.kept).length : null,
       rejected: c.last ? (c.last.blobs || []).filter((b) => !b.kept).length : null,
       reasons: c.last ? (c.last.blobs || []).filter((b) => !b.kept).map((b) => b.reason) : [],
+      owners: c.last ? (c.last.blobs || []).map((b) => blobOwner(b)).filter((o) => o) : [],
     }));
   }
 }

@@ -81,7 +81,8 @@ export function previewWarnings(cams, skip = new Set()) {
     if (c.kept === null || skip.has(c.camera)) continue;
     if (c.advice) {
       out.push(c.advice.message.charAt(0).toUpperCase() + c.advice.message.slice(1) + ".");
-    } else if (c.kept > 1) {
+    } else if (c.kept > 1 && !(c.owners && c.owners.length)) {
+      // (Blobs that went to tools are the LEDs of 6-DOF tools: several are expected.)
       out.push(`Camera ${c.camera} keeps ${c.kept} blobs where one marker is expected — raise the threshold or cover the other light source.`);
     }
   }

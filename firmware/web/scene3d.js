@@ -5,6 +5,7 @@
 
 import * as THREE from "three";
 import { OrbitControls } from "/web/vendor/three/OrbitControls.js";
+import { TOOL_COLORS } from "./cameras.js";
 
 const TRAIL_POINTS = 180; // six seconds at 30 records per second
 const FRUSTUM_DEPTH_MM = 180;
@@ -172,6 +173,52 @@ export class Scene3D {
     this.frameLabel.textContent = world ? "frame: world (robot), Z up" : "frame: camera 0 (X right, Y down, Z forward)";
     this.camera.up.set(0, world ? 0 : -1, world ? 1 : 0);
     this.dirty = true;
+  }
+
+  /**
+   * Every tool of the set (records with tool_id and tool name): axes and name per tool at its
+   * pose; untracked tools are hidden. The main record's marker stays the robot's tool.
+   */
+  tools(list) {
+    if (!this.ok) return;
+    this.toolViews = this.toolViews || new Map();
+    for (const t of list) {
+      let v = this.toolViews.get(t.tool_id);
+      if (!v || v.name !== t.tool) {
+        if (v) this.scene.remove(v.group);
+        const color = TOOL_COLORS[t.tool_id % TOOL_COLORS.length];
+        const group = new THREE.Group();
+        group.add(new THREE.AxesHelper(90));
+        const text = label(t.tool, color);
+        text.scale.set(200, 50, 1);
+        const holder = new THREE.Group(); // the name stays upright: not turned with the tool
+        holder.add(text);
+        this.scene.add(group);
+        this.scene.add(holder);
+        v = { name: t.tool, group, holder, tracked: false };
+        this.toolViews.set(t.tool_id, v);
+      }
+      const p = t.position_mm;
+      const q = t.orientation_wxyz;
+      v.tracked = !!(p && q);
+      v.group.visible = v.tracked;
+      v.holder.visible = v.tracked;
+      if (v.tracked) {
+        v.group.position.set(p[0], p[1], p[2]);
+        v.group.quaternion.set(q[1], q[2], q[3], q[0]);
+        v.holder.position.set(p[0] + 12, p[1] + 12, p[2]);
+      }
+    }
+    if (list.length) {
+      // The robot tool's own axes would double one of these.
+      this.toolAxes.visible = false;
+      this.dirty = true;
+    }
+  }
+
+  /** The tools shown in 3-D (for the browser test): name and whether tracked. */
+  toolSummary() {
+    return this.toolViews ? Array.from(this.toolViews.values()).map((v) => ({ name: v.name, tracked: v.tracked })) : [];
   }
 
   /** One position record from the live stream. */

@@ -1082,3 +1082,122 @@ kind = "flag"
     result.expect("latency panel test took longer than 60 s");
     assert!(record.answered > 100, "{record:?}");
 }
+
+/// Several tools at once (issue 29): irtrackd's simulator renders `probe4`, `tri3` and
+/// `wing4`; the page's 3-D view shows each tool's axes and name, and each camera's blob list
+/// says which blobs went to which tool. Screenshot `setup-view-tools.png`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn several_tools_in_the_3d_view_and_the_blob_lists_in_headless_chromium() {
+    require_browser();
+    let dir = temp_dir("browser-tools");
+    let out = out_dir();
+    let config = dir.join("irtrackd.toml");
+    std::fs::write(
+        &config,
+        r#"
+[service]
+params_from_simulator = true
+[source.sim]
+fps = 30.0
+distance_mm = 1000.0
+radius_mm = 60.0
+tool = "probe4"
+extra_tools = ["tri3", "wing4"]
+tool_rotation_deg = 10.0
+[leds]
+backend = "sim"
+"#,
+    )
+    .unwrap();
+    let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
+    let status = addr_field(&ready, "status=");
+    let (_driver, driver_url) = start_chromedriver(&dir);
+    let downloads = dir.join("downloads");
+    std::fs::create_dir_all(&downloads).unwrap();
+    let c = browser(&driver_url, &dir.join("profile"), &downloads).await;
+    let run = async {
+        c.goto(&format!("http://{status}/")).await.unwrap();
+        wait_for(
+            &c,
+            "page ready",
+            20,
+            "window.__irtrack && window.__irtrack.ready",
+            |v| v == true,
+        )
+        .await;
+        // Every tool is shown (tracked) in 3-D, with its name.
+        let tools = wait_for(
+            &c,
+            "three tracked tools in 3-D",
+            30,
+            "window.__irtrack.scene().tools",
+            |v| {
+                v.as_array()
+                    .is_some_and(|a| a.len() == 3 && a.iter().filter(|t| t["tracked"] == true).count() >= 2)
+            },
+        )
+        .await;
+        let names: Vec<&str> = tools
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|t| t["name"].as_str().unwrap())
+            .collect();
+        assert_eq!(names, ["probe4", "tri3", "wing4"]);
+        // Per camera, the blobs carry the tool they went to, by name.
+        let cams = wait_for(
+            &c,
+            "blobs assigned to tools in every camera",
+            30,
+            "window.__irtrack.cameras()",
+            |v| {
+                v.as_array().is_some_and(|a| {
+                    a.len() == 2
+                        && a.iter().all(|cam| {
+                            let o = cam["owners"].as_array().cloned().unwrap_or_default();
+                            o.iter().filter(|n| n == &"probe4").count() >= 3 && o.iter().any(|n| n == "wing4")
+                        })
+                })
+            },
+        )
+        .await;
+        println!(
+            "3-D tools {tools}; blob owners per camera: {}",
+            cams.as_array()
+                .unwrap()
+                .iter()
+                .map(|c| c["owners"].to_string())
+                .collect::<Vec<_>>()
+                .join(" | ")
+        );
+        // The blob list's text names the tool too.
+        let items = js(
+            &c,
+            "Array.from(document.querySelectorAll('.cam li')).map((li) => li.textContent)",
+        )
+        .await;
+        assert!(
+            items
+                .as_array()
+                .unwrap()
+                .iter()
+                .any(|t| t.as_str().unwrap().ends_with("· probe4")),
+            "{items}"
+        );
+        let errors = js(&c, "window.__irtrackErrors || []").await;
+        assert_eq!(errors, json!([]), "page errors");
+        // Eleven LEDs per camera are what the tools need, not an overload: the detector's
+        // limit follows the tools.
+        let faults = js(&c, "window.__irtrack.faults()").await;
+        assert!(!faults.to_string().contains("overloaded"), "{faults}");
+        assert!(!faults.to_string().contains("one marker is expected"), "{faults}");
+        screenshot(&c, &out.join("setup-view-tools.png")).await;
+        // The 3-D view, fitted to what it shows.
+        js(&c, "(document.querySelector('.scene-panel').scrollIntoView(), document.getElementById('scene-reset').click(), true)").await;
+        tokio::time::sleep(Duration::from_millis(1000)).await;
+        screenshot(&c, &out.join("setup-view-tools-3d.png")).await;
+    };
+    let result = tokio::time::timeout(Duration::from_secs(90), run).await;
+    let _ = c.close().await;
+    result.expect("browser test took longer than 90 s");
+}

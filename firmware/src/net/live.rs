@@ -565,7 +565,20 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
                 match (due, rec) {
                     (true, Some(rec)) => {
                         last_position = Some(Instant::now());
-                        let m = format!("{{\"type\":\"position\",\"record\":{}}}", rec.to_ndjson_line().trim_end());
+                        let mut m = format!("{{\"type\":\"position\",\"record\":{}", rec.to_ndjson_line().trim_end());
+                        // Every tool of this set (6-DOF mode): each with its id and name.
+                        let tools = s.tools.as_ref().map(|t| *t.borrow()).filter(|t| t.frame == rec.frame);
+                        if let Some(set) = tools {
+                            m.push_str(",\"tools\":[");
+                            for (i, t) in set.records().enumerate() {
+                                if i > 0 {
+                                    m.push(',');
+                                }
+                                m.push_str(t.to_ndjson_line().trim_end());
+                            }
+                            m.push(']');
+                        }
+                        m.push('}');
                         tx.send(Message::Text(m.into())).await
                     }
                     _ => Ok(()),

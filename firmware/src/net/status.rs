@@ -49,6 +49,8 @@ pub struct StatusService {
     pub tuning: Option<Arc<TuningHandle>>,
     /// Position records for the live view.
     pub positions: Option<watch::Receiver<Option<PositionRecord>>>,
+    /// Every tool's record of the set (6-DOF mode), sent with each position.
+    pub tools: Option<watch::Receiver<crate::engine::ToolSet>>,
     /// Active parameter set (camera poses for the 3-D view).
     pub params: Option<Arc<ParamsHandle>>,
     /// The robot's safety workspace box (`[robot.safety]`), for the 3-D view.
@@ -73,6 +75,7 @@ impl StatusService {
             tap: None,
             tuning: None,
             positions: None,
+            tools: None,
             params: None,
             workspace_mm: None,
             frameset_busy: tokio::sync::Mutex::new(()),
@@ -111,6 +114,12 @@ impl StatusService {
         self.tuning = Some(tuning);
         self.positions = Some(positions);
         self.params = Some(params);
+        self
+    }
+
+    /// Every tool's pose for the live view (the loop's per-tool slot).
+    pub fn with_tools(mut self, tools: watch::Receiver<crate::engine::ToolSet>) -> Self {
+        self.tools = Some(tools);
         self
     }
 
