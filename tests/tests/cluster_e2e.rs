@@ -12,8 +12,10 @@
 //!   or fails when `IRTRACK_REQUIRE_NETNS` is set (CI);
 //! - the plain-loopback variant runs everything on 127.0.0.1.
 //!
-//! Build the binaries first, with the same features as this test:
-//! `cargo build -p irtrack-firmware -p irtrack-tests --features irtrack-tests/cluster --bins`.
+//! Build the binaries first, with the same features as this test (the example brings in this
+//! crate's dev-dependencies, so irtrackd gets them; `--bins` alone would leave `cluster` out):
+//! `cargo build -p irtrack-firmware -p irtrack-tests --features irtrack-tests/cluster
+//! --bin irtrackd --example cluster_demo`. CI's workspace test build does this by itself.
 
 #![cfg(feature = "cluster")]
 
