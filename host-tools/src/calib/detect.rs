@@ -21,6 +21,7 @@ pub struct Board {
     pub cols: u32,
     /// Inner corners per column.
     pub rows: u32,
+    /// Side of one printed square (mm); sets the scale of every pose and baseline.
     pub square_mm: f64,
 }
 
@@ -35,6 +36,7 @@ impl Board {
             .collect()
     }
 
+    /// Inner corners on the board (`cols × rows`), what a full detection must find.
     pub fn corner_count(&self) -> usize {
         self.cols as usize * self.rows as usize
     }
@@ -43,6 +45,7 @@ impl Board {
 /// Detections of one camera.
 #[derive(Debug, Clone)]
 pub struct CameraDetections {
+    /// Size of this camera's images (width, height, px); its intrinsics are fitted for it.
     pub image_size: (u32, u32),
     /// Refined corners per view where the board was found.
     pub found: BTreeMap<String, Vec<Point2f>>,

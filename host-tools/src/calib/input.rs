@@ -20,12 +20,14 @@ const IMAGE_EXTENSIONS: &[&str] = &[
 pub struct CameraImages {
     /// How the images were selected (`cam1/` or `right*.png`), for messages.
     pub label: String,
+    /// Image file per view name.
     pub files: BTreeMap<String, PathBuf>,
 }
 
 /// All cameras' images and how they pair into views.
 #[derive(Debug, Clone)]
 pub struct ImageSet {
+    /// One entry per camera, camera 0 first.
     pub cameras: Vec<CameraImages>,
     /// Views with an image in every camera, in name order.
     pub complete_views: Vec<String>,

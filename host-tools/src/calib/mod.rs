@@ -40,10 +40,14 @@ const MAX_REJECTION_ROUNDS: usize = 3;
 /// Calibration options.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Options {
+    /// Reject views whose per-view RMS is an outlier, then recalibrate (`--reject-outliers`).
     pub reject_outliers: bool,
     /// Outlier rule factor k in median + k·1.4826·MAD.
     pub outlier_k: f64,
+    /// After the fixed-intrinsics stereo fits, refine intrinsics and poses jointly
+    /// (`--joint-refine`).
     pub joint_refine: bool,
+    /// Keep k3 at 0 in the intrinsic fits (`--fix-k3`).
     pub fix_k3: bool,
 }
 
@@ -70,7 +74,9 @@ impl std::fmt::Display for SkipReason {
 /// A view rejected as an outlier.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Rejection {
+    /// Name of the rejected view.
     pub view: String,
+    /// Rejection round that dropped it (1 = first).
     pub round: usize,
     /// What exceeded its threshold, e.g. "cam1 0.83 px > 0.31 px".
     pub why: String,
@@ -81,12 +87,17 @@ pub struct Rejection {
 /// Everything a calibration produced.
 #[derive(Debug, Clone)]
 pub struct Calibration {
+    /// The board geometry used.
     pub board: Board,
+    /// How each camera's images were selected (`cam1/` or `right*.png`), for the report.
     pub camera_labels: Vec<String>,
+    /// Corner detections per camera, camera 0 first.
     pub detections: Vec<CameraDetections>,
     /// Views found in every camera and kept.
     pub stereo_views: Vec<String>,
+    /// Views left out before fitting (missing image or board not found), with the reason.
     pub skipped: Vec<(String, SkipReason)>,
+    /// Views rejected as outliers, in rejection order.
     pub rejected: Vec<Rejection>,
     /// Per-camera intrinsic fits (after rejection).
     pub intrinsics: Vec<IntrinsicFit>,
@@ -96,7 +107,9 @@ pub struct Calibration {
     pub joint: Vec<PairFit>,
     /// Per-camera outlier thresholds used in the last round (intrinsic per-view RMS).
     pub thresholds_px: Vec<Option<f64>>,
+    /// The options the calibration ran with.
     pub options: Options,
+    /// The resulting rig parameters (what goes into the parameter blob).
     pub rig: RigParams,
 }
 

@@ -68,14 +68,19 @@ pub fn write_rgb_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result
 
 /// An 8-bit grey image to draw under the coverage (a camera's first calibration image).
 pub struct Background<'a> {
+    /// Image width (px).
     pub width_px: u32,
+    /// Image height (px).
     pub height_px: u32,
+    /// Grey values, row-major, `width_px × height_px` bytes.
     pub pixels: &'a [u8],
 }
 
 /// One view's corners on a camera's image plane.
 pub struct CoverageView<'a> {
+    /// Detected corners (distorted pixels).
     pub corners: &'a [Point2f],
+    /// The view was rejected as an outlier: drawn as red crosses.
     pub rejected: bool,
 }
 

@@ -14,7 +14,9 @@ use irtrack_core::params::{CalibrationInfo, Figure, MAX_CALIBRATION_SUMMARY_LEN,
 pub struct Check {
     /// What was measured, e.g. `cam1 reprojection RMS`.
     pub what: String,
+    /// The measured value, in `unit`.
     pub value: f64,
+    /// The limit it is judged against, in `unit`.
     pub limit: f64,
     /// Unit as printed after the numbers (`px`, `mm`, `%`, `°`, or empty).
     pub unit: &'static str,
@@ -91,6 +93,7 @@ fn fmt_num(v: f64) -> String {
 pub struct Gate {
     /// `wand`, `checkerboard`, `wand+checkerboard`, `pivot`.
     pub method: String,
+    /// Every limit judged, passed or not, in the order checked.
     pub checks: Vec<Check>,
     /// Likely causes of the failed limits, computed from the data, most likely first.
     pub causes: Vec<String>,
@@ -101,6 +104,7 @@ pub struct Gate {
 }
 
 impl Gate {
+    /// An empty gate for `method` (see [`Gate::method`]); checks and figures are added after.
     pub fn new(method: &str) -> Gate {
         Gate {
             method: method.into(),
@@ -121,10 +125,12 @@ impl Gate {
         }
     }
 
+    /// The checks whose limit was not met.
     pub fn failed(&self) -> Vec<&Check> {
         self.checks.iter().filter(|c| !c.passed()).collect()
     }
 
+    /// `Good` when every check passed, else `Poor` (the record's verdict).
     pub fn verdict(&self) -> Verdict {
         if self.failed().is_empty() {
             Verdict::Good

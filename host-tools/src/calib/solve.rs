@@ -15,10 +15,13 @@ use super::detect::Board;
 /// Result of one camera's `calibrateCamera`.
 #[derive(Debug, Clone)]
 pub struct IntrinsicFit {
+    /// Fitted intrinsics and distortion.
     pub model: CameraModel,
+    /// Overall RMS reprojection error (px) as `calibrateCamera` reports it.
     pub rms_px: f64,
     /// RMS reprojection error of every view used.
     pub per_view_rms_px: BTreeMap<String, f64>,
+    /// Corners used in the fit (views × corners per board); weights the cameras' RMS in the report.
     pub corner_count: usize,
 }
 
@@ -27,6 +30,7 @@ pub struct IntrinsicFit {
 pub struct PairFit {
     /// `x_cam_i = R x_cam0 + t`.
     pub cam_from_cam0: RigidTransform,
+    /// Overall RMS reprojection error of the stereo fit (px), over both cameras.
     pub rms_px: f64,
     /// Per view: RMS in camera 0 and in camera i.
     pub per_view_rms_px: BTreeMap<String, [f64; 2]>,

@@ -42,6 +42,7 @@ pub const THRESHOLD_DN_8BIT: u32 = 40;
 /// The wand: LED distances from end 0, increasing, mm.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Wand {
+    /// Each LED's distance from end 0 along the wand (mm), increasing, as given by `--wand-mm`.
     pub leds_mm: Vec<f64>,
 }
 
@@ -84,10 +85,12 @@ impl Wand {
         Ok(w)
     }
 
+    /// Number of LEDs on the wand.
     pub fn len(&self) -> usize {
         self.leds_mm.len()
     }
 
+    /// True when the wand has no LEDs (never, for a parsed wand).
     pub fn is_empty(&self) -> bool {
         self.leds_mm.is_empty()
     }
@@ -108,17 +111,36 @@ impl Wand {
 #[derive(Debug, Clone, PartialEq)]
 pub enum Rejection {
     /// Fewer blobs than LEDs (occluded, outside the image or merged).
-    MissingLeds { found: usize, needed: usize },
+    MissingLeds {
+        /// Blobs found.
+        found: usize,
+        /// LEDs on the wand.
+        needed: usize,
+    },
     /// No set of blobs lies on a line with the wand's spacing.
-    NoWandPattern { blobs: usize },
+    NoWandPattern {
+        /// Blobs found.
+        blobs: usize,
+    },
     /// Several sets of blobs fit the wand (a reflection on its line).
-    Ambiguous { candidates: usize },
+    Ambiguous {
+        /// Sets of blobs that fit.
+        candidates: usize,
+    },
     /// The wand is seen nearly end-on.
-    Foreshortened { length_px: f64 },
+    Foreshortened {
+        /// End-to-end length of the wand's image (undistorted px), below [`MIN_WAND_IMAGE_PX`].
+        length_px: f64,
+    },
     /// The frame was identified in this camera only: nothing to pair it with.
     SingleCamera,
     /// Identified, but far off the bundle adjustment's solution.
-    ReprojectionOutlier { error_px: f64, limit_px: f64 },
+    ReprojectionOutlier {
+        /// The view's RMS reprojection error (px).
+        error_px: f64,
+        /// The round's outlier limit it exceeded (px).
+        limit_px: f64,
+    },
 }
 
 impl Rejection {
@@ -183,7 +205,9 @@ pub struct WandObservations {
 /// Camera directories and their paired frames.
 #[derive(Debug, Clone)]
 pub struct Recording {
+    /// One directory per camera (`cam0`, `cam1`, …), camera 0 first.
     pub dirs: Vec<PathBuf>,
+    /// Frame file names found in every camera directory, sorted.
     pub frames: Vec<String>,
 }
 

@@ -33,6 +33,7 @@ pub const MIN_BOARD_VIEWS: usize = 3;
 /// The board's corners as one camera saw them in one view.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BoardView {
+    /// Index of the camera that saw it.
     pub camera: usize,
     /// View name (file stem or the pattern's wildcard text).
     pub view: String,
@@ -45,7 +46,9 @@ pub struct BoardView {
 /// The board in one camera's frame: `x_cam = r · x_board + t`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BoardPose {
+    /// Rotation from the board's frame to the camera's.
     pub r: Matrix3<f64>,
+    /// Board origin in the camera's frame (mm).
     pub t_mm: Vector3<f64>,
 }
 
@@ -64,6 +67,7 @@ impl BoardPose {
 /// Board views of every camera, and the images where the board was not found.
 #[derive(Debug, Clone, Default)]
 pub struct BoardViews {
+    /// Every view with the board found, all cameras.
     pub views: Vec<BoardView>,
     /// (camera, view) pairs without a detected board.
     pub not_found: Vec<(usize, String)>,

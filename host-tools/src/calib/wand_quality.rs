@@ -163,12 +163,19 @@ fn tilt_deg(sol: &WandSolution) -> f64 {
 
 /// Everything the wand gate looks at.
 pub struct WandRun<'a> {
+    /// Input intrinsics per camera (before any refinement).
     pub models: &'a [CameraModel],
+    /// The wand's identification in every frame and camera.
     pub obs: &'a WandObservations,
+    /// The wand's LED layout.
     pub wand: &'a Wand,
+    /// Checkerboard views given alongside the wand (may be empty).
     pub boards: &'a [BoardView],
+    /// Options the bundle adjustment ran with.
     pub options: SolveOptions,
+    /// The bundle adjustment's result.
     pub sol: &'a WandSolution,
+    /// The report's summary figures.
     pub fig: &'a Figures,
 }
 

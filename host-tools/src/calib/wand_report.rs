@@ -19,10 +19,15 @@ pub const COVERAGE_GRID: (usize, usize) = (8, 6);
 /// Summary figures of a wand calibration.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Figures {
+    /// RMS reprojection error per camera over its used views (px).
     pub per_camera_rms_px: Vec<f64>,
+    /// Mean wand length error over the used frames (mm; freely triangulated minus true length).
     pub length_mean_mm: f64,
+    /// Standard deviation of the wand length error (mm).
     pub length_std_mm: f64,
+    /// Largest absolute wand length error (mm).
     pub length_max_abs_mm: f64,
+    /// Frames whose length error could be measured (both ends triangulated).
     pub frames_used: usize,
     /// Share of coverage-grid cells with at least one used LED, per camera.
     pub coverage: Vec<f64>,

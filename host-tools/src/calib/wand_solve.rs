@@ -42,6 +42,8 @@ const MAX_ROUNDS: usize = 3;
 /// Bundle adjustment options.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SolveOptions {
+    /// Also refine each camera's intrinsics and distortion (9 parameters per camera, 8 with
+    /// `fix_k3`), in the rounds after the poses have converged without outliers.
     pub refine_intrinsics: bool,
     /// With `refine_intrinsics`: keep each camera's k3 at its input value.
     pub fix_k3: bool,
@@ -52,7 +54,9 @@ pub struct SolveOptions {
 /// The wand at one frame: end 0 and unit direction, camera 0 frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WandPose {
+    /// The wand's end 0 (where [`Wand::leds_mm`] distances start) in camera 0's frame (mm).
     pub end0_mm: Vector3<f64>,
+    /// Unit vector from end 0 towards the other end, camera 0's frame.
     pub dir: Vector3<f64>,
 }
 
@@ -85,10 +89,15 @@ fn perpendicular_basis(d: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
 /// How one camera's initial pose was found.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PairInit {
+    /// The camera already placed that this one was paired with.
     pub reference: usize,
+    /// The camera this pairing placed.
     pub camera: usize,
+    /// Frames identified in both cameras.
     pub shared_frames: usize,
+    /// LED correspondences the essential matrix explains (RANSAC inliers).
     pub inliers: usize,
+    /// LED correspondences given to the essential-matrix fit (shared frames × LEDs).
     pub correspondences: usize,
     /// Scale factor applied to the unit-length essential-matrix translation (mm).
     pub scale_mm: f64,
@@ -97,29 +106,42 @@ pub struct PairInit {
 /// One round of bundle adjustment.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Round {
+    /// Camera views (one camera's LEDs in one frame) in the adjustment.
     pub views: usize,
+    /// RMS reprojection error of those views' LEDs (px).
     pub rms_px: f64,
-    /// Checkerboard views in this round (0 while the intrinsics are held) and their corners'
-    /// RMS reprojection error (px; NaN without boards).
+    /// Checkerboard views in this round (0 while the intrinsics are held).
     pub board_views: usize,
+    /// RMS reprojection error of those board views' corners (px; NaN without boards).
     pub board_rms_px: f64,
+    /// Cost-function evaluations the Levenberg–Marquardt solver used.
     pub evaluations: usize,
+    /// Why the solver stopped (its termination reason as text).
     pub termination: String,
+    /// Camera and board views rejected as outliers after this round (0 ends the rounds once the
+    /// intrinsics, if asked for, are refined).
     pub rejected: usize,
 }
 
 /// Result of the wand calibration.
 #[derive(Debug, Clone)]
 pub struct WandSolution {
+    /// Calibrated cameras, camera 0 first (camera 0 at the identity pose).
     pub cameras: Vec<CameraParams>,
+    /// Each camera's initial pose from the essential matrices (cam_from_cam0), before adjustment.
     pub initial: Vec<RigidTransform>,
+    /// How each camera after camera 0 got its initial pose, in placement order.
     pub init_pairs: Vec<PairInit>,
     /// Per frame: the wand's pose, if the frame was used.
     pub poses: Vec<Option<WandPose>>,
     /// `views[frame][camera]` after outlier rejection (`Err` = not used, with the reason).
     pub views: Vec<Vec<std::result::Result<LedPixels, Rejection>>>,
+    /// One entry per bundle adjustment round, in order.
     pub rounds: Vec<Round>,
+    /// RMS reprojection error per camera over its used views in the final solution (px; NaN without
+    /// views).
     pub per_camera_rms_px: Vec<f64>,
+    /// Used views per camera in the final solution.
     pub per_camera_views: Vec<usize>,
     /// Every checkerboard view given, in input order, with its fit.
     pub boards: Vec<BoardFit>,
@@ -128,7 +150,9 @@ pub struct WandSolution {
 /// How one checkerboard view (one camera's image of the board) fitted.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BoardFit {
+    /// Index of the camera that saw the board.
     pub camera: usize,
+    /// View name (file stem or the pattern's wildcard text).
     pub view: String,
     /// RMS reprojection error of its corners in the last round it took part in (px; NaN if
     /// never fitted).

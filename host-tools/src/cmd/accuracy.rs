@@ -34,14 +34,19 @@ pub struct Args {
 /// Result for one rig at one distance.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StudyRow {
+    /// Rig layout: `convergent` or `parallel`.
     pub rig: &'static str,
+    /// Working distance of this row (mm).
     pub distance_mm: f64,
     /// Table I's figure for the rig's worst axis, or the same analytic model between its rows.
     pub reference_mm: f64,
     /// Whether `reference_mm` is printed in Table I (otherwise it is the model's value).
     pub in_table_i: bool,
+    /// Frames simulated.
     pub frames: u64,
+    /// Frames in which the tracker found a position.
     pub tracked: u64,
+    /// 3-D error statistics of the tracked frames against truth; `None` when none was tracked.
     pub stats: Option<ErrorStats>,
 }
 

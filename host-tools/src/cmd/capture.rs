@@ -165,13 +165,18 @@ pub fn describe_cameras(board: &str, header: &FrameSetHeader) -> String {
 /// Where the board's corners have landed so far in one camera: corners per grid cell.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Coverage {
+    /// Image width (px) the grid divides.
     pub width_px: u32,
+    /// Image height (px) the grid divides.
     pub height_px: u32,
+    /// Corners counted per cell, `cells[row][column]`.
     pub cells: [[u32; GRID_COLS]; GRID_ROWS],
+    /// Views added so far.
     pub views: u32,
 }
 
 impl Coverage {
+    /// An empty grid for an image of this size.
     pub fn new(width_px: u32, height_px: u32) -> Self {
         Coverage {
             width_px,

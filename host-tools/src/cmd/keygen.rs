@@ -81,6 +81,7 @@ pub fn read_public_key(path: &Path) -> Result<VerifyingKey> {
 /// A parameter file as loaded by the tools.
 #[derive(Debug, Clone)]
 pub struct LoadedParams {
+    /// The rig parameters the file holds.
     pub rig: RigParams,
     /// For a signed blob file: its key id and exact bytes (the signature is NOT verified).
     pub signed: Option<(KeyId, Vec<u8>)>,

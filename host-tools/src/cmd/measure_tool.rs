@@ -43,6 +43,7 @@ pub struct Args {
     /// Number of LEDs on the tool.
     #[arg(long)]
     pub leds: usize,
+    /// Where the new tool's frame has its origin.
     #[arg(long, value_enum, default_value_t = OriginArg::Centroid)]
     pub origin: OriginArg,
     /// Points of different frames closer than this belong to the same LED.

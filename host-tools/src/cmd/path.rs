@@ -23,8 +23,12 @@ use nalgebra::{Quaternion, UnitQuaternion};
 /// Export format.
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Export {
+    /// An ABB RAPID module with one `MoveL` per point.
     Rapid,
+    /// CSV, one row per point (`index,x_mm,y_mm,z_mm,speed_mm_s,t_s`, plus `qw,qx,qy,qz` with
+    /// orientation).
     Csv,
+    /// JSON: the source name and the points with their speeds.
     Json,
 }
 
@@ -54,8 +58,11 @@ pub struct Args {
     /// Constant programmed speed; without it the recorded speed is used.
     #[arg(long)]
     pub speed_mm_s: Option<f64>,
+    /// Lowest programmed speed; the recorded speed is clamped to it, and it is the first point's
+    /// speed.
     #[arg(long, default_value_t = 5.0)]
     pub min_speed_mm_s: f64,
+    /// Highest programmed speed; the recorded speed is clamped to it.
     #[arg(long, default_value_t = 500.0)]
     pub max_speed_mm_s: f64,
     /// Use only the waypoints marked while recording.
@@ -64,8 +71,10 @@ pub struct Args {
     /// A gap longer than this between valid samples restarts the filter.
     #[arg(long, default_value_t = 0.2)]
     pub gap_s: f64,
+    /// Output format.
     #[arg(long, value_enum, default_value_t = Export::Rapid)]
     pub export: Export,
+    /// Output file (the RAPID module, CSV or JSON).
     #[arg(long)]
     pub out: PathBuf,
     /// RAPID module name.
@@ -74,6 +83,7 @@ pub struct Args {
     /// RAPID tool and work object (must exist on the controller).
     #[arg(long, default_value = "tool0")]
     pub tool: String,
+    /// RAPID work object the robtargets are in.
     #[arg(long, default_value = "wobj0")]
     pub wobj: String,
     /// RAPID zone for intermediate points (the last point is always `fine`).
@@ -87,8 +97,11 @@ pub struct Args {
 /// One recorded sample.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sample {
+    /// Time since the recording's first record (s, from the board's capture times).
     pub t_s: f64,
+    /// Position as recorded (mm; the robot's frame when the tracker applied a registration).
     pub pos_mm: [f64; 3],
+    /// Marked as a waypoint while recording.
     pub waypoint: bool,
     /// Tool orientation (w, x, y, z) when recorded from a 6-DOF tool.
     pub quat_wxyz: Option<[f64; 4]>,
@@ -97,8 +110,11 @@ pub struct Sample {
 /// One output point with the speed to reach it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PathPoint {
+    /// Target position (mm), in the recording's frame.
     pub pos_mm: [f64; 3],
+    /// Time of the sample it came from (s; interpolated when resampled).
     pub t_s: f64,
+    /// Programmed speed to reach this point (mm/s), within `--min-speed-mm-s`..`--max-speed-mm-s`.
     pub speed_mm_s: f64,
     /// Orientation (w, x, y, z, unit) when every sample of the path had one.
     pub quat_wxyz: Option<[f64; 4]>,

@@ -168,7 +168,9 @@ pub fn add_to_record(rig: &mut RigParams, gate: &Gate) {
 /// One tool pose: `p_tracker = rotation · p_tool + position_mm`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ToolPose {
+    /// Rotation from the tool's frame to the poses' frame (camera 0 or world).
     pub rotation: Matrix3<f64>,
+    /// The tool frame's origin in the poses' frame (mm).
     pub position_mm: Vector3<f64>,
 }
 
@@ -179,10 +181,13 @@ pub struct PivotFit {
     pub tip_tool_mm: Vector3<f64>,
     /// The fixed pivot point in the poses' frame (camera 0 or world), mm.
     pub pivot_mm: Vector3<f64>,
-    /// RMS and largest distance of the per-pose tip positions from the pivot (mm).
+    /// RMS distance of the per-pose tip positions from the pivot (mm).
     pub rms_mm: f64,
+    /// Largest such distance (mm).
     pub max_mm: f64,
+    /// Poses the final fit used.
     pub used: usize,
+    /// Poses dropped as outliers (tip farther than the outlier limit from the pivot).
     pub rejected: usize,
     /// Largest angle of a used pose from the mean orientation (deg).
     pub turn_deg: f64,

@@ -17,8 +17,11 @@ use nalgebra::Vector3;
 /// Which rig(s) to plan.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum RigKind {
+    /// Two cameras side by side with parallel optical axes.
     Parallel,
+    /// Two cameras whose optical axes cross at the working distance.
     Convergent,
+    /// Both rigs, one row each.
     Both,
 }
 
@@ -59,7 +62,9 @@ pub struct Args {
 /// One line of the plan.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PlanRow {
+    /// Rig layout: `convergent` or `parallel`.
     pub rig: &'static str,
+    /// Working distance of this row (mm).
     pub distance_mm: f64,
     /// Closed-form resolution at the working point.
     pub closed_form: AxisResolution,

@@ -49,8 +49,11 @@ pub const MAX_BACKOFF: Duration = Duration::from_secs(4);
 /// How to push.
 #[derive(Debug, Clone)]
 pub struct PushOptions {
+    /// Attempts after the first before giving up.
     pub retries: u32,
+    /// Timeout of the connect and of each read and write.
     pub timeout: Duration,
+    /// Delay before the first retry; doubles per attempt up to [`MAX_BACKOFF`].
     pub first_backoff: Duration,
 }
 

@@ -36,6 +36,7 @@ pub struct Args {
     /// irtrackd position stream, `host:port`.
     #[arg(long, default_value = "127.0.0.1:7702")]
     pub from: String,
+    /// Stream encoding; `--from` must name the port that serves it (7702 NDJSON, 7703 binary).
     #[arg(long, value_enum, default_value_t = Format::Ndjson)]
     pub format: Format,
     /// Output CSV.
@@ -64,10 +65,15 @@ pub struct Args {
 /// What the recording produced.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Summary {
+    /// Records received from the stream.
     pub records: u64,
+    /// Records with a tracked position (status ok).
     pub valid: u64,
+    /// Records without a tracked position (lost, or any status but ok).
     pub lost: u64,
+    /// Waypoints marked.
     pub waypoints: usize,
+    /// Rows written to the CSV (every record in continuous mode, waypoints only with `--points`).
     pub written_rows: u64,
     /// Messages written to the MCAP file, per topic.
     pub mcap: Option<irtrack_interop::mcap::McapCounts>,

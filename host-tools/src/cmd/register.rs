@@ -40,7 +40,9 @@ pub struct Args {
 /// Corresponding points read from the pairs file.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Pairs {
+    /// Tracker positions (mm, the tracker's frame), one per pair.
     pub tracker_mm: Vec<[f64; 3]>,
+    /// The same points in the robot's frame (mm), same order.
     pub robot_mm: Vec<[f64; 3]>,
 }
 

@@ -17,7 +17,9 @@ use nalgebra::Vector3;
 /// Preset rig.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum RigArg {
+    /// Two cameras side by side, optical axes parallel (`--baseline-mm` apart).
     Parallel,
+    /// Two cameras whose optical axes cross at `--distance-mm` with `--angle-deg` between them.
     Convergent,
 }
 
@@ -203,8 +205,11 @@ pub fn config_from_args(a: &Args) -> anyhow::Result<SimConfig> {
 /// What was written.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct WriteSummary {
+    /// Frames rendered (each one image per camera).
     pub frames: u64,
+    /// Images written as PGM files.
     pub images: u64,
+    /// Images the simulated camera dropped (not written; marked in timestamps.csv).
     pub dropped: u64,
 }
 

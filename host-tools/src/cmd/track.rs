@@ -59,9 +59,13 @@ pub fn default_threshold_dn(maxval: u16) -> u32 {
 /// Error statistics of a set of 3-D errors (mm).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ErrorStats {
+    /// Number of errors the figures are over.
     pub count: usize,
+    /// RMS error (mm).
     pub rms_mm: f64,
+    /// 95th percentile error, nearest rank (mm).
     pub p95_mm: f64,
+    /// Largest error (mm).
     pub max_mm: f64,
 }
 
@@ -171,12 +175,17 @@ fn list_frames(dir: &Path) -> anyhow::Result<BTreeSet<u64>> {
 /// Summary of a tracking run.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TrackSummary {
+    /// Frame indices checked: 0 through the highest index found in any camera.
     pub frames: usize,
+    /// Frames with a tracked position.
     pub tracked: usize,
+    /// Frame indices missing in at least one camera (not tracked).
     pub missing_frames: usize,
+    /// Complete frames without a tracked position.
     pub not_tracked: usize,
     /// Tracked frames compared against truth, and how many were farther than the tolerance.
     pub error: Option<ErrorStats>,
+    /// Tracked frames farther than `--wrong-point-mm` from truth.
     pub wrong_points: usize,
 }
 

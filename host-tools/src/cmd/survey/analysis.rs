@@ -18,8 +18,9 @@ pub struct Analysis {
     pub all: RigidTransform,
     /// Umeyama scale on the fit points.
     pub scale: f64,
-    /// LED offset in the flange frame, and whether it was solved.
+    /// LED offset in the flange frame (mm): solved, given with `--led-offset-mm`, or zero.
     pub led_offset_mm: [f64; 3],
+    /// The offset was solved from the turned points (not given, not zero).
     pub offset_solved: bool,
     /// Residual vectors (robot frame: registered tracker − robot) per point, in `points` order.
     pub residual_mm: Vec<[f64; 3]>,
@@ -28,10 +29,15 @@ pub struct Analysis {
 /// Error statistics of a set of residual vectors.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Stats {
+    /// Number of residuals.
     pub n: usize,
+    /// RMS of the 3-D residual lengths (mm).
     pub rms_mm: f64,
+    /// Largest 3-D residual length (mm).
     pub max_mm: f64,
+    /// RMS per axis x, y, z (mm).
     pub axis_rms_mm: [f64; 3],
+    /// Largest absolute residual per axis x, y, z (mm).
     pub axis_max_mm: [f64; 3],
 }
 

@@ -19,14 +19,19 @@ use super::safety::SafetyGate;
 /// One visited point.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Measured {
+    /// Position in the plan (0-based).
     pub index: usize,
+    /// What the point is for: fit, held out, or turned.
     pub role: Role,
-    /// The robot's pose as its controller reports it (`A` line).
+    /// The flange position as the robot's controller reports it (`A` line), robot frame (mm).
     pub flange_mm: [f64; 3],
+    /// The flange orientation (w, x, y, z) from the same report.
     pub flange_wxyz: [f64; 4],
-    /// Mean tracked position (stream frame) and the per-axis standard deviation of the mean's samples.
+    /// Mean tracked position (stream frame, mm).
     pub tracker_mm: [f64; 3],
+    /// Per-axis standard deviation of the samples averaged into `tracker_mm` (mm).
     pub tracker_sd_mm: [f64; 3],
+    /// Tracker samples averaged into `tracker_mm`.
     pub frames: usize,
 }
 

@@ -44,8 +44,11 @@ impl Role {
 /// A planned survey pose.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Planned {
+    /// What the pose is for: fit, held out, or turned.
     pub role: Role,
+    /// Flange position to move to, in the robot's frame (mm).
     pub pos_mm: [f64; 3],
+    /// Flange orientation (w, x, y, z), in the robot's frame.
     pub quat_wxyz: [f64; 4],
 }
 

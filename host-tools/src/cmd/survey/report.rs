@@ -15,10 +15,17 @@ use super::plan::Role;
 
 /// The survey report.
 pub struct Report {
+    /// Fiducial registration error: residuals of the fit and turned points.
     pub fre: Stats,
+    /// Target registration error: residuals of the held-out points; judged against
+    /// `--tolerance-mm`.
     pub tre: Stats,
+    /// Umeyama scale on the fit points; 1 when the calibration's units are right.
     pub scale: f64,
+    /// Every check passed (TRE within tolerance, scale within `--max-scale-error-ppm`, a held-out
+    /// point measured).
     pub pass: bool,
+    /// The verdict in one line: the figures when passed, else every failed check.
     pub verdict: String,
     md: String,
     csv: String,
