@@ -47,6 +47,20 @@ pub struct FrameSetHeader {
     pub pairing_error_ns: u64,
     /// One entry per camera, in camera order.
     pub cameras: Vec<CameraHeader>,
+    /// The board's CLOCK_REALTIME − CLOCK_MONOTONIC when it served the set: added to a
+    /// `timestamp_ns` it gives the capture time on the realtime clock PTP or chrony keeps the
+    /// boards agreeing on (the clock the cluster pairs by). Absent from older irtrackd.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub realtime_minus_monotonic_ns: Option<i64>,
+}
+
+impl FrameSetHeader {
+    /// Camera `i`'s capture time on CLOCK_REALTIME, if the board said its clock difference.
+    pub fn realtime_ns(&self, i: usize) -> Option<i128> {
+        let d = self.realtime_minus_monotonic_ns?;
+        let cam = self.cameras.get(i)?;
+        Some(i128::from(cam.timestamp_ns) + i128::from(d))
+    }
 }
 
 /// One camera's frame to put into a set.
@@ -62,6 +76,18 @@ pub struct CameraFrame<'a> {
 
 /// A frame-set body: the header line, then each frame's PGM in camera order.
 pub fn encode(set_index: u64, pairing_error_ns: u64, frames: &[CameraFrame<'_>]) -> Result<Vec<u8>> {
+    encode_with_clock(set_index, pairing_error_ns, None, frames)
+}
+
+/// [`encode`] with the board's CLOCK_REALTIME − CLOCK_MONOTONIC in the header
+/// ([`FrameSetHeader::realtime_minus_monotonic_ns`]), so frame sets of several boards can be
+/// paired on the shared realtime clock.
+pub fn encode_with_clock(
+    set_index: u64,
+    pairing_error_ns: u64,
+    realtime_minus_monotonic_ns: Option<i64>,
+    frames: &[CameraFrame<'_>],
+) -> Result<Vec<u8>> {
     let mut pgms = Vec::with_capacity(frames.len());
     for (i, f) in frames.iter().enumerate() {
         pgms.push(pgm::encode(&f.image).map_err(|e| bad(format!("camera {i}: {e}")))?);
@@ -83,6 +109,7 @@ pub fn encode(set_index: u64, pairing_error_ns: u64, frames: &[CameraFrame<'_>])
                 pgm_bytes: p.len(),
             })
             .collect(),
+        realtime_minus_monotonic_ns,
     };
     let mut body = serde_json::to_vec(&header).map_err(|e| bad(format!("header: {e}")))?;
     body.push(b'\n');
@@ -209,6 +236,29 @@ P5\n2 1\n1023\n\x03\xff\x00\x10";
                 sequence: 42,
             },
         ]
+    }
+
+    /// The clock difference is one more header field (docs/frameset.md), absent when `None`.
+    #[test]
+    fn realtime_clock_difference_encodes_and_parses() {
+        let px8 = [0u8, 1, 2, 3, 4, 255];
+        let px16 = [1023u16, 16];
+        let body = encode_with_clock(7, 250, Some(1_700_000_000_000_000_000), &frames(&px8, &px16)).unwrap();
+        let golden = String::from_utf8_lossy(GOLDEN).replacen(
+            "]}\n",
+            "],\"realtime_minus_monotonic_ns\":1700000000000000000}\n",
+            1,
+        );
+        assert_eq!(String::from_utf8_lossy(&body), golden);
+        let set = FrameSet::parse(&body).unwrap();
+        assert_eq!(
+            set.header.realtime_minus_monotonic_ns,
+            Some(1_700_000_000_000_000_000)
+        );
+        assert_eq!(set.header.realtime_ns(1), Some(1_700_000_000_000_001_250));
+        let old = FrameSet::parse(GOLDEN).unwrap();
+        assert_eq!(old.header.realtime_minus_monotonic_ns, None);
+        assert_eq!(old.header.realtime_ns(0), None);
     }
 
     #[test]

@@ -1,7 +1,9 @@
 //! `host-tools capture` against a stand-in for irtrackd's `GET /api/frameset` (format of
 //! docs/http-api.md) that serves checkerboard views of the simulated 90° rig: sets are saved in
 //! the layout `calibrate` reads, the board is found per camera and the coverage grid is shown.
-//! Error cases: firmware without the endpoint (404), nothing listening. (irtrackd's endpoint is
+//! Across boards (`--from A --from B`): sets paired on the realtime clock, numbered board by
+//! board, unpaired sets refused. Error cases: firmware without the endpoint (404), nothing
+//! listening. (irtrackd's endpoint is
 //! being built on another branch; a test against a real irtrackd follows once it has landed.)
 
 mod common;
@@ -345,4 +347,298 @@ fn capture_retries_a_busy_board_and_gives_up_after_twenty() {
         "{stderr}"
     );
     assert_eq!(server.join().unwrap(), 21);
+}
+
+/// A frame-set body of one board with a realtime clock difference (docs/frameset.md): every
+/// camera at monotonic `t_ns`, frame counter `seq`.
+fn clocked_body(seq: u64, pgms: &[Vec<u8>], size: (u32, u32), t_ns: u64, rt_minus_mono_ns: i64) -> Vec<u8> {
+    let cams: Vec<String> = pgms
+        .iter()
+        .enumerate()
+        .map(|(c, pgm)| {
+            format!(
+                "{{\"camera\":{c},\"width_px\":{},\"height_px\":{},\"bit_depth\":8,\"timestamp_ns\":{t_ns},\"sequence\":{seq},\"pgm_bytes\":{}}}",
+                size.0,
+                size.1,
+                pgm.len()
+            )
+        })
+        .collect();
+    let mut b = format!(
+        "{{\"set_index\":{seq},\"pairing_error_ns\":0,\"cameras\":[{}],\"realtime_minus_monotonic_ns\":{rt_minus_mono_ns}}}\n",
+        cams.join(",")
+    )
+    .into_bytes();
+    for pgm in pgms {
+        b.extend_from_slice(pgm);
+    }
+    b
+}
+
+/// 120 fps.
+const PERIOD_NS: u64 = 8_333_333;
+/// Realtime of frame 0 on both boards.
+const EPOCH_NS: u64 = 1_700_000_000_000_000_000;
+/// Two boards booted at different times: their monotonic clocks differ by 49 s.
+const MONO_A_NS: u64 = 1_000_000_000;
+const MONO_B_NS: u64 = 50_000_000_000;
+
+/// Board A's frame `k` and board B's frame `k` `phase_ns` later (realtime).
+fn board_set(
+    board_b: bool,
+    k: u64,
+    phase_ns: u64,
+    pgms: &[Vec<u8>],
+    size: (u32, u32),
+) -> (u16, &'static str, Vec<u8>) {
+    let mono0 = if board_b { MONO_B_NS } else { MONO_A_NS };
+    let body = clocked_body(
+        k,
+        pgms,
+        size,
+        mono0 + k * PERIOD_NS + phase_ns,
+        (EPOCH_NS - mono0) as i64,
+    );
+    (200, "application/x-irtrack-frameset", body)
+}
+
+/// Two boards of one camera each (the simulated 90° rig's cameras): sets are paired on the
+/// realtime clock, numbered board by board, a set whose boards are 6 ms apart (tolerance: half
+/// of 8.33 ms) is refused and not saved, and the folder is what `calibrate` reads.
+#[test]
+fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
+    let dir = scratch("boards");
+    let rig = build_rig(
+        &RigPreset::Convergent {
+            distance_mm: 659.84,
+            angle_deg: 90.0,
+        },
+        &CameraSpec::default(),
+    )
+    .unwrap();
+    let board = BoardSpec::new(9, 6, 25.0).unwrap();
+    let poses = checkerboard::generate_poses(
+        &rig,
+        &board,
+        &PoseConfig {
+            count: 3,
+            seed: 4,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let set = checkerboard::write_set(
+        &dir.join("views"),
+        &rig,
+        &board,
+        &poses,
+        &RenderSettings {
+            seed: 4,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let size = rig.cameras[0].model.image_size;
+    let size = (size.width_px, size.height_px);
+    let view = |c: usize, v: usize| std::fs::read(&set.files[c][v]).unwrap();
+    // Per board: two probe sets (frames 0, 1: the frame period), a set where B's frame is 6 ms
+    // after A's (refused), then three sets 1 ms apart.
+    let responses = |b: bool| -> Vec<(u16, &'static str, Vec<u8>)> {
+        let c = usize::from(b);
+        let mut r = vec![
+            board_set(b, 0, 0, &[view(c, 0)], size),
+            board_set(b, 1, 0, &[view(c, 0)], size),
+            board_set(b, 5, if b { 6_000_000 } else { 0 }, &[view(c, 0)], size),
+        ];
+        for v in 0..3 {
+            r.push(board_set(
+                b,
+                6 + v as u64,
+                if b { 1_000_000 } else { 0 },
+                &[view(c, v)],
+                size,
+            ));
+        }
+        r
+    };
+    let (addr_a, server_a) = serve(responses(false));
+    let (addr_b, server_b) = serve(responses(true));
+    let out = dir.join("shots");
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr_a,
+        "--from",
+        &addr_b,
+        "--out",
+        p(&out),
+        "--every",
+        "0.05",
+        "--count",
+        "3",
+    ]);
+    let (stdout, stderr) = text(&o);
+    print!("{stdout}{stderr}");
+    assert!(o.status.success(), "{stdout}\n{stderr}");
+    assert_eq!(server_a.join().unwrap(), 6);
+    assert_eq!(server_b.join().unwrap(), 6);
+    assert!(
+        stdout.contains(&format!(
+            "board {addr_a}: 1 camera, {}x{} 8-bit → cam0..cam0",
+            size.0, size.1
+        )) && stdout.contains(&format!(
+            "board {addr_b}: 1 camera, {}x{} 8-bit → cam1..cam1",
+            size.0, size.1
+        )),
+        "{stdout}"
+    );
+    assert!(stdout.contains("on CLOCK_REALTIME within ±4.167 ms"), "{stdout}");
+    assert_eq!(
+        stderr
+            .matches(&format!(
+                "capture: set refused, not saved: board {addr_b}'s frames are +6.000 ms from board {addr_a}'s (tolerance 4.167 ms"
+            ))
+            .count(),
+        1,
+        "{stderr}"
+    );
+    for v in 0..3 {
+        for c in 0..2 {
+            let saved = std::fs::read(out.join(format!("cam{c}/{v:06}.pgm"))).unwrap();
+            assert!(saved == view(c, v), "cam{c} set {v} is not board {c}'s view {v}");
+        }
+    }
+    assert!(!out.join("cam0/000003.pgm").exists());
+    assert_eq!(
+        stdout.matches("cam1 board found (54 corners)").count(),
+        3,
+        "{stdout}"
+    );
+    assert_eq!(
+        stdout.matches("boards paired within 1000 µs").count(),
+        3,
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("saved 3 sets into") && stdout.contains("(1 refused"),
+        "{stdout}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("cameras.csv")).unwrap(),
+        format!("camera,board,board_camera\n0,{addr_a},0\n1,{addr_b},0\n")
+    );
+    // Timestamps on the shared realtime clock, not the boards' monotonic ones.
+    let ts = std::fs::read_to_string(out.join("timestamps.csv")).unwrap();
+    assert!(
+        ts.contains(&format!("0,0,{},0\n", EPOCH_NS + 6 * PERIOD_NS))
+            && ts.contains(&format!("0,1,{},0\n", EPOCH_NS + 6 * PERIOD_NS + 1_000_000)),
+        "{ts}"
+    );
+
+    // calibrate's folder reader takes the folder as it is: two cameras, three views each.
+    let images = irtrack_host_tools::calib::input::discover(&out, None).unwrap();
+    assert_eq!(images.cameras.len(), 2);
+    assert_eq!(images.complete_views, ["000000", "000001", "000002"]);
+    assert!(images.incomplete_views.is_empty());
+}
+
+/// Boards that do not pair are never saved: ten refused sets in a row end the capture naming the
+/// board and its offset. A board without the clock field, or one that does not answer, is named.
+#[test]
+fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
+    let dir = scratch("boards_refused");
+    let size = (4, 2);
+    let pgm = {
+        let mut b = b"P5\n4 2\n255\n".to_vec();
+        b.extend_from_slice(&[9; 8]);
+        b
+    };
+    let responses = |b: bool| -> Vec<(u16, &'static str, Vec<u8>)> {
+        (0..12u64)
+            .map(|k| {
+                let phase = if b && k >= 2 { 20_000_000 } else { 0 };
+                board_set(b, k, phase, std::slice::from_ref(&pgm), size)
+            })
+            .collect()
+    };
+    let (addr_a, server_a) = serve(responses(false));
+    let (addr_b, server_b) = serve(responses(true));
+    let out = dir.join("never");
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr_a,
+        "--from",
+        &addr_b,
+        "--out",
+        p(&out),
+        "--wand",
+        "--count",
+        "5",
+    ]);
+    let (stdout, stderr) = text(&o);
+    assert!(!o.status.success(), "{stdout}\n{stderr}");
+    assert_eq!(server_a.join().unwrap(), 12);
+    assert_eq!(server_b.join().unwrap(), 12);
+    let offset = format!("board {addr_b}'s frames are +20.000 ms from board {addr_a}'s (tolerance 4.167 ms");
+    assert_eq!(stderr.matches("set refused, not saved").count(), 9, "{stderr}");
+    assert!(
+        stderr.contains(&format!("10 sets in a row refused, the last: {offset}")),
+        "{stderr}"
+    );
+    assert!(!out.join("cam0").exists(), "a mismatched set was saved");
+
+    // irtrackd without the clock field.
+    let (addr_a, _) = serve(vec![board_set(false, 0, 0, std::slice::from_ref(&pgm), size)]);
+    let (addr_b, server_b) = serve(vec![(
+        200,
+        "application/x-irtrack-frameset",
+        frameset_body(1, std::slice::from_ref(&pgm), size),
+    )]);
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr_a,
+        "--from",
+        &addr_b,
+        "--out",
+        p(&out),
+        "--wand",
+    ]);
+    let (_, stderr) = text(&o);
+    assert!(!o.status.success());
+    assert!(
+        stderr.contains(&format!(
+            "irtrackd on {addr_b} does not serve its realtime clock difference"
+        )),
+        "{stderr}"
+    );
+    server_b.join().unwrap();
+
+    // Nothing listens on B.
+    let port = TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let silent = format!("127.0.0.1:{port}");
+    let (addr_a, _) = serve(vec![board_set(false, 0, 0, std::slice::from_ref(&pgm), size)]);
+    let out = dir.join("silent");
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr_a,
+        "--from",
+        &silent,
+        "--out",
+        p(&out),
+        "--wand",
+    ]);
+    let (_, stderr) = text(&o);
+    assert!(!o.status.success());
+    assert!(
+        stderr.contains(&format!("cannot reach irtrackd on {silent}")),
+        "{stderr}"
+    );
+    assert!(!out.exists(), "{} created for nothing", out.display());
 }

@@ -236,7 +236,19 @@ fn frameset_body(set: &TapSet) -> Option<Vec<u8>> {
             sequence: f.sequence,
         })
         .collect();
-    match frameset::encode(set.set_index, set.pairing_error_ns, &frames) {
+    // The clock difference lets `host-tools capture` pair sets of several boards on the
+    // realtime clock PTP/chrony keep in agreement (the timestamps are CLOCK_MONOTONIC).
+    let realtime_minus_monotonic_ns = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .ok()
+        .map(|d| d.as_nanos() as i128 - i128::from(crate::clock::monotonic_ns()))
+        .and_then(|d| i64::try_from(d).ok());
+    match frameset::encode_with_clock(
+        set.set_index,
+        set.pairing_error_ns,
+        realtime_minus_monotonic_ns,
+        &frames,
+    ) {
         Ok(body) => Some(body),
         Err(e) => {
             tracing::warn!("frame set {}: {e}", set.set_index);

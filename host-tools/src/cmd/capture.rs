@@ -7,6 +7,13 @@
 //! board as it arrives, and the terminal shows per camera whether it was found and how much of
 //! the image the board has covered so far, so the person holding it knows where views are
 //! still missing. `--wand` saves sets as fast as irtrackd serves them (no board search).
+//!
+//! Across camera boards (`--from A --from B …`, docs/cluster.md "Calibration across boards"):
+//! every board is asked at once, their sets are paired on CLOCK_REALTIME (each board's
+//! monotonic timestamps plus the clock difference it serves, the clock the cluster pairs by)
+//! within a tolerance (default half a frame period), and saved as one set whose cameras are
+//! numbered board by board in `--from` order. A set whose boards do not pair is refused, named,
+//! and never saved.
 
 use std::io::{BufRead, Write};
 use std::path::{Path, PathBuf};
@@ -29,9 +36,15 @@ const GRID_ROWS: usize = 6;
 /// Arguments.
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
-    /// The board running irtrackd: HOST or HOST:PORT (port 7704 if left out).
-    #[arg(long, value_name = "BOARD[:PORT]")]
-    pub from: String,
+    /// The board running irtrackd: HOST or HOST:PORT (port 7704 if left out). Give it once per
+    /// camera board to capture across boards: cameras are numbered board by board in this order
+    /// (the rig's camera order: the board of cameras 0, 1 first).
+    #[arg(long, value_name = "BOARD[:PORT]", required = true)]
+    pub from: Vec<String>,
+    /// Across boards: largest capture-time offset between boards' frames in one set, ms
+    /// (default: half the frame period the boards show).
+    #[arg(long, value_name = "MS")]
+    pub tolerance_ms: Option<f64>,
     /// Output directory (cam0/, cam1/, … are created; numbering continues after existing sets).
     #[arg(long)]
     pub out: PathBuf,
@@ -143,6 +156,169 @@ fn fetch_with_retries(agent: &ureq::Agent, url: &str, board: &str) -> anyhow::Re
             Err(FetchError::Fatal(e)) => return Err(e),
         }
     }
+}
+
+/// Refused sets in a row after which a capture across boards gives up.
+const MAX_REFUSED_IN_A_ROW: u32 = 10;
+
+/// Why the boards' sets were not paired into one.
+#[derive(Debug, Clone, PartialEq)]
+pub enum PairError {
+    /// This board's set has no realtime clock difference (irtrackd older than the field).
+    NoClock { board: String },
+    /// This board's frames are `offset_ns` from the first board's (CLOCK_REALTIME), beyond
+    /// the tolerance.
+    Offset {
+        board: String,
+        reference: String,
+        offset_ns: i128,
+        tolerance_ns: i128,
+    },
+}
+
+impl std::fmt::Display for PairError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PairError::NoClock { board } => write!(
+                f,
+                "irtrackd on {board} does not serve its realtime clock difference \
+                 (realtime_minus_monotonic_ns, docs/frameset.md); update its firmware to capture across boards"
+            ),
+            PairError::Offset {
+                board,
+                reference,
+                offset_ns,
+                tolerance_ns,
+            } => write!(
+                f,
+                "board {board}'s frames are {:+.3} ms from board {reference}'s (tolerance {:.3} ms, CLOCK_REALTIME)",
+                *offset_ns as f64 / 1e6,
+                *tolerance_ns as f64 / 1e6
+            ),
+        }
+    }
+}
+
+/// Pairs one set per board into one set: cameras numbered board by board in the order given,
+/// timestamps on CLOCK_REALTIME, `pairing_error_ns` the spread over all cameras. Refused when a
+/// board has no clock difference or its first camera is more than `tolerance_ns` from the
+/// first board's first camera. `set_index` is the first board's.
+pub fn pair_sets(boards: &[String], sets: Vec<FrameSet>, tolerance_ns: i128) -> Result<FrameSet, PairError> {
+    let mut reference_ns: Option<i128> = None;
+    let mut worst: Option<PairError> = None;
+    for (board, set) in boards.iter().zip(&sets) {
+        let t = set
+            .header
+            .realtime_ns(0)
+            .ok_or_else(|| PairError::NoClock { board: board.clone() })?;
+        let t0 = *reference_ns.get_or_insert(t);
+        let offset_ns = t - t0;
+        let beyond = offset_ns.abs() > tolerance_ns;
+        let worse = match &worst {
+            Some(PairError::Offset { offset_ns: w, .. }) => offset_ns.abs() > w.abs(),
+            _ => true,
+        };
+        if beyond && worse {
+            worst = Some(PairError::Offset {
+                board: board.clone(),
+                reference: boards[0].clone(),
+                offset_ns,
+                tolerance_ns,
+            });
+        }
+    }
+    if let Some(e) = worst {
+        return Err(e);
+    }
+    let set_index = sets.first().map_or(0, |s| s.header.set_index);
+    let mut cameras = Vec::new();
+    let mut pgms = Vec::new();
+    let (mut lo, mut hi) = (i128::MAX, i128::MIN);
+    for set in sets {
+        for (i, cam) in set.header.cameras.iter().enumerate() {
+            let t = set.header.realtime_ns(i).unwrap_or(0).max(0);
+            lo = lo.min(t);
+            hi = hi.max(t);
+            cameras.push(CameraHeader {
+                camera: cameras.len() as u32,
+                timestamp_ns: u64::try_from(t).unwrap_or(u64::MAX),
+                ..cam.clone()
+            });
+        }
+        pgms.extend(set.pgms);
+    }
+    Ok(FrameSet {
+        header: FrameSetHeader {
+            set_index,
+            pairing_error_ns: u64::try_from(hi - lo).unwrap_or(0),
+            cameras,
+            realtime_minus_monotonic_ns: Some(0),
+        },
+        pgms,
+    })
+}
+
+/// Frame period a board shows between two of its sets (camera 0's timestamps over its frame
+/// counter), if the sets are different frames.
+fn frame_period_ns(a: &FrameSet, b: &FrameSet) -> Option<u64> {
+    let (x, y) = (a.header.cameras.first()?, b.header.cameras.first()?);
+    let frames = y.sequence.checked_sub(x.sequence).filter(|n| *n > 0)?;
+    let dt_ns = y.timestamp_ns.checked_sub(x.timestamp_ns).filter(|d| *d > 0)?;
+    Some(dt_ns / frames)
+}
+
+/// The boards of one capture and how their sets are fetched and paired.
+struct Boards {
+    agent: ureq::Agent,
+    /// (name as given, URL) per board, in `--from` order.
+    boards: Vec<(String, String)>,
+    /// Pairing tolerance across boards; unused with one board.
+    tolerance_ns: i128,
+}
+
+impl Boards {
+    fn names(&self) -> Vec<String> {
+        self.boards.iter().map(|(b, _)| b.clone()).collect()
+    }
+
+    /// One set from every board, asked at the same time (so the frames are close in time);
+    /// the first failing board's error (it names the board).
+    fn fetch_each(&self) -> anyhow::Result<Vec<FrameSet>> {
+        std::thread::scope(|s| {
+            let handles: Vec<_> = self
+                .boards
+                .iter()
+                .map(|(board, url)| {
+                    let agent = &self.agent;
+                    s.spawn(move || fetch_with_retries(agent, url, board))
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| {
+                    h.join()
+                        .unwrap_or_else(|_| Err(anyhow!("a fetch thread panicked")))
+                })
+                .collect()
+        })
+    }
+}
+
+/// `DIR/cameras.csv` for a capture across boards: `camera,board,board_camera` per camera, so
+/// the folder says where each `camN/` came from. A folder holding sets of other boards (or of
+/// boards in another order) is refused instead of mixed.
+pub const CAMERAS_FILE: &str = "cameras.csv";
+
+fn cameras_csv(boards: &[String], counts: &[usize]) -> String {
+    let mut s = String::from("camera,board,board_camera\n");
+    let mut g = 0;
+    for (b, n) in boards.iter().zip(counts) {
+        for i in 0..*n {
+            s.push_str(&format!("{g},{b},{i}\n"));
+            g += 1;
+        }
+    }
+    s
 }
 
 /// One line naming what the board serves, e.g. `board 10.0.0.5: 2 cameras, 752x480 8-bit`.
@@ -378,13 +554,57 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "--board-cols/--board-rows must be at least 2 inner corners"
     );
     ensure!(args.timeout_s > 0.0, "--timeout-s must be positive");
-    let url = frameset_url(&args.from);
+    if let Some(t) = args.tolerance_ms {
+        ensure!(
+            t.is_finite() && t > 0.0,
+            "--tolerance-ms {t} must be a positive number of milliseconds"
+        );
+    }
+    for (i, b) in args.from.iter().enumerate() {
+        ensure!(
+            !args.from[..i].contains(b),
+            "--from {b} is given twice; give each board once"
+        );
+    }
     let agent = ureq::AgentBuilder::new()
         .timeout(Duration::from_secs_f64(args.timeout_s))
         .build();
+    let mut boards = Boards {
+        agent,
+        boards: args.from.iter().map(|b| (b.clone(), frameset_url(b))).collect(),
+        tolerance_ns: 0,
+    };
+    let multi = boards.boards.len() > 1;
     // Ask once before the session: an unreachable board or old firmware is said now, not
     // after the person has positioned the board and pressed Enter.
-    let first = fetch_with_retries(&agent, &url, &args.from)?;
+    let firsts = boards.fetch_each()?;
+    let counts: Vec<usize> = firsts.iter().map(|s| s.pgms.len()).collect();
+    if multi {
+        for (board, set) in args.from.iter().zip(&firsts) {
+            if set.header.realtime_minus_monotonic_ns.is_none() {
+                bail!("{}", PairError::NoClock { board: board.clone() });
+            }
+        }
+        // A second set per board shows the frame period: the default tolerance is half of it,
+        // as in the cluster's pairing.
+        boards.tolerance_ns = match args.tolerance_ms {
+            Some(t) => (t * 1e6) as i128,
+            None => {
+                let seconds = boards.fetch_each()?;
+                let period = firsts
+                    .iter()
+                    .zip(&seconds)
+                    .filter_map(|(a, b)| frame_period_ns(a, b))
+                    .min()
+                    .ok_or_else(|| {
+                        anyhow!(
+                            "cannot tell the cameras' frame period from two sets of each board (no newer frame came); give --tolerance-ms"
+                        )
+                    })?;
+                i128::from(period / 2)
+            }
+        };
+    }
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let board = Board {
         cols: args.board_cols,
@@ -400,8 +620,48 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "Enter saves a set, `q` + Enter stops".to_string()
     };
     let limit = args.count.map_or(String::new(), |n| format!(", up to {n} sets"));
-    println!("{}", describe_cameras(&args.from, &first.header));
-    println!("capturing from {url} into {}: {mode}{limit}", args.out.display());
+    let mut first_camera = 0;
+    for ((board, _), set) in boards.boards.iter().zip(&firsts) {
+        let n = set.pgms.len();
+        if multi {
+            println!(
+                "{} → cam{first_camera}..cam{}",
+                describe_cameras(board, &set.header),
+                first_camera + n - 1
+            );
+        } else {
+            println!("{}", describe_cameras(board, &set.header));
+        }
+        first_camera += n;
+    }
+    if multi {
+        println!(
+            "pairing the boards' frames on CLOCK_REALTIME within ±{:.3} ms",
+            boards.tolerance_ns as f64 / 1e6
+        );
+        println!("capturing into {}: {mode}{limit}", args.out.display());
+        let csv = cameras_csv(&args.from, &counts);
+        let path = args.out.join(CAMERAS_FILE);
+        match std::fs::read_to_string(&path) {
+            Ok(old) if old != csv => bail!(
+                "{} holds sets of other boards or another camera order ({}); use another --out",
+                args.out.display(),
+                path.display()
+            ),
+            Ok(_) => {}
+            Err(_) if next_index(&args.out) > 0 => bail!(
+                "{} holds sets without {CAMERAS_FILE} (from one board); use another --out",
+                args.out.display()
+            ),
+            Err(_) => crate::cmd::convert_params::write_atomically(&path, csv.as_bytes())?,
+        }
+    } else {
+        println!(
+            "capturing from {} into {}: {mode}{limit}",
+            boards.boards[0].1,
+            args.out.display()
+        );
+    }
     let mut index = next_index(&args.out);
     // Sets saved earlier without a timestamps file: rows for the new ones only would make a
     // replay skip the old ones, so the directory stays without (replay paces it at a set rate).
@@ -414,7 +674,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let mut saved = 0u64;
     let mut both = 0u64;
-    let mut last_set: Option<u64> = None;
+    let mut last_sets: Option<Vec<u64>> = None;
+    let mut refused = 0u64;
+    let mut refused_in_a_row = 0u32;
     let mut coverage: Vec<Coverage> = Vec::new();
     let mut camera_count: Option<usize> = None;
     let started = Instant::now();
@@ -441,27 +703,52 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 Ok(Key::Quit | Key::Eof) | Err(_) => break,
             }
         }
-        let set = fetch_with_retries(&agent, &url, &args.from)?;
+        let sets = boards.fetch_each()?;
         // The endpoint serves the newest set: asking faster than the cameras run repeats it.
-        if last_set == Some(set.header.set_index) {
+        let set_indices: Vec<u64> = sets.iter().map(|s| s.header.set_index).collect();
+        if last_sets.as_ref() == Some(&set_indices) {
             if !args.wand {
                 eprintln!(
                     "capture: set {} again (cameras slower than requests); skipped",
-                    set.header.set_index
+                    set_indices
+                        .iter()
+                        .map(u64::to_string)
+                        .collect::<Vec<_>>()
+                        .join("/")
                 );
             }
             continue;
         }
-        last_set = Some(set.header.set_index);
-        match camera_count {
-            None => camera_count = Some(set.pgms.len()),
-            Some(n) if n != set.pgms.len() => bail!(
-                "irtrackd on {} now sends {} cameras, earlier {n}",
-                args.from,
+        last_sets = Some(set_indices);
+        for ((board, _), (set, n)) in boards.boards.iter().zip(sets.iter().zip(&counts)) {
+            ensure!(
+                set.pgms.len() == *n,
+                "irtrackd on {board} now sends {} cameras, earlier {n}",
                 set.pgms.len()
-            ),
-            Some(_) => {}
+            );
         }
+        let set = if multi {
+            match pair_sets(&boards.names(), sets, boards.tolerance_ns) {
+                Ok(set) => {
+                    refused_in_a_row = 0;
+                    set
+                }
+                Err(e) => {
+                    // Never saved mismatched: said, counted, and asked again.
+                    refused += 1;
+                    refused_in_a_row += 1;
+                    ensure!(
+                        refused_in_a_row < MAX_REFUSED_IN_A_ROW,
+                        "{MAX_REFUSED_IN_A_ROW} sets in a row refused, the last: {e}; are the boards' clocks synchronised (docs/cluster.md, \"Clocks\")?"
+                    );
+                    eprintln!("capture: set refused, not saved: {e}");
+                    continue;
+                }
+            }
+        } else {
+            sets.into_iter().next().ok_or_else(|| anyhow!("no set"))?
+        };
+        camera_count = Some(set.pgms.len());
         save_set(&args.out, index, &set)?;
         if write_timestamps {
             append_timestamps(&args.out, index, &set)?;
@@ -471,8 +758,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         index += 1;
         if args.wand {
             if saved.is_multiple_of(50) || args.count == Some(saved) {
+                let refusals = if multi {
+                    format!(", {refused} refused")
+                } else {
+                    String::new()
+                };
                 println!(
-                    "{saved} sets ({:.1} sets/s), last pairing error {} µs",
+                    "{saved} sets ({:.1} sets/s), last pairing error {} µs{refusals}",
                     saved as f64 / started.elapsed().as_secs_f64().max(1e-9),
                     set.header.pairing_error_ns / 1000
                 );
@@ -484,11 +776,22 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             both += 1;
         }
         print!("{}", report(saved, &name, &found, &coverage, both));
+        if multi {
+            println!(
+                "boards paired within {} µs ({refused} sets refused so far)",
+                set.header.pairing_error_ns / 1000
+            );
+        }
         std::io::stdout().flush().ok();
     }
+    let refusals = if multi {
+        format!(" ({refused} refused: boards not paired)")
+    } else {
+        String::new()
+    };
     match camera_count {
         Some(n) => println!(
-            "saved {saved} sets into {}/cam0..cam{}",
+            "saved {saved} sets into {}/cam0..cam{}{refusals}",
             args.out.display(),
             n.saturating_sub(1)
         ),
@@ -565,6 +868,46 @@ mod tests {
         assert!(e(wrong.as_bytes()).contains("PGM is 8x4, header says 9x4"));
         let swapped = text.replacen("\"camera\":0", "\"camera\":1", 1);
         assert!(e(swapped.as_bytes()).contains("in order"));
+    }
+
+    /// Board b's monotonic clock started at another time; its realtime difference puts its
+    /// frame 2 ms after board a's. Cameras are numbered a's first, then b's.
+    #[test]
+    fn pairs_boards_on_the_realtime_clock_and_refuses_offsets() {
+        let mut a = FrameSet::parse(&body(2, 8, 4)).unwrap(); // timestamps 1000, 1001
+        let mut b = FrameSet::parse(&body(1, 8, 4)).unwrap();
+        a.header.realtime_minus_monotonic_ns = Some(10_000_000_000);
+        b.header.cameras[0].timestamp_ns = 6_002_001_000;
+        b.header.realtime_minus_monotonic_ns = Some(4_000_000_000);
+        let names = ["a".to_string(), "b".to_string()];
+        let paired = pair_sets(&names, vec![a.clone(), b.clone()], 4_166_666).unwrap();
+        let cams = &paired.header.cameras;
+        assert_eq!(cams.iter().map(|c| c.camera).collect::<Vec<_>>(), [0, 1, 2]);
+        assert_eq!(
+            cams.iter().map(|c| c.timestamp_ns).collect::<Vec<_>>(),
+            [10_000_001_000, 10_000_001_001, 10_002_001_000]
+        );
+        assert_eq!(paired.header.pairing_error_ns, 2_000_000);
+        assert_eq!(paired.pgms[2], b.pgms[0]);
+        assert_eq!(paired.pgms[1], a.pgms[1]);
+
+        let e = pair_sets(&names, vec![a.clone(), b.clone()], 1_000_000).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "board b's frames are +2.000 ms from board a's (tolerance 1.000 ms, CLOCK_REALTIME)"
+        );
+        // The other way round the offset is negative.
+        let e = pair_sets(&["b".into(), "a".into()], vec![b.clone(), a.clone()], 1_000_000).unwrap_err();
+        assert!(e.to_string().starts_with("board a's frames are -2.000 ms"), "{e}");
+        b.header.realtime_minus_monotonic_ns = None;
+        assert_eq!(
+            pair_sets(&names, vec![a, b], 4_166_666).unwrap_err(),
+            PairError::NoClock { board: "b".into() }
+        );
+        assert_eq!(
+            cameras_csv(&names, &[2, 1]),
+            "camera,board,board_camera\n0,a,0\n1,a,1\n2,b,0\n"
+        );
     }
 
     #[test]
