@@ -404,7 +404,7 @@ fn board_set(
 
 /// Two boards of one camera each (the simulated 90° rig's cameras): sets are paired on the
 /// realtime clock, numbered board by board, a set whose boards are 6 ms apart (tolerance: half
-/// of 8.33 ms) is refused and not saved, and the folder is what `calibrate` reads.
+/// of 8.33 ms) is refused and not saved, and `calibrate` runs on the folder.
 #[test]
 fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
     let dir = scratch("boards");
@@ -421,7 +421,7 @@ fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
         &rig,
         &board,
         &PoseConfig {
-            count: 3,
+            count: 4,
             seed: 4,
             ..Default::default()
         },
@@ -442,7 +442,7 @@ fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
     let size = (size.width_px, size.height_px);
     let view = |c: usize, v: usize| std::fs::read(&set.files[c][v]).unwrap();
     // Per board: two probe sets (frames 0, 1: the frame period), a set where B's frame is 6 ms
-    // after A's (refused), then three sets 1 ms apart.
+    // after A's (refused), then four sets 1 ms apart.
     let responses = |b: bool| -> Vec<(u16, &'static str, Vec<u8>)> {
         let c = usize::from(b);
         let mut r = vec![
@@ -450,7 +450,7 @@ fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
             board_set(b, 1, 0, &[view(c, 0)], size),
             board_set(b, 5, if b { 6_000_000 } else { 0 }, &[view(c, 0)], size),
         ];
-        for v in 0..3 {
+        for v in 0..4 {
             r.push(board_set(
                 b,
                 6 + v as u64,
@@ -475,13 +475,13 @@ fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
         "--every",
         "0.05",
         "--count",
-        "3",
+        "4",
     ]);
     let (stdout, stderr) = text(&o);
     print!("{stdout}{stderr}");
     assert!(o.status.success(), "{stdout}\n{stderr}");
-    assert_eq!(server_a.join().unwrap(), 6);
-    assert_eq!(server_b.join().unwrap(), 6);
+    assert_eq!(server_a.join().unwrap(), 7);
+    assert_eq!(server_b.join().unwrap(), 7);
     assert!(
         stdout.contains(&format!(
             "board {addr_a}: 1 camera, {}x{} 8-bit → cam0..cam0",
@@ -502,25 +502,25 @@ fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
         1,
         "{stderr}"
     );
-    for v in 0..3 {
+    for v in 0..4 {
         for c in 0..2 {
             let saved = std::fs::read(out.join(format!("cam{c}/{v:06}.pgm"))).unwrap();
             assert!(saved == view(c, v), "cam{c} set {v} is not board {c}'s view {v}");
         }
     }
-    assert!(!out.join("cam0/000003.pgm").exists());
+    assert!(!out.join("cam0/000004.pgm").exists());
     assert_eq!(
         stdout.matches("cam1 board found (54 corners)").count(),
-        3,
+        4,
         "{stdout}"
     );
     assert_eq!(
         stdout.matches("boards paired within 1000 µs").count(),
-        3,
+        4,
         "{stdout}"
     );
     assert!(
-        stdout.contains("saved 3 sets into") && stdout.contains("(1 refused"),
+        stdout.contains("saved 4 sets into") && stdout.contains("(1 refused"),
         "{stdout}"
     );
     assert_eq!(
@@ -535,11 +535,36 @@ fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
         "{ts}"
     );
 
-    // calibrate's folder reader takes the folder as it is: two cameras, three views each.
+    // calibrate takes the folder as it is: two cameras, four views each (too few for a good
+    // calibration, so --accept-poor; what is checked is that it reads and solves the folder).
     let images = irtrack_host_tools::calib::input::discover(&out, None).unwrap();
     assert_eq!(images.cameras.len(), 2);
-    assert_eq!(images.complete_views, ["000000", "000001", "000002"]);
+    assert_eq!(images.complete_views, ["000000", "000001", "000002", "000003"]);
     assert!(images.incomplete_views.is_empty());
+    let calib = dir.join("calib");
+    let o = host_tools(&[
+        "calibrate",
+        "--images",
+        p(&out),
+        "--board-cols",
+        "9",
+        "--board-rows",
+        "6",
+        "--square-mm",
+        "25",
+        "--out-dir",
+        p(&calib),
+        "--accept-poor",
+    ]);
+    let (stdout, stderr) = text(&o);
+    assert!(o.status.success(), "{stdout}\n{stderr}");
+    let said = format!("{stdout}{stderr}");
+    assert!(
+        said.contains("2 cameras, 4 complete views")
+            && said.contains("cam1 (cam1/): board found in 4 of 4 images"),
+        "{said}"
+    );
+    assert!(calib.join("rig.irp").is_file() && calib.join("rig.yaml").is_file());
 }
 
 /// Boards that do not pair are never saved: ten refused sets in a row end the capture naming the
