@@ -165,13 +165,20 @@ const MAX_REFUSED_IN_A_ROW: u32 = 10;
 #[derive(Debug, Clone, PartialEq)]
 pub enum PairError {
     /// This board's set has no realtime clock difference (irtrackd older than the field).
-    NoClock { board: String },
+    NoClock {
+        /// The board as given to `--from`.
+        board: String,
+    },
     /// This board's frames are `offset_ns` from the first board's (CLOCK_REALTIME), beyond
     /// the tolerance.
     Offset {
+        /// The board as given to `--from`.
         board: String,
+        /// The first board, whose first camera the others are measured from.
         reference: String,
+        /// This board's first camera minus the reference's, CLOCK_REALTIME.
         offset_ns: i128,
+        /// The largest offset allowed.
         tolerance_ns: i128,
     },
 }
