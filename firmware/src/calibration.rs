@@ -13,7 +13,9 @@ pub const DEFAULT_MAX_AGE_DAYS: f64 = 180.0;
 /// One named figure of the record.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FigureReport {
+    /// The figure's name; it carries the unit (e.g. `pivot_rms_mm`).
     pub name: String,
+    /// Its value, in the unit the name gives.
     pub value: f64,
 }
 
@@ -22,16 +24,21 @@ pub struct FigureReport {
 pub struct CalibrationStatus {
     /// `wand`, `checkerboard`, `wand+checkerboard`, `pivot`.
     pub method: String,
+    /// When the calibration was computed, Unix seconds.
     pub calibrated_unix_s: u64,
+    /// The tool that computed it, e.g. `host-tools 0.1.0`.
     pub tool_version: String,
     /// `good` or `poor`.
     pub verdict: &'static str,
     /// The tool's verdict in plain words (empty when good).
     pub summary: String,
+    /// Reprojection RMS per camera (px), in camera order (empty if the method has none).
     pub rms_px: Vec<f64>,
+    /// The record's other figures (length errors, coverage, ...).
     pub figures: Vec<FigureReport>,
     /// Days since `calibrated_unix_s` when the status was built (negative clock skew reads 0).
     pub age_days: f64,
+    /// Age beyond which `warning` asks for a check (`[params] calibration_max_age_days`).
     pub max_age_days: f64,
     /// Why the operator should look at the calibration, if they should.
     pub warning: Option<String>,

@@ -42,6 +42,7 @@ const R: Ordering = Ordering::Relaxed;
 /// A parameter set ready for the loop.
 #[derive(Debug)]
 pub struct ActiveParams {
+    /// The validated rig parameters (cameras, registration, tools).
     pub rig: RigParams,
     /// Header CRC of the blob (the set's short id in records).
     pub crc: u32,
@@ -55,6 +56,7 @@ pub struct ParamsHandle {
 }
 
 impl ParamsHandle {
+    /// A handle with no set installed yet (the loop tracks nothing until one is).
     pub fn new() -> Self {
         Self::default()
     }
@@ -67,10 +69,13 @@ impl ParamsHandle {
         }
     }
 
+    /// Count of installs so far; the loop compares it with the one it last saw to notice a
+    /// new set without taking the lock.
     pub fn generation(&self) -> u64 {
         self.generation.load(Ordering::Acquire)
     }
 
+    /// The set installed last, if any.
     pub fn current(&self) -> Option<Arc<ActiveParams>> {
         self.current.lock().ok().and_then(|g| g.clone())
     }
@@ -214,6 +219,9 @@ pub trait ObservationSink: Send {
 }
 
 impl Engine {
+    /// A loop over `source` that tracks with the set in `params`, publishes each record to
+    /// `out` and its counters to `status`; a set whose processing exceeds `deadline` counts
+    /// as late. Allocates the frame-set buffers once, here.
     pub fn new(
         source: Box<dyn FrameSource>,
         tracker_cfg: TrackerConfig,
@@ -904,6 +912,7 @@ impl Engine {
         s
     }
 
+    /// The frame source the loop reads.
     pub fn source(&self) -> &dyn FrameSource {
         self.source.as_ref()
     }

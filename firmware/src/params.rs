@@ -22,6 +22,7 @@ pub struct RigShape {
 }
 
 impl RigShape {
+    /// The shape of the frames in `set` (the running source's).
     pub fn of_set(set: &FrameSet) -> Self {
         Self {
             image_sizes_px: set.frames.iter().map(|f| (f.width_px, f.height_px)).collect(),
@@ -88,6 +89,9 @@ impl ParamService {
         &self.status
     }
 
+    /// A service that stores accepted sets in `store`, checks them against the source's
+    /// `shape` and installs them into `handle`; unsigned sets are accepted until
+    /// [`ParamService::with_signature_policy`] says otherwise.
     pub fn new(
         store: ParamStore,
         shape: RigShape,
@@ -148,10 +152,12 @@ impl ParamService {
         self
     }
 
+    /// Which signatures a pushed set needs.
     pub fn signature_policy(&self) -> SignaturePolicy {
         self.policy
     }
 
+    /// Where accepted sets are handed to the loop.
     pub fn handle(&self) -> &Arc<ParamsHandle> {
         &self.handle
     }

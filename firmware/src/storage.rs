@@ -11,16 +11,21 @@ use std::path::{Path, PathBuf};
 
 use crate::error::{FirmwareError, Result};
 
+/// The active parameter set's file in the state directory.
 pub const ACTIVE_FILE: &str = "params.irp";
+/// The set before it, kept for rollback.
 pub const PREVIOUS_FILE: &str = "params.prev.irp";
 
 /// Which stored file a blob came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum StoredSlot {
+    /// [`ACTIVE_FILE`]: the set in use.
     Active,
+    /// [`PREVIOUS_FILE`]: the set before it, for rollback.
     Previous,
 }
 
+/// The parameter files in the state directory, replaced atomically (see the module docs).
 #[derive(Debug, Clone)]
 pub struct ParamStore {
     dir: PathBuf,
@@ -41,10 +46,12 @@ impl ParamStore {
         Ok(Self { dir })
     }
 
+    /// The state directory.
     pub fn dir(&self) -> &Path {
         &self.dir
     }
 
+    /// The file that holds `slot`'s blob.
     pub fn path(&self, slot: StoredSlot) -> PathBuf {
         self.dir.join(match slot {
             StoredSlot::Active => ACTIVE_FILE,

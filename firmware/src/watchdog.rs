@@ -16,6 +16,8 @@ pub fn notify_ready(status_line: &str) {
     }
 }
 
+/// Tells systemd the service is shutting down, so a slow stop is not taken for a hang. No-op
+/// outside systemd.
 pub fn notify_stopping() {
     let _ = sd_notify::notify(false, &[NotifyState::Stopping]);
 }

@@ -32,6 +32,7 @@ pub enum Role {
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ClusterConfig {
+    /// What this board does in the cluster (standalone by default).
     #[serde(default)]
     pub role: Role,
     /// The rig's name (the parameter set's rig id); part of every key expression.
@@ -208,14 +209,19 @@ impl ClusterConfig {
         (ms * 1e6) as u64
     }
 
+    /// Solver: timestamp tolerance (ns); `tolerance_ms`, else half a frame period.
     pub fn tolerance_ns(&self) -> u64 {
         self.tolerance_ms.map_or(self.period_ns() / 2, Self::ms_ns)
     }
 
+    /// Solver: how long after its first observation a set closes (ns); `set_deadline_ms`,
+    /// else two frame periods.
     pub fn set_deadline_ns(&self) -> u64 {
         self.set_deadline_ms.map_or(2 * self.period_ns(), Self::ms_ns)
     }
 
+    /// Solver: largest clock offset a board may have before it is faulted (ns);
+    /// `max_clock_offset_ms`, else the tolerance.
     pub fn max_clock_offset_ns(&self) -> u64 {
         self.max_clock_offset_ms.map_or(self.tolerance_ns(), Self::ms_ns)
     }

@@ -18,12 +18,15 @@ pub enum Led {
 }
 
 impl Led {
+    /// Every LED, in the order the driver updates them.
     pub const ALL: [Led; 4] = [Led::Run, Led::Track, Led::Robot, Led::Fault];
 }
 
 /// A back end that can switch LEDs. Implementations must be quick (no sleeping).
 pub trait StatusLeds: Send {
+    /// Switches `led` on or off.
     fn set(&mut self, led: Led, on: bool) -> Result<(), LedError>;
+    /// The back end in a few words, for the log and `/status`.
     fn describe(&self) -> String;
 }
 
@@ -40,10 +43,17 @@ impl StatusLeds for NoLeds {
     }
 }
 
+/// Errors of the LED back ends.
 #[derive(Debug, thiserror::Error)]
 pub enum LedError {
+    /// A GPIO line could not be opened or driven.
     #[error("GPIO {what}: {reason}")]
-    Gpio { what: String, reason: String },
+    Gpio {
+        /// The chip, line or operation that failed.
+        what: String,
+        /// The system's reason.
+        reason: String,
+    },
 }
 
 pub mod driver;

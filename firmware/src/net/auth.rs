@@ -38,6 +38,7 @@ const MAX_PAUSE: Duration = Duration::from_secs(300);
 /// an address without a wrong password, and loopback, are still checked, so the ceiling can
 /// never lock every address out (docs/security.md, "Sign-in throttle").
 pub const GLOBAL_WRONG_MAX: usize = 30;
+/// The sliding window [`GLOBAL_WRONG_MAX`] counts over.
 pub const GLOBAL_WINDOW: Duration = Duration::from_secs(60);
 /// Addresses whose wrong passwords are remembered at once (oldest forgotten first).
 const MAX_TRACKED_ADDRESSES: usize = 4096;
@@ -84,10 +85,14 @@ pub enum Refusal {
     /// Credentials were sent but are wrong.
     BadCredentials,
     /// Too many wrong passwords in a row: no password is checked for this many seconds.
-    Paused { retry_after_s: u64 },
+    Paused {
+        /// Seconds until a password is checked again (the `Retry-After` value).
+        retry_after_s: u64,
+    },
 }
 
 impl Refusal {
+    /// The answer body: what was refused and what to do about it.
     pub fn message(self) -> String {
         match self {
             Refusal::NotConfigured => "no operator password is configured, so changes are refused: run \
@@ -292,6 +297,7 @@ impl OperatorAuth {
         }
     }
 
+    /// An operator password hash is configured; without one every change is refused.
     pub fn configured(&self) -> bool {
         self.hash.is_some()
     }
@@ -325,6 +331,7 @@ impl OperatorAuth {
         token
     }
 
+    /// Ends the session `token` names (sign-out); unknown tokens are ignored.
     pub fn close_session(&self, token: &str) {
         if let Ok(mut s) = self.sessions.lock() {
             s.remove(token);

@@ -30,13 +30,13 @@ pub(crate) fn json_line<T: Serialize>(v: &T) -> String {
     serde_json::to_string(v).unwrap_or_else(|_| "null".into()) + "\n"
 }
 
+/// Largest request body (tuning and login JSON are a few hundred bytes).
+pub const MAX_REQUEST_BODY_BYTES: usize = 64 * 1024;
+
 /// Content-Security-Policy of every answer: the set-up page loads its scripts, styles and
 /// images only from the board (`blob:`/`data:` images for the previews the page decodes
 /// itself) and talks only to the board; no other page may frame it. `inline_script_hashes`:
 /// base64 SHA-256 of each inline script the page has (its import map), allowed by hash.
-/// Largest request body (tuning and login JSON are a few hundred bytes).
-pub const MAX_REQUEST_BODY_BYTES: usize = 64 * 1024;
-
 pub fn content_security_policy(inline_script_hashes: &[String]) -> String {
     let inline: String = inline_script_hashes
         .iter()

@@ -33,6 +33,7 @@ type Shared = State<Arc<StatusService>>;
 
 /// Preview rate a new subscription gets, and the most a viewer may ask for.
 pub const DEFAULT_PREVIEW_FPS: f64 = 5.0;
+/// The highest preview rate a viewer may ask for; higher requests are clamped to it.
 pub const MAX_PREVIEW_FPS: f64 = 30.0;
 /// Position messages per second at most.
 pub const MAX_POSITIONS_PER_S: f64 = 30.0;

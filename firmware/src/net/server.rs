@@ -227,6 +227,8 @@ pub async fn serve_router(
     while conns.join_next().await.is_some() {}
 }
 
+/// Serves the status endpoints from `status` alone (no robot control, no operator password, no live view) until
+/// `shutdown` resolves.
 pub async fn serve(listener: TcpListener, status: Arc<SharedStatus>, shutdown: impl Future<Output = ()>) {
     StatusService::new(status).serve(listener, shutdown).await;
 }

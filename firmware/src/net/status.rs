@@ -39,7 +39,9 @@ pub struct RobotControl {
 
 /// Everything the status listener serves from.
 pub struct StatusService {
+    /// The counters and state `/status` reports.
     pub status: Arc<SharedStatus>,
+    /// What the robot control requests act on (none by default).
     pub control: RobotControl,
     /// Operator credential and sessions (every change request needs a sign-in).
     pub auth: Arc<OperatorAuth>,
@@ -92,11 +94,13 @@ impl StatusService {
         self
     }
 
+    /// Lets the control requests act on the robot link.
     pub fn with_control(mut self, control: RobotControl) -> Self {
         self.control = control;
         self
     }
 
+    /// The operator credential that change requests are checked against.
     pub fn with_auth(mut self, auth: OperatorAuth) -> Self {
         self.auth = Arc::new(auth);
         self
@@ -123,6 +127,7 @@ impl StatusService {
         self
     }
 
+    /// The safety workspace box (min, max corners, mm) to draw in the 3-D view.
     pub fn with_workspace(mut self, workspace_mm: Option<([f64; 3], [f64; 3])>) -> Self {
         self.workspace_mm = workspace_mm;
         self

@@ -30,7 +30,9 @@ pub const TOOLS_REQUEST: &[u8] = b"tools\n";
 /// One set in the broadcast ring: the main record and, in 6-DOF mode, every tool's record.
 #[derive(Debug, Clone, Copy)]
 pub struct StreamItem {
+    /// The set's position record, as the loop published it (what every client gets).
     pub main: PositionRecord,
+    /// Every tool's record, in 6-DOF mode; sent to clients that asked with [`TOOLS_REQUEST`].
     pub tools: Option<ToolSet>,
 }
 
@@ -40,7 +42,9 @@ pub const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
 /// Wire format of a stream port.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum StreamFormat {
+    /// Newline-delimited JSON, one record per line (docs/stream-protocol.md).
     Ndjson,
+    /// Fixed-size binary frames (docs/stream-protocol.md).
     Binary,
 }
 
@@ -111,6 +115,7 @@ impl StreamHub {
         self
     }
 
+    /// A receiver of every set published from now on (a slow one loses the oldest).
     pub fn subscribe(&self) -> broadcast::Receiver<StreamItem> {
         self.tx.subscribe()
     }

@@ -52,8 +52,11 @@ impl OutputsConfig {
 /// What outputs read: the latest-value slot, the active parameter set (for the models) and
 /// the loop's publication counter (for skipped records).
 pub struct Feed {
+    /// The loop's latest record.
     pub slot: watch::Receiver<Option<PositionRecord>>,
+    /// The active parameter set (tool models for NatNet's model definitions).
     pub params: Arc<ParamsHandle>,
+    /// The loop's counters (publication count, to count skipped records).
     pub status: Arc<SharedStatus>,
     /// The loop's per-tool records (every tool as its own body); `None`: main record only.
     pub tools: Option<watch::Receiver<crate::engine::ToolSet>>,
@@ -67,6 +70,7 @@ pub struct Outputs {
     #[cfg(feature = "ros2")]
     ros2: Option<ros2::Ros2Output>,
     ros2_cfg: ros2::Ros2Config,
+    /// Per-output counters, shared with `/status`.
     pub stats: OutputsStats,
 }
 

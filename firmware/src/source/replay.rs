@@ -32,7 +32,9 @@ pub enum ReplaySpeed {
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ReplayConfig {
+    /// Recording directory: `cam0/`, `cam1/`, ... with `NNNNNN.pgm` frames.
     pub dir: PathBuf,
+    /// How fast the sets are delivered.
     #[serde(default)]
     pub speed: ReplaySpeed,
     /// Start again at the first frame after the last one instead of ending.
@@ -113,6 +115,8 @@ fn frame_path(dir: &Path, camera: usize, frame: u64) -> PathBuf {
 }
 
 impl ReplaySource {
+    /// Finds the camera directories and the complete sets under `cfg.dir`; refuses a
+    /// directory without any.
     pub fn open(cfg: &ReplayConfig) -> Result<Self, SourceError> {
         let dir = &cfg.dir;
         let mut cameras = 0;
@@ -255,6 +259,7 @@ impl ReplaySource {
         self.sets.len()
     }
 
+    /// True when no complete set was found.
     pub fn is_empty(&self) -> bool {
         self.sets.is_empty()
     }

@@ -39,6 +39,7 @@ pub struct NatNetConfig {
     /// Command socket (`host:port`); NatNet's port is 1510.
     #[serde(default = "default_command")]
     pub command: String,
+    /// How frames reach clients: multicast (default) or unicast.
     #[serde(default)]
     pub transport: Transport,
     /// Multicast group for frames (transport "multicast").
@@ -100,12 +101,17 @@ impl Default for NatNetConfig {
 /// A checked [`NatNetConfig`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct NatNetPlan {
+    /// Address the command socket binds.
     pub command: SocketAddr,
     /// Group and data port, for transport "multicast".
     pub multicast: Option<(Ipv4Addr, u16)>,
+    /// Interface multicast frames leave by (`0.0.0.0`: the routing table's choice).
     pub interface: Ipv4Addr,
+    /// Output axes.
     pub axes: Axes,
+    /// A unicast client not heard from for this long gets no more frames.
     pub unicast_timeout: std::time::Duration,
+    /// Unicast clients served at once.
     pub max_clients: usize,
 }
 

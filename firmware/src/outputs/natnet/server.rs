@@ -96,6 +96,7 @@ impl NatNetServer {
         self
     }
 
+    /// The address the command socket is bound to (the real port when 0 was asked for).
     pub fn local_addr(&self) -> SocketAddr {
         self.local
     }

@@ -7,17 +7,29 @@ use std::net::Ipv4Addr;
 use crate::error::{FirmwareError, Result};
 use crate::outputs::scene::{Models, SceneFrame};
 
+/// Client → server: connect (and ping); answered with `NAT_SERVERINFO`.
 pub const NAT_CONNECT: u16 = 0;
+/// Server → client: the server's name, versions and data port ([`ServerInfo`]).
 pub const NAT_SERVERINFO: u16 = 1;
+/// Client → server: a command string.
 pub const NAT_REQUEST: u16 = 2;
+/// Server → client: the answer to a `NAT_REQUEST`.
 pub const NAT_RESPONSE: u16 = 3;
+/// Client → server: ask for the model definitions.
 pub const NAT_REQUEST_MODELDEF: u16 = 4;
+/// Server → client: the model definitions (marker sets, rigid bodies).
 pub const NAT_MODELDEF: u16 = 5;
+/// Client → server: ask for the latest frame.
 pub const NAT_REQUEST_FRAMEOFDATA: u16 = 6;
+/// Server → client: one frame of tracking data.
 pub const NAT_FRAMEOFDATA: u16 = 7;
+/// Either way: a free-text message.
 pub const NAT_MESSAGESTRING: u16 = 8;
+/// Client → server: the client leaves (unicast: stop sending to it).
 pub const NAT_DISCONNECT: u16 = 9;
+/// Client → server: still here (unicast clients not heard from time out).
 pub const NAT_KEEPALIVE: u16 = 10;
+/// Server → client: the request's message id is not one the server answers.
 pub const NAT_UNRECOGNIZED_REQUEST: u16 = 100;
 
 /// The protocol version irtrackd speaks (the frame layout below depends on it).
@@ -33,8 +45,11 @@ const DESC_RIGIDBODY: u32 = 1;
 
 /// Labelled-marker parameter bits.
 pub const MARKER_POINT_CLOUD_SOLVED: u16 = 0x02;
+/// The marker's position comes from a solved model (a tool's pose).
 pub const MARKER_MODEL_SOLVED: u16 = 0x04;
+/// The marker belongs to a model (a tool's LED).
 pub const MARKER_HAS_MODEL: u16 = 0x08;
+/// The marker belongs to no model.
 pub const MARKER_UNLABELED: u16 = 0x10;
 
 /// Diameter reported for every marker (the LEDs' size is not measured), metres.
@@ -43,6 +58,7 @@ pub const MARKER_SIZE_M: f32 = 0.005;
 /// A request from a client.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Request<'a> {
+    /// Message id (`NAT_CONNECT`, `NAT_REQUEST`, ...).
     pub id: u16,
     /// Payload bytes (for `NAT_REQUEST`, a command string).
     pub payload: &'a [u8],
@@ -154,8 +170,11 @@ fn finish(out: &mut [u8]) -> Result<()> {
 /// What the server says about itself in `NAT_SERVERINFO`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ServerInfo {
+    /// Application name shown by clients (`irtrackd`).
     pub app_name: String,
+    /// Application version, four bytes (major, minor, build, revision).
     pub app_version: [u8; 4],
+    /// UDP port of the frame data (`[outputs.natnet] data_port`).
     pub data_port: u16,
     /// The multicast group frames go to; `None` when frames go to each client (unicast).
     pub multicast: Option<Ipv4Addr>,
