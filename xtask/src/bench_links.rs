@@ -94,12 +94,12 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         if o.release { "release" } else { "dev" }
     );
     println!(
-        "| link | targets sent | latency p50 / p99 / p99.9 (ms) | of which protocol wait p50 / p99 (ms) | replies later than the cycle | tracking error mean / max (mm) | jerk RMS / max (m/s³) |"
+        "| link | targets sent | latency p50 / p99 / p99.9 (ms) | of which protocol wait p50 / p99 / max (ms) | replies later than the cycle | tracking error mean / max (mm) | jerk RMS / max (m/s³) |"
     );
     println!("|---|---|---|---|---|---|---|");
     for r in &rows {
         println!(
-            "| {} | {} | {:.2} / {:.2} / {:.2} | {:.2} / {:.2} | {} | {:.1} / {:.1} | {:.0} / {:.0} |",
+            "| {} | {} | {:.2} / {:.2} / {:.2} | {:.2} / {:.2} / {:.2} | {} | {:.1} / {:.1} | {:.0} / {:.0} |",
             r.kind,
             r.latency.n,
             r.latency.p50_us as f64 / 1e3,
@@ -107,6 +107,7 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
             r.latency.p999_us as f64 / 1e3,
             r.latency.wait_p50_us as f64 / 1e3,
             r.latency.wait_p99_us as f64 / 1e3,
+            r.latency.wait_max_us as f64 / 1e3,
             r.late,
             r.err_mean_mm,
             r.err_max_mm,
@@ -214,6 +215,7 @@ pub struct Latency {
     /// Protocol wait: published → on the wire.
     pub wait_p50_us: u64,
     pub wait_p99_us: u64,
+    pub wait_max_us: u64,
 }
 
 /// p50 and p99 (µs) of one processing-loop stage, read from irtrackd's `/status`.
@@ -238,7 +240,8 @@ pub struct Row {
     pub viewers: usize,
     pub latency: Latency,
     pub split: LoopSplit,
-    late: String,
+    /// EGM/RSI: replies later than the cycle; socket: robot-sim's tick timing.
+    pub late: String,
     err_mean_mm: f64,
     err_max_mm: f64,
     jerk_rms_m_s3: f64,
@@ -497,7 +500,26 @@ fn run_one(
     let latency = parse_latency(&log)
         .with_context(|| format!("no latency line from irtrackd in {}", err_log.display()))?;
     let late = if kind == "socket" {
-        "– (no cycle)".to_string()
+        // The socket robot has no cycle; its tick timing says whether it answered late.
+        match wait_for_line(&sim_out, "robot-sim summary socket", Duration::from_secs(2)) {
+            Ok(s) => {
+                let f = |k: &str| {
+                    s.split_whitespace()
+                        .find_map(|w| w.strip_prefix(k))
+                        .and_then(|v| v.parse::<u64>().ok())
+                        .unwrap_or(0)
+                };
+                format!(
+                    "– (no cycle); robot-sim's 4 ms ticks woke late p50 {} / p99 {} / max {} µs, {} of {} over 1 ms",
+                    f("tick_late_p50_us="),
+                    f("tick_late_p99_us="),
+                    f("tick_late_max_us="),
+                    f("over_1ms="),
+                    f("ticks=")
+                )
+            }
+            Err(_) => "– (no cycle)".to_string(),
+        }
     } else {
         let s = wait_for_line(&sim_out, "robot-sim summary", Duration::from_secs(5))?;
         let f = |k: &str| {
@@ -550,6 +572,8 @@ fn parse_latency(log: &str) -> Option<Latency> {
         p999_us: f("p999_us=")?,
         wait_p50_us: f("wait_p50_us=")?,
         wait_p99_us: f("wait_p99_us=")?,
+        // Older irtrackd logs lack it.
+        wait_max_us: f("wait_max_us=").unwrap_or(0),
     })
 }
 
