@@ -331,6 +331,14 @@ impl PositionRecord {
 
     /// Writes the binary frame into `out` (layout in docs/stream-protocol.md).
     pub fn encode_binary(&self, out: &mut [u8; BINARY_FRAME_LEN]) {
+        self.write_common(&mut out[..COMMON_END], BINARY_MAGIC, BINARY_VERSION, BINARY_PAYLOAD_LEN);
+        seal(&mut out[..]);
+    }
+
+    /// Bytes 0..100 shared by the position frame and the per-tool frame: the header with
+    /// `magic`, `version` and `payload_len`, then every field of the record. The caller appends
+    /// its own fields (if any) and the CRC ([`seal`]).
+    fn write_common(&self, out: &mut [u8], magic: [u8; 4], version: u8, payload_len: usize) {
         let mut flags = 0u8;
         if self.position_mm.is_some() {
             flags |= FLAG_POSITION;
@@ -341,10 +349,10 @@ impl PositionRecord {
         if self.world_frame {
             flags |= FLAG_WORLD_FRAME;
         }
-        out[0..4].copy_from_slice(&BINARY_MAGIC);
-        out[4] = BINARY_VERSION;
+        out[0..4].copy_from_slice(&magic);
+        out[4] = version;
         out[5] = flags;
-        out[6..8].copy_from_slice(&(BINARY_PAYLOAD_LEN as u16).to_le_bytes());
+        out[6..8].copy_from_slice(&(payload_len as u16).to_le_bytes());
         out[8..16].copy_from_slice(&self.frame.to_le_bytes());
         out[16..24].copy_from_slice(&self.capture_ts_ns.to_le_bytes());
         let pos = self.position_mm.unwrap_or([0.0; 3]);
@@ -361,48 +369,11 @@ impl PositionRecord {
         out[90..92].copy_from_slice(&[0, 0]);
         out[92..96].copy_from_slice(&self.latency_us.to_le_bytes());
         out[96..100].copy_from_slice(&self.params_crc.to_le_bytes());
-        let mut c = Crc32::new();
-        c.update(&out[..100]);
-        out[100..104].copy_from_slice(&c.finish().to_le_bytes());
     }
 
-    /// The binary frame as a new array.
-    pub fn to_binary(&self) -> [u8; BINARY_FRAME_LEN] {
-        let mut out = [0u8; BINARY_FRAME_LEN];
-        self.encode_binary(&mut out);
-        out
-    }
-
-    /// Decodes one binary frame (exactly [`BINARY_FRAME_LEN`] bytes).
-    pub fn decode_binary(bytes: &[u8]) -> Result<PositionRecord> {
-        if bytes.len() != BINARY_FRAME_LEN {
-            return Err(binary_err(format!(
-                "frame is {} bytes, expected {BINARY_FRAME_LEN}",
-                bytes.len()
-            )));
-        }
-        if bytes[0..4] != BINARY_MAGIC {
-            return Err(binary_err(format!("bad magic {:02x?}", &bytes[0..4])));
-        }
-        if bytes[4] != BINARY_VERSION {
-            return Err(binary_err(format!(
-                "version {} unsupported (this build reads {BINARY_VERSION})",
-                bytes[4]
-            )));
-        }
-        let payload_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
-        if payload_len != BINARY_PAYLOAD_LEN {
-            return Err(binary_err(format!(
-                "payload length {payload_len}, expected {BINARY_PAYLOAD_LEN}"
-            )));
-        }
-        let mut c = Crc32::new();
-        c.update(&bytes[..100]);
-        let computed = c.finish();
-        let found = u32::from_le_bytes([bytes[100], bytes[101], bytes[102], bytes[103]]);
-        if found != computed {
-            return Err(binary_err(format!("CRC-32 {found:08x}, computed {computed:08x}")));
-        }
+    /// Reads the record's fields from bytes 5 and 8..100 of a frame whose header and CRC
+    /// [`check_frame`] accepted.
+    fn read_common(bytes: &[u8]) -> Result<PositionRecord> {
         let flags = bytes[5];
         if flags & !(FLAG_POSITION | FLAG_ORIENTATION | FLAG_WORLD_FRAME) != 0 {
             return Err(binary_err(format!("unknown flags {flags:#04x}")));
@@ -430,6 +401,68 @@ impl PositionRecord {
             params_crc: u32_at(96),
         })
     }
+
+    /// The binary frame as a new array.
+    pub fn to_binary(&self) -> [u8; BINARY_FRAME_LEN] {
+        let mut out = [0u8; BINARY_FRAME_LEN];
+        self.encode_binary(&mut out);
+        out
+    }
+
+    /// Decodes one binary frame (exactly [`BINARY_FRAME_LEN`] bytes).
+    pub fn decode_binary(bytes: &[u8]) -> Result<PositionRecord> {
+        check_frame(bytes, BINARY_MAGIC, BINARY_VERSION, BINARY_PAYLOAD_LEN, "")?;
+        PositionRecord::read_common(bytes)
+    }
+}
+
+/// End of the fields shared by the position frame and the per-tool frame.
+const COMMON_END: usize = 100;
+
+/// Writes the CRC-32 of everything before the last 4 bytes of `frame` into them.
+fn seal(frame: &mut [u8]) {
+    let end = frame.len() - 4;
+    let mut c = Crc32::new();
+    c.update(&frame[..end]);
+    let crc = c.finish().to_le_bytes();
+    frame[end..].copy_from_slice(&crc);
+}
+
+/// Checks a binary frame's length, magic, version, payload length and CRC (`what`: "" for the
+/// position frame, "tool-frame " for the per-tool frame, as the messages say).
+fn check_frame(bytes: &[u8], magic: [u8; 4], version: u8, payload_len: usize, what: &str) -> Result<()> {
+    let frame_len = 8 + payload_len + 4;
+    if bytes.len() != frame_len {
+        let kind = if what.is_empty() { "frame" } else { "tool frame" };
+        return Err(binary_err(format!(
+            "{kind} is {} bytes, expected {frame_len}",
+            bytes.len()
+        )));
+    }
+    if bytes[0..4] != magic {
+        return Err(binary_err(format!("bad {what}magic {:02x?}", &bytes[0..4])));
+    }
+    if bytes[4] != version {
+        return Err(binary_err(format!(
+            "{what}version {} unsupported (this build reads {version})",
+            bytes[4]
+        )));
+    }
+    let found_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
+    if found_len != payload_len {
+        return Err(binary_err(format!(
+            "{what}payload length {found_len}, expected {payload_len}"
+        )));
+    }
+    let end = frame_len - 4;
+    let mut c = Crc32::new();
+    c.update(&bytes[..end]);
+    let computed = c.finish();
+    let found = u32::from_le_bytes([bytes[end], bytes[end + 1], bytes[end + 2], bytes[end + 3]]);
+    if found != computed {
+        return Err(binary_err(format!("CRC-32 {found:08x}, computed {computed:08x}")));
+    }
+    Ok(())
 }
 
 /// Magic of a per-tool binary frame.
@@ -544,21 +577,18 @@ impl ToolRecord {
     /// Writes the per-tool binary frame into `out` (layout in docs/stream-protocol.md): the
     /// position frame's fields at the same offsets, then tool id, count and name.
     pub fn encode_binary(&self, out: &mut [u8; TOOL_BINARY_FRAME_LEN]) {
-        let mut base = [0u8; BINARY_FRAME_LEN];
-        self.record.encode_binary(&mut base);
-        out[0..4].copy_from_slice(&TOOL_BINARY_MAGIC);
-        out[4] = TOOL_BINARY_VERSION;
-        out[5] = base[5];
-        out[6..8].copy_from_slice(&(TOOL_BINARY_PAYLOAD_LEN as u16).to_le_bytes());
-        out[8..100].copy_from_slice(&base[8..100]);
+        self.record.write_common(
+            &mut out[..COMMON_END],
+            TOOL_BINARY_MAGIC,
+            TOOL_BINARY_VERSION,
+            TOOL_BINARY_PAYLOAD_LEN,
+        );
         out[100] = self.tool_id;
         out[101] = self.tool_count;
         out[102] = self.name_len;
         out[103] = 0;
         out[104..136].copy_from_slice(&self.name);
-        let mut c = Crc32::new();
-        c.update(&out[..136]);
-        out[136..140].copy_from_slice(&c.finish().to_le_bytes());
+        seal(&mut out[..]);
     }
 
     /// The binary frame as a new array.
@@ -570,45 +600,14 @@ impl ToolRecord {
 
     /// Decodes one per-tool binary frame (exactly [`TOOL_BINARY_FRAME_LEN`] bytes).
     pub fn decode_binary(bytes: &[u8]) -> Result<ToolRecord> {
-        if bytes.len() != TOOL_BINARY_FRAME_LEN {
-            return Err(binary_err(format!(
-                "tool frame is {} bytes, expected {TOOL_BINARY_FRAME_LEN}",
-                bytes.len()
-            )));
-        }
-        if bytes[0..4] != TOOL_BINARY_MAGIC {
-            return Err(binary_err(format!("bad tool-frame magic {:02x?}", &bytes[0..4])));
-        }
-        if bytes[4] != TOOL_BINARY_VERSION {
-            return Err(binary_err(format!(
-                "tool-frame version {} unsupported (this build reads {TOOL_BINARY_VERSION})",
-                bytes[4]
-            )));
-        }
-        let payload_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
-        if payload_len != TOOL_BINARY_PAYLOAD_LEN {
-            return Err(binary_err(format!(
-                "tool-frame payload length {payload_len}, expected {TOOL_BINARY_PAYLOAD_LEN}"
-            )));
-        }
-        let mut c = Crc32::new();
-        c.update(&bytes[..136]);
-        let computed = c.finish();
-        let found = u32::from_le_bytes([bytes[136], bytes[137], bytes[138], bytes[139]]);
-        if found != computed {
-            return Err(binary_err(format!("CRC-32 {found:08x}, computed {computed:08x}")));
-        }
-        // Rebuild the position frame the fields came from and let its decoder check them.
-        let mut base = [0u8; BINARY_FRAME_LEN];
-        base[0..4].copy_from_slice(&BINARY_MAGIC);
-        base[4] = BINARY_VERSION;
-        base[5] = bytes[5];
-        base[6..8].copy_from_slice(&(BINARY_PAYLOAD_LEN as u16).to_le_bytes());
-        base[8..100].copy_from_slice(&bytes[8..100]);
-        let mut c = Crc32::new();
-        c.update(&base[..100]);
-        base[100..104].copy_from_slice(&c.finish().to_le_bytes());
-        let record = PositionRecord::decode_binary(&base)?;
+        check_frame(
+            bytes,
+            TOOL_BINARY_MAGIC,
+            TOOL_BINARY_VERSION,
+            TOOL_BINARY_PAYLOAD_LEN,
+            "tool-frame ",
+        )?;
+        let record = PositionRecord::read_common(bytes)?;
         let name_len = usize::from(bytes[102]);
         let name = bytes
             .get(104..104 + name_len)
