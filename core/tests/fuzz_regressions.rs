@@ -251,6 +251,39 @@ fn stream_seeds_replay() {
     }
 }
 
+/// The committed per-tool stream seeds (`IRTL` frames and per-tool NDJSON): each decodes (the
+/// mode-2 one after its CRC is fixed, as the fuzz target does) and round-trips in both framings.
+#[test]
+fn tool_stream_seeds_replay() {
+    use irtrack_core::stream::{TOOL_BINARY_FRAME_LEN, ToolRecord};
+    let mut modes = [0usize; 3];
+    for (path, data) in seeds("tool_stream") {
+        let (mode, rest) = data.split_first().unwrap();
+        let rec = match mode % 3 {
+            0 => ToolRecord::from_ndjson_line(std::str::from_utf8(rest).unwrap()),
+            1 => ToolRecord::decode_binary(rest),
+            _ => {
+                let mut frame = [0u8; TOOL_BINARY_FRAME_LEN];
+                let n = rest.len().min(TOOL_BINARY_FRAME_LEN);
+                frame[..n].copy_from_slice(&rest[..n]);
+                let end = TOOL_BINARY_FRAME_LEN - 4;
+                let crc = irtrack_core::crc::crc32(&frame[..end]);
+                frame[end..].copy_from_slice(&crc.to_le_bytes());
+                ToolRecord::decode_binary(&frame)
+            }
+        };
+        let rec = rec.unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        modes[usize::from(mode % 3)] += 1;
+        let line = rec.to_ndjson_line();
+        assert!(line.len() <= MAX_NDJSON_LINE, "{}", path.display());
+        assert_eq!(ToolRecord::from_ndjson_line(&line).unwrap().to_ndjson_line(), line);
+        let frame = rec.to_binary();
+        assert_eq!(ToolRecord::decode_binary(&frame).unwrap().to_binary(), frame);
+        assert_eq!(rec.name(), "wing4", "{}", path.display());
+    }
+    assert!(modes.iter().all(|&n| n > 0), "a seed per mode: {modes:?}");
+}
+
 /// The committed observation seeds: the raw golden messages (mode 0) decode and re-encode to the
 /// same bytes; the CRC-fixed one with a blob count its payload does not hold is refused.
 #[test]

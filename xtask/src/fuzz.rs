@@ -27,6 +27,7 @@ pub const TARGETS: &[&str] = &[
     "egm",
     "rsi",
     "observation",
+    "tool_stream",
 ];
 const QUICK_SECS: u64 = 25;
 /// The documented long run (docs/fuzzing.md).
