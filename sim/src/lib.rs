@@ -11,6 +11,7 @@
 pub mod backdrop;
 pub mod checkerboard;
 pub mod error;
+pub mod multibody;
 pub mod noise;
 pub mod resolution;
 pub mod rig;

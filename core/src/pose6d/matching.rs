@@ -177,6 +177,44 @@ impl PointMatcher {
     }
 }
 
+impl PointMatcher {
+    /// `p` without the cameras in `drop_mask` (bit per camera), re-solved from the rays of
+    /// the cameras left (least squares; two views: the midpoint and its gap). `None` when
+    /// fewer than two cameras remain or the rays do not give a point. Used when one camera's
+    /// blob is another LED's too (claimed by another tool, or two spots merged into one).
+    pub(super) fn without_cameras(&mut self, p: &TriangulatedPoint, drop_mask: u32) -> Option<TriangulatedPoint> {
+        let mut q = *p;
+        q.cameras = 0;
+        self.scratch_rays.clear();
+        for (c, cam) in self.cams.iter().enumerate() {
+            if q.blobs[c] == NO_BLOB {
+                continue;
+            }
+            if drop_mask & (1 << c) != 0 {
+                q.blobs[c] = NO_BLOB;
+                continue;
+            }
+            let br = cam.rays.iter().find(|r| r.blob == q.blobs[c])?;
+            self.scratch_rays.push(br.ray);
+            q.cameras += 1;
+        }
+        match self.scratch_rays.as_slice() {
+            [a, b] => {
+                let m = midpoint(a, b).ok()?;
+                q.point_mm = m.point_mm;
+                q.gap_mm = m.gap_mm;
+            }
+            rays if rays.len() > 2 => {
+                let (pt, rms) = least_squares_rays(rays).ok()?;
+                q.point_mm = pt;
+                q.gap_mm = rms;
+            }
+            _ => return None,
+        }
+        Some(q)
+    }
+}
+
 /// Adds the closest consistent ray of every camera not yet in `p` and re-solves the point.
 fn extend_with_other_cameras(
     cams: &[CameraSlot],

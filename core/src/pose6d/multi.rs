@@ -35,6 +35,11 @@ pub const NO_TOOL: u8 = u8::MAX;
 /// [`MultiTracker::blob_owner`]: the blob belongs to a loose LED.
 pub const LOOSE_LED: u8 = u8::MAX - 1;
 
+/// A loose LED lost after being tracked this many frame sets in a row is still looked for in
+/// the merge audit (its spot may be hidden in a tool LED's blob); shorter tracks are often
+/// ghosts or another tool's LEDs and would block good poses.
+const ESTABLISHED_LOOSE_FRAMES: u32 = 10;
+
 /// Blob indices a camera can have in the matcher (the configuration caps
 /// `max_blobs_per_camera` at 64): claims are one bit per blob.
 const MAX_BLOBS: usize = 64;
@@ -59,6 +64,8 @@ struct LooseTrack {
     led: LooseLed,
     velocity_mm: Vector3<f64>,
     frames_ago: u32,
+    /// Frame sets it had been tracked in a row when it was last lost (0 while tracked).
+    run_before_loss: u32,
 }
 
 #[derive(Debug, Clone)]
@@ -69,6 +76,9 @@ struct ToolSlot {
     pose: Pose6d,
     /// Frame sets since this tool was last tracked (0: tracked in the last one).
     frames_since_tracked: u32,
+    /// The candidate point each LED of the current pose came from (the merge audit re-solves
+    /// an LED without a camera where its blob is shared).
+    led_points: [Option<TriangulatedPoint>; MAX_TOOL_LEDS],
 }
 
 /// Checks a set of tools against each other (each must already be a valid [`ToolModel`]):
@@ -155,6 +165,7 @@ impl MultiTracker {
                 model,
                 reference: None,
                 frames_since_tracked: u32::MAX,
+                led_points: [None; MAX_TOOL_LEDS],
             })
             .collect();
         Ok(MultiTracker {
@@ -298,12 +309,18 @@ impl MultiTracker {
         }
         let radius = self.config.merge_radius_px;
         let mut suspect = 0u32;
+        let mut suspect_cams = [0u32; MAX_TOOL_LEDS];
         let mut first: Option<(u32, u32)> = None;
         for led in (0..MAX_TOOL_LEDS).filter(|l| pose.led_mask & (1 << l) != 0) {
             let p = self
                 .led_estimate_mm(ti, led)
                 .unwrap_or_else(|| Vector3::from(pose.leds_mm[led]));
+            let used = self.tools[ti].led_points[led].map(|q| q.blobs);
             for (c, cam) in self.matcher.cams.iter().enumerate() {
+                // A camera whose blob the LED's point does not use cannot bias it.
+                if used.is_some_and(|b| b[c] == NO_BLOB) {
+                    continue;
+                }
                 let Ok(px) = cam.model.project(&cam.cam_from_cam0.apply(&p)) else {
                     continue;
                 };
@@ -313,6 +330,11 @@ impl MultiTracker {
                         .is_ok_and(|qx| (qx - px).norm() < radius)
                 };
                 let mut hit = self.loose.iter().any(|l| near(&Vector3::from(l.position_mm)));
+                // A loose LED not found this frame may be hidden in this very blob: where its
+                // track predicts it.
+                hit |= self.loose_tracks.iter().filter(|t| t.frames_ago > 0 && t.run_before_loss >= ESTABLISHED_LOOSE_FRAMES).any(|t| {
+                    near(&(Vector3::from(t.led.position_mm) + t.velocity_mm * f64::from(t.frames_ago)))
+                });
                 for other in (0..self.tools.len()).filter(|&o| o != ti) {
                     for ol in 0..self.tools[other].model.led_count() {
                         hit |= self.led_estimate_mm(other, ol).is_some_and(|q| near(&q));
@@ -320,10 +342,25 @@ impl MultiTracker {
                 }
                 if hit {
                     suspect |= 1 << led;
+                    suspect_cams[led] |= 1 << c;
                     first.get_or_insert((led as u32, c as u32));
                 }
             }
         }
+        // Three or more cameras: a suspect LED seen on its own by two or more other cameras is
+        // re-solved from those instead of dropped.
+        let mut leds_mm = pose.leds_mm;
+        let mut resolved = 0u32;
+        for led in (0..MAX_TOOL_LEDS).filter(|l| suspect & (1 << l) != 0) {
+            let Some(p) = self.tools[ti].led_points[led] else {
+                continue;
+            };
+            if let Some(q) = self.matcher.without_cameras(&p, suspect_cams[led]) {
+                leds_mm[led] = q.point_mm.into();
+                resolved |= 1 << led;
+            }
+        }
+        let suspect = suspect & !resolved;
         let slot = &mut self.tools[ti];
         let cfg = &self.config;
         let fit_of = |mask: u32| {
@@ -332,7 +369,7 @@ impl MultiTracker {
             let mut k = 0;
             for led in (0..MAX_TOOL_LEDS).filter(|l| mask & (1 << l) != 0) {
                 model[k] = slot.model.leds_mm()[led];
-                measured[k] = Vector3::from(pose.leds_mm[led]);
+                measured[k] = Vector3::from(leds_mm[led]);
                 k += 1;
             }
             (k >= 3)
@@ -340,7 +377,7 @@ impl MultiTracker {
                 .flatten()
         };
         let mut keep = pose.led_mask & !suspect;
-        if suspect == 0 {
+        if suspect == 0 && resolved == 0 {
             // No known neighbour, but a residual far above the noise from 4+ LEDs: one LED is
             // probably biased (a spot merged with something the tracker does not know).
             if pose.residual_rms_mm <= cfg.outlier_residual_mm {
@@ -380,16 +417,71 @@ impl MultiTracker {
         p.residual_max_mm = f.max_mm;
         p.led_mask = keep;
         p.leds_used = k;
+        p.leds_mm = leds_mm;
+    }
+
+    /// The candidates the next tool (or the loose LEDs) may use: those sharing no blob with a
+    /// claimed one, and, with three or more cameras, those that do, re-solved without the
+    /// claimed cameras when two or more cameras remain (a blob merged with another tool's LED
+    /// in one camera no longer hides the LED from the cameras that see it on its own).
+    fn fill_free(&mut self) {
+        self.free.clear();
+        // Blobs used by two or more unclaimed candidates confirmed by three or more cameras:
+        // two LEDs whose spots merged in that camera (a ghost is rarely confirmed by a third
+        // view). Both points are re-solved without it, so both LEDs stay available.
+        let mut uses = [[0u8; MAX_BLOBS]; MAX_CAMERAS];
+        if self.matcher.camera_count() > 2 {
+            for p in self.matcher.points() {
+                if p.cameras < 3 || self.claimed_cameras(p) != 0 {
+                    continue;
+                }
+                for (c, &b) in p.blobs.iter().enumerate() {
+                    if b != NO_BLOB && (b as usize) < MAX_BLOBS {
+                        uses[c][b as usize] = uses[c][b as usize].saturating_add(1);
+                    }
+                }
+            }
+        }
+        for i in 0..self.matcher.points().len() {
+            if self.free.len() == self.free.capacity() {
+                break;
+            }
+            let p = self.matcher.points()[i];
+            let mut claimed = self.claimed_cameras(&p);
+            if p.cameras >= 3 && claimed == 0 {
+                for (c, &b) in p.blobs.iter().enumerate() {
+                    if b != NO_BLOB && (b as usize) < MAX_BLOBS && uses[c][b as usize] >= 2 {
+                        claimed |= 1 << c;
+                    }
+                }
+            }
+            if claimed == 0 {
+                self.free.push(p);
+            } else if let Some(q) = self.matcher.without_cameras(&p, claimed) {
+                // Re-solved points are two-view candidates again: keep them only if no
+                // candidate already covers the same blobs.
+                let dup = self.free.iter().any(|f| f.blobs == q.blobs);
+                if !dup && q.gap_mm <= self.config.max_gap_mm {
+                    self.free.push(q);
+                }
+            }
+        }
+    }
+
+    /// Cameras (bit per camera) in which `p`'s blob is claimed.
+    fn claimed_cameras(&self, p: &TriangulatedPoint) -> u32 {
+        let mut mask = 0;
+        for (c, (&b, &cl)) in p.blobs.iter().zip(&self.claimed).enumerate() {
+            if b != NO_BLOB && (b as usize) < MAX_BLOBS && cl & (1u64 << b) != 0 {
+                mask |= 1 << c;
+            }
+        }
+        mask
     }
 
     fn track_tool(&mut self, ti: usize) {
         let cfg = self.config;
-        self.free.clear();
-        for p in self.matcher.points() {
-            if !self.is_claimed(p) && self.free.len() < self.free.capacity() {
-                self.free.push(*p);
-            }
-        }
+        self.fill_free();
         let slot = &self.tools[ti];
         let overflow =
             identify::find_assignments(&slot.model, &self.free, cfg.distance_tol_mm, &mut self.hypotheses);
@@ -404,11 +496,13 @@ impl MultiTracker {
             cams: &self.matcher.cams,
         }
         .run();
+        self.tools[ti].led_points = [None; MAX_TOOL_LEDS];
         if let Some(assign) = chosen {
-            for &c in assign.iter().take(MAX_TOOL_LEDS) {
+            for (led, &c) in assign.iter().take(MAX_TOOL_LEDS).enumerate() {
                 if let Some(p) = self.free.get(c as usize) {
                     let p = *p;
                     self.claim(&p, ti as u8);
+                    self.tools[ti].led_points[led] = Some(p);
                 }
             }
         }
@@ -437,12 +531,7 @@ impl MultiTracker {
     /// ghost shares a blob with two true points and has the larger gap).
     fn track_loose(&mut self) {
         let cfg = self.config;
-        self.free.clear();
-        for p in self.matcher.points() {
-            if !self.is_claimed(p) && self.free.len() < self.free.capacity() {
-                self.free.push(*p);
-            }
-        }
+        self.fill_free();
         self.loose.clear();
         // Longest-tracked LEDs choose first.
         self.loose_tracks
@@ -468,6 +557,7 @@ impl MultiTracker {
                     let prev = Vector3::from(t.led.position_mm);
                     t.velocity_mm = (p.point_mm - prev) / ahead;
                     t.frames_ago = 0;
+                    t.run_before_loss = 0;
                     t.led.position_mm = p.point_mm.into();
                     t.led.gap_mm = p.gap_mm;
                     t.led.cameras = p.cameras;
@@ -477,6 +567,9 @@ impl MultiTracker {
                     self.loose.push(led);
                 }
                 None => {
+                    if t.frames_ago == 0 {
+                        t.run_before_loss = t.led.frames_tracked;
+                    }
                     t.frames_ago += 1;
                     t.led.frames_tracked = 0;
                 }
@@ -503,6 +596,7 @@ impl MultiTracker {
                 led,
                 velocity_mm: Vector3::zeros(),
                 frames_ago: 0,
+                run_before_loss: 0,
             });
             if self.loose.len() < self.loose.capacity() {
                 self.loose.push(led);
