@@ -40,6 +40,10 @@ pub const LOOSE_LED: u8 = u8::MAX - 1;
 /// ghosts or another tool's LEDs and would block good poses.
 const ESTABLISHED_LOOSE_FRAMES: u32 = 10;
 
+/// Merge audit: a loose LED or another tool's LED estimate within this distance (mm, 3-D) of
+/// a tool's measured LED is that LED itself, not a second spot merged into its blob.
+const SAME_POINT_MM: f64 = 5.0;
+
 /// Blob indices a camera can have in the matcher (the configuration caps
 /// `max_blobs_per_camera` at 64): claims are one bit per blob.
 const MAX_BLOBS: usize = 64;
@@ -316,6 +320,7 @@ impl MultiTracker {
                 .led_estimate_mm(ti, led)
                 .unwrap_or_else(|| Vector3::from(pose.leds_mm[led]));
             let used = self.tools[ti].led_points[led].map(|q| q.blobs);
+            let measured = Vector3::from(pose.leds_mm[led]);
             for (c, cam) in self.matcher.cams.iter().enumerate() {
                 // A camera whose blob the LED's point does not use cannot bias it.
                 if used.is_some_and(|b| b[c] == NO_BLOB) {
@@ -324,10 +329,14 @@ impl MultiTracker {
                 let Ok(px) = cam.model.project(&cam.cam_from_cam0.apply(&p)) else {
                     continue;
                 };
+                // Something at this LED's own place in 3-D is this LED (a loose track of it
+                // from frames where the tool was lost), not a second spot in its blob.
                 let near = |q: &Vector3<f64>| {
-                    cam.model
-                        .project(&cam.cam_from_cam0.apply(q))
-                        .is_ok_and(|qx| (qx - px).norm() < radius)
+                    (q - measured).norm() > SAME_POINT_MM
+                        && cam
+                            .model
+                            .project(&cam.cam_from_cam0.apply(q))
+                            .is_ok_and(|qx| (qx - px).norm() < radius)
                 };
                 let mut hit = self.loose.iter().any(|l| near(&Vector3::from(l.position_mm)));
                 // A loose LED not found this frame may be hidden in this very blob: where its
