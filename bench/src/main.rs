@@ -9,7 +9,8 @@
 //!
 //! Usage:
 //!   irtrack-bench [--quick]                 timing tables (synthetic VGA/720p, 8- and 10-bit,
-//!                                            and simulator frames: 4-LED tool, lamp + reflection)
+//!                                            and simulator frames: 4-LED tool, lamp + reflection;
+//!                                            then 1, 3 and 8 tools at once, VGA and 720p)
 //!   irtrack-bench --run CASE --iterations N  run one case N times, print nothing else
 //!                                            (for instruction counting under callgrind)
 //!   irtrack-bench --idle SECONDS             sleep (baseline process for memory figures)
@@ -31,6 +32,7 @@ use irtrack_core::triangulate::{Ray, midpoint};
 use irtrack_sim::{BitDepth, Orientation, RigPreset, Scenario, SimConfig, Trajectory};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 
+mod multi_tool;
 #[cfg(feature = "opencv")]
 mod opencv_pipeline;
 #[cfg(feature = "opencv")]
@@ -826,7 +828,7 @@ fn table(quick: bool) -> Result<()> {
         "Goals: ours full ≤ 1.5x a cold read (ours/read, cold), ROI/full ≤ 5 % (VGA) and ≤ 4 % (720p), 0 allocations per set (built without OpenCV)."
     );
     println!("floor/full: the per-set geometry any tracked frame needs, as a share of the full frame.");
-    Ok(())
+    multi_tool::table(quick)
 }
 
 /// Runs one case `iters` times after setup and one warm-up, printing nothing but a checksum
@@ -899,6 +901,7 @@ fn main() -> Result<()> {
     while let Some(a) = it.next() {
         match a.as_str() {
             "--quick" => quick = true,
+            "--multi-tool" => return multi_tool::table(quick),
             "--run" => case = Some(it.next().context("--run needs a case")?.clone()),
             "--iterations" => iters = it.next().context("--iterations needs a number")?.parse()?,
             "--idle" => {
@@ -910,7 +913,7 @@ fn main() -> Result<()> {
             }
             "-h" | "--help" => {
                 println!(
-                    "usage: irtrack-bench [--quick] | --run <ours-full|ours-roi|windows-simd|windows-portable|opencv|sum|max>-<vga|720p> --iterations N | --idle SECONDS"
+                    "usage: irtrack-bench [--quick] [--multi-tool (only the several-tools tables)] | --run <ours-full|ours-roi|windows-simd|windows-portable|opencv|sum|max>-<vga|720p> --iterations N | --idle SECONDS"
                 );
                 return Ok(());
             }
