@@ -331,7 +331,12 @@ impl PositionRecord {
 
     /// Writes the binary frame into `out` (layout in docs/stream-protocol.md).
     pub fn encode_binary(&self, out: &mut [u8; BINARY_FRAME_LEN]) {
-        self.write_common(&mut out[..COMMON_END], BINARY_MAGIC, BINARY_VERSION, BINARY_PAYLOAD_LEN);
+        self.write_common(
+            &mut out[..COMMON_END],
+            BINARY_MAGIC,
+            BINARY_VERSION,
+            BINARY_PAYLOAD_LEN,
+        );
         seal(&mut out[..]);
     }
 

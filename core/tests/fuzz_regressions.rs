@@ -276,7 +276,10 @@ fn tool_stream_seeds_replay() {
         modes[usize::from(mode % 3)] += 1;
         let line = rec.to_ndjson_line();
         assert!(line.len() <= MAX_NDJSON_LINE, "{}", path.display());
-        assert_eq!(ToolRecord::from_ndjson_line(&line).unwrap().to_ndjson_line(), line);
+        assert_eq!(
+            ToolRecord::from_ndjson_line(&line).unwrap().to_ndjson_line(),
+            line
+        );
         let frame = rec.to_binary();
         assert_eq!(ToolRecord::decode_binary(&frame).unwrap().to_binary(), frame);
         assert_eq!(rec.name(), "wing4", "{}", path.display());

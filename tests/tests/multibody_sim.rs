@@ -5,7 +5,9 @@
 //! release). Figures: `cargo test -p irtrack-tests --test multibody_sim -- --nocapture`.
 
 use irtrack_core::pose6d::PoseConfig;
-use irtrack_sim::multibody::{FPS, RunStats, four_camera_rig, missed_targets, ninety_degree_pair, report, run};
+use irtrack_sim::multibody::{
+    FPS, RunStats, four_camera_rig, missed_targets, ninety_degree_pair, report, run,
+};
 use nalgebra::Rotation3;
 
 const SECONDS: f64 = 60.0;
@@ -15,7 +17,11 @@ const SECONDS: f64 = 60.0;
 fn check_basics(what: &str, r: &RunStats) {
     for (i, st) in r.tools.iter().enumerate() {
         assert_eq!(st.swaps, 0, "{what} tool {i}: identity swaps");
-        assert!(st.seen as u64 > r.frames / 2, "{what} tool {i}: seen in only {} frames", st.seen);
+        assert!(
+            st.seen as u64 > r.frames / 2,
+            "{what} tool {i}: seen in only {} frames",
+            st.seen
+        );
         assert!(
             st.tracked_share_pct() >= 85.0,
             "{what} tool {i}: tracked in {:.2} % of the frames it was seen",
@@ -28,7 +34,11 @@ fn check_basics(what: &str, r: &RunStats) {
             st.pos_rms_mm()
         );
     }
-    assert!(r.loose_frames as u64 >= r.frames * 8 / 10, "{what}: loose LED in {} frames", r.loose_frames);
+    assert!(
+        r.loose_frames as u64 >= r.frames * 8 / 10,
+        "{what}: loose LED in {} frames",
+        r.loose_frames
+    );
 }
 
 /// 10 s in the 90° pair: what holds today (run in CI).
@@ -40,18 +50,28 @@ fn three_tools_and_a_loose_led_cross_without_swaps() {
 }
 
 #[test]
-#[ignore = "issue 29's targets: tri3 tracked in 98.8 % of seen frames (< 99 %); 60 s, run in release by `cargo xtask bench` or with --ignored"]
+#[ignore = "60 s (meets issue 29's targets); run in release by `cargo xtask bench` (also CI's bench phase) or here with --ignored"]
 fn three_tools_and_a_loose_led_in_the_90_degree_pair() {
-    let r = run(ninety_degree_pair(), (SECONDS * FPS) as u64, PoseConfig::default()).unwrap();
+    let r = run(
+        ninety_degree_pair(),
+        (SECONDS * FPS) as u64,
+        PoseConfig::default(),
+    )
+    .unwrap();
     print!("{}", report("90° pair", &r));
     let missed = missed_targets("90° pair", &r);
     assert!(missed.is_empty(), "{missed:#?}");
 }
 
 #[test]
-#[ignore = "issue 29's targets: tri3 tracked in 89 % of seen frames in the 4-camera rig; 60 s, run in release by `cargo xtask bench` or with --ignored"]
+#[ignore = "issue 29's targets not met yet in the 4-camera rig (probe4 98.7 %, tri3 95.7 % tracked when seen); 60 s, run in release by `cargo xtask bench` or with --ignored"]
 fn three_tools_and_a_loose_led_in_a_four_camera_rig() {
-    let r = run(four_camera_rig().unwrap(), (SECONDS * FPS) as u64, PoseConfig::default()).unwrap();
+    let r = run(
+        four_camera_rig().unwrap(),
+        (SECONDS * FPS) as u64,
+        PoseConfig::default(),
+    )
+    .unwrap();
     print!("{}", report("4-camera rig", &r));
     let missed = missed_targets("4-camera rig", &r);
     assert!(missed.is_empty(), "{missed:#?}");

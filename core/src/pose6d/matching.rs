@@ -182,7 +182,11 @@ impl PointMatcher {
     /// the cameras left (least squares; two views: the midpoint and its gap). `None` when
     /// fewer than two cameras remain or the rays do not give a point. Used when one camera's
     /// blob is another LED's too (claimed by another tool, or two spots merged into one).
-    pub(super) fn without_cameras(&mut self, p: &TriangulatedPoint, drop_mask: u32) -> Option<TriangulatedPoint> {
+    pub(super) fn without_cameras(
+        &mut self,
+        p: &TriangulatedPoint,
+        drop_mask: u32,
+    ) -> Option<TriangulatedPoint> {
         let mut q = *p;
         q.cameras = 0;
         self.scratch_rays.clear();

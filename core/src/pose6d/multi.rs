@@ -341,9 +341,13 @@ impl MultiTracker {
                 let mut hit = self.loose.iter().any(|l| near(&Vector3::from(l.position_mm)));
                 // A loose LED not found this frame may be hidden in this very blob: where its
                 // track predicts it.
-                hit |= self.loose_tracks.iter().filter(|t| t.frames_ago > 0 && t.run_before_loss >= ESTABLISHED_LOOSE_FRAMES).any(|t| {
-                    near(&(Vector3::from(t.led.position_mm) + t.velocity_mm * f64::from(t.frames_ago)))
-                });
+                hit |= self
+                    .loose_tracks
+                    .iter()
+                    .filter(|t| t.frames_ago > 0 && t.run_before_loss >= ESTABLISHED_LOOSE_FRAMES)
+                    .any(|t| {
+                        near(&(Vector3::from(t.led.position_mm) + t.velocity_mm * f64::from(t.frames_ago)))
+                    });
                 for other in (0..self.tools.len()).filter(|&o| o != ti) {
                     for ol in 0..self.tools[other].model.led_count() {
                         hit |= self.led_estimate_mm(other, ol).is_some_and(|q| near(&q));
