@@ -39,6 +39,9 @@ fn check_basics(what: &str, r: &RunStats) {
         "{what}: loose LED in {} frames",
         r.loose_frames
     );
+    // Its id may change after a gap (a new id on reacquisition), but it never takes an id that
+    // a tool's LED had.
+    assert_eq!(r.loose_id_swaps, 0, "{what}: loose LED under a tool LED's id");
 }
 
 /// 10 s in the 90° pair: what holds today (run in CI).

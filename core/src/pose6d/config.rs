@@ -70,6 +70,11 @@ pub struct PoseConfig {
     /// into one with a centroid between them, i.e. a biased point): such a pose is refused.
     /// About twice the spot radius at the threshold plus a pixel.
     pub merge_radius_px: f64,
+    /// Loose single LEDs: a known LED takes the candidate nearest its predicted position
+    /// (constant velocity) only within this distance (mm), also after a gap of up to
+    /// `max_coast_frames`; farther, the candidate is a new LED with a new id. Much smaller than
+    /// `max_step_mm`, so a loose LED's id does not jump to a nearby tool LED or ghost.
+    pub loose_gate_mm: f64,
 }
 
 impl Default for PoseConfig {
@@ -96,6 +101,7 @@ impl Default for PoseConfig {
             max_coast_frames: 10,
             max_hypotheses: 32,
             merge_radius_px: 6.0,
+            loose_gate_mm: 10.0,
         }
     }
 }
@@ -116,6 +122,7 @@ impl PoseConfig {
             ("max_rotation_step_deg", self.max_rotation_step_deg),
             ("max_step_mm", self.max_step_mm),
             ("merge_radius_px", self.merge_radius_px),
+            ("loose_gate_mm", self.loose_gate_mm),
         ];
         for (name, v) in positive {
             if !(v > 0.0 && v.is_finite()) {

@@ -540,7 +540,7 @@ impl MultiTracker {
     }
 
     /// Loose LEDs: the free candidates, each known LED first taking the closest one to its
-    /// predicted position (within `max_step_mm`), then new ones by increasing ray gap (a
+    /// predicted position (within `loose_gate_mm`, also after a gap), then new ones by increasing ray gap (a
     /// ghost shares a blob with two true points and has the larger gap).
     fn track_loose(&mut self) {
         let cfg = self.config;
@@ -559,7 +559,7 @@ impl MultiTracker {
                     continue;
                 }
                 let d = (p.point_mm - predicted).norm();
-                if d <= cfg.max_step_mm && best.is_none_or(|(bd, _)| d < bd) {
+                if d <= cfg.loose_gate_mm && best.is_none_or(|(bd, _)| d < bd) {
                     best = Some((d, i));
                 }
             }
@@ -828,6 +828,48 @@ mod tests {
                 loose_frames >= 55,
                 "{cameras} cameras: loose LED in {loose_frames} of 60"
             );
+        }
+    }
+
+    #[test]
+    fn a_loose_led_reappearing_beyond_the_gate_gets_a_new_id() {
+        let rig = rig(2);
+        let defs = tools();
+        let mut tracker = MultiTracker::new(&rig, &defs, PoseConfig::default()).unwrap();
+        let ids = |t: &MultiTracker, at: Vector3<f64>| {
+            t.loose_leds()
+                .iter()
+                .find(|l| (Vector3::from(l.position_mm) - at).norm() < 1e-6)
+                .map(|l| l.id)
+        };
+        // Moving 2 mm per frame: frames 0..10 tracked, 10..12 hidden, then back on its path
+        // (same id), hidden again, then 25 mm off its predicted path (a new id).
+        let path = |f: usize| Vector3::new(60.0 - 2.0 * f as f64, 120.0, 1010.0);
+        let mut first = None;
+        for frame in 0..24 {
+            let mut s = scene(0);
+            let hidden = (10..12).contains(&frame) || (18..20).contains(&frame);
+            s.loose = if frame >= 20 {
+                path(frame) + Vector3::new(0.0, 25.0, 0.0)
+            } else {
+                path(frame)
+            };
+            run(&mut tracker, &blobs(&rig, &defs, &s, |_, k| hidden && k == 3));
+            if hidden {
+                assert_eq!(ids(&tracker, s.loose), None);
+                continue;
+            }
+            let id =
+                ids(&tracker, s.loose).unwrap_or_else(|| panic!("frame {frame}: loose LED not reported"));
+            let first = *first.get_or_insert(id);
+            if frame < 20 {
+                assert_eq!(
+                    id, first,
+                    "frame {frame}: the same LED keeps its id across a short gap"
+                );
+            } else {
+                assert_ne!(id, first, "frame {frame}: 25 mm beyond the gate is a new LED");
+            }
         }
     }
 
