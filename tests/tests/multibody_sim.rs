@@ -53,7 +53,7 @@ fn three_tools_and_a_loose_led_cross_without_swaps() {
 }
 
 #[test]
-#[ignore = "60 s (meets issue 29's targets); run in release by `cargo xtask bench` (also CI's bench phase) or here with --ignored"]
+#[ignore = "60 s (meets issue 29's targets); run in release by `cargo xtask bench` (CI's quick bench runs 10 s) or here with --ignored"]
 fn three_tools_and_a_loose_led_in_the_90_degree_pair() {
     let r = run(
         ninety_degree_pair(),
