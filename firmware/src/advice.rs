@@ -87,6 +87,7 @@ fn percentile(h: &[u64], total: u64, pct: f64) -> u32 {
 }
 
 impl Background {
+    /// The statistics of `frame` and its histogram (one count per code); `None` for a frame without pixels.
     pub fn of(frame: &Frame) -> Option<(Self, Vec<u64>)> {
         let h = histogram(frame);
         let total: u64 = h.iter().sum();
@@ -137,6 +138,7 @@ pub struct Detection {
     pub blobs: Vec<(Blob, Option<RejectReason>)>,
     /// Regions outside the area limits.
     pub by_area: Vec<Blob>,
+    /// The detector's own counters for this pass (labels used, regions found, ...).
     pub stats: DetectStats,
     /// Regions the loop would consider (within the area limits): more than `max_blobs` of
     /// them means the loop drops some.
@@ -144,6 +146,7 @@ pub struct Detection {
 }
 
 impl Detection {
+    /// The regions that pass every rule: what the loop would use.
     pub fn kept(&self) -> impl Iterator<Item = &Blob> {
         self.blobs.iter().filter(|(_, r)| r.is_none()).map(|(b, _)| b)
     }
@@ -220,15 +223,21 @@ pub struct Advice {
 /// health table, the camera's header and the fault list all show this).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct CameraAnalysis {
+    /// Camera index, configuration order.
     pub camera: usize,
+    /// Index of the frame set analysed.
     pub set_index: u64,
+    /// Detection threshold the frame was analysed at, DN.
     pub threshold_dn: u32,
+    /// Grey-level statistics of the frame.
     pub background: Background,
     /// Share of the frame above the threshold, percent.
     pub above_threshold_pct: f64,
     /// Bright regions (connected areas above the threshold) in the whole frame.
     pub regions: u32,
+    /// Regions that pass every rule.
     pub kept: u32,
+    /// Regions refused, for area, roundness, the frame edge or the gate.
     pub rejected: u32,
     /// More separate regions than the detector's label limit: it reports none at all.
     pub overloaded: bool,
@@ -236,7 +245,9 @@ pub struct CameraAnalysis {
     pub max_labels: usize,
     /// More usable-sized regions than the loop keeps per camera (`max_blobs`).
     pub too_many_spots: bool,
+    /// Blobs the loop keeps per camera at most (`[tracking] max_blobs`).
     pub max_blobs: usize,
+    /// The most important problem found, if any.
     pub advice: Option<Advice>,
     /// Every region marked kept or rejected with its reason (the preview's overlay).
     #[serde(skip)]
@@ -459,16 +470,21 @@ impl CameraAnalysis {
 /// One camera's part of a threshold suggestion.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct CameraSuggestion {
+    /// Camera index, configuration order.
     pub camera: usize,
+    /// Grey-level statistics of the frame.
     pub background: Background,
     /// The brightest usable spot at the background-safe threshold (the marker), if any.
     pub marker_peak_dn: Option<u32>,
+    /// Column of that spot's centroid, pixels from the image's left edge.
     pub marker_x_px: Option<f64>,
+    /// Row of that spot's centroid, pixels from the image's top edge.
     pub marker_y_px: Option<f64>,
     /// This camera's own best value.
     pub suggested_dn: u32,
     /// Thresholds (inclusive) at which exactly the marker is kept in this frame, if found.
     pub works_from_dn: Option<u32>,
+    /// Highest such threshold, DN (see `works_from_dn`).
     pub works_to_dn: Option<u32>,
     /// The reasoning, one step a line.
     pub reasoning: Vec<String>,
@@ -478,15 +494,19 @@ pub struct CameraSuggestion {
 /// camera's reasoning and the predicted result, shown before anything is applied.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Suggestion {
+    /// Index of the frame set the suggestion is computed from.
     pub set_index: u64,
+    /// Detection threshold in force, DN.
     pub current_threshold_dn: u32,
     /// The value to apply; `None` when no value can be given (see `reasoning`).
     pub threshold_dn: Option<u32>,
     /// Whether, in this frame set, the value keeps exactly the marker in every camera.
     pub keeps_only_marker: bool,
+    /// Each camera's analysis, in camera order.
     pub cameras: Vec<CameraSuggestion>,
     /// Per camera at the suggested value: kept and rejected spots with reasons.
     pub predicted: Vec<String>,
+    /// How the value was chosen, one step a line.
     pub reasoning: Vec<String>,
 }
 

@@ -21,8 +21,10 @@ pub const DEFAULT_CONFIG_PATH: &str = "/etc/irtrack/irtrackd.toml";
 #[derive(Debug, Clone, PartialEq, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
+    /// `[service]`: state directory, robot control, operator password.
     #[serde(default)]
     pub service: ServiceConfig,
+    /// `[listen]`: the addresses of the service's ports.
     #[serde(default)]
     pub listen: ListenConfig,
     /// Who may view the status port's live data, and the names it answers to.
@@ -31,6 +33,7 @@ pub struct Config {
     /// Who may push parameter sets.
     #[serde(default)]
     pub params: ParamsConfig,
+    /// `[source]`: which frame source runs, with its settings.
     #[serde(default)]
     pub source: SourceConfig,
     /// Blob detector and quality gate (irtrack-core's `TrackerConfig`; unknown keys rejected).
@@ -40,8 +43,10 @@ pub struct Config {
     /// `PoseConfig`; unknown keys rejected).
     #[serde(default)]
     pub pose: irtrack_core::pose6d::PoseConfig,
+    /// `[leds]`: the status LED driver.
     #[serde(default)]
     pub leds: LedsConfig,
+    /// `[realtime]`: scheduling, CPU affinity and deadline of the processing thread.
     #[serde(default)]
     pub realtime: RealtimeConfig,
     /// Robot link; absent means no robot client runs.
@@ -192,12 +197,16 @@ impl ParamsConfig {
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ListenConfig {
+    /// Parameter push port (`host:port`).
     #[serde(default = "default_params_addr")]
     pub params: String,
+    /// Position stream port, one JSON record per line.
     #[serde(default = "default_ndjson_addr")]
     pub stream_ndjson: String,
+    /// Position stream port, binary framing (irtrack-core's `stream`).
     #[serde(default = "default_binary_addr")]
     pub stream_binary: String,
+    /// Status port: `/status`, `/metrics`, the set-up view and its API.
     #[serde(default = "default_status_addr")]
     pub status: String,
     /// Records queued per stream client before it counts as too slow and is dropped.
@@ -245,9 +254,12 @@ impl Default for ListenConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum SourceKind {
+    /// Simulated cameras rendering a scene (`[source.sim]`).
     #[default]
     Sim,
+    /// A recorded directory of PGM frames (`[source.replay]`).
     Replay,
+    /// Two or more V4L2 cameras (`[source.v4l2]`).
     V4l2,
 }
 
@@ -255,16 +267,20 @@ pub enum SourceKind {
 #[derive(Debug, Clone, PartialEq, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct SourceConfig {
+    /// Which of the tables below is used.
     #[serde(default)]
     pub kind: SourceKind,
     /// Largest capture-time difference (µs) between the cameras of one set that still gives a
     /// position; default half the loop's deadline (the frame period unless configured).
     #[serde(default)]
     pub max_pairing_error_us: Option<u64>,
+    /// `[source.sim]`, used with `kind = "sim"`.
     #[serde(default)]
     pub sim: Option<SimSourceConfig>,
+    /// `[source.replay]`, needed with `kind = "replay"`.
     #[serde(default)]
     pub replay: Option<ReplayConfig>,
+    /// `[source.v4l2]`, needed with `kind = "v4l2"`.
     #[serde(default)]
     pub v4l2: Option<V4l2Config>,
 }
@@ -288,10 +304,13 @@ pub enum LedBackend {
 #[derive(Debug, Clone, PartialEq, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct LedsConfig {
+    /// Which LED driver runs.
     #[serde(default)]
     pub backend: LedBackend,
+    /// `[leds.gpio]`, needed with `backend = "gpio"`.
     #[serde(default)]
     pub gpio: Option<GpioLedConfig>,
+    /// `[leds.rppal]`, needed with `backend = "rppal"`.
     #[cfg(feature = "rpi")]
     #[serde(default)]
     pub rppal: Option<crate::leds::rppal::RppalLedConfig>,
@@ -403,7 +422,9 @@ impl Config {
 /// the file as one typed value, so later code never matches on the kind again.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Resolved {
+    /// The frame source to open.
     pub source: Source,
+    /// The LED driver to start.
     pub leds: Leds,
 }
 
@@ -412,7 +433,9 @@ pub struct Resolved {
 pub enum Source {
     /// `[source.sim]` (defaults when the table is absent).
     Sim(SimSourceConfig),
+    /// `[source.replay]`, checked.
     Replay(ReplayConfig),
+    /// `[source.v4l2]`, checked (at least two cameras).
     V4l2(V4l2Config),
 }
 
@@ -472,9 +495,13 @@ impl SourceConfig {
 /// `[leds]` after validation: the back end with its own settings.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Leds {
+    /// LED changes are logged only.
     Sim,
+    /// No LED driver.
     None,
+    /// GPIO lines through the character device.
     Gpio(GpioLedConfig),
+    /// Raspberry Pi pins through rppal.
     #[cfg(feature = "rpi")]
     Rppal(crate::leds::rppal::RppalLedConfig),
 }

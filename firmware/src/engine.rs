@@ -619,8 +619,7 @@ impl Engine {
                 let t_detect = Instant::now();
                 if let Some(pose_tracker) = self.pose.as_mut() {
                     let rec = if failed {
-                        self.status.set_track(TrackIndication::None);
-                        Self::blank_record(self.set.index, capture_ns, self.params_crc, TrackStatus::Fault)
+                        Self::fault_record(&self.status, self.set.index, capture_ns, self.params_crc)
                     } else {
                         let cameras = tracker.camera_count().min(MAX_CAMERAS);
                         let mut lists: [&[Blob]; MAX_CAMERAS] = [&[]; MAX_CAMERAS];
@@ -666,28 +665,19 @@ impl Engine {
                                         self.status.set_track(pose_indication(pose, seen, cameras));
                                         tr.record
                                     }
-                                    None => {
-                                        self.status.set_track(TrackIndication::None);
-                                        Self::blank_record(
-                                            self.set.index,
-                                            capture_ns,
-                                            self.params_crc,
-                                            TrackStatus::Fault,
-                                        )
-                                    }
+                                    None => Self::fault_record(
+                                        &self.status,
+                                        self.set.index,
+                                        capture_ns,
+                                        self.params_crc,
+                                    ),
                                 }
                             }
                             Err(e) => {
                                 if self.status.pipeline_errors.fetch_add(1, R) == 0 {
                                     tracing::error!(error = %e, "6-DOF tracking failed");
                                 }
-                                self.status.set_track(TrackIndication::None);
-                                Self::blank_record(
-                                    self.set.index,
-                                    capture_ns,
-                                    self.params_crc,
-                                    TrackStatus::Fault,
-                                )
+                                Self::fault_record(&self.status, self.set.index, capture_ns, self.params_crc)
                             }
                         }
                     };
@@ -813,6 +803,14 @@ impl Engine {
                 c.interval_ewma_ns.store(new.to_bits(), R);
             }
         }
+    }
+
+    /// A 6-DOF set that produced no pose (detection or tracking failed, or the robot's tool
+    /// is not seen): the LED shows no track and the record says `Fault`. Takes the status
+    /// alone, not `&self`, because the caller still holds the trackers mutably.
+    fn fault_record(status: &SharedStatus, frame: u64, capture_ns: u64, params_crc: u32) -> PositionRecord {
+        status.set_track(TrackIndication::None);
+        Self::blank_record(frame, capture_ns, params_crc, TrackStatus::Fault)
     }
 
     fn empty_record(&self, status: TrackStatus, capture_ns: u64) -> PositionRecord {

@@ -66,6 +66,7 @@ impl Default for LatencyHistogram {
 }
 
 impl LatencyHistogram {
+    /// An empty histogram (usable in a `static`).
     pub const fn new() -> Self {
         Self {
             counts: [const { AtomicU64::new(0) }; BUCKETS],
@@ -111,13 +112,16 @@ impl LatencyHistogram {
 pub struct HistogramSnapshot {
     /// Per-bucket counts (not cumulative), [`BUCKETS`] entries.
     pub counts: Vec<u64>,
+    /// Sum of all samples, ns (for the mean).
     pub sum_ns: u64,
     /// `u64::MAX` while empty.
     pub min_ns: u64,
+    /// Largest sample, ns; 0 while empty.
     pub max_ns: u64,
 }
 
 impl HistogramSnapshot {
+    /// Number of samples.
     pub fn count(&self) -> u64 {
         self.counts.iter().sum()
     }
@@ -166,6 +170,7 @@ impl HistogramSnapshot {
             .sum()
     }
 
+    /// Count, percentiles, minimum, maximum and mean in µs, rounded to 0.01 µs.
     pub fn summary(&self) -> LatencySummary {
         let count = self.count();
         // Two decimals of a µs (the resolution at 1 µs is 1/64 µs); every figure is rounded
@@ -188,13 +193,21 @@ impl HistogramSnapshot {
 /// Percentiles for the JSON status (µs, within 1.6 % of the exact samples).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct LatencySummary {
+    /// Number of samples.
     pub count: u64,
+    /// Median, µs; `None` while empty (as every figure below).
     pub p50_us: Option<f64>,
+    /// 90th percentile, µs.
     pub p90_us: Option<f64>,
+    /// 99th percentile, µs.
     pub p99_us: Option<f64>,
+    /// 99.9th percentile, µs.
     pub p999_us: Option<f64>,
+    /// Smallest sample, µs.
     pub min_us: Option<f64>,
+    /// Largest sample, µs.
     pub max_us: Option<f64>,
+    /// Mean, µs.
     pub mean_us: Option<f64>,
 }
 

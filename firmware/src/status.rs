@@ -39,6 +39,7 @@ pub struct StageHistograms {
 pub const STAGES: usize = 8;
 
 impl StageHistograms {
+    /// The histograms with their stage names, in path order (the names used on `/status` and `/metrics`).
     pub fn stages(&self) -> [(&'static str, &LatencyHistogram); STAGES] {
         [
             ("render", &self.render),
@@ -56,28 +57,38 @@ impl StageHistograms {
 /// Counters of one camera.
 #[derive(Debug, Default)]
 pub struct CameraCounters {
+    /// Frames of this camera that reached the loop since start.
     pub frames: AtomicU64,
     /// Exponentially averaged frame interval (ns, from capture timestamps).
     pub interval_ewma_ns: AtomicU64,
+    /// Capture timestamp of the newest frame, CLOCK_MONOTONIC ns (0 before the first).
     pub last_timestamp_ns: AtomicU64,
     /// Blobs found in the last processed frame.
     pub blobs_last: AtomicU64,
     /// Brightest pixel (DN) of the last processed frame.
     pub peak_dn: AtomicU64,
+    /// Frame width of the last set, pixels.
     pub width_px: AtomicU64,
+    /// Frame height of the last set, pixels.
     pub height_px: AtomicU64,
 }
 
 /// Information about the active parameter set (changes rarely; behind a mutex).
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct ParamsInfo {
+    /// Whether a parameter set is active (without one nothing is triangulated).
     pub loaded: bool,
+    /// The rig the active set was calibrated for, as named in the set.
     pub rig_id: Option<String>,
+    /// When the active set was made, Unix seconds.
     pub created_unix_s: Option<u64>,
     /// Where the active set came from: "state_dir", "rollback", "pushed", "simulator".
     pub origin: Option<String>,
+    /// Parameter sets activated since start (stored set at start included).
     pub swaps: u64,
+    /// Parameter pushes refused since start.
     pub rejected: u64,
+    /// Code and reason of the most recent refusal.
     pub last_rejection: Option<String>,
     /// "require_signed" (production) or "allow_unsigned" (development mode, config
     /// `[params] allow_unsigned = true`).
@@ -120,20 +131,33 @@ impl ParamsInfo {
 #[derive(Debug)]
 pub struct SharedStatus {
     started: Instant,
+    /// The frame source in words (kind, cameras, format), as shown on `/status`.
     pub source_description: String,
+    /// Which LED driver runs (GPIO chip, Raspberry Pi, log only, ...).
     pub led_backend: String,
+    /// One entry per camera, in camera order.
     pub cameras: Vec<CameraCounters>,
 
     // Processing loop.
+    /// Passes of the processing loop (also errors and timeouts): the liveness the LED driver and the watchdog check.
     pub loop_iterations: AtomicU64,
+    /// Frame sets run through detection and solving to publishing.
     pub sets_processed: AtomicU64,
+    /// Records written to the latest-value slot.
     pub published: AtomicU64,
+    /// Published records with a position (status `Ok`).
     pub tracked: AtomicU64,
+    /// Published records without a position for lack of a marker or a fault (not gated).
     pub lost: AtomicU64,
+    /// Published records whose position the quality gate refused (status `Rejected`).
     pub gated: AtomicU64,
+    /// Time allowed for processing one set, ns (from the frame rate).
     pub deadline_ns: AtomicU64,
+    /// Sets whose processing took longer than `deadline_ns`.
     pub deadline_misses: AtomicU64,
+    /// Errors returned by the frame source (lost camera, timeout, ...).
     pub source_errors: AtomicU64,
+    /// Failures of blob detection or tracking on a delivered set.
     pub pipeline_errors: AtomicU64,
     /// Sets not newer than the last processed one (duplicated or reordered by the source),
     /// dropped unpublished so that no stale position goes out.
@@ -141,23 +165,35 @@ pub struct SharedStatus {
     /// Sets whose cameras' capture times differ by more than the allowed pairing error: a
     /// moving marker would triangulate wrong, so they are published without a position.
     pub skewed_sets: AtomicU64,
+    /// Latency of each stage of the loop.
     pub stages: StageHistograms,
+    /// Ray gap of the latest triangulated position, mm, as `f64` bits (NaN before the first).
     pub last_gap_mm_bits: AtomicU64,
 
     // Source counters (copied from `FrameSource::stats`).
+    /// Sets the source delivered ([`crate::source::SourceStats`]).
     pub sets_delivered: AtomicU64,
+    /// Sets the source skipped.
     pub sets_dropped: AtomicU64,
+    /// Frames the source dropped for lack of a partner in time.
     pub unpaired_dropped: AtomicU64,
+    /// Times a camera was lost and reopened.
     pub reconnects: AtomicU64,
+    /// Timestamp spread between the cameras of the latest set, ns.
     pub pairing_error_last_ns: AtomicU64,
+    /// Largest timestamp spread of any set since start, ns.
     pub pairing_error_max_ns: AtomicU64,
 
     // Health inputs for the LEDs.
+    /// A parameter set is active.
     pub params_loaded: AtomicBool,
+    /// The source reports a lost camera; cleared by the next good set.
     pub camera_lost: AtomicBool,
     track: AtomicU8,
     robot: AtomicU8,
+    /// Too many deadline misses in the LED driver's last window (a fault on the LED).
     pub deadline_fault: AtomicBool,
+    /// The loop has made progress recently (set by the LED driver's health monitor).
     pub alive: AtomicBool,
     /// The frame source ended (replay finished); the loop stopped on purpose.
     pub source_ended: AtomicBool,
@@ -169,18 +205,26 @@ pub struct SharedStatus {
     indication: Mutex<Indication>,
 
     // Outputs.
+    /// Position stream clients connected now.
     pub stream_clients: AtomicU64,
+    /// Position stream clients accepted since start.
     pub stream_clients_total: AtomicU64,
+    /// Stream clients disconnected because they could not keep up.
     pub stream_dropped_slow: AtomicU64,
+    /// Stream connections refused because the client limit was reached.
     pub stream_refused: AtomicU64,
     /// Connection caps and sign-in throttle of the listeners (`/metrics`).
     pub net: crate::net::limit::NetCounters,
+    /// Position records written to stream clients, all clients together.
     pub stream_records_sent: AtomicU64,
+    /// Published records the stream hub never saw because a newer one replaced them in the slot.
     pub slot_overwrites: AtomicU64,
     /// Open live WebSocket sessions (set-up view).
     pub live_viewers: AtomicU64,
 
+    /// The active parameter set's description; read with [`Self::params_info`].
     pub params: Mutex<ParamsInfo>,
+    /// Real-time settings applied or refused at start (scheduling, CPU affinity, memory lock), one line each.
     pub realtime: Mutex<Vec<String>>,
     /// Counters of the standard outputs (set once by `app::start`).
     pub outputs: std::sync::OnceLock<crate::outputs::stats::OutputsStats>,
@@ -208,6 +252,7 @@ fn robot_to_u8(r: RobotIndication) -> u8 {
 }
 
 impl SharedStatus {
+    /// All counters zero for `camera_count` cameras, clock of `uptime_s` started now.
     pub fn new(camera_count: usize, source_description: String, led_backend: String) -> Self {
         Self {
             outputs: std::sync::OnceLock::new(),
@@ -260,14 +305,17 @@ impl SharedStatus {
         }
     }
 
+    /// Seconds since this status was created (the service's start).
     pub fn uptime_s(&self) -> f64 {
         self.started.elapsed().as_secs_f64()
     }
 
+    /// Sets what the track LED shows; called by the loop after each set.
     pub fn set_track(&self, t: TrackIndication) {
         self.track.store(track_to_u8(t), R);
     }
 
+    /// What the track LED should show.
     pub fn track(&self) -> TrackIndication {
         match self.track.load(R) {
             2 => TrackIndication::All,
@@ -281,6 +329,7 @@ impl SharedStatus {
         self.robot.store(robot_to_u8(r), R);
     }
 
+    /// What the robot LED should show.
     pub fn robot(&self) -> RobotIndication {
         match self.robot.load(R) {
             1 => RobotIndication::Connected,
@@ -328,19 +377,23 @@ impl SharedStatus {
         }
     }
 
+    /// The LEDs as last driven: run, track, robot, fault (on = `true`).
     pub fn led_levels(&self) -> [bool; 4] {
         let bits = self.led_levels.load(R);
         [bits & 1 != 0, bits & 2 != 0, bits & 4 != 0, bits & 8 != 0]
     }
 
+    /// The state the LED driver last displayed.
     pub fn indication(&self) -> Indication {
         self.indication.lock().map(|g| *g).unwrap_or(Indication::STARTING)
     }
 
+    /// A copy of the active parameter set's description.
     pub fn params_info(&self) -> ParamsInfo {
         self.params.lock().map(|g| g.clone()).unwrap_or_default()
     }
 
+    /// Changes the parameter set's description under its lock.
     pub fn update_params_info(&self, f: impl FnOnce(&mut ParamsInfo)) {
         if let Ok(mut g) = self.params.lock() {
             f(&mut g);
@@ -852,6 +905,7 @@ pub struct FaultText {
     /// `skewed_sets`, and from the whole-frame analysis `background_above_threshold`,
     /// `overloaded`, `too_many_spots`, `unreadable_frame`.
     pub code: &'static str,
+    /// The camera concerned; `None` for faults of the whole board.
     pub camera: Option<usize>,
     /// What is wrong and the next step, one sentence.
     pub message: String,
@@ -948,8 +1002,10 @@ pub fn fault_texts(
     out
 }
 
+/// Versions of this build and of the formats it speaks (`/status`).
 #[derive(Debug, Clone, Serialize)]
 pub struct Versions {
+    /// This build's crate version.
     pub irtrackd: &'static str,
     /// Parameter blob format this build reads.
     pub param_blob_format: u16,
@@ -957,93 +1013,148 @@ pub struct Versions {
     pub stream_binary: u8,
 }
 
+/// One camera's counters on `/status`.
 #[derive(Debug, Clone, Serialize)]
 pub struct CameraReport {
+    /// Camera index, configuration order.
     pub index: usize,
+    /// Frames received since start.
     pub frames: u64,
+    /// Frame rate from the averaged capture interval, Hz; `None` before two frames.
     pub fps: Option<f64>,
+    /// Frame width, pixels.
     pub width_px: u64,
+    /// Frame height, pixels.
     pub height_px: u64,
+    /// Blobs found in the latest frame.
     pub blobs_last: u64,
     /// Brightest pixel (DN) of the last processed frame.
     pub peak_dn: u64,
 }
 
+/// The frame source's counters on `/status`.
 #[derive(Debug, Clone, Serialize)]
 pub struct SourceReport {
+    /// The frame source in words.
     pub description: String,
+    /// Sets the source delivered.
     pub sets_delivered: u64,
+    /// Sets the source skipped.
     pub sets_dropped: u64,
+    /// Frames dropped for lack of a partner in time.
     pub unpaired_dropped: u64,
+    /// Times a camera was lost and reopened.
     pub reconnects: u64,
+    /// Timestamp spread between the cameras of the latest set, µs.
     pub pairing_error_last_us: f64,
+    /// Largest timestamp spread since start, µs.
     pub pairing_error_max_us: f64,
+    /// Per-camera counters, in camera order.
     pub cameras: Vec<CameraReport>,
 }
 
+/// The processing loop's counters and stage latencies on `/status`.
 #[derive(Debug, Clone, Serialize)]
 pub struct LoopReport {
+    /// Passes of the processing loop.
     pub iterations: u64,
+    /// Sets processed to publishing.
     pub sets_processed: u64,
+    /// Records published.
     pub published: u64,
+    /// Records with a position.
     pub tracked: u64,
+    /// Records without a position (no marker, fault).
     pub lost: u64,
+    /// Records the quality gate refused.
     pub gated: u64,
+    /// Ray gap of the latest triangulated position, mm.
     pub last_gap_mm: Option<f64>,
+    /// Processing time allowed per set, µs.
     pub deadline_us: f64,
+    /// Sets that took longer than the deadline.
     pub deadline_misses: u64,
+    /// Errors of the frame source.
     pub source_errors: u64,
+    /// Detection or tracking failures.
     pub pipeline_errors: u64,
     /// Duplicated or reordered sets dropped unpublished.
     pub stale_sets: u64,
     /// Sets published without a position because their cameras' timestamps were too far apart.
     pub skewed_sets: u64,
+    /// The source ended (replay finished) and the loop stopped.
     pub source_ended: bool,
     /// Why the source ended (replay: sets delivered of recorded, what was skipped and why).
     pub end_reason: Option<String>,
+    /// Latency summary of each stage, µs, by stage name.
     pub latency_us: std::collections::BTreeMap<&'static str, LatencySummary>,
     /// Real-time settings applied or refused (one line each).
     pub realtime: Vec<String>,
 }
 
+/// The position stream's counters on `/status`.
 #[derive(Debug, Clone, Serialize)]
 pub struct StreamReport {
+    /// Clients connected now.
     pub clients: u64,
+    /// Clients accepted since start.
     pub clients_total: u64,
+    /// Clients dropped for being too slow.
     pub dropped_slow: u64,
     /// Connections closed at once because `listen.max_stream_clients` were already connected.
     pub refused: u64,
+    /// Records written to clients, all together.
     pub records_sent: u64,
+    /// Records replaced in the slot before the stream hub read them.
     pub slot_overwrites: u64,
 }
 
+/// On/off state of each status LED.
 #[derive(Debug, Clone, Serialize)]
 pub struct LedLevels {
+    /// Run LED (green): the loop is alive.
     pub run: bool,
+    /// Track LED: markers seen.
     pub track: bool,
+    /// Robot LED: robot link state.
     pub robot: bool,
+    /// Fault LED (red).
     pub fault: bool,
 }
 
+/// The status LEDs on `/status`.
 #[derive(Debug, Clone, Serialize)]
 pub struct LedReport {
+    /// The LED driver in use.
     pub backend: String,
+    /// The state shown.
     pub indication: Indication,
+    /// Which LEDs are on at this instant (blinking included).
     pub on: LedLevels,
 }
 
 /// The `/status` JSON document.
 #[derive(Debug, Clone, Serialize)]
 pub struct StatusReport {
+    /// Always `"irtrackd"`.
     pub service: &'static str,
+    /// Build and format versions.
     pub versions: Versions,
+    /// Seconds since start.
     pub uptime_s: f64,
+    /// The active parameter set.
     pub params: ParamsInfo,
+    /// Frame source counters.
     pub source: SourceReport,
+    /// Processing loop counters and latencies.
     pub processing: LoopReport,
+    /// Position stream counters.
     pub stream: StreamReport,
+    /// Status LEDs.
     pub leds: LedReport,
+    /// Active faults, most important first.
     pub faults: Vec<Fault>,
+    /// The cluster's state on a camera board or solver; absent standalone.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub cluster: Option<crate::cluster::report::ClusterReport>,
 }

@@ -25,9 +25,12 @@ pub const TUNING_FILE: &str = "tuning.toml";
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraRequest {
+    /// Camera index, configuration order.
     pub camera: usize,
+    /// Exposure time in the camera's units (V4L2: 100 µs).
     #[serde(default)]
     pub exposure: Option<i64>,
+    /// Analogue gain in the camera's units.
     #[serde(default)]
     pub gain: Option<i64>,
 }
@@ -36,9 +39,13 @@ pub struct CameraRequest {
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TuningFile {
+    /// Blob detection threshold, DN; `None` keeps the config file's value.
     pub threshold_dn: Option<u32>,
+    /// Smallest blob area accepted, pixels; `None` keeps the config file's value.
     pub min_area_px: Option<u32>,
+    /// Largest blob area accepted, pixels; `None` keeps the config file's value.
     pub max_area_px: Option<u32>,
+    /// Exposure and gain per camera (`[[camera]]` tables).
     #[serde(default)]
     pub camera: Vec<CameraRequest>,
 }
@@ -100,9 +107,13 @@ pub fn check_detector(t: &TrackerConfig) -> std::result::Result<(), String> {
 #[derive(Debug, Clone, PartialEq, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TuningChange {
+    /// New detection threshold, DN.
     pub threshold_dn: Option<u32>,
+    /// New smallest blob area, pixels.
     pub min_area_px: Option<u32>,
+    /// New largest blob area, pixels.
     pub max_area_px: Option<u32>,
+    /// Camera settings to change.
     #[serde(default)]
     pub cameras: Vec<CameraRequest>,
 }
@@ -110,6 +121,7 @@ pub struct TuningChange {
 /// What the loop should apply.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Requested {
+    /// Detector settings with every accepted change applied.
     pub tracking: TrackerConfig,
     /// Camera settings not yet applied by the loop.
     pub pending: Vec<(usize, CameraControl, i64)>,
@@ -135,24 +147,38 @@ pub struct TuningHandle {
 /// `GET /api/tuning` answer.
 #[derive(Debug, Clone, Serialize)]
 pub struct TuningReport {
+    /// Detection threshold in force, DN.
     pub threshold_dn: u32,
+    /// Smallest blob area in force, pixels.
     pub min_area_px: u32,
+    /// Largest blob area in force, pixels.
     pub max_area_px: u32,
+    /// Each camera's controls as last read back, in camera order.
     pub cameras: Vec<CameraReport>,
+    /// Path of the tuning file `save` writes.
     pub saved_to: String,
+    /// Values were changed since the last save (or start).
     pub unsaved_changes: bool,
+    /// Whether a tuning file was applied at start.
     pub loaded_from_file: bool,
+    /// Why the last camera change failed, if it did.
     pub last_error: Option<String>,
 }
 
 /// One camera in [`TuningReport`] (contract: docs/http-api.md).
 #[derive(Debug, Clone, Serialize)]
 pub struct CameraReport {
+    /// Camera index, configuration order.
     pub camera: usize,
+    /// Exposure as read back, camera units; `None` if the camera has no such control.
     pub exposure: Option<i64>,
+    /// Allowed exposure range, `[min, max]`.
     pub exposure_range: Option<[i64; 2]>,
+    /// Gain as read back, camera units; `None` if the camera has no such control.
     pub gain: Option<i64>,
+    /// Allowed gain range, `[min, max]`.
     pub gain_range: Option<[i64; 2]>,
+    /// The camera has exposure or gain control at all.
     pub supported: bool,
 }
 
@@ -186,10 +212,12 @@ impl TuningHandle {
         }
     }
 
+    /// Where the tuning file is saved: `tuning.toml` in the state directory.
     pub fn path(&self) -> PathBuf {
         self.state_dir.join(TUNING_FILE)
     }
 
+    /// Counter bumped by every installed change; the loop compares it to decide whether to `take`.
     pub fn generation(&self) -> u64 {
         self.generation.load(Ordering::Acquire)
     }
@@ -219,10 +247,12 @@ impl TuningHandle {
         }
     }
 
+    /// Sets the frames' largest sample value (DN), the bound for the threshold.
     pub fn set_max_dn(&self, max_dn: u32) {
         self.max_dn.store(u64::from(max_dn), Ordering::Relaxed);
     }
 
+    /// The detector settings in force.
     pub fn tracking(&self) -> Option<TrackerConfig> {
         self.requested.lock().ok().map(|g| g.tracking)
     }
@@ -288,6 +318,7 @@ impl TuningHandle {
         Ok(())
     }
 
+    /// The `GET /api/tuning` answer.
     pub fn report(&self) -> TuningReport {
         let t = self.tracking().unwrap_or_default();
         let cameras = self.cameras.lock().map(|c| c.clone()).unwrap_or_default();

@@ -7,6 +7,7 @@ use serde::Serialize;
 /// One board as the solver sees it (`/status` → `cluster.boards`).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct BoardReport {
+    /// The board's name (`[cluster] board` in its config).
     pub name: String,
     /// The rig's cameras on this board.
     pub cameras: Vec<usize>,
@@ -23,21 +24,33 @@ pub struct BoardReport {
 /// `/status` → `cluster` (camera and solver roles).
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
 pub struct ClusterReport {
+    /// `"camera"` or `"solver"`.
     pub role: &'static str,
+    /// The rig's name, the parameter set's rig id (`[cluster] rig`).
     pub rig: String,
+    /// This board's name (`[cluster] board`).
     pub board: String,
     /// Camera role: observations sent, and those dropped by loss injection.
     pub published: u64,
+    /// Camera role: observations Zenoh failed to send.
     pub publish_errors: u64,
+    /// Camera role: observations deliberately not sent (loss injection for tests).
     pub injected_losses: u64,
     /// Solver.
     pub boards: Vec<BoardReport>,
+    /// Solver: observation messages taken from the queue.
     pub received: u64,
+    /// Solver: sets closed with every camera present.
     pub sets_complete: u64,
+    /// Solver: sets closed with a camera missing (deadline passed or room needed).
     pub sets_incomplete: u64,
+    /// Solver: observations that arrived after their set was closed.
     pub late: u64,
+    /// Solver: second observations of one camera for the same open set.
     pub conflicting: u64,
+    /// Solver: observations of a board with a clock fault, kept out of the sets.
     pub refused_clock: u64,
+    /// Solver: observations dropped because its receive queue was full.
     pub queue_overflow: u64,
     /// Empty slots in closed sets, per camera.
     pub missing: Vec<u64>,

@@ -45,6 +45,7 @@ impl Axes {
 pub struct ModelDef {
     /// Rigid body id (1-based, the tool's index in the parameter set + 1); 0 for the single LED.
     pub id: u32,
+    /// The tool's name from the parameter set, or `"led"` for the single LED.
     pub name: String,
     /// Marker (LED) positions in the model's own frame relative to the reported point (the
     /// tool's tip, else its origin), metres. One entry at the origin for the single LED.
@@ -56,6 +57,7 @@ pub struct ModelDef {
 /// The models of the active parameter set.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Models {
+    /// The models, in id order.
     pub list: Vec<ModelDef>,
 }
 
@@ -101,6 +103,7 @@ impl Models {
         Models { list }
     }
 
+    /// The models that are 6-DOF tools.
     pub fn rigid_bodies(&self) -> impl Iterator<Item = &ModelDef> {
         self.list.iter().filter(|m| m.rigid_body)
     }
@@ -109,12 +112,15 @@ impl Models {
 /// A rigid body's state in one frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BodySample {
+    /// Rigid body id, as in [`ModelDef::id`].
     pub id: u32,
+    /// Position of the tool's reported point (tip, else origin), metres, in the output's axes.
     pub position_m: [f64; 3],
     /// Unit quaternion, x y z w (NatNet's and ROS's order).
     pub orientation_xyzw: [f64; 4],
     /// RMS residual of the tool's layout fit, metres.
     pub mean_error_m: f64,
+    /// The tool's pose was found in this frame; otherwise the pose fields carry no information.
     pub tracked: bool,
 }
 
@@ -123,6 +129,7 @@ pub struct BodySample {
 pub struct MarkerSample {
     /// Model id (0: no model) in the high 16 bits, 1-based marker index in the low ones.
     pub id: u32,
+    /// Position, metres, in the output's axes.
     pub position_m: [f64; 3],
     /// Ray gap / residual, metres (0 when not known per marker).
     pub residual_m: f64,
@@ -134,13 +141,17 @@ pub struct MarkerSample {
 /// frame ([`SceneBuilder::fill`] clears and refills them), so steady state does not allocate.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct SceneFrame {
+    /// Index of the frame set the record comes from.
     pub frame: u64,
+    /// Capture time of the set, CLOCK_MONOTONIC ns.
     pub capture_ts_ns: u64,
     /// Capture to publication by the processing loop, ns.
     pub latency_ns: u64,
+    /// Positions were in the robot base frame before the output's axes were applied (else camera 0's).
     pub world_frame: bool,
     /// Per model of [`Models::list`], in that order: its markers (zeros when not tracked).
     pub marker_sets: Vec<Vec<[f64; 3]>>,
+    /// One entry per rigid body model, in id order.
     pub bodies: Vec<BodySample>,
     /// Every 3-D marker of the frame (labelled list); single-LED markers have model id 0.
     pub markers: Vec<MarkerSample>,
@@ -151,7 +162,9 @@ pub struct SceneFrame {
 /// Turns position records into [`SceneFrame`]s for a set of [`Models`] and [`Axes`].
 #[derive(Debug, Clone)]
 pub struct SceneBuilder {
+    /// The models every frame describes.
     pub models: Models,
+    /// The axes positions and orientations are given in.
     pub axes: Axes,
     /// The loop's per-tool records; without them (or for a set without them) only a set with
     /// a single tool has a tracked body, from the main record.
@@ -159,6 +172,7 @@ pub struct SceneBuilder {
 }
 
 impl SceneBuilder {
+    /// A builder for `models` in `axes`, reading only the main record (no per-tool slot).
     pub fn new(models: Models, axes: Axes) -> Self {
         Self {
             models,

@@ -9,19 +9,24 @@ use irtrack_core::pgm;
 /// (values right-aligned, i.e. a 10-bit sensor gives 0..=1023).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Pixels {
+    /// 8-bit samples, row-major with the frame's stride.
     U8(Vec<u8>),
+    /// 10- to 16-bit samples, right-aligned, row-major with the frame's stride.
     U16(Vec<u16>),
 }
 
 /// One camera frame, filled in place by a [`FrameSource`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Frame {
+    /// Image width in pixels.
     pub width_px: u32,
+    /// Image height in pixels (rows).
     pub height_px: u32,
     /// Row stride in pixels (not bytes); `>= width_px`.
     pub stride_px: u32,
     /// Significant bits per pixel (8, 10, 12 or 16).
     pub bit_depth: u8,
+    /// The samples, `stride_px * height_px` of them.
     pub pixels: Pixels,
     /// Capture time, CLOCK_MONOTONIC ns: the V4L2 buffer's driver timestamp; the simulator's
     /// hand-over instant (the scene is rendered as it is at that instant, ahead of it).
@@ -91,6 +96,7 @@ impl Frame {
 pub struct FrameSet {
     /// Index of this set, counted by the source (gaps mean dropped sets).
     pub index: u64,
+    /// One frame per camera, in camera order.
     pub frames: Vec<Frame>,
     /// Largest timestamp difference between the paired frames.
     pub pairing_error_ns: u64,
@@ -103,6 +109,7 @@ pub struct FrameSet {
 /// Counters every source keeps.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct SourceStats {
+    /// Sets handed to the loop.
     pub sets_delivered: u64,
     /// Frames that found no partner in time and were dropped.
     pub unpaired_dropped: u64,
@@ -115,20 +122,36 @@ pub struct SourceStats {
 /// Errors of a frame source. `Transient` errors are retried by the loop; the others stop it.
 #[derive(Debug, thiserror::Error)]
 pub enum SourceError {
+    /// A camera stopped delivering or could not be opened; the loop retries it.
     #[error("camera {camera} ({device}) unavailable: {reason}")]
     CameraLost {
+        /// Camera index (configuration order).
         camera: usize,
+        /// Device path or name, e.g. `/dev/video0`.
         device: String,
+        /// The driver's or the source's explanation.
         reason: String,
     },
+    /// No set arrived within the source's wait limit.
     #[error("no frame within {timeout_ms} ms")]
-    Timeout { timeout_ms: u64 },
+    Timeout {
+        /// How long the source waited, ms.
+        timeout_ms: u64,
+    },
+    /// A finite source (replay) has delivered its last set.
     #[error("end of recorded frames")]
     EndOfStream,
+    /// The source's configuration cannot be used; the text says what is wrong.
     #[error("source configuration: {0}")]
     Config(String),
+    /// Reading or writing the file at `path` failed.
     #[error("I/O on {path}: {source}")]
-    Io { path: String, source: std::io::Error },
+    Io {
+        /// The file or device concerned.
+        path: String,
+        /// The operating system's error.
+        source: std::io::Error,
+    },
 }
 
 /// A camera setting the set-up view may change live.
@@ -144,19 +167,25 @@ pub enum CameraControl {
 /// Current value and range of one control.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 pub struct ControlValue {
+    /// Current setting, in the control's units.
     pub value: i64,
+    /// Smallest allowed setting.
     pub min: i64,
+    /// Largest allowed setting.
     pub max: i64,
 }
 
 /// The live controls of one camera; `None` = the camera has no such control.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 pub struct CameraControls {
+    /// Exposure time (see [`CameraControl::Exposure`] for its units).
     pub exposure: Option<ControlValue>,
+    /// Analogue gain, in the camera's units.
     pub gain: Option<ControlValue>,
 }
 
 impl CameraControls {
+    /// Value and range of `control`, if the camera has it.
     pub fn get(&self, control: CameraControl) -> Option<ControlValue> {
         match control {
             CameraControl::Exposure => self.exposure,

@@ -34,8 +34,11 @@ use super::{Frame, FrameSet, FrameSource, Pixels, SourceError, SourceStats};
 pub struct V4l2Config {
     /// Device paths or /dev/v4l/by-id links, one per camera, camera 0 first.
     pub devices: Vec<String>,
+    /// Requested frame width, pixels; the driver must accept it exactly.
     pub width_px: u32,
+    /// Requested frame height, pixels; the driver must accept it exactly.
     pub height_px: u32,
+    /// Requested frame rate, Hz.
     pub fps: u32,
     /// Pixel formats in order of preference (FourCC codes: GREY, Y10, Y16, YUYV).
     #[serde(default = "default_formats")]
@@ -58,9 +61,10 @@ pub struct V4l2Config {
     /// A set not complete within this time is reported as a timeout.
     #[serde(default = "default_frame_timeout_ms")]
     pub frame_timeout_ms: u64,
-    /// First and largest delay between attempts to reopen a lost camera.
+    /// First delay between attempts to reopen a lost camera, ms.
     #[serde(default = "default_reconnect_min_ms")]
     pub reconnect_min_ms: u64,
+    /// Largest delay between reopen attempts, ms: the delay doubles after each failure up to this.
     #[serde(default = "default_reconnect_max_ms")]
     pub reconnect_max_ms: u64,
 }
@@ -98,6 +102,7 @@ pub enum PixelFormat {
 }
 
 impl PixelFormat {
+    /// The format named by a FourCC code as written in the config (`GREY`/`GRAY`/`Y8`, `Y10`, `Y16`, `YUYV`; any case); `None` if unknown.
     pub fn parse(name: &str) -> Option<Self> {
         match name.to_ascii_uppercase().as_str() {
             "GREY" | "GRAY" | "Y8" => Some(Self::Grey),
@@ -108,6 +113,7 @@ impl PixelFormat {
         }
     }
 
+    /// The V4L2 FourCC code of the format.
     pub fn fourcc(self) -> FourCC {
         FourCC::new(match self {
             Self::Grey => b"GREY",
@@ -117,6 +123,7 @@ impl PixelFormat {
         })
     }
 
+    /// The FourCC code as text, for logs and the status.
     pub fn name(self) -> &'static str {
         match self {
             Self::Grey => "GREY",
@@ -126,6 +133,7 @@ impl PixelFormat {
         }
     }
 
+    /// Significant bits of the luma samples the loop receives.
     pub fn bit_depth(self) -> u8 {
         match self {
             Self::Grey | Self::Yuyv => 8,
@@ -276,6 +284,7 @@ pub struct Pairer {
 }
 
 impl Pairer {
+    /// A pairer for `cameras` cameras accepting sets whose timestamps spread at most `tolerance_ns`, ns.
     pub fn new(cameras: usize, tolerance_ns: u64) -> Self {
         Self {
             slots: vec![None; cameras],
@@ -299,6 +308,7 @@ impl Pairer {
         (0..self.slots.len()).map(|c| self.clear(c)).sum()
     }
 
+    /// Whether `camera` has a frame waiting for its partners.
     pub fn is_pending(&self, camera: usize) -> bool {
         self.slots[camera].is_some()
     }
@@ -340,13 +350,19 @@ const ENODEV: i32 = 19;
 /// What a camera was negotiated to; fixed for the life of the source.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Negotiated {
+    /// Pixel format the camera delivers.
     pub format: PixelFormat,
+    /// Frame width the driver set, pixels.
     pub width_px: u32,
+    /// Frame height the driver set, pixels.
     pub height_px: u32,
+    /// Row length of the driver's buffers, bytes (may exceed width times sample size).
     pub bytes_per_line: u32,
     /// Frame interval the driver accepted, as numerator/denominator seconds.
     pub interval: (u32, u32),
+    /// Kernel driver name (`VIDIOC_QUERYCAP`).
     pub driver: String,
+    /// Device name the driver reports (`VIDIOC_QUERYCAP`).
     pub card: String,
 }
 
@@ -681,6 +697,7 @@ fn close_camera(mut cam: Box<OpenCamera>) {
 }
 
 impl V4l2Source {
+    /// As the module's [`open`], as the concrete type (to read [`Self::negotiated`]).
     pub fn open(config: &V4l2Config) -> Result<Self, SourceError> {
         let formats = config.validate()?;
         let mut cameras = Vec::with_capacity(config.devices.len());
