@@ -33,9 +33,13 @@ use irtrack_robot::{LinkHandle, MonotonicClock, RobotConfig};
 /// Actual addresses of the bound listeners.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BoundAddrs {
+    /// Parameter push listener.
     pub params: SocketAddr,
+    /// Position stream, JSON lines.
     pub stream_ndjson: SocketAddr,
+    /// Position stream, binary records.
     pub stream_binary: SocketAddr,
+    /// Status port (`/status`, `/metrics`, set-up view).
     pub status: SocketAddr,
     /// NatNet command socket, when `[outputs.natnet]` is enabled.
     pub natnet: Option<SocketAddr>,
@@ -59,14 +63,19 @@ impl BoundAddrs {
 /// Things tests (or other front ends) may supply instead of what the config describes.
 #[derive(Default)]
 pub struct Overrides {
+    /// A frame source to use instead of opening the configured one.
     pub source: Option<Box<dyn FrameSource>>,
+    /// An LED driver to use instead of the configured one.
     pub leds: Option<Box<dyn StatusLeds>>,
 }
 
 /// A running irtrackd.
 pub struct Running {
+    /// Where the listeners are bound.
     pub addrs: BoundAddrs,
+    /// The shared counters and health state.
     pub status: Arc<SharedStatus>,
+    /// The parameter store and its active set.
     pub params: Arc<ParamService>,
     /// Present when the simulated LED back end is in use.
     pub led_record: Option<LedRecord>,

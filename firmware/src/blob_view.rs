@@ -26,12 +26,19 @@ pub enum RejectReason {
 /// One blob as the set-up view draws it (full-resolution pixel coordinates).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct BlobView {
+    /// Column of the intensity-weighted centroid, pixels (pixel centres at integers).
     pub x_px: f64,
+    /// Row of the intensity-weighted centroid, pixels (pixel centres at integers).
     pub y_px: f64,
+    /// Pixels above the threshold.
     pub area_px: u32,
+    /// Brightest pixel of the blob, DN.
     pub peak_dn: u32,
+    /// Minor over major spread, 0..=1: 1 for a round spot, towards 0 for a streak.
     pub roundness: f64,
+    /// The loop would use this blob (no reason to reject it).
     pub kept: bool,
+    /// Why the blob is rejected; `None` when kept.
     pub reason: Option<RejectReason>,
     /// 6-DOF mode: the tool (index in the parameter set) this blob was assigned to.
     pub tool: Option<u8>,

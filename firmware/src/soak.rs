@@ -24,7 +24,9 @@ use crate::status::SharedStatus;
 /// What to run.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SoakConfig {
+    /// Frame sets to run.
     pub frames: u64,
+    /// Frame rate of the simulated cameras, Hz (also the latency budget: one period).
     pub fps: f64,
     /// `false`: the source delivers as fast as the loop takes sets.
     pub paced: bool,
@@ -42,15 +44,23 @@ pub fn rss_bytes() -> Option<u64> {
 /// Measured results.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SoakReport {
+    /// Records the loop returned, as counted by the soak run itself.
     pub sets_published: u64,
+    /// Of those, records with a position.
     pub tracked: u64,
+    /// Of those, records without a position (no marker, fault).
     pub lost: u64,
+    /// Of those, records the quality gate refused.
     pub gated: u64,
+    /// Sets the source delivered ([`SourceStats`]).
     pub sets_delivered: u64,
+    /// Sets the source skipped.
     pub sets_dropped: u64,
     /// Engine counters: sets processed, records published, deadline misses.
     pub engine_sets_processed: u64,
+    /// The loop's own count of published records.
     pub engine_published: u64,
+    /// The loop's own count of sets over its deadline.
     pub engine_deadline_misses: u64,
     /// Sets whose ready → published latency exceeded the frame period.
     pub latency_over_period: u64,
@@ -60,6 +70,7 @@ pub struct SoakReport {
     pub latency_us: [f64; 4],
     /// RSS in bytes at start (after warm-up), middle and end.
     pub rss_bytes: [u64; 3],
+    /// Duration of the run, wall-clock seconds.
     pub wall_s: f64,
 }
 

@@ -36,8 +36,11 @@ pub const MAX_TAP_BLOBS: usize = 32;
 /// A copy of one processed frame set.
 #[derive(Debug, Clone)]
 pub struct TapSet {
+    /// Index of the copied frame set (the source's count).
     pub set_index: u64,
+    /// Timestamp spread between the set's cameras, ns.
     pub pairing_error_ns: u64,
+    /// The cameras' frames, pixels included, in camera order.
     pub frames: Vec<Frame>,
     /// Per camera: kept and rejected blobs (at most [`MAX_TAP_BLOBS`] each).
     pub blobs: Vec<Vec<BlobView>>,
@@ -158,7 +161,9 @@ impl TapSet {
 /// blobs: a few kB copied instead of both full frames).
 #[derive(Debug, Clone, PartialEq)]
 pub struct BlobCopy {
+    /// Index of the frame set the blobs come from.
     pub set_index: u64,
+    /// Timestamp spread between the set's cameras, ns.
     pub pairing_error_ns: u64,
     /// Per camera: the frame's capture timestamp.
     pub timestamps_ns: Vec<u64>,
@@ -301,7 +306,9 @@ struct Want {
 /// An analysis and when it was made.
 #[derive(Debug, Clone)]
 pub struct LatestAnalysis {
+    /// When the analysis was made.
     pub at: Instant,
+    /// One analysis per camera, in camera order.
     pub cameras: Arc<Vec<CameraAnalysis>>,
 }
 
@@ -369,6 +376,7 @@ impl Drop for ViewerGuard {
 }
 
 impl ViewerTap {
+    /// A tap with no viewer, so the loop copies nothing.
     pub fn new() -> Self {
         Self {
             slot: Mutex::new(None),
@@ -414,6 +422,7 @@ impl ViewerTap {
             .map(|a| a.cameras.clone())
     }
 
+    /// The threshold suggestion made at first start, when the configured threshold did not suit the cameras.
     pub fn startup_suggestion(&self) -> Option<Suggestion> {
         self.startup_suggestion.lock().ok().and_then(|s| s.clone())
     }
@@ -503,6 +512,7 @@ impl ViewerTap {
         self.seq.load(Ordering::Acquire)
     }
 
+    /// Full frame-set copies the loop has made since start.
     pub fn copies(&self) -> u64 {
         self.copies.load(R)
     }
@@ -512,6 +522,7 @@ impl ViewerTap {
         self.busy_skips.load(R)
     }
 
+    /// Viewers registered now.
     pub fn viewer_count(&self) -> usize {
         self.viewers.lock().map(|v| v.len()).unwrap_or(0)
     }
@@ -526,6 +537,7 @@ impl ViewerTap {
         self.blob_seq.load(Ordering::Acquire)
     }
 
+    /// Blob-only copies the loop has made since start.
     pub fn blob_copies(&self) -> u64 {
         self.blob_copies.load(R)
     }

@@ -127,6 +127,9 @@ impl Default for ClusterConfig {
 }
 
 impl ClusterConfig {
+    /// Checks the role's settings: the `cluster` feature is built in, rig and board names are
+    /// valid, endpoints or scouting are given, rates are positive. Standalone needs nothing; the
+    /// error names the key.
     pub fn validate(&self) -> Result<()> {
         let bad = |reason: String| Err(FirmwareError::Config { reason });
         if self.role == Role::Standalone {
@@ -269,6 +272,7 @@ pub fn solver_source(
     })
 }
 
+/// Solver role without the `cluster` feature: an error saying irtrackd must be built with it.
 #[cfg(not(feature = "cluster"))]
 pub fn solver_source(
     _cfg: &ClusterConfig,
@@ -304,6 +308,7 @@ pub fn with_role(
     })
 }
 
+/// Without the `cluster` feature the loop is returned unchanged.
 #[cfg(not(feature = "cluster"))]
 pub fn with_role(
     engine: crate::engine::Engine,

@@ -17,6 +17,7 @@ pub const TICK: Duration = Duration::from_millis(25);
 pub const STALL_AFTER: Duration = Duration::from_secs(1);
 /// Deadline-miss fault: more than this fraction of sets missed within one window.
 pub const DEADLINE_FAULT_FRACTION: f64 = 0.05;
+/// Window over which deadline misses are counted for the fault.
 pub const DEADLINE_WINDOW: Duration = Duration::from_secs(2);
 
 /// Derives liveness and the deadline fault from counter deltas.
@@ -30,6 +31,7 @@ pub struct HealthMonitor {
 }
 
 impl HealthMonitor {
+    /// A monitor whose first window starts at `now` from the counters' current values.
     pub fn new(status: &SharedStatus, now: Instant) -> Self {
         Self {
             last_iterations: status.loop_iterations.load(Ordering::Relaxed),
@@ -73,6 +75,7 @@ pub struct LedDriver {
 }
 
 impl LedDriver {
+    /// Starts the driver thread for `leds`, showing what `status` says.
     pub fn start(mut leds: Box<dyn StatusLeds>, status: Arc<SharedStatus>) -> Result<Self> {
         let stop = Arc::new(AtomicBool::new(false));
         let stop2 = stop.clone();
@@ -89,6 +92,7 @@ impl LedDriver {
         })
     }
 
+    /// Stops the thread and waits for it; the LEDs are switched off.
     pub fn stop(mut self) {
         self.shutdown();
     }

@@ -15,7 +15,9 @@ use super::{Led, LedError, StatusLeds};
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(untagged)]
 pub enum LineRef {
+    /// Line offset on the chip (a TOML integer).
     Offset(u32),
+    /// Line name as the device tree gives it (a TOML string).
     Name(String),
 }
 
@@ -25,9 +27,13 @@ pub enum LineRef {
 pub struct GpioLedConfig {
     /// Chip path, device name or label, e.g. `/dev/gpiochip0`, `gpiochip0` or `9030000.pl061`.
     pub chip: String,
+    /// Line of the run LED.
     pub run: LineRef,
+    /// Line of the track LED.
     pub track: LineRef,
+    /// Line of the robot LED.
     pub robot: LineRef,
+    /// Line of the fault LED.
     pub fault: LineRef,
     /// LEDs wired to light when the line is low.
     #[serde(default)]
@@ -113,6 +119,7 @@ fn resolve_line(chip: &gpiocdev::Chip, num_lines: u32, led: Led, line: &LineRef)
 }
 
 impl GpioLeds {
+    /// Finds the chip and requests the four lines as outputs, all LEDs off; the error names the chip or line that is missing.
     pub fn open(config: &GpioLedConfig) -> Result<Self, LedError> {
         let chip = resolve_chip(&config.chip)?;
         let info = chip
@@ -157,6 +164,7 @@ impl GpioLeds {
         self.offsets[led_index(led)]
     }
 
+    /// Device path of the chip in use.
     pub fn chip_path(&self) -> &Path {
         &self.chip_path
     }

@@ -28,8 +28,11 @@ use super::Led;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum TrackIndication {
+    /// Not seen, or nothing can be tracked (no parameters, failure): track LED off.
     None,
+    /// Seen by some cameras only: fast blink.
     Partial,
+    /// Seen by every camera and tracked: steady on.
     All,
 }
 
@@ -37,8 +40,11 @@ pub enum TrackIndication {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum RobotIndication {
+    /// No robot link (or still connecting): robot LED off.
     Disconnected,
+    /// Connected and sending targets: steady on.
     Connected,
+    /// Connected, robot held still (the link says why): slow blink.
     Holding,
 }
 
@@ -58,8 +64,11 @@ impl From<irtrack_robot::LinkState> for RobotIndication {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Fault {
+    /// A camera stopped delivering frames: two flashes.
     CameraLost,
+    /// No valid parameter set is active: one flash.
     NoParams,
+    /// The loop misses its per-set deadline too often: three flashes.
     DeadlineMisses,
 }
 
@@ -77,14 +86,18 @@ impl Fault {
 /// The logical state the LEDs show.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub struct Indication {
+    /// The loop is making progress (run LED heartbeat).
     pub alive: bool,
+    /// What the track LED shows.
     pub track: TrackIndication,
+    /// What the robot LED shows.
     pub robot: RobotIndication,
     /// The fault being shown (highest priority active fault).
     pub fault: Option<Fault>,
 }
 
 impl Indication {
+    /// The state before the loop's first pass: nothing alive, tracked or linked, no fault.
     pub const STARTING: Indication = Indication {
         alive: false,
         track: TrackIndication::None,

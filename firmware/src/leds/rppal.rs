@@ -13,15 +13,20 @@ use super::{Led, LedError, StatusLeds};
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RppalLedConfig {
+    /// BCM number of the run LED's pin.
     pub run_bcm: u8,
+    /// BCM number of the track LED's pin.
     pub track_bcm: u8,
+    /// BCM number of the robot LED's pin.
     pub robot_bcm: u8,
+    /// BCM number of the fault LED's pin.
     pub fault_bcm: u8,
     /// LEDs wired to light when the pin is low.
     #[serde(default)]
     pub active_low: bool,
 }
 
+/// The four status LEDs on Raspberry Pi pins (rppal).
 pub struct RppalLeds {
     /// One pin per LED, in [`Led::ALL`] order.
     pins: [OutputPin; 4],

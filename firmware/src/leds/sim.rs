@@ -8,7 +8,9 @@ use super::{Led, LedError, StatusLeds};
 /// One recorded LED change.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LedChange {
+    /// Which LED changed.
     pub led: Led,
+    /// Its new state (`true`: lit).
     pub on: bool,
     /// Seconds since the back end was created.
     pub at_s: f64,
@@ -22,6 +24,7 @@ pub struct LedRecord(Arc<Mutex<Vec<LedChange>>>);
 const RECORD_LIMIT: usize = 100_000;
 
 impl LedRecord {
+    /// A copy of the changes recorded so far, oldest first.
     pub fn changes(&self) -> Vec<LedChange> {
         self.0.lock().map(|g| g.clone()).unwrap_or_default()
     }
@@ -45,6 +48,7 @@ pub struct SimLeds {
 }
 
 impl SimLeds {
+    /// Simulated LEDs, all off, and the record they write their changes to.
     pub fn new() -> (Self, LedRecord) {
         let record = LedRecord::default();
         (

@@ -96,7 +96,9 @@ pub fn security_headers(csp: &str) -> Vec<(HeaderName, HeaderValue)> {
 /// The two ends of one accepted connection (a request extension set by the accept loop).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ConnInfo {
+    /// The client's address.
     pub peer: SocketAddr,
+    /// Our address the client connected to.
     pub local: SocketAddr,
 }
 

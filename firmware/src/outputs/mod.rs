@@ -30,10 +30,13 @@ use crate::status::SharedStatus;
 #[derive(Debug, Clone, PartialEq, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct OutputsConfig {
+    /// `[outputs.natnet]`: NatNet for Motive clients.
     #[serde(default)]
     pub natnet: natnet::NatNetConfig,
+    /// `[outputs.mcap]`: MCAP recording of positions and poses.
     #[serde(default)]
     pub mcap: recording::McapConfig,
+    /// `[outputs.ros2]`: ROS 2 topics over DDS.
     #[serde(default)]
     pub ros2: ros2::Ros2Config,
 }

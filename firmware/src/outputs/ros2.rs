@@ -38,6 +38,7 @@ pub struct Ros2Config {
     /// The node's name.
     #[serde(default = "default_node")]
     pub node_name: String,
+    /// QoS profile of the publishers.
     #[serde(default)]
     pub qos: Ros2Qos,
     /// Tools to publish, by name in the parameter set; empty: every tool.

@@ -24,6 +24,7 @@ pub struct OutputStats {
     pub clients: AtomicU64,
     /// Clients refused by the client limit.
     pub refused: AtomicU64,
+    /// Requests received from clients (NatNet commands).
     pub requests: AtomicU64,
     /// Malformed or unknown requests.
     pub bad_requests: AtomicU64,
@@ -56,6 +57,7 @@ impl OutputStats {
 /// Counters of every output.
 #[derive(Debug, Clone, Default)]
 pub struct OutputsStats {
+    /// The NatNet output's counters.
     pub natnet: Arc<OutputStats>,
     /// `frames_sent`: records written; `send_drops`: records the full queue refused.
     pub mcap: Arc<OutputStats>,

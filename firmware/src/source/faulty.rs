@@ -17,22 +17,46 @@ pub enum Fault {
     /// This set and the next are delivered in swapped order.
     Reorder,
     /// Camera `camera`'s timestamp is shifted by `skew_ns` in this set.
-    Skew { camera: usize, skew_ns: u64 },
+    Skew {
+        /// Camera index, configuration order.
+        camera: usize,
+        /// Added to the frame's capture timestamp, ns.
+        skew_ns: u64,
+    },
     /// Camera `camera` reports lost for `sets` requests, then returns.
-    Disappear { camera: usize, sets: u32 },
+    Disappear {
+        /// Camera index, configuration order.
+        camera: usize,
+        /// How many sets (requests) the fault lasts.
+        sets: u32,
+    },
     /// For `sets` sets, camera `camera` sees the marker's spot a second time, shifted by
     /// (`du_px`, `dv_px`): a reflection on a shiny surface.
     Reflection {
+        /// Camera index, configuration order.
         camera: usize,
+        /// How many sets (requests) the fault lasts.
         sets: u32,
+        /// Shift of the copy along image columns, pixels.
         du_px: i32,
+        /// Shift of the copy along image rows, pixels.
         dv_px: i32,
     },
     /// For `sets` sets, the left half of the marker's spot (columns left of its peak) is
     /// covered in camera `camera`: an edge of the tool or the hand in front of the LED.
-    HalfOccluded { camera: usize, sets: u32 },
+    HalfOccluded {
+        /// Camera index, configuration order.
+        camera: usize,
+        /// How many sets (requests) the fault lasts.
+        sets: u32,
+    },
     /// For `sets` sets, the marker's spot is covered completely in camera `camera`.
-    Hidden { camera: usize, sets: u32 },
+    Hidden {
+        /// Camera index, configuration order.
+        camera: usize,
+        /// How many sets (requests) the fault lasts.
+        sets: u32,
+    },
 }
 
 /// Half size of the window around the brightest pixel treated as the marker's spot.
@@ -59,6 +83,7 @@ pub struct FaultySource {
 }
 
 impl FaultySource {
+    /// Wraps `inner`, injecting each fault of `schedule` when the given number of sets (0-based) has been requested.
     pub fn new(inner: Box<dyn FrameSource>, mut schedule: Vec<(u64, Fault)>) -> Self {
         schedule.sort_by_key(|&(at, _)| at);
         let spare = inner.allocate_set();

@@ -41,13 +41,16 @@ pub enum SimRig {
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimSourceConfig {
+    /// Camera arrangement.
     #[serde(default)]
     pub rig: SimRig,
     /// Working distance: axis crossing (convergent) or depth of the trajectory (parallel), mm.
     #[serde(default = "d_distance")]
     pub distance_mm: f64,
+    /// Convergent rig: angle between the two cameras' optical axes, degrees.
     #[serde(default = "d_angle")]
     pub angle_deg: f64,
+    /// Parallel rig: distance between the two cameras' centres, mm.
     #[serde(default = "d_baseline")]
     pub baseline_mm: f64,
     /// The marker circles the workspace centre with this radius, mm.
@@ -56,6 +59,7 @@ pub struct SimSourceConfig {
     /// Time for one circle, s.
     #[serde(default = "d_period")]
     pub period_s: f64,
+    /// Frame rate of the simulated cameras, Hz.
     #[serde(default = "d_fps")]
     pub fps: f64,
     /// `false`: deliver frames as fast as the loop takes them (tests, benchmarks).
@@ -64,6 +68,7 @@ pub struct SimSourceConfig {
     /// 8 or 10.
     #[serde(default = "d_bits")]
     pub bit_depth: u8,
+    /// Seed of the random generators (noise, drops), so a run can be repeated exactly.
     #[serde(default = "d_seed")]
     pub seed: u64,
     /// Probability that a camera drops a frame.
@@ -148,6 +153,7 @@ impl Default for SimBackdropConfig {
 }
 
 impl SimBackdropConfig {
+    /// The renderer's backdrop with these settings.
     pub fn backdrop(&self) -> irtrack_sim::Backdrop {
         irtrack_sim::Backdrop {
             level_dn: self.level_dn,
@@ -261,6 +267,7 @@ impl Default for SimSourceConfig {
 }
 
 impl SimSourceConfig {
+    /// Checks the values serde cannot (frame rate, bit depth, tool rotation, ...); the error names the key.
     pub fn validate(&self) -> Result<()> {
         let bad = |reason: String| Err(FirmwareError::Config { reason });
         if !(self.fps.is_finite() && self.fps > 0.0) {
@@ -552,9 +559,11 @@ pub fn ring_rig(n: usize, distance_mm: f64) -> RigParams {
 /// Simulated exposure (100 µs units, like V4L2's `exposure_absolute`) at which the renderer's
 /// brightness is unchanged, and its range.
 pub const SIM_EXPOSURE_NOMINAL: i64 = 100;
+/// Smallest and largest simulated exposure, 100 µs units.
 pub const SIM_EXPOSURE_RANGE: (i64, i64) = (1, 1000);
 /// Simulated gain at which brightness and noise are the renderer's own, and its range.
 pub const SIM_GAIN_NOMINAL: i64 = 16;
+/// Smallest and largest simulated gain.
 pub const SIM_GAIN_RANGE: (i64, i64) = (1, 255);
 
 /// Exposure and gain of one simulated camera.
@@ -632,6 +641,7 @@ fn apply_sim_controls(px: &mut Pixels, c: SimControls, max_dn: f32, state: &mut 
 }
 
 impl SimSource {
+    /// Builds the scenario `cfg` describes and a source that renders it.
     pub fn new(cfg: &SimSourceConfig) -> std::result::Result<Self, SourceError> {
         let scenario =
             Scenario::new(cfg.scenario_config()).map_err(|e| SourceError::Config(e.to_string()))?;
@@ -686,6 +696,7 @@ impl SimSource {
         }
     }
 
+    /// The scenario being rendered (ground truth for tests).
     pub fn scenario(&self) -> &Scenario {
         &self.scenario
     }
