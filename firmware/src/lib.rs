@@ -5,6 +5,8 @@
 //! read; [`status::SharedStatus`] holds atomics that the LED driver, the status endpoint and the
 //! systemd watchdog read. See docs/irtrackd.md.
 
+#![deny(missing_docs)]
+
 pub mod advice;
 pub mod app;
 pub mod blob_view;

@@ -697,7 +697,7 @@ fn close_camera(mut cam: Box<OpenCamera>) {
 }
 
 impl V4l2Source {
-    /// As the module's [`open`], as the concrete type (to read [`Self::negotiated`]).
+    /// Opens the cameras as [`open`] does, returning the concrete type (for [`Self::negotiated`]).
     pub fn open(config: &V4l2Config) -> Result<Self, SourceError> {
         let formats = config.validate()?;
         let mut cameras = Vec::with_capacity(config.devices.len());
