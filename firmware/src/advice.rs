@@ -87,7 +87,8 @@ fn percentile(h: &[u64], total: u64, pct: f64) -> u32 {
 }
 
 impl Background {
-    /// The statistics of `frame` and its histogram (one count per code); `None` for a frame without pixels.
+    /// The statistics of `frame` and its histogram (one count per code); `None` for a frame without
+    /// pixels.
     pub fn of(frame: &Frame) -> Option<(Self, Vec<u64>)> {
         let h = histogram(frame);
         let total: u64 = h.iter().sum();

@@ -39,7 +39,8 @@ pub struct StageHistograms {
 pub const STAGES: usize = 8;
 
 impl StageHistograms {
-    /// The histograms with their stage names, in path order (the names used on `/status` and `/metrics`).
+    /// The histograms with their stage names, in path order (the names used on `/status` and
+    /// `/metrics`).
     pub fn stages(&self) -> [(&'static str, &LatencyHistogram); STAGES] {
         [
             ("render", &self.render),
@@ -67,9 +68,9 @@ pub struct CameraCounters {
     pub blobs_last: AtomicU64,
     /// Brightest pixel (DN) of the last processed frame.
     pub peak_dn: AtomicU64,
-    /// Frame width of the last set, pixels.
+    /// Frame width, pixels (the source's frame shape, set when the loop starts).
     pub width_px: AtomicU64,
-    /// Frame height of the last set, pixels.
+    /// Frame height, pixels (the source's frame shape, set when the loop starts).
     pub height_px: AtomicU64,
 }
 
@@ -139,7 +140,8 @@ pub struct SharedStatus {
     pub cameras: Vec<CameraCounters>,
 
     // Processing loop.
-    /// Passes of the processing loop (also errors and timeouts): the liveness the LED driver and the watchdog check.
+    /// Passes of the processing loop (also errors and timeouts): the liveness the LED driver and
+    /// the watchdog check.
     pub loop_iterations: AtomicU64,
     /// Frame sets run through detection and solving to publishing.
     pub sets_processed: AtomicU64,
@@ -151,7 +153,7 @@ pub struct SharedStatus {
     pub lost: AtomicU64,
     /// Published records whose position the quality gate refused (status `Rejected`).
     pub gated: AtomicU64,
-    /// Time allowed for processing one set, ns (from the frame rate).
+    /// Time allowed for processing one set, ns (`[realtime] deadline_ms`, else the frame period).
     pub deadline_ns: AtomicU64,
     /// Sets whose processing took longer than `deadline_ns`.
     pub deadline_misses: AtomicU64,
@@ -224,7 +226,8 @@ pub struct SharedStatus {
 
     /// The active parameter set's description; read with [`Self::params_info`].
     pub params: Mutex<ParamsInfo>,
-    /// Real-time settings applied or refused at start (scheduling, CPU affinity, memory lock), one line each.
+    /// Real-time settings applied or refused at start (scheduling, CPU affinity, memory lock), one
+    /// line each.
     pub realtime: Mutex<Vec<String>>,
     /// Counters of the standard outputs (set once by `app::start`).
     pub outputs: std::sync::OnceLock<crate::outputs::stats::OutputsStats>,

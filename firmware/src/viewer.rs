@@ -422,7 +422,8 @@ impl ViewerTap {
             .map(|a| a.cameras.clone())
     }
 
-    /// The threshold suggestion made at first start, when the configured threshold did not suit the cameras.
+    /// The threshold suggestion made at first start, when the configured threshold did not suit the
+    /// cameras.
     pub fn startup_suggestion(&self) -> Option<Suggestion> {
         self.startup_suggestion.lock().ok().and_then(|s| s.clone())
     }

@@ -119,7 +119,8 @@ fn resolve_line(chip: &gpiocdev::Chip, num_lines: u32, led: Led, line: &LineRef)
 }
 
 impl GpioLeds {
-    /// Finds the chip and requests the four lines as outputs, all LEDs off; the error names the chip or line that is missing.
+    /// Finds the chip and requests the four lines as outputs, all LEDs off; the error names the
+    /// chip or line that is missing.
     pub fn open(config: &GpioLedConfig) -> Result<Self, LedError> {
         let chip = resolve_chip(&config.chip)?;
         let info = chip

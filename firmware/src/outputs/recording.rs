@@ -44,7 +44,8 @@ impl Default for McapConfig {
 }
 
 impl McapConfig {
-    /// Checks an enabled recording can run: the `mcap` feature is built in and the queue holds at least one record.
+    /// Checks an enabled recording can run: the `mcap` feature is built in and the queue holds at
+    /// least one record.
     pub fn validate(&self) -> Result<()> {
         if !self.enabled {
             return Ok(());

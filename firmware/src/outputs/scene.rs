@@ -147,7 +147,8 @@ pub struct SceneFrame {
     pub capture_ts_ns: u64,
     /// Capture to publication by the processing loop, ns.
     pub latency_ns: u64,
-    /// Positions were in the robot base frame before the output's axes were applied (else camera 0's).
+    /// Positions were in the robot base frame (else in camera 0's) before the output's axes
+    /// were applied.
     pub world_frame: bool,
     /// Per model of [`Models::list`], in that order: its markers (zeros when not tracked).
     pub marker_sets: Vec<Vec<[f64; 3]>>,

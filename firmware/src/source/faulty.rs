@@ -83,7 +83,8 @@ pub struct FaultySource {
 }
 
 impl FaultySource {
-    /// Wraps `inner`, injecting each fault of `schedule` when the given number of sets (0-based) has been requested.
+    /// Wraps `inner`; each `(n, fault)` of `schedule` is applied to the `n`-th call of
+    /// `next_set` (0-based, counting every call).
     pub fn new(inner: Box<dyn FrameSource>, mut schedule: Vec<(u64, Fault)>) -> Self {
         schedule.sort_by_key(|&(at, _)| at);
         let spare = inner.allocate_set();

@@ -267,7 +267,8 @@ impl Default for SimSourceConfig {
 }
 
 impl SimSourceConfig {
-    /// Checks the values serde cannot (frame rate, bit depth, tool rotation, ...); the error names the key.
+    /// Checks the values serde cannot (frame rate, bit depth, tool rotation, ...); the error names
+    /// the key.
     pub fn validate(&self) -> Result<()> {
         let bad = |reason: String| Err(FirmwareError::Config { reason });
         if !(self.fps.is_finite() && self.fps > 0.0) {

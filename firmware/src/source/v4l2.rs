@@ -102,7 +102,8 @@ pub enum PixelFormat {
 }
 
 impl PixelFormat {
-    /// The format named by a FourCC code as written in the config (`GREY`/`GRAY`/`Y8`, `Y10`, `Y16`, `YUYV`; any case); `None` if unknown.
+    /// The format named by a FourCC code as written in the config (`GREY`/`GRAY`/`Y8`, `Y10`,
+    /// `Y16`, `YUYV`; any case); `None` if unknown.
     pub fn parse(name: &str) -> Option<Self> {
         match name.to_ascii_uppercase().as_str() {
             "GREY" | "GRAY" | "Y8" => Some(Self::Grey),
@@ -284,7 +285,8 @@ pub struct Pairer {
 }
 
 impl Pairer {
-    /// A pairer for `cameras` cameras accepting sets whose timestamps spread at most `tolerance_ns`, ns.
+    /// A pairer for `cameras` cameras accepting sets whose timestamps spread at most
+    /// `tolerance_ns`, ns.
     pub fn new(cameras: usize, tolerance_ns: u64) -> Self {
         Self {
             slots: vec![None; cameras],
