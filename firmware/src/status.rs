@@ -96,7 +96,7 @@ pub struct ParamsInfo {
     pub signature_policy: &'static str,
     /// Ids (first 8 bytes of SHA-512, hex) of the public keys whose signatures are accepted.
     pub trusted_keys: Vec<String>,
-    /// How the active set was authenticated: "key <id>" or "unsigned".
+    /// How the active set was authenticated: "key `<id>`" or "unsigned".
     pub signature: Option<String>,
     /// The active set's calibration record: method, age, quality, warning (crate::calibration).
     pub calibration: Option<crate::calibration::CalibrationStatus>,

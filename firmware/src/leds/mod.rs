@@ -1,6 +1,6 @@
 //! Status LEDs: the hardware seam for indicator lights.
 //!
-//! The processing loop never touches GPIO: it publishes an [`Indication`]; a small driver
+//! The processing loop never touches GPIO: it publishes an [`indication::Indication`]; a small driver
 //! thread turns it into blink patterns and calls a [`StatusLeds`] back end.
 
 /// Physical indicator lights.
