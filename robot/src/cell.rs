@@ -36,6 +36,10 @@ pub struct RobotErrorModel {
     /// Wavelength of the field's sinusoids: the field changes by about its full amplitude over
     /// half this distance (a few hundred mm: a smooth error, as from joint offsets).
     pub field_wavelength_mm: f64,
+    /// Absolute-orientation error field: RMS of the flange's rotation error over space (deg),
+    /// a smooth rotation-vector field of the same wavelength (joint offsets turn the flange
+    /// too). 0 leaves the flange's orientation as commanded.
+    pub orientation_rms_deg: f64,
     /// Seed of the field's directions and phases and of the repeatability draws.
     pub seed: u64,
 }
@@ -47,6 +51,7 @@ impl Default for RobotErrorModel {
             repeatability_mm: 0.02,
             field_rms_mm: 0.3,
             field_wavelength_mm: 800.0,
+            orientation_rms_deg: 0.0,
             seed: 1,
         }
     }
@@ -58,6 +63,7 @@ impl RobotErrorModel {
         Self {
             repeatability_mm: 0.0,
             field_rms_mm: 0.0,
+            orientation_rms_deg: 0.0,
             ..Self::default()
         }
     }
@@ -74,6 +80,12 @@ impl RobotErrorModel {
         if !(self.field_rms_mm.is_finite() && self.field_rms_mm >= 0.0) {
             return bad("field_rms_mm", format!("{} must be >= 0", self.field_rms_mm));
         }
+        if !(self.orientation_rms_deg.is_finite() && (0.0..=10.0).contains(&self.orientation_rms_deg)) {
+            return bad(
+                "orientation_rms_deg",
+                format!("{} must be in 0..=10", self.orientation_rms_deg),
+            );
+        }
         if !(self.field_wavelength_mm.is_finite() && self.field_wavelength_mm > 0.0) {
             return bad(
                 "field_wavelength_mm",
@@ -83,9 +95,9 @@ impl RobotErrorModel {
         Ok(())
     }
 
-    /// A unit direction and a phase for term `j` of axis `axis`.
-    fn term(&self, axis: usize, j: usize) -> (Vector3<f64>, f64) {
-        let h = |k: u64| unit_from_hash(hash_words(&[self.seed, 0x4649_454c, axis as u64, j as u64, k]));
+    /// A unit direction and a phase for term `j` of axis `axis` of the field tagged `tag`.
+    fn term(&self, tag: u64, axis: usize, j: usize) -> (Vector3<f64>, f64) {
+        let h = |k: u64| unit_from_hash(hash_words(&[self.seed, tag, axis as u64, j as u64, k]));
         // Uniform direction on the sphere.
         let z = 2.0 * h(0) - 1.0;
         let phi = std::f64::consts::TAU * h(1);
@@ -99,22 +111,55 @@ impl RobotErrorModel {
     /// The smooth absolute error at `p_mm` (robot base frame): where the flange really is minus
     /// where the controller believes it is.
     pub fn field_mm(&self, p_mm: [f64; 3]) -> [f64; 3] {
-        if self.field_rms_mm == 0.0 {
+        self.smooth_field(0x4649_454c, self.field_rms_mm, p_mm)
+    }
+
+    /// A smooth vector field of 3-D RMS `rms` over space, its terms seeded by `tag`.
+    fn smooth_field(&self, tag: u64, rms: f64, p_mm: [f64; 3]) -> [f64; 3] {
+        if rms == 0.0 {
             return [0.0; 3];
         }
         // Per axis: FIELD_TERMS sinusoids of amplitude a, so the mean square of the 3-D
         // magnitude is 3 · FIELD_TERMS · a² / 2.
-        let a = self.field_rms_mm * (2.0 / (3.0 * FIELD_TERMS as f64)).sqrt();
+        let a = rms * (2.0 / (3.0 * FIELD_TERMS as f64)).sqrt();
         let p = Vector3::from(p_mm);
         let k = std::f64::consts::TAU / self.field_wavelength_mm;
         let mut out = [0.0; 3];
         for (axis, o) in out.iter_mut().enumerate() {
             for j in 0..FIELD_TERMS {
-                let (dir, phase) = self.term(axis, j);
+                let (dir, phase) = self.term(tag, axis, j);
                 *o += a * (k * dir.dot(&p) + phase).sin();
             }
         }
         out
+    }
+
+    /// The flange's orientation error at `p_mm` (robot base frame): the rotation that takes
+    /// the commanded orientation to the real one, `q_real = error · q_commanded`.
+    pub fn orientation_error(&self, p_mm: [f64; 3]) -> UnitQuaternion<f64> {
+        let v = self.smooth_field(0x4f52_4945, self.orientation_rms_deg.to_radians(), p_mm);
+        UnitQuaternion::from_scaled_axis(Vector3::from(v))
+    }
+
+    /// Where the flange really is and how it is really turned, when the controller believes it
+    /// is at `nominal_mm`, turned `nominal_wxyz`, after standstill number `visit` (while moving,
+    /// `visit = None`: the error fields only).
+    pub fn actual_pose(
+        &self,
+        nominal_mm: [f64; 3],
+        nominal_wxyz: [f64; 4],
+        visit: Option<u64>,
+    ) -> ([f64; 3], [f64; 4]) {
+        let p = match visit {
+            Some(v) => self.actual_mm(nominal_mm, v),
+            None => {
+                let f = self.field_mm(nominal_mm);
+                [nominal_mm[0] + f[0], nominal_mm[1] + f[1], nominal_mm[2] + f[2]]
+            }
+        };
+        let q = self.orientation_error(nominal_mm) * quat(nominal_wxyz);
+        let q = q.into_inner();
+        (p, [q.w, q.i, q.j, q.k])
     }
 
     /// The repeatability error of the `visit`-th standstill.
@@ -144,18 +189,80 @@ impl RobotErrorModel {
 /// The LED's position (robot base frame) for a flange at `flange_mm` turned by `flange_wxyz`,
 /// with the LED at `led_offset_mm` in the flange frame.
 pub fn led_position_mm(flange_mm: [f64; 3], flange_wxyz: [f64; 4], led_offset_mm: [f64; 3]) -> [f64; 3] {
-    let q = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
-        flange_wxyz[0],
-        flange_wxyz[1],
-        flange_wxyz[2],
-        flange_wxyz[3],
-    ));
-    let p = Vector3::from(flange_mm) + q * Vector3::from(led_offset_mm);
+    let p = Vector3::from(flange_mm) + quat(flange_wxyz) * Vector3::from(led_offset_mm);
     [p.x, p.y, p.z]
 }
 
-/// Request datagram of the cell feed.
+fn quat(wxyz: [f64; 4]) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(wxyz[0], wxyz[1], wxyz[2], wxyz[3]))
+}
+
+/// The pose (robot base frame) of a tool mounted on a flange at `flange_mm` turned
+/// `flange_wxyz`: the tool frame's origin at `mount_mm` and turned `mount_wxyz` in the flange
+/// frame (`base_from_tool = base_from_flange · flange_from_tool`).
+pub fn tool_pose(
+    flange_mm: [f64; 3],
+    flange_wxyz: [f64; 4],
+    mount_mm: [f64; 3],
+    mount_wxyz: [f64; 4],
+) -> PoseWxyz {
+    let q = (quat(flange_wxyz) * quat(mount_wxyz)).into_inner();
+    (
+        led_position_mm(flange_mm, flange_wxyz, mount_mm),
+        [q.w, q.i, q.j, q.k],
+    )
+}
+
+/// Request datagram of the cell feed: where is the LED?
 pub const FEED_REQUEST: &[u8] = b"LED?";
+
+/// A pose in the robot base frame: position (mm) and unit quaternion (w, x, y, z).
+pub type PoseWxyz = ([f64; 3], [f64; 4]);
+
+/// Request datagram of the cell feed: where is the tool (its frame's pose)?
+pub const FEED_TOOL_REQUEST: &[u8] = b"TOOL?";
+
+/// Encodes the feed's answer to `TOOL?`: the tool frame's actual pose (robot base frame, mm and
+/// unit quaternion w, x, y, z), or `TOOL off`.
+pub fn encode_tool_answer(pose: Option<PoseWxyz>) -> String {
+    match pose {
+        Some((p, q)) => format!(
+            "TOOL {:.6} {:.6} {:.6} {:.9} {:.9} {:.9} {:.9}",
+            p[0], p[1], p[2], q[0], q[1], q[2], q[3]
+        ),
+        None => "TOOL off".to_string(),
+    }
+}
+
+/// Decodes an answer of [`encode_tool_answer`]: `Ok(None)` for `TOOL off`.
+pub fn decode_tool_answer(text: &str) -> Result<Option<PoseWxyz>, RobotError> {
+    let bad = |reason: String| RobotError::Simulator {
+        field: "cell feed",
+        reason,
+    };
+    let rest = text
+        .trim()
+        .strip_prefix("TOOL ")
+        .ok_or_else(|| bad(format!("answer {text:?} does not start with \"TOOL \"")))?;
+    if rest == "off" {
+        return Ok(None);
+    }
+    let v: Vec<f64> = rest
+        .split_whitespace()
+        .map(|w| w.parse::<f64>().map_err(|e| bad(format!("{w:?}: {e}"))))
+        .collect::<Result<_, _>>()?;
+    let norm = v
+        .get(3..7)
+        .map_or(0.0, |q| q.iter().map(|c| c * c).sum::<f64>().sqrt());
+    match <[f64; 7]>::try_from(v) {
+        Ok(a) if a.iter().all(|x| x.is_finite()) && (norm - 1.0).abs() < 1e-6 => {
+            Ok(Some(([a[0], a[1], a[2]], [a[3], a[4], a[5], a[6]])))
+        }
+        _ => Err(bad(format!(
+            "answer {text:?} needs a position and a unit quaternion (seven finite numbers)"
+        ))),
+    }
+}
 
 /// Encodes the feed's answer: the LED's actual position (robot base frame), or `LED off` when
 /// the robot has no LED to show (e.g. before it is placed).
@@ -227,6 +334,24 @@ impl CellFeed {
             return decode_feed_answer(text).map_err(std::io::Error::other);
         }
     }
+
+    /// The tool frame's actual pose in the robot base frame (`TOOL?`); `Ok(None)` when
+    /// robot-sim says it has none, an error when it does not answer in time.
+    pub fn tool_pose(&mut self) -> std::io::Result<Option<PoseWxyz>> {
+        self.socket.set_nonblocking(true)?;
+        let mut buf = [0u8; 160];
+        while self.socket.recv_from(&mut buf).is_ok() {}
+        self.socket.set_nonblocking(false)?;
+        self.socket.send_to(FEED_TOOL_REQUEST, self.robot)?;
+        loop {
+            let (n, from) = self.socket.recv_from(&mut buf)?;
+            if from != self.robot {
+                continue;
+            }
+            let text = std::str::from_utf8(&buf[..n]).map_err(std::io::Error::other)?;
+            return decode_tool_answer(text).map_err(std::io::Error::other);
+        }
+    }
 }
 
 #[cfg(test)]
@@ -281,6 +406,64 @@ mod tests {
         assert!(decode_feed_answer("LED 1 2").is_err());
         assert!(decode_feed_answer("POS 1 2 3").is_err());
         assert!(decode_feed_answer("LED 1 2 nan").is_err());
+    }
+
+    #[test]
+    fn orientation_field_has_the_configured_rms_and_tool_answers_round_trip() {
+        let m = RobotErrorModel {
+            orientation_rms_deg: 0.1,
+            ..RobotErrorModel::default()
+        };
+        let mut sum2 = 0.0;
+        let n = 2000;
+        for i in 0..n {
+            let p = [
+                (i % 13) as f64 * 71.0,
+                (i % 7) as f64 * 113.0,
+                (i / 91) as f64 * 53.0,
+            ];
+            sum2 += m.orientation_error(p).angle().to_degrees().powi(2);
+        }
+        let rms = (sum2 / n as f64).sqrt();
+        assert!((rms - 0.1).abs() < 0.03, "orientation field RMS {rms}°");
+        // Without it the flange turns as commanded; the position error is unchanged.
+        let q = [0.0, 0.0, 1.0, 0.0];
+        let (p, q0) = RobotErrorModel::default().actual_pose([500.0, 0.0, 300.0], q, Some(3));
+        assert_eq!(q0, q);
+        assert_eq!(p, RobotErrorModel::default().actual_mm([500.0, 0.0, 300.0], 3));
+        let (_, q1) = m.actual_pose([500.0, 0.0, 300.0], q, None);
+        assert!(quat(q1).angle_to(&quat(q)) > 1e-6);
+        assert!(m.validate().is_ok());
+        let too_much = RobotErrorModel {
+            orientation_rms_deg: 20.0,
+            ..m
+        };
+        assert!(
+            too_much
+                .validate()
+                .unwrap_err()
+                .to_string()
+                .contains("orientation_rms_deg")
+        );
+
+        let pose = ([512.25, -3.5, 300.125], [0.5, 0.5, -0.5, 0.5]);
+        assert_eq!(
+            decode_tool_answer(&encode_tool_answer(Some(pose))).unwrap(),
+            Some(pose)
+        );
+        assert_eq!(decode_tool_answer("TOOL off").unwrap(), None);
+        assert!(decode_tool_answer("TOOL 1 2 3 1 0 0").is_err());
+        assert!(decode_tool_answer("TOOL 1 2 3 2 0 0 0").is_err());
+        assert!(decode_tool_answer("LED 1 2 3").is_err());
+        // The tool frame follows flange and mount: a half turn about x flips the mount's y, z.
+        let (p, q) = tool_pose(
+            [100.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [1.0, 2.0, 3.0],
+            [1.0, 0.0, 0.0, 0.0],
+        );
+        assert!((p[1] + 2.0).abs() < 1e-12 && (p[2] + 3.0).abs() < 1e-12);
+        assert!((q[1].abs() - 1.0).abs() < 1e-12);
     }
 
     #[test]

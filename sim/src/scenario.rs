@@ -645,6 +645,21 @@ impl Scenario {
         Ok(())
     }
 
+    /// Replaces the tool's orientation (the simulated robot cell turns the tool as the robot
+    /// really turned its flange, frame by frame); the scenario must render a tool
+    /// ([`SimConfig::set_tool`]).
+    pub fn set_tool_orientation(&mut self, orientation: Orientation) -> Result<(), SimError> {
+        orientation.validate()?;
+        if self.cfg.orientation.is_none() {
+            return Err(SimError::Config {
+                field: "orientation",
+                reason: "the scenario renders no tool".into(),
+            });
+        }
+        self.cfg.orientation = Some(orientation);
+        Ok(())
+    }
+
     /// Number of cameras of the rig.
     pub fn camera_count(&self) -> usize {
         self.rig.cameras.len()

@@ -112,7 +112,8 @@ pub struct SimSourceConfig {
     #[serde(default)]
     pub wall_clock: bool,
     /// The simulated robot cell: the LED is carried by `host-tools robot-sim`'s flange and is
-    /// rendered where robot-sim says the robot really put it (docs/simulator.md).
+    /// rendered where robot-sim says the robot really put it (docs/simulator.md). With `tool`,
+    /// the tool is mounted on the flange instead and rendered at the pose robot-sim gives it.
     #[serde(default)]
     pub cell: Option<SimCellConfig>,
     /// What real IR cameras see behind the marker (`[source.sim.backdrop]`): a background
@@ -327,8 +328,8 @@ impl SimSourceConfig {
             }
         }
         if let Some(cell) = &self.cell {
-            if self.tool.is_some() || self.wand_mm.is_some() {
-                return bad("source.sim.cell renders the robot's single LED; it excludes source.sim.tool and source.sim.wand_mm".into());
+            if !self.extra_tools.is_empty() || self.wand_mm.is_some() {
+                return bad("source.sim.cell renders the robot's single LED or its one tool (source.sim.tool); it excludes source.sim.extra_tools and source.sim.wand_mm".into());
             }
             if cell.robot.parse::<std::net::SocketAddr>().is_err() {
                 return bad(format!(
@@ -791,14 +792,38 @@ impl FrameSource for SimSource {
                 )));
             }
             if let Some((feed, cam0_from_base)) = &mut self.cell {
-                // No answer in time (robot-sim not running) or no LED: nothing to see.
-                let p_cam0 = match feed.led_mm() {
-                    Ok(Some(p)) => *cam0_from_base * nalgebra::Point3::from(Vector3::from(p)),
-                    Ok(None) | Err(_) => nalgebra::Point3::new(0.0, 0.0, DARK_MM),
-                };
-                self.scenario
-                    .set_trajectory(Trajectory::Fixed(p_cam0.coords))
-                    .map_err(|e| SourceError::Config(e.to_string()))?;
+                let config = |e: irtrack_sim::SimError| SourceError::Config(e.to_string());
+                if self.cfg.tool.is_some() {
+                    // The tool on the flange, turned as the robot really turned it.
+                    let (p_cam0, q_cam0) = match feed.tool_pose() {
+                        Ok(Some((p, q))) => (
+                            *cam0_from_base * nalgebra::Point3::from(Vector3::from(p)),
+                            cam0_from_base.rotation
+                                * nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                                    q[0], q[1], q[2], q[3],
+                                )),
+                        ),
+                        Ok(None) | Err(_) => (
+                            nalgebra::Point3::new(0.0, 0.0, DARK_MM),
+                            nalgebra::UnitQuaternion::identity(),
+                        ),
+                    };
+                    self.scenario
+                        .set_tool_orientation(irtrack_sim::Orientation::Fixed(q_cam0))
+                        .map_err(config)?;
+                    self.scenario
+                        .set_trajectory(Trajectory::Fixed(p_cam0.coords))
+                        .map_err(config)?;
+                } else {
+                    // No answer in time (robot-sim not running) or no LED: nothing to see.
+                    let p_cam0 = match feed.led_mm() {
+                        Ok(Some(p)) => *cam0_from_base * nalgebra::Point3::from(Vector3::from(p)),
+                        Ok(None) | Err(_) => nalgebra::Point3::new(0.0, 0.0, DARK_MM),
+                    };
+                    self.scenario
+                        .set_trajectory(Trajectory::Fixed(p_cam0.coords))
+                        .map_err(config)?;
+                }
             }
             let mut dropped = 0usize;
             let (mut min_ts, mut max_ts) = (u64::MAX, 0u64);

@@ -93,9 +93,18 @@ pub struct Args {
     /// UDP address with where the LED on the flange really is (port 0 picks one; printed).
     #[arg(long)]
     pub cell_feed: Option<String>,
-    /// Simulated cell: the LED's position in the flange (TCP) frame, `x,y,z` mm.
+    /// Simulated cell: the LED's position in the flange (TCP) frame, `x,y,z` mm; for a tool
+    /// (`TOOL?` on the cell feed, `[source.sim.cell]` with `[source.sim] tool`) the tool
+    /// frame's origin in the flange frame.
     #[arg(long, default_value = "0,0,0", value_parser = parse_xyz)]
     pub led_offset_mm: [f64; 3],
+    /// Simulated cell: the tool's rotation on the flange (flange ← tool), a rotation vector
+    /// (axis × angle) `x,y,z` in degrees.
+    #[arg(long, default_value = "0,0,0", value_parser = parse_xyz)]
+    pub tool_mount_rotation_deg: [f64; 3],
+    /// Simulated cell: smooth absolute-orientation error of the flange, RMS of its angle (deg).
+    #[arg(long, default_value_t = 0.0)]
+    pub abs_orientation_error_rms_deg: f64,
     /// Simulated cell: repeatability, RMS of the 3-D deviation between visits (mm).
     #[arg(long, default_value_t = 0.02)]
     pub repeatability_mm: f64,
@@ -128,16 +137,23 @@ impl Args {
             repeatability_mm: self.repeatability_mm,
             field_rms_mm: self.abs_error_rms_mm,
             field_wavelength_mm: self.abs_error_wavelength_mm,
+            orientation_rms_deg: self.abs_orientation_error_rms_deg,
             seed: self.error_seed,
         }
     }
 }
 
-/// Binds the cell feed and answers every `LED?` with the LED's actual position (base frame).
+/// Binds the cell feed and answers every `LED?` with the LED's actual position and every
+/// `TOOL?` with the tool frame's actual pose (base frame).
 fn spawn_cell_feed(args: &Args, listen: &str, cell: SharedCell) -> anyhow::Result<SocketAddr> {
     let model = args.error_model();
     model.validate().context("robot-sim error model")?;
     let offset = args.led_offset_mm;
+    let mount = nalgebra::UnitQuaternion::from_scaled_axis(
+        nalgebra::Vector3::from(args.tool_mount_rotation_deg).map(f64::to_radians),
+    )
+    .into_inner();
+    let mount_wxyz = [mount.w, mount.i, mount.j, mount.k];
     let socket = UdpSocket::bind(listen).with_context(|| format!("--cell-feed {listen}: cannot bind"))?;
     let addr = socket.local_addr()?;
     std::thread::Builder::new()
@@ -148,27 +164,24 @@ fn spawn_cell_feed(args: &Args, listen: &str, cell: SharedCell) -> anyhow::Resul
                 let Ok((n, from)) = socket.recv_from(&mut buf) else {
                     continue;
                 };
-                if &buf[..n] != cell::FEED_REQUEST {
+                let tool = &buf[..n] == cell::FEED_TOOL_REQUEST;
+                if !tool && &buf[..n] != cell::FEED_REQUEST {
                     continue;
                 }
                 let st = match cell.lock() {
                     Ok(g) => *g,
                     Err(p) => *p.into_inner(),
                 };
-                // While moving the robot follows its error field; at rest it also has the
+                // While moving the robot follows its error fields; at rest it also has the
                 // repeatability error of this standstill.
-                let flange = if st.moving {
-                    let f = model.field_mm(st.nominal_mm);
-                    [
-                        st.nominal_mm[0] + f[0],
-                        st.nominal_mm[1] + f[1],
-                        st.nominal_mm[2] + f[2],
-                    ]
+                let (flange, flange_wxyz) =
+                    model.actual_pose(st.nominal_mm, st.quat_wxyz, (!st.moving).then_some(st.visit));
+                let answer = if tool {
+                    cell::encode_tool_answer(Some(cell::tool_pose(flange, flange_wxyz, offset, mount_wxyz)))
                 } else {
-                    model.actual_mm(st.nominal_mm, st.visit)
+                    cell::encode_feed_answer(Some(cell::led_position_mm(flange, flange_wxyz, offset)))
                 };
-                let led = cell::led_position_mm(flange, st.quat_wxyz, offset);
-                let _ = socket.send_to(cell::encode_feed_answer(Some(led)).as_bytes(), from);
+                let _ = socket.send_to(answer.as_bytes(), from);
             }
         })
         .context("start the cell feed thread")?;
@@ -339,10 +352,44 @@ fn publish(cell: &SharedCell, robot: &SimRobot) {
 fn connection(
     args: &Args,
     robot: &mut SimRobot,
+    stream: TcpStream,
+    log: &mut Log,
+    conn: u32,
+    cell: &SharedCell,
+) -> String {
+    // How late the loop woke for its ticks (µs): the robot's own timing, printed for the
+    // benchmark (docs/performance.md: the socket link's wait). A late tick delays the credit.
+    let mut late_us: Vec<u64> = Vec::with_capacity(1 << 14);
+    let why = connection_loop(args, robot, stream, log, conn, cell, &mut late_us);
+    late_us.sort_unstable();
+    let q = |f: f64| {
+        late_us
+            .get(((late_us.len() as f64 * f) as usize).min(late_us.len().saturating_sub(1)))
+            .copied()
+            .unwrap_or(0)
+    };
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(
+        out,
+        "robot-sim summary socket conn={conn} ticks={} tick_late_p50_us={} tick_late_p99_us={} tick_late_max_us={} over_1ms={}",
+        late_us.len(),
+        q(0.5),
+        q(0.99),
+        late_us.last().copied().unwrap_or(0),
+        late_us.iter().filter(|&&l| l > 1000).count()
+    );
+    let _ = out.flush();
+    why
+}
+
+fn connection_loop(
+    args: &Args,
+    robot: &mut SimRobot,
     mut stream: TcpStream,
     log: &mut Log,
     conn: u32,
     cell: &SharedCell,
+    late_us: &mut Vec<u64>,
 ) -> String {
     let _ = stream.set_nodelay(true);
     // Motion is advanced on a fixed tick (and on every line). The wait for the next line or tick
@@ -365,6 +412,7 @@ fn connection(
         let mut replies = Vec::new();
         let now = Instant::now();
         if now >= next_tick {
+            late_us.push(now.duration_since(next_tick).as_micros() as u64);
             next_tick += tick;
             if next_tick <= now {
                 // Fell behind by more than a tick (a stalled machine): start afresh from now.
