@@ -35,6 +35,7 @@ const MODEL: RobotErrorModel = RobotErrorModel {
     field_rms_mm: 0.3,
     // Short enough that a rigid registration cannot absorb the field over the 160 mm box.
     field_wavelength_mm: 300.0,
+    orientation_rms_deg: 0.0,
     seed: 7,
 };
 /// The LED on the flange (flange frame), unknown to the survey.
@@ -371,4 +372,285 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
     let err = String::from_utf8_lossy(&o.stderr).to_string();
     assert!(!o.status.success() && err.contains("axis z"), "{err}");
     println!("survey e2e: total {:.1} s", t_start.elapsed().as_secs_f64());
+}
+
+/// The simulated robot's errors in the tool survey: the position errors above and a smooth
+/// orientation error of the flange (0.1° RMS, as joint offsets give a small robot).
+const TOOL_MODEL: RobotErrorModel = RobotErrorModel {
+    orientation_rms_deg: 0.1,
+    seed: 11,
+    ..MODEL
+};
+/// The tool survey's box: smaller than the LED's, so that the tool's LEDs (up to 100 mm from
+/// its origin) stay in both cameras' view at every corner and turn.
+const TOOL_BOX_MIN: [f64; 3] = [450.0, -50.0, 250.0];
+const TOOL_BOX_MAX: [f64; 3] = [550.0, 50.0, 350.0];
+/// The tool's origin on the flange (flange frame), unknown to the survey.
+const TOOL_ORIGIN_MM: [f64; 3] = [10.0, -5.0, 120.0];
+/// Tracker noise allowance per averaged orientation: probe4's LEDs ~100 mm apart, ~0.02 mm per
+/// LED and frame, 10 frames averaged: ~0.004°; allowed 0.02°.
+const TRACKER_DEG: f64 = 0.02;
+
+/// The rotation nearest to `m` (SVD).
+fn nearest_rotation(m: &nalgebra::Matrix3<f64>) -> nalgebra::Matrix3<f64> {
+    let svd = m.svd(true, true);
+    let (u, v_t) = (svd.u.unwrap(), svd.v_t.unwrap());
+    let d = (u * v_t).determinant().signum();
+    u * nalgebra::Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * v_t
+}
+
+fn uq(q: [f64; 4]) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]))
+}
+
+/// What the error model predicts for the survey's orientation errors on exactly these points
+/// (RMS over the fit points, RMS over the held-out ones, the registration's rotation error):
+/// the tool's true poses (error fields applied, repeatability left out), a rigid registration
+/// of their origins onto the nominal ones on the fit points, the tool's rotation on the flange
+/// fitted as the survey fits it, and the angles left.
+fn predicted_orientation(rows: &[Row], mount: &UnitQuaternion<f64>) -> (f64, f64, f64) {
+    let nominal: Vec<[f64; 3]> = rows
+        .iter()
+        .map(|r| led_position_mm(r.robot, r.quat, TOOL_ORIGIN_MM))
+        .collect();
+    let actual: Vec<([f64; 3], UnitQuaternion<f64>)> = rows
+        .iter()
+        .map(|r| {
+            let (p, q) = TOOL_MODEL.actual_pose(r.robot, r.quat, None);
+            (led_position_mm(p, q, TOOL_ORIGIN_MM), uq(q) * mount)
+        })
+        .collect();
+    let fit: Vec<usize> = (0..rows.len()).filter(|&i| rows[i].role != "holdout").collect();
+    let reg = registration::fit(
+        &fit.iter().map(|&i| actual[i].0).collect::<Vec<_>>(),
+        &fit.iter().map(|&i| nominal[i]).collect::<Vec<_>>(),
+        false,
+    )
+    .unwrap();
+    let b = reg.transform.rotation();
+    let f = |i: usize| uq(rows[i].quat).to_rotation_matrix().into_inner();
+    let bt = |i: usize| b * actual[i].1.to_rotation_matrix().into_inner();
+    let sum = fit.iter().fold(nalgebra::Matrix3::zeros(), |acc, &i| {
+        acc + f(i).transpose() * bt(i)
+    });
+    let x = nearest_rotation(&sum);
+    let err = |i: usize| {
+        UnitQuaternion::from_matrix(&(bt(i) * (f(i) * x).transpose()))
+            .angle()
+            .to_degrees()
+    };
+    let held: Vec<f64> = (0..rows.len())
+        .filter(|&i| rows[i].role == "holdout")
+        .map(err)
+        .collect();
+    let fitted: Vec<f64> = fit.iter().map(|&i| err(i)).collect();
+    let b_deg = UnitQuaternion::from_matrix(&b).angle().to_degrees();
+    (rms(&fitted), rms(&held), b_deg)
+}
+
+#[test]
+fn survey_with_a_tool_solves_its_mount_and_measures_orientation_errors() {
+    let t_start = Instant::now();
+    let dir = temp_dir("survey-tool");
+    let sim_cfg = SimSourceConfig {
+        tool: Some("probe4".into()),
+        ..SimSourceConfig::default()
+    };
+    let centre = sim_cfg
+        .scenario_config()
+        .rig
+        .workspace_centre_mm(sim_cfg.distance_mm);
+    // The cell's truth: camera 0 turned as in the LED survey, the middle of the volume's tool
+    // origins where the cameras' axes cross.
+    let r_cb = UnitQuaternion::from_scaled_axis(Vector3::new(20.0, -150.0, 35.0).map(f64::to_radians));
+    let mid = Vector3::from(TOOL_BOX_MIN).lerp(&Vector3::from(TOOL_BOX_MAX), 0.5);
+    let origin_mid = Vector3::from(led_position_mm([mid.x, mid.y, mid.z], ORIENT, TOOL_ORIGIN_MM));
+    let t_cb = centre - r_cb * origin_mid;
+    // The tool's rotation on the flange: at `--orient` the tool faces the cameras as the
+    // simulator's turning tool does at rest (no two LEDs on one image row in the 90° pair).
+    let rest_cam0 = UnitQuaternion::from_euler_angles(0.2, -0.3, 0.4);
+    let mount = uq(ORIENT).inverse() * r_cb.inverse() * rest_cam0;
+    let mount_deg = mount.scaled_axis().map(f64::to_degrees);
+
+    let mut sim = spawn(
+        Command::new(bin("host-tools"))
+            .args([
+                "robot-sim",
+                "--listen",
+                "127.0.0.1:0",
+                "--cell-feed",
+                "127.0.0.1:0",
+            ])
+            .args(["--home", "500,0,300", "--speed-mm-s", "300"])
+            .arg(format!(
+                "--led-offset-mm={},{},{}",
+                TOOL_ORIGIN_MM[0], TOOL_ORIGIN_MM[1], TOOL_ORIGIN_MM[2]
+            ))
+            .arg(format!(
+                "--tool-mount-rotation-deg={},{},{}",
+                mount_deg.x, mount_deg.y, mount_deg.z
+            ))
+            .arg(format!("--repeatability-mm={}", TOOL_MODEL.repeatability_mm))
+            .arg(format!("--abs-error-rms-mm={}", TOOL_MODEL.field_rms_mm))
+            .arg(format!(
+                "--abs-error-wavelength-mm={}",
+                TOOL_MODEL.field_wavelength_mm
+            ))
+            .arg(format!(
+                "--abs-orientation-error-rms-deg={}",
+                TOOL_MODEL.orientation_rms_deg
+            ))
+            .arg(format!("--error-seed={}", TOOL_MODEL.seed))
+            .stderr(Stdio::null()),
+        "robot-sim",
+    );
+    let prefixes = ["robot-sim listening on ", "robot-sim cell feed on "];
+    let lines = sim.wait_lines(&prefixes, Duration::from_secs(10)).unwrap();
+    let addr = |i: usize| lines[i].trim_start_matches(prefixes[i]).trim().to_string();
+    let (robot_addr, feed_addr) = (addr(0), addr(1));
+
+    let config = dir.join("irtrackd.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n\
+             [source.sim]\ntool = \"probe4\"\n[source.sim.cell]\nrobot = {feed_addr:?}\n\
+             cam0_from_base_rotation_deg = {:?}\ncam0_from_base_translation_mm = {:?}\n",
+            <[f64; 3]>::from(r_cb.scaled_axis().map(f64::to_degrees)),
+            <[f64; 3]>::from(t_cb),
+        ),
+    )
+    .unwrap();
+    let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
+    let stream = addr_field(&ready, "stream=");
+    let safety = dir.join("board-irtrackd.toml");
+    std::fs::write(
+        &safety,
+        format!(
+            "[leds]\nbackend = \"none\"\n[robot]\naddress = {robot_addr:?}\n[robot.safety]\n\
+             workspace_min_mm = [300.0, -300.0, 100.0]\nworkspace_max_mm = [700.0, 300.0, 500.0]\n\
+             max_step_mm = 40.0\nmax_speed_mm_s = 400.0\nmax_gap_mm = 2.0\n\
+             max_age_ms = 200\nmax_rotation_step_deg = 10.0\n[robot.deadman]\nkind = \"flag\"\n"
+        ),
+    )
+    .unwrap();
+    let report = dir.join("report");
+    let survey = |tool: &str| {
+        Command::new(bin("host-tools"))
+            .args(["survey", "--stream", &stream.to_string(), "--robot", &robot_addr])
+            .arg("--safety")
+            .arg(&safety)
+            .arg(format!(
+                "--orient={},{},{},{}",
+                ORIENT[0], ORIENT[1], ORIENT[2], ORIENT[3]
+            ))
+            .arg(format!(
+                "--box-min={},{},{}",
+                TOOL_BOX_MIN[0], TOOL_BOX_MIN[1], TOOL_BOX_MIN[2]
+            ))
+            .arg(format!(
+                "--box-max={},{},{}",
+                TOOL_BOX_MAX[0], TOOL_BOX_MAX[1], TOOL_BOX_MAX[2]
+            ))
+            .args(["--grid", "2,2,2", "--frames", "10", "--settle-ms", "150"])
+            .args(["--rotations", "0", "--rotation-deg", "15"])
+            .args([
+                "--tool",
+                tool,
+                "--tool-orientations",
+                "3",
+                "--point-timeout-s",
+                "8",
+            ])
+            .args(["--tolerance-mm", "1.0", "--tolerance-deg", "0.5"])
+            .arg("--report")
+            .arg(&report)
+            .output()
+            .unwrap()
+    };
+    // A tool the parameter set lacks is named, with the set's tools.
+    let o = survey("wand9");
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(
+        !o.status.success() && err.contains("no tool \"wand9\"") && err.contains("probe4"),
+        "{err}"
+    );
+
+    let o = survey("probe4");
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(o.status.success(), "survey failed:\n{out}\n{err}");
+    for l in out.lines().filter(|l| !l.contains("point ")) {
+        println!("{l}");
+    }
+    let rows = read_csv(&report.join("survey.csv"));
+    assert_eq!(rows.len(), 8 * 3, "every point in three orientations:\n{out}");
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(report.join("survey.json")).unwrap()).unwrap();
+    let o_fit = j["orientation"]["fit"]["rms_deg"].as_f64().unwrap();
+    let o_held = j["orientation"]["holdout"]["rms_deg"].as_f64().unwrap();
+    let o_held_max = j["orientation"]["holdout"]["max_deg"].as_f64().unwrap();
+    // The printed summary says the same as the JSON.
+    let held_line = out
+        .lines()
+        .find(|l| l.starts_with("survey: orientation held out"))
+        .unwrap();
+    let printed = held_line
+        .split("RMS ")
+        .nth(1)
+        .and_then(|r| r.split('°').next())
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap();
+    assert!((printed - o_held).abs() < 1e-4, "{held_line} vs {o_held}");
+    let m: Vec<f64> = j["orientation"]["mount_wxyz"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    let mount_err_deg = uq([m[0], m[1], m[2], m[3]]).angle_to(&mount).to_degrees();
+    let origin: Vec<f64> = j["led_offset_mm"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    let origin_err = (Vector3::from_column_slice(&origin) - Vector3::from(TOOL_ORIGIN_MM)).norm();
+
+    // The bound: what the model predicts for these points, ± the tracker's noise. The robot's
+    // orientation field (0.1° RMS) is what the errors measure; the fitted rotation on the flange
+    // absorbs its mean, and the registration (fitted on positions, whose 0.3 mm field turns it
+    // by `reg_deg`) adds at most that much. So the RMS lies at or below
+    // 0.1° + reg_deg + noise, and within the noise of the exact prediction.
+    let (pred_fit, pred_held, reg_deg) = predicted_orientation(&rows, &mount);
+    let upper = TOOL_MODEL.orientation_rms_deg + reg_deg + TRACKER_DEG;
+    println!(
+        "survey tool e2e: orientation RMS fit {o_fit:.4}° (predicted {pred_fit:.4}°), held out \
+         {o_held:.4}° max {o_held_max:.4}° (predicted {pred_held:.4}°); registration turned by the \
+         position field {reg_deg:.4}°; bound {upper:.4}°; mount {mount_err_deg:.4}° and origin \
+         {origin_err:.3} mm from the truth; {:.1} s",
+        t_start.elapsed().as_secs_f64()
+    );
+    assert!(
+        pred_held > 3.0 * TRACKER_DEG,
+        "the orientation field is too small to check ({pred_held:.4}°)"
+    );
+    for (got, want, what) in [(o_fit, pred_fit, "fit"), (o_held, pred_held, "held out")] {
+        assert!(
+            (got - want).abs() <= 2.0 * TRACKER_DEG + 0.15 * want,
+            "orientation RMS ({what}) {got:.4}° does not match the model's {want:.4}°"
+        );
+        assert!(
+            got <= upper,
+            "orientation RMS ({what}) {got:.4}° above the bound {upper:.4}°"
+        );
+    }
+    assert!(mount_err_deg < 0.3, "mount rotation {mount_err_deg:.4}° off");
+    assert!(origin_err < 1.0, "tool origin {origin_err:.3} mm off");
+    assert_eq!(j["pass"], true, "{j}");
+    let md = std::fs::read_to_string(report.join("survey.md")).unwrap();
+    assert!(
+        md.contains("**PASS**") && md.contains("Orientation of tool \"probe4\""),
+        "{md}"
+    );
 }

@@ -4,7 +4,7 @@
 use anyhow::{Context, ensure};
 use irtrack_core::camera::RigidTransform;
 use irtrack_core::registration;
-use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
+use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3, Vector6};
 
 use super::cell::Measured;
 use super::plan::{Role, quat};
@@ -24,6 +24,71 @@ pub struct Analysis {
     pub offset_solved: bool,
     /// Residual vectors (robot frame: registered tracker − robot) per point, in `points` order.
     pub residual_mm: Vec<[f64; 3]>,
+    /// With a tool (every point has a tracked orientation): its rotation on the flange and the
+    /// orientation errors.
+    pub orientation: Option<OrientationFit>,
+}
+
+/// The tool's rotation on the flange and the orientation errors in robot base.
+#[derive(Debug, Clone)]
+pub struct OrientationFit {
+    /// `flange_from_tool` rotation (w, x, y, z), fitted on the fit (and turned) points.
+    pub mount_wxyz: [f64; 4],
+    /// Per point (in `points` order): the rotation taking the orientation the robot reports
+    /// (flange · mount) to the tracked one (registered into robot base), as a rotation vector
+    /// in the robot base frame, degrees. Its length is the orientation error.
+    pub error_deg: Vec<[f64; 3]>,
+}
+
+/// The tool's rotation on the flange, `X`, given the registration `B` (robot ← tracker): at
+/// every point the robot reports the flange's rotation `F` and the tracker the tool's `T`, and
+/// `F X = B T` up to the errors. `X` is the rotation nearest (Frobenius) to `Σ Fᵀ B T` over the
+/// fit and turned points — the least-squares solution of `min Σ ‖F X − B T‖²` — and every
+/// point's error is the rotation from `F X` to `B T`.
+pub fn orientation_fit(
+    points: &[Measured],
+    robot_from_tracker: &Matrix3<f64>,
+) -> anyhow::Result<OrientationFit> {
+    let rot = |m: &Measured| -> anyhow::Result<(Matrix3<f64>, Matrix3<f64>)> {
+        let t = m
+            .tracker_wxyz
+            .with_context(|| format!("point {} has no tracked orientation", m.index))?;
+        Ok((
+            quat(m.flange_wxyz).to_rotation_matrix().into_inner(),
+            robot_from_tracker * quat(t).to_rotation_matrix().into_inner(),
+        ))
+    };
+    let mut sum = Matrix3::<f64>::zeros();
+    let mut fit = 0;
+    for m in points.iter().filter(|m| m.role != Role::Holdout) {
+        let (f, bt) = rot(m)?;
+        sum += f.transpose() * bt;
+        fit += 1;
+    }
+    ensure!(fit >= 1, "no fit point with a tracked orientation");
+    let x = nearest_rotation(&sum).context("tool rotation on the flange")?;
+    let error_deg = points
+        .iter()
+        .map(|m| {
+            let (f, bt) = rot(m)?;
+            let e = UnitQuaternion::from_matrix(&(bt * (f * x).transpose())).scaled_axis();
+            Ok([e.x.to_degrees(), e.y.to_degrees(), e.z.to_degrees()])
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let q = UnitQuaternion::from_matrix(&x).into_inner();
+    let q = if q.w < 0.0 { -q } else { q };
+    Ok(OrientationFit {
+        mount_wxyz: [q.w, q.i, q.j, q.k],
+        error_deg,
+    })
+}
+
+/// The rotation nearest to `m` (polar decomposition by SVD, a reflection turned into a rotation).
+fn nearest_rotation(m: &Matrix3<f64>) -> anyhow::Result<Matrix3<f64>> {
+    let svd = m.svd(true, true);
+    let (u, v_t) = (svd.u.context("SVD")?, svd.v_t.context("SVD")?);
+    let d = (u * v_t).determinant().signum();
+    Ok(u * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * v_t)
 }
 
 /// Error statistics of a set of residual vectors.
@@ -156,7 +221,14 @@ pub fn analyse(points: &[Measured], led_offset_mm: Option<[f64; 3]>) -> anyhow::
             [e.x, e.y, e.z]
         })
         .collect();
+    // A tool: its rotation on the flange, given the registration on the fit points.
+    let orientation = if !points.is_empty() && points.iter().all(|m| m.tracker_wxyz.is_some()) {
+        Some(orientation_fit(points, &fit.transform.rotation())?)
+    } else {
+        None
+    };
     Ok(Analysis {
+        orientation,
         fit: fit.transform,
         all: all.transform,
         scale: scaled.scale,
@@ -174,6 +246,58 @@ mod tests {
 
     use crate::cmd::survey::plan::plan;
     use crate::cmd::survey::test_support::{args, measured};
+
+    #[test]
+    fn the_tool_rotation_on_the_flange_is_recovered_and_errors_are_measured_in_robot_base() {
+        let mut a = args();
+        a.tool = Some("probe4".into());
+        a.rotations = 0;
+        let planned = plan(&a).unwrap();
+        let pts: Vec<_> = planned.iter().map(|p| (p.pos_mm, p.quat_wxyz, p.role)).collect();
+        let r = UnitQuaternion::from_euler_angles(0.3, -2.0, 0.7);
+        let truth = RigidTransform::from_parts(
+            &r.to_rotation_matrix().into_inner(),
+            &Vector3::new(450.0, -30.0, 900.0),
+        );
+        let offset = [12.0, -8.0, 95.0];
+        let mount = UnitQuaternion::from_euler_angles(0.4, 1.1, -0.6);
+        // The tracker sees the tool turned `tracker ← base · flange · mount`, and at one
+        // held-out point 0.2° more about the base's z.
+        let odd = pts.iter().position(|p| p.2 == Role::Holdout).unwrap();
+        let extra = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.2f64.to_radians());
+        let mut m = measured(&pts, &truth, offset, |_| [0.0; 3]);
+        for (i, x) in m.iter_mut().enumerate() {
+            let e = if i == odd {
+                extra
+            } else {
+                UnitQuaternion::identity()
+            };
+            let t = r.inverse() * e * quat(x.flange_wxyz) * mount;
+            x.tracker_wxyz = Some([t.w, t.i, t.j, t.k]);
+        }
+        let an = analyse(&m, None).unwrap();
+        let o = an.orientation.expect("orientation solved");
+        assert!(
+            quat(o.mount_wxyz).angle_to(&mount).to_degrees() < 1e-6,
+            "{:?}",
+            o.mount_wxyz
+        );
+        for (i, e) in o.error_deg.iter().enumerate() {
+            let v = Vector3::from(*e);
+            if i == odd {
+                // 0.2° about the robot base's z axis.
+                assert!((v - Vector3::new(0.0, 0.0, 0.2)).norm() < 1e-6, "{v:?}");
+            } else {
+                assert!(v.norm() < 1e-6, "point {i}: {v:?}");
+            }
+        }
+        for (got, want) in an.led_offset_mm.iter().zip(offset) {
+            assert!((got - want).abs() < 1e-6, "{:?}", an.led_offset_mm);
+        }
+        // Without orientations (a single LED) there is no orientation fit.
+        let plain = measured(&pts, &truth, offset, |_| [0.0; 3]);
+        assert!(analyse(&plain, None).unwrap().orientation.is_none());
+    }
 
     #[test]
     fn registration_and_led_offset_are_recovered_and_tre_sees_errors() {

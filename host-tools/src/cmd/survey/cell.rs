@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail, ensure};
 use irtrack_core::robot_proto::{HoldReason, PROTOCOL_VERSION, RobotMsg, TrackerMsg, seq_next};
-use irtrack_core::stream::{PositionRecord, TrackStatus};
+use irtrack_core::stream::{PositionRecord, ToolRecord, TrackStatus};
 use irtrack_robot::safety::SafetyConfig;
 use nalgebra::Vector3;
 
@@ -31,6 +31,8 @@ pub struct Measured {
     pub tracker_mm: [f64; 3],
     /// Per-axis standard deviation of the samples averaged into `tracker_mm` (mm).
     pub tracker_sd_mm: [f64; 3],
+    /// With `--tool`: the tool's mean tracked orientation (w, x, y, z; tool → stream frame).
+    pub tracker_wxyz: Option<[f64; 4]>,
     /// Tracker samples averaged into `tracker_mm`.
     pub frames: usize,
 }
@@ -66,6 +68,51 @@ fn reader<T: Send + 'static>(
     });
 }
 
+/// Reads per-tool records (the client asked with `tools`) and passes on those of `tool`; when a
+/// whole set's tools went by without it, the connection ends naming the set's tools.
+fn tool_reader(stream: TcpStream, tx: Sender<Ev>, tool: String) {
+    std::thread::spawn(move || {
+        let mut seen: Vec<String> = Vec::new();
+        for line in BufReader::new(stream).lines() {
+            let line = match line {
+                Ok(l) => l,
+                Err(e) => {
+                    let _ = tx.send(Ev::End(format!("stream: {e}")));
+                    return;
+                }
+            };
+            // The main record comes too; only the per-tool ones carry `tool_id`.
+            if !line.contains("\"tool_id\"") {
+                continue;
+            }
+            let r = match ToolRecord::from_ndjson_line(&line) {
+                Ok(r) => r,
+                Err(e) => {
+                    let _ = tx.send(Ev::End(format!("stream: {e} in {line:?}")));
+                    return;
+                }
+            };
+            if r.name() == tool {
+                if tx.send(Ev::Record(r.record)).is_err() {
+                    return;
+                }
+                continue;
+            }
+            if !seen.iter().any(|n| n == r.name()) {
+                seen.push(r.name().to_string());
+            }
+            if seen.len() >= usize::from(r.tool_count) {
+                let _ = tx.send(Ev::End(format!(
+                    "irtrackd's parameter set has no tool {tool:?} (its tools: {})",
+                    seen.join(", ")
+                )));
+                return;
+            }
+        }
+        let _ = tx.send(Ev::End("stream closed the connection".to_string()));
+    });
+}
+
 /// The robot link as its client plus the position stream.
 struct Cell {
     robot: TcpStream,
@@ -80,7 +127,7 @@ struct Cell {
 const BEAT_EVERY: Duration = Duration::from_millis(200);
 
 impl Cell {
-    fn connect(robot: &str, stream: &str) -> anyhow::Result<Self> {
+    fn connect(robot: &str, stream: &str, tool: Option<&str>) -> anyhow::Result<Self> {
         let (tx, rx) = channel();
         let r =
             TcpStream::connect(robot).with_context(|| format!("cannot connect to the robot at {robot}"))?;
@@ -94,13 +141,21 @@ impl Cell {
             |l| RobotMsg::parse(l).map_err(|e| e.to_string()),
             Ev::Robot,
         );
-        reader(
-            s,
-            tx,
-            "stream",
-            |l| PositionRecord::from_ndjson_line(l).map_err(|e| e.to_string()),
-            Ev::Record,
-        );
+        match tool {
+            Some(name) => {
+                // Ask for a record per tool (docs/stream-protocol.md).
+                (&s).write_all(b"tools\n")
+                    .context("ask irtrackd's stream for per-tool records")?;
+                tool_reader(s, tx, name.to_string());
+            }
+            None => reader(
+                s,
+                tx,
+                "stream",
+                |l| PositionRecord::from_ndjson_line(l).map_err(|e| e.to_string()),
+                Ev::Record,
+            ),
+        }
         let mut cell = Cell {
             robot: r,
             rx,
@@ -214,13 +269,14 @@ impl Cell {
         })
     }
 
-    /// Drops everything until `until`, then averages `frames` tracked positions.
+    /// Drops everything until `until`, then collects `frames` tracked positions (with the
+    /// orientation when the record has one).
     fn average(
         &mut self,
         until: Instant,
         frames: usize,
         deadline: Instant,
-    ) -> anyhow::Result<(Vec<[f64; 3]>, bool)> {
+    ) -> anyhow::Result<(Vec<Sample>, bool)> {
         let mut got = Vec::with_capacity(frames);
         let mut world = false;
         loop {
@@ -238,7 +294,7 @@ impl Cell {
                         && let Some(p) = r.position_mm
                     {
                         world = r.world_frame;
-                        got.push(p);
+                        got.push((p, r.orientation_wxyz));
                         if got.len() >= frames {
                             return Ok((got, world));
                         }
@@ -259,6 +315,21 @@ impl Cell {
         });
         let _ = self.send(&TrackerMsg::Bye);
     }
+}
+
+/// One tracked sample: position and, for a tool, orientation (w, x, y, z).
+type Sample = ([f64; 3], Option<[f64; 4]>);
+
+/// Mean of nearby unit quaternions: each turned to the first one's hemisphere, summed and
+/// normalised (the samples of a standstill differ by hundredths of a degree).
+fn mean_quat(v: &[[f64; 4]]) -> Option<[f64; 4]> {
+    let first = nalgebra::Vector4::from(*v.first()?);
+    let sum = v.iter().fold(nalgebra::Vector4::zeros(), |acc, q| {
+        let q = nalgebra::Vector4::from(*q);
+        if q.dot(&first) < 0.0 { acc - q } else { acc + q }
+    });
+    let n = sum.norm();
+    (n > 0.0).then(|| [sum[0] / n, sum[1] / n, sum[2] / n, sum[3] / n])
 }
 
 fn mean_sd(v: &[[f64; 3]]) -> ([f64; 3], [f64; 3]) {
@@ -287,7 +358,7 @@ pub(super) fn measure(
     plan: &[Planned],
     safety: &SafetyConfig,
 ) -> anyhow::Result<(Vec<Measured>, bool, Vec<String>)> {
-    let mut cell = Cell::connect(&args.robot, &args.stream)?;
+    let mut cell = Cell::connect(&args.robot, &args.stream, args.tool.as_deref())?;
     println!(
         "survey: robot {:?} connected; {} points",
         cell.robot_name,
@@ -327,15 +398,20 @@ pub(super) fn measure(
             }
             let settle = Instant::now() + Duration::from_millis(args.settle_ms);
             let (samples, w) = cell.average(settle, args.frames, deadline)?;
-            let pose = cell.pose(deadline)?;
+            // The point's time may be used up by a marker that was not seen: the robot's pose
+            // still gets its own few seconds, and the point is skipped below, naming why.
+            let pose = cell.pose(deadline.max(Instant::now() + Duration::from_secs(5)))?;
             gate.on_robot_position(pose.0);
             at = (p.pos_mm, p.quat_wxyz);
             if samples.len() < args.frames {
                 let why = format!(
-                    "point {i} at [{:.1}, {:.1}, {:.1}] mm: marker tracked in {} of {} frames before the point's time ran out",
+                    "point {i} at [{:.1}, {:.1}, {:.1}] mm: {} tracked in {} of {} frames before the point's time ran out",
                     p.pos_mm[0],
                     p.pos_mm[1],
                     p.pos_mm[2],
+                    args.tool
+                        .as_deref()
+                        .map_or("marker".to_string(), |t| format!("tool {t:?}")),
                     samples.len(),
                     args.frames
                 );
@@ -348,7 +424,21 @@ pub(super) fn measure(
                 "the stream switched between camera and world frame during the survey (a parameter push?)"
             );
             world = Some(w);
-            let (m, sd) = mean_sd(&samples);
+            let positions: Vec<[f64; 3]> = samples.iter().map(|s| s.0).collect();
+            let (m, sd) = mean_sd(&positions);
+            let tracker_wxyz = if args.tool.is_some() {
+                let quats: Vec<[f64; 4]> = samples.iter().filter_map(|s| s.1).collect();
+                ensure!(
+                    quats.len() == samples.len(),
+                    "point {i}: tool {:?} tracked without an orientation in {} of {} frames",
+                    args.tool.as_deref().unwrap_or(""),
+                    samples.len() - quats.len(),
+                    samples.len()
+                );
+                mean_quat(&quats)
+            } else {
+                None
+            };
             println!(
                 "survey: point {:>3}/{} {:<7} robot [{:8.2} {:8.2} {:8.2}] tracker [{:8.2} {:8.2} {:8.2}] sd {:.3} mm",
                 i + 1,
@@ -369,6 +459,7 @@ pub(super) fn measure(
                 flange_wxyz: pose.1,
                 tracker_mm: m,
                 tracker_sd_mm: sd,
+                tracker_wxyz,
                 frames: samples.len(),
             });
         }

@@ -24,6 +24,13 @@
 //! against `--tolerance-mm`; with `--params`/`--out` the registration is written into the
 //! parameter set (`world_from_cam0`) so that irtrackd streams robot-base coordinates.
 //!
+//! With `--tool NAME` the survey measures a 6-DOF tool instead of a single LED: the tool's
+//! per-tool records give its pose, every grid point is visited in a few flange orientations,
+//! the tool's origin on the flange is solved as the LED offset is, and its rotation on the
+//! flange by a least-squares fit given the registration (the hand-eye problem `A X = X B` with
+//! the tracker-to-base side already known from the positions); the report adds the
+//! orientation errors in robot base (RMS and max, degrees).
+//!
 //! The jobs live in submodules: `plan` (the grid and split moves), `safety` (the
 //! `[robot.safety]` gate), `cell` (the robot link and position stream, and the drive through
 //! the plan), `analysis` (registration, LED offset, statistics) and `report`.
@@ -116,9 +123,23 @@ pub struct Args {
     /// Write the parameter set with the new registration here (then sign and push it).
     #[arg(long, requires = "params")]
     pub out: Option<PathBuf>,
-    /// Report directory: survey.md, survey.csv, error-vs-distance.png.
+    /// Report directory: survey.md, survey.csv, survey.json, error-vs-distance.png.
     #[arg(long)]
     pub report: PathBuf,
+    /// Survey a 6-DOF tool of irtrackd's parameter set instead of a single LED: its per-tool
+    /// records (`tools` on the stream) give position and orientation. At every grid point the
+    /// flange is turned to `--tool-orientations` orientations; the tool's mount on the flange
+    /// (rotation and origin, hand-eye) is solved and the orientation errors in robot base are
+    /// reported beside FRE/TRE.
+    #[arg(long)]
+    pub tool: Option<String>,
+    /// With `--tool`: orientations per grid point: `--orient`, then turns by `--rotation-deg`
+    /// about the flange's x, y, z axes (then the same, negative).
+    #[arg(long, default_value_t = 3)]
+    pub tool_orientations: usize,
+    /// With `--tool`: pass when the largest held-out orientation error is at most this.
+    #[arg(long, default_value_t = 0.5)]
+    pub tolerance_deg: f64,
 }
 
 fn parse_v3(s: &str) -> Result<[f64; 3], String> {
@@ -167,6 +188,14 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         "--max-step-mm and --max-rotation-step-deg must be > 0"
     );
     ensure!(args.tolerance_mm > 0.0, "--tolerance-mm must be > 0");
+    if args.tool.is_some() {
+        ensure!(
+            (1..=7).contains(&args.tool_orientations),
+            "--tool-orientations must be 1..=7, got {}",
+            args.tool_orientations
+        );
+        ensure!(args.tolerance_deg > 0.0, "--tolerance-deg must be > 0");
+    }
     let params = match &args.params {
         Some(p) => Some(crate::opencv_yaml::load_params_any(p)?),
         None => None,
@@ -262,6 +291,7 @@ pub(crate) mod test_support {
                     flange_wxyz: *q,
                     tracker_mm: [t.x, t.y, t.z],
                     tracker_sd_mm: [0.0; 3],
+                    tracker_wxyz: None,
                     frames: 1,
                 }
             })
@@ -304,6 +334,9 @@ pub(crate) mod test_support {
             params: None,
             out: None,
             report: PathBuf::new(),
+            tool: None,
+            tool_orientations: 3,
+            tolerance_deg: 0.5,
         }
     }
 }

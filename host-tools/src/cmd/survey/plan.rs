@@ -83,19 +83,36 @@ pub fn plan(args: &Args) -> anyhow::Result<Vec<Planned>> {
             }
         }
     }
-    let mut out: Vec<Planned> = grid
-        .iter()
-        .enumerate()
-        .map(|(i, p)| Planned {
-            role: if i % args.holdout_every == args.holdout_every / 2 {
-                Role::Holdout
-            } else {
-                Role::Fit
-            },
+    let base = quat(args.orient);
+    // A tool is turned at every grid point (its orientation on the flange needs turns, and its
+    // orientation errors are measured everywhere): `--orient`, then ±`--rotation-deg` about the
+    // flange's x, y, z in turn. The turns of a held-out point are held out too.
+    let turns_per_point = if args.tool.is_some() {
+        args.tool_orientations.max(1)
+    } else {
+        1
+    };
+    let turn = |k: usize| {
+        let axis = [Vector3::x_axis(), Vector3::y_axis(), Vector3::z_axis()][k % 3];
+        let sign = if (k / 3).is_multiple_of(2) { 1.0 } else { -1.0 };
+        wxyz(&(base * UnitQuaternion::from_axis_angle(&axis, sign * args.rotation_deg.to_radians())))
+    };
+    let mut out: Vec<Planned> = Vec::with_capacity(grid.len() * turns_per_point + args.rotations);
+    for (i, p) in grid.iter().enumerate() {
+        let held = i % args.holdout_every == args.holdout_every / 2;
+        out.push(Planned {
+            role: if held { Role::Holdout } else { Role::Fit },
             pos_mm: *p,
             quat_wxyz: args.orient,
-        })
-        .collect();
+        });
+        for k in 0..turns_per_point - 1 {
+            out.push(Planned {
+                role: if held { Role::Holdout } else { Role::Turned },
+                pos_mm: *p,
+                quat_wxyz: turn(k),
+            });
+        }
+    }
     let fit = out.iter().filter(|p| p.role == Role::Fit).count();
     ensure!(
         fit >= 4 && out.len() > fit,
@@ -104,17 +121,13 @@ pub fn plan(args: &Args) -> anyhow::Result<Vec<Planned>> {
         args.holdout_every,
         out.len() - fit
     );
-    let base = quat(args.orient);
     for k in 0..args.rotations {
-        let axis = [Vector3::x_axis(), Vector3::y_axis(), Vector3::z_axis()][k % 3];
-        let sign = if (k / 3) % 2 == 0 { 1.0 } else { -1.0 };
-        let turn = UnitQuaternion::from_axis_angle(&axis, sign * args.rotation_deg.to_radians());
         // Spread over the grid, in the same serpentine order.
         let at = grid[(k * grid.len()) / args.rotations.max(1) % grid.len()];
         out.push(Planned {
             role: Role::Turned,
             pos_mm: at,
-            quat_wxyz: wxyz(&(base * turn)),
+            quat_wxyz: turn(k),
         });
     }
     Ok(out)
@@ -169,6 +182,19 @@ mod tests {
         // 0.6 rad = 34.4° needs 4 steps; 120 mm needs 3.
         assert_eq!(steps.len(), 4);
         assert_eq!(steps[3].0, [120.0, 0.0, 0.0]);
+        // A tool: every grid point in three orientations, the turns of held-out points held out.
+        let mut tool = args();
+        tool.tool = Some("probe4".into());
+        tool.rotations = 0;
+        let p = plan(&tool).unwrap();
+        assert_eq!(p.len(), 27 * 3);
+        assert_eq!(p.iter().filter(|x| x.role == Role::Holdout).count(), 27);
+        assert_eq!(p.iter().filter(|x| x.role == Role::Turned).count(), 36);
+        for w in p.chunks(3) {
+            assert!(w.iter().all(|x| x.pos_mm == w[0].pos_mm));
+            let a = quat(w[1].quat_wxyz).angle_to(&quat(w[0].quat_wxyz)).to_degrees();
+            assert!((a - tool.rotation_deg).abs() < 1e-9, "{a}");
+        }
         let mut bad = args();
         bad.box_max[1] = -200.0;
         assert!(plan(&bad).unwrap_err().to_string().contains("axis 1"));

@@ -13,8 +13,31 @@ use super::analysis::{Analysis, Stats, stats};
 use super::cell::Measured;
 use super::plan::Role;
 
+/// Orientation errors (degrees) of a set of points.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AngleStats {
+    /// Number of points.
+    pub n: usize,
+    /// RMS of the error angles (deg).
+    pub rms_deg: f64,
+    /// Largest error angle (deg).
+    pub max_deg: f64,
+}
+
+fn angle_stats(errors: &[[f64; 3]]) -> AngleStats {
+    let a: Vec<f64> = errors.iter().map(|e| Vector3::from(*e).norm()).collect();
+    AngleStats {
+        n: a.len(),
+        rms_deg: (a.iter().map(|x| x * x).sum::<f64>() / a.len().max(1) as f64).sqrt(),
+        max_deg: a.iter().copied().fold(0.0, f64::max),
+    }
+}
+
 /// The survey report.
 pub struct Report {
+    /// With `--tool`: orientation errors of the fit (and turned) points and of the held-out
+    /// points, in robot base; the held-out maximum is judged against `--tolerance-deg`.
+    pub orientation: Option<(AngleStats, AngleStats)>,
     /// Fiducial registration error: residuals of the fit and turned points.
     pub fre: Stats,
     /// Target registration error: residuals of the held-out points; judged against
@@ -29,6 +52,7 @@ pub struct Report {
     pub verdict: String,
     md: String,
     csv: String,
+    json: String,
     /// (distance from camera 0, 3-D error, held out) per point.
     fig: Vec<(f64, f64, bool)>,
 }
@@ -51,6 +75,17 @@ impl Report {
         };
         let fre = stats(&pick(false));
         let tre = stats(&pick(true));
+        let orientation = a.orientation.as_ref().map(|o| {
+            let pick = |holdout: bool| -> Vec<[f64; 3]> {
+                points
+                    .iter()
+                    .zip(&o.error_deg)
+                    .filter(|(m, _)| (m.role == Role::Holdout) == holdout)
+                    .map(|(_, e)| *e)
+                    .collect()
+            };
+            (angle_stats(&pick(false)), angle_stats(&pick(true)))
+        });
         let cam0_from_tracker = old_world.map(RigidTransform::inverse);
         let dist = |m: &Measured| {
             let p = Vector3::from(m.tracker_mm);
@@ -73,12 +108,28 @@ impl Report {
                 a.scale, scale_ppm, args.max_scale_error_ppm
             ));
         }
+        if let Some((_, held)) = orientation
+            && held.max_deg > args.tolerance_deg
+        {
+            problems.push(format!(
+                "orientation error max {:.3}° (held out) exceeds the tolerance {:.3}°",
+                held.max_deg, args.tolerance_deg
+            ));
+        }
         let pass = problems.is_empty();
         let verdict = if pass {
-            format!(
+            let mut v = format!(
                 "TRE max {:.3} mm within {:.3} mm, scale within {:.0} ppm",
                 tre.max_mm, args.tolerance_mm, args.max_scale_error_ppm
-            )
+            );
+            if let Some((_, held)) = orientation {
+                let _ = write!(
+                    v,
+                    ", orientation error max {:.3}° within {:.3}°",
+                    held.max_deg, args.tolerance_deg
+                );
+            }
+            v
         } else {
             problems.join("; ")
         };
@@ -128,6 +179,24 @@ impl Report {
                 s.axis_max_mm[1],
                 s.axis_rms_mm[2],
                 s.axis_max_mm[2]
+            );
+        }
+        if let (Some((fit_o, held_o)), Some(o)) = (orientation, &a.orientation) {
+            let _ = writeln!(
+                w,
+                "\nOrientation of tool {:?} in robot base (tracked, registered, against flange · mount):\n",
+                args.tool.as_deref().unwrap_or("")
+            );
+            let _ = writeln!(w, "| | points | RMS (°) | max (°) |");
+            let _ = writeln!(w, "|---|---|---|---|");
+            for (name, s) in [("fit points", fit_o), ("held out", held_o)] {
+                let _ = writeln!(w, "| {name} | {} | {:.4} | {:.4} |", s.n, s.rms_deg, s.max_deg);
+            }
+            let rv = super::plan::quat(o.mount_wxyz).scaled_axis().map(f64::to_degrees);
+            let _ = writeln!(
+                w,
+                "\nTool rotation on the flange (flange ← tool): quaternion w, x, y, z [{:.6}, {:.6}, {:.6}, {:.6}], rotation vector [{:.3}, {:.3}, {:.3}]° (solved on the fit points). Its origin on the flange is the offset below.",
+                o.mount_wxyz[0], o.mount_wxyz[1], o.mount_wxyz[2], o.mount_wxyz[3], rv.x, rv.y, rv.z
             );
         }
         let _ = writeln!(
@@ -191,12 +260,17 @@ impl Report {
             "\n![error vs distance from the cameras](error-vs-distance.png)\n\nPer point: survey.csv."
         );
 
+        // The tool's columns come last: readers of the single-LED columns are unaffected.
         let mut csv = String::from(
-            "index,role,robot_x_mm,robot_y_mm,robot_z_mm,q1,q2,q3,q4,tracker_x_mm,tracker_y_mm,tracker_z_mm,tracker_sd_mm,frames,distance_cam0_mm,err_x_mm,err_y_mm,err_z_mm,err_mm\n",
+            "index,role,robot_x_mm,robot_y_mm,robot_z_mm,q1,q2,q3,q4,tracker_x_mm,tracker_y_mm,tracker_z_mm,tracker_sd_mm,frames,distance_cam0_mm,err_x_mm,err_y_mm,err_z_mm,err_mm",
         );
+        if a.orientation.is_some() {
+            csv.push_str(",tracker_qw,tracker_qx,tracker_qy,tracker_qz,orient_err_x_deg,orient_err_y_deg,orient_err_z_deg,orient_err_deg");
+        }
+        csv.push('\n');
         for (i, m) in points.iter().enumerate() {
             let r = a.residual_mm[i];
-            let _ = writeln!(
+            let _ = write!(
                 csv,
                 "{},{},{:.3},{:.3},{:.3},{:.6},{:.6},{:.6},{:.6},{:.4},{:.4},{:.4},{:.4},{},{:.1},{:.4},{:.4},{:.4},{:.4}",
                 m.index,
@@ -219,8 +293,59 @@ impl Report {
                 r[2],
                 fig[i].1
             );
+            if let (Some(o), Some(t)) = (&a.orientation, m.tracker_wxyz) {
+                let e = o.error_deg[i];
+                let _ = write!(
+                    csv,
+                    ",{:.8},{:.8},{:.8},{:.8},{:.5},{:.5},{:.5},{:.5}",
+                    t[0],
+                    t[1],
+                    t[2],
+                    t[3],
+                    e[0],
+                    e[1],
+                    e[2],
+                    Vector3::from(e).norm()
+                );
+            }
+            csv.push('\n');
         }
+        let s_json = |s: &Stats| {
+            serde_json::json!({
+                "points": s.n, "rms_mm": s.rms_mm, "max_mm": s.max_mm,
+                "axis_rms_mm": s.axis_rms_mm, "axis_max_mm": s.axis_max_mm,
+            })
+        };
+        let a_json =
+            |s: &AngleStats| serde_json::json!({"points": s.n, "rms_deg": s.rms_deg, "max_deg": s.max_deg});
+        let json = serde_json::json!({
+            "pass": pass,
+            "verdict": verdict,
+            "fre": s_json(&fre),
+            "tre": s_json(&tre),
+            "scale": a.scale,
+            "led_offset_mm": a.led_offset_mm,
+            "led_offset_solved": a.offset_solved,
+            "robot_from_tracker": {
+                "rotation_row_major": a.all.rotation().transpose().as_slice(),
+                "translation_mm": a.all.translation_mm().as_slice(),
+            },
+            "tool": args.tool,
+            "orientation": match (orientation, &a.orientation) {
+                (Some((f, h)), Some(o)) => serde_json::json!({
+                    "fit": a_json(&f),
+                    "holdout": a_json(&h),
+                    "tolerance_deg": args.tolerance_deg,
+                    "mount_wxyz": o.mount_wxyz,
+                }),
+                _ => serde_json::Value::Null,
+            },
+            "points_measured": points.len(),
+            "points_skipped": skipped.len(),
+        });
         Report {
+            orientation,
+            json: serde_json::to_string_pretty(&json).unwrap_or_default(),
             fre,
             tre,
             scale: a.scale,
@@ -234,10 +359,18 @@ impl Report {
 
     /// Lines printed at the end of a run (the test reads them).
     pub fn summary(&self) -> String {
+        let orientation = match self.orientation {
+            Some((f, h)) => format!(
+                "survey: orientation error RMS {:.4}° max {:.4}° ({} points, fit)\n\
+                 survey: orientation held out RMS {:.4}° max {:.4}° ({} points)\n",
+                f.rms_deg, f.max_deg, f.n, h.rms_deg, h.max_deg, h.n
+            ),
+            None => String::new(),
+        };
         format!(
             "survey: FRE RMS {:.3} mm max {:.3} mm ({} points)\n\
              survey: TRE RMS {:.3} mm max {:.3} mm ({} points); per axis RMS x {:.3} y {:.3} z {:.3} mm\n\
-             survey: scale {:.6}\n\
+             {}survey: scale {:.6}\n\
              survey: {} — {}\n",
             self.fre.rms_mm,
             self.fre.max_mm,
@@ -248,6 +381,7 @@ impl Report {
             self.tre.axis_rms_mm[0],
             self.tre.axis_rms_mm[1],
             self.tre.axis_rms_mm[2],
+            orientation,
             self.scale,
             if self.pass { "PASS" } else { "FAIL" },
             self.verdict
@@ -257,6 +391,7 @@ impl Report {
     pub(super) fn write(&self, dir: &Path) -> anyhow::Result<()> {
         std::fs::write(dir.join("survey.md"), &self.md).context("write survey.md")?;
         std::fs::write(dir.join("survey.csv"), &self.csv).context("write survey.csv")?;
+        std::fs::write(dir.join("survey.json"), &self.json).context("write survey.json")?;
         plot::error_vs_distance(&dir.join("error-vs-distance.png"), &self.fig)
     }
 }
@@ -377,6 +512,11 @@ mod tests {
                 .unwrap()
                 .contains("FAIL")
         );
+        let j: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("survey.json")).unwrap()).unwrap();
+        assert_eq!(j["pass"], false);
+        assert_eq!(j["tre"]["points"], r.tre.n);
+        assert!(j["orientation"].is_null() && r.orientation.is_none());
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
