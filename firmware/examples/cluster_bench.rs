@@ -4,10 +4,20 @@
 //!    solver receive, p50/p99, for 2 and 4 boards of 2 cameras at 120 fps each;
 //! 2. bytes per observation (one blob, the message alone; Zenoh adds its framing);
 //! 3. the solver's CPU per set at 8 cameras (thread CPU time): decode, gate, pair, set the
-//!    blobs, triangulate; and the allocations per set in that loop (counting allocator).
+//!    blobs, triangulate; and the allocations per set in that loop (counting allocator);
+//! 4. capture → published position (the loop's `end_to_end` histogram, what `/status` reports
+//!    as `processing.latency_us.end_to_end`) side by side: an in-process solver (`app::start`,
+//!    role `solver`) fed at 120 fps by 2 and 4 boards that this program simulates (each
+//!    observation's capture time is its publish instant: the hop, the pairing wait and the
+//!    solve; a real board adds its own capture → publish, the standalone row's `driver` and
+//!    `detect`), and one standalone board (`app::start`, simulated source) with the same
+//!    four-camera ring rig at 120 fps.
 //!
-//! `cargo run --release -p irtrack-firmware --example cluster_bench [-- --secs S]`
+//! `cargo run --release -p irtrack-firmware --features cluster --example cluster_bench
+//! [-- --secs S] [--quick]`; `cargo xtask bench` runs it (docs/performance.md).
 
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use irtrack_cluster::pairing::{Pairer, PairingConfig};
@@ -16,7 +26,11 @@ use irtrack_core::blob::Blob;
 use irtrack_core::observation::{
     CameraPlace, MAX_OBS_LEN, ObsBlob, ObsClock, ObsHeader, ObservationGate, decode, encode,
 };
+use irtrack_core::params::RigParams;
 use irtrack_core::pipeline::{Tracker, TrackerConfig};
+use irtrack_firmware::app::{self, Overrides};
+use irtrack_firmware::config::Config;
+use irtrack_firmware::metrics::HistogramSnapshot;
 use nalgebra::Vector3;
 
 #[global_allocator]
@@ -133,6 +147,41 @@ fn hop(boards: usize, secs: f64) -> (usize, f64, f64) {
     (n, p50 / 1e3, p99 / 1e3)
 }
 
+/// The same traffic over one plain TCP connection (TCP_NODELAY, a blocking reader thread
+/// stamping on arrival): what the machine itself gives, to tell Zenoh's tail from the load's.
+fn tcp_hop(streams: usize, secs: f64) -> (usize, f64, f64) {
+    use std::io::{Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap();
+    let mut tx = std::net::TcpStream::connect(addr).unwrap();
+    tx.set_nodelay(true).unwrap();
+    let (mut rx, _) = listener.accept().unwrap();
+    let frames = (secs * FPS) as usize;
+    let reader = std::thread::spawn(move || {
+        let mut hops = Vec::with_capacity(frames * streams);
+        let mut msg = [0u8; 64];
+        while rx.read_exact(&mut msg).is_ok() {
+            let sent = u64::from_le_bytes(msg[..8].try_into().unwrap());
+            hops.push(realtime_ns().saturating_sub(sent));
+        }
+        hops
+    });
+    let period = Duration::from_secs_f64(1.0 / FPS);
+    let t0 = Instant::now();
+    for k in 1..=frames {
+        std::thread::sleep((t0 + period.mul_f64(k as f64)).saturating_duration_since(Instant::now()));
+        for _ in 0..streams {
+            let mut msg = [0u8; 64];
+            msg[..8].copy_from_slice(&realtime_ns().to_le_bytes());
+            tx.write_all(&msg).unwrap();
+        }
+    }
+    drop(tx);
+    let mut hops = reader.join().unwrap();
+    let n = hops.len();
+    (n, pct(&mut hops, 0.5) / 1e3, pct(&mut hops, 0.99) / 1e3)
+}
+
 fn header(board: &str, seq: u64, ts: u64) -> ObsHeader<'_> {
     ObsHeader {
         rig: "bench",
@@ -224,11 +273,12 @@ fn solver_cpu(sets: u64) -> (f64, f64, f64) {
 }
 
 fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
     let secs: f64 = std::env::args()
         .skip_while(|a| a != "--secs")
         .nth(1)
         .and_then(|s| s.parse().ok())
-        .unwrap_or(3.0);
+        .unwrap_or(if quick { 1.0 } else { 3.0 });
     let mut buf = [0u8; MAX_OBS_LEN];
     let one = encode(&header("b1", 7, 1), &[blob_at(1.0, 2.0)], &mut buf).unwrap();
     println!(
@@ -241,11 +291,15 @@ fn main() {
         println!(
             "| hop board publish → solver receive, {boards} boards × 2 cameras ({n} observations) | p50 {p50:.0} µs, p99 {p99:.0} µs |"
         );
+        let (n, p50, p99) = tcp_hop(2 * boards, secs);
+        println!(
+            "| the same traffic over plain TCP (baseline of this machine now), {boards} boards ({n} messages) | p50 {p50:.0} µs, p99 {p99:.0} µs |"
+        );
     }
     println!(
         "| bytes per observation (1 blob, board name of 2 characters, rig `bench`) | {one} (+16 per further blob; Zenoh framing not included) |"
     );
-    let (cpu_us, allocs, share) = solver_cpu(2000);
+    let (cpu_us, allocs, share) = solver_cpu(if quick { 500 } else { 2000 });
     let budget_us = 1e6 / FPS;
     println!(
         "| solver CPU per set, 8 cameras (decode, gate, pair, triangulate; {:.0} % tracked) | {cpu_us:.1} µs = {:.1} % of one core at 120 sets/s |",
@@ -253,4 +307,220 @@ fn main() {
         100.0 * cpu_us / budget_us
     );
     println!("| allocations per set in the solver's loop | {allocs:.2} |");
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    println!();
+    println!(
+        "capture → published position, {FPS} fps, the loop's end_to_end histogram after a 1 s warm-up ({secs} s each; µs)"
+    );
+    println!("| irtrackd | sets | p50 | p90 | p99 | max | of which |");
+    println!("|---|---|---|---|---|---|---|");
+    let one = rt.block_on(standalone_latency(secs));
+    println!(
+        "| standalone board, 4 cameras (simulated, VGA) | {} | {:.0} | {:.0} | {:.0} | {:.0} | driver (capture → dequeued) p50 {:.0}, detect p50 {:.0}, ours (dequeued → published) p50 {:.0} |",
+        one.end_to_end.count(),
+        q(&one.end_to_end, 0.5),
+        q(&one.end_to_end, 0.9),
+        q(&one.end_to_end, 0.99),
+        one.end_to_end.max_ns as f64 / 1e3,
+        q(&one.driver, 0.5),
+        q(&one.detect, 0.5),
+        q(&one.ours, 0.5),
+    );
+    for boards in [2usize, 4] {
+        let s = rt.block_on(solver_latency(boards, secs));
+        println!(
+            "| solver, {boards} boards × 2 cameras (board publish → published) | {} | {:.0} | {:.0} | {:.0} | {:.0} | hop + set closing (driver) p50 {:.0}, ours p50 {:.0}; {:.0} % of sets tracked |",
+            s.end_to_end.count(),
+            q(&s.end_to_end, 0.5),
+            q(&s.end_to_end, 0.9),
+            q(&s.end_to_end, 0.99),
+            s.end_to_end.max_ns as f64 / 1e3,
+            q(&s.driver, 0.5),
+            q(&s.ours, 0.5),
+            100.0 * s.tracked,
+        );
+    }
+}
+
+fn q(h: &HistogramSnapshot, p: f64) -> f64 {
+    h.quantile_us(p).unwrap_or(f64::NAN)
+}
+
+/// Histograms of one run, warm-up subtracted.
+struct Stages {
+    end_to_end: HistogramSnapshot,
+    driver: HistogramSnapshot,
+    detect: HistogramSnapshot,
+    ours: HistogramSnapshot,
+    /// Share of published sets with a position (solver runs).
+    tracked: f64,
+}
+
+/// `b − a` of two snapshots of one histogram (min/max are `b`'s: a bound, not exact).
+fn since(a: &HistogramSnapshot, b: &HistogramSnapshot) -> HistogramSnapshot {
+    HistogramSnapshot {
+        counts: b.counts.iter().zip(&a.counts).map(|(x, y)| x - y).collect(),
+        sum_ns: b.sum_ns - a.sum_ns,
+        min_ns: b.min_ns,
+        max_ns: b.max_ns,
+    }
+}
+
+/// Warm-up, then `secs` of the running service's stage histograms.
+async fn measure(running: &app::Running, secs: f64) -> Stages {
+    let st = &running.status.stages;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let snap = || {
+        [
+            st.end_to_end.snapshot(),
+            st.driver.snapshot(),
+            st.detect.snapshot(),
+            st.ours.snapshot(),
+        ]
+    };
+    let a = snap();
+    tokio::time::sleep(Duration::from_secs_f64(secs)).await;
+    let b = snap();
+    Stages {
+        end_to_end: since(&a[0], &b[0]),
+        driver: since(&a[1], &b[1]),
+        detect: since(&a[2], &b[2]),
+        ours: since(&a[3], &b[3]),
+        tracked: f64::NAN,
+    }
+}
+
+fn service_config(state: &std::path::Path, extra: &str) -> Config {
+    let text = format!(
+        "[service]\nstate_dir = {state:?}\n[listen]\nparams = \"127.0.0.1:0\"\nstream_ndjson = \"127.0.0.1:0\"\n\
+         stream_binary = \"127.0.0.1:0\"\nstatus = \"127.0.0.1:0\"\n[params]\nallow_unsigned = true\n\
+         [leds]\nbackend = \"none\"\n{extra}"
+    );
+    Config::from_toml(&text, "cluster_bench").unwrap()
+}
+
+fn state_dir(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("irtrack-cluster-bench-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// One standalone board: the simulated four-camera ring at 120 fps.
+async fn standalone_latency(secs: f64) -> Stages {
+    let dir = state_dir("standalone");
+    let mut cfg = service_config(
+        &dir,
+        &format!("[source.sim]\nrig = \"ring\"\nring_cameras = 4\ndistance_mm = 600\nfps = {FPS}\n"),
+    );
+    cfg.service.params_from_simulator = true;
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let s = measure(&running, secs).await;
+    running.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+    s
+}
+
+/// A solver fed by `boards` simulated boards of two cameras each at 120 fps.
+async fn solver_latency(boards: usize, secs: f64) -> Stages {
+    let dir = state_dir(&format!("solver{boards}"));
+    let cameras = 2 * boards;
+    let mut rig = irtrack_firmware::source::sim::ring_rig(cameras, 600.0);
+    rig.rig_id = "bench".into();
+    let names: Vec<String> = (0..boards).map(|b| format!("b{b}")).collect();
+    rig.placement = (0..cameras)
+        .map(|c| CameraPlace {
+            board: names[c / 2].clone(),
+            local_index: (c % 2) as u8,
+        })
+        .collect();
+    std::fs::write(dir.join("params.irp"), rig.to_blob().unwrap()).unwrap();
+    let port = free_port();
+    let sizes: Vec<String> = rig
+        .cameras
+        .iter()
+        .map(|c| {
+            format!(
+                "[{}, {}]",
+                c.model.image_size.width_px, c.model.image_size.height_px
+            )
+        })
+        .collect();
+    let cfg = service_config(
+        &dir,
+        &format!(
+            "[cluster]\nrole = \"solver\"\nrig = \"bench\"\nlisten = [\"tcp/127.0.0.1:{port}\"]\nfps = {FPS}\nimage_sizes_px = [{}]\n",
+            sizes.join(", ")
+        ),
+    );
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let feeder = {
+        let (stop, rig, names) = (stop.clone(), rig.clone(), names.clone());
+        std::thread::spawn(move || feed(port, &rig, &names, &stop))
+    };
+    let (tr0, pub0) = counters(&running);
+    let mut s = measure(&running, secs).await;
+    let (tr1, pub1) = counters(&running);
+    s.tracked = (tr1 - tr0) as f64 / (pub1 - pub0).max(1) as f64;
+    stop.store(true, Ordering::Relaxed);
+    let sent = tokio::task::spawn_blocking(move || feeder.join().unwrap())
+        .await
+        .unwrap();
+    assert!(sent > 0, "the simulated boards sent nothing");
+    running.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+    s
+}
+
+/// Tracked and published sets so far.
+fn counters(running: &app::Running) -> (u64, u64) {
+    let st = &running.status;
+    (
+        st.tracked.load(Ordering::Relaxed),
+        st.published.load(Ordering::Relaxed),
+    )
+}
+
+/// The simulated boards: every camera's blob of a point moving on a circle, stamped with the
+/// publish instant, at 120 fps until `stop`; returns the observations sent.
+fn feed(port: u16, rig: &RigParams, names: &[String], stop: &AtomicBool) -> u64 {
+    let tc = TransportConfig {
+        connect: vec![format!("tcp/127.0.0.1:{port}")],
+        ..TransportConfig::default()
+    };
+    let sessions: Vec<Session> = names.iter().map(|_| Session::open(&tc).unwrap()).collect();
+    let mut pubs: Vec<ObsPublisher> = (0..rig.cameras.len())
+        .map(|c| ObsPublisher::new(&sessions[c / 2], "bench", &names[c / 2], c % 2).unwrap())
+        .collect();
+    let period = Duration::from_secs_f64(1.0 / FPS);
+    let t0 = Instant::now();
+    let mut k = 0u64;
+    while !stop.load(Ordering::Relaxed) {
+        k += 1;
+        let a = k as f64 * 0.05;
+        let p = Vector3::new(40.0 * a.cos(), 20.0 * a.sin(), 600.0 + 30.0 * a.sin());
+        let ts = realtime_ns();
+        for (c, publisher) in pubs.iter_mut().enumerate() {
+            let cam = &rig.cameras[c];
+            let Ok(px) = cam.model.project(&cam.cam_from_cam0.apply(&p)) else {
+                continue;
+            };
+            let mut h = header(&names[c / 2], k, ts);
+            h.camera = (c % 2) as u8;
+            h.send_delay_us = 0;
+            publisher.publish(&h, &[blob_at(px.x, px.y)]).unwrap();
+        }
+        let due = t0 + period.mul_f64(k as f64);
+        std::thread::sleep(due.saturating_duration_since(Instant::now()));
+    }
+    let sent = pubs.iter().map(|p| p.sent()).sum();
+    for s in &sessions {
+        s.close();
+    }
+    sent
 }

@@ -17,6 +17,14 @@
 //! and a row per robot link kind (socket protocol, ABB EGM, KUKA RSI) for the capture → robot
 //! packet latency, which `cargo xtask bench-links` measures (docs/robot-streaming.md).
 //!
+//! Cluster (full run, or `--cluster` alone; `--cluster --quick` for a short one): camera
+//! boards and a solver over Zenoh beside the standalone board (`irtrack-firmware`'s
+//! `cluster_bench` example, release, feature `cluster`): observation hop p50/p99 for 2 and 4
+//! boards, bytes per observation, solver CPU and allocations per set at 8 cameras, and
+//! capture → published for a solver and a standalone board, side by side (docs/cluster.md).
+//! Not in CI's quick run: its release build of Zenoh (about 200 crates) would cost the bench
+//! phase several minutes cold; CI's host tests run the cluster's tests.
+//!
 //! `--aarch64`: the OpenCV-free benchmark (`--no-default-features`) and `irtrackd`, both
 //! cross-built static for aarch64, run under QEMU user mode: the benchmark table there (its
 //! ratios; absolute times are the emulator's), the binary size, and the resident memory of
@@ -73,6 +81,12 @@ pub struct Args {
     /// The benchmark cross-built for aarch64, run under qemu-aarch64.
     #[arg(long)]
     pub aarch64: bool,
+    /// Only the cluster section (camera boards and a solver beside the standalone board).
+    #[arg(long, conflicts_with_all = ["latency", "no_cluster"])]
+    pub cluster: bool,
+    /// Leave out the cluster section.
+    #[arg(long)]
+    pub no_cluster: bool,
 }
 
 /// `cargo xtask bench [--quick] [--no-callgrind] [--no-latency] [--latency] [--aarch64]`.
@@ -90,6 +104,9 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
     }
     if latency == Some(true) {
         return crate::bench_latency::table(ctx, 8);
+    }
+    if args.cluster {
+        return cluster_section(ctx, quick);
     }
     // The latency run builds the firmware in release and takes ~20 s of wall time: not in the
     // quick (CI) run.
@@ -120,6 +137,46 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         println!(
             "Latency table (loop with 0 and 3 viewers, robot links) skipped: `cargo xtask bench --latency`."
         );
+    }
+    if !quick && !args.no_cluster {
+        cluster_section(ctx, false)?;
+    } else {
+        println!();
+        println!(
+            "Cluster section (boards and a solver beside the standalone board) skipped: `cargo xtask bench --cluster [--quick]`."
+        );
+    }
+    Ok(())
+}
+
+/// Camera boards and a solver beside the standalone board: `irtrack-firmware`'s
+/// `cluster_bench` example in release (its table is printed as it runs).
+pub fn cluster_section(ctx: &Ctx, quick: bool) -> Result<()> {
+    println!();
+    let mut cmd = ctx.cargo();
+    cmd.args([
+        "run",
+        "--release",
+        "-p",
+        "irtrack-firmware",
+        "--features",
+        "cluster",
+        "--example",
+        "cluster_bench",
+        "--",
+    ]);
+    if quick {
+        cmd.arg("--quick");
+    }
+    let out = util::run(
+        &mut cmd,
+        RunOpts {
+            timeout: Some(Duration::from_secs(3600)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("cluster benchmark {}", out.describe());
     }
     Ok(())
 }

@@ -52,6 +52,7 @@ fn transport_config(cfg: &ClusterConfig) -> TransportConfig {
         listen: cfg.listen.clone(),
         connect: cfg.connect.clone(),
         multicast_scouting: cfg.multicast_scouting,
+        low_latency: cfg.low_latency,
     }
 }
 

@@ -50,6 +50,9 @@ pub struct ClusterConfig {
     /// Find peers by UDP multicast instead of (or besides) the endpoints. Off by default.
     #[serde(default)]
     pub multicast_scouting: bool,
+    /// Zenoh's low-latency transport (default on; negotiated per link, see docs/cluster.md).
+    #[serde(default = "d_true")]
+    pub low_latency: bool,
     /// Solver: pair by the hardware trigger's frame counter (cameras triggered) instead of
     /// timestamps.
     #[serde(default)]
@@ -89,6 +92,9 @@ pub struct ClusterConfig {
     pub clock_drift_ppm: f64,
 }
 
+fn d_true() -> bool {
+    true
+}
 fn d_rig() -> String {
     "rig".into()
 }
@@ -111,6 +117,7 @@ impl Default for ClusterConfig {
             listen: Vec::new(),
             connect: Vec::new(),
             multicast_scouting: false,
+            low_latency: true,
             trigger: false,
             fps: d_fps(),
             tolerance_ms: None,
