@@ -58,6 +58,9 @@ pub struct Config {
     /// Multi-board rigs (docs/cluster.md); standalone by default.
     #[serde(default)]
     pub cluster: crate::cluster::ClusterConfig,
+    /// PTP for the boards' clocks (linuxptp; docs/cluster.md, "Clocks"); off by default.
+    #[serde(default)]
+    pub clock: crate::ptp::ClockConfig,
 }
 
 /// `[service]`
@@ -388,6 +391,7 @@ impl Config {
         check_tracker_config(&self.tracking)?;
         self.outputs.validate()?;
         self.cluster.validate()?;
+        self.clock.validate()?;
         if let Some(h) = &self.service.operator_password_hash {
             crate::net::auth::check_hash(h)?;
         }

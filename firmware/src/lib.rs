@@ -21,6 +21,7 @@ pub mod metrics;
 pub mod net;
 pub mod outputs;
 pub mod params;
+pub mod ptp;
 pub mod rt;
 pub mod soak;
 pub mod source;

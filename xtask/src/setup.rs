@@ -83,6 +83,10 @@ const PACKAGES: &[Pkg] = &[
     },
     pkg("systemd", "systemd-analyze verifies the unit files in systemd/"),
     pkg(
+        "linuxptp",
+        "ptp4l reads the PTP config irtrackd generates (test); systemd-analyze resolves the PTP units' ptp4l/phc2sys",
+    ),
+    pkg(
         "iproute2",
         "`ip` sets up loopback multicast in the DDS test's own network namespace (firmware/tests/ros2_dds.rs)",
     ),

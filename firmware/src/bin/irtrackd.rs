@@ -54,6 +54,11 @@ struct Cli {
     /// `[service] operator_password_hash`, and exit.
     #[arg(long)]
     hash_password: bool,
+    /// Write linuxptp's `ptp4l.conf` (and the `hardware-timestamps` marker for phc2sys) from
+    /// `[clock]` into DIR and exit: 0 when `[clock] ptp = true`, 1 when it is off (the image's
+    /// `irtrack-ptp4l.service` runs this as its `ExecCondition`, so PTP stays off then).
+    #[arg(long, value_name = "DIR")]
+    write_ptp_config: Option<PathBuf>,
 }
 
 fn apply_overrides(cfg: &mut Config, cli: &Cli) {
@@ -156,6 +161,22 @@ fn main() -> anyhow::Result<()> {
             std::process::exit(2);
         }
     };
+    if let Some(dir) = &cli.write_ptp_config {
+        if !cfg.clock.ptp {
+            println!("irtrackd: [clock] ptp is off: no PTP config written");
+            std::process::exit(1);
+        }
+        cfg.clock.write_files(dir)?;
+        println!(
+            "irtrackd: wrote {} ({:?} time stamping on {}, role {:?}, domain {})",
+            dir.join("ptp4l.conf").display(),
+            cfg.clock.time_stamping,
+            cfg.clock.interface,
+            cfg.clock.role,
+            cfg.clock.domain
+        );
+        return Ok(());
+    }
     if cli.check_config {
         let keys = cfg.params.load_keys()?;
         println!(

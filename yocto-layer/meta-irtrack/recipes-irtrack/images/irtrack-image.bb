@@ -1,6 +1,7 @@
 SUMMARY = "irtrack appliance image"
 DESCRIPTION = "Minimal systemd image for the board of the irtrack optical tracker: irtrackd \
-with its udev rules, plus V4L2 and GPIO tools for bring-up."
+with its udev rules, linuxptp for the clocks of multi-board rigs, plus V4L2 and GPIO tools \
+for bring-up."
 HOMEPAGE = "https://example.invalid/irtrack"
 LICENSE = "MIT"
 
@@ -8,6 +9,7 @@ inherit core-image
 
 IMAGE_INSTALL = "packagegroup-core-boot \
                  irtrackd \
+                 linuxptp \
                  libgpiod-tools \
                  v4l-utils \
                  ${CORE_IMAGE_EXTRA_INSTALL} \

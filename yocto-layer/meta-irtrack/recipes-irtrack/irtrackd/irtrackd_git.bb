@@ -43,12 +43,16 @@ GROUPADD_PARAM:${PN} = "--system irtrack"
 USERADD_PARAM:${PN} = "--system --no-create-home --home-dir ${localstatedir}/lib/irtrackd \
                        --shell /sbin/nologin --gid irtrack irtrack"
 
-SYSTEMD_SERVICE:${PN} = "irtrackd.service"
+# The PTP units run ptp4l/phc2sys (meta-oe's linuxptp) with the config irtrackd generates from
+# [clock]; with `ptp = false` (the default) their ExecCondition skips them (docs/cluster.md).
+SYSTEMD_SERVICE:${PN} = "irtrackd.service irtrack-ptp4l.service irtrack-phc2sys.service"
 SYSTEMD_AUTO_ENABLE:${PN} = "enable"
 
 do_install:append() {
     install -d ${D}${systemd_system_unitdir}
     install -m 0644 ${S}/systemd/irtrackd.service ${D}${systemd_system_unitdir}/
+    install -m 0644 ${S}/systemd/irtrack-ptp4l.service ${D}${systemd_system_unitdir}/
+    install -m 0644 ${S}/systemd/irtrack-phc2sys.service ${D}${systemd_system_unitdir}/
     install -d ${D}${sysconfdir}/irtrack
     install -m 0644 ${WORKDIR}/irtrackd.toml ${D}${sysconfdir}/irtrack/irtrackd.toml
     install -d ${D}${sysconfdir}/irtrack/trusted-keys
@@ -57,5 +61,10 @@ do_install:append() {
 }
 
 FILES:${PN} += "${systemd_system_unitdir}/irtrackd.service \
+                ${systemd_system_unitdir}/irtrack-ptp4l.service \
+                ${systemd_system_unitdir}/irtrack-phc2sys.service \
                 ${nonarch_base_libdir}/udev/rules.d/99-irtrack.rules"
 CONFFILES:${PN} = "${sysconfdir}/irtrack/irtrackd.toml"
+
+# ptp4l and phc2sys for irtrack-ptp4l.service and irtrack-phc2sys.service.
+RDEPENDS:${PN} += "linuxptp"
