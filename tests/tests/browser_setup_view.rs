@@ -162,6 +162,29 @@ async fn browser(driver_url: &str, profile: &Path, downloads: &Path) -> Client {
         .unwrap_or_else(|e| panic!("WebDriver session with {CHROMIUM} failed: {e}"))
 }
 
+/// Starts chromedriver and a headless Chromium session whose downloads land in
+/// `dir/downloads`; the driver process lives as long as the returned handle.
+async fn open_browser(dir: &Path) -> (Proc, Client, PathBuf) {
+    let (driver, driver_url) = start_chromedriver(dir);
+    let downloads = dir.join("downloads");
+    std::fs::create_dir_all(&downloads).unwrap();
+    let c = browser(&driver_url, &dir.join("profile"), &downloads).await;
+    (driver, c, downloads)
+}
+
+/// Opens the set-up page at `url` and waits until its script reports ready.
+async fn open_page(c: &Client, url: &str) {
+    c.goto(url).await.unwrap();
+    wait_for(
+        c,
+        "page ready",
+        20,
+        "window.__irtrack && window.__irtrack.ready",
+        |v| v == true,
+    )
+    .await;
+}
+
 /// Evaluates `expr` in the page.
 async fn js(c: &Client, expr: &str) -> Value {
     c.execute(&format!("return ({expr});"), vec![])
@@ -247,10 +270,7 @@ backend = "sim"
     .unwrap();
     let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
     let status = addr_field(&ready, "status=");
-    let (_driver, driver_url) = start_chromedriver(&dir);
-    let downloads = dir.join("downloads");
-    std::fs::create_dir_all(&downloads).unwrap();
-    let c = browser(&driver_url, &dir.join("profile"), &downloads).await;
+    let (_driver, c, downloads) = open_browser(&dir).await;
     let result = tokio::time::timeout(Duration::from_secs(90), run(&c, status, &out, &downloads)).await;
     let _ = c.close().await;
     result.expect("browser test took longer than 90 s");
@@ -259,15 +279,7 @@ backend = "sim"
 
 async fn run(c: &Client, status: SocketAddr, out: &Path, downloads: &Path) {
     let url = format!("http://{status}/");
-    c.goto(&url).await.unwrap();
-    wait_for(
-        c,
-        "page ready",
-        20,
-        "window.__irtrack && window.__irtrack.ready",
-        |v| v == true,
-    )
-    .await;
+    open_page(c, &url).await;
 
     // Previews of both cameras arrive and keep updating.
     let first = wait_for(
@@ -704,10 +716,7 @@ backend = "sim"
 "#
         )
     };
-    let (_driver, driver_url) = start_chromedriver(&dir);
-    let downloads = dir.join("downloads");
-    std::fs::create_dir_all(&downloads).unwrap();
-    let c = browser(&driver_url, &dir.join("profile"), &downloads).await;
+    let (_driver, c, _) = open_browser(&dir).await;
     let result = tokio::time::timeout(Duration::from_secs(150), async {
         for params in [false, true] {
             let label = if params { "with-params" } else { "no-params" };
@@ -733,15 +742,7 @@ async fn realistic_run(c: &Client, status: SocketAddr, params: bool, out: &Path)
     } else {
         "without a parameter set"
     };
-    c.goto(&format!("http://{status}/")).await.unwrap();
-    wait_for(
-        c,
-        "page ready",
-        20,
-        "window.__irtrack && window.__irtrack.ready",
-        |v| v == true,
-    )
-    .await;
+    open_page(c, &format!("http://{status}/")).await;
     wait_for(
         c,
         "a preview of every camera",
@@ -1021,20 +1022,9 @@ kind = "flag"
         assert_eq!(code, 200, "{path}: {body}");
     }
 
-    let (_driver, driver_url) = start_chromedriver(&dir);
-    let downloads = dir.join("downloads");
-    std::fs::create_dir_all(&downloads).unwrap();
-    let c = browser(&driver_url, &dir.join("profile"), &downloads).await;
+    let (_driver, c, _) = open_browser(&dir).await;
     let result = tokio::time::timeout(Duration::from_secs(60), async {
-        c.goto(&format!("http://{status}/")).await.unwrap();
-        wait_for(
-            &c,
-            "page ready",
-            20,
-            "window.__irtrack && window.__irtrack.ready",
-            |v| v == true,
-        )
-        .await;
+        open_page(&c, &format!("http://{status}/")).await;
         let rows = wait_for(
             &c,
             "the robot link's rows in the latency table",
@@ -1111,20 +1101,9 @@ backend = "sim"
     .unwrap();
     let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
     let status = addr_field(&ready, "status=");
-    let (_driver, driver_url) = start_chromedriver(&dir);
-    let downloads = dir.join("downloads");
-    std::fs::create_dir_all(&downloads).unwrap();
-    let c = browser(&driver_url, &dir.join("profile"), &downloads).await;
+    let (_driver, c, _) = open_browser(&dir).await;
     let run = async {
-        c.goto(&format!("http://{status}/")).await.unwrap();
-        wait_for(
-            &c,
-            "page ready",
-            20,
-            "window.__irtrack && window.__irtrack.ready",
-            |v| v == true,
-        )
-        .await;
+        open_page(&c, &format!("http://{status}/")).await;
         // Every tool is shown (tracked) in 3-D, with its name.
         let tools = wait_for(
             &c,
