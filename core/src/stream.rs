@@ -5,6 +5,9 @@
 //! - NDJSON: one JSON object per line, stable field names (the Rust field names);
 //! - binary: a fixed 104-byte little-endian frame with magic, length and CRC-32.
 //!
+//! Per-tool records ([`ToolRecord`], `IRTL` frames) and loose-LED records ([`LooseRecord`],
+//! `IRLL` frames) extend the position record for clients that ask for every tool.
+//!
 //! Encoding writes into caller-owned buffers (a reused `String` or a fixed array), so the
 //! publishing side does not allocate per frame once the string has its capacity.
 
@@ -15,7 +18,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::RigidTransform;
 use crate::crc::Crc32;
-use crate::pose6d::{Pose6d, PoseStatus};
+use crate::pose6d::{LooseLed, Pose6d, PoseStatus};
 use crate::{Error, Result};
 
 /// Magic of a binary frame.
@@ -340,7 +343,7 @@ impl PositionRecord {
         seal(&mut out[..]);
     }
 
-    /// Bytes 0..100 shared by the position frame and the per-tool frame: the header with
+    /// Bytes 0..100 shared by the position, per-tool and loose-LED frames: the header with
     /// `magic`, `version` and `payload_len`, then every field of the record. The caller appends
     /// its own fields (if any) and the CRC ([`seal`]).
     fn write_common(&self, out: &mut [u8], magic: [u8; 4], version: u8, payload_len: usize) {
@@ -421,7 +424,7 @@ impl PositionRecord {
     }
 }
 
-/// End of the fields shared by the position frame and the per-tool frame.
+/// End of the fields shared by the position, per-tool and loose-LED frames.
 const COMMON_END: usize = 100;
 
 /// Writes the CRC-32 of everything before the last 4 bytes of `frame` into them.
@@ -434,11 +437,16 @@ fn seal(frame: &mut [u8]) {
 }
 
 /// Checks a binary frame's length, magic, version, payload length and CRC (`what`: "" for the
-/// position frame, "tool-frame " for the per-tool frame, as the messages say).
+/// position frame, "tool-frame " for the per-tool frame, "loose-frame " for the loose-LED
+/// frame, as the messages say).
 fn check_frame(bytes: &[u8], magic: [u8; 4], version: u8, payload_len: usize, what: &str) -> Result<()> {
     let frame_len = 8 + payload_len + 4;
     if bytes.len() != frame_len {
-        let kind = if what.is_empty() { "frame" } else { "tool frame" };
+        let kind = match what {
+            "" => "frame",
+            "loose-frame " => "loose frame",
+            _ => "tool frame",
+        };
         return Err(binary_err(format!(
             "{kind} is {} bytes, expected {frame_len}",
             bytes.len()
@@ -626,6 +634,182 @@ impl ToolRecord {
         }
         ToolRecord::new(bytes[100], bytes[101], name, record)
             .map_err(|_| binary_err(format!("bad tool name {name:?}")))
+    }
+}
+
+/// Magic of a loose-LED binary frame.
+pub const LOOSE_BINARY_MAGIC: [u8; 4] = *b"IRLL";
+/// Loose-LED binary framing version.
+pub const LOOSE_BINARY_VERSION: u8 = 1;
+/// Payload bytes of a loose-LED frame between the 8-byte header and the CRC.
+pub const LOOSE_BINARY_PAYLOAD_LEN: usize = 104;
+/// Total size of one loose-LED binary frame.
+pub const LOOSE_BINARY_FRAME_LEN: usize = 8 + LOOSE_BINARY_PAYLOAD_LEN + 4;
+
+/// One loose single LED (an LED of no tool, `pose6d::LooseLed`) in one frame set: a
+/// [`PositionRecord`] without orientation, with the LED's stable id. Sent with the per-tool
+/// records to stream clients that ask for them (docs/stream-protocol.md). Fixed size, `Copy`.
+///
+/// A loose LED has no orientation: the encoders never send `record.orientation_wxyz` and the
+/// decoders refuse one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LooseRecord {
+    /// Stable id: the same LED keeps it while it is tracked (a new LED, or one reacquired
+    /// beyond the tracker's gate, gets a new id).
+    pub loose_id: u32,
+    /// Number of loose LEDs reported in this frame set (records of one set: `loose_count`).
+    pub loose_count: u8,
+    /// Consecutive frame sets the LED has been tracked in, this one included (1 = new).
+    pub frames_tracked: u32,
+    /// The LED's position, status and quality, as in the main record (no orientation).
+    pub record: PositionRecord,
+}
+
+impl LooseRecord {
+    /// The record of loose LED `led` (camera-0 frame) in one frame set, moved into the world
+    /// frame when `world_from_cam0` is given. `gap_mm` is the LED's ray gap, `cameras_used` the
+    /// cameras that saw it. `latency_us` and `params_crc` are left 0 for the caller.
+    pub fn from_loose_led(
+        frame: u64,
+        capture_ts_ns: u64,
+        led: &LooseLed,
+        world_from_cam0: Option<&RigidTransform>,
+        loose_count: u8,
+    ) -> LooseRecord {
+        let p = match world_from_cam0 {
+            None => led.position_mm,
+            Some(w) => {
+                let p = w.apply(&nalgebra::Vector3::from(led.position_mm));
+                [p.x, p.y, p.z]
+            }
+        };
+        LooseRecord {
+            loose_id: led.id,
+            loose_count,
+            frames_tracked: led.frames_tracked,
+            record: PositionRecord {
+                frame,
+                capture_ts_ns,
+                position_mm: Some(p),
+                orientation_wxyz: None,
+                gap_mm: led.gap_mm,
+                status: TrackStatus::Ok,
+                cameras_used: led.cameras,
+                world_frame: world_from_cam0.is_some(),
+                latency_us: 0,
+                params_crc: 0,
+            },
+        }
+    }
+
+    /// The record as it is sent: without orientation.
+    fn sent(&self) -> PositionRecord {
+        PositionRecord {
+            orientation_wxyz: None,
+            ..self.record
+        }
+    }
+
+    /// Appends the NDJSON line (with `\n`) to `out`: the loose LED's keys first, then the
+    /// position record's keys in their usual order (`orientation_wxyz` always null).
+    pub fn write_ndjson(&self, out: &mut String) {
+        let _ = write!(
+            out,
+            "{{\"loose_id\":{},\"loose_count\":{},\"frames_tracked\":{},",
+            self.loose_id, self.loose_count, self.frames_tracked
+        );
+        let start = out.len();
+        self.sent().write_ndjson(out);
+        // The record's own opening brace is replaced by the keys written above.
+        out.remove(start);
+    }
+
+    /// The NDJSON line as a new string.
+    pub fn to_ndjson_line(&self) -> String {
+        let mut s = String::with_capacity(320);
+        self.write_ndjson(&mut s);
+        s
+    }
+
+    /// Parses a loose-LED NDJSON line; `loose_id`, `loose_count` and `frames_tracked` are
+    /// required besides the position record's required keys, and `orientation_wxyz` must be
+    /// null or absent.
+    pub fn from_ndjson_line(line: &str) -> Result<LooseRecord> {
+        let mut id = None;
+        let mut count = None;
+        let mut frames = None;
+        let record = PositionRecord::parse_ndjson(line, |key, v| {
+            match key {
+                "loose_id" => id = Some(narrow::<u32>(key, v.uint(key)?)?),
+                "loose_count" => count = Some(narrow::<u8>(key, v.uint(key)?)?),
+                "frames_tracked" => frames = Some(narrow::<u32>(key, v.uint(key)?)?),
+                _ => {}
+            }
+            Ok(())
+        })?;
+        if record.orientation_wxyz.is_some() {
+            return Err(ndjson_err(
+                "a loose LED has no orientation; \"orientation_wxyz\" must be null".into(),
+            ));
+        }
+        let missing = |k: &str| ndjson_err(format!("missing field \"{k}\""));
+        Ok(LooseRecord {
+            loose_id: id.ok_or_else(|| missing("loose_id"))?,
+            loose_count: count.ok_or_else(|| missing("loose_count"))?,
+            frames_tracked: frames.ok_or_else(|| missing("frames_tracked"))?,
+            record,
+        })
+    }
+
+    /// Writes the loose-LED binary frame into `out` (layout in docs/stream-protocol.md): the
+    /// position frame's fields at the same offsets (orientation flag clear, orientation zero),
+    /// then id, count and frames tracked.
+    pub fn encode_binary(&self, out: &mut [u8; LOOSE_BINARY_FRAME_LEN]) {
+        self.sent().write_common(
+            &mut out[..COMMON_END],
+            LOOSE_BINARY_MAGIC,
+            LOOSE_BINARY_VERSION,
+            LOOSE_BINARY_PAYLOAD_LEN,
+        );
+        out[100..104].copy_from_slice(&self.loose_id.to_le_bytes());
+        out[104] = self.loose_count;
+        out[105..108].copy_from_slice(&[0; 3]);
+        out[108..112].copy_from_slice(&self.frames_tracked.to_le_bytes());
+        seal(&mut out[..]);
+    }
+
+    /// The binary frame as a new array.
+    pub fn to_binary(&self) -> [u8; LOOSE_BINARY_FRAME_LEN] {
+        let mut out = [0u8; LOOSE_BINARY_FRAME_LEN];
+        self.encode_binary(&mut out);
+        out
+    }
+
+    /// Decodes one loose-LED binary frame (exactly [`LOOSE_BINARY_FRAME_LEN`] bytes).
+    pub fn decode_binary(bytes: &[u8]) -> Result<LooseRecord> {
+        check_frame(
+            bytes,
+            LOOSE_BINARY_MAGIC,
+            LOOSE_BINARY_VERSION,
+            LOOSE_BINARY_PAYLOAD_LEN,
+            "loose-frame ",
+        )?;
+        let record = PositionRecord::read_common(bytes)?;
+        if record.orientation_wxyz.is_some() || bytes[48..80].iter().any(|&b| b != 0) {
+            return Err(binary_err(
+                "loose frame: a loose LED has no orientation (flag bit 1 and bytes 48..80 must be 0)".into(),
+            ));
+        }
+        if bytes[105..108].iter().any(|&b| b != 0) {
+            return Err(binary_err("loose frame: reserved bytes 105..108 are not zero".into()));
+        }
+        let u32_at = |o: usize| u32::from_le_bytes([bytes[o], bytes[o + 1], bytes[o + 2], bytes[o + 3]]);
+        Ok(LooseRecord {
+            loose_id: u32_at(100),
+            loose_count: bytes[104],
+            frames_tracked: u32_at(108),
+            record,
+        })
     }
 }
 

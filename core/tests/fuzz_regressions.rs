@@ -251,38 +251,59 @@ fn stream_seeds_replay() {
     }
 }
 
-/// The committed per-tool stream seeds (`IRTL` frames and per-tool NDJSON): each decodes (the
-/// mode-2 one after its CRC is fixed, as the fuzz target does) and round-trips in both framings.
+/// The committed per-tool and loose-LED stream seeds (`IRTL`/`IRLL` frames and their NDJSON):
+/// each decodes (the CRC-fixed ones after their CRC is fixed, as the fuzz target does) and
+/// round-trips in both framings.
 #[test]
 fn tool_stream_seeds_replay() {
-    use irtrack_core::stream::{TOOL_BINARY_FRAME_LEN, ToolRecord};
-    let mut modes = [0usize; 3];
+    use irtrack_core::stream::{LOOSE_BINARY_FRAME_LEN, LooseRecord, TOOL_BINARY_FRAME_LEN, ToolRecord};
+    fn crc_fixed<const N: usize>(rest: &[u8]) -> [u8; N] {
+        let mut frame = [0u8; N];
+        let n = rest.len().min(N);
+        frame[..n].copy_from_slice(&rest[..n]);
+        let end = N - 4;
+        let crc = irtrack_core::crc::crc32(&frame[..end]);
+        frame[end..].copy_from_slice(&crc.to_le_bytes());
+        frame
+    }
+    let mut modes = [0usize; 6];
     for (path, data) in seeds("tool_stream") {
         let (mode, rest) = data.split_first().unwrap();
-        let rec = match mode % 3 {
-            0 => ToolRecord::from_ndjson_line(std::str::from_utf8(rest).unwrap()),
-            1 => ToolRecord::decode_binary(rest),
-            _ => {
-                let mut frame = [0u8; TOOL_BINARY_FRAME_LEN];
-                let n = rest.len().min(TOOL_BINARY_FRAME_LEN);
-                frame[..n].copy_from_slice(&rest[..n]);
-                let end = TOOL_BINARY_FRAME_LEN - 4;
-                let crc = irtrack_core::crc::crc32(&frame[..end]);
-                frame[end..].copy_from_slice(&crc.to_le_bytes());
-                ToolRecord::decode_binary(&frame)
-            }
-        };
-        let rec = rec.unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-        modes[usize::from(mode % 3)] += 1;
-        let line = rec.to_ndjson_line();
-        assert!(line.len() <= MAX_NDJSON_LINE, "{}", path.display());
-        assert_eq!(
-            ToolRecord::from_ndjson_line(&line).unwrap().to_ndjson_line(),
-            line
-        );
-        let frame = rec.to_binary();
-        assert_eq!(ToolRecord::decode_binary(&frame).unwrap().to_binary(), frame);
-        assert_eq!(rec.name(), "wing4", "{}", path.display());
+        let mode = usize::from(mode % 6);
+        modes[mode] += 1;
+        if mode < 3 {
+            let rec = match mode {
+                0 => ToolRecord::from_ndjson_line(std::str::from_utf8(rest).unwrap()),
+                1 => ToolRecord::decode_binary(rest),
+                _ => ToolRecord::decode_binary(&crc_fixed::<TOOL_BINARY_FRAME_LEN>(rest)),
+            };
+            let rec = rec.unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            let line = rec.to_ndjson_line();
+            assert!(line.len() <= MAX_NDJSON_LINE, "{}", path.display());
+            assert_eq!(
+                ToolRecord::from_ndjson_line(&line).unwrap().to_ndjson_line(),
+                line
+            );
+            let frame = rec.to_binary();
+            assert_eq!(ToolRecord::decode_binary(&frame).unwrap().to_binary(), frame);
+            assert_eq!(rec.name(), "wing4", "{}", path.display());
+        } else {
+            let rec = match mode {
+                3 => LooseRecord::from_ndjson_line(std::str::from_utf8(rest).unwrap()),
+                4 => LooseRecord::decode_binary(rest),
+                _ => LooseRecord::decode_binary(&crc_fixed::<LOOSE_BINARY_FRAME_LEN>(rest)),
+            };
+            let rec = rec.unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            let line = rec.to_ndjson_line();
+            assert!(line.len() <= MAX_NDJSON_LINE, "{}", path.display());
+            assert_eq!(
+                LooseRecord::from_ndjson_line(&line).unwrap().to_ndjson_line(),
+                line
+            );
+            let frame = rec.to_binary();
+            assert_eq!(LooseRecord::decode_binary(&frame).unwrap().to_binary(), frame);
+            assert!(rec.record.orientation_wxyz.is_none(), "{}", path.display());
+        }
     }
     assert!(modes.iter().all(|&n| n > 0), "a seed per mode: {modes:?}");
 }
