@@ -801,7 +801,9 @@ impl LooseRecord {
             ));
         }
         if bytes[105..108].iter().any(|&b| b != 0) {
-            return Err(binary_err("loose frame: reserved bytes 105..108 are not zero".into()));
+            return Err(binary_err(
+                "loose frame: reserved bytes 105..108 are not zero".into(),
+            ));
         }
         let u32_at = |o: usize| u32::from_le_bytes([bytes[o], bytes[o + 1], bytes[o + 2], bytes[o + 3]]);
         Ok(LooseRecord {

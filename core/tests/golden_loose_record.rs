@@ -4,9 +4,7 @@
 use irtrack_core::Error;
 use irtrack_core::camera::RigidTransform;
 use irtrack_core::pose6d::LooseLed;
-use irtrack_core::stream::{
-    LOOSE_BINARY_FRAME_LEN, LooseRecord, PositionRecord, ToolRecord, TrackStatus,
-};
+use irtrack_core::stream::{LOOSE_BINARY_FRAME_LEN, LooseRecord, PositionRecord, ToolRecord, TrackStatus};
 
 fn led7() -> LooseRecord {
     let rec = PositionRecord {
@@ -69,7 +67,11 @@ fn loose_record_binary_golden_bytes() {
     // CRC-32/IEEE over bytes 0..112, little-endian; the constant was computed independently
     // with Python's zlib.crc32 over the golden bytes above.
     assert_eq!(b[112..116], irtrack_core::crc::crc32(&b[..112]).to_le_bytes());
-    assert_eq!(hex(&b[112..]), "00b34cac", "CRC of the golden frame (zlib.crc32 agrees)");
+    assert_eq!(
+        hex(&b[112..]),
+        "00b34cac",
+        "CRC of the golden frame (zlib.crc32 agrees)"
+    );
     assert_eq!(LooseRecord::decode_binary(&b).unwrap(), led7());
 }
 
@@ -163,7 +165,12 @@ fn from_loose_led_moves_into_the_world_frame() {
     assert_eq!((r.loose_id, r.loose_count, r.frames_tracked), (3, 1, 9));
     assert_eq!(r.record.position_mm, Some([10.0, 20.0, 1000.0]));
     assert_eq!(
-        (r.record.status, r.record.gap_mm, r.record.cameras_used, r.record.world_frame),
+        (
+            r.record.status,
+            r.record.gap_mm,
+            r.record.cameras_used,
+            r.record.world_frame
+        ),
         (TrackStatus::Ok, 0.05, 2, false)
     );
     assert_eq!(r.record.orientation_wxyz, None);

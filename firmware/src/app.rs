@@ -409,12 +409,7 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     let auth = crate::net::auth::OperatorAuth::new(cfg.service.operator_password_hash.clone())?;
 
     let (slot_tx, slot_rx) = watch::channel(None);
-    let (tools_tx, tools_rx) = watch::channel(crate::engine::ToolSet {
-        frame: u64::MAX,
-        count: 0,
-        tools: [None; irtrack_core::pose6d::MAX_TOOLS],
-        loose_leds: 0,
-    });
+    let (tools_tx, tools_rx) = watch::channel(crate::engine::ToolSet::EMPTY);
     let engine = Engine::new(
         devices.source,
         tracking,

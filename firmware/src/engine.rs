@@ -12,7 +12,8 @@
 //! cut off the other LEDs) and the tracker's blob lists go to a [`MultiTracker`], which tracks
 //! every tool of the set (up to [`MAX_TOOLS`]) plus loose single LEDs. The main record carries
 //! the pose of the robot's tool (`[robot] tool`, default the first tool); the records of all
-//! tools go to the per-tool slot ([`ToolSet`], see [`Engine::with_tool_slot`]).
+//! tools and of the loose LEDs (with their stable ids) go to the per-tool slot ([`ToolSet`], see
+//! [`Engine::with_tool_slot`]).
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -25,8 +26,10 @@ use irtrack_core::params::RigParams;
 use irtrack_core::pipeline::{
     MAX_CAMERAS, Measurement, TrackStatus as MeasureStatus, Tracker, TrackerConfig,
 };
-use irtrack_core::pose6d::{LOOSE_LED, MAX_TOOLS, MultiTracker, NO_TOOL, Pose6d, PoseConfig, PoseStatus};
-use irtrack_core::stream::{PositionRecord, ToolRecord, TrackStatus};
+use irtrack_core::pose6d::{
+    LOOSE_LED, MAX_LOOSE_LEDS, MAX_TOOLS, MultiTracker, NO_TOOL, Pose6d, PoseConfig, PoseStatus,
+};
+use irtrack_core::stream::{LooseRecord, PositionRecord, ToolRecord, TrackStatus};
 use tokio::sync::watch;
 
 use crate::clock;
@@ -113,8 +116,8 @@ impl SetTimes {
     }
 }
 
-/// The records of every tool of one frame set (fixed size, `Copy`: handed over through a
-/// latest-value slot without allocation).
+/// The records of every tool and loose LED of one frame set (fixed size, `Copy`: handed over
+/// through a latest-value slot without allocation).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ToolSet {
     /// Frame-set number (the main record's `frame`).
@@ -123,14 +126,31 @@ pub struct ToolSet {
     pub count: u8,
     /// The records (`None` past `count`).
     pub tools: [Option<ToolRecord>; MAX_TOOLS],
-    /// Loose single LEDs seen in this set (belonging to no tool).
+    /// Loose single LEDs seen in this set (belonging to no tool); `loose[..loose_leds]` are
+    /// filled, by increasing id.
     pub loose_leds: u8,
+    /// The loose LEDs' records (`None` past `loose_leds`).
+    pub loose: [Option<LooseRecord>; MAX_LOOSE_LEDS],
 }
 
 impl ToolSet {
+    /// No set yet (the slot's initial value): no tools, no loose LEDs, a frame no set has.
+    pub const EMPTY: ToolSet = ToolSet {
+        frame: u64::MAX,
+        count: 0,
+        tools: [None; MAX_TOOLS],
+        loose_leds: 0,
+        loose: [None; MAX_LOOSE_LEDS],
+    };
+
     /// The filled records, in definition order.
     pub fn records(&self) -> impl Iterator<Item = &ToolRecord> {
         self.tools.iter().take(usize::from(self.count)).flatten()
+    }
+
+    /// The loose LEDs' records, by increasing id.
+    pub fn loose_records(&self) -> impl Iterator<Item = &LooseRecord> {
+        self.loose.iter().take(usize::from(self.loose_leds)).flatten()
     }
 }
 
@@ -631,13 +651,29 @@ impl Engine {
                             Ok(()) => {
                                 let seen_u8 = u8::try_from(seen).unwrap_or(u8::MAX);
                                 let count = pose_tracker.tool_count().min(MAX_TOOLS);
+                                let loose = pose_tracker.loose_leds();
+                                let loose_n = loose.len().min(MAX_LOOSE_LEDS);
                                 let mut set = ToolSet {
                                     frame: self.set.index,
                                     count: count as u8,
-                                    tools: [None; MAX_TOOLS],
-                                    loose_leds: u8::try_from(pose_tracker.loose_leds().len())
-                                        .unwrap_or(u8::MAX),
+                                    loose_leds: loose_n as u8,
+                                    ..ToolSet::EMPTY
                                 };
+                                for (slot, led) in set.loose.iter_mut().zip(loose) {
+                                    let mut rec = LooseRecord::from_loose_led(
+                                        self.set.index,
+                                        capture_ns,
+                                        led,
+                                        self.world_from_cam0.as_ref(),
+                                        loose_n as u8,
+                                    );
+                                    rec.record.params_crc = self.params_crc;
+                                    *slot = Some(rec);
+                                }
+                                // By id, so that a reader sees the same order every set (the
+                                // tracker lists them longest-tracked first). In place: no
+                                // allocation.
+                                set.loose[..loose_n].sort_unstable_by_key(|r| r.map(|r| r.loose_id));
                                 for (i, slot) in set.tools.iter_mut().enumerate().take(count) {
                                     let (Some(pose), Some(tool)) =
                                         (pose_tracker.pose(i), pose_tracker.tool(i))
@@ -726,6 +762,9 @@ impl Engine {
         rec.latency_us = u32::try_from(e2e_ns / 1000).unwrap_or(u32::MAX);
         if let (Some(out), Some(mut set)) = (&self.tool_out, tools) {
             for r in set.tools.iter_mut().flatten() {
+                r.record.latency_us = rec.latency_us;
+            }
+            for r in set.loose.iter_mut().flatten() {
                 r.record.latency_us = rec.latency_us;
             }
             out.send_replace(set);

@@ -1,7 +1,8 @@
 //! Several tools at once through irtrackd (issue 29): the simulated source renders `probe4`,
-//! `tri3` and `wing4` on crossing paths; the loop tracks all three each set. Clients that send
-//! `tools\n` get a record per tool (NDJSON and binary) with its id and name, checked against
-//! the simulator's truth; clients that send nothing get the main records only, as before. The
+//! `tri3` and `wing4` on crossing paths and a loose single LED crossing them; the loop tracks
+//! all of them each set. Clients that send `tools\n` get a record per tool (NDJSON and binary)
+//! with its id and name, and a record per loose LED with its stable id, checked against the
+//! simulator's truth; clients that send nothing get the main records only, as before. The
 //! main record follows `[robot] tool`; an unknown robot tool is refused at start and at push,
 //! naming it and the set's tools.
 
@@ -13,8 +14,8 @@ use common::*;
 use irtrack_core::params::{RigParams, ToolDefinition};
 use irtrack_core::pose6d::quaternion_angle_rad;
 use irtrack_core::stream::{
-    BINARY_FRAME_LEN, BINARY_MAGIC, PositionRecord, TOOL_BINARY_FRAME_LEN, TOOL_BINARY_MAGIC, ToolRecord,
-    TrackStatus,
+    BINARY_FRAME_LEN, BINARY_MAGIC, LOOSE_BINARY_FRAME_LEN, LOOSE_BINARY_MAGIC, LooseRecord, PositionRecord,
+    TOOL_BINARY_FRAME_LEN, TOOL_BINARY_MAGIC, ToolRecord, TrackStatus,
 };
 use irtrack_firmware::app::{self, Overrides};
 use irtrack_firmware::source::sim::SimSourceConfig;
@@ -24,6 +25,8 @@ use tokio::net::TcpStream;
 
 const FRAMES: u64 = 480;
 const NAMES: [&str; 3] = ["probe4", "tri3", "wing4"];
+/// Scenario body of the loose LED (after the three tools).
+const LOOSE_BODY: usize = 3;
 
 fn sim(frames: u64) -> SimSourceConfig {
     toml::from_str(&format!(
@@ -36,6 +39,7 @@ fps = 120.0
 seed = 29
 tool = "probe4"
 extra_tools = ["tri3", "wing4"]
+loose_leds = 1
 tool_rotation_deg = 20.0
 frames = {frames}
 "#
@@ -133,8 +137,18 @@ fn seen_tools(truth: &irtrack_sim::Scenario, frame: u64) -> [bool; 3] {
     out
 }
 
+/// Whether the loose LED images inside two or more cameras in `frame`.
+fn loose_in_view_of_two(truth: &irtrack_sim::Scenario, frame: u64) -> bool {
+    let t = truth.truth(frame);
+    let cfg = truth.config();
+    let m = (0..cfg.markers.len())
+        .find(|&m| cfg.markers[m].body == LOOSE_BODY)
+        .expect("the loose LED's marker");
+    t.markers()[m].visible_mask.count_ones() >= 2
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn every_tool_is_streamed_and_the_main_record_follows_the_robot_tool() {
+async fn every_tool_and_loose_led_is_streamed_and_the_main_record_follows_the_robot_tool() {
     let dir = TempDir::new("multitool-service");
     let sim_cfg = sim(FRAMES);
     let truth = scenario(&sim_cfg);
@@ -162,6 +176,14 @@ async fn every_tool_is_streamed_and_the_main_record_follows_the_robot_tool() {
     let mut seen_sets = 0usize;
     let (mut pos_max, mut rot_max) = (0.0f64, 0.0f64);
     let mut swaps = 0usize;
+    // The loose LED: records within 2 mm of its truth are its own; others are LEDs of a tool
+    // that went untracked (reported loose) or ghosts.
+    let mut pending_loose: Vec<LooseRecord> = Vec::new();
+    let (mut loose_in_view, mut loose_found_in_view) = (0usize, 0usize);
+    let (mut loose_ids, mut loose_err) = (Vec::<u32>::new(), Vec::<f64>::new());
+    let mut foreign_loose = Vec::<u32>::new();
+    // Of those, how many lie within 1 mm of an LED of a tool.
+    let mut foreign_on_tool_leds = 0usize;
     loop {
         let line = tokio::time::timeout(Duration::from_secs(10), nd.next_line())
             .await
@@ -169,7 +191,15 @@ async fn every_tool_is_streamed_and_the_main_record_follows_the_robot_tool() {
             .unwrap()
             .expect("stream closed");
         if line.starts_with("{\"tool_id\"") {
+            assert!(
+                pending_loose.is_empty(),
+                "tool records come before the loose ones"
+            );
             pending.push(ToolRecord::from_ndjson_line(&line).unwrap());
+            continue;
+        }
+        if line.starts_with("{\"loose_id\"") {
+            pending_loose.push(LooseRecord::from_ndjson_line(&line).unwrap());
             continue;
         }
         let main = PositionRecord::from_ndjson_line(&line).unwrap();
@@ -192,12 +222,47 @@ async fn every_tool_is_streamed_and_the_main_record_follows_the_robot_tool() {
                     rot_max = rot_max.max(e_rot);
                 }
             }
+            let t_s = truth.truth(main.frame).t_s;
+            let (p_loose, _) = truth.config().body_pose(LOOSE_BODY, t_s).unwrap();
+            let in_view = loose_in_view_of_two(&truth, main.frame);
+            loose_in_view += usize::from(in_view);
+            let mut found = false;
+            for l in &pending_loose {
+                assert_eq!(l.record.frame, main.frame);
+                assert_eq!(usize::from(l.loose_count), pending_loose.len());
+                assert_eq!(l.record.status, TrackStatus::Ok);
+                assert!(l.record.orientation_wxyz.is_none());
+                let e = (Vector3::from(l.record.position_mm.unwrap()) - p_loose).norm();
+                if e < 2.0 {
+                    found = true;
+                    loose_err.push(e);
+                    if loose_ids.last() != Some(&l.loose_id) {
+                        loose_ids.push(l.loose_id);
+                    }
+                } else {
+                    foreign_loose.push(l.loose_id);
+                    let p = Vector3::from(l.record.position_mm.unwrap());
+                    let cfg = truth.config();
+                    foreign_on_tool_leds += usize::from(
+                        cfg.markers
+                            .iter()
+                            .filter(|m| m.body != LOOSE_BODY)
+                            .any(|m| (cfg.marker_position(m, t_s) - p).norm() < 1.0),
+                    );
+                }
+            }
+            assert!(
+                pending_loose.windows(2).all(|w| w[0].loose_id < w[1].loose_id),
+                "loose records by increasing id: {pending_loose:?}"
+            );
+            loose_found_in_view += usize::from(in_view && found);
             // `[robot] tool = "tri3"`: the main record is tri3's.
             assert_eq!(main.position_mm, pending[1].record.position_mm);
             assert_eq!(main.orientation_wxyz, pending[1].record.orientation_wxyz);
             assert_eq!(main.status, pending[1].record.status);
         }
         pending.clear();
+        pending_loose.clear();
         if main.frame + 1 >= FRAMES {
             break;
         }
@@ -234,8 +299,43 @@ async fn every_tool_is_streamed_and_the_main_record_follows_the_robot_tool() {
     assert_eq!(swaps, 0);
     assert!(pos_max < 1.0 && rot_max < 1.0, "{pos_max} mm {rot_max}°");
 
-    // --- Binary with tools: IRTL frames (140 bytes) before each IRPS frame (104 bytes).
+    // The loose LED: found in (nearly) every set it is in view of two cameras, under one id,
+    // an id never given to anything else, within 0.1 mm of the truth.
+    let n = loose_err.len().max(1) as f64;
+    let rms = (loose_err.iter().map(|e| e * e).sum::<f64>() / n).sqrt();
+    let max = loose_err.iter().copied().fold(0.0, f64::max);
+    println!(
+        "loose LED: in view of 2 cameras in {loose_in_view} sets, found in {loose_found_in_view} of those \
+         ({} records), ids {loose_ids:?}; error RMS {rms:.4} mm, max {max:.4} mm; {} other loose records \
+         ({foreign_on_tool_leds} within 1 mm of a tool's LED; ids {:?})",
+        loose_err.len(),
+        foreign_loose.len(),
+        {
+            let mut ids = foreign_loose.clone();
+            ids.sort_unstable();
+            ids.dedup();
+            ids
+        }
+    );
+    assert!(
+        loose_in_view * 10 >= seen_sets * 9,
+        "loose LED in view in only {loose_in_view} of {seen_sets} sets"
+    );
+    assert!(
+        loose_found_in_view * 100 >= loose_in_view * 95,
+        "loose LED found in {loose_found_in_view} of {loose_in_view} sets in view"
+    );
+    assert_eq!(loose_ids.len(), 1, "the loose LED changed id: {loose_ids:?}");
+    assert!(
+        !foreign_loose.contains(&loose_ids[0]),
+        "the loose LED's id was also given to another point"
+    );
+    assert!(max < 0.1, "loose LED {max} mm from the truth");
+
+    // --- Binary with tools: IRTL frames (140 bytes), then IRLL frames (116 bytes), before each
+    // IRPS frame (104 bytes).
     let mut tool_frames = 0usize;
+    let (mut loose_frames, mut loose_frames_of_led) = (0usize, 0usize);
     let mut main_frames = 0usize;
     while main_frames < 50 {
         let mut magic = [0u8; 4];
@@ -250,6 +350,18 @@ async fn every_tool_is_streamed_and_the_main_record_follows_the_robot_tool() {
             let t = ToolRecord::decode_binary(&f).unwrap();
             assert_eq!(t.name(), NAMES[t.tool_id as usize]);
             tool_frames += 1;
+        } else if magic == LOOSE_BINARY_MAGIC {
+            let mut f = [0u8; LOOSE_BINARY_FRAME_LEN];
+            f[..4].copy_from_slice(&magic);
+            bin.read_exact(&mut f[4..]).await.unwrap();
+            let l = LooseRecord::decode_binary(&f).unwrap();
+            loose_frames += 1;
+            let t_s = truth.truth(l.record.frame).t_s;
+            let (p, _) = truth.config().body_pose(LOOSE_BODY, t_s).unwrap();
+            if (Vector3::from(l.record.position_mm.unwrap()) - p).norm() < 0.1 {
+                assert_eq!(l.loose_id, loose_ids[0], "binary and NDJSON carry the same id");
+                loose_frames_of_led += 1;
+            }
         } else {
             assert_eq!(magic, BINARY_MAGIC);
             let mut f = [0u8; BINARY_FRAME_LEN];
@@ -259,13 +371,20 @@ async fn every_tool_is_streamed_and_the_main_record_follows_the_robot_tool() {
             main_frames += 1;
         }
     }
-    println!("binary: {tool_frames} tool frames with {main_frames} main frames");
+    println!(
+        "binary: {tool_frames} tool frames, {loose_frames} loose frames ({loose_frames_of_led} of the loose LED) \
+         with {main_frames} main frames"
+    );
     assert!(tool_frames >= 3 * (main_frames - 2), "{tool_frames} tool frames");
+    assert!(
+        loose_frames_of_led * 10 >= main_frames * 8,
+        "{loose_frames_of_led} loose frames of the LED"
+    );
 
     // --- The client that asked for nothing got main records only.
     for _ in 0..100 {
         let line = plain.next_line().await.unwrap().unwrap();
-        assert!(!line.contains("tool_id"), "{line}");
+        assert!(!line.contains("tool_id") && !line.contains("loose_id"), "{line}");
         PositionRecord::from_ndjson_line(&line).unwrap();
     }
     running.shutdown().await;

@@ -23,15 +23,17 @@ fn engine(
     Engine,
     tokio::sync::watch::Receiver<Option<irtrack_core::stream::PositionRecord>>,
 ) {
-    engine_with(with_params, bit_depth, None, &[])
+    engine_with(with_params, bit_depth, None, &[], 0)
 }
 
 /// `tool`: render this built-in multi-LED tool; the set then runs the loop in 6-DOF mode.
+/// `loose_leds`: single LEDs of no tool rendered besides the tools.
 fn engine_with(
     with_params: bool,
     bit_depth: u8,
     tool: Option<&str>,
     extra_tools: &[&str],
+    loose_leds: usize,
 ) -> (
     Engine,
     tokio::sync::watch::Receiver<Option<irtrack_core::stream::PositionRecord>>,
@@ -42,6 +44,7 @@ fn engine_with(
         bit_depth,
         tool: tool.map(str::to_string),
         extra_tools: extra_tools.iter().map(|t| t.to_string()).collect(),
+        loose_leds,
         distance_mm: if tool.is_some() { 1000.0 } else { 600.0 },
         tool_rotation_deg: 20.0,
         ..SimSourceConfig::default()
@@ -114,7 +117,7 @@ fn steady_state_processing_does_not_allocate() {
 
 #[test]
 fn six_dof_processing_does_not_allocate() {
-    let (mut e, rx) = engine_with(true, 8, Some("probe4"), &[]);
+    let (mut e, rx) = engine_with(true, 8, Some("probe4"), &[], 0);
     let (n, ok) = measure(&mut e, 10, 60);
     assert!(
         e.tracks_pose(),
@@ -125,23 +128,41 @@ fn six_dof_processing_does_not_allocate() {
     assert!(rx.borrow().unwrap().orientation_wxyz.is_some());
 }
 
+/// Three tools and a loose LED: every tool's record and the loose LED's record (with its id)
+/// go to the tool slot each set, without allocating.
 #[test]
 fn three_tools_in_the_loop_do_not_allocate() {
-    let (e, rx) = engine_with(true, 8, Some("probe4"), &["tri3", "wing4"]);
-    let (tools_tx, tools_rx) = tokio::sync::watch::channel(irtrack_firmware::engine::ToolSet {
-        frame: u64::MAX,
-        count: 0,
-        tools: [None; irtrack_core::pose6d::MAX_TOOLS],
-        loose_leds: 0,
-    });
+    let (e, rx) = engine_with(true, 8, Some("probe4"), &["tri3", "wing4"], 1);
+    let (tools_tx, tools_rx) = tokio::sync::watch::channel(irtrack_firmware::engine::ToolSet::EMPTY);
     let mut e = e.with_tool_slot(tools_tx);
-    let (n, _) = measure(&mut e, 10, 60);
-    assert_eq!(n, 0, "{n} allocations in 60 frame sets with three tools");
+    for _ in 0..10 {
+        e.step().unwrap();
+    }
+    let before = allocs();
+    let mut loose_sets = 0;
+    for _ in 0..60 {
+        e.step().unwrap();
+        loose_sets += usize::from(tools_rx.borrow().loose_records().count() > 0);
+    }
+    let n = allocs() - before;
+    assert_eq!(
+        n, 0,
+        "{n} allocations in 60 frame sets with three tools and a loose LED"
+    );
+    assert!(
+        loose_sets >= 50,
+        "a loose LED record in only {loose_sets} of 60 sets"
+    );
     let set = *tools_rx.borrow();
     assert_eq!(set.count, 3);
     assert_eq!(set.frame, rx.borrow().unwrap().frame);
     let names: Vec<&str> = set.records().map(|r| r.name()).collect();
     assert_eq!(names, ["probe4", "tri3", "wing4"]);
+    for l in set.loose_records() {
+        assert_eq!(l.record.frame, set.frame);
+        assert_eq!(usize::from(l.loose_count), set.loose_records().count());
+        assert!(l.record.position_mm.is_some() && l.record.orientation_wxyz.is_none());
+    }
 }
 
 #[test]

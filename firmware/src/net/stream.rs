@@ -8,15 +8,16 @@
 //!
 //! Per-tool records (docs/stream-protocol.md): a client that sends the line `tools\n` gets,
 //! from then on, before each main record the records of every tool of the set (NDJSON lines
-//! with `tool_id`/`tool`, or `IRTL` binary frames). Clients that send nothing get exactly the
-//! main records as before, so existing readers keep working.
+//! with `tool_id`/`tool`, or `IRTL` binary frames), then one record per loose single LED with
+//! its stable id (NDJSON lines with `loose_id`, or `IRLL` binary frames). Clients that send
+//! nothing get exactly the main records as before, so existing readers keep working.
 
 use std::future::Future;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use irtrack_core::stream::{BINARY_FRAME_LEN, PositionRecord, TOOL_BINARY_FRAME_LEN};
+use irtrack_core::stream::{BINARY_FRAME_LEN, LOOSE_BINARY_FRAME_LEN, PositionRecord, TOOL_BINARY_FRAME_LEN};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{broadcast, watch};
@@ -32,7 +33,8 @@ pub const TOOLS_REQUEST: &[u8] = b"tools\n";
 pub struct StreamItem {
     /// The set's position record, as the loop published it (what every client gets).
     pub main: PositionRecord,
-    /// Every tool's record, in 6-DOF mode; sent to clients that asked with [`TOOLS_REQUEST`].
+    /// Every tool's and loose LED's record, in 6-DOF mode; sent to clients that asked with
+    /// [`TOOLS_REQUEST`].
     pub tools: Option<ToolSet>,
 }
 
@@ -234,6 +236,7 @@ async fn client(
     let mut text = String::with_capacity(512);
     let mut bin = [0u8; BINARY_FRAME_LEN];
     let mut tool_bin = [0u8; TOOL_BINARY_FRAME_LEN];
+    let mut loose_bin = [0u8; LOOSE_BINARY_FRAME_LEN];
     // What the client sent so far (only `tools\n` means anything; the rest is ignored).
     let mut request = [0u8; 64];
     let mut request_len = 0usize;
@@ -279,6 +282,22 @@ async fn client(
                     StreamFormat::Binary => {
                         t.encode_binary(&mut tool_bin);
                         &tool_bin
+                    }
+                };
+                if let Some(end) = write(&mut writer, bytes, status).await {
+                    return end;
+                }
+            }
+            for l in tools.loose_records() {
+                let bytes: &[u8] = match format {
+                    StreamFormat::Ndjson => {
+                        text.clear();
+                        l.write_ndjson(&mut text);
+                        text.as_bytes()
+                    }
+                    StreamFormat::Binary => {
+                        l.encode_binary(&mut loose_bin);
+                        &loose_bin
                     }
                 };
                 if let Some(end) = write(&mut writer, bytes, status).await {

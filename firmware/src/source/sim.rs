@@ -23,6 +23,9 @@ use super::{
 use crate::clock;
 use crate::error::{FirmwareError, Result};
 
+/// Most loose single LEDs `[source.sim] loose_leds` renders.
+pub const MAX_SIM_LOOSE_LEDS: usize = 4;
+
 /// Rig geometry of the simulated source.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
@@ -89,6 +92,12 @@ pub struct SimSourceConfig {
     /// simulator's parameter set, after `tool`.
     #[serde(default)]
     pub extra_tools: Vec<String>,
+    /// With `tool`: this many loose single LEDs (LEDs of no tool, 0..=4) rendered besides the
+    /// tools, each going back and forth on its own line through the work volume, across the
+    /// tools' paths. irtrackd reports them with stable ids (docs/stream-protocol.md); they are
+    /// not part of the parameter set. Scenario bodies: after the tools, in order.
+    #[serde(default)]
+    pub loose_leds: usize,
     /// With `tool`: amplitude (deg) of the tool's turning about its own axes; 0 = fixed.
     #[serde(default = "d_tool_rotation")]
     pub tool_rotation_deg: f64,
@@ -255,6 +264,7 @@ impl Default for SimSourceConfig {
             frames: None,
             tool: None,
             extra_tools: Vec::new(),
+            loose_leds: 0,
             tool_rotation_deg: d_tool_rotation(),
             wand_mm: None,
             wand_frames: d_wand_frames(),
@@ -303,6 +313,19 @@ impl SimSourceConfig {
                 return bad(format!("source.sim.extra_tools: tool {name:?} is listed twice"));
             }
         }
+        if self.loose_leds > 0 && self.tool.is_none() {
+            // Only the 6-DOF loop (a set with tools) reports loose LEDs; the single-marker
+            // loop would take them for its marker.
+            return bad(
+                "source.sim.loose_leds needs source.sim.tool (loose LEDs are reported beside tools)".into(),
+            );
+        }
+        if self.loose_leds > MAX_SIM_LOOSE_LEDS {
+            return bad(format!(
+                "source.sim.loose_leds must be in 0..={MAX_SIM_LOOSE_LEDS}, got {}",
+                self.loose_leds
+            ));
+        }
         if !(self.tool_rotation_deg.is_finite() && (0.0..=90.0).contains(&self.tool_rotation_deg)) {
             return bad(format!(
                 "source.sim.tool_rotation_deg must be in 0..=90, got {}",
@@ -328,8 +351,8 @@ impl SimSourceConfig {
             }
         }
         if let Some(cell) = &self.cell {
-            if !self.extra_tools.is_empty() || self.wand_mm.is_some() {
-                return bad("source.sim.cell renders the robot's single LED or its one tool (source.sim.tool); it excludes source.sim.extra_tools and source.sim.wand_mm".into());
+            if !self.extra_tools.is_empty() || self.wand_mm.is_some() || self.loose_leds > 0 {
+                return bad("source.sim.cell renders the robot's single LED or its one tool (source.sim.tool); it excludes source.sim.extra_tools, source.sim.loose_leds and source.sim.wand_mm".into());
             }
             if cell.robot.parse::<std::net::SocketAddr>().is_err() {
                 return bad(format!(
@@ -479,8 +502,24 @@ impl SimSourceConfig {
                     },
                 );
             }
+            for i in 0..self.loose_leds {
+                cfg.add_loose_led(self.loose_led_path(i, centre));
+            }
         }
         cfg
+    }
+
+    /// Path of loose LED `i` around the workspace centre: back and forth on a line through the
+    /// middle of the tools' circles (so it crosses their paths), each LED on its own line and
+    /// at its own pace.
+    pub fn loose_led_path(&self, i: usize, centre_mm: Vector3<f64>) -> Trajectory {
+        let k = i as f64;
+        let r = self.radius_mm.max(1.0);
+        Trajectory::Line {
+            from_mm: centre_mm + Vector3::new(-1.5 * r, 0.4 * r - 20.0 * k, -0.5 * r + 15.0 * k),
+            to_mm: centre_mm + Vector3::new(1.5 * r, -0.5 * r - 20.0 * k, 0.6 * r - 15.0 * k),
+            period_s: self.period_s * (1.15 + 0.35 * k),
+        }
     }
 
     /// The parameter set of the cameras this source renders: the whole rig, or with
