@@ -431,3 +431,47 @@ async fn an_unknown_robot_tool_is_refused_at_start_and_at_push() {
     assert!(line.starts_with("OK"), "{line}");
     running.shutdown().await;
 }
+
+/// `[source.sim] loose_leds`: needs a tool, at most `MAX_SIM_LOOSE_LEDS`, not with the cell;
+/// each loose LED is one marker of its own body after the tools.
+#[test]
+fn loose_leds_in_the_sim_config_are_checked() {
+    use irtrack_firmware::source::sim::MAX_SIM_LOOSE_LEDS;
+    let err = |cfg: &SimSourceConfig| cfg.validate().unwrap_err().to_string();
+    let none = SimSourceConfig {
+        loose_leds: 1,
+        ..SimSourceConfig::default()
+    };
+    let e = err(&none);
+    assert!(e.contains("loose_leds needs source.sim.tool"), "{e}");
+    let many = SimSourceConfig {
+        loose_leds: MAX_SIM_LOOSE_LEDS + 1,
+        ..sim(10)
+    };
+    let e = err(&many);
+    assert!(e.contains("source.sim.loose_leds must be in 0..=4, got 5"), "{e}");
+    let cell: SimSourceConfig = toml::from_str(
+        "tool = \"probe4\"\nloose_leds = 1\n[cell]\nrobot = \"127.0.0.1:7750\"\ncam0_from_base_translation_mm = [0, 0, 0]\n",
+    )
+    .unwrap();
+    let e = err(&cell);
+    assert!(e.contains("excludes") && e.contains("loose_leds"), "{e}");
+    let two = SimSourceConfig {
+        loose_leds: 2,
+        ..sim(10)
+    };
+    two.validate().unwrap();
+    let cfg = two.scenario_config();
+    for body in [3, 4] {
+        assert_eq!(
+            cfg.markers.iter().filter(|m| m.body == body).count(),
+            1,
+            "body {body}"
+        );
+    }
+    assert_eq!(
+        cfg.markers.len(),
+        4 + 3 + 4 + 2,
+        "probe4, tri3, wing4 and two loose LEDs"
+    );
+}
