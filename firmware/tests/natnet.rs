@@ -286,11 +286,16 @@ fn natnet_multicast_frames_reach_a_client_that_joined_the_group() {
     );
 }
 
-/// Collects every per-tool NDJSON record (the client asks with `tools\n`) by (frame, tool id)
-/// until the stream is quiet for 2 s; returns once the first tool record arrived.
-async fn collect_tool_records(
-    addr: SocketAddr,
-) -> tokio::task::JoinHandle<HashMap<(u32, u8), irtrack_core::stream::ToolRecord>> {
+/// Per-tool records by (frame, tool id) and loose-LED positions (mm) by frame.
+type Collected = (
+    HashMap<(u32, u8), irtrack_core::stream::ToolRecord>,
+    HashMap<u32, Vec<[f64; 3]>>,
+);
+
+/// Collects every per-tool NDJSON record (the client asks with `tools\n`) by (frame, tool id),
+/// and the loose LEDs' positions by frame, until the stream is quiet for 2 s; returns once the
+/// first tool record arrived.
+async fn collect_tool_records(addr: SocketAddr) -> tokio::task::JoinHandle<Collected> {
     use tokio::io::{AsyncBufReadExt, AsyncWriteExt};
     let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
     s.write_all(b"tools\n").await.unwrap();
@@ -309,27 +314,35 @@ async fn collect_tool_records(
         }
     }
     tokio::spawn(async move {
+        let mut loose: HashMap<u32, Vec<[f64; 3]>> = HashMap::new();
         while let Ok(Ok(Some(line))) = tokio::time::timeout(Duration::from_secs(2), lines.next_line()).await {
             if line.starts_with("{\"tool_id\"") {
                 let t = irtrack_core::stream::ToolRecord::from_ndjson_line(&line).unwrap();
                 by_key.insert((t.record.frame as u32, t.tool_id), t);
+            } else if line.starts_with("{\"loose_id\"") {
+                let l = irtrack_core::stream::LooseRecord::from_ndjson_line(&line).unwrap();
+                loose
+                    .entry(l.record.frame as u32)
+                    .or_default()
+                    .push(l.record.position_mm.unwrap());
             }
         }
-        by_key
+        (by_key, loose)
     })
 }
 
-/// Two tools at once: a rigid body per tool in the model definitions and in every frame, each
-/// equal to that tool's per-tool record on the NDJSON stream.
+/// Two tools and a loose LED at once: a rigid body per tool in the model definitions and in
+/// every frame, each equal to that tool's per-tool record on the NDJSON stream; the loose LEDs
+/// of each frame are its unlabelled markers, equal to the NDJSON stream's loose records.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn natnet_client_reads_a_rigid_body_per_tool() {
     let dir = TempDir::new("natnet-two-tools");
-    let sim = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nperiod_s = 6.0\nfps = 120.0\nseed = 6\ntool = \"probe4\"\nextra_tools = [\"tri3\"]\ntool_rotation_deg = 20.0\nframes = 900\n";
+    let sim = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 50.0\nperiod_s = 6.0\nfps = 120.0\nseed = 6\ntool = \"probe4\"\nextra_tools = [\"tri3\"]\nloose_leds = 1\ntool_rotation_deg = 20.0\nframes = 900\n";
     let running = start(&dir, sim, "transport = \"unicast\"\n").await;
     let natnet = running.addrs.natnet.expect("NatNet enabled");
     let tools = collect_tool_records(running.addrs.stream_ndjson).await;
     let got = python_client(natnet, 150, 10.0, &[]).await;
-    let by_key = tools.await.unwrap();
+    let (by_key, loose) = tools.await.unwrap();
     running.shutdown().await;
 
     assert_eq!(got["complete"], true, "{got}");
@@ -350,8 +363,26 @@ async fn natnet_client_reads_a_rigid_body_per_tool() {
     assert_eq!(models["marker_sets"][1][0], "tri3");
 
     let (mut compared, mut worst_m, mut worst_q) = ([0usize; 2], 0.0f64, 0.0f64);
+    let (mut loose_frames, mut worst_loose_m) = (0usize, 0.0f64);
     for fr in got["frames"].as_array().unwrap() {
         let n = fr["frame"].as_u64().unwrap() as u32;
+        // Unlabelled markers: the frame's loose LEDs, in the stream's order (by id).
+        let unlabelled = fr["unlabeled"].as_array().unwrap();
+        let expected = loose.get(&n).map_or(&[][..], |v| &v[..]);
+        if by_key.contains_key(&(n, 0)) {
+            assert_eq!(
+                unlabelled.len(),
+                expected.len(),
+                "frame {n}: {unlabelled:?} vs {expected:?}"
+            );
+            for (u, p) in unlabelled.iter().zip(expected) {
+                let u = vec3(u);
+                for i in 0..3 {
+                    worst_loose_m = worst_loose_m.max((u[i] - p[i] / 1e3).abs());
+                }
+            }
+            loose_frames += usize::from(!expected.is_empty());
+        }
         let bodies = fr["rigid_bodies"].as_array().unwrap();
         assert_eq!(bodies.len(), 2, "frame {n}");
         for (k, body) in bodies.iter().enumerate() {
@@ -382,6 +413,14 @@ async fn natnet_client_reads_a_rigid_body_per_tool() {
          quaternion {worst_q:.2e}",
         compared[0], compared[1]
     );
+    println!(
+        "NatNet, loose LEDs: {loose_frames} frames with unlabelled markers, largest difference {worst_loose_m:.2e} m"
+    );
     assert!(compared[0] >= 100 && compared[1] >= 50, "{compared:?}");
     assert!(worst_m <= 1e-4 && worst_q <= 1e-4, "{worst_m} m {worst_q}");
+    assert!(
+        loose_frames >= 100,
+        "unlabelled markers in only {loose_frames} frames"
+    );
+    assert!(worst_loose_m <= 1e-4, "{worst_loose_m} m");
 }

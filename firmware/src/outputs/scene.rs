@@ -156,7 +156,8 @@ pub struct SceneFrame {
     pub bodies: Vec<BodySample>,
     /// Every 3-D marker of the frame (labelled list); single-LED markers have model id 0.
     pub markers: Vec<MarkerSample>,
-    /// Markers that belong to no model (the single LED).
+    /// Markers that belong to no model: the single LED, or with tools the loose single LEDs
+    /// of the set (from the per-tool slot, by increasing loose id).
     pub unlabelled_m: Vec<[f64; 3]>,
 }
 
@@ -279,6 +280,15 @@ impl SceneBuilder {
                         residual_m: error_m,
                         model_solved: false,
                     });
+                }
+            }
+        }
+        // Loose single LEDs (no model): unlabelled markers of the set.
+        if let Some(ts) = &tool_set {
+            for l in ts.loose_records() {
+                let (tracked, p_m, _) = sample(&l.record);
+                if tracked {
+                    out.unlabelled_m.push(p_m.into());
                 }
             }
         }
