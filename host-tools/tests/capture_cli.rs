@@ -3,8 +3,8 @@
 //! the layout `calibrate` reads, the board is found per camera and the coverage grid is shown.
 //! Across boards (`--from A --from B`): sets paired on the realtime clock, numbered board by
 //! board, unpaired sets refused. Error cases: firmware without the endpoint (404), nothing
-//! listening. (irtrackd's endpoint is
-//! being built on another branch; a test against a real irtrackd follows once it has landed.)
+//! listening. Against real irtrackd processes: tests/tests/capture_e2e.rs (one board) and
+//! tests/tests/cluster_calibration_e2e.rs (two camera boards, then `wand-calibrate`).
 
 mod common;
 
@@ -27,7 +27,7 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 /// Serves `responses` to consecutive HTTP requests (status line, content type, body), then stops.
-fn serve(responses: Vec<(u16, &'static str, Vec<u8>)>) -> (String, thread::JoinHandle<usize>) {
+fn serve(responses: Responses) -> (String, thread::JoinHandle<usize>) {
     let listener = TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = listener.local_addr().unwrap().to_string();
     let handle = thread::spawn(move || {
@@ -89,9 +89,12 @@ fn frameset_body(set_index: u64, pgms: &[Vec<u8>], size: (u32, u32)) -> Vec<u8> 
     b
 }
 
-#[test]
-fn capture_saves_sets_finds_the_board_and_shows_coverage() {
-    let dir = scratch("board");
+/// One stand-in board's answers, in order: status, content type, body.
+type Responses = Vec<(u16, &'static str, Vec<u8>)>;
+
+/// Checkerboard views of the simulated 90° rig (one camera per rig camera), rendered into
+/// `dir/views`: the files per camera and view, and the image size.
+fn rig_views(dir: &Path, count: usize) -> (Vec<Vec<PathBuf>>, (u32, u32)) {
     let rig = build_rig(
         &RigPreset::Convergent {
             distance_mm: 659.84,
@@ -105,7 +108,7 @@ fn capture_saves_sets_finds_the_board_and_shows_coverage() {
         &rig,
         &board,
         &PoseConfig {
-            count: 3,
+            count,
             seed: 4,
             ..Default::default()
         },
@@ -123,20 +126,56 @@ fn capture_saves_sets_finds_the_board_and_shows_coverage() {
     )
     .unwrap();
     let size = rig.cameras[0].model.image_size;
-    let size = (size.width_px, size.height_px);
-    let bodies: Vec<(u16, &'static str, Vec<u8>)> = (0..3)
-        .map(|v| {
-            let pgms: Vec<Vec<u8>> = (0..2).map(|c| std::fs::read(&set.files[c][v]).unwrap()).collect();
-            (
-                200,
-                "application/x-irtrack-frameset",
-                frameset_body(10 + v as u64, &pgms, size),
-            )
-        })
-        .collect();
+    (set.files, (size.width_px, size.height_px))
+}
+
+/// A capture session against stand-in boards.
+struct Session {
+    /// The boards' addresses, in `--from` order.
+    addrs: Vec<String>,
+    output: std::process::Output,
+    servers: Vec<thread::JoinHandle<usize>>,
+}
+
+impl Session {
+    /// Requests each board answered (waits for every board's server to finish its list).
+    fn served(self) -> Vec<usize> {
+        self.servers.into_iter().map(|h| h.join().unwrap()).collect()
+    }
+}
+
+/// Serves each board's responses and runs `host-tools capture` with a `--from` per board, in
+/// the order given, `--out out` and `args`.
+fn capture(boards: Vec<Responses>, out: &Path, args: &[&str]) -> Session {
+    let (addrs, servers): (Vec<String>, Vec<_>) = boards.into_iter().map(serve).unzip();
+    let mut argv = vec!["capture"];
+    for a in &addrs {
+        argv.extend(["--from", a.as_str()]);
+    }
+    argv.extend(["--out", p(out)]);
+    argv.extend_from_slice(args);
+    let output = host_tools(&argv);
+    Session {
+        addrs,
+        output,
+        servers,
+    }
+}
+
+#[test]
+fn capture_saves_sets_finds_the_board_and_shows_coverage() {
+    let dir = scratch("board");
+    let (files, size) = rig_views(&dir, 3);
     let expected: Vec<Vec<Vec<u8>>> = (0..3)
-        .map(|v| (0..2).map(|c| std::fs::read(&set.files[c][v]).unwrap()).collect())
+        .map(|v| (0..2).map(|c| std::fs::read(&files[c][v]).unwrap()).collect())
         .collect();
+    let bodies = expected.iter().enumerate().map(|(v, pgms)| {
+        (
+            200,
+            "application/x-irtrack-frameset",
+            frameset_body(10 + v as u64, pgms, size),
+        )
+    });
     // capture asks the board once before the session (to fail early and name the cameras);
     // that set is not saved.
     let probe = (
@@ -144,23 +183,17 @@ fn capture_saves_sets_finds_the_board_and_shows_coverage() {
         "application/x-irtrack-frameset",
         frameset_body(9, &expected[0], size),
     );
-    let (addr, server) = serve(std::iter::once(probe.clone()).chain(bodies).collect());
     let out = dir.join("shots");
-    let o = host_tools(&[
-        "capture",
-        "--from",
-        &addr,
-        "--out",
-        p(&out),
-        "--every",
-        "0.05",
-        "--count",
-        "3",
-    ]);
-    let (stdout, stderr) = text(&o);
-    assert!(o.status.success(), "{stdout}\n{stderr}");
+    let run = capture(
+        vec![std::iter::once(probe.clone()).chain(bodies).collect()],
+        &out,
+        &["--every", "0.05", "--count", "3"],
+    );
+    let (stdout, stderr) = text(&run.output);
+    assert!(run.output.status.success(), "{stdout}\n{stderr}");
     print!("{stdout}");
-    assert_eq!(server.join().unwrap(), 4);
+    let addr = run.addrs[0].clone();
+    assert_eq!(run.served(), [4]);
     assert!(
         stdout.starts_with(&format!("board {addr}: 2 cameras, {}x{} 8-bit\n", size.0, size.1)),
         "{stdout}"
@@ -190,27 +223,18 @@ fn capture_saves_sets_finds_the_board_and_shows_coverage() {
     assert!(stdout.contains("saved 3 sets"), "{stdout}");
 
     // A second session continues the numbering instead of overwriting.
-    let (addr, server) = serve(vec![
-        probe,
-        (
-            200,
-            "application/x-irtrack-frameset",
-            frameset_body(99, &expected[0], size),
-        ),
-    ]);
-    let o = host_tools(&[
-        "capture",
-        "--from",
-        &addr,
-        "--out",
-        p(&out),
-        "--every",
-        "0.05",
-        "--count",
-        "1",
-    ]);
-    assert!(o.status.success(), "{}", text(&o).1);
-    server.join().unwrap();
+    let again = (
+        200,
+        "application/x-irtrack-frameset",
+        frameset_body(99, &expected[0], size),
+    );
+    let run = capture(
+        vec![vec![probe, again]],
+        &out,
+        &["--every", "0.05", "--count", "1"],
+    );
+    assert!(run.output.status.success(), "{}", text(&run.output).1);
+    run.served();
     assert!(out.join("cam1/000003.pgm").is_file());
 }
 
@@ -408,42 +432,11 @@ fn board_set(
 #[test]
 fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
     let dir = scratch("boards");
-    let rig = build_rig(
-        &RigPreset::Convergent {
-            distance_mm: 659.84,
-            angle_deg: 90.0,
-        },
-        &CameraSpec::default(),
-    )
-    .unwrap();
-    let board = BoardSpec::new(9, 6, 25.0).unwrap();
-    let poses = checkerboard::generate_poses(
-        &rig,
-        &board,
-        &PoseConfig {
-            count: 4,
-            seed: 4,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    let set = checkerboard::write_set(
-        &dir.join("views"),
-        &rig,
-        &board,
-        &poses,
-        &RenderSettings {
-            seed: 4,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    let size = rig.cameras[0].model.image_size;
-    let size = (size.width_px, size.height_px);
-    let view = |c: usize, v: usize| std::fs::read(&set.files[c][v]).unwrap();
+    let (files, size) = rig_views(&dir, 4);
+    let view = |c: usize, v: usize| std::fs::read(&files[c][v]).unwrap();
     // Per board: two probe sets (frames 0, 1: the frame period), a set where B's frame is 6 ms
     // after A's (refused), then four sets 1 ms apart.
-    let responses = |b: bool| -> Vec<(u16, &'static str, Vec<u8>)> {
+    let responses = |b: bool| -> Responses {
         let c = usize::from(b);
         let mut r = vec![
             board_set(b, 0, 0, &[view(c, 0)], size),
@@ -461,27 +454,17 @@ fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
         }
         r
     };
-    let (addr_a, server_a) = serve(responses(false));
-    let (addr_b, server_b) = serve(responses(true));
     let out = dir.join("shots");
-    let o = host_tools(&[
-        "capture",
-        "--from",
-        &addr_a,
-        "--from",
-        &addr_b,
-        "--out",
-        p(&out),
-        "--every",
-        "0.05",
-        "--count",
-        "4",
-    ]);
-    let (stdout, stderr) = text(&o);
+    let run = capture(
+        vec![responses(false), responses(true)],
+        &out,
+        &["--every", "0.05", "--count", "4"],
+    );
+    let (stdout, stderr) = text(&run.output);
     print!("{stdout}{stderr}");
-    assert!(o.status.success(), "{stdout}\n{stderr}");
-    assert_eq!(server_a.join().unwrap(), 7);
-    assert_eq!(server_b.join().unwrap(), 7);
+    assert!(run.output.status.success(), "{stdout}\n{stderr}");
+    let (addr_a, addr_b) = (run.addrs[0].clone(), run.addrs[1].clone());
+    assert_eq!(run.served(), [7, 7]);
     assert!(
         stdout.contains(&format!(
             "board {addr_a}: 1 camera, {}x{} 8-bit → cam0..cam0",
@@ -578,7 +561,7 @@ fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
         b.extend_from_slice(&[9; 8]);
         b
     };
-    let responses = |b: bool| -> Vec<(u16, &'static str, Vec<u8>)> {
+    let responses = |b: bool| -> Responses {
         (0..12u64)
             .map(|k| {
                 let phase = if b && k >= 2 { 20_000_000 } else { 0 };
@@ -586,25 +569,16 @@ fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
             })
             .collect()
     };
-    let (addr_a, server_a) = serve(responses(false));
-    let (addr_b, server_b) = serve(responses(true));
     let out = dir.join("never");
-    let o = host_tools(&[
-        "capture",
-        "--from",
-        &addr_a,
-        "--from",
-        &addr_b,
-        "--out",
-        p(&out),
-        "--wand",
-        "--count",
-        "5",
-    ]);
-    let (stdout, stderr) = text(&o);
-    assert!(!o.status.success(), "{stdout}\n{stderr}");
-    assert_eq!(server_a.join().unwrap(), 12);
-    assert_eq!(server_b.join().unwrap(), 12);
+    let run = capture(
+        vec![responses(false), responses(true)],
+        &out,
+        &["--wand", "--count", "5"],
+    );
+    let (stdout, stderr) = text(&run.output);
+    assert!(!run.output.status.success(), "{stdout}\n{stderr}");
+    let (addr_a, addr_b) = (run.addrs[0].clone(), run.addrs[1].clone());
+    assert_eq!(run.served(), [12, 12]);
     let offset = format!("board {addr_b}'s frames are +20.000 ms from board {addr_a}'s (tolerance 4.167 ms");
     assert_eq!(stderr.matches("set refused, not saved").count(), 9, "{stderr}");
     assert!(
@@ -614,31 +588,28 @@ fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
     assert!(!out.join("cam0").exists(), "a mismatched set was saved");
 
     // irtrackd without the clock field.
-    let (addr_a, _) = serve(vec![board_set(false, 0, 0, std::slice::from_ref(&pgm), size)]);
-    let (addr_b, server_b) = serve(vec![(
-        200,
-        "application/x-irtrack-frameset",
-        frameset_body(1, std::slice::from_ref(&pgm), size),
-    )]);
-    let o = host_tools(&[
-        "capture",
-        "--from",
-        &addr_a,
-        "--from",
-        &addr_b,
-        "--out",
-        p(&out),
-        "--wand",
-    ]);
-    let (_, stderr) = text(&o);
-    assert!(!o.status.success());
+    let run = capture(
+        vec![
+            vec![board_set(false, 0, 0, std::slice::from_ref(&pgm), size)],
+            vec![(
+                200,
+                "application/x-irtrack-frameset",
+                frameset_body(1, std::slice::from_ref(&pgm), size),
+            )],
+        ],
+        &out,
+        &["--wand"],
+    );
+    let (_, stderr) = text(&run.output);
+    assert!(!run.output.status.success());
     assert!(
         stderr.contains(&format!(
-            "irtrackd on {addr_b} does not serve its realtime clock difference"
+            "irtrackd on {} does not serve its realtime clock difference",
+            run.addrs[1]
         )),
         "{stderr}"
     );
-    server_b.join().unwrap();
+    run.served();
 
     // Nothing listens on B.
     let port = TcpListener::bind("127.0.0.1:0")
