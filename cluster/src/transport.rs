@@ -43,7 +43,7 @@ pub fn check_name(what: &str, name: &str) -> Result<()> {
 }
 
 /// How a node joins the Zenoh network.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct TransportConfig {
     /// Endpoints this node listens on, e.g. `tcp/0.0.0.0:7447`.
     pub listen: Vec<String>,
@@ -51,20 +51,9 @@ pub struct TransportConfig {
     pub connect: Vec<String>,
     /// Multicast scouting (off by default: endpoints are configured).
     pub multicast_scouting: bool,
-    /// Zenoh's low-latency unicast transport (on by default; off brings back QoS priorities,
-    /// e.g. on a Zenoh network shared with other traffic).
+    /// Zenoh's low-latency unicast transport (off by default: under heavy CPU load a burst of
+    /// observations was seen not to arrive with it on; see docs/cluster.md).
     pub low_latency: bool,
-}
-
-impl Default for TransportConfig {
-    fn default() -> Self {
-        TransportConfig {
-            listen: Vec::new(),
-            connect: Vec::new(),
-            multicast_scouting: false,
-            low_latency: true,
-        }
-    }
 }
 
 impl TransportConfig {

@@ -59,7 +59,7 @@ fn irtrackd_writes_the_ptp_config_only_when_ptp_is_on() {
     let run = |toml: &str| {
         let cfg = dir.path().join("irtrackd.toml");
         std::fs::write(&cfg, toml).unwrap();
-        Command::new(env!("CARGO_BIN_EXE_irtrackd"))
+        irtrackd()
             .arg("--config")
             .arg(&cfg)
             .arg("--write-ptp-config")
@@ -135,5 +135,20 @@ fn ptp4l_reads_the_generated_config() {
     assert!(out.contains("INITIALIZING to LISTENING"), "{out}");
     for bad in ["unknown option", "failed to parse", "failed to create a clock"] {
         assert!(!out.contains(bad), "{bad}: {out}");
+    }
+}
+
+/// The binary under test; cross-built test runs set `IRTRACK_TEST_RUNNER` (e.g.
+/// `qemu-aarch64 -L /`) because a foreign binary cannot be executed directly.
+fn irtrackd() -> Command {
+    let exe = env!("CARGO_BIN_EXE_irtrackd");
+    match std::env::var("IRTRACK_TEST_RUNNER") {
+        Ok(runner) if !runner.trim().is_empty() => {
+            let mut parts = runner.split_whitespace();
+            let mut cmd = Command::new(parts.next().unwrap_or("qemu-aarch64"));
+            cmd.args(parts).arg(exe);
+            cmd
+        }
+        _ => Command::new(exe),
     }
 }

@@ -57,11 +57,13 @@ fn pose_error(truth: &RigParams, got: &RigParams, i: usize) -> (f64, f64) {
 fn wand_wave_captured_across_two_camera_boards_calibrates_the_whole_rig() {
     let t0 = Instant::now();
     let dir = temp_dir("cluster-wand");
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    // A free port below Linux's ephemeral range (32768-60999): a port the kernel hands out for
+    // `:0` could be given again to one of irtrackd's own ephemeral listeners before Zenoh binds
+    // it (seen once: "Address already in use").
+    let port = (0..2000u16)
+        .map(|i| 20_000 + (std::process::id() as u16 % 8000 + i) % 10_000)
+        .find(|p| std::net::TcpListener::bind(("127.0.0.1", *p)).is_ok())
+        .expect("a free port in 20000..30000");
     // The boards form a Zenoh network of their own (b1 connects to b0); no solver is needed to
     // calibrate, as on a new cell whose solver has no parameters yet.
     let ep = format!("tcp/127.0.0.1:{port}");

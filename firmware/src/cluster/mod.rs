@@ -50,8 +50,8 @@ pub struct ClusterConfig {
     /// Find peers by UDP multicast instead of (or besides) the endpoints. Off by default.
     #[serde(default)]
     pub multicast_scouting: bool,
-    /// Zenoh's low-latency transport (default on; negotiated per link, see docs/cluster.md).
-    #[serde(default = "d_true")]
+    /// Zenoh's low-latency transport (default off; negotiated per link, see docs/cluster.md).
+    #[serde(default)]
     pub low_latency: bool,
     /// Solver: pair by the hardware trigger's frame counter (cameras triggered) instead of
     /// timestamps.
@@ -92,9 +92,6 @@ pub struct ClusterConfig {
     pub clock_drift_ppm: f64,
 }
 
-fn d_true() -> bool {
-    true
-}
 fn d_rig() -> String {
     "rig".into()
 }
@@ -117,7 +114,7 @@ impl Default for ClusterConfig {
             listen: Vec::new(),
             connect: Vec::new(),
             multicast_scouting: false,
-            low_latency: true,
+            low_latency: false,
             trigger: false,
             fps: d_fps(),
             tolerance_ms: None,
