@@ -234,23 +234,34 @@ pub fn encode_tool_answer(pose: Option<PoseWxyz>) -> String {
     }
 }
 
-/// Decodes an answer of [`encode_tool_answer`]: `Ok(None)` for `TOOL off`.
-pub fn decode_tool_answer(text: &str) -> Result<Option<PoseWxyz>, RobotError> {
-    let bad = |reason: String| RobotError::Simulator {
+/// An error of the cell feed's text answers.
+fn feed_error(reason: String) -> RobotError {
+    RobotError::Simulator {
         field: "cell feed",
         reason,
-    };
+    }
+}
+
+/// The numbers after `prefix` in a feed answer, or `None` for `<prefix>off`.
+fn feed_numbers(text: &str, prefix: &str) -> Result<Option<Vec<f64>>, RobotError> {
     let rest = text
         .trim()
-        .strip_prefix("TOOL ")
-        .ok_or_else(|| bad(format!("answer {text:?} does not start with \"TOOL \"")))?;
+        .strip_prefix(prefix)
+        .ok_or_else(|| feed_error(format!("answer {text:?} does not start with {prefix:?}")))?;
     if rest == "off" {
         return Ok(None);
     }
-    let v: Vec<f64> = rest
-        .split_whitespace()
-        .map(|w| w.parse::<f64>().map_err(|e| bad(format!("{w:?}: {e}"))))
-        .collect::<Result<_, _>>()?;
+    rest.split_whitespace()
+        .map(|w| w.parse::<f64>().map_err(|e| feed_error(format!("{w:?}: {e}"))))
+        .collect::<Result<_, _>>()
+        .map(Some)
+}
+
+/// Decodes an answer of [`encode_tool_answer`]: `Ok(None)` for `TOOL off`.
+pub fn decode_tool_answer(text: &str) -> Result<Option<PoseWxyz>, RobotError> {
+    let Some(v) = feed_numbers(text, "TOOL ")? else {
+        return Ok(None);
+    };
     let norm = v
         .get(3..7)
         .map_or(0.0, |q| q.iter().map(|c| c * c).sum::<f64>().sqrt());
@@ -258,7 +269,7 @@ pub fn decode_tool_answer(text: &str) -> Result<Option<PoseWxyz>, RobotError> {
         Ok(a) if a.iter().all(|x| x.is_finite()) && (norm - 1.0).abs() < 1e-6 => {
             Ok(Some(([a[0], a[1], a[2]], [a[3], a[4], a[5], a[6]])))
         }
-        _ => Err(bad(format!(
+        _ => Err(feed_error(format!(
             "answer {text:?} needs a position and a unit quaternion (seven finite numbers)"
         ))),
     }
@@ -275,24 +286,12 @@ pub fn encode_feed_answer(led_mm: Option<[f64; 3]>) -> String {
 
 /// Decodes an answer of [`encode_feed_answer`]: `Ok(None)` for `LED off`.
 pub fn decode_feed_answer(text: &str) -> Result<Option<[f64; 3]>, RobotError> {
-    let bad = |reason: String| RobotError::Simulator {
-        field: "cell feed",
-        reason,
-    };
-    let rest = text
-        .trim()
-        .strip_prefix("LED ")
-        .ok_or_else(|| bad(format!("answer {text:?} does not start with \"LED \"")))?;
-    if rest == "off" {
+    let Some(v) = feed_numbers(text, "LED ")? else {
         return Ok(None);
-    }
-    let v: Vec<f64> = rest
-        .split_whitespace()
-        .map(|w| w.parse::<f64>().map_err(|e| bad(format!("{w:?}: {e}"))))
-        .collect::<Result<_, _>>()?;
+    };
     match <[f64; 3]>::try_from(v) {
         Ok(p) if p.iter().all(|x| x.is_finite()) => Ok(Some(p)),
-        _ => Err(bad(format!("answer {text:?} needs three finite numbers"))),
+        _ => Err(feed_error(format!("answer {text:?} needs three finite numbers"))),
     }
 }
 
