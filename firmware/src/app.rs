@@ -478,6 +478,18 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         )),
     ];
 
+    // ptp4l's own offset and port state for /status, polled off the frame path.
+    if cfg.clock.ptp {
+        let state = crate::ptp::monitor::SharedPtp::default();
+        let _ = status.ptp.set(state.clone());
+        tasks.push(tokio::spawn(crate::ptp::monitor::run(
+            state,
+            cfg.clock.ptp4l_socket.clone(),
+            cfg.clock.domain,
+            shutdown_future(&shutdown_rx),
+        )));
+    }
+
     let robot = start_robot(cfg.robot.as_ref(), &slot_rx, &status, &mut tasks)?;
 
     // Step 7b: the standard outputs (docs/outputs.md), on the same latest-value slot.

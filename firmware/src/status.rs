@@ -236,6 +236,9 @@ pub struct SharedStatus {
     pub viewer_tap: std::sync::OnceLock<Arc<crate::viewer::ViewerTap>>,
     /// Camera and solver roles: the cluster's state (docs/cluster.md); `None` standalone.
     pub cluster: Mutex<Option<Arc<Mutex<crate::cluster::report::ClusterReport>>>>,
+    /// ptp4l's state as its management socket reports it (set once by `app::start` when
+    /// `[clock] ptp` is on).
+    pub ptp: std::sync::OnceLock<crate::ptp::monitor::SharedPtp>,
 }
 
 fn track_to_u8(t: TrackIndication) -> u8 {
@@ -305,6 +308,7 @@ impl SharedStatus {
             params: Mutex::new(ParamsInfo::default()),
             realtime: Mutex::new(Vec::new()),
             cluster: Mutex::new(None),
+            ptp: std::sync::OnceLock::new(),
         }
     }
 
@@ -490,7 +494,13 @@ impl SharedStatus {
             },
             faults: self.active_faults(),
             cluster: self.cluster_report(),
+            clock: self.ptp_report().map(|ptp| ClockReport { ptp }),
         }
+    }
+
+    /// ptp4l's state, when irtrackd polls it (`[clock] ptp = true`).
+    pub fn ptp_report(&self) -> Option<crate::ptp::monitor::PtpReport> {
+        Some(self.ptp.get()?.lock().ok()?.report())
     }
 
     /// A copy of the cluster state, when this irtrackd is a camera board or a solver.
@@ -905,7 +915,7 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FaultText {
     /// Stable code: `camera_lost`, `no_params`, `deadline_misses`, `no_led`, `no_usable_blob`,
-    /// `skewed_sets`, and from the whole-frame analysis `background_above_threshold`,
+    /// `skewed_sets`, `ptp_unavailable`, `ptp_faulty`, and from the whole-frame analysis `background_above_threshold`,
     /// `overloaded`, `too_many_spots`, `unreadable_frame`.
     pub code: &'static str,
     /// The camera concerned; `None` for faults of the whole board.
@@ -959,6 +969,22 @@ pub fn fault_texts(
                 code,
                 camera: None,
                 message,
+            });
+        }
+    }
+    if let Some(p) = st.ptp_report() {
+        if let Some(e) = p.error {
+            out.push(FaultText {
+                code: "ptp_unavailable",
+                camera: None,
+                message: format!("ptp4l's clock state cannot be read: {e}"),
+            });
+        } else if p.port_state == Some("FAULTY") {
+            out.push(FaultText {
+                code: "ptp_faulty",
+                camera: None,
+                message: "ptp4l's port is FAULTY — check the Ethernet link and `journalctl -u irtrack-ptp4l`"
+                    .into(),
             });
         }
     }
@@ -1160,4 +1186,14 @@ pub struct StatusReport {
     /// The cluster's state on a camera board or solver; absent standalone.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub cluster: Option<crate::cluster::report::ClusterReport>,
+    /// ptp4l's view of this board's clock; absent unless `[clock] ptp = true`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub clock: Option<ClockReport>,
+}
+
+/// `clock` on `/status`.
+#[derive(Debug, Clone, Serialize)]
+pub struct ClockReport {
+    /// ptp4l's port state, offset and path delay (docs/cluster.md, "What `/status` shows").
+    pub ptp: crate::ptp::monitor::PtpReport,
 }

@@ -39,6 +39,7 @@ fn bad_clock_values_are_refused_by_name() {
         ("interface = \"eth0; rm -rf /\"\n", "clock.interface"),
         ("interface = \"\"\n", "clock.interface"),
         ("domain = 200\n", "clock.domain"),
+        ("ptp4l_socket = \"\"\n", "clock.ptp4l_socket"),
     ] {
         let e = Config::from_toml(&format!("[clock]\n{text}"), "test")
             .map(|_| ())

@@ -66,5 +66,6 @@ FILES:${PN} += "${systemd_system_unitdir}/irtrackd.service \
                 ${nonarch_base_libdir}/udev/rules.d/99-irtrack.rules"
 CONFFILES:${PN} = "${sysconfdir}/irtrack/irtrackd.toml"
 
-# ptp4l and phc2sys for irtrack-ptp4l.service and irtrack-phc2sys.service.
+# ptp4l and phc2sys for irtrack-ptp4l.service and irtrack-phc2sys.service. linuxptp >= 4.0 also
+# gives the read-only socket /var/run/ptp4lro that the sandboxed irtrackd reads clock.ptp from.
 RDEPENDS:${PN} += "linuxptp"

@@ -7,8 +7,11 @@
 //! stamping `phc2sys -a -rr` (`systemd/irtrack-phc2sys.service`) then carries the NIC's clock
 //! to CLOCK_REALTIME (or, on the grandmaster, the other way).
 
+pub mod mgmt;
+pub mod monitor;
+
 use std::fmt::Write as _;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
@@ -57,6 +60,11 @@ pub struct ClockConfig {
     /// `"hardware"` (default) or `"software"`.
     #[serde(default)]
     pub time_stamping: TimeStamping,
+    /// ptp4l's management socket irtrackd reads `clock.ptp` on `/status` from (when `ptp` is
+    /// on). Default: `/var/run/ptp4lro` (linuxptp ≥ 4.0's read-only socket) when it exists,
+    /// else `/var/run/ptp4l`. Set it when ptp4l runs with another `uds_address`.
+    #[serde(default)]
+    pub ptp4l_socket: Option<PathBuf>,
 }
 
 fn d_interface() -> String {
@@ -71,6 +79,7 @@ impl Default for ClockConfig {
             domain: 0,
             role: PtpRole::default(),
             time_stamping: TimeStamping::default(),
+            ptp4l_socket: None,
         }
     }
 }
@@ -96,6 +105,14 @@ impl ClockConfig {
         }
         if self.domain > 127 {
             return bad(format!("clock.domain must be 0..=127, got {}", self.domain));
+        }
+        if let Some(p) = &self.ptp4l_socket
+            && (p.as_os_str().is_empty() || p.as_os_str().len() > 107)
+        {
+            return bad(format!(
+                "clock.ptp4l_socket {:?} is not a Unix socket path (1..=107 bytes)",
+                p.display()
+            ));
         }
         Ok(())
     }
