@@ -15,7 +15,9 @@ use irtrack_core::blob::{BlobConfig, BlobDetector, BlobLimits};
 use irtrack_core::camera::RigidTransform;
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::{CameraParams, RigParams, ToolDefinition};
-use irtrack_core::pose6d::{MultiTracker, PoseConfig, PoseStatus, quaternion_angle_rad};
+use irtrack_core::pose6d::{
+    LOOSE_LED, MultiTracker, NO_BLOB, NO_TOOL, PoseConfig, PoseStatus, quaternion_angle_rad,
+};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 
 use crate::rig::convergent_pose;
@@ -153,6 +155,8 @@ pub struct ToolStats {
     pub three_led_poses: usize,
     /// Seen but not tracked, by status name (diagnostics).
     pub missed: Vec<(&'static str, usize)>,
+    /// Seen but not tracked, by cause ([`miss_cause`]; diagnostics).
+    pub causes: Vec<(&'static str, usize)>,
 }
 
 impl ToolStats {
@@ -171,11 +175,65 @@ impl ToolStats {
     fn good(&self) -> usize {
         self.tracked - self.swaps
     }
-    fn miss(&mut self, what: &'static str) {
-        match self.missed.iter_mut().find(|(w, _)| *w == what) {
-            Some((_, n)) => *n += 1,
-            None => self.missed.push((what, 1)),
-        }
+    fn miss(&mut self, what: &'static str, cause: &'static str) {
+        count(&mut self.missed, what);
+        count(&mut self.causes, cause);
+    }
+}
+
+fn count(list: &mut Vec<(&'static str, usize)>, what: &'static str) {
+    match list.iter_mut().find(|(w, _)| *w == what) {
+        Some((_, n)) => *n += 1,
+        None => list.push((what, 1)),
+    }
+}
+
+/// A candidate point within this distance (mm) of an LED's true position is that LED's.
+const CANDIDATE_MM: f64 = 1.0;
+
+/// Why tool `tool` was not tracked in a frame where it was seen, from the tracker's state
+/// after the frame set and the truth (`leds_mm`: the tool's LEDs' true positions):
+/// - "no candidate": fewer than 3 of its LEDs have a candidate point (correspondence) near
+///   their true place;
+/// - "claimed by another tool": 3 or more have, but fewer than 3 of those candidates keep two
+///   or more cameras whose blob no other tool took;
+/// - otherwise the identification or the pose decision refused it (its status: no assignment
+///   found among the free candidates, ambiguous, predictor step gate, residual, merge audit).
+pub fn miss_cause(tracker: &MultiTracker, tool: usize, leds_mm: &[Vector3<f64>]) -> &'static str {
+    let (mut near, mut free) = (0, 0);
+    for led in leds_mm {
+        let Some(p) = tracker
+            .points()
+            .iter()
+            .filter(|p| (p.point_mm - led).norm() < CANDIDATE_MM)
+            .min_by(|a, b| (a.point_mm - led).norm().total_cmp(&(b.point_mm - led).norm()))
+        else {
+            continue;
+        };
+        near += 1;
+        let own_cameras = p
+            .blobs
+            .iter()
+            .enumerate()
+            .filter(|&(c, &b)| {
+                b != NO_BLOB && {
+                    let o = tracker.blob_owner(c, b as usize);
+                    o == NO_TOOL || o == LOOSE_LED || o as usize == tool
+                }
+            })
+            .count();
+        free += usize::from(own_cameras >= 2);
+    }
+    let status = tracker.pose(tool).map(|p| p.status);
+    match status {
+        _ if near < 3 => "no candidate",
+        _ if free < 3 => "claimed by another tool",
+        Some(PoseStatus::TooFewLeds { .. }) => "no assignment among free candidates",
+        Some(PoseStatus::Ambiguous { .. }) => "ambiguous",
+        Some(PoseStatus::StepTooLarge) => "predictor step gate",
+        Some(PoseStatus::ResidualTooLarge) => "residual too large",
+        Some(PoseStatus::LedsMerged { .. }) => "merge audit",
+        _ => "other",
     }
 }
 
@@ -270,7 +328,13 @@ pub fn run(rig: RigPreset, frames: u64, config: PoseConfig) -> Result<RunStats, 
             };
             if pose.status != PoseStatus::Tracked {
                 if seen {
-                    st.miss(status_name(&pose.status));
+                    let leds: Vec<Vector3<f64>> = cfg
+                        .markers
+                        .iter()
+                        .filter(|s| s.body == b)
+                        .map(|s| cfg.marker_position(s, t_s))
+                        .collect();
+                    st.miss(status_name(&pose.status), miss_cause(&tracker, b, &leds));
                 }
                 continue;
             }
@@ -355,7 +419,7 @@ pub fn report(what: &str, r: &RunStats) -> String {
     for (name, st) in TOOL_NAMES.iter().zip(&r.tools) {
         s += &format!(
             "  {name}: seen in {} frames, tracked in {} of them ({:.2} %), {} tracked in all ({} from 3 LEDs); \
-             {} swaps; orientation RMS {:.4}° (max {:.3}°), position RMS {:.4} mm (max {:.3} mm); missed when seen: {:?}\n",
+             {} swaps; orientation RMS {:.4}° (max {:.3}°), position RMS {:.4} mm (max {:.3} mm); missed when seen: {:?}, by cause: {:?}\n",
             st.seen,
             st.tracked_when_seen,
             st.tracked_share_pct(),
@@ -366,7 +430,8 @@ pub fn report(what: &str, r: &RunStats) -> String {
             st.rot_max,
             st.pos_rms_mm(),
             st.pos_max,
-            st.missed
+            st.missed,
+            st.causes
         );
     }
     s += &format!(

@@ -2,7 +2,7 @@
 //! `tri3`, `wing4`) and one loose LED moving through each other, rendered by the simulator,
 //! blobs by `BlobDetector`, tracked by `MultiTracker` — the scene, the run and the figures are
 //! `irtrack_sim::multibody` (shared with `cargo xtask bench`, which runs the 60 s cases in
-//! release). Figures: `cargo test -p irtrack-tests --test multibody_sim -- --nocapture`.
+//! release; the 60 s 4-camera run is a host test here too). Figures: `cargo test -p irtrack-tests --test multibody_sim -- --nocapture`.
 
 use irtrack_core::pose6d::PoseConfig;
 use irtrack_sim::multibody::{
@@ -66,8 +66,11 @@ fn three_tools_and_a_loose_led_in_the_90_degree_pair() {
     assert!(missed.is_empty(), "{missed:#?}");
 }
 
+/// Issue 29's targets in the 4-camera rig, 60 s (about 15 s here): ≥ 99 % tracked when seen
+/// for every tool, 0 swaps, orientation RMS ≤ 0.05°, position RMS ≤ 0.05 mm (`missed_targets`).
+/// Run in CI: the 4-camera association (ghosts confirmed by a third view, blobs shared by
+/// two LEDs) is where the tracker lost frames.
 #[test]
-#[ignore = "issue 29's targets not met yet in the 4-camera rig (probe4 98.7 %, tri3 95.7 % tracked when seen); 60 s, run in release by `cargo xtask bench` or with --ignored"]
 fn three_tools_and_a_loose_led_in_a_four_camera_rig() {
     let r = run(
         four_camera_rig().unwrap(),

@@ -440,10 +440,10 @@ impl MultiTracker {
     fn fill_free(&mut self) {
         self.free.clear();
         // Blobs used by two or more unclaimed candidates confirmed by three or more cameras:
-        // two LEDs whose spots merged in that camera (a ghost is rarely confirmed by a third
-        // view). Both points are re-solved without it, so both LEDs stay available.
+        // possibly two LEDs whose spots merged in that camera.
         let mut uses = [[0u8; MAX_BLOBS]; MAX_CAMERAS];
-        if self.matcher.camera_count() > 2 {
+        let multi = self.matcher.camera_count() > 2;
+        if multi {
             for p in self.matcher.points() {
                 if p.cameras < 3 || self.claimed_cameras(p) != 0 {
                     continue;
@@ -461,24 +461,74 @@ impl MultiTracker {
             }
             let p = self.matcher.points()[i];
             let mut claimed = self.claimed_cameras(&p);
-            if p.cameras >= 3 && claimed == 0 {
-                for (c, &b) in p.blobs.iter().enumerate() {
-                    if b != NO_BLOB && (b as usize) < MAX_BLOBS && uses[c][b as usize] >= 2 {
-                        claimed |= 1 << c;
-                    }
-                }
+            if multi && p.cameras >= 3 && claimed == 0 {
+                claimed = self.merged_cameras(i, &uses);
             }
             if claimed == 0 {
-                self.free.push(p);
-            } else if let Some(q) = self.matcher.without_cameras(&p, claimed) {
-                // Re-solved points are two-view candidates again: keep them only if no
-                // candidate already covers the same blobs.
-                let dup = self.free.iter().any(|f| f.blobs == q.blobs);
-                if !dup && q.gap_mm <= self.config.max_gap_mm {
-                    self.free.push(q);
+                // A two-view candidate whose blobs all belong to candidates confirmed by three
+                // or more cameras is a ghost made of their rays: with 3+ cameras a real LED seen
+                // on its own by two cameras gets no third view only where it is hidden, so
+                // this costs no LED but takes the near-duplicates of true LEDs (a few mm off)
+                // that make a tool ambiguous.
+                let explained = multi
+                    && p.cameras == 2
+                    && p.blobs
+                        .iter()
+                        .enumerate()
+                        .all(|(c, &b)| b == NO_BLOB || ((b as usize) < MAX_BLOBS && uses[c][b as usize] > 0));
+                if !explained {
+                    self.free.push(p);
                 }
+                continue;
+            }
+            match self.matcher.without_cameras(&p, claimed) {
+                Some(q) => {
+                    // Re-solved points are two-view candidates again: keep them only if no
+                    // candidate already covers the same blobs.
+                    let dup = self.free.iter().any(|f| f.blobs == q.blobs);
+                    if !dup && q.gap_mm <= self.config.max_gap_mm {
+                        self.free.push(q);
+                    }
+                }
+                // Shared (not claimed) blobs in all but one camera: the point is more likely
+                // the LED itself than a set of merges; it stays as it is.
+                None if self.claimed_cameras(&p) == 0 => self.free.push(p),
+                None => {}
             }
         }
+    }
+
+    /// Cameras (bit per camera) in which unclaimed candidate `i` (three or more cameras)
+    /// shares its blob with exactly one other such candidate's, the two sharing no other
+    /// blob: two LEDs whose spots merged in that camera (both are re-solved without it). Two
+    /// candidates sharing blobs in two or more cameras are one LED and a ghost made of its
+    /// rays (a third view confirms ghosts often enough in a 4-camera rig): that is no merge,
+    /// and taking those cameras away would leave the true LED too few views.
+    fn merged_cameras(&self, i: usize, uses: &[[u8; MAX_BLOBS]; MAX_CAMERAS]) -> u32 {
+        let points = self.matcher.points();
+        let p = &points[i];
+        let mut mask = 0u32;
+        for (c, &b) in p.blobs.iter().enumerate() {
+            if b == NO_BLOB || (b as usize) >= MAX_BLOBS || uses[c][b as usize] < 2 {
+                continue;
+            }
+            let merge = points.iter().enumerate().any(|(j, q)| {
+                j != i
+                    && q.cameras >= 3
+                    && q.blobs[c] == b
+                    && self.claimed_cameras(q) == 0
+                    && p.blobs
+                        .iter()
+                        .zip(&q.blobs)
+                        .filter(|(x, y)| **x != NO_BLOB && x == y)
+                        .count()
+                        == 1
+            });
+            if merge {
+                mask |= 1 << c;
+            }
+        }
+        mask
     }
 
     /// Cameras (bit per camera) in which `p`'s blob is claimed.
