@@ -1,29 +1,19 @@
 //! Loose-LED stream records (docs/stream-protocol.md, "Loose LEDs"): golden bytes and text,
 //! round trips, refusals.
 
-use irtrack_core::Error;
+mod common;
+
+use common::{assert_corruption_refused, assert_golden_frame, golden_position};
 use irtrack_core::camera::RigidTransform;
 use irtrack_core::pose6d::LooseLed;
-use irtrack_core::stream::{LOOSE_BINARY_FRAME_LEN, LooseRecord, PositionRecord, ToolRecord, TrackStatus};
+use irtrack_core::stream::{LOOSE_BINARY_FRAME_LEN, LooseRecord, ToolRecord, TrackStatus};
 
 fn led7() -> LooseRecord {
-    let rec = PositionRecord {
-        frame: 42,
-        capture_ts_ns: 1_700_000_000_123_456_789,
-        position_mm: Some([12.5, -3.25, 1500.0]),
-        orientation_wxyz: None,
-        gap_mm: 0.125,
-        status: TrackStatus::Ok,
-        cameras_used: 2,
-        world_frame: true,
-        latency_us: 4321,
-        params_crc: 0xDEAD_BEEF,
-    };
     LooseRecord {
         loose_id: 7,
         loose_count: 2,
         frames_tracked: 120,
-        record: rec,
+        record: golden_position(None),
     }
 }
 
@@ -54,24 +44,14 @@ const GOLDEN_HEX: &[&str] = &[
     "78000000",         // frames_tracked 120
 ];
 
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
-}
-
 #[test]
 fn loose_record_binary_golden_bytes() {
     let b = led7().to_binary();
     assert_eq!(b.len(), LOOSE_BINARY_FRAME_LEN);
     assert_eq!(LOOSE_BINARY_FRAME_LEN, 116);
-    assert_eq!(hex(&b[..112]), GOLDEN_HEX.concat());
     // CRC-32/IEEE over bytes 0..112, little-endian; the constant was computed independently
     // with Python's zlib.crc32 over the golden bytes above.
-    assert_eq!(b[112..116], irtrack_core::crc::crc32(&b[..112]).to_le_bytes());
-    assert_eq!(
-        hex(&b[112..]),
-        "00b34cac",
-        "CRC of the golden frame (zlib.crc32 agrees)"
-    );
+    assert_golden_frame(&b, GOLDEN_HEX, "00b34cac");
     assert_eq!(LooseRecord::decode_binary(&b).unwrap(), led7());
 }
 
@@ -126,23 +106,13 @@ fn loose_record_refusals_name_the_problem() {
     // A tool line or a main line is not a loose record.
     assert!(LooseRecord::from_ndjson_line(&led7().record.to_ndjson_line()).is_err());
     let b = led7().to_binary();
-    for i in 0..LOOSE_BINARY_FRAME_LEN {
-        let mut c = b;
-        c[i] ^= 0x40;
-        assert!(
-            matches!(LooseRecord::decode_binary(&c), Err(Error::Protocol { .. })),
-            "byte {i} corruption undetected"
-        );
-    }
+    // Every corrupted byte, and version 2, refused.
+    assert_corruption_refused(&b, LooseRecord::decode_binary);
     // Neither of the other frames is a loose frame.
     assert!(LooseRecord::decode_binary(&led7().record.to_binary()).is_err());
     let tool = ToolRecord::new(0, 1, "probe4", led7().record).unwrap();
     assert!(LooseRecord::decode_binary(&tool.to_binary()).is_err());
     assert!(LooseRecord::decode_binary(&b[..115]).is_err());
-    let mut v = b;
-    v[4] = 2;
-    let err = LooseRecord::decode_binary(&v).unwrap_err().to_string();
-    assert!(err.contains("version 2"), "{err}");
     // Reserved bytes must be zero (CRC fixed so that the check behind it is reached).
     let mut r = b;
     r[106] = 1;

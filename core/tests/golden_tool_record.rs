@@ -1,23 +1,13 @@
 //! Per-tool stream records (docs/stream-protocol.md, "Per-tool records"): golden bytes and
 //! text, round trips, refusals.
 
-use irtrack_core::Error;
-use irtrack_core::stream::{PositionRecord, TOOL_BINARY_FRAME_LEN, ToolRecord, TrackStatus};
+mod common;
+
+use common::{assert_corruption_refused, assert_golden_frame, golden_position};
+use irtrack_core::stream::{PositionRecord, TOOL_BINARY_FRAME_LEN, ToolRecord};
 
 fn wing4() -> ToolRecord {
-    let rec = PositionRecord {
-        frame: 42,
-        capture_ts_ns: 1_700_000_000_123_456_789,
-        position_mm: Some([12.5, -3.25, 1500.0]),
-        orientation_wxyz: Some([1.0, 0.0, 0.0, 0.0]),
-        gap_mm: 0.125,
-        status: TrackStatus::Ok,
-        cameras_used: 2,
-        world_frame: true,
-        latency_us: 4321,
-        params_crc: 0xDEAD_BEEF,
-    };
-    ToolRecord::new(2, 3, "wing4", rec).unwrap()
+    ToolRecord::new(2, 3, "wing4", golden_position(Some([1.0, 0.0, 0.0, 0.0]))).unwrap()
 }
 
 /// The golden frame, hex by field as laid out in the spec.
@@ -48,24 +38,13 @@ const GOLDEN_HEX: &[&str] = &[
     "77696e6734000000000000000000000000000000000000000000000000000000", // "wing4", zero padded to 32
 ];
 
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
-}
-
 #[test]
 fn tool_record_binary_golden_bytes() {
     let b = wing4().to_binary();
     assert_eq!(b.len(), TOOL_BINARY_FRAME_LEN);
-    let body: String = GOLDEN_HEX.concat();
-    assert_eq!(hex(&b[..136]), body);
+    assert_eq!(TOOL_BINARY_FRAME_LEN, 140);
     // CRC-32/IEEE over bytes 0..136, little-endian.
-    let crc = irtrack_core::crc::crc32(&b[..136]);
-    assert_eq!(b[136..140], crc.to_le_bytes());
-    assert_eq!(
-        hex(&b[136..]),
-        "7324283a",
-        "CRC of the golden frame (zlib.crc32 agrees)"
-    );
+    assert_golden_frame(&b, GOLDEN_HEX, "7324283a");
     assert_eq!(ToolRecord::decode_binary(&b).unwrap(), wing4());
 }
 
@@ -96,22 +75,8 @@ fn tool_record_refusals_name_the_problem() {
     let plain = r.to_ndjson_line();
     let err = ToolRecord::from_ndjson_line(&plain).unwrap_err().to_string();
     assert!(err.contains("tool"), "{err}");
-    let mut b = wing4().to_binary();
-    for i in 0..TOOL_BINARY_FRAME_LEN {
-        let mut c = b;
-        c[i] ^= 0x40;
-        assert!(
-            matches!(ToolRecord::decode_binary(&c), Err(Error::Protocol { .. })),
-            "byte {i} corruption undetected"
-        );
-    }
+    // Every corrupted byte, and version 2, refused.
+    assert_corruption_refused(&wing4().to_binary(), ToolRecord::decode_binary);
     // A main-record frame is not a tool frame.
     assert!(ToolRecord::decode_binary(&r.to_binary()).is_err());
-    b[4] = 2;
-    assert!(
-        ToolRecord::decode_binary(&b)
-            .unwrap_err()
-            .to_string()
-            .contains("version 2")
-    );
 }
