@@ -114,6 +114,57 @@ fn predicted_tre(rows: &[Row]) -> (f64, f64) {
     (rms(&res), res.iter().copied().fold(0.0, f64::max))
 }
 
+/// `host-tools robot-sim` with its robot and cell-feed listeners on 127.0.0.1:0 (home
+/// 500,0,300, 300 mm/s), the LED (or the tool's origin) at `led_offset_mm` on the flange, the
+/// tool turned by `mount_deg` (a rotation vector; zero for a lone LED) and the errors of
+/// `model`. Returns the process, the robot's address and the cell feed's.
+fn start_robot_sim(
+    led_offset_mm: [f64; 3],
+    mount_deg: [f64; 3],
+    model: &RobotErrorModel,
+) -> (Proc, String, String) {
+    let xyz = |v: [f64; 3]| format!("{},{},{}", v[0], v[1], v[2]);
+    let mut sim = spawn(
+        Command::new(bin("host-tools"))
+            .args([
+                "robot-sim",
+                "--listen",
+                "127.0.0.1:0",
+                "--cell-feed",
+                "127.0.0.1:0",
+            ])
+            .args(["--home", "500,0,300", "--speed-mm-s", "300"])
+            .arg(format!("--led-offset-mm={}", xyz(led_offset_mm)))
+            .arg(format!("--tool-mount-rotation-deg={}", xyz(mount_deg)))
+            .arg(format!("--repeatability-mm={}", model.repeatability_mm))
+            .arg(format!("--abs-error-rms-mm={}", model.field_rms_mm))
+            .arg(format!("--abs-error-wavelength-mm={}", model.field_wavelength_mm))
+            .arg(format!(
+                "--abs-orientation-error-rms-deg={}",
+                model.orientation_rms_deg
+            ))
+            .arg(format!("--error-seed={}", model.seed))
+            .stderr(Stdio::null()),
+        "robot-sim",
+    );
+    let prefixes = ["robot-sim listening on ", "robot-sim cell feed on "];
+    let lines = sim.wait_lines(&prefixes, Duration::from_secs(10)).unwrap();
+    let addr = |i: usize| lines[i].trim_start_matches(prefixes[i]).trim().to_string();
+    let (robot, feed) = (addr(0), addr(1));
+    (sim, robot, feed)
+}
+
+/// The board's irtrackd.toml as the survey reads it: its [robot.safety] limits govern the
+/// survey (robot-sim moves at 300 mm/s).
+fn board_toml(robot_addr: &str, max_speed_mm_s: f64) -> String {
+    format!(
+        "[leds]\nbackend = \"none\"\n[robot]\naddress = {robot_addr:?}\n[robot.safety]\n\
+         workspace_min_mm = [300.0, -300.0, 100.0]\nworkspace_max_mm = [700.0, 300.0, 500.0]\n\
+         max_step_mm = 40.0\nmax_speed_mm_s = {max_speed_mm_s:?}\nmax_gap_mm = 2.0\n\
+         max_age_ms = 200\nmax_rotation_step_deg = 10.0\n[robot.deadman]\nkind = \"flag\"\n"
+    )
+}
+
 fn figure(out: &str, key: &str) -> f64 {
     out.lines()
         .find_map(|l| l.split(key).nth(1))
@@ -137,31 +188,7 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
     let (r_cb, t_cb) = cam0_from_base(centre);
 
     // The robot with its errors and the LED on its flange.
-    let mut sim = spawn(
-        Command::new(bin("host-tools"))
-            .args([
-                "robot-sim",
-                "--listen",
-                "127.0.0.1:0",
-                "--cell-feed",
-                "127.0.0.1:0",
-            ])
-            .args(["--home", "500,0,300", "--speed-mm-s", "300"])
-            .arg(format!(
-                "--led-offset-mm={},{},{}",
-                LED_OFFSET_MM[0], LED_OFFSET_MM[1], LED_OFFSET_MM[2]
-            ))
-            .arg(format!("--repeatability-mm={}", MODEL.repeatability_mm))
-            .arg(format!("--abs-error-rms-mm={}", MODEL.field_rms_mm))
-            .arg(format!("--abs-error-wavelength-mm={}", MODEL.field_wavelength_mm))
-            .arg(format!("--error-seed={}", MODEL.seed))
-            .stderr(Stdio::null()),
-        "robot-sim",
-    );
-    let prefixes = ["robot-sim listening on ", "robot-sim cell feed on "];
-    let lines = sim.wait_lines(&prefixes, Duration::from_secs(10)).unwrap();
-    let addr = |i: usize| lines[i].trim_start_matches(prefixes[i]).trim().to_string();
-    let (robot_addr, feed_addr) = (addr(0), addr(1));
+    let (_sim, robot_addr, feed_addr) = start_robot_sim(LED_OFFSET_MM, [0.0; 3], &MODEL);
 
     // irtrackd on the cell's cameras; the transform is the simulator's secret.
     let o = Command::new(bin("host-tools"))
@@ -198,16 +225,8 @@ fn survey_registers_the_simulated_cell_and_measures_its_error_model() {
     let stream = addr_field(&ready, "stream=");
     let params_addr = addr_field(&ready, "params=");
 
-    // The board's irtrackd.toml as the survey reads it: its [robot.safety] limits govern the
-    // survey (robot-sim moves at 300 mm/s, below max_speed_mm_s).
-    let board = |max_speed_mm_s: f64| {
-        format!(
-            "[leds]\nbackend = \"none\"\n[robot]\naddress = {robot_addr:?}\n[robot.safety]\n\
-             workspace_min_mm = [300.0, -300.0, 100.0]\nworkspace_max_mm = [700.0, 300.0, 500.0]\n\
-             max_step_mm = 40.0\nmax_speed_mm_s = {max_speed_mm_s:?}\nmax_gap_mm = 2.0\n\
-             max_age_ms = 200\nmax_rotation_step_deg = 10.0\n[robot.deadman]\nkind = \"flag\"\n"
-        )
-    };
+    // robot-sim moves at 300 mm/s, below max_speed_mm_s (400) here.
+    let board = |max_speed_mm_s: f64| board_toml(&robot_addr, max_speed_mm_s);
     let safety = dir.join("board-irtrackd.toml");
     std::fs::write(&safety, board(400.0)).unwrap();
     let report = dir.join("report");
@@ -472,42 +491,11 @@ fn survey_with_a_tool_solves_its_mount_and_measures_orientation_errors() {
     let mount = uq(ORIENT).inverse() * r_cb.inverse() * rest_cam0;
     let mount_deg = mount.scaled_axis().map(f64::to_degrees);
 
-    let mut sim = spawn(
-        Command::new(bin("host-tools"))
-            .args([
-                "robot-sim",
-                "--listen",
-                "127.0.0.1:0",
-                "--cell-feed",
-                "127.0.0.1:0",
-            ])
-            .args(["--home", "500,0,300", "--speed-mm-s", "300"])
-            .arg(format!(
-                "--led-offset-mm={},{},{}",
-                TOOL_ORIGIN_MM[0], TOOL_ORIGIN_MM[1], TOOL_ORIGIN_MM[2]
-            ))
-            .arg(format!(
-                "--tool-mount-rotation-deg={},{},{}",
-                mount_deg.x, mount_deg.y, mount_deg.z
-            ))
-            .arg(format!("--repeatability-mm={}", TOOL_MODEL.repeatability_mm))
-            .arg(format!("--abs-error-rms-mm={}", TOOL_MODEL.field_rms_mm))
-            .arg(format!(
-                "--abs-error-wavelength-mm={}",
-                TOOL_MODEL.field_wavelength_mm
-            ))
-            .arg(format!(
-                "--abs-orientation-error-rms-deg={}",
-                TOOL_MODEL.orientation_rms_deg
-            ))
-            .arg(format!("--error-seed={}", TOOL_MODEL.seed))
-            .stderr(Stdio::null()),
-        "robot-sim",
+    let (_sim, robot_addr, feed_addr) = start_robot_sim(
+        TOOL_ORIGIN_MM,
+        [mount_deg.x, mount_deg.y, mount_deg.z],
+        &TOOL_MODEL,
     );
-    let prefixes = ["robot-sim listening on ", "robot-sim cell feed on "];
-    let lines = sim.wait_lines(&prefixes, Duration::from_secs(10)).unwrap();
-    let addr = |i: usize| lines[i].trim_start_matches(prefixes[i]).trim().to_string();
-    let (robot_addr, feed_addr) = (addr(0), addr(1));
 
     let config = dir.join("irtrackd.toml");
     std::fs::write(
@@ -524,16 +512,7 @@ fn survey_with_a_tool_solves_its_mount_and_measures_orientation_errors() {
     let (_irtrackd, ready) = start_irtrackd(&config, &dir.join("state"));
     let stream = addr_field(&ready, "stream=");
     let safety = dir.join("board-irtrackd.toml");
-    std::fs::write(
-        &safety,
-        format!(
-            "[leds]\nbackend = \"none\"\n[robot]\naddress = {robot_addr:?}\n[robot.safety]\n\
-             workspace_min_mm = [300.0, -300.0, 100.0]\nworkspace_max_mm = [700.0, 300.0, 500.0]\n\
-             max_step_mm = 40.0\nmax_speed_mm_s = 400.0\nmax_gap_mm = 2.0\n\
-             max_age_ms = 200\nmax_rotation_step_deg = 10.0\n[robot.deadman]\nkind = \"flag\"\n"
-        ),
-    )
-    .unwrap();
+    std::fs::write(&safety, board_toml(&robot_addr, 400.0)).unwrap();
     let report = dir.join("report");
     let survey = |tool: &str| {
         Command::new(bin("host-tools"))
