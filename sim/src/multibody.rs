@@ -251,10 +251,26 @@ pub struct RunStats {
     /// Frames in which a loose LED reported within 1 mm of the truth carried an id that had
     /// been reported on a tool's LED (within 2 mm) before: a swapped id.
     pub loose_id_swaps: usize,
+    /// Wall time in `MultiTracker::process` per frame set, median (ns; diagnostics: the
+    /// association's cost in this scene, which the benchmark's standing tools do not show).
+    pub track_ns_median: f64,
+    /// Allocations counted in `MultiTracker::process` over the run ([`run_counting`]).
+    pub track_allocs: u64,
 }
 
 /// Renders and tracks `frames` frame sets of [`scene`] in `rig` with `config`.
 pub fn run(rig: RigPreset, frames: u64, config: PoseConfig) -> Result<RunStats, SimError> {
+    run_counting(rig, frames, config, &|| 0)
+}
+
+/// [`run`], with `allocations` read before and after every `MultiTracker::process` (a counting
+/// allocator's counter, e.g. `irtrack_testkit::allocations`): [`RunStats::track_allocs`].
+pub fn run_counting(
+    rig: RigPreset,
+    frames: u64,
+    config: PoseConfig,
+    allocations: &dyn Fn() -> u64,
+) -> Result<RunStats, SimError> {
     let (cfg, tools) = scene(rig)?;
     let mut sc = Scenario::new(cfg)?;
     let rig = sc.rig().clone();
@@ -269,6 +285,8 @@ pub fn run(rig: RigPreset, frames: u64, config: PoseConfig) -> Result<RunStats, 
     let mut tracker = MultiTracker::new(&rig, &tools, config)?;
     let mut stats: Vec<ToolStats> = tools.iter().map(|_| ToolStats::default()).collect();
     let (mut loose_frames, mut loose_id, mut loose_ids, mut loose_id_swaps) = (0usize, None, 0usize, 0usize);
+    let mut track_ns: Vec<f64> = Vec::with_capacity(frames as usize);
+    let mut track_allocs = 0u64;
     // Ids the tracker gave to things that were not the loose LED.
     let mut foreign_ids: Vec<u32> = Vec::new();
     let loose_body = tools.len();
@@ -280,7 +298,10 @@ pub fn run(rig: RigPreset, frames: u64, config: PoseConfig) -> Result<RunStats, 
             detectors[c].detect(&img, None, &blob_cfg)?;
         }
         let lists: Vec<_> = detectors.iter().map(|d| d.blobs()).collect();
+        let (t0, a0) = (std::time::Instant::now(), allocations());
         tracker.process(&lists)?;
+        track_ns.push(t0.elapsed().as_nanos() as f64);
+        track_allocs += allocations() - a0;
         let t_s = sc.time_s(k);
         let cfg = sc.config();
         // Every LED's image per camera, to decide which LEDs are seen on their own.
@@ -399,6 +420,11 @@ pub fn run(rig: RigPreset, frames: u64, config: PoseConfig) -> Result<RunStats, 
         loose_frames,
         loose_ids,
         loose_id_swaps,
+        track_allocs,
+        track_ns_median: {
+            track_ns.sort_by(f64::total_cmp);
+            track_ns.get(track_ns.len() / 2).copied().unwrap_or(0.0)
+        },
     })
 }
 
@@ -415,7 +441,11 @@ fn status_name(s: &PoseStatus) -> &'static str {
 
 /// One line per tool and one for the loose LED.
 pub fn report(what: &str, r: &RunStats) -> String {
-    let mut s = format!("{what}: {} frames at {FPS} fps\n", r.frames);
+    let mut s = format!(
+        "{what}: {} frames at {FPS} fps, MultiTracker::process {:.1} µs per set (median wall time)\n",
+        r.frames,
+        r.track_ns_median / 1e3
+    );
     for (name, st) in TOOL_NAMES.iter().zip(&r.tools) {
         s += &format!(
             "  {name}: seen in {} frames, tracked in {} of them ({:.2} %), {} tracked in all ({} from 3 LEDs); \

@@ -6,8 +6,13 @@
 
 use irtrack_core::pose6d::PoseConfig;
 use irtrack_sim::multibody::{
-    FPS, RunStats, four_camera_rig, missed_targets, ninety_degree_pair, report, run,
+    FPS, RunStats, four_camera_rig, missed_targets, ninety_degree_pair, report, run, run_counting,
 };
+
+// Counts this thread's allocations: the 4-camera run checks that `MultiTracker::process`
+// makes none (merges, ghosts and re-solved points included).
+#[global_allocator]
+static GLOBAL: irtrack_testkit::CountingAlloc = irtrack_testkit::CountingAlloc;
 use nalgebra::Rotation3;
 
 const SECONDS: f64 = 60.0;
@@ -72,15 +77,17 @@ fn three_tools_and_a_loose_led_in_the_90_degree_pair() {
 /// two LEDs) is where the tracker lost frames.
 #[test]
 fn three_tools_and_a_loose_led_in_a_four_camera_rig() {
-    let r = run(
+    let r = run_counting(
         four_camera_rig().unwrap(),
         (SECONDS * FPS) as u64,
         PoseConfig::default(),
+        &irtrack_testkit::allocations,
     )
     .unwrap();
     print!("{}", report("4-camera rig", &r));
     let missed = missed_targets("4-camera rig", &r);
     assert!(missed.is_empty(), "{missed:#?}");
+    assert_eq!(r.track_allocs, 0, "MultiTracker::process allocated");
 }
 
 #[test]
