@@ -24,7 +24,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use crate::blob::{Blob, BlobConfig, BlobDetector, BlobLimits};
-use crate::camera::{CameraModel, RigidTransform};
+use crate::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
 use crate::image::{GrayImage, Pixel, Roi};
 use crate::params::RigParams;
 use crate::triangulate::{Ray, least_squares_rays, midpoint};
@@ -248,6 +248,8 @@ pub struct Tracker {
     cams: Vec<CameraState>,
     rays: Vec<Ray>,
     measurement: Measurement,
+    /// Built by [`Tracker::detection_only`]: no calibration, never a point.
+    detection_only: bool,
 }
 
 impl Tracker {
@@ -259,9 +261,54 @@ impl Tracker {
             cams: Vec::new(),
             rays: Vec::new(),
             measurement: Measurement::empty(0),
+            detection_only: false,
         };
         t.set_params(rig)?;
         Ok(t)
+    }
+
+    /// A tracker that only detects blobs, for cameras without a calibration (a cluster camera
+    /// board: its observations carry distorted centroids, the solver has the calibration). It
+    /// takes 1..=[`MAX_CAMERAS`] cameras of the given image sizes; detection, the quality gate
+    /// and [`Tracker::blobs`] work as usual (always on the full frame: no tracking window
+    /// without a point), [`Tracker::solve`] never gives a point. [`Tracker::set_params`] turns
+    /// it into a full tracker.
+    pub fn detection_only(image_sizes: &[ImageSize], config: TrackerConfig) -> Result<Self> {
+        config.validate()?;
+        let n = image_sizes.len();
+        if !(1..=MAX_CAMERAS).contains(&n) {
+            return Err(Error::InvalidParams {
+                reason: format!("{n} cameras; blob detection needs 1..={MAX_CAMERAS}"),
+            });
+        }
+        let mut cams = Vec::with_capacity(n);
+        for (i, &size) in image_sizes.iter().enumerate() {
+            // A stand-in pinhole model: the candidates' rays are computed but never used.
+            let f = f64::from(size.width_px.max(size.height_px).max(1));
+            let model = CameraModel {
+                intrinsics: Intrinsics {
+                    fx_px: f,
+                    fy_px: f,
+                    cx_px: f64::from(size.width_px) / 2.0,
+                    cy_px: f64::from(size.height_px) / 2.0,
+                },
+                distortion: Distortion::NONE,
+                image_size: size,
+            };
+            cams.push(CameraState::new(i, model, RigidTransform::IDENTITY, &config)?);
+        }
+        Ok(Tracker {
+            config,
+            cams,
+            rays: Vec::with_capacity(n),
+            measurement: Measurement::empty(n),
+            detection_only: true,
+        })
+    }
+
+    /// Built by [`Tracker::detection_only`] and not given parameters since.
+    pub fn is_detection_only(&self) -> bool {
+        self.detection_only
     }
 
     /// Swaps in new rig parameters (calibration push, possibly new image sizes). Buffers
@@ -276,37 +323,18 @@ impl Tracker {
         }
         let mut cams = Vec::with_capacity(n);
         for (i, c) in rig.cameras.iter().enumerate() {
-            let size = c.model.image_size;
             let k = &c.model.intrinsics;
             if !(k.fx_px > 0.0 && k.fy_px > 0.0 && k.cx_px.is_finite() && k.cy_px.is_finite()) {
                 return Err(Error::InvalidParams {
                     reason: format!("camera {i}: focal lengths must be positive and centre finite"),
                 });
             }
-            let limits = BlobLimits {
-                max_width_px: size.width_px,
-                max_height_px: size.height_px,
-                max_labels: self.config.max_labels,
-                max_blobs: self.config.max_blobs,
-            };
-            let detector = BlobDetector::new(limits).map_err(|e| Error::InvalidParams {
-                reason: format!("camera {i}: image size {}x{}: {e}", size.width_px, size.height_px),
-            })?;
-            cams.push(CameraState {
-                detector,
-                model: c.model,
-                cam_from_cam0: c.cam_from_cam0,
-                candidates: Vec::with_capacity(self.config.max_blobs),
-                external_blobs: Vec::with_capacity(self.config.max_blobs),
-                external: false,
-                last_px: None,
-                used_roi: false,
-                detected: false,
-            });
+            cams.push(CameraState::new(i, c.model, c.cam_from_cam0, &self.config)?);
         }
         self.cams = cams;
         self.rays = Vec::with_capacity(n);
         self.measurement = Measurement::empty(n);
+        self.detection_only = false;
         Ok(())
     }
 
@@ -493,6 +521,10 @@ impl Tracker {
                 marker: None,
             };
         }
+        if self.detection_only {
+            // No calibration: the blobs are the result (a camera board's observations).
+            return;
+        }
         let missing = self.cams.iter().position(|c| !c.detected);
         let with_candidates = self.cams.iter().filter(|c| !c.candidates.is_empty()).count();
         let mut best: Option<Hypothesis> = None;
@@ -588,6 +620,36 @@ impl Tracker {
 }
 
 impl CameraState {
+    /// A camera's state with every buffer allocated for `config`.
+    fn new(
+        i: usize,
+        model: CameraModel,
+        cam_from_cam0: RigidTransform,
+        config: &TrackerConfig,
+    ) -> Result<Self> {
+        let size = model.image_size;
+        let limits = BlobLimits {
+            max_width_px: size.width_px,
+            max_height_px: size.height_px,
+            max_labels: config.max_labels,
+            max_blobs: config.max_blobs,
+        };
+        let detector = BlobDetector::new(limits).map_err(|e| Error::InvalidParams {
+            reason: format!("camera {i}: image size {}x{}: {e}", size.width_px, size.height_px),
+        })?;
+        Ok(CameraState {
+            detector,
+            model,
+            cam_from_cam0,
+            candidates: Vec::with_capacity(config.max_blobs),
+            external_blobs: Vec::with_capacity(config.max_blobs),
+            external: false,
+            last_px: None,
+            used_roi: false,
+            detected: false,
+        })
+    }
+
     fn blobs(&self) -> &[Blob] {
         if self.external {
             &self.external_blobs
@@ -894,6 +956,53 @@ mod tests {
         let err = (p - truth).norm();
         assert!(err < tol_mm, "error {err} mm: got {p:?}, truth {truth:?}");
         assert!(m.gap_mm <= TrackerConfig::default().max_gap_mm && m.quality > 0.0);
+    }
+
+    #[test]
+    fn detection_only_finds_blobs_of_one_camera_and_never_a_point() {
+        let size = ImageSize {
+            width_px: W,
+            height_px: H,
+        };
+        let mut rng = Rng(7);
+        let frame = to_u8(&render(
+            W,
+            H,
+            &[led(100.25, 80.5)],
+            10.0,
+            2.0,
+            0.05,
+            255,
+            &mut rng,
+        ));
+        let mut t = Tracker::detection_only(&[size], TrackerConfig::default()).unwrap();
+        assert!(t.is_detection_only());
+        assert_eq!(t.camera_count(), 1);
+        let n = t.detect_u8(0, &GrayImage::new(&frame, W, H, W).unwrap()).unwrap();
+        assert_eq!(n, 1);
+        let b = t.blobs(0)[0];
+        assert!(
+            (b.x_px - 100.25).abs() < 0.1 && (b.y_px - 80.5).abs() < 0.1,
+            "{b:?}"
+        );
+        let m = *t.solve();
+        assert!(m.point_cam0_mm.is_none(), "{m:?}");
+        assert_eq!(m.cameras()[0].blob_count, 1);
+        // Two uncalibrated cameras seeing the same spot still give no point.
+        let mut t2 = Tracker::detection_only(&[size, size], TrackerConfig::default()).unwrap();
+        for c in 0..2 {
+            t2.detect_u8(c, &GrayImage::new(&frame, W, H, W).unwrap())
+                .unwrap();
+        }
+        assert!(t2.solve().point_cam0_mm.is_none());
+        // Sizes are checked as for calibrated cameras; parameters make it a full tracker.
+        assert!(Tracker::detection_only(&[], TrackerConfig::default()).is_err());
+        assert!(
+            t.detect_u8(0, &GrayImage::new(&frame[..W as usize * 10], W, 10, W).unwrap())
+                .is_err()
+        );
+        t2.set_params(&orthogonal()).unwrap();
+        assert!(!t2.is_detection_only());
     }
 
     #[test]

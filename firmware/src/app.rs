@@ -202,13 +202,27 @@ fn open_devices(
     overrides: Overrides,
     handle: &Arc<ParamsHandle>,
     cluster: &Option<crate::cluster::SharedReport>,
+    tracking: TrackerConfig,
 ) -> Result<Devices> {
     let (source, sim_rig) = match overrides.source {
         Some(s) => (s, None),
-        None if cfg.cluster.role == crate::cluster::Role::Solver => (
-            crate::cluster::solver_source(&cfg.cluster, handle.clone(), cluster.clone().unwrap_or_default())?,
-            None,
-        ),
+        None if cfg.cluster.role == crate::cluster::Role::Solver => {
+            // Its own cameras, if any, feed the pairing beside the camera boards'.
+            let own = if cfg.cluster.own_cameras {
+                Some((open_source(&resolved.source)?.0, tracking))
+            } else {
+                None
+            };
+            (
+                crate::cluster::solver_source(
+                    &cfg.cluster,
+                    handle.clone(),
+                    cluster.clone().unwrap_or_default(),
+                    own,
+                )?,
+                None,
+            )
+        }
         None => open_source(&resolved.source)?,
     };
     let (leds, led_record) = match overrides.leds {
@@ -248,7 +262,12 @@ fn start_params(
         && cfg.service.params_from_simulator
         && let Some(rig) = sim_rig
     {
-        params.install_unstored(rig, "simulator")?;
+        if rig.cameras.len() >= 2 {
+            params.install_unstored(rig, "simulator")?;
+        } else {
+            // A camera board's single camera: a parameter set needs two, the board none.
+            tracing::info!("simulated camera board with one camera: no parameter set of its own");
+        }
     }
     Ok(params)
 }
@@ -378,7 +397,8 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
 
     let handle = Arc::new(ParamsHandle::new());
     let cluster = crate::cluster::new_report(&cfg.cluster);
-    let devices = open_devices(&cfg, &resolved, overrides, &handle, &cluster)?;
+    let (tracking, tuning) = load_tuning(&cfg)?;
+    let devices = open_devices(&cfg, &resolved, overrides, &handle, &cluster, tracking)?;
     let led_desc = devices
         .leds
         .as_ref()
@@ -402,7 +422,6 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     )?;
     // Tools named by outputs exist in the set irtrackd starts with.
     outputs.check_params(&handle)?;
-    let (tracking, tuning) = load_tuning(&cfg)?;
     let tap = Arc::new(crate::viewer::ViewerTap::new());
     // /metrics shows the viewers' copies and drops.
     let _ = status.viewer_tap.set(tap.clone());

@@ -404,6 +404,7 @@ impl Config {
             return bad(format!("realtime.deadline_ms must be > 0, got {d}"));
         }
         let source = self.source.resolve()?;
+        self.check_camera_count(&source)?;
         if self.service.params_from_simulator && !matches!(source, Source::Sim(_)) {
             return bad("service.params_from_simulator only works with source.kind = \"sim\"".into());
         }
@@ -419,6 +420,47 @@ impl Config {
             return bad(format!("realtime.fifo_priority must be 1..=99, got {p}"));
         }
         Ok(Resolved { source, leds })
+    }
+}
+
+impl Config {
+    /// Triangulation needs two cameras: a standalone board needs two of its own, a camera
+    /// board one (the solver has the others), a solver two in all (`image_sizes_px`).
+    fn check_camera_count(&self, source: &Source) -> Result<()> {
+        use crate::cluster::Role;
+        let local = match source {
+            Source::Sim(s) => Some(match (&s.cameras, s.rig) {
+                (Some(c), _) => c.len(),
+                (None, crate::source::sim::SimRig::Ring) => s.ring_cameras,
+                (None, _) => 2,
+            }),
+            Source::V4l2(v) => Some(v.devices.len()),
+            // A recording's camera count is known once it is opened.
+            Source::Replay(_) => None,
+        };
+        let Some(n) = local else { return Ok(()) };
+        if self.cluster.role == Role::Standalone && n < 2 {
+            return Err(FirmwareError::Config {
+                reason: format!(
+                    "[source] gives {n} camera; a standalone board needs at least 2 to triangulate. \
+                     A board with one camera runs as a camera board ([cluster] role = \"camera\") \
+                     feeding a solver (docs/cluster.md)"
+                ),
+            });
+        }
+        if self.cluster.role == Role::Solver
+            && self.cluster.own_cameras
+            && n > self.cluster.image_sizes_px.len()
+        {
+            return Err(FirmwareError::Config {
+                reason: format!(
+                    "cluster.image_sizes_px lists {} cameras but the solver's own [source] has {n}: \
+                     image_sizes_px lists every camera of the rig, the solver's own and the boards'",
+                    self.cluster.image_sizes_px.len()
+                ),
+            });
+        }
+        Ok(())
     }
 }
 
@@ -479,11 +521,8 @@ impl SourceConfig {
             },
             SourceKind::V4l2 => match &self.v4l2 {
                 None => return bad("source.kind = \"v4l2\" needs a [source.v4l2] table".into()),
-                Some(v) if v.devices.len() < 2 => {
-                    return bad(format!(
-                        "source.v4l2.devices needs at least 2 cameras, got {}",
-                        v.devices.len()
-                    ));
+                Some(v) if v.devices.is_empty() => {
+                    return bad("source.v4l2.devices lists no camera".into());
                 }
                 Some(v) => {
                     v.validate().map_err(|e| FirmwareError::Config {

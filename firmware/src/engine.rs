@@ -20,7 +20,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use irtrack_core::blob::Blob;
-use irtrack_core::camera::RigidTransform;
+use irtrack_core::camera::{ImageSize, RigidTransform};
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::RigParams;
 use irtrack_core::pipeline::{
@@ -33,7 +33,7 @@ use irtrack_core::stream::{LooseRecord, PositionRecord, ToolRecord, TrackStatus}
 use tokio::sync::watch;
 
 use crate::clock;
-use crate::error::Result;
+use crate::error::{FirmwareError, Result};
 use crate::leds::indication::TrackIndication;
 use crate::source::{FrameSet, FrameSource, Pixels, SourceError};
 use crate::status::SharedStatus;
@@ -230,6 +230,9 @@ pub struct Engine {
     times: SetTimes,
     /// Cluster camera role: every camera's blobs go to the solver (docs/cluster.md).
     observation_sink: Option<Box<dyn ObservationSink>>,
+    /// Cluster camera role without a parameter set of its own (e.g. one camera): the tracker
+    /// only detects; the records carry no position.
+    detection_only: bool,
 }
 
 /// Receives each camera's blobs right after detection (cluster role "camera": publishes them).
@@ -284,6 +287,7 @@ impl Engine {
             reconnects_seen: 0,
             times: SetTimes::default(),
             observation_sink: None,
+            detection_only: false,
         }
     }
 
@@ -437,6 +441,37 @@ impl Engine {
         self
     }
 
+    /// Detects blobs without a parameter set (cluster camera role: 1..=8 cameras of any
+    /// image size) until one is installed; the records meanwhile carry no position and the
+    /// missing set is not a fault. A set installed later (a board with two or more cameras)
+    /// makes it a full tracker with positions of its own.
+    pub fn with_detection_only(mut self) -> Result<Self> {
+        if self.tracker.is_some() || self.params.current().is_some() {
+            return Ok(self);
+        }
+        let sizes: Vec<ImageSize> = self
+            .set
+            .frames
+            .iter()
+            .map(|f| ImageSize {
+                width_px: f.width_px,
+                height_px: f.height_px,
+            })
+            .collect();
+        let tracker =
+            Tracker::detection_only(&sizes, self.tracker_cfg).map_err(|e| FirmwareError::Config {
+                reason: format!("camera board detection: {e}"),
+            })?;
+        self.tracker = Some(tracker);
+        self.detection_only = true;
+        self.status.detection_only.store(true, R);
+        tracing::info!(
+            cameras = sizes.len(),
+            "camera board without a parameter set: detecting and publishing blobs only"
+        );
+        Ok(self)
+    }
+
     /// Whether the active set runs in 6-DOF mode.
     pub fn tracks_pose(&self) -> bool {
         self.pose.is_some()
@@ -483,6 +518,10 @@ impl Engine {
         };
         match result {
             Ok(()) => {
+                if self.detection_only {
+                    self.detection_only = false;
+                    self.status.detection_only.store(false, R);
+                }
                 self.pose = pose;
                 self.robot_tool = match robot_tool_index(
                     self.robot_tool_name.as_deref(),
@@ -565,7 +604,7 @@ impl Engine {
         let (mut rec, t_detect, t_solve) = match self
             .tracker
             .as_mut()
-            .filter(|_| self.status.params_loaded.load(R))
+            .filter(|_| self.detection_only || self.status.params_loaded.load(R))
         {
             // The cameras saw a moving marker at different instants: their rays do not meet
             // where the marker was. No position rather than a wrong one.
@@ -637,7 +676,20 @@ impl Engine {
                 }
                 detected = !failed;
                 let t_detect = Instant::now();
-                if let Some(pose_tracker) = self.pose.as_mut() {
+                if self.detection_only {
+                    // A camera board's blobs went to the solver; it has no position itself.
+                    let seen = (0..tracker.camera_count()).any(|c| !tracker.blobs(c).is_empty());
+                    self.status.set_track(if seen {
+                        TrackIndication::Partial
+                    } else {
+                        TrackIndication::None
+                    });
+                    (
+                        Self::blank_record(self.set.index, capture_ns, 0, TrackStatus::NoParams),
+                        t_detect,
+                        t_detect,
+                    )
+                } else if let Some(pose_tracker) = self.pose.as_mut() {
                     let rec = if failed {
                         Self::fault_record(&self.status, self.set.index, capture_ns, self.params_crc)
                     } else {
@@ -971,7 +1023,9 @@ fn peak_dn(blobs: &[Blob], frame: &crate::source::Frame) -> u32 {
 /// Lists every blob of the tracker's last detection with why it was (not) used, through
 /// `push(camera, blob)`.
 fn fill_blob_views(tracker: &Tracker, pose: Option<&MultiTracker>, mut push: impl FnMut(usize, BlobView)) {
-    let six_dof = pose.is_some();
+    // Without a point to compare with (6-DOF, or a camera board's detection only), every
+    // usable blob counts as used.
+    let six_dof = pose.is_some() || tracker.is_detection_only();
     let cfg = *tracker.config();
     let m = tracker.measurement();
     for camera in 0..tracker.camera_count() {

@@ -189,6 +189,9 @@ pub struct SharedStatus {
     // Health inputs for the LEDs.
     /// A parameter set is active.
     pub params_loaded: AtomicBool,
+    /// A cluster camera board detecting without a parameter set of its own (it needs none):
+    /// the missing set is not a fault.
+    pub detection_only: AtomicBool,
     /// The source reports a lost camera; cleared by the next good set.
     pub camera_lost: AtomicBool,
     track: AtomicU8,
@@ -288,6 +291,7 @@ impl SharedStatus {
             pairing_error_last_ns: AtomicU64::new(0),
             pairing_error_max_ns: AtomicU64::new(0),
             params_loaded: AtomicBool::new(false),
+            detection_only: AtomicBool::new(false),
             camera_lost: AtomicBool::new(false),
             track: AtomicU8::new(0),
             robot: AtomicU8::new(0),
@@ -351,7 +355,7 @@ impl SharedStatus {
         if self.camera_lost.load(R) {
             f.push(Fault::CameraLost);
         }
-        if !self.params_loaded.load(R) {
+        if !self.params_loaded.load(R) && !self.detection_only.load(R) {
             f.push(Fault::NoParams);
         }
         if self.deadline_fault.load(R) {
@@ -364,7 +368,7 @@ impl SharedStatus {
     pub fn top_fault(&self) -> Option<Fault> {
         if self.camera_lost.load(R) {
             Some(Fault::CameraLost)
-        } else if !self.params_loaded.load(R) {
+        } else if !self.params_loaded.load(R) && !self.detection_only.load(R) {
             Some(Fault::NoParams)
         } else if self.deadline_fault.load(R) {
             Some(Fault::DeadlineMisses)
@@ -506,7 +510,8 @@ impl SharedStatus {
     /// A copy of the cluster state, when this irtrackd is a camera board or a solver.
     pub fn cluster_report(&self) -> Option<crate::cluster::report::ClusterReport> {
         let shared = self.cluster.lock().ok()?.clone()?;
-        let r = shared.lock().ok()?.clone();
+        let mut r = shared.lock().ok()?.clone();
+        r.detection_only = self.detection_only.load(R);
         Some(r)
     }
 
@@ -946,7 +951,7 @@ pub fn fault_texts(
             ),
         });
     }
-    if !st.params_loaded.load(R) {
+    if !st.params_loaded.load(R) && !st.detection_only.load(R) {
         out.push(FaultText {
             code: "no_params",
             camera: None,
@@ -1003,7 +1008,7 @@ pub fn fault_texts(
         }
         return out;
     }
-    let processing = st.sets_processed.load(R) > 0 && st.params_loaded.load(R);
+    let processing = st.sets_processed.load(R) > 0 && (st.params_loaded.load(R) || st.detection_only.load(R));
     if processing {
         for (i, c) in st.cameras.iter().enumerate() {
             if c.blobs_last.load(R) > 0 || c.frames.load(R) == 0 {

@@ -236,3 +236,51 @@ fn binary_prints_ready_line_streams_and_stops_on_sigterm() {
     assert!(code.success(), "{code:?}");
     let _ = std::io::stdout().flush();
 }
+
+/// Triangulation needs two cameras: a standalone board with one is refused with a pointer to
+/// the camera role; a camera board with one camera is fine (the solver has the others).
+#[test]
+fn one_camera_runs_as_a_camera_board_only() {
+    let one_sim = "[source.sim]\nrig = \"ring\"\nring_cameras = 4\ncameras = [2]\n";
+    let e = err(one_sim);
+    assert!(
+        e.contains("standalone board needs at least 2") && e.contains("role = \"camera\""),
+        "{e}"
+    );
+    let v4l2 = "[source]\nkind = \"v4l2\"\n[source.v4l2]\nwidth_px = 640\nheight_px = 480\nfps = 120\n";
+    let one_v4l2 = &format!("{v4l2}devices = [\"/dev/video0\"]\n");
+    let e = err(one_v4l2);
+    assert!(e.contains("[source] gives 1 camera"), "{e}");
+    let e = err(&format!("{v4l2}devices = []\n"));
+    assert!(e.contains("lists no camera"), "{e}");
+    let camera = "[cluster]\nrole = \"camera\"\nboard = \"b2\"\nconnect = [\"tcp/127.0.0.1:7447\"]\n";
+    for source in [one_sim, one_v4l2.as_str()] {
+        let toml = format!("{source}{camera}");
+        let r = Config::from_toml(&toml, "test.toml");
+        if cfg!(feature = "cluster") {
+            r.unwrap_or_else(|e| panic!("{toml}: {e}"));
+        } else {
+            let e = r.unwrap_err().to_string();
+            assert!(e.contains("`cluster` feature"), "{e}");
+        }
+    }
+    if cfg!(feature = "cluster") {
+        let e = err(&format!("{one_sim}{camera}own_cameras = true\n"));
+        assert!(e.contains("own_cameras is for role = \"solver\""), "{e}");
+        // The solver's own cameras are part of image_sizes_px (every camera of the rig).
+        let solver = "[cluster]\nrole = \"solver\"\nboard = \"s0\"\nown_cameras = true\n\
+                      listen = [\"tcp/127.0.0.1:7447\"]\nimage_sizes_px = [[640, 480], [640, 480]]\n";
+        let e = err(&format!(
+            "[source.sim]\nrig = \"ring\"\nring_cameras = 4\ncameras = [0, 1, 2]\n{solver}"
+        ));
+        assert!(
+            e.contains("image_sizes_px lists 2 cameras but the solver's own [source] has 3"),
+            "{e}"
+        );
+        Config::from_toml(&format!("{one_sim}{solver}"), "test.toml").unwrap();
+        let e = err(
+            "[cluster]\nrole = \"solver\"\nlisten = [\"tcp/127.0.0.1:7447\"]\nimage_sizes_px = [[640, 480]]\n",
+        );
+        assert!(e.contains("a solver needs 2..=8 cameras in all"), "{e}");
+    }
+}

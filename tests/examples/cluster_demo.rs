@@ -1,4 +1,4 @@
-//! Two camera boards and a solver on simulated cameras, for `cargo xtask demo` (step "more
+//! Two camera boards and a solver with a camera of its own, on simulated cameras, for `cargo xtask demo` (step "more
 //! cameras than one board") and for trying the cluster by hand:
 //!
 //! ```text
@@ -7,10 +7,12 @@
 //! target/debug/examples/cluster_demo OUT_DIR
 //! ```
 //!
-//! Board b0 carries cameras 0 and 1 of a four-camera ring rig, board b1 cameras 2 and 3; each
-//! publishes its blobs over Zenoh (loopback, explicit endpoints) and the solver triangulates all
-//! four. The solver's positions are printed against the simulator's truth, then b1 is stopped
-//! and the solver goes on with b0's two cameras. Exits non-zero when the positions are not
+//! Board b0 carries cameras 0 and 1 of a four-camera ring rig, board b1 camera 2 alone (one
+//! camera per board, the usual case at 120 fps VGA; it needs no parameter set), and the solver
+//! camera 3 itself; the boards publish their blobs over Zenoh (loopback, explicit endpoints) and
+//! the solver pairs them with its own camera's and triangulates all four. The solver's positions
+//! are printed against the simulator's truth, then b1 is stopped and the solver goes on with
+//! b0's two cameras and its own. Exits non-zero when the positions are not
 //! within 0.1 mm RMS of the truth. Configurations and logs stay in OUT_DIR.
 
 #[path = "../tests/common/mod.rs"]
@@ -21,8 +23,8 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use common::cluster::{
-    FPS, Node, board, board_config, errors, errs as errs_mm, latency_ms, rms, sim_cfg, solver_config,
-    solver_params, spawn, wait_for,
+    FPS, Node, board, board_config, errors, errs as errs_mm, latency_ms, rms, sim_cfg, solver_config_own,
+    solver_params_placed, spawn, wait_for,
 };
 use irtrack_sim::Scenario;
 
@@ -57,12 +59,27 @@ fn run(out: &std::path::Path) -> Result<(), String> {
         .map_err(|e| e.to_string())?
         .port();
     let ep = format!("tcp/127.0.0.1:{port}");
-    solver_params(&out.join("solver-state"));
-    println!("solver: listens on {ep}, parameter set places cameras 0, 1 on b0 and 2, 3 on b1");
-    let solver = spawn(out, "solver", &solver_config(&ep), None, "127.0.0.1");
-    println!("board b0: cameras 0 and 1, board b1: cameras 2 and 3, each connects to the solver");
+    solver_params_placed(
+        &out.join("solver-state"),
+        &[("b0", 0), ("b0", 1), ("b1", 0), ("s0", 0)],
+    );
+    println!(
+        "solver s0: listens on {ep}, owns camera 3 itself; parameter set places cameras 0, 1 on \
+         b0, 2 on b1 and 3 on s0"
+    );
+    let solver = spawn(
+        out,
+        "solver",
+        &solver_config_own(&ep, "s0", &[3]),
+        None,
+        "127.0.0.1",
+    );
+    println!(
+        "board b0: cameras 0 and 1; board b1: camera 2 only (no parameter set of its own: it \
+         detects and publishes); each connects to the solver"
+    );
     let b0 = spawn(out, "b0", &board_config("b0", [0, 1], &ep, ""), None, "127.0.0.1");
-    let b1 = spawn(out, "b1", &board_config("b1", [2, 3], &ep, ""), None, "127.0.0.1");
+    let b1 = spawn(out, "b1", &board_config("b1", [2], &ep, ""), None, "127.0.0.1");
     wait_for(
         "the solver tracking with 4 cameras",
         Duration::from_secs(30),
@@ -76,7 +93,7 @@ fn run(out: &std::path::Path) -> Result<(), String> {
 
     let four = watch(&solver, &scenario, "all four cameras", 4.0);
     let st = solver.status();
-    for b in ["b0", "b1"] {
+    for b in ["b0", "b1", "s0"] {
         let r = board(&st, b);
         println!(
             "board {b}: cameras {}, clock offset measured by the solver {:.3} ms, down {}",
@@ -101,9 +118,9 @@ fn run(out: &std::path::Path) -> Result<(), String> {
         .unwrap_or_default();
     println!("solver faults: {faults:?}");
     solver.take_records();
-    let two = watch(&solver, &scenario, "b0's two cameras", 2.0);
+    let three = watch(&solver, &scenario, "b0's two cameras and the solver's own", 2.0);
     drop(b0);
-    for (what, (n, rms_mm)) in [("4 cameras", four), ("2 cameras", two)] {
+    for (what, (n, rms_mm)) in [("4 cameras", four), ("3 cameras", three)] {
         if n < 10 || rms_mm > MAX_RMS_MM {
             return Err(format!(
                 "{what}: {n} positions, RMS {rms_mm:.4} mm against the truth (limit {MAX_RMS_MM} mm)"

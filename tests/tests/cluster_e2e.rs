@@ -12,6 +12,9 @@
 //!   or fails when `IRTRACK_REQUIRE_NETNS` is set (CI);
 //! - the plain-loopback variant runs everything on 127.0.0.1.
 //!
+//! A third test has one camera per board (the usual case): a solver with a camera of its own
+//! and three one-camera boards, a robot link on the solver.
+//!
 //! Build the binaries first, with the same features as this test (the example brings in this
 //! crate's dev-dependencies, so irtrackd gets them; `--bins` alone would leave `cluster` out):
 //! `cargo build -p irtrack-firmware -p irtrack-tests --features irtrack-tests/cluster
@@ -27,7 +30,9 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use common::cluster::*;
-use common::temp_dir;
+use common::{http_operator, operator_hash_line, temp_dir};
+use irtrack_robot::sim::{SimRobotServer, SimServerConfig};
+use irtrack_robot::sim_robot::SimRobotConfig;
 use irtrack_sim::Scenario;
 
 /// Network namespaces of this test (deleted on drop), when `ip netns` works here.
@@ -367,4 +372,262 @@ fn run_cluster(netns: Option<&Netns>) {
     drop(b1);
     drop(b0);
     eprintln!("cluster test took {:.1} s", t0.elapsed().as_secs_f64());
+}
+
+/// The normal case on Pandaboard-class boards (one VGA camera at 120 fps fills a USB 2.0
+/// bus): a solver with one camera of its own and three camera boards with one camera each,
+/// the same four cameras of the ring rig, on plain loopback. Accuracy against one board with
+/// the four cameras; a board killed (three cameras go on, the fault is reported); then fewer
+/// than two cameras: the solver's robot link holds (no new target, no jump) and resumes when
+/// a board returns.
+#[test]
+fn one_camera_boards_and_a_solver_with_its_own_camera() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let t0 = Instant::now();
+    let dir = temp_dir("cluster-one-cam");
+    let scenario = Scenario::new(sim_cfg().scenario_config()).unwrap();
+    let port = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let ep = format!("tcp/127.0.0.1:{port}");
+    let frame_now = || {
+        let rt = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap()
+            .as_secs_f64();
+        (rt * FPS) as u64
+    };
+
+    // The robot: homed where the marker is now, quick, a generous first step.
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let home_mm: [f64; 3] = scenario.truth(frame_now()).markers[0].p_cam0_mm.into();
+    let robot = rt
+        .block_on(SimRobotServer::start(SimServerConfig {
+            robot: SimRobotConfig {
+                speed_mm_s: 5000.0,
+                window: 4,
+                home_mm,
+                beat_period_s: 0.05,
+                ..Default::default()
+            },
+            ..Default::default()
+        }))
+        .unwrap();
+    // Seconds since the robot server started ↔ the wall clock the frames are numbered by.
+    let robot_t0_rt = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs_f64();
+
+    solver_params_placed(
+        &dir.join("solver-state"),
+        &[("s0", 0), ("b1", 0), ("b2", 0), ("b3", 0)],
+    );
+    let solver_cfg = format!(
+        "[service]\ncontrol = true\n{}\n[params]\nallow_unsigned = true\n[leds]\nbackend = \"none\"\n{}\
+         [cluster]\nrole = \"solver\"\nrig = \"{RIG}\"\nboard = \"s0\"\nown_cameras = true\n\
+         listen = [\"{ep}\"]\nfps = {FPS}\nboard_timeout_ms = 300\n\
+         image_sizes_px = [[640, 480], [640, 480], [640, 480], [640, 480]]\n\
+         [robot]\naddress = \"{}\"\n[robot.safety]\nworkspace_min_mm = [-5000.0, -5000.0, -5000.0]\n\
+         workspace_max_mm = [5000.0, 5000.0, 5000.0]\nmax_step_mm = 300.0\nmax_speed_mm_s = 5000.0\n\
+         max_gap_mm = 2.0\nmax_age_ms = 200\nrequire_world_frame = false\n[robot.deadman]\nkind = \"flag\"\n",
+        operator_hash_line(),
+        sim_section(Some(&[0])),
+        robot.addr
+    );
+    let solver = spawn(&dir, "solver", &solver_cfg, None, "127.0.0.1");
+    let boards: Vec<Option<Node>> = ["b1", "b2", "b3"]
+        .iter()
+        .enumerate()
+        .map(|(k, b)| {
+            Some(spawn(
+                &dir,
+                b,
+                &board_config(b, [k + 1], &ep, ""),
+                None,
+                "127.0.0.1",
+            ))
+        })
+        .collect();
+    let mut boards = boards;
+    let single_cfg = format!(
+        "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n{}",
+        sim_section(None)
+    );
+    let single = spawn(&dir, "single", &single_cfg, None, "127.0.0.1");
+
+    // A one-camera board runs without a parameter set: it detects, publishes, and its own
+    // set-up view reports its camera (blobs, brightest pixel) with no "no parameters" fault.
+    wait_for("solver tracks with 4 cameras", Duration::from_secs(20), || {
+        solver
+            .take_records()
+            .iter()
+            .any(|r| r["status"] == "ok" && r["cameras_used"] == 4)
+    });
+    let b1 = boards[0].as_ref().unwrap();
+    let st = b1.status();
+    assert_eq!(st["cluster"]["role"], "camera");
+    assert_eq!(st["cluster"]["detection_only"], true, "{}", st["cluster"]);
+    assert!(
+        st["cluster"]["published"].as_u64().unwrap_or(0) > 0
+            || st["processing"]["sets_processed"].as_u64().unwrap_or(0) > 0,
+        "{st}"
+    );
+    assert!(!has_fault(&st, "no_params"), "{}", st["fault_texts"]);
+    assert!(
+        st["faults"].as_array().is_some_and(|f| f.is_empty()),
+        "{}",
+        st["faults"]
+    );
+    let recs = b1.take_records();
+    assert!(
+        !recs.is_empty() && recs.iter().all(|r| r["position_mm"].is_null()),
+        "a one-camera board publishes records without positions"
+    );
+
+    // 1. Accuracy over the same frames as one board with the four cameras.
+    single.take_records();
+    std::thread::sleep(Duration::from_secs(3));
+    let (cluster_records, one_records) = (solver.take_records(), single.take_records());
+    let cluster = errors(&cluster_records, &scenario);
+    let one = errors(&one_records, &scenario);
+    let (rms_c, rms_s, n) = matched_rms(&cluster, &one);
+    let (c50, c99) = latency_ms(&cluster_records);
+    eprintln!(
+        "one-camera boards: solver (own camera + 3 boards) {} positions, one board {}; over the \
+         {n} frames both tracked: RMS solver {rms_c:.4} mm, one board {rms_s:.4} mm; capture → \
+         published p50 {c50:.2} ms p99 {c99:.2} ms",
+        cluster.len(),
+        one.len()
+    );
+    drop(single);
+    assert!(
+        cluster.len() as f64 >= 0.6 * 3.0 * FPS,
+        "only {} positions",
+        cluster.len()
+    );
+    assert!(n as f64 >= 0.5 * 3.0 * FPS, "only {n} frames tracked by both");
+    let u = used(&cluster);
+    assert!(
+        u.iter().filter(|&&c| c == 4).count() as f64 >= 0.9 * u.len() as f64,
+        "cameras used: {u:?}"
+    );
+    assert!(
+        rms_c <= 1.1 * rms_s,
+        "solver RMS {rms_c} mm vs one board {rms_s} mm (more than 10 % worse)"
+    );
+    assert_no_wrong_position("accuracy", &cluster);
+    let st = solver.status();
+    assert_eq!(st["cluster"]["board"], "s0");
+    for b in ["s0", "b1", "b2", "b3"] {
+        assert_eq!(board(&st, b)["down"], false, "{b}: {}", st["cluster"]);
+    }
+    let own_offset = board(&st, "s0")["clock_offset_ms"].as_f64();
+    assert!(
+        own_offset.is_some_and(|o| o.abs() < 5.0),
+        "own cameras' measured offset {own_offset:?} ms"
+    );
+
+    // The robot link: enabled, following the solver's positions.
+    let status = solver.status;
+    let (code, body) = http_operator(status, "POST", "/robot/enable");
+    assert_eq!(code, 200, "{body}");
+    let (code, body) = http_operator(status, "POST", "/robot/deadman?pressed=1");
+    assert_eq!(code, 200, "{body}");
+    wait_for("robot link moving", Duration::from_secs(5), || {
+        http_operator(status, "POST", "/robot")
+            .1
+            .contains("\"state\":\"moving\"")
+    });
+
+    // 2. Board b3 stops: three cameras go on, the fault is reported.
+    drop(boards[2].take());
+    wait_for("board b3 reported down", Duration::from_secs(5), || {
+        board(&solver.status(), "b3")["down"] == true
+    });
+    let st = solver.status();
+    assert!(has_fault(&st, "board_down"), "{}", st["fault_texts"]);
+    assert_no_wrong_position("board stopping", &errors(&solver.take_records(), &scenario));
+    std::thread::sleep(Duration::from_secs(1));
+    let three = errors(&solver.take_records(), &scenario);
+    eprintln!(
+        "one board down: {} positions in 1 s from {:?} cameras, RMS {:.4} mm",
+        three.len(),
+        used(&three).iter().max(),
+        rms(&errs(&three))
+    );
+    assert!(
+        three.len() as f64 >= 0.5 * FPS,
+        "{} positions in 1 s",
+        three.len()
+    );
+    assert!(used(&three).iter().all(|&u| u == 3), "{:?}", used(&three));
+    assert_no_wrong_position("one board down", &three);
+    let moving_targets = robot.received().len();
+    assert!(
+        moving_targets >= 10,
+        "only {moving_targets} targets while tracking"
+    );
+
+    // 3. b2 and b1 stop too: the solver's own camera alone gives no position, and the robot
+    //    link holds: no target while fewer than two cameras see the marker.
+    drop(boards[1].take());
+    drop(boards[0].take());
+    wait_for("positions stop", Duration::from_secs(5), || {
+        let recs = solver.take_records();
+        !recs.is_empty() && recs.iter().all(|r| r["status"] != "ok")
+    });
+    wait_for("robot link holding", Duration::from_secs(2), || {
+        http_operator(status, "POST", "/robot")
+            .1
+            .contains("\"state\":\"holding\"")
+    });
+    let held_at = robot.received().len();
+    std::thread::sleep(Duration::from_millis(1500));
+    let lone = solver.take_records();
+    assert!(!lone.is_empty(), "the solver stopped publishing records");
+    assert!(
+        lone.iter().all(|r| r["position_mm"].is_null()),
+        "a position from fewer than two cameras"
+    );
+    assert_eq!(
+        robot.received().len(),
+        held_at,
+        "the robot got targets while fewer than two cameras were left"
+    );
+
+    // 4. b1 returns: two cameras, positions and targets resume where the marker is now.
+    let _b1 = spawn(&dir, "b1", &board_config("b1", [1], &ep, ""), None, "127.0.0.1");
+    wait_for("positions with 2 cameras", Duration::from_secs(20), || {
+        solver
+            .take_records()
+            .iter()
+            .any(|r| r["status"] == "ok" && r["cameras_used"] == 2)
+    });
+    wait_for("robot targets resume", Duration::from_secs(5), || {
+        robot.received().len() > held_at + 5
+    });
+    let resumed = errors(&solver.take_records(), &scenario);
+    assert_no_wrong_position("board back", &resumed);
+    // Every target the robot ever got was the marker's position at a frame at most 10
+    // frames (333 ms) before it arrived: never stale, never a jump.
+    let targets = robot.received();
+    let mut worst = 0.0f64;
+    for t in &targets {
+        let at = ((robot_t0_rt + t.t_s) * FPS) as u64;
+        let p = nalgebra::Vector3::from(t.pos_mm);
+        let d = (at.saturating_sub(10)..=at + 1)
+            .map(|f| (scenario.truth(f).markers[0].p_cam0_mm - p).norm())
+            .fold(f64::INFINITY, f64::min);
+        worst = worst.max(d);
+    }
+    eprintln!(
+        "robot: {} targets ({moving_targets} before the board stopped, none while held), worst \
+         distance to the marker at its time {worst:.3} mm; test took {:.1} s",
+        targets.len(),
+        t0.elapsed().as_secs_f64()
+    );
+    assert!(worst < 1.0, "a target {worst:.3} mm from the marker at its time");
+    drop(rt);
 }

@@ -128,9 +128,10 @@ fn steps() -> Vec<Step> {
         Step {
             title: "more cameras than one board",
             explain: "Build irtrackd with the `cluster` feature (Zenoh) and start two simulated camera \
-                      boards (cameras 0-1 and 2-3 of a four-camera ring) and a solver: the boards \
-                      publish their blobs, the solver triangulates all four cameras; its positions \
-                      are printed against the simulator's truth, then one board is stopped.",
+                      boards (cameras 0-1, and camera 2 alone) and a solver that owns camera 3 of \
+                      a four-camera ring: the boards publish their blobs, the solver pairs them \
+                      with its own camera's and triangulates all four; its positions are printed \
+                      against the simulator's truth, then the one-camera board is stopped.",
             action: Action::Cluster,
             produces: &["cluster/solver.log", "cluster/b0.log", "cluster/b1.log"],
         },

@@ -36,6 +36,8 @@ struct Pending {
 pub struct CameraPublisher {
     cfg: ClusterConfig,
     session: Session,
+    /// The session is this publisher's own (closed on drop), not the solver's.
+    owns_session: bool,
     publishers: Vec<ObsPublisher>,
     report: Arc<Mutex<ClusterReport>>,
     blobs: [ObsBlob; MAX_OBS_BLOBS],
@@ -71,6 +73,19 @@ impl CameraPublisher {
     /// Declares one publisher per local camera (blocking).
     pub fn new(cfg: &ClusterConfig, cameras: usize, report: Arc<Mutex<ClusterReport>>) -> Result<Self> {
         let session = open_session(cfg)?;
+        let mut p = Self::on_session(session, cfg, cameras, report)?;
+        p.owns_session = true;
+        Ok(p)
+    }
+
+    /// Publishes on an open `session` (the solver's own cameras: their observations reach
+    /// its subscriber through the same session), which stays open on drop.
+    pub fn on_session(
+        session: Session,
+        cfg: &ClusterConfig,
+        cameras: usize,
+        report: Arc<Mutex<ClusterReport>>,
+    ) -> Result<Self> {
         let mk = |session: &Session, rig: &str, board: &str, c: usize| {
             ObsPublisher::new(session, rig, board, c).map_err(|e| FirmwareError::Config {
                 reason: format!("cluster: {e}"),
@@ -105,6 +120,7 @@ impl CameraPublisher {
         Ok(CameraPublisher {
             cfg: cfg.clone(),
             session,
+            owns_session: false,
             publishers,
             report,
             blobs: [ObsBlob::default(); MAX_OBS_BLOBS],
@@ -148,7 +164,9 @@ impl CameraPublisher {
 impl Drop for CameraPublisher {
     fn drop(&mut self) {
         self.jitter_tx = None;
-        self.session.close();
+        if self.owns_session {
+            self.session.close();
+        }
     }
 }
 

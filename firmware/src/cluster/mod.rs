@@ -77,6 +77,11 @@ pub struct ClusterConfig {
     /// (what the parameter set must match, as a local source's cameras are).
     #[serde(default)]
     pub image_sizes_px: Vec<[u32; 2]>,
+    /// Solver: it also captures on cameras of its own (`[source]`, sim or V4L2), placed in
+    /// the parameter set under this board's name (`board`); their blobs join the same pairing
+    /// as the camera boards' observations.
+    #[serde(default)]
+    pub own_cameras: bool,
     /// Camera role, tests: probability of not sending an observation (loss injection).
     #[serde(default)]
     pub inject_loss: f64,
@@ -122,6 +127,7 @@ impl Default for ClusterConfig {
             max_clock_offset_ms: None,
             board_timeout_ms: d_board_timeout(),
             image_sizes_px: Vec::new(),
+            own_cameras: false,
             inject_loss: 0.0,
             inject_jitter_ms: 0.0,
             clock_offset_ms: 0.0,
@@ -192,11 +198,17 @@ impl ClusterConfig {
         if !(self.clock_offset_ms.is_finite() && self.clock_drift_ppm.is_finite()) {
             return bad("cluster.clock_offset_ms and clock_drift_ppm must be finite".into());
         }
+        if self.own_cameras && self.role != Role::Solver {
+            return bad(
+                "cluster.own_cameras is for role = \"solver\" (a camera board always captures on its own cameras)"
+                    .into(),
+            );
+        }
         if self.role == Role::Solver {
             let n = self.image_sizes_px.len();
             if !(2..=irtrack_core::params::MAX_CAMERAS).contains(&n) {
                 return bad(format!(
-                    "cluster.image_sizes_px lists {n} cameras; a solver needs 2..={}",
+                    "cluster.image_sizes_px lists {n} cameras; a solver needs 2..={} cameras in all (its own and the camera boards')",
                     irtrack_core::params::MAX_CAMERAS
                 ));
             }
@@ -270,9 +282,14 @@ pub fn solver_source(
     cfg: &ClusterConfig,
     params: std::sync::Arc<crate::engine::ParamsHandle>,
     report: SharedReport,
+    own: Option<(
+        Box<dyn crate::source::FrameSource>,
+        irtrack_core::pipeline::TrackerConfig,
+    )>,
 ) -> Result<Box<dyn crate::source::FrameSource>> {
     off_runtime(|| {
-        Ok(Box::new(solver::ClusterSource::new(cfg, params, report)?) as Box<dyn crate::source::FrameSource>)
+        Ok(Box::new(solver::ClusterSource::new(cfg, params, report, own)?)
+            as Box<dyn crate::source::FrameSource>)
     })
 }
 
@@ -282,6 +299,10 @@ pub fn solver_source(
     _cfg: &ClusterConfig,
     _params: std::sync::Arc<crate::engine::ParamsHandle>,
     _report: SharedReport,
+    _own: Option<(
+        Box<dyn crate::source::FrameSource>,
+        irtrack_core::pipeline::TrackerConfig,
+    )>,
 ) -> Result<Box<dyn crate::source::FrameSource>> {
     Err(FirmwareError::Config {
         reason: "cluster.role = \"solver\" needs irtrackd built with the `cluster` feature".into(),
@@ -305,7 +326,9 @@ pub fn with_role(
                 Ok(Box::new(camera::CameraPublisher::new(cfg, cameras, r)?)
                     as Box<dyn crate::engine::ObservationSink>)
             })?;
-            engine.with_observation_sink(sink)
+            // A board without a parameter set of its own (one camera needs none) still
+            // detects and publishes.
+            engine.with_detection_only()?.with_observation_sink(sink)
         }
         Role::Solver => engine.with_max_pairing_error(std::time::Duration::from_nanos(cfg.tolerance_ns())),
         Role::Standalone => engine,

@@ -58,6 +58,9 @@ pub struct ClusterReport {
     pub refused: std::collections::BTreeMap<&'static str, u64>,
     /// The parameter set does not place the cameras on boards (solver cannot pair).
     pub no_placement: bool,
+    /// Camera role: detecting and publishing without a parameter set of its own (a board
+    /// with one camera needs none); its records carry no position.
+    pub detection_only: bool,
 }
 
 impl ClusterReport {

@@ -8,6 +8,7 @@
 //! service checks image sizes as for local cameras). Buffers are allocated when the parameter
 //! set changes; receiving, pairing and delivering a set does not allocate.
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -15,10 +16,15 @@ use std::time::Duration;
 use irtrack_cluster::pairing::{Pairer, PairingConfig, PairingMode, PushOutcome};
 use irtrack_cluster::transport::{ObsSubscriber, Received, Session, realtime_ns};
 use irtrack_core::blob::Blob;
+use irtrack_core::camera::ImageSize;
+use irtrack_core::image::GrayImage;
 use irtrack_core::observation::{MAX_OBS_BLOBS, ObsClock, ObservationGate, ObservationProblem, decode};
+use irtrack_core::pipeline::{Tracker, TrackerConfig};
 
+use super::camera::CameraPublisher;
 use super::{BoardReport, ClusterConfig, ClusterReport};
 use crate::clock;
+use crate::engine::ObservationSink;
 use crate::engine::ParamsHandle;
 use crate::error::{FirmwareError, Result};
 use crate::source::{Frame, FrameSet, FrameSource, Pixels, SourceError, SourceStats};
@@ -57,24 +63,115 @@ pub struct ClusterSource {
     last_any_ns: u64,
     last_report_ns: u64,
     last_index: u64,
+    /// Tells the thread of the solver's own cameras to stop.
+    own_stop: Option<Arc<AtomicBool>>,
+}
+
+/// The solver's own cameras: captured and detected on a thread of their own, published as
+/// observations of board `cfg.board` on the solver's session, so they reach its subscriber
+/// and pairing exactly as a camera board's do (timestamps on the same CLOCK_REALTIME).
+fn spawn_own_cameras(
+    cfg: &ClusterConfig,
+    session: &Session,
+    mut source: Box<dyn FrameSource>,
+    tracker_cfg: TrackerConfig,
+) -> Result<Arc<AtomicBool>> {
+    let mut set = source.allocate_set();
+    let sizes: Vec<ImageSize> = set
+        .frames
+        .iter()
+        .map(|f| ImageSize {
+            width_px: f.width_px,
+            height_px: f.height_px,
+        })
+        .collect();
+    let mut tracker = Tracker::detection_only(&sizes, tracker_cfg).map_err(|e| FirmwareError::Config {
+        reason: format!("solver's own cameras: {e}"),
+    })?;
+    // Its counters are not the solver's: a report of their own, not shown.
+    let mut sink = CameraPublisher::on_session(
+        session.clone(),
+        cfg,
+        sizes.len(),
+        Arc::new(Mutex::new(ClusterReport::default())),
+    )?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let stop2 = stop.clone();
+    let describe = source.describe();
+    std::thread::Builder::new()
+        .name("solver-own-cameras".into())
+        .spawn(move || {
+            let mut errors = 0u64;
+            while !stop2.load(Ordering::Relaxed) {
+                match source.next_set(&mut set) {
+                    Ok(()) => {}
+                    Err(SourceError::EndOfStream) => {
+                        tracing::warn!("the solver's own cameras ended");
+                        break;
+                    }
+                    Err(e) => {
+                        if errors == 0 {
+                            tracing::warn!(error = %e, "the solver's own cameras: capture fault; retrying");
+                        }
+                        errors += 1;
+                        std::thread::sleep(Duration::from_millis(20));
+                        continue;
+                    }
+                }
+                let dropped = source.stats().sets_dropped;
+                for (c, frame) in set.frames.iter().enumerate() {
+                    let detected = match &frame.pixels {
+                        Pixels::U8(px) => GrayImage::new(px, frame.width_px, frame.height_px, frame.stride_px)
+                            .and_then(|img| tracker.detect_u8(c, &img)),
+                        Pixels::U16(px) => GrayImage::new(px, frame.width_px, frame.height_px, frame.stride_px)
+                            .and_then(|img| tracker.detect_u16(c, &img)),
+                    };
+                    match detected {
+                        Ok(_) => sink.observe(c, frame, tracker.blobs(c), dropped),
+                        Err(e) => {
+                            if errors == 0 {
+                                tracing::warn!(camera = c, error = %e, "the solver's own cameras: detection failed");
+                            }
+                            errors += 1;
+                        }
+                    }
+                }
+            }
+        })
+        .map_err(|e| FirmwareError::Thread {
+            what: "solver's own cameras",
+            reason: e.to_string(),
+        })?;
+    tracing::info!(board = %cfg.board, source = %describe, cameras = sizes.len(), "cluster solver: own cameras feed the pairing");
+    Ok(stop)
 }
 
 impl ClusterSource {
     /// Opens the session and subscribes (blocking).
+    /// With `own`, the solver's own cameras (a frame source and the detector's settings) feed
+    /// the pairing as observations of board `cfg.board`.
     pub fn new(
         cfg: &ClusterConfig,
         params: Arc<ParamsHandle>,
         report: Arc<Mutex<ClusterReport>>,
+        own: Option<(Box<dyn FrameSource>, TrackerConfig)>,
     ) -> Result<Self> {
         let session = super::camera::open_session(cfg)?;
         let (sub, rx) =
             ObsSubscriber::new(&session, &cfg.rig, 1024, realtime_ns).map_err(|e| FirmwareError::Config {
                 reason: format!("cluster: {e}"),
             })?;
+        let own_stop = match own {
+            Some((source, tracker_cfg)) => Some(spawn_own_cameras(cfg, &session, source, tracker_cfg)?),
+            None => None,
+        };
         let n = cfg.image_sizes_px.len();
         if let Ok(mut r) = report.lock() {
             r.role = "solver";
             r.rig = cfg.rig.clone();
+            if own_stop.is_some() {
+                r.board = cfg.board.clone();
+            }
             r.missing = vec![0; n];
         }
         tracing::info!(rig = %cfg.rig, cameras = n, "cluster solver: subscribed to the camera boards");
@@ -95,6 +192,7 @@ impl ClusterSource {
             last_any_ns: realtime_ns(),
             last_report_ns: 0,
             last_index: 0,
+            own_stop,
         })
     }
 
@@ -313,6 +411,9 @@ impl ClusterSource {
 
 impl Drop for ClusterSource {
     fn drop(&mut self) {
+        if let Some(stop) = &self.own_stop {
+            stop.store(true, Ordering::Relaxed);
+        }
         self.session.close();
     }
 }

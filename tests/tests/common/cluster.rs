@@ -32,17 +32,19 @@ pub fn sim_cfg() -> SimSourceConfig {
     }
 }
 
-pub fn sim_section(cameras: Option<[usize; 2]>) -> String {
+/// `[source.sim]` of the four-camera ring rig; `cameras`: the share this process renders.
+pub fn sim_section(cameras: Option<&[usize]>) -> String {
     format!(
         "[source.sim]\nrig = \"ring\"\nring_cameras = 4\ndistance_mm = {DISTANCE_MM}\nfps = {FPS}\nwall_clock = true\n{}",
-        cameras.map_or(String::new(), |c| format!("cameras = [{}, {}]\n", c[0], c[1]))
+        cameras.map_or(String::new(), |c| format!("cameras = {c:?}\n"))
     )
 }
 
-pub fn board_config(board: &str, cameras: [usize; 2], solver: &str, extra: &str) -> String {
+/// A camera board rendering `cameras` of the ring rig (one or two).
+pub fn board_config(board: &str, cameras: impl AsRef<[usize]>, solver: &str, extra: &str) -> String {
     format!(
         "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n{}\n[cluster]\nrole = \"camera\"\nrig = \"{RIG}\"\nboard = \"{board}\"\nconnect = [\"{solver}\"]\nfps = {FPS}\n{extra}\n",
-        sim_section(Some(cameras))
+        sim_section(Some(cameras.as_ref()))
     )
 }
 
@@ -52,11 +54,25 @@ pub fn solver_config(listen: &str) -> String {
     )
 }
 
+/// A solver that also renders `own` cameras of the ring rig itself, as board `board`.
+pub fn solver_config_own(listen: &str, board: &str, own: &[usize]) -> String {
+    format!(
+        "{}\n{}board = \"{board}\"\nown_cameras = true\n",
+        sim_section(Some(own)),
+        solver_config(listen)
+    )
+}
+
 /// The solver's parameter set: the ring rig, cameras 0 and 1 on board b0, 2 and 3 on b1.
 pub fn solver_params(state: &Path) {
+    solver_params_placed(state, &[("b0", 0), ("b0", 1), ("b1", 0), ("b1", 1)]);
+}
+
+/// The solver's parameter set with the ring rig's cameras placed on (board, local index).
+pub fn solver_params_placed(state: &Path, placement: &[(&str, u8)]) {
     let mut rig: RigParams = ring_rig(4, DISTANCE_MM);
     rig.rig_id = RIG.into();
-    rig.placement = [("b0", 0), ("b0", 1), ("b1", 0), ("b1", 1)]
+    rig.placement = placement
         .iter()
         .map(|(b, i)| CameraPlace {
             board: (*b).into(),
