@@ -248,6 +248,12 @@ pub struct CameraAnalysis {
     pub too_many_spots: bool,
     /// Blobs the loop keeps per camera at most (`[tracking] max_blobs`).
     pub max_blobs: usize,
+    /// LEDs the parameter set expects a camera to see at most: every tool's LEDs plus the
+    /// loose single LEDs the loop tracks ([`CameraAnalysis::expecting`]); `None` without tools
+    /// (one marker: the page itself warns about several kept spots).
+    pub expected_leds: Option<usize>,
+    /// More kept spots than `expected_leds`: stray light beside the tools' LEDs.
+    pub more_spots_than_leds: bool,
     /// The most important problem found, if any.
     pub advice: Option<Advice>,
     /// Every region marked kept or rejected with its reason (the preview's overlay).
@@ -308,6 +314,8 @@ impl CameraAnalysis {
             max_labels: cfg.max_labels,
             too_many_spots: false,
             max_blobs: cfg.max_blobs,
+            expected_leds: None,
+            more_spots_than_leds: false,
             advice: Some(Advice {
                 code: "unreadable_frame",
                 message: format!(
@@ -377,12 +385,27 @@ impl CameraAnalysis {
             max_labels: cfg.max_labels,
             too_many_spots: det.candidates as usize > cfg.max_blobs,
             max_blobs: cfg.max_blobs,
+            expected_leds: None,
+            more_spots_than_leds: false,
             advice: None,
             blobs,
             from_loop: loop_listed,
         };
         a.advice = a.advise(above);
         Some(a)
+    }
+
+    /// Judges the kept spots against the LEDs the parameter set expects (`Some(n)` with tools:
+    /// all tools' LEDs plus the loose LEDs tracked; see [`expected_leds`]): up to `n` kept spots
+    /// are the tools' LEDs, more are stray light (`more_spots_than_leds`). The advice is
+    /// recomputed.
+    pub fn expecting(mut self, expected_leds: Option<usize>) -> Self {
+        self.expected_leds = expected_leds;
+        self.more_spots_than_leds = expected_leds.is_some_and(|n| self.kept as usize > n);
+        if self.advice.as_ref().is_none_or(|a| a.code != "unreadable_frame") {
+            self.advice = self.advise(self.above_threshold_pct / 100.0);
+        }
+        self
     }
 
     fn advise(&self, above: f64) -> Option<Advice> {
@@ -432,6 +455,16 @@ impl CameraAnalysis {
                 format!(
                     "camera {i} is overloaded: it sees {} bright spots, more than the {} the detector keeps per frame — raise the threshold or cover the stray lights",
                     self.regions, self.max_blobs
+                ),
+            );
+        }
+        if self.more_spots_than_leds {
+            return advice(
+                "more_spots_than_leds",
+                format!(
+                    "camera {i} keeps {} spots, more than the {} LEDs the parameter set expects (its tools' LEDs and the loose LEDs tracked) — raise the threshold or cover the stray lights",
+                    self.kept,
+                    self.expected_leds.unwrap_or(1)
                 ),
             );
         }
@@ -511,17 +544,48 @@ pub struct Suggestion {
     pub reasoning: Vec<String>,
 }
 
-/// Whether `det` keeps exactly one spot and it is the marker at `(x, y)`.
-fn only_marker(det: &Detection, x: f64, y: f64) -> bool {
-    let mut kept = det.kept();
-    match (kept.next(), kept.next()) {
-        (Some(b), None) => (b.x_px - x).hypot(b.y_px - y) < 3.0 && !det.stats.overloaded,
-        _ => false,
+/// Whether `det` keeps the marker at `(x, y)` and at most `expected_leds` spots in all (1: exactly
+/// the marker; with tools, their LEDs may be kept beside it but nothing more).
+fn only_marker(det: &Detection, x: f64, y: f64, expected_leds: usize) -> bool {
+    let mut n = 0usize;
+    let mut marker = false;
+    for b in det.kept() {
+        n += 1;
+        marker |= (b.x_px - x).hypot(b.y_px - y) < 3.0;
     }
+    marker && n <= expected_leds.max(1) && !det.stats.overloaded
+}
+
+/// LEDs a camera may see with the loop's parameter set: every tool's LEDs plus the loose single
+/// LEDs it tracks now; `None` without tools (a single marker).
+pub fn expected_leds(pose: Option<&irtrack_core::pose6d::MultiTracker>) -> Option<usize> {
+    let p = pose.filter(|p| p.tool_count() > 0)?;
+    let tools: usize = (0..p.tool_count())
+        .filter_map(|i| p.tool(i))
+        .map(|t| t.led_count())
+        .sum();
+    Some(tools + p.loose_leds().len())
 }
 
 /// A per-camera suggestion from the histogram and the marker's peak.
-pub fn suggest_camera(camera: usize, frame: &Frame, cfg: &TrackerConfig) -> Option<CameraSuggestion> {
+///
+/// `expected_leds`: spots the camera may keep (1 for a single marker; with tools every tool's LED
+/// and the loose LEDs, [`expected_leds`]): a threshold "works" when it keeps the marker (the
+/// brightest spot) and no more than that many spots.
+pub fn suggest_camera(
+    camera: usize,
+    frame: &Frame,
+    cfg: &TrackerConfig,
+    expected_leds: usize,
+) -> Option<CameraSuggestion> {
+    let expected = expected_leds.max(1);
+    let alone = if expected == 1 {
+        "exactly the marker is kept".to_string()
+    } else {
+        format!(
+            "the marker and at most {expected} spots in all (the LEDs the parameter set expects) are kept"
+        )
+    };
     let (bg, _) = Background::of(frame)?;
     let safe = bg.safe_threshold_dn;
     let mut reasoning = vec![format!(
@@ -574,14 +638,25 @@ pub fn suggest_camera(camera: usize, frame: &Frame, cfg: &TrackerConfig) -> Opti
     // Check thresholds from the background-safe value to the marker's peak on this frame.
     let span = m.peak_dn.saturating_sub(safe).max(1);
     let step = span.div_ceil(TRIAL_STEPS).max(1);
-    let mut works: Vec<u32> = Vec::new();
+    // (threshold, spots kept) of the values that work.
+    let mut trials: Vec<(u32, usize)> = Vec::new();
     let mut t = safe;
     while t < m.peak_dn {
-        if detect_whole(frame, cfg, t, 64).is_some_and(|d| only_marker(&d, m.x_px, m.y_px)) {
-            works.push(t);
+        if let Some(d) = detect_whole(frame, cfg, t, 64).filter(|d| only_marker(d, m.x_px, m.y_px, expected))
+        {
+            trials.push((t, d.kept().count()));
         }
         t += step;
     }
+    // With several LEDs expected, a higher value that drops some of them also "works": keep
+    // only the values that keep the most spots (all the tools' LEDs when nothing else is as
+    // bright), so the choice never trades LEDs away.
+    let most = trials.iter().map(|&(_, n)| n).max().unwrap_or(0);
+    let works: Vec<u32> = trials
+        .iter()
+        .filter(|&&(_, n)| n == most)
+        .map(|&(t, _)| t)
+        .collect();
     out.works_from_dn = works.first().copied();
     out.works_to_dn = works.last().copied();
     out.suggested_dn = works
@@ -591,11 +666,11 @@ pub fn suggest_camera(camera: usize, frame: &Frame, cfg: &TrackerConfig) -> Opti
         .unwrap_or(target);
     match (out.works_from_dn, out.works_to_dn) {
         (Some(lo), Some(hi)) => reasoning.push(format!(
-            "checked on this frame: from {lo} to {hi} DN exactly the marker is kept; {} DN is chosen",
+            "checked on this frame: from {lo} to {hi} DN {alone}; {} DN is chosen",
             out.suggested_dn
         )),
         _ => reasoning.push(format!(
-            "checked on this frame: no threshold between {safe} and {} DN keeps the marker alone — other spots look like it (cover them) or the marker is cut by the edge",
+            "checked on this frame: no threshold between {safe} and {} DN keeps the marker with at most {expected} spot(s) — other spots look like it (cover them) or the marker is cut by the edge",
             m.peak_dn
         )),
     }
@@ -606,10 +681,23 @@ pub fn suggest_camera(camera: usize, frame: &Frame, cfg: &TrackerConfig) -> Opti
 /// A threshold for every camera of `frames` (they share one): each camera's suggestion, then
 /// the value nearest their middle that keeps exactly the marker in all of them.
 pub fn suggest(set_index: u64, frames: &[Frame], cfg: &TrackerConfig) -> Suggestion {
+    suggest_expecting(set_index, frames, cfg, 1)
+}
+
+/// [`suggest`] for a parameter set whose cameras may keep up to `expected_leds` spots (every
+/// tool's LEDs and the loose LEDs, [`expected_leds`]): a value works in a camera when it keeps
+/// the marker (the brightest spot) and no more than `expected_leds` spots; more is stray light.
+pub fn suggest_expecting(
+    set_index: u64,
+    frames: &[Frame],
+    cfg: &TrackerConfig,
+    expected_leds: usize,
+) -> Suggestion {
+    let expected = expected_leds.max(1);
     let cameras: Vec<CameraSuggestion> = frames
         .iter()
         .enumerate()
-        .filter_map(|(i, f)| suggest_camera(i, f, cfg))
+        .filter_map(|(i, f)| suggest_camera(i, f, cfg, expected))
         .collect();
     let mut reasoning = Vec::new();
     let with_marker: Vec<&CameraSuggestion> = cameras.iter().filter(|c| c.marker_peak_dn.is_some()).collect();
@@ -631,7 +719,8 @@ pub fn suggest(set_index: u64, frames: &[Frame], cfg: &TrackerConfig) -> Suggest
             (Some(f), Some(t)) if all_have_range && f <= t => {
                 let v = mid.clamp(f, t).max(lo.unwrap_or(0));
                 reasoning.push(format!(
-                    "one threshold serves all cameras: each keeps exactly the marker from {f} to {t} DN; {v} DN is nearest their own suggestions"
+                    "one threshold serves all cameras: each keeps {} from {f} to {t} DN; {v} DN is nearest their own suggestions",
+                    if expected == 1 { "exactly the marker".to_string() } else { format!("the marker and at most the {expected} LEDs expected") }
                 ));
                 Some(v)
             }
@@ -667,12 +756,17 @@ pub fn suggest(set_index: u64, frames: &[Frame], cfg: &TrackerConfig) -> Suggest
                 .iter()
                 .find(|c| c.camera == i)
                 .and_then(|c| c.marker_x_px.zip(c.marker_y_px));
-            let only = marker.is_some_and(|(x, y)| only_marker(&det, x, y));
+            let only = marker.is_some_and(|(x, y)| only_marker(&det, x, y, expected));
             keeps_only_marker &= only;
             let why = reasons_summary(&views);
+            let what = match (only, expected) {
+                (true, 1) => " (the marker)".to_string(),
+                (true, n) => format!(" (at most the {n} LEDs expected)"),
+                (false, n) if n > 1 && kept > n => format!(" (more than the {n} LEDs expected: stray light)"),
+                _ => String::new(),
+            };
             predicted.push(format!(
-                "camera {i} at {v} DN: {kept} kept{}, {rejected} rejected{}",
-                if only { " (the marker)" } else { "" },
+                "camera {i} at {v} DN: {kept} kept{what}, {rejected} rejected{}",
                 if why.is_empty() {
                     String::new()
                 } else {
@@ -751,6 +845,126 @@ mod tests {
         let a = CameraAnalysis::of(0, 7, &f, &at, None, 32).unwrap();
         assert_eq!((a.kept, a.advice.clone()), (1, None), "{a:#?}");
         assert!(s.cameras[0].reasoning.len() >= 3, "{:?}", s.cameras[0].reasoning);
+    }
+
+    /// A dark frame with an LED-like spot (peak `peak`) at each of `spots`.
+    fn spots(spots: &[(f64, f64, f64)]) -> Frame {
+        let (w, h) = (320u32, 240u32);
+        let mut px = vec![12u8; (w * h) as usize];
+        for y in 0..h {
+            for x in 0..w {
+                let mut v = 12.0;
+                for &(cx, cy, peak) in spots {
+                    let d2 = (f64::from(x) - cx).powi(2) + (f64::from(y) - cy).powi(2);
+                    v += (peak - 12.0) * (-d2 / (2.0 * 1.5 * 1.5)).exp();
+                }
+                px[(y * w + x) as usize] = v.min(255.0) as u8;
+            }
+        }
+        frame(w, h, px)
+    }
+
+    #[test]
+    fn with_three_tools_their_leds_are_expected_and_only_more_spots_are_advised() {
+        // The simulator's three tools (probe4, tri3, wing4: 4 + 3 + 4 LEDs) in the loop's
+        // 6-DOF tracker: 11 LEDs expected per camera.
+        let (sim_cfg, tools) = irtrack_sim::multibody::scene(irtrack_sim::rig::RigPreset::Convergent {
+            distance_mm: 1000.0,
+            angle_deg: 90.0,
+        })
+        .unwrap();
+        let rig = irtrack_sim::Scenario::new(sim_cfg).unwrap().rig().clone();
+        let tracker = irtrack_core::pose6d::MultiTracker::new(
+            &rig,
+            &tools,
+            irtrack_core::pose6d::PoseConfig::default(),
+        )
+        .unwrap();
+        let expected = expected_leds(Some(&tracker));
+        assert_eq!(expected, Some(11));
+        assert_eq!(expected_leds(None), None);
+        // The loop's limits in 6-DOF mode (the engine raises max_blobs to all LEDs + 8).
+        let cfg = TrackerConfig {
+            threshold_dn: 100,
+            max_blobs: tracker.config().max_blobs_per_camera,
+            ..TrackerConfig::default()
+        };
+        // 11 LED images, the brightest first.
+        let mut leds: Vec<(f64, f64, f64)> = (0..11)
+            .map(|i| {
+                (
+                    30.0 + 25.0 * f64::from(i),
+                    60.0 + 10.0 * f64::from(i % 3),
+                    240.0 - 3.0 * f64::from(i),
+                )
+            })
+            .collect();
+        let a = CameraAnalysis::of(0, 1, &spots(&leds), &cfg, None, 32)
+            .unwrap()
+            .expecting(expected);
+        assert_eq!(a.kept, 11, "{a:#?}");
+        assert!(!a.more_spots_than_leds && !a.too_many_spots, "{a:#?}");
+        assert_eq!(a.advice, None, "11 spots for 11 expected LEDs: no advice");
+        // Without the tools (one marker expected) the same frame is judged by the page, not here.
+        let single = CameraAnalysis::of(0, 1, &spots(&leds), &cfg, None, 32).unwrap();
+        assert_eq!(single.expected_leds, None);
+        // Two stray lights beside the tools' LEDs: 13 spots, more than the 11 expected.
+        leds.push((60.0, 180.0, 200.0));
+        leds.push((250.0, 200.0, 190.0));
+        let a = CameraAnalysis::of(0, 1, &spots(&leds), &cfg, None, 32)
+            .unwrap()
+            .expecting(expected);
+        assert_eq!(a.kept, 13);
+        let adv = a
+            .advice
+            .clone()
+            .expect("advice for 13 spots where 11 LEDs are expected");
+        assert_eq!(adv.code, "more_spots_than_leds");
+        assert!(
+            adv.message
+                .starts_with("camera 0 keeps 13 spots, more than the 11 LEDs the parameter set expects"),
+            "{}",
+            adv.message
+        );
+
+        // The suggestion counts the same LEDs: 11 spots are the tools', so a threshold keeping
+        // all 11 works; expecting one marker, none does.
+        leds.truncate(11);
+        let f = spots(&leds);
+        let s = suggest_expecting(1, std::slice::from_ref(&f), &cfg, 11);
+        assert!(s.keeps_only_marker, "{s:#?}");
+        let v = s.threshold_dn.unwrap();
+        assert!(
+            s.predicted[0].contains("11 kept (at most the 11 LEDs expected)"),
+            "{:?}",
+            s.predicted
+        );
+        let mut at = cfg;
+        at.threshold_dn = v;
+        let a = CameraAnalysis::of(0, 1, &f, &at, None, 32)
+            .unwrap()
+            .expecting(expected);
+        assert_eq!((a.kept, a.advice.clone()), (11, None), "at {v} DN: {a:#?}");
+        let one = suggest(1, std::slice::from_ref(&f), &cfg);
+        assert!(
+            !one.keeps_only_marker,
+            "one marker expected, 11 spots seen: {one:#?}"
+        );
+        // Two dimmer stray lights beside the 11 LEDs: at the current threshold 13 spots (advised
+        // above); the suggestion finds a value above the strays that keeps exactly the 11.
+        leds.push((60.0, 180.0, 170.0));
+        leds.push((250.0, 200.0, 160.0));
+        let f = spots(&leds);
+        let s = suggest_expecting(1, std::slice::from_ref(&f), &cfg, 11);
+        assert!(s.keeps_only_marker, "{s:#?}");
+        let v = s.threshold_dn.unwrap();
+        at.threshold_dn = v;
+        let a = CameraAnalysis::of(0, 1, &f, &at, None, 32)
+            .unwrap()
+            .expecting(expected);
+        println!("11 LEDs + 2 stray lights: suggested {v} DN; {:?}", s.predicted);
+        assert_eq!((a.kept, a.advice.clone()), (11, None), "at {v} DN: {a:#?}");
+        assert!(v > cfg.threshold_dn, "{v}");
     }
 
     #[test]

@@ -394,6 +394,7 @@ impl Engine {
             }
             buf.threshold_dn = tracker_cfg.threshold_dn;
             buf.tracker_cfg = tracker_cfg;
+            buf.expected_leds = crate::advice::expected_leds(six_dof);
             if let Some(tracker) = lists {
                 fill_blob_views(tracker, six_dof, |c, b| buf.push_blob(c, b));
                 buf.detected = true;

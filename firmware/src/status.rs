@@ -920,8 +920,9 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FaultText {
     /// Stable code: `camera_lost`, `no_params`, `deadline_misses`, `no_led`, `no_usable_blob`,
-    /// `skewed_sets`, `ptp_unavailable`, `ptp_faulty`, and from the whole-frame analysis `background_above_threshold`,
-    /// `overloaded`, `too_many_spots`, `unreadable_frame`.
+    /// `skewed_sets`, `ptp_unavailable`, `ptp_faulty`, and from the whole-frame analysis
+    /// `background_above_threshold`, `overloaded`, `too_many_spots`, `more_spots_than_leds`,
+    /// `unreadable_frame`.
     pub code: &'static str,
     /// The camera concerned; `None` for faults of the whole board.
     pub camera: Option<usize>,

@@ -54,6 +54,9 @@ pub struct TapSet {
     /// `blobs` holds the loop's detection of this set (false before a parameter set exists:
     /// the loop does not track then).
     pub detected: bool,
+    /// LEDs a camera may keep with the loop's parameter set (tools' LEDs and loose LEDs,
+    /// [`crate::advice::expected_leds`]); `None` without tools.
+    pub expected_leds: Option<usize>,
 }
 
 impl TapSet {
@@ -71,6 +74,7 @@ impl TapSet {
             threshold_dn: 0,
             tracker_cfg: TrackerConfig::default(),
             detected: false,
+            expected_leds: None,
         }
     }
 
@@ -151,6 +155,7 @@ impl TapSet {
                     listed,
                     MAX_TAP_BLOBS,
                 )
+                .map(|a| a.expecting(self.expected_leds))
                 .unwrap_or_else(|| CameraAnalysis::unreadable(camera, self.set_index, &self.tracker_cfg))
             })
             .collect()
@@ -655,15 +660,20 @@ pub fn run_sampler(tap: Arc<ViewerTap>, first_start: bool, stop: Arc<AtomicBool>
         }
         if !suggested {
             suggested = true;
-            // Only when the configured threshold does not give one clean spot per camera.
-            let suits = analysis.iter().all(|a| a.kept == 1 && a.advice.is_none());
+            // Only when the configured threshold does not give one clean spot per camera (with
+            // tools: at least one and at most the LEDs expected).
+            let expected = set.expected_leds.unwrap_or(1);
+            let suits = analysis
+                .iter()
+                .all(|a| a.kept >= 1 && a.kept as usize <= expected && a.advice.is_none());
             if suits {
                 tracing::info!(
                     threshold_dn = set.tracker_cfg.threshold_dn,
                     "first start: the threshold suits these cameras"
                 );
             } else {
-                let s = crate::advice::suggest(set.set_index, &set.frames, &set.tracker_cfg);
+                let s =
+                    crate::advice::suggest_expecting(set.set_index, &set.frames, &set.tracker_cfg, expected);
                 if let Some(v) = s.threshold_dn {
                     tracing::warn!(
                         current_dn = s.current_threshold_dn,

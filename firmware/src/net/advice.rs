@@ -34,7 +34,12 @@ pub(super) async fn suggest(
         let set = tap.snapshot_blocking(SNAPSHOT_WAIT)?;
         // The detector's settings as the operator has them now (the copy may predate a change).
         let cfg = tuning.tracking().unwrap_or(set.tracker_cfg);
-        Some(crate::advice::suggest(set.set_index, &set.frames, &cfg))
+        Some(crate::advice::suggest_expecting(
+            set.set_index,
+            &set.frames,
+            &cfg,
+            set.expected_leds.unwrap_or(1),
+        ))
     })
     .await;
     match result {
