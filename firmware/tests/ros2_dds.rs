@@ -343,3 +343,266 @@ fn ros2_stalled_subscriber_does_not_slow_the_loop() {
         assert!(sent - sent0 + dropped >= 300, "{sent} {sent0} {dropped}");
     });
 }
+
+/// The multi-tool simulator of firmware/tests/multitool_service.rs: `probe4`, `tri3` and
+/// `wing4` on crossing paths and one loose single LED crossing them.
+const MULTI_SIM: &str = "rig = \"convergent\"\ndistance_mm = 1000.0\nradius_mm = 60.0\nperiod_s = 6.0\nfps = 120.0\nseed = 29\ntool = \"probe4\"\nextra_tools = [\"tri3\", \"wing4\"]\nloose_leds = 1\ntool_rotation_deg = 20.0\nframes = 2400\n";
+const MULTI_NAMES: [&str; 3] = ["probe4", "tri3", "wing4"];
+
+/// irtrackd's NDJSON stream with per-tool and loose-LED records (`tools\n`), read in the
+/// background: per capture time, every tool's record and the loose LEDs' records.
+struct ToolCollector {
+    stop: tokio::sync::oneshot::Sender<()>,
+    task: tokio::task::JoinHandle<ToolStream>,
+}
+
+#[derive(Default)]
+struct ToolStream {
+    /// (tool name, capture ns) → record.
+    tools: HashMap<(String, u64), PositionRecord>,
+    /// capture ns → the set's loose LEDs (id, position mm).
+    loose: HashMap<u64, Vec<(u32, [f64; 3])>>,
+    /// Capture times of the main records after the first tool records.
+    sets: Vec<u64>,
+}
+
+impl ToolCollector {
+    async fn start(addr: std::net::SocketAddr) -> Self {
+        use irtrack_core::stream::{LooseRecord, ToolRecord};
+        use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+        let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+        s.write_all(b"tools\n").await.unwrap();
+        let mut lines = BufReader::new(s).lines();
+        // Wait for the first tool record, so a subscriber started next misses nothing.
+        let first = loop {
+            let line = lines.next_line().await.unwrap().expect("stream open");
+            if line.starts_with("{\"tool_id\"") {
+                break ToolRecord::from_ndjson_line(&line).unwrap();
+            }
+        };
+        let (stop, mut stopped) = tokio::sync::oneshot::channel();
+        let task = tokio::spawn(async move {
+            let mut out = ToolStream::default();
+            let add_tool = |out: &mut ToolStream, t: ToolRecord| {
+                out.tools
+                    .insert((t.name().to_string(), t.record.capture_ts_ns), t.record);
+            };
+            add_tool(&mut out, first);
+            loop {
+                tokio::select! {
+                    _ = &mut stopped => break,
+                    r = lines.next_line() => match r {
+                        Ok(Some(line)) if line.starts_with("{\"tool_id\"") => {
+                            add_tool(&mut out, ToolRecord::from_ndjson_line(&line).unwrap());
+                        }
+                        Ok(Some(line)) if line.starts_with("{\"loose_id\"") => {
+                            let l = LooseRecord::from_ndjson_line(&line).unwrap();
+                            out.loose
+                                .entry(l.record.capture_ts_ns)
+                                .or_default()
+                                .push((l.loose_id, l.record.position_mm.unwrap()));
+                        }
+                        Ok(Some(line)) => {
+                            out.sets.push(PositionRecord::from_ndjson_line(&line).unwrap().capture_ts_ns);
+                        }
+                        _ => break,
+                    },
+                }
+            }
+            out
+        });
+        Self { stop, task }
+    }
+
+    async fn finish(self) -> ToolStream {
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let _ = self.stop.send(());
+        self.task.await.unwrap()
+    }
+}
+
+/// The loose LEDs of a `PointCloud2` sample: (loose_id, x y z metres).
+fn cloud_points(m: &Value) -> Vec<(u32, [f64; 3])> {
+    let fields: Vec<(&str, u64, u64)> = m["fields"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| {
+            (
+                f["name"].as_str().unwrap(),
+                f["offset"].as_u64().unwrap(),
+                f["datatype"].as_u64().unwrap(),
+            )
+        })
+        .collect();
+    // x y z float32 (7), loose_id uint32 (6), 16 bytes a point, little-endian.
+    assert_eq!(
+        fields,
+        vec![("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("loose_id", 12, 6)]
+    );
+    assert_eq!(
+        (m["point_step"].as_u64(), m["height"].as_u64()),
+        (Some(16), Some(1))
+    );
+    assert_eq!(m["is_bigendian"], false);
+    let data: Vec<u8> = m["data"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|b| b.as_u64().unwrap() as u8)
+        .collect();
+    let width = m["width"].as_u64().unwrap() as usize;
+    assert_eq!(data.len(), 16 * width);
+    assert_eq!(m["row_step"].as_u64(), Some(16 * width as u64));
+    data.chunks_exact(16)
+        .map(|p| {
+            let f = |i: usize| f64::from(f32::from_le_bytes(p[i..i + 4].try_into().unwrap()));
+            (
+                u32::from_le_bytes(p[12..16].try_into().unwrap()),
+                [f(0), f(4), f(8)],
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn ros2_three_tools_and_the_loose_led_equal_the_ndjson_records_of_their_frames() {
+    run_in_own_netns(
+        "ros2_three_tools_and_the_loose_led_equal_the_ndjson_records_of_their_frames",
+        || async {
+            let dir = TempDir::new("ros2-multi");
+            let pose_topics: Vec<String> = MULTI_NAMES
+                .iter()
+                .map(|n| format!("/irtrack/{n}/pose=geometry_msgs/msg/PoseStamped"))
+                .collect();
+            let mut args = vec!["--domain", "9", "--count", "1200", "--seconds", "15"];
+            args.extend(pose_topics.iter().map(String::as_str));
+            args.push("/irtrack/loose/points=sensor_msgs/msg/PointCloud2");
+            args.push("/tf=tf2_msgs/msg/TFMessage");
+            let sub = subscriber(&args);
+            let running = start(&dir, MULTI_SIM, "domain_id = 9\n").await;
+            let ndjson = ToolCollector::start(running.addrs.stream_ndjson).await;
+            let (samples, done) = read_samples(sub).await;
+            let stream = ndjson.finish().await;
+            running.shutdown().await;
+            println!(
+                "ROS 2, 3 tools + loose LED: subscriber {done}; NDJSON {} sets",
+                stream.sets.len()
+            );
+
+            // The stamp offset (wall clock − capture clock) from the first pose that equals a
+            // tool record of the same tool exactly.
+            let poses: Vec<(&str, &Value)> = samples
+                .iter()
+                .filter_map(|s| {
+                    let t = s["topic"].as_str()?;
+                    let name = t.strip_prefix("/irtrack/")?.strip_suffix("/pose")?;
+                    Some((name, &s["msg"]))
+                })
+                .collect();
+            let (name0, first) = poses[0];
+            let p0 = &first["pose"]["position"];
+            let anchor = stream
+                .tools
+                .iter()
+                .filter(|((n, _), r)| n == name0 && r.status == TrackStatus::Ok)
+                .find(|(_, r)| {
+                    let p = r.position_mm.unwrap();
+                    (f(&p0["x"]) - p[0] / 1e3).abs() < 1e-12
+                        && (f(&p0["y"]) - p[1] / 1e3).abs() < 1e-12
+                        && (f(&p0["z"]) - p[2] / 1e3).abs() < 1e-12
+                })
+                .map(|((_, c), _)| *c)
+                .expect("the first pose equals a tool record of the NDJSON stream");
+            let offset = stamp_ns(&first["header"]) - i128::from(anchor);
+            let capture = |h: &Value| u64::try_from(stamp_ns(h) - offset).unwrap();
+
+            // Every tool is published on its own topic; each pose equals its tool's record of
+            // that frame (position and orientation).
+            let (mut worst_m, mut worst_q) = (0.0f64, 0.0f64);
+            let mut compared = [0usize; 3];
+            for (name, m) in &poses {
+                let i = MULTI_NAMES.iter().position(|n| n == name).unwrap();
+                assert_eq!(m["header"]["frame_id"], "irtrack_camera0_optical");
+                let Some(rec) = stream.tools.get(&(name.to_string(), capture(&m["header"]))) else {
+                    continue;
+                };
+                assert_eq!(
+                    rec.status,
+                    TrackStatus::Ok,
+                    "{name}: a pose for an untracked record"
+                );
+                compared[i] += 1;
+                let p = rec.position_mm.unwrap();
+                let q = rec.orientation_wxyz.unwrap();
+                let (pos, ori) = (&m["pose"]["position"], &m["pose"]["orientation"]);
+                for (k, want) in ["x", "y", "z"].iter().zip(p) {
+                    worst_m = worst_m.max((f(&pos[k]) - want / 1e3).abs());
+                }
+                for (k, want) in ["x", "y", "z", "w"].iter().zip([q[1], q[2], q[3], q[0]]) {
+                    worst_q = worst_q.max((f(&ori[k]) - want).abs());
+                }
+            }
+            // /tf: every tool's child frame by name, at its record's position.
+            let mut tf_frames: HashMap<String, usize> = HashMap::new();
+            for s in samples.iter().filter(|s| s["topic"] == "/tf") {
+                for t in s["msg"]["transforms"].as_array().unwrap() {
+                    let child = t["child_frame_id"].as_str().unwrap().to_string();
+                    *tf_frames.entry(child.clone()).or_default() += 1;
+                    let name = child.strip_prefix("irtrack_").unwrap().to_string();
+                    if let Some(rec) = stream.tools.get(&(name, capture(&t["header"]))) {
+                        let p = rec.position_mm.unwrap();
+                        let tr = &t["transform"]["translation"];
+                        for (k, want) in ["x", "y", "z"].iter().zip(p) {
+                            worst_m = worst_m.max((f(&tr[k]) - want / 1e3).abs());
+                        }
+                    }
+                }
+            }
+            // The loose LED: each cloud holds exactly the loose records of its frame.
+            let (mut clouds, mut clouds_compared, mut points) = (0usize, 0usize, 0usize);
+            let mut worst_loose_m = 0.0f64;
+            for s in samples.iter().filter(|s| s["topic"] == "/irtrack/loose/points") {
+                let m = &s["msg"];
+                assert_eq!(m["header"]["frame_id"], "irtrack_camera0_optical");
+                clouds += 1;
+                let got = cloud_points(m);
+                let c = capture(&m["header"]);
+                if !stream.sets.contains(&c) {
+                    continue;
+                }
+                clouds_compared += 1;
+                let want = stream.loose.get(&c).cloned().unwrap_or_default();
+                assert_eq!(
+                    got.iter().map(|g| g.0).collect::<Vec<_>>(),
+                    want.iter().map(|w| w.0).collect::<Vec<_>>(),
+                    "loose ids of the frame"
+                );
+                for ((_, g), (_, w)) in got.iter().zip(&want) {
+                    points += 1;
+                    for k in 0..3 {
+                        worst_loose_m = worst_loose_m.max((g[k] - w[k] / 1e3).abs());
+                    }
+                }
+            }
+            println!(
+                "ROS 2 vs NDJSON: poses compared per tool {compared:?}; /tf child frames {tf_frames:?}; largest difference {worst_m:.1e} m, quaternion {worst_q:.1e}; {clouds} loose clouds ({clouds_compared} compared, {points} points), largest loose difference {worst_loose_m:.1e} m (float32)"
+            );
+            for (i, n) in MULTI_NAMES.iter().enumerate() {
+                assert!(compared[i] >= 50, "{n}: only {} poses compared", compared[i]);
+                assert!(
+                    tf_frames.get(&format!("irtrack_{n}")).is_some_and(|&c| c >= 50),
+                    "{n} in /tf: {tf_frames:?}"
+                );
+            }
+            assert!(worst_m < 1e-9, "{worst_m}");
+            assert!(worst_q < 1e-9, "{worst_q}");
+            assert!(
+                clouds_compared >= 50 && points >= 40,
+                "{clouds_compared} clouds, {points} points"
+            );
+            // float32 metres: half an ulp at ~1 m is 3e-8 m.
+            assert!(worst_loose_m < 1e-6, "{worst_loose_m}");
+        },
+    );
+}

@@ -140,3 +140,45 @@ pub struct TFMessage {
     /// The transforms.
     pub transforms: Vec<TransformStamped>,
 }
+
+/// `sensor_msgs/msg/PointField`: one field of a [`PointCloud2`]'s point.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct PointField {
+    /// Field name (`x`, `y`, `z`, ...).
+    pub name: String,
+    /// Byte offset within the point.
+    pub offset: u32,
+    /// Data type: one of the `POINT_FIELD_*` constants.
+    pub datatype: u8,
+    /// Elements in the field.
+    pub count: u32,
+}
+
+/// `sensor_msgs/msg/PointField` datatype `FLOAT32`.
+pub const POINT_FIELD_FLOAT32: u8 = 7;
+/// `sensor_msgs/msg/PointField` datatype `UINT32`.
+pub const POINT_FIELD_UINT32: u8 = 6;
+
+/// `sensor_msgs/msg/PointCloud2`: `height × width` points of `point_step` bytes each in `data`,
+/// laid out as `fields` says.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct PointCloud2 {
+    /// Stamp and frame.
+    pub header: Header,
+    /// Rows (1: an unordered cloud).
+    pub height: u32,
+    /// Points per row.
+    pub width: u32,
+    /// The layout of one point.
+    pub fields: Vec<PointField>,
+    /// Multi-byte fields are big-endian.
+    pub is_bigendian: bool,
+    /// Bytes per point.
+    pub point_step: u32,
+    /// Bytes per row.
+    pub row_step: u32,
+    /// The points.
+    pub data: Vec<u8>,
+    /// No invalid (NaN) points.
+    pub is_dense: bool,
+}

@@ -1,5 +1,6 @@
 //! ROS 2 over DDS (`[outputs.ros2]`, firmware feature `ros2`; docs/outputs.md): tool poses as
-//! `geometry_msgs/msg/PoseStamped`, the single LED as `geometry_msgs/msg/PointStamped`, `/tf`
+//! `geometry_msgs/msg/PoseStamped`, the single LED as `geometry_msgs/msg/PointStamped`, the loose
+//! single LEDs beside tools as one `sensor_msgs/msg/PointCloud2` per set (x y z and `loose_id`), `/tf`
 //! (tracker frame → tool frames) and `/tf_static` (robot base → tracker, from the survey's
 //! registration), on `ros2-client` over `rustdds` (pure Rust; no ROS installation).
 //!
@@ -168,8 +169,8 @@ mod imp {
     use irtrack_core::stream::PositionRecord;
     use irtrack_interop::ros2msg::{FRAME_CAMERA0, FRAME_WORLD};
     use irtrack_interop::ros2types::{
-        Header, Point, PointStamped, Pose, PoseStamped, Quaternion, TFMessage, Time, Transform,
-        TransformStamped,
+        Header, POINT_FIELD_FLOAT32, POINT_FIELD_UINT32, Point, PointCloud2, PointField, PointStamped, Pose,
+        PoseStamped, Quaternion, TFMessage, Time, Transform, TransformStamped,
     };
     use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
     use ros2_client::qos::{Durability, History, Reliability, WhenFull};
@@ -189,6 +190,10 @@ mod imp {
     const R: Ordering = Ordering::Relaxed;
     /// Child frame of the single LED in `/tf`.
     const FRAME_LED: &str = "irtrack_led";
+    /// Topic leaf of the loose LEDs' cloud: `<namespace>/loose/points`.
+    const LOOSE_TOPIC: &str = "loose/points";
+    /// Bytes per loose LED in the cloud: x, y, z (float32, metres) and `loose_id` (uint32).
+    const LOOSE_POINT_STEP: u32 = 16;
 
     fn err(what: &'static str) -> impl FnOnce(String) -> FirmwareError {
         move |reason| FirmwareError::Output { what, reason }
@@ -309,6 +314,8 @@ mod imp {
         models: Vec<ModelPubs>,
         tf: Option<Publisher<TFMessage>>,
         tf_static: Option<Publisher<TFMessage>>,
+        /// The loose LEDs' cloud (only while the set has tools).
+        loose: Option<Publisher<PointCloud2>>,
         /// cam0_from_world (inverse registration), to give `/tf` in the tracker frame.
         cam0_from_world: Option<(Rotation3<f64>, Vector3<f64>)>,
         offset_ns: i128,
@@ -347,6 +354,7 @@ mod imp {
                 models: Vec::new(),
                 tf: None,
                 tf_static: None,
+                loose: None,
                 cam0_from_world: None,
                 offset_ns: wall - i128::from(crate::clock::monotonic_ns()),
                 received: 0,
@@ -440,6 +448,15 @@ mod imp {
                 });
             }
             self.models = pubs;
+            // Loose single LEDs are reported beside tools only.
+            let has_tools =
+                models.list.iter().any(|m| m.rigid_body) || rig.is_some_and(|r| !r.tools.is_empty());
+            if has_tools && self.loose.is_none() {
+                let topic = format!("{}/{LOOSE_TOPIC}", self.cfg.namespace_prefix());
+                self.loose = self.publisher(&topic, "sensor_msgs", "PointCloud2", &qos);
+            } else if !has_tools {
+                self.loose = None;
+            }
             self.builder.models = models;
             // Registration: robot base → tracker as a static transform.
             self.cam0_from_world = None;
@@ -559,6 +576,19 @@ mod imp {
                     [0.0, 0.0, 0.0, 1.0],
                 ));
             }
+            // Loose single LEDs: one cloud per set, empty when none is tracked (a display
+            // then clears the last points instead of freezing them); none when this set's
+            // per-tool records were already replaced by a newer set's.
+            if let Some(p) = self.loose.as_ref().filter(|_| self.scene.per_tool) {
+                let msg = loose_cloud(
+                    Header {
+                        stamp,
+                        frame_id: frame_id.into(),
+                    },
+                    &self.scene.loose,
+                );
+                self.sent(p.publish(msg));
+            }
             if !tf.transforms.is_empty()
                 && let Some(p) = &self.tf
             {
@@ -622,6 +652,10 @@ mod imp {
                 .tf
                 .as_ref()
                 .map_or(0, |p| p.get_subscription_count(&self.node));
+            n += self
+                .loose
+                .as_ref()
+                .map_or(0, |p| p.get_subscription_count(&self.node));
             self.stats.clients.store(n as u64, R);
         }
 
@@ -656,6 +690,42 @@ mod imp {
                 }
             }
             tracing::info!("ROS 2 output stopped");
+        }
+    }
+
+    /// The loose LEDs as a `PointCloud2`: one row, x y z as float32 metres (0.06 µm steps at
+    /// 1 m, far below the tracker's resolution; float32 is what every cloud display reads) and
+    /// the stable `loose_id` as uint32, little-endian.
+    fn loose_cloud(header: Header, loose: &[crate::outputs::scene::LooseSample]) -> PointCloud2 {
+        let field = |name: &str, offset, datatype| PointField {
+            name: name.into(),
+            offset,
+            datatype,
+            count: 1,
+        };
+        let mut data = Vec::with_capacity(loose.len() * LOOSE_POINT_STEP as usize);
+        for l in loose {
+            for v in l.position_m {
+                data.extend_from_slice(&(v as f32).to_le_bytes());
+            }
+            data.extend_from_slice(&l.loose_id.to_le_bytes());
+        }
+        let width = loose.len() as u32;
+        PointCloud2 {
+            header,
+            height: 1,
+            width,
+            fields: vec![
+                field("x", 0, POINT_FIELD_FLOAT32),
+                field("y", 4, POINT_FIELD_FLOAT32),
+                field("z", 8, POINT_FIELD_FLOAT32),
+                field("loose_id", 12, POINT_FIELD_UINT32),
+            ],
+            is_bigendian: false,
+            point_step: LOOSE_POINT_STEP,
+            row_step: LOOSE_POINT_STEP * width,
+            data,
+            is_dense: true,
         }
     }
 

@@ -159,6 +159,21 @@ pub struct SceneFrame {
     /// Markers that belong to no model: the single LED, or with tools the loose single LEDs
     /// of the set (from the per-tool slot, by increasing loose id).
     pub unlabelled_m: Vec<[f64; 3]>,
+    /// With tools: the set's tracked loose single LEDs with their stable ids (the stream's
+    /// `loose_id`), by increasing id; the same points as the tail of `unlabelled_m`.
+    pub loose: Vec<LooseSample>,
+    /// The loop's per-tool records of this very set were read (else, with several tools, the
+    /// bodies are untracked and `loose` is empty for lack of data, not for lack of LEDs).
+    pub per_tool: bool,
+}
+
+/// A loose single LED (no tool) in one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LooseSample {
+    /// Stable id (the stream's `loose_id`).
+    pub loose_id: u32,
+    /// Position, metres, in the output's axes.
+    pub position_m: [f64; 3],
 }
 
 /// Turns position records into [`SceneFrame`]s for a set of [`Models`] and [`Axes`].
@@ -205,6 +220,7 @@ impl SceneBuilder {
         out.bodies.clear();
         out.markers.clear();
         out.unlabelled_m.clear();
+        out.loose.clear();
         out.marker_sets.resize_with(self.models.list.len(), Vec::new);
         let rot = self.axes.rotation(rec.world_frame);
         let sample = |r: &PositionRecord| {
@@ -222,6 +238,7 @@ impl SceneBuilder {
             .as_ref()
             .map(|t| *t.borrow())
             .filter(|t| t.frame == rec.frame && t.count > 0);
+        out.per_tool = tool_set.is_some();
         let single_body = self.models.rigid_bodies().count() == 1;
         for (model, set) in self.models.list.iter().zip(out.marker_sets.iter_mut()) {
             set.clear();
@@ -289,6 +306,10 @@ impl SceneBuilder {
                 let (tracked, p_m, _) = sample(&l.record);
                 if tracked {
                     out.unlabelled_m.push(p_m.into());
+                    out.loose.push(LooseSample {
+                        loose_id: l.loose_id,
+                        position_m: p_m.into(),
+                    });
                 }
             }
         }

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from cyclonedds.core import Qos, Policy, WaitSet, ReadCondition, SampleState, ViewState, InstanceState
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import float64, int32, uint32, sequence
+from cyclonedds.idl.types import float64, int32, uint8, uint32, sequence
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
@@ -98,10 +98,32 @@ class TFMessage(IdlStruct, typename="tf2_msgs::msg::dds_::TFMessage_"):
     transforms: sequence[TransformStamped]
 
 
+@dataclass
+class PointField(IdlStruct, typename="sensor_msgs::msg::dds_::PointField_"):
+    name: str
+    offset: uint32
+    datatype: uint8
+    count: uint32
+
+
+@dataclass
+class PointCloud2(IdlStruct, typename="sensor_msgs::msg::dds_::PointCloud2_"):
+    header: Header
+    height: uint32
+    width: uint32
+    fields: sequence[PointField]
+    is_bigendian: bool
+    point_step: uint32
+    row_step: uint32
+    data: sequence[uint8]
+    is_dense: bool
+
+
 TYPES = {
     "geometry_msgs/msg/PoseStamped": PoseStamped,
     "geometry_msgs/msg/PointStamped": PointStamped,
     "tf2_msgs/msg/TFMessage": TFMessage,
+    "sensor_msgs/msg/PointCloud2": PointCloud2,
 }
 
 

@@ -388,6 +388,8 @@ mod tests {
                 })
                 .collect(),
             unlabelled_m: vec![],
+            loose: vec![],
+            per_tool: false,
         };
         let mut out = Vec::new();
         let stamps = FrameStamps {
