@@ -80,12 +80,13 @@ const live = new Live({
   onError: (message) => {
     $("conn").title = `irtrackd: ${message}`;
   },
-  onPosition: (rec, tools) => {
+  onPosition: (rec, tools, loose) => {
     state.positions += 1;
     health.position(rec);
     scene.position(rec);
     if (tools.length) setToolNames(tools.map((t) => t.tool));
     scene.tools(tools);
+    if (tools.length || loose.length) scene.loose(loose);
   },
   onState: (s, detail) => {
     const c = $("conn");
@@ -108,7 +109,7 @@ window.__irtrack = {
   serverFaults: () => (state.status ? serverFaults(state.status) : []),
   statusReports: () => state.statusCount,
   positions: () => state.positions,
-  scene: () => ({ webgl: scene.ok, records: scene.records, rigCameras: scene.rig ? scene.rig.cameras.length : 0, workspace: !!scene.workspace, tools: scene.toolSummary() }),
+  scene: () => ({ webgl: scene.ok, records: scene.records, rigCameras: scene.rig ? scene.rig.cameras.length : 0, workspace: !!scene.workspace, tools: scene.toolSummary(), loose: scene.looseSummary(), labels: scene.labelBoxes() }),
   session: () => state.session,
   tuningMessage: () => $("tuning-msg").textContent,
   captureMessage: () => $("capture-msg").textContent,

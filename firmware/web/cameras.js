@@ -37,6 +37,39 @@ export function reasonWords(reason) {
   return REASON_WORDS[reason] || (reason ? String(reason) : "rejected");
 }
 
+/**
+ * Draws `labels` ({text, color, x, y, c: clearance from the anchor}) where they cover no
+ * earlier label: right-above, right-below, left-above, left-below the anchor, else moved down
+ * until free. Returns the boxes drawn (canvas pixels).
+ */
+function placeLabels(ctx, labels, lw, width, height) {
+  const placed = [];
+  const h = 12 * lw;
+  const hits = (r) => placed.some((p) => r.x < p.x + p.w && r.x + r.w > p.x && r.y < p.y + p.h && r.y + r.h > p.y);
+  for (const l of labels) {
+    const w = ctx.measureText(l.text).width + 4;
+    const clampX = (x) => Math.max(0, Math.min(x, width - w));
+    const clampY = (y) => Math.max(0, Math.min(y, height - h));
+    const tries = [
+      [l.x + l.c, l.y - l.c - h],
+      [l.x + l.c, l.y + l.c],
+      [l.x - l.c - w, l.y - l.c - h],
+      [l.x - l.c - w, l.y + l.c],
+    ].map(([x, y]) => ({ x: clampX(x), y: clampY(y), w, h }));
+    let box = tries.find((r) => !hits(r));
+    if (!box) {
+      box = { ...tries[0] };
+      while (hits(box) && box.y + h < height) box.y += h / 2;
+    }
+    placed.push({ ...box, text: l.text });
+    ctx.fillStyle = "rgba(0,0,0,.65)";
+    ctx.fillRect(box.x, box.y, w, h);
+    ctx.fillStyle = l.color;
+    ctx.fillText(l.text, box.x + 2, box.y + h - 3 * lw);
+  }
+  return placed;
+}
+
 class CameraCard {
   constructor(index, parent) {
     this.index = index;
@@ -139,7 +172,12 @@ class CameraCard {
     const ctx = this.ctx;
     const lw = Math.max(1.5, this.canvas.width / 400);
     ctx.lineWidth = lw;
-    ctx.font = `${Math.round(11 * lw)}px system-ui, sans-serif`;
+    ctx.font = `${Math.round(10 * lw)}px system-ui, sans-serif`;
+    // Labels: one per tool (at its topmost blob) rather than one per blob, so a tool's 3-4 LEDs
+    // carry its name once; "kept" and reasons per blob. Placed after all circles, avoiding
+    // each other.
+    const labels = [];
+    const byOwner = new Map();
     for (const b of head.blobs || []) {
       const x = b.x_px * scale;
       const y = b.y_px * scale;
@@ -161,14 +199,17 @@ class CameraCard {
       ctx.moveTo(x, y + r * 0.4);
       ctx.lineTo(x, y + c);
       ctx.stroke();
-      const label = b.kept ? owner || "kept" : reasonWords(b.reason);
-      const tx = Math.min(x + c + 2, this.canvas.width - ctx.measureText(label).width - 2);
-      const ty = y - c > 14 * lw ? y - c : y + c + 12 * lw;
-      ctx.fillStyle = "rgba(0,0,0,.6)";
-      ctx.fillRect(tx - 2, ty - 11 * lw, ctx.measureText(label).width + 4, 13 * lw);
-      ctx.fillStyle = color;
-      ctx.fillText(label, tx, ty);
+      const text = b.kept ? owner || "kept" : reasonWords(b.reason);
+      const item = { text, color, x, y, c };
+      if (b.kept && owner && owner !== "loose LED") {
+        const prev = byOwner.get(owner);
+        if (!prev || y < prev.y) byOwner.set(owner, item);
+      } else {
+        labels.push(item);
+      }
     }
+    labels.unshift(...byOwner.values());
+    this.labelBoxes = placeLabels(ctx, labels, lw, this.canvas.width, this.canvas.height);
   }
 
   describe(head, fps) {
@@ -289,6 +330,7 @@ export class Cameras {
       rejected: c.last ? (c.last.blobs || []).filter((b) => !b.kept).length : null,
       reasons: c.last ? (c.last.blobs || []).filter((b) => !b.kept).map((b) => b.reason) : [],
       owners: c.last ? (c.last.blobs || []).map((b) => blobOwner(b)).filter((o) => o) : [],
+      labels: c.labelBoxes || [],
     }));
   }
 }

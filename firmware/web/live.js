@@ -89,7 +89,7 @@ export class Live {
         this.pending = msg;
         break;
       case "position":
-        this.h.onPosition(msg.record, msg.tools || []);
+        this.h.onPosition(msg.record, msg.tools || [], msg.loose || []);
         break;
       case "error":
         this.h.onError(String(msg.message || "error"));

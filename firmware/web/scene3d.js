@@ -1,6 +1,8 @@
 // 3-D view (three.js): the cameras as frusta from the active parameter set, the live marker
-// with the tool's axes (6-DOF), a fading trail, the robot's safety workspace box and the
-// world/robot frame when the rig is registered. Units are millimetres. The scene is drawn in
+// with the tool's axes (6-DOF), every tool's axes and name, the loose single LEDs with their
+// ids, a fading trail, the robot's safety workspace box and the world/robot frame when the rig
+// is registered. Tool and loose-LED names are HTML labels over the canvas, laid out each
+// frame so that they never cover each other. Units are millimetres. The scene is drawn in
 // the frame the positions arrive in: the world (robot) frame when registered, else camera 0's.
 
 import * as THREE from "three";
@@ -10,6 +12,9 @@ import { TOOL_COLORS } from "./cameras.js";
 const TRAIL_POINTS = 180; // six seconds at 30 records per second
 const FRUSTUM_DEPTH_MM = 180;
 const BG = new THREE.Color(0x0d0f13);
+const LOOSE_COLOR = "#e6e6e6";
+/** Screen gap kept between two name labels, px. */
+const LABEL_GAP_PX = 2;
 
 /** 4×4 matrix of a RigidTransform {r_row_major, t_mm}. */
 function matrixOf(tf) {
@@ -53,8 +58,11 @@ export class Scene3D {
       return;
     }
     this.ok = true;
+    this.labelLayer = document.createElement("div");
+    this.labelLayer.className = "scene-labels";
+    if (getComputedStyle(container).position === "static") container.style.position = "relative";
     this.renderer.setPixelRatio(Math.min(2, window.devicePixelRatio || 1));
-    container.append(this.renderer.domElement);
+    container.append(this.renderer.domElement, this.labelLayer);
     this.scene = new THREE.Scene();
     this.scene.background = BG;
     this.camera = new THREE.PerspectiveCamera(45, 4 / 3, 5, 50000);
@@ -102,6 +110,7 @@ export class Scene3D {
       if (this.dirty) {
         this.dirty = false;
         this.renderer.render(this.scene, this.camera);
+        this.layoutLabels();
       }
       requestAnimationFrame(loop);
     };
@@ -187,26 +196,20 @@ export class Scene3D {
       if (!v || v.name !== t.tool) {
         if (v) this.scene.remove(v.group);
         const color = TOOL_COLORS[t.tool_id % TOOL_COLORS.length];
+        if (v) v.label.remove();
         const group = new THREE.Group();
         group.add(new THREE.AxesHelper(90));
-        const text = label(t.tool, color);
-        text.scale.set(200, 50, 1);
-        const holder = new THREE.Group(); // the name stays upright: not turned with the tool
-        holder.add(text);
         this.scene.add(group);
-        this.scene.add(holder);
-        v = { name: t.tool, group, holder, tracked: false };
+        v = { name: t.tool, group, label: this.htmlLabel(t.tool, color, "tool"), tracked: false };
         this.toolViews.set(t.tool_id, v);
       }
       const p = t.position_mm;
       const q = t.orientation_wxyz;
       v.tracked = !!(p && q);
       v.group.visible = v.tracked;
-      v.holder.visible = v.tracked;
       if (v.tracked) {
         v.group.position.set(p[0], p[1], p[2]);
         v.group.quaternion.set(q[1], q[2], q[3], q[0]);
-        v.holder.position.set(p[0] + 12, p[1] + 12, p[2]);
       }
     }
     if (list.length) {
@@ -214,6 +217,108 @@ export class Scene3D {
       this.toolAxes.visible = false;
       this.dirty = true;
     }
+  }
+
+  /** A name label over the canvas (placed by `layoutLabels`). */
+  htmlLabel(text, color, kind) {
+    const e = document.createElement("span");
+    e.className = `scene-label ${kind}`;
+    e.textContent = text;
+    e.style.color = color;
+    e.hidden = true;
+    this.labelLayer.append(e);
+    return e;
+  }
+
+  /**
+   * The loose single LEDs of the set (records with loose_id): a small sphere and "loose N" per
+   * LED; LEDs not in this set are hidden (a reacquired LED comes back under a new id).
+   */
+  loose(list) {
+    if (!this.ok) return;
+    this.looseViews = this.looseViews || new Map();
+    const seen = new Set();
+    for (const l of list) {
+      const p = l.position_mm;
+      if (!p) continue;
+      seen.add(l.loose_id);
+      let v = this.looseViews.get(l.loose_id);
+      if (!v) {
+        const dot = new THREE.Mesh(new THREE.SphereGeometry(6, 14, 10), new THREE.MeshBasicMaterial({ color: LOOSE_COLOR }));
+        this.scene.add(dot);
+        v = { id: l.loose_id, dot, label: this.htmlLabel(`loose ${l.loose_id}`, LOOSE_COLOR, "loose") };
+        this.looseViews.set(l.loose_id, v);
+      }
+      v.dot.position.set(p[0], p[1], p[2]);
+      v.dot.visible = true;
+      v.position = p;
+    }
+    for (const [id, v] of this.looseViews) {
+      if (seen.has(id)) continue;
+      // Gone: ids are not reused, so the view is dropped.
+      this.scene.remove(v.dot);
+      v.dot.geometry.dispose();
+      v.label.remove();
+      this.looseViews.delete(id);
+    }
+    this.dirty = true;
+  }
+
+  /** The loose LEDs shown in 3-D (for the browser test): id, position and label text. */
+  looseSummary() {
+    return this.looseViews
+      ? Array.from(this.looseViews.values()).map((v) => ({ id: v.id, position_mm: v.position, label: v.label.textContent, shown: !v.label.hidden }))
+      : [];
+  }
+
+  /**
+   * Places the name labels next to their 3-D anchors, then moves a label that would cover an
+   * earlier one below it (top to bottom, left to right), so three tools crossing stay readable.
+   */
+  layoutLabels() {
+    const w = this.renderer.domElement.clientWidth;
+    const h = this.renderer.domElement.clientHeight;
+    const items = [];
+    const add = (label, pos, visible) => {
+      if (!visible) {
+        label.hidden = true;
+        return;
+      }
+      const v = pos.clone().project(this.camera);
+      const inside = v.z < 1 && Math.abs(v.x) <= 1.05 && Math.abs(v.y) <= 1.05;
+      label.hidden = !inside;
+      if (inside) items.push({ label, x: ((v.x + 1) / 2) * w + 8, y: ((1 - v.y) / 2) * h - 8 });
+    };
+    for (const v of this.toolViews ? this.toolViews.values() : []) add(v.label, v.group.position, v.tracked);
+    for (const v of this.looseViews ? this.looseViews.values() : []) add(v.label, v.dot.position, v.dot.visible);
+    items.sort((a, b) => a.y - b.y || a.x - b.x);
+    const placed = [];
+    for (const it of items) {
+      const bw = it.label.offsetWidth || 60;
+      const bh = it.label.offsetHeight || 16;
+      let y = it.y;
+      for (let moved = true; moved; ) {
+        moved = false;
+        for (const r of placed) {
+          if (it.x < r.x + r.w + LABEL_GAP_PX && it.x + bw + LABEL_GAP_PX > r.x && y < r.y + r.h + LABEL_GAP_PX && y + bh + LABEL_GAP_PX > r.y) {
+            y = r.y + r.h + LABEL_GAP_PX;
+            moved = true;
+          }
+        }
+      }
+      placed.push({ x: it.x, y, w: bw, h: bh });
+      it.label.style.transform = `translate(${Math.round(it.x)}px, ${Math.round(y)}px)`;
+    }
+  }
+
+  /** Screen boxes of the shown name labels (for the browser test: none may overlap). */
+  labelBoxes() {
+    return Array.from(this.labelLayer.children)
+      .filter((e) => !e.hidden)
+      .map((e) => {
+        const r = e.getBoundingClientRect();
+        return { text: e.textContent, x: r.x, y: r.y, w: r.width, h: r.height };
+      });
   }
 
   /** The tools shown in 3-D (for the browser test): name and whether tracked. */

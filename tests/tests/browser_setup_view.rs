@@ -1093,6 +1093,7 @@ distance_mm = 1000.0
 radius_mm = 60.0
 tool = "probe4"
 extra_tools = ["tri3", "wing4"]
+loose_leds = 1
 tool_rotation_deg = 10.0
 [leds]
 backend = "sim"
@@ -1170,10 +1171,68 @@ backend = "sim"
         let faults = js(&c, "window.__irtrack.faults()").await;
         assert!(!faults.to_string().contains("overloaded"), "{faults}");
         assert!(!faults.to_string().contains("one marker is expected"), "{faults}");
+        // The loose single LED: a marker in 3-D labelled with its stable id (the stream's
+        // loose_id), near the simulator's loose LED path (within the scene, 0.5-2 m away).
+        let loose = wait_for(
+            &c,
+            "the loose LED drawn in 3-D with its id",
+            30,
+            "window.__irtrack.scene().loose",
+            |v| v.as_array().is_some_and(|a| a.iter().any(|l| l["shown"] == true)),
+        )
+        .await;
+        let shown = loose
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|l| l["shown"] == true)
+            .unwrap();
+        assert_eq!(
+            shown["label"].as_str().unwrap(),
+            format!("loose {}", shown["id"]),
+            "{loose}"
+        );
+        let z = shown["position_mm"][2].as_f64().unwrap();
+        assert!((500.0..2000.0).contains(&z), "loose LED at z = {z} mm");
+        // Readable names: no two labels cover each other, in 3-D (tool names and loose ids)
+        // and in each camera's overlay (one name per tool, blob reasons).
+        let overlap = |boxes: &serde_json::Value, what: &str| {
+            let b = boxes.as_array().unwrap();
+            for (i, p) in b.iter().enumerate() {
+                for q in &b[i + 1..] {
+                    let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap();
+                    let apart = f(p, "x") + f(p, "w") <= f(q, "x")
+                        || f(q, "x") + f(q, "w") <= f(p, "x")
+                        || f(p, "y") + f(p, "h") <= f(q, "y")
+                        || f(q, "y") + f(q, "h") <= f(p, "y");
+                    assert!(apart, "{what}: labels {p} and {q} overlap");
+                }
+            }
+            b.len()
+        };
+        let labels_3d = js(&c, "window.__irtrack.scene().labels").await;
+        let n3 = overlap(&labels_3d, "3-D view");
+        assert!(n3 >= 3, "3-D labels: {labels_3d}");
+        let cams = js(&c, "window.__irtrack.cameras()").await;
+        for cam in cams.as_array().unwrap() {
+            let n = overlap(&cam["labels"], "camera overlay");
+            let texts: Vec<&str> = cam["labels"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .filter_map(|l| l["text"].as_str())
+                .collect();
+            // One name label per tool, not one per LED.
+            assert!(texts.iter().filter(|t| **t == "probe4").count() <= 1, "{texts:?}");
+            println!("camera {}: {n} labels {texts:?}", cam["camera"]);
+        }
+        println!("3-D labels: {labels_3d}; loose LEDs in 3-D: {loose}");
         screenshot(&c, &out.join("setup-view-tools.png")).await;
         // The 3-D view, fitted to what it shows.
         js(&c, "(document.querySelector('.scene-panel').scrollIntoView(), document.getElementById('scene-reset').click(), true)").await;
         tokio::time::sleep(Duration::from_millis(1000)).await;
+        let labels_3d = js(&c, "window.__irtrack.scene().labels").await;
+        overlap(&labels_3d, "3-D view after reset");
         screenshot(&c, &out.join("setup-view-tools-3d.png")).await;
     };
     let result = tokio::time::timeout(Duration::from_secs(90), run).await;

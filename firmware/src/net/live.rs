@@ -590,6 +590,18 @@ async fn live_session(socket: WebSocket, s: Arc<StatusService>) {
                                 m.push_str(t.to_ndjson_line().trim_end());
                             }
                             m.push(']');
+                            // The loose single LEDs of this set, each with its stable id.
+                            m.push_str(",\"loose\":[");
+                            let mut line = String::new();
+                            for (i, l) in set.loose_records().enumerate() {
+                                if i > 0 {
+                                    m.push(',');
+                                }
+                                line.clear();
+                                l.write_ndjson(&mut line);
+                                m.push_str(line.trim_end());
+                            }
+                            m.push(']');
                         }
                         m.push('}');
                         tx.send(Message::Text(m.into())).await
