@@ -18,13 +18,19 @@ fn free_port() -> u16 {
 }
 
 fn board_and_peer(port: u16) -> (Session, TransportConfig) {
+    board_and_peer_with(port, false)
+}
+
+fn board_and_peer_with(port: u16, low_latency: bool) -> (Session, TransportConfig) {
     let board = Session::open(&TransportConfig {
         listen: vec![format!("tcp/127.0.0.1:{port}")],
+        low_latency,
         ..TransportConfig::default()
     })
     .unwrap();
     let peer = TransportConfig {
         connect: vec![format!("tcp/127.0.0.1:{port}")],
+        low_latency,
         ..TransportConfig::default()
     };
     (board, peer)
@@ -60,8 +66,21 @@ fn blob(seq: u64) -> ObsBlob {
 
 #[test]
 fn observations_reach_the_solver_subscriber() {
+    burst_reaches_the_subscriber(false);
+}
+
+/// The same with Zenoh's low-latency transport (`[cluster] low_latency = true`), which a
+/// loaded CI run once failed; run by hand (`-- --ignored`) to check it under load
+/// (docs/cluster.md, "Low-latency transport").
+#[test]
+#[ignore = "by hand: the low-latency transport under load (docs/cluster.md)"]
+fn observations_reach_the_solver_subscriber_low_latency() {
+    burst_reaches_the_subscriber(true);
+}
+
+fn burst_reaches_the_subscriber(low_latency: bool) {
     let port = free_port();
-    let (board, peer) = board_and_peer(port);
+    let (board, peer) = board_and_peer_with(port, low_latency);
     let solver = Session::open(&peer).unwrap();
     let (_sub, rx) = ObsSubscriber::new(&solver, "cell1", 256, realtime_ns).unwrap();
     let mut publisher = ObsPublisher::new(&board, "cell1", "b0", 1).unwrap();
@@ -89,9 +108,15 @@ fn observations_reach_the_solver_subscriber() {
     }
     let mut got = Vec::new();
     while got.len() < 100 {
-        let m = rx
-            .recv_timeout(Duration::from_secs(5))
-            .expect("all 100 observations within 5 s");
+        let Ok(m) = rx.recv_timeout(Duration::from_secs(5)) else {
+            // Say which ones are missing: the first, the last, or a hole.
+            let seqs: Vec<u64> = got.iter().map(|(s, _)| *s).collect();
+            panic!(
+                "{} of 100 observations within 5 s (low_latency {low_latency}); received sequences {seqs:?}, sent {base}..{}",
+                got.len(),
+                base + 100
+            );
+        };
         let obs = decode(m.payload()).unwrap();
         assert!(m.received_ns >= obs.header.capture_ts_ns);
         got.push((obs.header.sequence, obs.blobs().collect::<Vec<_>>()));

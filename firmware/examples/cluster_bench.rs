@@ -1,23 +1,30 @@
-//! Cluster benchmark (docs/cluster.md), printed by `cargo xtask bench-links`:
+//! Cluster benchmark (docs/cluster.md, docs/performance.md), printed by `cargo xtask bench
+//! --cluster` (and at the end of `cargo xtask bench` and `bench-links`):
 //!
 //! 1. observation hop over Zenoh on 127.0.0.1 (TCP, explicit endpoints): board publish →
-//!    solver receive, p50/p99, for 2 and 4 boards of 2 cameras at 120 fps each;
+//!    solver receive, p50/p99 and observations received of sent, for 2 and 4 boards of 2
+//!    cameras at 120 fps each, Zenoh's default and low-latency transports side by side with
+//!    the same traffic over plain TCP; with `--fifo PRIO` every row also with every thread of
+//!    the process SCHED_FIFO (rows alternate, so both see the same load);
 //! 2. bytes per observation (one blob, the message alone; Zenoh adds its framing);
 //! 3. the solver's CPU per set at 8 cameras (thread CPU time): decode, gate, pair, set the
 //!    blobs, triangulate; and the allocations per set in that loop (counting allocator);
 //! 4. capture → published position (the loop's `end_to_end` histogram, what `/status` reports
 //!    as `processing.latency_us.end_to_end`) side by side: an in-process solver (`app::start`,
 //!    role `solver`) fed at 120 fps by 2 and 4 boards that this program simulates (each
-//!    observation's capture time is its publish instant: the hop, the pairing wait and the
-//!    solve; a real board adds its own capture → publish, the standalone row's `driver` and
-//!    `detect`), and one standalone board (`app::start`, simulated source) with the same
-//!    four-camera ring rig at 120 fps.
+//!    observation stamped at its frame's instant on a fixed schedule, as a camera's exposure
+//!    is: the boards' publishing delay, the hop, the pairing wait and the solve; a real board
+//!    adds its own capture → publish, the standalone row's `driver` and `detect`), and one
+//!    standalone board (`app::start`, simulated source) with the same four-camera ring rig at
+//!    120 fps; then where the solver's sets went in the same windows: frames sent, sets
+//!    published, complete/incomplete, late, conflicting, clock-refused, queue overflow.
 //!
 //! `cargo run --release -p irtrack-firmware --features cluster --example cluster_bench
-//! [-- --secs S] [--quick]`; `cargo xtask bench` runs it (docs/performance.md).
+//! [-- --secs S] [--quick] [--low-latency | --default-transport] [--fifo PRIO]
+//! [--stamp-at-publish]`.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use irtrack_cluster::pairing::{Pairer, PairingConfig};
@@ -72,23 +79,43 @@ fn blob_at(x: f64, y: f64) -> ObsBlob {
     }
 }
 
-/// Hop latency with `boards` boards of 2 cameras each at 120 fps for `secs` s.
-fn hop(boards: usize, secs: f64) -> (usize, f64, f64) {
-    let port = free_port();
-    let solver = Session::open(&TransportConfig {
-        listen: vec![format!("tcp/127.0.0.1:{port}")],
+/// The transport of one row: Zenoh's default, or its low-latency unicast transport
+/// (`[cluster] low_latency = true`).
+fn transport(low_latency: bool, listen: Option<u16>, connect: Option<u16>) -> TransportConfig {
+    let ep = |p: Option<u16>| p.map(|p| format!("tcp/127.0.0.1:{p}")).into_iter().collect();
+    TransportConfig {
+        listen: ep(listen),
+        connect: ep(connect),
+        low_latency,
         ..TransportConfig::default()
-    })
-    .unwrap();
+    }
+}
+
+/// One hop row: observations received of those sent, p50 and p99 in µs.
+struct Hop {
+    received: usize,
+    sent: u64,
+    p50_us: f64,
+    p99_us: f64,
+}
+
+impl std::fmt::Display for Hop {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{:.0} / {:.0} ({} of {})",
+            self.p50_us, self.p99_us, self.received, self.sent
+        )
+    }
+}
+
+/// Hop latency with `boards` boards of 2 cameras each at 120 fps for `secs` s.
+fn hop(boards: usize, secs: f64, low_latency: bool) -> Hop {
+    let port = free_port();
+    let solver = Session::open(&transport(low_latency, Some(port), None)).unwrap();
     let (_sub, rx) = ObsSubscriber::new(&solver, "bench", 4096, realtime_ns).unwrap();
     let sessions: Vec<Session> = (0..boards)
-        .map(|_| {
-            Session::open(&TransportConfig {
-                connect: vec![format!("tcp/127.0.0.1:{port}")],
-                ..TransportConfig::default()
-            })
-            .unwrap()
-        })
+        .map(|_| Session::open(&transport(low_latency, None, Some(port))).unwrap())
         .collect();
     let names: Vec<String> = (0..boards).map(|b| format!("b{b}")).collect();
     let mut pubs: Vec<(usize, ObsPublisher)> = sessions
@@ -115,6 +142,7 @@ fn hop(boards: usize, secs: f64) -> (usize, f64, f64) {
     let period = Duration::from_secs_f64(1.0 / FPS);
     let frames = (secs * FPS) as u64;
     let mut hops = Vec::with_capacity((frames as usize) * pubs.len());
+    let sent0: u64 = pubs.iter().map(|(_, p)| p.sent()).sum();
     let t0 = Instant::now();
     for k in 1..=frames {
         let due = t0 + period * k as u32;
@@ -138,18 +166,24 @@ fn hop(boards: usize, secs: f64) -> (usize, f64, f64) {
             hops.push(m.received_ns.saturating_sub(o.header.capture_ts_ns));
         }
     }
-    let n = hops.len();
+    let sent = pubs.iter().map(|(_, p)| p.sent()).sum::<u64>() - sent0;
+    let received = hops.len();
     let (p50, p99) = (pct(&mut hops, 0.5), pct(&mut hops, 0.99));
     for s in &sessions {
         s.close();
     }
     solver.close();
-    (n, p50 / 1e3, p99 / 1e3)
+    Hop {
+        received,
+        sent,
+        p50_us: p50 / 1e3,
+        p99_us: p99 / 1e3,
+    }
 }
 
 /// The same traffic over one plain TCP connection (TCP_NODELAY, a blocking reader thread
 /// stamping on arrival): what the machine itself gives, to tell Zenoh's tail from the load's.
-fn tcp_hop(streams: usize, secs: f64) -> (usize, f64, f64) {
+fn tcp_hop(streams: usize, secs: f64) -> Hop {
     use std::io::{Read, Write};
     let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = listener.local_addr().unwrap();
@@ -178,8 +212,39 @@ fn tcp_hop(streams: usize, secs: f64) -> (usize, f64, f64) {
     }
     drop(tx);
     let mut hops = reader.join().unwrap();
-    let n = hops.len();
-    (n, pct(&mut hops, 0.5) / 1e3, pct(&mut hops, 0.99) / 1e3)
+    Hop {
+        received: hops.len(),
+        sent: (frames * streams) as u64,
+        p50_us: pct(&mut hops, 0.5) / 1e3,
+        p99_us: pct(&mut hops, 0.99) / 1e3,
+    }
+}
+
+/// Sets every thread of this process (Zenoh's runtime threads, the tokio workers, ours) to
+/// SCHED_FIFO at `priority`, or back to normal scheduling with `None`; threads started later
+/// inherit the policy of the thread that starts them. What an appliance would do with
+/// `[realtime] fifo_priority` for the whole daemon. Returns an error text if refused.
+fn schedule_all(priority: Option<i32>) -> Result<(), String> {
+    let (policy, prio) = match priority {
+        Some(p) => (libc::SCHED_FIFO, p),
+        None => (libc::SCHED_OTHER, 0),
+    };
+    let tasks = std::fs::read_dir("/proc/self/task").map_err(|e| e.to_string())?;
+    for t in tasks.flatten() {
+        let Some(tid) = t.file_name().to_str().and_then(|s| s.parse::<libc::pid_t>().ok()) else {
+            continue;
+        };
+        let param = libc::sched_param { sched_priority: prio };
+        // SAFETY: `tid` is a thread of this process (it may have ended: ESRCH is ignored);
+        // `param` is a valid sched_param.
+        if unsafe { libc::sched_setscheduler(tid, policy, &param) } != 0 {
+            let e = std::io::Error::last_os_error();
+            if e.raw_os_error() != Some(libc::ESRCH) {
+                return Err(format!("SCHED_FIFO {prio} refused: {e}"));
+            }
+        }
+    }
+    Ok(())
 }
 
 fn header(board: &str, seq: u64, ts: u64) -> ObsHeader<'_> {
@@ -272,34 +337,101 @@ fn solver_cpu(sets: u64) -> (f64, f64, f64) {
     (cpu / 1e3, allocs, share)
 }
 
+/// Command line: `--secs S`, `--quick`, `--low-latency` (only Zenoh's low-latency transport)
+/// or `--default-transport` (only the default; neither: both side by side), `--fifo PRIO`
+/// (hop rows also with every thread SCHED_FIFO), `--stamp-at-publish` (the simulated boards
+/// stamp observations when they publish, as before 2026-11-26, beside the frame-instant rows).
+struct Opts {
+    quick: bool,
+    secs: f64,
+    transports: Vec<bool>,
+    fifo: Option<i32>,
+    stamps: Vec<Stamp>,
+}
+
+fn opts() -> Opts {
+    let args: Vec<String> = std::env::args().collect();
+    let has = |f: &str| args.iter().any(|a| a == f);
+    let value = |f: &str| {
+        args.iter()
+            .skip_while(|a| *a != f)
+            .nth(1)
+            .and_then(|s| s.parse::<f64>().ok())
+    };
+    let quick = has("--quick");
+    let transports = match (has("--low-latency"), has("--default-transport")) {
+        (true, false) => vec![true],
+        (false, true) => vec![false],
+        _ => vec![false, true],
+    };
+    let mut stamps = vec![Stamp::FrameInstant];
+    if has("--stamp-at-publish") {
+        stamps.insert(0, Stamp::Publish);
+    }
+    Opts {
+        quick,
+        secs: value("--secs").unwrap_or(if quick { 1.0 } else { 3.0 }),
+        transports,
+        fifo: value("--fifo").map(|p| p as i32),
+        stamps,
+    }
+}
+
+fn transport_name(low_latency: bool) -> &'static str {
+    if low_latency { "low-latency" } else { "default" }
+}
+
 fn main() {
-    let quick = std::env::args().any(|a| a == "--quick");
-    let secs: f64 = std::env::args()
-        .skip_while(|a| a != "--secs")
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(if quick { 1.0 } else { 3.0 });
+    let o = opts();
+    let secs = o.secs;
     let mut buf = [0u8; MAX_OBS_LEN];
     let one = encode(&header("b1", 7, 1), &[blob_at(1.0, 2.0)], &mut buf).unwrap();
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!(
-        "cluster benchmark (Zenoh on 127.0.0.1, TCP, explicit endpoints; {FPS} fps per camera, {secs} s)"
+        "cluster benchmark (Zenoh on 127.0.0.1, TCP, explicit endpoints; {FPS} fps per camera, {secs} s per row; load average at start {})",
+        load.split_whitespace().take(3).collect::<Vec<_>>().join(" ")
     );
+    println!();
+    println!(
+        "Observation hop, board publish → solver receive (µs p50 / p99, observations received of sent), transports side by side:"
+    );
+    print!("| boards × 2 cameras | scheduling |");
+    for &ll in &o.transports {
+        print!(" Zenoh {} transport |", transport_name(ll));
+    }
+    println!(" plain TCP, same traffic (this machine's baseline) |");
+    println!("|---|---|{}---|", "---|".repeat(o.transports.len()));
+    let scheds: Vec<Option<i32>> = std::iter::once(None).chain(o.fifo.map(Some)).collect();
+    for boards in [2usize, 4] {
+        for &prio in &scheds {
+            // Rows with and without real-time priority alternate, so both see the same load.
+            let sched = match prio {
+                None => "normal".to_string(),
+                Some(p) => match schedule_all(Some(p)) {
+                    Ok(()) => format!("every thread SCHED_FIFO {p}"),
+                    Err(e) => {
+                        println!("| {boards} | {e} |");
+                        continue;
+                    }
+                },
+            };
+            print!("| {boards} | {sched} |");
+            for &ll in &o.transports {
+                print!(" {} |", hop(boards, secs, ll));
+            }
+            println!(" {} |", tcp_hop(2 * boards, secs));
+            if prio.is_some() {
+                schedule_all(None).expect("back to normal scheduling");
+            }
+        }
+    }
+    println!();
     println!("| measure | value |");
     println!("|---|---|");
-    for boards in [2usize, 4] {
-        let (n, p50, p99) = hop(boards, secs);
-        println!(
-            "| hop board publish → solver receive, {boards} boards × 2 cameras ({n} observations) | p50 {p50:.0} µs, p99 {p99:.0} µs |"
-        );
-        let (n, p50, p99) = tcp_hop(2 * boards, secs);
-        println!(
-            "| the same traffic over plain TCP (baseline of this machine now), {boards} boards ({n} messages) | p50 {p50:.0} µs, p99 {p99:.0} µs |"
-        );
-    }
     println!(
         "| bytes per observation (1 blob, board name of 2 characters, rig `bench`) | {one} (+16 per further blob; Zenoh framing not included) |"
     );
-    let (cpu_us, allocs, share) = solver_cpu(if quick { 500 } else { 2000 });
+    let (cpu_us, allocs, share) = solver_cpu(if o.quick { 500 } else { 2000 });
     let budget_us = 1e6 / FPS;
     println!(
         "| solver CPU per set, 8 cameras (decode, gate, pair, triangulate; {:.0} % tracked) | {cpu_us:.1} µs = {:.1} % of one core at 120 sets/s |",
@@ -330,18 +462,54 @@ fn main() {
         q(&one.detect, 0.5),
         q(&one.ours, 0.5),
     );
+    let mut accounts = Vec::new();
     for boards in [2usize, 4] {
-        let s = rt.block_on(solver_latency(boards, secs));
+        for &ll in &o.transports {
+            for &stamp in &o.stamps {
+                let (s, a) = rt.block_on(solver_latency(boards, secs, ll, stamp));
+                println!(
+                    "| solver, {boards} boards × 2 cameras, {} transport{} (capture → published) | {} | {:.0} | {:.0} | {:.0} | {:.0} | capture → set delivered (driver) p50 {:.0}, ours p50 {:.0}; {:.0} % of sets tracked |",
+                    transport_name(ll),
+                    stamp.note(),
+                    s.end_to_end.count(),
+                    q(&s.end_to_end, 0.5),
+                    q(&s.end_to_end, 0.9),
+                    q(&s.end_to_end, 0.99),
+                    s.end_to_end.max_ns as f64 / 1e3,
+                    q(&s.driver, 0.5),
+                    q(&s.ours, 0.5),
+                    100.0 * s.tracked,
+                );
+                accounts.push((boards, ll, stamp, a));
+            }
+        }
+    }
+    println!();
+    println!(
+        "Where the solver's sets went in the same windows (frames the boards sent → sets published; the pairing counters come from the solver's report, refreshed every 200 ms, so they may lag a set or two):"
+    );
+    println!(
+        "| solver | frames sent | boards' thread: publishing one frame, mean µs | sets published | complete | incomplete | observations: late | conflicting | refused (clock) | queue overflow | whole run: received of sent | sets dropped as not newer | skewed |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for (boards, ll, stamp, a) in accounts {
         println!(
-            "| solver, {boards} boards × 2 cameras (board publish → published) | {} | {:.0} | {:.0} | {:.0} | {:.0} | hop + set closing (driver) p50 {:.0}, ours p50 {:.0}; {:.0} % of sets tracked |",
-            s.end_to_end.count(),
-            q(&s.end_to_end, 0.5),
-            q(&s.end_to_end, 0.9),
-            q(&s.end_to_end, 0.99),
-            s.end_to_end.max_ns as f64 / 1e3,
-            q(&s.driver, 0.5),
-            q(&s.ours, 0.5),
-            100.0 * s.tracked,
+            "| {boards} boards, {}{} | {} | {:.0} | {} | {} | {} | {} | {} | {} | {} | {} of {} | {} | {} |",
+            transport_name(ll),
+            stamp.note(),
+            a.frames,
+            a.publish_ns as f64 / 1e3 / a.frames.max(1) as f64,
+            a.published,
+            a.complete,
+            a.incomplete,
+            a.late,
+            a.conflicting,
+            a.refused_clock,
+            a.overflow,
+            a.received,
+            a.sent,
+            a.stale,
+            a.skewed,
         );
     }
 }
@@ -370,8 +538,9 @@ fn since(a: &HistogramSnapshot, b: &HistogramSnapshot) -> HistogramSnapshot {
     }
 }
 
-/// Warm-up, then `secs` of the running service's stage histograms.
-async fn measure(running: &app::Running, secs: f64) -> Stages {
+/// Warm-up, then `secs` of the running service's stage histograms; `mark` runs when the
+/// window opens and when it closes (for counters taken over the same window).
+async fn measure(running: &app::Running, secs: f64, mut mark: impl FnMut()) -> Stages {
     let st = &running.status.stages;
     tokio::time::sleep(Duration::from_secs(1)).await;
     let snap = || {
@@ -383,8 +552,10 @@ async fn measure(running: &app::Running, secs: f64) -> Stages {
         ]
     };
     let a = snap();
+    mark();
     tokio::time::sleep(Duration::from_secs_f64(secs)).await;
     let b = snap();
+    mark();
     Stages {
         end_to_end: since(&a[0], &b[0]),
         driver: since(&a[1], &b[1]),
@@ -419,14 +590,106 @@ async fn standalone_latency(secs: f64) -> Stages {
     );
     cfg.service.params_from_simulator = true;
     let running = app::start(cfg, Overrides::default()).await.unwrap();
-    let s = measure(&running, secs).await;
+    let s = measure(&running, secs, || ()).await;
     running.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
     s
 }
 
+/// How the simulated boards stamp an observation's capture time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Stamp {
+    /// At the frame's instant on a fixed 120 fps schedule, as a camera's exposure is,
+    /// however late the board's thread gets to publish it (the send delay says how late).
+    FrameInstant,
+    /// When the board's thread publishes (the benchmark before 2026-11-26): a thread that
+    /// wakes late publishes two frames back to back with nearly the same time stamp.
+    Publish,
+}
+
+impl Stamp {
+    fn note(self) -> &'static str {
+        match self {
+            Stamp::FrameInstant => "",
+            Stamp::Publish => ", boards stamp at publish",
+        }
+    }
+}
+
+/// Counts over one measured window of a solver run (see the table printed after the rows).
+#[derive(Debug, Default)]
+struct Account {
+    frames: u64,
+    publish_ns: u64,
+    sent: u64,
+    received: u64,
+    published: u64,
+    complete: u64,
+    incomplete: u64,
+    late: u64,
+    conflicting: u64,
+    refused_clock: u64,
+    overflow: u64,
+    stale: u64,
+    skewed: u64,
+}
+
+/// Counters of the running solver and its simulated boards at one instant.
+fn account(running: &app::Running, feed: &FeedCounters) -> Account {
+    let st = &running.status;
+    let r = st.cluster_report().unwrap_or_default();
+    Account {
+        frames: feed.frames.load(Ordering::Relaxed),
+        publish_ns: feed.publish_ns.load(Ordering::Relaxed),
+        sent: feed.sent.load(Ordering::Relaxed),
+        received: r.received,
+        published: st.published.load(Ordering::Relaxed),
+        complete: r.sets_complete,
+        incomplete: r.sets_incomplete,
+        late: r.late,
+        conflicting: r.conflicting,
+        refused_clock: r.refused_clock,
+        overflow: r.queue_overflow,
+        stale: st.stale_sets.load(Ordering::Relaxed),
+        skewed: st.skewed_sets.load(Ordering::Relaxed),
+    }
+}
+
+impl std::ops::Sub for Account {
+    type Output = Account;
+    fn sub(self, a: Account) -> Account {
+        Account {
+            frames: self.frames - a.frames,
+            publish_ns: self.publish_ns - a.publish_ns,
+            sent: self.sent - a.sent,
+            received: self.received - a.received,
+            published: self.published - a.published,
+            complete: self.complete - a.complete,
+            incomplete: self.incomplete - a.incomplete,
+            late: self.late - a.late,
+            conflicting: self.conflicting - a.conflicting,
+            refused_clock: self.refused_clock - a.refused_clock,
+            overflow: self.overflow - a.overflow,
+            stale: self.stale - a.stale,
+            skewed: self.skewed - a.skewed,
+        }
+    }
+}
+
+/// What the simulated boards have done so far.
+#[derive(Debug, Default)]
+struct FeedCounters {
+    stop: AtomicBool,
+    /// Frames (instants) published, all cameras.
+    frames: AtomicU64,
+    /// Observations published.
+    sent: AtomicU64,
+    /// Time the boards' thread spent publishing frames' observations, summed, ns.
+    publish_ns: AtomicU64,
+}
+
 /// A solver fed by `boards` simulated boards of two cameras each at 120 fps.
-async fn solver_latency(boards: usize, secs: f64) -> Stages {
+async fn solver_latency(boards: usize, secs: f64, low_latency: bool, stamp: Stamp) -> (Stages, Account) {
     let dir = state_dir(&format!("solver{boards}"));
     let cameras = 2 * boards;
     let mut rig = irtrack_firmware::source::sim::ring_rig(cameras, 600.0);
@@ -453,32 +716,54 @@ async fn solver_latency(boards: usize, secs: f64) -> Stages {
     let cfg = service_config(
         &dir,
         &format!(
-            "[cluster]\nrole = \"solver\"\nrig = \"bench\"\nlisten = [\"tcp/127.0.0.1:{port}\"]\nfps = {FPS}\nimage_sizes_px = [{}]\n",
+            "[cluster]\nrole = \"solver\"\nrig = \"bench\"\nlisten = [\"tcp/127.0.0.1:{port}\"]\nfps = {FPS}\nlow_latency = {low_latency}\nimage_sizes_px = [{}]\n",
             sizes.join(", ")
         ),
     );
     let running = app::start(cfg, Overrides::default()).await.unwrap();
-    let stop = Arc::new(AtomicBool::new(false));
+    let counters = Arc::new(FeedCounters::default());
     let feeder = {
-        let (stop, rig, names) = (stop.clone(), rig.clone(), names.clone());
-        std::thread::spawn(move || feed(port, &rig, &names, &stop))
+        let (c, rig, names) = (counters.clone(), rig.clone(), names.clone());
+        std::thread::spawn(move || feed(port, &rig, &names, low_latency, stamp, &c))
     };
-    let (tr0, pub0) = counters(&running);
-    let mut s = measure(&running, secs).await;
-    let (tr1, pub1) = counters(&running);
+    // The window must not open before the boards are up: opening four Zenoh sessions took
+    // more than the 1 s warm-up on the loaded machine, and the sets they had not sent yet
+    // were once read as sets the solver lost.
+    let up = Instant::now();
+    while counters.frames.load(Ordering::Relaxed) == 0 {
+        assert!(
+            up.elapsed() < Duration::from_secs(30),
+            "the simulated boards did not start"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let mut marks = Vec::new();
+    let mut s = measure(&running, secs, || {
+        marks.push((account(&running, &counters), tracked_published(&running)))
+    })
+    .await;
+    let [(a0, (tr0, pub0)), (a1, (tr1, pub1))]: [_; 2] = marks.try_into().ok().expect("two marks");
     s.tracked = (tr1 - tr0) as f64 / (pub1 - pub0).max(1) as f64;
-    stop.store(true, Ordering::Relaxed);
-    let sent = tokio::task::spawn_blocking(move || feeder.join().unwrap())
+    counters.stop.store(true, Ordering::Relaxed);
+    tokio::task::spawn_blocking(move || feeder.join().unwrap())
         .await
         .unwrap();
-    assert!(sent > 0, "the simulated boards sent nothing");
+    // Whole run, after the solver's report caught up: observations received of sent.
+    tokio::time::sleep(Duration::from_millis(400)).await;
+    let mut a = a1 - a0;
+    a.sent = counters.sent.load(Ordering::Relaxed);
+    a.received = running.status.cluster_report().map_or(0, |r| r.received);
+    assert!(
+        counters.sent.load(Ordering::Relaxed) > 0,
+        "the simulated boards sent nothing"
+    );
     running.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
-    s
+    (s, a)
 }
 
 /// Tracked and published sets so far.
-fn counters(running: &app::Running) -> (u64, u64) {
+fn tracked_published(running: &app::Running) -> (u64, u64) {
     let st = &running.status;
     (
         st.tracked.load(Ordering::Relaxed),
@@ -486,41 +771,47 @@ fn counters(running: &app::Running) -> (u64, u64) {
     )
 }
 
-/// The simulated boards: every camera's blob of a point moving on a circle, stamped with the
-/// publish instant, at 120 fps until `stop`; returns the observations sent.
-fn feed(port: u16, rig: &RigParams, names: &[String], stop: &AtomicBool) -> u64 {
-    let tc = TransportConfig {
-        connect: vec![format!("tcp/127.0.0.1:{port}")],
-        ..TransportConfig::default()
-    };
+/// The simulated boards: every camera's blob of a point moving on a circle at 120 fps until
+/// `c.stop`, stamped as `stamp` says; counts frames and observations in `c`.
+fn feed(port: u16, rig: &RigParams, names: &[String], low_latency: bool, stamp: Stamp, c: &FeedCounters) {
+    let tc = transport(low_latency, None, Some(port));
     let sessions: Vec<Session> = names.iter().map(|_| Session::open(&tc).unwrap()).collect();
     let mut pubs: Vec<ObsPublisher> = (0..rig.cameras.len())
         .map(|c| ObsPublisher::new(&sessions[c / 2], "bench", &names[c / 2], c % 2).unwrap())
         .collect();
     let period = Duration::from_secs_f64(1.0 / FPS);
-    let t0 = Instant::now();
+    let (t0, t0_ns) = (Instant::now(), realtime_ns());
     let mut k = 0u64;
-    while !stop.load(Ordering::Relaxed) {
+    while !c.stop.load(Ordering::Relaxed) {
         k += 1;
         let a = k as f64 * 0.05;
         let p = Vector3::new(40.0 * a.cos(), 20.0 * a.sin(), 600.0 + 30.0 * a.sin());
-        let ts = realtime_ns();
-        for (c, publisher) in pubs.iter_mut().enumerate() {
-            let cam = &rig.cameras[c];
+        let now_ns = realtime_ns();
+        let ts = match stamp {
+            // Frame k's exposure instant; the publishing thread is behind it by the send delay.
+            Stamp::FrameInstant => t0_ns + (period.as_nanos() as u64 * (k - 1)),
+            Stamp::Publish => now_ns,
+        };
+        let send_delay_us = (now_ns.saturating_sub(ts) / 1000) as u32;
+        let started = Instant::now();
+        for (i, publisher) in pubs.iter_mut().enumerate() {
+            let cam = &rig.cameras[i];
             let Ok(px) = cam.model.project(&cam.cam_from_cam0.apply(&p)) else {
                 continue;
             };
-            let mut h = header(&names[c / 2], k, ts);
-            h.camera = (c % 2) as u8;
-            h.send_delay_us = 0;
+            let mut h = header(&names[i / 2], k, ts);
+            h.camera = (i % 2) as u8;
+            h.send_delay_us = send_delay_us;
             publisher.publish(&h, &[blob_at(px.x, px.y)]).unwrap();
+            c.sent.fetch_add(1, Ordering::Relaxed);
         }
+        let took = started.elapsed().as_nanos() as u64;
+        c.publish_ns.fetch_add(took, Ordering::Relaxed);
+        c.frames.fetch_add(1, Ordering::Relaxed);
         let due = t0 + period.mul_f64(k as f64);
         std::thread::sleep(due.saturating_duration_since(Instant::now()));
     }
-    let sent = pubs.iter().map(|p| p.sent()).sum();
     for s in &sessions {
         s.close();
     }
-    sent
 }

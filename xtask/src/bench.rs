@@ -87,6 +87,33 @@ pub struct Args {
     /// Leave out the cluster section.
     #[arg(long)]
     pub no_cluster: bool,
+    /// Cluster section: only Zenoh's low-latency transport (default: both transports side by side).
+    #[arg(long, conflicts_with = "default_transport")]
+    pub low_latency: bool,
+    /// Cluster section: only Zenoh's default transport.
+    #[arg(long)]
+    pub default_transport: bool,
+}
+
+impl Args {
+    /// The cluster benchmark's arguments: the hop rows also with every thread SCHED_FIFO
+    /// where permitted (the priority of the latency table), the transports asked for.
+    fn cluster_args(&self, quick: bool) -> Vec<String> {
+        let mut a = vec![
+            "--fifo".to_string(),
+            crate::bench_latency::FIFO_PRIORITY.to_string(),
+        ];
+        if quick {
+            a.push("--quick".into());
+        }
+        if self.low_latency {
+            a.push("--low-latency".into());
+        }
+        if self.default_transport {
+            a.push("--default-transport".into());
+        }
+        a
+    }
 }
 
 /// `cargo xtask bench [--quick] [--no-callgrind] [--no-latency] [--latency] [--aarch64]`.
@@ -106,23 +133,19 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         return crate::bench_latency::table(ctx, 8);
     }
     if args.cluster {
-        return cluster_section(ctx, quick);
+        return cluster_section(ctx, true, &args.cluster_args(quick));
     }
     // The latency run builds the firmware in release and takes ~20 s of wall time: not in the
     // quick (CI) run.
     let latency = latency.unwrap_or(!quick);
     let mut build = ctx.cargo();
     build.args(["build", "--release", "-p", "irtrack-bench"]);
-    let out = util::run(
+    let out = util::run_ok(
         &mut build,
-        RunOpts {
-            timeout: Some(Duration::from_secs(1800)),
-            ..RunOpts::default()
-        },
+        "building irtrack-bench",
+        Duration::from_secs(1800),
+        false,
     )?;
-    if !out.success() {
-        bail!("building irtrack-bench {}", out.describe());
-    }
     let bin = ctx.target_dir().join("release").join("irtrack-bench");
 
     print_table(Command::new(&bin), quick, 600, "irtrack-bench")?;
@@ -139,7 +162,7 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         );
     }
     if !quick && !args.no_cluster {
-        cluster_section(ctx, false)?;
+        cluster_section(ctx, true, &args.cluster_args(false))?;
     } else {
         println!();
         println!(
@@ -150,13 +173,17 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
 }
 
 /// Camera boards and a solver beside the standalone board: `irtrack-firmware`'s
-/// `cluster_bench` example in release (its table is printed as it runs).
-pub fn cluster_section(ctx: &Ctx, quick: bool) -> Result<()> {
+/// `cluster_bench` example (its table is printed as it runs) with `args`; `release` for the
+/// figures in docs/performance.md (`cargo xtask bench-links` without `--release` runs it in a
+/// test build).
+pub fn cluster_section(ctx: &Ctx, release: bool, args: &[String]) -> Result<()> {
     println!();
     let mut cmd = ctx.cargo();
+    cmd.arg("run");
+    if release {
+        cmd.arg("--release");
+    }
     cmd.args([
-        "run",
-        "--release",
         "-p",
         "irtrack-firmware",
         "--features",
@@ -165,19 +192,8 @@ pub fn cluster_section(ctx: &Ctx, quick: bool) -> Result<()> {
         "cluster_bench",
         "--",
     ]);
-    if quick {
-        cmd.arg("--quick");
-    }
-    let out = util::run(
-        &mut cmd,
-        RunOpts {
-            timeout: Some(Duration::from_secs(3600)),
-            ..RunOpts::default()
-        },
-    )?;
-    if !out.success() {
-        bail!("cluster benchmark {}", out.describe());
-    }
+    cmd.args(args);
+    util::run_ok(&mut cmd, "cluster benchmark", Duration::from_secs(3600), false)?;
     Ok(())
 }
 
@@ -283,16 +299,12 @@ fn aarch64_bench(ctx: &Ctx, quick: bool) -> Result<()> {
     ]);
     cross::apply_env(ctx, &mut build, subdir)?;
     build.env("RUSTFLAGS", "-C target-feature=+crt-static");
-    let out = util::run(
+    let out = util::run_ok(
         &mut build,
-        RunOpts {
-            timeout: Some(Duration::from_secs(1800)),
-            ..RunOpts::default()
-        },
+        "aarch64 build of irtrack-bench",
+        Duration::from_secs(1800),
+        false,
     )?;
-    if !out.success() {
-        bail!("aarch64 build of irtrack-bench {}", out.describe());
-    }
     let bench = ctx
         .target_dir()
         .join(subdir)
@@ -485,15 +497,6 @@ fn print_table(mut cmd: Command, quick: bool, timeout_s: u64, what: &str) -> Res
     if quick {
         cmd.arg("--quick");
     }
-    let out = util::run(
-        &mut cmd,
-        RunOpts {
-            timeout: Some(Duration::from_secs(timeout_s)),
-            ..RunOpts::default()
-        },
-    )?;
-    if !out.success() {
-        bail!("{what} {}", out.describe());
-    }
+    let out = util::run_ok(&mut cmd, "{what}", Duration::from_secs(timeout_s), false)?;
     Ok(())
 }

@@ -88,17 +88,7 @@ fn loop_section(ctx: &Ctx, seconds: u32) -> Result<()> {
         "--fifo-priority",
         &FIFO_PRIORITY.to_string(),
     ]);
-    let out = util::run(
-        &mut cmd,
-        RunOpts {
-            capture_stdout: true,
-            timeout: Some(Duration::from_secs(1800)),
-            ..RunOpts::default()
-        },
-    )?;
-    if !out.success() {
-        bail!("the viewers example {}", out.describe());
-    }
+    let out = util::run_ok(&mut cmd, "the viewers example", Duration::from_secs(1800), true)?;
     let mut rows = Vec::new();
     for v in [0, 3] {
         rows.extend([
@@ -165,16 +155,12 @@ fn links_section(ctx: &Ctx, seconds: u32) -> Result<()> {
         "--example",
         "viewers",
     ]);
-    let out = util::run(
+    let out = util::run_ok(
         &mut build,
-        RunOpts {
-            timeout: Some(Duration::from_secs(1800)),
-            ..RunOpts::default()
-        },
+        "building the viewers example",
+        Duration::from_secs(1800),
+        false,
     )?;
-    if !out.success() {
-        bail!("building the viewers example {}", out.describe());
-    }
     let viewers_bin = ctx.target_dir().join("release").join("examples").join("viewers");
     let load = ViewerLoad {
         bin: &viewers_bin,
@@ -242,17 +228,7 @@ fn prediction_section(ctx: &Ctx) -> Result<()> {
         "--test-threads",
         "1",
     ]);
-    let out = util::run(
-        &mut cmd,
-        RunOpts {
-            capture_stdout: true,
-            timeout: Some(Duration::from_secs(1800)),
-            ..RunOpts::default()
-        },
-    )?;
-    if !out.success() {
-        bail!("the prediction test {}", out.describe());
-    }
+    let out = util::run_ok(&mut cmd, "the prediction test", Duration::from_secs(1800), true)?;
     println!();
     println!(
         "EGM/RSI target error against the simulator's truth at send time (marker on a 100 mm circle at 250 mm/s, 120 fps, controller cycle 4 ms, irtrackd in-process, release; goal with predict = true: ≤ 0.3 mm RMS):"
@@ -313,17 +289,12 @@ fn output_latency_table(ctx: &Ctx) -> Result<()> {
         "--nocapture",
         "--test-threads=1",
     ]);
-    let out = util::run(
+    let out = util::run_ok(
         &mut cmd,
-        RunOpts {
-            capture_stdout: true,
-            timeout: Some(Duration::from_secs(1800)),
-            ..RunOpts::default()
-        },
+        "the outputs' stalled-consumer tests",
+        Duration::from_secs(1800),
+        true,
     )?;
-    if !out.success() {
-        bail!("the outputs' stalled-consumer tests {}", out.describe());
-    }
     let rows: Vec<Vec<&str>> = out
         .stdout
         .lines()

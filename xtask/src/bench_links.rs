@@ -116,37 +116,7 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         );
     }
     println!();
-    cluster_bench(ctx, o.release, o.secs.min(5.0))
-}
-
-/// The cluster's observation hop, message size and solver cost (docs/cluster.md), printed by
-/// `irtrack-firmware`'s `cluster_bench` example.
-fn cluster_bench(ctx: &Ctx, release: bool, secs: f64) -> Result<()> {
-    let mut cmd = ctx.cargo();
-    cmd.args([
-        "run",
-        "-p",
-        "irtrack-firmware",
-        "--features",
-        "cluster",
-        "--example",
-        "cluster_bench",
-    ]);
-    if release {
-        cmd.arg("--release");
-    }
-    cmd.args(["--", "--secs", &format!("{secs}")]);
-    let out = util::run(
-        &mut cmd,
-        RunOpts {
-            timeout: Some(Duration::from_secs(3600)),
-            ..RunOpts::default()
-        },
-    )?;
-    if !out.success() {
-        bail!("cluster benchmark {}", out.describe());
-    }
-    Ok(())
+    crate::bench::cluster_section(ctx, o.release, &["--secs".into(), format!("{}", o.secs.min(5.0))])
 }
 
 /// Every link kind with 0 and with `viewers.count` viewers, `secs` each, release build of
@@ -180,25 +150,16 @@ pub fn decomposition(ctx: &Ctx, secs: f64, viewers: &ViewerLoad, fifo_priority: 
 }
 
 fn build(ctx: &Ctx, release: bool) -> Result<(PathBuf, PathBuf)> {
-    let opts = RunOpts {
-        timeout: Some(Duration::from_secs(3600)),
-        ..RunOpts::default()
-    };
+    let limit = Duration::from_secs(3600);
     let mut cmd = ctx.cargo();
     cmd.args(["build", "-p", "irtrack-firmware", "--bin", "irtrackd"]);
     if release {
         cmd.arg("--release");
     }
-    let out = util::run(&mut cmd, opts)?;
-    if !out.success() {
-        bail!("building irtrackd {}", out.describe());
-    }
+    util::run_ok(&mut cmd, "building irtrackd", limit, false)?;
     let mut cmd = ctx.cargo();
     cmd.args(["build", "-p", "irtrack-host-tools", "--bin", "host-tools"]);
-    let out = util::run(&mut cmd, opts)?;
-    if !out.success() {
-        bail!("building host-tools {}", out.describe());
-    }
+    util::run_ok(&mut cmd, "building host-tools", limit, false)?;
     let t = ctx.target_dir();
     Ok((
         t.join(if release { "release" } else { "debug" }).join("irtrackd"),
@@ -355,6 +316,14 @@ struct Run<'a> {
     fifo_priority: Option<u32>,
 }
 
+/// The number after `key` (e.g. `late=`) in a robot-sim summary line; 0 if absent.
+fn summary_field(line: &str, key: &str) -> u64 {
+    line.split_whitespace()
+        .find_map(|w| w.strip_prefix(key))
+        .and_then(|v| v.parse::<u64>().ok())
+        .unwrap_or(0)
+}
+
 fn run_one(
     kind: &'static str,
     irtrackd: &Path,
@@ -503,12 +472,7 @@ fn run_one(
         // The socket robot has no cycle; its tick timing says whether it answered late.
         match wait_for_line(&sim_out, "robot-sim summary socket", Duration::from_secs(2)) {
             Ok(s) => {
-                let f = |k: &str| {
-                    s.split_whitespace()
-                        .find_map(|w| w.strip_prefix(k))
-                        .and_then(|v| v.parse::<u64>().ok())
-                        .unwrap_or(0)
-                };
+                let f = |k: &str| summary_field(&s, k);
                 format!(
                     "– (no cycle); robot-sim's 4 ms ticks woke late p50 {} / p99 {} / max {} µs, {} of {} over 1 ms",
                     f("tick_late_p50_us="),
@@ -522,12 +486,7 @@ fn run_one(
         }
     } else {
         let s = wait_for_line(&sim_out, "robot-sim summary", Duration::from_secs(5))?;
-        let f = |k: &str| {
-            s.split_whitespace()
-                .find_map(|w| w.strip_prefix(k))
-                .and_then(|v| v.parse::<u64>().ok())
-                .unwrap_or(0)
-        };
+        let f = |k: &str| summary_field(&s, k);
         // Cycles after irtrackd stopped are missed by design; count only the followed span.
         format!(
             "{} late, {} missed of {} cycles (incl. shutdown)",

@@ -131,6 +131,23 @@ pub fn shell_quote(s: &str) -> String {
     }
 }
 
+/// [`run`] with a time limit, for a step that must succeed: an error naming `what` (and how
+/// it failed) unless the command exited successfully.
+pub fn run_ok(cmd: &mut Command, what: &str, timeout: Duration, capture_stdout: bool) -> Result<Output> {
+    let out = run(
+        cmd,
+        RunOpts {
+            capture_stdout,
+            timeout: Some(timeout),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        anyhow::bail!("{what} {}", out.describe());
+    }
+    Ok(out)
+}
+
 /// Runs `cmd` with no standard input (CI has none; nothing may prompt), echoing its output
 /// live and optionally capturing it. Returns an error only if the process could not start.
 pub fn run(cmd: &mut Command, opts: RunOpts) -> Result<Output> {
