@@ -81,6 +81,12 @@ impl TransportConfig {
             .map_err(bad)?;
         let scout = if self.multicast_scouting { "true" } else { "false" };
         c.insert_json5("scouting/multicast/enabled", scout).map_err(bad)?;
+        // Express observations take one batch each, and the real-time priority's queue holds
+        // 2 batches by default: with the transmit task kept off the CPU for over 1 ms
+        // (`wait_before_drop`), the third observation of a burst was dropped (reproduced under
+        // load, docs/cluster.md). 16, Zenoh's maximum, lets a board's burst wait instead.
+        c.insert_json5("transport/link/tx/queue/size/real_time", "16")
+            .map_err(bad)?;
         if self.low_latency {
             // Zenoh's low-latency unicast transport writes each message from the publishing
             // thread instead of handing it to a transmit task: hop p50/p99 on loopback fell

@@ -742,7 +742,7 @@ async fn solver_latency(boards: usize, secs: f64, low_latency: bool, stamp: Stam
         marks.push((account(&running, &counters), tracked_published(&running)))
     })
     .await;
-    let [(a0, (tr0, pub0)), (a1, (tr1, pub1))]: [_; 2] = marks.try_into().ok().expect("two marks");
+    let [(a0, (tr0, pub0)), (a1, (tr1, pub1))]: [_; 2] = marks.try_into().expect("two marks");
     s.tracked = (tr1 - tr0) as f64 / (pub1 - pub0).max(1) as f64;
     counters.stop.store(true, Ordering::Relaxed);
     tokio::task::spawn_blocking(move || feeder.join().unwrap())
