@@ -40,7 +40,7 @@ use anyhow::{Context, Result, bail};
 
 use crate::cross;
 use crate::report::Counts;
-use crate::util::{self, Ctx, Proc, RunOpts};
+use crate::util::{self, Ctx, Proc};
 
 const CASES: &[&str] = &[
     "ours-full",
@@ -140,7 +140,7 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
     let latency = latency.unwrap_or(!quick);
     let mut build = ctx.cargo();
     build.args(["build", "--release", "-p", "irtrack-bench"]);
-    let out = util::run_ok(
+    util::run_ok(
         &mut build,
         "building irtrack-bench",
         Duration::from_secs(1800),
@@ -299,7 +299,7 @@ fn aarch64_bench(ctx: &Ctx, quick: bool) -> Result<()> {
     ]);
     cross::apply_env(ctx, &mut build, subdir)?;
     build.env("RUSTFLAGS", "-C target-feature=+crt-static");
-    let out = util::run_ok(
+    util::run_ok(
         &mut build,
         "aarch64 build of irtrack-bench",
         Duration::from_secs(1800),
@@ -497,6 +497,6 @@ fn print_table(mut cmd: Command, quick: bool, timeout_s: u64, what: &str) -> Res
     if quick {
         cmd.arg("--quick");
     }
-    let out = util::run_ok(&mut cmd, "{what}", Duration::from_secs(timeout_s), false)?;
+    util::run_ok(&mut cmd, what, Duration::from_secs(timeout_s), false)?;
     Ok(())
 }

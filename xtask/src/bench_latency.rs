@@ -20,7 +20,7 @@ use std::time::Duration;
 use anyhow::{Context, Result, bail};
 
 use crate::bench_links::{Quantiles, ViewerLoad};
-use crate::util::{self, Ctx, RunOpts};
+use crate::util::{self, Ctx};
 
 /// SCHED_FIFO priority the loop gets in these runs (applied only where permitted; the tables
 /// say whether it was).
@@ -155,7 +155,7 @@ fn links_section(ctx: &Ctx, seconds: u32) -> Result<()> {
         "--example",
         "viewers",
     ]);
-    let out = util::run_ok(
+    util::run_ok(
         &mut build,
         "building the viewers example",
         Duration::from_secs(1800),

@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 
 use crate::Ctx;
-use crate::util::{self, Proc, RunOpts, addr_field, http_operator, json, operator_hash};
+use crate::util::{self, Proc, addr_field, http_operator, json, operator_hash};
 
 const RADIUS_MM: f64 = 100.0;
 const SPEED_MM_S: f64 = 250.0;
