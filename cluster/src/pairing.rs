@@ -184,6 +184,9 @@ pub struct BoardClock {
     pub offset_ns: Option<i64>,
     /// The offset is beyond the limit: the board's observations are refused.
     pub faulted: bool,
+    /// Reported silent by the receiver ([`Pairer::set_board_down`]): sets stop waiting for
+    /// its cameras, so one stopped board does not delay every position to the deadline.
+    pub down: bool,
     cur_max: i64,
     cur_count: u32,
     prev_max: Option<i64>,
@@ -374,10 +377,13 @@ impl Pairer {
             .min_by_key(|&i| self.sets[i].key)
     }
 
-    /// Cameras a set waits for: those whose board is not faulted.
+    /// Cameras a set waits for: those whose board is neither faulted nor down.
     fn expected(&self) -> usize {
         (0..self.cameras)
-            .filter(|&c| !self.boards[self.board_of(c)].faulted)
+            .filter(|&c| {
+                let b = &self.boards[self.board_of(c)];
+                !b.faulted && !b.down
+            })
             .count()
     }
 
@@ -411,6 +417,14 @@ impl Pairer {
             return Some(&self.sets[oldest]);
         }
         None
+    }
+
+    /// Marks `board` silent (`down`) or heard again. Its cameras' slots stay open (an
+    /// observation that still arrives is paired), but sets no longer wait for them.
+    pub fn set_board_down(&mut self, board: usize, down: bool) {
+        if let Some(b) = self.boards.get_mut(board) {
+            b.down = down;
+        }
     }
 
     /// Forgets the clock state of `board` (restarted).
@@ -671,5 +685,42 @@ mod tests {
         // Board 0's sets complete on their own once board 1 is faulted.
         let set = p.poll(t0 + 100 * PERIOD).unwrap();
         assert_eq!(set.present, 2);
+    }
+
+    #[test]
+    fn a_board_marked_down_is_not_waited_for() {
+        let mut p = Pairer::new(cfg()).unwrap();
+        let t0 = 4_000 * PERIOD;
+        // Board 1 (cameras 2 and 3) is silent: without the mark a set waits to its deadline.
+        for c in 0..2usize {
+            push(&mut p, c, &msg(c as u8 % 2, 0, t0, None, 0.0), t0 + 1_000_000);
+        }
+        assert!(
+            p.poll(t0 + 1_000_000).is_none(),
+            "waits for board 1 before it is down"
+        );
+        p.set_board_down(1, true);
+        let set = p.poll(t0 + 1_000_000).expect("closes at once with board 1 down");
+        assert_eq!(set.present, 2);
+        // Heard again: sets wait for all four cameras once more.
+        p.set_board_down(1, false);
+        for c in 0..2usize {
+            push(
+                &mut p,
+                c,
+                &msg(c as u8 % 2, 1, t0 + PERIOD, None, 0.0),
+                t0 + PERIOD + 1_000_000,
+            );
+        }
+        assert!(p.poll(t0 + PERIOD + 1_000_000).is_none());
+        for c in 2..4usize {
+            push(
+                &mut p,
+                c,
+                &msg(c as u8 % 2, 1, t0 + PERIOD, None, 0.0),
+                t0 + PERIOD + 1_000_000,
+            );
+        }
+        assert_eq!(p.poll(t0 + PERIOD + 1_000_000).expect("complete").present, 4);
     }
 }

@@ -102,9 +102,15 @@ fn burst_reaches_the_subscriber(low_latency: bool) {
     assert!(decode(first.payload()).is_ok());
     while rx.try_recv().is_ok() {}
 
+    // Paced at one observation per millisecond: four times what a two-camera board sends at
+    // 120 fps. Observations are published with congestion control Drop (a board's loop never
+    // waits on the network), so an unpaced burst on a starved machine loses its tail by
+    // design once Zenoh's real-time queue (16 batches) is full; that loss is counted by the
+    // solver as missing cameras, and is not what this test checks (docs/cluster.md).
     let base = seq + 1;
     for s in base..base + 100 {
         publisher.publish(&header(s, 1), &[blob(s), blob(s + 1)]).unwrap();
+        std::thread::sleep(Duration::from_millis(1));
     }
     let mut got = Vec::new();
     while got.len() < 100 {

@@ -374,6 +374,14 @@ impl ClusterSource {
         let Some(layout) = self.layout.as_mut() else {
             return false;
         };
+        // A board silent past its timeout (the same rule as `/status`'s `down`) is not waited
+        // for: the remaining cameras' sets close as soon as they are complete, not at the
+        // deadline, so positions stay prompt while a board is down.
+        let timeout_ns = (self.cfg.board_timeout_ms * 1e6) as u64;
+        for (b, last) in self.board_last_ns.iter().enumerate() {
+            let down = last.is_none_or(|t| now_ns.saturating_sub(t) > timeout_ns);
+            layout.pairer.set_board_down(b, down);
+        }
         let Some(set) = layout.pairer.poll(now_ns) else {
             return false;
         };
