@@ -35,6 +35,8 @@ pub struct Phase {
     /// Build directories under `target/` the phase uses (see [`crate::disk`]): when disk
     /// space runs low, those no later phase uses are removed.
     pub builds: &'static [&'static str],
+    /// Runs only when named in `--only`, never in the default (CI) run.
+    pub opt_in: bool,
 }
 
 /// Builds a [`Phase`]; `limit_min` is the time limit in minutes.
@@ -53,6 +55,22 @@ const fn phase(
         run,
         timeout: Duration::from_secs(limit_min * 60),
         builds,
+        opt_in: false,
+    }
+}
+
+/// A phase that runs only when asked for by name (`--only`): too slow for CI's time budget.
+const fn opt_in_phase(
+    name: &'static str,
+    about: &'static str,
+    label: &'static str,
+    run: PhaseFn,
+    limit_min: u64,
+    builds: &'static [&'static str],
+) -> Phase {
+    Phase {
+        opt_in: true,
+        ..phase(name, about, label, run, limit_min, builds)
     }
 }
 
@@ -74,6 +92,8 @@ pub const PHASES: &[Phase] = &[
     phase("yocto-bitbake", "BitBake parses meta-irtrack, lists its recipes, resolves irtrack-image", "bitbake", yocto_bitbake, 30, &["yocto"]),
     phase("bench", "short benchmark", "bench", |ctx| Outcome::from_counts(crate::bench::ci_phase(ctx)), 10, &["release"]),
     phase("fuzz", "short fuzzing run of every fuzz target", "fuzz", |ctx| Outcome::from_counts(crate::fuzz::ci_phase(ctx)), 10, &["fuzz"]),
+    // Not in CI: the aarch64 Zenoh build alone is several cold minutes (docs/cluster.md).
+    opt_in_phase("cluster-qemu-user", "aarch64 irtrackd with Zenoh under qemu-aarch64 as a camera board feeding a host solver", "aarch64", cluster_qemu_user, 10, &["aarch64-static", "debug"]),
 ];
 
 /// `cargo xtask test`.
@@ -105,7 +125,12 @@ pub fn check_args(args: &Args) -> Result<()> {
 pub fn cli(ctx: &Ctx, args: &Args) -> Result<i32> {
     if args.list {
         for p in PHASES {
-            println!("{:<14} {}", p.name, p.about);
+            let opt_in = if p.opt_in {
+                " (opt-in: only with --only)"
+            } else {
+                ""
+            };
+            println!("{:<14} {}{opt_in}", p.name, p.about);
         }
         return Ok(0);
     }
@@ -123,16 +148,7 @@ struct Row {
 /// Runs the selected phases and prints the summary. Returns the process exit code; the
 /// summary's last line must stay the last line printed.
 pub fn run(ctx: &Ctx, opts: &Args) -> i32 {
-    let selected: Vec<&Phase> = PHASES
-        .iter()
-        .filter(|p| {
-            if opts.only.is_empty() {
-                !(opts.skip_setup && p.name == "setup")
-            } else {
-                opts.only.iter().any(|o| o == p.name)
-            }
-        })
-        .collect();
+    let selected = select(opts);
 
     let started = Instant::now();
     let mut rows = Vec::new();
@@ -177,6 +193,21 @@ pub fn run(ctx: &Ctx, opts: &Args) -> i32 {
         });
     }
     print_summary(&rows, started.elapsed())
+}
+
+/// The phases `opts` selects: those named by `--only`, else every phase that is not opt-in.
+fn select(opts: &Args) -> Vec<&'static Phase> {
+    PHASES
+        .iter()
+        .filter(|p| {
+            if opts.only.is_empty() {
+                let skipped_setup = opts.skip_setup && p.name == "setup";
+                !(p.opt_in || skipped_setup)
+            } else {
+                opts.only.iter().any(|o| o == p.name)
+            }
+        })
+        .collect()
 }
 
 /// When free space is below `min_free`, removes the build directories under `target/` that
@@ -543,6 +574,65 @@ fn aarch64_tests(ctx: &Ctx) -> Outcome {
     )
 }
 
+/// An aarch64 `irtrackd` with `cluster` under QEMU user mode as a camera board, and a host
+/// solver (tests/tests/cluster_qemu_user.rs, ignored in the host run).
+fn cluster_qemu_user(ctx: &Ctx) -> Outcome {
+    if !util::on_path("qemu-aarch64") {
+        return Outcome::failed("qemu-aarch64 not found (run `cargo xtask setup`)");
+    }
+    let board = match cross::build_irtrackd_cluster(ctx) {
+        Ok(b) => b,
+        Err(e) => return Outcome::failed(format!("{e:#}")),
+    };
+    // The host solver: the same build as the multi-process cluster test's.
+    let mut cmd = ctx.cargo();
+    cmd.args([
+        "build",
+        "-p",
+        "irtrack-firmware",
+        "-p",
+        "irtrack-tests",
+        "--features",
+        "irtrack-tests/cluster",
+        "--bin",
+        "irtrackd",
+        // The example brings in irtrack-tests' dev-dependencies, through which its `cluster`
+        // feature turns on irtrackd's (tests/tests/cluster_e2e.rs).
+        "--example",
+        "cluster_demo",
+    ]);
+    // Compiling is not under the phase's time limit (see BUILD_LIMIT).
+    let build = util::run(
+        &mut cmd,
+        RunOpts {
+            timeout: Some(BUILD_LIMIT),
+            ..RunOpts::default()
+        },
+    );
+    match build {
+        Ok(out) if out.success() => {}
+        Ok(out) => return Outcome::failed(format!("host irtrackd with cluster {}", out.describe())),
+        Err(e) => return Outcome::failed(format!("{e:#}")),
+    }
+    cargo_test_with_args(
+        || {
+            let mut cmd = ctx.cargo();
+            cmd.args([
+                "test",
+                "-p",
+                "irtrack-tests",
+                "--features",
+                "irtrack-tests/cluster",
+                "--test",
+                "cluster_qemu_user",
+            ]);
+            cmd.env("IRTRACK_AARCH64_CLUSTER_IRTRACKD", &board);
+            Ok(cmd)
+        },
+        &["--ignored"],
+    )
+}
+
 /// Test-name filters skipped under qemu-aarch64 (they still run in the host phase).
 const EMULATION_SKIPS: &[&str] = &[
     "link_tests::",
@@ -609,6 +699,19 @@ mod tests {
         let bad = T::try_parse_from(["t", "--only", "nope"]).unwrap();
         assert!(check_args(&bad.a).is_err());
         assert!(T::try_parse_from(["t", "--bogus"]).is_err());
+    }
+
+    #[test]
+    fn opt_in_phases_run_only_when_named() {
+        let names = |a: &Args| select(a).iter().map(|p| p.name).collect::<Vec<_>>();
+        let default = names(&Args::default());
+        assert!(default.contains(&"aarch64-tests"));
+        assert!(!default.contains(&"cluster-qemu-user"));
+        let only = Args {
+            only: vec!["cluster-qemu-user".into()],
+            ..Args::default()
+        };
+        assert_eq!(names(&only), ["cluster-qemu-user"]);
     }
 
     #[test]

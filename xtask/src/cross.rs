@@ -1,6 +1,7 @@
 //! aarch64 cross builds: the environment that makes rustup's cargo use Debian's rustc (which
 //! has an aarch64 std), the cross linker and QEMU user mode as the test runner; and
-//! `cargo xtask cross`, the static release build of `irtrackd` that the image build uses.
+//! `cargo xtask cross`, the static release build of `irtrackd` that the image build uses
+//! (`--cluster`: with Zenoh, for the QEMU user-mode cluster test).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -67,7 +68,24 @@ fn rustup_has_aarch64() -> bool {
 
 /// Builds `irtrackd` for aarch64, release, statically linked; returns the binary's path.
 pub fn build_irtrackd(ctx: &Ctx) -> Result<PathBuf> {
-    let subdir = "aarch64-static";
+    build_irtrackd_with(ctx, None)
+}
+
+/// Builds the aarch64 `irtrackd` with the `cluster` feature (Zenoh) and copies it to
+/// `irtrackd-cluster` beside the target directory, so the image's plain build, which shares
+/// the directory (and so the dependencies), cannot replace it. Returns the copy's path.
+pub fn build_irtrackd_cluster(ctx: &Ctx) -> Result<PathBuf> {
+    let built = build_irtrackd_with(ctx, Some("cluster"))?;
+    let copy = ctx.target_dir().join(STATIC_SUBDIR).join("irtrackd-cluster");
+    std::fs::copy(&built, &copy)?;
+    Ok(copy)
+}
+
+/// The target subdirectory of the static release builds (image, bench, cluster).
+const STATIC_SUBDIR: &str = "aarch64-static";
+
+fn build_irtrackd_with(ctx: &Ctx, features: Option<&str>) -> Result<PathBuf> {
+    let subdir = STATIC_SUBDIR;
     let mut cmd = ctx.cargo();
     cmd.args([
         "build",
@@ -79,6 +97,9 @@ pub fn build_irtrackd(ctx: &Ctx) -> Result<PathBuf> {
         "--bin",
         "irtrackd",
     ]);
+    if let Some(f) = features {
+        cmd.args(["--features", f]);
+    }
     apply_env(ctx, &mut cmd, subdir)?;
     // With --target, RUSTFLAGS applies to target artifacts only, not to build scripts.
     cmd.env("RUSTFLAGS", "-C target-feature=+crt-static");
@@ -98,9 +119,22 @@ pub fn build_irtrackd(ctx: &Ctx) -> Result<PathBuf> {
     Ok(bin)
 }
 
+/// `cargo xtask cross [--cluster]`.
+#[derive(Debug, Default, clap::Args)]
+pub struct Args {
+    /// Build with the `cluster` feature (camera board / solver over Zenoh); the binary is
+    /// copied to `target/aarch64-static/irtrackd-cluster`.
+    #[arg(long)]
+    pub cluster: bool,
+}
+
 /// `cargo xtask cross`: prints the binary path as the last line (for scripts).
-pub fn cli(ctx: &Ctx) -> Result<()> {
-    let bin = build_irtrackd(ctx)?;
+pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
+    let bin = if args.cluster {
+        build_irtrackd_cluster(ctx)?
+    } else {
+        build_irtrackd(ctx)?
+    };
     println!("{}", bin.display());
     Ok(())
 }

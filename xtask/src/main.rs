@@ -43,7 +43,7 @@ enum Task {
     /// Install missing system packages (apt) and oelint-adv (pip).
     Setup,
     /// Static aarch64 release build of irtrackd; prints its path.
-    Cross,
+    Cross(cross::Args),
     /// The aarch64 SD image: build, QEMU system test, crate list.
     #[command(subcommand)]
     Image(image::ImageCmd),
@@ -78,7 +78,7 @@ fn real_main(task: Task) -> anyhow::Result<i32> {
         Task::Test(args) => return ci::cli(&ctx, &args),
         Task::Demo(args) => demo::run(&ctx, &args)?,
         Task::Setup => setup::run(&ctx)?,
-        Task::Cross => cross::cli(&ctx)?,
+        Task::Cross(args) => cross::cli(&ctx, &args)?,
         Task::Soak(args) => soak::cli(&ctx, &args)?,
         Task::BenchLinks(args) => bench_links::cli(&ctx, &args)?,
         Task::Yocto(cmd) => yocto::cli(&ctx, cmd)?,

@@ -92,11 +92,7 @@ pub struct Node {
 }
 
 pub fn spawn(dir: &Path, name: &str, config: &str, netns: Option<&str>, host_ip: &str) -> Node {
-    let cfg = dir.join(format!("{name}.toml"));
-    std::fs::write(&cfg, config).unwrap();
-    let state = dir.join(format!("{name}-state"));
-    std::fs::create_dir_all(&state).unwrap();
-    let mut cmd = match netns {
+    let cmd = match netns {
         Some(ns) => {
             // `ip netns exec` execs irtrackd: the child's pid is irtrackd's (killed on drop).
             let mut c = Command::new("ip");
@@ -105,6 +101,16 @@ pub fn spawn(dir: &Path, name: &str, config: &str, netns: Option<&str>, host_ip:
         }
         None => Command::new(bin("irtrackd")),
     };
+    spawn_with(dir, name, config, cmd, host_ip)
+}
+
+/// Like [`spawn`], with the command that starts irtrackd given (e.g. an aarch64 irtrackd
+/// under `qemu-aarch64`); its config, state and endpoint arguments are appended.
+pub fn spawn_with(dir: &Path, name: &str, config: &str, mut cmd: Command, host_ip: &str) -> Node {
+    let cfg = dir.join(format!("{name}.toml"));
+    std::fs::write(&cfg, config).unwrap();
+    let state = dir.join(format!("{name}-state"));
+    std::fs::create_dir_all(&state).unwrap();
     cmd.arg("-c")
         .arg(&cfg)
         .args(["--ephemeral-ports", host_ip, "--state-dir"])
