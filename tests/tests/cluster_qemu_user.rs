@@ -4,7 +4,7 @@
 //! solver: the solver hears the board, pairs its two cameras' observations and tracks.
 //!
 //! Ignored in the host test run: it needs the aarch64 build, which `cargo xtask test --only
-//! cluster-qemu-user` makes (about 9 minutes cold on a 2-core machine, so not a CI phase) and
+//! cluster-qemu-user` makes (44 minutes cold on the loaded 2-core machine, so not a CI phase) and
 //! passes in `IRTRACK_AARCH64_CLUSTER_IRTRACKD`. By hand:
 //! `cargo xtask cross --cluster`, then `IRTRACK_AARCH64_CLUSTER_IRTRACKD=<path>
 //! cargo test -p irtrack-tests --features cluster --test cluster_qemu_user -- --ignored`.
