@@ -133,7 +133,7 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         return crate::bench_latency::table(ctx, 8);
     }
     if args.cluster {
-        return cluster_section(ctx, true, &args.cluster_args(quick));
+        return crate::bench_cluster::run(ctx, true, &args.cluster_args(quick));
     }
     // The latency run builds the firmware in release and takes ~20 s of wall time: not in the
     // quick (CI) run.
@@ -162,38 +162,13 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         );
     }
     if !quick && !args.no_cluster {
-        cluster_section(ctx, true, &args.cluster_args(false))?;
+        crate::bench_cluster::run(ctx, true, &args.cluster_args(false))?;
     } else {
         println!();
         println!(
             "Cluster section (boards and a solver beside the standalone board) skipped: `cargo xtask bench --cluster [--quick]`."
         );
     }
-    Ok(())
-}
-
-/// Camera boards and a solver beside the standalone board: `irtrack-firmware`'s
-/// `cluster_bench` example (its table is printed as it runs) with `args`; `release` for the
-/// figures in docs/performance.md (`cargo xtask bench-links` without `--release` runs it in a
-/// test build).
-pub fn cluster_section(ctx: &Ctx, release: bool, args: &[String]) -> Result<()> {
-    println!();
-    let mut cmd = ctx.cargo();
-    cmd.arg("run");
-    if release {
-        cmd.arg("--release");
-    }
-    cmd.args([
-        "-p",
-        "irtrack-firmware",
-        "--features",
-        "cluster",
-        "--example",
-        "cluster_bench",
-        "--",
-    ]);
-    cmd.args(args);
-    util::run_ok(&mut cmd, "cluster benchmark", Duration::from_secs(3600), false)?;
     Ok(())
 }
 

@@ -116,7 +116,7 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
         );
     }
     println!();
-    crate::bench::cluster_section(ctx, o.release, &["--secs".into(), format!("{}", o.secs.min(5.0))])
+    crate::bench_cluster::run(ctx, o.release, &["--secs".into(), format!("{}", o.secs.min(5.0))])
 }
 
 /// Every link kind with 0 and with `viewers.count` viewers, `secs` each, release build of
