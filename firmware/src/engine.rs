@@ -20,7 +20,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use irtrack_core::blob::Blob;
-use irtrack_core::camera::{ImageSize, RigidTransform};
+use irtrack_core::camera::RigidTransform;
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::RigParams;
 use irtrack_core::pipeline::{
@@ -450,15 +450,7 @@ impl Engine {
         if self.tracker.is_some() || self.params.current().is_some() {
             return Ok(self);
         }
-        let sizes: Vec<ImageSize> = self
-            .set
-            .frames
-            .iter()
-            .map(|f| ImageSize {
-                width_px: f.width_px,
-                height_px: f.height_px,
-            })
-            .collect();
+        let sizes = self.set.image_sizes();
         let tracker =
             Tracker::detection_only(&sizes, self.tracker_cfg).map_err(|e| FirmwareError::Config {
                 reason: format!("camera board detection: {e}"),

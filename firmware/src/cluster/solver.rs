@@ -16,7 +16,6 @@ use std::time::Duration;
 use irtrack_cluster::pairing::{Pairer, PairingConfig, PairingMode, PushOutcome};
 use irtrack_cluster::transport::{ObsSubscriber, Received, Session, realtime_ns};
 use irtrack_core::blob::Blob;
-use irtrack_core::camera::ImageSize;
 use irtrack_core::image::GrayImage;
 use irtrack_core::observation::{MAX_OBS_BLOBS, ObsClock, ObservationGate, ObservationProblem, decode};
 use irtrack_core::pipeline::{Tracker, TrackerConfig};
@@ -77,14 +76,7 @@ fn spawn_own_cameras(
     tracker_cfg: TrackerConfig,
 ) -> Result<Arc<AtomicBool>> {
     let mut set = source.allocate_set();
-    let sizes: Vec<ImageSize> = set
-        .frames
-        .iter()
-        .map(|f| ImageSize {
-            width_px: f.width_px,
-            height_px: f.height_px,
-        })
-        .collect();
+    let sizes = set.image_sizes();
     let mut tracker = Tracker::detection_only(&sizes, tracker_cfg).map_err(|e| FirmwareError::Config {
         reason: format!("solver's own cameras: {e}"),
     })?;

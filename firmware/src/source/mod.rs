@@ -106,6 +106,19 @@ pub struct FrameSet {
     pub render_ns: u64,
 }
 
+impl FrameSet {
+    /// Each camera's image size, in camera order (what a tracker is built for).
+    pub fn image_sizes(&self) -> Vec<irtrack_core::camera::ImageSize> {
+        self.frames
+            .iter()
+            .map(|f| irtrack_core::camera::ImageSize {
+                width_px: f.width_px,
+                height_px: f.height_px,
+            })
+            .collect()
+    }
+}
+
 /// Counters every source keeps.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct SourceStats {
