@@ -205,29 +205,7 @@ fn run_cluster(netns: Option<&Netns>) {
     let (cluster_records, one_records) = (solver.take_records(), single.take_records());
     let cluster = errors(&cluster_records, &scenario);
     let one = errors(&one_records, &scenario);
-    let (rms_c, rms_s, n) = matched_rms(&cluster, &one);
-    eprintln!(
-        "accuracy: cluster {} positions, one board {}; over the {n} frames both tracked: \
-         RMS cluster {rms_c:.4} mm, one board {rms_s:.4} mm",
-        cluster.len(),
-        one.len()
-    );
-    assert!(
-        cluster.len() as f64 >= 0.6 * 3.0 * FPS,
-        "only {} positions in 3 s",
-        cluster.len()
-    );
-    assert!(n as f64 >= 0.5 * 3.0 * FPS, "only {n} frames tracked by both");
-    let u = used(&cluster);
-    assert!(
-        u.iter().filter(|&&c| c == 4).count() as f64 >= 0.9 * u.len() as f64,
-        "cameras used: {u:?}"
-    );
-    assert!(
-        rms_c <= 1.1 * rms_s,
-        "cluster RMS {rms_c} mm vs one board {rms_s} mm (more than 10 % worse)"
-    );
-    assert_no_wrong_position("accuracy", &cluster);
+    assert_tracks_like_one_board("accuracy (two boards)", &cluster, &one);
     let st = solver.status();
     // Capture → published position (each record's `latency_us`, over the same 3 s): the
     // solver's includes the board's detection, the hop and the wait for the set to close.
@@ -374,6 +352,40 @@ fn run_cluster(netns: Option<&Netns>) {
     eprintln!("cluster test took {:.1} s", t0.elapsed().as_secs_f64());
 }
 
+/// Three seconds of the solver's positions (`cluster`) against one board with the same four
+/// cameras (`one`), as errors from the simulator's truth: enough positions, enough frames both
+/// tracked, nearly all from four cameras, RMS within 10 % of the one board's, never a wrong
+/// position.
+fn assert_tracks_like_one_board(
+    what: &str,
+    cluster: &std::collections::BTreeMap<u64, (f64, u64)>,
+    one: &std::collections::BTreeMap<u64, (f64, u64)>,
+) {
+    let (rms_c, rms_s, n) = matched_rms(cluster, one);
+    eprintln!(
+        "{what}: solver {} positions, one board {}; over the {n} frames both tracked: RMS \
+         solver {rms_c:.4} mm, one board {rms_s:.4} mm",
+        cluster.len(),
+        one.len()
+    );
+    assert!(
+        cluster.len() as f64 >= 0.6 * 3.0 * FPS,
+        "only {} positions in 3 s",
+        cluster.len()
+    );
+    assert!(n as f64 >= 0.5 * 3.0 * FPS, "only {n} frames tracked by both");
+    let u = used(cluster);
+    assert!(
+        u.iter().filter(|&&c| c == 4).count() as f64 >= 0.9 * u.len() as f64,
+        "cameras used: {u:?}"
+    );
+    assert!(
+        rms_c <= 1.1 * rms_s,
+        "solver RMS {rms_c} mm vs one board {rms_s} mm (more than 10 % worse)"
+    );
+    assert_no_wrong_position(what, cluster);
+}
+
 /// The normal case on Pandaboard-class boards (one VGA camera at 120 fps fills a USB 2.0
 /// bus): a solver with one camera of its own and three camera boards with one camera each,
 /// the same four cameras of the ring rig, on plain loopback. Accuracy against one board with
@@ -492,32 +504,14 @@ fn one_camera_boards_and_a_solver_with_its_own_camera() {
     let (cluster_records, one_records) = (solver.take_records(), single.take_records());
     let cluster = errors(&cluster_records, &scenario);
     let one = errors(&one_records, &scenario);
-    let (rms_c, rms_s, n) = matched_rms(&cluster, &one);
     let (c50, c99) = latency_ms(&cluster_records);
-    eprintln!(
-        "one-camera boards: solver (own camera + 3 boards) {} positions, one board {}; over the \
-         {n} frames both tracked: RMS solver {rms_c:.4} mm, one board {rms_s:.4} mm; capture → \
-         published p50 {c50:.2} ms p99 {c99:.2} ms",
-        cluster.len(),
-        one.len()
-    );
+    eprintln!("one-camera boards: capture → published p50 {c50:.2} ms p99 {c99:.2} ms");
     drop(single);
-    assert!(
-        cluster.len() as f64 >= 0.6 * 3.0 * FPS,
-        "only {} positions",
-        cluster.len()
+    assert_tracks_like_one_board(
+        "accuracy (solver's own camera + three one-camera boards)",
+        &cluster,
+        &one,
     );
-    assert!(n as f64 >= 0.5 * 3.0 * FPS, "only {n} frames tracked by both");
-    let u = used(&cluster);
-    assert!(
-        u.iter().filter(|&&c| c == 4).count() as f64 >= 0.9 * u.len() as f64,
-        "cameras used: {u:?}"
-    );
-    assert!(
-        rms_c <= 1.1 * rms_s,
-        "solver RMS {rms_c} mm vs one board {rms_s} mm (more than 10 % worse)"
-    );
-    assert_no_wrong_position("accuracy", &cluster);
     let st = solver.status();
     assert_eq!(st["cluster"]["board"], "s0");
     for b in ["s0", "b1", "b2", "b3"] {
