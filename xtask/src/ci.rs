@@ -585,22 +585,7 @@ fn cluster_qemu_user(ctx: &Ctx) -> Outcome {
         Err(e) => return Outcome::failed(format!("{e:#}")),
     };
     // The host solver: the same build as the multi-process cluster test's.
-    let mut cmd = ctx.cargo();
-    cmd.args([
-        "build",
-        "-p",
-        "irtrack-firmware",
-        "-p",
-        "irtrack-tests",
-        "--features",
-        "irtrack-tests/cluster",
-        "--bin",
-        "irtrackd",
-        // The example brings in irtrack-tests' dev-dependencies, through which its `cluster`
-        // feature turns on irtrackd's (tests/tests/cluster_e2e.rs).
-        "--example",
-        "cluster_demo",
-    ]);
+    let mut cmd = crate::demo::cluster_host_build(ctx);
     // Compiling is not under the phase's time limit (see BUILD_LIMIT).
     let build = util::run(
         &mut cmd,

@@ -351,9 +351,11 @@ fn build_views_tool(ctx: &Ctx) -> Result<PathBuf> {
     Ok(bin)
 }
 
-/// Builds irtrackd with the camera and solver roles and the `cluster_demo` example (both in
-/// target/debug; this irtrackd replaces the one built without the feature), then runs it.
-fn run_cluster(ctx: &Ctx, out_dir: &Path) -> Result<()> {
+/// The host build of irtrackd with the `cluster` feature and the `cluster_demo` example, in
+/// target/debug (the demo's step and the `cluster-qemu-user` phase's solver). The example
+/// brings in irtrack-tests' dev-dependencies, through which its `cluster` feature turns on
+/// irtrackd's.
+pub fn cluster_host_build(ctx: &Ctx) -> Command {
     let mut cmd = ctx.cargo();
     cmd.args([
         "build",
@@ -368,6 +370,13 @@ fn run_cluster(ctx: &Ctx, out_dir: &Path) -> Result<()> {
         "--example",
         "cluster_demo",
     ]);
+    cmd
+}
+
+/// Builds irtrackd with the camera and solver roles and the `cluster_demo` example (both in
+/// target/debug; this irtrackd replaces the one built without the feature), then runs it.
+fn run_cluster(ctx: &Ctx, out_dir: &Path) -> Result<()> {
+    let mut cmd = cluster_host_build(ctx);
     let out = util::run(&mut cmd, RunOpts::default())?;
     if !out.success() {
         bail!("building irtrackd with the cluster feature {}", out.describe());
