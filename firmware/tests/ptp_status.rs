@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{TempDir, start_with, status_json};
+use common::{TempDir, runtime, start_with, status_json};
 use irtrack_firmware::config::Config;
 use irtrack_firmware::ptp::mgmt::{PortState, clock_identity_text};
 use irtrack_firmware::ptp::monitor;
@@ -137,11 +137,7 @@ fn status_shows_ptp4l_slave_and_master_over_veth() {
     let dir = TempDir::new("ptp-status");
     let master_sock = pair.start_ptp4l(0, "master", dir.path());
     let slave_sock = pair.start_ptp4l(1, "slave", dir.path());
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = runtime();
     rt.block_on(async {
         let extra = format!(
             "[clock]\nptp = true\ninterface = \"{}\"\nptp4l_socket = \"{}\"\n",
@@ -228,11 +224,7 @@ fn status_shows_ptp4l_slave_and_master_over_veth() {
 #[test]
 fn status_names_a_missing_silent_or_broken_ptp4l_and_keeps_running() {
     let dir = TempDir::new("ptp-missing");
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = runtime();
     rt.block_on(async {
         let absent = dir.path().join("absent.sock");
         let extra = format!("[clock]\nptp = true\nptp4l_socket = \"{}\"\n", absent.display());

@@ -207,12 +207,16 @@ pub fn run_in_own_netns<F: Future<Output = ()>>(test: &str, body: impl FnOnce() 
     if !in_own_netns(test) {
         return;
     }
+    runtime().block_on(body());
+}
+
+/// The 2-worker tokio runtime the multi-threaded service tests run on.
+pub fn runtime() -> tokio::runtime::Runtime {
     tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
-        .unwrap()
-        .block_on(body());
+        .expect("a 2-worker tokio runtime")
 }
 
 /// irtrackd in this process on the simulated cameras (`sim_toml`: `[source.sim]` keys), its

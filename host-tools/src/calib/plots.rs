@@ -52,6 +52,26 @@ pub fn draw_err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
     anyhow!("drawing the figure failed: {e:?}")
 }
 
+/// Draws a chart's legend box (one style for every figure: translucent white, thin border).
+pub fn draw_legend<'a, DB, CT>(
+    chart: &mut ChartContext<'a, DB, CT>,
+    position: SeriesLabelPosition,
+    font_px: u32,
+) -> Result<()>
+where
+    DB: DrawingBackend + 'a,
+    CT: plotters::coord::CoordTranslate,
+{
+    chart
+        .configure_series_labels()
+        .position(position)
+        .background_style(WHITE.mix(0.9))
+        .border_style(BLACK.mix(0.3))
+        .label_font((FONT, font_px))
+        .draw()
+        .map_err(draw_err)
+}
+
 /// Writes an RGB8 buffer as PNG.
 pub fn write_rgb_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<()> {
     let file = std::fs::File::create(path).with_context(|| format!("{}: cannot create", path.display()))?;
@@ -258,14 +278,7 @@ pub fn view_errors_png(
                 .label(format!("outlier threshold {th:.3} px"))
                 .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 14, y)], ALERT.stroke_width(1)));
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK.mix(0.3))
-            .label_font((FONT, 12))
-            .draw()
-            .map_err(draw_err)?;
+        draw_legend(&mut chart, SeriesLabelPosition::UpperRight, 12)?;
         root.present().map_err(draw_err)?;
     }
     write_rgb_png(path, width, height, &rgb)

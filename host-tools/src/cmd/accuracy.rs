@@ -227,7 +227,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 /// `calib::plots`).
 pub mod plot {
     use super::*;
-    use crate::calib::plots::{FONT, draw_err, ensure_font, write_rgb_png};
+    use crate::calib::plots::{FONT, draw_err, draw_legend, ensure_font, write_rgb_png};
     use plotters::prelude::*;
 
     const W: u32 = 960;
@@ -367,14 +367,7 @@ pub mod plot {
                     .draw_series(pts.iter().map(|p| Circle::new(*p, 4, colour.filled())))
                     .map_err(draw_err)?;
             }
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::LowerRight)
-                .background_style(WHITE.mix(0.9))
-                .border_style(BLACK.mix(0.3))
-                .label_font((FONT, 14))
-                .draw()
-                .map_err(draw_err)?;
+            draw_legend(&mut chart, SeriesLabelPosition::LowerRight, 14)?;
             root.present().map_err(draw_err)?;
         }
         write_rgb_png(path, W, H, &rgb)

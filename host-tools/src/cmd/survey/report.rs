@@ -401,7 +401,7 @@ mod plot {
 
     use plotters::prelude::*;
 
-    use crate::calib::plots::{FONT, draw_err, ensure_font, write_rgb_png};
+    use crate::calib::plots::{FONT, draw_err, draw_legend, ensure_font, write_rgb_png};
 
     const W: u32 = 900;
     const H: u32 = 560;
@@ -448,14 +448,7 @@ mod plot {
                     .label(label)
                     .legend(move |(x, y)| Circle::new((x + 10, y), 5, colour.filled()));
             }
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::UpperRight)
-                .background_style(WHITE.mix(0.9))
-                .border_style(BLACK.mix(0.3))
-                .label_font((FONT, 14))
-                .draw()
-                .map_err(draw_err)?;
+            draw_legend(&mut chart, SeriesLabelPosition::UpperRight, 14)?;
             root.present().map_err(draw_err)?;
         }
         write_rgb_png(path, W, H, &rgb)
