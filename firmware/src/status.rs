@@ -673,6 +673,12 @@ impl SharedStatus {
         if let Some(outputs) = self.outputs.get() {
             registry.register_collector(Box::new(outputs.metrics()));
         }
+        if let Some(cluster) = self.cluster_report() {
+            registry.register_collector(Box::new(cluster));
+        }
+        if let Some(ptp) = self.ptp_report() {
+            registry.register_collector(Box::new(ptp));
+        }
         let mut s = String::with_capacity(8 * 1024);
         // Writing into a String cannot fail; an encoder error would be a bug in a metric.
         if let Err(e) = prometheus_client::encoding::text::encode(&mut s, &registry) {

@@ -206,6 +206,51 @@ async fn solver_pairs_two_boards_and_refuses_bad_observations() {
             .iter()
             .all(|b| b["down"] == false && b["clock_fault"] == false)
     );
+    // The same counts in /metrics, read by an independent OpenMetrics parser: every refusal
+    // by reason (scraped after /status, so at least its counts), both boards up with a
+    // measured clock offset, sets being made.
+    let m = scrape_metrics(running.addrs.status).await;
+    assert_eq!(
+        m.family_type("irtrackd_cluster_observations_refused"),
+        Some("counter")
+    );
+    for code in expected {
+        let in_status = st["cluster"]["refused"][code].as_f64().unwrap();
+        let scraped = m
+            .value("irtrackd_cluster_observations_refused_total", &[("reason", code)])
+            .unwrap_or_else(|| panic!("no refused counter for {code} in {}", m.0));
+        assert!(
+            scraped >= in_status,
+            "{code}: /metrics {scraped} < /status {in_status}"
+        );
+    }
+    for b in ["b0", "b1"] {
+        assert_eq!(
+            m.value("irtrackd_cluster_board_up", &[("board", b)]),
+            Some(1.0),
+            "{b}"
+        );
+        assert_eq!(
+            m.value("irtrackd_cluster_board_clock_fault", &[("board", b)]),
+            Some(0.0)
+        );
+        let offset_s = m
+            .value("irtrackd_cluster_board_clock_offset_seconds", &[("board", b)])
+            .unwrap_or_else(|| panic!("no clock offset for {b}"));
+        assert!(
+            offset_s.abs() < 0.05,
+            "{b}: clock offset {offset_s} s on one host"
+        );
+    }
+    assert!(
+        m.value("irtrackd_cluster_sets_complete_total", &[])
+            .is_some_and(|n| n > 0.0)
+    );
+    assert!(
+        m.value("irtrackd_cluster_observations_received_total", &[])
+            .is_some_and(|n| n > 0.0)
+    );
+
     // Still tracking with all three cameras after the bad input.
     let rec = client
         .until(3 * FPS as usize, |rec| {
@@ -225,6 +270,18 @@ async fn solver_pairs_two_boards_and_refuses_bad_observations() {
             .is_some_and(|b| b.iter().all(|b| b["down"] == true));
         if down {
             assert!(st["fault_texts"].to_string().contains("board_down"));
+            let m = scrape_metrics(running.addrs.status).await;
+            for b in ["b0", "b1"] {
+                assert_eq!(
+                    m.value("irtrackd_cluster_board_up", &[("board", b)]),
+                    Some(0.0),
+                    "{b}"
+                );
+                let silent_s = m
+                    .value("irtrackd_cluster_board_last_seen_seconds", &[("board", b)])
+                    .unwrap_or(0.0);
+                assert!(silent_s >= 0.3, "{b} down after only {silent_s} s of silence");
+            }
             break;
         }
         assert!(

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{TempDir, runtime, start_with, status_json};
+use common::{TempDir, runtime, scrape_metrics, start_with, status_json};
 use irtrack_firmware::config::Config;
 use irtrack_firmware::ptp::mgmt::{PortState, clock_identity_text};
 use irtrack_firmware::ptp::monitor;
@@ -182,6 +182,29 @@ fn status_shows_ptp4l_slave_and_master_over_veth() {
         assert_eq!(p["gm_present"], true, "{p}");
         assert!(p["age_ms"].as_u64().is_some_and(|a| a < 3000), "{p}");
         assert_eq!(p["socket"].as_str(), Some(slave_sock.to_str().unwrap()));
+        // The same in /metrics, read by an independent OpenMetrics parser.
+        let m = scrape_metrics(running.addrs.status).await;
+        let state = m.0["samples"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["name"] == "irtrackd_ptp_port_state")
+            .map(|s| (s["labels"]["state"].clone(), s["value"].clone()));
+        let state = state.unwrap_or_else(|| panic!("no irtrackd_ptp_port_state in {}", m.0));
+        assert!(
+            matches!(state.0.as_str(), Some("SLAVE" | "UNCALIBRATED")),
+            "{state:?}"
+        );
+        assert_eq!(state.1.as_f64(), Some(1.0));
+        let offset_s = m.value("irtrackd_ptp_offset_seconds", &[]).expect("offset");
+        assert!(offset_s.abs() < 1e-3, "ptp offset {offset_s} s");
+        let delay_s = m
+            .value("irtrackd_ptp_mean_path_delay_seconds", &[])
+            .expect("delay");
+        assert!(delay_s > 0.0 && delay_s < 1e-3, "path delay {delay_s} s");
+        assert_eq!(m.value("irtrackd_ptp_steps_removed", &[]), Some(1.0));
+        assert_eq!(m.value("irtrackd_ptp_grandmaster_present", &[]), Some(1.0));
+        assert!(m.value("irtrackd_ptp_polls_total", &[]).is_some_and(|n| n >= 1.0));
 
         // The master, through the library client.
         let m = monitor::query(dir.path(), &master_sock, 0).await.unwrap();
@@ -243,6 +266,13 @@ fn status_names_a_missing_silent_or_broken_ptp4l_and_keeps_running() {
         );
         assert!(p["port_state"].is_null() && p["offset_ns"].is_null(), "{p}");
         assert_eq!(p["failures"], p["polls"], "{p}");
+        // /metrics: failures counted, no made-up offset or state.
+        let m = scrape_metrics(running.addrs.status).await;
+        let polls = m.value("irtrackd_ptp_polls_total", &[]).expect("polls");
+        assert!(polls >= 1.0);
+        assert_eq!(m.value("irtrackd_ptp_poll_failures_total", &[]), Some(polls));
+        assert_eq!(m.value("irtrackd_ptp_offset_seconds", &[]), None);
+        assert!(!m.0.to_string().contains("irtrackd_ptp_port_state"));
         // Still processing frames, still serving.
         let it0 = st["processing"]["iterations"].as_u64().unwrap();
         tokio::time::sleep(Duration::from_millis(300)).await;

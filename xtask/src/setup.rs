@@ -222,6 +222,11 @@ const PY_MODULES: &[(&str, &str, &str)] = &[
         "CDR decoding of ROS 2 messages without ROS for the DDS subscriber (firmware/tests/py/ros2_subscriber.py)",
     ),
     (
+        "prometheus-client==0.26.0",
+        "prometheus_client",
+        "independent OpenMetrics parser for irtrackd's /metrics (firmware/tests/py/scrape_metrics.py)",
+    ),
+    (
         "eclipse-zenoh==1.10.2",
         "zenoh",
         "independent Zenoh subscriber of the cluster tests (docs/cluster.md)",

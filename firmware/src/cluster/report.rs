@@ -107,3 +107,136 @@ impl ClusterReport {
         out
     }
 }
+
+/// `/metrics` families of the camera and solver roles (a `prometheus-client` collector over
+/// one copy of the report, so a scrape agrees with itself). Counter names without `_total`:
+/// the encoder appends it.
+impl prometheus_client::collector::Collector for ClusterReport {
+    fn encode(
+        &self,
+        mut enc: prometheus_client::encoding::DescriptorEncoder,
+    ) -> std::result::Result<(), std::fmt::Error> {
+        use prometheus_client::encoding::EncodeMetric;
+        use prometheus_client::metrics::MetricType;
+        use prometheus_client::metrics::counter::ConstCounter;
+        use prometheus_client::metrics::gauge::ConstGauge;
+        let role = self.role;
+        let counters: &[(&str, &str, u64)] = if role == "camera" {
+            &[
+                (
+                    "irtrackd_cluster_observations_published",
+                    "observations this camera board sent",
+                    self.published,
+                ),
+                (
+                    "irtrackd_cluster_publish_errors",
+                    "observations Zenoh failed to send",
+                    self.publish_errors,
+                ),
+            ]
+        } else {
+            &[
+                (
+                    "irtrackd_cluster_observations_received",
+                    "observations the solver took from its queue",
+                    self.received,
+                ),
+                (
+                    "irtrackd_cluster_sets_complete",
+                    "sets closed with every camera present",
+                    self.sets_complete,
+                ),
+                (
+                    "irtrackd_cluster_sets_incomplete",
+                    "sets closed with a camera missing",
+                    self.sets_incomplete,
+                ),
+                (
+                    "irtrackd_cluster_observations_late",
+                    "observations that arrived after their set was closed",
+                    self.late,
+                ),
+                (
+                    "irtrackd_cluster_observations_conflicting",
+                    "second observations of one camera for the same open set",
+                    self.conflicting,
+                ),
+                (
+                    "irtrackd_cluster_observations_clock_refused",
+                    "observations of a board with a clock fault, kept out of the sets",
+                    self.refused_clock,
+                ),
+                (
+                    "irtrackd_cluster_queue_overflow",
+                    "observations dropped because the solver's receive queue was full",
+                    self.queue_overflow,
+                ),
+            ]
+        };
+        for (name, help, value) in counters {
+            let m = enc.encode_descriptor(name, help, None, MetricType::Counter)?;
+            ConstCounter::new(*value).encode(m)?;
+        }
+        if role == "camera" {
+            return Ok(());
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_cluster_observations_refused",
+            "refused observations by problem (docs/observation-protocol.md)",
+            None,
+            MetricType::Counter,
+        )?;
+        for (reason, n) in &self.refused {
+            ConstCounter::new(*n).encode(m.encode_family(&[("reason", *reason)])?)?;
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_cluster_camera_missing",
+            "empty slots of this camera in closed sets",
+            None,
+            MetricType::Counter,
+        )?;
+        for (camera, n) in self.missing.iter().enumerate() {
+            let camera = camera.to_string();
+            ConstCounter::new(*n).encode(m.encode_family(&[("camera", camera.as_str())])?)?;
+        }
+        let m = enc.encode_descriptor(
+            "irtrackd_cluster_no_placement",
+            "1 when the parameter set does not say which board each camera is on",
+            None,
+            MetricType::Gauge,
+        )?;
+        ConstGauge::new(i64::from(self.no_placement)).encode(m)?;
+        type Get = fn(&BoardReport) -> Option<f64>;
+        let gauges: [(&str, &str, Get); 4] = [
+            (
+                "irtrackd_cluster_board_up",
+                "1 while the camera board is heard from within board_timeout_ms",
+                |b| Some(if b.down { 0.0 } else { 1.0 }),
+            ),
+            (
+                "irtrackd_cluster_board_clock_fault",
+                "1 while the board's clock offset is beyond the limit (its observations are left out)",
+                |b| Some(if b.clock_fault { 1.0 } else { 0.0 }),
+            ),
+            (
+                "irtrackd_cluster_board_clock_offset_seconds",
+                "the board's clock minus the solver's, less the smallest transit",
+                |b| b.clock_offset_ms.map(|ms| ms / 1e3),
+            ),
+            (
+                "irtrackd_cluster_board_last_seen_seconds",
+                "time since the board's last observation",
+                |b| b.last_seen_ms.map(|ms| ms / 1e3),
+            ),
+        ];
+        for (name, help, get) in gauges {
+            let mut m = enc.encode_descriptor(name, help, None, MetricType::Gauge)?;
+            for b in &self.boards {
+                if let Some(v) = get(b) {
+                    ConstGauge::new(v).encode(m.encode_family(&[("board", b.name.as_str())])?)?;
+                }
+            }
+        }
+        Ok(())
+    }
+}

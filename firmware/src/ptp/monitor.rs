@@ -247,6 +247,76 @@ impl PtpState {
     }
 }
 
+/// `/metrics` families of `clock.ptp` (a `prometheus-client` collector over one report).
+/// The offset and delay are those of ptp4l's last good answer; `irtrackd_ptp_answer_age_seconds`
+/// says how old that is, so an alert can tell a stale value from a good one.
+impl prometheus_client::collector::Collector for PtpReport {
+    fn encode(
+        &self,
+        mut enc: prometheus_client::encoding::DescriptorEncoder,
+    ) -> std::result::Result<(), std::fmt::Error> {
+        use prometheus_client::encoding::EncodeMetric;
+        use prometheus_client::metrics::MetricType;
+        use prometheus_client::metrics::counter::ConstCounter;
+        use prometheus_client::metrics::gauge::ConstGauge;
+        // Counter names without `_total`: the encoder appends it.
+        for (name, help, value) in [
+            ("irtrackd_ptp_polls", "ptp4l management polls", self.polls),
+            (
+                "irtrackd_ptp_poll_failures",
+                "ptp4l polls without a good answer (absent, silent, malformed)",
+                self.failures,
+            ),
+        ] {
+            let m = enc.encode_descriptor(name, help, None, MetricType::Counter)?;
+            ConstCounter::new(value).encode(m)?;
+        }
+        let gauges = [
+            (
+                "irtrackd_ptp_offset_seconds",
+                "ptp4l's offset from its master (0 on the master)",
+                self.offset_ns.map(|ns| ns / 1e9),
+            ),
+            (
+                "irtrackd_ptp_mean_path_delay_seconds",
+                "ptp4l's mean path delay to its master",
+                self.mean_path_delay_ns.map(|ns| ns / 1e9),
+            ),
+            (
+                "irtrackd_ptp_steps_removed",
+                "boundary clocks between this board and the grandmaster",
+                self.steps_removed.map(f64::from),
+            ),
+            (
+                "irtrackd_ptp_grandmaster_present",
+                "1 when ptp4l knows a grandmaster",
+                self.gm_present.map(|p| if p { 1.0 } else { 0.0 }),
+            ),
+            (
+                "irtrackd_ptp_answer_age_seconds",
+                "age of ptp4l's last good answer",
+                self.age_ms.map(|ms| ms as f64 / 1e3),
+            ),
+        ];
+        for (name, help, value) in gauges {
+            if let Some(v) = value {
+                let m = enc.encode_descriptor(name, help, None, MetricType::Gauge)?;
+                ConstGauge::new(v).encode(m)?;
+            }
+        }
+        if let Some(state) = self.port_state {
+            let mut m = enc.encode_descriptor(
+                "irtrackd_ptp_port_state",
+                "ptp4l's port state (the one present is 1)",
+                None,
+                MetricType::Gauge,
+            )?;
+            ConstGauge::new(1i64).encode(m.encode_family(&[("state", state)])?)?;
+        }
+        Ok(())
+    }
+}
+
 /// Words for a failed poll, with the likely cause.
 fn explain(e: &PtpError) -> String {
     let hint = match e {

@@ -334,3 +334,46 @@ impl Drop for JsonLinesChild {
         let _ = self.child.wait();
     }
 }
+
+/// `/metrics` of `addr` as parsed by prometheus_client's OpenMetrics parser in a separate
+/// Python process (firmware/tests/py/scrape_metrics.py). Panics if the text does not parse.
+pub async fn scrape_metrics(addr: SocketAddr) -> Metrics {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/scrape_metrics.py");
+    let url = format!("http://{addr}/metrics");
+    let out = tokio::task::spawn_blocking(move || Command::new("python3").arg(&script).arg(&url).output())
+        .await
+        .expect("the scrape thread")
+        .expect("python3 runs");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "scrape_metrics.py failed: {}\n{text}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let doc: serde_json::Value = serde_json::from_str(text.trim()).expect("one JSON document");
+    assert!(
+        doc["error"].is_null(),
+        "/metrics does not parse as OpenMetrics: {}",
+        doc["error"]
+    );
+    Metrics(doc)
+}
+
+/// A parsed scrape (see [`scrape_metrics`]).
+pub struct Metrics(pub serde_json::Value);
+
+impl Metrics {
+    /// The value of sample `name` whose labels include every pair of `labels`.
+    pub fn value(&self, name: &str, labels: &[(&str, &str)]) -> Option<f64> {
+        self.0["samples"].as_array()?.iter().find_map(|s| {
+            let matches =
+                s["name"] == name && labels.iter().all(|(k, v)| s["labels"][*k].as_str() == Some(*v));
+            if matches { s["value"].as_f64() } else { None }
+        })
+    }
+
+    /// The family's type (`counter`, `gauge`, …) as the parser read it.
+    pub fn family_type(&self, family: &str) -> Option<&str> {
+        self.0["types"][family].as_str()
+    }
+}
