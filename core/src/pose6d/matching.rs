@@ -48,6 +48,8 @@ impl TriangulatedPoint {
 struct BlobRay {
     blob: u8,
     ray: Ray,
+    /// The blob's centroid (px).
+    px: [f64; 2],
 }
 
 /// One camera of the rig with this frame's usable blob rays.
@@ -135,7 +137,11 @@ impl PointMatcher {
                 if usable {
                     let ray = Ray::from_pixel(&cam.model, &cam.cam_from_cam0, b.x_px, b.y_px);
                     if ray.dir.iter().all(|v| v.is_finite()) {
-                        cam.rays.push(BlobRay { blob: i as u8, ray });
+                        cam.rays.push(BlobRay {
+                            blob: i as u8,
+                            ray,
+                            px: [b.x_px, b.y_px],
+                        });
                     }
                 }
             }
@@ -178,6 +184,17 @@ impl PointMatcher {
 }
 
 impl PointMatcher {
+    /// Centroid (px) of blob `blob` of camera `camera` in the last [`PointMatcher::solve`]
+    /// (`None` if it was not usable).
+    pub(super) fn blob_px(&self, camera: usize, blob: u8) -> Option<[f64; 2]> {
+        self.cams
+            .get(camera)?
+            .rays
+            .iter()
+            .find(|r| r.blob == blob)
+            .map(|r| r.px)
+    }
+
     /// `p` without the cameras in `drop_mask` (bit per camera), re-solved from the rays of
     /// the cameras left (least squares; two views: the midpoint and its gap). `None` when
     /// fewer than two cameras remain or the rays do not give a point. Used when one camera's

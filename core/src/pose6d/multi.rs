@@ -44,6 +44,14 @@ const ESTABLISHED_LOOSE_FRAMES: u32 = 10;
 /// a tool's measured LED is that LED itself, not a second spot merged into its blob.
 const SAME_POINT_MM: f64 = 5.0;
 
+/// A new point one of whose blobs has its centroid this close (px) to where a tool's LED
+/// projects is made with that LED's image, not a loose LED. A tracked LED's blob lies within a
+/// few tenths of a pixel of its projection; a real loose LED's spot merged with a tool LED's
+/// shifts the centroid by half their separation, so it is taken for the LED only when the two
+/// spots are within about 4 px (such a point is biased anyway). Tried 2, 3, 4 and 6 px in the
+/// simulator's 90° pair: 6 px delayed the loose LED's reacquisitions (61 fewer frames).
+const TOOL_LED_IMAGE_PX: f64 = 2.0;
+
 /// Blob indices a camera can have in the matcher (the configuration caps
 /// `max_blobs_per_camera` at 64): claims are one bit per blob.
 const MAX_BLOBS: usize = 64;
@@ -70,6 +78,9 @@ struct LooseTrack {
     frames_ago: u32,
     /// Frame sets it had been tracked in a row when it was last lost (0 while tracked).
     run_before_loss: u32,
+    /// [`NO_TOOL`]: a loose LED; else the tool whose candidate LED this is (not reported, no
+    /// id: see `MultiTracker::track_loose`).
+    tool: u8,
 }
 
 #[derive(Debug, Clone)]
@@ -135,6 +146,7 @@ pub struct MultiTracker {
     /// Claimed blobs per camera (bit per blob index).
     claimed: [u64; MAX_CAMERAS],
     owner: [[u8; MAX_BLOBS]; MAX_CAMERAS],
+    /// Loose LEDs and tools' candidate LEDs (points of a tool not tracked in the set).
     loose_tracks: Vec<LooseTrack>,
     loose: Vec<LooseLed>,
     next_loose_id: u32,
@@ -180,7 +192,7 @@ impl MultiTracker {
             free: Vec::with_capacity(config.max_candidates),
             claimed: [0; MAX_CAMERAS],
             owner: [[NO_TOOL; MAX_BLOBS]; MAX_CAMERAS],
-            loose_tracks: Vec::with_capacity(MAX_LOOSE_LEDS),
+            loose_tracks: Vec::with_capacity(MAX_LOOSE_LEDS + leds),
             loose: Vec::with_capacity(MAX_LOOSE_LEDS),
             next_loose_id: 0,
         })
@@ -338,7 +350,11 @@ impl MultiTracker {
                             .project(&cam.cam_from_cam0.apply(q))
                             .is_ok_and(|qx| (qx - px).norm() < radius)
                 };
-                let mut hit = self.loose.iter().any(|l| near(&Vector3::from(l.position_mm)));
+                // Loose LEDs and other tools' candidate LEDs found this frame.
+                let mut hit = self
+                    .loose_tracks
+                    .iter()
+                    .any(|t| t.frames_ago == 0 && near(&Vector3::from(t.led.position_mm)));
                 // A loose LED not found this frame may be hidden in this very blob: where its
                 // track predicts it.
                 hit |= self
@@ -589,14 +605,28 @@ impl MultiTracker {
         }
     }
 
-    /// Loose LEDs: the free candidates, each known LED first taking the closest one to its
-    /// predicted position (within `loose_gate_mm`, also after a gap), then new ones by increasing ray gap (a
-    /// ghost shares a blob with two true points and has the larger gap).
+    /// Loose LEDs: the free candidates, each known point first taking the closest one to its
+    /// predicted position (within `loose_gate_mm`, also after a gap), then new ones by
+    /// increasing ray gap (a ghost shares a blob with two true points and has the larger gap).
+    ///
+    /// A tool's LEDs are not loose LEDs: a new point within `loose_gate_mm` of an LED of a
+    /// tool — where its pose puts it, or where its predictor does during a gap of up to
+    /// `max_coast_frames` — is that tool's candidate LED. It is followed like a loose LED
+    /// (so it stays the tool's while the tool is lost, however long) but gets no id and is
+    /// not reported; its blobs go to the tool ([`MultiTracker::blob_owner`]). Once the tool is
+    /// tracked again its candidates end (its LEDs are claimed by its pose).
     fn track_loose(&mut self) {
         let cfg = self.config;
         self.fill_free();
         self.loose.clear();
-        // Longest-tracked LEDs choose first.
+        let tools = &self.tools;
+        self.loose_tracks.retain(|t| {
+            t.tool == NO_TOOL
+                || tools
+                    .get(t.tool as usize)
+                    .is_some_and(|s| s.pose.status != PoseStatus::Tracked)
+        });
+        // Longest-tracked points choose first.
         self.loose_tracks
             .sort_unstable_by_key(|t| core::cmp::Reverse(t.led.frames_tracked));
         for k in 0..self.loose_tracks.len() {
@@ -625,9 +655,13 @@ impl MultiTracker {
                     t.led.gap_mm = p.gap_mm;
                     t.led.cameras = p.cameras;
                     t.led.frames_tracked = t.led.frames_tracked.saturating_add(1);
-                    let led = t.led;
-                    self.claim(&p, LOOSE_LED);
-                    self.loose.push(led);
+                    let (led, tool) = (t.led, t.tool);
+                    if tool == NO_TOOL {
+                        self.claim(&p, LOOSE_LED);
+                        self.loose.push(led);
+                    } else {
+                        self.claim(&p, tool);
+                    }
                 }
                 None => {
                     if t.frames_ago == 0 {
@@ -646,25 +680,96 @@ impl MultiTracker {
             if self.is_claimed(&p) || self.loose_tracks.len() == self.loose_tracks.capacity() {
                 continue;
             }
+            let tool = self.tool_led_near(&p.point_mm, cfg.loose_gate_mm);
+            let loose = self.loose_tracks.iter().filter(|t| t.tool == NO_TOOL).count();
+            if tool.is_none() && (loose >= MAX_LOOSE_LEDS || self.uses_tool_led_image(&p)) {
+                continue;
+            }
             let led = LooseLed {
-                id: self.next_loose_id,
+                id: if tool.is_none() {
+                    self.next_loose_id
+                } else {
+                    u32::MAX
+                },
                 position_mm: p.point_mm.into(),
                 gap_mm: p.gap_mm,
                 cameras: p.cameras,
                 frames_tracked: 1,
             };
-            self.next_loose_id = self.next_loose_id.wrapping_add(1);
-            self.claim(&p, LOOSE_LED);
             self.loose_tracks.push(LooseTrack {
                 led,
                 velocity_mm: Vector3::zeros(),
                 frames_ago: 0,
                 run_before_loss: 0,
+                tool: tool.map_or(NO_TOOL, |t| t as u8),
             });
-            if self.loose.len() < self.loose.capacity() {
-                self.loose.push(led);
+            match tool {
+                Some(t) => self.claim(&p, t as u8),
+                None => {
+                    self.next_loose_id = self.next_loose_id.wrapping_add(1);
+                    self.claim(&p, LOOSE_LED);
+                    if self.loose.len() < self.loose.capacity() {
+                        self.loose.push(led);
+                    }
+                }
             }
         }
+    }
+
+    /// Whether one of `p`'s blobs lies within [`TOOL_LED_IMAGE_PX`] of the image of a tool's LED
+    /// (tracked, predicted, or a candidate LED found this set) that is not `p` itself: `p` is
+    /// then a ghost made with that LED's ray (its blob in that camera went unclaimed when the
+    /// LED's point did not use it) or a spot merged with the LED, a biased point either way.
+    fn uses_tool_led_image(&self, p: &TriangulatedPoint) -> bool {
+        let gate = self.config.loose_gate_mm;
+        for (c, cam) in self.matcher.cams.iter().enumerate() {
+            let b = p.blobs.get(c).copied().unwrap_or(NO_BLOB);
+            let Some(bpx) = (b != NO_BLOB).then(|| self.matcher.blob_px(c, b)).flatten() else {
+                continue;
+            };
+            let hit = |q: &Vector3<f64>| {
+                (q - p.point_mm).norm() > gate
+                    && cam.model.project(&cam.cam_from_cam0.apply(q)).is_ok_and(|qx| {
+                        (qx - nalgebra::Vector2::new(bpx[0], bpx[1])).norm() < TOOL_LED_IMAGE_PX
+                    })
+            };
+            for ti in 0..self.tools.len() {
+                for led in 0..self.tools[ti].model.led_count() {
+                    match self.led_estimate_mm(ti, led) {
+                        Some(q) if hit(&q) => return true,
+                        Some(_) => {}
+                        None => break,
+                    }
+                }
+            }
+            let candidate = self
+                .loose_tracks
+                .iter()
+                .filter(|t| t.tool != NO_TOOL && t.frames_ago == 0)
+                .any(|t| hit(&Vector3::from(t.led.position_mm)));
+            if candidate {
+                return true;
+            }
+        }
+        false
+    }
+
+    /// The tool one of whose LEDs is within `gate_mm` of `p` (its pose's LED if tracked, else
+    /// its predicted LED during a gap), the nearest such LED's tool.
+    fn tool_led_near(&self, p: &Vector3<f64>, gate_mm: f64) -> Option<usize> {
+        let mut best: Option<(f64, usize)> = None;
+        for ti in 0..self.tools.len() {
+            for led in 0..self.tools[ti].model.led_count() {
+                let Some(q) = self.led_estimate_mm(ti, led) else {
+                    break;
+                };
+                let d = (q - p).norm();
+                if d <= gate_mm && best.is_none_or(|(bd, _)| d < bd) {
+                    best = Some((d, ti));
+                }
+            }
+        }
+        best.map(|(_, ti)| ti)
     }
 }
 
@@ -791,21 +896,31 @@ mod tests {
         s: &Scene,
         hide: impl Fn(usize, usize) -> bool,
     ) -> Vec<Vec<Blob>> {
-        let mut pts: Vec<(usize, Vector3<f64>)> = Vec::new();
+        blobs_of_leds(rig, defs, s, |c, k, _| hide(c, k))
+    }
+
+    /// [`blobs`], `hide(camera, tool, led)` dropping single LEDs.
+    fn blobs_of_leds(
+        rig: &RigParams,
+        defs: &[ToolDefinition],
+        s: &Scene,
+        hide: impl Fn(usize, usize, usize) -> bool,
+    ) -> Vec<Vec<Blob>> {
+        let mut pts: Vec<(usize, usize, Vector3<f64>)> = Vec::new();
         for (k, (d, (q, t))) in defs.iter().zip(&s.poses).enumerate() {
-            for l in &d.leds_mm {
-                pts.push((k, q * Vector3::from(*l) + t));
+            for (i, l) in d.leds_mm.iter().enumerate() {
+                pts.push((k, i, q * Vector3::from(*l) + t));
             }
         }
-        pts.push((3, s.loose));
+        pts.push((3, 0, s.loose));
         rig.cameras
             .iter()
             .enumerate()
             .map(|(c, cam)| {
                 let mut v: Vec<Blob> = pts
                     .iter()
-                    .filter(|(k, _)| !hide(c, *k))
-                    .map(|(_, p)| {
+                    .filter(|(k, i, _)| !hide(c, *k, *i))
+                    .map(|(_, _, p)| {
                         let px = cam.model.project(&cam.cam_from_cam0.apply(p)).unwrap();
                         Blob {
                             x_px: px.x,
@@ -921,6 +1036,65 @@ mod tests {
                 assert_ne!(id, first, "frame {frame}: 25 mm beyond the gate is a new LED");
             }
         }
+    }
+
+    #[test]
+    fn an_untracked_tools_leds_are_its_candidates_not_loose_leds() {
+        let rig = rig(2);
+        let defs = tools();
+        let mut tracker = MultiTracker::new(&rig, &defs, PoseConfig::default()).unwrap();
+        // tri3 (tool 1) loses LED 0 in camera 1 for frames 10..30 (longer than the coast):
+        // it is not tracked, its LEDs 1 and 2 are still seen by both cameras.
+        let gap = 10..30;
+        let mut loose_ids = Vec::new();
+        for frame in 0..35 {
+            let s = scene(frame);
+            let hidden = gap.contains(&frame);
+            let b = blobs_of_leds(&rig, &defs, &s, |c, k, i| hidden && c == 1 && k == 1 && i == 0);
+            run(&mut tracker, &b);
+            let tri3 = tracker.pose(1).unwrap().status;
+            if frame < 30 {
+                assert_eq!(
+                    tri3 == PoseStatus::Tracked,
+                    !hidden,
+                    "frame {frame}: tri3 {tri3:?}"
+                );
+            }
+            let (q, t) = s.poses[1];
+            let tri3_leds: Vec<Vector3<f64>> = defs[1]
+                .leds_mm
+                .iter()
+                .map(|l| q * Vector3::from(*l) + t)
+                .collect();
+            let mut loose_seen = false;
+            for l in tracker.loose_leds() {
+                let at = Vector3::from(l.position_mm);
+                assert!(
+                    tri3_leds.iter().all(|p| (p - at).norm() > 5.0),
+                    "frame {frame}: tri3's LED reported as loose LED {}",
+                    l.id
+                );
+                loose_seen |= (at - s.loose).norm() < 1e-6;
+                if !loose_ids.contains(&l.id) {
+                    loose_ids.push(l.id);
+                }
+            }
+            assert!(loose_seen, "frame {frame}: the loose LED is reported");
+            if hidden {
+                // tri3's LEDs 1 and 2 are its candidates: their blobs go to it in both cameras.
+                for (c, cam) in rig.cameras.iter().enumerate() {
+                    for p in &tri3_leds[1..] {
+                        let px = cam.model.project(&cam.cam_from_cam0.apply(p)).unwrap();
+                        let i = b[c]
+                            .iter()
+                            .position(|bl| (bl.x_px - px.x).hypot(bl.y_px - px.y) < 1e-6)
+                            .unwrap();
+                        assert_eq!(tracker.blob_owner(c, i), 1, "frame {frame} camera {c}");
+                    }
+                }
+            }
+        }
+        assert_eq!(loose_ids.len(), 1, "loose ids issued: {loose_ids:?}");
     }
 
     #[test]
