@@ -19,9 +19,15 @@
 //!    120 fps; then where the solver's sets went in the same windows: frames sent, sets
 //!    published, complete/incomplete, late, conflicting, clock-refused, queue overflow.
 //!
+//! 5. the hop in the product: 2 irtrackd camera boards → an irtrackd solver as separate
+//!    processes (the binary beside this example's directory, or `--irtrackd PATH`), the
+//!    solver's `/status` → `cluster.hop_us`, with and without `[cluster]
+//!    transport_fifo_priority` (`--fifo PRIO`, else 50), alternating, `--rounds N` rounds
+//!    (default 3); `--processes-only` runs only these rows.
+//!
 //! `cargo run --release -p irtrack-firmware --features cluster --example cluster_bench
 //! [-- --secs S] [--quick] [--low-latency | --default-transport] [--fifo PRIO]
-//! [--stamp-at-publish]`.
+//! [--stamp-at-publish] [--processes-only] [--rounds N] [--irtrackd PATH]`.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -384,6 +390,23 @@ fn transport_name(low_latency: bool) -> &'static str {
 fn main() {
     let o = opts();
     let secs = o.secs;
+    let args: Vec<String> = std::env::args().collect();
+    let rounds = args
+        .iter()
+        .skip_while(|a| *a != "--rounds")
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(if o.quick { 1 } else { 3 });
+    let procs = |prio: Option<i32>| match irtrackd_exe() {
+        Some(exe) => process_rows(&exe, 2, secs, rounds, &o.transports, prio.unwrap_or(50)),
+        None => println!(
+            "\nProcess rows skipped: no irtrackd binary beside this example (build it with `--features cluster --bin irtrackd`, or give --irtrackd PATH)"
+        ),
+    };
+    if args.iter().any(|a| a == "--processes-only") {
+        procs(o.fifo);
+        return;
+    }
     let mut buf = [0u8; MAX_OBS_LEN];
     let one = encode(&header("b1", 7, 1), &[blob_at(1.0, 2.0)], &mut buf).unwrap();
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
@@ -512,6 +535,7 @@ fn main() {
             a.skewed,
         );
     }
+    procs(o.fifo);
 }
 
 fn q(h: &HistogramSnapshot, p: f64) -> f64 {
@@ -813,5 +837,242 @@ fn feed(port: u16, rig: &RigParams, names: &[String], low_latency: bool, stamp: 
     }
     for s in &sessions {
         s.close();
+    }
+}
+
+/// One irtrackd process of a process row, killed on drop.
+struct IrtrackdProc {
+    child: std::process::Child,
+    status: std::net::SocketAddr,
+}
+
+impl Drop for IrtrackdProc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn spawn_irtrackd(
+    exe: &std::path::Path,
+    dir: &std::path::Path,
+    name: &str,
+    config: &str,
+) -> Result<IrtrackdProc, String> {
+    use std::io::BufRead;
+    let cfg = dir.join(format!("{name}.toml"));
+    std::fs::write(&cfg, config).map_err(|e| e.to_string())?;
+    let state = dir.join(format!("{name}-state"));
+    std::fs::create_dir_all(&state).map_err(|e| e.to_string())?;
+    let mut child = std::process::Command::new(exe)
+        .arg("-c")
+        .arg(&cfg)
+        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
+        .arg(&state)
+        .env("RUST_LOG", "warn")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::fs::File::create(dir.join(format!("{name}.log"))).map_err(|e| e.to_string())?)
+        .spawn()
+        .map_err(|e| format!("{}: {e}", exe.display()))?;
+    let mut out = std::io::BufReader::new(child.stdout.take().ok_or("no stdout")?);
+    let mut line = String::new();
+    let _ = out.read_line(&mut line);
+    std::thread::spawn(move || std::io::copy(&mut out, &mut std::io::sink()));
+    let status = line
+        .split_whitespace()
+        .find_map(|f| f.strip_prefix("status="))
+        .and_then(|a| a.parse().ok());
+    let mut p = IrtrackdProc {
+        child,
+        status: "127.0.0.1:0".parse().map_err(|_| "addr")?,
+    };
+    match status {
+        Some(s) => p.status = s,
+        None => {
+            return Err(format!(
+                "{name} did not start (see {}/{name}.log): {line}",
+                dir.display()
+            ));
+        }
+    }
+    Ok(p)
+}
+
+fn get_status(addr: std::net::SocketAddr) -> Option<serde_json::Value> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(
+        s,
+        "GET /status HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )
+    .ok()?;
+    let mut body = String::new();
+    s.read_to_string(&mut body).ok()?;
+    serde_json::from_str(&body[body.find("\r\n\r\n")? + 4..]).ok()
+}
+
+/// What one process row measured: the solver's `/status` → `cluster.hop_us` and the transport
+/// threads' real-time line.
+struct ProcHop {
+    p50_us: f64,
+    p99_us: f64,
+    count: u64,
+    received: u64,
+    realtime: String,
+}
+
+/// Real irtrackd processes: `boards` camera boards (2 simulated VGA cameras each of the ring
+/// rig, 120 fps, wall clock) and a solver, every one with `[realtime] fifo_priority = 50` (its
+/// loop; what an appliance sets) and `[cluster] low_latency`, with or without
+/// `transport_fifo_priority`. After the solver's first hop samples (its 1 s warm-up), `secs`
+/// of observations; the solver's hop summary (board publish → solver receive).
+fn process_hop(
+    exe: &std::path::Path,
+    boards: usize,
+    secs: f64,
+    low_latency: bool,
+    transport_prio: Option<i32>,
+) -> Result<ProcHop, String> {
+    let dir = state_dir(&format!(
+        "procs{boards}{low_latency}{}",
+        transport_prio.unwrap_or(0)
+    ));
+    let cameras = 2 * boards;
+    let mut rig = irtrack_firmware::source::sim::ring_rig(cameras, 600.0);
+    rig.rig_id = "bench".into();
+    rig.placement = (0..cameras)
+        .map(|c| CameraPlace {
+            board: format!("b{}", c / 2),
+            local_index: (c % 2) as u8,
+        })
+        .collect();
+    std::fs::create_dir_all(dir.join("solver-state")).map_err(|e| e.to_string())?;
+    std::fs::write(
+        dir.join("solver-state/params.irp"),
+        rig.to_blob().map_err(|e| e.to_string())?,
+    )
+    .map_err(|e| e.to_string())?;
+    let port = free_port();
+    let sizes = vec!["[640, 480]"; cameras].join(", ");
+    let common = format!(
+        "fps = {FPS}\nlow_latency = {low_latency}\n{}",
+        transport_prio.map_or(String::new(), |p| format!("transport_fifo_priority = {p}\n"))
+    );
+    let solver = spawn_irtrackd(
+        exe,
+        &dir,
+        "solver",
+        &format!(
+            "[params]\nallow_unsigned = true\n[leds]\nbackend = \"none\"\n[realtime]\nfifo_priority = 50\n\
+             [cluster]\nrole = \"solver\"\nrig = \"bench\"\nlisten = [\"tcp/127.0.0.1:{port}\"]\n\
+             image_sizes_px = [{sizes}]\n{common}"
+        ),
+    )?;
+    let mut procs = Vec::new();
+    for b in 0..boards {
+        procs.push(spawn_irtrackd(
+            exe,
+            &dir,
+            &format!("b{b}"),
+            &format!(
+                "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n\
+                 [source.sim]\nrig = \"ring\"\nring_cameras = {cameras}\ndistance_mm = 600\nfps = {FPS}\n\
+                 wall_clock = true\ncameras = [{}, {}]\n[realtime]\nfifo_priority = 50\n\
+                 [cluster]\nrole = \"camera\"\nrig = \"bench\"\nboard = \"b{b}\"\n\
+                 connect = [\"tcp/127.0.0.1:{port}\"]\n{common}",
+                2 * b,
+                2 * b + 1
+            ),
+        )?);
+    }
+    let hop = |st: &serde_json::Value| st["cluster"]["hop_us"].clone();
+    let t0 = Instant::now();
+    loop {
+        if get_status(solver.status).is_some_and(|st| hop(&st)["count"].as_u64().unwrap_or(0) > 0) {
+            break;
+        }
+        if t0.elapsed() > Duration::from_secs(20) {
+            return Err(format!("no hop samples after 20 s (see {})", dir.display()));
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    std::thread::sleep(Duration::from_secs_f64(secs));
+    let st = get_status(solver.status).ok_or("solver /status")?;
+    let h = hop(&st);
+    let out = ProcHop {
+        p50_us: h["p50_us"].as_f64().unwrap_or(f64::NAN),
+        p99_us: h["p99_us"].as_f64().unwrap_or(f64::NAN),
+        count: h["count"].as_u64().unwrap_or(0),
+        received: st["cluster"]["received"].as_u64().unwrap_or(0),
+        realtime: st["processing"]["realtime"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|l| l.as_str())
+            .filter(|l| l.starts_with("Zenoh"))
+            .collect::<Vec<_>>()
+            .join("; "),
+    };
+    drop(procs);
+    drop(solver);
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(out)
+}
+
+/// The irtrackd binary of the process rows: `--irtrackd PATH`, else the one beside this
+/// example's directory (`target/<profile>/irtrackd`, which `cargo xtask bench --cluster`
+/// builds with the `cluster` feature first).
+fn irtrackd_exe() -> Option<std::path::PathBuf> {
+    let args: Vec<String> = std::env::args().collect();
+    if let Some(p) = args.iter().skip_while(|a| *a != "--irtrackd").nth(1) {
+        return Some(p.into());
+    }
+    let exe = std::env::current_exe().ok()?;
+    let p = exe.parent()?.parent()?.join("irtrackd");
+    p.exists().then_some(p)
+}
+
+/// Process rows: real irtrackd camera boards → real irtrackd solver, with and without
+/// `[cluster] transport_fifo_priority`, for each transport, alternating within each round so
+/// every variant sees the same load.
+fn process_rows(
+    exe: &std::path::Path,
+    boards: usize,
+    secs: f64,
+    rounds: usize,
+    transports: &[bool],
+    prio: i32,
+) {
+    println!();
+    println!(
+        "Observation hop in the product: {boards} irtrackd camera boards (2 simulated cameras each, {FPS} fps) → an irtrackd solver, separate processes on 127.0.0.1, every loop `[realtime] fifo_priority = 50`; the solver's /status cluster.hop_us over {secs} s after its warm-up (µs); rows alternate within a round:"
+    );
+    println!(
+        "| round | transport | transport_fifo_priority | p50 | p99 | samples | observations received | transport threads |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    for round in 1..=rounds {
+        for &ll in transports {
+            for tp in [None, Some(prio)] {
+                match process_hop(exe, boards, secs, ll, tp) {
+                    Ok(h) => println!(
+                        "| {round} | {} | {} | {:.0} | {:.0} | {} | {} | {} |",
+                        transport_name(ll),
+                        tp.map_or("unset".to_string(), |p| p.to_string()),
+                        h.p50_us,
+                        h.p99_us,
+                        h.count,
+                        h.received,
+                        if h.realtime.is_empty() {
+                            "normal"
+                        } else {
+                            &h.realtime
+                        }
+                    ),
+                    Err(e) => println!("| {round} | {} | {tp:?} | failed: {e} |", transport_name(ll)),
+                }
+            }
+        }
     }
 }

@@ -447,6 +447,16 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         None => engine,
     };
     let engine = crate::cluster::with_role(engine, &cfg.cluster, &cluster)?;
+    // The session is open (camera board: its publishers; solver: its subscriber): raise
+    // Zenoh's threads that carry observations, now and when they appear later.
+    if let Some(prio) = cfg.cluster.transport_fifo_priority {
+        crate::rt::watch_transport_threads(cfg.cluster.role, prio, Arc::downgrade(&status)).map_err(|e| {
+            FirmwareError::Thread {
+                what: "transport priority watcher",
+                reason: e.to_string(),
+            }
+        })?;
+    }
     let processing = spawn_loop(engine, cfg.realtime.clone(), status.clone())?;
     // Whole-frame analysis for /status and its faults, off the loop; suggests a threshold at
     // first start (no saved tuning).

@@ -232,6 +232,9 @@ pub struct SharedStatus {
     /// Real-time settings applied or refused at start (scheduling, CPU affinity, memory lock), one
     /// line each.
     pub realtime: Mutex<Vec<String>>,
+    /// `[cluster] transport_fifo_priority`: what the last pass over Zenoh's transport threads
+    /// did (`rt::watch_transport_threads`); shown after `realtime`'s lines.
+    pub realtime_transport: Mutex<Option<String>>,
     /// Counters of the standard outputs (set once by `app::start`).
     pub outputs: std::sync::OnceLock<crate::outputs::stats::OutputsStats>,
     /// The viewers' hand-off from the loop, for its copy and drop counters on `/metrics` (set
@@ -311,6 +314,7 @@ impl SharedStatus {
             live_viewers: AtomicU64::new(0),
             params: Mutex::new(ParamsInfo::default()),
             realtime: Mutex::new(Vec::new()),
+            realtime_transport: Mutex::new(None),
             cluster: Mutex::new(None),
             ptp: std::sync::OnceLock::new(),
         }
@@ -473,7 +477,13 @@ impl SharedStatus {
                 source_ended: self.source_ended.load(R),
                 end_reason: self.end_reason.lock().ok().and_then(|r| r.clone()),
                 latency_us: latency_us.into_iter().collect(),
-                realtime: self.realtime.lock().map(|g| g.clone()).unwrap_or_default(),
+                realtime: {
+                    let mut lines = self.realtime.lock().map(|g| g.clone()).unwrap_or_default();
+                    if let Ok(g) = self.realtime_transport.lock() {
+                        lines.extend(g.iter().cloned());
+                    }
+                    lines
+                },
             },
             stream: StreamReport {
                 clients: self.stream_clients.load(R),
@@ -512,6 +522,8 @@ impl SharedStatus {
         let shared = self.cluster.lock().ok()?.clone()?;
         let mut r = shared.lock().ok()?.clone();
         r.detection_only = self.detection_only.load(R);
+        let hop = r.hop.0.snapshot();
+        r.hop_us = (hop.count() > 0).then(|| hop.summary());
         Some(r)
     }
 

@@ -114,6 +114,11 @@ fn bad_configs_name_the_problem() {
     assert!(e.contains("[leds.gpio]"), "{e}");
     let e = err("[realtime]\nfifo_priority = 100\n");
     assert!(e.contains("1..=99"), "{e}");
+    let e = err("[cluster]\ntransport_fifo_priority = 0\n");
+    assert!(
+        e.contains("cluster.transport_fifo_priority must be 1..=99, got 0"),
+        "{e}"
+    );
     let e = Config::load(std::path::Path::new("/nonexistent/irtrackd.toml"))
         .unwrap_err()
         .to_string();

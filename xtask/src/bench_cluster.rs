@@ -14,6 +14,26 @@ use crate::util::{self, Ctx};
 /// test build).
 pub fn run(ctx: &Ctx, release: bool, args: &[String]) -> Result<()> {
     println!();
+    // The example's process rows run this irtrackd (found beside the example's directory).
+    let mut build = ctx.cargo();
+    build.arg("build");
+    if release {
+        build.arg("--release");
+    }
+    build.args([
+        "-p",
+        "irtrack-firmware",
+        "--features",
+        "cluster",
+        "--bin",
+        "irtrackd",
+    ]);
+    util::run_ok(
+        &mut build,
+        "irtrackd for the cluster benchmark",
+        Duration::from_secs(3600),
+        false,
+    )?;
     let mut cmd = ctx.cargo();
     cmd.arg("run");
     if release {

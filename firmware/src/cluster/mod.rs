@@ -53,6 +53,11 @@ pub struct ClusterConfig {
     /// Zenoh's low-latency transport (default off; negotiated per link, see docs/cluster.md).
     #[serde(default)]
     pub low_latency: bool,
+    /// SCHED_FIFO priority 1..=99 for Zenoh's threads that carry observations (a camera
+    /// board's transmit threads, the solver's receive threads; docs/cluster.md). Off by
+    /// default; needs CAP_SYS_NICE or LimitRTPRIO (systemd/irtrackd-realtime.conf).
+    #[serde(default)]
+    pub transport_fifo_priority: Option<i32>,
     /// Solver: pair by the hardware trigger's frame counter (cameras triggered) instead of
     /// timestamps.
     #[serde(default)]
@@ -120,6 +125,7 @@ impl Default for ClusterConfig {
             connect: Vec::new(),
             multicast_scouting: false,
             low_latency: false,
+            transport_fifo_priority: None,
             trigger: false,
             fps: d_fps(),
             tolerance_ms: None,
@@ -142,6 +148,11 @@ impl ClusterConfig {
     /// error names the key.
     pub fn validate(&self) -> Result<()> {
         let bad = |reason: String| Err(FirmwareError::Config { reason });
+        if let Some(p) = self.transport_fifo_priority
+            && !(1..=99).contains(&p)
+        {
+            return bad(format!("cluster.transport_fifo_priority must be 1..=99, got {p}"));
+        }
         if self.role == Role::Standalone {
             return Ok(());
         }

@@ -2,7 +2,22 @@
 //! Plain data in a file of its own: the status document takes it without importing the
 //! cluster's roles (which themselves report into the status).
 
+use std::sync::Arc;
+
 use serde::Serialize;
+
+use crate::metrics::{LatencyHistogram, LatencySummary};
+
+/// The solver's hop histogram, recorded by its loop without locking and summarised when
+/// `/status` is read. Two reports are equal in it when they share the histogram.
+#[derive(Debug, Clone, Default)]
+pub struct SharedHistogram(pub Arc<LatencyHistogram>);
+
+impl PartialEq for SharedHistogram {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
 
 /// One board as the solver sees it (`/status` → `cluster.boards`).
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -38,6 +53,15 @@ pub struct ClusterReport {
     pub injected_losses: u64,
     /// Solver.
     pub boards: Vec<BoardReport>,
+    /// Solver: the hop of the camera boards' observations, board publish → solver receive, µs
+    /// (the solver's receive time minus the observation's capture time and the board's
+    /// capture → send delay, both carried in the message; so it includes the board's clock
+    /// offset from the solver's). From 1 s after the first observation on; the solver's own
+    /// cameras are left out. `None` before the first sample.
+    pub hop_us: Option<LatencySummary>,
+    /// Solver: the histogram behind `hop_us` (not serialised).
+    #[serde(skip)]
+    pub hop: SharedHistogram,
     /// Solver: observation messages taken from the queue.
     pub received: u64,
     /// Solver: sets closed with every camera present.

@@ -61,6 +61,11 @@ pub struct ClusterSource {
     received: u64,
     last_any_ns: u64,
     last_report_ns: u64,
+    /// The report's hop histogram (recorded here, summarised by `/status`).
+    hop: Arc<crate::metrics::LatencyHistogram>,
+    /// Hops are recorded from this receive time on (1 s after the first observation: the
+    /// links' set-up is not the steady state); `None` before the first.
+    hop_from_ns: Option<u64>,
     last_index: u64,
     /// Tells the thread of the solver's own cameras to stop.
     own_stop: Option<Arc<AtomicBool>>,
@@ -158,7 +163,9 @@ impl ClusterSource {
             None => None,
         };
         let n = cfg.image_sizes_px.len();
+        let mut hop = Arc::default();
         if let Ok(mut r) = report.lock() {
+            hop = r.hop.0.clone();
             r.role = "solver";
             r.rig = cfg.rig.clone();
             if own_stop.is_some() {
@@ -183,6 +190,8 @@ impl ClusterSource {
             received: 0,
             last_any_ns: realtime_ns(),
             last_report_ns: 0,
+            hop,
+            hop_from_ns: None,
             last_index: 0,
             own_stop,
         })
@@ -286,6 +295,13 @@ impl ClusterSource {
             Err(irtrack_core::Error::Observation { problem }) => return self.refuse(problem),
             Err(_) => return,
         };
+        record_hop(
+            &self.hop,
+            &mut self.hop_from_ns,
+            self.own_stop.is_some().then_some(self.cfg.board.as_str()),
+            &obs.header,
+            m.received_ns,
+        );
         // A board heard again after being silent restarted: forget its sequences and clock.
         if let Some(c) = layout.gate.camera_of(obs.header.board, obs.header.camera) {
             let board = layout.pairer.boards().len().min(self.board_last_ns.len());
@@ -511,4 +527,22 @@ impl FrameSource for ClusterSource {
     fn remote_blobs(&self, camera: usize) -> Option<&[Blob]> {
         self.remote.get(camera).map(|v| &v[..])
     }
+}
+
+/// Board publish → solver receive of a camera board's observation (see
+/// `ClusterReport::hop_us`), from `*from_ns` on (set to 1 s after the first call); `own`: the
+/// solver's own board, left out. Lock-free, allocation-free.
+fn record_hop(
+    hop: &crate::metrics::LatencyHistogram,
+    from_ns: &mut Option<u64>,
+    own: Option<&str>,
+    h: &irtrack_core::observation::ObsHeader<'_>,
+    received_ns: u64,
+) {
+    let from = *from_ns.get_or_insert(received_ns + 1_000_000_000);
+    if received_ns < from || h.clock != ObsClock::Realtime || own == Some(h.board) {
+        return;
+    }
+    let sent_ns = h.capture_ts_ns.saturating_add(u64::from(h.send_delay_us) * 1000);
+    hop.record_ns(received_ns.saturating_sub(sent_ns));
 }

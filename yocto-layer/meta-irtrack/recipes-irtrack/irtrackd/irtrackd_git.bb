@@ -58,8 +58,15 @@ do_install:append() {
     install -d ${D}${sysconfdir}/irtrack/trusted-keys
     install -d ${D}${nonarch_base_libdir}/udev/rules.d
     install -m 0644 ${WORKDIR}/99-irtrack.rules ${D}${nonarch_base_libdir}/udev/rules.d/
+    install -d ${D}${systemd_system_unitdir}/irtrackd.service.d
+    install -m 0644 ${S}/systemd/irtrackd-realtime.conf ${D}${systemd_system_unitdir}/irtrackd.service.d/realtime.conf
 }
 
+# The real-time drop-in (RestrictRealtime=no, LimitRTPRIO=90) for [realtime] fifo_priority and
+# [cluster] transport_fifo_priority, in a package of its own: adding it to an image is the
+# per-installation choice the main unit leaves open (systemd/irtrackd-realtime.conf).
+PACKAGES =+ "${PN}-realtime"
+FILES:${PN}-realtime += "${systemd_system_unitdir}/irtrackd.service.d/realtime.conf"
 FILES:${PN} += "${systemd_system_unitdir}/irtrackd.service \
                 ${systemd_system_unitdir}/irtrack-ptp4l.service \
                 ${systemd_system_unitdir}/irtrack-phc2sys.service \
@@ -69,3 +76,4 @@ CONFFILES:${PN} = "${sysconfdir}/irtrack/irtrackd.toml"
 # ptp4l and phc2sys for irtrack-ptp4l.service and irtrack-phc2sys.service. linuxptp >= 4.0 also
 # gives the read-only socket /var/run/ptp4lro that the sandboxed irtrackd reads clock.ptp from.
 RDEPENDS:${PN} += "linuxptp"
+RDEPENDS:${PN}-realtime += "${PN}"
