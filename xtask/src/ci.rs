@@ -94,6 +94,8 @@ pub const PHASES: &[Phase] = &[
     phase("fuzz", "short fuzzing run of every fuzz target", "fuzz", |ctx| Outcome::from_counts(crate::fuzz::ci_phase(ctx)), 10, &["fuzz"]),
     // Not in CI: the aarch64 Zenoh build alone is several cold minutes (docs/cluster.md).
     opt_in_phase("cluster-qemu-user", "aarch64 irtrackd with Zenoh under qemu-aarch64 as a camera board feeding a host solver", "aarch64", cluster_qemu_user, 10, &["aarch64-static", "debug"]),
+    // Not in CI either: the same aarch64 Zenoh build, then the cluster image booted in QEMU.
+    opt_in_phase("cluster-qemu-system", "cluster image booted in qemu-system-aarch64 as a camera board feeding a host solver", "system", cluster_qemu_system, 10, &["image-cluster", "aarch64-static", "debug"]),
 ];
 
 /// `cargo xtask test`.
@@ -584,20 +586,8 @@ fn cluster_qemu_user(ctx: &Ctx) -> Outcome {
         Ok(b) => b,
         Err(e) => return Outcome::failed(format!("{e:#}")),
     };
-    // The host solver: the same build as the multi-process cluster test's.
-    let mut cmd = crate::demo::cluster_host_build(ctx);
-    // Compiling is not under the phase's time limit (see BUILD_LIMIT).
-    let build = util::run(
-        &mut cmd,
-        RunOpts {
-            timeout: Some(BUILD_LIMIT),
-            ..RunOpts::default()
-        },
-    );
-    match build {
-        Ok(out) if out.success() => {}
-        Ok(out) => return Outcome::failed(format!("host irtrackd with cluster {}", out.describe())),
-        Err(e) => return Outcome::failed(format!("{e:#}")),
+    if let Some(failed) = cluster_host_build(ctx) {
+        return failed;
     }
     cargo_test_with_args(
         || {
@@ -615,6 +605,62 @@ fn cluster_qemu_user(ctx: &Ctx) -> Outcome {
             Ok(cmd)
         },
         &["--ignored"],
+    )
+}
+
+/// The host solver's build (the same as the multi-process cluster test's); `Some` on failure.
+fn cluster_host_build(ctx: &Ctx) -> Option<Outcome> {
+    let mut cmd = crate::demo::cluster_host_build(ctx);
+    // Compiling is not under the phase's time limit (see BUILD_LIMIT).
+    let build = util::run(
+        &mut cmd,
+        RunOpts {
+            timeout: Some(BUILD_LIMIT),
+            ..RunOpts::default()
+        },
+    );
+    match build {
+        Ok(out) if out.success() => None,
+        Ok(out) => Some(Outcome::failed(format!(
+            "host irtrackd with cluster {}",
+            out.describe()
+        ))),
+        Err(e) => Some(Outcome::failed(format!("{e:#}"))),
+    }
+}
+
+/// The cluster image (aarch64 irtrackd with `cluster`, a camera-board config, an SNTP step
+/// tool) booted in qemu-system-aarch64, feeding a host solver and a host camera board
+/// (tests/tests/cluster_qemu_system.rs, ignored in the host run).
+fn cluster_qemu_system(ctx: &Ctx) -> Outcome {
+    if !util::on_path("qemu-system-aarch64") {
+        return Outcome::failed("qemu-system-aarch64 not found (run `cargo xtask setup`)");
+    }
+    let image = match crate::image::build_variant(ctx, &crate::image::CLUSTER) {
+        Ok(i) => i,
+        Err(e) => return Outcome::failed(format!("building the cluster image: {e:#}")),
+    };
+    println!("{}", image.summary());
+    if let Some(failed) = cluster_host_build(ctx) {
+        return failed;
+    }
+    cargo_test_with_args(
+        || {
+            let mut cmd = ctx.cargo();
+            cmd.args([
+                "test",
+                "-p",
+                "irtrack-tests",
+                "--features",
+                "irtrack-tests/cluster",
+                "--test",
+                "cluster_qemu_system",
+            ]);
+            cmd.env("IRTRACK_CLUSTER_SD_IMAGE", &image.sd_img);
+            Ok(cmd)
+        },
+        // --nocapture: the figures it prints (boot time, offset, RMS) belong in the log.
+        &["--ignored", "--nocapture"],
     )
 }
 
@@ -692,6 +738,7 @@ mod tests {
         let default = names(&Args::default());
         assert!(default.contains(&"aarch64-tests"));
         assert!(!default.contains(&"cluster-qemu-user"));
+        assert!(!default.contains(&"cluster-qemu-system"));
         let only = Args {
             only: vec!["cluster-qemu-user".into()],
             ..Args::default()

@@ -119,6 +119,30 @@ fn build_irtrackd_with(ctx: &Ctx, features: Option<&str>) -> Result<PathBuf> {
     Ok(bin)
 }
 
+/// Compiles a single-file, std-only Rust program for aarch64 (static, stripped) into `out`:
+/// the image's small helpers (image/tools/), which are no cargo packages.
+pub fn build_tool(ctx: &Ctx, src: &Path, out: &Path) -> Result<()> {
+    let rustc = if Path::new(DEBIAN_AARCH64_STD).is_dir() {
+        "/usr/bin/rustc"
+    } else {
+        "rustc"
+    };
+    let mut cmd = Command::new(rustc);
+    cmd.args(["--edition", "2024", "-O", "--target", TARGET])
+        .args(["-C", "linker=aarch64-linux-gnu-gcc"])
+        .args(["-C", "target-feature=+crt-static"])
+        .args(["-C", "strip=symbols"])
+        .arg("-o")
+        .arg(out)
+        .arg(src)
+        .current_dir(&ctx.root);
+    let res = util::run(&mut cmd, RunOpts::default())?;
+    if !res.success() {
+        bail!("compiling {} for aarch64 {}", src.display(), res.describe());
+    }
+    Ok(())
+}
+
 /// `cargo xtask cross [--cluster]`.
 #[derive(Debug, Default, clap::Args)]
 pub struct Args {

@@ -52,6 +52,47 @@ const INITRD_MODULES: &[&str] = &["virtio_mmio", "virtio_blk", "crc32c_generic",
 /// Modules the root filesystem loads at start: network and the vivid test cameras. vivid makes
 /// two instances with only a video capture node each (/dev/video0, /dev/video1).
 const ROOT_MODULES: &[(&str, &str)] = &[("virtio_net", ""), ("vivid", "n_devs=2 node_types=0x1,0x1")];
+
+/// What one kind of image carries beyond the common parts (kernel, initramfs, busybox,
+/// image/rootfs).
+pub struct Variant {
+    /// Its build directory under target/.
+    pub dir: &'static str,
+    /// Builds the aarch64 irtrackd it ships.
+    pub irtrackd: fn(&Ctx) -> Result<PathBuf>,
+    /// Modules loaded at start after [`ROOT_MODULES`].
+    pub extra_modules: &'static [(&'static str, &'static str)],
+    /// A directory of the repository copied over image/rootfs (replacing files there).
+    pub overlay: Option<&'static str>,
+    /// Single-file Rust programs (source in the repository, path in the image) compiled for
+    /// aarch64 by [`crate::cross::build_tool`].
+    pub tools: &'static [(&'static str, &'static str)],
+    /// Make (once) and install the build's parameter signing key.
+    pub signing_keys: bool,
+}
+
+/// The CI image: a standalone board on two vivid V4L2 cameras.
+pub const STANDARD: Variant = Variant {
+    dir: "image",
+    irtrackd: crate::cross::build_irtrackd,
+    extra_modules: &[],
+    overlay: None,
+    tools: &[],
+    signing_keys: true,
+};
+
+/// The cluster test image (`cargo xtask test --only cluster-qemu-system`): irtrackd built with
+/// `cluster` (Zenoh) as a camera board on simulated cameras. QEMU's fw_cfg hands it the test's
+/// board config and the host's SNTP port (image/cluster/etc/irtrack/rc.local).
+pub const CLUSTER: Variant = Variant {
+    dir: "image-cluster",
+    irtrackd: crate::cross::build_irtrackd_cluster,
+    extra_modules: &[("qemu_fw_cfg", "")],
+    overlay: Some("image/cluster"),
+    // Sets the guest's clock from the test's SNTP server (the image has no NTP client).
+    tools: &[("image/tools/sntp-step.rs", "usr/sbin/sntp-step")],
+    signing_keys: false,
+};
 const UBOOT_QEMU: &str = "/usr/lib/u-boot/qemu_arm64/u-boot.bin";
 
 pub fn cli(ctx: &Ctx, cmd: ImageCmd) -> Result<()> {
@@ -128,7 +169,8 @@ pub struct Image {
     pub irtrackd_bytes: u64,
     pub build_time: Duration,
     /// Secret half of the build's own signing key, whose public half the image trusts
-    /// (`/etc/irtrack/trusted-keys/image-build.pub`); `push-params --sign-key` uses it.
+    /// (`/etc/irtrack/trusted-keys/image-build.pub`); `push-params --sign-key` uses it. Empty
+    /// for a variant without keys.
     pub signing_key: PathBuf,
 }
 
@@ -246,10 +288,15 @@ pub fn existing(ctx: &Ctx) -> Result<Image> {
     })
 }
 
-/// Builds the whole image into target/image/.
+/// Builds the whole CI image into target/image/.
 pub fn build(ctx: &Ctx) -> Result<Image> {
+    build_variant(ctx, &STANDARD)
+}
+
+/// Builds the image `variant` into target/<variant.dir>/.
+pub fn build_variant(ctx: &Ctx, variant: &Variant) -> Result<Image> {
     let start = Instant::now();
-    let work = work_dir(ctx);
+    let work = ctx.target_dir().join(variant.dir);
     fs::create_dir_all(&work)?;
     for tool in [
         "dpkg-deb",
@@ -287,7 +334,7 @@ pub fn build(ctx: &Ctx) -> Result<Image> {
     }
 
     println!("image: cross-building irtrackd (static, aarch64, release)");
-    let irtrackd_built = crate::cross::build_irtrackd(ctx)?;
+    let irtrackd_built = (variant.irtrackd)(ctx)?;
     let irtrackd = work.join("irtrackd");
     fs::copy(&irtrackd_built, &irtrackd)?;
     // The release profile keeps line tables for backtraces; the image does not need them.
@@ -296,7 +343,12 @@ pub fn build(ctx: &Ctx) -> Result<Image> {
 
     let index = ModuleIndex::scan(&modules_dir)?;
     let initrd_mods = index.closure(INITRD_MODULES)?;
-    let root_names: Vec<&str> = ROOT_MODULES.iter().map(|(m, _)| *m).collect();
+    let root_modules: Vec<(&str, &str)> = ROOT_MODULES
+        .iter()
+        .chain(variant.extra_modules)
+        .copied()
+        .collect();
+    let root_names: Vec<&str> = root_modules.iter().map(|(m, _)| *m).collect();
     let root_mods: Vec<ModuleFile> = index
         .closure(&root_names)?
         .into_iter()
@@ -317,19 +369,42 @@ pub fn build(ctx: &Ctx) -> Result<Image> {
 
     println!("image: root filesystem ({} modules)", root_mods.len());
     let rootfs = work.join("rootfs");
-    stage_rootfs(ctx, &rootfs, &busybox, &irtrackd, &modules_dir, &kver, &root_mods)?;
-    let (signing_key, trusted) = signing_keys(ctx, &work)?;
-    let keys_dir = rootfs.join("etc/irtrack/trusted-keys");
-    fs::create_dir_all(&keys_dir)?;
-    for key in &trusted {
-        let name = key.file_name().context("key file without a name")?;
-        fs::copy(key, keys_dir.join(name)).with_context(|| format!("copying {}", key.display()))?;
+    stage_rootfs(
+        ctx,
+        &rootfs,
+        &busybox,
+        &irtrackd,
+        &modules_dir,
+        &kver,
+        &root_mods,
+        &root_modules,
+    )?;
+    if let Some(overlay) = variant.overlay {
+        copy_tree(&ctx.root.join(overlay), &rootfs)?;
     }
-    println!(
-        "image: {} trusted parameter signing key(s); sign pushes with {}",
-        trusted.len(),
-        signing_key.display()
-    );
+    for (src, dest) in variant.tools {
+        println!("image: compiling {src} for aarch64");
+        crate::cross::build_tool(ctx, &ctx.root.join(src), &rootfs.join(dest))?;
+    }
+    // The cluster image's camera board takes its parameters from the simulator: no keys (and
+    // no host-tools build, which needs OpenCV, for `keygen`).
+    let signing_key = if variant.signing_keys {
+        let (signing_key, trusted) = signing_keys(ctx, &work)?;
+        let keys_dir = rootfs.join("etc/irtrack/trusted-keys");
+        fs::create_dir_all(&keys_dir)?;
+        for key in &trusted {
+            let name = key.file_name().context("key file without a name")?;
+            fs::copy(key, keys_dir.join(name)).with_context(|| format!("copying {}", key.display()))?;
+        }
+        println!(
+            "image: {} trusted parameter signing key(s); sign pushes with {}",
+            trusted.len(),
+            signing_key.display()
+        );
+        signing_key
+    } else {
+        PathBuf::new()
+    };
 
     let boot_img = work.join("boot.vfat");
     let boot_bytes = make_boot_partition(ctx, &boot_img, &kernel_image, &initrd)?;
@@ -662,6 +737,7 @@ fn build_initramfs(
     Ok(())
 }
 
+#[allow(clippy::too_many_arguments)]
 fn stage_rootfs(
     ctx: &Ctx,
     stage: &Path,
@@ -670,6 +746,7 @@ fn stage_rootfs(
     modules_dir: &Path,
     kver: &str,
     mods: &[ModuleFile],
+    module_args: &[(&str, &str)],
 ) -> Result<()> {
     use std::os::unix::fs::PermissionsExt;
     fresh_dir(stage)?;
@@ -708,7 +785,7 @@ fn stage_rootfs(
     copy_modules(modules_dir, &stage.join("lib/modules").join(kver), mods)?;
     fs::write(
         stage.join("etc/irtrack/modules.list"),
-        modules_list(kver, mods, ROOT_MODULES),
+        modules_list(kver, mods, module_args),
     )?;
     Ok(())
 }
