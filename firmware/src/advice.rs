@@ -292,6 +292,28 @@ pub fn reasons_summary(blobs: &[BlobView]) -> String {
 }
 
 impl CameraAnalysis {
+    /// A camera whose pixels are not here (a camera board's camera at the cluster solver):
+    /// the blobs it reported, no background and no advice (its own board's set-up view judges
+    /// its pixels).
+    pub fn blobs_only(
+        camera: usize,
+        set_index: u64,
+        cfg: &TrackerConfig,
+        listed: Option<&[BlobView]>,
+    ) -> Self {
+        let blobs: Vec<BlobView> = listed.map(<[BlobView]>::to_vec).unwrap_or_default();
+        let kept = blobs.iter().filter(|b| b.kept).count() as u32;
+        CameraAnalysis {
+            regions: blobs.len() as u32,
+            kept,
+            rejected: blobs.len() as u32 - kept,
+            advice: None,
+            from_loop: blobs.len(),
+            blobs,
+            ..Self::unreadable(camera, set_index, cfg)
+        }
+    }
+
     /// A frame that could not be analysed (malformed); says so.
     pub fn unreadable(camera: usize, set_index: u64, cfg: &TrackerConfig) -> Self {
         CameraAnalysis {

@@ -226,6 +226,8 @@ pub struct Engine {
     tuning_seen: u64,
     /// Source reconnects already reflected in the tuning report.
     reconnects_seen: u64,
+    /// The source's `controls_generation` already reflected in the tuning report.
+    controls_seen: u64,
     /// Timestamps of the last processed set.
     times: SetTimes,
     /// Cluster camera role: every camera's blobs go to the solver (docs/cluster.md).
@@ -285,6 +287,7 @@ impl Engine {
             tuning: None,
             tuning_seen: 0,
             reconnects_seen: 0,
+            controls_seen: 0,
             times: SetTimes::default(),
             observation_sink: None,
             detection_only: false,
@@ -344,6 +347,11 @@ impl Engine {
             },
             None => self.tracker_cfg = req.tracking,
         }
+        // A solver's own cameras detect on a thread of their own: they take the settings too.
+        if let Err(e) = self.source.set_detection(&req.tracking) {
+            tracing::warn!(error = %e, "detector settings refused by the source");
+            error = Some(e.to_string());
+        }
         for (camera, control, value) in req.pending {
             match self.source.set_control(camera, control, value) {
                 Ok(()) => tracing::info!(camera, ?control, value, "camera control changed"),
@@ -368,6 +376,13 @@ impl Engine {
     /// tracker's blob lists belong to this set.
     fn feed_tap(&mut self, detected: bool) {
         let Some(tap) = &self.tap else { return };
+        // Pixels captured elsewhere (a solver's own cameras) are brought in only for a frame
+        // copy, never per set.
+        if tap.wants_copy(clock::monotonic_ns(), self.tap_last_ns) {
+            self.source.refresh_pixels(&mut self.set);
+        }
+        let Some(tap) = &self.tap else { return };
+        let source = self.source.as_ref();
         let (set, tracker, six_dof) = (&self.set, self.tracker.as_ref(), self.pose.as_ref());
         let lists = tracker.filter(|_| detected);
         if tap.wants_blobs() {
@@ -394,6 +409,9 @@ impl Engine {
             }
             buf.threshold_dn = tracker_cfg.threshold_dn;
             buf.tracker_cfg = tracker_cfg;
+            for (c, p) in buf.has_pixels.iter_mut().enumerate() {
+                *p = source.has_pixels(c);
+            }
             buf.expected_leds = crate::advice::expected_leds(six_dof);
             if let Some(tracker) = lists {
                 fill_blob_views(tracker, six_dof, |c, b| buf.push_blob(c, b));
@@ -858,8 +876,9 @@ impl Engine {
         self.status.sets_dropped.store(s.sets_dropped, R);
         self.status.unpaired_dropped.store(s.unpaired_dropped, R);
         self.status.reconnects.store(s.reconnects, R);
-        if s.reconnects != self.reconnects_seen {
+        if s.reconnects != self.reconnects_seen || s.controls_generation != self.controls_seen {
             self.reconnects_seen = s.reconnects;
+            self.controls_seen = s.controls_generation;
             // A reopened camera may not hold the values it had (the source writes the live
             // ones again; a driver may still refuse them): show what it has now. Rare, so the
             // device queries here do not matter to the loop's timing.

@@ -57,6 +57,9 @@ pub struct TapSet {
     /// LEDs a camera may keep with the loop's parameter set (tools' LEDs and loose LEDs,
     /// [`crate::advice::expected_leds`]); `None` without tools.
     pub expected_leds: Option<usize>,
+    /// Per camera: the frame holds the camera's pixels (false: a cluster solver's camera-board
+    /// camera, blobs only; [`crate::source::FrameSource::has_pixels`]).
+    pub has_pixels: Vec<bool>,
 }
 
 impl TapSet {
@@ -75,6 +78,7 @@ impl TapSet {
             tracker_cfg: TrackerConfig::default(),
             detected: false,
             expected_leds: None,
+            has_pixels: vec![true; set.frames.len()],
         }
     }
 
@@ -147,6 +151,11 @@ impl TapSet {
                 } else {
                     None
                 };
+                if !self.has_pixels.get(camera).copied().unwrap_or(true) {
+                    // No pixels here (a camera board's camera at the solver): its blobs, no
+                    // judgement of a blank frame.
+                    return CameraAnalysis::blobs_only(camera, self.set_index, &self.tracker_cfg, listed);
+                }
                 CameraAnalysis::of(
                     camera,
                     self.set_index,

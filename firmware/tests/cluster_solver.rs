@@ -293,3 +293,350 @@ async fn solver_pairs_two_boards_and_refuses_bad_observations() {
     }
     running.shutdown().await;
 }
+
+// ------------------------------------------------------------------ the solver's own cameras
+
+const PASSWORD: &str = "own cameras";
+
+/// A solver whose only cameras are its own (board `s0`, the two-camera ring rig rendered by
+/// its simulator): its records come from its own observations through Zenoh and the pairing.
+/// `sizes`: `image_sizes_px` (and the parameter set's sizes).
+async fn start_own_solver(dir: &TempDir, sizes: [[u32; 2]; 2]) -> app::Running {
+    let mut r = ring_rig(2, 600.0);
+    r.rig_id = RIG.into();
+    for (c, s) in r.cameras.iter_mut().zip(sizes) {
+        c.model.image_size.width_px = s[0];
+        c.model.image_size.height_px = s[1];
+    }
+    r.placement = [("s0", 0), ("s0", 1)]
+        .iter()
+        .map(|&(b, i)| CameraPlace {
+            board: b.into(),
+            local_index: i,
+        })
+        .collect();
+    r.validate().unwrap();
+    std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut cfg = test_config(dir.path());
+    cfg.source.sim = Some(irtrack_firmware::source::sim::SimSourceConfig {
+        rig: irtrack_firmware::source::sim::SimRig::Ring,
+        ring_cameras: 2,
+        distance_mm: 600.0,
+        fps: FPS,
+        ..Default::default()
+    });
+    cfg.service.operator_password_hash = Some(irtrack_firmware::net::auth::hash_password(PASSWORD).unwrap());
+    cfg.cluster = ClusterConfig {
+        role: Role::Solver,
+        rig: RIG.into(),
+        board: "s0".into(),
+        own_cameras: true,
+        listen: vec![format!("tcp/127.0.0.1:{port}")],
+        fps: FPS,
+        board_timeout_ms: 300.0,
+        image_sizes_px: sizes.to_vec(),
+        ..ClusterConfig::default()
+    };
+    app::start(cfg, Overrides::default()).await.unwrap()
+}
+
+/// `POST path` with the operator's password; returns (code, body).
+async fn post(addr: std::net::SocketAddr, path: &str, body: &str) -> (u16, String) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let req = format!(
+        "POST {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nAuthorization: {}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+        irtrack_firmware::net::auth::basic_header(PASSWORD),
+        body.len()
+    );
+    s.write_all(req.as_bytes()).await.unwrap();
+    let mut resp = String::new();
+    s.read_to_string(&mut resp).await.unwrap();
+    let code = resp.split_whitespace().nth(1).unwrap().parse().unwrap();
+    (
+        code,
+        resp.split_once("\r\n\r\n")
+            .map(|(_, b)| b.to_string())
+            .unwrap_or_default(),
+    )
+}
+
+fn cameras(st: &serde_json::Value, key: &str) -> Vec<u64> {
+    st["source"]["cameras"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c[key].as_u64().unwrap_or(0))
+        .collect()
+}
+
+async fn wait_status(
+    addr: std::net::SocketAddr,
+    secs: u64,
+    what: &str,
+    f: impl Fn(&serde_json::Value) -> bool,
+) {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        let st = status_json(addr).await;
+        if f(&st) {
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{what}: not within {secs} s; cameras {} cluster {}",
+            st["source"]["cameras"],
+            st["cluster"]
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// The next preview of `camera` on the live WebSocket: its header and the decoded 8-bit
+/// pixels.
+async fn next_preview(
+    ws: &mut tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>,
+    camera: u64,
+) -> (serde_json::Value, Vec<u8>) {
+    use futures_util::StreamExt;
+    use tokio_tungstenite::tungstenite::Message;
+    let mut head: Option<serde_json::Value> = None;
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        assert!(
+            Instant::now() < deadline,
+            "no preview of camera {camera} within 10 s"
+        );
+        let m = tokio::time::timeout(Duration::from_secs(10), ws.next())
+            .await
+            .expect("a message within 10 s")
+            .unwrap()
+            .unwrap();
+        match m {
+            Message::Text(t) => {
+                let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+                head = (v["type"] == "preview").then_some(v);
+            }
+            Message::Binary(b) => {
+                if let Some(h) = head.take()
+                    && h["camera"] == camera
+                {
+                    let px = jpeg_decoder::Decoder::new(&b[..]).decode().unwrap();
+                    return (h, px);
+                }
+            }
+            _ => {}
+        }
+    }
+}
+
+/// The solver's own cameras in its set-up view (docs/cluster.md, "The solver's own cameras"):
+/// the live previews carry their real pixels (the LED's spot is bright where its blob is, the
+/// background dark), exposure and threshold changed through the HTTP API reach the capture
+/// thread (the peak and the blob count in the observations follow), and tracking resumes
+/// when they are set back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn solver_own_cameras_show_pixels_and_take_live_tuning() {
+    let dir = TempDir::new("cluster-own-cams");
+    let running = start_own_solver(&dir, [[640, 480], [640, 480]]).await;
+    let addr = running.addrs.status;
+    let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
+    client
+        .until(20 * FPS as usize, |rec| {
+            rec.status == TrackStatus::Ok && rec.cameras_used == 2
+        })
+        .await;
+    let st = status_json(addr).await;
+    assert_eq!(st["cluster"]["board"], "s0", "{}", st["cluster"]);
+    assert!(
+        st["cluster"]["own_camera_faults"]
+            .as_array()
+            .is_some_and(|f| f.is_empty()),
+        "{}",
+        st["cluster"]
+    );
+    assert_eq!(
+        cameras(&st, "blobs_last"),
+        vec![1, 1],
+        "{}",
+        st["source"]["cameras"]
+    );
+
+    // 1. Previews with pixels: the LED's spot where its blob is.
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/api/live"))
+        .await
+        .unwrap();
+    {
+        use futures_util::SinkExt;
+        ws.send(tokio_tungstenite::tungstenite::Message::Text(
+            r#"{"type":"subscribe","preview_fps":10,"preview_max_width_px":640,"zoom_px":0,"positions":false,"blobs":false}"#.into(),
+        ))
+        .await
+        .unwrap();
+    }
+    for camera in 0..2u64 {
+        let (head, px) = next_preview(&mut ws, camera).await;
+        assert_eq!(head["pixels"], true, "{head}");
+        assert_eq!(
+            (head["width_px"].as_u64(), head["height_px"].as_u64()),
+            (Some(640), Some(480))
+        );
+        assert_eq!(px.len(), 640 * 480);
+        let kept: Vec<&serde_json::Value> = head["blobs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|b| b["kept"] == true)
+            .collect();
+        assert_eq!(kept.len(), 1, "camera {camera}: {head}");
+        let (x, y) = (
+            kept[0]["x_px"].as_f64().unwrap().round() as usize,
+            kept[0]["y_px"].as_f64().unwrap().round() as usize,
+        );
+        // The spot: the brightest pixel within 2 px of the blob's centroid.
+        let spot = (y.saturating_sub(2)..=(y + 2).min(479))
+            .flat_map(|yy| (x.saturating_sub(2)..=(x + 2).min(639)).map(move |xx| (xx, yy)))
+            .map(|(xx, yy)| px[yy * 640 + xx])
+            .max()
+            .unwrap();
+        let mut sorted = px.clone();
+        sorted.sort_unstable();
+        let median = sorted[sorted.len() / 2];
+        println!(
+            "camera {camera}: preview spot {spot} DN at the blob ({x}, {y}), background median {median} DN, peak_dn {}",
+            head["peak_dn"]
+        );
+        assert!(
+            u32::from(spot) >= u32::from(median) + 60,
+            "camera {camera}: no LED spot in the preview where its blob is ({spot} vs background {median})"
+        );
+        assert!(head["analysis"]["advice"].is_null(), "{}", head["analysis"]);
+    }
+
+    // 2. Exposure, through the same API a camera board's page uses: the LED's peak in the
+    //    observations drops.
+    let tuning: serde_json::Value = serde_json::from_str(&http_get(addr, "/api/tuning").await.1).unwrap();
+    assert_eq!(tuning["cameras"][0]["supported"], true, "{tuning}");
+    let peak_before = cameras(&status_json(addr).await, "peak_dn");
+    let (code, body) = post(
+        addr,
+        "/api/tuning",
+        r#"{"cameras": [{"camera": 0, "exposure": 40}, {"camera": 1, "exposure": 40}]}"#,
+    )
+    .await;
+    assert_eq!(code, 200, "{body}");
+    wait_status(addr, 5, "dimmed peak", |st| {
+        cameras(st, "peak_dn").iter().all(|&p| p > 30 && p < 200)
+    })
+    .await;
+    let peak = cameras(&status_json(addr).await, "peak_dn");
+    println!("exposure 100 → 40: peak {peak_before:?} → {peak:?} DN");
+    let tuning: serde_json::Value = serde_json::from_str(&http_get(addr, "/api/tuning").await.1).unwrap();
+    assert_eq!(tuning["cameras"][0]["exposure"], 40, "{tuning}");
+    assert!(tuning["last_error"].is_null(), "{tuning}");
+
+    // 3. The threshold above that peak: the observations carry no blob, no position.
+    let thr = (peak.iter().max().unwrap() + 20).min(250);
+    let (code, body) = post(addr, "/api/tuning", &format!(r#"{{"threshold_dn": {thr}}}"#)).await;
+    assert_eq!(code, 200, "{body}");
+    wait_status(addr, 5, "no blobs above the threshold", |st| {
+        cameras(st, "blobs_last").iter().all(|&n| n == 0)
+    })
+    .await;
+    // A fresh stream connection (the first one holds records from before the change); its
+    // first record may be the one in the slot when it connected.
+    drop(client);
+    let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
+    client.next().await;
+    for _ in 0..10 {
+        let rec = client.next().await;
+        assert!(rec.position_mm.is_none(), "a position with no blobs: {rec:?}");
+    }
+    // Previews queued before the change come first; then the new threshold, no kept blob.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let (head, _) = next_preview(&mut ws, 0).await;
+        if head["threshold_dn"] == thr {
+            let kept = head["blobs"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .filter(|b| b["kept"] == true)
+                .count();
+            assert_eq!(kept, 0, "{head}");
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no preview with threshold {thr}: {head}"
+        );
+    }
+
+    // 4. Back: tracking resumes with both cameras.
+    let (code, body) = post(
+        addr,
+        "/api/tuning",
+        r#"{"threshold_dn": 30, "cameras": [{"camera": 0, "exposure": 100}, {"camera": 1, "exposure": 100}]}"#,
+    )
+    .await;
+    assert_eq!(code, 200, "{body}");
+    drop(client);
+    let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
+    client
+        .until(10 * FPS as usize, |rec| {
+            rec.status == TrackStatus::Ok && rec.cameras_used == 2
+        })
+        .await;
+    drop(ws);
+    running.shutdown().await;
+}
+
+/// An own camera whose image size is not the one `image_sizes_px` (and the parameter set)
+/// give: named in `/status` (`own_camera`), its observations refused, never a position from
+/// it, and the service keeps running.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn solver_refuses_an_own_camera_of_another_size() {
+    let dir = TempDir::new("cluster-own-size");
+    // The simulator renders 640×480; camera 1 is said to be 800×600.
+    let running = start_own_solver(&dir, [[640, 480], [800, 600]]).await;
+    let addr = running.addrs.status;
+    wait_status(addr, 10, "own_camera fault", |st| {
+        st["fault_texts"].to_string().contains("own_camera")
+            && st["cluster"]["own_refused"].as_u64().unwrap_or(0) > 0
+    })
+    .await;
+    let st = status_json(addr).await;
+    let faults = st["fault_texts"].to_string();
+    println!("faults: {faults}");
+    assert!(
+        faults.contains("delivers 640x480 px but cluster.image_sizes_px[1]") && faults.contains("800x600"),
+        "{faults}"
+    );
+    let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
+    for _ in 0..(2.0 * FPS) as usize {
+        let rec = client.next().await;
+        assert!(
+            rec.position_mm.is_none(),
+            "a position with a refused camera: {rec:?}"
+        );
+    }
+    let refused = status_json(addr).await["cluster"]["own_refused"]
+        .as_u64()
+        .unwrap();
+    assert!(refused > 0);
+    // Still serving and processing.
+    let before = status_json(addr).await["processing"]["sets_processed"]
+        .as_u64()
+        .unwrap_or(0);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let after = status_json(addr).await["processing"]["sets_processed"]
+        .as_u64()
+        .unwrap_or(0);
+    assert!(after > before, "the loop stopped ({before} → {after})");
+    running.shutdown().await;
+}

@@ -219,9 +219,14 @@ class CameraCard {
     const fullW = Math.round(head.width_px / (head.scale || 1));
     const fullH = Math.round(head.height_px / (head.scale || 1));
     const a = head.analysis;
+    // A camera board's camera seen from the cluster solver: its blobs arrive, its pixels stay
+    // on the board (aim it and set its exposure on that board's own set-up view).
+    const blobsOnly = head.pixels === false;
+    this.root.dataset.pixels = blobsOnly ? "blobs-only" : "";
     this.stats.textContent =
+      (blobsOnly ? "blobs only: the pixels stay on its camera board (its own set-up view shows them) · " : "") +
       `${fullW}×${fullH} · set ${head.set_index} · ` +
-      (a ? `background ${a.background.median_dn} DN · ` : "") +
+      (a && !blobsOnly ? `background ${a.background.median_dn} DN · ` : "") +
       `peak ${head.peak_dn} DN · threshold ${head.threshold_dn} · previews shown ${this.shown}` +
       (fps !== undefined ? ` at ≤ ${fps} fps` : "");
     this.advice.textContent = a && a.advice ? a.advice.message : "";
@@ -323,6 +328,7 @@ export class Cameras {
       set_index: c.last ? c.last.set_index : null,
       threshold_dn: c.last ? c.last.threshold_dn : null,
       peak_dn: c.last ? c.last.peak_dn : null,
+      pixels: c.last ? c.last.pixels !== false : null,
       background_dn: c.last && c.last.analysis ? c.last.analysis.background.median_dn : null,
       regions: c.last && c.last.analysis ? c.last.analysis.regions : null,
       advice: c.last && c.last.analysis ? c.last.analysis.advice : null,

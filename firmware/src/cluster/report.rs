@@ -82,6 +82,12 @@ pub struct ClusterReport {
     pub refused: std::collections::BTreeMap<&'static str, u64>,
     /// The parameter set does not place the cameras on boards (solver cannot pair).
     pub no_placement: bool,
+    /// Solver: the parameter set places cameras on the solver's own board that it cannot use
+    /// (another image size than `image_sizes_px`, or no such camera), in words; their
+    /// observations are refused (`own_camera` fault).
+    pub own_camera_faults: Vec<String>,
+    /// Solver: observations of its own cameras refused for that reason.
+    pub own_refused: u64,
     /// Camera role: detecting and publishing without a parameter set of its own (a board
     /// with one camera needs none); its records carry no position.
     pub detection_only: bool,
@@ -96,6 +102,9 @@ impl ClusterReport {
                 "cluster_no_placement",
                 "the parameter set does not say which board each camera is on — push a set with a placement (docs/cluster.md)".to_string(),
             ));
+        }
+        for f in &self.own_camera_faults {
+            out.push(("own_camera", f.clone()));
         }
         for b in &self.boards {
             if b.down {

@@ -9,7 +9,7 @@
 //! set changes; receiving, pairing and delivering a set does not allocate.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{Receiver, RecvTimeoutError};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -26,7 +26,9 @@ use crate::clock;
 use crate::engine::ObservationSink;
 use crate::engine::ParamsHandle;
 use crate::error::{FirmwareError, Result};
-use crate::source::{Frame, FrameSet, FrameSource, Pixels, SourceError, SourceStats};
+use crate::source::{
+    CameraControl, CameraControls, Frame, FrameSet, FrameSource, Pixels, SourceError, SourceStats,
+};
 
 /// Observations further than this from the solver's clock are refused outright (a board
 /// with a clock this wrong is not synchronised at all).
@@ -67,19 +69,68 @@ pub struct ClusterSource {
     /// links' set-up is not the steady state); `None` before the first.
     hop_from_ns: Option<u64>,
     last_index: u64,
-    /// Tells the thread of the solver's own cameras to stop.
-    own_stop: Option<Arc<AtomicBool>>,
+    /// The solver's own cameras (`own_cameras = true`).
+    own: Option<OwnCameras>,
+    /// Per rig camera: its index among the solver's own cameras, when the parameter set
+    /// places it on this board and its image size matches (`None`: a camera board's camera).
+    own_index: Vec<Option<usize>>,
+    /// Per rig camera: placed on this board but unusable (size mismatch, no such camera);
+    /// its observations are refused.
+    own_refused: Vec<bool>,
+    /// Observations of the solver's own cameras refused for that reason.
+    own_refused_count: u64,
+    /// Camera controls asked for before a parameter set placed the own cameras (the saved
+    /// tuning at start): applied once it does.
+    deferred_controls: Vec<(usize, CameraControl, i64)>,
 }
+
+/// What the solver's own cameras' thread is asked to change (from the set-up view, through
+/// the loop's tuning).
+enum OwnRequest {
+    /// A camera control of local camera `camera`.
+    Control {
+        camera: usize,
+        control: CameraControl,
+        value: i64,
+    },
+    /// New detector settings (threshold, area and roundness limits).
+    Detection(TrackerConfig),
+}
+
+/// State shared between the solver's source and its own cameras' thread.
+struct OwnShared {
+    /// The newest captured set: the thread swaps its buffer with this one after each set (no
+    /// copy, no allocation); the source copies pixels out only when a viewer's copy is due.
+    latest: Mutex<FrameSet>,
+    /// Exposure and gain of the own cameras, as the thread last read them.
+    controls: Mutex<Vec<CameraControls>>,
+}
+
+/// The solver's handle on its own cameras.
+struct OwnCameras {
+    stop: Arc<AtomicBool>,
+    shared: Arc<OwnShared>,
+    requests: Sender<OwnRequest>,
+    replies: Receiver<std::result::Result<(), String>>,
+    /// Image sizes of the own cameras, in their local order.
+    sizes_px: Vec<[u32; 2]>,
+}
+
+/// How long the loop waits for the own cameras' thread to apply a change (it applies between
+/// two captures).
+const OWN_REQUEST_WAIT: Duration = Duration::from_millis(500);
 
 /// The solver's own cameras: captured and detected on a thread of their own, published as
 /// observations of board `cfg.board` on the solver's session, so they reach its subscriber
-/// and pairing exactly as a camera board's do (timestamps on the same CLOCK_REALTIME).
+/// and pairing exactly as a camera board's do (timestamps on the same CLOCK_REALTIME). Between
+/// sets the thread applies the set-up view's changes (detector settings, exposure, gain) and
+/// hands its newest set to [`OwnShared::latest`] by swapping buffers.
 fn spawn_own_cameras(
     cfg: &ClusterConfig,
     session: &Session,
     mut source: Box<dyn FrameSource>,
     tracker_cfg: TrackerConfig,
-) -> Result<Arc<AtomicBool>> {
+) -> Result<OwnCameras> {
     let mut set = source.allocate_set();
     let sizes = set.image_sizes();
     let mut tracker = Tracker::detection_only(&sizes, tracker_cfg).map_err(|e| FirmwareError::Config {
@@ -92,14 +143,38 @@ fn spawn_own_cameras(
         sizes.len(),
         Arc::new(Mutex::new(ClusterReport::default())),
     )?;
+    let shared = Arc::new(OwnShared {
+        latest: Mutex::new(source.allocate_set()),
+        controls: Mutex::new(source.controls()),
+    });
+    let (requests, request_rx) = channel::<OwnRequest>();
+    let (reply_tx, replies) = channel();
     let stop = Arc::new(AtomicBool::new(false));
-    let stop2 = stop.clone();
+    let (stop2, shared2) = (stop.clone(), shared.clone());
     let describe = source.describe();
     std::thread::Builder::new()
         .name("solver-own-cameras".into())
         .spawn(move || {
             let mut errors = 0u64;
             while !stop2.load(Ordering::Relaxed) {
+                // Changes from the set-up view, between two captures (rare; may allocate).
+                while let Ok(req) = request_rx.try_recv() {
+                    let result = match req {
+                        OwnRequest::Detection(c) => tracker.set_config(c).map_err(|e| e.to_string()),
+                        OwnRequest::Control {
+                            camera,
+                            control,
+                            value,
+                        } => {
+                            let r = source.set_control(camera, control, value).map_err(|e| e.to_string());
+                            if let Ok(mut g) = shared2.controls.lock() {
+                                *g = source.controls();
+                            }
+                            r
+                        }
+                    };
+                    let _ = reply_tx.send(result);
+                }
                 match source.next_set(&mut set) {
                     Ok(()) => {}
                     Err(SourceError::EndOfStream) => {
@@ -133,6 +208,11 @@ fn spawn_own_cameras(
                         }
                     }
                 }
+                // The newest pixels for the set-up view: a buffer swap, never a wait (a
+                // reader holding the slot makes this set skip it).
+                if let Ok(mut latest) = shared2.latest.try_lock() {
+                    std::mem::swap(&mut *latest, &mut set);
+                }
             }
         })
         .map_err(|e| FirmwareError::Thread {
@@ -140,7 +220,50 @@ fn spawn_own_cameras(
             reason: e.to_string(),
         })?;
     tracing::info!(board = %cfg.board, source = %describe, cameras = sizes.len(), "cluster solver: own cameras feed the pairing");
-    Ok(stop)
+    Ok(OwnCameras {
+        stop,
+        shared,
+        requests,
+        replies,
+        sizes_px: sizes.iter().map(|s| [s.width_px, s.height_px]).collect(),
+    })
+}
+
+/// Copies `src`'s pixels into `dst` (same size; 8-bit destination, deeper sources shifted
+/// down). Returns false if the sizes differ.
+fn copy_pixels_8bit(dst: &mut Frame, src: &Frame) -> bool {
+    if (dst.width_px, dst.height_px) != (src.width_px, src.height_px) {
+        return false;
+    }
+    let (w, h) = (src.width_px as usize, src.height_px as usize);
+    let (ds, ss) = (dst.stride_px as usize, src.stride_px as usize);
+    let Pixels::U8(d) = &mut dst.pixels else {
+        return false;
+    };
+    for y in 0..h {
+        let Some(drow) = d.get_mut(y * ds..y * ds + w) else {
+            return false;
+        };
+        match &src.pixels {
+            Pixels::U8(s) => match s.get(y * ss..y * ss + w) {
+                Some(srow) => drow.copy_from_slice(srow),
+                None => return false,
+            },
+            Pixels::U16(s) => {
+                let shift = u32::from(src.bit_depth.saturating_sub(8));
+                match s.get(y * ss..y * ss + w) {
+                    Some(srow) => {
+                        for (o, v) in drow.iter_mut().zip(srow) {
+                            *o = (u32::from(*v) >> shift).min(255) as u8;
+                        }
+                    }
+                    None => return false,
+                }
+            }
+        }
+    }
+    dst.bit_depth = 8;
+    true
 }
 
 impl ClusterSource {
@@ -158,7 +281,7 @@ impl ClusterSource {
             ObsSubscriber::new(&session, &cfg.rig, 1024, realtime_ns).map_err(|e| FirmwareError::Config {
                 reason: format!("cluster: {e}"),
             })?;
-        let own_stop = match own {
+        let own = match own {
             Some((source, tracker_cfg)) => Some(spawn_own_cameras(cfg, &session, source, tracker_cfg)?),
             None => None,
         };
@@ -168,7 +291,7 @@ impl ClusterSource {
             hop = r.hop.0.clone();
             r.role = "solver";
             r.rig = cfg.rig.clone();
-            if own_stop.is_some() {
+            if own.is_some() {
                 r.board = cfg.board.clone();
             }
             r.missing = vec![0; n];
@@ -193,7 +316,11 @@ impl ClusterSource {
             hop,
             hop_from_ns: None,
             last_index: 0,
-            own_stop,
+            own,
+            own_index: vec![None; n],
+            own_refused: vec![false; n],
+            own_refused_count: 0,
+            deferred_controls: Vec::new(),
         })
     }
 
@@ -205,8 +332,25 @@ impl ClusterSource {
         }
         self.seen_generation = generation;
         self.layout = None;
+        self.own_index.iter_mut().for_each(|o| *o = None);
+        self.own_refused.iter_mut().for_each(|r| *r = false);
         let Some(p) = self.params.current() else { return };
         let placement = &p.rig.placement;
+        self.check_own_cameras(placement);
+        self.stats.controls_generation += 1;
+        for (camera, control, value) in std::mem::take(&mut self.deferred_controls) {
+            match self.set_control(camera, control, value) {
+                Ok(()) => tracing::info!(
+                    camera,
+                    ?control,
+                    value,
+                    "saved camera setting applied to the solver's own camera"
+                ),
+                Err(e) => {
+                    tracing::warn!(camera, ?control, value, error = %e, "saved camera setting not applied")
+                }
+            }
+        }
         if placement.len() != self.remote.len() {
             tracing::error!(
                 rig_id = %p.rig.rig_id,
@@ -276,6 +420,48 @@ impl ClusterSource {
         }
     }
 
+    /// Maps the rig's cameras placed on this board to the solver's own cameras and checks
+    /// their image sizes against `image_sizes_px` (what the parameter set was checked
+    /// against): a camera placed here that does not exist or has another size is reported
+    /// (`own_camera` fault) and its observations are refused — its centroids would be in
+    /// another image's pixels, a wrong position.
+    fn check_own_cameras(&mut self, placement: &[irtrack_core::params::CameraPlace]) {
+        let mut faults = Vec::new();
+        if let Some(own) = &self.own {
+            for (c, pl) in placement.iter().enumerate().take(self.own_index.len()) {
+                if pl.board != self.cfg.board {
+                    continue;
+                }
+                let i = usize::from(pl.local_index);
+                let expected = self.cfg.image_sizes_px[c];
+                match own.sizes_px.get(i) {
+                    Some(&size) if size == expected => self.own_index[c] = Some(i),
+                    Some(&[w, h]) => {
+                        self.own_refused[c] = true;
+                        faults.push(format!(
+                            "camera {c} (the solver's own camera {i} on board {}) delivers {w}x{h} px but cluster.image_sizes_px[{c}] (the parameter set's size) is {}x{} px — its observations are refused; fix [source] or image_sizes_px and the parameter set",
+                            self.cfg.board, expected[0], expected[1]
+                        ));
+                    }
+                    None => {
+                        self.own_refused[c] = true;
+                        faults.push(format!(
+                            "camera {c} is placed on the solver's own board {} as camera {i}, but the solver has only {} camera(s) of its own — check [source] and the parameter set's placement",
+                            self.cfg.board,
+                            own.sizes_px.len()
+                        ));
+                    }
+                }
+            }
+        }
+        for f in &faults {
+            tracing::error!("{f}");
+        }
+        if let Ok(mut r) = self.report.lock() {
+            r.own_camera_faults = faults;
+        }
+    }
+
     fn refuse(&mut self, problem: ObservationProblem) {
         let i = problem.index();
         if self.refused[i] == 0 {
@@ -328,6 +514,11 @@ impl ClusterSource {
         {
             self.board_last_ns[b] = Some(m.received_ns);
         }
+        if self.own_refused.get(camera).copied().unwrap_or(false) {
+            // Placed on this board but not matching the parameter set: never paired.
+            self.own_refused_count += 1;
+            return;
+        }
         // Late, conflicting or clock-faulted observations are counted by the pairer.
         let _: PushOutcome = layout.pairer.push(camera, &obs, m.received_ns);
     }
@@ -346,6 +537,7 @@ impl ClusterSource {
             }
         }
         r.no_placement = self.params.current().is_some() && self.layout.is_none();
+        r.own_refused = self.own_refused_count;
         let Some(layout) = &self.layout else {
             r.boards.clear();
             return;
@@ -427,8 +619,8 @@ impl ClusterSource {
 
 impl Drop for ClusterSource {
     fn drop(&mut self) {
-        if let Some(stop) = &self.own_stop {
-            stop.store(true, Ordering::Relaxed);
+        if let Some(own) = &self.own {
+            own.stop.store(true, Ordering::Relaxed);
         }
         self.session.close();
     }
@@ -526,6 +718,103 @@ impl FrameSource for ClusterSource {
 
     fn remote_blobs(&self, camera: usize) -> Option<&[Blob]> {
         self.remote.get(camera).map(|v| &v[..])
+    }
+
+    fn has_pixels(&self, camera: usize) -> bool {
+        self.own_index.get(camera).is_some_and(Option::is_some)
+    }
+
+    fn refresh_pixels(&mut self, out: &mut FrameSet) {
+        let Some(own) = &self.own else { return };
+        // A viewer's copy, at the preview rate: the thread's newest set (it never waits for
+        // this lock; it skips one hand-over if it finds it held).
+        let Ok(latest) = own.shared.latest.lock() else {
+            return;
+        };
+        for (c, frame) in out.frames.iter_mut().enumerate() {
+            if let Some(src) = self
+                .own_index
+                .get(c)
+                .copied()
+                .flatten()
+                .and_then(|i| latest.frames.get(i))
+            {
+                copy_pixels_8bit(frame, src);
+            }
+        }
+    }
+
+    fn controls(&self) -> Vec<CameraControls> {
+        let own = self
+            .own
+            .as_ref()
+            .and_then(|o| o.shared.controls.lock().ok().map(|g| g.clone()))
+            .unwrap_or_default();
+        self.own_index
+            .iter()
+            .map(|i| i.and_then(|i| own.get(i).copied()).unwrap_or_default())
+            .collect()
+    }
+
+    fn set_control(
+        &mut self,
+        camera: usize,
+        control: CameraControl,
+        value: i64,
+    ) -> std::result::Result<(), SourceError> {
+        self.refresh_layout();
+        if self.own.is_some() && self.params.current().is_none() {
+            // Which rig camera is which own camera is the parameter set's placement: keep
+            // the setting until one is installed.
+            self.deferred_controls
+                .retain(|&(c, k, _)| (c, k) != (camera, control));
+            self.deferred_controls.push((camera, control, value));
+            return Ok(());
+        }
+        let Some(i) = self.own_index.get(camera).copied().flatten() else {
+            return Err(SourceError::Config(format!(
+                "camera {camera}: {control:?} is set on the camera board that carries it (its own set-up view), not on the solver"
+            )));
+        };
+        self.own_request(OwnRequest::Control {
+            camera: i,
+            control,
+            value,
+        })
+        .map_err(|e| SourceError::Config(format!("camera {camera} (the solver's own camera {i}): {e}")))
+    }
+
+    fn set_detection(&mut self, cfg: &TrackerConfig) -> std::result::Result<(), SourceError> {
+        if self.own.is_none() {
+            return Ok(());
+        }
+        self.own_request(OwnRequest::Detection(*cfg)).map_err(|e| {
+            SourceError::Config(format!(
+                "the solver's own cameras: detector settings refused: {e}"
+            ))
+        })
+    }
+}
+
+impl ClusterSource {
+    /// Hands `req` to the own cameras' thread and waits (up to [`OWN_REQUEST_WAIT`]) for its
+    /// answer. Only on an operator's change, between sets.
+    fn own_request(&mut self, req: OwnRequest) -> std::result::Result<(), String> {
+        let Some(own) = &self.own else {
+            return Err("the solver has no cameras of its own".into());
+        };
+        // Answers to earlier requests that timed out.
+        while own.replies.try_recv().is_ok() {}
+        own.requests
+            .send(req)
+            .map_err(|_| "its capture thread has stopped".to_string())?;
+        match own.replies.recv_timeout(OWN_REQUEST_WAIT) {
+            Ok(r) => r,
+            Err(_) => Err(format!(
+                "its capture thread did not answer within {} ms",
+                OWN_REQUEST_WAIT.as_millis()
+            )),
+        }
     }
 }
 

@@ -750,6 +750,13 @@ fn render(set: &TapSet, sub: &Subscription) -> (Rendered, Vec<crate::advice::Cam
             ph as u16,
             jpeg_encoder::ColorType::Luma,
         );
+        // A cluster solver's camera-board camera: no pixels here, its blobs only.
+        let pixels = set.has_pixels.get(camera).copied().unwrap_or(true);
+        let peak_dn = if pixels {
+            frame_peak(frame)
+        } else {
+            blobs.iter().map(|b| b.peak_dn).max().unwrap_or(0)
+        };
         if encoded.is_ok() {
             let meta = serde_json::json!({
                 "type": "preview",
@@ -760,7 +767,8 @@ fn render(set: &TapSet, sub: &Subscription) -> (Rendered, Vec<crate::advice::Cam
                 "height_px": ph,
                 "scale": 1.0 / factor as f64,
                 "threshold_dn": set.threshold_dn,
-                "peak_dn": frame_peak(frame),
+                "peak_dn": peak_dn,
+                "pixels": pixels,
                 "bit_depth": frame.bit_depth,
                 "blobs": blobs,
                 "analysis": analysis.get(camera),
@@ -768,6 +776,7 @@ fn render(set: &TapSet, sub: &Subscription) -> (Rendered, Vec<crate::advice::Cam
             out.previews.push((meta, Bytes::from(jpeg)));
         }
         if sub.zoom_px > 0
+            && pixels
             && let Some(b) = blobs.iter().find(|b| b.kept)
             && let Some(z) = zoom(frame, camera, set.set_index, b, sub.zoom_px)
         {

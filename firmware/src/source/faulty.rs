@@ -170,6 +170,22 @@ impl FrameSource for FaultySource {
         self.inner.end_summary()
     }
 
+    fn remote_blobs(&self, camera: usize) -> Option<&[irtrack_core::blob::Blob]> {
+        self.inner.remote_blobs(camera)
+    }
+
+    fn has_pixels(&self, camera: usize) -> bool {
+        self.inner.has_pixels(camera)
+    }
+
+    fn refresh_pixels(&mut self, out: &mut FrameSet) {
+        self.inner.refresh_pixels(out)
+    }
+
+    fn set_detection(&mut self, cfg: &irtrack_core::pipeline::TrackerConfig) -> Result<(), SourceError> {
+        self.inner.set_detection(cfg)
+    }
+
     fn controls(&self) -> Vec<super::CameraControls> {
         self.inner.controls()
     }

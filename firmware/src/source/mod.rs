@@ -130,6 +130,9 @@ pub struct SourceStats {
     pub sets_dropped: u64,
     /// Times a camera was lost and reopened.
     pub reconnects: u64,
+    /// Bumped when the cameras' live controls changed without the loop asking (a cluster
+    /// solver's own cameras placed by a new parameter set): the set-up view re-reads them.
+    pub controls_generation: u64,
 }
 
 /// Errors of a frame source. `Transient` errors are retried by the loop; the others stop it.
@@ -228,6 +231,22 @@ pub trait FrameSource: Send {
     /// camera boards): the loop uses them instead of detecting in the frame. `None`: detect.
     fn remote_blobs(&self, _camera: usize) -> Option<&[irtrack_core::blob::Blob]> {
         None
+    }
+
+    /// Whether `camera`'s frames hold its pixels here. A cluster solver's camera-board
+    /// cameras do not (their blobs come as [`FrameSource::remote_blobs`], the frame stays
+    /// blank): the set-up view shows them as blobs only and judges no pixels of theirs.
+    fn has_pixels(&self, _camera: usize) -> bool {
+        true
+    }
+    /// Writes the newest pixels of cameras captured elsewhere in this process (a solver's own
+    /// cameras, captured on a thread of their own) into `out`. The loop calls it only when a
+    /// viewer's copy is due, never per set; by default there is nothing to fill.
+    fn refresh_pixels(&mut self, _out: &mut FrameSet) {}
+    /// The detector settings changed (set-up view): a source that detects blobs itself (a
+    /// solver's own cameras) applies them. By default there is nothing to do.
+    fn set_detection(&mut self, _cfg: &irtrack_core::pipeline::TrackerConfig) -> Result<(), SourceError> {
+        Ok(())
     }
 
     /// Exposure and gain of every camera (camera order); by default none are supported.
