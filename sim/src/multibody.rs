@@ -157,6 +157,26 @@ pub struct ToolStats {
     pub missed: Vec<(&'static str, usize)>,
     /// Seen but not tracked, by cause ([`miss_cause`]; diagnostics).
     pub causes: Vec<(&'static str, usize)>,
+    /// Frame by frame (diagnostics).
+    pub frames: Vec<ToolFrame>,
+}
+
+/// One tool in one frame set of a run (diagnostics: why it was or was not tracked).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ToolFrame {
+    /// Tracked.
+    pub tracked: bool,
+    /// Seen (module docs): 3 or more LEDs seen on their own by 2 or more cameras.
+    pub seen: bool,
+    /// Seen but not tracked: [`miss_cause`].
+    pub cause: Option<&'static str>,
+    /// Per LED (up to 8): cameras that see it on their own.
+    pub alone: [u8; 8],
+    /// Per LED: cameras in which it projects within [`SEPARATE_PX`] of another LED's image
+    /// (merged into one blob).
+    pub merged: [u8; 8],
+    /// Per LED: cameras it projects outside of (or behind).
+    pub outside: [u8; 8],
 }
 
 impl ToolStats {
@@ -289,6 +309,18 @@ pub fn run_counting(
     allocations: &dyn Fn() -> u64,
 ) -> Result<RunStats, SimError> {
     let (cfg, tools) = scene(rig)?;
+    run_scene(cfg, &tools, frames, config, allocations)
+}
+
+/// [`run_counting`] for any scene: bodies `0..tools.len()` are `tools` (in that order), the
+/// next body, if any, a loose LED (e.g. irtrackd's `[source.sim]` scenario).
+pub fn run_scene(
+    cfg: SimConfig,
+    tools: &[ToolDefinition],
+    frames: u64,
+    config: PoseConfig,
+    allocations: &dyn Fn() -> u64,
+) -> Result<RunStats, SimError> {
     let mut sc = Scenario::new(cfg)?;
     let rig = sc.rig().clone();
     let cams = rig.cameras.len();
@@ -299,7 +331,7 @@ pub fn run_counting(
         detectors.push(BlobDetector::new(BlobLimits::for_frame(w, h))?);
     }
     let blob_cfg = BlobConfig::default();
-    let mut tracker = MultiTracker::new(&rig, &tools, config)?;
+    let mut tracker = MultiTracker::new(&rig, tools, config)?;
     let mut stats: Vec<ToolStats> = tools.iter().map(|_| ToolStats::default()).collect();
     let (mut loose_frames, mut loose_id, mut loose_ids, mut loose_id_swaps) = (0usize, None, 0usize, 0usize);
     let mut track_ns: Vec<f64> = Vec::with_capacity(frames as usize);
@@ -363,9 +395,39 @@ pub fn run_counting(
                 .count();
             let seen = leds_seen >= 3;
             st.seen += usize::from(seen);
+            let mut fr = ToolFrame {
+                seen,
+                ..ToolFrame::default()
+            };
+            for (i, (m, _)) in cfg
+                .markers
+                .iter()
+                .enumerate()
+                .filter(|(_, s)| s.body == b)
+                .take(8)
+                .enumerate()
+            {
+                for px in images_px.iter() {
+                    match px[m] {
+                        None => fr.outside[i] += 1,
+                        Some((u, v)) => {
+                            let merged = px.iter().enumerate().any(|(o, q)| {
+                                o != m && q.is_some_and(|(a, bb)| (a - u).hypot(bb - v) < SEPARATE_PX)
+                            });
+                            if merged {
+                                fr.merged[i] += 1;
+                            } else {
+                                fr.alone[i] += 1;
+                            }
+                        }
+                    }
+                }
+            }
             let Some(pose) = tracker.pose(b) else {
+                st.frames.push(fr);
                 continue;
             };
+            fr.tracked = pose.status == PoseStatus::Tracked;
             if pose.status != PoseStatus::Tracked {
                 if seen {
                     let leds: Vec<Vector3<f64>> = cfg
@@ -374,10 +436,14 @@ pub fn run_counting(
                         .filter(|s| s.body == b)
                         .map(|s| cfg.marker_position(s, t_s))
                         .collect();
-                    st.miss(status_name(&pose.status), miss_cause(&tracker, b, &leds));
+                    let cause = miss_cause(&tracker, b, &leds);
+                    fr.cause = Some(cause);
+                    st.miss(status_name(&pose.status), cause);
                 }
+                st.frames.push(fr);
                 continue;
             }
+            st.frames.push(fr);
             st.tracked += 1;
             st.tracked_when_seen += usize::from(seen);
             st.three_led_poses += usize::from(pose.leds_used == 3);
