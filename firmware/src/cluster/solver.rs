@@ -484,7 +484,7 @@ impl ClusterSource {
         record_hop(
             &self.hop,
             &mut self.hop_from_ns,
-            self.own_stop.is_some().then_some(self.cfg.board.as_str()),
+            self.own.is_some().then_some(self.cfg.board.as_str()),
             &obs.header,
             m.received_ns,
         );
