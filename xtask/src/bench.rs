@@ -273,7 +273,7 @@ fn aarch64_bench(ctx: &Ctx, quick: bool) -> Result<()> {
         "--no-default-features",
     ]);
     cross::apply_env(ctx, &mut build, subdir)?;
-    build.env("RUSTFLAGS", "-C target-feature=+crt-static");
+    build.env("RUSTFLAGS", cross::STATIC_RUSTFLAGS);
     util::run_ok(
         &mut build,
         "aarch64 build of irtrack-bench",

@@ -84,6 +84,15 @@ pub fn build_irtrackd_cluster(ctx: &Ctx) -> Result<PathBuf> {
 /// The target subdirectory of the static release builds (image, bench, cluster).
 const STATIC_SUBDIR: &str = "aarch64-static";
 
+/// RUSTFLAGS of the static release builds (one value, or builds sharing [`STATIC_SUBDIR`]
+/// would rebuild each other's dependencies). getrandom 0.3/0.4 look `getrandom` up with
+/// dlsym, which finds nothing in a static glibc binary, and then read /dev/urandom — refused
+/// to a service user where the device is 0660 (the test image's mdev before its rule), so the
+/// cluster irtrackd panicked opening Zenoh. This backend calls the getrandom(2) syscall
+/// directly (Linux ≥ 3.17).
+pub const STATIC_RUSTFLAGS: &str =
+    "-C target-feature=+crt-static --cfg getrandom_backend=\"linux_getrandom\"";
+
 fn build_irtrackd_with(ctx: &Ctx, features: Option<&str>) -> Result<PathBuf> {
     let subdir = STATIC_SUBDIR;
     let mut cmd = ctx.cargo();
@@ -102,7 +111,7 @@ fn build_irtrackd_with(ctx: &Ctx, features: Option<&str>) -> Result<PathBuf> {
     }
     apply_env(ctx, &mut cmd, subdir)?;
     // With --target, RUSTFLAGS applies to target artifacts only, not to build scripts.
-    cmd.env("RUSTFLAGS", "-C target-feature=+crt-static");
+    cmd.env("RUSTFLAGS", STATIC_RUSTFLAGS);
     let out = util::run(&mut cmd, RunOpts::default())?;
     if !out.success() {
         bail!("aarch64 release build of irtrackd {}", out.describe());

@@ -582,7 +582,35 @@ fn check(ctx: &Ctx) -> Result<u64> {
     }
     println!("yocto: SRCREV {rev} is a commit of this repository");
     passed += 1;
+
+    println!("yocto: 6. irtrackd is built with the cluster roles (PACKAGECONFIG cluster)");
+    let out = env.run("bitbake -e irtrackd", true)?;
+    if !out.success() {
+        bail!(
+            "bitbake -e irtrackd {}:\n{}",
+            out.describe(),
+            bitbake_errors(&out)
+        );
+    }
+    let flags = exported_value(&out.stdout, "CARGO_BUILD_FLAGS")
+        .context("bitbake -e irtrackd shows no CARGO_BUILD_FLAGS")?;
+    for want in ["-p irtrack-firmware", "--bin irtrackd", "--features cluster"] {
+        if !flags.contains(want) {
+            bail!("irtrackd's CARGO_BUILD_FLAGS lack {want:?}: {flags}");
+        }
+    }
+    println!("yocto: CARGO_BUILD_FLAGS = {flags}");
+    passed += 1;
     Ok(passed)
+}
+
+/// The value of `NAME="..."` in `bitbake -e` output (the final, expanded assignment).
+fn exported_value(env_dump: &str, name: &str) -> Option<String> {
+    let prefix = format!("{name}=\"");
+    env_dump.lines().rev().find_map(|l| {
+        let v = l.strip_prefix(&prefix)?;
+        Some(v.strip_suffix('"').unwrap_or(v).to_string())
+    })
 }
 
 /// `yocto-check-layer` on the layer (not in CI: about 25 minutes on 2 cores).
@@ -676,6 +704,16 @@ mod tests {
              bb.data_smart.ExpansionError: ... NetworkAccess: Network access disabled\n\
              ERROR: Parsing halted due to errors, see error messages above"
         );
+    }
+
+    #[test]
+    fn exported_values_are_read_from_bitbake_e() {
+        let dump = "# comment\nexport CARGO_HOME=\"/x\"\nCARGO_BUILD_FLAGS=\"-v --frozen -p irtrack-firmware --features cluster\"\nOTHER=\"1\"\n";
+        assert_eq!(
+            exported_value(dump, "CARGO_BUILD_FLAGS").as_deref(),
+            Some("-v --frozen -p irtrack-firmware --features cluster")
+        );
+        assert_eq!(exported_value(dump, "MISSING"), None);
     }
 
     #[test]

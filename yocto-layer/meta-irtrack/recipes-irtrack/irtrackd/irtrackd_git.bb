@@ -38,6 +38,13 @@ require ${BPN}-crates.inc
 # Only the board service; host-tools (OpenCV) stays on the PC.
 CARGO_BUILD_FLAGS:append = " -p irtrack-firmware --bin irtrackd"
 
+# The camera-board and solver roles over Zenoh (docs/cluster.md), built in by default so one
+# image serves every board of a cell; `PACKAGECONFIG:remove:pn-irtrackd = "cluster"` in a
+# distro or local.conf leaves them out (standalone only, about 10 MB smaller binary).
+PACKAGECONFIG ??= "cluster"
+PACKAGECONFIG[cluster] = ",,,"
+CARGO_BUILD_FLAGS:append = "${@bb.utils.contains('PACKAGECONFIG', 'cluster', ' --features cluster', '', d)}"
+
 USERADD_PACKAGES = "${PN}"
 GROUPADD_PARAM:${PN} = "--system irtrack"
 USERADD_PARAM:${PN} = "--system --no-create-home --home-dir ${localstatedir}/lib/irtrackd \
