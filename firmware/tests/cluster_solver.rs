@@ -558,7 +558,12 @@ async fn solver_own_cameras_show_pixels_and_take_live_tuning() {
         assert!(rec.position_mm.is_none(), "a position with no blobs: {rec:?}");
     }
     // Previews queued before the change come first; then the new threshold, no kept blob.
+    // The header's threshold is the tuning in force when the preview is sent, while its blobs
+    // come from the set being solved, detected a few frames earlier (capture thread →
+    // observation → pairing): a couple of previews may show the new threshold with blobs of
+    // the old one (docs/cluster.md, "Not done yet"). Bounded here.
     let deadline = Instant::now() + Duration::from_secs(10);
+    let mut lagging = 0;
     loop {
         let (head, _) = next_preview(&mut ws, 0).await;
         if head["threshold_dn"] == thr {
@@ -568,14 +573,21 @@ async fn solver_own_cameras_show_pixels_and_take_live_tuning() {
                 .iter()
                 .filter(|b| b["kept"] == true)
                 .count();
-            assert_eq!(kept, 0, "{head}");
-            break;
+            if kept == 0 {
+                break;
+            }
+            lagging += 1;
+            assert!(
+                lagging <= 5,
+                "{lagging} previews with threshold {thr} still keep blobs: {head}"
+            );
         }
         assert!(
             Instant::now() < deadline,
-            "no preview with threshold {thr}: {head}"
+            "no preview with threshold {thr} and no kept blob: {head}"
         );
     }
+    println!("previews with the new threshold but blobs of the old: {lagging}");
 
     // 4. Back: tracking resumes with both cameras.
     let (code, body) = post(
@@ -629,6 +641,15 @@ async fn solver_refuses_an_own_camera_of_another_size() {
         .as_u64()
         .unwrap();
     assert!(refused > 0);
+    // /metrics counts them too (scraped after /status, so at least as many).
+    let m = scrape_metrics(addr).await;
+    let scraped = m
+        .value("irtrackd_cluster_own_camera_refused_total", &[])
+        .expect("own-camera refusals in /metrics");
+    assert!(
+        scraped >= refused as f64,
+        "/metrics {scraped} < /status {refused}"
+    );
     // Still serving and processing.
     let before = status_json(addr).await["processing"]["sets_processed"]
         .as_u64()

@@ -204,6 +204,11 @@ impl prometheus_client::collector::Collector for ClusterReport {
                     "observations dropped because the solver's receive queue was full",
                     self.queue_overflow,
                 ),
+                (
+                    "irtrackd_cluster_own_camera_refused",
+                    "observations of the solver's own cameras refused (own_camera fault: size or camera mismatch)",
+                    self.own_refused,
+                ),
             ]
         };
         for (name, help, value) in counters {
