@@ -253,7 +253,8 @@ export class Controls {
       if (c.supported === false) {
         const note = document.createElement("div");
         note.className = "note";
-        note.textContent = "this camera does not offer exposure or gain controls";
+        note.textContent =
+          "no exposure or gain control here: the camera has none, or it is on a camera board (set them in that board's own set-up view)";
         box.append(note);
       }
       const mk = (name, label, range) => {
