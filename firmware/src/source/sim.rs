@@ -112,6 +112,17 @@ pub struct SimSourceConfig {
     /// With `rig = "ring"`: number of cameras (2..=8).
     #[serde(default = "d_ring_cameras")]
     pub ring_cameras: usize,
+    /// With `rig = "ring"`: the cameras stand on this arc of the circle, degrees. 360 (the
+    /// default): evenly all around (camera `i` at `i·360°/n`); less: from 0° to this angle
+    /// (camera `i` at `i·arc/(n−1)`), e.g. four cameras on a 90° arc that all see one
+    /// checkerboard.
+    #[serde(default = "d_ring_arc")]
+    pub ring_arc_deg: f64,
+    /// Render a printed checkerboard instead of the marker (`[source.sim.checkerboard]`): held
+    /// in a sequence of poses on the frame clock, what `host-tools capture` records for
+    /// `host-tools calibrate` (docs/irtrackd.md).
+    #[serde(default)]
+    pub checkerboard: Option<SimCheckerboardConfig>,
     /// The rig's cameras this source renders (a camera board's share of a multi-board rig);
     /// all by default. The simulator's parameter set is then that share, re-based on the first.
     #[serde(default)]
@@ -130,6 +141,85 @@ pub struct SimSourceConfig {
     /// dark background (docs/simulator.md).
     #[serde(default)]
     pub backdrop: Option<SimBackdropConfig>,
+}
+
+/// `[source.sim.checkerboard]`: a chessboard held still in one pose after another, each pose
+/// for `hold_frames` frames, the sequence repeating. The view shown in frame `k` is
+/// `(k / hold_frames) mod (views + single_views · cameras seen)`, so sources in separate
+/// processes on the wall clock (`wall_clock = true`) show the same pose at the same instant.
+/// The poses are the simulator's calibration views ([`irtrack_sim::checkerboard`]): first
+/// `views` poses that every camera of `seen_by` sees whole, then `single_views` poses per camera
+/// of `seen_by` that fill that camera's image (for its intrinsics; the others see them partly
+/// or not at all). Every view is rendered once when the source starts (anti-aliased, with
+/// lens distortion and 2 DN noise); a frame is a copy of its view.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimCheckerboardConfig {
+    /// Inner corners along a row (`host-tools capture/calibrate --board-cols`).
+    #[serde(default = "d_board_cols")]
+    pub inner_cols: u32,
+    /// Inner corners along a column (`--board-rows`).
+    #[serde(default = "d_board_rows")]
+    pub inner_rows: u32,
+    /// Side of a square, mm (`--square-mm`).
+    #[serde(default = "d_square")]
+    pub square_mm: f64,
+    /// Poses every camera of `seen_by` sees.
+    #[serde(default = "d_board_views")]
+    pub views: usize,
+    /// Poses per camera of `seen_by` that only that camera sees whole.
+    #[serde(default = "d_single_views")]
+    pub single_views: usize,
+    /// Frames each pose is held.
+    #[serde(default = "d_hold_frames")]
+    pub hold_frames: u64,
+    /// The rig's cameras the poses are chosen for (indices in the whole rig); all by default.
+    /// Give the same list on every camera board of one rig, so that they show the same poses.
+    #[serde(default)]
+    pub seen_by: Option<Vec<usize>>,
+    /// Seed of the pose draw and the image noise.
+    #[serde(default = "d_board_seed")]
+    pub seed: u64,
+}
+
+impl Default for SimCheckerboardConfig {
+    fn default() -> Self {
+        Self {
+            inner_cols: d_board_cols(),
+            inner_rows: d_board_rows(),
+            square_mm: d_square(),
+            views: d_board_views(),
+            single_views: d_single_views(),
+            hold_frames: d_hold_frames(),
+            seen_by: None,
+            seed: d_board_seed(),
+        }
+    }
+}
+
+fn d_board_cols() -> u32 {
+    9
+}
+fn d_board_rows() -> u32 {
+    6
+}
+fn d_square() -> f64 {
+    25.0
+}
+fn d_board_views() -> usize {
+    14
+}
+fn d_single_views() -> usize {
+    4
+}
+fn d_hold_frames() -> u64 {
+    15
+}
+fn d_board_seed() -> u64 {
+    5
+}
+fn d_ring_arc() -> f64 {
+    360.0
 }
 
 /// `[source.sim.backdrop]`: every key defaults to the realistic scene
@@ -269,6 +359,8 @@ impl Default for SimSourceConfig {
             wand_mm: None,
             wand_frames: d_wand_frames(),
             ring_cameras: d_ring_cameras(),
+            ring_arc_deg: d_ring_arc(),
+            checkerboard: None,
             cameras: None,
             wall_clock: false,
             cell: None,
@@ -350,6 +442,48 @@ impl SimSourceConfig {
                 ));
             }
         }
+        if !(self.ring_arc_deg.is_finite() && self.ring_arc_deg > 0.0 && self.ring_arc_deg <= 360.0) {
+            return bad(format!(
+                "source.sim.ring_arc_deg must be in (0, 360], got {}",
+                self.ring_arc_deg
+            ));
+        }
+        if let Some(b) = &self.checkerboard {
+            if self.wand_mm.is_some() || self.tool.is_some() || self.cell.is_some() {
+                return bad("source.sim.checkerboard renders a board only; it excludes source.sim.wand_mm, source.sim.tool and source.sim.cell".into());
+            }
+            if b.inner_cols < 2 || b.inner_rows < 2 {
+                return bad(format!(
+                    "source.sim.checkerboard: {}x{} inner corners; need at least 2x2",
+                    b.inner_cols, b.inner_rows
+                ));
+            }
+            if !(b.square_mm.is_finite() && b.square_mm > 0.0) {
+                return bad(format!(
+                    "source.sim.checkerboard.square_mm must be > 0, got {}",
+                    b.square_mm
+                ));
+            }
+            if b.views < 1 || b.views + b.single_views > 1000 {
+                return bad(format!(
+                    "source.sim.checkerboard: views = {} (at least 1) and single_views = {}: 1000 poses at most",
+                    b.views, b.single_views
+                ));
+            }
+            if b.hold_frames < 1 {
+                return bad("source.sim.checkerboard.hold_frames must be at least 1".into());
+            }
+            let total = self.rig_camera_count();
+            if let Some(seen) = &b.seen_by
+                && (seen.len() < 2
+                    || seen.iter().any(|&c| c >= total)
+                    || (1..seen.len()).any(|i| seen[..i].contains(&seen[i])))
+            {
+                return bad(format!(
+                    "source.sim.checkerboard.seen_by = {seen:?}: two or more distinct indices below the rig's {total} cameras"
+                ));
+            }
+        }
         if let Some(cell) = &self.cell {
             if !self.extra_tools.is_empty() || self.wand_mm.is_some() || self.loose_leds > 0 {
                 return bad("source.sim.cell renders the robot's single LED or its one tool (source.sim.tool); it excludes source.sim.extra_tools, source.sim.loose_leds and source.sim.wand_mm".into());
@@ -388,11 +522,7 @@ impl SimSourceConfig {
             ));
         }
         if let Some(cams) = &self.cameras {
-            let total = if self.rig == SimRig::Ring {
-                self.ring_cameras
-            } else {
-                2
-            };
+            let total = self.rig_camera_count();
             if cams.is_empty()
                 || cams.iter().any(|&c| c >= total)
                 || (1..cams.len()).any(|i| cams[..i].contains(&cams[i]))
@@ -427,6 +557,69 @@ impl SimSourceConfig {
         Ok(())
     }
 
+    /// Cameras of the whole rig (`ring_cameras` for the ring, else 2).
+    pub fn rig_camera_count(&self) -> usize {
+        if self.rig == SimRig::Ring {
+            self.ring_cameras
+        } else {
+            2
+        }
+    }
+
+    /// The checkerboard's poses (`cam0_from_board`, camera 0 of the whole rig) in the order
+    /// the source shows them: `views` poses every camera of `seen_by` sees, then `single_views`
+    /// per camera of `seen_by`. `full` is the whole rig (the scenario's). Deterministic.
+    pub fn checkerboard_poses(
+        &self,
+        full: &RigParams,
+    ) -> std::result::Result<Vec<irtrack_core::camera::RigidTransform>, String> {
+        use irtrack_sim::checkerboard::{
+            BoardSpec, PoseConfig, generate_poses, generate_single_camera_poses,
+        };
+        let Some(b) = &self.checkerboard else {
+            return Ok(Vec::new());
+        };
+        let board = BoardSpec::new(b.inner_cols, b.inner_rows, b.square_mm)
+            .map_err(|e| format!("source.sim.checkerboard: {e}"))?;
+        let seen: Vec<usize> = b
+            .seen_by
+            .clone()
+            .unwrap_or_else(|| (0..full.cameras.len()).collect());
+        // The cameras that must see the board, kept in camera 0's frame (not re-based): the
+        // poses are the same whichever share of the rig a board renders.
+        let mut sub = full.clone();
+        sub.cameras = seen
+            .iter()
+            .filter_map(|&c| full.cameras.get(c).cloned())
+            .collect();
+        let cfg = |count, seed| PoseConfig {
+            count,
+            seed,
+            ..Default::default()
+        };
+        let why = |e: irtrack_sim::SimError| {
+            format!(
+                "source.sim.checkerboard: {e} (cameras {seen:?} of the rig must all see the board; \
+                 choose them with seen_by, or a rig whose cameras face one way, e.g. ring_arc_deg = 90)"
+            )
+        };
+        let mut poses = generate_poses(&sub, &board, &cfg(b.views, b.seed)).map_err(why)?;
+        if b.single_views > 0 {
+            for j in 0..sub.cameras.len() {
+                poses.extend(
+                    generate_single_camera_poses(
+                        &sub,
+                        &board,
+                        j,
+                        &cfg(b.single_views, b.seed + 1 + j as u64),
+                    )
+                    .map_err(why)?,
+                );
+            }
+        }
+        Ok(poses)
+    }
+
     /// The simulator configuration this section describes.
     pub fn scenario_config(&self) -> SimConfig {
         let preset = match self.rig {
@@ -437,7 +630,11 @@ impl SimSourceConfig {
             SimRig::Parallel => RigPreset::Parallel {
                 baseline_mm: self.baseline_mm,
             },
-            SimRig::Ring => RigPreset::Custom(ring_rig(self.ring_cameras, self.distance_mm)),
+            SimRig::Ring => RigPreset::Custom(ring_rig_arc(
+                self.ring_cameras,
+                self.distance_mm,
+                self.ring_arc_deg,
+            )),
         };
         let mut cfg = SimConfig::preset(preset, self.distance_mm, self.radius_mm);
         if let Trajectory::Circle {
@@ -576,9 +773,25 @@ impl SimSourceConfig {
 /// `n` cameras evenly on a circle of radius `distance_mm` around (0, 0, `distance_mm`) in
 /// camera 0's frame, all looking at that centre (camera `i` turned by `i·360°/n` about y).
 pub fn ring_rig(n: usize, distance_mm: f64) -> RigParams {
+    ring_rig_arc(n, distance_mm, 360.0)
+}
+
+/// [`ring_rig`] with the cameras on an arc of `arc_deg` (`[source.sim] ring_arc_deg`): 360°
+/// is the full ring; less puts camera `i` at `i·arc_deg/(n−1)`, both ends occupied.
+pub fn ring_rig_arc(n: usize, distance_mm: f64, arc_deg: f64) -> RigParams {
     let spec = irtrack_sim::CameraSpec::default();
+    let full = arc_deg >= 360.0;
+    let step_deg = if full {
+        360.0 / n as f64
+    } else {
+        arc_deg / (n.max(2) - 1) as f64
+    };
     RigParams {
-        rig_id: format!("sim-ring{n}-d{distance_mm}"),
+        rig_id: if full {
+            format!("sim-ring{n}-d{distance_mm}")
+        } else {
+            format!("sim-ring{n}-a{arc_deg}-d{distance_mm}")
+        },
         created_unix_s: 0,
         cameras: (0..n)
             .map(|i| irtrack_core::params::CameraParams {
@@ -586,7 +799,7 @@ pub fn ring_rig(n: usize, distance_mm: f64) -> RigParams {
                 cam_from_cam0: if i == 0 {
                     irtrack_core::camera::RigidTransform::IDENTITY
                 } else {
-                    irtrack_sim::rig::convergent_pose(distance_mm, 360.0 * i as f64 / n as f64)
+                    irtrack_sim::rig::convergent_pose(distance_mm, step_deg * i as f64)
                 },
             })
             .collect(),
@@ -633,6 +846,8 @@ pub struct SimSource {
     noise_state: u64,
     /// Wand mode: the wave and an 8-bit scratch frame for 10-bit output (allocated up front).
     wand: Option<(WandWave, Vec<u8>)>,
+    /// Checkerboard mode: every view of every rendered camera, rendered up front.
+    board: Option<BoardViews>,
     /// Cell mode: the feed from robot-sim and camera 0's pose in the robot base frame.
     cell: Option<(CellFeed, nalgebra::Isometry3<f64>)>,
     /// Paced mode renders this long before a frame's capture instant, so that the frame is
@@ -640,6 +855,76 @@ pub struct SimSource {
     render_lead_ns: u64,
     /// The scenario's cameras this source renders, in frame order.
     render_cams: Vec<usize>,
+}
+
+/// Checkerboard mode's images: each view rendered once at start, so a frame is a copy (no
+/// allocation, no rendering cost per frame).
+struct BoardViews {
+    hold_frames: u64,
+    views: usize,
+    /// Pixels per image.
+    pixels: usize,
+    /// `images[(slot * views + view) * pixels ..][.. pixels]`, 8-bit.
+    images: Vec<u8>,
+}
+
+impl BoardViews {
+    fn render(
+        cfg: &SimSourceConfig,
+        b: &SimCheckerboardConfig,
+        full: &RigParams,
+        render_cams: &[usize],
+    ) -> std::result::Result<Self, SourceError> {
+        use irtrack_sim::checkerboard::{BoardSpec, CameraRenderer, RenderSettings};
+        let poses = cfg.checkerboard_poses(full).map_err(SourceError::Config)?;
+        let board = BoardSpec::new(b.inner_cols, b.inner_rows, b.square_mm)
+            .map_err(|e| SourceError::Config(format!("source.sim.checkerboard: {e}")))?;
+        let settings = RenderSettings {
+            seed: b.seed,
+            ..Default::default()
+        };
+        let mut pixels = 0;
+        let mut images = Vec::new();
+        for &camera in render_cams {
+            let cam = full.cameras.get(camera).ok_or_else(|| {
+                SourceError::Config(format!("source.sim.cameras: no camera {camera} in the rig"))
+            })?;
+            let size = cam.model.image_size;
+            pixels = size.width_px as usize * size.height_px as usize;
+            let renderer = CameraRenderer::new(cam.model);
+            for (view, pose) in poses.iter().enumerate() {
+                let start = images.len();
+                images.resize(start + pixels, 0);
+                renderer
+                    .render(
+                        &cam.cam_from_cam0.compose(pose),
+                        &board,
+                        &settings,
+                        // The same noise for a camera and view in every process.
+                        ((camera as u64) << 32) | view as u64,
+                        &mut images[start..],
+                    )
+                    .map_err(|e| SourceError::CameraLost {
+                        camera,
+                        device: "simulator".into(),
+                        reason: format!("rendering checkerboard view {view}: {e}"),
+                    })?;
+            }
+        }
+        Ok(Self {
+            hold_frames: b.hold_frames,
+            views: poses.len(),
+            pixels,
+            images,
+        })
+    }
+
+    /// The image of rendered camera `slot` in frame `index`.
+    fn image(&self, slot: usize, index: u64) -> &[u8] {
+        let view = ((index / self.hold_frames) % self.views as u64) as usize;
+        let start = (slot * self.views + view) * self.pixels;
+        &self.images[start..start + self.pixels]
+    }
 }
 
 /// Where a dark LED is put: so far away that its spot carries no light.
@@ -700,6 +985,14 @@ impl SimSource {
             let (w, h) = source.scenario.image_size();
             source.wand = Some((wave, vec![0; w as usize * h as usize]));
         }
+        if let Some(b) = &cfg.checkerboard {
+            source.board = Some(BoardViews::render(
+                cfg,
+                b,
+                source.scenario.rig(),
+                &source.render_cams,
+            )?);
+        }
         if let Some(cell) = &cfg.cell {
             let addr = cell
                 .robot
@@ -733,6 +1026,7 @@ impl SimSource {
             render_lead_ns: ((1e9 / fps) as u64 / 2).min(3_000_000),
             scenario,
             wand: None,
+            board: None,
             cell: None,
         }
     }
@@ -873,7 +1167,30 @@ impl FrameSource for SimSource {
                     device: "simulator".into(),
                     reason: e.to_string(),
                 };
-                let info = if let Some((wave, scratch)) = &mut self.wand {
+                let info = if let Some(board) = &self.board {
+                    let img = board.image(slot, index);
+                    match &mut frame.pixels {
+                        Pixels::U8(px) if px.len() == img.len() => px.copy_from_slice(img),
+                        Pixels::U16(px) if px.len() == img.len() => {
+                            // 8-bit rendering shifted into the 10-bit range.
+                            for (d, s) in px.iter_mut().zip(img) {
+                                *d = u16::from(*s) << 2;
+                            }
+                        }
+                        _ => {
+                            return Err(SourceError::Config(format!(
+                                "camera {camera}: frame buffer is not {} pixels",
+                                img.len()
+                            )));
+                        }
+                    }
+                    FrameInfo {
+                        index,
+                        camera,
+                        dropped: false,
+                        timestamp_ns: self.scenario.timestamp_ns(index),
+                    }
+                } else if let Some((wave, scratch)) = &mut self.wand {
                     let wave_frame = (index % self.cfg.wand_frames) as usize;
                     match &mut frame.pixels {
                         Pixels::U8(px) => {
