@@ -20,12 +20,12 @@ fn cfg(cameras: Option<Vec<usize>>, bit_depth: u8) -> SimSourceConfig {
         paced: false,
         bit_depth,
         cameras,
-        checkerboard: Some(SimCheckerboardConfig {
+        checkerboard: Some(Box::new(SimCheckerboardConfig {
             views: 3,
             single_views: 1,
             hold_frames: HOLD,
             ..Default::default()
-        }),
+        })),
         ..SimSourceConfig::default()
     }
 }

@@ -122,7 +122,7 @@ pub struct SimSourceConfig {
     /// in a sequence of poses on the frame clock, what `host-tools capture` records for
     /// `host-tools calibrate` (docs/irtrackd.md).
     #[serde(default)]
-    pub checkerboard: Option<SimCheckerboardConfig>,
+    pub checkerboard: Option<Box<SimCheckerboardConfig>>,
     /// The rig's cameras this source renders (a camera board's share of a multi-board rig);
     /// all by default. The simulator's parameter set is then that share, re-based on the first.
     #[serde(default)]
