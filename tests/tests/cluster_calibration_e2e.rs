@@ -18,7 +18,7 @@ mod common;
 use std::process::Command;
 use std::time::Instant;
 
-use common::cluster::{DISTANCE_MM, FPS, RIG, spawn};
+use common::cluster::{DISTANCE_MM, FPS, RIG, capture_from, two_calibration_boards};
 use common::{bin, temp_dir};
 use irtrack_core::params::RigParams;
 use irtrack_firmware::source::sim::ring_rig;
@@ -57,51 +57,12 @@ fn pose_error(truth: &RigParams, got: &RigParams, i: usize) -> (f64, f64) {
 fn wand_wave_captured_across_two_camera_boards_calibrates_the_whole_rig() {
     let t0 = Instant::now();
     let dir = temp_dir("cluster-wand");
-    // A free port below Linux's ephemeral range (32768-60999): a port the kernel hands out for
-    // `:0` could be given again to one of irtrackd's own ephemeral listeners before Zenoh binds
-    // it (seen once: "Address already in use").
-    let port = (0..2000u16)
-        .map(|i| 20_000 + (std::process::id() as u16 % 8000 + i) % 10_000)
-        .find(|p| std::net::TcpListener::bind(("127.0.0.1", *p)).is_ok())
-        .expect("a free port in 20000..30000");
-    // The boards form a Zenoh network of their own (b1 connects to b0); no solver is needed to
-    // calibrate, as on a new cell whose solver has no parameters yet.
-    let ep = format!("tcp/127.0.0.1:{port}");
-    let b0 = spawn(
-        &dir,
-        "b0",
-        &board_config("b0", [0, 1], &format!("listen = [\"{ep}\"]")),
-        None,
-        "127.0.0.1",
-    );
-    let b1 = spawn(
-        &dir,
-        "b1",
-        &board_config("b1", [2, 3], &format!("connect = [\"{ep}\"]")),
-        None,
-        "127.0.0.1",
-    );
-    for (name, b) in [("b0", &b0), ("b1", &b1)] {
-        let st = b.status();
-        assert_eq!(st["cluster"]["role"], "camera", "{name}: {st}");
-    }
+    let (b0, b1) = two_calibration_boards(&dir, 0, board_config);
 
     let (a, b) = (b0.status.to_string(), b1.status.to_string());
     let wave = dir.join("wave");
-    let started = Instant::now();
-    let o = Command::new(bin("host-tools"))
-        .arg("capture")
-        .args(["--from", &a, "--from", &b])
-        .args(["--wand", "--count", &SETS.to_string(), "--out"])
-        .arg(&wave)
-        .output()
-        .unwrap();
-    let capture_s = started.elapsed().as_secs_f64();
-    let (stdout, stderr) = (
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr),
-    );
-    assert!(o.status.success(), "capture failed:\n{stdout}\n{stderr}");
+    let sets = SETS.to_string();
+    let (stdout, _, capture_s) = capture_from(&b0, &b1, &["--wand", "--count", &sets], &wave);
     println!("capture ({capture_s:.1} s):\n{stdout}");
     assert!(
         stdout.contains(&format!("board {a}: 2 cameras, 640x480 8-bit → cam0..cam1"))

@@ -22,7 +22,7 @@ use std::collections::BTreeSet;
 use std::process::Command;
 use std::time::Instant;
 
-use common::cluster::{DISTANCE_MM, FPS, RIG, spawn};
+use common::cluster::{DISTANCE_MM, FPS, RIG, capture_from, two_calibration_boards};
 use common::{bin, temp_dir};
 use irtrack_core::params::RigParams;
 use irtrack_firmware::source::sim::ring_rig_arc;
@@ -60,51 +60,25 @@ fn board_config(board: &str, cameras: [usize; 2], zenoh: &str) -> String {
 fn checkerboard_captured_across_two_camera_boards_calibrates_the_whole_rig() {
     let t0 = Instant::now();
     let dir = temp_dir("cluster-checkerboard");
-    // A free port below Linux's ephemeral range (as in cluster_calibration_e2e.rs).
-    let port = (0..2000u16)
-        .map(|i| 20_000 + (std::process::id() as u16 % 8000 + 3 + i) % 10_000)
-        .find(|p| std::net::TcpListener::bind(("127.0.0.1", *p)).is_ok())
-        .expect("a free port in 20000..30000");
-    let ep = format!("tcp/127.0.0.1:{port}");
-    let b0 = spawn(
-        &dir,
-        "b0",
-        &board_config("b0", [0, 1], &format!("listen = [\"{ep}\"]")),
-        None,
-        "127.0.0.1",
-    );
-    let b1 = spawn(
-        &dir,
-        "b1",
-        &board_config("b1", [2, 3], &format!("connect = [\"{ep}\"]")),
-        None,
-        "127.0.0.1",
-    );
+    let (b0, b1) = two_calibration_boards(&dir, 3, board_config);
     println!("boards ready after {:.1} s", t0.elapsed().as_secs_f64());
-    for (name, b) in [("b0", &b0), ("b1", &b1)] {
-        let st = b.status();
-        assert_eq!(st["cluster"]["role"], "camera", "{name}: {st}");
-    }
 
     // One set per held pose: the whole sequence once.
     let views = SHARED_VIEWS + 4 * SINGLE_VIEWS;
     let (a, b) = (b0.status.to_string(), b1.status.to_string());
     let shots = dir.join("shots");
-    let started = Instant::now();
-    let o = Command::new(bin("host-tools"))
-        .arg("capture")
-        .args(["--from", &a, "--from", &b])
-        .args(["--every", &HOLD_S.to_string(), "--count", &views.to_string()])
-        .args(["--board-cols", "9", "--board-rows", "6", "--out"])
-        .arg(&shots)
-        .output()
-        .unwrap();
-    let capture_s = started.elapsed().as_secs_f64();
-    let (stdout, stderr) = (
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr),
-    );
-    assert!(o.status.success(), "capture failed:\n{stdout}\n{stderr}");
+    let (hold, count) = (HOLD_S.to_string(), views.to_string());
+    let args = [
+        "--every",
+        &hold,
+        "--count",
+        &count,
+        "--board-cols",
+        "9",
+        "--board-rows",
+        "6",
+    ];
+    let (stdout, stderr, capture_s) = capture_from(&b0, &b1, &args, &shots);
     println!("capture ({capture_s:.1} s):\n{stdout}\n{stderr}");
     assert!(
         stdout.contains(&format!("board {a}: 2 cameras, 640x480 8-bit → cam0..cam1"))

@@ -245,3 +245,62 @@ pub fn board(st: &serde_json::Value, name: &str) -> serde_json::Value {
         .and_then(|b| b.iter().find(|b| b["name"] == name).cloned())
         .unwrap_or(serde_json::Value::Null)
 }
+
+/// Two camera boards for calibration across boards: b0 renders rig cameras 0 and 1 and listens,
+/// b1 renders 2 and 3 and connects to it (no solver: a new cell's solver has no parameters
+/// yet). `board_config(board, cameras, zenoh_line)` gives each board's irtrackd.toml. The port
+/// is below Linux's ephemeral range (32768–60999): a port the kernel hands out for `:0` could
+/// be given again to one of irtrackd's own ephemeral listeners before Zenoh binds it (seen
+/// once: "Address already in use"); `salt` keeps two tests of one process apart.
+pub fn two_calibration_boards(
+    dir: &Path,
+    salt: u16,
+    board_config: impl Fn(&str, [usize; 2], &str) -> String,
+) -> (Node, Node) {
+    let port = (0..2000u16)
+        .map(|i| 20_000 + (std::process::id() as u16 % 8000 + salt + i) % 10_000)
+        .find(|p| std::net::TcpListener::bind(("127.0.0.1", *p)).is_ok())
+        .expect("a free port in 20000..30000");
+    let ep = format!("tcp/127.0.0.1:{port}");
+    let b0 = spawn(
+        dir,
+        "b0",
+        &board_config("b0", [0, 1], &format!("listen = [\"{ep}\"]")),
+        None,
+        "127.0.0.1",
+    );
+    let b1 = spawn(
+        dir,
+        "b1",
+        &board_config("b1", [2, 3], &format!("connect = [\"{ep}\"]")),
+        None,
+        "127.0.0.1",
+    );
+    for (name, b) in [("b0", &b0), ("b1", &b1)] {
+        let st = b.status();
+        assert_eq!(st["cluster"]["role"], "camera", "{name}: {st}");
+    }
+    (b0, b1)
+}
+
+/// `host-tools capture --from <b0> --from <b1> <args> --out <out>`: asserts success and
+/// returns (stdout, stderr, seconds taken).
+pub fn capture_from(b0: &Node, b1: &Node, args: &[&str], out: &Path) -> (String, String, f64) {
+    let (a, b) = (b0.status.to_string(), b1.status.to_string());
+    let started = Instant::now();
+    let o = Command::new(bin("host-tools"))
+        .arg("capture")
+        .args(["--from", &a, "--from", &b])
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .expect("host-tools runs");
+    let secs = started.elapsed().as_secs_f64();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    );
+    assert!(o.status.success(), "capture failed:\n{stdout}\n{stderr}");
+    (stdout, stderr, secs)
+}
