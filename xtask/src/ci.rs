@@ -589,6 +589,18 @@ fn cluster_qemu_user(ctx: &Ctx) -> Outcome {
     if let Some(failed) = cluster_host_build(ctx) {
         return failed;
     }
+    ignored_cluster_test(
+        ctx,
+        "cluster_qemu_user",
+        ("IRTRACK_AARCH64_CLUSTER_IRTRACKD", &board),
+        &["--ignored"],
+    )
+}
+
+/// Runs the test file `test` of irtrack-tests (cluster feature) with `test_args`, the
+/// environment variable `env.0` set to `env.1`: how the opt-in QEMU phases hand their aarch64
+/// build to their ignored test.
+fn ignored_cluster_test(ctx: &Ctx, test: &str, env: (&str, &std::path::Path), test_args: &[&str]) -> Outcome {
     cargo_test_with_args(
         || {
             let mut cmd = ctx.cargo();
@@ -599,12 +611,12 @@ fn cluster_qemu_user(ctx: &Ctx) -> Outcome {
                 "--features",
                 "irtrack-tests/cluster",
                 "--test",
-                "cluster_qemu_user",
+                test,
             ]);
-            cmd.env("IRTRACK_AARCH64_CLUSTER_IRTRACKD", &board);
+            cmd.env(env.0, env.1);
             Ok(cmd)
         },
-        &["--ignored"],
+        test_args,
     )
 }
 
@@ -644,22 +656,11 @@ fn cluster_qemu_system(ctx: &Ctx) -> Outcome {
     if let Some(failed) = cluster_host_build(ctx) {
         return failed;
     }
-    cargo_test_with_args(
-        || {
-            let mut cmd = ctx.cargo();
-            cmd.args([
-                "test",
-                "-p",
-                "irtrack-tests",
-                "--features",
-                "irtrack-tests/cluster",
-                "--test",
-                "cluster_qemu_system",
-            ]);
-            cmd.env("IRTRACK_CLUSTER_SD_IMAGE", &image.sd_img);
-            Ok(cmd)
-        },
-        // --nocapture: the figures it prints (boot time, offset, RMS) belong in the log.
+    // --nocapture: the figures it prints (boot time, offset, RMS) belong in the log.
+    ignored_cluster_test(
+        ctx,
+        "cluster_qemu_system",
+        ("IRTRACK_CLUSTER_SD_IMAGE", &image.sd_img),
         &["--ignored", "--nocapture"],
     )
 }
