@@ -2,8 +2,11 @@
 //! docs/http-api.md) that serves checkerboard views of the simulated 90° rig: sets are saved in
 //! the layout `calibrate` reads, the board is found per camera and the coverage grid is shown.
 //! Across boards (`--from A --from B`): sets paired on the realtime clock, numbered board by
-//! board, unpaired sets refused. Error cases: firmware without the endpoint (404), nothing
-//! listening. Against real irtrackd processes: tests/tests/capture_e2e.rs (one board) and
+//! board, unpaired sets refused. With `--params` (the rig's placement) the boards are known by
+//! the name their `/status` reports and the cameras come out in the rig's order, whatever the
+//! `--from` order; a board's camera not placed, a placed camera on no board given and two boards
+//! of one name are refused before anything is saved. Error cases: firmware without the endpoint
+//! (404), nothing listening. Against real irtrackd processes: tests/tests/capture_e2e.rs (one board) and
 //! tests/tests/cluster_calibration_e2e.rs (two camera boards, then `wand-calibrate`).
 
 mod common;
@@ -27,6 +30,7 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 /// Serves `responses` to consecutive HTTP requests (status line, content type, body), then stops.
+/// JSON answers are for `GET /status`, all others for `GET /api/frameset`.
 fn serve(responses: Responses) -> (String, thread::JoinHandle<usize>) {
     let listener = TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = listener.local_addr().unwrap().to_string();
@@ -37,7 +41,15 @@ fn serve(responses: Responses) -> (String, thread::JoinHandle<usize>) {
             let mut reader = BufReader::new(s.try_clone().unwrap());
             let mut request_line = String::new();
             reader.read_line(&mut request_line).unwrap();
-            assert!(request_line.starts_with("GET /api/frameset "), "{request_line}");
+            let path = if ctype == "application/json" {
+                "/status"
+            } else {
+                "/api/frameset"
+            };
+            assert!(
+                request_line.starts_with(&format!("GET {path} ")),
+                "{request_line}"
+            );
             loop {
                 let mut l = String::new();
                 if reader.read_line(&mut l).unwrap() == 0 || l == "\r\n" {
@@ -637,4 +649,264 @@ fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
         "{stderr}"
     );
     assert!(!out.exists(), "{} created for nothing", out.display());
+}
+
+/// A camera board's `/status` answer: the parts capture reads (`cluster.board`).
+fn status_of(board: &str) -> (u16, &'static str, Vec<u8>) {
+    (
+        200,
+        "application/json",
+        format!("{{\"uptime_s\":3.5,\"cluster\":{{\"role\":\"camera\",\"rig\":\"cell1\",\"board\":\"{board}\",\"published\":7}}}}")
+            .into_bytes(),
+    )
+}
+
+/// The simulated 90° rig's parameter set with its two cameras placed on `placement`, written
+/// to `path` as a blob the way push-params takes it.
+fn placed_params(path: &Path, placement: &[(&str, u8)]) -> PathBuf {
+    let mut rig = build_rig(
+        &RigPreset::Convergent {
+            distance_mm: 659.84,
+            angle_deg: 90.0,
+        },
+        &CameraSpec::default(),
+    )
+    .unwrap();
+    rig.rig_id = "cell1".into();
+    rig.placement = placement
+        .iter()
+        .map(|(b, i)| irtrack_core::params::CameraPlace {
+            board: (*b).into(),
+            local_index: *i,
+        })
+        .collect();
+    rig.validate().unwrap();
+    std::fs::write(path, rig.to_blob().unwrap()).unwrap();
+    path.to_path_buf()
+}
+
+/// The integrator gives the boards the other way round: board "b1" (the rig's camera 1) first.
+/// With the placement the folder still has the rig's camera 0 in cam0/, and cameras.csv says
+/// so by the boards' names; without it the --from order decides and capture says how to fix it.
+#[test]
+fn capture_across_boards_follows_the_rig_placement_not_the_from_order() {
+    let dir = scratch("placement");
+    let (files, size) = rig_views(&dir, 2);
+    let view = |c: usize, v: usize| std::fs::read(&files[c][v]).unwrap();
+    let params = placed_params(&dir.join("rig.irp"), &[("b0", 0), ("b1", 0)]);
+    // Board b0 renders rig camera 0, b1 rig camera 1: status, two probe sets, two sets.
+    let responses = |rig_camera: usize, name: &str| -> Responses {
+        let b = rig_camera == 1;
+        let mut r = vec![status_of(name)];
+        r.push(board_set(b, 0, 0, &[view(rig_camera, 0)], size));
+        r.push(board_set(b, 1, 0, &[view(rig_camera, 0)], size));
+        for v in 0..2 {
+            r.push(board_set(b, 2 + v as u64, 0, &[view(rig_camera, v)], size));
+        }
+        r
+    };
+    let out = dir.join("shots");
+    let run = capture(
+        vec![responses(1, "b1"), responses(0, "b0")],
+        &out,
+        &["--params", p(&params), "--wand", "--count", "2"],
+    );
+    let (stdout, stderr) = text(&run.output);
+    print!("{stdout}{stderr}");
+    assert!(run.output.status.success(), "{stdout}\n{stderr}");
+    let (addr_b1, addr_b0) = (run.addrs[0].clone(), run.addrs[1].clone());
+    assert_eq!(run.served(), [5, 5]);
+    assert!(
+        stdout.contains(&format!(
+            "board b1 at {addr_b1}: 1 camera, {}x{} 8-bit → cam1..cam1",
+            size.0, size.1
+        )) && stdout.contains(&format!(
+            "board b0 at {addr_b0}: 1 camera, {}x{} 8-bit → cam0..cam0",
+            size.0, size.1
+        )),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("cameras numbered in the rig's order, as the placement in"),
+        "{stdout}"
+    );
+    for v in 0..2 {
+        for c in 0..2 {
+            let saved = std::fs::read(out.join(format!("cam{c}/{v:06}.pgm"))).unwrap();
+            assert!(
+                saved == view(c, v),
+                "cam{c} set {v} is not rig camera {c}'s view {v}"
+            );
+        }
+    }
+    assert_eq!(
+        std::fs::read_to_string(out.join("cameras.csv")).unwrap(),
+        "camera,board,board_camera\n0,b0,0\n1,b1,0\n"
+    );
+    // Timestamps follow their cameras: cam0's row is board b0's realtime (phase 0 on both).
+    let ts = std::fs::read_to_string(out.join("timestamps.csv")).unwrap();
+    assert!(
+        ts.contains(&format!("0,0,{},0\n", EPOCH_NS + 2 * PERIOD_NS)),
+        "{ts}"
+    );
+
+    // The same boards without --params: --from order (b1's camera is cam0), said in one line.
+    let plain = dir.join("plain");
+    let strip = |r: Responses| -> Responses { r.into_iter().skip(1).collect() };
+    let run = capture(
+        vec![strip(responses(1, "b1")), strip(responses(0, "b0"))],
+        &plain,
+        &["--wand", "--count", "2"],
+    );
+    let (stdout, stderr) = text(&run.output);
+    assert!(run.output.status.success(), "{stdout}\n{stderr}");
+    run.served();
+    assert!(
+        stdout.contains(
+            "cameras numbered board by board in --from order, not by the rig's placement; give --params <the rig's parameter set>"
+        ),
+        "{stdout}"
+    );
+    assert!(std::fs::read(plain.join("cam0/000000.pgm")).unwrap() == view(1, 0));
+}
+
+/// Runs capture with `--params` against boards that answer only their `/status` and then
+/// `frames` probe sets; returns (stderr, addresses) after checking it failed and saved nothing.
+fn refused_placement(
+    dir: &Path,
+    name: &str,
+    params: &Path,
+    boards: &[(&str, usize, usize)],
+) -> (String, Vec<String>) {
+    let pgm = {
+        let mut b = b"P5\n4 2\n255\n".to_vec();
+        b.extend_from_slice(&[9; 8]);
+        b
+    };
+    let responses = boards
+        .iter()
+        .enumerate()
+        .map(|(i, (board, cameras, probes))| {
+            let mut r = vec![status_of(board)];
+            for k in 0..*probes as u64 {
+                r.push(board_set(i == 1, k, 0, &vec![pgm.clone(); *cameras], (4, 2)));
+            }
+            r
+        })
+        .collect();
+    let out = dir.join(name);
+    let run = capture(
+        responses,
+        &out,
+        &["--params", p(params), "--wand", "--count", "2"],
+    );
+    let (stdout, stderr) = text(&run.output);
+    assert!(!run.output.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        !out.exists(),
+        "{} created before the placement was checked",
+        out.display()
+    );
+    let addrs = run.addrs.clone();
+    run.served();
+    (stderr, addrs)
+}
+
+#[test]
+fn capture_with_a_placement_names_each_mismatch_before_saving() {
+    let dir = scratch("placement_errors");
+    let rig = placed_params(&dir.join("rig.irp"), &[("b0", 0), ("b1", 0)]);
+    let rig_path = p(&rig);
+
+    // Board b0 serves two cameras; the rig places only its camera 0.
+    let (err, a) = refused_placement(&dir, "extra", &rig, &[("b0", 2, 1), ("b1", 1, 1)]);
+    assert!(
+        err.contains(&format!(
+            "camera 1 of board b0 ({}) is not placed: no rig camera of the parameter set is on it",
+            a[0]
+        )) && err.contains(&format!("(placement of {rig_path})")),
+        "{err}"
+    );
+
+    // The rig's camera 1 is on b1, but the boards given are b0 and b2.
+    let (err, _) = refused_placement(&dir, "missing", &rig, &[("b0", 1, 1), ("b2", 1, 1)]);
+    assert!(
+        err.contains(
+            "rig camera 1 is placed on board b1 (its camera 0), but no --from board reports that name (they report: b0, b2)"
+        ),
+        "{err}"
+    );
+
+    // Two boards report one name: said after their /status, before any frame is asked for.
+    let (err, a) = refused_placement(&dir, "twice", &rig, &[("b0", 1, 0), ("b0", 1, 0)]);
+    assert!(
+        err.contains(&format!(
+            "boards {} and {} both report the name b0 ([cluster] board)",
+            a[0], a[1]
+        )),
+        "{err}"
+    );
+
+    // A placed camera index the board does not serve.
+    let beyond = placed_params(&dir.join("beyond.irp"), &[("b0", 0), ("b1", 1)]);
+    let (err, a) = refused_placement(&dir, "beyond", &beyond, &[("b0", 1, 1), ("b1", 1, 1)]);
+    assert!(
+        err.contains(&format!(
+            "rig camera 1 is placed on board b1 ({}) as its camera 1, but that board serves 1 camera",
+            a[1]
+        )),
+        "{err}"
+    );
+    // A single board's set (no placement) is refused by name, before any board is asked.
+    let single = dir.join("single.irp");
+    let mut one = irtrack_core::params::RigParams::from_blob(&std::fs::read(&beyond).unwrap()).unwrap();
+    one.placement.clear();
+    std::fs::write(&single, one.to_blob().unwrap()).unwrap();
+    let (addr, server) = serve(Vec::new());
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr,
+        "--params",
+        p(&single),
+        "--out",
+        p(&dir.join("unplaced")),
+        "--wand",
+    ]);
+    let (_, err) = text(&o);
+    assert!(!o.status.success());
+    assert!(
+        err.contains(&format!(
+            "{}: this parameter set places no camera on a board",
+            p(&single)
+        )),
+        "{err}"
+    );
+    assert_eq!(server.join().unwrap(), 0);
+
+    // A standalone board (no cluster section in its /status) has no name to place by.
+    let (addr, server) = serve(vec![(
+        200,
+        "application/json",
+        b"{\"uptime_s\":1.0,\"cluster\":null}".to_vec(),
+    )]);
+    let o = host_tools(&[
+        "capture",
+        "--from",
+        &addr,
+        "--params",
+        p(&rig),
+        "--out",
+        p(&dir.join("standalone")),
+        "--wand",
+    ]);
+    let (_, err) = text(&o);
+    assert!(!o.status.success());
+    assert!(
+        err.contains(&format!(
+            "irtrackd on {addr} reports no board name (/status has no cluster.board)"
+        )),
+        "{err}"
+    );
+    server.join().unwrap();
 }

@@ -11,9 +11,12 @@
 //! Across camera boards (`--from A --from B …`, docs/cluster.md "Calibration across boards"):
 //! every board is asked at once, their sets are paired on CLOCK_REALTIME (each board's
 //! monotonic timestamps plus the clock difference it serves, the clock the cluster pairs by)
-//! within a tolerance (default half a frame period), and saved as one set whose cameras are
-//! numbered board by board in `--from` order. A set whose boards do not pair is refused, named,
-//! and never saved.
+//! within a tolerance (default half a frame period), and saved as one set. With `--params`
+//! (the rig's parameter set, its placement) the cameras are numbered in the rig's order: each
+//! board is known by the name it reports (`/status` → `cluster.board`), and each rig camera is
+//! taken from the board and index its placement names, whatever the `--from` order. Without
+//! it they are numbered board by board in `--from` order (and capture says so). A set whose
+//! boards do not pair is refused, named, and never saved.
 
 use std::io::{BufRead, Write};
 use std::path::{Path, PathBuf};
@@ -25,7 +28,10 @@ use opencv::core::{Mat, Point2f, Vector};
 use opencv::imgcodecs;
 use opencv::prelude::*;
 
+use irtrack_core::params::CameraPlace;
+
 use crate::calib::detect::{Board, find_corners};
+use crate::cmd::keygen::load_params_file;
 
 /// Default port of irtrackd's HTTP listener.
 pub const DEFAULT_HTTP_PORT: u16 = 7704;
@@ -37,10 +43,16 @@ const GRID_ROWS: usize = 6;
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
     /// The board running irtrackd: HOST or HOST:PORT (port 7704 if left out). Give it once per
-    /// camera board to capture across boards: cameras are numbered board by board in this order
-    /// (the rig's camera order: the board of cameras 0, 1 first).
+    /// camera board to capture across boards. Without --params the cameras are numbered board
+    /// by board in this order (so give the board of the rig's cameras 0, 1 first).
     #[arg(long, value_name = "BOARD[:PORT]", required = true)]
     pub from: Vec<String>,
+    /// The rig's parameter set with its camera placement (blob or OpenCV YAML, the file pushed
+    /// to the solver with push-params): cameras are numbered as the rig's, each taken from the
+    /// board whose reported name (`[cluster] board`, its /status) and camera index the
+    /// placement gives, in whatever order --from lists the boards.
+    #[arg(long, value_name = "FILE")]
+    pub params: Option<PathBuf>,
     /// Across boards: largest capture-time offset between boards' frames in one set, ms
     /// (default: half the frame period the boards show).
     #[arg(long, value_name = "MS")]
@@ -73,17 +85,227 @@ pub struct Args {
 /// beside irtrackd's writer of it (docs/frameset.md).
 pub use irtrack_core::frameset::{CameraHeader, FrameSet, FrameSetHeader};
 
-/// `http://HOST:PORT/api/frameset` for `BOARD` or `BOARD:PORT`.
-pub fn frameset_url(from: &str) -> String {
+/// `http://HOST:PORT` for `BOARD` or `BOARD:PORT`.
+fn base_url(from: &str) -> String {
     let from = from.trim_start_matches("http://").trim_end_matches('/');
     let has_port = from
         .rsplit_once(':')
         .is_some_and(|(h, p)| !h.is_empty() && !h.ends_with(':') && p.parse::<u16>().is_ok());
     if has_port {
-        format!("http://{from}/api/frameset")
+        format!("http://{from}")
     } else {
-        format!("http://{from}:{DEFAULT_HTTP_PORT}/api/frameset")
+        format!("http://{from}:{DEFAULT_HTTP_PORT}")
     }
+}
+
+/// `http://HOST:PORT/api/frameset` for `BOARD` or `BOARD:PORT`.
+pub fn frameset_url(from: &str) -> String {
+    format!("{}/api/frameset", base_url(from))
+}
+
+/// `http://HOST:PORT/status` for `BOARD` or `BOARD:PORT`.
+pub fn status_url(from: &str) -> String {
+    format!("{}/status", base_url(from))
+}
+
+/// The name irtrackd on `board` reports for itself: `/status` → `cluster.board` (its
+/// `[cluster] board`, the name a placement uses).
+pub fn board_name(agent: &ureq::Agent, board: &str) -> anyhow::Result<String> {
+    let url = status_url(board);
+    let body = match agent.get(&url).call() {
+        Ok(r) => r
+            .into_string()
+            .with_context(|| format!("reading /status of irtrackd on {board}"))?,
+        Err(ureq::Error::Status(code, _)) => {
+            bail!("irtrackd on {board} answered {code} to GET /status; cannot tell its board name")
+        }
+        Err(ureq::Error::Transport(t)) => {
+            bail!("cannot reach irtrackd on {board} ({url}): {t}; is the board on and irtrackd running?")
+        }
+    };
+    let status: serde_json::Value =
+        serde_json::from_str(&body).with_context(|| format!("/status of irtrackd on {board} is not JSON"))?;
+    status
+        .get("cluster")
+        .and_then(|c| c.get("board"))
+        .and_then(serde_json::Value::as_str)
+        .filter(|n| !n.is_empty())
+        .map(str::to_owned)
+        .ok_or_else(|| {
+            anyhow!(
+                "irtrackd on {board} reports no board name (/status has no cluster.board): --params needs camera boards \
+                 ([cluster] role = \"camera\" and board = \"…\", docs/cluster.md) or a solver with cameras of its own"
+            )
+        })
+}
+
+/// Why the boards given do not match the rig's placement. Every message names the board (as
+/// reported, and as given to `--from`) and the camera.
+#[derive(Debug, Clone, PartialEq)]
+pub enum PlacementError {
+    /// Two boards given report one name.
+    SameName {
+        /// The name both report.
+        name: String,
+        /// The first board as given to `--from`.
+        first: String,
+        /// The second board as given to `--from`.
+        second: String,
+    },
+    /// A rig camera is placed on a board no `--from` reports.
+    BoardNotGiven {
+        /// The rig's camera.
+        camera: usize,
+        /// The board name its placement gives.
+        board: String,
+        /// Its index on that board.
+        local_index: u8,
+        /// The names of the boards given.
+        given: Vec<String>,
+    },
+    /// A rig camera is placed on a camera the board does not serve.
+    NoSuchCamera {
+        /// The rig's camera.
+        camera: usize,
+        /// The board's name.
+        board: String,
+        /// The board as given to `--from`.
+        from: String,
+        /// Its index on that board.
+        local_index: u8,
+        /// Cameras the board serves.
+        served: usize,
+    },
+    /// A camera of a board given is no rig camera.
+    NotPlaced {
+        /// The board's name.
+        board: String,
+        /// The board as given to `--from`.
+        from: String,
+        /// The camera's index on that board.
+        local_index: usize,
+    },
+}
+
+impl std::fmt::Display for PlacementError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PlacementError::SameName { name, first, second } => write!(
+                f,
+                "boards {first} and {second} both report the name {name} ([cluster] board); each camera board needs its own name"
+            ),
+            PlacementError::BoardNotGiven {
+                camera,
+                board,
+                local_index,
+                given,
+            } => write!(
+                f,
+                "rig camera {camera} is placed on board {board} (its camera {local_index}), but no --from board reports that name (they report: {}); give that board too",
+                given.join(", ")
+            ),
+            PlacementError::NoSuchCamera {
+                camera,
+                board,
+                from,
+                local_index,
+                served,
+            } => write!(
+                f,
+                "rig camera {camera} is placed on board {board} ({from}) as its camera {local_index}, but that board serves {served} camera{}",
+                if *served == 1 { "" } else { "s" }
+            ),
+            PlacementError::NotPlaced {
+                board,
+                from,
+                local_index,
+            } => write!(
+                f,
+                "camera {local_index} of board {board} ({from}) is not placed: no rig camera of the parameter set is on it; check the board's [source] cameras or the set's placement"
+            ),
+        }
+    }
+}
+
+/// One board of a capture: as given to `--from`, its reported name, and its cameras.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BoardCameras {
+    /// As given to `--from`.
+    pub from: String,
+    /// Its name (`/status` → `cluster.board`).
+    pub name: String,
+    /// Cameras it serves in a frame set.
+    pub cameras: usize,
+}
+
+/// Two boards of one name, if any.
+pub fn check_names(from: &[String], names: &[String]) -> Result<(), PlacementError> {
+    for (i, n) in names.iter().enumerate() {
+        if let Some(j) = names[..i].iter().position(|m| m == n) {
+            return Err(PlacementError::SameName {
+                name: n.clone(),
+                first: from[j].clone(),
+                second: from[i].clone(),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Where each rig camera comes from, in the rig's order: (board, in `boards`' order; camera on
+/// that board), as the placement says. Every camera of every board must be placed, and every
+/// placed camera served by a board given.
+pub fn placement_order(
+    placement: &[CameraPlace],
+    boards: &[BoardCameras],
+) -> Result<Vec<(usize, usize)>, PlacementError> {
+    let from: Vec<String> = boards.iter().map(|b| b.from.clone()).collect();
+    let names: Vec<String> = boards.iter().map(|b| b.name.clone()).collect();
+    check_names(&from, &names)?;
+    let mut order = Vec::with_capacity(placement.len());
+    for (camera, pl) in placement.iter().enumerate() {
+        let b = names
+            .iter()
+            .position(|n| *n == pl.board)
+            .ok_or_else(|| PlacementError::BoardNotGiven {
+                camera,
+                board: pl.board.clone(),
+                local_index: pl.local_index,
+                given: names.clone(),
+            })?;
+        let c = usize::from(pl.local_index);
+        if c >= boards[b].cameras {
+            return Err(PlacementError::NoSuchCamera {
+                camera,
+                board: pl.board.clone(),
+                from: boards[b].from.clone(),
+                local_index: pl.local_index,
+                served: boards[b].cameras,
+            });
+        }
+        order.push((b, c));
+    }
+    for (b, board) in boards.iter().enumerate() {
+        for c in 0..board.cameras {
+            if !order.contains(&(b, c)) {
+                return Err(PlacementError::NotPlaced {
+                    board: board.name.clone(),
+                    from: board.from.clone(),
+                    local_index: c,
+                });
+            }
+        }
+    }
+    Ok(order)
+}
+
+/// Board by board in the order given, each board's cameras in its own order.
+pub fn from_order(counts: &[usize]) -> Vec<(usize, usize)> {
+    counts
+        .iter()
+        .enumerate()
+        .flat_map(|(b, n)| (0..*n).map(move |c| (b, c)))
+        .collect()
 }
 
 /// Why a fetch gave no set.
@@ -206,11 +428,17 @@ impl std::fmt::Display for PairError {
     }
 }
 
-/// Pairs one set per board into one set: cameras numbered board by board in the order given,
-/// timestamps on CLOCK_REALTIME, `pairing_error_ns` the spread over all cameras. Refused when a
-/// board has no clock difference or its first camera is more than `tolerance_ns` from the
-/// first board's first camera. `set_index` is the first board's.
-pub fn pair_sets(boards: &[String], sets: Vec<FrameSet>, tolerance_ns: i128) -> Result<FrameSet, PairError> {
+/// Pairs one set per board into one set: camera `i` is `order[i]` (board, camera on that
+/// board; [`from_order`] or [`placement_order`]), timestamps on CLOCK_REALTIME,
+/// `pairing_error_ns` the spread over all cameras. Refused when a board has no clock difference
+/// or its first camera is more than `tolerance_ns` from the first board's first camera.
+/// `set_index` is the first board's.
+pub fn pair_sets(
+    boards: &[String],
+    sets: Vec<FrameSet>,
+    order: &[(usize, usize)],
+    tolerance_ns: i128,
+) -> Result<FrameSet, PairError> {
     let mut reference_ns: Option<i128> = None;
     let mut worst: Option<PairError> = None;
     for (board, set) in boards.iter().zip(&sets) {
@@ -237,32 +465,58 @@ pub fn pair_sets(boards: &[String], sets: Vec<FrameSet>, tolerance_ns: i128) -> 
     if let Some(e) = worst {
         return Err(e);
     }
+    Ok(arrange(sets, order, true))
+}
+
+/// One set of the cameras `order` names ((board, camera on that board) per camera), numbered
+/// in that order. `realtime`: timestamps moved to CLOCK_REALTIME (every set has its clock
+/// difference) and the pairing error taken over all cameras; otherwise they stay as served and
+/// the first set's header fields are kept.
+pub fn arrange(sets: Vec<FrameSet>, order: &[(usize, usize)], realtime: bool) -> FrameSet {
     let set_index = sets.first().map_or(0, |s| s.header.set_index);
-    let mut cameras = Vec::new();
-    let mut pgms = Vec::new();
+    let first_error_ns = sets.first().map_or(0, |s| s.header.pairing_error_ns);
+    let first_clock = sets.first().and_then(|s| s.header.realtime_minus_monotonic_ns);
+    let headers: Vec<FrameSetHeader> = sets.iter().map(|s| s.header.clone()).collect();
+    // Each frame is moved, not copied: taken out of its board's set once.
+    let mut frames: Vec<Vec<Option<Vec<u8>>>> = sets
+        .into_iter()
+        .map(|s| s.pgms.into_iter().map(Some).collect())
+        .collect();
+    let mut cameras = Vec::with_capacity(order.len());
+    let mut pgms = Vec::with_capacity(order.len());
     let (mut lo, mut hi) = (i128::MAX, i128::MIN);
-    for set in sets {
-        for (i, cam) in set.header.cameras.iter().enumerate() {
-            let t = set.header.realtime_ns(i).unwrap_or(0).max(0);
+    for &(b, c) in order {
+        let header = &headers[b];
+        let cam = &header.cameras[c];
+        let timestamp_ns = if realtime {
+            let t = header.realtime_ns(c).unwrap_or(0).max(0);
             lo = lo.min(t);
             hi = hi.max(t);
-            cameras.push(CameraHeader {
-                camera: cameras.len() as u32,
-                timestamp_ns: u64::try_from(t).unwrap_or(u64::MAX),
-                ..cam.clone()
-            });
-        }
-        pgms.extend(set.pgms);
+            u64::try_from(t).unwrap_or(u64::MAX)
+        } else {
+            cam.timestamp_ns
+        };
+        cameras.push(CameraHeader {
+            camera: cameras.len() as u32,
+            timestamp_ns,
+            ..cam.clone()
+        });
+        pgms.push(frames[b][c].take().unwrap_or_default());
     }
-    Ok(FrameSet {
+    let (pairing_error_ns, realtime_minus_monotonic_ns) = if realtime {
+        (u64::try_from(hi - lo).unwrap_or(0), Some(0))
+    } else {
+        (first_error_ns, first_clock)
+    };
+    FrameSet {
         header: FrameSetHeader {
             set_index,
-            pairing_error_ns: u64::try_from(hi - lo).unwrap_or(0),
+            pairing_error_ns,
             cameras,
-            realtime_minus_monotonic_ns: Some(0),
+            realtime_minus_monotonic_ns,
         },
         pgms,
-    })
+    }
 }
 
 /// Frame period a board shows between two of its sets (camera 0's timestamps over its frame
@@ -316,16 +570,37 @@ impl Boards {
 /// boards in another order) is refused instead of mixed.
 pub const CAMERAS_FILE: &str = "cameras.csv";
 
-fn cameras_csv(boards: &[String], counts: &[usize]) -> String {
+/// `camera,board,board_camera` per camera of `order`; `boards` labels each board (its reported
+/// name with a placement, else as given to `--from`).
+fn cameras_csv(boards: &[String], order: &[(usize, usize)]) -> String {
     let mut s = String::from("camera,board,board_camera\n");
-    let mut g = 0;
-    for (b, n) in boards.iter().zip(counts) {
-        for i in 0..*n {
-            s.push_str(&format!("{g},{b},{i}\n"));
-            g += 1;
-        }
+    for (g, (b, c)) in order.iter().enumerate() {
+        s.push_str(&format!("{g},{},{c}\n", boards[*b]));
     }
     s
+}
+
+/// `→ cam2..cam3` (one board's cameras, in its own order, numbered consecutively) or
+/// `→ cam3, cam0` (placed elsewhere in the rig).
+fn camera_names(board: usize, order: &[(usize, usize)]) -> String {
+    let mut mine: Vec<(usize, usize)> = order
+        .iter()
+        .enumerate()
+        .filter(|(_, (b, _))| *b == board)
+        .map(|(g, (_, c))| (*c, g))
+        .collect();
+    mine.sort_unstable();
+    let globals: Vec<usize> = mine.iter().map(|(_, g)| *g).collect();
+    match (globals.first(), globals.last()) {
+        (Some(a), Some(z)) if globals.windows(2).all(|w| w[1] == w[0] + 1) => {
+            format!("cam{a}..cam{z}")
+        }
+        _ => globals
+            .iter()
+            .map(|g| format!("cam{g}"))
+            .collect::<Vec<_>>()
+            .join(", "),
+    }
 }
 
 /// One line naming what the board serves, e.g. `board 10.0.0.5: 2 cameras, 752x480 8-bit`.
@@ -582,10 +857,50 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         tolerance_ns: 0,
     };
     let multi = boards.boards.len() > 1;
+    // With the rig's placement: the set is read and every board's name asked first, so a
+    // wrong file, a board that is no camera board or two boards of one name are said now.
+    let placed = match &args.params {
+        Some(path) => {
+            let rig = load_params_file(path)?.rig;
+            ensure!(
+                !rig.placement.is_empty(),
+                "{}: this parameter set places no camera on a board (a single board's set); give the rig's set, the one pushed to the solver, whose placement names each camera's board (docs/cluster.md, \"Roles\")",
+                path.display()
+            );
+            let names = args
+                .from
+                .iter()
+                .map(|b| board_name(&boards.agent, b))
+                .collect::<anyhow::Result<Vec<String>>>()?;
+            check_names(&args.from, &names).map_err(|e| anyhow!("{e}"))?;
+            Some((path, rig.placement, names))
+        }
+        None => None,
+    };
     // Ask once before the session: an unreachable board or old firmware is said now, not
     // after the person has positioned the board and pressed Enter.
     let firsts = boards.fetch_each()?;
     let counts: Vec<usize> = firsts.iter().map(|s| s.pgms.len()).collect();
+    // Which board and camera each saved camera is, and how cameras.csv names the boards.
+    let (order, labels) = match &placed {
+        Some((path, placement, names)) => {
+            let cams: Vec<BoardCameras> = args
+                .from
+                .iter()
+                .zip(names)
+                .zip(&counts)
+                .map(|((from, name), n)| BoardCameras {
+                    from: from.clone(),
+                    name: name.clone(),
+                    cameras: *n,
+                })
+                .collect();
+            let order = placement_order(placement, &cams)
+                .map_err(|e| anyhow!("{e} (placement of {})", path.display()))?;
+            (order, names.clone())
+        }
+        None => (from_order(&counts), args.from.clone()),
+    };
     if multi {
         for (board, set) in args.from.iter().zip(&firsts) {
             if set.header.realtime_minus_monotonic_ns.is_none() {
@@ -627,27 +942,40 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "Enter saves a set, `q` + Enter stops".to_string()
     };
     let limit = args.count.map_or(String::new(), |n| format!(", up to {n} sets"));
-    let mut first_camera = 0;
-    for ((board, _), set) in boards.boards.iter().zip(&firsts) {
-        let n = set.pgms.len();
-        if multi {
+    for (b, ((board, _), set)) in boards.boards.iter().zip(&firsts).enumerate() {
+        let label = match &placed {
+            Some((_, _, names)) => format!("{} at {board}", names[b]),
+            None => board.clone(),
+        };
+        if multi || placed.is_some() {
             println!(
-                "{} → cam{first_camera}..cam{}",
-                describe_cameras(board, &set.header),
-                first_camera + n - 1
+                "{} → {}",
+                describe_cameras(&label, &set.header),
+                camera_names(b, &order)
             );
         } else {
             println!("{}", describe_cameras(board, &set.header));
         }
-        first_camera += n;
+    }
+    match &placed {
+        Some((path, _, _)) => println!(
+            "cameras numbered in the rig's order, as the placement in {} puts them on the boards",
+            path.display()
+        ),
+        None if multi => println!(
+            "cameras numbered board by board in --from order, not by the rig's placement; give --params <the rig's parameter set> to number them as the rig's cameras"
+        ),
+        None => {}
     }
     if multi {
         println!(
             "pairing the boards' frames on CLOCK_REALTIME within ±{:.3} ms",
             boards.tolerance_ns as f64 / 1e6
         );
+    }
+    if multi || placed.is_some() {
         println!("capturing into {}: {mode}{limit}", args.out.display());
-        let csv = cameras_csv(&args.from, &counts);
+        let csv = cameras_csv(&labels, &order);
         let path = args.out.join(CAMERAS_FILE);
         match std::fs::read_to_string(&path) {
             Ok(old) if old != csv => bail!(
@@ -735,7 +1063,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
         let set = if multi {
-            match pair_sets(&boards.names(), sets, boards.tolerance_ns) {
+            match pair_sets(&boards.names(), sets, &order, boards.tolerance_ns) {
                 Ok(set) => {
                     refused_in_a_row = 0;
                     set
@@ -753,7 +1081,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 }
             }
         } else {
-            sets.into_iter().next().ok_or_else(|| anyhow!("no set"))?
+            arrange(sets, &order, false)
         };
         camera_count = Some(set.pgms.len());
         save_set(&args.out, index, &set)?;
@@ -887,7 +1215,9 @@ mod tests {
         b.header.cameras[0].timestamp_ns = 6_002_001_000;
         b.header.realtime_minus_monotonic_ns = Some(4_000_000_000);
         let names = ["a".to_string(), "b".to_string()];
-        let paired = pair_sets(&names, vec![a.clone(), b.clone()], 4_166_666).unwrap();
+        let order = from_order(&[2, 1]);
+        assert_eq!(order, [(0, 0), (0, 1), (1, 0)]);
+        let paired = pair_sets(&names, vec![a.clone(), b.clone()], &order, 4_166_666).unwrap();
         let cams = &paired.header.cameras;
         assert_eq!(cams.iter().map(|c| c.camera).collect::<Vec<_>>(), [0, 1, 2]);
         assert_eq!(
@@ -898,22 +1228,99 @@ mod tests {
         assert_eq!(paired.pgms[2], b.pgms[0]);
         assert_eq!(paired.pgms[1], a.pgms[1]);
 
-        let e = pair_sets(&names, vec![a.clone(), b.clone()], 1_000_000).unwrap_err();
+        let e = pair_sets(&names, vec![a.clone(), b.clone()], &order, 1_000_000).unwrap_err();
         assert_eq!(
             e.to_string(),
             "board b's frames are +2.000 ms from board a's (tolerance 1.000 ms, CLOCK_REALTIME)"
         );
         // The other way round the offset is negative.
-        let e = pair_sets(&["b".into(), "a".into()], vec![b.clone(), a.clone()], 1_000_000).unwrap_err();
+        let e = pair_sets(
+            &["b".into(), "a".into()],
+            vec![b.clone(), a.clone()],
+            &from_order(&[1, 2]),
+            1_000_000,
+        )
+        .unwrap_err();
         assert!(e.to_string().starts_with("board a's frames are -2.000 ms"), "{e}");
+        // The rig's order: b's camera first, then a's cameras the other way round.
+        let placed = [(1, 0), (0, 1), (0, 0)];
+        let paired = pair_sets(&names, vec![a.clone(), b.clone()], &placed, 4_166_666).unwrap();
+        let cams = &paired.header.cameras;
+        assert_eq!(cams.iter().map(|c| c.camera).collect::<Vec<_>>(), [0, 1, 2]);
+        assert_eq!(
+            cams.iter().map(|c| c.timestamp_ns).collect::<Vec<_>>(),
+            [10_002_001_000, 10_000_001_001, 10_000_001_000]
+        );
+        assert_eq!(
+            paired.pgms,
+            [b.pgms[0].clone(), a.pgms[1].clone(), a.pgms[0].clone()]
+        );
+        assert_eq!(
+            cameras_csv(&names, &placed),
+            "camera,board,board_camera\n0,b,0\n1,a,1\n2,a,0\n"
+        );
+        assert_eq!(camera_names(0, &placed), "cam2, cam1");
+        assert_eq!(camera_names(1, &placed), "cam0..cam0");
         b.header.realtime_minus_monotonic_ns = None;
         assert_eq!(
-            pair_sets(&names, vec![a, b], 4_166_666).unwrap_err(),
+            pair_sets(&names, vec![a, b], &order, 4_166_666).unwrap_err(),
             PairError::NoClock { board: "b".into() }
         );
         assert_eq!(
-            cameras_csv(&names, &[2, 1]),
+            cameras_csv(&names, &order),
             "camera,board,board_camera\n0,a,0\n1,a,1\n2,b,0\n"
+        );
+    }
+
+    fn place(p: &[(&str, u8)]) -> Vec<CameraPlace> {
+        p.iter()
+            .map(|(b, i)| CameraPlace {
+                board: (*b).into(),
+                local_index: *i,
+            })
+            .collect()
+    }
+
+    fn boards(b: &[(&str, &str, usize)]) -> Vec<BoardCameras> {
+        b.iter()
+            .map(|(from, name, n)| BoardCameras {
+                from: (*from).into(),
+                name: (*name).into(),
+                cameras: *n,
+            })
+            .collect()
+    }
+
+    /// Boards given in any order: the cameras come out in the rig's order; every mismatch
+    /// is named with board and camera.
+    #[test]
+    fn placement_orders_the_cameras_and_names_each_mismatch() {
+        let rig = place(&[("b0", 0), ("b0", 1), ("b1", 0), ("b1", 1)]);
+        let order = placement_order(&rig, &boards(&[("h1", "b1", 2), ("h0", "b0", 2)])).unwrap();
+        assert_eq!(order, [(1, 0), (1, 1), (0, 0), (0, 1)]);
+        let e = |p: &[CameraPlace], b: &[(&str, &str, usize)]| {
+            placement_order(p, &boards(b)).unwrap_err().to_string()
+        };
+        assert_eq!(
+            e(&rig, &[("h0", "b0", 2), ("h1", "b0", 2)]),
+            "boards h0 and h1 both report the name b0 ([cluster] board); each camera board needs its own name"
+        );
+        assert_eq!(
+            e(&rig, &[("h0", "b0", 2), ("h2", "b2", 2)]),
+            "rig camera 2 is placed on board b1 (its camera 0), but no --from board reports that name (they report: b0, b2); give that board too"
+        );
+        assert_eq!(
+            e(&rig, &[("h0", "b0", 2), ("h1", "b1", 1)]),
+            "rig camera 3 is placed on board b1 (h1) as its camera 1, but that board serves 1 camera"
+        );
+        assert_eq!(
+            e(&rig, &[("h0", "b0", 3), ("h1", "b1", 2)]),
+            "camera 2 of board b0 (h0) is not placed: no rig camera of the parameter set is on it; check the board's [source] cameras or the set's placement"
+        );
+        // A board the rig does not use at all.
+        assert!(
+            e(&rig, &[("h0", "b0", 2), ("h1", "b1", 2), ("h9", "b9", 1)])
+                .starts_with("camera 0 of board b9 (h9) is not placed"),
         );
     }
 
@@ -925,6 +1332,7 @@ mod tests {
         );
         assert_eq!(frameset_url("10.0.0.5:8080"), "http://10.0.0.5:8080/api/frameset");
         assert_eq!(frameset_url("http://b:7704/"), "http://b:7704/api/frameset");
+        assert_eq!(status_url("board.local"), "http://board.local:7704/status");
     }
 
     #[test]
