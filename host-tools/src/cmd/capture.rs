@@ -47,10 +47,10 @@ pub struct Args {
     /// by board in this order (so give the board of the rig's cameras 0, 1 first).
     #[arg(long, value_name = "BOARD[:PORT]", required = true)]
     pub from: Vec<String>,
-    /// The rig's parameter set with its camera placement (blob or OpenCV YAML, the file pushed
-    /// to the solver with push-params): cameras are numbered as the rig's, each taken from the
-    /// board whose reported name (`[cluster] board`, its /status) and camera index the
-    /// placement gives, in whatever order --from lists the boards.
+    /// The rig's parameter blob with its camera placement (the set pushed to the solver with
+    /// push-params): cameras are numbered as the rig's, each taken from the board whose
+    /// reported name (`[cluster] board`, its /status) and camera index the placement gives, in
+    /// whatever order --from lists the boards.
     #[arg(long, value_name = "FILE")]
     pub params: Option<PathBuf>,
     /// Across boards: largest capture-time offset between boards' frames in one set, ms
