@@ -230,8 +230,12 @@ pub struct CameraAnalysis {
     pub set_index: u64,
     /// Detection threshold the frame was analysed at, DN.
     pub threshold_dn: u32,
-    /// Grey-level statistics of the frame.
-    pub background: Background,
+    /// Whether this irtrackd has the camera's pixels. `false`: a camera board's camera at the
+    /// cluster solver — its pixels stay on its board, the analysis lists the blobs it reported.
+    pub pixels: bool,
+    /// Grey-level statistics of the frame; `None` (JSON `null`) without pixels or for a frame
+    /// that could not be read — never zeros that read as a dark camera.
+    pub background: Option<Background>,
     /// Share of the frame above the threshold, percent.
     pub above_threshold_pct: f64,
     /// Bright regions (connected areas above the threshold) in the whole frame.
@@ -310,6 +314,7 @@ impl CameraAnalysis {
             advice: None,
             from_loop: blobs.len(),
             blobs,
+            pixels: false,
             ..Self::unreadable(camera, set_index, cfg)
         }
     }
@@ -320,14 +325,8 @@ impl CameraAnalysis {
             camera,
             set_index,
             threshold_dn: cfg.threshold_dn,
-            background: Background {
-                median_dn: 0,
-                noise_dn: 0.0,
-                bright_dn: 0,
-                peak_dn: 0,
-                max_dn: 0,
-                safe_threshold_dn: 0,
-            },
+            pixels: true,
+            background: None,
             above_threshold_pct: 0.0,
             regions: 0,
             kept: 0,
@@ -398,7 +397,8 @@ impl CameraAnalysis {
             camera,
             set_index,
             threshold_dn: thr,
-            background,
+            pixels: true,
+            background: Some(background),
             above_threshold_pct: 100.0 * above,
             regions,
             kept,
@@ -433,7 +433,8 @@ impl CameraAnalysis {
     fn advise(&self, above: f64) -> Option<Advice> {
         let i = self.camera;
         let thr = self.threshold_dn;
-        let bg = &self.background;
+        // Without pixels there is nothing to judge (the camera board judges its own).
+        let bg = self.background.as_ref()?;
         let safe = bg.safe_threshold_dn;
         let advice = |code, message| Some(Advice { code, message });
         if above > BACKGROUND_FRACTION {
@@ -850,7 +851,8 @@ mod tests {
             "{}",
             adv.message
         );
-        assert!(a.background.safe_threshold_dn > 41 && a.background.safe_threshold_dn < 60);
+        let bg = a.background.as_ref().unwrap();
+        assert!(bg.safe_threshold_dn > 41 && bg.safe_threshold_dn < 60);
         assert!(!adv.message.contains("area"), "{}", adv.message);
     }
 

@@ -987,11 +987,15 @@ pub fn fault_texts(
             ),
         });
     }
+    // A solver's own cameras it refuses (another image size than the parameter set's): the
+    // `own_camera` fault names them; their missing blobs are no LED problem.
+    let mut refused: Vec<usize> = Vec::new();
     if let Some(c) = st.cluster_report() {
-        for (code, message) in c.fault_texts() {
+        refused.clone_from(&c.own_refused_cameras);
+        for (code, camera, message) in c.fault_texts() {
             out.push(FaultText {
                 code,
-                camera: None,
+                camera,
                 message,
             });
         }
@@ -1016,7 +1020,7 @@ pub fn fault_texts(
         return out;
     }
     if let Some(cams) = analysis {
-        for a in cams {
+        for a in cams.iter().filter(|a| !refused.contains(&a.camera)) {
             if let Some(adv) = &a.advice {
                 out.push(FaultText {
                     code: adv.code,
@@ -1030,7 +1034,7 @@ pub fn fault_texts(
     let processing = st.sets_processed.load(R) > 0 && (st.params_loaded.load(R) || st.detection_only.load(R));
     if processing {
         for (i, c) in st.cameras.iter().enumerate() {
-            if c.blobs_last.load(R) > 0 || c.frames.load(R) == 0 {
+            if c.blobs_last.load(R) > 0 || c.frames.load(R) == 0 || refused.contains(&i) {
                 continue;
             }
             let peak = c.peak_dn.load(R);

@@ -723,14 +723,14 @@ mod tests {
 
     fn analysis(camera: usize, blobs: Vec<BlobView>, from_loop: usize) -> CameraAnalysis {
         let mut a = CameraAnalysis::unreadable(camera, 7, &TrackerConfig::default());
-        a.background = Background {
+        a.background = Some(Background {
             median_dn: 10,
             noise_dn: 1.0,
             bright_dn: 12,
             peak_dn: 200,
             max_dn: 255,
             safe_threshold_dn: 20,
-        };
+        });
         a.advice = None;
         a.blobs = blobs;
         a.from_loop = from_loop;

@@ -629,6 +629,25 @@ async fn solver_refuses_an_own_camera_of_another_size() {
         faults.contains("delivers 640x480 px but cluster.image_sizes_px[1]") && faults.contains("800x600"),
         "{faults}"
     );
+    // Exactly that fault, about camera 1: a refused camera has no blobs, but that is not an
+    // LED problem (no `no_led` or `no_usable_blob` beside it); camera 0 tracks its LED.
+    let list: Vec<(String, serde_json::Value)> = st["fault_texts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| (f["code"].as_str().unwrap().to_string(), f["camera"].clone()))
+        .collect();
+    assert_eq!(
+        list,
+        vec![("own_camera".to_string(), serde_json::json!(1))],
+        "{faults}"
+    );
+    assert_eq!(
+        st["cluster"]["own_refused_cameras"],
+        serde_json::json!([1]),
+        "{}",
+        st["cluster"]
+    );
     let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
     for _ in 0..(2.0 * FPS) as usize {
         let rec = client.next().await;
@@ -659,5 +678,112 @@ async fn solver_refuses_an_own_camera_of_another_size() {
         .as_u64()
         .unwrap_or(0);
     assert!(after > before, "the loop stopped ({before} → {after})");
+    running.shutdown().await;
+}
+
+/// The solver's health table contract (docs/http-api.md, `frame_analysis`): a solver with its
+/// own camera 3 and camera boards b0 (cameras 0, 1) and b1 (camera 2). Its own camera's
+/// analysis has pixels and real figures (the LED's peak above the background); the boards'
+/// cameras have `"pixels": false` and `"background": null` — no zeros that read as a dark
+/// camera — and `cluster.boards` names the board each is on (what the page shows instead).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn solver_status_gives_board_cameras_no_pixel_figures() {
+    let dir = TempDir::new("cluster-mixed");
+    let mut r = ring_rig(4, 600.0);
+    r.rig_id = RIG.into();
+    r.placement = [("b0", 0), ("b0", 1), ("b1", 0), ("s0", 0)]
+        .iter()
+        .map(|&(b, i)| CameraPlace {
+            board: b.into(),
+            local_index: i,
+        })
+        .collect();
+    r.validate().unwrap();
+    std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut cfg = test_config(dir.path());
+    cfg.source.sim = Some(irtrack_firmware::source::sim::SimSourceConfig {
+        rig: irtrack_firmware::source::sim::SimRig::Ring,
+        ring_cameras: 4,
+        distance_mm: 600.0,
+        fps: FPS,
+        wall_clock: true,
+        cameras: Some(vec![3]),
+        ..Default::default()
+    });
+    cfg.cluster = ClusterConfig {
+        role: Role::Solver,
+        rig: RIG.into(),
+        board: "s0".into(),
+        own_cameras: true,
+        listen: vec![format!("tcp/127.0.0.1:{port}")],
+        fps: FPS,
+        board_timeout_ms: 300.0,
+        image_sizes_px: r
+            .cameras
+            .iter()
+            .map(|c| [c.model.image_size.width_px, c.model.image_size.height_px])
+            .collect(),
+        ..ClusterConfig::default()
+    };
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let addr = running.addrs.status;
+    let stop = Arc::new(AtomicBool::new(false));
+    let publisher = {
+        let (r, stop) = (r.clone(), stop.clone());
+        std::thread::spawn(move || boards(port, r, Vector3::new(20.0, -10.0, 580.0), u64::MAX, stop))
+    };
+    // The boards heard from and every camera analysed (the sampler runs without a page).
+    wait_status(addr, 15, "an analysis of all four cameras", |st| {
+        st["frame_analysis"].as_array().is_some_and(|a| a.len() == 4)
+            && st["cluster"]["boards"]
+                .as_array()
+                .is_some_and(|b| b.iter().filter(|b| b["last_seen_ms"].is_number()).count() == 3)
+    })
+    .await;
+    let st = status_json(addr).await;
+    let fa = st["frame_analysis"].as_array().unwrap();
+    println!("frame_analysis: {}", st["frame_analysis"]);
+    println!("boards: {}", st["cluster"]["boards"]);
+    // The solver's own camera: pixels, real figures, the LED well above the background.
+    let own = &fa[3];
+    assert_eq!(own["camera"], 3, "{own}");
+    assert_eq!(own["pixels"], true, "{own}");
+    let median = own["background"]["median_dn"]
+        .as_u64()
+        .expect("own camera's background");
+    let peak = own["background"]["peak_dn"].as_u64().expect("own camera's peak");
+    assert!(
+        peak >= median + 60,
+        "own camera: peak {peak} vs background {median}: {own}"
+    );
+    // The boards' cameras: no pixel figures, and the board each is on.
+    let boards = st["cluster"]["boards"].as_array().unwrap();
+    let board_of = |c: u64| {
+        boards
+            .iter()
+            .find(|b| b["cameras"].as_array().unwrap().iter().any(|x| x == c))
+            .map(|b| b["name"].as_str().unwrap().to_string())
+    };
+    for (c, board) in [(0u64, "b0"), (1, "b0"), (2, "b1")] {
+        let a = &fa[c as usize];
+        assert_eq!(a["camera"], c, "{a}");
+        assert_eq!(a["pixels"], false, "camera {c}: {a}");
+        assert!(
+            a["background"].is_null(),
+            "camera {c}: pixel figures without pixels: {a}"
+        );
+        assert!(a["advice"].is_null(), "camera {c}: {a}");
+        assert_eq!(a["kept"], 1, "camera {c}: its board's blob: {a}");
+        assert_eq!(board_of(c).as_deref(), Some(board), "camera {c}: {boards:?}");
+    }
+    assert_eq!(board_of(3).as_deref(), Some("s0"), "{boards:?}");
+    assert_eq!(st["cluster"]["board"], "s0");
+    stop.store(true, Ordering::Relaxed);
+    publisher.join().unwrap();
     running.shutdown().await;
 }

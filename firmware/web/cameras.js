@@ -226,7 +226,7 @@ class CameraCard {
     this.stats.textContent =
       (blobsOnly ? "blobs only: the pixels stay on its camera board (its own set-up view shows them) · " : "") +
       `${fullW}×${fullH} · set ${head.set_index} · ` +
-      (a && !blobsOnly ? `background ${a.background.median_dn} DN · ` : "") +
+      (a && a.background && !blobsOnly ? `background ${a.background.median_dn} DN · ` : "") +
       `peak ${head.peak_dn} DN · threshold ${head.threshold_dn} · previews shown ${this.shown}` +
       (fps !== undefined ? ` at ≤ ${fps} fps` : "");
     this.advice.textContent = a && a.advice ? a.advice.message : "";
@@ -329,7 +329,7 @@ export class Cameras {
       threshold_dn: c.last ? c.last.threshold_dn : null,
       peak_dn: c.last ? c.last.peak_dn : null,
       pixels: c.last ? c.last.pixels !== false : null,
-      background_dn: c.last && c.last.analysis ? c.last.analysis.background.median_dn : null,
+      background_dn: c.last && c.last.analysis && c.last.analysis.background ? c.last.analysis.background.median_dn : null,
       regions: c.last && c.last.analysis ? c.last.analysis.regions : null,
       advice: c.last && c.last.analysis ? c.last.analysis.advice : null,
       kept: c.last ? (c.last.blobs || []).filter((b) => b.kept).length : null,

@@ -89,6 +89,24 @@ export function previewWarnings(cams, skip = new Set()) {
   return out;
 }
 
+/** The health table's background and peak cells of one camera: the whole-frame analysis' figures
+ *  when it saw the pixels; for a camera board's camera at the cluster solver (`pixels: false`)
+ *  the board its pixels stay on and no figures (zeros would read as a dark camera); the loop's
+ *  peak counter without an analysis. */
+export function pixelCells(a, c, cluster) {
+  if (a && a.pixels === false) {
+    if (cluster && Array.isArray(cluster.boards)) {
+      const b = cluster.boards.find((x) => Array.isArray(x.cameras) && x.cameras.includes(a.camera));
+      // (An own camera without pixels is one the solver refuses: its fault says why.)
+      if (b && b.name !== cluster.board) return [`on board ${b.name}`, "—"];
+    }
+    return ["—", "—"];
+  }
+  if (a && a.background) return [fmt(a.background.median_dn), fmt(a.background.peak_dn)];
+  if (a) return ["—", "—"]; // a frame that could not be read (its advice says so)
+  return ["—", fmt(c.peak_dn)];
+}
+
 export class Health {
   constructor() {
     this.plotData = [[], [], [], []];
@@ -153,11 +171,15 @@ export class Health {
         const a = analysis.find((x) => x.camera === c.index);
         const tr = document.createElement("tr");
         tr.dataset.camera = String(c.index);
+        const [background, peak] = pixelCells(a, c, st.cluster);
         if (a) {
           tr.dataset.kept = String(a.kept);
           tr.dataset.regions = String(a.regions);
-          tr.dataset.peak = String(a.background.peak_dn);
-          tr.dataset.background = String(a.background.median_dn);
+          tr.dataset.pixels = a.pixels === false ? "no" : "yes";
+          if (a.background) {
+            tr.dataset.peak = String(a.background.peak_dn);
+            tr.dataset.background = String(a.background.median_dn);
+          }
           tr.dataset.advice = a.advice ? a.advice.code : "";
         }
         for (const v of [
@@ -165,14 +187,16 @@ export class Health {
           fmt(c.fps, 1),
           fmt(c.frames),
           a ? `${a.kept} / ${a.regions}${a.overloaded || a.too_many_spots ? " (overloaded)" : ""}` : fmt(c.blobs_last),
-          a ? fmt(a.background.median_dn) : "—",
-          a ? fmt(a.background.peak_dn) : fmt(c.peak_dn),
-          c.width_px ? `${c.width_px}×${c.height_px}` : "—",
+          background,
+          peak,
         ]) {
           const td = document.createElement("td");
           td.textContent = v;
           tr.append(td);
         }
+        const size = document.createElement("td");
+        size.textContent = c.width_px ? `${c.width_px}×${c.height_px}` : "—";
+        tr.append(size);
         return tr;
       })
     );

@@ -86,6 +86,9 @@ pub struct ClusterReport {
     /// (another image size than `image_sizes_px`, or no such camera), in words; their
     /// observations are refused (`own_camera` fault).
     pub own_camera_faults: Vec<String>,
+    /// Solver: the rig cameras those faults are about (the same order): their observations
+    /// are refused, so they have no blob and no LED fault of their own.
+    pub own_refused_cameras: Vec<usize>,
     /// Solver: observations of its own cameras refused for that reason.
     pub own_refused: u64,
     /// Camera role: detecting and publishing without a parameter set of its own (a board
@@ -94,22 +97,24 @@ pub struct ClusterReport {
 }
 
 impl ClusterReport {
-    /// Faults in plain words for the set-up view (`code`, message).
-    pub fn fault_texts(&self) -> Vec<(&'static str, String)> {
+    /// Faults in plain words for the set-up view (`code`, the camera concerned, message).
+    pub fn fault_texts(&self) -> Vec<(&'static str, Option<usize>, String)> {
         let mut out = Vec::new();
         if self.no_placement {
             out.push((
                 "cluster_no_placement",
+                None,
                 "the parameter set does not say which board each camera is on — push a set with a placement (docs/cluster.md)".to_string(),
             ));
         }
-        for f in &self.own_camera_faults {
-            out.push(("own_camera", f.clone()));
+        for (i, f) in self.own_camera_faults.iter().enumerate() {
+            out.push(("own_camera", self.own_refused_cameras.get(i).copied(), f.clone()));
         }
         for b in &self.boards {
             if b.down {
                 out.push((
                     "board_down",
+                    None,
                     format!(
                         "camera board {} (cameras {:?}) sends nothing{} — check its power and network; tracking goes on with the other cameras",
                         b.name,
@@ -121,6 +126,7 @@ impl ClusterReport {
             if b.clock_fault {
                 out.push((
                     "clock_offset",
+                    None,
                     format!(
                         "camera board {}: its clock is {:.1} ms off — its observations are left out; check PTP/chrony on it",
                         b.name,
@@ -134,6 +140,7 @@ impl ClusterReport {
             let list: Vec<String> = self.refused.iter().map(|(k, v)| format!("{k} {v}")).collect();
             out.push((
                 "observations_refused",
+                None,
                 format!("{refused} observations refused ({})", list.join(", ")),
             ));
         }

@@ -427,6 +427,7 @@ impl ClusterSource {
     /// another image's pixels, a wrong position.
     fn check_own_cameras(&mut self, placement: &[irtrack_core::params::CameraPlace]) {
         let mut faults = Vec::new();
+        let mut refused = Vec::new();
         if let Some(own) = &self.own {
             for (c, pl) in placement.iter().enumerate().take(self.own_index.len()) {
                 if pl.board != self.cfg.board {
@@ -438,6 +439,7 @@ impl ClusterSource {
                     Some(&size) if size == expected => self.own_index[c] = Some(i),
                     Some(&[w, h]) => {
                         self.own_refused[c] = true;
+                        refused.push(c);
                         faults.push(format!(
                             "camera {c} (the solver's own camera {i} on board {}) delivers {w}x{h} px but cluster.image_sizes_px[{c}] (the parameter set's size) is {}x{} px — its observations are refused; fix [source] or image_sizes_px and the parameter set",
                             self.cfg.board, expected[0], expected[1]
@@ -445,6 +447,7 @@ impl ClusterSource {
                     }
                     None => {
                         self.own_refused[c] = true;
+                        refused.push(c);
                         faults.push(format!(
                             "camera {c} is placed on the solver's own board {} as camera {i}, but the solver has only {} camera(s) of its own — check [source] and the parameter set's placement",
                             self.cfg.board,
@@ -459,6 +462,7 @@ impl ClusterSource {
         }
         if let Ok(mut r) = self.report.lock() {
             r.own_camera_faults = faults;
+            r.own_refused_cameras = refused;
         }
     }
 
