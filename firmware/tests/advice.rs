@@ -30,7 +30,7 @@ fn default_threshold_on_a_bright_background_is_reported_as_such() {
         let a = CameraAnalysis::of(i, set.index, f, &cfg, None, 32).unwrap();
         let adv = a.advice.clone().expect("advice for a bright background");
         assert!(a.pixels);
-        let bg = a.background.clone().expect("pixel figures from a frame");
+        let bg = a.background.expect("pixel figures from a frame");
         println!(
             "camera {i}: background {} DN (noise {:.1}, 98 % level {} DN), {:.0} % above {} DN: {}",
             bg.median_dn, bg.noise_dn, bg.bright_dn, a.above_threshold_pct, cfg.threshold_dn, adv.message
