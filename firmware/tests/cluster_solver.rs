@@ -686,6 +686,8 @@ async fn solver_refuses_an_own_camera_of_another_size() {
 /// analysis has pixels and real figures (the LED's peak above the background); the boards'
 /// cameras have `"pixels": false` and `"background": null` — no zeros that read as a dark
 /// camera — and `cluster.boards` names the board each is on (what the page shows instead).
+/// (Their blob counts are not asserted: the test's boards observe a fixed point while the
+/// simulator's LED moves, so the gate may refuse either side's blob in a given set.)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn solver_status_gives_board_cameras_no_pixel_figures() {
     let dir = TempDir::new("cluster-mixed");
@@ -778,7 +780,6 @@ async fn solver_status_gives_board_cameras_no_pixel_figures() {
             "camera {c}: pixel figures without pixels: {a}"
         );
         assert!(a["advice"].is_null(), "camera {c}: {a}");
-        assert_eq!(a["kept"], 1, "camera {c}: its board's blob: {a}");
         assert_eq!(board_of(c).as_deref(), Some(board), "camera {c}: {boards:?}");
     }
     assert_eq!(board_of(3).as_deref(), Some("s0"), "{boards:?}");
