@@ -7,3 +7,4 @@ pub mod calib;
 pub mod cmd;
 pub mod frames;
 pub mod opencv_yaml;
+pub mod placement;

@@ -458,3 +458,100 @@ fn missing_camera_directories_are_explained() {
     assert!(e.contains("need at least 2") && e.contains("--pattern"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A capture folder from two camera boards (cameras.csv with the names they reported): the
+/// parameter set carries that placement, decoded from rig.irp; `--placement` overrides it; a
+/// list that does not fit the cameras is refused before any calibration work.
+#[test]
+fn placement_comes_from_cameras_csv_or_the_option() {
+    let dir = temp_dir("placement");
+    let img = dir.join("img");
+    render(&img, &parallel_rig(), 8, 3);
+    std::fs::write(
+        img.join("cameras.csv"),
+        "camera,board,board_camera,from\n0,b1,0,10.0.0.6\n1,b0,1,10.0.0.5:7704\n",
+    )
+    .unwrap();
+    let placed = |out: &Path| -> Vec<(String, u8)> {
+        RigParams::from_blob(&std::fs::read(out.join("rig.irp")).unwrap())
+            .unwrap()
+            .placement
+            .into_iter()
+            .map(|p| (p.board, p.local_index))
+            .collect()
+    };
+    let out = dir.join("out");
+    let o = calibrate(&img, &out, &["--accept-poor"]);
+    let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(o.status.success(), "calibrate failed: {}", stderr(&o));
+    assert!(
+        stdout.contains(&format!(
+            "placement from {}: cam0 = b1/0, cam1 = b0/1\n",
+            img.join("cameras.csv").display()
+        )),
+        "{stdout}"
+    );
+    assert_eq!(placed(&out), [("b1".to_string(), 0), ("b0".to_string(), 1)]);
+
+    let out = dir.join("option");
+    let o = calibrate(&img, &out, &["--accept-poor", "--placement", "b0:0,b0:1"]);
+    let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(o.status.success(), "calibrate failed: {}", stderr(&o));
+    assert!(
+        stdout.contains("placement from --placement: cam0 = b0/0, cam1 = b0/1\n"),
+        "{stdout}"
+    );
+    assert_eq!(placed(&out), [("b0".to_string(), 0), ("b0".to_string(), 1)]);
+
+    // Wrong lists: said first (no "board found" lines: no detection ran), nothing written.
+    let never = dir.join("never");
+    for (extra, want) in [
+        (
+            &["--placement", "b0:0,b1:0,b2:0"][..],
+            "--placement places 3 cameras, the parameter set has 2".to_string(),
+        ),
+        (
+            &["--placement", "b0:0,b0:0"][..],
+            "--placement: cameras 0 and 1 are both placed on board b0 camera 0".to_string(),
+        ),
+        (
+            &["--placement", "b0=0,b1:0"][..],
+            "--placement entry 0 (\"b0=0\") is not BOARD:INDEX".to_string(),
+        ),
+    ] {
+        let o = calibrate(&img, &never, extra);
+        let e = stderr(&o);
+        assert!(!o.status.success() && e.contains(&want), "{extra:?}: {e}");
+        assert!(!e.contains("board found"), "{extra:?}: calibrated first: {e}");
+    }
+    std::fs::write(
+        img.join("cameras.csv"),
+        "camera,board,board_camera,from\n0,b0,0,h0\n1,b0,1,h0\n2,b1,0,h1\n",
+    )
+    .unwrap();
+    let o = calibrate(&img, &never, &[]);
+    let e = stderr(&o);
+    assert!(
+        !o.status.success()
+            && e.contains(&format!(
+                "{} places 3 cameras, the parameter set has 2",
+                img.join("cameras.csv").display()
+            )),
+        "{e}"
+    );
+    // A file from boards that reported no name: no placement, and one line saying so.
+    std::fs::write(
+        img.join("cameras.csv"),
+        "camera,board,board_camera,from\n0,10.0.0.5:7704,0,\n1,10.0.0.6:7704,0,\n",
+    )
+    .unwrap();
+    let o = calibrate(&img, &never, &["--accept-poor"]);
+    let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(o.status.success(), "calibrate failed: {}", stderr(&o));
+    assert!(
+        stdout.contains("no placement: ") && stdout.contains("give --placement BOARD:INDEX"),
+        "{stdout}"
+    );
+    assert!(placed(&never).is_empty());
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -450,7 +450,10 @@ fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
     // after A's (refused), then four sets 1 ms apart.
     let responses = |b: bool| -> Responses {
         let c = usize::from(b);
+        // Board A reports the name b0; board B (standalone) none: its rows keep its address.
+        let status = if b { unnamed_status() } else { status_of("b0") };
         let mut r = vec![
+            status,
             board_set(b, 0, 0, &[view(c, 0)], size),
             board_set(b, 1, 0, &[view(c, 0)], size),
             board_set(b, 5, if b { 6_000_000 } else { 0 }, &[view(c, 0)], size),
@@ -476,7 +479,7 @@ fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
     print!("{stdout}{stderr}");
     assert!(run.output.status.success(), "{stdout}\n{stderr}");
     let (addr_a, addr_b) = (run.addrs[0].clone(), run.addrs[1].clone());
-    assert_eq!(run.served(), [7, 7]);
+    assert_eq!(run.served(), [8, 8]);
     assert!(
         stdout.contains(&format!(
             "board {addr_a}: 1 camera, {}x{} 8-bit → cam0..cam0",
@@ -520,7 +523,13 @@ fn capture_across_boards_pairs_numbers_and_refuses_offsets() {
     );
     assert_eq!(
         std::fs::read_to_string(out.join("cameras.csv")).unwrap(),
-        format!("camera,board,board_camera\n0,{addr_a},0\n1,{addr_b},0\n")
+        format!("camera,board,board_camera,from\n0,b0,0,{addr_a}\n1,{addr_b},0,\n")
+    );
+    assert!(
+        stdout.contains(&format!(
+            "board {addr_b} reports no name ([cluster] board): cameras.csv holds its address and calibrate writes no placement"
+        )),
+        "{stdout}"
     );
     // Timestamps on the shared realtime clock, not the boards' monotonic ones.
     let ts = std::fs::read_to_string(out.join("timestamps.csv")).unwrap();
@@ -574,11 +583,11 @@ fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
         b
     };
     let responses = |b: bool| -> Responses {
-        (0..12u64)
-            .map(|k| {
+        std::iter::once(status_of(if b { "b1" } else { "b0" }))
+            .chain((0..12u64).map(|k| {
                 let phase = if b && k >= 2 { 20_000_000 } else { 0 };
                 board_set(b, k, phase, std::slice::from_ref(&pgm), size)
-            })
+            }))
             .collect()
     };
     let out = dir.join("never");
@@ -590,7 +599,7 @@ fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
     let (stdout, stderr) = text(&run.output);
     assert!(!run.output.status.success(), "{stdout}\n{stderr}");
     let (addr_a, addr_b) = (run.addrs[0].clone(), run.addrs[1].clone());
-    assert_eq!(run.served(), [12, 12]);
+    assert_eq!(run.served(), [13, 13]);
     let offset = format!("board {addr_b}'s frames are +20.000 ms from board {addr_a}'s (tolerance 4.167 ms");
     assert_eq!(stderr.matches("set refused, not saved").count(), 9, "{stderr}");
     assert!(
@@ -602,12 +611,18 @@ fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
     // irtrackd without the clock field.
     let run = capture(
         vec![
-            vec![board_set(false, 0, 0, std::slice::from_ref(&pgm), size)],
-            vec![(
-                200,
-                "application/x-irtrack-frameset",
-                frameset_body(1, std::slice::from_ref(&pgm), size),
-            )],
+            vec![
+                status_of("b0"),
+                board_set(false, 0, 0, std::slice::from_ref(&pgm), size),
+            ],
+            vec![
+                status_of("b1"),
+                (
+                    200,
+                    "application/x-irtrack-frameset",
+                    frameset_body(1, std::slice::from_ref(&pgm), size),
+                ),
+            ],
         ],
         &out,
         &["--wand"],
@@ -630,7 +645,7 @@ fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
         .unwrap()
         .port();
     let silent = format!("127.0.0.1:{port}");
-    let (addr_a, _) = serve(vec![board_set(false, 0, 0, std::slice::from_ref(&pgm), size)]);
+    let (addr_a, _) = serve(vec![status_of("b0")]);
     let out = dir.join("silent");
     let o = host_tools(&[
         "capture",
@@ -649,6 +664,15 @@ fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
         "{stderr}"
     );
     assert!(!out.exists(), "{} created for nothing", out.display());
+}
+
+/// A standalone board's `/status` answer: no cluster section, so no name.
+fn unnamed_status() -> (u16, &'static str, Vec<u8>) {
+    (
+        200,
+        "application/json",
+        b"{\"uptime_s\":1.0,\"cluster\":null}".to_vec(),
+    )
 }
 
 /// A camera board's `/status` answer: the parts capture reads (`cluster.board`).
@@ -741,7 +765,7 @@ fn capture_across_boards_follows_the_rig_placement_not_the_from_order() {
     }
     assert_eq!(
         std::fs::read_to_string(out.join("cameras.csv")).unwrap(),
-        "camera,board,board_camera\n0,b0,0\n1,b1,0\n"
+        format!("camera,board,board_camera,from\n0,b0,0,{addr_b0}\n1,b1,0,{addr_b1}\n")
     );
     // Timestamps follow their cameras: cam0's row is board b0's realtime (phase 0 on both).
     let ts = std::fs::read_to_string(out.join("timestamps.csv")).unwrap();
@@ -752,14 +776,14 @@ fn capture_across_boards_follows_the_rig_placement_not_the_from_order() {
 
     // The same boards without --params: --from order (b1's camera is cam0), said in one line.
     let plain = dir.join("plain");
-    let strip = |r: Responses| -> Responses { r.into_iter().skip(1).collect() };
     let run = capture(
-        vec![strip(responses(1, "b1")), strip(responses(0, "b0"))],
+        vec![responses(1, "b1"), responses(0, "b0")],
         &plain,
         &["--wand", "--count", "2"],
     );
     let (stdout, stderr) = text(&run.output);
     assert!(run.output.status.success(), "{stdout}\n{stderr}");
+    let run_addrs = run.addrs.clone();
     run.served();
     assert!(
         stdout.contains(
@@ -768,6 +792,16 @@ fn capture_across_boards_follows_the_rig_placement_not_the_from_order() {
         "{stdout}"
     );
     assert!(std::fs::read(plain.join("cam0/000000.pgm")).unwrap() == view(1, 0));
+    // The boards' reported names, in the --from order, so calibrate places the cameras.
+    let (a1, a0) = (run_addrs[0].clone(), run_addrs[1].clone());
+    assert!(
+        stdout.contains(&format!("boards by the names they report: b1 ({a1}), b0 ({a0})")),
+        "{stdout}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(plain.join("cameras.csv")).unwrap(),
+        format!("camera,board,board_camera,from\n0,b1,0,{a1}\n1,b0,0,{a0}\n")
+    );
 }
 
 /// Runs capture with `--params` against boards that answer only their `/status` and then

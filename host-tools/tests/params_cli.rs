@@ -286,6 +286,77 @@ fn convert_refuses_invalid_unless_forced() {
     assert_eq!(read_rig_yaml(&out).unwrap(), rig);
 }
 
+/// An integrator's set calibrated on one board gets its placement without recalibrating:
+/// `convert-params --placement` writes a v4 blob whose placement decodes as given, replaces an
+/// existing one, and names wrong lists.
+#[test]
+fn convert_params_places_the_cameras_on_boards() {
+    let rig = rig2();
+    let blob = tmp("unplaced.irp");
+    std::fs::write(&blob, rig.to_blob().unwrap()).unwrap();
+    let placed = tmp("placed.irp");
+    let o = host_tools(&["convert-params", p(&blob), p(&placed), "--placement", "b1:0,b0:1"]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}\n{err}");
+    assert!(out.contains("placement: cam0 = b1/0, cam1 = b0/1\n"), "{out}");
+    let bytes = std::fs::read(&placed).unwrap();
+    assert_eq!(u16::from_le_bytes([bytes[4], bytes[5]]), 4, "blob format version");
+    let got = RigParams::from_blob(&bytes).unwrap();
+    let places: Vec<(&str, u8)> = got
+        .placement
+        .iter()
+        .map(|p| (p.board.as_str(), p.local_index))
+        .collect();
+    assert_eq!(places, [("b1", 0), ("b0", 1)]);
+    assert_eq!(got.cameras, rig.cameras);
+    // Replaced, and said what it was.
+    let again = tmp("replaced.irp");
+    let o = host_tools(&[
+        "convert-params",
+        p(&placed),
+        p(&again),
+        "--placement",
+        "b0:0,b1:0",
+    ]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}\n{err}");
+    assert!(
+        out.contains("placement: cam0 = b0/0, cam1 = b1/0 (was: cam0 = b1/0, cam1 = b0/1)"),
+        "{out}"
+    );
+    for (spec, want) in [
+        ("b0:0", "--placement places 1 camera, the parameter set has 2"),
+        (
+            "b0:1,b0:1",
+            "--placement: cameras 0 and 1 are both placed on board b0 camera 1",
+        ),
+        ("b0:0,b1", "--placement entry 1 (\"b1\") is not BOARD:INDEX"),
+        ("b0:0,b1:x", "camera index \"x\" is not a number 0..=255"),
+        (
+            "b0:0,b 1:0",
+            "camera 1: board name \"b 1\" must be 1..=32 characters",
+        ),
+    ] {
+        let out = tmp("never.irp");
+        let o = host_tools(&["convert-params", p(&blob), p(&out), "--placement", spec]);
+        let (_, err) = text(&o);
+        assert!(!o.status.success() && err.contains(want), "{spec}: {err}");
+        assert!(!out.exists(), "{spec}: wrote {}", out.display());
+    }
+    let o = host_tools(&[
+        "convert-params",
+        p(&blob),
+        p(&tmp("placed.yaml")),
+        "--placement",
+        "b0:0,b1:0",
+    ]);
+    let (_, err) = text(&o);
+    assert!(
+        !o.status.success() && err.contains("OpenCV YAML carries no camera placement"),
+        "{err}"
+    );
+}
+
 #[test]
 fn show_params_reports_geometry() {
     let blob = tmp("show.irp");

@@ -821,3 +821,66 @@ fn corner_errors_of_the_simulated_board_views() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A wave captured across two camera boards (cameras.csv with the names they reported): the
+/// parameter set carries that placement (decoded from rig.irp); `--placement` overrides it and
+/// a wrong one is refused before the wave is read.
+#[test]
+fn wand_calibrate_writes_the_placement_of_the_capture() {
+    let dir = temp_dir("placement");
+    let truth = rig_90();
+    let intrinsics = dir.join("intrinsics.irp");
+    std::fs::write(&intrinsics, truth.to_blob().unwrap()).unwrap();
+    let mut cfg = WandConfig::new(truth.clone(), centre(), 200);
+    cfg.seed = 3;
+    WandWave::new(cfg).unwrap().write_wave(&dir.join("wave")).unwrap();
+    std::fs::write(
+        dir.join("wave/cameras.csv"),
+        "camera,board,board_camera,from\n0,b0,0,10.0.0.5\n1,b1,0,10.0.0.6\n",
+    )
+    .unwrap();
+    let placed = |out: &Path| -> Vec<(String, u8)> {
+        load(&out.join("rig.irp"))
+            .placement
+            .into_iter()
+            .map(|p| (p.board, p.local_index))
+            .collect()
+    };
+    let out = dir.join("csv");
+    let stdout = wand_calibration(&dir.join("wave"), &intrinsics, &out, &["--accept-poor"]);
+    assert!(
+        stdout.contains(&format!(
+            "placement from {}: cam0 = b0/0, cam1 = b1/0\n",
+            dir.join("wave/cameras.csv").display()
+        )),
+        "{stdout}"
+    );
+    assert_eq!(placed(&out), [("b0".to_string(), 0), ("b1".to_string(), 0)]);
+    let out = dir.join("option");
+    let stdout = wand_calibration(
+        &dir.join("wave"),
+        &intrinsics,
+        &out,
+        &["--accept-poor", "--placement", "solver:0,b1:0"],
+    );
+    assert!(
+        stdout.contains("placement from --placement: cam0 = solver/0, cam1 = b1/0\n"),
+        "{stdout}"
+    );
+    assert_eq!(placed(&out), [("solver".to_string(), 0), ("b1".to_string(), 0)]);
+    let o = host_tools(
+        &["wand-calibrate", "--wand-mm", "0,120,300", "--placement", "b0:0"],
+        &[
+            ("--frames", &dir.join("wave")),
+            ("--intrinsics", &intrinsics),
+            ("--out-dir", &dir.join("never")),
+        ],
+    );
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("--placement places 1 camera, the parameter set has 2"),
+        "{e}"
+    );
+    assert!(!e.contains("frames"), "read the wave first: {e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

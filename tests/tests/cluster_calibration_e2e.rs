@@ -73,7 +73,7 @@ fn wand_wave_captured_across_two_camera_boards_calibrates_the_whole_rig() {
     drop((b0, b1));
     assert_eq!(
         std::fs::read_to_string(wave.join("cameras.csv")).unwrap(),
-        format!("camera,board,board_camera\n0,{a},0\n1,{a},1\n2,{b},0\n3,{b},1\n")
+        format!("camera,board,board_camera,from\n0,b0,0,{a}\n1,b0,1,{a}\n2,b1,0,{b}\n3,b1,1,{b}\n")
     );
     // Every saved set: the four cameras' frames within the pairing tolerance on CLOCK_REALTIME
     // (half a period), and the same simulated frame on both boards (their frames fall on the
@@ -126,6 +126,20 @@ fn wand_wave_captured_across_two_camera_boards_calibrates_the_whole_rig() {
     println!("wand-calibrate ({calib_s:.1} s):\n{stderr}{stdout}");
     let got = RigParams::from_blob(&std::fs::read(out.join("rig.irp")).unwrap()).unwrap();
     assert_eq!(got.cameras.len(), 4);
+    // The boards' names from cameras.csv, as the set's placement (ready for the solver).
+    assert!(
+        stdout.contains(&format!(
+            "placement from {}: cam0 = b0/0, cam1 = b0/1, cam2 = b1/0, cam3 = b1/1",
+            wave.join("cameras.csv").display()
+        )),
+        "{stdout}"
+    );
+    let placed: Vec<(&str, u8)> = got
+        .placement
+        .iter()
+        .map(|p| (p.board.as_str(), p.local_index))
+        .collect();
+    assert_eq!(placed, [("b0", 0), ("b0", 1), ("b1", 0), ("b1", 1)]);
     for i in 1..4 {
         let (rot_deg, centre_mm) = pose_error(&truth, &got, i);
         let (b_true, b_got) = (truth.baseline_mm(i).unwrap(), got.baseline_mm(i).unwrap());

@@ -88,7 +88,7 @@ fn checkerboard_captured_across_two_camera_boards_calibrates_the_whole_rig() {
     drop((b0, b1));
     assert_eq!(
         std::fs::read_to_string(shots.join("cameras.csv")).unwrap(),
-        format!("camera,board,board_camera\n0,{a},0\n1,{a},1\n2,{b},0\n3,{b},1\n")
+        format!("camera,board,board_camera,from\n0,b0,0,{a}\n1,b0,1,{a}\n2,b1,0,{b}\n3,b1,1,{b}\n")
     );
     // Every saved set: the four frames within half a period on CLOCK_REALTIME, so the same
     // wall-clock frame, hence the same pose on both boards.
@@ -146,6 +146,20 @@ fn checkerboard_captured_across_two_camera_boards_calibrates_the_whole_rig() {
     let got = RigParams::from_blob(&std::fs::read(out.join("rig.irp")).unwrap()).unwrap();
     let truth = ring_rig_arc(4, DISTANCE_MM, ARC_DEG);
     assert_eq!(got.cameras.len(), 4);
+    // The boards' names from cameras.csv, as the set's placement (ready for the solver).
+    assert!(
+        stdout.contains(&format!(
+            "placement from {}: cam0 = b0/0, cam1 = b0/1, cam2 = b1/0, cam3 = b1/1",
+            shots.join("cameras.csv").display()
+        )),
+        "{stdout}"
+    );
+    let placed: Vec<(&str, u8)> = got
+        .placement
+        .iter()
+        .map(|p| (p.board.as_str(), p.local_index))
+        .collect();
+    assert_eq!(placed, [("b0", 0), ("b0", 1), ("b1", 0), ("b1", 1)]);
     for (i, (t, g)) in truth.cameras.iter().zip(&got.cameras).enumerate() {
         let (t, g) = (&t.model.intrinsics, &g.model.intrinsics);
         let f_rel = ((g.fx_px - t.fx_px) / t.fx_px)

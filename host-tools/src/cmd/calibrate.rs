@@ -57,6 +57,12 @@ pub struct Args {
     /// --accept-poor too.
     #[arg(long)]
     pub accept_poor: bool,
+    /// Where each camera sits when the cameras are on several boards, camera 0 first:
+    /// BOARD:INDEX,… (the board's `[cluster] board` name and the camera's index there, e.g.
+    /// b0:0,b0:1,b1:0,b1:1). Default: the capture folder's cameras.csv when its boards reported
+    /// names (`host-tools capture --from A --from B`); none for one board (docs/cluster.md).
+    #[arg(long, value_name = "BOARD:INDEX,…")]
+    pub placement: Option<String>,
 }
 
 /// Runs the subcommand.
@@ -92,6 +98,8 @@ pub fn run(args: Args) -> Result<()> {
         square_mm: args.square_mm,
     };
     let set = input::discover(&args.images, args.pattern.as_deref())?;
+    // A wrong placement is said before the calibration, not after it.
+    crate::placement::precheck(&args.images, args.placement.as_deref(), set.cameras.len())?;
     eprintln!(
         "{} cameras, {} complete views ({} incomplete)",
         set.cameras.len(),
@@ -147,6 +155,7 @@ pub fn run(args: Args) -> Result<()> {
     let gate = board_quality::judge(&cal, args.expect_baseline_mm)?;
     gate.enforce(args.accept_poor)?;
     cal.rig.calibration = Some(Box::new(gate.record(now)));
+    crate::placement::for_calibration(&mut cal.rig, &args.images, args.placement.as_deref())?;
     cal.rig
         .validate()
         .map_err(|e| anyhow::anyhow!("calibration record: {e}"))?;

@@ -108,35 +108,51 @@ pub fn status_url(from: &str) -> String {
     format!("{}/status", base_url(from))
 }
 
-/// The name irtrackd on `board` reports for itself: `/status` → `cluster.board` (its
-/// `[cluster] board`, the name a placement uses).
-pub fn board_name(agent: &ureq::Agent, board: &str) -> anyhow::Result<String> {
+/// irtrackd's `/status` on `board` as JSON, or the HTTP status code it answered instead.
+fn status_json(agent: &ureq::Agent, board: &str) -> anyhow::Result<Result<serde_json::Value, u16>> {
     let url = status_url(board);
     let body = match agent.get(&url).call() {
         Ok(r) => r
             .into_string()
             .with_context(|| format!("reading /status of irtrackd on {board}"))?,
-        Err(ureq::Error::Status(code, _)) => {
-            bail!("irtrackd on {board} answered {code} to GET /status; cannot tell its board name")
-        }
+        Err(ureq::Error::Status(code, _)) => return Ok(Err(code)),
         Err(ureq::Error::Transport(t)) => {
             bail!("cannot reach irtrackd on {board} ({url}): {t}; is the board on and irtrackd running?")
         }
     };
-    let status: serde_json::Value =
+    let status =
         serde_json::from_str(&body).with_context(|| format!("/status of irtrackd on {board} is not JSON"))?;
+    Ok(Ok(status))
+}
+
+/// `cluster.board` of a `/status` answer, if it names one.
+fn cluster_board(status: &serde_json::Value) -> Option<String> {
     status
         .get("cluster")
         .and_then(|c| c.get("board"))
         .and_then(serde_json::Value::as_str)
         .filter(|n| !n.is_empty())
         .map(str::to_owned)
-        .ok_or_else(|| {
-            anyhow!(
-                "irtrackd on {board} reports no board name (/status has no cluster.board): --params needs camera boards \
-                 ([cluster] role = \"camera\" and board = \"…\", docs/cluster.md) or a solver with cameras of its own"
-            )
-        })
+}
+
+/// The name irtrackd on `board` reports for itself: `/status` → `cluster.board` (its
+/// `[cluster] board`, the name a placement uses).
+pub fn board_name(agent: &ureq::Agent, board: &str) -> anyhow::Result<String> {
+    let status = status_json(agent, board)?.map_err(|code| {
+        anyhow!("irtrackd on {board} answered {code} to GET /status; cannot tell its board name")
+    })?;
+    cluster_board(&status).ok_or_else(|| {
+        anyhow!(
+            "irtrackd on {board} reports no board name (/status has no cluster.board): --params needs camera boards \
+             ([cluster] role = \"camera\" and board = \"…\", docs/cluster.md) or a solver with cameras of its own"
+        )
+    })
+}
+
+/// The board's name if it reports one (a camera board or solver); `None` for a standalone
+/// board or firmware without `/status`, whose cameras.csv rows then carry the address.
+pub fn reported_name(agent: &ureq::Agent, board: &str) -> anyhow::Result<Option<String>> {
+    Ok(status_json(agent, board)?.ok().as_ref().and_then(cluster_board))
 }
 
 /// Why the boards given do not match the rig's placement. Every message names the board (as
@@ -565,17 +581,23 @@ impl Boards {
     }
 }
 
-/// `DIR/cameras.csv` for a capture across boards: `camera,board,board_camera` per camera, so
-/// the folder says where each `camN/` came from. A folder holding sets of other boards (or of
-/// boards in another order) is refused instead of mixed.
-pub const CAMERAS_FILE: &str = "cameras.csv";
+/// `DIR/cameras.csv` for a capture across boards: `camera,board,board_camera,from` per camera,
+/// so the folder says where each `camN/` came from, and `calibrate`/`wand-calibrate` write it
+/// as the set's placement. A folder holding sets of other boards (or of boards in another
+/// order) is refused instead of mixed.
+pub const CAMERAS_FILE: &str = crate::placement::CAMERAS_FILE;
 
-/// `camera,board,board_camera` per camera of `order`; `boards` labels each board (its reported
-/// name with a placement, else as given to `--from`).
-fn cameras_csv(boards: &[String], order: &[(usize, usize)]) -> String {
-    let mut s = String::from("camera,board,board_camera\n");
+/// `camera,board,board_camera,from` per camera of `order`. Per board: `names` its reported
+/// name (`None`: it reports none), `from` as given to `--from`. `board` is the name, else the
+/// address (as files before the `from` column); `from` is the address when `board` is a name
+/// and empty when it is not, so a reader tells names from addresses.
+fn cameras_csv(names: &[Option<String>], from: &[String], order: &[(usize, usize)]) -> String {
+    let mut s = String::from("camera,board,board_camera,from\n");
     for (g, (b, c)) in order.iter().enumerate() {
-        s.push_str(&format!("{g},{},{c}\n", boards[*b]));
+        match &names[*b] {
+            Some(name) => s.push_str(&format!("{g},{name},{c},{}\n", from[*b])),
+            None => s.push_str(&format!("{g},{},{c},\n", from[*b])),
+        }
     }
     s
 }
@@ -877,11 +899,32 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         None => None,
     };
+    // Without the placement, across boards: each board's name if it reports one, for
+    // cameras.csv (calibrate writes it as the set's placement).
+    let reported = if placed.is_none() && multi {
+        let names = args
+            .from
+            .iter()
+            .map(|b| reported_name(&boards.agent, b))
+            .collect::<anyhow::Result<Vec<Option<String>>>>()?;
+        // Two boards of one name would place two cameras on one board camera. A board
+        // without a name is keyed by its address (never equal: --from is given once each).
+        let keys: Vec<String> = names
+            .iter()
+            .zip(&args.from)
+            .map(|(n, f)| n.clone().unwrap_or_else(|| format!("\0{f}")))
+            .collect();
+        check_names(&args.from, &keys).map_err(|e| anyhow!("{e}"))?;
+        names
+    } else {
+        vec![None; args.from.len()]
+    };
     // Ask once before the session: an unreachable board or old firmware is said now, not
     // after the person has positioned the board and pressed Enter.
     let firsts = boards.fetch_each()?;
     let counts: Vec<usize> = firsts.iter().map(|s| s.pgms.len()).collect();
-    // Which board and camera each saved camera is, and how cameras.csv names the boards.
+    // Which board and camera each saved camera is, and how cameras.csv names the boards (by
+    // the names they report, so calibrate can write the placement).
     let (order, labels) = match &placed {
         Some((path, placement, names)) => {
             let cams: Vec<BoardCameras> = args
@@ -897,9 +940,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .collect();
             let order = placement_order(placement, &cams)
                 .map_err(|e| anyhow!("{e} (placement of {})", path.display()))?;
-            (order, names.clone())
+            (order, names.iter().cloned().map(Some).collect::<Vec<_>>())
         }
-        None => (from_order(&counts), args.from.clone()),
+        None => (from_order(&counts), reported.clone()),
     };
     if multi {
         for (board, set) in args.from.iter().zip(&firsts) {
@@ -967,6 +1010,32 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ),
         None => {}
     }
+    if placed.is_none() && multi {
+        let unnamed: Vec<&str> = args
+            .from
+            .iter()
+            .zip(&reported)
+            .filter(|(_, n)| n.is_none())
+            .map(|(f, _)| f.as_str())
+            .collect();
+        if unnamed.is_empty() {
+            let named: Vec<String> = args
+                .from
+                .iter()
+                .zip(reported.iter().flatten())
+                .map(|(f, n)| format!("{n} ({f})"))
+                .collect();
+            println!(
+                "boards by the names they report: {}; {CAMERAS_FILE} records them, and calibrate/wand-calibrate write them as the set's placement",
+                named.join(", ")
+            );
+        } else {
+            println!(
+                "board {} reports no name ([cluster] board): {CAMERAS_FILE} holds its address and calibrate writes no placement (give it --placement for a cluster solver)",
+                unnamed.join(", ")
+            );
+        }
+    }
     if multi {
         println!(
             "pairing the boards' frames on CLOCK_REALTIME within ±{:.3} ms",
@@ -975,7 +1044,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if multi || placed.is_some() {
         println!("capturing into {}: {mode}{limit}", args.out.display());
-        let csv = cameras_csv(&labels, &order);
+        let csv = cameras_csv(&labels, &args.from, &order);
         let path = args.out.join(CAMERAS_FILE);
         match std::fs::read_to_string(&path) {
             Ok(old) if old != csv => bail!(
@@ -1256,8 +1325,12 @@ mod tests {
             [b.pgms[0].clone(), a.pgms[1].clone(), a.pgms[0].clone()]
         );
         assert_eq!(
-            cameras_csv(&names, &placed),
-            "camera,board,board_camera\n0,b,0\n1,a,1\n2,a,0\n"
+            cameras_csv(
+                &[Some("a".into()), Some("b".into())],
+                &["h0".into(), "h1:7704".into()],
+                &placed
+            ),
+            "camera,board,board_camera,from\n0,b,0,h1:7704\n1,a,1,h0\n2,a,0,h0\n"
         );
         assert_eq!(camera_names(0, &placed), "cam2, cam1");
         assert_eq!(camera_names(1, &placed), "cam0..cam0");
@@ -1267,8 +1340,8 @@ mod tests {
             PairError::NoClock { board: "b".into() }
         );
         assert_eq!(
-            cameras_csv(&names, &order),
-            "camera,board,board_camera\n0,a,0\n1,a,1\n2,b,0\n"
+            cameras_csv(&[None, Some("b".into())], &names, &order),
+            "camera,board,board_camera,from\n0,a,0,\n1,a,1,\n2,b,0,b\n"
         );
     }
 

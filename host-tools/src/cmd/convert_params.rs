@@ -1,5 +1,7 @@
 //! `host-tools convert-params IN OUT`: parameter blob ↔ OpenCV YAML. The output format follows
 //! OUT's extension: `.yaml`/`.yml` is YAML, anything else a blob (signed with `--sign-key`).
+//! `--placement` adds or replaces the cameras' placement on boards (docs/cluster.md), so a set
+//! calibrated without one can be pushed to a cluster solver without recalibrating.
 
 use std::path::{Path, PathBuf};
 
@@ -22,6 +24,11 @@ pub struct Args {
     /// Secret key file (from `host-tools keygen`): write a signed blob.
     #[arg(long, value_name = "FILE")]
     pub sign_key: Option<PathBuf>,
+    /// Place the cameras on boards (adds or replaces the set's placement), camera 0 first:
+    /// BOARD:INDEX,… with each board's `[cluster] board` name, e.g. b0:0,b0:1,b1:0,b1:1.
+    /// Blob output only (OpenCV YAML carries no placement).
+    #[arg(long, value_name = "BOARD:INDEX,…")]
+    pub placement: Option<String>,
 }
 
 /// Writes `bytes` to `path` through a temporary file and a rename, so readers never see half.
@@ -34,7 +41,27 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
     let loaded = load_params_file(&args.input)?;
-    let rig = loaded.rig;
+    let mut rig = loaded.rig;
+    if let Some(spec) = &args.placement {
+        if is_yaml_path(&args.output) {
+            bail!(
+                "{}: OpenCV YAML carries no camera placement; write a parameter blob to place the cameras",
+                args.output.display()
+            );
+        }
+        let placement = crate::placement::parse_for(spec, rig.cameras.len())?;
+        let was = crate::placement::describe(&rig.placement);
+        crate::placement::apply(&mut rig, placement, "--placement")?;
+        println!(
+            "placement: {}{}",
+            crate::placement::describe(&rig.placement),
+            if was.is_empty() {
+                String::new()
+            } else {
+                format!(" (was: {was})")
+            }
+        );
+    }
     if args.sign_key.is_some() && is_yaml_path(&args.output) {
         bail!(
             "{}: OpenCV YAML cannot carry a signature; sign a blob output instead",

@@ -68,6 +68,12 @@ pub struct Args {
     /// --accept-poor too.
     #[arg(long)]
     pub accept_poor: bool,
+    /// Where each camera sits when the cameras are on several boards, camera 0 first:
+    /// BOARD:INDEX,… (the board's `[cluster] board` name and the camera's index there, e.g.
+    /// b0:0,b0:1,b1:0,b1:1). Default: the capture folder's cameras.csv when its boards reported
+    /// names (`host-tools capture --from A --from B`); none for one board (docs/cluster.md).
+    #[arg(long, value_name = "BOARD:INDEX,…")]
+    pub placement: Option<String>,
 }
 
 /// Runs the subcommand.
@@ -86,6 +92,8 @@ pub fn run(args: Args) -> Result<()> {
         );
     }
     let refine_intrinsics = args.refine_intrinsics || args.boards.is_some();
+    // A wrong placement is said before the calibration, not after it.
+    crate::placement::precheck(&args.frames, args.placement.as_deref(), models.len())?;
     if args.fix_k3 && !refine_intrinsics {
         bail!("--fix-k3 applies to refined intrinsics: add --refine-intrinsics or --boards");
     }
@@ -163,6 +171,7 @@ pub fn run(args: Args) -> Result<()> {
     print_figures(&rig, &sol, &fig)?;
     gate.enforce(args.accept_poor)?;
     rig.calibration = Some(Box::new(gate.record(now)));
+    crate::placement::for_calibration(&mut rig, &args.frames, args.placement.as_deref())?;
     rig.validate()
         .context("wand calibration produced unusable parameters")?;
     let (written, _) = wand_report::write_outputs(&args.out_dir, &sol, &rig, &wand, &obs.frames)?;
