@@ -26,7 +26,7 @@ enum Command {
     PushParams(cmd::push_params::Args),
     /// Print a parameter blob or calibration YAML in readable form.
     ShowParams(cmd::show_params::Args),
-    /// Convert between parameter blobs and OpenCV YAML.
+    /// Convert between parameter blobs and OpenCV YAML; --placement places the cameras on boards.
     ConvertParams(cmd::convert_params::Args),
     /// Simulated robot controller (robot side of the robot protocol).
     RobotSim(cmd::robot_sim::Args),

@@ -16,7 +16,9 @@
 //! board is known by the name it reports (`/status` → `cluster.board`), and each rig camera is
 //! taken from the board and index its placement names, whatever the `--from` order. Without
 //! it they are numbered board by board in `--from` order (and capture says so). A set whose
-//! boards do not pair is refused, named, and never saved.
+//! boards do not pair is refused, named, and never saved. The folder's `cameras.csv` names each
+//! camera's board as the board reports itself, so `calibrate`/`wand-calibrate` write it as the
+//! set's placement.
 
 use std::io::{BufRead, Write};
 use std::path::{Path, PathBuf};
@@ -44,7 +46,9 @@ const GRID_ROWS: usize = 6;
 pub struct Args {
     /// The board running irtrackd: HOST or HOST:PORT (port 7704 if left out). Give it once per
     /// camera board to capture across boards. Without --params the cameras are numbered board
-    /// by board in this order (so give the board of the rig's cameras 0, 1 first).
+    /// by board in this order (so give the board of the rig's cameras 0, 1 first). Across
+    /// boards, cameras.csv records each board by the name its /status reports (the placement
+    /// calibrate and wand-calibrate then write).
     #[arg(long, value_name = "BOARD[:PORT]", required = true)]
     pub from: Vec<String>,
     /// The rig's parameter blob with its camera placement (the set pushed to the solver with
