@@ -19,15 +19,16 @@
 //!    120 fps; then where the solver's sets went in the same windows: frames sent, sets
 //!    published, complete/incomplete, late, conflicting, clock-refused, queue overflow.
 //!
-//! 5. the hop in the product: 2 irtrackd camera boards → an irtrackd solver as separate
-//!    processes (the binary beside this example's directory, or `--irtrackd PATH`), the
-//!    solver's `/status` → `cluster.hop_us`, with and without `[cluster]
-//!    transport_fifo_priority` (`--fifo PRIO`, else 50), alternating, `--rounds N` rounds
+//! 5. the hop in the product: 2, then 4 irtrackd camera boards (`--boards N`: N only) → an
+//!    irtrackd solver as separate processes (the binary beside this example's directory, or
+//!    `--irtrackd PATH`), the solver's `/status` → `cluster.hop_us`, without `[cluster]
+//!    transport_fifo_priority`, with it at the loops' 50 (`--fifo PRIO`) and 10 above,
+//!    alternating, `--rounds N` rounds
 //!    (default 3); `--processes-only` runs only these rows.
 //!
 //! `cargo run --release -p irtrack-firmware --features cluster --example cluster_bench
 //! [-- --secs S] [--quick] [--low-latency | --default-transport] [--fifo PRIO]
-//! [--stamp-at-publish] [--processes-only] [--rounds N] [--irtrackd PATH]`.
+//! [--stamp-at-publish] [--processes-only] [--rounds N] [--boards N] [--irtrackd PATH]`.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -397,8 +398,22 @@ fn main() {
         .nth(1)
         .and_then(|s| s.parse().ok())
         .unwrap_or(if o.quick { 1 } else { 3 });
+    // `--boards N` runs the process rows with N camera boards only (default: 2, then 4).
+    let board_counts: Vec<usize> = match args
+        .iter()
+        .skip_while(|a| *a != "--boards")
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+    {
+        Some(n) => vec![n],
+        None => vec![2, 4],
+    };
     let procs = |prio: Option<i32>| match irtrackd_exe() {
-        Some(exe) => process_rows(&exe, 2, secs, rounds, &o.transports, prio.unwrap_or(50)),
+        Some(exe) => {
+            for &boards in &board_counts {
+                process_rows(&exe, boards, secs, rounds, &o.transports, prio.unwrap_or(50));
+            }
+        }
         None => println!(
             "\nProcess rows skipped: no irtrackd binary beside this example (build it with `--features cluster --bin irtrackd`, or give --irtrackd PATH)"
         ),
@@ -1033,8 +1048,8 @@ fn irtrackd_exe() -> Option<std::path::PathBuf> {
     p.exists().then_some(p)
 }
 
-/// Process rows: real irtrackd camera boards → real irtrackd solver, with and without
-/// `[cluster] transport_fifo_priority`, for each transport, alternating within each round so
+/// Process rows: real irtrackd camera boards → real irtrackd solver, without `[cluster]
+/// transport_fifo_priority`, with it at the loops' priority and 10 above, for each transport, alternating within each round so
 /// every variant sees the same load.
 fn process_rows(
     exe: &std::path::Path,
@@ -1054,7 +1069,9 @@ fn process_rows(
     println!("|---|---|---|---|---|---|---|---|");
     for round in 1..=rounds {
         for &ll in transports {
-            for tp in [None, Some(prio)] {
+            // Unset, the loops' priority, and above the loops (a loop busy at the same
+            // priority holds the transport thread back until it blocks).
+            for tp in [None, Some(prio), Some((prio + 10).min(99))] {
                 match process_hop(exe, boards, secs, ll, tp) {
                     Ok(h) => println!(
                         "| {round} | {} | {} | {:.0} | {:.0} | {} | {} | {} |",

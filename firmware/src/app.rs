@@ -450,6 +450,9 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     // The session is open (camera board: its publishers; solver: its subscriber): raise
     // Zenoh's threads that carry observations, now and when they appear later.
     if let Some(prio) = cfg.cluster.transport_fifo_priority {
+        if let Some(advice) = crate::rt::transport_priority_advice(prio, cfg.realtime.fifo_priority) {
+            tracing::warn!("{advice}");
+        }
         crate::rt::watch_transport_threads(cfg.cluster.role, prio, Arc::downgrade(&status)).map_err(|e| {
             FirmwareError::Thread {
                 what: "transport priority watcher",
