@@ -802,6 +802,27 @@ fn capture_across_boards_follows_the_rig_placement_not_the_from_order() {
         std::fs::read_to_string(plain.join("cameras.csv")).unwrap(),
         format!("camera,board,board_camera,from\n0,b1,0,{a1}\n1,b0,0,{a0}\n")
     );
+    // A folder an older capture wrote (no from column) is not continued, and says why.
+    let old = dir.join("old");
+    std::fs::create_dir_all(old.join("cam0")).unwrap();
+    std::fs::write(old.join("cam0/000000.pgm"), view(0, 0)).unwrap();
+    std::fs::write(
+        old.join("cameras.csv"),
+        format!("camera,board,board_camera\n0,{a1},0\n1,{a0},0\n"),
+    )
+    .unwrap();
+    let run = capture(
+        vec![responses(1, "b1"), responses(0, "b0")],
+        &old,
+        &["--wand", "--count", "2"],
+    );
+    let (stdout, stderr) = text(&run.output);
+    assert!(!run.output.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stderr.contains("was written by an older capture (its cameras.csv has no from column"),
+        "{stderr}"
+    );
+    assert!(!old.join("cam1").exists(), "saved into the old folder");
 }
 
 /// Runs capture with `--params` against boards that answer only their `/status` and then

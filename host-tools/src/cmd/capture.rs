@@ -1051,6 +1051,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let csv = cameras_csv(&labels, &args.from, &order);
         let path = args.out.join(CAMERAS_FILE);
         match std::fs::read_to_string(&path) {
+            Ok(old) if old.starts_with("camera,board,board_camera\n") => bail!(
+                "{} was written by an older capture (its {CAMERAS_FILE} has no from column, so no board names for the placement); use another --out",
+                args.out.display()
+            ),
             Ok(old) if old != csv => bail!(
                 "{} holds sets of other boards or another camera order ({}); use another --out",
                 args.out.display(),
