@@ -1030,7 +1030,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .map(|(f, n)| format!("{n} ({f})"))
                 .collect();
             println!(
-                "boards by the names they report: {}; {CAMERAS_FILE} records them, and calibrate/wand-calibrate write them as the set's placement",
+                "boards by the names they report: {}; {CAMERAS_FILE} records them, and calibrate/wand-calibrate write them as the set's placement (so a set calibrated from this folder is placed as captured, whatever the --from order)",
                 named.join(", ")
             );
         } else {
