@@ -223,6 +223,8 @@ class CameraCard {
     // on the board (aim it and set its exposure on that board's own set-up view).
     const blobsOnly = head.pixels === false;
     this.root.dataset.pixels = blobsOnly ? "blobs-only" : "";
+    // No zoom crop comes for such a camera: say why instead of "no marker".
+    if (blobsOnly) this.zoomLabel.textContent = "no zoom: the pixels stay on its camera board";
     this.stats.textContent =
       (blobsOnly ? "blobs only: the pixels stay on its camera board (its own set-up view shows them) · " : "") +
       `${fullW}×${fullH} · set ${head.set_index} · ` +
