@@ -25,9 +25,15 @@ const RIG: &str = "cellx";
 const FPS: f64 = 30.0;
 
 fn rig() -> RigParams {
-    let mut r = ring_rig(3, 600.0);
+    placed_ring(&[("b0", 0), ("b0", 1), ("b1", 0)])
+}
+
+/// The ring rig of one camera per `placement` entry (board, index on it), with this test's
+/// rig id; validated.
+fn placed_ring(placement: &[(&str, u8)]) -> RigParams {
+    let mut r = ring_rig(placement.len(), 600.0);
     r.rig_id = RIG.into();
-    r.placement = [("b0", 0), ("b0", 1), ("b1", 0)]
+    r.placement = placement
         .iter()
         .map(|&(b, i)| CameraPlace {
             board: b.into(),
@@ -36,6 +42,40 @@ fn rig() -> RigParams {
         .collect();
     r.validate().unwrap();
     r
+}
+
+/// A solver on a free port (board `s0`, own cameras from `sim`) with the set `r` in its state
+/// directory and `r`'s image sizes as `image_sizes_px`; returns it and its port.
+async fn start_solver_with_own_cameras(
+    dir: &TempDir,
+    r: &RigParams,
+    sim: irtrack_firmware::source::sim::SimSourceConfig,
+) -> (app::Running, u16) {
+    std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut cfg = test_config(dir.path());
+    cfg.source.sim = Some(sim);
+    cfg.service.operator_password_hash = Some(irtrack_firmware::net::auth::hash_password(PASSWORD).unwrap());
+    cfg.cluster = ClusterConfig {
+        role: Role::Solver,
+        rig: RIG.into(),
+        board: "s0".into(),
+        own_cameras: true,
+        listen: vec![format!("tcp/127.0.0.1:{port}")],
+        fps: FPS,
+        board_timeout_ms: 300.0,
+        image_sizes_px: r
+            .cameras
+            .iter()
+            .map(|c| [c.model.image_size.width_px, c.model.image_size.height_px])
+            .collect(),
+        ..ClusterConfig::default()
+    };
+    (app::start(cfg, Overrides::default()).await.unwrap(), port)
 }
 
 /// Camera `cam`'s blob of the point `p` (camera-0 frame, mm).
@@ -302,47 +342,20 @@ const PASSWORD: &str = "own cameras";
 /// its simulator): its records come from its own observations through Zenoh and the pairing.
 /// `sizes`: `image_sizes_px` (and the parameter set's sizes).
 async fn start_own_solver(dir: &TempDir, sizes: [[u32; 2]; 2]) -> app::Running {
-    let mut r = ring_rig(2, 600.0);
-    r.rig_id = RIG.into();
+    let mut r = placed_ring(&[("s0", 0), ("s0", 1)]);
     for (c, s) in r.cameras.iter_mut().zip(sizes) {
         c.model.image_size.width_px = s[0];
         c.model.image_size.height_px = s[1];
     }
-    r.placement = [("s0", 0), ("s0", 1)]
-        .iter()
-        .map(|&(b, i)| CameraPlace {
-            board: b.into(),
-            local_index: i,
-        })
-        .collect();
     r.validate().unwrap();
-    std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let mut cfg = test_config(dir.path());
-    cfg.source.sim = Some(irtrack_firmware::source::sim::SimSourceConfig {
+    let sim = irtrack_firmware::source::sim::SimSourceConfig {
         rig: irtrack_firmware::source::sim::SimRig::Ring,
         ring_cameras: 2,
         distance_mm: 600.0,
         fps: FPS,
         ..Default::default()
-    });
-    cfg.service.operator_password_hash = Some(irtrack_firmware::net::auth::hash_password(PASSWORD).unwrap());
-    cfg.cluster = ClusterConfig {
-        role: Role::Solver,
-        rig: RIG.into(),
-        board: "s0".into(),
-        own_cameras: true,
-        listen: vec![format!("tcp/127.0.0.1:{port}")],
-        fps: FPS,
-        board_timeout_ms: 300.0,
-        image_sizes_px: sizes.to_vec(),
-        ..ClusterConfig::default()
     };
-    app::start(cfg, Overrides::default()).await.unwrap()
+    start_solver_with_own_cameras(dir, &r, sim).await.0
 }
 
 /// `POST path` with the operator's password; returns (code, body).
@@ -691,24 +704,8 @@ async fn solver_refuses_an_own_camera_of_another_size() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn solver_status_gives_board_cameras_no_pixel_figures() {
     let dir = TempDir::new("cluster-mixed");
-    let mut r = ring_rig(4, 600.0);
-    r.rig_id = RIG.into();
-    r.placement = [("b0", 0), ("b0", 1), ("b1", 0), ("s0", 0)]
-        .iter()
-        .map(|&(b, i)| CameraPlace {
-            board: b.into(),
-            local_index: i,
-        })
-        .collect();
-    r.validate().unwrap();
-    std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let mut cfg = test_config(dir.path());
-    cfg.source.sim = Some(irtrack_firmware::source::sim::SimSourceConfig {
+    let r = placed_ring(&[("b0", 0), ("b0", 1), ("b1", 0), ("s0", 0)]);
+    let sim = irtrack_firmware::source::sim::SimSourceConfig {
         rig: irtrack_firmware::source::sim::SimRig::Ring,
         ring_cameras: 4,
         distance_mm: 600.0,
@@ -716,23 +713,8 @@ async fn solver_status_gives_board_cameras_no_pixel_figures() {
         wall_clock: true,
         cameras: Some(vec![3]),
         ..Default::default()
-    });
-    cfg.cluster = ClusterConfig {
-        role: Role::Solver,
-        rig: RIG.into(),
-        board: "s0".into(),
-        own_cameras: true,
-        listen: vec![format!("tcp/127.0.0.1:{port}")],
-        fps: FPS,
-        board_timeout_ms: 300.0,
-        image_sizes_px: r
-            .cameras
-            .iter()
-            .map(|c| [c.model.image_size.width_px, c.model.image_size.height_px])
-            .collect(),
-        ..ClusterConfig::default()
     };
-    let running = app::start(cfg, Overrides::default()).await.unwrap();
+    let (running, port) = start_solver_with_own_cameras(&dir, &r, sim).await;
     let addr = running.addrs.status;
     let stop = Arc::new(AtomicBool::new(false));
     let publisher = {
