@@ -18,7 +18,9 @@ mod common;
 use std::process::Command;
 use std::time::Instant;
 
-use common::cluster::{DISTANCE_MM, FPS, RIG, capture_from, two_calibration_boards};
+use common::cluster::{
+    DISTANCE_MM, FPS, RIG, assert_placed_by_capture, capture_from, two_calibration_boards,
+};
 use common::{bin, temp_dir};
 use irtrack_core::params::RigParams;
 use irtrack_firmware::source::sim::ring_rig;
@@ -127,19 +129,7 @@ fn wand_wave_captured_across_two_camera_boards_calibrates_the_whole_rig() {
     let got = RigParams::from_blob(&std::fs::read(out.join("rig.irp")).unwrap()).unwrap();
     assert_eq!(got.cameras.len(), 4);
     // The boards' names from cameras.csv, as the set's placement (ready for the solver).
-    assert!(
-        stdout.contains(&format!(
-            "placement from {}: cam0 = b0/0, cam1 = b0/1, cam2 = b1/0, cam3 = b1/1",
-            wave.join("cameras.csv").display()
-        )),
-        "{stdout}"
-    );
-    let placed: Vec<(&str, u8)> = got
-        .placement
-        .iter()
-        .map(|p| (p.board.as_str(), p.local_index))
-        .collect();
-    assert_eq!(placed, [("b0", 0), ("b0", 1), ("b1", 0), ("b1", 1)]);
+    assert_placed_by_capture(&stdout, &wave, &got);
     for i in 1..4 {
         let (rot_deg, centre_mm) = pose_error(&truth, &got, i);
         let (b_true, b_got) = (truth.baseline_mm(i).unwrap(), got.baseline_mm(i).unwrap());

@@ -22,7 +22,9 @@ use std::collections::BTreeSet;
 use std::process::Command;
 use std::time::Instant;
 
-use common::cluster::{DISTANCE_MM, FPS, RIG, capture_from, two_calibration_boards};
+use common::cluster::{
+    DISTANCE_MM, FPS, RIG, assert_placed_by_capture, capture_from, two_calibration_boards,
+};
 use common::{bin, temp_dir};
 use irtrack_core::params::RigParams;
 use irtrack_firmware::source::sim::ring_rig_arc;
@@ -147,19 +149,7 @@ fn checkerboard_captured_across_two_camera_boards_calibrates_the_whole_rig() {
     let truth = ring_rig_arc(4, DISTANCE_MM, ARC_DEG);
     assert_eq!(got.cameras.len(), 4);
     // The boards' names from cameras.csv, as the set's placement (ready for the solver).
-    assert!(
-        stdout.contains(&format!(
-            "placement from {}: cam0 = b0/0, cam1 = b0/1, cam2 = b1/0, cam3 = b1/1",
-            shots.join("cameras.csv").display()
-        )),
-        "{stdout}"
-    );
-    let placed: Vec<(&str, u8)> = got
-        .placement
-        .iter()
-        .map(|p| (p.board.as_str(), p.local_index))
-        .collect();
-    assert_eq!(placed, [("b0", 0), ("b0", 1), ("b1", 0), ("b1", 1)]);
+    assert_placed_by_capture(&stdout, &shots, &got);
     for (i, (t, g)) in truth.cameras.iter().zip(&got.cameras).enumerate() {
         let (t, g) = (&t.model.intrinsics, &g.model.intrinsics);
         let f_rel = ((g.fx_px - t.fx_px) / t.fx_px)

@@ -585,11 +585,11 @@ impl Boards {
     }
 }
 
-/// `DIR/cameras.csv` for a capture across boards: `camera,board,board_camera,from` per camera,
-/// so the folder says where each `camN/` came from, and `calibrate`/`wand-calibrate` write it
-/// as the set's placement. A folder holding sets of other boards (or of boards in another
-/// order) is refused instead of mixed.
-pub const CAMERAS_FILE: &str = crate::placement::CAMERAS_FILE;
+// `DIR/cameras.csv` for a capture across boards (its one home, reader included, is
+// `placement`): the folder says where each `camN/` came from, and `calibrate`/`wand-calibrate`
+// write it as the set's placement. A folder holding sets of other boards (or of boards in
+// another order) is refused instead of mixed.
+use crate::placement::CAMERAS_FILE;
 
 /// `camera,board,board_camera,from` per camera of `order`. Per board: `names` its reported
 /// name (`None`: it reports none), `from` as given to `--from`. `board` is the name, else the

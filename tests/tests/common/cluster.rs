@@ -304,3 +304,22 @@ pub fn capture_from(b0: &Node, b1: &Node, args: &[&str], out: &Path) -> (String,
     assert!(o.status.success(), "capture failed:\n{stdout}\n{stderr}");
     (stdout, stderr, secs)
 }
+
+/// The calibrated set `got` carries the placement the two calibration boards reported (b0's
+/// cameras 0 and 1, then b1's), taken from `capture`'s `cameras.csv` in `captured` — the line
+/// the calibration prints and the blob's placement itself.
+pub fn assert_placed_by_capture(stdout: &str, captured: &Path, got: &RigParams) {
+    assert!(
+        stdout.contains(&format!(
+            "placement from {}: cam0 = b0/0, cam1 = b0/1, cam2 = b1/0, cam3 = b1/1",
+            captured.join("cameras.csv").display()
+        )),
+        "{stdout}"
+    );
+    let placed: Vec<(&str, u8)> = got
+        .placement
+        .iter()
+        .map(|p| (p.board.as_str(), p.local_index))
+        .collect();
+    assert_eq!(placed, [("b0", 0), ("b0", 1), ("b1", 0), ("b1", 1)]);
+}
