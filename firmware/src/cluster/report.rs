@@ -116,9 +116,9 @@ impl ClusterReport {
                     "board_down",
                     None,
                     format!(
-                        "camera board {} (cameras {:?}) sends nothing{} — check its power and network; tracking goes on with the other cameras",
+                        "camera board {} ({}) sends nothing{} — check its power and network; tracking goes on with the other cameras",
                         b.name,
-                        b.cameras,
+                        camera_words(&b.cameras),
                         b.last_seen_ms.map_or(String::new(), |ms| format!(" for {:.1} s", ms / 1e3))
                     ),
                 ));
@@ -283,5 +283,48 @@ impl prometheus_client::collector::Collector for ClusterReport {
             }
         }
         Ok(())
+    }
+}
+
+/// `camera 2`, `cameras 0, 1` (no cameras: `no camera placed`), for messages a person reads.
+fn camera_words(cameras: &[usize]) -> String {
+    let list: Vec<String> = cameras.iter().map(usize::to_string).collect();
+    match cameras.len() {
+        0 => "no camera placed".into(),
+        1 => format!("camera {}", list[0]),
+        _ => format!("cameras {}", list.join(", ")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_down_board_is_named_with_its_cameras_in_words() {
+        assert_eq!(camera_words(&[]), "no camera placed");
+        assert_eq!(camera_words(&[2]), "camera 2");
+        assert_eq!(camera_words(&[0, 1]), "cameras 0, 1");
+        let report = ClusterReport {
+            boards: vec![BoardReport {
+                name: "b1".into(),
+                cameras: vec![2],
+                last_seen_ms: Some(4400.0),
+                clock_offset_ms: None,
+                clock_fault: false,
+                down: true,
+            }],
+            ..ClusterReport::default()
+        };
+        let texts = report.fault_texts();
+        assert_eq!(texts.len(), 1, "{texts:?}");
+        assert_eq!(texts[0].0, "board_down");
+        assert!(
+            texts[0]
+                .2
+                .starts_with("camera board b1 (camera 2) sends nothing for 4.4 s — check its power"),
+            "{}",
+            texts[0].2
+        );
     }
 }
