@@ -38,19 +38,25 @@ use irtrack_sim::Scenario;
 /// Network namespaces of this test (deleted on drop), when `ip netns` works here.
 struct Netns {
     names: Vec<String>,
-    /// Third octet of the first link's 10.231.<octet>.0/30; one per process, so concurrent
-    /// runs of this test on one machine do not share addresses.
+    /// Third octet of the first link's 10.231.<octet>.0/30; one per process and instance, so
+    /// concurrent runs of this test on one machine do not share addresses.
     base: usize,
 }
+
+/// Instances made by this process: each gets names and addresses of its own, because
+/// `ip netns del` frees the veth pair asynchronously and the next test's `link add` of the
+/// same name can fail with "File exists" (seen once in a fresh-clone run).
+static NETNS_MADE: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 
 impl Netns {
     /// A namespace per node and a veth link from each to the test's namespace, on
     /// 10.231.<base + k>.0/30: the node is .2, the test's side .1.
     fn try_new(nodes: &[&str]) -> Option<Netns> {
         let pid = std::process::id();
+        let inst = NETNS_MADE.fetch_add(1, std::sync::atomic::Ordering::Relaxed) % 2;
         let mut n = Netns {
             names: Vec::new(),
-            base: (pid as usize % 60) * 4,
+            base: (pid as usize % 30) * 8 + inst * 4,
         };
         let ip = |args: &[&str]| {
             Command::new("ip")
@@ -61,8 +67,8 @@ impl Netns {
                 .is_ok_and(|s| s.success())
         };
         for (k, node) in nodes.iter().enumerate() {
-            let ns = format!("irt{}{node}", pid % 100_000);
-            let host_if = format!("irh{}{k}", pid % 100_000);
+            let ns = format!("irt{}{inst}{node}", pid % 100_000);
+            let host_if = format!("irh{}{inst}{k}", pid % 100_000);
             if !ip(&["netns", "add", &ns]) {
                 return None;
             }
