@@ -27,6 +27,7 @@ pub mod robot_proto;
 pub mod signing;
 pub mod simd;
 pub mod stream;
+pub mod timing;
 pub mod triangulate;
 
 pub use error::{Error, Result};
