@@ -185,7 +185,7 @@ pub fn run(ctx: &Ctx, args: &Args) -> Result<()> {
          renderer (an example of irtrack-tests).",
     );
     let host_tools = build_host_tools(ctx)?;
-    let views_bin = build_views_tool(ctx)?;
+    let views_bin = views_tool(ctx)?;
     std::fs::create_dir_all(&out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
 
     for (i, step) in steps.iter().enumerate() {
@@ -299,7 +299,13 @@ fn explain_failure(what: &str, stderr: &str, how: &str) -> String {
     }
 }
 
-fn build_host_tools(ctx: &Ctx) -> Result<PathBuf> {
+/// Everything the demo runs, in one cargo invocation with one feature set and one profile:
+/// `host-tools`, `irtrackd` (ROS 2 output for the standard-outputs step, `cluster` for the
+/// camera-board and solver roles), the checkerboard renderer and the cluster demo (examples of
+/// irtrack-tests; xtask itself may not depend on the simulator). Two invocations that differ
+/// only in features compile the shared dependency graph twice (Zenoh alone is ~200 crates):
+/// the first demo took over an hour that way (issue 42).
+pub fn demo_build(ctx: &Ctx) -> Command {
     let mut cmd = ctx.cargo();
     cmd.args([
         "build",
@@ -311,13 +317,27 @@ fn build_host_tools(ctx: &Ctx) -> Result<PathBuf> {
         "irtrack-firmware",
         "--bin",
         "irtrackd",
-        // The standard-outputs step's ROS 2 output.
+        "-p",
+        "irtrack-tests",
+        "--example",
+        "checkerboard_views",
+        "--example",
+        "cluster_demo",
         "--features",
-        "irtrack-firmware/ros2",
+        DEMO_FEATURES,
     ]);
+    cmd
+}
+
+/// The features of [`demo_build`]. The examples bring in irtrack-tests' dev-dependencies
+/// (irtrack-firmware with `mcap` and `ros2`), and its `cluster` feature turns on irtrackd's.
+pub const DEMO_FEATURES: &str = "irtrack-tests/cluster,irtrack-firmware/ros2,irtrack-firmware/cluster";
+
+fn build_host_tools(ctx: &Ctx) -> Result<PathBuf> {
+    let mut cmd = demo_build(ctx);
     let out = util::run(&mut cmd, RunOpts::default())?;
     if !out.success() {
-        bail!("building host-tools {}", out.describe());
+        bail!("building the demo's programs {}", out.describe());
     }
     let bin = ctx.target_dir().join("debug").join("host-tools");
     if !bin.is_file() {
@@ -326,24 +346,9 @@ fn build_host_tools(ctx: &Ctx) -> Result<PathBuf> {
     Ok(bin)
 }
 
-/// Builds the checkerboard renderer (xtask itself may not depend on the simulator). The test
-/// profile optimises it (opt-level 1), which renders an order of magnitude faster than a debug build and shares
-/// the artifacts `cargo test` builds.
-fn build_views_tool(ctx: &Ctx) -> Result<PathBuf> {
-    let mut cmd = ctx.cargo();
-    cmd.args([
-        "build",
-        "--profile",
-        "test",
-        "-p",
-        "irtrack-tests",
-        "--example",
-        "checkerboard_views",
-    ]);
-    let out = util::run(&mut cmd, RunOpts::default())?;
-    if !out.success() {
-        bail!("building the checkerboard renderer {}", out.describe());
-    }
+/// The checkerboard renderer [`demo_build`] built (dev profile, opt-level 1: fast enough to
+/// render the views).
+fn views_tool(ctx: &Ctx) -> Result<PathBuf> {
     let bin = ctx.target_dir().join("debug/examples/checkerboard_views");
     if !bin.is_file() {
         bail!("{} missing after a successful build", bin.display());
@@ -352,29 +357,14 @@ fn build_views_tool(ctx: &Ctx) -> Result<PathBuf> {
 }
 
 /// The host build of irtrackd with the `cluster` feature and the `cluster_demo` example, in
-/// target/debug (the demo's step and the `cluster-qemu-user` phase's solver). The example
-/// brings in irtrack-tests' dev-dependencies, through which its `cluster` feature turns on
-/// irtrackd's.
+/// target/debug (the demo's step and the `cluster-qemu-user` phase's solver): the demo's one
+/// build, so that after the demo's step 2 it compiles nothing.
 pub fn cluster_host_build(ctx: &Ctx) -> Command {
-    let mut cmd = ctx.cargo();
-    cmd.args([
-        "build",
-        "-p",
-        "irtrack-firmware",
-        "-p",
-        "irtrack-tests",
-        "--features",
-        "irtrack-tests/cluster",
-        "--bin",
-        "irtrackd",
-        "--example",
-        "cluster_demo",
-    ]);
-    cmd
+    demo_build(ctx)
 }
 
-/// Builds irtrackd with the camera and solver roles and the `cluster_demo` example (both in
-/// target/debug; this irtrackd replaces the one built without the feature), then runs it.
+/// Runs the cluster demo (built with everything else in step 2; the build here is a no-op
+/// check that nothing changed since).
 fn run_cluster(ctx: &Ctx, out_dir: &Path) -> Result<()> {
     let mut cmd = cluster_host_build(ctx);
     let out = util::run(&mut cmd, RunOpts::default())?;
