@@ -11,6 +11,7 @@ extern crate alloc;
 
 pub mod blob;
 pub mod camera;
+pub mod clock_model;
 pub mod crc;
 pub mod error;
 pub mod filter;

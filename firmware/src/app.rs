@@ -437,6 +437,7 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         status.clone(),
         deadline(&cfg.realtime, &resolved.source),
     )
+    .with_nominal_fps(resolved.source.nominal_fps())
     .with_pose_config(cfg.pose)
     .with_robot_tool(cfg.robot.as_ref().and_then(|r| r.tool.clone()))
     .with_tool_slot(tools_tx)

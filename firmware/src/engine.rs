@@ -35,6 +35,7 @@ use tokio::sync::watch;
 
 use crate::clock;
 use crate::error::{FirmwareError, Result};
+use crate::frame_clocks::FrameClocks;
 use crate::leds::indication::TrackIndication;
 use crate::source::{FrameSet, FrameSource, Pixels, SourceError};
 use crate::status::SharedStatus;
@@ -236,6 +237,8 @@ pub struct Engine {
     /// Cluster camera role without a parameter set of its own (e.g. one camera): the tracker
     /// only detects; the records carry no position.
     detection_only: bool,
+    /// Each camera's clock model (docs/timing.md, "Camera clocks"); allocated with the set.
+    clocks: Option<FrameClocks>,
 }
 
 /// Receives each camera's blobs right after detection (cluster role "camera": publishes them).
@@ -263,6 +266,7 @@ impl Engine {
         }
         let deadline_ns = u64::try_from(deadline.as_nanos()).unwrap_or(u64::MAX);
         status.deadline_ns.store(deadline_ns, R);
+        let clocks = FrameClocks::new(set.frames.len(), None).ok();
         Self {
             source,
             set,
@@ -292,7 +296,14 @@ impl Engine {
             times: SetTimes::default(),
             observation_sink: None,
             detection_only: false,
+            clocks,
         }
+    }
+
+    /// The source's configured frame rate, for the cameras' rate error in ppm (`/status`).
+    pub fn with_nominal_fps(mut self, fps: Option<f64>) -> Self {
+        self.clocks = FrameClocks::new(self.set.frames.len(), fps).ok();
+        self
     }
 
     /// Timestamps of the last processed set's path.
@@ -609,6 +620,11 @@ impl Engine {
         let capture_ns = self.set.frames.first().map_or(0, |f| f.timestamp_ns);
         self.last_capture_ns = Some(capture_ns);
         self.account_source();
+        // Each camera's clock model: from here on a frame's timestamp is its smoothed instant
+        // (the record keeps camera 0's raw stamp, `capture_ns`; docs/timing.md).
+        if let Some(clocks) = self.clocks.as_mut() {
+            clocks.apply(&mut self.set.frames, &self.status);
+        }
 
         // Sets solved at one instant bridge the cameras' spread along their tracks, up to
         // `max_bridge_ms`; only sets solved as seen need frames exposed together.
@@ -853,6 +869,10 @@ impl Engine {
         self.out.send_replace(Some(rec));
         let t_published = Instant::now();
         self.status.published.fetch_add(1, R);
+        // Frame sets report the driver's own timestamps.
+        if let Some(clocks) = &self.clocks {
+            clocks.restore_raw(&mut self.set.frames);
+        }
         // After publishing: a viewer's copy never delays the position.
         self.feed_tap(detected);
         let t_end = Instant::now();

@@ -16,6 +16,7 @@ pub mod cluster;
 pub mod config;
 pub mod engine;
 pub mod error;
+pub mod frame_clocks;
 pub mod leds;
 pub mod metrics;
 pub mod net;

@@ -72,6 +72,103 @@ pub struct CameraCounters {
     pub width_px: AtomicU64,
     /// Frame height, pixels (the source's frame shape, set when the loop starts).
     pub height_px: AtomicU64,
+    /// The camera's clock model (written by [`crate::frame_clocks`] every few frames).
+    pub clock: ClockCounters,
+}
+
+/// One camera's clock model figures (docs/timing.md, "Camera clocks"); `f64`s as bits, NaN =
+/// not known yet.
+#[derive(Debug, Default)]
+pub struct ClockCounters {
+    /// 0 = no model yet, 1 = warming up, 2 = locked, 3 = re-locking after a jump.
+    pub state: AtomicU8,
+    /// Measured frame period, ns.
+    pub period_ns_bits: AtomicU64,
+    /// Rate against the configured one, ppm (positive = fast).
+    pub rate_error_ppm_bits: AtomicU64,
+    /// RMS timestamp distance from the fitted line, ns.
+    pub jitter_rms_ns_bits: AtomicU64,
+    /// Largest timestamp distance from the line in the window, ns.
+    pub jitter_max_ns_bits: AtomicU64,
+    /// Exposure after camera 0's nearest frame, ns (−½…+½ period).
+    pub phase_ns_bits: AtomicU64,
+    /// Phase drift against camera 0, ppm of elapsed time (positive = later and later).
+    pub drift_ppm_bits: AtomicU64,
+    /// The same in µs of phase per minute.
+    pub drift_us_per_min_bits: AtomicU64,
+    /// Frames missing from the camera's frame sequence.
+    pub drops: AtomicU64,
+    /// Frames delivered twice.
+    pub duplicates: AtomicU64,
+    /// Timestamp steps the model could not explain (it re-locked).
+    pub jumps: AtomicU64,
+    /// Timestamps left out of the fit as too far from the line.
+    pub outliers: AtomicU64,
+    /// The camera's sequence numbers count its frames.
+    pub sequence_used: AtomicBool,
+}
+
+impl ClockCounters {
+    /// The figures for `/status`; `None` before the model has seen a frame.
+    pub fn report(&self) -> Option<CameraClockReport> {
+        let f = |a: &AtomicU64| Some(f64::from_bits(a.load(R))).filter(|v| v.is_finite());
+        let state = match self.state.load(R) {
+            1 => "warming_up",
+            2 => "locked",
+            3 => "relocking",
+            _ => return None,
+        };
+        let period_ns = f(&self.period_ns_bits);
+        Some(CameraClockReport {
+            state,
+            period_us: period_ns.map(|p| p / 1e3),
+            fps: period_ns.filter(|p| *p > 0.0).map(|p| 1e9 / p),
+            rate_error_ppm: f(&self.rate_error_ppm_bits),
+            phase_us: f(&self.phase_ns_bits).map(|p| p / 1e3),
+            drift_ppm: f(&self.drift_ppm_bits),
+            drift_us_per_min: f(&self.drift_us_per_min_bits),
+            jitter_rms_us: f(&self.jitter_rms_ns_bits).map(|j| j / 1e3),
+            jitter_max_us: f(&self.jitter_max_ns_bits).map(|j| j / 1e3),
+            drops: self.drops.load(R),
+            duplicates: self.duplicates.load(R),
+            jumps: self.jumps.load(R),
+            outliers: self.outliers.load(R),
+            sequence_used: self.sequence_used.load(R),
+        })
+    }
+}
+
+/// A camera's clock on `/status` (docs/timing.md, "Camera clocks").
+#[derive(Debug, Clone, Serialize)]
+pub struct CameraClockReport {
+    /// "warming_up", "locked" or "relocking" (after a jump).
+    pub state: &'static str,
+    /// Measured frame period, µs.
+    pub period_us: Option<f64>,
+    /// The same as frames per second.
+    pub fps: Option<f64>,
+    /// Rate against the configured frame rate, ppm (positive = the camera runs fast).
+    pub rate_error_ppm: Option<f64>,
+    /// Exposure after camera 0's nearest frame, µs (negative = before it); camera 0: 0.
+    pub phase_us: Option<f64>,
+    /// How fast the phase changes, ppm of elapsed time (positive = later and later).
+    pub drift_ppm: Option<f64>,
+    /// The same in µs of phase per minute.
+    pub drift_us_per_min: Option<f64>,
+    /// Timestamp jitter: RMS distance of the stamps from the fitted line, µs.
+    pub jitter_rms_us: Option<f64>,
+    /// Largest distance of a recent stamp from the line, µs (late USB transfers show here).
+    pub jitter_max_us: Option<f64>,
+    /// Frames missing from the camera's sequence since start.
+    pub drops: u64,
+    /// Frames delivered twice since start.
+    pub duplicates: u64,
+    /// Timestamp jumps (clock reset, camera restart) since start.
+    pub jumps: u64,
+    /// Stamps left out of the fit as too far from the line since start.
+    pub outliers: u64,
+    /// The camera's sequence numbers count its frames (else frame indices come from time).
+    pub sequence_used: bool,
 }
 
 /// Information about the active parameter set (changes rarely; behind a mutex).
@@ -457,6 +554,7 @@ impl SharedStatus {
                         height_px: c.height_px.load(R),
                         blobs_last: c.blobs_last.load(R),
                         peak_dn: c.peak_dn.load(R),
+                        clock: c.clock.report(),
                     })
                     .collect(),
             },
@@ -671,6 +769,7 @@ impl SharedStatus {
                 .map(|i| self.camera_fps(i).unwrap_or(0.0))
                 .collect(),
             camera_frames: self.cameras.iter().map(|c| c.frames.load(R)).collect(),
+            camera_clocks: self.cameras.iter().map(|c| c.clock.report()).collect(),
             leds: self.led_levels(),
             faults: self.active_faults(),
             stages: self.stages.stages().map(|(name, h)| (name, h.snapshot())),
@@ -721,6 +820,7 @@ struct MetricsSnapshot {
     pairing_error_s: f64,
     camera_fps: Vec<f64>,
     camera_frames: Vec<u64>,
+    camera_clocks: Vec<Option<CameraClockReport>>,
     leds: [bool; 4],
     faults: Vec<Fault>,
     stages: [(&'static str, crate::metrics::HistogramSnapshot); STAGES],
@@ -739,6 +839,98 @@ struct ListenerSnapshot {
     refused_peer_cap: u64,
     timeouts: u64,
     evicted: u64,
+}
+
+impl MetricsSnapshot {
+    /// Each camera's clock model (docs/timing.md, "Camera clocks"): gauges in seconds and
+    /// ppm, counters of drops, duplicates and jumps. A camera whose model has no value yet is
+    /// left out of that family.
+    fn encode_camera_clocks(
+        &self,
+        enc: &mut prometheus_client::encoding::DescriptorEncoder<'_>,
+    ) -> std::result::Result<(), std::fmt::Error> {
+        use prometheus_client::encoding::EncodeMetric;
+        use prometheus_client::metrics::MetricType;
+        use prometheus_client::metrics::counter::ConstCounter;
+        use prometheus_client::metrics::gauge::ConstGauge;
+        type Pick = fn(&CameraClockReport) -> Option<f64>;
+        let gauges: [(&str, &str, Pick); 6] = [
+            (
+                "irtrackd_camera_period_seconds",
+                "measured frame period per camera (clock model)",
+                |c| c.period_us.map(|v| v / 1e6),
+            ),
+            (
+                "irtrackd_camera_phase_seconds",
+                "exposure after camera 0's nearest frame (negative: before)",
+                |c| c.phase_us.map(|v| v / 1e6),
+            ),
+            (
+                "irtrackd_camera_jitter_rms_seconds",
+                "RMS timestamp distance from the camera's clock line",
+                |c| c.jitter_rms_us.map(|v| v / 1e6),
+            ),
+            (
+                "irtrackd_camera_jitter_max_seconds",
+                "largest recent timestamp distance from the camera's clock line",
+                |c| c.jitter_max_us.map(|v| v / 1e6),
+            ),
+            (
+                "irtrackd_camera_drift_ppm",
+                "phase drift against camera 0, ppm of elapsed time (positive: later and later)",
+                |c| c.drift_ppm,
+            ),
+            (
+                "irtrackd_camera_rate_error_ppm",
+                "frame rate against the configured one, ppm (positive: fast)",
+                |c| c.rate_error_ppm,
+            ),
+        ];
+        for (name, help, pick) in gauges {
+            let mut m = enc.encode_descriptor(name, help, None, MetricType::Gauge)?;
+            for (i, c) in self.camera_clocks.iter().enumerate() {
+                if let Some(v) = c.as_ref().and_then(pick) {
+                    ConstGauge::new(v).encode(m.encode_family(&[("camera", i.to_string())])?)?;
+                }
+            }
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_camera_clock_locked",
+            "1 when the camera's clock model is locked (smoothed instants in use)",
+            None,
+            MetricType::Gauge,
+        )?;
+        for (i, c) in self.camera_clocks.iter().enumerate() {
+            let locked = c.as_ref().is_some_and(|c| c.state == "locked");
+            ConstGauge::new(i64::from(locked)).encode(m.encode_family(&[("camera", i.to_string())])?)?;
+        }
+        type Count = fn(&CameraClockReport) -> u64;
+        let counters: [(&str, &str, Count); 3] = [
+            (
+                "irtrackd_camera_frames_dropped",
+                "frames missing from the camera's sequence",
+                |c| c.drops,
+            ),
+            (
+                "irtrackd_camera_frames_duplicated",
+                "frames the camera delivered twice",
+                |c| c.duplicates,
+            ),
+            (
+                "irtrackd_camera_clock_jumps",
+                "timestamp steps the clock model could not explain (re-locked)",
+                |c| c.jumps,
+            ),
+        ];
+        for (name, help, count) in counters {
+            let mut m = enc.encode_descriptor(name, help, None, MetricType::Counter)?;
+            for (i, c) in self.camera_clocks.iter().enumerate() {
+                let n = c.as_ref().map_or(0, count);
+                ConstCounter::new(n).encode(m.encode_family(&[("camera", i.to_string())])?)?;
+            }
+        }
+        Ok(())
+    }
 }
 
 impl prometheus_client::collector::Collector for MetricsSnapshot {
@@ -813,6 +1005,7 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
             let labels = [("camera", i.to_string())];
             ConstCounter::new(*n).encode(m.encode_family(&labels)?)?;
         }
+        self.encode_camera_clocks(&mut enc)?;
         let mut m = enc.encode_descriptor(
             "irtrackd_connections_open",
             "connections open per listener",
@@ -1087,6 +1280,9 @@ pub struct CameraReport {
     pub blobs_last: u64,
     /// Brightest pixel (DN) of the last processed frame.
     pub peak_dn: u64,
+    /// The camera's clock model: period, phase against camera 0, jitter, drift, drops,
+    /// duplicates and jumps; `None` before its first frame.
+    pub clock: Option<CameraClockReport>,
 }
 
 /// The frame source's counters on `/status`.

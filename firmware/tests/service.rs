@@ -476,6 +476,11 @@ async fn status_json_and_metrics_report_the_running_service() {
                 .stages()
                 .iter()
                 .all(|(_, h)| h.snapshot().count() >= 30)
+            // Every camera's clock model has locked and published (every 8 frames).
+            && status
+                .cameras
+                .iter()
+                .all(|c| c.clock.state.load(std::sync::atomic::Ordering::Relaxed) == 2)
     })
     .await;
 
@@ -505,6 +510,27 @@ async fn status_json_and_metrics_report_the_running_service() {
             "camera fps {fps} without skipped sets"
         );
         assert_eq!(c["width_px"], 640);
+        // The camera's clock model (docs/timing.md, "Camera clocks"): the simulator's
+        // 100 fps clock, phase against camera 0 within half a period, no jump.
+        let clock = &c["clock"];
+        assert_eq!(clock["state"], "locked", "{clock}");
+        let period_us = clock["period_us"].as_f64().unwrap();
+        assert!((period_us - 10_000.0).abs() < 10.0, "{clock}");
+        assert!((clock["fps"].as_f64().unwrap() - 100.0).abs() < 0.1, "{clock}");
+        assert!(
+            clock["rate_error_ppm"].as_f64().unwrap().abs() < 1000.0,
+            "{clock}"
+        );
+        let phase_us = clock["phase_us"].as_f64().unwrap();
+        assert!(phase_us.abs() <= period_us / 2.0, "{clock}");
+        if c["index"] == 0 {
+            assert_eq!(phase_us, 0.0, "{clock}");
+        }
+        assert!(clock["jitter_rms_us"].as_f64().unwrap() >= 0.0, "{clock}");
+        assert!(clock["jitter_max_us"].as_f64().is_some(), "{clock}");
+        assert!(clock["drift_us_per_min"].as_f64().is_some(), "{clock}");
+        assert!(clock["drops"].as_u64().is_some() && clock["duplicates"].as_u64().is_some());
+        assert_eq!(clock["jumps"], 0, "{clock}");
     }
     assert!(st["source"]["pairing_error_last_us"].as_f64().is_some());
     assert!(st["source"]["sets_dropped"].as_u64().is_some());
@@ -542,6 +568,13 @@ async fn status_json_and_metrics_report_the_running_service() {
         "irtrackd_stage_latency_seconds_bucket{le=\"+Inf\",stage=\"detect\"}",
         "irtrackd_params_loaded 1",
         "irtrackd_camera_fps{camera=\"1\"}",
+        "irtrackd_camera_period_seconds{camera=\"1\"} 0.0",
+        "irtrackd_camera_phase_seconds{camera=\"1\"}",
+        "irtrackd_camera_jitter_rms_seconds{camera=\"0\"}",
+        "irtrackd_camera_drift_ppm{camera=\"1\"}",
+        "irtrackd_camera_clock_locked{camera=\"1\"} 1",
+        "irtrackd_camera_frames_dropped_total{camera=\"0\"}",
+        "irtrackd_camera_clock_jumps_total{camera=\"1\"} 0",
         "irtrackd_sets_processed_total ",
         "irtrackd_info{version=",
         "irtrackd_fault{fault=\"no_params\"} 0",

@@ -30,6 +30,36 @@ export function latencySplit(lat, link) {
   return `capture → robot packet (p50): driver ${us(driver)} µs + ours ${us(ours)} µs + protocol wait ${us(link.wait_p50_us)} µs; the sample's age when it left: ${us(link.p50_us)} µs.`;
 }
 
+/** A duration given in µs, in ms words: "0.21 ms". */
+const ms = (v, digits) => `${fmt(Math.abs(v) / 1000, digits)} ms`;
+
+/** A camera's clock model (`/status` source.cameras[].clock, docs/timing.md "Camera clocks") in
+ *  plain words, e.g. "120.003 fps, 3.1 ms after camera 0, jitter 0.21 ms, drifting +0.4 ms/min".
+ *  Returns [text, class]: "bad" after a jump or with drops. */
+export function clockWords(index, c) {
+  if (!c) return ["—", ""];
+  if (c.state === "warming_up") return ["measuring the frame clock…", ""];
+  const parts = [];
+  if (c.state === "relocking") parts.push("re-locking after a timestamp jump");
+  if (typeof c.fps === "number") parts.push(`${fmt(c.fps, 3)} fps`);
+  if (index === 0) {
+    parts.push("the reference");
+  } else if (typeof c.phase_us === "number") {
+    parts.push(`${ms(c.phase_us, 1)} ${c.phase_us < 0 ? "before" : "after"} camera 0`);
+  }
+  if (typeof c.jitter_rms_us === "number") parts.push(`jitter ${ms(c.jitter_rms_us, 2)}`);
+  if (index !== 0 && typeof c.drift_us_per_min === "number") {
+    const d = c.drift_us_per_min / 1000;
+    parts.push(Math.abs(d) < 0.05 ? "not drifting" : `drifting ${d > 0 ? "+" : "−"}${fmt(Math.abs(d), 1)} ms/min`);
+  }
+  const events = [];
+  if (c.drops) events.push(`${fmt(c.drops)} dropped`);
+  if (c.duplicates) events.push(`${fmt(c.duplicates)} duplicated`);
+  if (c.jumps) events.push(`${fmt(c.jumps)} jump${c.jumps === 1 ? "" : "s"}`);
+  if (events.length) parts.push(events.join(", "));
+  return [parts.join(", "), c.jumps || c.state === "relocking" ? "bad" : ""];
+}
+
 /** Rows of the active calibration's record (`/status` params.calibration, docs/calibration.md):
  *  method, age, quality; marked bad when poor or older than the configured age. */
 export function calibrationRows(c) {
@@ -197,6 +227,13 @@ export class Health {
         const size = document.createElement("td");
         size.textContent = c.width_px ? `${c.width_px}×${c.height_px}` : "—";
         tr.append(size);
+        // The clock model: period, phase against camera 0, jitter, drift, drops/jumps.
+        const [words, cls] = clockWords(c.index, c.clock);
+        const clock = document.createElement("td");
+        clock.className = cls ? `clock ${cls}` : "clock";
+        clock.textContent = words;
+        if (c.clock) tr.dataset.clock = c.clock.state;
+        tr.append(clock);
         return tr;
       })
     );
