@@ -33,9 +33,9 @@ use irtrack_sim::{BitDepth, Orientation, RigPreset, Scenario, SimConfig, Traject
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 
 mod multi_tool;
-mod timing;
 #[cfg(feature = "opencv")]
 mod opencv_pipeline;
+mod timing;
 #[cfg(feature = "opencv")]
 use opencv_pipeline::OpenCv;
 

@@ -23,13 +23,13 @@ use irtrack_core::blob::Blob;
 use irtrack_core::camera::RigidTransform;
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::RigParams;
-use irtrack_core::retime::TimeMode;
 use irtrack_core::pipeline::{
     MAX_CAMERAS, Measurement, TrackStatus as MeasureStatus, Tracker, TrackerConfig,
 };
 use irtrack_core::pose6d::{
     LOOSE_LED, MAX_LOOSE_LEDS, MAX_TOOLS, MultiTracker, NO_TOOL, Pose6d, PoseConfig, PoseStatus,
 };
+use irtrack_core::retime::TimeMode;
 use irtrack_core::stream::{LooseRecord, PositionRecord, ToolRecord, TrackStatus};
 use tokio::sync::watch;
 
