@@ -68,7 +68,8 @@ pub struct ClusterSource {
     /// Hops are recorded from this receive time on (1 s after the first observation: the
     /// links' set-up is not the steady state); `None` before the first.
     hop_from_ns: Option<u64>,
-    last_index: u64,
+    /// The last set's frame number (`None` before the first set).
+    last_index: Option<u64>,
     /// The solver's own cameras (`own_cameras = true`).
     own: Option<OwnCameras>,
     /// Per rig camera: its index among the solver's own cameras, when the parameter set
@@ -315,7 +316,7 @@ impl ClusterSource {
             last_report_ns: 0,
             hop,
             hop_from_ns: None,
-            last_index: 0,
+            last_index: None,
             own,
             own_index: vec![None; n],
             own_refused: vec![false; n],
@@ -607,13 +608,17 @@ impl ClusterSource {
                 frame.timestamp_ns = to_mono(set.capture_ts_ns);
             }
         }
-        // Frame 0's time is the set's time in the loop: the earliest capture in the set.
-        if let Some(f0) = out.frames.first_mut() {
-            f0.timestamp_ns = to_mono(set.capture_ts_ns);
-        }
-        // The boards' frame counter (simulated boards share one); else our own count.
-        let index = index.unwrap_or(self.last_index + 1).max(self.last_index + 1);
-        self.last_index = index;
+        // Every camera keeps its own capture time: the loop solves the set at one instant from
+        // them (docs/timing.md), and camera 0's is the set's time when solving as seen.
+        // The boards' frame counter (simulated boards share one) as it is; our own count only
+        // when a set has none or repeats the last one (sets must be numbered upwards).
+        let index = match (index, self.last_index) {
+            (Some(i), Some(last)) if i > last => i,
+            (Some(i), None) => i,
+            (_, Some(last)) => last + 1,
+            (None, None) => 0,
+        };
+        self.last_index = Some(index);
         out.index = index;
         out.pairing_error_ns = hi.saturating_sub(lo.min(hi));
         self.stats.sets_delivered += 1;
@@ -677,8 +682,9 @@ impl FrameSource for ClusterSource {
                 for r in &mut self.remote {
                     r.clear();
                 }
-                self.last_index += 1;
-                out.index = self.last_index;
+                let i = self.last_index.map_or(0, |l| l + 1);
+                self.last_index = Some(i);
+                out.index = i;
                 let t = clock::monotonic_ns();
                 for f in &mut out.frames {
                     f.timestamp_ns = t;
