@@ -78,3 +78,50 @@ fn free_running_preset_and_bad_tables_are_named() {
     let unknown: Result<SimSourceConfig, _> = toml::from_str("[timing]\nphase = 1.0\n");
     assert!(unknown.is_err(), "unknown keys are refused");
 }
+
+/// Replay keeps each camera's recorded timestamp: the skew between the frames of one set, at
+/// recorded and at maximum speed, from the very first set on.
+#[test]
+fn replay_keeps_each_cameras_recorded_skew() {
+    use irtrack_firmware::source::replay::{ReplayConfig, ReplaySource, ReplaySpeed};
+    let dir = std::env::temp_dir().join(format!("irtrack-replay-skew-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let pgm = irtrack_core::pgm::encode_u8(4, 4, &[7u8; 16]).unwrap();
+    // Camera 1 3.1 ms after camera 0, which jitters by ±0.2 ms; 10 ms frames.
+    let stamps: [[u64; 2]; 3] = [
+        [1_000_000_000, 1_003_100_000],
+        [1_010_200_000, 1_013_100_000],
+        [1_019_800_000, 1_023_100_000],
+    ];
+    let mut csv = String::from("frame,camera,timestamp_ns,dropped\n");
+    for (f, s) in stamps.iter().enumerate() {
+        for (c, ts) in s.iter().enumerate() {
+            std::fs::create_dir_all(dir.join(format!("cam{c}"))).unwrap();
+            std::fs::write(dir.join(format!("cam{c}/{f:06}.pgm")), &pgm).unwrap();
+            csv += &format!("{f},{c},{ts},0\n");
+        }
+    }
+    std::fs::write(dir.join("timestamps.csv"), csv).unwrap();
+    for speed in [ReplaySpeed::Recorded, ReplaySpeed::Max] {
+        let mut src = ReplaySource::open(&ReplayConfig {
+            dir: dir.clone(),
+            speed,
+            repeat: false,
+            fps: None,
+        })
+        .unwrap();
+        let mut set = src.allocate_set();
+        let mut first = None;
+        for s in &stamps {
+            src.next_set(&mut set).unwrap();
+            let (a, b) = (set.frames[0].timestamp_ns, set.frames[1].timestamp_ns);
+            assert_eq!(b - a, s[1] - s[0], "{speed:?}");
+            assert_eq!(set.pairing_error_ns, s[1] - s[0]);
+            let f = *first.get_or_insert(a);
+            if speed == ReplaySpeed::Recorded {
+                assert_eq!(a - f, s[0] - stamps[0][0], "recorded intervals kept");
+            }
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

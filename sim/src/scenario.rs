@@ -1321,6 +1321,14 @@ mod tests {
         let speed_px_s = (project(&rolling, 0, t0 + 1e-3).x - project(&rolling, 0, t0 - 1e-3).x) / 2e-3;
         let expected_px = speed_px_s * at.y * line_time_ns * 1e-9;
         assert!(expected_px > 2.5, "test scene too slow: {expected_px} px");
+        println!(
+            "rolling: row {:.1}, shift {:.3} px expected, {:.3} px rendered, centroid error ({:.3}, {:.3}) px",
+            at.y,
+            expected_px,
+            rx - gx,
+            rx - at.x,
+            ry - at.y
+        );
         assert!(
             ((rx - gx) - expected_px).abs() < 0.08,
             "rolling − global = {} px, expected {expected_px} px",

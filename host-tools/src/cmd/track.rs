@@ -409,15 +409,17 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
         .map_or(u64::MAX, |s| half_median_interval_ns(&s[0]));
     let timing = read_camera_timing(&args.frames.join(crate::cmd::simulate::CAMERA_TIMING_FILE))?
         .filter(|t| t.len() == n_cam);
-    let timed = timing
-        .as_ref()
-        .is_some_and(|t| t.iter().any(|c| *c != CameraTiming::SYNCHRONOUS));
     let dense_path = args.frames.join(crate::cmd::simulate::TRUTH_DENSE_FILE);
     let dense = if dense_path.is_file() {
         Some(TimedTruth::read_dense(&dense_path)?)
     } else {
         None
     };
+    // A timed scenario (own clocks or shutters): the instants are written and truth is taken there.
+    let timed = dense.is_some()
+        || timing
+            .as_ref()
+            .is_some_and(|t| t.iter().any(|c| *c != CameraTiming::SYNCHRONOUS));
 
     let mut tracker: Option<Tracker> = None;
     let mut maxval_seen: Option<u16> = None;
@@ -442,7 +444,7 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
     let mut errors = Vec::new();
     let mut images8: Vec<Vec<u8>> = vec![Vec::new(); n_cam];
     let mut images16: Vec<Vec<u16>> = vec![Vec::new(); n_cam];
-    let missing_row = if timed { ",," } else { "" };
+    let missing_row = if timed { "," } else { "" };
     let mut pick: Vec<u64> = vec![0; n_cam];
     let mut frame_ts: Vec<Option<u64>> = vec![None; n_cam];
     for index in 0..=last {
