@@ -33,6 +33,7 @@ use irtrack_sim::{BitDepth, Orientation, RigPreset, Scenario, SimConfig, Traject
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 
 mod multi_tool;
+mod timing;
 #[cfg(feature = "opencv")]
 mod opencv_pipeline;
 #[cfg(feature = "opencv")]
@@ -828,7 +829,9 @@ fn table(quick: bool) -> Result<()> {
         "Goals: ours full ≤ 1.5x a cold read (ours/read, cold), ROI/full ≤ 5 % (VGA) and ≤ 4 % (720p), 0 allocations per set (built without OpenCV)."
     );
     println!("floor/full: the per-set geometry any tracked frame needs, as a share of the full frame.");
-    multi_tool::table(quick)
+    multi_tool::table(quick)?;
+    println!();
+    timing::table(quick)
 }
 
 /// Runs one case `iters` times after setup and one warm-up, printing nothing but a checksum
@@ -902,6 +905,7 @@ fn main() -> Result<()> {
         match a.as_str() {
             "--quick" => quick = true,
             "--multi-tool" => return multi_tool::table(quick),
+            "--timing" => return timing::table(quick),
             "--run" => case = Some(it.next().context("--run needs a case")?.clone()),
             "--iterations" => iters = it.next().context("--iterations needs a number")?.parse()?,
             "--idle" => {
@@ -913,7 +917,7 @@ fn main() -> Result<()> {
             }
             "-h" | "--help" => {
                 println!(
-                    "usage: irtrack-bench [--quick] [--multi-tool (only the several-tools tables)] | --run <ours-full|ours-roi|windows-simd|windows-portable|opencv|sum|max>-<vga|720p> --iterations N | --idle SECONDS"
+                    "usage: irtrack-bench [--quick] [--multi-tool (only the several-tools tables)] [--timing (only the time-true table)] | --run <ours-full|ours-roi|windows-simd|windows-portable|opencv|sum|max>-<vga|720p> --iterations N | --idle SECONDS"
                 );
                 return Ok(());
             }

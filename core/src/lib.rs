@@ -23,6 +23,7 @@ pub mod pgm;
 pub mod pipeline;
 pub mod pose6d;
 pub mod registration;
+pub mod retime;
 pub mod robot_proto;
 pub mod signing;
 pub mod simd;

@@ -23,6 +23,7 @@ use irtrack_core::blob::Blob;
 use irtrack_core::camera::RigidTransform;
 use irtrack_core::image::GrayImage;
 use irtrack_core::params::RigParams;
+use irtrack_core::retime::TimeMode;
 use irtrack_core::pipeline::{
     MAX_CAMERAS, Measurement, TrackStatus as MeasureStatus, Tracker, TrackerConfig,
 };
@@ -609,7 +610,15 @@ impl Engine {
         self.last_capture_ns = Some(capture_ns);
         self.account_source();
 
-        let skewed = self.set.pairing_error_ns > self.max_pairing_error_ns;
+        // Sets solved at one instant bridge the cameras' spread along their tracks, up to
+        // `max_bridge_ms`; only sets solved as seen need frames exposed together.
+        let max_skew_ns = if self.tracker_cfg.time_mode == TimeMode::Off {
+            self.max_pairing_error_ns
+        } else {
+            self.max_pairing_error_ns
+                .max((self.tracker_cfg.max_bridge_ms * 1e6) as u64)
+        };
+        let skewed = self.set.pairing_error_ns > max_skew_ns;
         let mut detected = false;
         let mut tools: Option<ToolSet> = None;
         let (mut rec, t_detect, t_solve) = match self
@@ -623,7 +632,7 @@ impl Engine {
                 if self.status.skewed_sets.fetch_add(1, R) == 0 {
                     tracing::warn!(
                         pairing_error_us = self.set.pairing_error_ns / 1000,
-                        max_us = self.max_pairing_error_ns / 1000,
+                        max_us = max_skew_ns / 1000,
                         "camera timestamps too far apart; set published without a position"
                     );
                 }
@@ -650,6 +659,10 @@ impl Engine {
                 }
                 let dropped = self.status.sets_dropped.load(R);
                 for (camera, frame) in self.set.frames.iter().enumerate() {
+                    // The frame's own timestamp: the set is solved at one instant from them.
+                    if let Err(e) = tracker.set_frame_time(camera, frame.timestamp_ns) {
+                        tracing::error!(camera, error = %e, "frame time refused");
+                    }
                     // A cluster solver's source brings other boards' blobs (no pixels).
                     let remote = self.source.remote_blobs(camera);
                     let detected = match (&frame.pixels, remote) {
@@ -705,9 +718,12 @@ impl Engine {
                         Self::fault_record(&self.status, self.set.index, capture_ns, self.params_crc)
                     } else {
                         let cameras = tracker.camera_count().min(MAX_CAMERAS);
+                        // Every LED moved to one instant (free-running or rolling-shutter
+                        // cameras); the tools' records are for that instant.
+                        let capture_ns = tracker.retime().map_or(capture_ns, instant_to_ns);
                         let mut lists: [&[Blob]; MAX_CAMERAS] = [&[]; MAX_CAMERAS];
                         for (c, list) in lists.iter_mut().enumerate().take(cameras) {
-                            *list = tracker.blobs(c);
+                            *list = tracker.timed_blobs(c);
                         }
                         let seen = lists[..cameras].iter().filter(|l| !l.is_empty()).count();
                         match pose_tracker.process(&lists[..cameras]) {
@@ -784,6 +800,8 @@ impl Engine {
                 } else {
                     let m = tracker.solve();
                     let t_solve = Instant::now();
+                    // The record is for the instant the set was solved at.
+                    let capture_ns = m.instant_ns.map_or(capture_ns, instant_to_ns);
                     let rec = if failed {
                         self.status.set_track(TrackIndication::None);
                         Self::record_from(
@@ -934,6 +952,11 @@ impl Engine {
             latency_us: 0,
             params_crc,
         }
+    }
+
+    /// `[tracking]`'s time mode (the set-up page shows it).
+    pub fn time_mode(&self) -> TimeMode {
+        self.tracker_cfg.time_mode
     }
 
     fn record_from(
@@ -1099,5 +1122,14 @@ fn track_indication(m: &Measurement) -> TrackIndication {
         TrackIndication::Partial
     } else {
         TrackIndication::None
+    }
+}
+
+/// A set's instant (f64 ns) as a record's timestamp.
+fn instant_to_ns(t_ns: f64) -> u64 {
+    if t_ns.is_finite() && t_ns > 0.0 {
+        t_ns.round() as u64
+    } else {
+        0
     }
 }
