@@ -8,10 +8,12 @@
 //! which some camera has no frame is reported as `missing_frame`; a frame without a confident
 //! marker gets its status and empty coordinates, never a guessed point.
 //!
-//! Truth (simulated directories) is evaluated at the instant a position is for: the
-//! measurement's reference instant when the tracker gives one, else camera 0's timestamp
-//! corrected by its offset (`camera_timing.csv`); from `truth_dense.csv` when present (timed
-//! scenarios), else `truth.csv` by frame.
+//! With timestamps each camera's frame is announced to the tracker at its own timestamp
+//! (`Tracker::set_frame_time`) and the cameras' constants from `camera_timing.csv`
+//! (`Tracker::set_timing`), so the set is solved at one reference instant. Truth (simulated
+//! directories) is evaluated at the instant a position is for: the measurement's reference
+//! instant, else camera 0's timestamp corrected by its offset; from `truth_dense.csv` when
+//! present (timed scenarios), else `truth.csv` by frame.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
@@ -512,9 +514,24 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
                 if let Some(g) = args.max_gap_mm {
                     cfg.max_gap_mm = g;
                 }
-                tracker.insert(Tracker::new(&rig, cfg).context("building the tracker")?)
+                let mut t = Tracker::new(&rig, cfg).context("building the tracker")?;
+                // The cameras' known timing constants (the simulator's truth), as irtrackd
+                // takes them from its config or parameter set.
+                for (c, ct) in timing.iter().flatten().enumerate() {
+                    t.set_timing(c, *ct)
+                        .with_context(|| format!("camera_timing.csv camera {c}"))?;
+                }
+                tracker.insert(t)
             }
         };
+        // Each camera's frame at its own timestamp: the tracker solves the set at one instant.
+        if stamped.is_some() {
+            for (c, ts) in frame_ts.iter().enumerate() {
+                if let Some(ts) = ts {
+                    tr.set_frame_time(c, *ts).with_context(|| format!("frame {index}"))?;
+                }
+            }
+        }
         let m = if maxval > 255 {
             let frames: Vec<GrayImage<'_, u16>> = images16
                 .iter()
@@ -530,11 +547,13 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
             *tr.process_u8(&frames).with_context(|| format!("frame {index}"))?
         };
         let status = status_name(&m);
-        // The instant this position is for: camera 0's exposure by its timestamp and offset.
-        // TODO(issue 39): the measurement's own reference instant once core's Tracker gives it.
-        let instant_ns = frame_ts[0].map(|ts| {
-            let offset = timing.as_ref().map_or(0, |t| t[0].offset_ns);
-            ts as f64 + offset as f64
+        // The instant this position is for: the tracker's reference instant, else camera 0's
+        // exposure by its timestamp and offset.
+        let instant_ns = m.instant_ns.or_else(|| {
+            frame_ts[0].map(|ts| {
+                let offset = timing.as_ref().map_or(0, |t| t[0].offset_ns);
+                ts as f64 + offset as f64
+            })
         });
         let instant_col = match (timed, instant_ns) {
             (false, _) => String::new(),
