@@ -396,10 +396,12 @@ fn read_timing(fs: &FileStorage, count: usize) -> Result<Vec<CameraTiming>> {
             );
             Ok(x)
         };
-        let shutter = match v[0] {
-            0.0 => Shutter::Global,
-            1.0 => Shutter::Rolling,
-            other => bail!("`{key}`: shutter = {other} must be 0 (global) or 1 (rolling)"),
+        let shutter = if v[0] == 0.0 {
+            Shutter::Global
+        } else if v[0] == 1.0 {
+            Shutter::Rolling
+        } else {
+            bail!("`{key}`: shutter = {} must be 0 (global) or 1 (rolling)", v[0])
         };
         let u32_max = f64::from(u32::MAX);
         timing.push(CameraTiming {
