@@ -119,6 +119,13 @@ impl Device {
     }
 }
 
+fn rejected(v: Verdict) -> (RejectCode, String) {
+    match v {
+        Verdict::Rejected { code, message } => (code, message),
+        other => panic!("expected a rejection, got {other:?}"),
+    }
+}
+
 fn temp_dir(name: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("irtrackd-rollback-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
@@ -138,10 +145,7 @@ async fn an_older_set_is_refused_unless_the_push_allows_it_and_the_newer_survive
             rig_id: "cell-v2".into()
         }
     );
-    let refused = dev.push(&v1).await;
-    let Verdict::Rejected { code, message } = refused else {
-        panic!("the older set was accepted: {refused:?}");
-    };
+    let (code, message) = rejected(dev.push(&v1).await);
     assert_eq!(code, RejectCode::Rollback, "{message}");
     println!("refusal: ERR {code} {message}");
     for words in [
@@ -230,10 +234,7 @@ async fn serials_decide_when_both_sets_have_one() {
     };
     assert!(dev.push(&newer).await.is_accepted());
     assert_eq!(dev.status.params_info().serial, Some(1_790_000_100));
-    let v = dev.push(&older).await;
-    let Verdict::Rejected { code, message } = v else {
-        panic!("older serial accepted: {v:?}");
-    };
+    let (code, message) = rejected(dev.push(&older).await);
     assert_eq!(code, RejectCode::Rollback);
     assert!(
         message.contains("cell-s99 (serial 1790000099, created 2026-09-22")
@@ -259,10 +260,7 @@ async fn unknown_request_flags_are_refused_before_the_body() {
     let blob = v2.to_blob().unwrap();
     let mut request = encode_push_with(&blob, PushOptions { allow_rollback: true });
     request[8..12].copy_from_slice(&0x0000_0003u32.to_le_bytes());
-    let v = dev.push_raw(&request).await;
-    let Verdict::Rejected { code, message } = v else {
-        panic!("unknown flag accepted: {v:?}");
-    };
+    let (code, message) = rejected(dev.push_raw(&request).await);
     assert_eq!(code, RejectCode::Protocol);
     assert!(message.contains("unknown request flags 0x00000002"), "{message}");
     assert_eq!(dev.active_id(), None);
