@@ -233,15 +233,23 @@ impl ParamService {
         let Ok(_guard) = self.busy.try_lock() else {
             return reject(RejectCode::Busy, "another parameter push is being stored".into());
         };
-        let verdict = match self
-            .check_blob(blob)
-            .and_then(|checked| self.check_rollback(&checked.0, options).map(|()| checked))
-        {
+        let verdict = match self.check_blob(blob).and_then(|(rig, crc, signed_by)| {
+            let rollback = self.check_rollback(&rig, options)?;
+            Ok((rig, crc, signed_by, rollback))
+        }) {
             Err(v) => v,
-            Ok((rig, crc, signed_by)) => match self.store.store(blob) {
+            Ok((rig, crc, signed_by, rollback)) => match self.store.store(blob) {
                 Err(e) => reject(RejectCode::Storage, format!("{e}; the previous set stays active")),
                 Ok(()) => {
                     let rig_id = rig.rig_id.clone();
+                    if let Some(text) = rollback {
+                        // Counted once it happened: a storage failure above is no rollback.
+                        tracing::warn!(event = %text, "rollback allowed by the push: an older parameter set replaces the active one");
+                        self.status.update_params_info(|p| {
+                            p.rollbacks_allowed += 1;
+                            p.last_rollback = Some(text);
+                        });
+                    }
                     self.activate(rig, crc, "pushed", signed_by);
                     Verdict::Accepted { rig_id }
                 }
@@ -252,24 +260,23 @@ impl ParamService {
     }
 
     /// Refuses a set older than the active one (serials when both have one, creation times
-    /// otherwise; `RigParams::is_older_than`) unless the push allows a rollback. Both the
-    /// refusal and an allowed rollback are logged, counted and shown on `/status`.
-    fn check_rollback(&self, rig: &RigParams, options: PushOptions) -> std::result::Result<(), Verdict> {
+    /// otherwise; `RigParams::is_older_than`) unless the push allows a rollback; then it returns
+    /// the allowed rollback in words (logged and counted once the set is active). A refusal is
+    /// counted here and logged with the rejection.
+    fn check_rollback(
+        &self,
+        rig: &RigParams,
+        options: PushOptions,
+    ) -> std::result::Result<Option<String>, Verdict> {
         let Some(active) = self.handle.current() else {
-            return Ok(());
+            return Ok(None);
         };
         if !rig.is_older_than(&active.rig) {
-            return Ok(());
+            return Ok(None);
         }
         let (pushed, current) = (rig.age_label(), active.rig.age_label());
         if options.allow_rollback {
-            tracing::warn!(%pushed, active = %current, "rollback allowed by the push: an older parameter set replaces the active one");
-            let text = format!("allowed: {pushed} replaced the newer {current}");
-            self.status.update_params_info(|p| {
-                p.rollbacks_allowed += 1;
-                p.last_rollback = Some(text);
-            });
-            return Ok(());
+            return Ok(Some(format!("allowed: {pushed} replaced the newer {current}")));
         }
         let message = format!(
             "parameter set {pushed} is older than the active set {current}; refused so that an old \
