@@ -438,6 +438,7 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
         deadline(&cfg.realtime, &resolved.source),
     )
     .with_nominal_fps(resolved.source.nominal_fps())
+    .with_camera_timing(config_timing(&cfg, &resolved.source))
     .with_pose_config(cfg.pose)
     .with_robot_tool(cfg.robot.as_ref().and_then(|r| r.tool.clone()))
     .with_tool_slot(tools_tx)
@@ -632,4 +633,27 @@ impl Running {
             let _ = tokio::task::spawn_blocking(move || l.stop()).await;
         }
     }
+}
+
+/// Each camera's timing from the config: the simulated source's own cameras (`[source.sim.timing]`)
+/// or the `[[camera_timing]]` tables (V4L2 and replayed cameras); a parameter set carrying
+/// timing overrides these in the loop.
+fn config_timing(cfg: &Config, source: &crate::config::Source) -> Vec<irtrack_core::timing::CameraTiming> {
+    if let crate::config::Source::Sim(sim) = source
+        && sim.timing.is_some()
+    {
+        return sim.camera_timings();
+    }
+    let n = cfg.camera_timing.iter().map(|t| t.camera + 1).max().unwrap_or(0);
+    let exposure = cfg.source.v4l2.as_ref().and_then(|v| v.exposure_us);
+    (0..n)
+        .map(|i| {
+            cfg.camera_timing
+                .iter()
+                .find(|t| t.camera == i)
+                // `Config::validate` refused what does not convert.
+                .and_then(|t| t.to_timing(exposure).ok())
+                .unwrap_or_default()
+        })
+        .collect()
 }

@@ -31,6 +31,7 @@ use irtrack_core::pose6d::{
 };
 use irtrack_core::retime::TimeMode;
 use irtrack_core::stream::{LooseRecord, PositionRecord, ToolRecord, TrackStatus};
+use irtrack_core::timing::CameraTiming;
 use tokio::sync::watch;
 
 use crate::clock;
@@ -239,6 +240,9 @@ pub struct Engine {
     detection_only: bool,
     /// Each camera's clock model (docs/timing.md, "Camera clocks"); allocated with the set.
     clocks: Option<FrameClocks>,
+    /// Each camera's timing from the config (`[[camera_timing]]`, or the simulated source's
+    /// own); a parameter set that carries timing wins (docs/timing.md, "Which win").
+    config_timing: Vec<CameraTiming>,
 }
 
 /// Receives each camera's blobs right after detection (cluster role "camera": publishes them).
@@ -297,7 +301,15 @@ impl Engine {
             observation_sink: None,
             detection_only: false,
             clocks,
+            config_timing: Vec::new(),
         }
+    }
+
+    /// Each camera's timing from the config (camera order; missing cameras: global shutter,
+    /// no offset). Used while the parameter set carries no timing of its own.
+    pub fn with_camera_timing(mut self, timing: Vec<CameraTiming>) -> Self {
+        self.config_timing = timing;
+        self
     }
 
     /// The source's configured frame rate, for the cameras' rate error in ppm (`/status`).
@@ -539,6 +551,20 @@ impl Engine {
             Some(t) if t.config().max_blobs == cfg.max_blobs => t.set_params(&p.rig),
             _ => Tracker::new(&p.rig, cfg).map(|t| self.tracker = Some(t)),
         };
+        // Timing: the parameter set's calibrated values win over the config's.
+        if let (Ok(()), Some(tracker)) = (&result, self.tracker.as_mut()) {
+            for camera in 0..tracker.camera_count() {
+                let timing = if p.rig.has_timing() {
+                    p.rig.camera_timing(camera)
+                } else {
+                    self.config_timing.get(camera).copied().unwrap_or_default()
+                };
+                if let Err(e) = tracker.set_timing(camera, timing) {
+                    tracing::error!(camera, error = %e, "camera timing refused; global shutter, no offset");
+                    let _ = tracker.set_timing(camera, CameraTiming::default());
+                }
+            }
+        }
         match result {
             Ok(()) => {
                 if self.detection_only {
