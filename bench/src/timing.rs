@@ -301,6 +301,8 @@ fn rigs() -> Vec<(&'static str, RigParams, Vector3<f64>)> {
         tools: Vec::new(),
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     };
     let d = 1400.0;
     let centre = Vector3::new(0.0, 0.0, d);
