@@ -351,3 +351,56 @@ mod tests {
         assert!(s.p50_us.unwrap() >= s.min_us.unwrap(), "{s:?}");
     }
 }
+
+/// A scrape's robot link packet counters (EGM/RSI; the socket link reports zeros): answered,
+/// and refused by reason (a `prometheus-client` collector, registered by
+/// `SharedStatus::prometheus` when `[robot]` is configured).
+#[derive(Debug)]
+pub struct RobotLinkMetrics {
+    answered: u64,
+    sessions: u64,
+    refused: [(&'static str, u64); 5],
+}
+
+impl From<&irtrack_robot::LinkStatus> for RobotLinkMetrics {
+    fn from(st: &irtrack_robot::LinkStatus) -> Self {
+        Self {
+            answered: st.packets_answered,
+            sessions: st.connects,
+            refused: st.refused_by_reason(),
+        }
+    }
+}
+
+impl prometheus_client::collector::Collector for RobotLinkMetrics {
+    fn encode(&self, mut enc: prometheus_client::encoding::DescriptorEncoder) -> Result<(), std::fmt::Error> {
+        use prometheus_client::encoding::EncodeMetric;
+        use prometheus_client::metrics::MetricType;
+        use prometheus_client::metrics::counter::ConstCounter;
+        for (name, help, v) in [
+            (
+                "irtrackd_robot_packets_answered",
+                "robot controller packets answered",
+                self.answered,
+            ),
+            (
+                "irtrackd_robot_sessions",
+                "robot link connections or streaming sessions started",
+                self.sessions,
+            ),
+        ] {
+            let m = enc.encode_descriptor(name, help, None, MetricType::Counter)?;
+            ConstCounter::new(v).encode(m)?;
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_robot_packets_refused",
+            "robot controller packets refused and not answered, by reason",
+            None,
+            MetricType::Counter,
+        )?;
+        for (reason, v) in self.refused {
+            ConstCounter::new(v).encode(m.encode_family(&[("reason", reason)])?)?;
+        }
+        Ok(())
+    }
+}
