@@ -116,7 +116,10 @@ mod tests {
             offset_ns: 500_000,
         };
         // Row 240.5 of a VGA frame: 3.6075 ms after row 0.
-        assert_eq!(t.blob_instant_ns(10_000_000, 240.5), 10_000_000.0 + 500_000.0 + 3_607_500.0);
+        assert_eq!(
+            t.blob_instant_ns(10_000_000, 240.5),
+            10_000_000.0 + 500_000.0 + 3_607_500.0
+        );
         assert!(t.validate().is_ok());
     }
 

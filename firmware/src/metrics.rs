@@ -404,3 +404,55 @@ impl prometheus_client::collector::Collector for RobotLinkMetrics {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod robot_link_tests {
+    use crate::status::{SharedStatus, fault_texts};
+
+    /// The link's refusal counters reach `/metrics` by reason, and a recent refusal is a fault
+    /// in plain words (issue 41).
+    #[test]
+    fn robot_link_refusals_in_metrics_and_fault_texts() {
+        let st = SharedStatus::new(2, "sim".into(), "none".into());
+        assert!(!st.prometheus().contains("irtrackd_robot_packets_refused"));
+        let link = irtrack_robot::LinkStatus {
+            kind: irtrack_robot::LinkKind::Rsi,
+            packets_answered: 250,
+            refused_source: 7,
+            refused_sequence: 1,
+            refused_implausible: 2,
+            bad_packets: 3,
+            out_of_order: 4,
+            last_refused: Some(irtrack_robot::RefusedPacket {
+                reason: irtrack_robot::Refusal::Sequence,
+                from: "10.0.0.9:6000".parse().unwrap(),
+                words: "a packet from 10.0.0.9:6000: sequence number 100005 is 100000 ahead".into(),
+                at: std::time::Instant::now(),
+            }),
+            ..Default::default()
+        };
+        let (_tx, rx) = tokio::sync::watch::channel(link);
+        assert!(st.robot_link.set(rx).is_ok());
+        let m = st.prometheus();
+        for line in [
+            "irtrackd_robot_packets_answered_total 250",
+            "irtrackd_robot_packets_refused_total{reason=\"wrong_source\"} 7",
+            "irtrackd_robot_packets_refused_total{reason=\"sequence_window\"} 1",
+            "irtrackd_robot_packets_refused_total{reason=\"implausible_position\"} 2",
+            "irtrackd_robot_packets_refused_total{reason=\"malformed\"} 3",
+            "irtrackd_robot_packets_refused_total{reason=\"out_of_order\"} 4",
+        ] {
+            assert!(m.lines().any(|l| l == line), "{line:?} missing in:\n{m}");
+        }
+        let f = fault_texts(&st, None, None);
+        let refused = f
+            .iter()
+            .find(|t| t.code == "robot_packets_refused")
+            .expect("the refusal fault");
+        assert!(
+            refused.message.contains("10.0.0.9:6000") && refused.message.contains("7 from another address"),
+            "{}",
+            refused.message
+        );
+    }
+}

@@ -500,8 +500,8 @@ impl<P: StreamProto, F: PositionFeed, C: Clock> Streamer<P, F, C> {
             self.refuse(Refusal::Source, peer, now, words);
             return None;
         }
-        // Decoded only now: with no session the RSI side keeps this packet's RSol until the
-        // next decode, and every accepted packet's own decode comes right before its encode.
+        // The RSI side keeps each decoded packet's RSol; a refused packet's is never used,
+        // because every accepted packet's own decode replaces it right before its encode.
         let pkt = match self.proto.decode(bytes) {
             Ok(p) => p,
             Err(e) => {
