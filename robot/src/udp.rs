@@ -539,7 +539,7 @@ impl<P: StreamProto, F: PositionFeed, C: Clock> Streamer<P, F, C> {
         }
         let moved_mm = dist_mm(pkt.pos_mm, last_pos_mm);
         let limit_mm = self.cfg.safety.max_step_mm + self.max_robot_speed_mm_s * since.as_secs_f64();
-        if !(moved_mm <= limit_mm) {
+        if moved_mm.is_nan() || moved_mm > limit_mm {
             let words = format!(
                 "a packet from {peer}: it reports the robot {moved_mm:.1} mm from where it was {} ms earlier, at most {limit_mm:.1} mm possible",
                 since.as_millis()
