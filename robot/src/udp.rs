@@ -459,11 +459,10 @@ impl<P: StreamProto, F: PositionFeed, C: Clock> Streamer<P, F, C> {
                 Refusal::Source => st.refused_source += 1,
                 Refusal::Sequence => st.refused_sequence += 1,
                 Refusal::Implausible => st.refused_implausible += 1,
-                Refusal::Malformed => {
-                    st.bad_packets += 1;
-                    st.last_error = Some(words.clone());
-                }
+                Refusal::Malformed => st.bad_packets += 1,
             }
+            // Where the link reports its other errors, too (`/status` robot.last_error).
+            st.last_error = Some(format!("refused {words}"));
             st.last_refused = Some(RefusedPacket {
                 reason,
                 from,
