@@ -363,6 +363,8 @@ fn start_robot(
     let deadman = rc.deadman.open(&deadman_flag)?;
     let link = irtrack_robot::spawn_link(rc.clone(), positions.clone(), MonotonicClock, deadman)?;
     let mut link_status = link.subscribe();
+    // /metrics and the fault texts read the link's counters.
+    let _ = status.robot_link.set(link.subscribe());
     let st = status.clone();
     tasks.push(tokio::spawn(async move {
         loop {

@@ -351,3 +351,108 @@ mod tests {
         assert!(s.p50_us.unwrap() >= s.min_us.unwrap(), "{s:?}");
     }
 }
+
+/// A scrape's robot link packet counters (EGM/RSI; the socket link reports zeros): answered,
+/// and refused by reason (a `prometheus-client` collector, registered by
+/// `SharedStatus::prometheus` when `[robot]` is configured).
+#[derive(Debug)]
+pub struct RobotLinkMetrics {
+    answered: u64,
+    sessions: u64,
+    refused: [(&'static str, u64); 5],
+}
+
+impl From<&irtrack_robot::LinkStatus> for RobotLinkMetrics {
+    fn from(st: &irtrack_robot::LinkStatus) -> Self {
+        Self {
+            answered: st.packets_answered,
+            sessions: st.connects,
+            refused: st.refused_by_reason(),
+        }
+    }
+}
+
+impl prometheus_client::collector::Collector for RobotLinkMetrics {
+    fn encode(&self, mut enc: prometheus_client::encoding::DescriptorEncoder) -> Result<(), std::fmt::Error> {
+        use prometheus_client::encoding::EncodeMetric;
+        use prometheus_client::metrics::MetricType;
+        use prometheus_client::metrics::counter::ConstCounter;
+        for (name, help, v) in [
+            (
+                "irtrackd_robot_packets_answered",
+                "robot controller packets answered",
+                self.answered,
+            ),
+            (
+                "irtrackd_robot_sessions",
+                "robot link connections or streaming sessions started",
+                self.sessions,
+            ),
+        ] {
+            let m = enc.encode_descriptor(name, help, None, MetricType::Counter)?;
+            ConstCounter::new(v).encode(m)?;
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_robot_packets_refused",
+            "robot controller packets refused and not answered, by reason",
+            None,
+            MetricType::Counter,
+        )?;
+        for (reason, v) in self.refused {
+            ConstCounter::new(v).encode(m.encode_family(&[("reason", reason)])?)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod robot_link_tests {
+    use crate::status::{SharedStatus, fault_texts};
+
+    /// The link's refusal counters reach `/metrics` by reason, and a recent refusal is a fault
+    /// in plain words (issue 41).
+    #[test]
+    fn robot_link_refusals_in_metrics_and_fault_texts() {
+        let st = SharedStatus::new(2, "sim".into(), "none".into());
+        assert!(!st.prometheus().contains("irtrackd_robot_packets_refused"));
+        let link = irtrack_robot::LinkStatus {
+            kind: irtrack_robot::LinkKind::Rsi,
+            packets_answered: 250,
+            refused_source: 7,
+            refused_sequence: 1,
+            refused_implausible: 2,
+            bad_packets: 3,
+            out_of_order: 4,
+            last_refused: Some(irtrack_robot::RefusedPacket {
+                reason: irtrack_robot::Refusal::Sequence,
+                from: "10.0.0.9:6000".parse().unwrap(),
+                words: "a packet from 10.0.0.9:6000: sequence number 100005 is 100000 ahead".into(),
+                at: std::time::Instant::now(),
+            }),
+            ..Default::default()
+        };
+        let (_tx, rx) = tokio::sync::watch::channel(link);
+        assert!(st.robot_link.set(rx).is_ok());
+        let m = st.prometheus();
+        for line in [
+            "irtrackd_robot_packets_answered_total 250",
+            "irtrackd_robot_packets_refused_total{reason=\"wrong_source\"} 7",
+            "irtrackd_robot_packets_refused_total{reason=\"sequence_window\"} 1",
+            "irtrackd_robot_packets_refused_total{reason=\"implausible_position\"} 2",
+            "irtrackd_robot_packets_refused_total{reason=\"malformed\"} 3",
+            "irtrackd_robot_packets_refused_total{reason=\"out_of_order\"} 4",
+        ] {
+            assert!(m.lines().any(|l| l == line), "{line:?} missing in:\n{m}");
+        }
+        let f = fault_texts(&st, None, None);
+        let refused = f
+            .iter()
+            .find(|t| t.code == "robot_packets_refused")
+            .expect("the refusal fault");
+        assert!(
+            refused.message.contains("10.0.0.9:6000") && refused.message.contains("7 from another address"),
+            "{}",
+            refused.message
+        );
+    }
+}

@@ -351,6 +351,9 @@ pub struct SharedStatus {
     /// ptp4l's state as its management socket reports it (set once by `app::start` when
     /// `[clock] ptp` is on).
     pub ptp: std::sync::OnceLock<crate::ptp::monitor::SharedPtp>,
+    /// The robot link's status (set once by `app::start` when `[robot]` is configured): its
+    /// packet counters on `/metrics`, its refusals in the fault texts.
+    pub robot_link: std::sync::OnceLock<tokio::sync::watch::Receiver<irtrack_robot::LinkStatus>>,
 }
 
 fn track_to_u8(t: TrackIndication) -> u8 {
@@ -423,6 +426,7 @@ impl SharedStatus {
             realtime_transport: Mutex::new(None),
             cluster: Mutex::new(None),
             ptp: std::sync::OnceLock::new(),
+            robot_link: std::sync::OnceLock::new(),
         }
     }
 
@@ -811,6 +815,9 @@ impl SharedStatus {
         if let Some(ptp) = self.ptp_report() {
             registry.register_collector(Box::new(ptp));
         }
+        if let Some(link) = self.robot_link.get() {
+            registry.register_collector(Box::new(crate::metrics::RobotLinkMetrics::from(&*link.borrow())));
+        }
         let mut s = String::with_capacity(8 * 1024);
         // Writing into a String cannot fail; an encoder error would be a bug in a metric.
         if let Err(e) = prometheus_client::encoding::text::encode(&mut s, &registry) {
@@ -1152,7 +1159,8 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FaultText {
     /// Stable code: `camera_lost`, `no_params`, `deadline_misses`, `no_led`, `no_usable_blob`,
-    /// `skewed_sets`, `ptp_unavailable`, `ptp_faulty`, and from the whole-frame analysis
+    /// `skewed_sets`, `ptp_unavailable`, `ptp_faulty`, `robot_packets_refused` (the EGM/RSI
+    /// link refused packets in the last 10 s), and from the whole-frame analysis
     /// `background_above_threshold`, `overloaded`, `too_many_spots`, `more_spots_than_leds`,
     /// `unreadable_frame`.
     pub code: &'static str,
@@ -1229,6 +1237,15 @@ pub fn fault_texts(
                     .into(),
             });
         }
+    }
+    if let Some(link) = st.robot_link.get()
+        && let Some(message) = link.borrow().refusal_fault(std::time::Instant::now())
+    {
+        out.push(FaultText {
+            code: "robot_packets_refused",
+            camera: None,
+            message,
+        });
     }
     if st.camera_lost.load(R) {
         return out;

@@ -56,6 +56,10 @@ pub struct CtrlConfig {
     pub duration_s: Option<f64>,
     /// Keep every cycle in [`CtrlRecord::path`] (tests; the CLI logs to CSV instead).
     pub keep_path: bool,
+    /// Bind with `SO_REUSEPORT` and connect to the sensor, so a test's spoofer can send from
+    /// this controller's very address and port ([`bind_shared_udp`]) while the replies still
+    /// reach the controller (Linux gives a connected socket precedence). IPv4 only.
+    pub share_port: bool,
 }
 
 impl CtrlConfig {
@@ -73,6 +77,7 @@ impl CtrlConfig {
             max_missed: 25,
             duration_s: None,
             keep_path: false,
+            share_port: false,
         }
     }
 }
@@ -198,7 +203,13 @@ impl SimController {
                 reason: format!("simulated controller cycle {} ms must be >= 1", cfg.cycle_ms),
             });
         }
-        let sock = UdpSocket::bind(cfg.bind).map_err(|e| io("bind", e))?;
+        let sock = if cfg.share_port {
+            let s = bind_shared_udp(cfg.bind).map_err(|e| io("bind", e))?;
+            s.connect(cfg.sensor).map_err(|e| io("connect", e))?;
+            s
+        } else {
+            UdpSocket::bind(cfg.bind).map_err(|e| io("bind", e))?
+        };
         sock.set_nonblocking(true).map_err(|e| io("set_nonblocking", e))?;
         let local = sock.local_addr().map_err(|e| io("local_addr", e))?;
         let record = Arc::new(Mutex::new(CtrlRecord::default()));
@@ -248,6 +259,66 @@ impl Drop for SimController {
             let _ = t.join();
         }
     }
+}
+
+/// A UDP socket bound to `addr` (IPv4) with `SO_REUSEPORT`, so that a second such socket can
+/// bind the same address and port: how the tests send spoofed packets whose source is exactly
+/// a controller's (what an attacker on the cell network can forge).
+pub fn bind_shared_udp(addr: SocketAddr) -> std::io::Result<UdpSocket> {
+    use std::os::fd::FromRawFd;
+    let SocketAddr::V4(v4) = addr else {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("{addr}: a shared port needs an IPv4 address"),
+        ));
+    };
+    // SAFETY: plain socket(2); the descriptor is owned by the UdpSocket below or closed here.
+    let fd = unsafe { libc::socket(libc::AF_INET, libc::SOCK_DGRAM | libc::SOCK_CLOEXEC, 0) };
+    if fd < 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    // SAFETY: `fd` is a socket we own; nothing else holds it.
+    let sock = unsafe { UdpSocket::from_raw_fd(fd) };
+    let one: libc::c_int = 1;
+    // SAFETY: a valid socket and a c_int option value that outlives the call.
+    let rc = unsafe {
+        libc::setsockopt(
+            fd,
+            libc::SOL_SOCKET,
+            libc::SO_REUSEPORT,
+            (&one as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        )
+    };
+    if rc != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    let sin = libc::sockaddr_in {
+        sin_family: libc::AF_INET as libc::sa_family_t,
+        sin_port: v4.port().to_be(),
+        sin_addr: libc::in_addr {
+            s_addr: u32::from(*v4.ip()).to_be(),
+        },
+        sin_zero: [0; 8],
+    };
+    // SAFETY: `sin` is a valid sockaddr_in of the size passed.
+    let rc = unsafe {
+        libc::bind(
+            fd,
+            (&sin as *const libc::sockaddr_in).cast(),
+            std::mem::size_of::<libc::sockaddr_in>() as libc::socklen_t,
+        )
+    };
+    if rc != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    Ok(sock)
+}
+
+/// A controller packet as this simulation sends it, reporting the TCP at `pos_mm` (and
+/// commanded there): what a spoofer in the tests forges.
+pub fn encode_packet(kind: CtrlKind, id: u64, pos_mm: [f64; 3], out: &mut Vec<u8>) {
+    robot_packet(kind, id, 0, &Servo::new(pos_mm, 12.0, 1000.0, 5000.0), out);
 }
 
 /// Encodes this cycle's controller packet.

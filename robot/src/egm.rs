@@ -305,11 +305,16 @@ impl StreamProto for Egm {
         decode_robot(bytes).map(|(_, p)| p)
     }
 
-    fn is_newer(id: u64, last: u64) -> bool {
+    fn ahead(id: u64, last: u64) -> Option<u64> {
         // seqno is a u32 that wraps: newer means less than half the range ahead.
         let d = (id as u32).wrapping_sub(last as u32);
-        d != 0 && d < 1 << 31
+        (d != 0 && d < 1 << 31).then_some(u64::from(d))
     }
+
+    /// 100 packets (0.4 s at EGM's 4 ms) lost in a row, besides the time-based allowance.
+    const SEQ_SLACK_IDS: u64 = 100;
+    /// One packet per ms: four times EGM's fastest cycle (4 ms).
+    const MAX_IDS_PER_S: u64 = 1000;
 
     fn on_session(&mut self, _first: &RobotPacket) {}
 

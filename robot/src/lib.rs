@@ -37,7 +37,7 @@ use serde::Deserialize;
 use tokio::sync::watch;
 
 pub use deadman::{Deadman, DeadmanConfig};
-pub use link::{LinkHandle, LinkState, LinkStatus};
+pub use link::{LinkHandle, LinkState, LinkStatus, Refusal, RefusedPacket};
 pub use safety::{SafetyConfig, Sample, Supervisor, Verdict};
 pub use udp::{RsiMode, StreamConfig};
 
@@ -441,6 +441,43 @@ active_low = true
             .unwrap_err()
             .to_string();
         assert!(e.contains("rsi_sen_type"), "{e}");
+    }
+
+    #[test]
+    fn stream_controller_is_an_address_with_or_without_port() {
+        let base = format!(
+            "kind = \"egm\"\n{}",
+            GOOD.replace("192.168.125.1:1025", "0.0.0.0:6510")
+        );
+        for (v, ok) in [
+            ("192.168.125.1", true),
+            ("192.168.125.1:6511", true),
+            ("[fe80::1]:6511", true),
+            ("robot:6511", false),
+            ("192.168.125.1:0", false),
+            ("", false),
+        ] {
+            let c: RobotConfig =
+                toml::from_str(&format!("{base}\n[stream]\ncontroller = \"{v}\"\n")).unwrap();
+            match c.validate() {
+                Ok(()) => assert!(ok, "{v:?} accepted"),
+                Err(e) => {
+                    assert!(!ok, "{v:?}: {e}");
+                    assert!(e.to_string().contains("robot.stream.controller"), "{e}");
+                }
+            }
+        }
+        let c: RobotConfig =
+            toml::from_str(&format!("{base}\n[stream]\nmax_robot_speed_mm_s = 0.0\n")).unwrap();
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("max_robot_speed_mm_s"), "{e}");
+        let any_port = udp::ControllerAddr::parse("127.0.0.1").unwrap();
+        assert!(any_port.matches("127.0.0.1:9".parse().unwrap()));
+        assert!(any_port.matches("[::ffff:127.0.0.1]:9".parse().unwrap()));
+        assert!(!any_port.matches("127.0.0.2:9".parse().unwrap()));
+        let exact = udp::ControllerAddr::parse("127.0.0.1:9").unwrap();
+        assert!(exact.matches("127.0.0.1:9".parse().unwrap()));
+        assert!(!exact.matches("127.0.0.1:10".parse().unwrap()));
     }
 
     #[test]

@@ -26,6 +26,44 @@ pub enum LinkState {
     Moving,
 }
 
+/// Why a streaming link refused a controller packet.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Refusal {
+    /// From an address or port other than the controller's.
+    Source,
+    /// Sequence number beyond the window.
+    Sequence,
+    /// Reported robot position the robot cannot have reached.
+    Implausible,
+    /// Not a packet of the protocol (does not decode).
+    Malformed,
+}
+
+impl Refusal {
+    /// Stable name (metrics label, JSON key).
+    pub fn name(self) -> &'static str {
+        match self {
+            Refusal::Source => "wrong_source",
+            Refusal::Sequence => "sequence_window",
+            Refusal::Implausible => "implausible_position",
+            Refusal::Malformed => "malformed",
+        }
+    }
+}
+
+/// The newest packet a streaming link refused.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefusedPacket {
+    /// Why.
+    pub reason: Refusal,
+    /// Where it came from.
+    pub from: std::net::SocketAddr,
+    /// What was wrong, in words (names the address and the check).
+    pub words: String,
+    /// When (to tell a refusal going on now from an old one).
+    pub at: std::time::Instant,
+}
+
 /// State and counters, published on every change.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LinkStatus {
@@ -51,6 +89,19 @@ pub struct LinkStatus {
     pub bad_packets: u64,
     /// Streaming kinds: duplicated or reordered packets (older sequence number; not answered).
     pub out_of_order: u64,
+    /// Streaming kinds: packets refused because they came from another address (or port) than
+    /// the controller's: the configured one, or the one whose session is running. Not answered.
+    pub refused_source: u64,
+    /// Streaming kinds: packets refused because their sequence number jumped further ahead than
+    /// the window allows (not answered, and the number is not adopted).
+    pub refused_sequence: u64,
+    /// Streaming kinds: packets refused because the robot position they report is further from
+    /// the last accepted one than the robot can move in the time between (not answered).
+    pub refused_implausible: u64,
+    /// Streaming kinds: the controller whose packets the running session accepts.
+    pub controller: Option<std::net::SocketAddr>,
+    /// Streaming kinds: the newest refused packet, in words.
+    pub last_refused: Option<RefusedPacket>,
     /// Streaming kinds: the UDP address irtrackd listens on.
     pub local_addr: Option<std::net::SocketAddr>,
     /// The newest error, in words.
@@ -74,10 +125,53 @@ impl Default for LinkStatus {
             packets_answered: 0,
             bad_packets: 0,
             out_of_order: 0,
+            refused_source: 0,
+            refused_sequence: 0,
+            refused_implausible: 0,
+            controller: None,
+            last_refused: None,
             local_addr: None,
             last_error: None,
             latency: None,
         }
+    }
+}
+
+/// A refusal at most this old is an active fault ([`LinkStatus::refusal_fault`]).
+pub const REFUSAL_FAULT_S: u64 = 10;
+
+impl LinkStatus {
+    /// The refusal counters by [`Refusal::name`], then `out_of_order` (duplicated or
+    /// reordered packets, also not answered): for `/metrics` and `/status`.
+    pub fn refused_by_reason(&self) -> [(&'static str, u64); 5] {
+        [
+            (Refusal::Source.name(), self.refused_source),
+            (Refusal::Sequence.name(), self.refused_sequence),
+            (Refusal::Implausible.name(), self.refused_implausible),
+            (Refusal::Malformed.name(), self.bad_packets),
+            ("out_of_order", self.out_of_order),
+        ]
+    }
+
+    /// While the link has refused a packet within the last [`REFUSAL_FAULT_S`] seconds (at
+    /// `now`): that fault in plain words with what to check; `None` otherwise. Duplicated or
+    /// reordered packets are normal on a network and no fault.
+    pub fn refusal_fault(&self, now: std::time::Instant) -> Option<String> {
+        let r = self.last_refused.as_ref()?;
+        let age = now.saturating_duration_since(r.at);
+        if age > Duration::from_secs(REFUSAL_FAULT_S) {
+            return None;
+        }
+        Some(format!(
+            "the robot link ({}) refuses packets that fail its checks and never answers them; the newest, {:.0} s ago: {}. Refused so far: {} from another address, {} out of the sequence window, {} reporting a robot position the robot cannot have reached, {} malformed — another device is sending to the robot port (or the controller restarted): check the cell network and [robot.stream] controller",
+            self.kind.name(),
+            age.as_secs_f64(),
+            r.words,
+            self.refused_source,
+            self.refused_sequence,
+            self.refused_implausible,
+            self.bad_packets
+        ))
     }
 }
 
@@ -142,5 +236,54 @@ impl RobotLink for LinkHandle {
     }
     fn status(&self) -> LinkStatus {
         self.status.borrow().clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn refusal_fault_names_the_check_and_lasts_ten_seconds() {
+        let at = std::time::Instant::now();
+        let mut st = LinkStatus {
+            kind: LinkKind::Egm,
+            refused_source: 3,
+            refused_sequence: 1,
+            out_of_order: 9,
+            ..LinkStatus::default()
+        };
+        assert_eq!(st.refusal_fault(at), None, "no refusal, no fault");
+        st.last_refused = Some(RefusedPacket {
+            reason: Refusal::Source,
+            from: "127.0.0.2:5000".parse().unwrap(),
+            words: "a packet from 127.0.0.2:5000: the configured controller is 10.0.0.1".into(),
+            at,
+        });
+        let f = st.refusal_fault(at + Duration::from_secs(2)).unwrap();
+        for part in [
+            "robot link (egm)",
+            "2 s ago",
+            "127.0.0.2:5000",
+            "3 from another address",
+            "1 out of the sequence window",
+            "[robot.stream] controller",
+        ] {
+            assert!(f.contains(part), "{part:?} missing: {f}");
+        }
+        assert_eq!(
+            st.refusal_fault(at + Duration::from_secs(REFUSAL_FAULT_S + 1)),
+            None
+        );
+        assert_eq!(
+            st.refused_by_reason(),
+            [
+                ("wrong_source", 3),
+                ("sequence_window", 1),
+                ("implausible_position", 0),
+                ("malformed", 0),
+                ("out_of_order", 9)
+            ]
+        );
     }
 }

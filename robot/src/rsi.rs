@@ -272,9 +272,14 @@ impl StreamProto for Rsi {
         })
     }
 
-    fn is_newer(id: u64, last: u64) -> bool {
-        id > last
+    fn ahead(id: u64, last: u64) -> Option<u64> {
+        id.checked_sub(last).filter(|d| *d > 0)
     }
+
+    /// IPOC counts milliseconds: 0.4 s of lost packets, besides the time-based allowance.
+    const SEQ_SLACK_IDS: u64 = 400;
+    /// Twice the IPOC's millisecond rate (margin for a controller clock that runs fast).
+    const MAX_IDS_PER_S: u64 = 2000;
 
     fn on_session(&mut self, first: &RobotPacket) {
         self.start_mm = first.pos_mm;

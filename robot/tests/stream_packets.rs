@@ -389,23 +389,28 @@ impl Fake {
 }
 
 async fn start(kind: LinkKind, session_timeout_ms: u64) -> (LinkHandle, Fake) {
+    start_with(kind, session_timeout_ms, |_, _| {}).await
+}
+
+/// As [`start`]; `tweak` may change the config, given the fake controller's address.
+async fn start_with(
+    kind: LinkKind,
+    session_timeout_ms: u64,
+    tweak: impl FnOnce(&mut RobotConfig, SocketAddr),
+) -> (LinkHandle, Fake) {
+    let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let mut cfg = link_cfg(kind, session_timeout_ms);
+    tweak(&mut cfg, sock.local_addr().unwrap());
     let (_tx, rx) = watch::channel(None);
     // Keep the sender alive for the test's duration by leaking it into the feed task.
     tokio::spawn(async move {
         let _keep = _tx;
         std::future::pending::<()>().await;
     });
-    let link = spawn_link(
-        link_cfg(kind, session_timeout_ms),
-        rx,
-        MonotonicClock,
-        std::sync::Arc::new(NoDeadman),
-    )
-    .unwrap();
+    let link = spawn_link(cfg, rx, MonotonicClock, std::sync::Arc::new(NoDeadman)).unwrap();
     let mut st = link.subscribe();
     st.wait_for(|s| s.local_addr.is_some()).await.unwrap();
     let sensor = link.status().local_addr.unwrap();
-    let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
     (link, Fake { sock, sensor })
 }
 
@@ -502,6 +507,118 @@ async fn egm_gap_starts_a_new_held_session() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rsi_gap_starts_a_new_held_session() {
     gap_starts_held_session(LinkKind::Rsi).await;
+}
+
+/// Polls the link's status until `cond` (counters are published without waking subscribers).
+async fn status_when(link: &LinkHandle, cond: impl Fn(&LinkStatus) -> bool) -> LinkStatus {
+    let mut st = link.status();
+    for _ in 0..300 {
+        if cond(&st) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+        st = link.status();
+    }
+    st
+}
+
+/// A controller that restarts with its sequence far ahead (EGM seqno, RSI IPOC) is refused
+/// until no packet has been accepted for the session timeout; then its next packet starts a
+/// new session, held until a new enable.
+async fn restart_recovers_after_the_session_timeout(kind: LinkKind) {
+    let (link, fake) = start(kind, 200).await;
+    let fake = std::sync::Arc::new(fake);
+    let home = [0.0, 0.0, 0.0];
+    let f = fake.clone();
+    let (first, recovered) = blocking(move || {
+        f.send(&packet(kind, 5, home));
+        let first = f.recv(300).map(|b| reply(kind, &b, home).0);
+        let t0 = std::time::Instant::now();
+        let mut id = 1_000_000;
+        while t0.elapsed() < Duration::from_secs(3) {
+            f.send(&packet(kind, id, home));
+            if let Some(b) = f.recv(20) {
+                return (first, Some((t0.elapsed(), reply(kind, &b, home).0, id)));
+            }
+            id += 4;
+        }
+        (first, None)
+    })
+    .await;
+    assert_eq!(first, Some(5));
+    let (after, answered, sent) = recovered.expect("the restarted controller was never answered");
+    assert_eq!(answered, sent);
+    // Refused until the 200 ms without an accepted packet were over (a loaded machine may be late).
+    assert!(after >= Duration::from_millis(150), "answered after {after:?}");
+    let st = status_when(&link, |s| s.connects == 2).await;
+    assert_eq!(st.connects, 2, "{st:?}");
+    assert!(st.refused_sequence >= 3, "{st:?}");
+    assert_eq!(
+        st.state,
+        irtrack_robot::LinkState::Holding(irtrack_core::robot_proto::HoldReason::NotEnabled)
+    );
+    assert_eq!(st.controller, Some(fake.sock.local_addr().unwrap()));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn egm_restart_recovers_after_the_session_timeout() {
+    restart_recovers_after_the_session_timeout(LinkKind::Egm).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rsi_restart_recovers_after_the_session_timeout() {
+    restart_recovers_after_the_session_timeout(LinkKind::Rsi).await;
+}
+
+/// `[robot.stream] controller` refuses every other sender from the start: another address
+/// (127.0.0.2) and, when the setting has a port, another port of the same address. Neither
+/// gets an answer or a session; the controller does.
+async fn configured_controller_only(kind: LinkKind) {
+    let (link, fake) = start_with(kind, 5000, |c, ctrl| c.stream.controller = Some(ctrl.to_string())).await;
+    let home = [10.0, 20.0, 30.0];
+    let sensor = fake.sensor;
+    let others = [
+        UdpSocket::bind("127.0.0.2:0").unwrap(),
+        UdpSocket::bind("127.0.0.1:0").unwrap(),
+    ];
+    let answers = blocking(move || {
+        let mut out = Vec::new();
+        for (i, o) in others.iter().enumerate() {
+            o.send_to(&packet(kind, 1 + i as u64, home), sensor).unwrap();
+            o.set_read_timeout(Some(Duration::from_millis(300))).unwrap();
+            let mut buf = [0u8; 2048];
+            out.push(o.recv(&mut buf).ok());
+        }
+        out
+    })
+    .await;
+    assert_eq!(answers, vec![None, None]);
+    let st = status_when(&link, |s| s.refused_source == 2).await;
+    assert_eq!((st.refused_source, st.connects), (2, 0), "{st:?}");
+    let words = st.last_refused.map(|r| r.words).unwrap_or_default();
+    assert!(
+        words.contains("127.0.0.1") && words.contains("configured controller"),
+        "{words}"
+    );
+    let f = std::sync::Arc::new(fake);
+    let f2 = f.clone();
+    let r = blocking(move || {
+        f2.send(&packet(kind, 7, home));
+        f2.recv(300)
+    })
+    .await;
+    assert_eq!(r.map(|b| reply(kind, &b, home)), Some((7, home)));
+    assert_eq!(link.status().connects, 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn egm_configured_controller_refuses_everyone_else() {
+    configured_controller_only(LinkKind::Egm).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rsi_configured_controller_refuses_everyone_else() {
+    configured_controller_only(LinkKind::Rsi).await;
 }
 
 /// A sensor that answers every packet two cycles late (it echoes the id): the controller

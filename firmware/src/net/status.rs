@@ -326,6 +326,11 @@ fn link_json(link: &LinkHandle, deadman: Option<bool>) -> String {
         "holds_sent": st.holds_sent,
         "rejects": st.rejects,
         "last_error": st.last_error,
+        // EGM/RSI: the pinned controller, packets answered and refused (not answered) by reason.
+        "controller": st.controller,
+        "packets_answered": st.packets_answered,
+        "refused": st.refused_by_reason().into_iter().collect::<std::collections::BTreeMap<_, _>>(),
+        "last_refused": st.last_refused.as_ref().map(|r| &r.words),
         "deadman_flag_pressed": deadman,
         // Per target sent (µs): the sample's age when it left (capture → on the wire) and the
         // protocol wait (published → on the wire).
