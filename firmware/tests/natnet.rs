@@ -221,6 +221,22 @@ async fn natnet_configuration_errors_name_the_problem() {
         ),
         ("enabled = true\naxes = \"z_down\"", "unknown variant `z_down`"),
         ("enabled = true\nport = 1510", "unknown field `port`"),
+        (
+            "enabled = true\nclient_networks = [\"10.1.2.3/16\"]",
+            "outputs.natnet.client_networks: \"10.1.2.3/16\" has host bits set (the network is 10.1.0.0/16)",
+        ),
+        (
+            "enabled = true\nclient_networks = [\"lab\"]",
+            "outputs.natnet.client_networks: \"lab\" is not a network",
+        ),
+        (
+            "enabled = true\nmax_clients_per_address = 0",
+            "outputs.natnet.max_clients_per_address: must be at least 1",
+        ),
+        (
+            "enabled = true\nreplies_per_s = 0.5",
+            "outputs.natnet.replies_per_s: 0.5 must be a number of replies per second >= 1",
+        ),
     ] {
         let text = format!("[outputs.natnet]\n{table}\n");
         let e = irtrack_firmware::config::Config::from_toml(&text, "x.toml")

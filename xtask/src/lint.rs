@@ -1,5 +1,6 @@
-//! Static checks of non-Rust files: systemd units (`systemd-analyze verify`) and the Yocto
-//! layer's BitBake recipes (`oelint-adv`). Each skips, saying so, while there is nothing to
+//! Static checks of non-Rust files: systemd units (`systemd-analyze verify`, and
+//! `systemd-analyze security --offline=true` against each service's exposure limit) and the
+//! Yocto layer's BitBake recipes (`oelint-adv`). Each skips, saying so, while there is nothing to
 //! check, and fails when its tool is missing.
 
 use std::path::{Path, PathBuf};
@@ -13,6 +14,21 @@ const RECIPE_SUFFIXES: &[&str] = &["bb", "bbappend", "bbclass"];
 
 /// Binaries this workspace builds; a unit may name them although they are not installed here.
 const PROJECT_BINARIES: &[&str] = &["irtrackd", "host-tools"];
+
+/// The highest `systemd-analyze security` exposure (0.0 safe .. 10.0 unsafe, in tenths) a
+/// service unit of `systemd/` may reach; a unit not listed gets [`DEFAULT_EXPOSURE_LIMIT`].
+/// Each limit and what the remaining exposure is for: docs/security.md, "systemd units".
+const EXPOSURE_LIMITS: &[(&str, u32)] = &[
+    // DynamicUser, no capabilities; what is left is the network and the camera/GPIO devices.
+    ("irtrackd.service", 15),
+    // Root with CAP_NET_BIND_SERVICE/NET_ADMIN/SYS_TIME, @clock, /dev/ptp*, writable /run.
+    ("irtrack-ptp4l.service", 30),
+    // Root with CAP_SYS_TIME, @clock, /dev/ptp*, writable /run; no IP traffic.
+    ("irtrack-phc2sys.service", 30),
+];
+/// The limit for a service unit not in [`EXPOSURE_LIMITS`] (systemd's "OK" band ends at 3.9;
+/// the project holds new units to the PTP units' level).
+const DEFAULT_EXPOSURE_LIMIT: u32 = 30;
 
 /// Files under `dir` (recursively) whose extension is one of `suffixes`, sorted.
 fn files_with(dir: &Path, suffixes: &[&str]) -> Vec<PathBuf> {
@@ -82,7 +98,7 @@ pub fn systemd_phase(ctx: &Ctx) -> Outcome {
         .collect();
     if problems.is_empty() && (out.success() || !out.stderr.is_empty()) {
         println!("systemd: {} unit file(s) verified", units.len());
-        Outcome::default()
+        exposure_check(&units)
     } else if problems.is_empty() {
         Outcome {
             failure: Some(format!("systemd-analyze verify {}", out.describe())),
@@ -94,6 +110,93 @@ pub fn systemd_phase(ctx: &Ctx) -> Outcome {
             ..Outcome::default()
         }
     }
+}
+
+/// `systemd-analyze security --offline=true` on every service unit: each unit's exposure is
+/// printed, and the phase fails naming every unit above its limit.
+fn exposure_check(units: &[PathBuf]) -> Outcome {
+    let services = units
+        .iter()
+        .filter(|u| u.extension().is_some_and(|x| x == "service"));
+    let mut over = Vec::new();
+    for unit in services {
+        let name = unit.file_name().and_then(|n| n.to_str()).unwrap_or("?");
+        let mut cmd = Command::new("systemd-analyze");
+        cmd.args(["security", "--offline=true", "--no-pager"]).arg(unit);
+        let opts = RunOpts {
+            capture_stdout: true,
+            capture_stderr: true,
+            ..RunOpts::default()
+        };
+        let out = match util::run(&mut cmd, opts) {
+            Ok(o) if o.success() => o,
+            Ok(o) => {
+                return Outcome::failed(format!("systemd-analyze security {name} {}", o.describe()));
+            }
+            Err(e) => return Outcome::failed(format!("{e:#}")),
+        };
+        let exposure = match parse_exposure(&out.stdout, name) {
+            Ok(x) => x,
+            Err(e) => return Outcome::failed(e),
+        };
+        let limit = exposure_limit(name);
+        let verdict = if exposure > limit { "ABOVE" } else { "within" };
+        println!(
+            "systemd: {name} exposure {} ({verdict} its limit {})",
+            tenths(exposure),
+            tenths(limit)
+        );
+        if exposure > limit {
+            over.push(format!(
+                "{name}: exposure {} is above its limit {} (docs/security.md, \"systemd units\")",
+                tenths(exposure),
+                tenths(limit)
+            ));
+        }
+    }
+    if over.is_empty() {
+        Outcome::passed()
+    } else {
+        Outcome::failed(over.join("\n"))
+    }
+}
+
+fn exposure_limit(unit: &str) -> u32 {
+    EXPOSURE_LIMITS
+        .iter()
+        .find(|(n, _)| *n == unit)
+        .map_or(DEFAULT_EXPOSURE_LIMIT, |(_, l)| *l)
+}
+
+fn tenths(x: u32) -> String {
+    format!("{}.{}", x / 10, x % 10)
+}
+
+/// The exposure in tenths from `systemd-analyze security`'s last line,
+/// `→ Overall exposure level for irtrackd.service: 1.5 OK 🙂`.
+fn parse_exposure(output: &str, unit: &str) -> Result<u32, String> {
+    let marker = format!("Overall exposure level for {unit}:");
+    let line = output
+        .lines()
+        .find(|l| l.contains(&marker))
+        .ok_or_else(|| format!("systemd-analyze security printed no \"{marker}\" line"))?;
+    let value = line
+        .split_once(&marker)
+        .map(|(_, rest)| rest.trim())
+        .and_then(|rest| rest.split_whitespace().next())
+        .unwrap_or("");
+    let bad = || format!("{unit}: exposure {value:?} is not a number 0.0..=10.0 in \"{line}\"");
+    let (whole, frac) = value.split_once('.').ok_or_else(bad)?;
+    let whole: u32 = whole.parse().map_err(|_| bad())?;
+    let frac: u32 = match frac.len() {
+        1 => frac.parse().map_err(|_| bad())?,
+        _ => return Err(bad()),
+    };
+    let x = whole * 10 + frac;
+    if x > 100 {
+        return Err(bad());
+    }
+    Ok(x)
 }
 
 /// `irtrackd.service: Command /usr/bin/irtrackd is not executable: No such file or directory`
@@ -207,23 +310,86 @@ mod tests {
         let ctx = ctx_at(&root);
         assert!(systemd_phase(&ctx).skipped.is_some(), "no systemd/ dir: skipped");
         std::fs::create_dir_all(root.join("systemd")).unwrap();
+        // Confined enough for the default limit (exposure 1.3 with systemd 252).
         let good = "[Unit]\nDescription=t\n[Service]\nExecStart=/usr/bin/irtrackd\n\
+                    DynamicUser=yes\nCapabilityBoundingSet=\nPrivateNetwork=yes\nPrivateDevices=yes\n\
+                    ProtectSystem=strict\nProtectHome=yes\nProtectKernelTunables=yes\n\
+                    ProtectKernelModules=yes\nProtectKernelLogs=yes\nProtectControlGroups=yes\n\
+                    ProtectClock=yes\nProtectProc=invisible\nRestrictAddressFamilies=AF_UNIX\n\
+                    RestrictNamespaces=yes\nSystemCallFilter=@system-service\n\
                     [Install]\nWantedBy=multi-user.target\n";
-        std::fs::write(root.join("systemd/t.service"), good).unwrap();
+        let unit = root.join("systemd/t.service");
+        std::fs::write(&unit, good).unwrap();
         let o = systemd_phase(&ctx);
         assert!(o.failure.is_none() && o.skipped.is_none(), "{o:?}");
         // An unknown key only warns (exit 0) in systemd-analyze; the phase must still fail.
-        std::fs::write(
-            root.join("systemd/t.service"),
-            good.replace("Description", "Descripshun"),
-        )
-        .unwrap();
-        let o = systemd_phase(&ctx);
+        std::fs::write(&unit, good.replace("Description", "Descripshun")).unwrap();
+        let unknown_key = systemd_phase(&ctx);
+        // Valid but unconfined (root, every capability): 9.6, above the default limit 3.0.
+        let bare = "[Unit]\nDescription=t\n[Service]\nExecStart=/usr/bin/irtrackd\n";
+        std::fs::write(&unit, bare).unwrap();
+        let unconfined = systemd_phase(&ctx);
         std::fs::remove_dir_all(&root).unwrap();
         assert!(
-            o.failure.as_deref().is_some_and(|f| f.contains("Descripshun")),
-            "{o:?}"
+            unknown_key
+                .failure
+                .as_deref()
+                .is_some_and(|f| f.contains("Descripshun")),
+            "{unknown_key:?}"
         );
+        let f = unconfined.failure.unwrap_or_default();
+        assert!(
+            f.contains("t.service: exposure 9.6 is above its limit 3.0"),
+            "{f}"
+        );
+    }
+
+    #[test]
+    fn exposure_is_read_from_systemd_analyze_security() {
+        let out = "  NAME   DESCRIPTION   EXPOSURE\n\
+                   ✗ PrivateNetwork=   Service has access to the host's network   0.5\n\
+                   \n\
+                   → Overall exposure level for irtrack-ptp4l.service: 2.7 OK 🙂\n";
+        assert_eq!(parse_exposure(out, "irtrack-ptp4l.service"), Ok(27));
+        let worst = "→ Overall exposure level for x.service: 10.0 UNSAFE 😨";
+        assert_eq!(parse_exposure(worst, "x.service"), Ok(100));
+        assert_eq!(
+            parse_exposure("→ Overall exposure level for x.service: 0.0 SAFE 😀", "x.service"),
+            Ok(0)
+        );
+        // Another unit's line, no line, and values that are not an exposure are errors that say
+        // what was expected.
+        let e = parse_exposure(out, "irtrackd.service").unwrap_err();
+        assert!(e.contains("Overall exposure level for irtrackd.service:"), "{e}");
+        for bad in ["", "2", "2.75", "-1.0", "x.5", "10.5", "2,7"] {
+            let line = format!("→ Overall exposure level for x.service: {bad} OK");
+            let e = parse_exposure(&line, "x.service").unwrap_err();
+            assert!(e.contains("is not a number 0.0..=10.0"), "{bad:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn exposure_limits_per_unit() {
+        assert_eq!(exposure_limit("irtrackd.service"), 15);
+        assert_eq!(exposure_limit("irtrack-ptp4l.service"), 30);
+        assert_eq!(exposure_limit("irtrack-phc2sys.service"), 30);
+        assert_eq!(exposure_limit("new-thing.service"), DEFAULT_EXPOSURE_LIMIT);
+        assert_eq!(tenths(15), "1.5");
+        assert_eq!(tenths(100), "10.0");
+    }
+
+    /// The project's own units are within their limits (what CI's systemd phase checks).
+    #[test]
+    fn project_units_are_within_their_exposure_limits() {
+        if !util::on_path("systemd-analyze") {
+            eprintln!("SKIPPED: systemd-analyze not found (`cargo xtask setup`)");
+            return;
+        }
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+        let units = files_with(&root.join("systemd"), &["service"]);
+        assert!(units.len() >= 3, "{units:?}");
+        let o = exposure_check(&units);
+        assert!(o.failure.is_none(), "{o:?}");
     }
 
     #[test]

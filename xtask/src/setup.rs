@@ -87,6 +87,10 @@ const PACKAGES: &[Pkg] = &[
         "ptp4l reads the PTP config irtrackd generates (test); systemd-analyze resolves the PTP units' ptp4l/phc2sys",
     ),
     pkg(
+        "strace",
+        "traces ptp4l/phc2sys inside the PTP units' sandbox against their system call filters (firmware/tests/ptp_sandbox.rs)",
+    ),
+    pkg(
         "iproute2",
         "`ip` sets up loopback multicast in the DDS test's own network namespace (firmware/tests/ros2_dds.rs)",
     ),

@@ -28,6 +28,13 @@ pub struct OutputStats {
     pub requests: AtomicU64,
     /// Malformed or unknown requests.
     pub bad_requests: AtomicU64,
+    /// Clients refused by the per-address client limit (NatNet `max_clients_per_address`).
+    pub refused_per_address: AtomicU64,
+    /// Replies larger than their request, and client slots, not given to an address outside
+    /// NatNet's `client_networks` (it has not shown it receives what is sent to it).
+    pub withheld: AtomicU64,
+    /// Replies not sent because of a reply rate limit.
+    pub rate_limited: AtomicU64,
     /// Capture (mid-exposure stamp) → handed to the kernel / DDS stack / writer queue, per
     /// record (lock-free, no allocation).
     pub latency: LatencyHistogram,
@@ -49,6 +56,11 @@ impl OutputStats {
             "skipped": self.slot_skips.load(R),
             "clients": self.clients.load(R),
             "refused": self.refused.load(R),
+            "refused_per_address": self.refused_per_address.load(R),
+            "withheld": self.withheld.load(R),
+            "rate_limited": self.rate_limited.load(R),
+            "requests": self.requests.load(R),
+            "bad_requests": self.bad_requests.load(R),
             "capture_to_sent": self.latency.snapshot().summary(),
         })
     }
@@ -99,6 +111,12 @@ impl OutputsStats {
                     dropped: s.send_drops.load(R),
                     skipped: s.slot_skips.load(R),
                     clients: s.clients.load(R),
+                    refused: s.refused.load(R),
+                    refused_per_address: s.refused_per_address.load(R),
+                    withheld: s.withheld.load(R),
+                    rate_limited: s.rate_limited.load(R),
+                    requests: s.requests.load(R),
+                    bad_requests: s.bad_requests.load(R),
                     p50_s: s.latency.snapshot().quantile_ns(0.5).map(|ns| ns / 1e9),
                     p99_s: s.latency.snapshot().quantile_ns(0.99).map(|ns| ns / 1e9),
                 })
@@ -114,6 +132,12 @@ struct OutputRow {
     dropped: u64,
     skipped: u64,
     clients: u64,
+    refused: u64,
+    refused_per_address: u64,
+    withheld: u64,
+    rate_limited: u64,
+    requests: u64,
+    bad_requests: u64,
     p50_s: Option<f64>,
     p99_s: Option<f64>,
 }
@@ -135,7 +159,7 @@ impl prometheus_client::collector::Collector for OutputsMetrics {
         use prometheus_client::metrics::gauge::ConstGauge;
         type Get = fn(&OutputRow) -> u64;
         // Counter names without `_total`: the encoder appends it.
-        let counters: [(&str, &str, Get); 3] = [
+        let counters: [(&str, &str, Get); 9] = [
             (
                 "irtrackd_output_sent",
                 "messages or datagrams sent per output",
@@ -150,6 +174,36 @@ impl prometheus_client::collector::Collector for OutputsMetrics {
                 "irtrackd_output_skipped",
                 "published records an output never saw (slot overwritten)",
                 |r| r.skipped,
+            ),
+            (
+                "irtrackd_output_refused",
+                "clients refused by the client limit per output",
+                |r| r.refused,
+            ),
+            (
+                "irtrackd_output_refused_per_address",
+                "clients refused by the per-address client limit per output",
+                |r| r.refused_per_address,
+            ),
+            (
+                "irtrackd_output_withheld",
+                "replies larger than their request and client slots not given to an address outside client_networks",
+                |r| r.withheld,
+            ),
+            (
+                "irtrackd_output_rate_limited",
+                "replies not sent because of a reply rate limit",
+                |r| r.rate_limited,
+            ),
+            (
+                "irtrackd_output_requests",
+                "requests received per output (NatNet commands)",
+                |r| r.requests,
+            ),
+            (
+                "irtrackd_output_bad_requests",
+                "malformed or unknown requests per output",
+                |r| r.bad_requests,
             ),
         ];
         for (name, help, get) in counters {

@@ -7,7 +7,12 @@
 //! address each client's requests came from (transport "unicast"; clients that stop sending
 //! keep-alives are forgotten after `unicast_timeout_s`). The server reads only the latest-value
 //! slot; a frame it cannot send at once is dropped and counted, never waited for.
+//!
+//! Requests are unauthenticated UDP: [`gate`] keeps the socket from reflecting or amplifying
+//! traffic onto spoofed addresses (replies larger than a request only to `client_networks`,
+//! a per-address client cap, reply rate limits).
 
+pub mod gate;
 pub mod server;
 pub mod wire;
 
@@ -61,6 +66,22 @@ pub struct NatNetConfig {
     /// Unicast clients served at once; further ones are refused (counted).
     #[serde(default = "default_max_clients")]
     pub max_clients: usize,
+    /// Unicast clients with the same IP address served at once (several programs on one PC);
+    /// further ones are refused (counted), so one host cannot take every slot.
+    #[serde(default = "default_max_clients_per_address")]
+    pub max_clients_per_address: usize,
+    /// Networks (`address/prefix`) whose addresses may get replies larger than their request
+    /// and become unicast clients; elsewhere a reply is at most the request's size
+    /// (docs/outputs.md, "Spoofed requests and floods"). Default: this host only.
+    #[serde(default = "default_client_networks")]
+    pub client_networks: Vec<String>,
+    /// Replies (server info, model definitions, frames on request, responses) per second to
+    /// one address, and the burst; further requests get no reply (counted).
+    #[serde(default = "default_replies_per_s_per_address")]
+    pub replies_per_s_per_address: f64,
+    /// Replies per second to all addresses together, and the burst.
+    #[serde(default = "default_replies_per_s")]
+    pub replies_per_s: f64,
 }
 
 fn default_command() -> String {
@@ -81,6 +102,18 @@ fn default_unicast_timeout() -> f64 {
 fn default_max_clients() -> usize {
     16
 }
+fn default_max_clients_per_address() -> usize {
+    4
+}
+fn default_client_networks() -> Vec<String> {
+    vec!["127.0.0.0/8".into(), "::1/128".into()]
+}
+fn default_replies_per_s_per_address() -> f64 {
+    20.0
+}
+fn default_replies_per_s() -> f64 {
+    200.0
+}
 
 impl Default for NatNetConfig {
     fn default() -> Self {
@@ -94,6 +127,10 @@ impl Default for NatNetConfig {
             axes: Axes::default(),
             unicast_timeout_s: default_unicast_timeout(),
             max_clients: default_max_clients(),
+            max_clients_per_address: default_max_clients_per_address(),
+            client_networks: default_client_networks(),
+            replies_per_s_per_address: default_replies_per_s_per_address(),
+            replies_per_s: default_replies_per_s(),
         }
     }
 }
@@ -113,6 +150,14 @@ pub struct NatNetPlan {
     pub unicast_timeout: std::time::Duration,
     /// Unicast clients served at once.
     pub max_clients: usize,
+    /// Unicast clients with the same IP address served at once.
+    pub max_clients_per_address: usize,
+    /// `client_networks`, parsed.
+    pub client_networks: Vec<gate::Network>,
+    /// Replies per second (also the burst) to one address.
+    pub replies_per_s_per_address: f64,
+    /// Replies per second (also the burst) to all addresses together.
+    pub replies_per_s: f64,
 }
 
 impl NatNetConfig {
@@ -162,6 +207,25 @@ impl NatNetConfig {
         if self.max_clients == 0 {
             return Err(bad("max_clients: must be at least 1".into()));
         }
+        if self.max_clients_per_address == 0 {
+            return Err(bad("max_clients_per_address: must be at least 1".into()));
+        }
+        let client_networks = self
+            .client_networks
+            .iter()
+            .map(|n| gate::Network::parse(n).map_err(|e| bad(format!("client_networks: {e}"))))
+            .collect::<Result<Vec<_>>>()?;
+        for (key, rate) in [
+            ("replies_per_s_per_address", self.replies_per_s_per_address),
+            ("replies_per_s", self.replies_per_s),
+        ] {
+            // At least one reply must fit in a bucket, else nothing is ever answered.
+            if !(rate.is_finite() && rate >= 1.0) {
+                return Err(bad(format!(
+                    "{key}: {rate} must be a number of replies per second >= 1"
+                )));
+            }
+        }
         Ok(NatNetPlan {
             command,
             multicast,
@@ -169,6 +233,10 @@ impl NatNetConfig {
             axes: self.axes,
             unicast_timeout: std::time::Duration::from_secs_f64(self.unicast_timeout_s),
             max_clients: self.max_clients,
+            max_clients_per_address: self.max_clients_per_address,
+            client_networks,
+            replies_per_s_per_address: self.replies_per_s_per_address,
+            replies_per_s: self.replies_per_s,
         })
     }
 }

@@ -11,6 +11,7 @@ use tokio::net::UdpSocket;
 use tokio::sync::watch;
 
 use super::NatNetPlan;
+use super::gate::{Gate, Verdict};
 use super::wire::{self, FrameStamps, ServerInfo};
 use crate::clock;
 use crate::engine::ParamsHandle;
@@ -163,6 +164,8 @@ struct State {
     last_frame: Vec<u8>,
     clients: Vec<Client>,
     received: u64,
+    /// Who may get how much (replies larger than a request, client slots, reply rates).
+    gate: Gate,
 }
 
 impl State {
@@ -174,6 +177,12 @@ impl State {
         stats: Arc<OutputStats>,
     ) -> Self {
         let axes = plan.axes;
+        let gate = Gate::new(
+            plan.client_networks.clone(),
+            plan.replies_per_s_per_address,
+            plan.replies_per_s,
+            Instant::now(),
+        );
         let mut s = Self {
             plan,
             local,
@@ -189,6 +198,7 @@ impl State {
             last_frame: Vec::with_capacity(1024),
             clients: Vec::new(),
             received: 0,
+            gate,
         };
         s.refresh_models();
         s.models_changed = false;
@@ -224,10 +234,39 @@ impl State {
         }
     }
 
-    fn reply(&mut self, socket: &UdpSocket, to: SocketAddr) {
+    /// Sends `self.packet` to `to` in answer to a request of `request_len` bytes, if the gate
+    /// lets it (super::gate); a reply it stops is counted.
+    fn reply(&mut self, socket: &UdpSocket, to: SocketAddr, request_len: usize) {
         let packet = std::mem::take(&mut self.packet);
-        self.send(socket, &packet, to);
+        self.reply_bytes(socket, &packet, to, request_len);
         self.packet = packet;
+    }
+
+    fn reply_bytes(&mut self, socket: &UdpSocket, bytes: &[u8], to: SocketAddr, request_len: usize) {
+        match self.gate.reply(to.ip(), request_len, bytes.len(), Instant::now()) {
+            Verdict::Send => {
+                self.send(socket, bytes, to);
+            }
+            Verdict::Withheld => self.withheld(to, "a reply larger than the request"),
+            Verdict::RateLimited => {
+                let n = self.stats.rate_limited.fetch_add(1, R);
+                if n.is_multiple_of(1000) {
+                    tracing::warn!(peer = %to, limited = n + 1, "NatNet reply rate limit reached; request not answered");
+                }
+            }
+        }
+    }
+
+    /// Counts (and logs now and then) what an address outside `client_networks` did not get.
+    fn withheld(&self, to: SocketAddr, what: &str) {
+        let n = self.stats.withheld.fetch_add(1, R);
+        if n.is_multiple_of(1000) {
+            tracing::warn!(
+                peer = %to,
+                withheld = n + 1,
+                "NatNet: {what} not sent to an address outside [outputs.natnet] client_networks (it has not shown it receives what is sent to it; add its network to serve it)"
+            );
+        }
     }
 
     fn request(&mut self, socket: &UdpSocket, datagram: &[u8], peer: SocketAddr) {
@@ -241,6 +280,7 @@ impl State {
             }
         };
         self.stats.requests.fetch_add(1, R);
+        let request_len = datagram.len();
         match req.id {
             wire::NAT_CONNECT => {
                 self.heard_from(peer);
@@ -251,16 +291,19 @@ impl State {
                     multicast: self.plan.multicast.map(|(g, _)| g),
                 };
                 if wire::encode_server_info(&info, &mut self.packet).is_ok() {
-                    self.reply(socket, peer);
+                    self.reply(socket, peer, request_len);
                 }
-                tracing::info!(%peer, "NatNet client connected");
+                // Only for addresses that are served: a spoofed flood is counted, not logged.
+                if self.gate.vouched_for(peer.ip()) {
+                    tracing::info!(%peer, "NatNet client connected");
+                }
             }
             wire::NAT_KEEPALIVE => self.heard_from(peer),
             wire::NAT_REQUEST_MODELDEF => {
                 self.heard_from(peer);
                 self.refresh_models();
                 match wire::encode_model_def(&self.builder.models, &mut self.packet) {
-                    Ok(()) => self.reply(socket, peer),
+                    Ok(()) => self.reply(socket, peer, request_len),
                     Err(e) => tracing::error!(error = %e, "NatNet model definitions not sent"),
                 }
             }
@@ -268,21 +311,24 @@ impl State {
                 self.heard_from(peer);
                 if !self.last_frame.is_empty() {
                     let frame = std::mem::take(&mut self.last_frame);
-                    self.send(socket, &frame, peer);
+                    self.reply_bytes(socket, &frame, peer, request_len);
                     self.last_frame = frame;
                 }
             }
             wire::NAT_DISCONNECT => {
+                let before = self.clients.len();
                 self.clients.retain(|c| c.addr != peer);
                 self.stats.clients.store(self.clients.len() as u64, R);
-                tracing::info!(%peer, "NatNet client disconnected");
+                if self.clients.len() != before {
+                    tracing::info!(%peer, "NatNet client disconnected");
+                }
             }
             wire::NAT_REQUEST => {
                 // Motive's remote-control commands (recording, playback, bitstream version)
                 // have no meaning here: answered with a failure code.
                 tracing::debug!(%peer, command = %wire::command_text(req.payload), "NatNet command not supported");
                 if wire::encode_response_code(1, &mut self.packet).is_ok() {
-                    self.reply(socket, peer);
+                    self.reply(socket, peer, request_len);
                 }
             }
             other => {
@@ -290,14 +336,16 @@ impl State {
                     tracing::warn!(%peer, message = other, "NatNet message not understood");
                 }
                 if wire::encode_empty(wire::NAT_UNRECOGNIZED_REQUEST, &mut self.packet).is_ok() {
-                    self.reply(socket, peer);
+                    self.reply(socket, peer, request_len);
                 }
             }
         }
     }
 
     /// Unicast: remembers (or refreshes) a client. Any request counts, so keep-alives from a
-    /// forgotten client bring it back as a connect would.
+    /// forgotten client bring it back as a connect would. Frames flow to a client without
+    /// further requests, so only addresses in `client_networks` become clients, at most
+    /// `max_clients_per_address` per IP address.
     fn heard_from(&mut self, peer: SocketAddr) {
         if self.plan.multicast.is_some() {
             return;
@@ -305,6 +353,22 @@ impl State {
         let now = Instant::now();
         if let Some(c) = self.clients.iter_mut().find(|c| c.addr == peer) {
             c.last_heard = now;
+            return;
+        }
+        if !self.gate.vouched_for(peer.ip()) {
+            self.withheld(peer, "a unicast client slot (frames)");
+            return;
+        }
+        let ip = peer.ip().to_canonical();
+        let same_ip = self
+            .clients
+            .iter()
+            .filter(|c| c.addr.ip().to_canonical() == ip)
+            .count();
+        if same_ip >= self.plan.max_clients_per_address {
+            if self.stats.refused_per_address.fetch_add(1, R) == 0 {
+                tracing::warn!(%peer, max = self.plan.max_clients_per_address, "NatNet clients per address limit reached; client refused");
+            }
             return;
         }
         if self.clients.len() >= self.plan.max_clients {
@@ -321,6 +385,7 @@ impl State {
     }
 
     fn expire(&mut self) {
+        self.gate.sweep(Instant::now());
         let timeout = self.plan.unicast_timeout;
         let before = self.clients.len();
         self.clients.retain(|c| {
