@@ -73,6 +73,9 @@ impl CameraSpec {
 
 /// Which rig to build.
 #[derive(Debug, Clone, PartialEq)]
+// Built once per scenario and matched, never stored in bulk: boxing `Custom` would only cost
+// every caller a `Box::new`.
+#[allow(clippy::large_enum_variant)]
 pub enum RigPreset {
     /// Two cameras side by side, optical axes parallel, camera 1 at +x `baseline_mm`.
     Parallel {
