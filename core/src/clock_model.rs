@@ -460,19 +460,17 @@ impl ClockModel {
         let gap_ns = t.saturating_sub(self.last_t);
         let since_last = t_rel_f - self.line(self.last_k);
         let mut by_seq = None;
-        if self.seq_trusted {
-            if let (Some(s), Some(l)) = (sequence, self.last_seq) {
-                if s == l {
-                    if (t as f64 - self.last_t as f64).abs() < 0.5 * period {
-                        return self.duplicate(out);
-                    }
-                    // The counter stood still while time went on: it does not count frames.
-                    self.seq_trusted = false;
-                } else if s < l {
-                    return self.jump(sequence, t, out);
-                } else {
-                    by_seq = Some(s - l);
+        if let (true, Some(s), Some(l)) = (self.seq_trusted, sequence, self.last_seq) {
+            if s == l {
+                if (t as f64 - self.last_t as f64).abs() < 0.5 * period {
+                    return self.duplicate(out);
                 }
+                // The counter stood still while time went on: it does not count frames.
+                self.seq_trusted = false;
+            } else if s < l {
+                return self.jump(sequence, t, out);
+            } else {
+                by_seq = Some(s - l);
             }
         }
         let dk = match by_seq {
