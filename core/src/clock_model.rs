@@ -460,9 +460,7 @@ impl ClockModel {
         let gap_ns = t.saturating_sub(self.last_t);
         let since_last = t_rel_f - self.line(self.last_k);
         let mut by_seq = None;
-        if self.seq_trusted
-            && let (Some(s), Some(l)) = (sequence, self.last_seq)
-        {
+        if let (true, Some(s), Some(l)) = (self.seq_trusted, sequence, self.last_seq) {
             if s == l {
                 if (t as f64 - self.last_t as f64).abs() < 0.5 * period {
                     return self.duplicate(out);

@@ -68,7 +68,7 @@ impl FrameClocks {
             }
         }
         for (c, counters) in status.cameras.iter().enumerate().take(self.raw_ns.len()) {
-            if (self.sets + c as u64) % PUBLISH_EVERY == 0 {
+            if (self.sets + c as u64).is_multiple_of(PUBLISH_EVERY) {
                 self.publish(c, &counters.clock);
             }
         }
