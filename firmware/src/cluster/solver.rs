@@ -604,9 +604,12 @@ impl ClusterSource {
                 index.get_or_insert(e.sequence);
                 frame.sequence = e.sequence;
                 frame.timestamp_ns = to_mono(e.capture_ts_ns);
-            } else {
+            } else if c == 0 {
+                // Camera 0's time is the set's for the loop (stale-set check, latency).
                 frame.timestamp_ns = to_mono(set.capture_ts_ns);
             }
+            // An absent camera other than 0 keeps its last frame's time and sequence: its clock
+            // model takes it as a repeat, not as a frame on a wrong instant, and it has no blobs.
         }
         // Every camera keeps its own capture time: the loop solves the set at one instant from
         // them (docs/timing.md), and camera 0's is the set's time when solving as seen.
