@@ -581,7 +581,7 @@ pub fn utc_minute(unix_s: u64) -> String {
     // Whole 400-year cycles (146 097 days each) first, then years one by one (≤ 400 steps).
     let mut year = 1970 + 400 * (days / 146_097);
     days %= 146_097;
-    let leap = |y: u64| (y % 4 == 0 && y % 100 != 0) || y % 400 == 0;
+    let leap = |y: u64| (y.is_multiple_of(4) && !y.is_multiple_of(100)) || y.is_multiple_of(400);
     loop {
         let len = if leap(year) { 366 } else { 365 };
         if days < len {
