@@ -72,6 +72,9 @@ impl CameraSpec {
 }
 
 /// Which rig to build.
+// Built once per scenario, so the size of the `Custom` variant (a whole `RigParams`, which
+// grew with per-camera timing and the serial) costs nothing worth a `Box` in every caller.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, PartialEq)]
 pub enum RigPreset {
     /// Two cameras side by side, optical axes parallel, camera 1 at +x `baseline_mm`.
