@@ -503,7 +503,7 @@ fn push_params_allow_rollback_sends_the_flag() {
             s.write_all(v.to_line().as_bytes()).unwrap();
             (head.has_flags, options.allow_rollback)
         });
-        let mut args = vec!["push-params", "--to", &addr, p(&blob)];
+        let mut args = vec!["push-params", "--to", addr.as_str(), p(&blob)];
         if allow {
             args.push("--allow-rollback");
         }

@@ -106,9 +106,9 @@ pub fn now_unix_s() -> u64 {
         .map_or(0, |d| d.as_secs())
 }
 
-/// Gives a set that a tool has changed the next serial (`RigParams::next_serial`: its serial
-/// + 1, at least the current Unix time), so irtrackd takes it as newer than the set it came
-/// from (docs/param-blob.md, "Serial").
+/// Gives a set that a tool has changed the next serial (`RigParams::next_serial`: one more
+/// than its serial, at least the current Unix time), so irtrackd takes it as newer than the
+/// set it came from (docs/param-blob.md, "Serial").
 pub fn bump_serial(rig: &mut irtrack_core::params::RigParams) {
     rig.serial = irtrack_core::params::RigParams::next_serial(rig.serial, now_unix_s());
 }
