@@ -76,9 +76,6 @@ impl CameraSpec {
 // grew with per-camera timing and the serial) costs nothing worth a `Box` in every caller.
 #[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, PartialEq)]
-// Built once per scenario and matched, never stored in bulk: boxing `Custom` would only cost
-// every caller a `Box::new`.
-#[allow(clippy::large_enum_variant)]
 pub enum RigPreset {
     /// Two cameras side by side, optical axes parallel, camera 1 at +x `baseline_mm`.
     Parallel {
