@@ -938,7 +938,8 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FaultText {
     /// Stable code: `camera_lost`, `no_params`, `deadline_misses`, `no_led`, `no_usable_blob`,
-    /// `skewed_sets`, `ptp_unavailable`, `ptp_faulty`, and from the whole-frame analysis
+    /// `skewed_sets`, `ptp_unavailable`, `ptp_faulty`, `recording_failed` (the MCAP
+    /// recording cannot write), and from the whole-frame analysis
     /// `background_above_threshold`, `overloaded`, `too_many_spots`, `more_spots_than_leds`,
     /// `unreadable_frame`.
     pub code: &'static str,
@@ -1013,6 +1014,16 @@ pub fn fault_texts(
                 camera: None,
                 message: "ptp4l's port is FAULTY — check the Ethernet link and `journalctl -u irtrack-ptp4l`"
                     .into(),
+            });
+        }
+    }
+    // Outputs (a recording stopped by a full disk, ...): whatever the cameras do.
+    if let Some(outputs) = st.outputs.get() {
+        for (code, message) in outputs.fault_texts() {
+            out.push(FaultText {
+                code,
+                camera: None,
+                message,
             });
         }
     }

@@ -2,8 +2,8 @@
 //! (`irtrackd_output_*{output="natnet"|"mcap"|"ros2"}`). A leaf module: the status service
 //! reads it without importing the outputs themselves.
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 
 use crate::metrics::LatencyHistogram;
 
@@ -31,6 +31,15 @@ pub struct OutputStats {
     /// Capture (mid-exposure stamp) → handed to the kernel / DDS stack / writer queue, per
     /// record (lock-free, no allocation).
     pub latency: LatencyHistogram,
+    /// Writes that failed (MCAP: a write that stopped a file, or a new file that could not be
+    /// started).
+    pub write_errors: AtomicU64,
+    /// Files started (MCAP recordings).
+    pub files: AtomicU64,
+    /// The file being written (MCAP); `None` while none is.
+    pub file: Mutex<Option<String>>,
+    /// What is wrong with this output now, in plain words; `None`: nothing.
+    pub fault: Mutex<Option<String>>,
 }
 
 impl OutputStats {
@@ -50,7 +59,21 @@ impl OutputStats {
             "clients": self.clients.load(R),
             "refused": self.refused.load(R),
             "capture_to_sent": self.latency.snapshot().summary(),
+            "write_errors": self.write_errors.load(R),
+            "files": self.files.load(R),
+            "file": self.file_now(),
+            "fault": self.fault_now(),
         })
+    }
+
+    /// The file being written, if any.
+    pub fn file_now(&self) -> Option<String> {
+        self.file.lock().ok().and_then(|g| g.clone())
+    }
+
+    /// The output's fault in plain words, if it has one.
+    pub fn fault_now(&self) -> Option<String> {
+        self.fault.lock().ok().and_then(|g| g.clone())
     }
 }
 
@@ -76,6 +99,21 @@ impl OutputsStats {
         ]
     }
 
+    /// The outputs' faults for `/status`'s `fault_texts`: (code, what is wrong and what to do).
+    pub fn fault_texts(&self) -> Vec<(&'static str, String)> {
+        self.each()
+            .into_iter()
+            .filter_map(|(name, s)| {
+                let code = match name {
+                    "mcap" => "recording_failed",
+                    "natnet" => "natnet_failed",
+                    _ => "ros2_failed",
+                };
+                s.fault_now().map(|text| (code, text))
+            })
+            .collect()
+    }
+
     /// `/status`'s `outputs` object.
     pub fn report_json(&self) -> serde_json::Value {
         serde_json::Value::Object(
@@ -99,6 +137,8 @@ impl OutputsStats {
                     dropped: s.send_drops.load(R),
                     skipped: s.slot_skips.load(R),
                     clients: s.clients.load(R),
+                    write_errors: s.write_errors.load(R),
+                    fault: s.fault_now().is_some(),
                     p50_s: s.latency.snapshot().quantile_ns(0.5).map(|ns| ns / 1e9),
                     p99_s: s.latency.snapshot().quantile_ns(0.99).map(|ns| ns / 1e9),
                 })
@@ -114,6 +154,8 @@ struct OutputRow {
     dropped: u64,
     skipped: u64,
     clients: u64,
+    write_errors: u64,
+    fault: bool,
     p50_s: Option<f64>,
     p99_s: Option<f64>,
 }
@@ -135,7 +177,7 @@ impl prometheus_client::collector::Collector for OutputsMetrics {
         use prometheus_client::metrics::gauge::ConstGauge;
         type Get = fn(&OutputRow) -> u64;
         // Counter names without `_total`: the encoder appends it.
-        let counters: [(&str, &str, Get); 3] = [
+        let counters: [(&str, &str, Get); 4] = [
             (
                 "irtrackd_output_sent",
                 "messages or datagrams sent per output",
@@ -150,6 +192,11 @@ impl prometheus_client::collector::Collector for OutputsMetrics {
                 "irtrackd_output_skipped",
                 "published records an output never saw (slot overwritten)",
                 |r| r.skipped,
+            ),
+            (
+                "irtrackd_output_write_errors",
+                "failed writes per output (MCAP: a full disk stopping a file)",
+                |r| r.write_errors,
             ),
         ];
         for (name, help, get) in counters {
@@ -166,6 +213,15 @@ impl prometheus_client::collector::Collector for OutputsMetrics {
         )?;
         for r in &self.rows {
             ConstGauge::new(r.clients as i64).encode(m.encode_family(&[("output", r.name)])?)?;
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_output_fault",
+            "1 while an output has a fault (its text is in /status fault_texts)",
+            None,
+            MetricType::Gauge,
+        )?;
+        for r in &self.rows {
+            ConstGauge::new(i64::from(r.fault)).encode(m.encode_family(&[("output", r.name)])?)?;
         }
         let mut m = enc.encode_descriptor(
             "irtrackd_output_latency_seconds",
