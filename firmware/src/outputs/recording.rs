@@ -159,7 +159,11 @@ impl NumberedFiles {
         let mut n = self.highest()? + 1;
         loop {
             let path = self.path(n);
-            match std::fs::OpenOptions::new().write(true).create_new(true).open(&path) {
+            match std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&path)
+            {
                 Ok(f) => return Ok((path, f)),
                 Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && n < u64::MAX => n += 1,
                 Err(e) => return Err(e),
@@ -182,14 +186,19 @@ mod imp {
     use std::sync::mpsc;
     use std::time::{Duration, Instant};
 
+    use std::collections::BTreeMap;
+
     use irtrack_core::stream::PositionRecord;
     use irtrack_interop::InteropError;
-    use irtrack_interop::mcap::{McapRecorder, RecordingFile};
+    use irtrack_interop::mcap::{FrameSet, McapRecorder, RecordingFile, ToolPose};
+    use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
     use tokio::sync::watch;
 
     use super::NumberedFiles;
+    use crate::engine::{ParamsHandle, ToolSet};
     use crate::error::{FirmwareError, Result};
     use crate::outputs::OutputStats;
+    use crate::outputs::scene::{Axes, Models, SceneBuilder, SceneFrame};
     use crate::status::SharedStatus;
 
     const R: Ordering = Ordering::Relaxed;
@@ -216,6 +225,17 @@ mod imp {
         /// The first file, open with its header written.
         first: (PathBuf, Writer),
         queue: usize,
+        /// The parameter set's models and the loop's per-tool slot: every tool by name, the
+        /// loose LEDs. Without them each record is written alone (its tool named `tool`).
+        models: Option<(Arc<ParamsHandle>, Option<watch::Receiver<ToolSet>>)>,
+    }
+
+    /// What the writer thread gets per record: the set's main record, its per-tool records
+    /// (boxed: most of a queue slot otherwise) and the records skipped so far.
+    struct Item {
+        rec: PositionRecord,
+        tools: Option<Box<ToolSet>>,
+        skipped: u64,
     }
 
     impl Recorder {
@@ -229,20 +249,34 @@ mod imp {
                 target: Target::Files(files),
                 first,
                 queue: queue.max(1),
+                models: None,
             })
         }
 
         /// A recording into `sink` alone (`label` names it in logs and on `/status`).
         pub fn with_sink(label: PathBuf, sink: Box<dyn RecordingFile>, queue: usize) -> Result<Self> {
-            let writer = McapRecorder::new(sink, local_wall_offset_ns()).map_err(|e| FirmwareError::Output {
-                what: "MCAP recording",
-                reason: e.to_string(),
-            })?;
+            let writer =
+                McapRecorder::new(sink, local_wall_offset_ns()).map_err(|e| FirmwareError::Output {
+                    what: "MCAP recording",
+                    reason: e.to_string(),
+                })?;
             Ok(Self {
                 target: Target::Sink,
                 first: (label, writer),
                 queue: queue.max(1),
+                models: None,
             })
+        }
+
+        /// Records every tool of the parameter set (by name, on the live ROS 2 output's
+        /// topics) from the loop's per-tool slot, the loose LEDs, and the registration.
+        pub fn with_models(
+            mut self,
+            params: Arc<ParamsHandle>,
+            tools: Option<watch::Receiver<ToolSet>>,
+        ) -> Self {
+            self.models = Some((params, tools));
+            self
         }
 
         /// Records every record the slot shows until `shutdown`, then finishes the file.
@@ -253,14 +287,18 @@ mod imp {
             stats: Arc<OutputStats>,
             shutdown: impl Future<Output = ()>,
         ) {
-            let (tx, rx) = mpsc::sync_channel::<PositionRecord>(self.queue);
-            let mut session = Session::new(self.target, self.first, stats.clone());
+            let (tx, rx) = mpsc::sync_channel::<Item>(self.queue);
+            let (params, tools) = match self.models {
+                Some((p, t)) => (Some(p), t),
+                None => (None, None),
+            };
+            let mut session = Session::new(self.target, self.first, stats.clone(), params);
             let thread = std::thread::Builder::new()
                 .name("irtrackd-mcap".into())
                 .spawn(move || {
                     loop {
                         match rx.recv_timeout(IDLE_COMMIT) {
-                            Ok(rec) => session.record(&rec),
+                            Ok(item) => session.record(&item),
                             Err(mpsc::RecvTimeoutError::Timeout) => session.idle(),
                             Err(mpsc::RecvTimeoutError::Disconnected) => break,
                         }
@@ -287,13 +325,23 @@ mod imp {
                         let Some(rec) = rec else { continue };
                         received += 1;
                         let published = status.published.load(R);
-                        stats.slot_skips.store(published.saturating_sub(received), R);
-                        if tx.try_send(rec).is_err() && stats.send_drops.fetch_add(1, R) == 0 {
+                        let skipped = published.saturating_sub(received);
+                        stats.slot_skips.store(skipped, R);
+                        let tool_set = tools
+                            .as_ref()
+                            .map(|t| *t.borrow())
+                            .filter(|t| t.frame == rec.frame)
+                            .map(Box::new);
+                        let item = Item { rec, tools: tool_set, skipped };
+                        if tx.try_send(item).is_err() && stats.send_drops.fetch_add(1, R) == 0 {
                             tracing::warn!("MCAP writer behind; records dropped (counted)");
                         }
                     }
                 }
             }
+            // Records published after the last one this task saw were skipped too.
+            let published = status.published.load(R);
+            stats.slot_skips.store(published.saturating_sub(received), R);
             drop(tx);
             if tokio::task::spawn_blocking(move || thread.join()).await.is_err() {
                 tracing::error!("MCAP writer thread failed");
@@ -331,6 +379,83 @@ mod imp {
         opened: Instant,
         /// Records of this file already counted as sent (on file).
         counted: u64,
+        /// The recorder's counters when the file started (for its metadata).
+        skipped_at_start: u64,
+        dropped_at_start: u64,
+        /// The parameter generation whose registration this file has.
+        generation: u64,
+    }
+
+    /// The parameter set's models, turned into frame sets.
+    struct ModelState {
+        params: Arc<ParamsHandle>,
+        generation: u64,
+        builder: SceneBuilder,
+        scene: SceneFrame,
+        /// Robot base from tracker (x y z w, metres), from the set's registration.
+        registration: Option<([f64; 4], [f64; 3])>,
+        loose: Vec<(u32, [f64; 3])>,
+    }
+
+    impl ModelState {
+        fn refresh(&mut self) {
+            let generation = self.params.generation();
+            if generation == self.generation {
+                return;
+            }
+            self.generation = generation;
+            let current = self.params.current();
+            let rig = current.as_ref().map(|p| &p.rig);
+            self.builder.models = Models::of_rig(rig);
+            self.registration = rig.and_then(|r| r.world_from_cam0.as_ref()).map(|w| {
+                let r = Rotation3::from_matrix_unchecked(Matrix3::from_row_slice(&w.r_row_major));
+                let q = UnitQuaternion::from_rotation_matrix(&r);
+                (
+                    [q.i, q.j, q.k, q.w],
+                    [w.t_mm[0] / 1e3, w.t_mm[1] / 1e3, w.t_mm[2] / 1e3],
+                )
+            });
+        }
+
+        /// Writes one set: every tracked tool by name, the single LED, the loose LEDs.
+        fn write(&mut self, writer: &mut Writer, item: &Item) -> std::result::Result<(), InteropError> {
+            self.builder
+                .fill_with(&item.rec, item.tools.as_deref(), &mut self.scene);
+            let models = &self.builder.models.list;
+            let scene = &self.scene;
+            let tools: Vec<ToolPose<'_>> = scene
+                .bodies
+                .iter()
+                .filter(|b| b.tracked)
+                .filter_map(|b| {
+                    let m = models.iter().find(|m| m.id == b.id)?;
+                    Some(ToolPose {
+                        name: &m.name,
+                        position_m: b.position_m,
+                        orientation_xyzw: b.orientation_xyzw,
+                    })
+                })
+                .collect();
+            let led_m = models
+                .iter()
+                .zip(&scene.marker_sets)
+                .find(|(m, _)| !m.rigid_body)
+                .filter(|_| !scene.unlabelled_m.is_empty())
+                .and_then(|(_, set)| set.first().copied());
+            self.loose.clear();
+            self.loose
+                .extend(scene.loose.iter().map(|l| (l.loose_id, l.position_m)));
+            // Loose LEDs are reported beside tools only, for sets with per-tool records.
+            let has_tools = models.iter().any(|m| m.rigid_body);
+            let loose = (has_tools && scene.per_tool).then_some(self.loose.as_slice());
+            writer.write_set(&FrameSet {
+                record: &item.rec,
+                tools: &tools,
+                led_m,
+                loose,
+                skipped: item.skipped,
+            })
+        }
     }
 
     /// The writer thread's state: the file being written, or when to try the next one.
@@ -345,10 +470,16 @@ mod imp {
         /// How the last file stopped (for the fault text while new ones fail too).
         stopped: Option<String>,
         stats: Arc<OutputStats>,
+        models: Option<ModelState>,
     }
 
     impl Session {
-        fn new(target: Target, first: (PathBuf, Writer), stats: Arc<OutputStats>) -> Self {
+        fn new(
+            target: Target,
+            first: (PathBuf, Writer),
+            stats: Arc<OutputStats>,
+            params: Option<Arc<ParamsHandle>>,
+        ) -> Self {
             let mut s = Self {
                 target,
                 current: None,
@@ -356,6 +487,14 @@ mod imp {
                 retry_delay: RETRY_FIRST,
                 stopped: None,
                 stats,
+                models: params.map(|params| ModelState {
+                    params,
+                    generation: u64::MAX,
+                    builder: SceneBuilder::new(Models::default(), Axes::Tracker),
+                    scene: SceneFrame::default(),
+                    registration: None,
+                    loose: Vec::new(),
+                }),
             };
             s.started(first.0, first.1);
             s
@@ -371,6 +510,9 @@ mod imp {
                 writer,
                 opened: Instant::now(),
                 counted: 0,
+                skipped_at_start: self.stats.slot_skips.load(R),
+                dropped_at_start: self.stats.send_drops.load(R),
+                generation: u64::MAX,
             });
             self.retry_at = None;
             self.stopped = None;
@@ -394,17 +536,31 @@ mod imp {
             }
         }
 
-        fn record(&mut self, rec: &PositionRecord) {
+        fn record(&mut self, item: &Item) {
             self.resume_if_due();
             let Some(cur) = self.current.as_mut() else {
                 // Not recorded: no file can be written now.
                 self.stats.send_drops.fetch_add(1, R);
                 return;
             };
-            let res = cur.writer.write(rec);
+            let res = match self.models.as_mut() {
+                Some(m) => {
+                    m.refresh();
+                    // Each file gets the registration of the set in use (on /tf_static).
+                    let registered = if cur.generation != m.generation {
+                        cur.generation = m.generation;
+                        cur.writer
+                            .set_registration(m.registration, item.rec.capture_ts_ns)
+                    } else {
+                        Ok(())
+                    };
+                    registered.and_then(|()| m.write(&mut cur.writer, item))
+                }
+                None => cur.writer.write(&item.rec),
+            };
             if res.is_ok() {
                 // Capture → written into the open chunk.
-                self.stats.record_latency(rec.capture_ts_ns);
+                self.stats.record_latency(item.rec.capture_ts_ns);
             }
             self.settle(res);
         }
@@ -480,10 +636,30 @@ mod imp {
             }
         }
 
-        /// Shutdown: writes the last chunk, then the summary and indexes.
+        /// Shutdown: writes the last chunk and the recorder's counts for this file (a
+        /// metadata record `irtrack_recorder`), then the summary and indexes.
         fn finish(mut self) {
             if let Some(cur) = self.current.as_mut() {
                 let res = cur.writer.commit();
+                self.settle(res);
+            }
+            if let Some(cur) = self.current.as_mut() {
+                let counts = BTreeMap::from([
+                    (
+                        "records_written".to_string(),
+                        cur.writer.records_committed().to_string(),
+                    ),
+                    (
+                        "records_skipped".to_string(),
+                        (self.stats.slot_skips.load(R).saturating_sub(cur.skipped_at_start)).to_string(),
+                    ),
+                    (
+                        "records_dropped".to_string(),
+                        (self.stats.send_drops.load(R).saturating_sub(cur.dropped_at_start)).to_string(),
+                    ),
+                    ("irtrackd".to_string(), env!("CARGO_PKG_VERSION").to_string()),
+                ]);
+                let res = cur.writer.write_metadata("irtrack_recorder", counts);
                 self.settle(res);
             }
             let Some(cur) = self.current.take() else {
@@ -548,7 +724,13 @@ mod tests {
         let (p1, _) = files.create_next().unwrap();
         assert_eq!(p1, dir.join("rec-0001.mcap"));
         // Other names beside them do not count; a gap keeps the highest.
-        for other in ["rec.mcap", "rec-12.txt", "rec-x.mcap", "other-0050.mcap", "rec-0007.mcap"] {
+        for other in [
+            "rec.mcap",
+            "rec-12.txt",
+            "rec-x.mcap",
+            "other-0050.mcap",
+            "rec-0007.mcap",
+        ] {
             std::fs::write(dir.join(other), b"x").unwrap();
         }
         let (p8, _) = files.create_next().unwrap();
