@@ -189,7 +189,7 @@ fn mcap_recording_decodes_with_ros2_schemas_in_python() {
     }
     let pose = &got["poses"][0];
     assert_eq!(
-        pose.as_array().unwrap()[3..],
+        pose.as_array().unwrap()[3..7],
         [0.5, -0.5, 0.5, 0.5].map(serde_json::Value::from)
     );
     // Without a registration world-frame records hang under the world frame in /tf.
