@@ -1160,7 +1160,8 @@ impl prometheus_client::collector::Collector for MetricsSnapshot {
 pub struct FaultText {
     /// Stable code: `camera_lost`, `no_params`, `deadline_misses`, `no_led`, `no_usable_blob`,
     /// `skewed_sets`, `ptp_unavailable`, `ptp_faulty`, `robot_packets_refused` (the EGM/RSI
-    /// link refused packets in the last 10 s), and from the whole-frame analysis
+    /// link refused packets in the last 10 s), `recording_failed` (the MCAP recording cannot
+    /// write), and from the whole-frame analysis
     /// `background_above_threshold`, `overloaded`, `too_many_spots`, `more_spots_than_leds`,
     /// `unreadable_frame`.
     pub code: &'static str,
@@ -1246,6 +1247,16 @@ pub fn fault_texts(
             camera: None,
             message,
         });
+    }
+    // Outputs (a recording stopped by a full disk, ...): whatever the cameras do.
+    if let Some(outputs) = st.outputs.get() {
+        for (code, message) in outputs.fault_texts() {
+            out.push(FaultText {
+                code,
+                camera: None,
+                message,
+            });
+        }
     }
     if st.camera_lost.load(R) {
         return out;

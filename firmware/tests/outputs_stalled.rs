@@ -132,30 +132,27 @@ async fn natnet_clients_that_never_read_do_not_slow_the_loop() {
     running.shutdown().await;
 }
 
-/// A seekable in-memory sink whose `write` blocks while `stall` is set: a disk that stops.
+/// An in-memory recording file whose writes block while `stall` is set: a disk that stops.
 #[cfg(feature = "mcap")]
 struct StallingSink {
-    inner: std::io::Cursor<Vec<u8>>,
+    data: Vec<u8>,
     stall: Arc<std::sync::atomic::AtomicBool>,
 }
 
 #[cfg(feature = "mcap")]
-impl std::io::Write for StallingSink {
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+impl irtrack_firmware::outputs::recording::RecordingFile for StallingSink {
+    fn write_all_at_offset(&mut self, offset_bytes: u64, buf: &[u8]) -> std::io::Result<()> {
         while self.stall.load(R) {
             std::thread::sleep(Duration::from_millis(5));
         }
-        self.inner.write(buf)
-    }
-    fn flush(&mut self) -> std::io::Result<()> {
+        let at = offset_bytes as usize;
+        self.data.resize(self.data.len().max(at + buf.len()), 0);
+        self.data[at..at + buf.len()].copy_from_slice(buf);
         Ok(())
     }
-}
-
-#[cfg(feature = "mcap")]
-impl std::io::Seek for StallingSink {
-    fn seek(&mut self, pos: std::io::SeekFrom) -> std::io::Result<u64> {
-        self.inner.seek(pos)
+    fn truncate_to(&mut self, len_bytes: u64) -> std::io::Result<()> {
+        self.data.truncate(len_bytes as usize);
+        Ok(())
     }
 }
 
@@ -170,7 +167,7 @@ async fn mcap_recording_into_a_blocked_sink_drops_and_counts_without_slowing_the
     use irtrack_firmware::outputs::recording::Recorder;
     let stall = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let sink = StallingSink {
-        inner: std::io::Cursor::new(Vec::new()),
+        data: Vec::new(),
         stall: stall.clone(),
     };
     let rec = Recorder::with_sink("stalling sink".into(), Box::new(sink), 16).unwrap();
@@ -213,8 +210,9 @@ async fn mcap_recording_into_a_blocked_sink_drops_and_counts_without_slowing_the
         })
     };
     let before = sets_per_s(&status, 1.5).await;
+    // `sent` counts records on file: a chunk is written at least every second.
     let written0 = stats.frames_sent.load(R);
-    assert!(written0 > 100, "{written0}");
+    assert!(written0 > 50, "{written0}");
     stall.store(true, R);
     let during = sets_per_s(&status, 3.0).await;
     report(
@@ -224,14 +222,14 @@ async fn mcap_recording_into_a_blocked_sink_drops_and_counts_without_slowing_the
         &stats,
     );
     let dropped = stats.send_drops.load(R);
-    // The writer is stuck (at most the queue and the record in its hands go through); the
-    // rest is dropped and counted.
+    // The writer is stuck in a chunk's write: at most that chunk (a second of records) and
+    // the queue go through; the rest is dropped and counted.
     assert!(
-        stats.frames_sent.load(R) - written0 <= 17 + 8,
+        stats.frames_sent.load(R) - written0 <= 121 + 17,
         "{}",
         stats.frames_sent.load(R)
     );
-    assert!(dropped > 250, "{dropped}");
+    assert!(dropped > 150, "{dropped}");
     assert!(
         during >= 0.95 * before,
         "loop slowed: {before:.1} → {during:.1} sets/s"

@@ -135,32 +135,46 @@ fn mcap_recording_decodes_with_ros2_schemas_in_python() {
         .iter()
         .filter(|r| r.status == TrackStatus::Ok && r.orientation_wxyz.is_some())
         .count();
+    let led = tracked - with_pose;
     let c = s.mcap.unwrap();
     assert_eq!(
         (c.status, c.position, c.tf, c.pose),
-        (40, tracked as u64, tracked as u64, with_pose as u64)
+        (40, led as u64, tracked as u64, with_pose as u64)
     );
 
     // PyPI's reader in a separate process; it checks the ros2 profile and monotonic log times.
     let got = irtrack_testkit::mcap_check::read_mcap_with_python(&file).unwrap();
-    // Counts equal what was streamed: every record's status, every tracked position and tf,
-    // every tracked 6-DOF pose.
+    // Counts equal what was streamed, on the live ROS 2 output's topics: every record's
+    // status on /diagnostics, every tracked LED position and tool pose (the stream's main
+    // records do not name the tool: `tool`), a /tf per tracked record.
     let counts = &got["counts"];
-    assert_eq!(counts["/irtrack/status"], 40);
-    assert_eq!(counts["/irtrack/position"], tracked);
+    assert_eq!(counts["/diagnostics"], 40);
+    assert_eq!(counts["/irtrack/led/point"], led);
     assert_eq!(counts["/tf"], tracked);
-    assert_eq!(counts["/irtrack/pose"], with_pose);
+    assert_eq!(counts["/irtrack/tool/pose"], with_pose);
     assert_eq!(
-        got["schemas"]["/irtrack/pose"][0],
+        got["schemas"]["/irtrack/tool/pose"][0],
         "geometry_msgs/msg/PoseStamped"
     );
     assert_eq!(got["schemas"]["/tf"][0], "tf2_msgs/msg/TFMessage");
-    assert_eq!(got["schemas"]["/irtrack/status"][1], "ros2msg");
-    assert_eq!(got["schemas"]["/irtrack/status"][2], "cdr");
+    assert_eq!(
+        got["schemas"]["/diagnostics"],
+        serde_json::json!(["diagnostic_msgs/msg/DiagnosticArray", "ros2msg", "cdr"])
+    );
+    // Every channel carries the QoS a live publisher offers (the ros2 profile requires it).
+    for (topic, qos) in got["qos"].as_object().unwrap() {
+        assert!(
+            qos.as_str().is_some_and(|q| q.contains("reliability:")),
+            "{topic}: {qos}"
+        );
+    }
     // Decoded values equal the streamed records (metres), stamps keep the board's spacing.
     let positions = got["positions"].as_array().unwrap();
-    let tracked_recs: Vec<&PositionRecord> =
-        streamed.iter().filter(|r| r.status == TrackStatus::Ok).collect();
+    let tracked_recs: Vec<&PositionRecord> = streamed
+        .iter()
+        .filter(|r| r.status == TrackStatus::Ok && r.orientation_wxyz.is_none())
+        .collect();
+    assert_eq!(positions.len(), tracked_recs.len());
     let stamp = |p: &serde_json::Value| {
         p[1].as_i64().unwrap() as i128 * 1_000_000_000 + p[2].as_i64().unwrap() as i128
     };
@@ -175,9 +189,11 @@ fn mcap_recording_decodes_with_ros2_schemas_in_python() {
     }
     let pose = &got["poses"][0];
     assert_eq!(
-        pose.as_array().unwrap()[3..],
+        pose.as_array().unwrap()[3..7],
         [0.5, -0.5, 0.5, 0.5].map(serde_json::Value::from)
     );
+    // Without a registration world-frame records hang under the world frame in /tf.
+    assert_eq!(got["tf"][0][0], "irtrack_world");
     assert_eq!(got["tf"][0][1], "irtrack_led");
     assert_eq!(got["tf"][tracked - 1][1], "irtrack_tool");
     let lost = &got["status"][4];

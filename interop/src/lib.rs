@@ -26,12 +26,35 @@ pub enum InteropError {
         /// The writer's message.
         reason: String,
     },
+    /// Writing the recording's file failed (a full disk, a removed medium); the recording
+    /// stopped. What was written before stays readable.
+    #[error("writing the MCAP file failed: {reason}; {}", kept_words(*.kept_chunks, *.kept_bytes, *.end_written))]
+    RecordingStopped {
+        /// The I/O error, as the OS words it.
+        reason: String,
+        /// Bytes that stay readable.
+        kept_bytes: u64,
+        /// Chunks (and the header) that stay readable; 0: nothing.
+        kept_chunks: u64,
+        /// The file's end was written after them (readers open it as it is).
+        end_written: bool,
+    },
     /// A message type has no schema here.
     #[error("no ROS 2 message definition for {type_name}")]
     UnknownType {
         /// The type asked for.
         type_name: String,
     },
+}
+
+fn kept_words(chunks: u64, bytes: u64, end_written: bool) -> String {
+    match (chunks, end_written) {
+        (0, _) => "nothing of this file is readable".to_string(),
+        (c, true) => format!("the {bytes} bytes written before ({c} chunks) stay readable"),
+        (c, false) => format!(
+            "the {bytes} bytes written before ({c} chunks) are whole but the file's end could not be written (`mcap recover` reads them)"
+        ),
+    }
 }
 
 /// This crate's result type.

@@ -153,6 +153,7 @@ impl Outputs {
         }
         #[cfg(feature = "mcap")]
         if let Some(rec) = self.mcap {
+            let rec = rec.with_models(feed.params.clone(), feed.tools.clone());
             tasks.push(tokio::spawn(rec.run(
                 feed.slot.clone(),
                 feed.status.clone(),

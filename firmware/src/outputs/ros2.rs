@@ -87,14 +87,8 @@ fn is_token(s: &str) -> bool {
 /// A tool name as a ROS name token: characters outside `[A-Za-z0-9_]` become `_`, a leading
 /// digit gets a `t` in front.
 pub fn token_of(name: &str) -> String {
-    let mut t: String = name
-        .chars()
-        .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
-        .collect();
-    if t.is_empty() || t.starts_with(|c: char| c.is_ascii_digit()) {
-        t.insert(0, 't');
-    }
-    t
+    // One rule for live topics and recordings (irtrack_interop::mcap uses it too).
+    irtrack_interop::ros2msg::ros_token(name)
 }
 
 impl Ros2Config {

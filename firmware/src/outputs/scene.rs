@@ -213,6 +213,13 @@ impl SceneBuilder {
 
     /// Fills `out` from `rec` (clears its lists first).
     pub fn fill(&self, rec: &PositionRecord, out: &mut SceneFrame) {
+        let tool_set = self.tools.as_ref().map(|t| *t.borrow());
+        self.fill_with(rec, tool_set.as_ref(), out);
+    }
+
+    /// Fills `out` from `rec` and the per-tool records `tool_set` taken with it (used only
+    /// when they are of the same set), instead of the per-tool slot.
+    pub fn fill_with(&self, rec: &PositionRecord, tool_set: Option<&ToolSet>, out: &mut SceneFrame) {
         out.frame = rec.frame;
         out.capture_ts_ns = rec.capture_ts_ns;
         out.latency_ns = u64::from(rec.latency_us) * 1000;
@@ -233,11 +240,7 @@ impl SceneBuilder {
             (tracked, p_m, error_m)
         };
         // The tool records of this very set (a newer set's are not mixed in).
-        let tool_set = self
-            .tools
-            .as_ref()
-            .map(|t| *t.borrow())
-            .filter(|t| t.frame == rec.frame && t.count > 0);
+        let tool_set = tool_set.filter(|t| t.frame == rec.frame && t.count > 0);
         out.per_tool = tool_set.is_some();
         let single_body = self.models.rigid_bodies().count() == 1;
         for (model, set) in self.models.list.iter().zip(out.marker_sets.iter_mut()) {

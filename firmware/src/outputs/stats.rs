@@ -2,8 +2,8 @@
 //! (`irtrackd_output_*{output="natnet"|"mcap"|"ros2"}`). A leaf module: the status service
 //! reads it without importing the outputs themselves.
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 
 use crate::metrics::LatencyHistogram;
 
@@ -38,6 +38,15 @@ pub struct OutputStats {
     /// Capture (mid-exposure stamp) → handed to the kernel / DDS stack / writer queue, per
     /// record (lock-free, no allocation).
     pub latency: LatencyHistogram,
+    /// Writes that failed (MCAP: a write that stopped a file, or a new file that could not be
+    /// started).
+    pub write_errors: AtomicU64,
+    /// Files started (MCAP recordings).
+    pub files: AtomicU64,
+    /// The file being written (MCAP); `None` while none is.
+    pub file: Mutex<Option<String>>,
+    /// What is wrong with this output now, in plain words; `None`: nothing.
+    pub fault: Mutex<Option<String>>,
 }
 
 impl OutputStats {
@@ -62,7 +71,21 @@ impl OutputStats {
             "requests": self.requests.load(R),
             "bad_requests": self.bad_requests.load(R),
             "capture_to_sent": self.latency.snapshot().summary(),
+            "write_errors": self.write_errors.load(R),
+            "files": self.files.load(R),
+            "file": self.file_now(),
+            "fault": self.fault_now(),
         })
+    }
+
+    /// The file being written, if any.
+    pub fn file_now(&self) -> Option<String> {
+        self.file.lock().ok().and_then(|g| g.clone())
+    }
+
+    /// The output's fault in plain words, if it has one.
+    pub fn fault_now(&self) -> Option<String> {
+        self.fault.lock().ok().and_then(|g| g.clone())
     }
 }
 
@@ -86,6 +109,21 @@ impl OutputsStats {
             ("mcap", &self.mcap),
             ("ros2", &self.ros2),
         ]
+    }
+
+    /// The outputs' faults for `/status`'s `fault_texts`: (code, what is wrong and what to do).
+    pub fn fault_texts(&self) -> Vec<(&'static str, String)> {
+        self.each()
+            .into_iter()
+            .filter_map(|(name, s)| {
+                let code = match name {
+                    "mcap" => "recording_failed",
+                    "natnet" => "natnet_failed",
+                    _ => "ros2_failed",
+                };
+                s.fault_now().map(|text| (code, text))
+            })
+            .collect()
     }
 
     /// `/status`'s `outputs` object.
@@ -117,6 +155,8 @@ impl OutputsStats {
                     rate_limited: s.rate_limited.load(R),
                     requests: s.requests.load(R),
                     bad_requests: s.bad_requests.load(R),
+                    write_errors: s.write_errors.load(R),
+                    fault: s.fault_now().is_some(),
                     p50_s: s.latency.snapshot().quantile_ns(0.5).map(|ns| ns / 1e9),
                     p99_s: s.latency.snapshot().quantile_ns(0.99).map(|ns| ns / 1e9),
                 })
@@ -138,6 +178,8 @@ struct OutputRow {
     rate_limited: u64,
     requests: u64,
     bad_requests: u64,
+    write_errors: u64,
+    fault: bool,
     p50_s: Option<f64>,
     p99_s: Option<f64>,
 }
@@ -159,7 +201,7 @@ impl prometheus_client::collector::Collector for OutputsMetrics {
         use prometheus_client::metrics::gauge::ConstGauge;
         type Get = fn(&OutputRow) -> u64;
         // Counter names without `_total`: the encoder appends it.
-        let counters: [(&str, &str, Get); 9] = [
+        let counters: [(&str, &str, Get); 10] = [
             (
                 "irtrackd_output_sent",
                 "messages or datagrams sent per output",
@@ -205,6 +247,11 @@ impl prometheus_client::collector::Collector for OutputsMetrics {
                 "malformed or unknown requests per output",
                 |r| r.bad_requests,
             ),
+            (
+                "irtrackd_output_write_errors",
+                "failed writes per output (MCAP: a full disk stopping a file)",
+                |r| r.write_errors,
+            ),
         ];
         for (name, help, get) in counters {
             let mut m = enc.encode_descriptor(name, help, None, MetricType::Counter)?;
@@ -220,6 +267,15 @@ impl prometheus_client::collector::Collector for OutputsMetrics {
         )?;
         for r in &self.rows {
             ConstGauge::new(r.clients as i64).encode(m.encode_family(&[("output", r.name)])?)?;
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_output_fault",
+            "1 while an output has a fault (its text is in /status fault_texts)",
+            None,
+            MetricType::Gauge,
+        )?;
+        for r in &self.rows {
+            ConstGauge::new(i64::from(r.fault)).encode(m.encode_family(&[("output", r.name)])?)?;
         }
         let mut m = enc.encode_descriptor(
             "irtrackd_output_latency_seconds",

@@ -191,7 +191,7 @@ pub fn record(args: &Args) -> anyhow::Result<Summary> {
         }
         None => None,
     };
-    let mut mcap: Option<McapRecorder<BufWriter<std::fs::File>>> = None;
+    let mut mcap: Option<McapRecorder<std::fs::File>> = None;
     let (tx, cmds) = mpsc::channel();
     if !args.no_stdin {
         std::thread::spawn(move || {
@@ -267,7 +267,7 @@ pub fn record(args: &Args) -> anyhow::Result<Summary> {
                     .duration_since(std::time::UNIX_EPOCH)
                     .map_or(0, |d| d.as_nanos() as i128);
                 let file = file.try_clone().context("MCAP file")?;
-                mcap = Some(McapRecorder::new(BufWriter::new(file), wall_ns - i128::from(t0))?);
+                mcap = Some(McapRecorder::new(file, wall_ns - i128::from(t0))?);
             }
             if let Some(m) = mcap.as_mut() {
                 m.write(&r)?;
@@ -326,7 +326,7 @@ pub fn record(args: &Args) -> anyhow::Result<Summary> {
         && let Some(file) = &mcap_file
     {
         // No record arrived: still leave a valid (empty) MCAP file with its channels.
-        mcap = Some(McapRecorder::new(BufWriter::new(file.try_clone()?), 0)?);
+        mcap = Some(McapRecorder::new(file.try_clone()?, 0)?);
     }
     if let Some(m) = mcap {
         s.mcap = Some(m.finish()?);
