@@ -62,16 +62,42 @@ fn free_running_preset_and_bad_tables_are_named() {
     cfg.validate().unwrap();
     let sc = cfg.scenario_config();
     assert_eq!(sc.timing.len(), 4);
-    assert!(sc.timing.iter().all(|t| t.ts_jitter_ns == 200_000.0 && t.rate_ppm.abs() <= 50.0));
+    assert!(
+        sc.timing
+            .iter()
+            .all(|t| t.ts_jitter_ns == 200_000.0 && t.rate_ppm.abs() <= 50.0)
+    );
     let phases: Vec<f64> = sc.timing.iter().map(|t| t.phase_ns).collect();
     let period = 1e9 / cfg.fps;
     assert!((phases[2] - period / 2.0).abs() < 1.0, "{phases:?}");
 
+    // The constants the tracker is given: a rolling shutter and the negated timestamp offset.
+    let rolling = timed_cfg("line_time_us = 15.0\nts_offset_us = [0.0, 250.0, 0.0, 0.0]");
+    let ct = rolling.camera_timings();
+    assert_eq!(ct.len(), 4);
+    assert_eq!(ct[1].shutter, irtrack_core::timing::Shutter::Rolling);
+    assert_eq!((ct[1].line_time_ns, ct[1].offset_ns), (15_000, -250_000));
+    assert!(
+        SimSourceConfig::default()
+            .camera_timings()
+            .iter()
+            .all(|t| *t == irtrack_core::timing::CameraTiming::SYNCHRONOUS)
+    );
+
     let wrong = timed_cfg("phase_ms = [0.0, 1.0]");
     let e = wrong.validate().unwrap_err().to_string();
-    assert!(e.contains("source.sim.timing") && e.contains("2 values for 4 cameras"), "{e}");
+    assert!(
+        e.contains("source.sim.timing") && e.contains("2 values for 4 cameras"),
+        "{e}"
+    );
     let preset = timed_cfg("preset = \"sync\"");
-    assert!(preset.validate().unwrap_err().to_string().contains("free_running"));
+    assert!(
+        preset
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("free_running")
+    );
     let mut wand = timed_cfg("ppm = 10.0");
     wand.wand_mm = Some(vec![0.0, 120.0, 300.0]);
     assert!(wand.validate().unwrap_err().to_string().contains("wand"));
