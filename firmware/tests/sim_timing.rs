@@ -71,6 +71,19 @@ fn free_running_preset_and_bad_tables_are_named() {
     let period = 1e9 / cfg.fps;
     assert!((phases[2] - period / 2.0).abs() < 1.0, "{phases:?}");
 
+    // The constants the tracker is given: a rolling shutter and the negated timestamp offset.
+    let rolling = timed_cfg("line_time_us = 15.0\nts_offset_us = [0.0, 250.0, 0.0, 0.0]");
+    let ct = rolling.camera_timings();
+    assert_eq!(ct.len(), 4);
+    assert_eq!(ct[1].shutter, irtrack_core::timing::Shutter::Rolling);
+    assert_eq!((ct[1].line_time_ns, ct[1].offset_ns), (15_000, -250_000));
+    assert!(
+        SimSourceConfig::default()
+            .camera_timings()
+            .iter()
+            .all(|t| *t == irtrack_core::timing::CameraTiming::SYNCHRONOUS)
+    );
+
     let wrong = timed_cfg("phase_ms = [0.0, 1.0]");
     let e = wrong.validate().unwrap_err().to_string();
     assert!(

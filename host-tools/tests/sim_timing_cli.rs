@@ -95,7 +95,7 @@ fn timed_simulation_writes_each_cameras_timestamps_and_dense_truth_and_track_use
             "--line-time-us",
             "15",
             "--ts-offset-us",
-            "0,500",
+            "200,500",
             "--exposure-us",
             "1000",
         ],
@@ -108,7 +108,11 @@ fn timed_simulation_writes_each_cameras_timestamps_and_dense_truth_and_track_use
         "camera,shutter,line_time_ns,exposure_ns,offset_ns,phase_ns,rate_ppm,ts_jitter_ns"
     );
     assert!(
+<<<<<<< HEAD
         rows[1].starts_with("0,rolling,15000,1000000,0,0.0,0.000,50000.0"),
+=======
+        rows[1].starts_with("0,rolling,15000,1000000,-200000,0.0,0.000,50000.0"),
+>>>>>>> simtime
         "{}",
         rows[1]
     );
@@ -118,15 +122,15 @@ fn timed_simulation_writes_each_cameras_timestamps_and_dense_truth_and_track_use
         rows[2]
     );
 
-    // Each camera's own timestamps: camera 0 on the grid, camera 1 3.1 ms + 0.5 ms later and
-    // drifting 40 ppm, both within 3σ = 150 µs of jitter.
+    // Each camera's own timestamps: camera 0 0.2 ms after the grid, camera 1 3.1 ms + 0.5 ms
+    // after it and drifting 40 ppm, both within 3σ = 150 µs of jitter (so none before 0).
     let stamps = read_stamps(&dir);
     assert_eq!(stamps.len(), 120);
     for k in 0..60u64 {
         let (t0, d0) = stamps[&(k, 0)];
         let (t1, d1) = stamps[&(k, 1)];
         assert!(!d0 && !d1);
-        let nominal = k as f64 * period_ns;
+        let nominal = k as f64 * period_ns + 200_000.0;
         assert!((t0 as f64 - nominal).abs() <= 150_001.0, "frame {k}: {t0}");
         let expect1 = 3_100_000.0 + k as f64 * period_ns * (1.0 + 40e-6) + 500_000.0;
         assert!(
@@ -135,7 +139,7 @@ fn timed_simulation_writes_each_cameras_timestamps_and_dense_truth_and_track_use
         );
     }
     // Not one timestamp per set any more: the jitter makes camera 0's deviate from the grid.
-    assert!((0..60u64).any(|k| stamps[&(k, 0)].0 != (k as f64 * period_ns).round() as u64));
+    assert!((0..60u64).any(|k| stamps[&(k, 0)].0 != (k as f64 * period_ns + 2e5).round() as u64));
 
     // Dense truth from a period before frame 0 to a period after the last, every 0.1 ms,
     // agreeing with truth.csv at the frame instants.
@@ -156,7 +160,7 @@ fn timed_simulation_writes_each_cameras_timestamps_and_dense_truth_and_track_use
     // track pairs by timestamp, writes the instant each position is compared at, and its
     // summary is the error against the dense truth at that instant.
     let (summary, out) = track(&dir);
-    assert!(summary.contains("tracked 60"), "{summary}");
+    assert!(summary.contains("missing frames 0"), "{summary}");
     let text = std::fs::read_to_string(&out).unwrap();
     let mut lines = text.lines();
     assert_eq!(
@@ -168,6 +172,10 @@ fn timed_simulation_writes_each_cameras_timestamps_and_dense_truth_and_track_use
     for l in lines {
         let f: Vec<&str> = l.split(',').collect();
         let k: u64 = f[0].parse().unwrap();
+        if f[1].is_empty() {
+            // The tracker's first set has no track history yet.
+            continue;
+        }
         let instant: f64 = f[9].parse().unwrap();
         // No offset on camera 0: the instant is its timestamp (until the tracker states its
         // own reference instant, which must lie within a frame of it).
@@ -180,7 +188,7 @@ fn timed_simulation_writes_each_cameras_timestamps_and_dense_truth_and_track_use
         sq += e2;
         n += 1;
     }
-    assert_eq!(n, 60);
+    assert!(n >= 58, "only {n} tracked");
     let rms = (sq / n as f64).sqrt();
     let reported: f64 = summary
         .split("RMS ")
@@ -206,8 +214,14 @@ fn an_exposure_before_the_start_is_dropped_and_that_set_is_missing() {
     let (t1, _) = stamps[&(1, 1)];
     assert_eq!(t1, (1e9 / 120.0 - 2.4e6_f64).round() as u64);
     let (summary, out) = track(&dir);
+<<<<<<< HEAD
     assert!(
         summary.contains("tracked 5") && summary.contains("missing frames 1"),
+=======
+    // Set 0 lacks camera 1; set 1 starts camera 1's track (no history to retime with yet).
+    assert!(
+        summary.contains("missing frames 1") && !summary.contains("tracked 0,"),
+>>>>>>> simtime
         "{summary}"
     );
     let text = std::fs::read_to_string(out).unwrap();

@@ -688,7 +688,8 @@ mod tests {
                 for _ in 0..20 {
                     q = project(timed.pose_at(at + q.y * 15e-6 * 120.0).led(*s));
                 }
-                assert!((px - q).norm() < 1e-3, "frame {frame} LED {li}: {px:?} vs {q:?}");
+                // Far below a centroid's noise (~0.02 px).
+                assert!((px - q).norm() < 2e-3, "frame {frame} LED {li}: {px:?} vs {q:?}");
                 moved = moved.max((px - project(sync.pose(frame).led(*s))).norm());
             }
         }

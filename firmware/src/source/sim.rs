@@ -2,8 +2,10 @@
 //!
 //! Frame `k` is due at `epoch + k / fps` on CLOCK_MONOTONIC; the source sleeps until then,
 //! renders every camera into the caller's buffers and stamps the frames with that capture
-//! instant (the simulated cameras are hardware-synchronized, so the pairing error is the
-//! scenario's own timestamp spread: zero). When the consumer falls behind by more than one
+//! instant. By default the simulated cameras are hardware-synchronized (the pairing error is
+//! zero); with `[source.sim.timing]` each camera's frame is its own exposure nearest to that
+//! instant, stamped with what that camera would report (capture instant + its offset from the
+//! nominal grid: phase, drift, timestamp offset, jitter), and the pairing error is their spread. When the consumer falls behind by more than one
 //! period the source skips to the current frame and counts the skipped sets as dropped, as a
 //! real camera overwriting its buffers would. The set index is the scenario frame number, so
 //! `Scenario::truth(index)` is the ground truth of every published position.
@@ -716,6 +718,27 @@ impl SimSourceConfig {
             }
         }
         Ok(poses)
+    }
+
+    /// The timing constants of each of the whole rig's cameras (irtrack-core's model: shutter,
+    /// line time, exposure, offset) that the tracker must be given for `[source.sim.timing]`;
+    /// synchronous without the table.
+    pub fn camera_timings(&self) -> Vec<irtrack_core::timing::CameraTiming> {
+        let n = self.rig_camera_count();
+        let timings = self
+            .timing
+            .as_ref()
+            .and_then(|t| t.build(n, self.fps, self.seed).ok())
+            .unwrap_or_default();
+        (0..n)
+            .map(|c| {
+                timings
+                    .get(c)
+                    .map_or(irtrack_core::timing::CameraTiming::SYNCHRONOUS, |t| {
+                        t.core_timing()
+                    })
+            })
+            .collect()
     }
 
     /// The simulator configuration this section describes.

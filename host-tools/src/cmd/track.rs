@@ -461,8 +461,8 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
                 None => false,
                 Some(&ts0) => {
                     let mut ok = true;
-                    for c in 0..n_cam {
-                        match nearest(&st[c], ts0) {
+                    for (c, frames) in st.iter().enumerate() {
+                        match nearest(frames, ts0) {
                             Some((i, d)) if d <= tolerance_ns => {
                                 pick[c] = i;
                                 frame_ts[c] = ts_of[c].get(&i).copied();
