@@ -16,6 +16,7 @@ pub mod noise;
 pub mod resolution;
 pub mod rig;
 pub mod scenario;
+pub mod timing;
 pub mod tools;
 pub mod trajectory;
 pub mod wand;
@@ -26,4 +27,5 @@ pub use rig::{CameraSpec, RigPreset};
 pub use scenario::{
     BitDepth, Body, Clutter, FrameInfo, FrameTruth, MarkerSpec, MarkerTruth, Scenario, SensorSpec, SimConfig,
 };
+pub use timing::{FrameTime, SimCameraTiming, TimingLists};
 pub use trajectory::{Orientation, Trajectory};

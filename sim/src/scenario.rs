@@ -24,6 +24,7 @@ use crate::SimError;
 use crate::backdrop::Backdrop;
 use crate::noise::{PixelRng, hash_words, normal_table, unit_from_hash};
 use crate::rig::{CameraSpec, RigPreset, build_rig};
+use crate::timing::{EXPOSURE_SUBSAMPLES, FrameTime, ROLLING_ITERATIONS, SimCameraTiming};
 use crate::trajectory::{Orientation, Trajectory};
 
 /// Most markers a scenario may carry (ground truth uses fixed-size storage): eight tools of
@@ -191,6 +192,9 @@ pub struct SimConfig {
     pub bit_depth: BitDepth,
     /// Realistic scene behind the markers (background level, floor, lamp); off by default.
     pub backdrop: Backdrop,
+    /// Per-camera clock, shutter and timestamping ([`crate::timing`]): empty = every camera
+    /// synchronous with a global shutter (the default), else one entry per camera.
+    pub timing: Vec<SimCameraTiming>,
 }
 
 impl SimConfig {
@@ -218,6 +222,7 @@ impl SimConfig {
             seed: 1,
             bit_depth: BitDepth::Eight,
             backdrop: Backdrop::default(),
+            timing: Vec::new(),
         }
     }
 
@@ -588,6 +593,19 @@ impl Scenario {
                 return bad("clutter", format!("{c:?}: sigmas must be > 0.05 px, flux >= 0"));
             }
         }
+        if !cfg.timing.is_empty() && cfg.timing.len() != rig.cameras.len() {
+            return bad(
+                "timing",
+                format!(
+                    "{} entries for {} cameras (none, or one per camera)",
+                    cfg.timing.len(),
+                    rig.cameras.len()
+                ),
+            );
+        }
+        for (c, t) in cfg.timing.iter().enumerate() {
+            t.validate(c)?;
+        }
         cfg.backdrop.validate()?;
         let backdrop_dn = if cfg.backdrop.is_active() {
             (0..rig.cameras.len())
@@ -608,7 +626,12 @@ impl Scenario {
                 .collect(),
             u16_codes: background_codes(&normal, s, BitDepth::Ten),
         };
-        let spots_cap = cfg.markers.len() * cfg.motion_blur_steps as usize + cfg.clutter.len();
+        let max_steps = cfg
+            .timing
+            .iter()
+            .map(|t| blur_steps(cfg.motion_blur_steps, t))
+            .fold(cfg.motion_blur_steps, u32::max);
+        let spots_cap = cfg.markers.len() * max_steps as usize + cfg.clutter.len();
         let scratch = Scratch {
             spots: Vec::with_capacity(spots_cap),
             windows: Vec::with_capacity(cfg.markers.len() + cfg.clutter.len()),
@@ -681,6 +704,31 @@ impl Scenario {
         (index as f64 * 1e9 / self.cfg.fps).round() as u64
     }
 
+    /// Camera `camera`'s timing (the synchronous default when the scenario has none).
+    pub fn camera_timing(&self, camera: usize) -> SimCameraTiming {
+        self.cfg.timing.get(camera).copied().unwrap_or_default()
+    }
+
+    /// When `camera` exposed its frame of slot `index` (middle of row 0's exposure) and the
+    /// timestamp it reports (docs/simulator.md "Camera timing").
+    pub fn frame_time(&self, index: u64, camera: usize) -> FrameTime {
+        crate::timing::frame_time(
+            &self.camera_timing(camera),
+            self.cfg.fps,
+            self.cfg.seed,
+            index,
+            camera,
+        )
+    }
+
+    /// Ground truth at any instant `t_ns` of the scenario's clock (the clock the reported
+    /// timestamps are on): what a tracker's "position at reference instant t" is compared
+    /// with. `index` of the result is the nearest slot (0 before the start).
+    pub fn truth_at(&self, t_ns: f64) -> FrameTruth {
+        let index = (t_ns * self.cfg.fps / 1e9).round().max(0.0) as u64;
+        self.truth_at_s(t_ns * 1e-9, index)
+    }
+
     /// Whether `camera` drops frame `index` (deterministic in the seed).
     pub fn is_dropped(&self, index: u64, camera: usize) -> bool {
         self.cfg.drop_rate > 0.0
@@ -690,7 +738,10 @@ impl Scenario {
 
     /// Marker positions (camera 0 frame) and visibility at frame `index`.
     pub fn truth(&self, index: u64) -> FrameTruth {
-        let t_s = self.time_s(index);
+        self.truth_at_s(self.time_s(index), index)
+    }
+
+    fn truth_at_s(&self, t_s: f64, index: u64) -> FrameTruth {
         let (tool_position_mm, tool_orientation) = self.cfg.tool_pose(t_s);
         let empty = MarkerTruth {
             p_cam0_mm: Vector3::zeros(),
@@ -755,10 +806,17 @@ impl Scenario {
                 have: out.len(),
             });
         }
+        // Today's nominal stamp for a synchronous camera; else the camera's own (a stamp
+        // before the scenario's start saturates at 0: see `frame_time` for the signed one).
+        let timestamp_ns = if self.camera_timing(camera).is_synchronous() {
+            self.timestamp_ns(index)
+        } else {
+            self.frame_time(index, camera).reported_ns.max(0) as u64
+        };
         let info = FrameInfo {
             index,
             camera,
-            timestamp_ns: self.timestamp_ns(index),
+            timestamp_ns,
             dropped: false,
         };
         if self.is_dropped(index, camera) {
@@ -827,14 +885,25 @@ impl Scenario {
 
     /// Fills `scratch.spots` and `scratch.windows` for one camera and frame.
     fn collect_spots(&mut self, index: u64, camera: usize, w: usize, h: usize) -> Result<(), SimError> {
-        let t_mid = self.time_s(index);
+        let timing = self.camera_timing(camera);
+        // Middle of row 0's exposure (exactly `index / fps` for a synchronous camera).
+        let t_mid = if timing.is_synchronous() {
+            self.time_s(index)
+        } else {
+            self.frame_time(index, camera).exposure_s
+        };
+        let line_time_s = timing.line_time_ns * 1e-9;
         let sc = &mut self.scratch;
         sc.spots.clear();
         sc.windows.clear();
         let model = &self.rig.cameras[camera].model;
         let pose = &self.poses[camera];
-        let steps = self.cfg.motion_blur_steps as usize;
-        let exp = self.cfg.sensor.exposure_s;
+        let steps = blur_steps(self.cfg.motion_blur_steps, &timing) as usize;
+        let exp = if timing.exposure_ns > 0.0 {
+            timing.exposure_ns * 1e-9
+        } else {
+            self.cfg.sensor.exposure_s
+        };
         for spec in &self.cfg.markers {
             let mut win: Option<Window> = None;
             for k in 0..steps {
@@ -843,8 +912,22 @@ impl Scenario {
                 } else {
                     t_mid + exp * ((k as f64 + 0.5) / steps as f64 - 0.5)
                 };
-                let p_cam = pose.apply(&self.cfg.marker_position(spec, t));
-                let Ok(c) = model.project(&p_cam) else { continue };
+                let mut p_cam = pose.apply(&self.cfg.marker_position(spec, t));
+                let Ok(mut c) = model.project(&p_cam) else {
+                    continue;
+                };
+                if line_time_s > 0.0 {
+                    // Rolling shutter: the spot is where the LED was when its row was exposed;
+                    // the row depends on that position, so iterate (converges in 2–3 steps).
+                    for _ in 0..ROLLING_ITERATIONS {
+                        let t_row = t + c.y.max(0.0) * line_time_s;
+                        p_cam = pose.apply(&self.cfg.marker_position(spec, t_row));
+                        match model.project(&p_cam) {
+                            Ok(next) => c = next,
+                            Err(_) => break,
+                        }
+                    }
+                }
                 let dist_mm = p_cam.norm();
                 let sigma = spec.sigma_px(p_cam.z, model.intrinsics.fx_px);
                 let r = SPOT_EXTENT_SIGMA * sigma + 1.0;
@@ -892,6 +975,16 @@ impl Scenario {
             }
         }
         Ok(())
+    }
+}
+
+/// Sub-exposures rendered for a camera: its own exposure time asks for at least
+/// [`EXPOSURE_SUBSAMPLES`].
+fn blur_steps(configured: u32, timing: &SimCameraTiming) -> u32 {
+    if timing.exposure_ns > 0.0 {
+        configured.max(EXPOSURE_SUBSAMPLES)
+    } else {
+        configured
     }
 }
 
@@ -1168,6 +1261,212 @@ mod tests {
             }
         }
         assert!(turned_deg > 30.0, "tool turned only {turned_deg}°");
+    }
+
+    /// 1 m/s along +x at 800 mm (linear, so the speed is constant), LED at the image centre
+    /// row at 0.5 s.
+    fn moving_config() -> SimConfig {
+        let mut cfg = quiet_config();
+        cfg.trajectory = Trajectory::Samples(vec![
+            (0.0, Vector3::new(-600.0, 0.0, 800.0)),
+            (1.2, Vector3::new(600.0, 0.0, 800.0)),
+        ]);
+        cfg
+    }
+
+    fn project(sc: &Scenario, cam: usize, t_s: f64) -> nalgebra::Point2<f64> {
+        let p = sc.config().marker_position(&sc.config().markers[0], t_s);
+        let pc = sc.rig().cameras[cam].cam_from_cam0.apply(&p);
+        let px = sc.rig().cameras[cam].model.project(&pc).unwrap();
+        nalgebra::Point2::new(px.x, px.y)
+    }
+
+    fn render_centroid(sc: &mut Scenario, index: u64, cam: usize, near: nalgebra::Point2<f64>) -> (f64, f64) {
+        let (w, h) = sc.image_size();
+        let mut img = vec![0u16; (w * h) as usize];
+        sc.render_u16(index, cam, &mut img).unwrap();
+        let bg = sc.config().sensor.background_e * 1023.0 / sc.config().sensor.full_well_e;
+        let (x, y, _) = centroid(&img, w as usize, near.x, near.y, bg);
+        (x, y)
+    }
+
+    #[test]
+    fn rolling_shutter_renders_the_led_where_it_was_when_its_row_was_exposed() {
+        let line_time_ns = 15_000.0;
+        let mut cfg = moving_config();
+        cfg.timing = vec![
+            SimCameraTiming {
+                line_time_ns,
+                ..SimCameraTiming::default()
+            },
+            SimCameraTiming::default(),
+        ];
+        let mut rolling = Scenario::new(cfg).unwrap();
+        let mut global = Scenario::new(moving_config()).unwrap();
+        let index = 60; // 0.5 s
+        let t0 = index as f64 / 120.0;
+        // The row instant solved independently: a fixed point iterated to convergence.
+        let mut at = project(&rolling, 0, t0);
+        for _ in 0..20 {
+            at = project(&rolling, 0, t0 + at.y * line_time_ns * 1e-9);
+        }
+        let at_t0 = project(&rolling, 0, t0);
+        let (rx, ry) = render_centroid(&mut rolling, index, 0, at);
+        let (gx, gy) = render_centroid(&mut global, index, 0, at_t0);
+        assert!(
+            (rx - at.x).abs() < 0.05 && (ry - at.y).abs() < 0.05,
+            "rolling centroid ({rx}, {ry}) vs row-instant projection {at:?}"
+        );
+        // The shift against the global shutter: speed in the image × row × line time.
+        let speed_px_s = (project(&rolling, 0, t0 + 1e-3).x - project(&rolling, 0, t0 - 1e-3).x) / 2e-3;
+        let expected_px = speed_px_s * at.y * line_time_ns * 1e-9;
+        assert!(expected_px > 2.5, "test scene too slow: {expected_px} px");
+        println!(
+            "rolling: row {:.1}, shift {:.3} px expected, {:.3} px rendered, centroid error ({:.3}, {:.3}) px",
+            at.y,
+            expected_px,
+            rx - gx,
+            rx - at.x,
+            ry - at.y
+        );
+        assert!(
+            ((rx - gx) - expected_px).abs() < 0.08,
+            "rolling − global = {} px, expected {expected_px} px",
+            rx - gx
+        );
+        assert!((ry - gy).abs() < 0.05, "the row barely changes: {ry} vs {gy}");
+        // Camera 1 stays global: the same frame as the synchronous scenario's.
+        let (w, h) = rolling.image_size();
+        let (mut a, mut b) = (vec![0u8; (w * h) as usize], vec![0u8; (w * h) as usize]);
+        rolling.render_u8(index, 1, &mut a).unwrap();
+        global.render_u8(index, 1, &mut b).unwrap();
+        assert_eq!(a, b);
+    }
+
+    #[test]
+    fn phase_renders_the_led_at_the_cameras_own_instant_and_stamps_it() {
+        let phase_ns = 3_100_000.0;
+        let mut cfg = moving_config();
+        cfg.timing = vec![
+            SimCameraTiming::default(),
+            SimCameraTiming {
+                phase_ns,
+                ts_offset_ns: 500_000.0,
+                ..SimCameraTiming::default()
+            },
+        ];
+        let mut sc = Scenario::new(cfg).unwrap();
+        let index = 60;
+        let ft = sc.frame_time(index, 1);
+        assert!((ft.exposure_s - (0.5 + phase_ns * 1e-9)).abs() < 1e-12);
+        let expect = project(&sc, 1, ft.exposure_s);
+        let (x, y) = render_centroid(&mut sc, index, 1, expect);
+        assert!((x - expect.x).abs() < 0.05 && (y - expect.y).abs() < 0.05);
+        // 3.1 ms at ~850 px/s is ~2.6 px from where the nominal instant would put it.
+        assert!((x - project(&sc, 1, 0.5).x).abs() > 2.0);
+        let (w, h) = sc.image_size();
+        let mut img = vec![0u8; (w * h) as usize];
+        let info = sc.render_u8(index, 1, &mut img).unwrap();
+        assert_eq!(info.timestamp_ns, 500_000_000 + 3_100_000 + 500_000);
+        assert_eq!(
+            sc.render_u8(index, 0, &mut img).unwrap().timestamp_ns,
+            500_000_000
+        );
+        // Truth at any instant: the camera-1 exposure's truth is the trajectory there.
+        let t = sc.truth_at(ft.exposure_s * 1e9);
+        assert!((t.markers()[0].p_cam0_mm.x - (-600.0 + 1000.0 * ft.exposure_s)).abs() < 1e-6);
+    }
+
+    #[test]
+    fn jitter_changes_timestamps_only_and_exposure_blurs() {
+        let mut cfg = moving_config();
+        cfg.timing = vec![
+            SimCameraTiming {
+                ts_jitter_ns: 200_000.0,
+                ..SimCameraTiming::default()
+            };
+            2
+        ];
+        let mut jittery = Scenario::new(cfg.clone()).unwrap();
+        let mut plain = Scenario::new(moving_config()).unwrap();
+        let (w, h) = plain.image_size();
+        let (mut a, mut b) = (vec![0u8; (w * h) as usize], vec![0u8; (w * h) as usize]);
+        let mut moved = 0;
+        for index in 0..20 {
+            let ia = jittery.render_u8(index, 1, &mut a).unwrap();
+            let ib = plain.render_u8(index, 1, &mut b).unwrap();
+            assert_eq!(a, b, "jitter must not move the exposure");
+            let d = ia.timestamp_ns as i64 - ib.timestamp_ns as i64;
+            assert!(d.abs() <= 600_001, "{d}");
+            moved += (d != 0) as usize;
+        }
+        assert!(moved >= 18);
+        // A 20 ms exposure at 1 m/s: a ~17 px streak, centred on the exposure's middle.
+        cfg.timing = vec![
+            SimCameraTiming {
+                exposure_ns: 20e6,
+                ..SimCameraTiming::default()
+            };
+            2
+        ];
+        let mut blurred = Scenario::new(cfg).unwrap();
+        blurred.render_u8(60, 0, &mut a).unwrap();
+        let wide = (0..h as usize)
+            .map(|y| {
+                a[y * w as usize..(y + 1) * w as usize]
+                    .iter()
+                    .filter(|v| **v > 20)
+                    .count()
+            })
+            .max()
+            .unwrap();
+        assert!(wide >= 12, "streak only {wide} px wide");
+        let at = project(&blurred, 0, 0.5);
+        let (x, _) = render_centroid(&mut blurred, 60, 0, at);
+        // The 17×17 centroid window clips a little of a 17 px streak symmetrically.
+        assert!((x - at.x).abs() < 0.1, "{x} vs {}", at.x);
+    }
+
+    #[test]
+    fn explicit_zero_timing_is_todays_frames_bit_for_bit() {
+        let mut cfg = quiet_config();
+        cfg.motion_blur_steps = 4;
+        cfg.add_glare();
+        let mut today = Scenario::new(cfg.clone()).unwrap();
+        cfg.timing = vec![SimCameraTiming::default(); 2];
+        let mut zeros = Scenario::new(cfg).unwrap();
+        let (w, h) = today.image_size();
+        let (mut a, mut b) = (vec![0u16; (w * h) as usize], vec![0u16; (w * h) as usize]);
+        for index in [0, 1, 17, 239] {
+            for cam in 0..2 {
+                let ia = today.render_u16(index, cam, &mut a).unwrap();
+                let ib = zeros.render_u16(index, cam, &mut b).unwrap();
+                assert_eq!((ia, &a), (ib, &b));
+                assert_eq!(
+                    zeros.frame_time(index, cam).reported_ns as u64,
+                    today.timestamp_ns(index)
+                );
+            }
+        }
+        // Golden: FNV-1a of frame 5 of camera 1 (8-bit) as rendered before per-camera timing
+        // existed (commit 7b4e7d7).
+        let mut sc = Scenario::new(quiet_config()).unwrap();
+        let mut img = vec![0u8; (w * h) as usize];
+        sc.render_u8(5, 1, &mut img).unwrap();
+        let fnv = img.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, v| {
+            (h ^ u64::from(*v)).wrapping_mul(0x0100_0000_01b3)
+        });
+        assert_eq!(fnv, GOLDEN_FRAME_5_CAM_1_FNV);
+    }
+
+    const GOLDEN_FRAME_5_CAM_1_FNV: u64 = 0x3b04_3d77_eec8_7215;
+
+    #[test]
+    fn timing_of_the_wrong_length_is_refused() {
+        let mut cfg = quiet_config();
+        cfg.timing = vec![SimCameraTiming::default(); 3];
+        let e = Scenario::new(cfg).unwrap_err().to_string();
+        assert!(e.contains("timing") && e.contains("3 entries"), "{e}");
     }
 
     #[test]

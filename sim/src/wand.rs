@@ -11,7 +11,13 @@
 //! (which a robust identification simply ignores).
 //!
 //! Files written by [`write_wave`]: `DIR/cam<i>/<frame:06>.pgm` (8-bit), `DIR/wand_truth.csv`
-//! (one row per frame and camera) and `DIR/truth_rig.irp` (the true rig as a parameter blob).
+//! (one row per frame and camera), `DIR/timestamps.csv` (`frame,camera,timestamp_ns,dropped`:
+//! the timestamp each camera gives) and `DIR/truth_rig.irp` (the true rig as a parameter blob).
+//!
+//! Camera timing ([`WandConfig::timing`], docs/simulator.md "Camera timing"): each camera sees
+//! the wand at its own exposure instant (phase, drift) and, with a rolling shutter, each LED at
+//! the instant its row was exposed; the frame rate `fps` turns those instants into wave time.
+//! Exposure blur is not rendered for the wand.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -22,6 +28,7 @@ use nalgebra::{Matrix3, Vector2, Vector3};
 
 use crate::SimError;
 use crate::noise::{PixelRng, hash_words, normal_table, unit_from_hash};
+use crate::timing::{ROLLING_ITERATIONS, SimCameraTiming};
 use irtrack_core::pgm;
 
 /// A spot is rendered out to this many standard deviations.
@@ -67,6 +74,10 @@ pub struct WandConfig {
     pub stray_rate: f64,
     /// Seed of every random draw.
     pub seed: u64,
+    /// Frame rate (converts camera timing into wave time; the wave itself is in frames).
+    pub fps: f64,
+    /// Per-camera timing; empty: synchronous global-shutter cameras.
+    pub timing: Vec<SimCameraTiming>,
 }
 
 impl WandConfig {
@@ -92,6 +103,8 @@ impl WandConfig {
             ghost_rate: 0.02,
             stray_rate: 0.05,
             seed: 1,
+            fps: 120.0,
+            timing: Vec::new(),
         }
     }
 
@@ -125,6 +138,22 @@ impl WandConfig {
             if !(0.0..=1.0).contains(&p) {
                 return bad(field, format!("{p} must be in [0, 1]"));
             }
+        }
+        if !(self.fps > 0.0 && self.fps.is_finite()) {
+            return bad("fps", format!("{} must be > 0", self.fps));
+        }
+        if !self.timing.is_empty() && self.timing.len() != self.rig.cameras.len() {
+            return bad(
+                "timing",
+                format!(
+                    "{} entries for {} cameras (none, or one per camera)",
+                    self.timing.len(),
+                    self.rig.cameras.len()
+                ),
+            );
+        }
+        for (c, t) in self.timing.iter().enumerate() {
+            t.validate(c)?;
         }
         if !(self.psf_sigma_px > 0.05 && self.up.norm() > 0.0) {
             return bad("psf_sigma_px/up", "PSF must be > 0.05 px and up non-zero".into());
@@ -250,8 +279,13 @@ impl WandWave {
     /// The wand's true pose at `frame`: its middle follows a Lissajous curve through the sweep
     /// box, its direction turns fully about `up` and tilts up to `max_elevation_deg`.
     pub fn pose(&self, frame: usize) -> WandPose {
+        self.pose_at(frame as f64)
+    }
+
+    /// The wand's true pose at a fractional frame (wave time; frame `k` is at `k / fps` s).
+    pub fn pose_at(&self, frame: f64) -> WandPose {
         let c = &self.cfg;
-        let t = frame as f64 / c.frames as f64;
+        let t = frame / c.frames as f64;
         let tau = std::f64::consts::TAU;
         let off = Vector3::new(
             c.sweep_mm.x * (tau * 3.0 * t + 0.3).sin(),
@@ -278,6 +312,37 @@ impl WandWave {
         }
     }
 
+    /// Camera `camera`'s exposure of `frame` (middle of row 0) in wave frames, and the
+    /// timestamp it reports (ns, signed; see [`crate::timing`]).
+    pub fn frame_time(&self, frame: usize, camera: usize) -> (f64, i64) {
+        let c = &self.cfg;
+        match c.timing.get(camera) {
+            Some(t) if !t.is_synchronous() => {
+                let ft = crate::timing::frame_time(t, c.fps, c.seed, frame as u64, camera);
+                (ft.exposure_s * c.fps, ft.reported_ns)
+            }
+            _ => (frame as f64, (frame as f64 * 1e9 / c.fps).round() as i64),
+        }
+    }
+
+    /// Where LED `s_mm` is seen by `camera` exposing at wave frame `at`: its position (camera
+    /// 0 frame), at the instant its row was exposed with a rolling shutter.
+    fn led_seen(&self, camera: usize, at: f64, s_mm: f64) -> Vector3<f64> {
+        let c = &self.cfg;
+        let mut p = self.pose_at(at).led(s_mm);
+        let line_frames = c.timing.get(camera).map_or(0.0, |t| t.line_time_ns * 1e-9 * c.fps);
+        if line_frames > 0.0 {
+            let cam = &c.rig.cameras[camera];
+            for _ in 0..ROLLING_ITERATIONS {
+                let Ok(px) = cam.model.project(&cam.cam_from_cam0.apply(&p)) else {
+                    break;
+                };
+                p = self.pose_at(at + px.y.max(0.0) * line_frames).led(s_mm);
+            }
+        }
+        p
+    }
+
     /// What camera `camera` sees at `frame` (without rendering).
     pub fn camera_truth(&self, frame: usize, camera: usize) -> Result<CameraFrameTruth, SimError> {
         let c = &self.cfg;
@@ -285,7 +350,8 @@ impl WandWave {
             camera,
             count: c.rig.cameras.len(),
         })?;
-        let pose = self.pose(frame);
+        let (at, _) = self.frame_time(frame, camera);
+        let pose = self.pose_at(at);
         let (f, k) = (frame as u64, camera as u64);
         let mut hidden_mask = 0u32;
         let mut leds_px = Vec::with_capacity(c.leds_mm.len());
@@ -295,7 +361,7 @@ impl WandWave {
                 leds_px.push(None);
                 continue;
             }
-            let p = cam.cam_from_cam0.apply(&pose.led(*s));
+            let p = cam.cam_from_cam0.apply(&self.led_seen(camera, at, *s));
             leds_px.push(
                 cam.model
                     .project(&p)
@@ -365,14 +431,14 @@ impl WandWave {
         for px in out.iter_mut() {
             *px = self.bg_codes[rng.next_u16() as usize];
         }
-        let pose = self.pose(frame);
+        let (at, _) = self.frame_time(frame, camera);
         let focal = cam.model.intrinsics.fx_px;
         let mut spots: Vec<(Vector2<f64>, f64, f64)> = Vec::with_capacity(c.leds_mm.len() + 2);
         let mut sigma_ref = c.psf_sigma_px;
         let mut peak_ref = c.peak_dn_at_1m;
         for (li, s) in c.leds_mm.iter().enumerate() {
             let Some(px) = truth.leds_px[li] else { continue };
-            let p = cam.cam_from_cam0.apply(&pose.led(*s));
+            let p = cam.cam_from_cam0.apply(&self.led_seen(camera, at, *s));
             let disk_px = focal * c.led_radius_mm / p.z;
             let sigma = (c.psf_sigma_px.powi(2) + 0.25 * disk_px * disk_px).sqrt();
             let peak = c.peak_dn_at_1m * (1000.0 / p.norm()).powi(2);
@@ -446,10 +512,19 @@ impl WandWave {
         );
         let mut all = Vec::with_capacity(self.cfg.frames);
         let mut buf = Vec::new();
+        let mut stamps = String::from("frame,camera,timestamp_ns,dropped\n");
         for frame in 0..self.cfg.frames {
-            let pose = self.pose(frame);
             let mut per_cam = Vec::with_capacity(n_cam);
             for (ci, d) in dirs.iter().enumerate() {
+                // The pose this camera saw (at its own exposure; the same for all when synchronous).
+                let (at, reported_ns) = self.frame_time(frame, ci);
+                let pose = self.pose_at(at);
+                // Stamped before the start: written as dropped, as `simulate` does.
+                stamps.push_str(&format!(
+                    "{frame},{ci},{},{}\n",
+                    reported_ns.max(0),
+                    u8::from(reported_ns < 0)
+                ));
                 let size = self.cfg.rig.cameras[ci].model.image_size;
                 buf.resize(size.width_px as usize * size.height_px as usize, 0u8);
                 let t = self.render(frame, ci, &mut buf)?;
@@ -473,6 +548,7 @@ impl WandWave {
             all.push(per_cam);
         }
         std::fs::File::create(dir.join("wand_truth.csv"))?.write_all(csv.as_bytes())?;
+        std::fs::write(dir.join("timestamps.csv"), stamps)?;
         let blob = self.cfg.rig.to_blob()?;
         std::fs::write(dir.join("truth_rig.irp"), blob)?;
         Ok(all)
@@ -570,6 +646,44 @@ mod tests {
         let above = pose.apply(&Vector3::new(0.0, -100.0, 1200.0));
         assert!(above.y < 0.0);
         assert!(look_at(Vector3::zeros(), Vector3::zeros(), Vector3::y()).is_err());
+    }
+
+    #[test]
+    fn timed_cameras_see_the_wand_at_their_own_instants_and_rows() {
+        let sync = wave();
+        let mut cfg = sync.config().clone();
+        cfg.timing = vec![
+            SimCameraTiming::default(),
+            SimCameraTiming {
+                phase_ns: 2_500_000.0,
+                line_time_ns: 15_000.0,
+                ts_offset_ns: 100_000.0,
+                ..SimCameraTiming::default()
+            },
+        ];
+        let timed = WandWave::new(cfg).unwrap();
+        let cam = &timed.config().rig.cameras[1];
+        let project = |p: Vector3<f64>| cam.model.project(&cam.cam_from_cam0.apply(&p)).unwrap();
+        let mut moved = 0.0f64;
+        for frame in (10..190).step_by(9) {
+            // Camera 0 is synchronous: the same view as before.
+            assert_eq!(timed.camera_truth(frame, 0).unwrap(), sync.camera_truth(frame, 0).unwrap());
+            let (at, reported) = timed.frame_time(frame, 1);
+            assert!((at - (frame as f64 + 2.5e-3 * 120.0)).abs() < 1e-9);
+            assert_eq!(reported, (frame as f64 * 1e9 / 120.0 + 2_600_000.0).round() as i64);
+            let t = timed.camera_truth(frame, 1).unwrap();
+            for (li, s) in timed.config().leds_mm.iter().enumerate() {
+                let Some(px) = t.leds_px[li] else { continue };
+                // Independently: the fixed point row → instant → row, iterated to convergence.
+                let mut q = project(timed.pose_at(at).led(*s));
+                for _ in 0..20 {
+                    q = project(timed.pose_at(at + q.y * 15e-6 * 120.0).led(*s));
+                }
+                assert!((px - q).norm() < 1e-3, "frame {frame} LED {li}: {px:?} vs {q:?}");
+                moved = moved.max((px - project(sync.pose(frame).led(*s))).norm());
+            }
+        }
+        assert!(moved > 1.0, "timing moved the LEDs by at most {moved} px");
     }
 
     #[test]

@@ -3,8 +3,11 @@
 //!
 //! All file paths are built when the source opens, and file contents are read into a retained
 //! buffer, so replaying a frame does not allocate. Timestamps are mapped onto CLOCK_MONOTONIC
-//! (recorded intervals kept at recorded speed; read time at maximum speed) so latency figures
-//! stay meaningful; the set index is the recorded frame number, which matches `truth.csv`.
+//! (recorded intervals kept at recorded speed; read time at maximum speed), each camera's frame
+//! with its own recorded timestamp (free-running cameras' frames of one set differ; the set's
+//! pairing error is their spread) so latency figures stay meaningful; the set index is the
+//! recorded frame number, which matches `truth.csv` (a `simulate` slot holds each camera's
+//! exposure nearest to it, a `capture` set the frames irtrackd paired live).
 
 use std::collections::BTreeMap;
 use std::io::Read;
@@ -360,10 +363,15 @@ impl ReplaySource {
         let rec_ts = set.files.iter().map(|(_, ts)| *ts).max().unwrap_or(0);
         let now = clock::monotonic_ns();
         let (epoch_mono, epoch_rec) = *self.epoch.get_or_insert((now, rec_ts));
-        let mapped = |ts: u64| epoch_mono.saturating_add(ts.saturating_sub(epoch_rec));
+        // Signed: a camera stamped before the first set's latest frame (free-running cameras'
+        // skew, docs/simulator.md "Camera timing") keeps its offset instead of clamping to it.
+        let mapped = |ts: u64| epoch_mono.saturating_add_signed(ts.wrapping_sub(epoch_rec) as i64);
         if self.cfg.speed == ReplaySpeed::Recorded {
             clock::sleep_until_ns(mapped(rec_ts));
         }
+        // At maximum speed the set is stamped now, each camera keeping its recorded skew from
+        // the set's latest frame (the tracker places every camera's frame at its own instant).
+        let now_max = clock::monotonic_ns();
         let (mut min_ts, mut max_ts) = (u64::MAX, 0);
         for (camera, ((path, ts), frame)) in set.files.iter().zip(out.frames.iter_mut()).enumerate() {
             read_file(path, &mut self.buf).map_err(|e| SourceError::CameraLost {
@@ -378,7 +386,7 @@ impl ReplaySource {
             })?;
             frame.timestamp_ns = match self.cfg.speed {
                 ReplaySpeed::Recorded => mapped(*ts),
-                ReplaySpeed::Max => clock::monotonic_ns(),
+                ReplaySpeed::Max => now_max.saturating_sub(rec_ts - *ts),
             };
             frame.sequence = set.frame;
             min_ts = min_ts.min(*ts);

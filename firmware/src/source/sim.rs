@@ -141,6 +141,96 @@ pub struct SimSourceConfig {
     /// dark background (docs/simulator.md).
     #[serde(default)]
     pub backdrop: Option<SimBackdropConfig>,
+    /// Per-camera clocks and shutters (`[source.sim.timing]`): free-running phases, drift,
+    /// timestamp jitter, exposure and rolling shutter. Absent: every camera exposes at the
+    /// frame instant with a global shutter and stamps it exactly.
+    #[serde(default)]
+    pub timing: Option<SimTimingConfig>,
+}
+
+/// A value for every camera, or one per camera (`phase_ms = 3.1` or `[0, 3.1, -2.4]`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(untagged)]
+pub enum PerCamera {
+    /// The same value for every camera.
+    All(f64),
+    /// One value per camera of the whole rig (camera order).
+    Each(Vec<f64>),
+}
+
+impl Default for PerCamera {
+    fn default() -> Self {
+        PerCamera::Each(Vec::new())
+    }
+}
+
+impl PerCamera {
+    fn scaled(&self, scale: f64) -> Vec<f64> {
+        match self {
+            PerCamera::All(v) => vec![v * scale],
+            PerCamera::Each(v) => v.iter().map(|x| x * scale).collect(),
+        }
+    }
+}
+
+/// `[source.sim.timing]`: how each simulated camera's clock and shutter behave
+/// (docs/simulator.md "Camera timing"). Every key takes one value or one per camera.
+#[derive(Debug, Clone, PartialEq, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct SimTimingConfig {
+    /// `"free_running"`: phases spread over the whole frame period, ±50 ppm (seeded), 200 µs
+    /// jitter; the keys below override it. Absent: all zero.
+    #[serde(default)]
+    pub preset: Option<String>,
+    /// Middle of row 0's exposure against the nominal frame grid, ms.
+    #[serde(default)]
+    pub phase_ms: PerCamera,
+    /// Clock rate error, ppm (period = nominal × (1 + ppm·1e-6)).
+    #[serde(default)]
+    pub ppm: PerCamera,
+    /// Timestamp jitter, standard deviation in µs (clipped at ±3σ); timestamps only.
+    #[serde(default)]
+    pub ts_jitter_us: PerCamera,
+    /// Exposure time, µs (motion blur over at least 8 sub-samples); 0 = none.
+    #[serde(default)]
+    pub exposure_us: PerCamera,
+    /// Rolling shutter line time, µs per row; 0 = global shutter.
+    #[serde(default)]
+    pub line_time_us: PerCamera,
+    /// Reported timestamp minus the middle of row 0's exposure, µs.
+    #[serde(default)]
+    pub ts_offset_us: PerCamera,
+}
+
+impl SimTimingConfig {
+    /// The per-camera timings for a rig of `cameras` cameras; the error names the key.
+    pub fn build(
+        &self,
+        cameras: usize,
+        fps: f64,
+        seed: u64,
+    ) -> std::result::Result<Vec<irtrack_sim::SimCameraTiming>, String> {
+        let lists = irtrack_sim::TimingLists {
+            phase_ns: self.phase_ms.scaled(1e6),
+            rate_ppm: self.ppm.scaled(1.0),
+            ts_jitter_ns: self.ts_jitter_us.scaled(1e3),
+            exposure_ns: self.exposure_us.scaled(1e3),
+            line_time_ns: self.line_time_us.scaled(1e3),
+            ts_offset_ns: self.ts_offset_us.scaled(1e3),
+        };
+        let lists = match self.preset.as_deref() {
+            None => lists,
+            Some("free_running") => lists.free_running(cameras, fps, seed),
+            Some(other) => {
+                return Err(format!(
+                    "source.sim.timing.preset = {other:?}: the only preset is \"free_running\""
+                ));
+            }
+        };
+        lists
+            .build(cameras)
+            .map_err(|e| format!("source.sim.timing: {e}"))
+    }
 }
 
 /// `[source.sim.checkerboard]`: a chessboard held still in one pose after another, each pose
@@ -365,6 +455,7 @@ impl Default for SimSourceConfig {
             wall_clock: false,
             cell: None,
             backdrop: None,
+            timing: None,
         }
     }
 }
@@ -376,6 +467,13 @@ impl SimSourceConfig {
         let bad = |reason: String| Err(FirmwareError::Config { reason });
         if !(self.fps.is_finite() && self.fps > 0.0) {
             return bad(format!("source.sim.fps must be > 0, got {}", self.fps));
+        }
+        if let Some(t) = &self.timing {
+            if self.wand_mm.is_some() || self.checkerboard.is_some() {
+                return bad("source.sim.timing is rendered by the marker and tool scenes; the wand wave and the checkerboard are rendered synchronously, so remove [source.sim.timing] with wand_mm or checkerboard".into());
+            }
+            t.build(self.rig_camera_count(), self.fps, self.seed)
+                .map_err(|reason| FirmwareError::Config { reason })?;
         }
         if !matches!(self.bit_depth, 8 | 10) {
             return bad(format!(
@@ -673,6 +771,12 @@ impl SimSourceConfig {
         if let Some(b) = &self.backdrop {
             cfg.backdrop = b.backdrop();
         }
+        if let Some(t) = &self.timing {
+            // Checked by `validate`; an invalid table renders synchronous cameras.
+            cfg.timing = t
+                .build(self.rig_camera_count(), self.fps, self.seed)
+                .unwrap_or_default();
+        }
         if let Some(tool) = self.tool_definition() {
             cfg.set_tool(
                 &tool.leds_mm,
@@ -854,6 +958,9 @@ pub struct SimSource {
     /// handed over at that instant like a camera's (adapted to the recent rendering times).
     render_lead_ns: u64,
     /// The scenario's cameras this source renders, in frame order.
+    /// Per slot: the camera's reported timestamp minus the set's nominal instant (ns), for
+    /// `[source.sim.timing]` (kept here so a set costs no allocation).
+    skew_ns: Vec<i64>,
     render_cams: Vec<usize>,
 }
 
@@ -1021,6 +1128,7 @@ impl SimSource {
             next_index: 0,
             stats: SourceStats::default(),
             controls: vec![SimControls::NOMINAL; render_cams.len()],
+            skew_ns: vec![0; render_cams.len()],
             render_cams,
             noise_state: 0x9E37_79B9_7F4A_7C15,
             render_lead_ns: ((1e9 / fps) as u64 / 2).min(3_000_000),
@@ -1159,7 +1267,8 @@ impl FrameSource for SimSource {
                 }
             }
             let mut dropped = 0usize;
-            let (mut min_ts, mut max_ts) = (u64::MAX, 0u64);
+            let (mut min_ts, mut max_ts) = (i64::MAX, i64::MIN);
+            let nominal_ns = self.scenario.timestamp_ns(index) as i64;
             for (slot, frame) in out.frames.iter_mut().enumerate() {
                 let camera = self.render_cams[slot];
                 let lost = |e: irtrack_sim::SimError| SourceError::CameraLost {
@@ -1224,8 +1333,12 @@ impl FrameSource for SimSource {
                     let max_dn = if frame.bit_depth == 10 { 1023.0 } else { 255.0 };
                     apply_sim_controls(&mut frame.pixels, c, max_dn, &mut self.noise_state);
                 }
-                min_ts = min_ts.min(info.timestamp_ns);
-                max_ts = max_ts.max(info.timestamp_ns);
+                // Each camera's own timestamp against the set's nominal instant (0 for
+                // synchronous cameras; `[source.sim.timing]` makes them differ).
+                let skew_ns = self.scenario.frame_time(index, camera).reported_ns - nominal_ns;
+                self.skew_ns[slot] = skew_ns;
+                min_ts = min_ts.min(skew_ns);
+                max_ts = max_ts.max(skew_ns);
                 frame.sequence = index;
             }
             let render_end_ns = clock::monotonic_ns();
@@ -1244,8 +1357,8 @@ impl FrameSource for SimSource {
                 }
                 None => render_end_ns,
             };
-            for frame in out.frames.iter_mut() {
-                frame.timestamp_ns = capture_ns;
+            for (frame, skew) in out.frames.iter_mut().zip(&self.skew_ns) {
+                frame.timestamp_ns = capture_ns.saturating_add_signed(*skew);
             }
             if dropped > 0 {
                 // An incomplete set cannot be triangulated; the other cameras' frames are unpaired.
@@ -1254,7 +1367,7 @@ impl FrameSource for SimSource {
                 continue;
             }
             out.index = index;
-            out.pairing_error_ns = max_ts - min_ts;
+            out.pairing_error_ns = max_ts.abs_diff(min_ts);
             out.render_ns = render_ns;
             self.stats.sets_delivered += 1;
             return Ok(());

@@ -11,7 +11,9 @@ use anyhow::{Context, bail};
 use irtrack_core::params::ToolDefinition;
 use irtrack_core::pgm;
 use irtrack_sim::rig::{TABLE_I_BASELINE_MM, TABLE_I_FOCAL_PX};
-use irtrack_sim::{BitDepth, MarkerSpec, RigPreset, Scenario, SimConfig, Trajectory};
+use irtrack_sim::{
+    BitDepth, MarkerSpec, RigPreset, Scenario, SimCameraTiming, SimConfig, TimingLists, Trajectory,
+};
 use nalgebra::Vector3;
 
 /// Preset rig.
@@ -93,6 +95,34 @@ pub struct Args {
     /// tool keeps one orientation (e.g. to measure its layout with `measure-tool`).
     #[arg(long, default_value_t = 30.0)]
     pub tool_rotation_deg: f64,
+    /// Camera timing preset: `sync` (default: every camera exposes at the frame instant with
+    /// a global shutter and stamps it exactly) or `free-running` (phases spread evenly over the
+    /// whole frame period, clock rates drawn in ±50 ppm from the seed, 200 µs timestamp
+    /// jitter). The per-camera options below override the preset's values.
+    #[arg(long, default_value = "sync")]
+    pub timing: String,
+    /// Per-camera phase (ms): the middle of row 0's exposure against the nominal frame grid,
+    /// e.g. `0,3.1,-2.4`; one value applies to every camera.
+    #[arg(long, allow_hyphen_values = true)]
+    pub phase_ms: Option<String>,
+    /// Per-camera clock rate error (ppm): the camera's period is nominal × (1 + ppm·1e-6).
+    #[arg(long, allow_hyphen_values = true)]
+    pub ppm: Option<String>,
+    /// Per-camera timestamp jitter, standard deviation (µs, clipped at ±3σ); only the reported
+    /// timestamps move, not the exposures.
+    #[arg(long)]
+    pub ts_jitter_us: Option<String>,
+    /// Per-camera exposure time (µs): motion blur as the average of at least 8 sub-samples
+    /// across it (overrides `--exposure-ms`/`--motion-blur` for those cameras).
+    #[arg(long)]
+    pub exposure_us: Option<String>,
+    /// Per-camera rolling-shutter line time (µs per row); 0 = global shutter.
+    #[arg(long)]
+    pub line_time_us: Option<String>,
+    /// Per-camera timestamp offset (µs): reported timestamp minus the middle of row 0's
+    /// exposure (e.g. a camera stamping the end of readout has a positive offset).
+    #[arg(long, allow_hyphen_values = true)]
+    pub ts_offset_us: Option<String>,
     /// Lens without distortion.
     #[arg(long)]
     pub no_distortion: bool,
@@ -114,6 +144,49 @@ pub fn builtin_tool(name: &str) -> anyhow::Result<ToolDefinition> {
 /// The tool the arguments ask for, if any.
 pub fn tool_from_args(a: &Args) -> anyhow::Result<Option<ToolDefinition>> {
     a.tool.as_deref().map(builtin_tool).transpose()
+}
+
+/// Parses `1.5` or `0,3.1,-2.4` into values scaled by `scale` (e.g. ms → ns).
+fn parse_list(option: &str, text: Option<&str>, scale: f64) -> anyhow::Result<Vec<f64>> {
+    let Some(text) = text else {
+        return Ok(Vec::new());
+    };
+    text.split(',')
+        .map(|v| {
+            let x: f64 = v
+                .trim()
+                .parse()
+                .with_context(|| format!("--{option} {text}: `{v}` is not a number"))?;
+            if !x.is_finite() {
+                bail!("--{option} {text}: `{v}` is not finite");
+            }
+            Ok(x * scale)
+        })
+        .collect()
+}
+
+/// Per-camera timing from `--timing` and the per-camera options, for `cameras` cameras.
+pub fn timing_from_args(a: &Args, cameras: usize, fps: f64, seed: u64) -> anyhow::Result<Vec<SimCameraTiming>> {
+    let lists = TimingLists {
+        phase_ns: parse_list("phase-ms", a.phase_ms.as_deref(), 1e6)?,
+        rate_ppm: parse_list("ppm", a.ppm.as_deref(), 1.0)?,
+        ts_jitter_ns: parse_list("ts-jitter-us", a.ts_jitter_us.as_deref(), 1e3)?,
+        exposure_ns: parse_list("exposure-us", a.exposure_us.as_deref(), 1e3)?,
+        line_time_ns: parse_list("line-time-us", a.line_time_us.as_deref(), 1e3)?,
+        ts_offset_ns: parse_list("ts-offset-us", a.ts_offset_us.as_deref(), 1e3)?,
+    };
+    let lists = match a.timing.as_str() {
+        "sync" => lists,
+        "free-running" => lists.free_running(cameras, fps, seed),
+        other => bail!("--timing {other}: use sync or free-running"),
+    };
+    let v = lists.build(cameras).context("camera timing")?;
+    // All zero is the synchronous default: keep the configuration (and scenario.txt) as before.
+    Ok(if v.iter().all(SimCameraTiming::is_synchronous) {
+        Vec::new()
+    } else {
+        v
+    })
 }
 
 /// Builds the simulator configuration the arguments describe.
@@ -199,6 +272,11 @@ pub fn config_from_args(a: &Args) -> anyhow::Result<SimConfig> {
     if a.glare {
         cfg.add_glare();
     }
+    let cameras = irtrack_sim::rig::build_rig(&cfg.rig, &cfg.camera)
+        .context("rig")?
+        .cameras
+        .len();
+    cfg.timing = timing_from_args(a, cameras, cfg.fps, cfg.seed)?;
     Ok(cfg)
 }
 
@@ -292,6 +370,13 @@ pub fn write_scenario(
         }
         for c in 0..n_cam {
             let path = dir.join(format!("cam{c}/{index:06}.pgm"));
+            // An exposure stamped before the scenario's start (a negative phase or offset in
+            // slot 0) is before the recording began: written as dropped.
+            if sc.frame_time(index, c).reported_ns < 0 {
+                let _ = writeln!(stamps, "{index},{c},0,1");
+                sum.dropped += 1;
+                continue;
+            }
             let info = match depth {
                 BitDepth::Eight => sc.render_u8(index, c, &mut f8)?,
                 BitDepth::Ten => sc.render_u16(index, c, &mut f16)?,
@@ -316,7 +401,66 @@ pub fn write_scenario(
     if multi {
         std::fs::write(dir.join("markers.csv"), markers).context("writing markers.csv")?;
     }
+    write_timing_files(sc, dir, frames)?;
     Ok(sum)
+}
+
+/// Name of the per-camera timing constants file.
+pub const CAMERA_TIMING_FILE: &str = "camera_timing.csv";
+/// Name of the densely sampled truth (timed scenarios only).
+pub const TRUTH_DENSE_FILE: &str = "truth_dense.csv";
+/// Spacing of `truth_dense.csv` (ns): 0.1 ms, where linear interpolation of a hand's motion
+/// is off by nanometres.
+pub const TRUTH_DENSE_STEP_NS: i64 = 100_000;
+
+/// `camera_timing.csv` (every scenario): per camera the constants a tracker is given
+/// (irtrack-core's `CameraTiming`: shutter, line time, exposure, `offset_ns` = middle of row 0's
+/// exposure − timestamp) and the simulated clock's own phase, rate error and jitter. A timed
+/// scenario also gets `truth_dense.csv` (`t_ns,x_mm,y_mm,z_mm`, marker 0 every 0.1 ms on the
+/// timestamps' clock, from one period before frame 0 to one after the last), so that truth
+/// can be evaluated at any instant.
+fn write_timing_files(sc: &Scenario, dir: &Path, frames: u64) -> anyhow::Result<()> {
+    let mut csv =
+        String::from("camera,shutter,line_time_ns,exposure_ns,offset_ns,phase_ns,rate_ppm,ts_jitter_ns\n");
+    let mut timed = false;
+    for c in 0..sc.camera_count() {
+        let t = sc.camera_timing(c);
+        timed |= !t.is_synchronous();
+        let k = t.core_timing();
+        let _ = writeln!(
+            csv,
+            "{c},{},{},{},{},{:.1},{:.3},{:.1}",
+            k.shutter.as_str(),
+            k.line_time_ns,
+            k.exposure_ns,
+            k.offset_ns,
+            t.phase_ns,
+            t.rate_ppm,
+            t.ts_jitter_ns
+        );
+    }
+    std::fs::write(dir.join(CAMERA_TIMING_FILE), csv).context("writing camera_timing.csv")?;
+    let dense = dir.join(TRUTH_DENSE_FILE);
+    if !timed {
+        // A synchronous scenario's truth.csv rows are at the frame instants already; a dense
+        // file from an earlier timed run would describe another scene.
+        if dense.is_file() {
+            std::fs::remove_file(&dense).with_context(|| format!("removing stale {}", dense.display()))?;
+        }
+        return Ok(());
+    }
+    let period_ns = 1e9 / sc.config().fps;
+    let first = (-period_ns / TRUTH_DENSE_STEP_NS as f64).floor() as i64;
+    let last = ((frames as f64 + 1.0) * period_ns / TRUTH_DENSE_STEP_NS as f64).ceil() as i64;
+    let mut out = String::with_capacity(((last - first + 1) * 40) as usize);
+    out.push_str("t_ns,x_mm,y_mm,z_mm\n");
+    for i in first..=last {
+        let t_ns = i * TRUTH_DENSE_STEP_NS;
+        let p = sc.truth_at(t_ns as f64).markers()[0].p_cam0_mm;
+        let _ = writeln!(out, "{t_ns},{:.6},{:.6},{:.6}", p.x, p.y, p.z);
+    }
+    std::fs::write(&dense, out).context("writing truth_dense.csv")?;
+    Ok(())
 }
 
 /// Runs the subcommand.

@@ -1,11 +1,21 @@
 //! `host-tools track`: the firmware's tracking pipeline (irtrack-core's `Tracker`) run offline
 //! on recorded or simulated frames.
 //!
-//! Frames are `DIR/cam0/NNNNNN.pgm`, `DIR/cam1/NNNNNN.pgm`, ... matched by index. A frame index
-//! for which any camera's file is missing is reported as `missing_frame`; a frame without a
-//! confident marker gets its status and empty coordinates, never a guessed point.
+//! Frames are `DIR/cam0/NNNNNN.pgm`, `DIR/cam1/NNNNNN.pgm`, ... With `DIR/timestamps.csv`
+//! each camera's frames carry their own timestamps and are paired the way irtrackd pairs live
+//! frames: every camera-0 frame with each other camera's frame of nearest timestamp, within
+//! half of camera 0's median frame interval. Without it they are matched by index. A set for
+//! which some camera has no frame is reported as `missing_frame`; a frame without a confident
+//! marker gets its status and empty coordinates, never a guessed point.
+//!
+//! With timestamps each camera's frame is announced to the tracker at its own timestamp
+//! (`Tracker::set_frame_time`) and the cameras' constants from `camera_timing.csv`
+//! (`Tracker::set_timing`), so the set is solved at one reference instant. Truth (simulated
+//! directories) is evaluated at the instant a position is for: the measurement's reference
+//! instant, else camera 0's timestamp corrected by its offset; from `truth_dense.csv` when
+//! present (timed scenarios), else `truth.csv` by frame.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -14,6 +24,7 @@ use irtrack_core::image::GrayImage;
 use irtrack_core::params::RigParams;
 use irtrack_core::pgm::{self, PgmPixels};
 use irtrack_core::pipeline::{Measurement, TrackStatus, Tracker, TrackerConfig};
+use irtrack_core::timing::{CameraTiming, Shutter};
 use nalgebra::Vector3;
 
 /// Arguments.
@@ -149,6 +160,172 @@ pub fn matching_truth(path: &Path, frame_count: usize) -> Option<Vec<Option<Trut
     None
 }
 
+/// Per camera, frame index → (timestamp_ns, dropped) from `timestamps.csv`
+/// (`frame,camera,timestamp_ns,dropped`, as `simulate` and `capture` write it).
+pub fn read_timestamps(path: &Path, cameras: usize) -> anyhow::Result<Vec<BTreeMap<u64, (u64, bool)>>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut lines = text.lines();
+    let header = lines.next().unwrap_or("");
+    if !header.starts_with("frame,camera,timestamp_ns") {
+        bail!(
+            "{}: header {header:?} is not frame,camera,timestamp_ns,dropped",
+            path.display()
+        );
+    }
+    let mut out = vec![BTreeMap::new(); cameras];
+    for (n, line) in lines.enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        let f: Vec<&str> = line.split(',').map(str::trim).collect();
+        let bad = || format!("{} line {}: {line:?}", path.display(), n + 2);
+        if f.len() < 3 {
+            bail!("{}: expected frame,camera,timestamp_ns[,dropped]", bad());
+        }
+        let frame: u64 = f[0].parse().with_context(bad)?;
+        let camera: usize = f[1].parse().with_context(bad)?;
+        let ts: u64 = f[2].parse().with_context(bad)?;
+        let dropped = f.get(3).is_some_and(|d| *d == "1");
+        if let Some(m) = out.get_mut(camera) {
+            m.insert(frame, (ts, dropped));
+        }
+    }
+    Ok(out)
+}
+
+/// Per camera the `offset_ns` of `camera_timing.csv` (middle of row 0's exposure − timestamp)
+/// and its irtrack-core timing; `None` without the file.
+pub fn read_camera_timing(path: &Path) -> anyhow::Result<Option<Vec<CameraTiming>>> {
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut lines = text.lines();
+    let header = lines.next().unwrap_or("");
+    if !header.starts_with("camera,shutter,line_time_ns,exposure_ns,offset_ns") {
+        bail!("{}: header {header:?} is not the simulator's", path.display());
+    }
+    let mut out = Vec::new();
+    for (n, line) in lines.enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        let f: Vec<&str> = line.split(',').map(str::trim).collect();
+        let bad = || format!("{} line {}: {line:?}", path.display(), n + 2);
+        if f.len() < 5 || f[0].parse::<usize>().ok() != Some(out.len()) {
+            bail!("{}: expected camera {} and five fields", bad(), out.len());
+        }
+        let shutter = match f[1] {
+            "global" => Shutter::Global,
+            "rolling" => Shutter::Rolling,
+            _ => bail!("{}: shutter must be global or rolling", bad()),
+        };
+        out.push(CameraTiming {
+            shutter,
+            line_time_ns: f[2].parse().with_context(bad)?,
+            exposure_ns: f[3].parse().with_context(bad)?,
+            offset_ns: f[4].parse().with_context(bad)?,
+        });
+    }
+    Ok(Some(out))
+}
+
+/// Marker 0's truth as a function of time: `truth_dense.csv` (`t_ns,x_mm,y_mm,z_mm`) or
+/// `truth.csv`'s `t_s` column, linearly interpolated (exact at the samples).
+#[derive(Debug, Clone)]
+pub struct TimedTruth {
+    /// (t_ns, position), increasing in time.
+    samples: Vec<(f64, Vector3<f64>)>,
+}
+
+impl TimedTruth {
+    /// Reads `truth_dense.csv`.
+    pub fn read_dense(path: &Path) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let mut lines = text.lines();
+        if lines.next() != Some("t_ns,x_mm,y_mm,z_mm") {
+            bail!("{}: header is not t_ns,x_mm,y_mm,z_mm", path.display());
+        }
+        let mut samples = Vec::new();
+        for (n, line) in lines.enumerate() {
+            if line.trim().is_empty() {
+                continue;
+            }
+            let v: Vec<f64> = line
+                .split(',')
+                .map(|x| x.trim().parse::<f64>())
+                .collect::<Result<_, _>>()
+                .with_context(|| format!("{} line {}", path.display(), n + 2))?;
+            if v.len() != 4 {
+                bail!("{} line {}: expected 4 fields", path.display(), n + 2);
+            }
+            samples.push((v[0], Vector3::new(v[1], v[2], v[3])));
+        }
+        Self::new(samples).with_context(|| format!("{}", path.display()))
+    }
+
+    /// From (t_ns, position) samples strictly increasing in time.
+    pub fn new(samples: Vec<(f64, Vector3<f64>)>) -> anyhow::Result<Self> {
+        if samples.is_empty() {
+            bail!("no truth samples");
+        }
+        if samples.windows(2).any(|w| w[1].0 <= w[0].0) {
+            bail!("truth samples are not strictly increasing in time");
+        }
+        Ok(TimedTruth { samples })
+    }
+
+    /// Position at `t_ns`; `None` outside the sampled span.
+    pub fn at(&self, t_ns: f64) -> Option<Vector3<f64>> {
+        let s = &self.samples;
+        let i = s.partition_point(|(t, _)| *t <= t_ns);
+        if i == 0 {
+            return None;
+        }
+        let (t0, p0) = s[i - 1];
+        if t_ns == t0 {
+            return Some(p0);
+        }
+        let (t1, p1) = *s.get(i)?;
+        let a = (t_ns - t0) / (t1 - t0);
+        Some(p0 + (p1 - p0) * a)
+    }
+}
+
+/// Camera `c`'s frames with a file and a timestamp (not dropped), sorted by timestamp.
+fn stamped_frames(present: &BTreeSet<u64>, stamps: &BTreeMap<u64, (u64, bool)>) -> Vec<(u64, u64)> {
+    let mut v: Vec<(u64, u64)> = present
+        .iter()
+        .filter_map(|i| match stamps.get(i) {
+            Some((ts, false)) => Some((*ts, *i)),
+            _ => None,
+        })
+        .collect();
+    v.sort_unstable();
+    v
+}
+
+/// Half of the median interval between consecutive frames (the pairing tolerance, as live).
+fn half_median_interval_ns(frames: &[(u64, u64)]) -> u64 {
+    let mut d: Vec<u64> = frames.windows(2).map(|w| w[1].0 - w[0].0).collect();
+    if d.is_empty() {
+        return u64::MAX;
+    }
+    d.sort_unstable();
+    d[d.len() / 2] / 2
+}
+
+/// The frame of `frames` (sorted by timestamp) nearest to `ts_ns`: (index, |Δt|).
+fn nearest(frames: &[(u64, u64)], ts_ns: u64) -> Option<(u64, u64)> {
+    let i = frames.partition_point(|(t, _)| *t < ts_ns);
+    [i.checked_sub(1), Some(i)]
+        .into_iter()
+        .flatten()
+        .filter_map(|j| frames.get(j))
+        .map(|(t, idx)| (*idx, t.abs_diff(ts_ns)))
+        .min_by_key(|(_, d)| *d)
+}
+
 /// Loads rig parameters from a blob or an OpenCV YAML file.
 pub fn load_params(path: &Path) -> anyhow::Result<RigParams> {
     let rig = crate::opencv_yaml::load_params_any(path)?;
@@ -209,13 +386,55 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
         bail!("no NNNNNN.pgm frames under {}/cam*/", args.frames.display())
     };
 
+    // Timestamps per camera (pairing by nearest timestamp) and the cameras' timing constants.
+    let stamps_path = args.frames.join("timestamps.csv");
+    let stamped: Option<Vec<Vec<(u64, u64)>>> = if stamps_path.is_file() {
+        let stamps = read_timestamps(&stamps_path, n_cam)?;
+        Some(
+            per_cam
+                .iter()
+                .zip(&stamps)
+                .map(|(present, st)| stamped_frames(present, st))
+                .collect(),
+        )
+    } else {
+        None
+    };
+    // Index → timestamp of every usable frame, per camera.
+    let ts_of: Vec<BTreeMap<u64, u64>> = stamped.as_ref().map_or_else(Vec::new, |st| {
+        st.iter()
+            .map(|v| v.iter().map(|(t, i)| (*i, *t)).collect())
+            .collect()
+    });
+    let tolerance_ns = stamped
+        .as_ref()
+        .map_or(u64::MAX, |s| half_median_interval_ns(&s[0]));
+    let timing = read_camera_timing(&args.frames.join(crate::cmd::simulate::CAMERA_TIMING_FILE))?
+        .filter(|t| t.len() == n_cam);
+    let dense_path = args.frames.join(crate::cmd::simulate::TRUTH_DENSE_FILE);
+    let dense = if dense_path.is_file() {
+        Some(TimedTruth::read_dense(&dense_path)?)
+    } else {
+        None
+    };
+    // A timed scenario (own clocks or shutters): the instants are written and truth is taken there.
+    let timed = dense.is_some()
+        || timing
+            .as_ref()
+            .is_some_and(|t| t.iter().any(|c| *c != CameraTiming::SYNCHRONOUS));
+
     let mut tracker: Option<Tracker> = None;
     let mut maxval_seen: Option<u16> = None;
     let truth_path = args.frames.join("truth.csv");
     let truth = usize::try_from(last + 1)
         .ok()
         .and_then(|n| matching_truth(&truth_path, n));
-    let mut csv = String::from("frame,x_mm,y_mm,z_mm,gap_mm,status,cameras_used,quality,used_roi\n");
+    // Timed scenarios say which instant each position is compared at.
+    let mut csv = String::from(if timed {
+        "frame,x_mm,y_mm,z_mm,gap_mm,status,cameras_used,quality,used_roi,instant_ns\n"
+    } else {
+        "frame,x_mm,y_mm,z_mm,gap_mm,status,cameras_used,quality,used_roi\n"
+    });
     let mut s = TrackSummary {
         frames: 0,
         tracked: 0,
@@ -227,17 +446,43 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
     let mut errors = Vec::new();
     let mut images8: Vec<Vec<u8>> = vec![Vec::new(); n_cam];
     let mut images16: Vec<Vec<u16>> = vec![Vec::new(); n_cam];
+    let missing_row = if timed { "," } else { "" };
+    let mut pick: Vec<u64> = vec![0; n_cam];
+    let mut frame_ts: Vec<Option<u64>> = vec![None; n_cam];
     for index in 0..=last {
         s.frames += 1;
-        if per_cam.iter().any(|set| !set.contains(&index)) {
+        // Each camera's frame of this set: the same index, or the nearest timestamp.
+        let complete = match &stamped {
+            None => {
+                pick.fill(index);
+                per_cam.iter().all(|set| set.contains(&index))
+            }
+            Some(st) => match ts_of[0].get(&index) {
+                None => false,
+                Some(&ts0) => {
+                    let mut ok = true;
+                    for c in 0..n_cam {
+                        match nearest(&st[c], ts0) {
+                            Some((i, d)) if d <= tolerance_ns => {
+                                pick[c] = i;
+                                frame_ts[c] = ts_of[c].get(&i).copied();
+                            }
+                            _ => ok = false,
+                        }
+                    }
+                    ok
+                }
+            },
+        };
+        if !complete {
             s.missing_frames += 1;
-            let _ = writeln!(csv, "{index},,,,,missing_frame,0,0,0");
+            let _ = writeln!(csv, "{index},,,,,missing_frame,0,0,0{missing_row}");
             continue;
         }
         let mut maxval = 0u16;
         let mut size = (0u32, 0u32);
         for c in 0..n_cam {
-            let path = args.frames.join(format!("cam{c}/{index:06}.pgm"));
+            let path = args.frames.join(format!("cam{c}/{:06}.pgm", pick[c]));
             let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
             let pgm = pgm::decode(&bytes).with_context(|| format!("decoding {}", path.display()))?;
             if c > 0 && (pgm.width_px, pgm.height_px, pgm.maxval) != (size.0, size.1, maxval) {
@@ -269,9 +514,24 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
                 if let Some(g) = args.max_gap_mm {
                     cfg.max_gap_mm = g;
                 }
-                tracker.insert(Tracker::new(&rig, cfg).context("building the tracker")?)
+                let mut t = Tracker::new(&rig, cfg).context("building the tracker")?;
+                // The cameras' known timing constants (the simulator's truth), as irtrackd
+                // takes them from its config or parameter set.
+                for (c, ct) in timing.iter().flatten().enumerate() {
+                    t.set_timing(c, *ct)
+                        .with_context(|| format!("camera_timing.csv camera {c}"))?;
+                }
+                tracker.insert(t)
             }
         };
+        // Each camera's frame at its own timestamp: the tracker solves the set at one instant.
+        if stamped.is_some() {
+            for (c, ts) in frame_ts.iter().enumerate() {
+                if let Some(ts) = ts {
+                    tr.set_frame_time(c, *ts).with_context(|| format!("frame {index}"))?;
+                }
+            }
+        }
         let m = if maxval > 255 {
             let frames: Vec<GrayImage<'_, u16>> = images16
                 .iter()
@@ -287,15 +547,39 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
             *tr.process_u8(&frames).with_context(|| format!("frame {index}"))?
         };
         let status = status_name(&m);
+        // The instant this position is for: the tracker's reference instant, else camera 0's
+        // exposure by its timestamp and offset.
+        let instant_ns = m.instant_ns.or_else(|| {
+            frame_ts[0].map(|ts| {
+                let offset = timing.as_ref().map_or(0, |t| t[0].offset_ns);
+                ts as f64 + offset as f64
+            })
+        });
+        let instant_col = match (timed, instant_ns) {
+            (false, _) => String::new(),
+            (true, Some(t)) => format!(",{t:.0}"),
+            (true, None) => ",".to_string(),
+        };
         match m.point_cam0_mm {
             Some(p) => {
                 s.tracked += 1;
                 let _ = writeln!(
                     csv,
-                    "{index},{:.4},{:.4},{:.4},{:.4},{status},{},{:.3},{}",
+                    "{index},{:.4},{:.4},{:.4},{:.4},{status},{},{:.3},{}{instant_col}",
                     p.x, p.y, p.z, m.gap_mm, m.cameras_used, m.quality, m.used_roi as u8
                 );
-                if let Some(Some((t, _))) = truth.as_ref().and_then(|t| t.get(index as usize)) {
+                let at_instant = match (&dense, instant_ns) {
+                    (Some(d), Some(t)) => d.at(t),
+                    _ => None,
+                };
+                let by_frame = || {
+                    truth
+                        .as_ref()
+                        .and_then(|t| t.get(index as usize))
+                        .and_then(|r| r.as_ref())
+                        .map(|(p, _)| *p)
+                };
+                if let Some(t) = at_instant.or_else(by_frame) {
                     let e = (p - t).norm();
                     if e > args.wrong_point_mm {
                         s.wrong_points += 1;
@@ -310,7 +594,11 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
                 } else {
                     String::new()
                 };
-                let _ = writeln!(csv, "{index},,,,{gap},{status},0,0,{}", m.used_roi as u8);
+                let _ = writeln!(
+                    csv,
+                    "{index},,,,{gap},{status},0,0,{}{instant_col}",
+                    m.used_roi as u8
+                );
             }
         }
     }
