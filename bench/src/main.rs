@@ -204,6 +204,8 @@ fn synthetic<P: Px>(label: &str, w: u32, h: u32, f_px: f64, scale: u32) -> Resul
         tools: vec![],
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     };
     let truth_mm = Vector3::new(40.0, -25.0, 800.0);
     let max_code = (255 * scale).min(P::MAX_DN) as f64;

@@ -2,8 +2,9 @@
 //! Spec: docs/param-protocol.md.
 //!
 //! One exchange per TCP connection: the client sends `b"IRPP"`, the blob length as u32 LE and
-//! the blob; the server answers with exactly one ASCII line, `OK <rig_id>\n` or
-//! `ERR <CODE> <message>\n`, and closes.
+//! the blob (or `b"IRPF"`, the length, u32 LE request flags and the blob, when it asks for
+//! something, e.g. to allow a rollback); the server answers with exactly one ASCII line,
+//! `OK <rig_id>\n` or `ERR <CODE> <message>\n`, and closes.
 
 use alloc::format;
 use alloc::string::{String, ToString};
@@ -17,6 +18,17 @@ pub const DEFAULT_PORT: u16 = 7701;
 pub const PUSH_MAGIC: [u8; 4] = *b"IRPP";
 /// Size of the push header (magic + u32 LE length).
 pub const PUSH_HEADER_LEN: usize = 8;
+/// Magic of a push request with flags: the [`PUSH_HEADER_LEN`] header as for `IRPP`, then
+/// [`PUSH_FLAGS_LEN`] bytes of u32 LE flags, then the blob. Clients send it only when a flag is
+/// set, so a plain push stays what every server knows.
+pub const PUSH_FLAGS_MAGIC: [u8; 4] = *b"IRPF";
+/// Size of the flags word that follows an `IRPF` header.
+pub const PUSH_FLAGS_LEN: usize = 4;
+/// Request flag: the operator allows this push to replace the active set with an older one
+/// (`host-tools push-params --allow-rollback`).
+pub const PUSH_FLAG_ALLOW_ROLLBACK: u32 = 0x0000_0001;
+/// Every request flag this build knows; a server refuses others (`PROTOCOL`).
+pub const PUSH_KNOWN_FLAGS: u32 = PUSH_FLAG_ALLOW_ROLLBACK;
 /// Largest blob a server accepts (1 MiB; real rigs are well under 4 KiB).
 pub const MAX_BLOB_BYTES: usize = 1 << 20;
 /// Longest verdict line, newline included; longer messages are cut by [`Verdict::to_line`].
@@ -24,23 +36,94 @@ pub const MAX_VERDICT_LINE: usize = 1024;
 
 const PROTOCOL: &str = "param-push";
 
-/// Builds a complete push request for `blob`.
+/// What a push asks of the server besides taking the blob (the request flags).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct PushOptions {
+    /// Accept a set older than the active one ([`PUSH_FLAG_ALLOW_ROLLBACK`]).
+    pub allow_rollback: bool,
+}
+
+impl PushOptions {
+    /// The flags word for these options.
+    pub fn flags(self) -> u32 {
+        if self.allow_rollback {
+            PUSH_FLAG_ALLOW_ROLLBACK
+        } else {
+            0
+        }
+    }
+
+    /// Options from a flags word; unknown bits are an [`Error::Protocol`] naming them (a
+    /// server must not ignore a request it does not understand).
+    pub fn from_flags(flags: u32) -> Result<PushOptions> {
+        let unknown = flags & !PUSH_KNOWN_FLAGS;
+        if unknown != 0 {
+            return Err(Error::Protocol {
+                protocol: PROTOCOL,
+                reason: format!("unknown request flags {unknown:#010x} (known {PUSH_KNOWN_FLAGS:#010x})"),
+            });
+        }
+        Ok(PushOptions {
+            allow_rollback: flags & PUSH_FLAG_ALLOW_ROLLBACK != 0,
+        })
+    }
+}
+
+/// Builds a complete push request for `blob` (`IRPP`, no flags).
 pub fn encode_push(blob: &[u8]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(PUSH_HEADER_LEN + blob.len());
-    out.extend_from_slice(&PUSH_MAGIC);
+    encode_push_with(blob, PushOptions::default())
+}
+
+/// Builds a complete push request for `blob` with `options`: `IRPP` when no flag is set (every
+/// server takes it), else `IRPF` with the flags word.
+pub fn encode_push_with(blob: &[u8], options: PushOptions) -> Vec<u8> {
+    let flags = options.flags();
+    let mut out = Vec::with_capacity(PUSH_HEADER_LEN + PUSH_FLAGS_LEN + blob.len());
+    out.extend_from_slice(if flags == 0 {
+        &PUSH_MAGIC
+    } else {
+        &PUSH_FLAGS_MAGIC
+    });
     // Blobs over MAX_BLOB_BYTES are refused by servers anyway; saturate instead of wrapping.
     let len = u32::try_from(blob.len()).unwrap_or(u32::MAX);
     out.extend_from_slice(&len.to_le_bytes());
+    if flags != 0 {
+        out.extend_from_slice(&flags.to_le_bytes());
+    }
     out.extend_from_slice(blob);
     out
 }
 
-/// Parses a push header and returns the announced blob length.
+/// A parsed push header: the announced blob length, and whether a flags word follows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PushHead {
+    /// Announced blob length (1 ..= [`MAX_BLOB_BYTES`]).
+    pub blob_len: usize,
+    /// `IRPF`: [`PUSH_FLAGS_LEN`] bytes of flags come before the blob
+    /// ([`PushOptions::from_flags`]).
+    pub has_flags: bool,
+}
+
+/// Parses the 8-byte header of either request form (`IRPP` or `IRPF`).
+///
+/// Errors as [`parse_push_header`].
+pub fn parse_push_head(hdr: &[u8; PUSH_HEADER_LEN]) -> Result<PushHead> {
+    let has_flags = hdr[..4] == PUSH_FLAGS_MAGIC;
+    let blob_len = parse_len(hdr, has_flags)?;
+    Ok(PushHead { blob_len, has_flags })
+}
+
+/// Parses a plain (`IRPP`) push header and returns the announced blob length. A server that
+/// also takes flags uses [`parse_push_head`].
 ///
 /// Errors: [`Error::Protocol`] for a wrong magic or a zero length, [`Error::MessageTooLarge`]
 /// for a length over [`MAX_BLOB_BYTES`] (answer it with [`RejectCode::TooLarge`]).
 pub fn parse_push_header(hdr: &[u8; PUSH_HEADER_LEN]) -> Result<usize> {
-    if hdr[..4] != PUSH_MAGIC {
+    parse_len(hdr, false)
+}
+
+fn parse_len(hdr: &[u8; PUSH_HEADER_LEN], flags_form: bool) -> Result<usize> {
+    if !flags_form && hdr[..4] != PUSH_MAGIC {
         return Err(Error::Protocol {
             protocol: PROTOCOL,
             reason: format!("bad magic {:02x?}, expected \"IRPP\"", &hdr[..4]),
@@ -83,6 +166,9 @@ pub enum RejectCode {
     Protocol,
     /// Another push is in progress (`BUSY`).
     Busy,
+    /// The set is older than the active one and the push did not allow a rollback
+    /// (`ROLLBACK`; [`PUSH_FLAG_ALLOW_ROLLBACK`]).
+    Rollback,
     /// Anything else on the server side (`INTERNAL`).
     Internal,
     /// A code this build does not know (forward compatibility; the raw code starts the message).
@@ -90,7 +176,7 @@ pub enum RejectCode {
 }
 
 impl RejectCode {
-    const ALL: [RejectCode; 9] = [
+    const ALL: [RejectCode; 10] = [
         RejectCode::BadBlob,
         RejectCode::InvalidParams,
         RejectCode::RigMismatch,
@@ -100,6 +186,7 @@ impl RejectCode {
         RejectCode::Protocol,
         RejectCode::Busy,
         RejectCode::Internal,
+        RejectCode::Rollback,
     ];
 
     /// The code as sent on the wire.
@@ -113,6 +200,7 @@ impl RejectCode {
             RejectCode::Unauthorized => "UNAUTHORIZED",
             RejectCode::Protocol => "PROTOCOL",
             RejectCode::Busy => "BUSY",
+            RejectCode::Rollback => "ROLLBACK",
             RejectCode::Internal => "INTERNAL",
             RejectCode::Unknown => "UNKNOWN",
         }
@@ -263,6 +351,52 @@ mod tests {
         assert_eq!(&hdr, b"IRPP\x2c\x01\x00\x00");
         assert_eq!(parse_push_header(&hdr).unwrap(), 300);
         assert_eq!(&msg[8..], &blob[..]);
+    }
+
+    #[test]
+    fn flagged_push_golden_bytes() {
+        let blob = [7u8; 300];
+        // Without a flag the request is the plain form older servers know.
+        assert_eq!(
+            encode_push_with(&blob, PushOptions::default()),
+            encode_push(&blob)
+        );
+        let msg = encode_push_with(&blob, PushOptions { allow_rollback: true });
+        assert_eq!(msg.len(), PUSH_HEADER_LEN + PUSH_FLAGS_LEN + 300);
+        // "IRPF", length 300, flags 0x00000001 (allow rollback), then the blob.
+        assert_eq!(&msg[..12], b"IRPF\x2c\x01\x00\x00\x01\x00\x00\x00");
+        assert_eq!(&msg[12..], &blob[..]);
+        let hdr: [u8; 8] = msg[..8].try_into().unwrap();
+        assert_eq!(
+            parse_push_head(&hdr).unwrap(),
+            PushHead {
+                blob_len: 300,
+                has_flags: true
+            }
+        );
+        // The plain parser does not take the flagged form (it would read flags as blob).
+        assert!(matches!(parse_push_header(&hdr), Err(Error::Protocol { .. })));
+        let plain: [u8; 8] = *b"IRPP\x2c\x01\x00\x00";
+        assert_eq!(
+            parse_push_head(&plain).unwrap(),
+            PushHead {
+                blob_len: 300,
+                has_flags: false
+            }
+        );
+        assert_eq!(
+            PushOptions::from_flags(u32::from_le_bytes([1, 0, 0, 0])).unwrap(),
+            PushOptions { allow_rollback: true }
+        );
+        assert_eq!(PushOptions::from_flags(0).unwrap(), PushOptions::default());
+        let e = PushOptions::from_flags(0x8000_0001).unwrap_err().to_string();
+        assert!(e.contains("unknown request flags 0x80000000"), "{e}");
+        // The flagged form keeps the length checks.
+        assert!(matches!(
+            parse_push_head(b"IRPF\0\0\0\0"),
+            Err(Error::Protocol { .. })
+        ));
+        assert_eq!(RejectCode::from_wire("ROLLBACK"), Some(RejectCode::Rollback));
     }
 
     #[test]

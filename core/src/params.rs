@@ -9,6 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::{CameraModel, RigidTransform};
 use crate::crc::Crc32;
+use crate::timing::CameraTiming;
 use crate::{Error, Result};
 
 /// One camera of the rig: model plus pose relative to camera 0
@@ -97,6 +98,8 @@ impl From<RigV2> for RigParams {
             tools: v.tools,
             calibration: None,
             placement: Vec::new(),
+            timing: Vec::new(),
+            serial: 0,
         }
     }
 }
@@ -133,6 +136,93 @@ impl From<RigV3> for RigParams {
             tools: v.tools,
             calibration: v.calibration,
             placement: Vec::new(),
+            timing: Vec::new(),
+            serial: 0,
+        }
+    }
+}
+
+/// Version-4 body (a camera placement, no timing or serial), borrowed for writing.
+#[derive(Serialize)]
+struct RigV4Ref<'a> {
+    rig_id: &'a str,
+    created_unix_s: u64,
+    cameras: &'a [CameraParams],
+    world_from_cam0: &'a Option<RigidTransform>,
+    tools: &'a [ToolDefinition],
+    calibration: &'a Option<Box<CalibrationInfo>>,
+    placement: &'a [CameraPlace],
+}
+
+/// Version-4 body as read.
+#[derive(Deserialize)]
+struct RigV4 {
+    rig_id: String,
+    created_unix_s: u64,
+    cameras: Vec<CameraParams>,
+    world_from_cam0: Option<RigidTransform>,
+    tools: Vec<ToolDefinition>,
+    calibration: Option<Box<CalibrationInfo>>,
+    placement: Vec<CameraPlace>,
+}
+
+impl From<RigV4> for RigParams {
+    fn from(v: RigV4) -> Self {
+        RigParams {
+            rig_id: v.rig_id,
+            created_unix_s: v.created_unix_s,
+            cameras: v.cameras,
+            world_from_cam0: v.world_from_cam0,
+            tools: v.tools,
+            calibration: v.calibration,
+            placement: v.placement,
+            timing: Vec::new(),
+            serial: 0,
+        }
+    }
+}
+
+/// Version-5 body (per-camera timing and the set's serial), borrowed for writing. The timing
+/// list is empty when every camera has the default timing ([`RigParams::has_timing`]).
+#[derive(Serialize)]
+struct RigV5Ref<'a> {
+    rig_id: &'a str,
+    created_unix_s: u64,
+    cameras: &'a [CameraParams],
+    world_from_cam0: &'a Option<RigidTransform>,
+    tools: &'a [ToolDefinition],
+    calibration: &'a Option<Box<CalibrationInfo>>,
+    placement: &'a [CameraPlace],
+    timing: &'a [CameraTiming],
+    serial: u64,
+}
+
+/// Version-5 body as read.
+#[derive(Deserialize)]
+struct RigV5 {
+    rig_id: String,
+    created_unix_s: u64,
+    cameras: Vec<CameraParams>,
+    world_from_cam0: Option<RigidTransform>,
+    tools: Vec<ToolDefinition>,
+    calibration: Option<Box<CalibrationInfo>>,
+    placement: Vec<CameraPlace>,
+    timing: Vec<CameraTiming>,
+    serial: u64,
+}
+
+impl From<RigV5> for RigParams {
+    fn from(v: RigV5) -> Self {
+        RigParams {
+            rig_id: v.rig_id,
+            created_unix_s: v.created_unix_s,
+            cameras: v.cameras,
+            world_from_cam0: v.world_from_cam0,
+            tools: v.tools,
+            calibration: v.calibration,
+            placement: v.placement,
+            timing: v.timing,
+            serial: v.serial,
         }
     }
 }
@@ -235,6 +325,8 @@ impl From<RigV1> for RigParams {
                 .collect(),
             calibration: None,
             placement: Vec::new(),
+            timing: Vec::new(),
+            serial: 0,
         }
     }
 }
@@ -260,15 +352,28 @@ pub struct RigParams {
     /// `placement[i]` is camera `i`'s board and its index there. Empty for a single board.
     /// Only blob format version 4 carries it; sets without it are written as before.
     pub placement: Vec<CameraPlace>,
+    /// Each camera's timing (shutter, line time, exposure, offset; docs/timing.md): empty
+    /// (every camera has the default: global shutter, timestamps are exposure instants) or one
+    /// per camera. Read it through [`Self::camera_timing`]. Only blob format version 5 carries
+    /// it; a list whose entries are all default is written as none.
+    #[serde(default)]
+    pub timing: Vec<CameraTiming>,
+    /// The set's serial, set by the PC tool that wrote it: larger for a later set of the same
+    /// site, so that irtrackd can refuse a rollback to an older one (docs/param-protocol.md).
+    /// 0: none (sets written before version 5; they compare by `created_unix_s`).
+    #[serde(default)]
+    pub serial: u64,
 }
 
 /// First bytes of every parameter blob.
 pub const BLOB_MAGIC: [u8; 4] = *b"IRPB";
-/// The newest blob format version this build reads and writes (4: cameras placed on boards;
-/// 3: a calibration record;
-/// 2: tools may carry a tip). A set is written in the oldest version that carries it, so a set
-/// without tool tips and without a calibration record is version 1 and older readers take it.
-pub const BLOB_FORMAT_VERSION: u16 = 4;
+/// The newest blob format version this build reads and writes (5: per-camera timing and a
+/// serial; 4: cameras placed on boards; 3: a calibration record; 2: tools may carry a tip). A
+/// set is written in the oldest version that carries it, so a set without tool tips and
+/// without a calibration record is version 1 and older readers take it.
+pub const BLOB_FORMAT_VERSION: u16 = 5;
+/// The version that added the camera placement (and no timing or serial).
+pub const BLOB_PLACEMENT_VERSION: u16 = 4;
 /// The version that added the calibration record (and no camera placement).
 pub const BLOB_CALIBRATION_VERSION: u16 = 3;
 /// The version whose tools may carry a tip (and no calibration record).
@@ -428,7 +533,8 @@ pub(crate) fn decode_body(version: u16, body: &[u8]) -> Result<RigParams> {
         BLOB_OLDEST_VERSION => RigParams::from(take_all::<RigV1>(body)?),
         BLOB_TIPS_VERSION => RigParams::from(take_all::<RigV2>(body)?),
         BLOB_CALIBRATION_VERSION => RigParams::from(take_all::<RigV3>(body)?),
-        _ => take_all::<RigParams>(body)?,
+        BLOB_PLACEMENT_VERSION => RigParams::from(take_all::<RigV4>(body)?),
+        _ => RigParams::from(take_all::<RigV5>(body)?),
     };
     // postcard accepts over-long varints; refuse any body that is not the canonical encoding
     // so that one parameter set has exactly one byte form (and one CRC, its identity). That
@@ -441,8 +547,18 @@ pub(crate) fn decode_body(version: u16, body: &[u8]) -> Result<RigParams> {
                 BLOB_CALIBRATION_VERSION => {
                     "version-3 body without a calibration record (such a set is written as version 1 or 2)"
                 }
-                _ => "version-4 body without a camera placement (such a set is written as version 1, 2 or 3)",
+                BLOB_PLACEMENT_VERSION => {
+                    "version-4 body without a camera placement (such a set is written as version 1, 2 or 3)"
+                }
+                _ => {
+                    "version-5 body without camera timing or serial (such a set is written as version 1 to 4)"
+                }
             },
+        });
+    }
+    if !rig.timing.is_empty() && !rig.has_timing() {
+        return Err(Error::BlobBody {
+            reason: "version-5 body whose cameras all have the default timing (such a list is written empty)",
         });
     }
     if canonical != body {
@@ -451,6 +567,44 @@ pub(crate) fn decode_body(version: u16, body: &[u8]) -> Result<RigParams> {
         });
     }
     Ok(rig)
+}
+
+/// `YYYY-MM-DD HH:MM UTC` of Unix seconds (proleptic Gregorian calendar); times past the
+/// year 9999 are printed as seconds.
+pub fn utc_minute(unix_s: u64) -> String {
+    const LAST_S: u64 = 253_402_300_799; // 9999-12-31 23:59:59
+    if unix_s > LAST_S {
+        return format!("{unix_s} s after 1970");
+    }
+    let mut days = unix_s / 86_400;
+    let minute_of_day = (unix_s % 86_400) / 60;
+    // Whole 400-year cycles (146 097 days each) first, then years one by one (≤ 400 steps).
+    let mut year = 1970 + 400 * (days / 146_097);
+    days %= 146_097;
+    let leap = |y: u64| (y % 4 == 0 && y % 100 != 0) || y % 400 == 0;
+    loop {
+        let len = if leap(year) { 366 } else { 365 };
+        if days < len {
+            break;
+        }
+        days -= len;
+        year += 1;
+    }
+    let feb = if leap(year) { 29 } else { 28 };
+    let mut month = 1;
+    for len in [31, feb, 31, 30, 31, 30, 31, 31, 30, 31, 30, 31] {
+        if days < len {
+            break;
+        }
+        days -= len;
+        month += 1;
+    }
+    format!(
+        "{year:04}-{month:02}-{:02} {:02}:{:02} UTC",
+        days + 1,
+        minute_of_day / 60,
+        minute_of_day % 60
+    )
 }
 
 /// Whether `bytes` starts like a parameter blob (for sniffing file types).
@@ -520,6 +674,21 @@ fn check_placement(placement: &[CameraPlace], n_cameras: usize) -> Result<()> {
                 p.board, p.local_index
             )));
         }
+    }
+    Ok(())
+}
+
+/// Timing is empty (every camera default) or one sane entry per camera.
+fn check_timing(timing: &[CameraTiming], n_cameras: usize) -> Result<()> {
+    if !timing.is_empty() && timing.len() != n_cameras {
+        return Err(invalid(format!(
+            "timing lists {} cameras, the rig has {n_cameras}",
+            timing.len()
+        )));
+    }
+    for (i, t) in timing.iter().enumerate() {
+        t.validate()
+            .map_err(|reason| invalid(format!("camera {i} timing: {reason}")))?;
     }
     Ok(())
 }
@@ -610,13 +779,15 @@ impl RigParams {
         self.encode_blob(0, 0)
     }
 
-    /// The format version this set is written in: the oldest that carries it (4 with a
-    /// camera placement, else 3 with a calibration record, else 2 if a tool has a tip, else
-    /// 1), so that readers that only know older versions still take every set that needs
-    /// nothing newer.
+    /// The format version this set is written in: the oldest that carries it (5 with camera
+    /// timing or a serial, else 4 with a camera placement, else 3 with a calibration record,
+    /// else 2 if a tool has a tip, else 1), so that readers that only know older versions
+    /// still take every set that needs nothing newer.
     pub fn blob_version(&self) -> u16 {
-        if !self.placement.is_empty() {
+        if self.has_timing() || self.serial != 0 {
             BLOB_FORMAT_VERSION
+        } else if !self.placement.is_empty() {
+            BLOB_PLACEMENT_VERSION
         } else if self.calibration.is_some() {
             BLOB_CALIBRATION_VERSION
         } else if self.tools.iter().any(|t| t.tip_mm.is_some()) {
@@ -626,19 +797,31 @@ impl RigParams {
         }
     }
 
+    /// Whether some camera's timing differs from the default (global shutter, no offset): only
+    /// then does the set carry a timing list in its blob.
+    pub fn has_timing(&self) -> bool {
+        self.timing.iter().any(|t| *t != CameraTiming::default())
+    }
+
+    /// Camera `index`'s timing: its entry in [`Self::timing`], or the default (global shutter,
+    /// timestamps are exposure instants) when the set carries none.
+    pub fn camera_timing(&self, index: usize) -> CameraTiming {
+        self.timing.get(index).copied().unwrap_or_default()
+    }
+
+    /// The serial a PC tool gives a set it writes (docs/param-blob.md, "Serial"): one more than
+    /// the serial of the set it modifies (`previous`, 0 for a new set), and never less than the
+    /// current Unix time in seconds, so that sets written later on any of a site's PCs (with
+    /// sane clocks) have larger serials, also when they start from scratch.
+    pub fn next_serial(previous: u64, now_unix_s: u64) -> u64 {
+        previous.saturating_add(1).max(now_unix_s)
+    }
+
     /// The body in the format of [`Self::blob_version`], with that version.
     fn encode_body(&self) -> Result<(u16, Vec<u8>)> {
         let version = self.blob_version();
-        let encoded = if version == BLOB_TIPS_VERSION {
-            postcard::to_allocvec(&RigV2Ref {
-                rig_id: &self.rig_id,
-                created_unix_s: self.created_unix_s,
-                cameras: &self.cameras,
-                world_from_cam0: &self.world_from_cam0,
-                tools: &self.tools,
-            })
-        } else if version == BLOB_OLDEST_VERSION {
-            postcard::to_allocvec(&RigV1Ref {
+        let encoded = match version {
+            BLOB_OLDEST_VERSION => postcard::to_allocvec(&RigV1Ref {
                 rig_id: &self.rig_id,
                 created_unix_s: self.created_unix_s,
                 cameras: &self.cameras,
@@ -651,18 +834,43 @@ impl RigParams {
                         leds_mm: &t.leds_mm,
                     })
                     .collect(),
-            })
-        } else if version == BLOB_CALIBRATION_VERSION {
-            postcard::to_allocvec(&RigV3Ref {
+            }),
+            BLOB_TIPS_VERSION => postcard::to_allocvec(&RigV2Ref {
+                rig_id: &self.rig_id,
+                created_unix_s: self.created_unix_s,
+                cameras: &self.cameras,
+                world_from_cam0: &self.world_from_cam0,
+                tools: &self.tools,
+            }),
+            BLOB_CALIBRATION_VERSION => postcard::to_allocvec(&RigV3Ref {
                 rig_id: &self.rig_id,
                 created_unix_s: self.created_unix_s,
                 cameras: &self.cameras,
                 world_from_cam0: &self.world_from_cam0,
                 tools: &self.tools,
                 calibration: &self.calibration,
-            })
-        } else {
-            postcard::to_allocvec(self)
+            }),
+            BLOB_PLACEMENT_VERSION => postcard::to_allocvec(&RigV4Ref {
+                rig_id: &self.rig_id,
+                created_unix_s: self.created_unix_s,
+                cameras: &self.cameras,
+                world_from_cam0: &self.world_from_cam0,
+                tools: &self.tools,
+                calibration: &self.calibration,
+                placement: &self.placement,
+            }),
+            _ => postcard::to_allocvec(&RigV5Ref {
+                rig_id: &self.rig_id,
+                created_unix_s: self.created_unix_s,
+                cameras: &self.cameras,
+                world_from_cam0: &self.world_from_cam0,
+                tools: &self.tools,
+                calibration: &self.calibration,
+                placement: &self.placement,
+                // All default is written as none: one set, one byte form.
+                timing: if self.has_timing() { &self.timing } else { &[] },
+                serial: self.serial,
+            }),
         };
         let body = encoded.map_err(|_| Error::BlobBody {
             reason: "body does not encode",
@@ -699,7 +907,8 @@ impl RigParams {
     /// Checks that the parameters are usable for tracking: 2..=[`MAX_CAMERAS`] cameras, camera 0 at the
     /// identity, proper rotations, finite numbers, positive focal lengths, principal points
     /// inside the images, non-empty image sizes, distinct camera centres, a printable rig id
-    /// (it travels in one-line protocol replies) and sane tool definitions.
+    /// (it travels in one-line protocol replies), sane tool definitions, a placement and a
+    /// timing list that are empty or name every camera, and timing each camera could have.
     pub fn validate(&self) -> Result<()> {
         if self.rig_id.is_empty() || self.rig_id.len() > MAX_RIG_ID_LEN {
             return Err(invalid(format!(
@@ -787,7 +996,8 @@ impl RigParams {
         if let Some(c) = &self.calibration {
             check_calibration(c, n)?;
         }
-        check_placement(&self.placement, n)
+        check_placement(&self.placement, n)?;
+        check_timing(&self.timing, n)
     }
 
     /// Number of cameras.
@@ -830,6 +1040,33 @@ impl RigParams {
         // Camera i's z axis in cam0 coordinates is Rᵀ e_z, whose z component is R[2][2].
         let r22 = self.cam_from_cam0(index)?.r_row_major[8];
         Ok(libm::acos(r22.clamp(-1.0, 1.0)).to_degrees())
+    }
+
+    /// Whether this set is older than `active` (the rollback rule, docs/param-protocol.md): by
+    /// serial when both sets have one, else by creation time. A set as new as the active one
+    /// (the same set pushed again) is not older.
+    pub fn is_older_than(&self, active: &RigParams) -> bool {
+        if self.serial != 0 && active.serial != 0 {
+            self.serial < active.serial
+        } else {
+            self.created_unix_s < active.created_unix_s
+        }
+    }
+
+    /// The set's id, serial and creation date in words, e.g.
+    /// `cell-v2 (serial 1790000000, created 2026-09-21 14:13 UTC)`: how rollback messages
+    /// name a set.
+    pub fn age_label(&self) -> String {
+        let serial = if self.serial == 0 {
+            String::from("no serial")
+        } else {
+            format!("serial {}", self.serial)
+        };
+        format!(
+            "{} ({serial}, created {})",
+            self.rig_id,
+            utc_minute(self.created_unix_s)
+        )
     }
 
     /// The CRC-32 of this parameter set's unsigned blob: a short id for logs and stream
@@ -890,6 +1127,8 @@ mod tests {
             tools: vec![],
             calibration: None,
             placement: Vec::new(),
+            timing: Vec::new(),
+            serial: 0,
         }
     }
 
@@ -898,6 +1137,51 @@ mod tests {
             Err(Error::InvalidParams { reason }) => reason,
             other => panic!("expected InvalidParams, got {other:?}"),
         }
+    }
+
+    #[test]
+    fn utc_minutes() {
+        assert_eq!(utc_minute(0), "1970-01-01 00:00 UTC");
+        assert_eq!(utc_minute(1_700_000_000), "2023-11-14 22:13 UTC");
+        assert_eq!(utc_minute(951_782_400), "2000-02-29 00:00 UTC");
+        assert_eq!(utc_minute(4_107_542_400), "2100-03-01 00:00 UTC");
+        assert_eq!(utc_minute(253_402_300_799), "9999-12-31 23:59 UTC");
+        assert!(utc_minute(u64::MAX).contains("s after 1970"));
+    }
+
+    #[test]
+    fn older_sets_by_serial_else_creation_time() {
+        let v2 = RigParams {
+            rig_id: "cell-v2".into(),
+            created_unix_s: 1_790_000_000,
+            ..orthogonal_rig()
+        };
+        let v1 = RigParams {
+            rig_id: "cell-v1".into(),
+            created_unix_s: 1_700_000_000,
+            ..orthogonal_rig()
+        };
+        assert!(v1.is_older_than(&v2));
+        assert!(!v2.is_older_than(&v1));
+        assert!(!v2.is_older_than(&v2), "the same set again is not a rollback");
+        // Serials decide when both have one, whatever the creation times say.
+        let v1s = RigParams {
+            serial: 20,
+            ..v1.clone()
+        };
+        let v2s = RigParams {
+            serial: 19,
+            ..v2.clone()
+        };
+        assert!(v2s.is_older_than(&v1s));
+        assert!(!v1s.is_older_than(&v2s));
+        // One without a serial: creation times.
+        assert!(v1s.is_older_than(&v2));
+        assert_eq!(
+            v1s.age_label(),
+            "cell-v1 (serial 20, created 2023-11-14 22:13 UTC)"
+        );
+        assert!(v2.age_label().contains("no serial"));
     }
 
     #[test]

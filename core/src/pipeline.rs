@@ -1053,6 +1053,8 @@ mod tests {
             tools: vec![],
             calibration: None,
             placement: Vec::new(),
+            timing: Vec::new(),
+            serial: 0,
         }
     }
 

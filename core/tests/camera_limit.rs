@@ -47,6 +47,8 @@ fn rig_with(n: usize) -> RigParams {
         tools: vec![],
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     }
 }
 

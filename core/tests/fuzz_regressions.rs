@@ -142,6 +142,8 @@ fn small_rig() -> RigParams {
         tools: vec![],
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     }
 }
 

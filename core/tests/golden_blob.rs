@@ -6,6 +6,7 @@ use irtrack_core::params::{
     BLOB_FORMAT_VERSION, BLOB_HEADER_LEN, BlobHeader, CalibrationInfo, CameraParams, CameraPlace, Figure,
     RigParams, ToolDefinition, Verdict,
 };
+use irtrack_core::timing::{CameraTiming, Shutter};
 use proptest::prelude::*;
 
 /// The golden rig: two VGA cameras, the second 100 mm to the right (OpenCV T = (-100, 0, 0)).
@@ -58,6 +59,8 @@ fn golden_rig() -> RigParams {
         tools: vec![],
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     }
 }
 
@@ -475,6 +478,217 @@ fn placements_are_validated() {
     assert!(e.contains("board name"), "{e}");
 }
 
+/// The version-5 golden rig: the version-1 cameras as rig `golden5`, camera 0 with the default
+/// timing and camera 1 a rolling shutter (15.2 µs per row, 1 ms exposure, −120 µs offset),
+/// serial 1700000500; no record, no placement.
+fn golden_rig_v5() -> RigParams {
+    RigParams {
+        rig_id: "golden5".into(),
+        timing: vec![
+            CameraTiming::default(),
+            CameraTiming {
+                shutter: Shutter::Rolling,
+                line_time_ns: 15_200,
+                exposure_ns: 1_000_000,
+                offset_ns: -120_000,
+            },
+        ],
+        serial: 1_700_000_500,
+        ..golden_rig()
+    }
+}
+
+/// Independently assembled (Python: struct.pack, zlib.crc32 and a 7-bit varint / zigzag
+/// routine written from docs/param-blob.md); the camera bytes are those of [`GOLDEN_HEX`].
+const GOLDEN_V5_HEAD: &[&str] = &[
+    "49525042",         // magic "IRPB"
+    "0500",             // format version 5 (timing, serial)
+    "0000",             // flags
+    "7d010000",         // body length 381
+    "afd7aeee",         // CRC-32 0xeeaed7af over bytes 0..12 + body
+    "07676f6c64656e35", // rig_id: varint 7, "golden5"
+    "80e2cfaa06",       // created_unix_s 1700000000 (varint)
+    "02",               // 2 cameras
+];
+const GOLDEN_V5_TAIL: &[&str] = &[
+    "00",         // world_from_cam0: None
+    "00",         // no tools
+    "00",         // calibration: None
+    "00",         // placement: empty
+    "02",         // timing: 2 cameras
+    "00",         // camera 0: shutter global (varint 0)
+    "00",         // line_time_ns 0
+    "00",         // exposure_ns 0
+    "00",         // offset_ns 0 (zigzag varint)
+    "01",         // camera 1: shutter rolling (varint 1)
+    "e076",       // line_time_ns 15200
+    "c0843d",     // exposure_ns 1000000
+    "ffd20e",     // offset_ns -120000: zigzag 239999
+    "f4e5cfaa06", // serial 1700000500 (varint)
+];
+
+fn golden_v5_bytes() -> Vec<u8> {
+    with_golden_cameras(GOLDEN_V5_HEAD, GOLDEN_V5_TAIL)
+}
+
+#[test]
+fn golden_v5_encode_decode() {
+    let rig = golden_rig_v5();
+    rig.validate().unwrap();
+    assert_eq!(rig.blob_version(), 5);
+    assert_eq!(rig.to_blob().unwrap(), golden_v5_bytes());
+    let back = RigParams::from_blob(&golden_v5_bytes()).unwrap();
+    assert_eq!(back, rig);
+    assert_eq!(back.camera_timing(1).line_time_ns, 15_200);
+    assert_eq!(back.camera_timing(0), CameraTiming::default());
+    let h = BlobHeader::parse(&golden_v5_bytes()).unwrap();
+    assert_eq!(
+        (h.version, h.body_len, h.blob_len(), h.crc32),
+        (5, 381, 397, 0xeeae_d7af)
+    );
+    // Everything together (record, placement, timing, serial) round-trips in version 5.
+    let all = RigParams {
+        calibration: golden_rig_v3().calibration,
+        placement: golden_rig_v4().placement,
+        ..rig.clone()
+    };
+    all.validate().unwrap();
+    assert_eq!(all.blob_version(), 5);
+    assert_eq!(RigParams::from_blob(&all.to_blob().unwrap()).unwrap(), all);
+}
+
+#[test]
+fn serial_or_timing_alone_make_version_5_and_neither_keeps_the_old_bytes() {
+    let only_serial = RigParams {
+        serial: 7,
+        ..golden_rig()
+    };
+    assert_eq!(only_serial.blob_version(), 5);
+    let back = RigParams::from_blob(&only_serial.to_blob().unwrap()).unwrap();
+    assert_eq!(back, only_serial);
+    let only_timing = RigParams {
+        serial: 0,
+        ..golden_rig_v5()
+    };
+    assert_eq!(only_timing.blob_version(), 5);
+    assert_eq!(
+        RigParams::from_blob(&only_timing.to_blob().unwrap()).unwrap(),
+        only_timing
+    );
+    // Default timing for every camera is no timing: the set keeps its version-1 bytes.
+    let defaults = RigParams {
+        timing: vec![CameraTiming::default(); 2],
+        serial: 0,
+        ..golden_rig()
+    };
+    assert!(!defaults.has_timing());
+    assert_eq!(defaults.blob_version(), 1);
+    assert_eq!(defaults.to_blob().unwrap(), golden_bytes());
+    // With a serial it is version 5 with an empty timing list, read back as empty.
+    let defaults_serial = RigParams {
+        serial: 9,
+        ..defaults
+    };
+    let back = RigParams::from_blob(&defaults_serial.to_blob().unwrap()).unwrap();
+    assert!(back.timing.is_empty());
+    assert_eq!(back.camera_timing(1), CameraTiming::default());
+}
+
+#[test]
+fn older_blobs_load_with_default_timing_and_no_serial() {
+    for (bytes, version) in [
+        (golden_bytes(), 1),
+        (golden_v2_bytes(), 2),
+        (golden_v3_bytes(), 3),
+        (golden_v4_bytes(), 4),
+    ] {
+        let rig = RigParams::from_blob(&bytes).unwrap();
+        assert!(rig.timing.is_empty(), "version {version}");
+        assert_eq!(rig.serial, 0);
+        for i in 0..rig.camera_count() {
+            assert_eq!(rig.camera_timing(i), CameraTiming::default());
+            assert_eq!(rig.camera_timing(i).shutter, Shutter::Global);
+            assert_eq!(rig.camera_timing(i).offset_ns, 0);
+        }
+        assert_eq!(rig.blob_version(), version);
+        assert_eq!(
+            rig.to_blob().unwrap(),
+            bytes,
+            "version {version} re-encodes unchanged"
+        );
+    }
+}
+
+#[test]
+fn version_5_bodies_that_are_not_canonical_are_refused() {
+    // The version-1 golden body + no record + no placement + no timing + serial 0.
+    assert_eq!(
+        RigParams::from_blob(&relabelled_golden(5, &[0, 0, 0, 0])),
+        Err(Error::BlobBody {
+            reason: "version-5 body without camera timing or serial (such a set is written as version 1 to 4)"
+        })
+    );
+    // Two cameras of default timing (written as none), serial 1.
+    assert_eq!(
+        RigParams::from_blob(&relabelled_golden(5, &[0, 0, 2, 0, 0, 0, 0, 0, 0, 0, 0, 1])),
+        Err(Error::BlobBody {
+            reason: "version-5 body whose cameras all have the default timing (such a list is written empty)"
+        })
+    );
+    // An over-long serial varint (1 written as 0x81 0x00).
+    assert_eq!(
+        RigParams::from_blob(&relabelled_golden(5, &[0, 0, 0, 0x81, 0x00])),
+        Err(Error::BlobBody {
+            reason: "body is not in canonical encoding (over-long integer)"
+        })
+    );
+    // Shutter tag 2 does not exist.
+    assert!(matches!(
+        RigParams::from_blob(&relabelled_golden(5, &[0, 0, 1, 2, 0, 0, 0, 1])),
+        Err(Error::BlobBody { .. })
+    ));
+}
+
+#[test]
+fn every_single_byte_corruption_of_the_v5_blob_is_detected() {
+    assert_every_single_byte_corruption_is_detected(&golden_v5_bytes());
+}
+
+#[test]
+fn timing_is_validated() {
+    let mut rig = golden_rig_v5();
+    rig.timing.pop();
+    let e = rig.validate().unwrap_err().to_string();
+    assert!(e.contains("timing lists 1 cameras, the rig has 2"), "{e}");
+    let mut rig = golden_rig_v5();
+    rig.timing[1].line_time_ns = 0;
+    let e = rig.validate().unwrap_err().to_string();
+    assert!(
+        e.contains("camera 1 timing: a rolling shutter needs line_time_ns > 0"),
+        "{e}"
+    );
+    let mut rig = golden_rig_v5();
+    rig.timing[0].offset_ns = 5_000_000_000;
+    let e = rig.validate().unwrap_err().to_string();
+    assert!(e.contains("camera 0 timing") && e.contains("unit"), "{e}");
+}
+
+#[test]
+fn next_serial_is_monotonic() {
+    // A new set takes the time; a modified one one more than its predecessor, never less
+    // than the time.
+    assert_eq!(RigParams::next_serial(0, 1_800_000_000), 1_800_000_000);
+    assert_eq!(
+        RigParams::next_serial(1_800_000_000, 1_800_000_000),
+        1_800_000_001
+    );
+    assert_eq!(
+        RigParams::next_serial(1_900_000_000, 1_800_000_000),
+        1_900_000_001
+    );
+    assert_eq!(RigParams::next_serial(u64::MAX, 0), u64::MAX);
+}
+
 #[test]
 fn golden_encode() {
     assert_eq!(golden_rig().to_blob().unwrap(), golden_bytes());
@@ -547,11 +761,11 @@ fn wrong_magic() {
 #[test]
 fn wrong_version() {
     let mut b = golden_bytes();
-    b[4] = 5;
+    b[4] = 6;
     assert_eq!(
         RigParams::from_blob(&b),
         Err(Error::BlobUnsupportedVersion {
-            found: 5,
+            found: 6,
             supported: BLOB_FORMAT_VERSION
         })
     );
@@ -780,9 +994,21 @@ fn rig() -> impl Strategy<Value = RigParams> {
         prop::collection::vec(tool(), 0..3),
         prop::option::of(calibration()),
         prop::collection::vec(("[a-z0-9_-]{1,8}", any::<u8>()), 0..4),
+        prop::collection::vec(timing(), 0..4),
+        prop::option::of(1..u64::MAX),
     )
         .prop_map(
-            |(rig_id, created_unix_s, cameras, world_from_cam0, tools, calibration, placement)| RigParams {
+            |(
+                rig_id,
+                created_unix_s,
+                cameras,
+                world_from_cam0,
+                tools,
+                calibration,
+                placement,
+                timing,
+                serial,
+            )| RigParams {
                 rig_id,
                 created_unix_s,
                 cameras,
@@ -793,8 +1019,35 @@ fn rig() -> impl Strategy<Value = RigParams> {
                     .into_iter()
                     .map(|(board, local_index)| CameraPlace { board, local_index })
                     .collect(),
+                // A list whose cameras all have the default timing is written as none: the
+                // set that comes back has an empty list (`normalised_timing`).
+                timing,
+                serial: serial.unwrap_or(0),
             },
         )
+}
+
+fn timing() -> impl Strategy<Value = CameraTiming> {
+    (any::<bool>(), any::<u32>(), any::<u32>(), any::<i64>()).prop_map(
+        |(rolling, line_time_ns, exposure_ns, offset_ns)| CameraTiming {
+            shutter: if rolling {
+                Shutter::Rolling
+            } else {
+                Shutter::Global
+            },
+            line_time_ns,
+            exposure_ns,
+            offset_ns,
+        },
+    )
+}
+
+/// The set as it reads back from its blob: a timing list of defaults only is written as none.
+fn normalised_timing(mut rig: RigParams) -> RigParams {
+    if !rig.has_timing() {
+        rig.timing.clear();
+    }
+    rig
 }
 
 proptest! {
@@ -803,7 +1056,7 @@ proptest! {
         let blob = rig.to_blob().unwrap();
         let h = BlobHeader::parse(&blob).unwrap();
         prop_assert_eq!(h.blob_len(), blob.len());
-        prop_assert_eq!(RigParams::from_blob(&blob).unwrap(), rig);
+        prop_assert_eq!(RigParams::from_blob(&blob).unwrap(), normalised_timing(rig));
     }
 
     #[test]

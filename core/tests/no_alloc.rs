@@ -54,6 +54,8 @@ fn rig() -> RigParams {
         tools: vec![],
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     }
 }
 

@@ -76,6 +76,8 @@ fn convergent_rig() -> RigParams {
         tools: vec![],
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     }
 }
 

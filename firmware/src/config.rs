@@ -5,7 +5,9 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use irtrack_core::params::RigParams;
 use irtrack_core::pipeline::TrackerConfig;
+use irtrack_core::timing::{CameraTiming, Shutter};
 
 use crate::error::{FirmwareError, Result};
 use crate::leds::gpio::GpioLedConfig;
@@ -61,6 +63,12 @@ pub struct Config {
     /// PTP for the boards' clocks (linuxptp; docs/cluster.md, "Clocks"); off by default.
     #[serde(default)]
     pub clock: crate::ptp::ClockConfig,
+    /// `[[camera_timing]]`: per-camera shutter, line time, exposure and time offset of the
+    /// cameras (V4L2), used while the parameter set carries no calibrated timing
+    /// ([`effective_timing`], docs/timing.md "Camera timing settings"). Unlisted cameras keep
+    /// the default (global shutter, timestamps are exposure instants).
+    #[serde(default)]
+    pub camera_timing: Vec<CameraTimingConfig>,
 }
 
 /// `[service]`
@@ -405,6 +413,7 @@ impl Config {
         }
         let source = self.source.resolve()?;
         self.check_camera_count(&source)?;
+        self.check_camera_timing(&source)?;
         if self.service.params_from_simulator && !matches!(source, Source::Sim(_)) {
             return bad("service.params_from_simulator only works with source.kind = \"sim\"".into());
         }
@@ -424,6 +433,33 @@ impl Config {
 }
 
 impl Config {
+    /// Each `[[camera_timing]]` names a camera once (one the source has, when it is known)
+    /// and gives timing a sensor can have, in µs.
+    fn check_camera_timing(&self, source: &Source) -> Result<()> {
+        let local = match source {
+            Source::V4l2(v) => Some(v.devices.len()),
+            Source::Sim(_) | Source::Replay(_) => None,
+        };
+        for (k, t) in self.camera_timing.iter().enumerate() {
+            let bad = |reason: String| FirmwareError::Config {
+                reason: format!("camera_timing[{k}] (camera {}): {reason}", t.camera),
+            };
+            if self.camera_timing[..k].iter().any(|o| o.camera == t.camera) {
+                return Err(bad("the camera is listed twice".into()));
+            }
+            if let Some(n) = local
+                && t.camera >= n
+            {
+                return Err(bad(format!(
+                    "[source] has {n} cameras (0..={}); timing is per camera of this board",
+                    n.saturating_sub(1)
+                )));
+            }
+            t.to_timing(None).map_err(bad)?;
+        }
+        Ok(())
+    }
+
     /// Triangulation needs two cameras: a standalone board needs two of its own, a camera
     /// board one (the solver has the others), a solver two in all (`image_sizes_px`).
     fn check_camera_count(&self, source: &Source) -> Result<()> {
@@ -577,7 +613,7 @@ impl LedsConfig {
 /// (the core keeps its validation private; this way `--check-config` catches bad values).
 fn check_tracker_config(cfg: &TrackerConfig) -> Result<()> {
     use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
-    use irtrack_core::params::{CameraParams, RigParams};
+    use irtrack_core::params::CameraParams;
     let model = CameraModel {
         intrinsics: Intrinsics {
             fx_px: 100.0,
@@ -612,10 +648,126 @@ fn check_tracker_config(cfg: &TrackerConfig) -> Result<()> {
         tools: Vec::new(),
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     };
     irtrack_core::pipeline::Tracker::new(&rig, *cfg)
         .map(|_| ())
         .map_err(|e| FirmwareError::Config {
             reason: format!("[tracking]: {e}"),
         })
+}
+
+/// One `[[camera_timing]]` table: a camera's timing as an operator writes it (µs; docs/timing.md,
+/// "Camera timing settings").
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraTimingConfig {
+    /// The camera (index in `[source]`, camera 0 first).
+    pub camera: usize,
+    /// `"global"` (default) or `"rolling"`.
+    #[serde(default)]
+    pub shutter: Shutter,
+    /// Rolling shutter: time from one row's exposure start to the next row's, µs (the sensor's
+    /// row time: HTS / pixel clock). Needed for `"rolling"`.
+    #[serde(default)]
+    pub line_time_us: f64,
+    /// Exposure time, µs (informative); default `[source.v4l2] exposure_us` when set.
+    #[serde(default)]
+    pub exposure_us: Option<f64>,
+    /// Middle of row 0's exposure minus the frame's timestamp, µs (signed; e.g. negative for
+    /// a driver that stamps the end of the frame).
+    #[serde(default)]
+    pub offset_us: f64,
+}
+
+impl CameraTimingConfig {
+    /// The timing in ns; `default_exposure_us` fills a missing `exposure_us`. Errors name the
+    /// key: values must be finite, line and exposure times ≥ 0, and pass
+    /// `CameraTiming::validate` (a rolling shutter needs a line time; no unit mistakes).
+    pub fn to_timing(&self, default_exposure_us: Option<u32>) -> std::result::Result<CameraTiming, String> {
+        // ±1 s bounds every value validate accepts, so the conversions below cannot overflow.
+        let ns = |key: &str, us: f64, signed: bool| -> std::result::Result<f64, String> {
+            if !us.is_finite() || (!signed && us < 0.0) || us.abs() > 1.0e6 {
+                return Err(format!(
+                    "{key} = {us} must be a finite number of µs{} within one second",
+                    if signed { "" } else { " ≥ 0" }
+                ));
+            }
+            Ok((us * 1000.0).round())
+        };
+        let exposure_us = self
+            .exposure_us
+            .or_else(|| default_exposure_us.map(f64::from))
+            .unwrap_or(0.0);
+        let timing = CameraTiming {
+            shutter: self.shutter,
+            line_time_ns: ns("line_time_us", self.line_time_us, false)? as u32,
+            exposure_ns: ns("exposure_us", exposure_us, false)? as u32,
+            offset_ns: ns("offset_us", self.offset_us, true)? as i64,
+        };
+        timing.validate().map_err(|e| {
+            // The core speaks ns; the config is written in µs.
+            format!("{e} (config values are in µs: line_time_us, exposure_us, offset_us)")
+        })?;
+        Ok(timing)
+    }
+}
+
+/// Where each camera's timing comes from (docs/timing.md, "Camera timing settings").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TimingOrigin {
+    /// The parameter set carries timing (calibrated by `host-tools wand-calibrate` or set with
+    /// `convert-params --timing`): it wins over the config.
+    ParameterSet,
+    /// The config's `[[camera_timing]]` tables.
+    Config,
+    /// Neither: every camera global shutter, timestamps taken as exposure instants.
+    Default,
+}
+
+impl TimingOrigin {
+    /// In words, for logs and status.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            TimingOrigin::ParameterSet => "parameter set",
+            TimingOrigin::Config => "config",
+            TimingOrigin::Default => "default",
+        }
+    }
+}
+
+/// Each of `rig`'s cameras' timing, as the loop should use it: the parameter set's when it
+/// carries timing (calibrated values win), else the config's `[[camera_timing]]` (cameras it
+/// does not list, and any it cannot convert, get the default), else the default. One entry
+/// per camera of `rig`.
+pub fn effective_timing(config: &Config, rig: &RigParams) -> Vec<CameraTiming> {
+    effective_timing_with_origin(config, rig).0
+}
+
+/// [`effective_timing`] and where it came from.
+pub fn effective_timing_with_origin(config: &Config, rig: &RigParams) -> (Vec<CameraTiming>, TimingOrigin) {
+    let n = rig.camera_count();
+    if rig.has_timing() {
+        return (
+            (0..n).map(|i| rig.camera_timing(i)).collect(),
+            TimingOrigin::ParameterSet,
+        );
+    }
+    if config.camera_timing.is_empty() {
+        return (vec![CameraTiming::default(); n], TimingOrigin::Default);
+    }
+    let exposure = config.source.v4l2.as_ref().and_then(|v| v.exposure_us);
+    let timing = (0..n)
+        .map(|i| {
+            config
+                .camera_timing
+                .iter()
+                .find(|t| t.camera == i)
+                // `Config::validate` already refused what does not convert.
+                .and_then(|t| t.to_timing(exposure).ok())
+                .unwrap_or_default()
+        })
+        .collect();
+    (timing, TimingOrigin::Config)
 }

@@ -2,7 +2,7 @@
 
 use std::sync::Arc;
 
-use irtrack_core::param_wire::{RejectCode, Verdict};
+use irtrack_core::param_wire::{PushOptions, RejectCode, Verdict};
 use irtrack_core::params::{BlobHeader, RigParams};
 use irtrack_core::pipeline::{Tracker, TrackerConfig};
 use irtrack_core::pose6d::{MultiTracker, PoseConfig};
@@ -221,17 +221,35 @@ impl ParamService {
         Ok(())
     }
 
-    /// Handles one pushed blob: check, store durably, activate. Blocking (fsync).
+    /// Handles one pushed blob: check, store durably, activate. Blocking (fsync). A set older
+    /// than the active one is refused ([`Self::push_with`] can allow it).
     pub fn push(&self, blob: &[u8]) -> Verdict {
+        self.push_with(blob, PushOptions::default())
+    }
+
+    /// [`Self::push`] with the request's options: `allow_rollback` lets an older set replace
+    /// the active one (logged and counted as an allowed rollback).
+    pub fn push_with(&self, blob: &[u8], options: PushOptions) -> Verdict {
         let Ok(_guard) = self.busy.try_lock() else {
             return reject(RejectCode::Busy, "another parameter push is being stored".into());
         };
-        let verdict = match self.check_blob(blob) {
+        let verdict = match self.check_blob(blob).and_then(|(rig, crc, signed_by)| {
+            let rollback = self.check_rollback(&rig, options)?;
+            Ok((rig, crc, signed_by, rollback))
+        }) {
             Err(v) => v,
-            Ok((rig, crc, signed_by)) => match self.store.store(blob) {
+            Ok((rig, crc, signed_by, rollback)) => match self.store.store(blob) {
                 Err(e) => reject(RejectCode::Storage, format!("{e}; the previous set stays active")),
                 Ok(()) => {
                     let rig_id = rig.rig_id.clone();
+                    if let Some(text) = rollback {
+                        // Counted once it happened: a storage failure above is no rollback.
+                        tracing::warn!(event = %text, "rollback allowed by the push: an older parameter set replaces the active one");
+                        self.status.update_params_info(|p| {
+                            p.rollbacks_allowed += 1;
+                            p.last_rollback = Some(text);
+                        });
+                    }
                     self.activate(rig, crc, "pushed", signed_by);
                     Verdict::Accepted { rig_id }
                 }
@@ -239,6 +257,37 @@ impl ParamService {
         };
         self.note_rejection(&verdict);
         verdict
+    }
+
+    /// Refuses a set older than the active one (serials when both have one, creation times
+    /// otherwise; `RigParams::is_older_than`) unless the push allows a rollback; then it returns
+    /// the allowed rollback in words (logged and counted once the set is active). A refusal is
+    /// counted here and logged with the rejection.
+    fn check_rollback(
+        &self,
+        rig: &RigParams,
+        options: PushOptions,
+    ) -> std::result::Result<Option<String>, Verdict> {
+        let Some(active) = self.handle.current() else {
+            return Ok(None);
+        };
+        if !rig.is_older_than(&active.rig) {
+            return Ok(None);
+        }
+        let (pushed, current) = (rig.age_label(), active.rig.age_label());
+        if options.allow_rollback {
+            return Ok(Some(format!("allowed: {pushed} replaced the newer {current}")));
+        }
+        let message = format!(
+            "parameter set {pushed} is older than the active set {current}; refused so that an old \
+             set cannot replace a newer one (push it with --allow-rollback if you mean to go back)"
+        );
+        let text = format!("refused: {pushed} is older than the active {current}");
+        self.status.update_params_info(|p| {
+            p.rollbacks_refused += 1;
+            p.last_rollback = Some(text);
+        });
+        Err(reject(RejectCode::Rollback, message))
     }
 
     /// Counts and logs a rejection (also for framing errors caught by the endpoint).
@@ -261,6 +310,7 @@ impl ParamService {
             p.loaded = true;
             p.rig_id = Some(rig.rig_id.clone());
             p.created_unix_s = Some(rig.created_unix_s);
+            p.serial = (rig.serial != 0).then_some(rig.serial);
             p.set_calibration(rig.calibration.as_deref());
             p.origin = Some(origin.to_string());
             p.swaps += 1;

@@ -188,6 +188,15 @@ pub struct ParamsInfo {
     pub rejected: u64,
     /// Code and reason of the most recent refusal.
     pub last_rejection: Option<String>,
+    /// The active set's serial (docs/param-blob.md; `None`: the set has none, version < 5).
+    pub serial: Option<u64>,
+    /// Pushes refused because the set was older than the active one (no `--allow-rollback`).
+    pub rollbacks_refused: u64,
+    /// Older sets activated because the push allowed a rollback.
+    pub rollbacks_allowed: u64,
+    /// The most recent rollback event in words: "refused: ..." or "allowed: ...", naming both
+    /// sets (ids, serials, creation dates).
+    pub last_rollback: Option<String>,
     /// "require_signed" (production) or "allow_unsigned" (development mode, config
     /// `[params] allow_unsigned = true`).
     pub signature_policy: &'static str,
@@ -728,6 +737,18 @@ impl SharedStatus {
             evicted: c.evicted.load(R),
         });
         let mut counters = counters.to_vec();
+        counters.extend([
+            (
+                "irtrackd_params_rollbacks_refused",
+                "parameter pushes refused as older than the active set",
+                info.rollbacks_refused,
+            ),
+            (
+                "irtrackd_params_rollbacks_allowed",
+                "older parameter sets activated because the push allowed a rollback",
+                info.rollbacks_allowed,
+            ),
+        ]);
         if let Some(tap) = self.viewer_tap.get() {
             counters.extend([
                 (

@@ -304,9 +304,15 @@ export class Health {
       rows.push(["signature", p.signature || "—", p.signature === "unsigned" ? "bad" : "good"]);
       rows.push(["created", p.created_unix_s ? `${new Date(p.created_unix_s * 1000).toISOString().replace("T", " ").slice(0, 19)} UTC (${age(p.created_unix_s)})` : "—"]);
       rows.push(["came from", p.origin || "—"]);
+      rows.push(["serial", p.serial ? String(p.serial) : "none (set written before serials)"]);
     }
     rows.push(["signature policy", p.signature_policy === "allow_unsigned" ? "development: unsigned sets accepted" : "signed sets only"]);
     if (p.swaps) rows.push(["swaps since start", fmt(p.swaps)]);
+    // Rollbacks (docs/param-protocol.md): refused older sets, and older sets let in by
+    // --allow-rollback; the last event names both sets.
+    if (p.rollbacks_refused) rows.push(["older sets refused", `${fmt(p.rollbacks_refused)}`, "bad"]);
+    if (p.rollbacks_allowed) rows.push(["rollbacks allowed", `${fmt(p.rollbacks_allowed)}`, "bad"]);
+    if (p.last_rollback) rows.push(["last rollback", p.last_rollback, "bad"]);
     if (p.rejected) rows.push(["pushes rejected", `${fmt(p.rejected)}${p.last_rejection ? ": " + p.last_rejection : ""}`, "bad"]);
     if (p.loaded) rows.push(...calibrationRows(p.calibration));
     // The live ray gap is what the calibration achieves on the marker right now.

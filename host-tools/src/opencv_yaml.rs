@@ -19,6 +19,8 @@
 //! | `R_world`, `T_world`              | optional registration world-from-camera-1               |
 //! | `tool_count`, `tool<j>_name`, `tool<j>_leds_mm` | optional tools (j from 1), LEDs as M×3 mm  |
 //! | `tool<j>_tip_mm`                  | optional 1×3 tool tip in the tool frame, mm (pivot)     |
+//! | `serial`                          | string, decimal (the set's serial, version 5; absent = 0) |
+//! | `timing_<n>`                      | optional 1×4 shutter (0 global, 1 rolling), line_time_ns, exposure_ns, offset_ns of camera n (version 5) |
 //! | `calibration_method`, `calibration_unix_s`, `calibration_tool`, `calibration_verdict` (`good`/`poor`), `calibration_summary`, `calibration_rms_px` (1×N), `calibration_figure_count`, `calibration_figure<j>_name`, `calibration_figure<j>` | optional calibration record (docs/param-blob.md, version 3) |
 
 use std::path::Path;
@@ -29,6 +31,7 @@ use irtrack_core::params::{
     CalibrationInfo, CameraParams, Figure, MAX_RIG_ID_LEN, RigParams, ToolDefinition, Verdict,
     looks_like_blob,
 };
+use irtrack_core::timing::{CameraTiming, Shutter};
 use opencv::core::{
     CV_64F, FileNode, FileNode_MAP, FileNode_TYPE_MASK, FileNodeTraitConst, FileStorage, FileStorage_Mode,
     FileStorageTrait, FileStorageTraitConst, Mat, MatTraitConst,
@@ -143,6 +146,26 @@ pub fn write_rig_yaml(path: &Path, rig: &RigParams) -> Result<()> {
         }
         if let Some(c) = &rig.calibration {
             write_calibration(fs, c)?;
+        }
+        if rig.serial != 0 {
+            // A string: OpenCV ints are 32-bit and reals exact only to 2^53.
+            fs.write_str("serial", &rig.serial.to_string())?;
+        }
+        if rig.has_timing() {
+            for i in 0..rig.cameras.len() {
+                let t = rig.camera_timing(i);
+                let shutter = match t.shutter {
+                    Shutter::Global => 0.0,
+                    Shutter::Rolling => 1.0,
+                };
+                let row = [
+                    shutter,
+                    f64::from(t.line_time_ns),
+                    f64::from(t.exposure_ns),
+                    t.offset_ns as f64,
+                ];
+                fs.write_mat(&format!("timing_{}", i + 1), &mat(&[&row])?)?;
+            }
         }
         fs.release()?;
         Ok(())
@@ -333,6 +356,67 @@ fn read_calibration(fs: &FileStorage) -> Result<Option<CalibrationInfo>> {
     }))
 }
 
+/// `serial` (a decimal string; a real is taken too if integral), 0 when absent.
+fn read_serial(fs: &FileStorage) -> Result<u64> {
+    let Some(n) = node(fs, "serial")? else {
+        return Ok(0);
+    };
+    if let Ok(text) = n.to_string()
+        && !text.is_empty()
+    {
+        return text
+            .trim()
+            .parse::<u64>()
+            .map_err(|_| anyhow!("`serial` = {text:?} is not a whole number ≥ 0"));
+    }
+    let v = n.real()?;
+    ensure!(
+        v >= 0.0 && v.fract() == 0.0 && v < 2f64.powi(53),
+        "`serial` = {v} is not a whole number ≥ 0"
+    );
+    Ok(v as u64)
+}
+
+/// `timing_<n>` of each camera: empty when no camera has one (a missing one is the default).
+fn read_timing(fs: &FileStorage, count: usize) -> Result<Vec<CameraTiming>> {
+    let keys: Vec<String> = (1..=count).map(|n| format!("timing_{n}")).collect();
+    let mut any = false;
+    let mut timing = Vec::with_capacity(count);
+    for key in &keys {
+        if node(fs, key)?.is_none() {
+            timing.push(CameraTiming::default());
+            continue;
+        }
+        any = true;
+        let v = read_fixed(fs, key, "camera timing", 1, 4)?;
+        let whole = |x: f64, what: &str, lo: f64, hi: f64| -> Result<f64> {
+            ensure!(
+                x.fract() == 0.0 && (lo..=hi).contains(&x),
+                "`{key}`: {what} = {x} must be a whole number in {lo}..={hi}"
+            );
+            Ok(x)
+        };
+        let shutter = if v[0] == 0.0 {
+            Shutter::Global
+        } else if v[0] == 1.0 {
+            Shutter::Rolling
+        } else {
+            bail!("`{key}`: shutter = {} must be 0 (global) or 1 (rolling)", v[0])
+        };
+        let u32_max = f64::from(u32::MAX);
+        timing.push(CameraTiming {
+            shutter,
+            line_time_ns: whole(v[1], "line_time_ns", 0.0, u32_max)? as u32,
+            exposure_ns: whole(v[2], "exposure_ns", 0.0, u32_max)? as u32,
+            offset_ns: whole(v[3], "offset_ns", -9.0e15, 9.0e15)? as i64,
+        });
+    }
+    if !any {
+        timing.clear();
+    }
+    Ok(timing)
+}
+
 /// Reads the rig; a file without `rig_id` (a plain OpenCV stereo calibration) gets
 /// `fallback_rig_id`, and the second value says that this happened.
 fn read_all(fs: &FileStorage, fallback_rig_id: &str) -> Result<(RigParams, bool)> {
@@ -428,6 +512,8 @@ fn read_all(fs: &FileStorage, fallback_rig_id: &str) -> Result<(RigParams, bool)
             tools,
             calibration: read_calibration(fs)?.map(Box::new),
             placement: Vec::new(),
+            timing: read_timing(fs, count)?,
+            serial: read_serial(fs)?,
         },
         id_from_name,
     ))

@@ -12,8 +12,9 @@ use std::time::Duration;
 
 use common::*;
 use irtrack_core::camera::{CameraModel, Distortion, ImageSize, Intrinsics, RigidTransform};
-use irtrack_core::param_wire::{RejectCode, Verdict};
+use irtrack_core::param_wire::{self, RejectCode, Verdict};
 use irtrack_core::params::{CameraParams, RigParams, ToolDefinition};
+use irtrack_core::timing::{CameraTiming, Shutter};
 use irtrack_host_tools::opencv_yaml::{load_params_any, read_rig_yaml, write_rig_yaml};
 
 fn tmp(name: &str) -> PathBuf {
@@ -90,6 +91,8 @@ fn rig3() -> RigParams {
         }],
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     }
 }
 
@@ -287,8 +290,8 @@ fn convert_refuses_invalid_unless_forced() {
 }
 
 /// An integrator's set calibrated on one board gets its placement without recalibrating:
-/// `convert-params --placement` writes a v4 blob whose placement decodes as given, replaces an
-/// existing one, and names wrong lists.
+/// `convert-params --placement` writes a blob whose placement decodes as given (version 5: the
+/// changed set gets the next serial), replaces an existing one, and names wrong lists.
 #[test]
 fn convert_params_places_the_cameras_on_boards() {
     let rig = rig2();
@@ -300,8 +303,13 @@ fn convert_params_places_the_cameras_on_boards() {
     assert!(o.status.success(), "{out}\n{err}");
     assert!(out.contains("placement: cam0 = b1/0, cam1 = b0/1\n"), "{out}");
     let bytes = std::fs::read(&placed).unwrap();
-    assert_eq!(u16::from_le_bytes([bytes[4], bytes[5]]), 4, "blob format version");
+    assert_eq!(u16::from_le_bytes([bytes[4], bytes[5]]), 5, "blob format version");
     let got = RigParams::from_blob(&bytes).unwrap();
+    assert!(
+        got.serial >= 1_700_000_000,
+        "changed set gets a serial, got {}",
+        got.serial
+    );
     let places: Vec<(&str, u8)> = got
         .placement
         .iter()
@@ -355,6 +363,167 @@ fn convert_params_places_the_cameras_on_boards() {
         !o.status.success() && err.contains("OpenCV YAML carries no camera placement"),
         "{err}"
     );
+}
+
+/// `convert-params --timing` / `--serial` write a camera's timing and the serial into a set
+/// (blob and YAML), `show-params` prints the timing, the serial and the placement.
+#[test]
+fn convert_params_sets_timing_and_serial_and_show_params_prints_them() {
+    let rig = rig2();
+    let blob = tmp("untimed.irp");
+    std::fs::write(&blob, rig.to_blob().unwrap()).unwrap();
+    let timed = tmp("timed.irp");
+    let o = host_tools(&[
+        "convert-params",
+        p(&blob),
+        p(&timed),
+        "--timing",
+        "1:rolling:line_time_us=15.2:offset_us=-120",
+        "--timing",
+        "0:global:exposure_us=500",
+    ]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}\n{err}");
+    assert!(
+        out.contains("timing: camera 1: rolling shutter, line time 15.200 us, offset -120.000 us"),
+        "{out}"
+    );
+    let got = RigParams::from_blob(&std::fs::read(&timed).unwrap()).unwrap();
+    assert_eq!(
+        got.camera_timing(1),
+        CameraTiming {
+            shutter: Shutter::Rolling,
+            line_time_ns: 15_200,
+            exposure_ns: 0,
+            offset_ns: -120_000,
+        }
+    );
+    assert_eq!(got.camera_timing(0).exposure_ns, 500_000);
+    assert!(got.serial >= 1_700_000_000, "serial {}", got.serial);
+    assert_eq!(got.cameras, rig.cameras);
+    assert!(out.contains(&format!("serial: {} (was 0)", got.serial)), "{out}");
+
+    // Through YAML and back: the same set, byte for byte; a plain conversion keeps the serial.
+    let yaml = tmp("timed.yaml");
+    let back = tmp("timed-back.irp");
+    assert!(
+        host_tools(&["convert-params", p(&timed), p(&yaml)])
+            .status
+            .success()
+    );
+    assert!(
+        host_tools(&["convert-params", p(&yaml), p(&back)])
+            .status
+            .success()
+    );
+    assert_eq!(std::fs::read(&back).unwrap(), std::fs::read(&timed).unwrap());
+
+    // --serial sets it explicitly; with --placement, show-params prints all three.
+    let placed = tmp("timed-placed.irp");
+    let o = host_tools(&[
+        "convert-params",
+        p(&timed),
+        p(&placed),
+        "--serial",
+        "42",
+        "--placement",
+        "b0:0,b1:3",
+    ]);
+    assert!(o.status.success(), "{}", text(&o).1);
+    assert_eq!(
+        RigParams::from_blob(&std::fs::read(&placed).unwrap())
+            .unwrap()
+            .serial,
+        42
+    );
+    let o = host_tools(&["show-params", p(&placed)]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{err}");
+    for want in [
+        "serial:       42\n",
+        "timing:     global shutter, exposure 500.000 us, offset +0.000 us\n",
+        "timing:     rolling shutter, line time 15.200 us, offset -120.000 us\n",
+        "placement:  board \"b1\", camera 3 there",
+        "placement:    2 cameras on 2 boards (b0, b1)",
+        "camera 0 = board \"b0\" camera 0",
+        "parameter blob v5",
+    ] {
+        assert!(out.contains(want), "missing {want:?} in\n{out}");
+    }
+    // A set without timing or serial says so.
+    let o = host_tools(&["show-params", p(&blob)]);
+    let out = text(&o).0;
+    assert!(out.contains("serial:       none"), "{out}");
+    assert!(out.contains("the set carries no timing"), "{out}");
+    assert!(out.contains("placement:    one board"), "{out}");
+
+    let o = host_tools(&[
+        "convert-params",
+        p(&blob),
+        p(&tmp("never-timed.irp")),
+        "--timing",
+        "1:rolling",
+    ]);
+    let (_, err) = text(&o);
+    assert!(!o.status.success() && err.contains("line_time_ns > 0"), "{err}");
+}
+
+/// `push-params --allow-rollback` sends the flagged request (docs/param-protocol.md); without
+/// it the plain request goes out and the device's ROLLBACK refusal is reported.
+#[test]
+fn push_params_allow_rollback_sends_the_flag() {
+    let blob = tmp("rollback.irp");
+    std::fs::write(&blob, rig2().to_blob().unwrap()).unwrap();
+    for allow in [false, true] {
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let addr = listener.local_addr().unwrap().to_string();
+        // A device whose active set is newer: refuses unless the request allows a rollback.
+        let server = thread::spawn(move || {
+            let (mut s, _) = listener.accept().unwrap();
+            let mut hdr = [0u8; param_wire::PUSH_HEADER_LEN];
+            s.read_exact(&mut hdr).unwrap();
+            let head = param_wire::parse_push_head(&hdr).unwrap();
+            let mut options = param_wire::PushOptions::default();
+            if head.has_flags {
+                let mut flags = [0u8; param_wire::PUSH_FLAGS_LEN];
+                s.read_exact(&mut flags).unwrap();
+                options = param_wire::PushOptions::from_flags(u32::from_le_bytes(flags)).unwrap();
+            }
+            let mut body = vec![0u8; head.blob_len];
+            s.read_exact(&mut body).unwrap();
+            let rig = RigParams::from_blob(&body).unwrap();
+            let v = if options.allow_rollback {
+                Verdict::Accepted { rig_id: rig.rig_id }
+            } else {
+                Verdict::Rejected {
+                    code: RejectCode::Rollback,
+                    message: "parameter set pair-1 (no serial, created 2024-05-31 16:08 UTC) is older than the active set cell-v2".into(),
+                }
+            };
+            s.write_all(v.to_line().as_bytes()).unwrap();
+            (head.has_flags, options.allow_rollback)
+        });
+        let mut args = vec!["push-params", "--to", &addr, p(&blob)];
+        if allow {
+            args.push("--allow-rollback");
+        }
+        let o = host_tools(&args);
+        let (out, err) = text(&o);
+        assert_eq!(server.join().unwrap(), (allow, allow));
+        if allow {
+            assert!(o.status.success(), "{out}\n{err}");
+            assert!(
+                out.contains("--allow-rollback") && out.contains("rig pair-1 is active"),
+                "{out}"
+            );
+        } else {
+            assert!(!o.status.success());
+            assert!(
+                err.contains("ROLLBACK") && err.contains("older than the active set"),
+                "{err}"
+            );
+        }
+    }
 }
 
 #[test]
@@ -636,6 +805,7 @@ fn client_library_reads_early_rejection() {
         retries: 0,
         timeout: Duration::from_secs(5),
         first_backoff: Duration::from_millis(10),
+        allow_rollback: false,
     };
     let blob = vec![0x55u8; 200_000];
     let v = irtrack_host_tools::cmd::push_params::push_blob(&addr, &blob, &opts, &mut |_| {}).unwrap();

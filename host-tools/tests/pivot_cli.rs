@@ -86,10 +86,12 @@ fn pivot_from_simulated_frames_finds_the_tip_within_0_1_mm() {
     assert!(err <= 0.1, "tip {err} mm from truth");
     assert!(stdout.contains("fit RMS"), "{stdout}");
     let blob = std::fs::read(&out).unwrap();
-    // Version 3: the set now carries the pivot fit's quality record (the simulator's set had
-    // none); without a record it would be version 2 (tips), as before.
-    assert_eq!(BlobHeader::parse(&blob).unwrap().version, 3);
-    let record = RigParams::from_blob(&blob).unwrap().calibration.unwrap();
+    // Version 5: pivot changed the set, so it carries a serial (the simulator's set had none)
+    // besides the pivot fit's quality record (docs/param-blob.md).
+    assert_eq!(BlobHeader::parse(&blob).unwrap().version, 5);
+    let with_tip = RigParams::from_blob(&blob).unwrap();
+    assert!(with_tip.serial >= 1_700_000_000, "serial {}", with_tip.serial);
+    let record = with_tip.calibration.unwrap();
     assert_eq!(
         (record.method.as_str(), record.verdict),
         ("pivot", irtrack_core::params::Verdict::Good),

@@ -91,6 +91,8 @@ pub fn ideal_rig(cam: CameraModel, cam1_from_cam0: RigidTransform) -> RigParams 
         tools: Vec::new(),
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     }
 }
 

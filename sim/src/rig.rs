@@ -189,6 +189,8 @@ pub fn build_rig(preset: &RigPreset, spec: &CameraSpec) -> Result<RigParams, Sim
         tools: Vec::new(),
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     })
 }
 

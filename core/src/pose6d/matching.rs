@@ -347,6 +347,8 @@ mod tests {
             tools: Vec::new(),
             calibration: None,
             placement: Vec::new(),
+            timing: Vec::new(),
+            serial: 0,
         }
     }
 

@@ -12,7 +12,9 @@ use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 
-use irtrack_core::param_wire::{MAX_BLOB_BYTES, PUSH_HEADER_LEN, RejectCode, Verdict, parse_push_header};
+use irtrack_core::param_wire::{
+    MAX_BLOB_BYTES, PUSH_FLAGS_LEN, PUSH_HEADER_LEN, PushOptions, RejectCode, Verdict, parse_push_head,
+};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 
@@ -110,7 +112,7 @@ async fn handle(mut stream: TcpStream, service: Arc<ParamService>) -> (String, b
             drain = r.drain;
             framing_error(r.verdict)
         }
-        Ok(Ok(blob)) => tokio::task::spawn_blocking(move || service.push(&blob))
+        Ok(Ok((blob, options))) => tokio::task::spawn_blocking(move || service.push_with(&blob, options))
             .await
             .unwrap_or_else(|e| Verdict::Rejected {
                 code: RejectCode::Internal,
@@ -132,7 +134,8 @@ async fn handle(mut stream: TcpStream, service: Arc<ParamService>) -> (String, b
     (line, timed_out)
 }
 
-async fn read_push(stream: &mut TcpStream) -> Result<Vec<u8>, Refused> {
+/// Reads one request (`IRPP`, or `IRPF` with its flags word): the blob and what it asks.
+async fn read_push(stream: &mut TcpStream) -> Result<(Vec<u8>, PushOptions), Refused> {
     let closed = |what: &str, e: std::io::Error| Refused {
         verdict: Verdict::Rejected {
             code: RejectCode::Protocol,
@@ -145,7 +148,7 @@ async fn read_push(stream: &mut TcpStream) -> Result<Vec<u8>, Refused> {
         .read_exact(&mut hdr)
         .await
         .map_err(|e| closed("push header", e))?;
-    let len = parse_push_header(&hdr).map_err(|e| {
+    let head = parse_push_head(&hdr).map_err(|e| {
         let verdict = Verdict::from_error(&e);
         let drain = matches!(
             &verdict,
@@ -156,6 +159,20 @@ async fn read_push(stream: &mut TcpStream) -> Result<Vec<u8>, Refused> {
         );
         Refused { verdict, drain }
     })?;
+    let len = head.blob_len;
+    let mut options = PushOptions::default();
+    if head.has_flags {
+        let mut flags = [0u8; PUSH_FLAGS_LEN];
+        stream
+            .read_exact(&mut flags)
+            .await
+            .map_err(|e| closed("request flags", e))?;
+        // Unknown flags: refused before the body, which is then drained like TOO_LARGE's.
+        options = PushOptions::from_flags(u32::from_le_bytes(flags)).map_err(|e| Refused {
+            verdict: Verdict::from_error(&e),
+            drain: true,
+        })?;
+    }
     // Grows as bytes arrive, not by what the header announced.
     let mut blob = Vec::with_capacity(len.min(64 * 1024));
     let got = (&mut *stream)
@@ -169,5 +186,5 @@ async fn read_push(stream: &mut TcpStream) -> Result<Vec<u8>, Refused> {
             std::io::Error::new(std::io::ErrorKind::UnexpectedEof, format!("{got} of {len} bytes")),
         ));
     }
-    Ok(blob)
+    Ok((blob, options))
 }

@@ -911,6 +911,8 @@ pub fn ring_rig_arc(n: usize, distance_mm: f64, arc_deg: f64) -> RigParams {
         tools: Vec::new(),
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     }
 }
 

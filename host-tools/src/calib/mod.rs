@@ -321,6 +321,8 @@ pub fn calibrate(
         tools: Vec::new(),
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        serial: 0,
     };
     rig.validate()
         .map_err(|e| anyhow::anyhow!("calibration produced unusable parameters: {e}"))?;

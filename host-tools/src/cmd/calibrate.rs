@@ -155,6 +155,8 @@ pub fn run(args: Args) -> Result<()> {
     let gate = board_quality::judge(&cal, args.expect_baseline_mm)?;
     gate.enforce(args.accept_poor)?;
     cal.rig.calibration = Some(Box::new(gate.record(now)));
+    // A new set: its serial is the time it was made (docs/param-blob.md, "Serial").
+    cal.rig.serial = irtrack_core::params::RigParams::next_serial(0, now);
     crate::placement::for_calibration(&mut cal.rig, &args.images, args.placement.as_deref())?;
     cal.rig
         .validate()

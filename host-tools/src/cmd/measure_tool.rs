@@ -114,6 +114,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         rig.tools.remove(i);
     }
     rig.tools.push(layout.tool.clone());
+    crate::cmd::convert_params::bump_serial(&mut rig);
     rig.validate().context("parameters with the measured tool")?;
     std::fs::write(&args.out, rig.to_blob()?).with_context(|| format!("writing {}", args.out.display()))?;
     println!(

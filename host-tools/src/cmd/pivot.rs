@@ -467,6 +467,7 @@ pub fn calibrate(args: &Args) -> anyhow::Result<(RigParams, usize, PivotFit)> {
     print_fit(&rig, tool_index, &fit);
     gate.enforce(args.accept_poor)?;
     add_to_record(&mut rig, &gate);
+    crate::cmd::convert_params::bump_serial(&mut rig);
     rig.validate().context("parameters with the tool tip")?;
     Ok((rig, tool_index, fit))
 }

@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, Result, anyhow, bail};
-use irtrack_core::param_wire::{self, MAX_VERDICT_LINE, Verdict};
+use irtrack_core::param_wire::{self, MAX_VERDICT_LINE, RejectCode, Verdict};
 use irtrack_core::params::Verdict as CalVerdict;
 use irtrack_core::signing::KeyId;
 
@@ -39,6 +39,10 @@ pub struct Args {
     /// without it such a set is refused here.
     #[arg(long)]
     pub accept_poor: bool,
+    /// Let this set replace a newer active one (a rollback). Without it irtrackd refuses a set
+    /// older than its active one (by serial, else by creation time) with ROLLBACK, naming both.
+    #[arg(long)]
+    pub allow_rollback: bool,
 }
 
 /// First retry delay; doubles per attempt up to [`MAX_BACKOFF`].
@@ -55,6 +59,9 @@ pub struct PushOptions {
     pub timeout: Duration,
     /// Delay before the first retry; doubles per attempt up to [`MAX_BACKOFF`].
     pub first_backoff: Duration,
+    /// Ask the server to accept a set older than its active one (request flag,
+    /// docs/param-protocol.md).
+    pub allow_rollback: bool,
 }
 
 fn resolve(to: &str) -> Result<SocketAddr> {
@@ -130,7 +137,12 @@ pub fn push_blob(to: &str, blob: &[u8], opts: &PushOptions, log: &mut dyn FnMut(
     let mut stream = connect_with_retries(to, opts, log)?;
     stream.set_read_timeout(Some(opts.timeout))?;
     stream.set_write_timeout(Some(opts.timeout))?;
-    let request = param_wire::encode_push(blob);
+    let request = param_wire::encode_push_with(
+        blob,
+        param_wire::PushOptions {
+            allow_rollback: opts.allow_rollback,
+        },
+    );
     let sent = stream.write_all(&request).and_then(|()| stream.flush());
     // A server may answer (e.g. TOO_LARGE) and close before reading everything: prefer its verdict.
     match (sent, read_verdict(&mut stream)) {
@@ -214,13 +226,24 @@ pub fn run(args: Args) -> Result<()> {
         retries: args.retries,
         timeout: Duration::from_secs_f64(args.timeout_s),
         first_backoff: FIRST_BACKOFF,
+        allow_rollback: args.allow_rollback,
     };
+    if args.allow_rollback {
+        println!("--allow-rollback: the device may go back to this set even if its active set is newer");
+    }
     let mut log = |msg: &str| eprintln!("push-params: {msg}");
     match push_blob(to, &blob, &opts, &mut log)? {
         Verdict::Accepted { rig_id } => {
             println!("accepted by {to}: rig {rig_id} is active");
             Ok(())
         }
+        Verdict::Rejected {
+            code: RejectCode::Protocol,
+            message,
+        } if args.allow_rollback && message.contains("bad magic") => bail!(
+            "rejected by {to}: PROTOCOL: {message}. This irtrackd predates --allow-rollback (and does \
+             not refuse rollbacks either): push again without the option"
+        ),
         Verdict::Rejected { code, message } => bail!("rejected by {to}: {code}: {message}"),
     }
 }

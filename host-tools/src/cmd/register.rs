@@ -177,6 +177,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let mut params = crate::opencv_yaml::load_params_any(&args.params)?;
     params.world_from_cam0 = Some(rigid.transform);
+    crate::cmd::convert_params::bump_serial(&mut params);
     params.validate().context("parameters with the registration")?;
     if crate::opencv_yaml::is_yaml_path(&args.out) {
         crate::opencv_yaml::write_rig_yaml(&args.out, &params)?;

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use irtrack_core::params::{BlobHeader, RigParams, looks_like_blob};
 use irtrack_core::signing::{self, SignaturePolicy, SignatureStatus};
+use irtrack_core::timing::Shutter;
 
 use crate::cmd::keygen::{load_params_file, read_public_key};
 use crate::opencv_yaml::iso_utc;
@@ -46,6 +47,14 @@ pub fn describe(rig: &RigParams, source: &str) -> Result<String> {
         iso_utc(rig.created_unix_s),
         rig.created_unix_s
     )?;
+    if rig.serial == 0 {
+        writeln!(
+            s,
+            "serial:       none (written before serials; compared by creation time)"
+        )?;
+    } else {
+        writeln!(s, "serial:       {}", rig.serial)?;
+    }
     writeln!(s, "cameras:      {}", rig.cameras.len())?;
     for (i, cam) in rig.cameras.iter().enumerate() {
         let m = &cam.model;
@@ -64,6 +73,14 @@ pub fn describe(rig: &RigParams, source: &str) -> Result<String> {
             "  distortion: k1 {:.6}, k2 {:.6}, p1 {:.6}, p2 {:.6}, k3 {:.6}",
             d.k1, d.k2, d.p1, d.p2, d.k3
         )?;
+        writeln!(s, "  timing:     {}", timing_words(rig, i))?;
+        if let Some(p) = rig.placement.get(i) {
+            writeln!(
+                s,
+                "  placement:  board {:?}, camera {} there",
+                p.board, p.local_index
+            )?;
+        }
         if i > 0 {
             let t = &cam.cam_from_cam0;
             let c = rig.camera_centre_cam0_mm(i)?;
@@ -88,6 +105,23 @@ pub fn describe(rig: &RigParams, source: &str) -> Result<String> {
                 fmt_vec(&t.r_row_major[6..9]),
                 fmt_vec(&t.t_mm)
             )?;
+        }
+    }
+    if rig.placement.is_empty() {
+        writeln!(s, "placement:    one board (no camera placement)")?;
+    } else {
+        let mut boards: Vec<&str> = rig.placement.iter().map(|p| p.board.as_str()).collect();
+        boards.sort_unstable();
+        boards.dedup();
+        writeln!(
+            s,
+            "placement:    {} cameras on {} boards ({})",
+            rig.placement.len(),
+            boards.len(),
+            boards.join(", ")
+        )?;
+        for (i, p) in rig.placement.iter().enumerate() {
+            writeln!(s, "  camera {i} = board {:?} camera {}", p.board, p.local_index)?;
         }
     }
     match &rig.world_from_cam0 {
@@ -145,6 +179,27 @@ pub fn describe(rig: &RigParams, source: &str) -> Result<String> {
         Err(e) => writeln!(s, "validation:   INVALID: {e}")?,
     }
     Ok(s)
+}
+
+/// Camera `i`'s timing in words (µs), saying when the set carries none.
+pub fn timing_words(rig: &RigParams, i: usize) -> String {
+    let t = rig.camera_timing(i);
+    let us = |ns: f64| ns / 1000.0;
+    let mut text = match t.shutter {
+        Shutter::Global => "global shutter".to_string(),
+        Shutter::Rolling => format!(
+            "rolling shutter, line time {:.3} us",
+            us(f64::from(t.line_time_ns))
+        ),
+    };
+    if t.exposure_ns != 0 {
+        text += &format!(", exposure {:.3} us", us(f64::from(t.exposure_ns)));
+    }
+    text += &format!(", offset {:+.3} us", us(t.offset_ns as f64));
+    if !rig.has_timing() {
+        text += " (the set carries no timing: irtrackd's [[camera_timing]] or the default applies)";
+    }
+    text
 }
 
 /// Per camera, how `rig` differs from `other` (camera 0 is both rigs' reference frame, so its

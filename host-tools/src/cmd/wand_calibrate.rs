@@ -155,6 +155,9 @@ pub fn run(args: Args) -> Result<()> {
         tools: Vec::new(),
         calibration: None,
         placement: Vec::new(),
+        timing: Vec::new(),
+        // A new set: its serial is the time it was made (docs/param-blob.md, "Serial").
+        serial: RigParams::next_serial(0, now),
     };
     rig.validate()
         .context("wand calibration produced unusable parameters")?;

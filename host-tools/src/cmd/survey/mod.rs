@@ -246,6 +246,7 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
             None => a.all,
         };
         p.world_from_cam0 = Some(robot_from_cam0);
+        crate::cmd::convert_params::bump_serial(&mut p);
         p.validate().context("parameters with the registration")?;
         if crate::opencv_yaml::is_yaml_path(out) {
             crate::opencv_yaml::write_rig_yaml(out, &p)?;
