@@ -938,7 +938,10 @@ fn wand_calibration_recovers_known_time_offsets() {
         &["--accept-poor", "--timing", "2:rolling:line_time_us=15"],
     );
     println!("free-running:\n{s}");
-    assert!(s.contains("cam1: time offset +13") && s.contains("against camera 0"), "{s}");
+    assert!(
+        s.contains("cam1: time offset +1") && s.contains("cam2: time offset -2") && s.contains("against camera 0"),
+        "{s}"
+    );
     let (rig_sync, rig) = (load(&out_sync.join("rig.irp")), load(&out.join("rig.irp")));
     for c in 1..3 {
         let got = rig.camera_timing(c).offset_ns as f64;
@@ -978,6 +981,32 @@ fn wand_calibration_recovers_known_time_offsets() {
         assert!(e[c].0 <= 1.5 * e_sync[c].0 + 0.005, "cam{}: rotation {:?} vs {:?}", c + 1, e[c], e_sync[c]);
         assert!(e[c].1 <= 1.5 * e_sync[c].1 + 0.1, "cam{}: centre {:?} vs {:?}", c + 1, e[c], e_sync[c]);
     }
+    // The rolling shutter's line time estimated with the offsets, from a wrong start (10 µs).
+    let out = dir.join("out-line");
+    let s = wand_calibration(
+        &timed,
+        &intrinsics,
+        &out,
+        &[
+            "--accept-poor",
+            "--timing",
+            "2:rolling:line_time_us=10",
+            "--estimate-line-time",
+        ],
+    );
+    println!("line time estimated:\n{s}");
+    let rig = load(&out.join("rig.irp"));
+    let line_ns = f64::from(rig.camera_timing(2).line_time_ns);
+    assert!((line_ns - 15_000.0).abs() <= 300.0, "line time {line_ns} ns, truth 15000 ns");
+    for c in 1..3 {
+        let got = rig.camera_timing(c).offset_ns as f64;
+        assert!(
+            (got - truth_offsets_ns[c]).abs() <= 50_000.0,
+            "line time estimated: cam{c}: offset {got} ns, truth {} ns",
+            truth_offsets_ns[c]
+        );
+    }
+    assert!(s.contains("(estimated)"), "{s}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -1034,7 +1063,7 @@ fn a_slow_wave_says_its_time_offsets_are_not_observable() {
             views,
         };
         let clock = FrameClock::new(&stamps, &frames).unwrap();
-        estimate(&truth.cameras, &obs, &clock, &[Default::default(); 2], 1.0)
+        estimate(&truth.cameras, &obs, &clock, &[Default::default(); 2], 1.0, false)
     };
     let fast = observe(1000);
     let e = &fast.offsets[0];

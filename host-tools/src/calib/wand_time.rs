@@ -21,7 +21,7 @@ use std::collections::BTreeMap;
 use anyhow::{Result, anyhow, bail};
 use irtrack_core::camera::CameraModel;
 use irtrack_core::params::CameraParams;
-use irtrack_core::timing::CameraTiming;
+use irtrack_core::timing::{CameraTiming, Shutter};
 use nalgebra::{Vector2, Vector3};
 
 use super::wand::{LedPixels, Rejection, WandObservations};
@@ -38,6 +38,8 @@ const GRID_STEPS_PER_PERIOD: usize = 32;
 const REFINE_TOL_NS: f64 = 1_000.0;
 /// Half-width (ns) of the three-point curvature estimate at the minimum.
 const CURVATURE_STEP_NS: f64 = 40_000.0;
+/// Half-width (ns) of the curvature estimate in the line time.
+const LINE_CURVATURE_STEP_NS: f64 = 200.0;
 
 /// Each camera's frame instants from its timestamps, smoothed by a straight line.
 #[derive(Debug, Clone)]
@@ -252,6 +254,10 @@ pub struct OffsetEstimate {
     pub image_speed_px_per_ms: f64,
     /// Why the offset is not observable (plain words), when it is not.
     pub not_observable: Option<String>,
+    /// The estimated line time (ns) of a rolling shutter, when asked for and observable.
+    pub line_time_ns: Option<f64>,
+    /// Its standard uncertainty (ns), when estimated.
+    pub line_time_sigma_ns: Option<f64>,
 }
 
 /// What the timing estimation found.
@@ -304,9 +310,20 @@ fn mean_cost(pair: &Pair<'_>, t0: &Track<'_>, tc: &Track<'_>, frames: &[usize], 
 
 /// Minimum of the mean cost over δ ∈ [−period, +period]: (δ, mean cost at δ).
 fn minimise(f: &dyn Fn(f64) -> f64, period_ns: f64) -> Option<(f64, f64)> {
-    let step = period_ns / GRID_STEPS_PER_PERIOD as f64;
     let n = GRID_STEPS_PER_PERIOD as i64;
-    let grid: Vec<(f64, f64)> = (-n..=n).map(|i| (i as f64 * step, f(i as f64 * step))).collect();
+    minimise_on(f, -period_ns, period_ns, 2 * n as usize, REFINE_TOL_NS)
+}
+
+/// Minimum of `f` over [lo, hi]: a grid of `steps` intervals, then golden section to `tol` in
+/// the two intervals around the best grid point. `None` when the best is at either end.
+fn minimise_on(f: &dyn Fn(f64) -> f64, lo: f64, hi: f64, steps: usize, tol: f64) -> Option<(f64, f64)> {
+    let step = (hi - lo) / steps as f64;
+    let grid: Vec<(f64, f64)> = (0..=steps)
+        .map(|i| {
+            let x = lo + i as f64 * step;
+            (x, f(x))
+        })
+        .collect();
     let (best, _) = grid
         .iter()
         .enumerate()
@@ -320,7 +337,7 @@ fn minimise(f: &dyn Fn(f64) -> f64, period_ns: f64) -> Option<(f64, f64)> {
     let g = (5f64.sqrt() - 1.0) / 2.0;
     let (mut x1, mut x2) = (b - g * (b - a), a + g * (b - a));
     let (mut f1, mut f2) = (f(x1), f(x2));
-    while b - a > REFINE_TOL_NS {
+    while b - a > tol {
         if f1 < f2 {
             b = x2;
             x2 = x1;
@@ -348,6 +365,7 @@ pub fn estimate(
     clock: &FrameClock,
     timing: &[CameraTiming],
     huber_px: f64,
+    estimate_line_time: bool,
 ) -> TimingResult {
     let leds = obs
         .views
@@ -362,17 +380,19 @@ pub fn estimate(
             offset_ns: 0,
             ..timing[c]
         };
-        let track_with = |delta_ns: f64| {
+        let track_lt = |delta_ns: f64, line_ns: f64| {
             let mut t = Track::new(obs, clock, c, base);
             t.timing.offset_ns = (timing[0].offset_ns as f64 + delta_ns).round() as i64;
+            t.timing.line_time_ns = line_ns.round().max(0.0) as u32;
             t
         };
+        let mut line_ns = f64::from(timing[c].line_time_ns);
         let pair = Pair {
             m0: &cameras[0].model,
             mc: &cameras[c].model,
             c: &cameras[c],
         };
-        let probe = track_with(0.0);
+        let probe = track_lt(0.0, line_ns);
         let shared: Vec<usize> = (0..obs.views.len())
             .filter(|p| t0.samples[*p].is_some() && probe.samples[*p].is_some())
             .collect();
@@ -387,6 +407,8 @@ pub fn estimate(
             rms_px: f64::NAN,
             image_speed_px_per_ms: speed,
             not_observable: None,
+            line_time_ns: None,
+            line_time_sigma_ns: None,
         };
         if shared.len() < MIN_SHARED_FRAMES {
             est.not_observable = Some(format!(
@@ -396,11 +418,11 @@ pub fn estimate(
             offsets.push(est);
             continue;
         }
-        let solve_on = |frames: &[usize]| {
-            let f = |d: f64| mean_cost(&pair, &t0, &track_with(d), frames, leds, huber_px);
+        let solve_on = |frames: &[usize], line_ns: f64| {
+            let f = |d: f64| mean_cost(&pair, &t0, &track_lt(d, line_ns), frames, leds, huber_px);
             minimise(&f, period)
         };
-        let Some((delta, _)) = solve_on(&shared) else {
+        let Some((delta, _)) = solve_on(&shared, line_ns) else {
             est.not_observable = Some(format!(
                 "the two-view cost has no minimum within ±{:.1} ms (one frame period): too little motion \
                  (the wand moved {speed:.2} px/ms in camera {c}'s images) or an offset beyond a frame period",
@@ -409,21 +431,62 @@ pub fn estimate(
             offsets.push(est);
             continue;
         };
+        let rows = f64::from(cameras[c].model.image_size.height_px);
+        let fit_line = estimate_line_time && timing[c].shutter == Shutter::Rolling;
+        let mut delta = delta;
+        if fit_line {
+            // Coordinate descent: the line time with the offset held, then the offset again.
+            let hi = 2.0 * line_ns.max(period / rows / 2.0);
+            for _ in 0..3 {
+                let f = |l: f64| mean_cost(&pair, &t0, &track_lt(delta, l), &shared, leds, huber_px);
+                if let Some((l, _)) = minimise_on(&f, 0.0, hi, 16, 5.0) {
+                    line_ns = l;
+                }
+                let f = |d: f64| mean_cost(&pair, &t0, &track_lt(d, line_ns), &shared, leds, huber_px);
+                if let Some((d, _)) = minimise_on(&f, delta - 0.1 * period, delta + 0.1 * period, 8, REFINE_TOL_NS) {
+                    delta = d;
+                }
+            }
+        }
+        let track_with = |delta_ns: f64| track_lt(delta_ns, line_ns);
         let (s0, n0, sq0) = cost(&pair, &t0, &track_with(delta), &shared, leds, huber_px);
         let (sp, _, _) = cost(&pair, &t0, &track_with(delta + CURVATURE_STEP_NS), &shared, leds, huber_px);
         let (sm, _, _) = cost(&pair, &t0, &track_with(delta - CURVATURE_STEP_NS), &shared, leds, huber_px);
-        let curvature = (sp + sm - 2.0 * s0) / (CURVATURE_STEP_NS * CURVATURE_STEP_NS);
+        let h = CURVATURE_STEP_NS;
+        let curvature = (sp + sm - 2.0 * s0) / (h * h);
         est.rms_px = (sq0 / n0.max(1) as f64).sqrt();
-        // var(δ) = 2 s² / S'' with s² the residual variance per term; the LEDs of one frame
-        // share their frame's timing, so the terms count as frames, not LEDs.
+        // var = 2 s² H⁻¹ with s² the residual variance per term; the LEDs of one frame share
+        // their frame's timing, so the terms count as frames, not LEDs.
         let s2 = s0 / (n0.max(2) - 1) as f64 * leds.max(1) as f64;
-        let sigma_curv = if curvature > 0.0 {
+        let mut sigma_curv = if curvature > 0.0 {
             (2.0 * s2 / curvature).sqrt()
         } else {
             f64::INFINITY
         };
+        if fit_line {
+            // The 2×2 Hessian in (offset, line time), by central differences.
+            let hl = LINE_CURVATURE_STEP_NS;
+            let at = |d: f64, l: f64| cost(&pair, &t0, &track_lt(d, l), &shared, leds, huber_px).0;
+            let hll = (at(delta, line_ns + hl) + at(delta, line_ns - hl) - 2.0 * s0) / (hl * hl);
+            let hdl = (at(delta + h, line_ns + hl) - at(delta + h, line_ns - hl) - at(delta - h, line_ns + hl)
+                + at(delta - h, line_ns - hl))
+                / (4.0 * h * hl);
+            let det = curvature * hll - hdl * hdl;
+            let (var_d, var_l) = if det > 0.0 && curvature > 0.0 {
+                (2.0 * s2 * hll / det, 2.0 * s2 * curvature / det)
+            } else {
+                (f64::INFINITY, f64::INFINITY)
+            };
+            sigma_curv = var_d.sqrt();
+            let sigma_l = var_l.sqrt();
+            est.line_time_sigma_ns = Some(sigma_l);
+            // Observable when the timing of the bottom row is known to the offset's limit.
+            if sigma_l * rows <= MAX_OBSERVABLE_SIGMA_NS {
+                est.line_time_ns = Some(line_ns);
+            }
+        }
         let mid = shared.len() / 2;
-        let halves = solve_on(&shared[..mid]).zip(solve_on(&shared[mid..]));
+        let halves = solve_on(&shared[..mid], line_ns).zip(solve_on(&shared[mid..], line_ns));
         est.halves_ns = halves.map(|(a, b)| (a.0, b.0));
         // Two independent halves differ by 2σ of the whole on average.
         let sigma_halves = halves.map_or(f64::INFINITY, |(a, b)| (a.0 - b.0).abs() / 2.0);

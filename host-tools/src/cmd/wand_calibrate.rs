@@ -87,6 +87,10 @@ pub struct Args {
     /// other cameras' offsets are estimated from the wave (docs/calibration.md, "Time offsets").
     #[arg(long, value_name = "CAM:SHUTTER[:KEY=VALUE]…")]
     pub timing: Vec<String>,
+    /// Also estimate the line time of every camera ≠ 0 declared rolling with `--timing` (its
+    /// given line time is the starting point; searched over 0…2× it) jointly with its offset.
+    #[arg(long)]
+    pub estimate_line_time: bool,
 }
 
 /// Runs the subcommand.
@@ -177,13 +181,27 @@ pub fn run(args: Args) -> Result<()> {
     let mut time_result = None;
     if let Some(clock) = &clock {
         for round in 1..=TIME_ROUNDS {
-            let r = wand_time::estimate(&sol.cameras, &raw_obs, clock, &timing, args.huber_px);
+            let r = wand_time::estimate(
+                &sol.cameras,
+                &raw_obs,
+                clock,
+                &timing,
+                args.huber_px,
+                args.estimate_line_time,
+            );
             let mut moved_ns: f64 = 0.0;
             for e in &r.offsets {
                 if let Some(d) = e.offset_vs_cam0_ns {
                     let new = timing[0].offset_ns + d.round() as i64;
                     moved_ns = moved_ns.max((new - timing[e.camera].offset_ns).abs() as f64);
                     timing[e.camera].offset_ns = new;
+                }
+                if let Some(l) = e.line_time_ns {
+                    let old = f64::from(timing[e.camera].line_time_ns);
+                    // A line time change moves the bottom row's instant by rows × the change.
+                    let rows = f64::from(models[e.camera].image_size.height_px);
+                    moved_ns = moved_ns.max((l - old).abs() * rows);
+                    timing[e.camera].line_time_ns = l.round() as u32;
                 }
             }
             eprintln!(
@@ -323,9 +341,25 @@ fn time_report(r: Option<&wand_time::TimingResult>, timing: &[CameraTiming], sta
         return s;
     };
     for (c, t) in timing.iter().enumerate() {
-        let shutter = match t.shutter {
-            Shutter::Global => "global shutter".to_string(),
-            Shutter::Rolling => format!("rolling shutter, line time {:.3} µs (as given)", f64::from(t.line_time_ns) * 1e-3),
+        let e = r.offsets.iter().find(|e| e.camera == c);
+        let shutter = match (t.shutter, e.and_then(|e| e.line_time_ns.zip(e.line_time_sigma_ns))) {
+            (Shutter::Global, _) => "global shutter".to_string(),
+            (Shutter::Rolling, Some((_, sigma))) => format!(
+                "rolling shutter, line time {:.3} µs ± {:.3} µs (estimated)",
+                f64::from(t.line_time_ns) * 1e-3,
+                sigma * 1e-3
+            ),
+            (Shutter::Rolling, None) => match e.and_then(|e| e.line_time_sigma_ns) {
+                Some(sigma) => format!(
+                    "rolling shutter, line time {:.3} µs (as given; the wave cannot tell it: ± {:.3} µs)",
+                    f64::from(t.line_time_ns) * 1e-3,
+                    sigma * 1e-3
+                ),
+                None => format!(
+                    "rolling shutter, line time {:.3} µs (as given)",
+                    f64::from(t.line_time_ns) * 1e-3
+                ),
+            },
         };
         let clock = format!(
             "frame period {:.3} ms, timestamp jitter {:.0} µs RMS",
@@ -338,7 +372,7 @@ fn time_report(r: Option<&wand_time::TimingResult>, timing: &[CameraTiming], sta
                 t.offset_ns as f64 * 1e-3
             )
         } else {
-            match r.offsets.iter().find(|e| e.camera == c) {
+            match e {
                 Some(e) => match (e.offset_vs_cam0_ns, &e.not_observable) {
                     (Some(d), _) => format!(
                         "cam{c}: time offset {:+.1} µs ± {:.1} µs against camera 0 ({} frames, halves {}, \
@@ -384,6 +418,8 @@ fn time_json(r: Option<&wand_time::TimingResult>, timing: &[CameraTiming]) -> Re
                 "shared_frames": e.map(|e| e.shared_frames),
                 "image_speed_px_per_ms": e.map(|e| e.image_speed_px_per_ms),
                 "not_observable": e.and_then(|e| e.not_observable.clone()),
+                "line_time_estimated": e.is_some_and(|e| e.line_time_ns.is_some()),
+                "line_time_sigma_ns": e.and_then(|e| e.line_time_sigma_ns.filter(|s| s.is_finite())),
                 "period_ns": r.map(|r| r.period_ns[c]),
                 "jitter_rms_ns": r.map(|r| r.jitter_rms_ns[c]),
             })
