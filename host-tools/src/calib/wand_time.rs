@@ -28,6 +28,8 @@ use super::wand::{LedPixels, Rejection, WandObservations};
 
 /// An offset whose standard uncertainty exceeds this (ns) is reported as not observable.
 pub const MAX_OBSERVABLE_SIGMA_NS: f64 = 100_000.0;
+/// Frames farther apart than this (ns; 14 fps) are too far apart to follow a wand between them.
+pub const MAX_FRAME_STEP_NS: f64 = 70_000_000.0;
 /// Frames both cameras identified the wand in, at least, to estimate an offset.
 pub const MIN_SHARED_FRAMES: usize = 30;
 /// A sample this close (ns) to the wanted instant is used as seen.
@@ -51,6 +53,9 @@ pub struct FrameClock {
     pub period_ns: Vec<f64>,
     /// RMS distance (ns) of each camera's timestamps from its line.
     pub jitter_rms_ns: Vec<f64>,
+    /// Why the frames are not a continuous stream a wand can be followed through (sets saved
+    /// far apart, or irregularly, e.g. `capture` taking a set now and then); `None` when they are.
+    pub not_continuous: Option<String>,
 }
 
 /// The frame number in a frame file's name (`000123.pgm` → 123).
@@ -82,6 +87,7 @@ impl FrameClock {
         let mut instants_ns = Vec::with_capacity(stamps.len());
         let mut period_ns = Vec::with_capacity(stamps.len());
         let mut jitter_rms_ns = Vec::with_capacity(stamps.len());
+        let mut not_continuous = None;
         for (c, m) in stamps.iter().enumerate() {
             let raw: Vec<Option<f64>> = numbers
                 .iter()
@@ -115,7 +121,17 @@ impl FrameClock {
             if let Some(l) = fit_line(&pts) {
                 line = l;
             }
-            jitter_rms_ns.push(rms(&pts, line));
+            let jitter = rms(&pts, line);
+            if not_continuous.is_none() && (rough > MAX_FRAME_STEP_NS || jitter > rough / 8.0) {
+                not_continuous = Some(format!(
+                    "camera {c}'s frames are {:.1} ms apart (median), {:.1} ms RMS off a steady rate: \
+                     not a continuous stream to follow the wand through (need ≤ {:.0} ms apart, steady)",
+                    rough * 1e-6,
+                    jitter * 1e-6,
+                    MAX_FRAME_STEP_NS * 1e-6
+                ));
+            }
+            jitter_rms_ns.push(jitter);
             period_ns.push(line.1);
             instants_ns.push(raw.iter().map(|t| t.map(|t| line.0 + line.1 * idx(t))).collect());
         }
@@ -123,6 +139,7 @@ impl FrameClock {
             instants_ns,
             period_ns,
             jitter_rms_ns,
+            not_continuous,
         })
     }
 }

@@ -153,11 +153,24 @@ pub fn run(args: Args) -> Result<()> {
         huber_px: args.huber_px,
     };
     let mut timing = vec![CameraTiming::default(); models.len()];
+    let mut time_skipped = String::from(
+        "not estimated: the recording has no timestamps.csv, so the cameras are taken as exposing together",
+    );
     for spec in &args.timing {
         let (c, t) = parse_timing(spec, models.len())?;
         timing[c] = t;
     }
-    let clock = wand_time::read_clock(&args.frames, models.len(), &raw_obs.frames)?;
+    let clock = match wand_time::read_clock(&args.frames, models.len(), &raw_obs.frames)? {
+        Some(c) if c.not_continuous.is_some() => {
+            time_skipped = format!(
+                "not estimated: {} — the cameras are taken as exposing together",
+                c.not_continuous.as_deref().unwrap_or_default()
+            );
+            None
+        }
+        Some(c) => Some(c),
+        None => None,
+    };
     // With timestamps each frame's LEDs are moved to camera 0's instant before the adjustment;
     // the offsets are then estimated with the solved geometry and the adjustment run again.
     let mut obs = match &clock {
@@ -217,7 +230,7 @@ pub fn run(args: Args) -> Result<()> {
             sol = solve(&obs)?;
         }
     } else {
-        eprintln!("no timestamps.csv in the recording: cameras taken as exposing together, time offsets not estimated");
+        eprintln!("time offsets {time_skipped}");
     }
     let now = now_unix_s();
     let mut rig = RigParams {
@@ -250,7 +263,7 @@ pub fn run(args: Args) -> Result<()> {
         fig: &fig,
     });
     print_figures(&rig, &sol, &fig)?;
-    let time_text = time_report(time_result.as_ref(), &timing, clock.is_some());
+    let time_text = time_report(time_result.as_ref(), &timing, &time_skipped);
     print!("{time_text}");
     gate.enforce(args.accept_poor)?;
     rig.calibration = Some(Box::new(gate.record(now)));
@@ -328,16 +341,11 @@ fn offsets_line(r: &wand_time::TimingResult) -> String {
 }
 
 /// The time-offset part of the report (stdout and report.md).
-fn time_report(r: Option<&wand_time::TimingResult>, timing: &[CameraTiming], stamped: bool) -> String {
+fn time_report(r: Option<&wand_time::TimingResult>, timing: &[CameraTiming], skipped: &str) -> String {
     use std::fmt::Write as _;
     let mut s = String::new();
     let Some(r) = r else {
-        let why = if stamped {
-            "not estimated"
-        } else {
-            "not estimated: the recording has no timestamps.csv, so the cameras are taken as exposing together"
-        };
-        let _ = writeln!(s, "time offsets: {why}");
+        let _ = writeln!(s, "time offsets {skipped}");
         return s;
     };
     for (c, t) in timing.iter().enumerate() {
