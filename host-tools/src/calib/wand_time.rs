@@ -18,7 +18,7 @@
 
 use std::collections::BTreeMap;
 
-use anyhow::{Result, anyhow, bail};
+use anyhow::{Result, anyhow};
 use irtrack_core::camera::CameraModel;
 use irtrack_core::params::CameraParams;
 use irtrack_core::timing::{CameraTiming, Shutter};
@@ -83,7 +83,17 @@ impl FrameClock {
     /// From `timestamps.csv` (per camera, frame number → (timestamp_ns, dropped)) for the
     /// recording's frames.
     pub fn new(stamps: &[BTreeMap<u64, (u64, bool)>], frames: &[String]) -> Result<FrameClock> {
-        let numbers: Vec<u64> = frames.iter().map(|n| frame_number(n)).collect::<Result<_>>()?;
+        let numbers: Vec<u64> = match frames.iter().map(|n| frame_number(n)).collect::<Result<_>>() {
+            Ok(n) => n,
+            Err(e) => {
+                return Ok(FrameClock {
+                    instants_ns: vec![vec![None; frames.len()]; stamps.len()],
+                    period_ns: vec![f64::NAN; stamps.len()],
+                    jitter_rms_ns: vec![f64::NAN; stamps.len()],
+                    not_continuous: Some(e.to_string()),
+                });
+            }
+        };
         let mut instants_ns = Vec::with_capacity(stamps.len());
         let mut period_ns = Vec::with_capacity(stamps.len());
         let mut jitter_rms_ns = Vec::with_capacity(stamps.len());
@@ -100,10 +110,14 @@ impl FrameClock {
             ts.sort_by(f64::total_cmp);
             let mut steps: Vec<f64> = ts.windows(2).map(|w| w[1] - w[0]).filter(|d| *d > 0.0).collect();
             if steps.len() < 8 {
-                bail!(
-                    "timestamps.csv: camera {c} has {} timestamped frames of this recording; at least 9 are needed",
+                not_continuous.get_or_insert(format!(
+                    "camera {c} has {} timestamped frames of this recording, at least 9 are needed",
                     ts.len()
-                );
+                ));
+                instants_ns.push(raw);
+                period_ns.push(f64::NAN);
+                jitter_rms_ns.push(f64::NAN);
+                continue;
             }
             steps.sort_by(f64::total_cmp);
             // The median step is the period even with dropped frames among them.
@@ -111,7 +125,13 @@ impl FrameClock {
             let t0 = ts[0];
             let idx = |t: f64| ((t - t0) / rough).round();
             let mut pts: Vec<(f64, f64)> = raw.iter().flatten().map(|t| (idx(*t), *t)).collect();
-            let mut line = fit_line(&pts).ok_or_else(|| anyhow!("timestamps.csv: camera {c}'s timestamps do not advance"))?;
+            let Some(mut line) = fit_line(&pts) else {
+                not_continuous.get_or_insert(format!("camera {c}'s timestamps do not advance"));
+                instants_ns.push(raw);
+                period_ns.push(f64::NAN);
+                jitter_rms_ns.push(f64::NAN);
+                continue;
+            };
             // One pass without the outliers (a USB transfer held back).
             let rms = |pts: &[(f64, f64)], (a, b): (f64, f64)| {
                 (pts.iter().map(|(i, t)| (t - a - b * i).powi(2)).sum::<f64>() / pts.len() as f64).sqrt()
@@ -590,6 +610,22 @@ mod tests {
     fn frame_numbers_come_from_file_names() {
         assert_eq!(frame_number("000123.pgm").unwrap(), 123);
         assert!(frame_number("left.pgm").unwrap_err().to_string().contains("frame number"));
+        let mut m = BTreeMap::new();
+        m.insert(0, (0, false));
+        let c = FrameClock::new(&[m], &["left.pgm".to_string()]).unwrap();
+        assert!(c.not_continuous.unwrap().contains("frame number"));
+    }
+
+    #[test]
+    fn sparse_sets_are_not_a_continuous_stream() {
+        let frames: Vec<String> = (0..40).map(|i| format!("{i:06}.pgm")).collect();
+        let mut m = BTreeMap::new();
+        for i in 0..40u64 {
+            // A set now and then: 150–400 ms apart.
+            m.insert(i, (i * 250_000_000 + (i * 7919 % 11) * 15_000_000, false));
+        }
+        let c = FrameClock::new(&[m], &frames).unwrap();
+        assert!(c.not_continuous.unwrap().contains("not a continuous stream"));
     }
 
     #[test]
