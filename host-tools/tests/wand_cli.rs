@@ -943,12 +943,11 @@ fn wand_calibration_recovers_known_time_offsets() {
         "{s}"
     );
     let (rig_sync, rig) = (load(&out_sync.join("rig.irp")), load(&out.join("rig.irp")));
-    for c in 1..3 {
+    for (c, truth_ns) in truth_offsets_ns.iter().enumerate().skip(1) {
         let got = rig.camera_timing(c).offset_ns as f64;
         assert!(
-            (got - truth_offsets_ns[c]).abs() <= 50_000.0,
-            "cam{c}: offset {got} ns, truth {} ns",
-            truth_offsets_ns[c]
+            (got - truth_ns).abs() <= 50_000.0,
+            "cam{c}: offset {got} ns, truth {truth_ns} ns"
         );
         // Cameras exposing together: offsets near zero, whatever is written.
         let got_sync = rig_sync.camera_timing(c).offset_ns as f64;
@@ -958,7 +957,7 @@ fn wand_calibration_recovers_known_time_offsets() {
     assert_eq!(rig.camera_timing(2).line_time_ns, 15_000);
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("time_offsets.json")).unwrap()).unwrap();
-    for c in 1..3 {
+    for c in [1, 2] {
         let sigma = json["cameras"][c]["sigma_ns"].as_f64().unwrap();
         assert!(sigma > 0.0 && sigma < 50_000.0, "cam{c}: uncertainty {sigma} ns");
         assert_eq!(json["cameras"][c]["estimated"], true);
@@ -969,17 +968,14 @@ fn wand_calibration_recovers_known_time_offsets() {
             .contains("## Time offsets")
     );
     let (e_sync, e) = (pose_errors(&truth, &rig_sync), pose_errors(&truth, &rig));
-    for c in 0..2 {
+    for (i, (free, together)) in e.iter().zip(&e_sync).enumerate() {
+        let c = i + 1;
         println!(
-            "cam{}: rotation {:.4}° / {:.4}° (free-running / together), centre {:.3} / {:.3} mm",
-            c + 1,
-            e[c].0,
-            e_sync[c].0,
-            e[c].1,
-            e_sync[c].1
+            "cam{c}: rotation {:.4}° / {:.4}° (free-running / together), centre {:.3} / {:.3} mm",
+            free.0, together.0, free.1, together.1
         );
-        assert!(e[c].0 <= 1.5 * e_sync[c].0 + 0.005, "cam{}: rotation {:?} vs {:?}", c + 1, e[c], e_sync[c]);
-        assert!(e[c].1 <= 1.5 * e_sync[c].1 + 0.1, "cam{}: centre {:?} vs {:?}", c + 1, e[c], e_sync[c]);
+        assert!(free.0 <= 1.5 * together.0 + 0.005, "cam{c}: rotation {free:?} vs {together:?}");
+        assert!(free.1 <= 1.5 * together.1 + 0.1, "cam{c}: centre {free:?} vs {together:?}");
     }
     // The rolling shutter's line time estimated with the offsets, from a wrong start (10 µs).
     let out = dir.join("out-line");
@@ -998,12 +994,11 @@ fn wand_calibration_recovers_known_time_offsets() {
     let rig = load(&out.join("rig.irp"));
     let line_ns = f64::from(rig.camera_timing(2).line_time_ns);
     assert!((line_ns - 15_000.0).abs() <= 300.0, "line time {line_ns} ns, truth 15000 ns");
-    for c in 1..3 {
+    for (c, truth_ns) in truth_offsets_ns.iter().enumerate().skip(1) {
         let got = rig.camera_timing(c).offset_ns as f64;
         assert!(
-            (got - truth_offsets_ns[c]).abs() <= 50_000.0,
-            "line time estimated: cam{c}: offset {got} ns, truth {} ns",
-            truth_offsets_ns[c]
+            (got - truth_ns).abs() <= 50_000.0,
+            "line time estimated: cam{c}: offset {got} ns, truth {truth_ns} ns"
         );
     }
     assert!(s.contains("(estimated)"), "{s}");
