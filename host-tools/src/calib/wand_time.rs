@@ -169,6 +169,8 @@ struct Track<'a> {
     samples: Vec<Option<(f64, &'a LedPixels)>>,
     timing: CameraTiming,
     period_ns: f64,
+    /// A sample this close (ns) to the wanted instant is used as seen.
+    as_seen_ns: f64,
 }
 
 impl<'a> Track<'a> {
@@ -186,6 +188,7 @@ impl<'a> Track<'a> {
             samples,
             timing,
             period_ns: clock.period_ns[camera],
+            as_seen_ns: AS_SEEN_NS,
         }
     }
 
@@ -205,7 +208,7 @@ impl<'a> Track<'a> {
             .filter_map(|p| self.instant(p, k).map(|s| (p, s)))
             .min_by(|a, b| (a.1.0 - t_ns).abs().total_cmp(&(b.1.0 - t_ns).abs()))?;
         let dt = t_ns - tq;
-        if dt.abs() <= AS_SEEN_NS {
+        if dt.abs() <= self.as_seen_ns {
             return Some(pq);
         }
         if dt.abs() > 0.75 * self.period_ns {
@@ -421,6 +424,8 @@ pub fn estimate(
             let mut t = Track::new(obs, clock, c, base);
             t.timing.offset_ns = (timing[0].offset_ns as f64 + delta_ns).round() as i64;
             t.timing.line_time_ns = line_ns.round().max(0.0) as u32;
+            // Always moved: a tolerance would flatten the cost around zero offset.
+            t.as_seen_ns = 0.5;
             t
         };
         let mut line_ns = f64::from(timing[c].line_time_ns);
@@ -472,17 +477,23 @@ pub fn estimate(
         let fit_line = estimate_line_time && timing[c].shutter == Shutter::Rolling;
         let mut delta = delta;
         if fit_line {
-            // Coordinate descent: the line time with the offset held, then the offset again.
+            // The offset and the line time trade against each other through the LEDs' mean
+            // row: for each trial line time the offset is minimised again, starting from the
+            // offset that keeps the mean row's instant (a profile of the cost over line time).
+            let row_mid = mean_row(&probe);
+            let (delta_start, line_start) = (delta, line_ns);
+            let best_delta = |l: f64| {
+                let d0 = delta_start + (line_start - l) * row_mid;
+                let f = |d: f64| mean_cost(&pair, &t0, &track_lt(d, l), &shared, leds, huber_px);
+                minimise_on(&f, d0 - 0.15 * period, d0 + 0.15 * period, 6, REFINE_TOL_NS)
+            };
+            let profile = |l: f64| best_delta(l).map_or(f64::INFINITY, |(_, v)| v);
             let hi = 2.0 * line_ns.max(period / rows / 2.0);
-            for _ in 0..3 {
-                let f = |l: f64| mean_cost(&pair, &t0, &track_lt(delta, l), &shared, leds, huber_px);
-                if let Some((l, _)) = minimise_on(&f, 0.0, hi, 16, 5.0) {
-                    line_ns = l;
-                }
-                let f = |d: f64| mean_cost(&pair, &t0, &track_lt(d, line_ns), &shared, leds, huber_px);
-                if let Some((d, _)) = minimise_on(&f, delta - 0.1 * period, delta + 0.1 * period, 8, REFINE_TOL_NS) {
-                    delta = d;
-                }
+            if let Some((l, _)) = minimise_on(&profile, 0.0, hi, 16, 5.0)
+                && let Some((d, _)) = best_delta(l)
+            {
+                line_ns = l;
+                delta = d;
             }
         }
         let track_with = |delta_ns: f64| track_lt(delta_ns, line_ns);
@@ -492,9 +503,8 @@ pub fn estimate(
         let h = CURVATURE_STEP_NS;
         let curvature = (sp + sm - 2.0 * s0) / (h * h);
         est.rms_px = (sq0 / n0.max(1) as f64).sqrt();
-        // var = 2 s² H⁻¹ with s² the residual variance per term; the LEDs of one frame share
-        // their frame's timing, so the terms count as frames, not LEDs.
-        let s2 = s0 / (n0.max(2) - 1) as f64 * leds.max(1) as f64;
+        // var = 2 s² H⁻¹ with s² the residual variance per term (an LED seen by both cameras).
+        let s2 = s0 / (n0.max(2) - 1) as f64;
         let mut sigma_curv = if curvature > 0.0 {
             (2.0 * s2 / curvature).sqrt()
         } else {
@@ -549,6 +559,18 @@ pub fn estimate(
         period_ns: clock.period_ns.clone(),
         jitter_rms_ns: clock.jitter_rms_ns.clone(),
     }
+}
+
+/// Mean row (px) of a track's LEDs.
+fn mean_row(t: &Track<'_>) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for (_, px) in t.samples.iter().flatten() {
+        for p in px.iter() {
+            sum += p.y;
+            n += 1;
+        }
+    }
+    if n == 0 { 0.0 } else { sum / n as f64 }
 }
 
 /// Median LED image speed (px/ms) between consecutive identified frames of a track.
