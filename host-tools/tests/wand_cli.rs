@@ -16,9 +16,9 @@ use irtrack_core::camera::{Distortion, ImageSize};
 use irtrack_core::params::{CameraParams, RigParams};
 use irtrack_host_tools::calib::wand::{self, Rejection, Wand};
 use irtrack_host_tools::cmd::{simulate, track};
+use irtrack_sim::SimCameraTiming;
 use irtrack_sim::checkerboard::{self, BoardSpec, PoseConfig, RenderSettings};
 use irtrack_sim::rig::{CameraSpec, RigPreset, build_rig};
-use irtrack_sim::SimCameraTiming;
 use irtrack_sim::wand::{WandConfig, WandWave, look_at};
 use irtrack_sim::{Scenario, SimConfig};
 use nalgebra::{Rotation3, Vector3};
@@ -939,7 +939,9 @@ fn wand_calibration_recovers_known_time_offsets() {
     );
     println!("free-running:\n{s}");
     assert!(
-        s.contains("cam1: time offset +1") && s.contains("cam2: time offset -2") && s.contains("against camera 0"),
+        s.contains("cam1: time offset +1")
+            && s.contains("cam2: time offset -2")
+            && s.contains("against camera 0"),
         "{s}"
     );
     let (rig_sync, rig) = (load(&out_sync.join("rig.irp")), load(&out.join("rig.irp")));
@@ -951,9 +953,15 @@ fn wand_calibration_recovers_known_time_offsets() {
         );
         // Cameras exposing together: offsets near zero, whatever is written.
         let got_sync = rig_sync.camera_timing(c).offset_ns as f64;
-        assert!(got_sync.abs() <= 50_000.0, "synchronous cam{c}: offset {got_sync} ns");
+        assert!(
+            got_sync.abs() <= 50_000.0,
+            "synchronous cam{c}: offset {got_sync} ns"
+        );
     }
-    assert_eq!(rig.camera_timing(2).shutter, irtrack_core::timing::Shutter::Rolling);
+    assert_eq!(
+        rig.camera_timing(2).shutter,
+        irtrack_core::timing::Shutter::Rolling
+    );
     assert_eq!(rig.camera_timing(2).line_time_ns, 15_000);
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("time_offsets.json")).unwrap()).unwrap();
@@ -974,8 +982,14 @@ fn wand_calibration_recovers_known_time_offsets() {
             "cam{c}: rotation {:.4}° / {:.4}° (free-running / together), centre {:.3} / {:.3} mm",
             free.0, together.0, free.1, together.1
         );
-        assert!(free.0 <= 1.5 * together.0 + 0.005, "cam{c}: rotation {free:?} vs {together:?}");
-        assert!(free.1 <= 1.5 * together.1 + 0.1, "cam{c}: centre {free:?} vs {together:?}");
+        assert!(
+            free.0 <= 1.5 * together.0 + 0.005,
+            "cam{c}: rotation {free:?} vs {together:?}"
+        );
+        assert!(
+            free.1 <= 1.5 * together.1 + 0.1,
+            "cam{c}: centre {free:?} vs {together:?}"
+        );
     }
     // The rolling shutter's line time estimated with the offsets, from a wrong start (10 µs).
     let out = dir.join("out-line");
@@ -993,7 +1007,10 @@ fn wand_calibration_recovers_known_time_offsets() {
     println!("line time estimated:\n{s}");
     let rig = load(&out.join("rig.irp"));
     let line_ns = f64::from(rig.camera_timing(2).line_time_ns);
-    assert!((line_ns - 15_000.0).abs() <= 500.0, "line time {line_ns} ns, truth 15000 ns");
+    assert!(
+        (line_ns - 15_000.0).abs() <= 500.0,
+        "line time {line_ns} ns, truth 15000 ns"
+    );
     // With the line time free the offset trades against it through the LEDs' mean row: each
     // offset within three of its reported uncertainties (which stay below 100 µs).
     let json: serde_json::Value =
@@ -1036,7 +1053,9 @@ fn a_slow_wave_says_its_time_offsets_are_not_observable() {
         let mut noise = move || {
             // Two uniform draws: triangular noise, σ ≈ 0.1 px.
             let mut u = || {
-                seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                seed = seed
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
                 (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
             };
             (u() + u()) * 0.245

@@ -62,7 +62,9 @@ pub struct FrameClock {
 fn frame_number(name: &str) -> Result<u64> {
     let stem = name.rsplit_once('.').map_or(name, |(s, _)| s);
     stem.parse().map_err(|_| {
-        anyhow!("frame file {name:?} has no frame number to look up in timestamps.csv (expected e.g. 000123.pgm)")
+        anyhow!(
+            "frame file {name:?} has no frame number to look up in timestamps.csv (expected e.g. 000123.pgm)"
+        )
     })
 }
 
@@ -196,7 +198,10 @@ impl<'a> Track<'a> {
     fn instant(&self, p: usize, k: usize) -> Option<(f64, Vector2<f64>)> {
         let (t, px) = self.samples.get(p).copied().flatten()?;
         let led = *px.get(k)?;
-        Some((self.timing.offset_ns as f64 + t + self.timing.row_delay_ns(led.y), led))
+        Some((
+            self.timing.offset_ns as f64 + t + self.timing.row_delay_ns(led.y),
+            led,
+        ))
     }
 
     /// LED `k`'s pixel at instant `t_ns`, moved along its track (quadratic through the nearest
@@ -325,7 +330,9 @@ fn cost(
         for k in 0..leds {
             let Some((t, p0)) = t0.instant(p, k) else { continue };
             let Some(pc) = tc.at(k, p, t) else { continue };
-            let Some(e) = pair.error_px(&p0, &pc) else { continue };
+            let Some(e) = pair.error_px(&p0, &pc) else {
+                continue;
+            };
             s += if e <= huber_px {
                 e * e
             } else {
@@ -339,7 +346,14 @@ fn cost(
 }
 
 /// Mean cost per term (comparable across trial offsets that bridge different numbers of LEDs).
-fn mean_cost(pair: &Pair<'_>, t0: &Track<'_>, tc: &Track<'_>, frames: &[usize], leds: usize, huber_px: f64) -> f64 {
+fn mean_cost(
+    pair: &Pair<'_>,
+    t0: &Track<'_>,
+    tc: &Track<'_>,
+    frames: &[usize],
+    leds: usize,
+    huber_px: f64,
+) -> f64 {
     let (s, n, _) = cost(pair, t0, tc, frames, leds, huber_px);
     if n < leds * frames.len() / 2 {
         f64::INFINITY
@@ -498,8 +512,22 @@ pub fn estimate(
         }
         let track_with = |delta_ns: f64| track_lt(delta_ns, line_ns);
         let (s0, n0, sq0) = cost(&pair, &t0, &track_with(delta), &shared, leds, huber_px);
-        let (sp, _, _) = cost(&pair, &t0, &track_with(delta + CURVATURE_STEP_NS), &shared, leds, huber_px);
-        let (sm, _, _) = cost(&pair, &t0, &track_with(delta - CURVATURE_STEP_NS), &shared, leds, huber_px);
+        let (sp, _, _) = cost(
+            &pair,
+            &t0,
+            &track_with(delta + CURVATURE_STEP_NS),
+            &shared,
+            leds,
+            huber_px,
+        );
+        let (sm, _, _) = cost(
+            &pair,
+            &t0,
+            &track_with(delta - CURVATURE_STEP_NS),
+            &shared,
+            leds,
+            huber_px,
+        );
         let h = CURVATURE_STEP_NS;
         let curvature = (sp + sm - 2.0 * s0) / (h * h);
         est.rms_px = (sq0 / n0.max(1) as f64).sqrt();
@@ -515,9 +543,10 @@ pub fn estimate(
             let hl = LINE_CURVATURE_STEP_NS;
             let at = |d: f64, l: f64| cost(&pair, &t0, &track_lt(d, l), &shared, leds, huber_px).0;
             let hll = (at(delta, line_ns + hl) + at(delta, line_ns - hl) - 2.0 * s0) / (hl * hl);
-            let hdl = (at(delta + h, line_ns + hl) - at(delta + h, line_ns - hl) - at(delta - h, line_ns + hl)
-                + at(delta - h, line_ns - hl))
-                / (4.0 * h * hl);
+            let hdl =
+                (at(delta + h, line_ns + hl) - at(delta + h, line_ns - hl) - at(delta - h, line_ns + hl)
+                    + at(delta - h, line_ns - hl))
+                    / (4.0 * h * hl);
             let det = curvature * hll - hdl * hdl;
             let (var_d, var_l) = if det > 0.0 && curvature > 0.0 {
                 (2.0 * s2 * hll / det, 2.0 * s2 * curvature / det)
@@ -594,7 +623,11 @@ fn image_speed(t: &Track<'_>) -> f64 {
 /// The identified LEDs of every camera moved to camera 0's frame instant (middle of row 0's
 /// exposure) of their frame. A view whose LEDs cannot be moved (no neighbouring frame to
 /// interpolate with) is rejected as [`Rejection::Unbridged`].
-pub fn retime_observations(obs: &WandObservations, clock: &FrameClock, timing: &[CameraTiming]) -> WandObservations {
+pub fn retime_observations(
+    obs: &WandObservations,
+    clock: &FrameClock,
+    timing: &[CameraTiming],
+) -> WandObservations {
     let n_cam = timing.len();
     let tracks: Vec<Track<'_>> = (0..n_cam).map(|c| Track::new(obs, clock, c, timing[c])).collect();
     let mut out = obs.clone();
@@ -602,7 +635,8 @@ pub fn retime_observations(obs: &WandObservations, clock: &FrameClock, timing: &
         let t_ref = clock.instants_ns[0][p].map(|t| t + timing[0].offset_ns as f64);
         for (c, view) in row.iter_mut().enumerate() {
             let Ok(px) = view else { continue };
-            let moved: Option<LedPixels> = t_ref.and_then(|t| (0..px.len()).map(|k| tracks[c].at(k, p, t)).collect());
+            let moved: Option<LedPixels> =
+                t_ref.and_then(|t| (0..px.len()).map(|k| tracks[c].at(k, p, t)).collect());
             *view = match moved {
                 Some(m) => Ok(m),
                 None => Err(Rejection::Unbridged),
@@ -613,7 +647,11 @@ pub fn retime_observations(obs: &WandObservations, clock: &FrameClock, timing: &
 }
 
 /// Reads `timestamps.csv` of a recording when present.
-pub fn read_clock(frames_dir: &std::path::Path, n_cameras: usize, frames: &[String]) -> Result<Option<FrameClock>> {
+pub fn read_clock(
+    frames_dir: &std::path::Path,
+    n_cameras: usize,
+    frames: &[String],
+) -> Result<Option<FrameClock>> {
     let path = frames_dir.join("timestamps.csv");
     if !path.is_file() {
         return Ok(None);
@@ -631,7 +669,12 @@ mod tests {
     #[test]
     fn frame_numbers_come_from_file_names() {
         assert_eq!(frame_number("000123.pgm").unwrap(), 123);
-        assert!(frame_number("left.pgm").unwrap_err().to_string().contains("frame number"));
+        assert!(
+            frame_number("left.pgm")
+                .unwrap_err()
+                .to_string()
+                .contains("frame number")
+        );
         let mut m = BTreeMap::new();
         m.insert(0, (0, false));
         let c = FrameClock::new(&[m], &["left.pgm".to_string()]).unwrap();
@@ -663,7 +706,11 @@ mod tests {
         }
         let clock = FrameClock::new(&[m], &frames).unwrap();
         assert!(clock.instants_ns[0][50].is_none());
-        assert!((clock.period_ns[0] - period).abs() < 100.0, "{}", clock.period_ns[0]);
+        assert!(
+            (clock.period_ns[0] - period).abs() < 100.0,
+            "{}",
+            clock.period_ns[0]
+        );
         let t = clock.instants_ns[0][120].unwrap();
         assert!((t - (3_000_000.0 + 120.0 * period)).abs() < 5_000.0, "{t}");
         assert!((clock.jitter_rms_ns[0] - 150_000.0).abs() < 2_000.0);

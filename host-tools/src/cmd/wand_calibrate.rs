@@ -145,7 +145,10 @@ pub fn run(args: Args) -> Result<()> {
     let raw_obs = wand::observe(&rec, &models, &wand)?;
     for c in 0..models.len() {
         let ok = raw_obs.views.iter().filter(|r| r[c].is_ok()).count();
-        eprintln!("cam{c}: wand identified in {ok} of {} frames", raw_obs.frames.len());
+        eprintln!(
+            "cam{c}: wand identified in {ok} of {} frames",
+            raw_obs.frames.len()
+        );
     }
     let options = wand_solve::SolveOptions {
         refine_intrinsics,
@@ -177,19 +180,20 @@ pub fn run(args: Args) -> Result<()> {
         Some(clock) => wand_time::retime_observations(&raw_obs, clock, &timing),
         None => raw_obs.clone(),
     };
-    let solve = |obs: &wand::WandObservations| match wand_solve::solve(&models, obs, &wand, &boards, options, |m| {
-        eprintln!("{m}")
-    }) {
-        Ok(sol) => Ok(sol),
-        Err(e) => {
-            // Say what the spots alone tell about the intrinsics, if anything.
-            let (causes, _) = wand_quality::intrinsics_causes(&models, obs, &wand);
-            if causes.is_empty() {
-                return Err(e);
+    let solve =
+        |obs: &wand::WandObservations| match wand_solve::solve(&models, obs, &wand, &boards, options, |m| {
+            eprintln!("{m}")
+        }) {
+            Ok(sol) => Ok(sol),
+            Err(e) => {
+                // Say what the spots alone tell about the intrinsics, if anything.
+                let (causes, _) = wand_quality::intrinsics_causes(&models, obs, &wand);
+                if causes.is_empty() {
+                    return Err(e);
+                }
+                Err(e.context(format!("Likely cause: {}", causes.join(". Also: "))))
             }
-            Err(e.context(format!("Likely cause: {}", causes.join(". Also: "))))
-        }
-    };
+        };
     let mut sol = solve(&obs)?;
     let mut time_result = None;
     if let Some(clock) = &clock {
@@ -273,7 +277,8 @@ pub fn run(args: Args) -> Result<()> {
     let (mut written, _) = wand_report::write_outputs(&args.out_dir, &sol, &rig, &wand, &obs.frames)?;
     // The time offsets join the report and get a machine-readable file of their own.
     let report = args.out_dir.join("report.md");
-    let mut md = std::fs::read_to_string(&report).with_context(|| format!("{}: cannot read", report.display()))?;
+    let mut md =
+        std::fs::read_to_string(&report).with_context(|| format!("{}: cannot read", report.display()))?;
     md.push_str("\n## Time offsets\n\n");
     md.push_str(&time_text);
     std::fs::write(&report, md).with_context(|| format!("{}: cannot write", report.display()))?;
@@ -333,7 +338,12 @@ fn offsets_line(r: &wand_time::TimingResult) -> String {
         .offsets
         .iter()
         .map(|e| match e.offset_vs_cam0_ns {
-            Some(d) => format!("cam{} {:+.1} µs ± {:.1} µs", e.camera, d * 1e-3, e.sigma_ns * 1e-3),
+            Some(d) => format!(
+                "cam{} {:+.1} µs ± {:.1} µs",
+                e.camera,
+                d * 1e-3,
+                e.sigma_ns * 1e-3
+            ),
             None => format!("cam{} not observable", e.camera),
         })
         .collect();
@@ -350,7 +360,10 @@ fn time_report(r: Option<&wand_time::TimingResult>, timing: &[CameraTiming], ski
     };
     for (c, t) in timing.iter().enumerate() {
         let e = r.offsets.iter().find(|e| e.camera == c);
-        let shutter = match (t.shutter, e.and_then(|e| e.line_time_ns.zip(e.line_time_sigma_ns))) {
+        let shutter = match (
+            t.shutter,
+            e.and_then(|e| e.line_time_ns.zip(e.line_time_sigma_ns)),
+        ) {
             (Shutter::Global, _) => "global shutter".to_string(),
             (Shutter::Rolling, Some((_, sigma))) => format!(
                 "rolling shutter, line time {:.3} µs ± {:.3} µs (estimated)",
@@ -388,8 +401,11 @@ fn time_report(r: Option<&wand_time::TimingResult>, timing: &[CameraTiming], ski
                         d * 1e-3,
                         e.sigma_ns * 1e-3,
                         e.shared_frames,
-                        e.halves_ns
-                            .map_or("-".into(), |(a, b)| format!("{:+.1}/{:+.1} µs", a * 1e-3, b * 1e-3)),
+                        e.halves_ns.map_or("-".into(), |(a, b)| format!(
+                            "{:+.1}/{:+.1} µs",
+                            a * 1e-3,
+                            b * 1e-3
+                        )),
                         e.rms_px,
                         e.image_speed_px_per_ms
                     ),
