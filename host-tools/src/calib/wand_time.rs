@@ -124,8 +124,20 @@ impl FrameClock {
             steps.sort_by(f64::total_cmp);
             // The median step is the period even with dropped frames among them.
             let rough = steps[steps.len() / 2];
-            let t0 = ts[0];
-            let idx = |t: f64| ((t - t0) / rough).round();
+            // Frame index by whole periods between consecutive stamps (a dropped frame's slot
+            // counted): robust to jitter in the rough period, unlike rounding from the start.
+            let mut index_of: Vec<(f64, f64)> = Vec::with_capacity(ts.len());
+            for (k, t) in ts.iter().enumerate() {
+                let i = match k {
+                    0 => 0.0,
+                    _ => index_of[k - 1].1 + ((t - ts[k - 1]) / rough).round(),
+                };
+                index_of.push((*t, i));
+            }
+            let idx = |t: f64| {
+                let k = index_of.partition_point(|(u, _)| *u < t);
+                index_of.get(k).map_or(0.0, |e| e.1)
+            };
             let mut pts: Vec<(f64, f64)> = raw.iter().flatten().map(|t| (idx(*t), *t)).collect();
             let Some(mut line) = fit_line(&pts) else {
                 not_continuous.get_or_insert(format!("camera {c}'s timestamps do not advance"));
