@@ -62,29 +62,16 @@ fn free_running_preset_and_bad_tables_are_named() {
     cfg.validate().unwrap();
     let sc = cfg.scenario_config();
     assert_eq!(sc.timing.len(), 4);
-    assert!(
-        sc.timing
-            .iter()
-            .all(|t| t.ts_jitter_ns == 200_000.0 && t.rate_ppm.abs() <= 50.0)
-    );
+    assert!(sc.timing.iter().all(|t| t.ts_jitter_ns == 200_000.0 && t.rate_ppm.abs() <= 50.0));
     let phases: Vec<f64> = sc.timing.iter().map(|t| t.phase_ns).collect();
     let period = 1e9 / cfg.fps;
     assert!((phases[2] - period / 2.0).abs() < 1.0, "{phases:?}");
 
     let wrong = timed_cfg("phase_ms = [0.0, 1.0]");
     let e = wrong.validate().unwrap_err().to_string();
-    assert!(
-        e.contains("source.sim.timing") && e.contains("2 values for 4 cameras"),
-        "{e}"
-    );
+    assert!(e.contains("source.sim.timing") && e.contains("2 values for 4 cameras"), "{e}");
     let preset = timed_cfg("preset = \"sync\"");
-    assert!(
-        preset
-            .validate()
-            .unwrap_err()
-            .to_string()
-            .contains("free_running")
-    );
+    assert!(preset.validate().unwrap_err().to_string().contains("free_running"));
     let mut wand = timed_cfg("ppm = 10.0");
     wand.wand_mm = Some(vec![0.0, 120.0, 300.0]);
     assert!(wand.validate().unwrap_err().to_string().contains("wand"));

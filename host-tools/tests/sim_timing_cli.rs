@@ -107,16 +107,8 @@ fn timed_simulation_writes_each_cameras_timestamps_and_dense_truth_and_track_use
         rows[0],
         "camera,shutter,line_time_ns,exposure_ns,offset_ns,phase_ns,rate_ppm,ts_jitter_ns"
     );
-    assert!(
-        rows[1].starts_with("0,rolling,15000,1000000,0,0.0,0.000,50000.0"),
-        "{}",
-        rows[1]
-    );
-    assert!(
-        rows[2].starts_with("1,rolling,15000,1000000,-500000,3100000.0,40.000,50000.0"),
-        "{}",
-        rows[2]
-    );
+    assert!(rows[1].starts_with("0,rolling,15000,1000000,0,0.0,0.000,50000.0"), "{}", rows[1]);
+    assert!(rows[2].starts_with("1,rolling,15000,1000000,-500000,3100000.0,40.000,50000.0"), "{}", rows[2]);
 
     // Each camera's own timestamps: camera 0 on the grid, camera 1 3.1 ms + 0.5 ms later and
     // drifting 40 ppm, both within 3σ = 150 µs of jitter.
@@ -129,10 +121,7 @@ fn timed_simulation_writes_each_cameras_timestamps_and_dense_truth_and_track_use
         let nominal = k as f64 * period_ns;
         assert!((t0 as f64 - nominal).abs() <= 150_001.0, "frame {k}: {t0}");
         let expect1 = 3_100_000.0 + k as f64 * period_ns * (1.0 + 40e-6) + 500_000.0;
-        assert!(
-            (t1 as f64 - expect1).abs() <= 150_001.0,
-            "frame {k}: {t1} vs {expect1}"
-        );
+        assert!((t1 as f64 - expect1).abs() <= 150_001.0, "frame {k}: {t1} vs {expect1}");
     }
     // Not one timestamp per set any more: the jitter makes camera 0's deviate from the grid.
     assert!((0..60u64).any(|k| stamps[&(k, 0)].0 != (k as f64 * period_ns).round() as u64));
@@ -189,10 +178,7 @@ fn timed_simulation_writes_each_cameras_timestamps_and_dense_truth_and_track_use
         .unwrap()
         .parse()
         .unwrap();
-    assert!(
-        (rms - reported).abs() < 1e-3,
-        "recomputed RMS {rms} vs summary {reported}: {summary}"
-    );
+    assert!((rms - reported).abs() < 1e-3, "recomputed RMS {rms} vs summary {reported}: {summary}");
     assert!(rms < 5.0, "{summary}");
 }
 
@@ -206,15 +192,9 @@ fn an_exposure_before_the_start_is_dropped_and_that_set_is_missing() {
     let (t1, _) = stamps[&(1, 1)];
     assert_eq!(t1, (1e9 / 120.0 - 2.4e6_f64).round() as u64);
     let (summary, out) = track(&dir);
-    assert!(
-        summary.contains("tracked 5") && summary.contains("missing frames 1"),
-        "{summary}"
-    );
+    assert!(summary.contains("tracked 5") && summary.contains("missing frames 1"), "{summary}");
     let text = std::fs::read_to_string(out).unwrap();
-    assert!(
-        text.lines().nth(1).unwrap().starts_with("0,,,,,missing_frame"),
-        "{text}"
-    );
+    assert!(text.lines().nth(1).unwrap().starts_with("0,,,,,missing_frame"), "{text}");
 }
 
 #[test]
@@ -224,24 +204,9 @@ fn zero_timing_options_write_todays_frames_and_no_dense_truth() {
     simulate(&plain, &["--frames", "4"]);
     simulate(
         &zeros,
-        &[
-            "--frames",
-            "4",
-            "--phase-ms",
-            "0,0",
-            "--ppm",
-            "0",
-            "--line-time-us",
-            "0",
-        ],
+        &["--frames", "4", "--phase-ms", "0,0", "--ppm", "0", "--line-time-us", "0"],
     );
-    for f in [
-        "cam0/000000.pgm",
-        "cam1/000003.pgm",
-        "timestamps.csv",
-        "truth.csv",
-        "scenario.txt",
-    ] {
+    for f in ["cam0/000000.pgm", "cam1/000003.pgm", "timestamps.csv", "truth.csv", "scenario.txt"] {
         assert_eq!(
             std::fs::read(plain.join(f)).unwrap(),
             std::fs::read(zeros.join(f)).unwrap(),
@@ -260,10 +225,7 @@ fn free_running_preset_and_bad_lists_are_explained() {
     let timing = std::fs::read_to_string(dir.join("camera_timing.csv")).unwrap();
     // Two cameras: half a period apart, 200 µs jitter.
     assert!(timing.contains(",4166666.7,"), "{timing}");
-    assert!(
-        timing.lines().skip(1).all(|l| l.ends_with(",200000.0")),
-        "{timing}"
-    );
+    assert!(timing.lines().skip(1).all(|l| l.ends_with(",200000.0")), "{timing}");
     let out = bin()
         .args(["simulate", "--quiet", "--frames", "1", "--out"])
         .arg(dir.join("bad"))
@@ -272,8 +234,5 @@ fn free_running_preset_and_bad_lists_are_explained() {
         .unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.contains("phase") && err.contains("3 values for 2 cameras"),
-        "{err}"
-    );
+    assert!(err.contains("phase") && err.contains("3 values for 2 cameras"), "{err}");
 }

@@ -330,10 +330,7 @@ impl WandWave {
     fn led_seen(&self, camera: usize, at: f64, s_mm: f64) -> Vector3<f64> {
         let c = &self.cfg;
         let mut p = self.pose_at(at).led(s_mm);
-        let line_frames = c
-            .timing
-            .get(camera)
-            .map_or(0.0, |t| t.line_time_ns * 1e-9 * c.fps);
+        let line_frames = c.timing.get(camera).map_or(0.0, |t| t.line_time_ns * 1e-9 * c.fps);
         if line_frames > 0.0 {
             let cam = &c.rig.cameras[camera];
             for _ in 0..ROLLING_ITERATIONS {
@@ -670,16 +667,10 @@ mod tests {
         let mut moved = 0.0f64;
         for frame in (10..190).step_by(9) {
             // Camera 0 is synchronous: the same view as before.
-            assert_eq!(
-                timed.camera_truth(frame, 0).unwrap(),
-                sync.camera_truth(frame, 0).unwrap()
-            );
+            assert_eq!(timed.camera_truth(frame, 0).unwrap(), sync.camera_truth(frame, 0).unwrap());
             let (at, reported) = timed.frame_time(frame, 1);
             assert!((at - (frame as f64 + 2.5e-3 * 120.0)).abs() < 1e-9);
-            assert_eq!(
-                reported,
-                (frame as f64 * 1e9 / 120.0 + 2_600_000.0).round() as i64
-            );
+            assert_eq!(reported, (frame as f64 * 1e9 / 120.0 + 2_600_000.0).round() as i64);
             let t = timed.camera_truth(frame, 1).unwrap();
             for (li, s) in timed.config().leds_mm.iter().enumerate() {
                 let Some(px) = t.leds_px[li] else { continue };

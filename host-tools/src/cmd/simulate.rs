@@ -166,12 +166,7 @@ fn parse_list(option: &str, text: Option<&str>, scale: f64) -> anyhow::Result<Ve
 }
 
 /// Per-camera timing from `--timing` and the per-camera options, for `cameras` cameras.
-pub fn timing_from_args(
-    a: &Args,
-    cameras: usize,
-    fps: f64,
-    seed: u64,
-) -> anyhow::Result<Vec<SimCameraTiming>> {
+pub fn timing_from_args(a: &Args, cameras: usize, fps: f64, seed: u64) -> anyhow::Result<Vec<SimCameraTiming>> {
     let lists = TimingLists {
         phase_ns: parse_list("phase-ms", a.phase_ms.as_deref(), 1e6)?,
         rate_ppm: parse_list("ppm", a.ppm.as_deref(), 1.0)?,

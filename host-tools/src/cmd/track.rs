@@ -528,8 +528,7 @@ pub fn track_dir(args: &Args) -> anyhow::Result<TrackSummary> {
         if stamped.is_some() {
             for (c, ts) in frame_ts.iter().enumerate() {
                 if let Some(ts) = ts {
-                    tr.set_frame_time(c, *ts)
-                        .with_context(|| format!("frame {index}"))?;
+                    tr.set_frame_time(c, *ts).with_context(|| format!("frame {index}"))?;
                 }
             }
         }
