@@ -198,9 +198,18 @@ pub fn run(args: Args) -> Result<()> {
     let mut time_result = None;
     if let Some(clock) = &clock {
         for round in 1..=TIME_ROUNDS {
+            // The views the adjustment kept (outliers and misidentified views left out), as seen.
+            let mut kept = raw_obs.clone();
+            for (row, solved) in kept.views.iter_mut().zip(&sol.views) {
+                for (v, s) in row.iter_mut().zip(solved) {
+                    if let Err(e) = s {
+                        *v = Err(e.clone());
+                    }
+                }
+            }
             let r = wand_time::estimate(
                 &sol.cameras,
-                &raw_obs,
+                &kept,
                 clock,
                 &timing,
                 args.huber_px,
