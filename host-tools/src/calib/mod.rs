@@ -19,6 +19,7 @@ pub mod wand_boards;
 pub mod wand_quality;
 pub mod wand_report;
 pub mod wand_solve;
+pub mod wand_time;
 
 use std::collections::BTreeSet;
 

@@ -134,6 +134,9 @@ pub enum Rejection {
     },
     /// The frame was identified in this camera only: nothing to pair it with.
     SingleCamera,
+    /// Exposed too far from camera 0's instant and without neighbouring frames to move the
+    /// LEDs along their tracks to it (docs/calibration.md, "Time offsets").
+    Unbridged,
     /// Identified, but far off the bundle adjustment's solution.
     ReprojectionOutlier {
         /// The view's RMS reprojection error (px).
@@ -152,6 +155,7 @@ impl Rejection {
             Rejection::Ambiguous { .. } => "ambiguous (reflection on the wand's line)",
             Rejection::Foreshortened { .. } => "wand seen end-on",
             Rejection::SingleCamera => "seen by one camera only",
+            Rejection::Unbridged => "not movable to camera 0's instant",
             Rejection::ReprojectionOutlier { .. } => "reprojection outlier",
         }
     }
@@ -180,6 +184,10 @@ impl std::fmt::Display for Rejection {
                 )
             }
             Rejection::SingleCamera => write!(f, "identified in this camera only"),
+            Rejection::Unbridged => write!(
+                f,
+                "exposed away from camera 0's instant, with no neighbouring frame to move the LEDs to it"
+            ),
             Rejection::ReprojectionOutlier { error_px, limit_px } => {
                 write!(f, "reprojection outlier: {error_px:.2} px > {limit_px:.2} px")
             }
