@@ -512,6 +512,9 @@ pub struct Resolved {
 
 /// `[source]` after validation: the kind with its own, checked settings.
 #[derive(Debug, Clone, PartialEq)]
+// Resolved once at start-up and matched, never stored in bulk: boxing the simulator's config
+// (which grew with `[source.sim.timing]`) would only cost every caller a `Box`.
+#[allow(clippy::large_enum_variant)]
 pub enum Source {
     /// `[source.sim]` (defaults when the table is absent).
     Sim(SimSourceConfig),
