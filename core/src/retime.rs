@@ -181,7 +181,8 @@ fn nearest(pts: &[TimedPoint], to: TimedPoint, gate_px: f64, after: f64, before:
         if !(p.t_ns > after && p.t_ns < before - 1.0) {
             continue;
         }
-        let d2 = (p.x_px - to.x_px).powi(2) + (p.y_px - to.y_px).powi(2);
+        let (dx, dy) = (p.x_px - to.x_px, p.y_px - to.y_px);
+        let d2 = dx * dx + dy * dy;
         if d2 <= gate_px * gate_px && best.is_none_or(|(b, _)| d2 < b) {
             best = Some((d2, *p));
         }
