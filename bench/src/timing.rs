@@ -22,8 +22,10 @@ use irtrack_core::params::{CameraParams, RigParams};
 use irtrack_core::pipeline::{Tracker, TrackerConfig};
 use irtrack_core::retime::TimeMode;
 use irtrack_core::timing::{CameraTiming, Shutter};
+use irtrack_sim::noise::{splitmix64, unit_from_hash};
 use irtrack_sim::rig::{CameraSpec, convergent_pose};
-use nalgebra::{Matrix3, Vector3};
+use irtrack_sim::wand::look_at;
+use nalgebra::Vector3;
 
 /// Frames per second of every camera.
 const FPS: f64 = 120.0;
@@ -154,19 +156,12 @@ impl Motion {
     }
 }
 
-/// SplitMix64 with a Box–Muller normal: deterministic noise without a dependency.
+/// Deterministic Gaussian noise: the simulator's SplitMix64 and its uniform mapping, Box–Muller.
 struct Rng(u64);
 
 impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
     fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+        unit_from_hash(splitmix64(&mut self.0))
     }
     fn normal(&mut self) -> f64 {
         let u1 = self.uniform().max(1e-300);
@@ -274,17 +269,8 @@ fn spot_samples(
     Ok(())
 }
 
-/// Camera at `centre_mm` (cam0 frame) looking at `target_mm`, y roughly down.
-fn looking_at(centre_mm: Vector3<f64>, target_mm: Vector3<f64>) -> RigidTransform {
-    let z = (target_mm - centre_mm).normalize();
-    let x = Vector3::new(0.0, 1.0, 0.0).cross(&z).normalize();
-    let y = z.cross(&x);
-    let r = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
-    RigidTransform::from_parts(&r, &(-(r * centre_mm)))
-}
-
 /// The rigs of the table: name, parameters and the point the motion is centred on.
-fn rigs() -> Vec<(&'static str, RigParams, Vector3<f64>)> {
+fn rigs() -> Result<Vec<(&'static str, RigParams, Vector3<f64>)>> {
     let spec = CameraSpec::default();
     let rig = |poses: Vec<RigidTransform>, id: &str| RigParams {
         rig_id: id.into(),
@@ -313,11 +299,11 @@ fn rigs() -> Vec<(&'static str, RigParams, Vector3<f64>)> {
             let a = f64::from(i) * std::f64::consts::FRAC_PI_2;
             let height = [0.0, -150.0, 80.0, -60.0][i as usize];
             let pos = centre + Vector3::new(-d * a.sin(), height, -d * a.cos());
-            looking_at(pos, centre)
+            look_at(pos, centre, Vector3::new(0.0, -1.0, 0.0))
         })
-        .collect();
+        .collect::<Result<_, _>>()?;
     // Camera 0 must be the identity (the rig's frame); the ring's first pose is.
-    vec![
+    Ok(vec![
         ("four-camera cell, 1.4 m", rig(ring, "bench-ring4"), centre),
         (
             "90° pair, 1.4 m",
@@ -327,7 +313,7 @@ fn rigs() -> Vec<(&'static str, RigParams, Vector3<f64>)> {
             ),
             centre,
         ),
-    ]
+    ])
 }
 
 /// Errors (mm) of one run, and the sets without a position.
@@ -490,7 +476,7 @@ pub fn table(quick: bool) -> Result<()> {
     println!("|---|---|---|---|---|---|---|---|---|---|");
     let modes = [TimeMode::Accurate, TimeMode::LowLatency, TimeMode::Off];
     let mut failures = Vec::new();
-    for (name, rig, centre) in rigs() {
+    for (name, rig, centre) in rigs()? {
         for speed_m_s in [0.25, 0.5, 1.0] {
             let motion = Motion::new(centre, speed_m_s * 1000.0, duration_s);
             let sync = run(&rig, &motion, Cameras::Synchronous, &modes, sets)?;
