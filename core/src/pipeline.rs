@@ -286,10 +286,8 @@ struct CameraState {
     frame_ts_ns: Option<u64>,
     /// The previous frames' centroids and instants (the tracks blobs are moved along).
     history: BlobHistory,
-    /// The blobs moved to the set's instant (valid when `timed_active`), and the index of
-    /// each one's blob in `blobs()`. Capacity `max_blobs`.
+    /// The blobs moved to the set's instant (valid when `timed_active`). Capacity `max_blobs`.
     timed: Vec<Blob>,
-    timed_src: Vec<u8>,
     timed_active: bool,
 }
 
@@ -789,7 +787,6 @@ impl CameraState {
             frame_ts_ns: None,
             history: BlobHistory::new(config.max_blobs),
             timed: Vec::with_capacity(config.max_blobs),
-            timed_src: Vec::with_capacity(config.max_blobs),
             timed_active: false,
         })
     }
@@ -865,7 +862,6 @@ fn retime_cameras(cams: &mut [CameraState], cfg: &TrackerConfig) -> Option<f64> 
     for c in cams.iter_mut() {
         let Some(ts) = c.frame_ts_ns else { continue };
         c.timed.clear();
-        c.timed_src.clear();
         c.candidates.clear();
         let blobs = if c.external {
             &c.external_blobs[..]
@@ -890,7 +886,6 @@ fn retime_cameras(cams: &mut [CameraState], cfg: &TrackerConfig) -> Option<f64> 
                 continue;
             }
             c.timed.push(Blob { x_px, y_px, ..*b });
-            c.timed_src.push(i as u8);
             if usable(b, cfg) && c.candidates.len() < c.candidates.capacity() {
                 let ray = Ray::from_pixel(&c.model, &c.cam_from_cam0, x_px, y_px);
                 c.candidates.push(Candidate { blob: i, ray });
