@@ -271,6 +271,7 @@ impl Engine {
         let deadline_ns = u64::try_from(deadline.as_nanos()).unwrap_or(u64::MAX);
         status.deadline_ns.store(deadline_ns, R);
         let clocks = FrameClocks::new(set.frames.len(), None).ok();
+        publish_timing(&status, &tracker_cfg);
         Self {
             source,
             set,
@@ -371,6 +372,7 @@ impl Engine {
             },
             None => self.tracker_cfg = req.tracking,
         }
+        publish_timing(&self.status, &self.tracker_cfg);
         // A solver's own cameras detect on a thread of their own: they take the settings too.
         if let Err(e) = self.source.set_detection(&req.tracking) {
             tracing::warn!(error = %e, "detector settings refused by the source");
@@ -671,6 +673,10 @@ impl Engine {
             // The cameras saw a moving marker at different instants: their rays do not meet
             // where the marker was. No position rather than a wrong one.
             Some(_) if skewed => {
+                self.status.skewed_last_ns.store(dequeued_ns.max(1), R);
+                self.status
+                    .skewed_last_spread_ns
+                    .store(self.set.pairing_error_ns, R);
                 if self.status.skewed_sets.fetch_add(1, R) == 0 {
                     tracing::warn!(
                         pairing_error_us = self.set.pairing_error_ns / 1000,
@@ -842,6 +848,9 @@ impl Engine {
                 } else {
                     let m = tracker.solve();
                     let t_solve = Instant::now();
+                    for (c, o) in self.status.cameras.iter().zip(&m.cameras) {
+                        c.record_bridge(o.bridge_ns, o.unbridged);
+                    }
                     // The record is for the instant the set was solved at.
                     let capture_ns = m.instant_ns.map_or(capture_ns, instant_to_ns);
                     let rec = if failed {
@@ -1138,6 +1147,13 @@ fn fill_blob_views(tracker: &Tracker, pose: Option<&MultiTracker>, mut push: imp
 }
 
 /// Stream status for a tracker result.
+/// Puts the tracker's time mode and bridge limit on `/status`.
+fn publish_timing(status: &SharedStatus, cfg: &TrackerConfig) {
+    if let Ok(mut g) = status.timing.lock() {
+        *g = Some(crate::status::TimingReport::new(cfg.time_mode, cfg.max_bridge_ms));
+    }
+}
+
 fn map_status(m: &Measurement) -> TrackStatus {
     match m.status {
         MeasureStatus::Tracked => TrackStatus::Ok,

@@ -456,3 +456,52 @@ mod robot_link_tests {
         );
     }
 }
+
+#[cfg(test)]
+mod timing_tests {
+    use std::sync::atomic::Ordering::Relaxed;
+
+    use irtrack_core::retime::TimeMode;
+
+    use crate::status::{SharedStatus, TimingReport, fault_texts};
+
+    /// Time-true tracking reaches `/status`, `/metrics` and the faults (issue 39): the mode,
+    /// each camera's bridge and unbridged blobs, and a recent set beyond the bridge as a fault
+    /// that names the spread and the limit; an old one is no fault any more.
+    #[test]
+    fn time_mode_bridges_and_skew_fault() {
+        let st = SharedStatus::new(2, "sim".into(), "none".into());
+        *st.timing.lock().unwrap() = Some(TimingReport::new(TimeMode::Accurate, 25.0));
+        st.cameras[1].record_bridge(-2.5e6, 0);
+        st.cameras[1].record_bridge(1.0e6, 3);
+        let r = st.report();
+        let t = r.processing.timing.as_ref().expect("timing on /status");
+        assert_eq!((t.mode, t.max_bridge_ms), ("accurate", 25.0));
+        let cam = &r.source.cameras[1];
+        assert_eq!(cam.bridge_ms_last, Some(1.0));
+        assert_eq!(cam.bridge_ms_max, Some(2.5));
+        assert_eq!(cam.unbridged, 3);
+        let m = st.prometheus();
+        for line in [
+            "irtrackd_camera_bridge_seconds{camera=\"1\"} 0.001",
+            "irtrackd_camera_unbridged_blobs_total{camera=\"1\"} 3",
+        ] {
+            assert!(m.lines().any(|l| l == line), "{line:?} missing in:\n{m}");
+        }
+        assert!(!fault_texts(&st, None, None).iter().any(|f| f.code == "skewed_sets"));
+        let now = crate::clock::monotonic_ns();
+        st.skewed_sets.store(4, Relaxed);
+        st.skewed_last_spread_ns.store(31_200_000, Relaxed);
+        st.skewed_last_ns.store(now, Relaxed);
+        let f = fault_texts(&st, None, None);
+        let skew = f.iter().find(|f| f.code == "skewed_sets").expect("the skew fault");
+        assert!(
+            skew.message.contains("31.2 ms apart") && skew.message.contains("25.0 ms") && skew.message.contains("4 so far"),
+            "{}",
+            skew.message
+        );
+        st.skewed_last_ns
+            .store(now.saturating_sub(crate::status::SKEW_FAULT_HOLD_NS + 1_000_000_000), Relaxed);
+        assert!(!fault_texts(&st, None, None).iter().any(|f| f.code == "skewed_sets"));
+    }
+}

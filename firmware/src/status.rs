@@ -74,6 +74,29 @@ pub struct CameraCounters {
     pub height_px: AtomicU64,
     /// The camera's clock model (written by [`crate::frame_clocks`] every few frames).
     pub clock: ClockCounters,
+    /// How far the newest marker blob was carried along its track to the set's instant, ns
+    /// (`f64` bits; docs/timing.md).
+    pub bridge_ns_last_bits: AtomicU64,
+    /// The largest such distance (absolute) since start, ns (`f64` bits).
+    pub bridge_ns_max_bits: AtomicU64,
+    /// Gated blobs left out because they could not be brought to the set's instant.
+    pub unbridged: AtomicU64,
+}
+
+impl CameraCounters {
+    /// Notes what time-true tracking did with this camera's blobs in one set.
+    pub fn record_bridge(&self, bridge_ns: f64, unbridged: u32) {
+        if bridge_ns.is_finite() {
+            self.bridge_ns_last_bits.store(bridge_ns.to_bits(), R);
+            let max = f64::from_bits(self.bridge_ns_max_bits.load(R));
+            if bridge_ns.abs() > max {
+                self.bridge_ns_max_bits.store(bridge_ns.abs().to_bits(), R);
+            }
+        }
+        if unbridged > 0 {
+            self.unbridged.fetch_add(u64::from(unbridged), R);
+        }
+    }
 }
 
 /// One camera's clock model figures (docs/timing.md, "Camera clocks"); `f64`s as bits, NaN =
@@ -273,6 +296,13 @@ pub struct SharedStatus {
     /// Sets whose cameras' capture times differ by more than the allowed pairing error: a
     /// moving marker would triangulate wrong, so they are published without a position.
     pub skewed_sets: AtomicU64,
+    /// When the newest skewed set was seen (CLOCK_MONOTONIC ns, 0 = never): the
+    /// `skewed_sets` fault lasts [`SKEW_FAULT_HOLD_NS`] after it.
+    pub skewed_last_ns: AtomicU64,
+    /// Timestamp spread of that set, ns.
+    pub skewed_last_spread_ns: AtomicU64,
+    /// The tracker's time mode and bridge limit, once the loop has started.
+    pub timing: Mutex<Option<TimingReport>>,
     /// Latency of each stage of the loop.
     pub stages: StageHistograms,
     /// Ray gap of the latest triangulated position, mm, as `f64` bits (NaN before the first).
@@ -394,6 +424,9 @@ impl SharedStatus {
             pipeline_errors: AtomicU64::new(0),
             stale_sets: AtomicU64::new(0),
             skewed_sets: AtomicU64::new(0),
+            skewed_last_ns: AtomicU64::new(0),
+            skewed_last_spread_ns: AtomicU64::new(0),
+            timing: Mutex::new(None),
             stages: StageHistograms::default(),
             last_gap_mm_bits: AtomicU64::new(f64::NAN.to_bits()),
             sets_delivered: AtomicU64::new(0),
@@ -568,6 +601,11 @@ impl SharedStatus {
                         blobs_last: c.blobs_last.load(R),
                         peak_dn: c.peak_dn.load(R),
                         clock: c.clock.report(),
+                        bridge_ms_last: Some(f64::from_bits(c.bridge_ns_last_bits.load(R)) / 1e6)
+                            .filter(|v| v.is_finite()),
+                        bridge_ms_max: Some(f64::from_bits(c.bridge_ns_max_bits.load(R)) / 1e6)
+                            .filter(|v| v.is_finite()),
+                        unbridged: c.unbridged.load(R),
                     })
                     .collect(),
             },
@@ -585,6 +623,7 @@ impl SharedStatus {
                 pipeline_errors: self.pipeline_errors.load(R),
                 stale_sets: self.stale_sets.load(R),
                 skewed_sets: self.skewed_sets.load(R),
+                timing: self.timing.lock().ok().and_then(|g| g.clone()),
                 source_ended: self.source_ended.load(R),
                 end_reason: self.end_reason.lock().ok().and_then(|r| r.clone()),
                 latency_us: latency_us.into_iter().collect(),
@@ -795,6 +834,11 @@ impl SharedStatus {
                 .collect(),
             camera_frames: self.cameras.iter().map(|c| c.frames.load(R)).collect(),
             camera_clocks: self.cameras.iter().map(|c| c.clock.report()).collect(),
+            camera_bridges: self
+                .cameras
+                .iter()
+                .map(|c| (f64::from_bits(c.bridge_ns_last_bits.load(R)) / 1e9, c.unbridged.load(R)))
+                .collect(),
             leds: self.led_levels(),
             faults: self.active_faults(),
             stages: self.stages.stages().map(|(name, h)| (name, h.snapshot())),
@@ -849,6 +893,8 @@ struct MetricsSnapshot {
     camera_fps: Vec<f64>,
     camera_frames: Vec<u64>,
     camera_clocks: Vec<Option<CameraClockReport>>,
+    /// Per camera: the newest bridge (s) and the unbridged blobs so far.
+    camera_bridges: Vec<(f64, u64)>,
     leds: [bool; 4],
     faults: Vec<Fault>,
     stages: [(&'static str, crate::metrics::HistogramSnapshot); STAGES],
@@ -956,6 +1002,27 @@ impl MetricsSnapshot {
                 let n = c.as_ref().map_or(0, count);
                 ConstCounter::new(n).encode(m.encode_family(&[("camera", i.to_string())])?)?;
             }
+        }
+        // Time-true tracking: how far each camera's track was carried, and what it could not.
+        let mut m = enc.encode_descriptor(
+            "irtrackd_camera_bridge_seconds",
+            "how far the camera's newest marker blob was carried along its track to the set's instant",
+            None,
+            MetricType::Gauge,
+        )?;
+        for (i, (bridge_s, _)) in self.camera_bridges.iter().enumerate() {
+            if bridge_s.is_finite() {
+                ConstGauge::new(*bridge_s).encode(m.encode_family(&[("camera", i.to_string())])?)?;
+            }
+        }
+        let mut m = enc.encode_descriptor(
+            "irtrackd_camera_unbridged_blobs",
+            "gated blobs left out because they could not be brought to the set's instant",
+            None,
+            MetricType::Counter,
+        )?;
+        for (i, (_, n)) in self.camera_bridges.iter().enumerate() {
+            ConstCounter::new(*n).encode(m.encode_family(&[("camera", i.to_string())])?)?;
         }
         Ok(())
     }
@@ -1171,6 +1238,29 @@ pub struct FaultText {
     pub message: String,
 }
 
+/// The `skewed_sets` fault: within [`SKEW_FAULT_HOLD_NS`] of a set whose cameras' frames were
+/// further apart than time-true tracking can bridge (or, with `time_mode = "off"`, than the
+/// pairing limit).
+fn skew_fault_text(st: &SharedStatus, now_ns: u64) -> Option<FaultText> {
+    let last = st.skewed_last_ns.load(R);
+    if last == 0 || now_ns.saturating_sub(last) > SKEW_FAULT_HOLD_NS {
+        return None;
+    }
+    let spread_ms = st.skewed_last_spread_ns.load(R) as f64 / 1e6;
+    let limit = match st.timing.lock().ok().and_then(|g| g.clone()) {
+        Some(t) if t.mode != "off" => format!("the {:.1} ms the cameras' tracks may be carried (`max_bridge_ms`)", t.max_bridge_ms),
+        _ => "the pairing limit (`time_mode = \"off\"` needs cameras exposing together)".to_string(),
+    };
+    Some(FaultText {
+        code: "skewed_sets",
+        camera: None,
+        message: format!(
+            "the cameras' frames of a set were {spread_ms:.1} ms apart, more than {limit}: those sets get no position ({} so far) — check that every camera runs at the same frame rate and none drops frames (the clock column)",
+            st.skewed_sets.load(R)
+        ),
+    })
+}
+
 /// The active faults in plain words. `threshold_dn`: the detector's current threshold, when
 /// known (enables the "threshold above the LED" diagnosis). `analysis`: the newest whole-frame
 /// analysis of every camera, when fresh: it then describes each camera (background above the
@@ -1209,6 +1299,9 @@ pub fn fault_texts(
                 st.deadline_misses.load(R)
             ),
         });
+    }
+    if let Some(text) = skew_fault_text(st, crate::clock::monotonic_ns()) {
+        out.push(text);
     }
     // A solver's own cameras it refuses (another image size than the parameter set's): the
     // `own_camera` fault names them; their missing blobs are no LED problem.
@@ -1332,7 +1425,47 @@ pub struct CameraReport {
     /// The camera's clock model: period, phase against camera 0, jitter, drift, drops,
     /// duplicates and jumps; `None` before its first frame.
     pub clock: Option<CameraClockReport>,
+    /// How far this camera's newest marker blob was carried along its track to the set's
+    /// instant, ms (negative: back in time); 0 when solved as seen.
+    pub bridge_ms_last: Option<f64>,
+    /// The largest such distance since start, ms.
+    pub bridge_ms_max: Option<f64>,
+    /// Gated blobs left out because they could not be brought to the set's instant (no
+    /// track yet, or further away in time than `max_bridge_ms`).
+    pub unbridged: u64,
 }
+
+/// Time-true tracking on `/status` (`processing.timing`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TimingReport {
+    /// `accurate` (interpolated to the earliest exposure of the set), `low_latency`
+    /// (extrapolated to the newest) or `off` (solved as seen).
+    pub mode: &'static str,
+    /// The mode in words, for the set-up page.
+    pub mode_text: &'static str,
+    /// How far a camera's track may be carried to the set's instant, ms.
+    pub max_bridge_ms: f64,
+}
+
+impl TimingReport {
+    /// The report for a tracker configuration.
+    pub fn new(mode: irtrack_core::retime::TimeMode, max_bridge_ms: f64) -> Self {
+        use irtrack_core::retime::TimeMode;
+        let mode_text = match mode {
+            TimeMode::Accurate => "most accurate: each camera's track interpolated to the set's earliest exposure",
+            TimeMode::LowLatency => "lowest latency: each camera's track extrapolated to the set's newest exposure",
+            TimeMode::Off => "off: blobs used where they were seen (only for cameras exposing together)",
+        };
+        Self {
+            mode: mode.as_str(),
+            mode_text,
+            max_bridge_ms,
+        }
+    }
+}
+
+/// How long the `skewed_sets` fault stays after the last skewed set.
+pub const SKEW_FAULT_HOLD_NS: u64 = 10_000_000_000;
 
 /// The frame source's counters on `/status`.
 #[derive(Debug, Clone, Serialize)]
@@ -1384,6 +1517,9 @@ pub struct LoopReport {
     pub stale_sets: u64,
     /// Sets published without a position because their cameras' timestamps were too far apart.
     pub skewed_sets: u64,
+    /// Time-true tracking: the mode sets are solved in and how far a track may be carried
+    /// (docs/timing.md); `None` before the loop has started.
+    pub timing: Option<TimingReport>,
     /// The source ended (replay finished) and the loop stopped.
     pub source_ended: bool,
     /// Why the source ended (replay: sets delivered of recorded, what was skipped and why).

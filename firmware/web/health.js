@@ -60,6 +60,24 @@ export function clockWords(index, c) {
   return [parts.join(", "), c.jumps || c.state === "relocking" ? "bad" : ""];
 }
 
+/** What time-true tracking did with a camera's blobs (`/status` source.cameras[].bridge_ms_last,
+ *  unbridged; docs/timing.md): "track carried 2.4 ms". Returns [text, bad]. */
+export function bridgeWords(c) {
+  const parts = [];
+  if (typeof c.bridge_ms_last === "number" && Math.abs(c.bridge_ms_last) >= 0.05) {
+    parts.push(`track carried ${ms(c.bridge_ms_last * 1000, 1)} ${c.bridge_ms_last < 0 ? "back" : "on"}`);
+  }
+  if (c.unbridged) parts.push(`${fmt(c.unbridged)} blobs too far in time, left out`);
+  return [parts.join(", "), Boolean(c.unbridged)];
+}
+
+/** The time mode row of the loop's health (`/status` processing.timing). */
+export function timingRow(t) {
+  if (!t) return ["time mode", "—"];
+  const bridge = t.mode === "off" ? "" : `; tracks carried up to ${fmt(t.max_bridge_ms, 1)} ms`;
+  return ["time mode", `${t.mode_text}${bridge}`];
+}
+
 /** Rows of the active calibration's record (`/status` params.calibration, docs/calibration.md):
  *  method, age, quality; marked bad when poor or older than the configured age. */
 export function calibrationRows(c) {
@@ -229,9 +247,10 @@ export class Health {
         tr.append(size);
         // The clock model: period, phase against camera 0, jitter, drift, drops/jumps.
         const [words, cls] = clockWords(c.index, c.clock);
+        const [bridge, bridgeBad] = bridgeWords(c);
         const clock = document.createElement("td");
-        clock.className = cls ? `clock ${cls}` : "clock";
-        clock.textContent = words;
+        clock.className = cls || bridgeBad ? "clock bad" : "clock";
+        clock.textContent = bridge ? `${words}; ${bridge}` : words;
         if (c.clock) tr.dataset.clock = c.clock.state;
         tr.append(clock);
         return tr;
@@ -253,6 +272,8 @@ export class Health {
       ["lost (marker not seen)", fmt(proc.lost) + pct(proc.lost || 0)],
       ["refused by quality gate", fmt(proc.gated)],
       ["deadline misses", `${fmt(proc.deadline_misses)} (deadline ${fmt(proc.deadline_us)} µs)`, proc.deadline_misses ? "bad" : ""],
+      timingRow(proc.timing),
+      ["sets beyond the time bridge", fmt(proc.skewed_sets), proc.skewed_sets ? "bad" : ""],
       ["ray gap, last", proc.last_gap_mm === null || proc.last_gap_mm === undefined ? "—" : `${fmt(proc.last_gap_mm, 3)} mm`],
       ["stream clients", fmt((st.stream || {}).clients)],
     ].concat(

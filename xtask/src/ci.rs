@@ -709,6 +709,17 @@ const EMULATION_SKIPS: &[&str] = &[
     // NatNet frames counted per socket over 0.5 s and reply rates over 0.3 s of wall clock.
     "natnet_one_address_cannot_take_every_unicast_slot",
     "natnet_replies_are_rate_limited",
+    // Live paced services judged on wall-clock figures: three tools at 120 fps (sets the
+    // emulated loop cannot keep up with are dropped, and tool identity is checked across the
+    // gaps), a NatNet client that needs a complete window of paced frames, the loop's rate
+    // with stalled NatNet clients, and EGM/RSI prediction errors against the simulator's truth
+    // at send time on a 4 ms cycle. Under qemu on a loaded 2-core machine all five failed
+    // (2026-11-28: loop 81 sets/s, prediction RMS 1.1–2.1 mm against 0.3); they pass in the
+    // host phase.
+    "every_tool_and_loose_led_is_streamed_and_the_main_record_follows_the_robot_tool",
+    "natnet_client_reads_a_rigid_body_per_tool",
+    "natnet_clients_that_never_read_do_not_slow_the_loop",
+    "prediction_meets_the_error_goal_at_250_mm_s",
 ];
 
 #[cfg(test)]

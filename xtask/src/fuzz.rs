@@ -1,7 +1,7 @@
 //! `cargo xtask fuzz [--quick | --secs N] [--target NAME]...`: runs the cargo-fuzz targets in
 //! `fuzz/` (docs/fuzzing.md) one after another and prints executions, coverage and crashes.
 //!
-//! CI runs `--quick` (25 s per target). The targets are built by plain `cargo build` with the
+//! CI runs `--quick` (10 s per target). The targets are built by plain `cargo build` with the
 //! instrumentation flags cargo-fuzz would pass ([`SANCOV_RUSTFLAGS`]), on the pinned stable
 //! toolchain: no nightly, and no cargo-fuzz to compile from source on a fresh machine.
 //! Coverage comes from sanitizer-coverage instrumentation; AddressSanitizer is off because
@@ -29,7 +29,7 @@ pub const TARGETS: &[&str] = &[
     "observation",
     "tool_stream",
 ];
-const QUICK_SECS: u64 = 25;
+const QUICK_SECS: u64 = 10;
 /// The documented long run (docs/fuzzing.md).
 const DEFAULT_SECS: u64 = 600;
 
