@@ -1,8 +1,11 @@
 //! Quality gate of a wand calibration and its likely causes (docs/calibration.md, "Quality
-//! gates"). The causes are computed: the LED spacing the data fit (the middle LEDs triangulated
-//! freely with the calibrated rig, checked by solving again with that spacing), which camera's
-//! intrinsics disagree with its images (how straight the straight wand's spots lie after undistortion with
-//! its own intrinsics and with every other camera's), and the wave's length, tilt and image coverage.
+//! gates"). Each cause of a poor fit is a hypothesis tested against the data by solving the wave
+//! again with the input it blames changed: the LED spacing the data fit (the inner LEDs
+//! triangulated freely with the calibrated rig), another camera's intrinsics or the cameras
+//! swapped (suspected from how straight each camera's identified LEDs lie after undistortion),
+//! the rig without one camera. Named only when that solve fits; a wand that is not straight is
+//! found from the freely triangulated LEDs; otherwise it says it cannot tell. The wave's length,
+//! tilt and image coverage are named from their own figures.
 
 use irtrack_core::camera::CameraModel;
 use nalgebra::{Matrix3, SymmetricEigen, Vector2, Vector3};
