@@ -302,10 +302,10 @@ fn natnet_multicast_frames_reach_a_client_that_joined_the_group() {
     );
 }
 
-/// Per-tool records by (frame, tool id) and loose-LED positions (mm) by frame.
+/// Per-tool records by (frame, tool id) and loose LEDs by frame: (loose id, position mm, gap mm).
 type Collected = (
     HashMap<(u32, u8), irtrack_core::stream::ToolRecord>,
-    HashMap<u32, Vec<[f64; 3]>>,
+    HashMap<u32, Vec<(u32, [f64; 3], f64)>>,
 );
 
 /// Collects every per-tool NDJSON record (the client asks with `tools\n`) by (frame, tool id),
@@ -330,17 +330,18 @@ async fn collect_tool_records(addr: SocketAddr) -> tokio::task::JoinHandle<Colle
         }
     }
     tokio::spawn(async move {
-        let mut loose: HashMap<u32, Vec<[f64; 3]>> = HashMap::new();
+        let mut loose: HashMap<u32, Vec<(u32, [f64; 3], f64)>> = HashMap::new();
         while let Ok(Ok(Some(line))) = tokio::time::timeout(Duration::from_secs(2), lines.next_line()).await {
             if line.starts_with("{\"tool_id\"") {
                 let t = irtrack_core::stream::ToolRecord::from_ndjson_line(&line).unwrap();
                 by_key.insert((t.record.frame as u32, t.tool_id), t);
             } else if line.starts_with("{\"loose_id\"") {
                 let l = irtrack_core::stream::LooseRecord::from_ndjson_line(&line).unwrap();
-                loose
-                    .entry(l.record.frame as u32)
-                    .or_default()
-                    .push(l.record.position_mm.unwrap());
+                loose.entry(l.record.frame as u32).or_default().push((
+                    l.loose_id,
+                    l.record.position_mm.unwrap(),
+                    l.record.gap_mm,
+                ));
             }
         }
         (by_key, loose)
@@ -432,7 +433,8 @@ fn two_tool_scenario_leaves_tri3_untracked_only_where_it_is_not_seen() {
 
 /// Two tools and a loose LED at once: a rigid body per tool in the model definitions and in
 /// every frame, each equal to that tool's per-tool record on the NDJSON stream; the loose LEDs
-/// of each frame are its unlabelled markers, equal to the NDJSON stream's loose records.
+/// of each frame are its unlabelled markers (legacy list) and labelled markers of model 0 with
+/// the unlabelled flag (what NatNet 3+ clients read), equal to the NDJSON stream's loose records.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn natnet_client_reads_a_rigid_body_per_tool() {
     let dir = TempDir::new("natnet-two-tools");
@@ -465,6 +467,7 @@ async fn natnet_client_reads_a_rigid_body_per_tool() {
 
     let (mut compared, mut worst_m, mut worst_q) = ([0usize; 2], 0.0f64, 0.0f64);
     let (mut loose_frames, mut worst_loose_m) = (0usize, 0.0f64);
+    let (mut labelled_loose, mut worst_labelled_m) = (0usize, 0.0f64);
     let mut not_on_stream = 0usize;
     for fr in got["frames"].as_array().unwrap() {
         let n = fr["frame"].as_u64().unwrap() as u32;
@@ -477,13 +480,45 @@ async fn natnet_client_reads_a_rigid_body_per_tool() {
                 expected.len(),
                 "frame {n}: {unlabelled:?} vs {expected:?}"
             );
-            for (u, p) in unlabelled.iter().zip(expected) {
+            for (u, (_, p, _)) in unlabelled.iter().zip(expected) {
                 let u = vec3(u);
                 for i in 0..3 {
                     worst_loose_m = worst_loose_m.max((u[i] - p[i] / 1e3).abs());
                 }
             }
             loose_frames += usize::from(!expected.is_empty());
+            // NatNet 3+ clients read the labelled list: each loose LED is there as a marker of
+            // model 0 (id = loose_id + 1) flagged unlabelled, not as a model's.
+            let model0: Vec<&Value> = fr["labeled"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .filter(|m| m["id"].as_u64().unwrap() >> 16 == 0)
+                .collect();
+            assert_eq!(
+                model0.len(),
+                expected.len(),
+                "frame {n}: {model0:?} vs {expected:?}"
+            );
+            for (m, (id, p, gap)) in model0.iter().zip(expected) {
+                assert_eq!(m["id"].as_u64(), Some(u64::from(*id) + 1), "frame {n}");
+                let param = m["param"].as_u64().unwrap();
+                assert_eq!(
+                    param & 0x10,
+                    0x10,
+                    "frame {n}: unlabelled flag missing in {param:#x}"
+                );
+                assert_eq!(param & 0x0C, 0, "frame {n}: model flags in {param:#x}");
+                let q = vec3(&m["pos"]);
+                for i in 0..3 {
+                    worst_labelled_m = worst_labelled_m.max((q[i] - p[i] / 1e3).abs());
+                }
+                assert!(
+                    (f(&m["residual"]) - gap / 1e3).abs() < 1e-6,
+                    "frame {n}: residual {m}"
+                );
+                labelled_loose += 1;
+            }
         }
         let bodies = fr["rigid_bodies"].as_array().unwrap();
         assert_eq!(bodies.len(), 2, "frame {n}");
@@ -528,4 +563,89 @@ async fn natnet_client_reads_a_rigid_body_per_tool() {
         "unlabelled markers in only {loose_frames} frames"
     );
     assert!(worst_loose_m <= 1e-4, "{worst_loose_m} m");
+    println!(
+        "NatNet, loose LEDs as labelled markers of model 0: {labelled_loose} compared, largest difference \
+         {worst_labelled_m:.2e} m"
+    );
+    assert!(labelled_loose >= 100, "{labelled_loose}");
+    assert!(worst_labelled_m <= 1e-4, "{worst_labelled_m} m");
+}
+
+/// `irtrackd --ephemeral-ports 127.0.0.1` covers NatNet too: two processes with the same
+/// config (NatNet on its default fixed ports, command 0.0.0.0:1510, multicast data port 1511)
+/// start side by side; each has its command socket on 127.0.0.1 with a port of its own, and its
+/// server info names a multicast data port of its own.
+#[test]
+fn ephemeral_ports_cover_natnet_command_and_data_ports() {
+    use std::io::BufRead;
+    use std::process::{Command, Stdio};
+    let dir = TempDir::new("natnet-ephemeral");
+    let cfg = dir.path().join("irtrackd.toml");
+    std::fs::write(
+        &cfg,
+        "[leds]\nbackend = \"none\"\n[outputs.natnet]\nenabled = true\n",
+    )
+    .unwrap();
+    let exe = env!("CARGO_BIN_EXE_irtrackd");
+    let mut children = Vec::new();
+    let mut ports = Vec::new();
+    for n in 0..2 {
+        let state = dir.path().join(format!("state{n}"));
+        let mut cmd = match std::env::var("IRTRACK_TEST_RUNNER") {
+            Ok(runner) if !runner.trim().is_empty() => {
+                let mut parts = runner.split_whitespace();
+                let mut c = Command::new(parts.next().unwrap());
+                c.args(parts).arg(exe);
+                c
+            }
+            _ => Command::new(exe),
+        };
+        cmd.arg("--config")
+            .arg(&cfg)
+            .args([
+                "--ephemeral-ports",
+                "127.0.0.1",
+                "--params-from-simulator",
+                "--sim-fps",
+                "30",
+            ])
+            .arg("--state-dir")
+            .arg(&state)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null());
+        let mut child = cmd.spawn().unwrap();
+        let mut line = String::new();
+        std::io::BufReader::new(child.stdout.take().unwrap())
+            .read_line(&mut line)
+            .unwrap();
+        children.push(child);
+        let natnet: SocketAddr = line
+            .split_whitespace()
+            .find_map(|f| f.strip_prefix("natnet="))
+            .unwrap_or_else(|| panic!("no natnet= in the ready line: {line}"))
+            .parse()
+            .unwrap();
+        assert_eq!(natnet.ip().to_string(), "127.0.0.1", "{line}");
+        assert_ne!(natnet.port(), 1510, "{line}");
+        // NAT_CONNECT; the server info's data port follows the 256-byte name, two versions
+        // and the clock frequency (payload offset 272), then the multicast flag.
+        let s = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        s.send_to(&[0, 0, 0, 0], natnet).unwrap();
+        let mut buf = [0u8; 1024];
+        let (len, from) = s.recv_from(&mut buf).expect("server info within 5 s");
+        assert_eq!((from, len, buf[0]), (natnet, 4 + 279, 1), "server info");
+        let data_port = u16::from_le_bytes([buf[4 + 272], buf[4 + 273]]);
+        assert_eq!(buf[4 + 274], 1, "multicast flag");
+        assert!(data_port != 1511 && data_port != 0, "data port {data_port}");
+        println!("instance {n}: NatNet command {natnet}, multicast data port {data_port}");
+        ports.push((natnet.port(), data_port));
+    }
+    for mut c in children {
+        c.kill().unwrap();
+        c.wait().unwrap();
+    }
+    assert_ne!(ports[0].0, ports[1].0, "{ports:?}");
+    assert_ne!(ports[0].1, ports[1].1, "{ports:?}");
 }

@@ -54,6 +54,10 @@ pub struct WandConfig {
     pub turns: f64,
     /// "Up" direction in camera 0's frame (the wand turns about it).
     pub up: Vector3<f64>,
+    /// A wand that is not straight: each LED sits `bend_mm · 4u(1 − u)` off the line through
+    /// the end LEDs (u: its fraction of the way from end 0), sideways to the wand (along
+    /// `dir × up`, so the bend turns with the wand). 0: straight (the default).
+    pub bend_mm: f64,
     /// Radius of an LED's emitting disk (mm).
     pub led_radius_mm: f64,
     /// Lens point-spread function, standard deviation (px).
@@ -93,6 +97,7 @@ impl WandConfig {
             max_elevation_deg: 50.0,
             turns: 4.0,
             up: Vector3::new(0.0, -1.0, 0.0),
+            bend_mm: 0.0,
             led_radius_mm: 1.5,
             psf_sigma_px: 0.9,
             peak_dn_at_1m: 230.0,
@@ -154,6 +159,9 @@ impl WandConfig {
         }
         for (c, t) in self.timing.iter().enumerate() {
             t.validate(c)?;
+        }
+        if !self.bend_mm.is_finite() {
+            return bad("bend_mm", format!("{} must be finite", self.bend_mm));
         }
         if !(self.psf_sigma_px > 0.05 && self.up.norm() > 0.0) {
             return bad("psf_sigma_px/up", "PSF must be > 0.05 px and up non-zero".into());
@@ -312,6 +320,27 @@ impl WandWave {
         }
     }
 
+    /// Where LED `s_mm` is at wave frame `at` (camera 0 frame): on the wand's line, plus the
+    /// sideways bow of a wand that is not straight ([`WandConfig::bend_mm`]).
+    pub fn led_at(&self, at: f64, s_mm: f64) -> Vector3<f64> {
+        let c = &self.cfg;
+        let pose = self.pose_at(at);
+        let p = pose.led(s_mm);
+        if c.bend_mm == 0.0 {
+            return p;
+        }
+        let (first, last) = (c.leds_mm[0], c.leds_mm[c.leds_mm.len() - 1]);
+        let u = (s_mm - first) / (last - first);
+        let side = pose.dir.cross(&c.up);
+        // A wand along `up` has no sideways direction from it; any perpendicular will do.
+        let side = if side.norm() > 1e-9 {
+            side.normalize()
+        } else {
+            pose.dir.cross(&Vector3::x()).normalize()
+        };
+        p + side * (c.bend_mm * 4.0 * u * (1.0 - u))
+    }
+
     /// Camera `camera`'s exposure of `frame` (middle of row 0) in wave frames, and the
     /// timestamp it reports (ns, signed; see [`crate::timing`]).
     pub fn frame_time(&self, frame: usize, camera: usize) -> (f64, i64) {
@@ -329,7 +358,7 @@ impl WandWave {
     /// 0 frame), at the instant its row was exposed with a rolling shutter.
     fn led_seen(&self, camera: usize, at: f64, s_mm: f64) -> Vector3<f64> {
         let c = &self.cfg;
-        let mut p = self.pose_at(at).led(s_mm);
+        let mut p = self.led_at(at, s_mm);
         let line_frames = c
             .timing
             .get(camera)
@@ -340,7 +369,7 @@ impl WandWave {
                 let Ok(px) = cam.model.project(&cam.cam_from_cam0.apply(&p)) else {
                     break;
                 };
-                p = self.pose_at(at + px.y.max(0.0) * line_frames).led(s_mm);
+                p = self.led_at(at + px.y.max(0.0) * line_frames, s_mm);
             }
         }
         p
@@ -694,6 +723,27 @@ mod tests {
             }
         }
         assert!(moved > 1.0, "timing moved the LEDs by at most {moved} px");
+    }
+
+    #[test]
+    fn a_bent_wand_bows_its_middle_leds_sideways() {
+        let mut cfg = wave().config().clone();
+        cfg.bend_mm = 4.0;
+        let bent = WandWave::new(cfg).unwrap();
+        let straight = wave();
+        for frame in (0..200).step_by(13) {
+            let at = frame as f64;
+            let (a, b) = (bent.led_at(at, 0.0), bent.led_at(at, 300.0));
+            // The ends stay where the straight wand has them.
+            assert!((a - straight.led_at(at, 0.0)).norm() < 1e-9);
+            assert!((b - straight.led_at(at, 300.0)).norm() < 1e-9);
+            let m = bent.led_at(at, 120.0);
+            let axis = (b - a).normalize();
+            let off = (m - a) - axis * (m - a).dot(&axis);
+            // 4 · 0.4 · 0.6 · 4 mm, perpendicular to the wand.
+            assert!((off.norm() - 3.84).abs() < 1e-9, "frame {frame}: {}", off.norm());
+            assert!(((m - a).dot(&axis) - 120.0).abs() < 1e-9);
+        }
     }
 
     #[test]

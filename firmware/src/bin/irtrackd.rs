@@ -61,7 +61,7 @@ struct Cli {
     write_ptp_config: Option<PathBuf>,
 }
 
-fn apply_overrides(cfg: &mut Config, cli: &Cli) {
+fn apply_overrides(cfg: &mut Config, cli: &Cli) -> anyhow::Result<()> {
     if let Some(k) = cli.source {
         cfg.source.kind = k;
     }
@@ -87,6 +87,8 @@ fn apply_overrides(cfg: &mut Config, cli: &Cli) {
         cfg.listen.stream_ndjson = a.clone();
         cfg.listen.stream_binary = a.clone();
         cfg.listen.status = a;
+        // NatNet's command and (multicast) data ports too: its defaults are fixed ports.
+        cfg.outputs.natnet.use_ephemeral_ports(ip)?;
     }
     for (v, slot) in [
         (&cli.listen_params, &mut cfg.listen.params),
@@ -104,6 +106,7 @@ fn apply_overrides(cfg: &mut Config, cli: &Cli) {
     if cli.params_from_simulator {
         cfg.service.params_from_simulator = true;
     }
+    Ok(())
 }
 
 fn load_config(cli: &Cli) -> anyhow::Result<Config> {
@@ -115,7 +118,7 @@ fn load_config(cli: &Cli) -> anyhow::Result<Config> {
         Some(p) => Config::load(p)?,
         None => Config::default(),
     };
-    apply_overrides(&mut cfg, cli);
+    apply_overrides(&mut cfg, cli)?;
     cfg.validate().context("after command-line overrides")?;
     Ok(cfg)
 }

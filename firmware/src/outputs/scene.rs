@@ -154,7 +154,8 @@ pub struct SceneFrame {
     pub marker_sets: Vec<Vec<[f64; 3]>>,
     /// One entry per rigid body model, in id order.
     pub bodies: Vec<BodySample>,
-    /// Every 3-D marker of the frame (labelled list); single-LED markers have model id 0.
+    /// Every 3-D marker of the frame (labelled list); the single LED and loose LEDs have model
+    /// id 0 ([`loose_marker_id`]).
     pub markers: Vec<MarkerSample>,
     /// Markers that belong to no model: the single LED, or with tools the loose single LEDs
     /// of the set (from the per-tool slot, by increasing loose id).
@@ -174,6 +175,12 @@ pub struct LooseSample {
     pub loose_id: u32,
     /// Position, metres, in the output's axes.
     pub position_m: [f64; 3],
+}
+
+/// The labelled-marker id of a loose LED: model 0, marker number from its stable `loose_id`
+/// (1 … 65535: ids wrap after 65535, far more than the 16 loose LEDs a set can hold at once).
+pub fn loose_marker_id(loose_id: u32) -> u32 {
+    loose_id % 0xFFFF + 1
 }
 
 /// Turns position records into [`SceneFrame`]s for a set of [`Models`] and [`Axes`].
@@ -303,12 +310,19 @@ impl SceneBuilder {
                 }
             }
         }
-        // Loose single LEDs (no model): unlabelled markers of the set.
+        // Loose single LEDs (no model): the legacy unlabelled list of NatNet 2 clients, and
+        // labelled markers of model 0 flagged unlabelled, which NatNet 3+ clients read instead.
         if let Some(ts) = &tool_set {
             for l in ts.loose_records() {
-                let (tracked, p_m, _) = sample(&l.record);
+                let (tracked, p_m, error_m) = sample(&l.record);
                 if tracked {
                     out.unlabelled_m.push(p_m.into());
+                    out.markers.push(MarkerSample {
+                        id: loose_marker_id(l.loose_id),
+                        position_m: p_m.into(),
+                        residual_m: error_m,
+                        model_solved: false,
+                    });
                     out.loose.push(LooseSample {
                         loose_id: l.loose_id,
                         position_m: p_m.into(),
@@ -409,5 +423,58 @@ mod tests {
         b.fill(&lost, &mut f);
         assert!(f.unlabelled_m.is_empty() && f.markers.is_empty());
         assert_eq!(f.marker_sets, vec![vec![[0.0; 3]]]);
+    }
+
+    #[test]
+    fn loose_leds_are_unlabelled_markers_of_model_0_and_in_the_legacy_list() {
+        use crate::engine::ToolSet;
+        use irtrack_core::stream::LooseRecord;
+        let models = Models {
+            list: vec![ModelDef {
+                id: 1,
+                name: "t".into(),
+                markers_m: vec![[0.0; 3], [0.1, 0.0, 0.0], [0.0, 0.05, 0.0]],
+                rigid_body: true,
+            }],
+        };
+        let main = rec([10.0, 20.0, 1000.0], Some([1.0, 0.0, 0.0, 0.0]), false);
+        let mut ts = ToolSet::EMPTY;
+        ts.frame = main.frame;
+        ts.count = 1;
+        ts.tools[0] = Some(irtrack_core::stream::ToolRecord::new(0, 1, "t", main).unwrap());
+        for (k, (id, p)) in [(4u32, [1.0, 2.0, 3.0]), (70_000, [4.0, 5.0, 6.0])]
+            .into_iter()
+            .enumerate()
+        {
+            let mut r = rec(p, None, false);
+            r.gap_mm = 0.25;
+            ts.loose[k] = Some(LooseRecord {
+                loose_id: id,
+                loose_count: 2,
+                frames_tracked: 9,
+                record: r,
+            });
+        }
+        ts.loose_leds = 2;
+        let b = SceneBuilder::new(models, Axes::Tracker);
+        let mut f = SceneFrame::default();
+        b.fill_with(&main, Some(&ts), &mut f);
+        assert_eq!(f.unlabelled_m, vec![[0.001, 0.002, 0.003], [0.004, 0.005, 0.006]]);
+        // The tool's 3 LEDs, then the loose LEDs as model 0, numbered from their stable ids.
+        assert_eq!(f.markers.len(), 5);
+        let loose: Vec<(u32, [f64; 3], f64, bool)> = f.markers[3..]
+            .iter()
+            .map(|m| (m.id, m.position_m, m.residual_m, m.model_solved))
+            .collect();
+        assert_eq!(
+            loose,
+            vec![
+                (5, [0.001, 0.002, 0.003], 0.00025, false),
+                (70_000 % 65_535 + 1, [0.004, 0.005, 0.006], 0.00025, false)
+            ]
+        );
+        assert!(f.markers[3..].iter().all(|m| m.id >> 16 == 0));
+        assert_eq!(loose_marker_id(65_534), 65_535);
+        assert_eq!(loose_marker_id(65_535), 1);
     }
 }

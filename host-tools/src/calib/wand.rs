@@ -488,6 +488,190 @@ pub fn identify(
     }
 }
 
+/// The spots of one frame (blob centroids not touching the frame's edge, distorted pixels).
+fn spots(
+    detector: &mut BlobDetector,
+    pgm: &pgm::Pgm,
+    path: &Path,
+    out: &mut Vec<Vector2<f64>>,
+) -> Result<()> {
+    let threshold_dn = (THRESHOLD_DN_8BIT as f64 * (pgm.maxval as f64 + 1.0) / 256.0).round() as u32;
+    let cfg = BlobConfig {
+        threshold_dn,
+        saturation_dn: Some(pgm.maxval as u32),
+        ..BlobConfig::default()
+    };
+    let (w, h) = (pgm.width_px, pgm.height_px);
+    let blobs = match &pgm.pixels {
+        PgmPixels::U8(d) => detector.detect(&GrayImage::new(d, w, h, w)?, None, &cfg),
+        PgmPixels::U16(d) => detector.detect(&GrayImage::new(d, w, h, w)?, None, &cfg),
+    }
+    .map_err(|e| anyhow!("{}: blob detection: {e}", path.display()))?;
+    out.clear();
+    out.extend(
+        blobs
+            .iter()
+            .filter(|b| !b.touches_frame_edge)
+            .map(|b| Vector2::new(b.x_px, b.y_px)),
+    );
+    Ok(())
+}
+
+/// `model` for the same camera at another resolution: focal lengths and principal point
+/// scaled by `s` (pixel centres kept), distortion unchanged (it acts on normalised
+/// coordinates), as binning or a scaled sensor mode gives.
+pub fn scaled_model(model: &CameraModel, s: f64, size: ImageSize) -> CameraModel {
+    let k = &model.intrinsics;
+    CameraModel {
+        intrinsics: Intrinsics {
+            fx_px: k.fx_px * s,
+            fy_px: k.fy_px * s,
+            cx_px: (k.cx_px + 0.5) * s - 0.5,
+            cy_px: (k.cy_px + 0.5) * s - 0.5,
+        },
+        distortion: model.distortion,
+        image_size: size,
+    }
+}
+
+/// Frames of one camera the size diagnosis looks at (spread over the recording).
+const SIZE_PROBE_FRAMES: usize = 300;
+/// The size diagnosis judges straightness on views whose end LEDs lie within this share of
+/// the image height in rows (a rolling shutter leaves those straight).
+const LEVEL_ROWS: f64 = 0.03;
+/// Level spots lying within this of a straight line (upper quartile, px) fit the intrinsics:
+/// simulated, 0.05 px with the right ones, 0.12–0.16 px with another lens's.
+const LEVEL_BEND_PX: f64 = 0.1;
+
+/// The size of camera `c`'s first frame, if it can be read.
+fn frame_size(rec: &Recording, c: usize) -> Option<ImageSize> {
+    let name = rec.frames.first()?;
+    let bytes = std::fs::read(rec.dirs.get(c)?.join(name)).ok()?;
+    let pgm = pgm::decode(&bytes).ok()?;
+    Some(ImageSize {
+        width_px: pgm.width_px,
+        height_px: pgm.height_px,
+    })
+}
+
+/// How one set of intrinsics fits a camera's frames: the share of frames showing the wand in
+/// which it is identified, and how straight its spots lie.
+struct SizeTest {
+    share: f64,
+    bend_px: Option<f64>,
+}
+
+impl SizeTest {
+    fn fits(&self) -> bool {
+        self.share >= 0.5 && self.bend_px.is_some_and(|b| b <= LEVEL_BEND_PX)
+    }
+
+    fn text(&self) -> String {
+        format!(
+            "the wand identified in {:.0} % of the frames showing it, its level spots {} off a straight line",
+            self.share * 100.0,
+            self.bend_px
+                .map_or("too few to judge".to_string(), |b| format!("{b:.2} px"))
+        )
+    }
+}
+
+/// Why camera `ci`'s frames (of size `frame`) do not match its intrinsics' size, each
+/// hypothesis tested on the camera's frames: another resolution of the same camera (the same
+/// aspect: its intrinsics scaled), or the cameras listed in another order (only when swapping
+/// two cameras' intrinsics fits both cameras' frame sizes). Says so when it cannot tell.
+fn size_cause(rec: &Recording, models: &[CameraModel], wand: &Wand, ci: usize, frame: ImageSize) -> String {
+    let given = &models[ci].image_size;
+    let (sx, sy) = (
+        f64::from(frame.width_px) / f64::from(given.width_px),
+        f64::from(frame.height_px) / f64::from(given.height_px),
+    );
+    let scaled = ((sx - sy).abs() <= 0.002 * sx).then(|| scaled_model(&models[ci], sx, frame));
+    let swap = (0..models.len()).find(|m| {
+        *m != ci && models[*m].image_size == frame && frame_size(rec, *m) == Some(models[ci].image_size)
+    });
+    if scaled.is_none() && swap.is_none() {
+        return format!(
+            "intrinsics of another camera, or of another resolution or sensor window; cannot tell which from \
+             the frames: the sizes differ in aspect, so no scaling fits, and no other order of the cameras \
+             fits every camera's frame size; calibrate cam{ci}'s intrinsics at {}x{} px",
+            frame.width_px, frame.height_px
+        );
+    }
+    // Spots of up to SIZE_PROBE_FRAMES frames showing at least as many spots as LEDs.
+    let step = (rec.frames.len() / SIZE_PROBE_FRAMES).max(1);
+    let mut frames_spots = Vec::new();
+    if let Ok(mut detector) = BlobDetector::new(BlobLimits::for_frame(frame.width_px, frame.height_px)) {
+        let mut buf = Vec::new();
+        for name in rec.frames.iter().step_by(step) {
+            let path = rec.dirs[ci].join(name);
+            let Ok(bytes) = std::fs::read(&path) else { continue };
+            let Ok(pgm) = pgm::decode(&bytes) else { continue };
+            if (pgm.width_px, pgm.height_px) == (frame.width_px, frame.height_px)
+                && spots(&mut detector, &pgm, &path, &mut buf).is_ok()
+                && buf.len() >= wand.len()
+            {
+                frames_spots.push(buf.clone());
+            }
+        }
+    }
+    let test = |model: &CameraModel| {
+        let views: Vec<LedPixels> = frames_spots
+            .iter()
+            .filter_map(|b| identify(model, wand, b).ok())
+            .collect();
+        // Raw spots: a rolling shutter bends a turning wand's image through its rows' delays,
+        // except where its ends lie on nearly the same rows; lens distortion bends those too.
+        let level = views
+            .iter()
+            .filter(|v| (v[v.len() - 1].y - v[0].y).abs() <= LEVEL_ROWS * f64::from(frame.height_px));
+        SizeTest {
+            share: views.len() as f64 / frames_spots.len().max(1) as f64,
+            bend_px: super::wand_quality::bend_px(level, model),
+        }
+    };
+    let scaled_test = scaled.as_ref().map(&test);
+    let swap_test = swap.map(|m| (m, test(&models[m])));
+    let resolution = |t: &SizeTest| {
+        format!(
+            "intrinsics of the same camera at another resolution (binning or a scaled mode): scaled by {sx:.3} \
+             they fit its frames ({}); calibrate the intrinsics at the resolution the camera runs at, or scale \
+             fx, fy, cx, cy by {sx:.3}",
+            t.text()
+        )
+    };
+    let order = |m: usize, t: &SizeTest| {
+        format!(
+            "cameras in another order: the intrinsics given for cam{m} are for this size and fit its frames ({}), \
+             and cam{m}'s frames have the size of cam{ci}'s intrinsics: --intrinsics lists the cameras in another \
+             order than the cam directories of --frames",
+            t.text()
+        )
+    };
+    match (&scaled_test, &swap_test) {
+        (Some(s), Some((m, o))) if s.fits() && o.fits() => {
+            format!("cannot tell which: {}; or {}", resolution(s), order(*m, o))
+        }
+        (Some(s), _) if s.fits() => resolution(s),
+        (_, Some((m, o))) if o.fits() => order(*m, o),
+        _ => {
+            let mut tried = Vec::new();
+            if let Some(s) = &scaled_test {
+                tried.push(format!("its own scaled by {sx:.3} ({})", s.text()));
+            }
+            if let Some((m, o)) = &swap_test {
+                tried.push(format!("cam{m}'s ({})", o.text()));
+            }
+            format!(
+                "intrinsics of another camera: neither {} fit its frames; calibrate cam{ci}'s intrinsics at {}x{} px",
+                tried.join(" nor "),
+                frame.width_px,
+                frame.height_px
+            )
+        }
+    }
+}
+
 /// Reads every frame, detects blobs and identifies the wand per camera. Shows a progress bar on
 /// a terminal.
 pub fn observe(rec: &Recording, models: &[CameraModel], wand: &Wand) -> Result<WandObservations> {
@@ -524,53 +708,21 @@ pub fn observe(rec: &Recording, models: &[CameraModel], wand: &Wand) -> Result<W
             let pgm = pgm::decode(&bytes).with_context(|| format!("decoding {}", path.display()))?;
             let size = models[ci].image_size;
             if (pgm.width_px, pgm.height_px) != (size.width_px, size.height_px) {
-                // Name the camera whose intrinsics would fit, if one does.
-                let fits: Vec<String> = models
-                    .iter()
-                    .enumerate()
-                    .filter(|(m, mm)| {
-                        *m != ci
-                            && (mm.image_size.width_px, mm.image_size.height_px)
-                                == (pgm.width_px, pgm.height_px)
-                    })
-                    .map(|(m, _)| format!("cam{m}"))
-                    .collect();
-                let hint = if fits.is_empty() {
-                    "intrinsics of another camera, or of another resolution or binning".to_string()
-                } else {
-                    format!(
-                        "the intrinsics given for {} are for that size: cameras in another order?",
-                        fits.join(", ")
-                    )
+                let frame = ImageSize {
+                    width_px: pgm.width_px,
+                    height_px: pgm.height_px,
                 };
                 bail!(
-                    "{}: {}x{} px, but the intrinsics of camera {ci} are for {}x{} px ({hint})",
+                    "{}: {}x{} px, but the intrinsics of camera {ci} are for {}x{} px ({})",
                     path.display(),
                     pgm.width_px,
                     pgm.height_px,
                     size.width_px,
-                    size.height_px
+                    size.height_px,
+                    size_cause(rec, models, wand, ci, frame)
                 );
             }
-            let threshold_dn = (THRESHOLD_DN_8BIT as f64 * (pgm.maxval as f64 + 1.0) / 256.0).round() as u32;
-            let cfg = BlobConfig {
-                threshold_dn,
-                saturation_dn: Some(pgm.maxval as u32),
-                ..BlobConfig::default()
-            };
-            let (w, h) = (pgm.width_px, pgm.height_px);
-            let blobs = match &pgm.pixels {
-                PgmPixels::U8(d) => detectors[ci].detect(&GrayImage::new(d, w, h, w)?, None, &cfg),
-                PgmPixels::U16(d) => detectors[ci].detect(&GrayImage::new(d, w, h, w)?, None, &cfg),
-            }
-            .map_err(|e| anyhow!("{}: blob detection: {e}", path.display()))?;
-            blobs_px.clear();
-            blobs_px.extend(
-                blobs
-                    .iter()
-                    .filter(|b| !b.touches_frame_edge)
-                    .map(|b| Vector2::new(b.x_px, b.y_px)),
-            );
+            spots(&mut detectors[ci], &pgm, &path, &mut blobs_px)?;
             row.push(identify(&models[ci], wand, &blobs_px));
             blob_row.push(blobs_px.clone());
             bar.inc(1);

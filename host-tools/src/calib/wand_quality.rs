@@ -1,14 +1,17 @@
 //! Quality gate of a wand calibration and its likely causes (docs/calibration.md, "Quality
-//! gates"). The causes are computed: the LED spacing the data fit (the middle LEDs triangulated
-//! freely with the calibrated rig, checked by solving again with that spacing), which camera's
-//! intrinsics disagree with its images (how straight the straight wand's spots lie after undistortion with
-//! its own intrinsics and with every other camera's), and the wave's length, tilt and image coverage.
+//! gates"). Each cause of a poor fit is a hypothesis tested against the data by solving the wave
+//! again with the input it blames changed: the LED spacing the data fit (the inner LEDs
+//! triangulated freely with the calibrated rig), another camera's intrinsics or the cameras
+//! swapped (suspected from how straight each camera's identified LEDs lie after undistortion),
+//! the rig without one camera. Named only when that solve fits; a wand that is not straight is
+//! found from the freely triangulated LEDs; otherwise it says it cannot tell. The wave's length,
+//! tilt and image coverage are named from their own figures.
 
 use irtrack_core::camera::CameraModel;
-use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use nalgebra::{Matrix3, SymmetricEigen, Vector2, Vector3};
 
 use super::quality::{Check, Gate, median};
-use super::wand::{Wand, WandObservations, identify};
+use super::wand::{LedPixels, Wand, WandObservations, identify};
 use super::wand_boards::BoardView;
 use super::wand_report::Figures;
 use super::wand_solve::{self, SolveOptions, WandSolution};
@@ -84,52 +87,47 @@ pub fn spacing_text(leds_mm: &[f64]) -> String {
 const STRAIGHT_PX: f64 = 0.15;
 const STRAIGHT_FACTOR: f64 = 3.0;
 
-/// How far the spots of camera `c`'s frames showing exactly `k` spots lie from a straight line
-/// after undistortion with `model` (px at the model's focal length): per frame the RMS distance
-/// of the inner spots from the line through the outermost two, the upper quartile over frames
-/// (robust to the odd frame whose spots are not the wand, yet weighted towards the image edges
-/// where distortion shows). The wand is straight, so with the right intrinsics this is the
-/// centroid noise. `None` with fewer than 5 such frames.
-pub fn straightness_px(obs: &WandObservations, c: usize, model: &CameraModel, k: usize) -> Option<f64> {
+/// How far the identified LEDs of the given views lie from a straight line after undistortion
+/// with `model` (px at the model's focal length): per view the RMS distance of the inner LEDs
+/// from the line through the two ends, the upper quartile over views (weighted towards the image
+/// edges, where distortion shows). The wand is straight, so with the right intrinsics this is
+/// the centroid noise, whatever the LED spacing or the rig. Only identified views count (a stray
+/// spot is never taken for an LED), and with timestamps they are the retimed LEDs (a rolling
+/// shutter's row delays taken out). `None` with fewer than 5 views.
+pub fn bend_px<'a>(views: impl Iterator<Item = &'a LedPixels>, model: &CameraModel) -> Option<f64> {
     let f = model.intrinsics.fx_px;
-    let mut per_frame = Vec::new();
-    for row in &obs.blobs {
-        let blobs = &row[c];
-        if blobs.len() != k || k < 3 {
+    let mut per_view = Vec::new();
+    for px in views {
+        let k = px.len();
+        if k < 3 {
             continue;
         }
-        let und: Vec<nalgebra::Vector2<f64>> = blobs
+        let und: Vec<Vector2<f64>> = px.iter().map(|p| model.undistort_point(p.x, p.y) * f).collect();
+        let ab = und[k - 1] - und[0];
+        let len = ab.norm();
+        if len < 1e-6 {
+            continue;
+        }
+        let dir = ab / len;
+        let s2: f64 = und[1..k - 1]
             .iter()
-            .map(|p| model.undistort_point(p.x, p.y) * f)
-            .collect();
-        // The outermost pair: the two spots farthest apart.
-        let (mut a, mut b, mut far) = (0, 1, 0.0);
-        for i in 0..k {
-            for j in i + 1..k {
-                let d = (und[i] - und[j]).norm();
-                if d > far {
-                    (a, b, far) = (i, j, d);
-                }
-            }
-        }
-        if far < 1e-6 {
-            continue;
-        }
-        let dir = (und[b] - und[a]) / far;
-        let s2: f64 = (0..k)
-            .filter(|i| *i != a && *i != b)
-            .map(|i| {
-                let v = und[i] - und[a];
+            .map(|p| {
+                let v = p - und[0];
                 (v.x * dir.y - v.y * dir.x).powi(2)
             })
             .sum();
-        per_frame.push((s2 / (k - 2) as f64).sqrt());
+        per_view.push((s2 / (k - 2) as f64).sqrt());
     }
-    if per_frame.len() < 5 {
+    if per_view.len() < 5 {
         return None;
     }
-    per_frame.sort_by(f64::total_cmp);
-    Some(per_frame[per_frame.len() * 3 / 4])
+    per_view.sort_by(f64::total_cmp);
+    Some(per_view[per_view.len() * 3 / 4])
+}
+
+/// [`bend_px`] of camera `c`'s identified views, undistorted with `model`.
+pub fn straightness_px(obs: &WandObservations, c: usize, model: &CameraModel) -> Option<f64> {
+    bend_px(obs.views.iter().filter_map(|row| row[c].as_ref().ok()), model)
 }
 
 /// Share of camera `c`'s frames with the wand in view (≥ as many spots as LEDs) in which
@@ -179,78 +177,119 @@ pub struct WandRun<'a> {
     pub fig: &'a Figures,
 }
 
-/// Likely causes in the intrinsics, from the spots alone (no solution needed, so they can be
-/// given when the adjustment itself fails): a camera whose spots lie straight with another
-/// camera's intrinsics but not with its own. Returns the causes and which cameras they name.
-pub fn intrinsics_causes(
-    models: &[CameraModel],
-    obs: &WandObservations,
-    wand: &Wand,
-) -> (Vec<String>, Vec<bool>) {
+/// A camera whose wand spots do not lie straight with its own intrinsics.
+struct Suspect {
+    camera: usize,
+    /// [`straightness_px`] with its own intrinsics.
+    own_px: f64,
+    /// The median of the other cameras' own figures.
+    others_px: f64,
+    /// Other cameras whose intrinsics straighten its spots (camera, px), best first.
+    better: Vec<(usize, f64)>,
+}
+
+/// The cameras the spots point at: own figure above STRAIGHT_PX and STRAIGHT_FACTOR times what
+/// another camera's intrinsics (of the same image size) leave, or what the other cameras show
+/// with their own. A wand that is not straight bends every camera's spots alike and names none.
+fn suspects(models: &[CameraModel], obs: &WandObservations) -> Vec<Suspect> {
     let n_cam = models.len();
-    let mut out = Vec::new();
-    // Intrinsics: how straight the wand's spots lie after undistortion with each camera's own
-    // intrinsics and with every other camera's (of the same image size).
     let straight: Vec<Vec<Option<f64>>> = (0..n_cam)
         .map(|c| {
             (0..n_cam)
                 .map(|m| {
                     (models[m].image_size == models[c].image_size)
-                        .then(|| straightness_px(obs, c, &models[m], wand.len()))
+                        .then(|| straightness_px(obs, c, &models[m]))
                         .flatten()
                 })
                 .collect()
         })
         .collect();
-    let own_s = |c: usize| straight[c][c];
-    // A camera's own fit is bad when its spots bend by more than STRAIGHT_PX and by more than
-    // STRAIGHT_FACTOR times what another camera's intrinsics leave.
-    let better = |c: usize| -> Option<(usize, f64)> {
-        let mine = own_s(c)?;
-        (0..n_cam)
-            .filter(|m| *m != c)
-            .filter_map(|m| straight[c][m].map(|s| (m, s)))
-            .filter(|(_, s)| mine > STRAIGHT_PX && mine > STRAIGHT_FACTOR * s)
-            .min_by(|a, b| a.1.total_cmp(&b.1))
-    };
-    let mut named = vec![false; n_cam];
+    let mut out = Vec::new();
     for c in 0..n_cam {
-        if named[c] {
+        let Some(own_px) = straight[c][c] else { continue };
+        let mut others: Vec<f64> = (0..n_cam)
+            .filter(|d| *d != c)
+            .filter_map(|d| straight[d][d])
+            .collect();
+        let others_px = median(&mut others);
+        let mut better: Vec<(usize, f64)> = (0..n_cam)
+            .filter(|m| *m != c && models[*m] != models[c])
+            .filter_map(|m| straight[c][m].map(|s| (m, s)))
+            .filter(|(_, s)| own_px > STRAIGHT_FACTOR * s)
+            .collect();
+        better.sort_by(|a, b| a.1.total_cmp(&b.1));
+        if own_px > STRAIGHT_PX && (!better.is_empty() || own_px > STRAIGHT_FACTOR * others_px) {
+            out.push(Suspect {
+                camera: c,
+                own_px,
+                others_px,
+                better,
+            });
+        }
+    }
+    out
+}
+
+/// Whether suspect `s`'s best substitute is itself a suspect straightened by `s`'s intrinsics.
+fn swapped_with(s: &Suspect, all: &[Suspect]) -> Option<usize> {
+    let &(m, _) = s.better.first()?;
+    all.iter()
+        .find(|t| t.camera == m && t.better.first().is_some_and(|(b, _)| *b == s.camera))
+        .map(|t| t.camera)
+}
+
+fn swap_text(s: &Suspect, all: &[Suspect]) -> Option<String> {
+    let m = swapped_with(s, all)?;
+    let t = all.iter().find(|t| t.camera == m)?;
+    let (c, sc) = (s.camera, s.better[0].1);
+    Some(format!(
+        "swapped camera order: cam{c}'s wand spots lie straight with the intrinsics given for cam{m} \
+         ({sc:.2} px off a straight line, {:.2} px with its own) and cam{m}'s with cam{c}'s ({:.2} px, \
+         {:.2} px with its own): --intrinsics lists the cameras in another order than the cam \
+         directories of --frames",
+        s.own_px, t.better[0].1, t.own_px
+    ))
+}
+
+fn suspect_text(s: &Suspect) -> String {
+    let c = s.camera;
+    match s.better.first() {
+        Some((m, sm)) => format!(
+            "cam{c}'s intrinsics do not fit its images: its wand spots lie {:.2} px off a straight line \
+             (upper quartile) after undistortion with them, {sm:.2} px with cam{m}'s: intrinsics of another \
+             camera or lens, or a rolling shutter not given with --timing",
+            s.own_px
+        ),
+        None => format!(
+            "cam{c}'s intrinsics do not fit its images: the spots of the straight wand lie {:.2} px off a \
+             straight line after undistortion (upper quartile over frames; the other cameras: {:.2} px): \
+             intrinsics (distortion) of another camera or lens, or a rolling shutter not given with --timing",
+            s.own_px, s.others_px
+        ),
+    }
+}
+
+/// Likely causes in the intrinsics, from the spots alone (no solution needed, so they can be
+/// given when the adjustment itself fails): a camera whose identified spots lie straight with
+/// another camera's intrinsics but not with its own, or far less straight than the others'.
+pub fn intrinsics_causes(models: &[CameraModel], obs: &WandObservations) -> Vec<String> {
+    let all = suspects(models, obs);
+    let mut named = vec![false; models.len()];
+    let mut out = Vec::new();
+    for s in &all {
+        if named[s.camera] {
             continue;
         }
-        let Some((m, s)) = better(c) else { continue };
-        let mine = own_s(c).unwrap_or(f64::NAN);
-        if better(m).is_some_and(|(back, _)| back == c) {
-            let (sm, mm) = (straight[m][c].unwrap_or(f64::NAN), own_s(m).unwrap_or(f64::NAN));
-            out.push(format!(
-                "swapped camera order: cam{c}'s wand spots lie straight with the intrinsics given for cam{m} \
-                 ({s:.2} px off a straight line, {mine:.2} px with its own) and cam{m}'s with cam{c}'s ({sm:.2} px, \
-                 {mm:.2} px with its own): --intrinsics lists the cameras in another order than the cam \
-                 directories of --frames"
-            ));
-            named[m] = true;
-        } else {
-            out.push(format!(
-                "cam{c}'s intrinsics do not fit its images: its wand spots lie {mine:.2} px off a straight line \
-                 (upper quartile) after undistortion with them, {s:.2} px with cam{m}'s: intrinsics of another camera or lens"
-            ));
-        }
-        named[c] = true;
-    }
-    for (c, named_c) in named.iter_mut().enumerate() {
-        let Some(mine) = own_s(c) else { continue };
-        let mut others: Vec<f64> = (0..n_cam).filter(|d| *d != c).filter_map(own_s).collect();
-        let typical = median(&mut others);
-        if !*named_c && mine > STRAIGHT_PX && mine > STRAIGHT_FACTOR * typical {
-            out.push(format!(
-                "cam{c}'s intrinsics do not fit its images: the spots of the straight wand lie {mine:.2} px off a \
-                 straight line after undistortion (upper quartile over frames; the other cameras: {typical:.2} px): intrinsics \
-                 (distortion) of another camera or lens, or for another resolution or binning"
-            ));
-            *named_c = true;
+        named[s.camera] = true;
+        match (swapped_with(s, &all), swap_text(s, &all)) {
+            (Some(m), Some(t)) => {
+                named[m] = true;
+                out.push(t);
+            }
+            _ => out.push(suspect_text(s)),
         }
     }
-    (out, named)
+    out
 }
 
 /// Judges a wand calibration and, when a limit fails, computes the likely causes.
@@ -347,41 +386,22 @@ pub fn judge(run: &WandRun) -> Gate {
 }
 
 fn causes(run: &WandRun, length_rms: f64, tilt: f64) -> Vec<String> {
-    let WandRun {
-        models,
-        obs,
-        wand,
-        fig,
-        ..
-    } = *run;
-    let n_cam = models.len();
-    let (mut out, mut named) = intrinsics_causes(models, obs, wand);
-    // One camera's reprojection error far above the others'.
+    let fig = run.fig;
     let rms = &fig.per_camera_rms_px;
-    if n_cam >= 3 {
-        for c in 0..n_cam {
-            let mut others: Vec<f64> = (0..n_cam).filter(|d| *d != c).map(|d| rms[d]).collect();
-            let typical = median(&mut others).max(0.05);
-            if !named[c] && rms[c] > MAX_RMS_PX && rms[c] > 3.0 * typical {
-                out.push(format!(
-                    "cam{c} disagrees with the other cameras: reprojection RMS {:.2} px against {typical:.2} px: \
-                     its intrinsics are from another camera, or its frames are another camera's",
-                    rms[c]
-                ));
-                named[c] = true;
-            }
-        }
-    }
-    // Spacing: where the data put the LEDs, confirmed by solving with that spacing.
     let fit_failed = rms.iter().any(|r| r.is_nan() || *r > MAX_RMS_PX)
         || length_rms.is_nan()
         || length_rms > MAX_LENGTH_RMS_MM;
-    if fit_failed
-        && !named.iter().any(|n| *n)
-        && let Some(found) = spacing_cause(run)
-    {
-        out.insert(0, found);
-    }
+    let identified = |c: usize| identified_share(run.obs, c, &run.models[c], run.wand).unwrap_or(1.0);
+    let poorly_identified: Vec<usize> = (0..run.models.len())
+        .filter(|c| identified(*c) < MIN_IDENTIFIED)
+        .collect();
+    let mut out = if fit_failed {
+        fit_causes(run)
+    } else if !poorly_identified.is_empty() {
+        identification_causes(run, &poorly_identified)
+    } else {
+        Vec::new()
+    };
     if fig.frames_used < MIN_FRAMES_USED {
         out.push(format!(
             "the wave was too short: {} frames show the identified wand in two or more cameras, {} are needed; \
@@ -407,9 +427,325 @@ fn causes(run: &WandRun, length_rms: f64, tilt: f64) -> Vec<String> {
     out
 }
 
+/// How well the wave fits once one input is changed: solved again (intrinsics held, without
+/// boards) and judged by the gate's two fit limits.
+#[derive(Debug, Clone, Copy)]
+struct Trial {
+    /// Largest per-camera reprojection RMS (px; infinite when a camera kept no view).
+    worst_rms_px: f64,
+    /// RMS of the freely triangulated wand length against the given one (mm).
+    length_rms_mm: f64,
+}
+
+impl Trial {
+    fn fits(&self) -> bool {
+        self.worst_rms_px <= MAX_RMS_PX && self.length_rms_mm <= MAX_LENGTH_RMS_MM
+    }
+}
+
+fn trial(
+    models: &[CameraModel],
+    obs: &WandObservations,
+    wand: &Wand,
+    options: SolveOptions,
+) -> Option<(Trial, WandSolution)> {
+    let sol = wand_solve::solve(models, obs, wand, &[], options, |_| {}).ok()?;
+    let worst_rms_px = sol
+        .per_camera_rms_px
+        .iter()
+        .map(|r| if r.is_nan() { f64::INFINITY } else { *r })
+        .fold(0.0, f64::max);
+    let e = wand_solve::length_errors_mm(&sol, wand);
+    let length_rms_mm = if e.is_empty() {
+        f64::INFINITY
+    } else {
+        (e.iter().map(|v| v * v).sum::<f64>() / e.len() as f64).sqrt()
+    };
+    Some((
+        Trial {
+            worst_rms_px,
+            length_rms_mm,
+        },
+        sol,
+    ))
+}
+
+/// The observations of the cameras in `keep` only (in that order).
+fn cameras_only(obs: &WandObservations, keep: &[usize]) -> WandObservations {
+    WandObservations {
+        frames: obs.frames.clone(),
+        views: obs
+            .views
+            .iter()
+            .map(|row| keep.iter().map(|c| row[*c].clone()).collect())
+            .collect(),
+        blobs: obs
+            .blobs
+            .iter()
+            .map(|row| keep.iter().map(|c| row[*c].clone()).collect())
+            .collect(),
+    }
+}
+
+/// A hypothesis the data confirmed: its text and the fit with it.
+struct Confirmed {
+    text: String,
+    trial: Trial,
+}
+
+/// Causes of a wave that does not fit (reprojection or length over the limit). Each hypothesis
+/// is tested against the data by solving again with the input it blames changed; only those
+/// whose solve fits are named, the best if one fits clearly better (half the RMS), else all of
+/// them as undecided. When none does, what the spots and the freely triangulated wand show is
+/// named (a camera whose spots alone do not lie straight, a wand that is not straight), and
+/// otherwise it says it cannot tell.
+fn fit_causes(run: &WandRun) -> Vec<String> {
+    let WandRun {
+        models, obs, wand, ..
+    } = *run;
+    let n_cam = models.len();
+    let held = SolveOptions {
+        refine_intrinsics: false,
+        fix_k3: false,
+        ..run.options
+    };
+    // A wand that is not straight bends every camera's spots alike; nothing else does, and no
+    // change of spacing or intrinsics can make it fit.
+    if let Some(bent) = bent_wand(run) {
+        return vec![bent];
+    }
+    let given_rms = run.fig.per_camera_rms_px.iter().copied().fold(0.0, f64::max);
+    let mut confirmed: Vec<Confirmed> = Vec::new();
+    let mut partial: Vec<String> = Vec::new();
+    let mut tried: Vec<String> = Vec::new();
+    // The spacing the data fit.
+    if let Some((found, t)) = spacing_hypothesis(run, held) {
+        let mirrored = mirror(&found);
+        let text = format!(
+            "the wand's LED spacing: the data fit {} mm (read from the other end: {} mm), you gave {} mm \
+             (--wand-mm); with the spacing the data fit, the reprojection RMS is {:.3} px instead of \
+             {given_rms:.2} px. Measure the LEDs again (distances from one end, end to end as given)",
+            spacing_text(&found),
+            spacing_text(&mirrored),
+            spacing_text(&wand.leds_mm),
+            t.worst_rms_px
+        );
+        if t.fits() {
+            confirmed.push(Confirmed { text, trial: t });
+        } else if t.worst_rms_px <= MAX_RMS_PX {
+            // The spacing explains the reprojection; something else (named after it) the length.
+            partial.push(format!(
+                "{text}; the wand length error stays {:.2} mm with it",
+                t.length_rms_mm
+            ));
+        } else {
+            tried.push(format!(
+                "the LED spacing the data fit, {} mm (RMS {:.2} px, length error {:.2} mm)",
+                spacing_text(&found),
+                t.worst_rms_px,
+                t.length_rms_mm
+            ));
+        }
+    }
+    // The intrinsics the spots point at, each change solved.
+    let all = suspects(models, obs);
+    let mut done = vec![false; n_cam];
+    let mut spots_only: Vec<String> = Vec::new();
+    for s in &all {
+        let c = s.camera;
+        if done[c] {
+            continue;
+        }
+        done[c] = true;
+        let (text, t) = if let (Some(m), Some(text)) = (swapped_with(s, &all), swap_text(s, &all)) {
+            done[m] = true;
+            let mut swapped = models.to_vec();
+            swapped.swap(c, m);
+            (text, trial(&swapped, obs, wand, held))
+        } else if let Some(&(m, _)) = s.better.first() {
+            let mut given = models.to_vec();
+            given[c] = models[m];
+            (suspect_text(s), trial(&given, obs, wand, held))
+        } else if n_cam >= 3 {
+            let keep: Vec<usize> = (0..n_cam).filter(|d| *d != c).collect();
+            let sub: Vec<CameraModel> = keep.iter().map(|d| models[*d]).collect();
+            (
+                format!("{}; without cam{c} the other cameras fit", suspect_text(s)),
+                trial(&sub, &cameras_only(obs, &keep), wand, held),
+            )
+        } else {
+            // Two cameras: let the adjustment refine the intrinsics; right ones need no change.
+            let refine = SolveOptions {
+                refine_intrinsics: true,
+                fix_k3: true,
+                ..held
+            };
+            (
+                format!(
+                    "{}; with the intrinsics refined from the wave the rig fits",
+                    suspect_text(s)
+                ),
+                trial(models, obs, wand, refine),
+            )
+        };
+        match t {
+            Some((t, _)) if t.fits() => confirmed.push(Confirmed {
+                text: format!("{text} (reprojection RMS {:.3} px)", t.worst_rms_px),
+                trial: t,
+            }),
+            _ => spots_only.push(suspect_text(s)),
+        }
+    }
+    // With three or more cameras and nothing else explaining the wave: one camera that
+    // disagrees with the rest (it moved, or its frames or intrinsics are another camera's),
+    // found by solving without each camera in turn.
+    let rms = &run.fig.per_camera_rms_px;
+    if confirmed.is_empty() && spots_only.is_empty() && n_cam >= 3 {
+        for c in (0..n_cam).filter(|c| !done[*c]) {
+            let keep: Vec<usize> = (0..n_cam).filter(|d| *d != c).collect();
+            let sub: Vec<CameraModel> = keep.iter().map(|d| models[*d]).collect();
+            if let Some((t, _)) = trial(&sub, &cameras_only(obs, &keep), wand, held)
+                && t.fits()
+            {
+                confirmed.push(Confirmed {
+                    text: format!(
+                        "cam{c} disagrees with the other cameras: without it they fit (reprojection RMS {:.3} px, \
+                         length error {:.2} mm; with it {:.2} px and {:.2} mm): it moved during the wave, or its \
+                         frames or intrinsics are another camera's",
+                        t.worst_rms_px, t.length_rms_mm, rms[c], run.fig.length_mean_mm.hypot(run.fig.length_std_mm)
+                    ),
+                    trial: t,
+                });
+            }
+        }
+    }
+    confirmed.sort_by(|a, b| a.trial.worst_rms_px.total_cmp(&b.trial.worst_rms_px));
+    match confirmed.as_slice() {
+        [one] => return vec![one.text.clone()],
+        [best, next, ..] if 2.0 * best.trial.worst_rms_px < next.trial.worst_rms_px => {
+            return vec![best.text.clone()];
+        }
+        [_, _, ..] => {
+            let each: Vec<String> = confirmed.iter().map(|c| c.text.clone()).collect();
+            return vec![format!(
+                "cannot tell which of these it is, each alone makes the wave fit: {}",
+                each.join("; or ")
+            )];
+        }
+        [] => {}
+    }
+    if !partial.is_empty() {
+        partial.extend(spots_only);
+        return partial;
+    }
+    if !spots_only.is_empty() {
+        return spots_only;
+    }
+    let mut own: Vec<f64> = (0..n_cam)
+        .filter_map(|c| straightness_px(obs, c, &models[c]))
+        .collect();
+    own.sort_by(f64::total_cmp);
+    let spots = match (own.first(), own.last()) {
+        (Some(lo), Some(hi)) => format!(
+            "no camera's intrinsics stand out (the wand's spots lie {lo:.2}–{hi:.2} px off a straight line)"
+        ),
+        _ => "too few identified views to judge the intrinsics".to_string(),
+    };
+    tried.push(spots);
+    vec![format!(
+        "cannot tell from the data: {}; check the LED spacing (--wand-mm), each camera's intrinsics, and that \
+         no camera moved during the wave",
+        tried.join("; ")
+    )]
+}
+
+/// Causes of a camera identifying the wand in too few of the frames that show it (the fit
+/// itself within its limits): a wand that is not straight, intrinsics the spots do not lie
+/// straight with, or undetermined.
+fn identification_causes(run: &WandRun, cameras: &[usize]) -> Vec<String> {
+    if let Some(bent) = bent_wand(run) {
+        return vec![bent];
+    }
+    let intrinsics = intrinsics_causes(run.models, run.obs);
+    if !intrinsics.is_empty() {
+        return intrinsics;
+    }
+    let names: Vec<String> = cameras.iter().map(|c| format!("cam{c}")).collect();
+    vec![format!(
+        "cannot tell from the data why {} identifies the wand in so few frames: its identified spots lie \
+         straight and the wand does too; look at its frames for reflections or stray lights on the wand's \
+         line and LEDs that merge",
+        names.join(", ")
+    )]
+}
+
+/// The spacing read from the other end.
+fn mirror(leds_mm: &[f64]) -> Vec<f64> {
+    let (first, last) = (leds_mm[0], leds_mm[leds_mm.len() - 1]);
+    leds_mm.iter().rev().map(|s| first + last - s).collect()
+}
+
+/// Inner LEDs lying further than this off the line through the end LEDs (median over frames,
+/// freely triangulated) name a wand that is not straight, when every camera's spots bend too.
+const BENT_MM: f64 = 1.0;
+
+/// A wand that is not straight: its inner LEDs, triangulated freely with the calibrated rig, lie
+/// off the line through its end LEDs by about the same distance in every frame, and every
+/// camera's spots bend (a wrong lens bends one camera's, not all).
+fn bent_wand(run: &WandRun) -> Option<String> {
+    let WandRun {
+        models,
+        obs,
+        wand,
+        sol,
+        ..
+    } = *run;
+    let k = wand.len();
+    let mut off: Vec<f64> = sol
+        .views
+        .iter()
+        .filter_map(|row| wand_solve::free_leds_mm(sol, row, k))
+        .filter_map(|pts| {
+            let axis = pts[k - 1] - pts[0];
+            let len = axis.norm();
+            (len > 1e-6).then(|| {
+                let d = axis / len;
+                let s2: f64 = pts[1..k - 1]
+                    .iter()
+                    .map(|p| {
+                        let v = p - pts[0];
+                        (v - d * v.dot(&d)).norm_squared()
+                    })
+                    .sum();
+                (s2 / (k - 2) as f64).sqrt()
+            })
+        })
+        .collect();
+    if off.len() < 5 {
+        return None;
+    }
+    off.sort_by(f64::total_cmp);
+    let n = off.len();
+    let (q1, med, q3) = (off[n / 4], off[n / 2], off[n * 3 / 4]);
+    let bends: Vec<f64> = (0..models.len())
+        .map(|c| straightness_px(obs, c, &models[c]).unwrap_or(0.0))
+        .collect();
+    let lo = bends.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = bends.iter().copied().fold(0.0, f64::max);
+    (med >= BENT_MM && q1 >= 0.5 * med && lo > STRAIGHT_PX).then(|| {
+        format!(
+            "the wand is not straight: its inner LEDs lie {med:.1} mm off the line through its end LEDs \
+             (median over {n} frames, quartiles {q1:.1}–{q3:.1} mm), and every camera sees its spots bent \
+             ({lo:.2}–{hi:.2} px off a straight line; a straight wand leaves about 0.03 px): straighten or \
+             replace the wand, the calibration takes its LEDs to lie on one line"
+        )
+    })
+}
+
 /// When the data fit another LED spacing: solves again with it (intrinsics held, without
-/// boards, for speed) until the spacing settles, and reports it if that solve fits.
-fn spacing_cause(run: &WandRun) -> Option<String> {
+/// boards, for speed) until the spacing settles. Returns that spacing and its fit; `None` when
+/// the data fit the given spacing (within 1 mm or 0.5 % of the length) or no solve succeeds.
+fn spacing_hypothesis(run: &WandRun, options: SolveOptions) -> Option<(Vec<f64>, Trial)> {
     let wand = run.wand;
     let tol = SPACING_TOL_MM.max(0.005 * wand.length_mm());
     let mut found = fitted_spacing_mm(run.sol, wand)?;
@@ -418,11 +754,6 @@ fn spacing_cause(run: &WandRun) -> Option<String> {
     if off(&found) <= tol {
         return None;
     }
-    let options = SolveOptions {
-        refine_intrinsics: false,
-        fix_k3: false,
-        ..run.options
-    };
     // Ends stay where they were given: the wand's length is what the user measured end to end.
     let ends = |mut s: Vec<f64>| {
         let last = s.len() - 1;
@@ -431,31 +762,23 @@ fn spacing_cause(run: &WandRun) -> Option<String> {
         s
     };
     found = ends(found);
-    let mut rms = f64::NAN;
+    let mut last = None;
     for _ in 0..3 {
         if found.windows(2).any(|w| w[1] - w[0] < 1.0) {
             return None;
         }
-        let trial = Wand {
+        let trial_wand = Wand {
             leds_mm: found.clone(),
         };
-        let sol = wand_solve::solve(run.models, run.obs, &trial, &[], options, |_| {}).ok()?;
-        rms = sol.per_camera_rms_px.iter().copied().fold(0.0, f64::max);
-        let next = ends(fitted_spacing_mm(&sol, &trial)?);
+        let (t, sol) = trial(run.models, run.obs, &trial_wand, options)?;
+        last = Some(t);
+        let next = ends(fitted_spacing_mm(&sol, &trial_wand)?);
         let moved = off_by(&next, &found);
         found = next;
         if moved < 0.1 {
             break;
         }
     }
-    let given_rms = run.fig.per_camera_rms_px.iter().copied().fold(0.0, f64::max);
-    (rms <= MAX_RMS_PX && off(&found) > tol).then(|| {
-        format!(
-            "the wand's LED spacing: the data fit {} mm, you gave {} mm (--wand-mm); with the spacing the data \
-             fit, the reprojection RMS is {rms:.3} px instead of {given_rms:.2} px. Measure the LEDs again \
-             (distances from one end, end to end as given)",
-            spacing_text(&found),
-            spacing_text(&wand.leds_mm)
-        )
-    })
+    let t = last?;
+    (off(&found) > tol).then_some((found, t))
 }

@@ -187,7 +187,7 @@ pub fn run(args: Args) -> Result<()> {
             Ok(sol) => Ok(sol),
             Err(e) => {
                 // Say what the spots alone tell about the intrinsics, if anything.
-                let (causes, _) = wand_quality::intrinsics_causes(&models, obs, &wand);
+                let causes = wand_quality::intrinsics_causes(&models, obs);
                 if causes.is_empty() {
                     return Err(e);
                 }

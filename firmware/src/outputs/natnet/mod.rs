@@ -161,6 +161,26 @@ pub struct NatNetPlan {
 }
 
 impl NatNetConfig {
+    /// `irtrackd --ephemeral-ports IP`: the command socket on `IP` with a port the OS chooses,
+    /// and with multicast a data port that is free on this host now (asked of the OS by
+    /// binding a socket to port 0 and letting it go), so that instances started side by side
+    /// (tests, several rigs on one host) never contend for NatNet's fixed 1510/1511. Clients
+    /// learn both from the ready line (`natnet=`) and the server info (data port).
+    pub fn use_ephemeral_ports(&mut self, ip: std::net::IpAddr) -> Result<()> {
+        self.command = SocketAddr::new(ip, 0).to_string();
+        if self.transport == Transport::Multicast {
+            let free = std::net::UdpSocket::bind((Ipv4Addr::UNSPECIFIED, 0))
+                .and_then(|s| s.local_addr())
+                .map_err(|source| FirmwareError::Bind {
+                    what: "NatNet data port (--ephemeral-ports)",
+                    addr: "0.0.0.0:0".into(),
+                    source,
+                })?;
+            self.data_port = free.port();
+        }
+        Ok(())
+    }
+
     /// Validates the settings; errors name the key.
     pub fn plan(&self) -> Result<NatNetPlan> {
         let bad = |reason: String| FirmwareError::Config {

@@ -318,6 +318,8 @@ mod tests {
     const MODEL_DEF: &str = "05006400020000000000000070726f6265000200000070726f62655f310070726f62655f32000100000070726f62650001000000ffffffff0000000000000000000000000200000000000000000000000ad7a33ccdcccc3d000000000ad7a33c0000000000000000";
     const FRAME: &str = "0700ca002a0000000100000070726f62650002000000cdcccc3dcdcc4c3e5c8f823fcdcc4c3ecdcc4c3e5c8f823f000000000100000001000000cdcccc3dcdcc4c3e0000803f0000000000000000000000000000803f6f12033a0100000000000200000001000100cdcccc3dcdcc4c3e5c8f823f0ad7a33b0c000000000002000100cdcc4c3ecdcc4c3e5c8f823f0ad7a33b0c000000000000000000000000000000000000000000000000000000f03f00ca9a3b00000000804eb93b00000000a0efc03b00000000000000000000";
 
+    const FRAME_LOOSE: &str = "0700f0002a0000000100000070726f62650002000000cdcccc3dcdcc4c3e5c8f823fcdcc4c3ecdcc4c3e5c8f823f010000009a99993ecdccccbd6666663f0100000001000000cdcccc3dcdcc4c3e0000803f0000000000000000000000000000803f6f12033a0100000000000300000001000100cdcccc3dcdcc4c3e5c8f823f0ad7a33b0c000000000002000100cdcc4c3ecdcc4c3e5c8f823f0ad7a33b0c0000000000050000009a99993ecdccccbd6666663f0ad7a33b12006f12833900000000000000000000000000000000000000000000f03f00ca9a3b00000000804eb93b00000000a0efc03b00000000000000000000";
+
     fn hex(s: &str) -> Vec<u8> {
         (0..s.len())
             .step_by(2)
@@ -402,6 +404,60 @@ mod tests {
         let cap = out.capacity();
         encode_frame(&scene, &["probe".to_string()], stamps, &mut out).unwrap();
         assert_eq!(out.capacity(), cap);
+    }
+
+    /// A loose LED goes out twice: in the legacy unlabelled list (NatNet 2 clients) and as a
+    /// labelled marker of model 0 flagged unlabelled (NatNet 3+ clients skip the legacy list).
+    #[test]
+    fn frame_with_a_loose_led_matches_golden_bytes() {
+        let p = [0.1, 0.2, 1.0];
+        let u = [0.3, -0.1, 0.9];
+        let m: Vec<[f64; 3]> = probe().list[0]
+            .markers_m
+            .iter()
+            .map(|l| [p[0] + l[0], p[1] + l[1], p[2] + l[2]])
+            .collect();
+        let mut markers: Vec<MarkerSample> = m
+            .iter()
+            .enumerate()
+            .map(|(i, q)| MarkerSample {
+                id: (1 << 16) | (i as u32 + 1),
+                position_m: *q,
+                residual_m: 0.0,
+                model_solved: true,
+            })
+            .collect();
+        markers.push(MarkerSample {
+            id: crate::outputs::scene::loose_marker_id(4),
+            position_m: u,
+            residual_m: 0.00025,
+            model_solved: false,
+        });
+        let scene = SceneFrame {
+            frame: 42,
+            capture_ts_ns: 1_000_000_000,
+            latency_ns: 2_000_000,
+            world_frame: false,
+            marker_sets: vec![m.clone()],
+            bodies: vec![BodySample {
+                id: 1,
+                position_m: p,
+                orientation_xyzw: [0.0, 0.0, 0.0, 1.0],
+                mean_error_m: 0.0005,
+                tracked: true,
+            }],
+            markers,
+            unlabelled_m: vec![u],
+            loose: vec![],
+            per_tool: true,
+        };
+        let mut out = Vec::new();
+        let stamps = FrameStamps {
+            transmit_ns: 1_002_500_000,
+            models_changed: false,
+        };
+        encode_frame(&scene, &["probe".to_string()], stamps, &mut out).unwrap();
+        assert_eq!(out, hex(FRAME_LOOSE));
     }
 
     #[test]
