@@ -7,11 +7,13 @@
 # booted system gives them back (`rauc status mark-good`) once irtrackd is healthy. A slot
 # that never gets there runs out of attempts and the next slot in BOOT_ORDER is booted.
 
+# The counters go through memory at kernel_addr_r (the kernel is loaded there only later);
+# loadaddr is where this script itself was loaded.
 setenv BOOT_ORDER
 setenv BOOT_A_LEFT
 setenv BOOT_B_LEFT
-if load virtio 0:1 ${loadaddr} uboot.env; then
-    env import -c ${loadaddr} 0x4000 BOOT_ORDER BOOT_A_LEFT BOOT_B_LEFT
+if load virtio 0:1 ${kernel_addr_r} uboot.env; then
+    env import -c ${kernel_addr_r} 0x4000 BOOT_ORDER BOOT_A_LEFT BOOT_B_LEFT
 fi
 test -n "${BOOT_ORDER}" || setenv BOOT_ORDER "A B"
 test -n "${BOOT_A_LEFT}" || setenv BOOT_A_LEFT 3
@@ -42,15 +44,15 @@ if test "x${irtrack_slot}" = "x"; then
     echo "irtrack-boot: no slot with attempts left; resetting both to 3"
     setenv BOOT_A_LEFT 3
     setenv BOOT_B_LEFT 3
-    env export -c -s 0x4000 ${loadaddr} BOOT_ORDER BOOT_A_LEFT BOOT_B_LEFT
-    fatwrite virtio 0:1 ${loadaddr} uboot.env 0x4000
+    env export -c -s 0x4000 ${kernel_addr_r} BOOT_ORDER BOOT_A_LEFT BOOT_B_LEFT
+    fatwrite virtio 0:1 ${kernel_addr_r} uboot.env 0x4000
     reset
 fi
 
 echo "irtrack-boot: slot ${irtrack_slot} (BOOT_ORDER=${BOOT_ORDER}, A left ${BOOT_A_LEFT}, B left ${BOOT_B_LEFT})"
 # The attempt is counted before the kernel starts, so a hang anywhere after this line costs it.
-env export -c -s 0x4000 ${loadaddr} BOOT_ORDER BOOT_A_LEFT BOOT_B_LEFT
-fatwrite virtio 0:1 ${loadaddr} uboot.env 0x4000
+env export -c -s 0x4000 ${kernel_addr_r} BOOT_ORDER BOOT_A_LEFT BOOT_B_LEFT
+fatwrite virtio 0:1 ${kernel_addr_r} uboot.env 0x4000
 
 # Kernel and initramfs come from the slot itself, so an update replaces them with the modules.
 load virtio 0:${irtrack_part} ${kernel_addr_r} /boot/Image
@@ -59,3 +61,5 @@ setenv irtrack_initrd_size ${filesize}
 setenv bootargs "console=ttyAMA0 root=/dev/vda${irtrack_part} rootwait quiet rauc.slot=${irtrack_slot}"
 booti ${kernel_addr_r} ${ramdisk_addr_r}:${irtrack_initrd_size} ${fdt_addr}
 echo "irtrack-boot: booting slot ${irtrack_slot} failed"
+# The attempt is spent; the next reset tries again or falls back.
+reset

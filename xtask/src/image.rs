@@ -537,6 +537,8 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
         let pkgs = update::fetch_tools(&work.join("dl"), &work.join("update-pkgs"))?;
         let libs = update::install_tools(&pkgs, &rootfs)?;
         copy_tree(&ctx.root.join("image/update/rootfs"), &rootfs)?;
+        // GDBus and libdbus look for the system bus under /var/run.
+        std::os::unix::fs::symlink("../run", rootfs.join("var/run"))?;
         let keys = update::update_keys(&work)?;
         copy_file_mode(&keys.ca_cert, &rootfs.join("etc/rauc/ca.cert.pem"), 0o644)?;
         update::write_release(&rootfs, &release)?;
@@ -648,7 +650,13 @@ fn find_deb(dir: &Path, name: &str) -> Option<PathBuf> {
 
 fn apt_download(dir: &Path, package: &str) -> Result<()> {
     // apt warns that `_apt` cannot write here and downloads as root anyway; that is fine.
-    run_quiet(Command::new("apt-get").args(["download", "-q", package]).current_dir(dir))
+    // `package` may list several, separated by spaces.
+    run_quiet(
+        Command::new("apt-get")
+            .args(["download", "-q"])
+            .args(package.split_whitespace())
+            .current_dir(dir),
+    )
         .with_context(|| format!("downloading {package} (needs `dpkg --add-architecture arm64` and apt-get update; see `cargo xtask setup`)"))?;
     Ok(())
 }

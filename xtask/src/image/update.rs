@@ -99,11 +99,17 @@ const LIB_DIRS: &[&str] = &["lib/aarch64-linux-gnu", "usr/lib/aarch64-linux-gnu"
 /// `dest` (once per set of package files).
 pub fn fetch_tools(dl: &Path, dest: &Path) -> Result<PathBuf> {
     fs::create_dir_all(dl)?;
+    let missing: Vec<String> = TOOL_DEBS
+        .iter()
+        .filter(|name| find_deb(dl, name).is_none())
+        .map(|name| format!("{name}:arm64"))
+        .collect();
+    if !missing.is_empty() {
+        // One apt-get run for all of them: each run costs seconds of its own.
+        super::apt_download(dl, &missing.join(" "))?;
+    }
     let mut debs = Vec::new();
     for name in TOOL_DEBS {
-        if find_deb(dl, name).is_none() {
-            super::apt_download(dl, &format!("{name}:arm64"))?;
-        }
         debs.push(find_deb(dl, name).with_context(|| format!("{name} .deb missing after download"))?);
     }
     let stamp_text: String = debs
@@ -141,16 +147,31 @@ fn parse_needed(readelf: &str) -> Vec<String> {
         .collect()
 }
 
+/// Private directory of the dynamically linked tools and their libraries. Not /lib: the rest
+/// of the image (busybox, irtrackd) is static, and a second glibc in the system library path
+/// is something a static program's NSS or iconv code may pick up; kept apart, only these
+/// tools see it.
+pub const TOOLS_DIR: &str = "usr/lib/irtrack-update";
+
 /// Copies the tools and every shared library they need (transitively) from the extracted
-/// packages into the staged root file system, plus the dynamic loader at the path the
-/// binaries name (`/lib/ld-linux-aarch64.so.1`). Returns the number of libraries.
+/// packages into [`TOOLS_DIR`] of the staged root file system, and puts a wrapper for each
+/// tool in /usr/bin that starts it through the loader with that library path. Returns the
+/// number of libraries.
 pub fn install_tools(pkgs: &Path, stage: &Path) -> Result<usize> {
-    let mut queue: Vec<(PathBuf, String)> = TOOL_BINARIES
-        .iter()
-        .map(|b| (pkgs.join(b), (*b).to_owned()))
-        .collect();
-    for (src, rel) in &queue {
-        super::copy_file_mode(src, &stage.join(rel), 0o755)?;
+    use std::os::unix::fs::PermissionsExt;
+    let dir = stage.join(TOOLS_DIR);
+    let mut queue: Vec<(PathBuf, String)> = Vec::new();
+    for bin in TOOL_BINARIES {
+        let name = Path::new(bin)
+            .file_name()
+            .context("tool without a file name")?
+            .to_string_lossy()
+            .into_owned();
+        super::copy_file_mode(&pkgs.join(bin), &dir.join("bin").join(&name), 0o755)?;
+        let wrapper = stage.join("usr/bin").join(&name);
+        fs::write(&wrapper, wrapper_script(&name))?;
+        fs::set_permissions(&wrapper, fs::Permissions::from_mode(0o755))?;
+        queue.push((pkgs.join(bin), (*bin).to_owned()));
     }
     let mut seen = BTreeSet::new();
     while let Some((file, from)) = queue.pop() {
@@ -158,31 +179,35 @@ pub fn install_tools(pkgs: &Path, stage: &Path) -> Result<usize> {
             if !seen.insert(soname.clone()) {
                 continue;
             }
-            let rel = LIB_DIRS
+            let found = LIB_DIRS
                 .iter()
-                .map(|d| Path::new(d).join(&soname))
-                .find(|p| pkgs.join(p).exists())
+                .map(|d| pkgs.join(d).join(&soname))
+                .find(|p| p.exists())
                 .with_context(|| {
                     format!("{soname} (needed by {from}) is in none of the image's update packages; add its package to TOOL_DEBS")
                 })?;
             // Libraries are symlinks to versioned files in the packages; the image gets the file.
-            let real = fs::canonicalize(pkgs.join(&rel))?;
-            super::copy_file_mode(&real, &stage.join(&rel), 0o644)?;
+            let real = fs::canonicalize(&found)?;
+            super::copy_file_mode(&real, &dir.join(&soname), 0o755)?;
             queue.push((real, soname));
         }
     }
-    let loader = "lib/aarch64-linux-gnu/ld-linux-aarch64.so.1";
-    if !stage.join(loader).is_file() {
-        bail!("the dynamic loader {loader} was not among the libraries");
+    if !dir.join(LOADER).is_file() {
+        bail!("the dynamic loader {LOADER} was not among the libraries");
     }
-    {
-        use std::os::unix::fs::PermissionsExt;
-        fs::set_permissions(stage.join(loader), fs::Permissions::from_mode(0o755))?;
-    }
-    let link = stage.join("lib/ld-linux-aarch64.so.1");
-    let _ = fs::remove_file(&link);
-    std::os::unix::fs::symlink("aarch64-linux-gnu/ld-linux-aarch64.so.1", &link)?;
     Ok(seen.len())
+}
+
+const LOADER: &str = "ld-linux-aarch64.so.1";
+
+/// /usr/bin/NAME: runs the tool through the loader with the private library path, which is
+/// not passed on to the programs it starts (`--library-path`, unlike LD_LIBRARY_PATH).
+/// `--argv0` keeps the name: fw_printenv and fw_setenv act by it.
+fn wrapper_script(name: &str) -> String {
+    format!(
+        "#!/bin/sh\n# {name} from Debian's arm64 package with its own libraries (xtask/src/image/update.rs).\n\
+         exec /{TOOLS_DIR}/{LOADER} --library-path /{TOOLS_DIR} --argv0 {name} /{TOOLS_DIR}/bin/{name} \"$@\"\n"
+    )
 }
 
 /// The version and build written into `/etc/irtrack/release` and a bundle's manifest.

@@ -201,7 +201,11 @@ fn make_bundles(work: &Path, dir: &Path, base: &Release, keys: &UpdateKeys) -> R
 fn wait_healthy(q: &mut Qemu, from: usize, slot: &str) -> Result<f64> {
     let t0 = Instant::now();
     q.wait_for("irtrackd ready", from, BOOT_TIMEOUT)?;
-    q.wait_for(&format!("irtrack-health: slot {slot} "), from, BOOT_TIMEOUT)?;
+    q.wait_for(
+        &format!("irtrack-health: slot {slot} healthy"),
+        from,
+        BOOT_TIMEOUT,
+    )?;
     Ok(t0.elapsed().as_secs_f64())
 }
 
@@ -467,7 +471,7 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
             .wait_for("irtrack-health: rolled back", from, Duration::from_secs(600))
             .and_then(|_| {
                 let rollback_s = t0.elapsed().as_secs_f64();
-                q.wait_for("irtrack-health: slot B ", from, BOOT_TIMEOUT)?;
+                q.wait_for("irtrack-health: slot B healthy", from, BOOT_TIMEOUT)?;
                 let log = q.log_since(from);
                 let trials = log.matches("irtrack-boot: slot A").count();
                 let (slot, version) = running(&mut q)?;
