@@ -375,8 +375,15 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
                 .filter(|l| l.contains("rror") || l.contains("refused") || l.contains("ailed"))
                 .collect::<Vec<_>>()
                 .join(" | ");
-            if !reason.is_empty() && !out.to_lowercase().contains(&reason.to_lowercase()) {
-                bail!("refused, but the output does not say {reason:?}: {out}");
+            // The downgrade check is the board's pre-install handler: RAUC reports only that
+            // the handler failed; the handler puts its reason in last-update.
+            let said = if name == "older" {
+                last_update(&mut q)?
+            } else {
+                out.clone()
+            };
+            if !reason.is_empty() && !said.to_lowercase().contains(&reason.to_lowercase()) {
+                bail!("refused, but it does not say {reason:?}: {said}");
             }
             let state = boot_state(&mut q)?;
             if state != state_before {
@@ -386,6 +393,11 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
             if slot != "A" || version != base.version || rig_now(status_port)? != rig {
                 bail!("running system changed: slot {slot}, version {version}");
             }
+            let msg = if name == "older" {
+                value_of(&said, "detail").unwrap_or_default()
+            } else {
+                msg
+            };
             Ok(format!("exit {rc}: {msg}; boot state unchanged ({state})"))
         });
         report.check(what, res);
