@@ -95,6 +95,8 @@ pub const PHASES: &[Phase] = &[
     // Not in CI: the aarch64 Zenoh build alone is several cold minutes (docs/cluster.md).
     opt_in_phase("cluster-qemu-user", "aarch64 irtrackd with Zenoh under qemu-aarch64 as a camera board feeding a host solver", "aarch64", cluster_qemu_user, 10, &["aarch64-static", "debug"]),
     // Not in CI either: the same aarch64 Zenoh build, then the cluster image booted in QEMU.
+    // Not in CI: the A/B update test boots QEMU about eight times (docs/updates.md).
+    opt_in_phase("image-update", "A/B updates with RAUC in qemu-system-aarch64: install, reboot, rollback, refusals, power cut", "system", |ctx| Outcome::from_counts(crate::image::update_phase(ctx)), 30, &["image", "aarch64-static", "debug"]),
     opt_in_phase("cluster-qemu-system", "cluster image booted in qemu-system-aarch64 as a camera board feeding a host solver", "system", cluster_qemu_system, 10, &["image-cluster", "aarch64-static", "debug"]),
 ];
 

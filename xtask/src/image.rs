@@ -22,6 +22,8 @@ mod checks;
 mod crates;
 mod qemu;
 mod system;
+mod update;
+mod update_test;
 
 /// `cargo xtask image <command>`.
 #[derive(Debug, clap::Subcommand)]
@@ -37,6 +39,25 @@ pub enum ImageCmd {
     },
     /// Build, then boot it interactively (console on this terminal; Ctrl-A X quits).
     Run,
+    /// Build the image as VERSION and make a signed RAUC update bundle of its root file system
+    /// (docs/updates.md).
+    Bundle {
+        /// The bundle's version (dotted numbers); boards refuse bundles older than what they run.
+        #[arg(long)]
+        version: String,
+        /// Where to write it (default target/image/irtrack-VERSION.raucb).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Create (once) the update CA and signing certificate and print their paths.
+    UpdateKeys,
+    /// Build (or reuse the last build), then the A/B update test in QEMU: install, reboot,
+    /// rollback, refused bundles, power cut (docs/updates.md).
+    UpdateTest {
+        /// Reuse the last build.
+        #[arg(long)]
+        no_build: bool,
+    },
     /// Write (or check) yocto-layer's irtrackd-crates.inc from Cargo.lock.
     Crates {
         /// Only check that the file is up to date.
@@ -69,16 +90,29 @@ pub struct Variant {
     pub tools: &'static [(&'static str, &'static str)],
     /// Make (once) and install the build's parameter signing key.
     pub signing_keys: bool,
+    /// A/B layout with RAUC (docs/updates.md): boot.scr and boot counters on the boot
+    /// partition, two root slots carrying their own kernel, a data partition. Otherwise one
+    /// root partition booted through extlinux.
+    pub ab_updates: bool,
 }
 
 /// The CI image: a standalone board on two vivid V4L2 cameras.
 pub const STANDARD: Variant = Variant {
     dir: "image",
     irtrackd: crate::cross::build_irtrackd,
-    extra_modules: &[],
+    // The A/B image mounts the boot (vfat) and data partitions and loop-mounts bundles
+    // (squashfs).
+    extra_modules: &[
+        ("vfat", ""),
+        ("nls_cp437", ""),
+        ("nls_ascii", ""),
+        ("loop", ""),
+        ("squashfs", ""),
+    ],
     overlay: None,
     tools: &[],
     signing_keys: true,
+    ab_updates: true,
 };
 
 /// The cluster test image (`cargo xtask test --only cluster-qemu-system`): irtrackd built with
@@ -92,6 +126,7 @@ pub const CLUSTER: Variant = Variant {
     // Sets the guest's clock from the test's SNTP server (the image has no NTP client).
     tools: &[("image/tools/sntp-step.rs", "usr/sbin/sntp-step")],
     signing_keys: false,
+    ab_updates: false,
 };
 const UBOOT_QEMU: &str = "/usr/lib/u-boot/qemu_arm64/u-boot.bin";
 
@@ -118,6 +153,45 @@ pub fn cli(ctx: &Ctx, cmd: ImageCmd) -> Result<()> {
             qemu::interactive(ctx, &image)
         }
         ImageCmd::Crates { check } => crates::cli(ctx, check),
+        ImageCmd::Bundle { version, out } => {
+            update::check_version(&version)?;
+            let release = update::Release {
+                version: version.clone(),
+                build: update::Release::current(ctx)?.build,
+            };
+            let image = build_release(ctx, &STANDARD, Some(release.clone()))?;
+            println!("{}", image.summary());
+            let work = work_dir(ctx);
+            let keys = update::update_keys(&work)?;
+            let out = out.unwrap_or_else(|| work.join(format!("irtrack-{version}.raucb")));
+            update::make_bundle(&work, &work.join("root.ext4"), &release, &keys, &out)?;
+            println!(
+                "bundle: {} ({:.1} MiB), version {version}, build {}, compatible {}, signed by {}",
+                out.display(),
+                mib(fs::metadata(&out)?.len()),
+                release.build,
+                update::COMPATIBLE,
+                keys.signer_cert.display()
+            );
+            Ok(())
+        }
+        ImageCmd::UpdateKeys => {
+            let keys = update::update_keys(&work_dir(ctx))?;
+            println!("CA certificate (the boards' keyring): {}", keys.ca_cert.display());
+            println!("signing certificate: {}", keys.signer_cert.display());
+            println!("signing key: {}", keys.signer_key.display());
+            Ok(())
+        }
+        ImageCmd::UpdateTest { no_build } => {
+            let image = if no_build { existing(ctx)? } else { build(ctx)? };
+            println!("{}", image.summary());
+            let report = update_test::run(ctx, &image)?;
+            println!("{report}");
+            if report.failed() > 0 {
+                bail!("update test: {} check(s) failed", report.failed());
+            }
+            Ok(())
+        }
     }
 }
 
@@ -148,6 +222,27 @@ pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
         bail!("{} image check(s) failed: {}", counts.failed, failed.join("; "));
     }
     Ok(counts)
+}
+
+/// CI opt-in phase `image-update`: builds the image and runs the A/B update test.
+pub fn update_phase(ctx: &Ctx) -> Result<Counts> {
+    let image = build(ctx).context("building the image")?;
+    println!("{}", image.summary());
+    let report = update_test::run(ctx, &image)?;
+    println!("{report}");
+    let failed: Vec<String> = report
+        .checks
+        .iter()
+        .filter(|c| !c.ok)
+        .map(|c| format!("{}: {}", c.name, short(&c.detail)))
+        .collect();
+    if !failed.is_empty() {
+        bail!("{} update check(s) failed: {}", failed.len(), failed.join("; "));
+    }
+    Ok(Counts {
+        passed: report.passed(),
+        ..Counts::default()
+    })
 }
 
 /// At most 400 characters of a check's detail, for one summary line.
@@ -295,9 +390,26 @@ pub fn build(ctx: &Ctx) -> Result<Image> {
 
 /// Builds the image `variant` into target/<variant.dir>/.
 pub fn build_variant(ctx: &Ctx, variant: &Variant) -> Result<Image> {
+    build_release(ctx, variant, None)
+}
+
+/// Builds the image `variant` as `release` (default: [`update::Release::current`]).
+pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Release>) -> Result<Image> {
     let start = Instant::now();
     let work = ctx.target_dir().join(variant.dir);
     fs::create_dir_all(&work)?;
+    let update_tools: &[&str] = if variant.ab_updates {
+        &[
+            "rauc",
+            "mksquashfs",
+            "mkimage",
+            "mkenvimage",
+            "openssl",
+            "readelf",
+        ]
+    } else {
+        &[]
+    };
     for tool in [
         "dpkg-deb",
         "apt-get",
@@ -309,7 +421,10 @@ pub fn build_variant(ctx: &Ctx, variant: &Variant) -> Result<Image> {
         "mke2fs",
         "sfdisk",
         "qemu-aarch64",
-    ] {
+    ]
+    .into_iter()
+    .chain(update_tools.iter().copied())
+    {
         if !util::on_path(tool)
             && !Path::new("/usr/sbin").join(tool).is_file()
             && !Path::new("/sbin").join(tool).is_file()
@@ -407,11 +522,97 @@ pub fn build_variant(ctx: &Ctx, variant: &Variant) -> Result<Image> {
     };
 
     let boot_img = work.join("boot.vfat");
-    let boot_bytes = make_boot_partition(ctx, &boot_img, &kernel_image, &initrd)?;
     let root_img = work.join("root.ext4");
-    let root_bytes = make_root_partition(&root_img, &rootfs)?;
     let sd_img = work.join("irtrack-sd.img");
-    assemble_sd(&sd_img, &boot_img, &root_img)?;
+    let (boot_bytes, root_bytes);
+    if variant.ab_updates {
+        let release = match release {
+            Some(r) => r,
+            None => update::Release::current(ctx)?,
+        };
+        println!(
+            "image: A/B update tools (RAUC), release {} build {}",
+            release.version, release.build
+        );
+        let pkgs = update::fetch_tools(&work.join("dl"), &work.join("update-pkgs"))?;
+        let libs = update::install_tools(&pkgs, &rootfs)?;
+        copy_tree(&ctx.root.join("image/update/rootfs"), &rootfs)?;
+        // GDBus and libdbus look for the system bus under /var/run.
+        std::os::unix::fs::symlink("../run", rootfs.join("var/run"))?;
+        let keys = update::update_keys(&work)?;
+        copy_file_mode(&keys.ca_cert, &rootfs.join("etc/rauc/ca.cert.pem"), 0o644)?;
+        update::write_release(&rootfs, &release)?;
+        // Each slot boots its own kernel and initramfs (boot.scr loads them from the slot), so
+        // an update brings the kernel and its modules together.
+        copy_file_mode(&kernel_image, &rootfs.join("boot/Image"), 0o644)?;
+        copy_file_mode(&initrd, &rootfs.join("boot/initrd.gz"), 0o644)?;
+        println!(
+            "image: RAUC, dbus-daemon, fw_printenv/fw_setenv and {libs} shared libraries; bundles signed under {}",
+            keys.ca_cert.display()
+        );
+        let scr = update::boot_script(ctx, &work)?;
+        let env = update::initial_env(&work)?;
+        boot_bytes = update::make_boot_partition(&boot_img, &scr, &env)?;
+        root_bytes = make_root_partition(&root_img, &rootfs)?;
+        if root_bytes > update::SLOT_MIB << 20 {
+            bail!(
+                "root file system {} MiB exceeds the {} MiB slot",
+                root_bytes >> 20,
+                update::SLOT_MIB
+            );
+        }
+        let data_img = work.join("data.ext4");
+        let data_bytes = update::make_data_partition(&work, &data_img)?;
+        assemble_sd(
+            &sd_img,
+            &[
+                Partition {
+                    file: Some(boot_img.as_path()),
+                    bytes: boot_bytes,
+                    kind: "c",
+                    bootable: true,
+                },
+                Partition {
+                    file: Some(root_img.as_path()),
+                    bytes: update::SLOT_MIB << 20,
+                    kind: "83",
+                    bootable: false,
+                },
+                Partition {
+                    file: None,
+                    bytes: update::SLOT_MIB << 20,
+                    kind: "83",
+                    bootable: false,
+                },
+                Partition {
+                    file: Some(data_img.as_path()),
+                    bytes: data_bytes,
+                    kind: "83",
+                    bootable: false,
+                },
+            ],
+        )?;
+    } else {
+        boot_bytes = make_boot_partition(ctx, &boot_img, &kernel_image, &initrd)?;
+        root_bytes = make_root_partition(&root_img, &rootfs)?;
+        assemble_sd(
+            &sd_img,
+            &[
+                Partition {
+                    file: Some(boot_img.as_path()),
+                    bytes: boot_bytes,
+                    kind: "c",
+                    bootable: true,
+                },
+                Partition {
+                    file: Some(root_img.as_path()),
+                    bytes: root_bytes,
+                    kind: "83",
+                    bootable: false,
+                },
+            ],
+        )?;
+    }
     let size_bytes = fs::metadata(&sd_img)?.len();
     Ok(Image {
         sd_img,
@@ -449,7 +650,13 @@ fn find_deb(dir: &Path, name: &str) -> Option<PathBuf> {
 
 fn apt_download(dir: &Path, package: &str) -> Result<()> {
     // apt warns that `_apt` cannot write here and downloads as root anyway; that is fine.
-    run_quiet(Command::new("apt-get").args(["download", "-q", package]).current_dir(dir))
+    // `package` may list several, separated by spaces.
+    run_quiet(
+        Command::new("apt-get")
+            .args(["download", "-q"])
+            .args(package.split_whitespace())
+            .current_dir(dir),
+    )
         .with_context(|| format!("downloading {package} (needs `dpkg --add-architecture arm64` and apt-get update; see `cargo xtask setup`)"))?;
     Ok(())
 }
@@ -884,22 +1091,45 @@ fn write_at(dest: &mut fs::File, offset: u64, src: &Path) -> Result<()> {
     Ok(())
 }
 
-/// MBR disk: partition 1 vfat boot (bootable, from 1 MiB), partition 2 ext4 root.
-fn assemble_sd(out: &Path, boot: &Path, root: &Path) -> Result<()> {
+/// One MBR partition: its content (None: left empty), size, type and boot flag.
+struct Partition<'a> {
+    file: Option<&'a Path>,
+    bytes: u64,
+    kind: &'a str,
+    bootable: bool,
+}
+
+/// MBR disk with the partitions in order from 1 MiB, each file copied in at its offset (the
+/// disk stays sparse). Partition 1 is the vfat boot partition.
+fn assemble_sd(out: &Path, parts: &[Partition]) -> Result<()> {
     const SECTOR: u64 = 512;
-    let boot_len = fs::metadata(boot)?.len();
-    let root_len = fs::metadata(root)?.len();
-    let boot_start = 2048;
-    let root_start = boot_start + boot_len / SECTOR;
-    let total = (root_start * SECTOR) + root_len;
+    let mut layout = String::from("label: dos\nunit: sectors\n\n");
+    let mut start = 2048;
+    let mut offsets = Vec::new();
+    for p in parts {
+        if let Some(file) = p.file {
+            let len = fs::metadata(file)?.len();
+            if len > p.bytes {
+                bail!(
+                    "{} ({len} bytes) does not fit its {} byte partition",
+                    file.display(),
+                    p.bytes
+                );
+            }
+        }
+        let sectors = p.bytes / SECTOR;
+        layout.push_str(&format!(
+            "start={start}, size={sectors}, type={}{}\n",
+            p.kind,
+            if p.bootable { ", bootable" } else { "" }
+        ));
+        offsets.push(start * SECTOR);
+        start += sectors;
+    }
+    let total = start * SECTOR;
     let _ = fs::remove_file(out);
     let mut file = fs::File::create(out)?;
     file.set_len(total)?;
-    let layout = format!(
-        "label: dos\nunit: sectors\n\nstart={boot_start}, size={}, type=c, bootable\nstart={root_start}, size={}, type=83\n",
-        boot_len / SECTOR,
-        root_len / SECTOR
-    );
     let mut sfdisk = Command::new("sfdisk");
     sfdisk
         .args(["--quiet", "--no-reread", "--no-tell-kernel"])
@@ -918,8 +1148,11 @@ fn assemble_sd(out: &Path, boot: &Path, root: &Path) -> Result<()> {
     if !res.status.success() {
         bail!("sfdisk failed: {}", String::from_utf8_lossy(&res.stderr));
     }
-    write_at(&mut file, boot_start * SECTOR, boot)?;
-    write_at(&mut file, root_start * SECTOR, root)?;
+    for (p, offset) in parts.iter().zip(offsets) {
+        if let Some(src) = p.file {
+            write_at(&mut file, offset, src)?;
+        }
+    }
     file.sync_all()?;
     Ok(())
 }

@@ -81,6 +81,23 @@ const PACKAGES: &[Pkg] = &[
         debian_only: true,
         ..pkg("busybox-static:arm64", "aarch64 userland of the test image")
     },
+    pkg(
+        "rauc",
+        "`rauc bundle` makes the signed A/B update bundles of the image (docs/updates.md)",
+    ),
+    pkg("squashfs-tools", "mksquashfs, which `rauc bundle` runs"),
+    pkg(
+        "openssl",
+        "makes the update CA and signing certificate (cargo xtask image update-keys)",
+    ),
+    pkg(
+        "u-boot-tools",
+        "mkimage (boot.scr) and mkenvimage (boot counters) for the A/B image",
+    ),
+    pkg(
+        "binutils",
+        "readelf lists the shared libraries RAUC needs in the image",
+    ),
     pkg("systemd", "systemd-analyze verifies the unit files in systemd/"),
     pkg(
         "linuxptp",

@@ -113,6 +113,20 @@ impl Qemu {
         })
     }
 
+    /// The serial log from byte offset `from` on.
+    pub fn log_since(&self, from: usize) -> String {
+        self.log
+            .lock()
+            .map(|l| l.get(from..).unwrap_or("").to_owned())
+            .unwrap_or_default()
+    }
+
+    /// Cuts the power: QEMU is killed without any shutdown in the guest.
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
     pub fn log_len(&self) -> usize {
         self.log.lock().map(|l| l.len()).unwrap_or(0)
     }

@@ -37,7 +37,7 @@ impl Report {
     pub fn failed(&self) -> u64 {
         self.checks.iter().filter(|c| !c.ok).count() as u64
     }
-    fn check(&mut self, name: &'static str, result: Result<String>) {
+    pub(super) fn check(&mut self, name: &'static str, result: Result<String>) {
         let (ok, detail) = match result {
             Ok(d) => (true, d),
             Err(e) => (false, format!("{e:#}")),
