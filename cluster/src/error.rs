@@ -17,6 +17,15 @@ pub enum ClusterError {
         /// Zenoh's error text.
         reason: String,
     },
+    /// A password file or the solver's dictionary cannot be used (the reason never quotes a
+    /// password).
+    #[error("cluster credentials {file}: {reason}")]
+    Credentials {
+        /// The file.
+        file: String,
+        /// What is wrong.
+        reason: String,
+    },
     /// An observation did not encode (id too long, too many blobs).
     #[error("observation: {0}")]
     Observation(#[from] irtrack_core::Error),

@@ -1,5 +1,6 @@
 //! irtrack-cluster: camera boards and one solver over Zenoh (docs/cluster.md).
 //!
+//! - [`credentials`]: the boards' password files and the solver's dictionary (plain code);
 //! - [`pairing`]: grouping observations of many boards into frame sets (plain code, no
 //!   network), with clock-offset faults;
 //! - [`transport`] (feature `zenoh`): a publisher per board camera on
@@ -11,7 +12,9 @@
 // Every public item says what it is for (issue 24).
 #![deny(missing_docs)]
 
+pub mod credentials;
 pub mod error;
+pub mod names;
 pub mod pairing;
 #[cfg(feature = "zenoh")]
 pub mod transport;

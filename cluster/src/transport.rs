@@ -16,31 +16,7 @@ use zenoh::Wait;
 
 use crate::error::{ClusterError, Result};
 
-/// Key expression of one camera's observations.
-pub fn observation_key(rig: &str, board: &str, camera: usize) -> String {
-    format!("irtrack/{rig}/{board}/cam/{camera}/obs")
-}
-
-/// Key expression the solver subscribes to: every board and camera of the rig.
-pub fn rig_observations_key(rig: &str) -> String {
-    format!("irtrack/{rig}/*/cam/*/obs")
-}
-
-/// Checks a rig or board name for use in a key expression: 1..=32 bytes of `[A-Za-z0-9_-]`.
-pub fn check_name(what: &str, name: &str) -> Result<()> {
-    let ok = !name.is_empty()
-        && name.len() <= irtrack_core::observation::MAX_OBS_ID_LEN
-        && name
-            .bytes()
-            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
-    if ok {
-        Ok(())
-    } else {
-        Err(ClusterError::Config {
-            reason: format!("{what} name {name:?} must be 1..=32 characters of A-Z a-z 0-9 _ -"),
-        })
-    }
-}
+pub use crate::names::{check_name, observation_key, rig_observations_key};
 
 /// How a node joins the Zenoh network.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
@@ -54,6 +30,123 @@ pub struct TransportConfig {
     /// Zenoh's low-latency unicast transport (off by default: under heavy CPU load a burst of
     /// observations was seen not to arrive with it on; see docs/cluster.md).
     pub low_latency: bool,
+    /// Who this node is on the transport (none: anyone who reaches the port is a peer).
+    pub auth: Auth,
+}
+
+/// Authentication and access control of a node (docs/cluster.md, "Credentials").
+///
+/// Zenoh's user/password authentication: the side that opens a link proves it knows its
+/// password (an HMAC of a nonce the other side chose; the password never travels), the side
+/// that accepts checks it against its dictionary. So camera boards connect and the solver
+/// listens. The solver's access control denies everything by default and lets user `X` put
+/// only on `irtrack/<rig>/X/cam/*/obs`. The link is not encrypted (no TLS in this build).
+#[derive(Clone, PartialEq, Eq, Default)]
+pub enum Auth {
+    /// No credentials: every peer is accepted and may publish anything (the default, warned).
+    #[default]
+    None,
+    /// A camera board: connects as user `board`.
+    Board {
+        /// The board's name, also its user name.
+        board: String,
+        /// Its password.
+        password: String,
+    },
+    /// The solver: accepts only the boards of its dictionary, each on its own keys.
+    Solver {
+        /// The rig (key expressions).
+        rig: String,
+        /// The dictionary file Zenoh reads (`board:password` lines).
+        dictionary_file: std::path::PathBuf,
+        /// The boards listed in it (the access control's subjects).
+        boards: Vec<String>,
+    },
+}
+
+impl std::fmt::Debug for Auth {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Auth::None => f.write_str("Auth::None"),
+            Auth::Board { board, .. } => write!(f, "Auth::Board({board}, ***)"),
+            Auth::Solver {
+                rig,
+                dictionary_file,
+                boards,
+            } => write!(
+                f,
+                "Auth::Solver({rig}, {}, {boards:?})",
+                dictionary_file.display()
+            ),
+        }
+    }
+}
+
+impl Auth {
+    /// A camera board's credentials from its password file; `true` besides when group or
+    /// others may read the file.
+    pub fn board_from_file(board: &str, password_file: &std::path::Path) -> Result<(Auth, bool)> {
+        check_name("board", board)?;
+        let (password, loose) = crate::credentials::read_password_file(password_file)?;
+        Ok((
+            Auth::Board {
+                board: board.to_string(),
+                password,
+            },
+            loose,
+        ))
+    }
+
+    /// The solver's from its dictionary file; `true` besides when group or others may read it.
+    pub fn solver_from_file(rig: &str, dictionary_file: &std::path::Path) -> Result<(Auth, bool)> {
+        check_name("rig", rig)?;
+        let (entries, loose) = crate::credentials::read_dictionary_file(dictionary_file)?;
+        json5_safe_path(dictionary_file)?;
+        Ok((
+            Auth::Solver {
+                rig: rig.to_string(),
+                dictionary_file: dictionary_file.to_path_buf(),
+                boards: entries.into_iter().map(|c| c.board).collect(),
+            },
+            loose,
+        ))
+    }
+
+    /// The access-control section of the solver's configuration (JSON5): deny by default;
+    /// board `X` may put on its own observation keys and receive the solver's subscription.
+    fn solver_acl(rig: &str, boards: &[String]) -> String {
+        let mut rules = vec![format!(
+            "{{id:\"solver-subscription\",messages:[\"declare_subscriber\"],flows:[\"egress\"],permission:\"allow\",key_exprs:[\"{}\"]}}",
+            rig_observations_key(rig)
+        )];
+        let mut subjects = Vec::new();
+        let mut policies = Vec::new();
+        for b in boards {
+            rules.push(format!(
+                "{{id:\"obs-{b}\",messages:[\"put\"],flows:[\"ingress\"],permission:\"allow\",key_exprs:[\"irtrack/{rig}/{b}/cam/*/obs\"]}}"
+            ));
+            subjects.push(format!("{{id:\"board-{b}\",usernames:[\"{b}\"]}}"));
+            policies.push(format!(
+                "{{rules:[\"obs-{b}\",\"solver-subscription\"],subjects:[\"board-{b}\"]}}"
+            ));
+        }
+        format!(
+            "{{enabled:true,default_permission:\"deny\",rules:[{}],subjects:[{}],policies:[{}]}}",
+            rules.join(","),
+            subjects.join(","),
+            policies.join(",")
+        )
+    }
+}
+
+/// A path that can go into Zenoh's JSON5 configuration as a quoted string.
+fn json5_safe_path(p: &std::path::Path) -> Result<&str> {
+    p.to_str()
+        .filter(|s| !s.chars().any(|c| c == '"' || c == '\\' || c.is_control()))
+        .ok_or_else(|| ClusterError::Credentials {
+            file: p.display().to_string(),
+            reason: "the path must be UTF-8 without '\"', '\\' or control characters".into(),
+        })
 }
 
 impl TransportConfig {
@@ -97,6 +190,40 @@ impl TransportConfig {
                 .map_err(bad)?;
             c.insert_json5("transport/unicast/qos/enabled", "false")
                 .map_err(bad)?;
+        }
+        match &self.auth {
+            Auth::None => {}
+            Auth::Board { board, password } => {
+                // A board accepts no link (its dictionary is empty): it connects.
+                check_name("board", board)?;
+                crate::credentials::check_password(password).map_err(|reason| ClusterError::Config {
+                    reason: format!("board {board}: {reason}"),
+                })?;
+                c.insert_json5("transport/auth/usrpwd/user", &format!("\"{board}\""))
+                    .map_err(bad)?;
+                c.insert_json5("transport/auth/usrpwd/password", &format!("\"{password}\""))
+                    .map_err(bad)?;
+            }
+            Auth::Solver {
+                rig,
+                dictionary_file,
+                boards,
+            } => {
+                check_name("rig", rig)?;
+                for b in boards {
+                    check_name("board", b)?;
+                }
+                if boards.is_empty() {
+                    return Err(ClusterError::Config {
+                        reason: "the solver's dictionary lists no board".into(),
+                    });
+                }
+                let path = json5_safe_path(dictionary_file)?;
+                c.insert_json5("transport/auth/usrpwd/dictionary_file", &format!("\"{path}\""))
+                    .map_err(bad)?;
+                c.insert_json5("access_control", &Auth::solver_acl(rig, boards))
+                    .map_err(bad)?;
+            }
         }
         Ok(c)
     }

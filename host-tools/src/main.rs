@@ -40,6 +40,8 @@ enum Command {
     Survey(cmd::survey::Args),
     /// Create a signing key pair for parameter blobs.
     Keygen(cmd::keygen::Args),
+    /// Passwords for the camera boards and the solver's dictionary (cluster transport).
+    ClusterKeys(cmd::cluster_keys::Args),
     /// Measure a multi-LED tool's layout from frames of it held still; adds it to the parameters.
     MeasureTool(cmd::measure_tool::Args),
     /// Pivot calibration: the tip of a 6-DOF tool from poses of it turned about its tip.
@@ -67,6 +69,7 @@ fn main() -> anyhow::Result<()> {
         Command::Register(a) => cmd::register::run(a),
         Command::Survey(a) => cmd::survey::run(a),
         Command::Keygen(a) => cmd::keygen::run(a),
+        Command::ClusterKeys(a) => cmd::cluster_keys::run(a),
         Command::MeasureTool(a) => cmd::measure_tool::run(a),
         Command::Pivot(a) => cmd::pivot::run(a),
         Command::Capture(a) => cmd::capture::run(a),

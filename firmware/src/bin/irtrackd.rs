@@ -208,6 +208,9 @@ fn main() -> anyhow::Result<()> {
                 "no password configured: every change request on the status port is refused"
             }
         );
+        if let Some(line) = cfg.cluster.auth_summary() {
+            println!("irtrackd: {line}");
+        }
         let tuning_path = cfg.service.state_dir.join(irtrack_firmware::tuning::TUNING_FILE);
         match irtrack_firmware::tuning::TuningFile::load(&cfg.service.state_dir)? {
             Some(t) => {

@@ -49,18 +49,27 @@ pub struct CameraPublisher {
     losses: u64,
 }
 
-fn transport_config(cfg: &ClusterConfig) -> TransportConfig {
-    TransportConfig {
+fn transport_config(cfg: &ClusterConfig) -> Result<TransportConfig> {
+    Ok(TransportConfig {
         listen: cfg.listen.clone(),
         connect: cfg.connect.clone(),
         multicast_scouting: cfg.multicast_scouting,
         low_latency: cfg.low_latency,
-    }
+        auth: cfg.transport_auth()?,
+    })
 }
 
-/// Opens the Zenoh session of `cfg` (blocking).
+/// Opens the Zenoh session of `cfg` (blocking), with its credentials; warns when it has none.
 pub fn open_session(cfg: &ClusterConfig) -> Result<Session> {
-    Session::open(&transport_config(cfg)).map_err(|e| FirmwareError::Config {
+    let tc = transport_config(cfg)?;
+    if let Some(line) = cfg.auth_summary() {
+        if tc.auth == irtrack_cluster::transport::Auth::None {
+            tracing::warn!("{line}");
+        } else {
+            tracing::info!("{line}");
+        }
+    }
+    Session::open(&tc).map_err(|e| FirmwareError::Config {
         reason: format!("cluster: {e}"),
     })
 }

@@ -87,6 +87,16 @@ pub struct ClusterConfig {
     /// as the camera boards' observations.
     #[serde(default)]
     pub own_cameras: bool,
+    /// Camera role: this board's password for the solver (a file of one line, made by
+    /// `host-tools cluster-keys`); its user name is `board`. Unset: the board connects without
+    /// credentials (warned; docs/cluster.md, "Credentials").
+    #[serde(default)]
+    pub password_file: Option<std::path::PathBuf>,
+    /// Solver: the camera boards' credentials (`board:password` lines, made by `host-tools
+    /// cluster-keys`). Set: only those boards are accepted, each may publish only its own
+    /// observations. Unset: any peer that reaches the port may publish (warned).
+    #[serde(default)]
+    pub credentials_file: Option<std::path::PathBuf>,
     /// Camera role, tests: probability of not sending an observation (loss injection).
     #[serde(default)]
     pub inject_loss: f64,
@@ -134,6 +144,8 @@ impl Default for ClusterConfig {
             board_timeout_ms: d_board_timeout(),
             image_sizes_px: Vec::new(),
             own_cameras: false,
+            password_file: None,
+            credentials_file: None,
             inject_loss: 0.0,
             inject_jitter_ms: 0.0,
             clock_offset_ms: 0.0,
@@ -215,6 +227,7 @@ impl ClusterConfig {
                     .into(),
             );
         }
+        self.validate_credentials()?;
         if self.role == Role::Solver {
             let n = self.image_sizes_px.len();
             if !(2..=irtrack_core::params::MAX_CAMERAS).contains(&n) {
@@ -228,6 +241,109 @@ impl ClusterConfig {
             }
         }
         Ok(())
+    }
+
+    /// The credentials keys fit the role and the endpoints (the side that opens a link proves
+    /// its password, so boards connect and the solver listens), and the files parse.
+    fn validate_credentials(&self) -> Result<()> {
+        let bad = |reason: String| Err(FirmwareError::Config { reason });
+        match self.role {
+            Role::Camera if self.credentials_file.is_some() => {
+                return bad(
+                    "cluster.credentials_file is the solver's dictionary; a camera board takes its own password_file"
+                        .into(),
+                );
+            }
+            Role::Solver if self.password_file.is_some() => {
+                return bad(
+                    "cluster.password_file is a camera board's; the solver takes credentials_file (the boards' dictionary)"
+                        .into(),
+                );
+            }
+            _ => {}
+        }
+        let authenticated = match self.role {
+            Role::Camera => self.password_file.is_some(),
+            Role::Solver => self.credentials_file.is_some(),
+            Role::Standalone => false,
+        };
+        if !authenticated {
+            return Ok(());
+        }
+        let endpoints_ok = match self.role {
+            Role::Camera => self.listen.is_empty() && !self.connect.is_empty(),
+            _ => !self.listen.is_empty() && self.connect.is_empty(),
+        };
+        if !endpoints_ok || self.multicast_scouting {
+            return bad(
+                "cluster: with credentials, camera boards connect to the solver (connect = [...], no listen) and the solver listens (listen = [...], no connect), without multicast_scouting: Zenoh checks the password of the side that opens a link"
+                    .into(),
+            );
+        }
+        #[cfg(feature = "cluster")]
+        {
+            let auth = self.transport_auth()?;
+            if let irtrack_cluster::transport::Auth::Solver { boards, .. } = &auth
+                && self.own_cameras
+                && boards.contains(&self.board)
+            {
+                return bad(format!(
+                    "cluster.credentials_file lists {:?}, the solver's own board name: a remote peer could publish as its own cameras",
+                    self.board
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The Zenoh credentials of this role from its files (none when not configured).
+    #[cfg(feature = "cluster")]
+    pub fn transport_auth(&self) -> Result<irtrack_cluster::transport::Auth> {
+        use irtrack_cluster::transport::Auth;
+        let to_err = |e: irtrack_cluster::ClusterError| FirmwareError::Config {
+            reason: e.to_string(),
+        };
+        let (auth, loose, file) = match (self.role, &self.password_file, &self.credentials_file) {
+            (Role::Camera, Some(f), _) => {
+                let (a, l) = Auth::board_from_file(&self.board, f).map_err(to_err)?;
+                (a, l, f)
+            }
+            (Role::Solver, _, Some(f)) => {
+                let (a, l) = Auth::solver_from_file(&self.rig, f).map_err(to_err)?;
+                (a, l, f)
+            }
+            _ => return Ok(Auth::None),
+        };
+        if loose {
+            tracing::warn!(
+                file = %file.display(),
+                "cluster credentials file is readable by group or others; chmod 600 it"
+            );
+        }
+        Ok(auth)
+    }
+
+    /// One line on the transport's authentication for `--check-config` and the log; `None`
+    /// standalone. Unauthenticated says so and what it means.
+    pub fn auth_summary(&self) -> Option<String> {
+        Some(match self.role {
+            Role::Standalone => return None,
+            Role::Camera => match &self.password_file {
+                Some(f) => format!(
+                    "cluster transport: authenticated as board {:?} (password file {})",
+                    self.board,
+                    f.display()
+                ),
+                None => UNAUTHENTICATED.to_string(),
+            },
+            Role::Solver => match &self.credentials_file {
+                Some(f) => format!(
+                    "cluster transport: only the boards in {} are accepted, each on its own key expressions",
+                    f.display()
+                ),
+                None => UNAUTHENTICATED.to_string(),
+            },
+        })
     }
 
     /// Frame period at `fps`, ns.
@@ -256,6 +372,9 @@ impl ClusterConfig {
         self.max_clock_offset_ms.map_or(self.tolerance_ns(), Self::ms_ns)
     }
 }
+
+/// What `--check-config` and the log say of a cluster without credentials.
+pub const UNAUTHENTICATED: &str = "cluster transport: UNAUTHENTICATED - any host that reaches the Zenoh port can publish observations as any board and steer the robot; set [cluster] password_file on the boards and credentials_file on the solver (host-tools cluster-keys, docs/cluster.md \"Credentials\")";
 
 /// Shared cluster state (camera and solver roles); `None` standalone.
 pub type SharedReport = std::sync::Arc<std::sync::Mutex<ClusterReport>>;

@@ -3,6 +3,7 @@
 pub mod accuracy;
 pub mod calibrate;
 pub mod capture;
+pub mod cluster_keys;
 pub mod convert_params;
 pub mod keygen;
 pub mod measure_tool;

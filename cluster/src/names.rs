@@ -1,0 +1,30 @@
+//! Key expressions and the names in them (plain code: the credentials need them without
+//! the transport).
+
+use crate::error::{ClusterError, Result};
+
+/// Key expression of one camera's observations.
+pub fn observation_key(rig: &str, board: &str, camera: usize) -> String {
+    format!("irtrack/{rig}/{board}/cam/{camera}/obs")
+}
+
+/// Key expression the solver subscribes to: every board and camera of the rig.
+pub fn rig_observations_key(rig: &str) -> String {
+    format!("irtrack/{rig}/*/cam/*/obs")
+}
+
+/// Checks a rig or board name for use in a key expression: 1..=32 bytes of `[A-Za-z0-9_-]`.
+pub fn check_name(what: &str, name: &str) -> Result<()> {
+    let ok = !name.is_empty()
+        && name.len() <= irtrack_core::observation::MAX_OBS_ID_LEN
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+    if ok {
+        Ok(())
+    } else {
+        Err(ClusterError::Config {
+            reason: format!("{what} name {name:?} must be 1..=32 characters of A-Z a-z 0-9 _ -"),
+        })
+    }
+}
