@@ -586,8 +586,9 @@ impl Tracker {
     }
 
     /// Solves the last solved set again with the cameras whose bit is set in `exclude_mask`
-    /// left out (bit `i` = camera `i`): their blobs stay, they give no ray and do not choose
-    /// the set's instant. A cluster solver drops a board whose cameras disagree with the
+    /// left out (bit `i` = camera `i`): their blobs stay and they give no ray. The set's
+    /// instant is still chosen from every camera's blobs, so the points of several solves of
+    /// one set are for the same instant and can be compared. A cluster solver drops a board whose cameras disagree with the
     /// others this way. Without a complete last set (or on a detection-only tracker) the last
     /// measurement is returned unchanged. Never allocates.
     pub fn solve_excluding(&mut self, exclude_mask: u32) -> &Measurement {
@@ -932,10 +933,14 @@ fn retime_cameras(cams: &mut [CameraState], cfg: &TrackerConfig) -> Option<f64> 
     let mut t_ref: Option<f64> = None;
     for c in cams.iter() {
         let Some(ts) = c.frame_ts_ns else { continue };
-        for cand in &c.candidates {
-            let Some(b) = c.blobs().get(cand.blob) else {
-                continue;
-            };
+        // Every gated blob, an excluded camera's too: the solves of one set without one or
+        // another camera are all for the same instant, so their points compare.
+        for b in c
+            .blobs()
+            .iter()
+            .filter(|b| usable(b, cfg))
+            .take(c.candidates.capacity())
+        {
             let t = c.timing.blob_instant_ns(ts, b.y_px);
             t_ref = Some(match (t_ref, cfg.time_mode) {
                 (None, _) => t,
@@ -1357,6 +1362,20 @@ mod tests {
         // The full set again: the exclusion does not stick.
         let m = *t.solve_excluding(0);
         assert_eq!(m.cameras_used, 3);
+        // With timestamps, the track gives each candidate's image velocity: camera 3's blob
+        // moving 2 px per 10 ms frame in x is 200 px/s.
+        let mut t = Tracker::new(&r, TrackerConfig::default()).unwrap();
+        for k in 0..3u64 {
+            for c in 0..4 {
+                t.set_frame_time(c, 1_000_000_000 + k * 10_000_000).unwrap();
+                let mut b = blob(c, &p);
+                b.x_px += 2.0 * k as f64;
+                t.set_blobs(c, [b]).unwrap();
+            }
+            t.solve();
+        }
+        let v = t.camera_residual(3, &p).unwrap().velocity_px_s.unwrap();
+        assert!((v[0] - 200.0).abs() < 1e-6 && v[1].abs() < 1e-6, "{v:?}");
         // After a solve with a camera missing there is nothing to solve again.
         t.set_blobs(0, [blob(0, &p)]).unwrap();
         let m = *t.solve();

@@ -20,6 +20,7 @@ use irtrack_core::image::GrayImage;
 use irtrack_core::observation::{MAX_OBS_BLOBS, ObsClock, ObservationGate, ObservationProblem, decode};
 use irtrack_core::pipeline::{Tracker, TrackerConfig};
 
+use super::agreement::{Agreement, Cause};
 use super::camera::CameraPublisher;
 use super::{BoardReport, ClusterConfig, ClusterReport};
 use crate::clock;
@@ -33,6 +34,9 @@ use crate::source::{
 /// Observations further than this from the solver's clock are refused outright (a board
 /// with a clock this wrong is not synchronised at all).
 const MAX_TIMESTAMP_OFFSET_NS: u64 = 1_000_000_000;
+/// A board whose measured clock offset exceeds this (or a quarter of the tolerance) is taken
+/// as the culprit when it and one other board disagree.
+const CLOCK_OFF_NS: i64 = 1_000_000;
 /// How often `/status` gets a fresh copy of the counters.
 const REPORT_INTERVAL_NS: u64 = 200_000_000;
 /// With no observation at all for this long, the source reports a timeout (camera fault).
@@ -42,6 +46,8 @@ const SILENCE_TIMEOUT_NS: u64 = 1_000_000_000;
 struct Layout {
     gate: ObservationGate,
     pairer: Pairer,
+    /// Do the boards' rays agree (checked after every solve)?
+    agreement: Agreement,
     boards: Vec<String>,
     board_cameras: Vec<Vec<usize>>,
 }
@@ -373,6 +379,7 @@ impl ClusterSource {
             };
             camera_board.push(b);
         }
+        let agreement = Agreement::new(&camera_board);
         let board_cameras = (0..boards.len())
             .map(|b| {
                 (0..camera_board.len())
@@ -413,6 +420,7 @@ impl ClusterSource {
                 self.layout = Some(Layout {
                     gate,
                     pairer,
+                    agreement,
                     boards,
                     board_cameras,
                 });
@@ -554,6 +562,10 @@ impl ClusterSource {
         r.conflicting = st.conflicting;
         r.refused_clock = st.refused_clock;
         r.missing = st.missing[..layout.pairer.camera_count()].to_vec();
+        let ag = &layout.agreement;
+        r.sets_compared = ag.sets_compared;
+        r.sets_refused_disagreement = ag.sets_refused;
+        r.sets_board_dropped = ag.sets_board_dropped;
         let timeout_ns = (self.cfg.board_timeout_ms * 1e6) as u64;
         r.boards = layout
             .boards
@@ -562,7 +574,25 @@ impl ClusterSource {
             .map(|(b, name)| {
                 let clock = layout.pairer.boards().get(b).copied().unwrap_or_default();
                 let last = self.board_last_ns.get(b).copied().flatten();
+                let a = layout.agreement.boards.get(b).cloned().unwrap_or_default();
                 BoardReport {
+                    disagreeing: a.suspect,
+                    disagreement_share: a.share,
+                    compared_sets: a.compared,
+                    disagreed_sets: a.disagreed,
+                    dropped_sets: a.dropped,
+                    miss_mm: a.miss_mm,
+                    miss_px: a.miss_px,
+                    time_shift_ms: a.shift_ms,
+                    likely_cause: a.suspect.then(|| match a.cause() {
+                        Cause::Clock => "clock",
+                        Cause::Calibration => "calibration",
+                        Cause::Unknown => "unknown",
+                    }),
+                    disagrees_with: a
+                        .peer
+                        .filter(|_| a.suspect)
+                        .and_then(|p| layout.boards.get(p).cloned()),
                     name: name.clone(),
                     cameras: layout.board_cameras[b].clone(),
                     last_seen_ms: last.map(|t| now_ns.saturating_sub(t) as f64 / 1e6),
@@ -731,6 +761,20 @@ impl FrameSource for ClusterSource {
 
     fn remote_blobs(&self, camera: usize) -> Option<&[Blob]> {
         self.remote.get(camera).map(|v| &v[..])
+    }
+
+    fn vet_solution(&mut self, tracker: &mut Tracker) -> bool {
+        let Some(layout) = self.layout.as_mut() else {
+            return true;
+        };
+        // A measured clock offset this large tells which of two disagreeing boards is off
+        // (healthy boards on PTP or chrony measure well under 1 ms).
+        let limit_ns = CLOCK_OFF_NS.max(self.cfg.tolerance_ns() as i64 / 4);
+        let mut clock_off = [false; irtrack_core::pipeline::MAX_CAMERAS];
+        for (off, b) in clock_off.iter_mut().zip(layout.pairer.boards()) {
+            *off = b.offset_ns.is_some_and(|o| o.abs() > limit_ns);
+        }
+        layout.agreement.vet(tracker, &clock_off)
     }
 
     fn has_pixels(&self, camera: usize) -> bool {

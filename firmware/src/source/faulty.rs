@@ -174,6 +174,10 @@ impl FrameSource for FaultySource {
         self.inner.remote_blobs(camera)
     }
 
+    fn vet_solution(&mut self, tracker: &mut irtrack_core::pipeline::Tracker) -> bool {
+        self.inner.vet_solution(tracker)
+    }
+
     fn has_pixels(&self, camera: usize) -> bool {
         self.inner.has_pixels(camera)
     }

@@ -232,6 +232,14 @@ pub trait FrameSource: Send {
     fn remote_blobs(&self, _camera: usize) -> Option<&[irtrack_core::blob::Blob]> {
         None
     }
+    /// Called by the loop right after `tracker` solved the set just delivered. A source whose
+    /// cameras come from several boards (the cluster solver) checks that they agree, may
+    /// solve again without a board's cameras ([`irtrack_core::pipeline::Tracker::solve_excluding`];
+    /// the loop then publishes the tracker's measurement), and returns false when the set must
+    /// give no position. By default every solve stands.
+    fn vet_solution(&mut self, _tracker: &mut irtrack_core::pipeline::Tracker) -> bool {
+        true
+    }
 
     /// Whether `camera`'s frames hold its pixels here. A cluster solver's camera-board
     /// cameras do not (their blobs come as [`FrameSource::remote_blobs`], the frame stays
