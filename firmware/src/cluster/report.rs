@@ -124,6 +124,23 @@ pub struct ClusterReport {
     /// Camera role: detecting and publishing without a parameter set of its own (a board
     /// with one camera needs none); its records carry no position.
     pub detection_only: bool,
+    /// Solver: no placed camera board has sent a usable observation since start (fault
+    /// `waiting_for_boards`, in words; the silence is no camera fault of the solver's).
+    pub waiting_for_boards: Option<String>,
+    /// Solver, trigger mode: boards sending observations without a trigger counter, and how
+    /// many (each refused: no set can be made from them).
+    pub no_trigger_boards: Vec<(String, u64)>,
+    /// Solver: refused observations by sender (board name; `rig R board B` for another
+    /// rig's; `?` when the payload could not be read), their count and the last problem.
+    pub refused_senders: Vec<(String, u64, &'static str)>,
+}
+
+impl ClusterReport {
+    /// The solver knows why no set arrives: it waits for boards that never sent, or its
+    /// boards are down. The source's silence is then no `camera_lost` ("check its cable").
+    pub fn explains_silence(&self) -> bool {
+        self.role == "solver" && (self.waiting_for_boards.is_some() || self.boards.iter().any(|b| b.down))
+    }
 }
 
 impl ClusterReport {
@@ -137,11 +154,30 @@ impl ClusterReport {
                 "the parameter set does not say which board each camera is on — push a set with a placement (docs/cluster.md)".to_string(),
             ));
         }
+        if let Some(w) = &self.waiting_for_boards {
+            out.push(("waiting_for_boards", None, w.clone()));
+        }
+        if !self.no_trigger_boards.is_empty() {
+            let list: Vec<String> = self
+                .no_trigger_boards
+                .iter()
+                .map(|(b, n)| format!("{b} ({n} refused)"))
+                .collect();
+            out.push((
+                "no_trigger_count",
+                None,
+                format!(
+                    "[cluster] trigger = true pairs observations by the hardware trigger's counter, but camera board(s) {} send none, so no set can be made from them — wire the trigger to each board's counter input (docs/cluster.md, \"Topology and wiring\") or set trigger = false to pair by timestamps",
+                    list.join(", ")
+                ),
+            ));
+        }
         for (i, f) in self.own_camera_faults.iter().enumerate() {
             out.push(("own_camera", self.own_refused_cameras.get(i).copied(), f.clone()));
         }
         for b in &self.boards {
-            if b.down {
+            // While no board has ever sent, `waiting_for_boards` says it once.
+            if b.down && self.waiting_for_boards.is_none() {
                 out.push((
                     "board_down",
                     None,
@@ -171,10 +207,23 @@ impl ClusterReport {
         let refused: u64 = self.refused.values().sum();
         if refused > 0 {
             let list: Vec<String> = self.refused.iter().map(|(k, v)| format!("{k} {v}")).collect();
+            let senders: Vec<String> = self
+                .refused_senders
+                .iter()
+                .map(|(who, n, last)| match who.as_str() {
+                    "?" => format!("{n} unreadable (sender unknown, last {last})"),
+                    _ => format!("{n} from {who} (last {last})"),
+                })
+                .collect();
+            let from = if senders.is_empty() {
+                String::new()
+            } else {
+                format!("; by sender: {}", senders.join(", "))
+            };
             out.push((
                 "observations_refused",
                 None,
-                format!("{refused} observations refused ({})", list.join(", ")),
+                format!("{refused} observations refused ({}){from}", list.join(", ")),
             ));
         }
         out
