@@ -162,6 +162,9 @@ impl FrameSource for FaultySource {
     fn stats(&self) -> SourceStats {
         self.inner.stats()
     }
+    fn nominal_fps(&self) -> Option<f64> {
+        self.inner.nominal_fps()
+    }
     fn describe(&self) -> String {
         format!("{} with injected faults", self.inner.describe())
     }

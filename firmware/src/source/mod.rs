@@ -220,6 +220,11 @@ pub trait FrameSource: Send {
     fn next_set(&mut self, out: &mut FrameSet) -> Result<(), SourceError>;
     /// Counters since start.
     fn stats(&self) -> SourceStats;
+    /// The rate the source really delivers at, when it knows better than the config (a
+    /// replay: its recording's timestamps); the loop's deadline follows it.
+    fn nominal_fps(&self) -> Option<f64> {
+        None
+    }
     /// Human-readable description for status and logs.
     fn describe(&self) -> String;
     /// Why a finite source ended, in words (replay: sets delivered of recorded, and what was
