@@ -530,7 +530,7 @@ impl Agreement {
                 share = share.max(p.share);
                 if !p.disagree {
                     with += 1;
-                } else if !(off(x) && !off(b)) {
+                } else if !off(x) || off(b) {
                     against += 1;
                     peer = Some(x);
                 }
