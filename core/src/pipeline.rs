@@ -255,6 +255,23 @@ impl Measurement {
 struct Candidate {
     blob: usize,
     ray: Ray,
+    /// The centroid the ray goes through (moved to the set's instant when retimed).
+    x_px: f64,
+    y_px: f64,
+}
+
+/// How one camera's blobs agree with a point ([`Tracker::camera_residual`]): the candidate
+/// whose ray passes closest to it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraResidual {
+    /// Distance (mm) of that candidate's ray from the point: the quantity the tracker's gate
+    /// (`max_gap_mm`) bounds for the cameras it uses.
+    pub ray_mm: f64,
+    /// The candidate's centroid (at the set's instant when retimed) minus the point's
+    /// projection into the camera (px): the reprojection error.
+    pub residual_px: [f64; 2],
+    /// The candidate's image velocity (px/s) along its track, when it has one.
+    pub velocity_px_s: Option<[f64; 2]>,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -289,6 +306,8 @@ struct CameraState {
     /// The blobs moved to the set's instant (valid when `timed_active`). Capacity `max_blobs`.
     timed: Vec<Blob>,
     timed_active: bool,
+    /// Left out of the solve ([`Tracker::solve_excluding`]): its blobs give no ray.
+    excluded: bool,
 }
 
 /// The per-frame tracker (see the module documentation).
@@ -300,6 +319,8 @@ pub struct Tracker {
     measurement: Measurement,
     /// Built by [`Tracker::detection_only`]: no calibration, never a point.
     detection_only: bool,
+    /// The last solve had every camera's frame: [`Tracker::solve_excluding`] may solve it again.
+    resolvable: bool,
 }
 
 impl Tracker {
@@ -312,6 +333,7 @@ impl Tracker {
             rays: Vec::new(),
             measurement: Measurement::empty(0),
             detection_only: false,
+            resolvable: false,
         };
         t.set_params(rig)?;
         Ok(t)
@@ -353,6 +375,7 @@ impl Tracker {
             rays: Vec::with_capacity(n),
             measurement: Measurement::empty(n),
             detection_only: true,
+            resolvable: false,
         })
     }
 
@@ -562,6 +585,62 @@ impl Tracker {
         &self.measurement
     }
 
+    /// Solves the last solved set again with the cameras whose bit is set in `exclude_mask`
+    /// left out (bit `i` = camera `i`): their blobs stay and they give no ray. The set's
+    /// instant is still chosen from every camera's blobs, so the points of several solves of
+    /// one set are for the same instant and can be compared. A cluster solver drops a board whose cameras disagree with the
+    /// others this way. Without a complete last set (or on a detection-only tracker) the last
+    /// measurement is returned unchanged. Never allocates.
+    pub fn solve_excluding(&mut self, exclude_mask: u32) -> &Measurement {
+        if !self.resolvable || self.detection_only {
+            return &self.measurement;
+        }
+        let cfg = self.config;
+        for (i, c) in self.cams.iter_mut().enumerate() {
+            c.excluded = exclude_mask & (1u32 << i) != 0;
+            c.detected = true;
+            c.collect_candidates(&cfg);
+        }
+        self.solve_impl();
+        for c in &mut self.cams {
+            c.excluded = false;
+        }
+        &self.measurement
+    }
+
+    /// How `camera`'s current candidates agree with `point_cam0_mm` (camera-0 frame): the
+    /// candidate whose ray passes closest, its ray distance and reprojection error, and its
+    /// image velocity along its track. Valid after a solve (the candidates are then the
+    /// set's, moved to its instant when retimed); `None` for a camera without candidates,
+    /// a bad index or a point behind the camera.
+    pub fn camera_residual(&self, camera: usize, point_cam0_mm: &Vector3<f64>) -> Option<CameraResidual> {
+        let c = self.cams.get(camera)?;
+        let (cand, ray_mm) = c
+            .candidates
+            .iter()
+            .filter_map(|cd| ray_distance_mm(&cd.ray, point_cam0_mm).map(|d| (cd, d)))
+            .min_by(|a, b| a.1.total_cmp(&b.1))?;
+        let px = c.model.project(&c.cam_from_cam0.apply(point_cam0_mm)).ok()?;
+        let velocity_px_s = match (c.blobs().get(cand.blob), c.frame_ts_ns) {
+            (Some(b), Some(ts)) => {
+                let now = TimedPoint {
+                    x_px: b.x_px,
+                    y_px: b.y_px,
+                    t_ns: c.timing.blob_instant_ns(ts, b.y_px),
+                };
+                c.history
+                    .velocity_px_per_ns(now, self.config.track_gate_px, self.config.max_bridge_ms * 1e6)
+                    .map(|[vx, vy]| [vx * 1e9, vy * 1e9])
+            }
+            _ => None,
+        };
+        Some(CameraResidual {
+            ray_mm,
+            residual_px: [cand.x_px - px.x, cand.y_px - px.y],
+            velocity_px_s,
+        })
+    }
+
     /// Detects and solves a complete 8-bit frame set (one frame per camera, in camera
     /// order), retrying on the full frames if the tracking windows gave no consistent point.
     pub fn process_u8(&mut self, frames: &[GrayImage<'_, u8>]) -> Result<&Measurement> {
@@ -659,6 +738,7 @@ impl Tracker {
             return;
         }
         let missing = self.cams.iter().position(|c| !c.detected);
+        self.resolvable = missing.is_none();
         let with_candidates = self.cams.iter().filter(|c| !c.candidates.is_empty()).count();
         let mut best: Option<Hypothesis> = None;
         if let Some(camera) = missing {
@@ -788,6 +868,7 @@ impl CameraState {
             history: BlobHistory::new(config.max_blobs),
             timed: Vec::with_capacity(config.max_blobs),
             timed_active: false,
+            excluded: false,
         })
     }
 
@@ -816,10 +897,18 @@ impl CameraState {
         } else {
             self.detector.blobs()
         };
+        if self.excluded {
+            return 0;
+        }
         for (i, b) in blobs.iter().enumerate() {
             if usable(b, cfg) && self.candidates.len() < self.candidates.capacity() {
                 let ray = Ray::from_pixel(&self.model, &self.cam_from_cam0, b.x_px, b.y_px);
-                self.candidates.push(Candidate { blob: i, ray });
+                self.candidates.push(Candidate {
+                    blob: i,
+                    ray,
+                    x_px: b.x_px,
+                    y_px: b.y_px,
+                });
             }
         }
         self.candidates.len()
@@ -844,10 +933,14 @@ fn retime_cameras(cams: &mut [CameraState], cfg: &TrackerConfig) -> Option<f64> 
     let mut t_ref: Option<f64> = None;
     for c in cams.iter() {
         let Some(ts) = c.frame_ts_ns else { continue };
-        for cand in &c.candidates {
-            let Some(b) = c.blobs().get(cand.blob) else {
-                continue;
-            };
+        // Every gated blob, an excluded camera's too: the solves of one set without one or
+        // another camera are all for the same instant, so their points compare.
+        for b in c
+            .blobs()
+            .iter()
+            .filter(|b| usable(b, cfg))
+            .take(c.candidates.capacity())
+        {
             let t = c.timing.blob_instant_ns(ts, b.y_px);
             t_ref = Some(match (t_ref, cfg.time_mode) {
                 (None, _) => t,
@@ -886,9 +979,14 @@ fn retime_cameras(cams: &mut [CameraState], cfg: &TrackerConfig) -> Option<f64> 
                 continue;
             }
             c.timed.push(Blob { x_px, y_px, ..*b });
-            if usable(b, cfg) && c.candidates.len() < c.candidates.capacity() {
+            if !c.excluded && usable(b, cfg) && c.candidates.len() < c.candidates.capacity() {
                 let ray = Ray::from_pixel(&c.model, &c.cam_from_cam0, x_px, y_px);
-                c.candidates.push(Candidate { blob: i, ray });
+                c.candidates.push(Candidate {
+                    blob: i,
+                    ray,
+                    x_px,
+                    y_px,
+                });
             }
         }
         c.timed_active = true;
@@ -1202,6 +1300,92 @@ mod tests {
 
     /// The cluster solver's path: blobs given per camera (no frames) triangulate like detected
     /// ones; a camera with no blobs (its board stopped) leaves the others to carry on.
+    #[test]
+    fn a_camera_that_disagrees_is_measured_and_can_be_left_out() {
+        // Four cameras; camera 3 sees the marker 2 mm away from where the others see it (a
+        // board whose frames are from another instant): its ray misses the point by more
+        // than the gate, the others' residuals are ~0, and leaving out 0 and 1 leaves a
+        // pair (2, 3) that agrees with itself on the other point.
+        let target = Vector3::new(0.0, 0.0, 600.0);
+        let r = rig(&[
+            RigidTransform::IDENTITY,
+            looking_at(Vector3::new(600.0, 0.0, 600.0), target),
+            looking_at(Vector3::new(-600.0, 0.0, 600.0), target),
+            looking_at(Vector3::new(0.0, -400.0, 300.0), target),
+        ]);
+        let mut t = Tracker::new(&r, TrackerConfig::default()).unwrap();
+        let p = Vector3::new(10.0, -5.0, 590.0);
+        let q = p + Vector3::new(8.0, 0.0, 6.0);
+        let blob = |cam: usize, at: &Vector3<f64>| {
+            let (x, y) = project(&r, cam, at);
+            Blob {
+                x_px: x,
+                y_px: y,
+                area_px: 9,
+                peak_dn: 200,
+                roundness: 1.0,
+                sigma_major_px: 1.0,
+                sigma_minor_px: 1.0,
+                ..Blob::default()
+            }
+        };
+        for c in 0..3 {
+            t.set_blobs(c, [blob(c, &p)]).unwrap();
+        }
+        t.set_blobs(3, [blob(3, &q)]).unwrap();
+        let m = *t.solve();
+        assert_eq!((m.status, m.cameras_used), (TrackStatus::Tracked, 3));
+        let point = m.point_cam0_mm.unwrap();
+        assert!((point - p).norm() < 1e-6);
+        for c in 0..3 {
+            let res = t.camera_residual(c, &point).unwrap();
+            assert!(
+                res.ray_mm < 1e-6 && res.residual_px[0].abs() < 1e-6,
+                "{c}: {res:?}"
+            );
+        }
+        let res = t.camera_residual(3, &point).unwrap();
+        assert!(res.ray_mm > 3.0, "{res:?}");
+        let (qx, _) = project(&r, 3, &q);
+        let (px, _) = project(&r, 3, &p);
+        assert!((res.residual_px[0] - (qx - px)).abs() < 1e-6, "{res:?}");
+        assert!(res.velocity_px_s.is_none(), "no track without timestamps");
+        assert!(t.camera_residual(3, &Vector3::new(0.0, 0.0, -500.0)).is_none());
+        // Cameras 0 and 1 left out: 2 alone cannot meet 3 within the gate here, so no point;
+        // 0 left out: 1 and 2 still give p.
+        let m = *t.solve_excluding(0b0011);
+        assert!(m.point_cam0_mm.is_none() || m.cameras_used == 2, "{m:?}");
+        let m = *t.solve_excluding(0b0001);
+        assert_eq!(m.cameras_used, 2);
+        assert!((m.point_cam0_mm.unwrap() - p).norm() < 1e-6);
+        assert!(m.cameras()[0].marker.is_none() && m.cameras()[3].marker.is_none());
+        // The full set again: the exclusion does not stick.
+        let m = *t.solve_excluding(0);
+        assert_eq!(m.cameras_used, 3);
+        // With timestamps, the track gives each candidate's image velocity: camera 3's blob
+        // moving 2 px per 10 ms frame in x is 200 px/s.
+        let mut t = Tracker::new(&r, TrackerConfig::default()).unwrap();
+        for k in 0..3u64 {
+            for c in 0..4 {
+                t.set_frame_time(c, 1_000_000_000 + k * 10_000_000).unwrap();
+                let mut b = blob(c, &p);
+                b.x_px += 2.0 * k as f64;
+                t.set_blobs(c, [b]).unwrap();
+            }
+            t.solve();
+        }
+        let v = t.camera_residual(3, &p).unwrap().velocity_px_s.unwrap();
+        assert!((v[0] - 200.0).abs() < 1e-6 && v[1].abs() < 1e-6, "{v:?}");
+        // After a solve with a camera missing there is nothing to solve again.
+        t.set_blobs(0, [blob(0, &p)]).unwrap();
+        let m = *t.solve();
+        assert_eq!(m.status, TrackStatus::MissingFrame { camera: 1 });
+        assert_eq!(
+            t.solve_excluding(0b1000).status,
+            TrackStatus::MissingFrame { camera: 1 }
+        );
+    }
+
     #[test]
     fn set_blobs_triangulates_and_survives_a_missing_camera() {
         let target = Vector3::new(0.0, 0.0, 600.0);

@@ -114,6 +114,22 @@ impl BlobHistory {
         self.frames.get(age).map_or(&[], |f| f.as_slice())
     }
 
+    /// The image velocity (px/ns) of a blob seen at `now`, from the nearest blob of the previous
+    /// frame within `gate_px` and less than twice `max_bridge_ns` before it (the samples
+    /// [`BlobHistory::retime`] accepts); `None` without one.
+    pub fn velocity_px_per_ns(&self, now: TimedPoint, gate_px: f64, max_bridge_ns: f64) -> Option<[f64; 2]> {
+        let p1 = nearest(
+            self.frame(0),
+            now,
+            gate_px,
+            now.t_ns - 2.0 * max_bridge_ns,
+            now.t_ns,
+        )?;
+        let dt = now.t_ns - p1.t_ns;
+        let v = [(now.x_px - p1.x_px) / dt, (now.y_px - p1.y_px) / dt];
+        (v[0].is_finite() && v[1].is_finite()).then_some(v)
+    }
+
     /// Moves a blob seen at `now` to `t_ref_ns`.
     ///
     /// `gate_px` bounds how far a marker may move between frames for its samples to be linked;

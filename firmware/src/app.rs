@@ -129,7 +129,13 @@ pub fn open_source(source: &Source) -> Result<(Box<dyn FrameSource>, Option<RigP
 
 /// The loop's deadline: configured, else the source's nominal frame period.
 pub fn deadline(realtime: &RealtimeConfig, source: &Source) -> Duration {
-    match (realtime.deadline_ms, source.nominal_fps()) {
+    deadline_at(realtime, source.nominal_fps())
+}
+
+/// The loop's deadline: configured, else the period of `nominal_fps` (a replay's recorded
+/// rate, else the config's).
+pub fn deadline_at(realtime: &RealtimeConfig, nominal_fps: Option<f64>) -> Duration {
+    match (realtime.deadline_ms, nominal_fps) {
         (Some(ms), _) => Duration::from_secs_f64(ms / 1e3),
         (None, Some(fps)) if fps > 0.0 => Duration::from_secs_f64(1.0 / fps),
         // Replay without a rate: assume 30 fps, a common recording rate.
@@ -431,15 +437,20 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
 
     let (slot_tx, slot_rx) = watch::channel(None);
     let (tools_tx, tools_rx) = watch::channel(crate::engine::ToolSet::EMPTY);
+    // A replay knows its recording's rate (timestamps.csv) better than the config.
+    let nominal_fps = devices
+        .source
+        .nominal_fps()
+        .or_else(|| resolved.source.nominal_fps());
     let engine = Engine::new(
         devices.source,
         tracking,
         handle.clone(),
         slot_tx,
         status.clone(),
-        deadline(&cfg.realtime, &resolved.source),
+        deadline_at(&cfg.realtime, nominal_fps),
     )
-    .with_nominal_fps(resolved.source.nominal_fps())
+    .with_nominal_fps(nominal_fps)
     .with_camera_timing(config_timing(&cfg, &resolved.source))
     .with_pose_config(cfg.pose)
     .with_robot_tool(cfg.robot.as_ref().and_then(|r| r.tool.clone()))

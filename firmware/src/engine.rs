@@ -846,7 +846,11 @@ impl Engine {
                     };
                     (rec, t_detect, Instant::now())
                 } else {
-                    let m = tracker.solve();
+                    tracker.solve();
+                    // A cluster solver checks that its boards agree (it may solve again
+                    // without a board's cameras, or refuse the set: no position).
+                    let vetted = self.source.vet_solution(tracker);
+                    let m = tracker.measurement();
                     let t_solve = Instant::now();
                     for (c, o) in self.status.cameras.iter().zip(&m.cameras) {
                         c.record_bridge(o.bridge_ns, o.unbridged);
@@ -864,8 +868,13 @@ impl Engine {
                             TrackStatus::Fault,
                         )
                     } else {
-                        self.status.set_track(track_indication(m));
-                        let status = map_status(m);
+                        let status = if vetted {
+                            self.status.set_track(track_indication(m));
+                            map_status(m)
+                        } else {
+                            self.status.set_track(TrackIndication::Partial);
+                            TrackStatus::Rejected
+                        };
                         Self::record_from(
                             m,
                             self.set.index,

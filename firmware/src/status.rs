@@ -1273,7 +1273,9 @@ pub fn fault_texts(
 ) -> Vec<FaultText> {
     let mut out = Vec::new();
     let reconnects = st.reconnects.load(R);
-    if st.camera_lost.load(R) {
+    // A solver's silent boards are its own faults (waiting_for_boards, board_down), not a cable.
+    let silence_explained = st.cluster_report().is_some_and(|c| c.explains_silence());
+    if st.camera_lost.load(R) && !silence_explained {
         out.push(FaultText {
             code: "camera_lost",
             camera: None,

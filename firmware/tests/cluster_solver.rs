@@ -770,3 +770,150 @@ async fn solver_status_gives_board_cameras_no_pixel_figures() {
     publisher.join().unwrap();
     running.shutdown().await;
 }
+
+// ------------------------------------------------------------------ faults that point the right way
+
+/// A solver of `rig()` on a free port (`trigger` as given), no board started yet.
+async fn start_plain_solver(dir: &TempDir, trigger: bool) -> (app::Running, u16) {
+    let r = rig();
+    std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut cfg = test_config(dir.path());
+    cfg.cluster = ClusterConfig {
+        role: Role::Solver,
+        rig: RIG.into(),
+        listen: vec![format!("tcp/127.0.0.1:{port}")],
+        fps: FPS,
+        trigger,
+        board_timeout_ms: 300.0,
+        image_sizes_px: r
+            .cameras
+            .iter()
+            .map(|c| [c.model.image_size.width_px, c.model.image_size.height_px])
+            .collect(),
+        ..ClusterConfig::default()
+    };
+    (app::start(cfg, Overrides::default()).await.unwrap(), port)
+}
+
+fn fault_codes(st: &serde_json::Value) -> Vec<String> {
+    st["fault_texts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f["code"].as_str().unwrap_or("").to_string())
+        .collect()
+}
+
+fn fault_message(st: &serde_json::Value, code: &str) -> Option<String> {
+    st["fault_texts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| f["code"] == code)
+        .map(|f| f["message"].as_str().unwrap_or("").to_string())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_solver_waiting_for_its_boards_says_so_and_names_refused_senders() {
+    let dir = TempDir::new("cluster-waiting");
+    let (running, port) = start_plain_solver(&dir, false).await;
+    // No board yet: past the source's 1 s silence, the solver says it waits for its boards —
+    // not a camera's cable (camera_lost), not every board "down".
+    tokio::time::sleep(Duration::from_millis(1800)).await;
+    let st = status_json(running.addrs.status).await;
+    let codes = fault_codes(&st);
+    assert!(codes.contains(&"waiting_for_boards".to_string()), "{codes:?}");
+    assert!(
+        !codes.contains(&"camera_lost".to_string()),
+        "{}",
+        st["fault_texts"]
+    );
+    assert!(
+        !codes.contains(&"board_down".to_string()),
+        "{}",
+        st["fault_texts"]
+    );
+    let msg = fault_message(&st, "waiting_for_boards").unwrap();
+    assert!(
+        msg.contains("none of b0, b1 has sent")
+            && msg.contains("rig = \"cellx\"")
+            && msg.contains(&port.to_string()),
+        "{msg}"
+    );
+    // The boards start (with bad input from their 30th frame): the waiting fault goes, and
+    // every refused observation is told with its sender.
+    let p = Vector3::new(20.0, -10.0, 580.0);
+    let stop = Arc::new(AtomicBool::new(false));
+    let publisher = {
+        let (r, stop) = (rig(), stop.clone());
+        std::thread::spawn(move || boards(port, r, p, 30, stop))
+    };
+    let deadline = Instant::now() + Duration::from_secs(15);
+    let st = loop {
+        let st = status_json(running.addrs.status).await;
+        let refused = fault_message(&st, "observations_refused").unwrap_or_default();
+        if !fault_codes(&st).contains(&"waiting_for_boards".to_string())
+            && refused.contains("from b0")
+            && refused.contains("unreadable")
+            && refused.contains("from rig other board b0")
+        {
+            break st;
+        }
+        assert!(Instant::now() < deadline, "{}", st["fault_texts"]);
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    println!("{}", fault_message(&st, "observations_refused").unwrap());
+    assert!(!fault_codes(&st).contains(&"camera_lost".to_string()));
+    stop.store(true, Ordering::Relaxed);
+    publisher.join().unwrap();
+    running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn trigger_mode_without_trigger_counts_is_named_and_counted() {
+    let dir = TempDir::new("cluster-trigger");
+    let (running, port) = start_plain_solver(&dir, true).await;
+    let p = Vector3::new(20.0, -10.0, 580.0);
+    let stop = Arc::new(AtomicBool::new(false));
+    // Boards without a trigger counter in their observations (bad input never starts).
+    let publisher = {
+        let (r, stop) = (rig(), stop.clone());
+        std::thread::spawn(move || boards(port, r, p, u64::MAX, stop))
+    };
+    let deadline = Instant::now() + Duration::from_secs(15);
+    let st = loop {
+        let st = status_json(running.addrs.status).await;
+        if let Some(m) = fault_message(&st, "no_trigger_count")
+            && m.contains("b0")
+            && m.contains("b1")
+        {
+            break st;
+        }
+        assert!(Instant::now() < deadline, "{}", st["fault_texts"]);
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    let msg = fault_message(&st, "no_trigger_count").unwrap();
+    assert!(msg.contains("trigger = false"), "{msg}");
+    let refused = st["cluster"]["refused"]["no_trigger_count"].as_u64().unwrap_or(0);
+    assert!(refused > 0, "{}", st["cluster"]);
+    let codes = fault_codes(&st);
+    // The boards are heard: neither down nor "waiting".
+    assert!(!codes.contains(&"board_down".to_string()), "{codes:?}");
+    assert!(!codes.contains(&"waiting_for_boards".to_string()), "{codes:?}");
+    let m = scrape_metrics(running.addrs.status).await;
+    assert!(
+        m.value(
+            "irtrackd_cluster_observations_refused_total",
+            &[("reason", "no_trigger_count")]
+        )
+        .is_some_and(|n| n >= refused as f64)
+    );
+    stop.store(true, Ordering::Relaxed);
+    publisher.join().unwrap();
+    running.shutdown().await;
+}

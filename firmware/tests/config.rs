@@ -192,6 +192,55 @@ fn check_config_flag_reports_and_exits() {
 }
 
 #[test]
+fn check_config_names_the_cluster_role_board_and_feature() {
+    let dir = TempDir::new("cli-check-cluster");
+    let good = dir.path().join("standalone.toml");
+    std::fs::write(&good, "[source.sim]\nfps = 50.0\n").unwrap();
+    let out = irtrackd()
+        .arg("--check-config")
+        .arg("-c")
+        .arg(&good)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let feature = if cfg!(feature = "cluster") {
+        "this binary is built with the cluster feature"
+    } else {
+        "this binary is built without the cluster feature"
+    };
+    assert!(
+        stdout.contains("cluster role standalone") && stdout.contains(feature),
+        "{stdout}"
+    );
+    let solver = dir.path().join("solver.toml");
+    std::fs::write(
+        &solver,
+        "[cluster]\nrole = \"solver\"\nrig = \"cell1\"\nboard = \"s0\"\nlisten = [\"tcp/127.0.0.1:7447\"]\nimage_sizes_px = [[640, 480], [640, 480]]\n",
+    )
+    .unwrap();
+    let out = irtrackd()
+        .arg("--check-config")
+        .arg("-c")
+        .arg(&solver)
+        .output()
+        .unwrap();
+    if cfg!(feature = "cluster") {
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            stdout.contains("source the camera boards' observations (cluster solver)")
+                && stdout.contains("cluster role solver (board \"s0\", rig \"cell1\"")
+                && stdout.contains("2 cameras in all, pairing by timestamps")
+                && stdout.contains(feature),
+            "{stdout}"
+        );
+    } else {
+        assert_eq!(out.status.code(), Some(2));
+        assert!(String::from_utf8_lossy(&out.stderr).contains("`cluster` feature"));
+    }
+}
+
+#[test]
 fn binary_prints_ready_line_streams_and_stops_on_sigterm() {
     let dir = TempDir::new("cli-run");
     let mut child = irtrackd()

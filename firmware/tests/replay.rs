@@ -142,6 +142,14 @@ fn replay_at_recorded_speed_keeps_intervals_and_reports_bad_files() {
     assert!(t0.elapsed() >= Duration::from_millis(29), "{:?}", t0.elapsed());
     let intervals: Vec<u64> = stamps.windows(2).map(|w| w[1] - w[0]).collect();
     assert!(intervals.iter().all(|&i| i == 10_000_000), "{intervals:?}");
+    // The loop's deadline follows the recording's rate (100 fps: 10 ms), not the 30 fps of a
+    // replay without one.
+    let fps = source.nominal_fps().unwrap();
+    assert!((fps - 100.0).abs() < 1e-6, "{fps}");
+    assert_eq!(
+        irtrack_firmware::app::deadline_at(&Default::default(), source.nominal_fps()),
+        Duration::from_millis(10)
+    );
 
     // A truncated frame file is reported with its path.
     std::fs::write(dir.path().join("cam0/000004.pgm"), b"P5\n640 480\n255\n").unwrap();

@@ -182,15 +182,59 @@ fn main() -> anyhow::Result<()> {
     }
     if cli.check_config {
         let keys = cfg.params.load_keys()?;
+        use irtrack_firmware::cluster::Role;
+        // A solver's positions come from its camera boards; `[source]` is then only its own
+        // cameras (when `own_cameras`), so say which.
+        let source = match (cfg.cluster.role, cfg.cluster.own_cameras) {
+            (Role::Solver, false) => "the camera boards' observations (cluster solver)".to_string(),
+            (Role::Solver, true) => format!(
+                "the camera boards' observations and its own cameras ({:?})",
+                cfg.source.kind
+            ),
+            _ => format!("{:?}", cfg.source.kind),
+        };
         println!(
-            "irtrackd: config OK (source {:?}, state dir {}, params {}, stream {}, binary {}, status {})",
-            cfg.source.kind,
+            "irtrackd: config OK (source {source}, state dir {}, params {}, stream {}, binary {}, status {})",
             cfg.service.state_dir.display(),
             cfg.listen.params,
             cfg.listen.stream_ndjson,
             cfg.listen.stream_binary,
             cfg.listen.status
         );
+        let feature = if cfg!(feature = "cluster") {
+            "built with the cluster feature"
+        } else {
+            "built without the cluster feature (standalone only)"
+        };
+        match cfg.cluster.role {
+            Role::Standalone => {
+                println!("irtrackd: cluster role standalone (one board); this binary is {feature}")
+            }
+            role => println!(
+                "irtrackd: cluster role {} (board {:?}, rig {:?}, listen {:?}, connect {:?}{}); this binary is {feature}",
+                match role {
+                    Role::Camera => "camera",
+                    _ => "solver",
+                },
+                cfg.cluster.board,
+                cfg.cluster.rig,
+                cfg.cluster.listen,
+                cfg.cluster.connect,
+                if role == Role::Solver {
+                    format!(
+                        ", {} cameras in all, pairing by {}",
+                        cfg.cluster.image_sizes_px.len(),
+                        if cfg.cluster.trigger {
+                            "the trigger counter"
+                        } else {
+                            "timestamps"
+                        }
+                    )
+                } else {
+                    String::new()
+                }
+            ),
+        }
         println!(
             "irtrackd: parameter pushes: {} trusted key(s){}",
             keys.len(),

@@ -9,6 +9,8 @@ use serde::{Deserialize, Serialize};
 use crate::error::{FirmwareError, Result};
 
 #[cfg(feature = "cluster")]
+pub mod agreement;
+#[cfg(feature = "cluster")]
 pub mod camera;
 pub mod report;
 pub use report::{BoardReport, ClusterReport};

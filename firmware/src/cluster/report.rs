@@ -20,7 +20,7 @@ impl PartialEq for SharedHistogram {
 }
 
 /// One board as the solver sees it (`/status` → `cluster.boards`).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
 pub struct BoardReport {
     /// The board's name (`[cluster] board` in its config).
     pub name: String,
@@ -34,6 +34,30 @@ pub struct BoardReport {
     pub clock_fault: bool,
     /// Silent longer than `board_timeout_ms`.
     pub down: bool,
+    /// Its cameras' rays miss the other boards' point in too many recent sets: its cameras
+    /// are left out of every set (fault `board_disagrees`; docs/cluster.md).
+    pub disagreeing: bool,
+    /// Share of its recent comparable sets in which it disagreed (0..=1).
+    pub disagreement_share: f64,
+    /// Sets in which it could be compared with another board, and those it disagreed in.
+    pub compared_sets: u64,
+    /// Sets in which its rays missed the other boards' point.
+    pub disagreed_sets: u64,
+    /// Sets published without its cameras (they disagreed, or it is `disagreeing`).
+    pub dropped_sets: u64,
+    /// How far its rays missed the others' point (mm) and its reprojection error there (px),
+    /// averaged over its recent disagreements.
+    pub miss_mm: Option<f64>,
+    /// See `miss_mm`.
+    pub miss_px: Option<f64>,
+    /// The time shift that explains its misses along the marker's motion, ms (positive: its
+    /// frames show later instants than their timestamps say, relative to the others).
+    pub time_shift_ms: Option<f64>,
+    /// While `disagreeing`: `"clock"` (the misses follow the motion), `"calibration"` (they
+    /// stay while the marker stands still) or `"unknown"`.
+    pub likely_cause: Option<&'static str>,
+    /// While `disagreeing` with no third board to decide: the board it disagrees with.
+    pub disagrees_with: Option<String>,
 }
 
 /// `/status` → `cluster` (camera and solver roles).
@@ -76,6 +100,12 @@ pub struct ClusterReport {
     pub refused_clock: u64,
     /// Solver: observations dropped because its receive queue was full.
     pub queue_overflow: u64,
+    /// Solver: sets in which two or more boards saw the marker (their agreement was checked).
+    pub sets_compared: u64,
+    /// Solver: sets given no position because their boards' rays disagreed.
+    pub sets_refused_disagreement: u64,
+    /// Solver: sets published with a disagreeing board's cameras left out.
+    pub sets_board_dropped: u64,
     /// Empty slots in closed sets, per camera.
     pub missing: Vec<u64>,
     /// Refused observations by problem code (docs/observation-protocol.md).
@@ -94,6 +124,23 @@ pub struct ClusterReport {
     /// Camera role: detecting and publishing without a parameter set of its own (a board
     /// with one camera needs none); its records carry no position.
     pub detection_only: bool,
+    /// Solver: no placed camera board has sent a usable observation since start (fault
+    /// `waiting_for_boards`, in words; the silence is no camera fault of the solver's).
+    pub waiting_for_boards: Option<String>,
+    /// Solver, trigger mode: boards sending observations without a trigger counter, and how
+    /// many (each refused: no set can be made from them).
+    pub no_trigger_boards: Vec<(String, u64)>,
+    /// Solver: refused observations by sender (board name; `rig R board B` for another
+    /// rig's; `?` when the payload could not be read), their count and the last problem.
+    pub refused_senders: Vec<(String, u64, &'static str)>,
+}
+
+impl ClusterReport {
+    /// The solver knows why no set arrives: it waits for boards that never sent, or its
+    /// boards are down. The source's silence is then no `camera_lost` ("check its cable").
+    pub fn explains_silence(&self) -> bool {
+        self.role == "solver" && (self.waiting_for_boards.is_some() || self.boards.iter().any(|b| b.down))
+    }
 }
 
 impl ClusterReport {
@@ -107,11 +154,30 @@ impl ClusterReport {
                 "the parameter set does not say which board each camera is on — push a set with a placement (docs/cluster.md)".to_string(),
             ));
         }
+        if let Some(w) = &self.waiting_for_boards {
+            out.push(("waiting_for_boards", None, w.clone()));
+        }
+        if !self.no_trigger_boards.is_empty() {
+            let list: Vec<String> = self
+                .no_trigger_boards
+                .iter()
+                .map(|(b, n)| format!("{b} ({n} refused)"))
+                .collect();
+            out.push((
+                "no_trigger_count",
+                None,
+                format!(
+                    "[cluster] trigger = true pairs observations by the hardware trigger's counter, but camera board(s) {} send none, so no set can be made from them — wire the trigger to each board's counter input (docs/cluster.md, \"Topology and wiring\") or set trigger = false to pair by timestamps",
+                    list.join(", ")
+                ),
+            ));
+        }
         for (i, f) in self.own_camera_faults.iter().enumerate() {
             out.push(("own_camera", self.own_refused_cameras.get(i).copied(), f.clone()));
         }
         for b in &self.boards {
-            if b.down {
+            // While no board has ever sent, `waiting_for_boards` says it once.
+            if b.down && self.waiting_for_boards.is_none() {
                 out.push((
                     "board_down",
                     None,
@@ -122,6 +188,9 @@ impl ClusterReport {
                         b.last_seen_ms.map_or(String::new(), |ms| format!(" for {:.1} s", ms / 1e3))
                     ),
                 ));
+            }
+            if b.disagreeing {
+                out.push(("board_disagrees", None, disagreement_words(b)));
             }
             if b.clock_fault {
                 out.push((
@@ -138,10 +207,23 @@ impl ClusterReport {
         let refused: u64 = self.refused.values().sum();
         if refused > 0 {
             let list: Vec<String> = self.refused.iter().map(|(k, v)| format!("{k} {v}")).collect();
+            let senders: Vec<String> = self
+                .refused_senders
+                .iter()
+                .map(|(who, n, last)| match who.as_str() {
+                    "?" => format!("{n} unreadable (sender unknown, last {last})"),
+                    _ => format!("{n} from {who} (last {last})"),
+                })
+                .collect();
+            let from = if senders.is_empty() {
+                String::new()
+            } else {
+                format!("; by sender: {}", senders.join(", "))
+            };
             out.push((
                 "observations_refused",
                 None,
-                format!("{refused} observations refused ({})", list.join(", ")),
+                format!("{refused} observations refused ({}){from}", list.join(", ")),
             ));
         }
         out
@@ -212,6 +294,21 @@ impl prometheus_client::collector::Collector for ClusterReport {
                     self.queue_overflow,
                 ),
                 (
+                    "irtrackd_cluster_sets_compared",
+                    "sets in which two or more boards saw the marker (their agreement checked)",
+                    self.sets_compared,
+                ),
+                (
+                    "irtrackd_cluster_sets_refused_disagreement",
+                    "sets given no position because their boards' rays disagreed",
+                    self.sets_refused_disagreement,
+                ),
+                (
+                    "irtrackd_cluster_sets_board_dropped",
+                    "sets published with a disagreeing board's cameras left out",
+                    self.sets_board_dropped,
+                ),
+                (
                     "irtrackd_cluster_own_camera_refused",
                     "observations of the solver's own cameras refused (own_camera fault: size or camera mismatch)",
                     self.own_refused,
@@ -252,7 +349,17 @@ impl prometheus_client::collector::Collector for ClusterReport {
         )?;
         ConstGauge::new(i64::from(self.no_placement)).encode(m)?;
         type Get = fn(&BoardReport) -> Option<f64>;
-        let gauges: [(&str, &str, Get); 4] = [
+        let gauges: [(&str, &str, Get); 6] = [
+            (
+                "irtrackd_cluster_board_disagreeing",
+                "1 while the board's rays miss the other boards' point in too many sets (its cameras left out)",
+                |b| Some(if b.disagreeing { 1.0 } else { 0.0 }),
+            ),
+            (
+                "irtrackd_cluster_board_time_shift_seconds",
+                "the time shift that explains the board's misses along the marker's motion",
+                |b| b.time_shift_ms.map(|ms| ms / 1e3),
+            ),
             (
                 "irtrackd_cluster_board_up",
                 "1 while the camera board is heard from within board_timeout_ms",
@@ -282,8 +389,59 @@ impl prometheus_client::collector::Collector for ClusterReport {
                 }
             }
         }
+        type Count = fn(&BoardReport) -> u64;
+        let per_board: [(&str, &str, Count); 2] = [
+            (
+                "irtrackd_cluster_board_disagreed_sets",
+                "sets in which the board's rays missed the other boards' point",
+                |b| b.disagreed_sets,
+            ),
+            (
+                "irtrackd_cluster_board_dropped_sets",
+                "sets published without the board's cameras (they disagreed)",
+                |b| b.dropped_sets,
+            ),
+        ];
+        for (name, help, get) in per_board {
+            let mut m = enc.encode_descriptor(name, help, None, MetricType::Counter)?;
+            for b in &self.boards {
+                ConstCounter::new(get(b)).encode(m.encode_family(&[("board", b.name.as_str())])?)?;
+            }
+        }
         Ok(())
     }
+}
+
+/// The `board_disagrees` fault: which board, by how much, the likely cause and the next step.
+fn disagreement_words(b: &BoardReport) -> String {
+    let whom = match &b.disagrees_with {
+        Some(peer) => format!(
+            "camera boards {} and {peer} disagree (no third board decides which is right, so neither gives positions)",
+            b.name
+        ),
+        None => format!(
+            "camera board {} ({}) disagrees with the other boards (its cameras are left out of the positions)",
+            b.name,
+            camera_words(&b.cameras)
+        ),
+    };
+    let miss = match (b.miss_mm, b.miss_px) {
+        (Some(mm), Some(px)) => format!(": its rays miss their point by {mm:.1} mm ({px:.1} px)"),
+        (Some(mm), None) => format!(": their rays miss each other by {mm:.1} mm"),
+        _ => String::new(),
+    };
+    let share = format!(" in {:.0} % of recent sets", b.disagreement_share * 100.0);
+    let cause = match (b.likely_cause, b.time_shift_ms) {
+        (Some("clock"), Some(ms)) => format!(
+            " — the misses follow the marker's motion, as if its frames were {:.1} ms {} than their timestamps say: check its clock (PTP/chrony, [cluster] clock_offset_ms) and, for recordings, that the boards' replays share one start",
+            ms.abs(),
+            if ms >= 0.0 { "later" } else { "earlier" }
+        ),
+        (Some("clock"), None) => " — the misses follow the marker's motion: check its clock (PTP/chrony) and the pairing of its frames".into(),
+        (Some("calibration"), _) => " — the misses stay while the marker stands still: its calibration does not fit (a camera moved, or the parameter set is not this rig's); calibrate again".into(),
+        _ => " — move the marker to tell a clock fault (misses along the motion) from a calibration fault (misses at rest)".into(),
+    };
+    format!("{whom}{miss}{share}{cause}")
 }
 
 /// `camera 2`, `cameras 0, 1` (no cameras: `no camera placed`), for messages a person reads.
@@ -313,6 +471,7 @@ mod tests {
                 clock_offset_ms: None,
                 clock_fault: false,
                 down: true,
+                ..BoardReport::default()
             }],
             ..ClusterReport::default()
         };

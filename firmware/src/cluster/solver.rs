@@ -20,6 +20,7 @@ use irtrack_core::image::GrayImage;
 use irtrack_core::observation::{MAX_OBS_BLOBS, ObsClock, ObservationGate, ObservationProblem, decode};
 use irtrack_core::pipeline::{Tracker, TrackerConfig};
 
+use super::agreement::{Agreement, Cause};
 use super::camera::CameraPublisher;
 use super::{BoardReport, ClusterConfig, ClusterReport};
 use crate::clock;
@@ -33,6 +34,9 @@ use crate::source::{
 /// Observations further than this from the solver's clock are refused outright (a board
 /// with a clock this wrong is not synchronised at all).
 const MAX_TIMESTAMP_OFFSET_NS: u64 = 1_000_000_000;
+/// A board whose measured clock offset exceeds this (or a quarter of the tolerance) is taken
+/// as the culprit when it and one other board disagree.
+const CLOCK_OFF_NS: i64 = 1_000_000;
 /// How often `/status` gets a fresh copy of the counters.
 const REPORT_INTERVAL_NS: u64 = 200_000_000;
 /// With no observation at all for this long, the source reports a timeout (camera fault).
@@ -42,6 +46,8 @@ const SILENCE_TIMEOUT_NS: u64 = 1_000_000_000;
 struct Layout {
     gate: ObservationGate,
     pairer: Pairer,
+    /// Do the boards' rays agree (checked after every solve)?
+    agreement: Agreement,
     boards: Vec<String>,
     board_cameras: Vec<Vec<usize>>,
 }
@@ -83,7 +89,22 @@ pub struct ClusterSource {
     /// Camera controls asked for before a parameter set placed the own cameras (the saved
     /// tuning at start): applied once it does.
     deferred_controls: Vec<(usize, CameraControl, i64)>,
+    /// A placed camera board (not the solver's own) has sent a usable observation since start.
+    heard_from_boards: bool,
+    /// When the solver started (realtime ns): how long it has waited for its boards.
+    started_ns: u64,
+    /// Refused observations by sender (board name, or "rig/board" of another rig) and the
+    /// last problem; at most [`MAX_REFUSED_SENDERS`] senders, the rest counted together.
+    refused_senders: Vec<(String, u64, &'static str)>,
+    /// Trigger mode: observations without a trigger counter, per board of the layout.
+    no_trigger: Vec<u64>,
 }
+
+/// Senders of refused observations named one by one in `/status` (more are counted as
+/// "other senders": a flood of forged names must not grow the list without bound).
+const MAX_REFUSED_SENDERS: usize = 16;
+/// `cluster.refused` code of observations without a trigger counter in trigger mode.
+const NO_TRIGGER_CODE: &str = "no_trigger_count";
 
 /// What the solver's own cameras' thread is asked to change (from the set-up view, through
 /// the loop's tuning).
@@ -322,6 +343,10 @@ impl ClusterSource {
             own_refused: vec![false; n],
             own_refused_count: 0,
             deferred_controls: Vec::new(),
+            heard_from_boards: false,
+            started_ns: realtime_ns(),
+            refused_senders: Vec::new(),
+            no_trigger: Vec::new(),
         })
     }
 
@@ -373,6 +398,7 @@ impl ClusterSource {
             };
             camera_board.push(b);
         }
+        let agreement = Agreement::new(&camera_board);
         let board_cameras = (0..boards.len())
             .map(|b| {
                 (0..camera_board.len())
@@ -410,9 +436,11 @@ impl ClusterSource {
             Ok((gate, pairer)) => {
                 tracing::info!(rig_id = %p.rig.rig_id, boards = ?boards, "cluster solver: camera placement loaded");
                 self.board_last_ns = vec![None; boards.len()];
+                self.no_trigger = vec![0; boards.len()];
                 self.layout = Some(Layout {
                     gate,
                     pairer,
+                    agreement,
                     boards,
                     board_cameras,
                 });
@@ -467,12 +495,46 @@ impl ClusterSource {
         }
     }
 
-    fn refuse(&mut self, problem: ObservationProblem) {
+    /// Counts a refused observation by problem and by sender (`None`: its header could not be
+    /// read, so nothing says who sent it).
+    fn refuse(&mut self, problem: ObservationProblem, sender: Option<(&str, &str)>) {
         let i = problem.index();
         if self.refused[i] == 0 {
-            tracing::warn!(problem = %problem, "observation refused");
+            tracing::warn!(problem = %problem, sender = ?sender, "observation refused");
         }
         self.refused[i] += 1;
+        let name = match sender {
+            Some((rig, board)) if rig == self.cfg.rig => board,
+            Some(_) => "",
+            None => "?",
+        };
+        let code = ObservationProblem::CODES.get(i).copied().unwrap_or("refused");
+        let same = |n: &str| match sender {
+            Some((rig, board)) if name.is_empty() => {
+                n.strip_prefix("rig ")
+                    .and_then(|r| r.strip_prefix(rig))
+                    .and_then(|r| r.strip_prefix(" board "))
+                    == Some(board)
+            }
+            _ => n == name,
+        };
+        if let Some(e) = self.refused_senders.iter_mut().find(|(n, _, _)| same(n)) {
+            e.1 += 1;
+            e.2 = code;
+            return;
+        }
+        // Allocates only for a sender not seen before, at most MAX_REFUSED_SENDERS times.
+        let label = match (sender, name) {
+            (Some((rig, board)), "") => format!("rig {rig} board {board}"),
+            (_, "?") => "?".to_string(),
+            _ => name.to_string(),
+        };
+        if self.refused_senders.len() < MAX_REFUSED_SENDERS {
+            self.refused_senders.push((label, 1, code));
+        } else if let Some(last) = self.refused_senders.last_mut() {
+            last.0 = "other senders".into();
+            last.1 += 1;
+        }
     }
 
     fn handle(&mut self, m: &Received) {
@@ -483,7 +545,7 @@ impl ClusterSource {
         };
         let obs = match decode(m.payload()) {
             Ok(o) => o,
-            Err(irtrack_core::Error::Observation { problem }) => return self.refuse(problem),
+            Err(irtrack_core::Error::Observation { problem }) => return self.refuse(problem, None),
             Err(_) => return,
         };
         record_hop(
@@ -512,9 +574,14 @@ impl ClusterSource {
         }
         let camera = match layout.gate.check(&obs, m.received_ns) {
             Ok(c) => c,
-            Err(irtrack_core::Error::Observation { problem }) => return self.refuse(problem),
+            Err(irtrack_core::Error::Observation { problem }) => {
+                return self.refuse(problem, Some((obs.header.rig, obs.header.board)));
+            }
             Err(_) => return,
         };
+        if self.own.is_none() || obs.header.board != self.cfg.board {
+            self.heard_from_boards = true;
+        }
         if let Some(b) = (0..layout.board_cameras.len()).find(|&b| layout.board_cameras[b].contains(&camera))
         {
             self.board_last_ns[b] = Some(m.received_ns);
@@ -525,7 +592,13 @@ impl ClusterSource {
             return;
         }
         // Late, conflicting or clock-faulted observations are counted by the pairer.
-        let _: PushOutcome = layout.pairer.push(camera, &obs, m.received_ns);
+        if layout.pairer.push(camera, &obs, m.received_ns) == PushOutcome::NoTrigger
+            && let Some(b) =
+                (0..layout.board_cameras.len()).find(|&b| layout.board_cameras[b].contains(&camera))
+            && let Some(n) = self.no_trigger.get_mut(b)
+        {
+            *n += 1;
+        }
     }
 
     fn update_report(&mut self, now_ns: u64) {
@@ -543,6 +616,25 @@ impl ClusterSource {
         }
         r.no_placement = self.params.current().is_some() && self.layout.is_none();
         r.own_refused = self.own_refused_count;
+        r.refused_senders.clone_from(&self.refused_senders);
+        let names: Vec<&str> = self
+            .layout
+            .iter()
+            .flat_map(|l| l.boards.iter())
+            .filter(|b| self.own.is_none() || **b != self.cfg.board)
+            .map(String::as_str)
+            .collect();
+        // A solver with only its own cameras waits for no board.
+        r.waiting_for_boards = (!self.heard_from_boards && !names.is_empty()).then(|| {
+            format!(
+                "waiting for camera boards: none of {} has sent an observation in the {:.0} s since the solver started — check that each runs irtrackd with [cluster] role = \"camera\", rig = \"{}\" and its board name, and that it reaches this solver (listen {:?}, connect {:?})",
+                names.join(", "),
+                now_ns.saturating_sub(self.started_ns) as f64 / 1e9,
+                self.cfg.rig,
+                self.cfg.listen,
+                self.cfg.connect,
+            )
+        });
         let Some(layout) = &self.layout else {
             r.boards.clear();
             return;
@@ -554,6 +646,20 @@ impl ClusterSource {
         r.conflicting = st.conflicting;
         r.refused_clock = st.refused_clock;
         r.missing = st.missing[..layout.pairer.camera_count()].to_vec();
+        if st.no_trigger > 0 {
+            r.refused.insert(NO_TRIGGER_CODE, st.no_trigger);
+        }
+        r.no_trigger_boards = layout
+            .boards
+            .iter()
+            .zip(&self.no_trigger)
+            .filter(|(_, n)| **n > 0)
+            .map(|(b, n)| (b.clone(), *n))
+            .collect();
+        let ag = &layout.agreement;
+        r.sets_compared = ag.sets_compared;
+        r.sets_refused_disagreement = ag.sets_refused;
+        r.sets_board_dropped = ag.sets_board_dropped;
         let timeout_ns = (self.cfg.board_timeout_ms * 1e6) as u64;
         r.boards = layout
             .boards
@@ -562,7 +668,25 @@ impl ClusterSource {
             .map(|(b, name)| {
                 let clock = layout.pairer.boards().get(b).copied().unwrap_or_default();
                 let last = self.board_last_ns.get(b).copied().flatten();
+                let a = layout.agreement.boards.get(b).cloned().unwrap_or_default();
                 BoardReport {
+                    disagreeing: a.suspect,
+                    disagreement_share: a.share,
+                    compared_sets: a.compared,
+                    disagreed_sets: a.disagreed,
+                    dropped_sets: a.dropped,
+                    miss_mm: a.miss_mm,
+                    miss_px: a.miss_px,
+                    time_shift_ms: a.shift_ms,
+                    likely_cause: a.suspect.then(|| match a.cause() {
+                        Cause::Clock => "clock",
+                        Cause::Calibration => "calibration",
+                        Cause::Unknown => "unknown",
+                    }),
+                    disagrees_with: a
+                        .peer
+                        .filter(|_| a.suspect)
+                        .and_then(|p| layout.boards.get(p).cloned()),
                     name: name.clone(),
                     cameras: layout.board_cameras[b].clone(),
                     last_seen_ms: last.map(|t| now_ns.saturating_sub(t) as f64 / 1e6),
@@ -731,6 +855,20 @@ impl FrameSource for ClusterSource {
 
     fn remote_blobs(&self, camera: usize) -> Option<&[Blob]> {
         self.remote.get(camera).map(|v| &v[..])
+    }
+
+    fn vet_solution(&mut self, tracker: &mut Tracker) -> bool {
+        let Some(layout) = self.layout.as_mut() else {
+            return true;
+        };
+        // A measured clock offset this large tells which of two disagreeing boards is off
+        // (healthy boards on PTP or chrony measure well under 1 ms).
+        let limit_ns = CLOCK_OFF_NS.max(self.cfg.tolerance_ns() as i64 / 4);
+        let mut clock_off = [false; irtrack_core::pipeline::MAX_CAMERAS];
+        for (off, b) in clock_off.iter_mut().zip(layout.pairer.boards()) {
+            *off = b.offset_ns.is_some_and(|o| o.abs() > limit_ns);
+        }
+        layout.agreement.vet(tracker, &clock_off)
     }
 
     fn has_pixels(&self, camera: usize) -> bool {

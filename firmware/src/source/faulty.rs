@@ -162,6 +162,9 @@ impl FrameSource for FaultySource {
     fn stats(&self) -> SourceStats {
         self.inner.stats()
     }
+    fn nominal_fps(&self) -> Option<f64> {
+        self.inner.nominal_fps()
+    }
     fn describe(&self) -> String {
         format!("{} with injected faults", self.inner.describe())
     }
@@ -172,6 +175,10 @@ impl FrameSource for FaultySource {
 
     fn remote_blobs(&self, camera: usize) -> Option<&[irtrack_core::blob::Blob]> {
         self.inner.remote_blobs(camera)
+    }
+
+    fn vet_solution(&mut self, tracker: &mut irtrack_core::pipeline::Tracker) -> bool {
+        self.inner.vet_solution(tracker)
     }
 
     fn has_pixels(&self, camera: usize) -> bool {

@@ -220,6 +220,11 @@ pub trait FrameSource: Send {
     fn next_set(&mut self, out: &mut FrameSet) -> Result<(), SourceError>;
     /// Counters since start.
     fn stats(&self) -> SourceStats;
+    /// The rate the source really delivers at, when it knows better than the config (a
+    /// replay: its recording's timestamps); the loop's deadline follows it.
+    fn nominal_fps(&self) -> Option<f64> {
+        None
+    }
     /// Human-readable description for status and logs.
     fn describe(&self) -> String;
     /// Why a finite source ended, in words (replay: sets delivered of recorded, and what was
@@ -231,6 +236,14 @@ pub trait FrameSource: Send {
     /// camera boards): the loop uses them instead of detecting in the frame. `None`: detect.
     fn remote_blobs(&self, _camera: usize) -> Option<&[irtrack_core::blob::Blob]> {
         None
+    }
+    /// Called by the loop right after `tracker` solved the set just delivered. A source whose
+    /// cameras come from several boards (the cluster solver) checks that they agree, may
+    /// solve again without a board's cameras ([`irtrack_core::pipeline::Tracker::solve_excluding`];
+    /// the loop then publishes the tracker's measurement), and returns false when the set must
+    /// give no position. By default every solve stands.
+    fn vet_solution(&mut self, _tracker: &mut irtrack_core::pipeline::Tracker) -> bool {
+        true
     }
 
     /// Whether `camera`'s frames hold its pixels here. A cluster solver's camera-board

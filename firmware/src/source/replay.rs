@@ -257,6 +257,25 @@ impl ReplaySource {
         &self.timing
     }
 
+    /// The recording's frame rate: the median interval between its sets' timestamps
+    /// (`timestamps.csv`, or the configured pace without one); `None` with fewer than two sets.
+    pub fn recorded_fps(&self) -> Option<f64> {
+        let mut intervals: Vec<u64> = self
+            .sets
+            .windows(2)
+            .filter_map(|w| {
+                let t = |s: &RecordedSet| s.files.iter().map(|(_, ts)| *ts).max().unwrap_or(0);
+                t(&w[1]).checked_sub(t(&w[0])).filter(|d| *d > 0)
+            })
+            .collect();
+        if intervals.is_empty() {
+            return None;
+        }
+        intervals.sort_unstable();
+        let median = intervals[intervals.len() / 2];
+        Some(1e9 / median as f64)
+    }
+
     /// Number of complete recorded sets.
     pub fn len(&self) -> usize {
         self.sets.len()
@@ -279,6 +298,10 @@ fn read_file(path: &Path, buf: &mut Vec<u8>) -> Result<(), SourceError> {
 impl FrameSource for ReplaySource {
     fn camera_count(&self) -> usize {
         self.cameras
+    }
+
+    fn nominal_fps(&self) -> Option<f64> {
+        self.recorded_fps()
     }
 
     fn allocate_set(&self) -> FrameSet {
