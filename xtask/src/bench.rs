@@ -261,32 +261,10 @@ fn aarch64_bench(ctx: &Ctx, quick: bool) -> Result<()> {
         bail!("qemu-aarch64 not found (`cargo xtask setup` installs qemu-user)");
     }
     // Same target subdirectory and flags as `cross::build_irtrackd`: shared dependencies.
-    let subdir = "aarch64-static";
-    let mut build = ctx.cargo();
-    build.args([
-        "build",
-        "--release",
-        "--target",
-        cross::TARGET,
-        "-p",
-        "irtrack-bench",
-        "--no-default-features",
-    ]);
-    cross::apply_env(ctx, &mut build, subdir)?;
-    build.env("RUSTFLAGS", cross::STATIC_RUSTFLAGS);
-    util::run_ok(
-        &mut build,
-        "aarch64 build of irtrack-bench",
-        Duration::from_secs(1800),
-        false,
-    )?;
-    let bench = ctx
-        .target_dir()
-        .join(subdir)
-        .join(cross::TARGET)
-        .join("release")
-        .join("irtrack-bench");
-    let irtrackd = cross::build_irtrackd(ctx)?;
+    let arch = cross::Arch::Aarch64;
+    let bench =
+        cross::build_static(ctx, arch, "irtrack-bench", &["--no-default-features"])?.join("irtrack-bench");
+    let irtrackd = cross::build_irtrackd(ctx, arch)?;
 
     println!();
     println!(

@@ -87,6 +87,7 @@ pub const PHASES: &[Phase] = &[
     // before the aarch64 test build (crate::disk).
     phase("image", "aarch64 image build + QEMU system test", "system", |ctx| Outcome::from_counts(crate::image::ci_phase(ctx)), 20, &["image", "aarch64-static", "debug"]),
     phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", aarch64_tests, 35, &["aarch64"]),
+    phase("armv7-tests", "build std for armv7, cross-build core/sim/robot/cluster/firmware, run their tests under qemu-arm (Cortex-A9)", "armv7", armv7_tests, 35, &["armv7"]),
     phase("systemd", "systemd-analyze verify on systemd/ units", "", lint::systemd_phase, 2, &[]),
     phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", lint::yocto_phase, 5, &[]),
     phase("yocto-bitbake", "BitBake parses meta-irtrack, lists its recipes, resolves irtrack-image", "bitbake", yocto_bitbake, 30, &["yocto"]),
@@ -552,24 +553,37 @@ pub fn std_features_in_tree(tree: &str) -> Vec<String> {
 }
 
 fn aarch64_tests(ctx: &Ctx) -> Outcome {
-    if !util::on_path("qemu-aarch64") {
-        return Outcome::failed("qemu-aarch64 not found (run `cargo xtask setup`)");
+    cross_tests(ctx, cross::Arch::Aarch64, &[])
+}
+
+/// The armv7 (Cortex-A9) test build shares `target/armv7` and its flags with nothing else in
+/// the run, so the standard library it builds from source (`-Z build-std`, several minutes
+/// cold) is built once and kept there for the next run.
+fn armv7_tests(ctx: &Ctx) -> Outcome {
+    cross_tests(ctx, cross::Arch::Armv7, ARMV7_EXTRA_SKIPS)
+}
+
+/// The test suites of `arch`'s cross crates under QEMU user mode, skipping
+/// [`EMULATION_SKIPS`] and `extra_skips`.
+fn cross_tests(ctx: &Ctx, arch: cross::Arch, extra_skips: &[&str]) -> Outcome {
+    if !util::on_path(arch.qemu()) {
+        return Outcome::failed(format!("{} not found (run `cargo xtask setup`)", arch.qemu()));
     }
     // Wall-clock integration tests (live service at 100 fps, robot link over sockets with
     // real timeouts) measure the emulator, not the code: they run on the host phase only.
+    let all_skips: Vec<&str> = EMULATION_SKIPS.iter().chain(extra_skips).copied().collect();
     println!(
         "(under emulation, skipping wall-clock tests matching: {})",
-        EMULATION_SKIPS.join(", ")
+        all_skips.join(", ")
     );
-    let skips: Vec<&str> = EMULATION_SKIPS.iter().flat_map(|s| ["--skip", s]).collect();
+    let skips: Vec<&str> = all_skips.iter().flat_map(|s| ["--skip", s]).collect();
     cargo_test_with_args(
         || {
-            let mut cmd = ctx.cargo();
-            cmd.args(["test", "--no-fail-fast", "--target", cross::TARGET]);
-            for c in cross::CROSS_CRATES {
+            let mut cmd = cross::cargo(ctx, arch, arch.test_subdir())?;
+            cmd.args(["test", "--no-fail-fast", "--target", arch.triple()]);
+            for c in arch.test_crates() {
                 cmd.args(["-p", c]);
             }
-            cross::apply_env(ctx, &mut cmd, "aarch64")?;
             Ok(cmd)
         },
         &skips,
@@ -582,7 +596,7 @@ fn cluster_qemu_user(ctx: &Ctx) -> Outcome {
     if !util::on_path("qemu-aarch64") {
         return Outcome::failed("qemu-aarch64 not found (run `cargo xtask setup`)");
     }
-    let board = match cross::build_irtrackd_cluster(ctx) {
+    let board = match cross::build_irtrackd_cluster(ctx, cross::Arch::Aarch64) {
         Ok(b) => b,
         Err(e) => return Outcome::failed(format!("{e:#}")),
     };
@@ -665,7 +679,12 @@ fn cluster_qemu_system(ctx: &Ctx) -> Outcome {
     )
 }
 
-/// Test-name filters skipped under qemu-aarch64 (they still run in the host phase).
+/// Test-name filters skipped under qemu-arm on top of [`EMULATION_SKIPS`], each with its
+/// reason (they still run in the host phase and under qemu-aarch64).
+const ARMV7_EXTRA_SKIPS: &[&str] = &[];
+
+/// Test-name filters skipped under QEMU user mode, aarch64 and armv7 (they still run in the
+/// host phase).
 const EMULATION_SKIPS: &[&str] = &[
     "link_tests::",
     "sim_positions_match_truth",
