@@ -488,20 +488,35 @@ mod timing_tests {
         ] {
             assert!(m.lines().any(|l| l == line), "{line:?} missing in:\n{m}");
         }
-        assert!(!fault_texts(&st, None, None).iter().any(|f| f.code == "skewed_sets"));
+        assert!(
+            !fault_texts(&st, None, None)
+                .iter()
+                .any(|f| f.code == "skewed_sets")
+        );
         let now = crate::clock::monotonic_ns();
         st.skewed_sets.store(4, Relaxed);
         st.skewed_last_spread_ns.store(31_200_000, Relaxed);
         st.skewed_last_ns.store(now, Relaxed);
         let f = fault_texts(&st, None, None);
-        let skew = f.iter().find(|f| f.code == "skewed_sets").expect("the skew fault");
+        let skew = f
+            .iter()
+            .find(|f| f.code == "skewed_sets")
+            .expect("the skew fault");
         assert!(
-            skew.message.contains("31.2 ms apart") && skew.message.contains("25.0 ms") && skew.message.contains("4 so far"),
+            skew.message.contains("31.2 ms apart")
+                && skew.message.contains("25.0 ms")
+                && skew.message.contains("4 so far"),
             "{}",
             skew.message
         );
-        st.skewed_last_ns
-            .store(now.saturating_sub(crate::status::SKEW_FAULT_HOLD_NS + 1_000_000_000), Relaxed);
-        assert!(!fault_texts(&st, None, None).iter().any(|f| f.code == "skewed_sets"));
+        st.skewed_last_ns.store(
+            now.saturating_sub(crate::status::SKEW_FAULT_HOLD_NS + 1_000_000_000),
+            Relaxed,
+        );
+        assert!(
+            !fault_texts(&st, None, None)
+                .iter()
+                .any(|f| f.code == "skewed_sets")
+        );
     }
 }

@@ -837,7 +837,12 @@ impl SharedStatus {
             camera_bridges: self
                 .cameras
                 .iter()
-                .map(|c| (f64::from_bits(c.bridge_ns_last_bits.load(R)) / 1e9, c.unbridged.load(R)))
+                .map(|c| {
+                    (
+                        f64::from_bits(c.bridge_ns_last_bits.load(R)) / 1e9,
+                        c.unbridged.load(R),
+                    )
+                })
                 .collect(),
             leds: self.led_levels(),
             faults: self.active_faults(),
@@ -1248,7 +1253,10 @@ fn skew_fault_text(st: &SharedStatus, now_ns: u64) -> Option<FaultText> {
     }
     let spread_ms = st.skewed_last_spread_ns.load(R) as f64 / 1e6;
     let limit = match st.timing.lock().ok().and_then(|g| g.clone()) {
-        Some(t) if t.mode != "off" => format!("the {:.1} ms the cameras' tracks may be carried (`max_bridge_ms`)", t.max_bridge_ms),
+        Some(t) if t.mode != "off" => format!(
+            "the {:.1} ms the cameras' tracks may be carried (`max_bridge_ms`)",
+            t.max_bridge_ms
+        ),
         _ => "the pairing limit (`time_mode = \"off\"` needs cameras exposing together)".to_string(),
     };
     Some(FaultText {
@@ -1454,8 +1462,12 @@ impl TimingReport {
     pub fn new(mode: irtrack_core::retime::TimeMode, max_bridge_ms: f64) -> Self {
         use irtrack_core::retime::TimeMode;
         let mode_text = match mode {
-            TimeMode::Accurate => "most accurate: each camera's track interpolated to the set's earliest exposure",
-            TimeMode::LowLatency => "lowest latency: each camera's track extrapolated to the set's newest exposure",
+            TimeMode::Accurate => {
+                "most accurate: each camera's track interpolated to the set's earliest exposure"
+            }
+            TimeMode::LowLatency => {
+                "lowest latency: each camera's track extrapolated to the set's newest exposure"
+            }
             TimeMode::Off => "off: blobs used where they were seen (only for cameras exposing together)",
         };
         Self {

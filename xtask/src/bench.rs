@@ -81,6 +81,10 @@ pub struct Args {
     /// The benchmark cross-built for aarch64, run under qemu-aarch64.
     #[arg(long)]
     pub aarch64: bool,
+    /// Only instructions per VGA frame set (full frame, ROI) on x86-64, aarch64 and armv7
+    /// (Cortex-A9), counted by callgrind and QEMU (xtask/src/bench_arch.rs).
+    #[arg(long, conflicts_with = "aarch64")]
+    pub by_arch: bool,
     /// Only the cluster section (camera boards and a solver beside the standalone board).
     #[arg(long, conflicts_with_all = ["latency", "no_cluster"])]
     pub cluster: bool,
@@ -128,6 +132,9 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
     };
     if aarch64 {
         return aarch64_bench(ctx, quick);
+    }
+    if args.by_arch {
+        return crate::bench_arch::run(ctx);
     }
     if latency == Some(true) {
         return crate::bench_latency::table(ctx, 8);
@@ -196,8 +203,8 @@ fn instruction_table(bin: &Path, ctx: &Ctx, quick: bool) -> Result<()> {
             // counts do not depend on what else runs; wall time halves on two cores).
             let scratch2 = scratch.with_extension("out2");
             let (a, b) = std::thread::scope(|sc| {
-                let a = sc.spawn(|| instructions(bin, &name, n1, &scratch));
-                let b = instructions(bin, &name, n2, &scratch2);
+                let a = sc.spawn(|| callgrind_instructions(bin, &name, n1, &scratch));
+                let b = callgrind_instructions(bin, &name, n2, &scratch2);
                 (a.join(), b)
             });
             let a = a.map_err(|_| anyhow::anyhow!("callgrind thread panicked"))??;
@@ -225,7 +232,7 @@ fn instruction_table(bin: &Path, ctx: &Ctx, quick: bool) -> Result<()> {
 }
 
 /// Total instructions of one `irtrack-bench --run` under callgrind.
-fn instructions(bin: &Path, case: &str, iters: u32, scratch: &Path) -> Result<u64> {
+pub fn callgrind_instructions(bin: &Path, case: &str, iters: u32, scratch: &Path) -> Result<u64> {
     let out = Command::new("valgrind")
         .arg("--tool=callgrind")
         .arg(format!("--callgrind-out-file={}", scratch.display()))
@@ -261,32 +268,10 @@ fn aarch64_bench(ctx: &Ctx, quick: bool) -> Result<()> {
         bail!("qemu-aarch64 not found (`cargo xtask setup` installs qemu-user)");
     }
     // Same target subdirectory and flags as `cross::build_irtrackd`: shared dependencies.
-    let subdir = "aarch64-static";
-    let mut build = ctx.cargo();
-    build.args([
-        "build",
-        "--release",
-        "--target",
-        cross::TARGET,
-        "-p",
-        "irtrack-bench",
-        "--no-default-features",
-    ]);
-    cross::apply_env(ctx, &mut build, subdir)?;
-    build.env("RUSTFLAGS", cross::STATIC_RUSTFLAGS);
-    util::run_ok(
-        &mut build,
-        "aarch64 build of irtrack-bench",
-        Duration::from_secs(1800),
-        false,
-    )?;
-    let bench = ctx
-        .target_dir()
-        .join(subdir)
-        .join(cross::TARGET)
-        .join("release")
-        .join("irtrack-bench");
-    let irtrackd = cross::build_irtrackd(ctx)?;
+    let arch = cross::Arch::Aarch64;
+    let bench =
+        cross::build_static(ctx, arch, "irtrack-bench", &["--no-default-features"])?.join("irtrack-bench");
+    let irtrackd = cross::build_irtrackd(ctx, arch)?;
 
     println!();
     println!(

@@ -94,9 +94,12 @@ pub const PHASES: &[Phase] = &[
     phase("fuzz", "short fuzzing run of every fuzz target", "fuzz", |ctx| Outcome::from_counts(crate::fuzz::ci_phase(ctx)), 10, &["fuzz"]),
     // Not in CI: the aarch64 Zenoh build alone is several cold minutes (docs/cluster.md).
     opt_in_phase("cluster-qemu-user", "aarch64 irtrackd with Zenoh under qemu-aarch64 as a camera board feeding a host solver", "aarch64", cluster_qemu_user, 10, &["aarch64-static", "debug"]),
-    // Not in CI either: the same aarch64 Zenoh build, then the cluster image booted in QEMU.
     // Not in CI: the A/B update test boots QEMU about eight times (docs/updates.md).
     opt_in_phase("image-update", "A/B updates with RAUC in qemu-system-aarch64: install, reboot, rollback, refusals, power cut", "system", |ctx| Outcome::from_counts(crate::image::update_phase(ctx)), 30, &["image", "aarch64-static", "debug"]),
+    // Not in CI: on top of a cold CI run that already takes about an hour, std built from
+    // source plus the armv7 debug build of the five crates (docs/development.md, "armv7").
+    opt_in_phase("armv7-tests", "build std for armv7, cross-build core/sim/robot/cluster/firmware, run their tests under qemu-arm (Cortex-A9)", "armv7", armv7_tests, 35, &["armv7"]),
+    // Not in CI either: the same aarch64 Zenoh build, then the cluster image booted in QEMU.
     opt_in_phase("cluster-qemu-system", "cluster image booted in qemu-system-aarch64 as a camera board feeding a host solver", "system", cluster_qemu_system, 10, &["image-cluster", "aarch64-static", "debug"]),
 ];
 
@@ -554,24 +557,37 @@ pub fn std_features_in_tree(tree: &str) -> Vec<String> {
 }
 
 fn aarch64_tests(ctx: &Ctx) -> Outcome {
-    if !util::on_path("qemu-aarch64") {
-        return Outcome::failed("qemu-aarch64 not found (run `cargo xtask setup`)");
+    cross_tests(ctx, cross::Arch::Aarch64, &[])
+}
+
+/// The armv7 (Cortex-A9) tests. Their build has `target/armv7` and its flags to itself, so the
+/// standard library it builds from source (`-Z build-std`) is built once there and kept for
+/// every later run.
+fn armv7_tests(ctx: &Ctx) -> Outcome {
+    cross_tests(ctx, cross::Arch::Armv7, ARMV7_EXTRA_SKIPS)
+}
+
+/// The test suites of `arch`'s cross crates under QEMU user mode, skipping
+/// [`EMULATION_SKIPS`] and `extra_skips`.
+fn cross_tests(ctx: &Ctx, arch: cross::Arch, extra_skips: &[&str]) -> Outcome {
+    if !util::on_path(arch.qemu()) {
+        return Outcome::failed(format!("{} not found (run `cargo xtask setup`)", arch.qemu()));
     }
     // Wall-clock integration tests (live service at 100 fps, robot link over sockets with
     // real timeouts) measure the emulator, not the code: they run on the host phase only.
+    let all_skips: Vec<&str> = EMULATION_SKIPS.iter().chain(extra_skips).copied().collect();
     println!(
         "(under emulation, skipping wall-clock tests matching: {})",
-        EMULATION_SKIPS.join(", ")
+        all_skips.join(", ")
     );
-    let skips: Vec<&str> = EMULATION_SKIPS.iter().flat_map(|s| ["--skip", s]).collect();
+    let skips: Vec<&str> = all_skips.iter().flat_map(|s| ["--skip", s]).collect();
     cargo_test_with_args(
         || {
-            let mut cmd = ctx.cargo();
-            cmd.args(["test", "--no-fail-fast", "--target", cross::TARGET]);
-            for c in cross::CROSS_CRATES {
+            let mut cmd = cross::cargo(ctx, arch, arch.test_subdir())?;
+            cmd.args(["test", "--no-fail-fast", "--target", arch.triple()]);
+            for c in arch.test_crates() {
                 cmd.args(["-p", c]);
             }
-            cross::apply_env(ctx, &mut cmd, "aarch64")?;
             Ok(cmd)
         },
         &skips,
@@ -584,7 +600,7 @@ fn cluster_qemu_user(ctx: &Ctx) -> Outcome {
     if !util::on_path("qemu-aarch64") {
         return Outcome::failed("qemu-aarch64 not found (run `cargo xtask setup`)");
     }
-    let board = match cross::build_irtrackd_cluster(ctx) {
+    let board = match cross::build_irtrackd_cluster(ctx, cross::Arch::Aarch64) {
         Ok(b) => b,
         Err(e) => return Outcome::failed(format!("{e:#}")),
     };
@@ -667,7 +683,12 @@ fn cluster_qemu_system(ctx: &Ctx) -> Outcome {
     )
 }
 
-/// Test-name filters skipped under qemu-aarch64 (they still run in the host phase).
+/// Test-name filters skipped under qemu-arm on top of [`EMULATION_SKIPS`], each with its
+/// reason (they still run in the host phase and under qemu-aarch64).
+const ARMV7_EXTRA_SKIPS: &[&str] = &[];
+
+/// Test-name filters skipped under QEMU user mode, aarch64 and armv7 (they still run in the
+/// host phase).
 const EMULATION_SKIPS: &[&str] = &[
     "link_tests::",
     "sim_positions_match_truth",
@@ -763,6 +784,7 @@ mod tests {
         assert!(default.contains(&"aarch64-tests"));
         assert!(!default.contains(&"cluster-qemu-user"));
         assert!(!default.contains(&"cluster-qemu-system"));
+        assert!(!default.contains(&"armv7-tests"));
         let only = Args {
             only: vec!["cluster-qemu-user".into()],
             ..Args::default()

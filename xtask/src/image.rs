@@ -99,7 +99,7 @@ pub struct Variant {
 /// The CI image: a standalone board on two vivid V4L2 cameras.
 pub const STANDARD: Variant = Variant {
     dir: "image",
-    irtrackd: crate::cross::build_irtrackd,
+    irtrackd: |ctx| crate::cross::build_irtrackd(ctx, crate::cross::Arch::Aarch64),
     // The A/B image mounts the boot (vfat) and data partitions and loop-mounts bundles
     // (squashfs).
     extra_modules: &[
@@ -120,7 +120,7 @@ pub const STANDARD: Variant = Variant {
 /// board config and the host's SNTP port (image/cluster/etc/irtrack/rc.local).
 pub const CLUSTER: Variant = Variant {
     dir: "image-cluster",
-    irtrackd: crate::cross::build_irtrackd_cluster,
+    irtrackd: |ctx| crate::cross::build_irtrackd_cluster(ctx, crate::cross::Arch::Aarch64),
     extra_modules: &[("qemu_fw_cfg", "")],
     overlay: Some("image/cluster"),
     // Sets the guest's clock from the test's SNTP server (the image has no NTP client).

@@ -4,6 +4,7 @@
 //! `irtrack-testkit`), none of them heavy, so it builds first and fast on a fresh machine.
 
 mod bench;
+mod bench_arch;
 mod bench_cluster;
 mod bench_latency;
 mod bench_links;

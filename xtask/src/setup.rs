@@ -52,6 +52,28 @@ const PACKAGES: &[Pkg] = &[
         )
     },
     pkg("gcc-aarch64-linux-gnu", "linker for aarch64-unknown-linux-gnu"),
+    Pkg {
+        debian_only: true,
+        ..pkg(
+            "cargo-web",
+            "Debian's cargo 1.96 (/usr/bin/cargo): the same release as rust-web-src, for -Z build-std",
+        )
+    },
+    Pkg {
+        debian_only: true,
+        ..pkg(
+            "rust-web-src",
+            "source of rustc-web's standard library: cargo builds the armv7 std from it (-Z build-std)",
+        )
+    },
+    pkg(
+        "gcc-arm-linux-gnueabihf",
+        "linker for armv7-unknown-linux-gnueabihf (the Pandaboard's Cortex-A9)",
+    ),
+    pkg(
+        "libc6-dev-armhf-cross",
+        "armhf glibc for linking armv7 binaries and for qemu-arm to run them (-L /usr/arm-linux-gnueabihf)",
+    ),
     pkg(
         "libopencv-dev",
         "OpenCV 4.6: calibration and cross-checks on the PC (opencv crate)",
@@ -117,7 +139,10 @@ const PACKAGES: &[Pkg] = &[
     ),
     Pkg {
         backports: true,
-        ..pkg("qemu-user", "qemu-aarch64 runs the aarch64 test binaries")
+        ..pkg(
+            "qemu-user",
+            "qemu-aarch64 and qemu-arm run the aarch64 and armv7 test binaries",
+        )
     },
     Pkg {
         backports: true,

@@ -12,7 +12,11 @@
 //! 3. resolves the image's whole task graph (`bitbake -g irtrack-image`);
 //! 4. proves that a broken recipe fails step 1 with BitBake's own message (a syntax error is
 //!    added to the copy, parsed, then removed), so the phase cannot pass vacuously;
-//! 5. checks that the recipe's pinned `SRCREV` is a commit of this repository.
+//! 5. checks that the recipe's pinned `SRCREV` is a commit of this repository;
+//! 6. checks that irtrackd is built with the cluster roles;
+//! 7. for the layer's Pandaboard machine (`MACHINE = "pandaboard"`, a second build directory):
+//!    resolves the image's task graph with the board's kernel and boot loader, and checks its
+//!    Cortex-A9/NEON tune and the kernel's defconfig as BitBake expands them.
 //!
 //! BitBake refuses to run as root; as root the phase runs it as [`BITBAKE_USER`] (made by
 //! `cargo xtask setup`) through `runuser`.
@@ -38,6 +42,10 @@ const TARBALLS: &[(&str, &str)] = &[
     ("meta-oe-scarthgap.tar.xz", "meta-openembedded"),
 ];
 const LAYER: &str = "meta-irtrack";
+/// The layer's machine file for the Pandaboard (conf/machine/pandaboard.conf).
+const PANDABOARD: &str = "pandaboard";
+/// The machine of the main checks: the snapshots have no board layer.
+const QEMU_MACHINE: &str = "qemuarm64";
 const IMAGE: &str = "irtrack-image";
 /// The recipe with the pinned source revision.
 const SRC_RECIPE: &str = "recipes-irtrack/irtrackd/irtrackd_git.bb";
@@ -88,7 +96,7 @@ pub fn cli(ctx: &Ctx, cmd: YoctoCmd) -> Result<()> {
         }
         YoctoCmd::CheckLayer => check_layer(ctx),
         YoctoCmd::Shell => {
-            let env = prepare(ctx, "build", true)?;
+            let env = prepare(ctx, "build", true, QEMU_MACHINE)?;
             println!(
                 "{}cd {} && LANG=en_US.UTF-8 BITBAKEDIR={} . ./openembedded-core/oe-init-build-env {}",
                 env.runner
@@ -216,8 +224,9 @@ impl BbEnv {
 
 /// Unpacks (or reuses) the snapshots, copies the layer, writes the configuration of the
 /// build directory `target/yocto/<build_name>`, whose BBLAYERS has the layer under test only
-/// when `with_layer` (yocto-check-layer wants a build without it and adds it itself).
-fn prepare(ctx: &Ctx, build_name: &str, with_layer: bool) -> Result<BbEnv> {
+/// when `with_layer` (yocto-check-layer wants a build without it and adds it itself), for
+/// `machine`.
+fn prepare(ctx: &Ctx, build_name: &str, with_layer: bool, machine: &str) -> Result<BbEnv> {
     let snapshots = find_snapshots(&ctx.root, std::env::var_os(SNAPSHOTS_ENV).map(PathBuf::from))?;
     let runner = if util::is_root() {
         if bitbake_user_uid().is_none() {
@@ -292,10 +301,11 @@ fn prepare(ctx: &Ctx, build_name: &str, with_layer: bool) -> Result<BbEnv> {
     );
     set_block(&conf.join("bblayers.conf"), &bblayers)?;
     // The kas build's settings that matter for parsing (yocto-layer/kas/irtrack.yml), no
-    // network, and the QEMU machine (the snapshots have no board BSP layer).
+    // network, and the machine (QEMU's, as the snapshots have no board layer, or the layer's
+    // own Pandaboard file).
     set_block(
         &conf.join("local.conf"),
-        "BB_NO_NETWORK = \"1\"\nMACHINE = \"qemuarm64\"\nINIT_MANAGER = \"systemd\"",
+        &format!("BB_NO_NETWORK = \"1\"\nMACHINE = \"{machine}\"\nINIT_MANAGER = \"systemd\""),
     )?;
     Ok(env)
 }
@@ -480,9 +490,9 @@ fn pinned_srcrev(recipe: &str) -> Option<String> {
 /// Runs every check; returns how many passed (all, or an error naming the failure).
 fn check(ctx: &Ctx) -> Result<u64> {
     let mut passed = 0;
-    let env = prepare(ctx, "build", true)?;
+    let env = prepare(ctx, "build", true, QEMU_MACHINE)?;
 
-    println!("yocto: 1. parsing every recipe (BB_NO_NETWORK=1, MACHINE=qemuarm64)");
+    println!("yocto: 1. parsing every recipe (BB_NO_NETWORK=1, MACHINE={QEMU_MACHINE})");
     parse_all(&env)?;
     passed += 1;
 
@@ -508,28 +518,13 @@ fn check(ctx: &Ctx) -> Result<u64> {
     passed += 1;
 
     println!("yocto: 3. resolving the task graph of {IMAGE}");
-    for f in ["pn-buildlist", "task-depends.dot"] {
-        let _ = fs::remove_file(env.build.join(f));
-    }
-    let out = env.run(&format!("bitbake -g {IMAGE}"), false)?;
-    if !out.success() {
-        bail!("bitbake -g {IMAGE} {}:\n{}", out.describe(), bitbake_errors(&out));
-    }
-    let buildlist =
-        fs::read_to_string(env.build.join("pn-buildlist")).context("bitbake -g wrote no pn-buildlist")?;
-    let pns: Vec<&str> = buildlist
-        .lines()
-        .map(str::trim)
-        .filter(|l| !l.is_empty())
-        .collect();
+    let graph = resolve_image(&env)?;
     for pn in [IMAGE, "irtrackd"] {
-        if !pns.contains(&pn) {
+        if !graph.recipes.iter().any(|r| r == pn) {
             bail!("{pn} is not in the task graph of {IMAGE} (pn-buildlist)");
         }
     }
-    let tasks = fs::read_to_string(env.build.join("task-depends.dot"))
-        .map(|t| t.lines().filter(|l| l.contains("[label=")).count())
-        .unwrap_or(0);
+    let (pns, tasks) = (&graph.recipes, graph.tasks);
     println!("yocto: {IMAGE} resolves to {} recipes, {tasks} tasks", pns.len());
     passed += 1;
 
@@ -601,7 +596,94 @@ fn check(ctx: &Ctx) -> Result<u64> {
     }
     println!("yocto: CARGO_BUILD_FLAGS = {flags}");
     passed += 1;
+
+    println!(
+        "yocto: 7. MACHINE={PANDABOARD} (the layer's machine file): {IMAGE} resolves with the \
+         board's kernel and boot loader, Cortex-A9/NEON tune"
+    );
+    check_pandaboard(ctx)?;
+    passed += 1;
     Ok(passed)
+}
+
+/// Check 7: the Pandaboard machine in its own build directory (a second MACHINE means a second
+/// parse; its cache is kept there for the next run).
+fn check_pandaboard(ctx: &Ctx) -> Result<()> {
+    let env = prepare(ctx, "build-pandaboard", true, PANDABOARD)?;
+    let graph = resolve_image(&env)?;
+    // The kernel and boot loader the machine file selects: a machine they refuse
+    // (COMPATIBLE_MACHINE) would leave virtual/kernel unprovided and fail `bitbake -g`; a
+    // missing one would not be in the graph.
+    for pn in [IMAGE, "irtrackd", "linux-yocto", "u-boot"] {
+        if !graph.recipes.iter().any(|r| r == pn) {
+            bail!("{pn} is not in the task graph of {IMAGE} for MACHINE={PANDABOARD}");
+        }
+    }
+    println!(
+        "yocto: {PANDABOARD}: {IMAGE} resolves to {} recipes, {} tasks (linux-yocto, u-boot, irtrackd among them)",
+        graph.recipes.len(),
+        graph.tasks
+    );
+    let irtrackd = bitbake_env(&env, "irtrackd")?;
+    let tune =
+        exported_value(&irtrackd, "TUNE_FEATURES").context("bitbake -e irtrackd shows no TUNE_FEATURES")?;
+    for want in ["cortexa9", "neon", "callconvention-hard"] {
+        if !tune.split_whitespace().any(|f| f == want) {
+            bail!("irtrackd's TUNE_FEATURES for {PANDABOARD} lack {want:?}: {tune}");
+        }
+    }
+    let kernel = bitbake_env(&env, "linux-yocto")?;
+    let defconfig = exported_value(&kernel, "KBUILD_DEFCONFIG")
+        .context("bitbake -e linux-yocto shows no KBUILD_DEFCONFIG")?;
+    if defconfig != "omap2plus_defconfig" {
+        bail!("linux-yocto for {PANDABOARD} is configured from {defconfig:?}, not omap2plus_defconfig");
+    }
+    println!("yocto: {PANDABOARD}: TUNE_FEATURES = {tune}; linux-yocto from {defconfig}");
+    Ok(())
+}
+
+/// `bitbake -e <recipe>`'s output.
+fn bitbake_env(env: &BbEnv, recipe: &str) -> Result<String> {
+    let out = env.run(&format!("bitbake -e {recipe}"), true)?;
+    if !out.success() {
+        bail!(
+            "bitbake -e {recipe} {}:\n{}",
+            out.describe(),
+            bitbake_errors(&out)
+        );
+    }
+    Ok(out.stdout)
+}
+
+/// What `bitbake -g` found for the image.
+struct Graph {
+    /// Recipe names (pn-buildlist).
+    recipes: Vec<String>,
+    /// Tasks in task-depends.dot.
+    tasks: usize,
+}
+
+/// `bitbake -g` of the image in `env`'s build directory.
+fn resolve_image(env: &BbEnv) -> Result<Graph> {
+    for f in ["pn-buildlist", "task-depends.dot"] {
+        let _ = fs::remove_file(env.build.join(f));
+    }
+    let out = env.run(&format!("bitbake -g {IMAGE}"), false)?;
+    if !out.success() {
+        bail!("bitbake -g {IMAGE} {}:\n{}", out.describe(), bitbake_errors(&out));
+    }
+    let buildlist =
+        fs::read_to_string(env.build.join("pn-buildlist")).context("bitbake -g wrote no pn-buildlist")?;
+    let recipes = buildlist
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .map(str::to_string)
+        .collect();
+    let tasks = fs::read_to_string(env.build.join("task-depends.dot"))
+        .map(|t| t.lines().filter(|l| l.contains("[label=")).count())
+        .unwrap_or(0);
+    Ok(Graph { recipes, tasks })
 }
 
 /// The value of `NAME="..."` in `bitbake -e` output (the final, expanded assignment).
@@ -615,7 +697,7 @@ fn exported_value(env_dump: &str, name: &str) -> Option<String> {
 
 /// `yocto-check-layer` on the layer (not in CI: about 25 minutes on 2 cores).
 fn check_layer(ctx: &Ctx) -> Result<()> {
-    let env = prepare(ctx, "build-check-layer", false)?;
+    let env = prepare(ctx, "build-check-layer", false, QEMU_MACHINE)?;
     let script = format!(
         "yocto-check-layer --dependency {} -- {}",
         util::shell_quote(&env.src.join("meta-openembedded/meta-oe").to_string_lossy()),
