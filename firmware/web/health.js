@@ -74,8 +74,9 @@ export function bridgeWords(c) {
 /** The time mode row of the loop's health (`/status` processing.timing). */
 export function timingRow(t) {
   if (!t) return ["time mode", "—"];
-  const bridge = t.mode === "off" ? "" : `; tracks carried up to ${fmt(t.max_bridge_ms, 1)} ms`;
-  return ["time mode", `${t.mode_text}${bridge}`];
+  const words = { accurate: "most accurate (interpolated)", low_latency: "lowest latency (extrapolated)", off: "off (blobs as seen)" };
+  const bridge = t.mode === "off" ? "" : `, bridges ≤ ${fmt(t.max_bridge_ms, 0)} ms`;
+  return ["time mode", `${words[t.mode] || t.mode}${bridge}`];
 }
 
 /** Rows of the active calibration's record (`/status` params.calibration, docs/calibration.md):
