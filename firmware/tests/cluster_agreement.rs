@@ -22,7 +22,7 @@ use irtrack_core::observation::{ObsBlob, ObsClock, ObsHeader};
 use irtrack_core::params::{CameraPlace, RigParams};
 use irtrack_core::stream::{PositionRecord, TrackStatus};
 use irtrack_firmware::app::{self, Overrides};
-use irtrack_firmware::cluster::{ClusterConfig, Role};
+
 use irtrack_firmware::source::sim::ring_rig;
 use nalgebra::Vector3;
 
@@ -212,25 +212,9 @@ async fn run_cell(test: &str, boards: &[Board], moving: bool, close: bool, seed:
     let dir = TempDir::new(test);
     let r = placed_ring(boards);
     std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = free_tcp_port();
     let mut cfg = test_config(dir.path());
-    cfg.cluster = ClusterConfig {
-        role: Role::Solver,
-        rig: RIG.into(),
-        listen: vec![format!("tcp/127.0.0.1:{port}")],
-        fps: FPS,
-        board_timeout_ms: 300.0,
-        image_sizes_px: r
-            .cameras
-            .iter()
-            .map(|c| [c.model.image_size.width_px, c.model.image_size.height_px])
-            .collect(),
-        ..ClusterConfig::default()
-    };
+    cfg.cluster = solver_cluster(&r, RIG, port, FPS);
     let running = app::start(cfg, Overrides::default()).await.unwrap();
     let stop = Arc::new(AtomicBool::new(false));
     let epoch = realtime_ns() + 200_000_000;

@@ -18,7 +18,7 @@ use irtrack_core::observation::{ObsBlob, ObsClock, ObsHeader};
 use irtrack_core::params::{CameraPlace, RigParams};
 use irtrack_core::stream::TrackStatus;
 use irtrack_firmware::app::{self, Overrides};
-use irtrack_firmware::cluster::{ClusterConfig, Role, UNAUTHENTICATED};
+use irtrack_firmware::cluster::{ClusterConfig, UNAUTHENTICATED};
 use irtrack_firmware::config::Config;
 use irtrack_firmware::source::sim::ring_rig;
 use nalgebra::Vector3;
@@ -145,25 +145,11 @@ async fn forged_peers_never_move_the_solver() {
     std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
     let dict = dir.path().join("solver.credentials");
     std::fs::write(&dict, format!("b0:{PW0}\nb1:{PW1}\n")).unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = free_tcp_port();
     let mut cfg = test_config(dir.path());
     cfg.cluster = ClusterConfig {
-        role: Role::Solver,
-        rig: RIG.into(),
-        listen: vec![format!("tcp/127.0.0.1:{port}")],
-        fps: FPS,
-        board_timeout_ms: 300.0,
-        image_sizes_px: r
-            .cameras
-            .iter()
-            .map(|c| [c.model.image_size.width_px, c.model.image_size.height_px])
-            .collect(),
         credentials_file: Some(dict),
-        ..ClusterConfig::default()
+        ..solver_cluster(&r, RIG, port, FPS)
     };
     cfg.cluster.validate().unwrap();
     let running = app::start(cfg, Overrides::default()).await.unwrap();

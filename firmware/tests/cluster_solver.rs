@@ -168,25 +168,9 @@ async fn solver_pairs_two_boards_and_refuses_bad_observations() {
     let dir = TempDir::new("cluster-solver");
     let r = rig();
     std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = free_tcp_port();
     let mut cfg = test_config(dir.path());
-    cfg.cluster = ClusterConfig {
-        role: Role::Solver,
-        rig: RIG.into(),
-        listen: vec![format!("tcp/127.0.0.1:{port}")],
-        fps: FPS,
-        board_timeout_ms: 300.0,
-        image_sizes_px: r
-            .cameras
-            .iter()
-            .map(|c| [c.model.image_size.width_px, c.model.image_size.height_px])
-            .collect(),
-        ..ClusterConfig::default()
-    };
+    cfg.cluster = solver_cluster(&r, RIG, port, FPS);
     let running = app::start(cfg, Overrides::default()).await.unwrap();
     let p = Vector3::new(20.0, -10.0, 580.0);
     let stop = Arc::new(AtomicBool::new(false));

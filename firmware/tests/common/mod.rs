@@ -377,3 +377,36 @@ impl Metrics {
         self.0["types"][family].as_str()
     }
 }
+
+/// A TCP port free on 127.0.0.1 a moment ago (for listeners that cannot report theirs, like
+/// Zenoh's).
+pub fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// `[cluster]` of a solver for `rig` listening on `tcp/127.0.0.1:<port>`, boards declared
+/// down after 300 ms, image sizes from the rig.
+pub fn solver_cluster(
+    rig: &irtrack_core::params::RigParams,
+    rig_name: &str,
+    port: u16,
+    fps: f64,
+) -> irtrack_firmware::cluster::ClusterConfig {
+    irtrack_firmware::cluster::ClusterConfig {
+        role: irtrack_firmware::cluster::Role::Solver,
+        rig: rig_name.into(),
+        listen: vec![format!("tcp/127.0.0.1:{port}")],
+        fps,
+        board_timeout_ms: 300.0,
+        image_sizes_px: rig
+            .cameras
+            .iter()
+            .map(|c| [c.model.image_size.width_px, c.model.image_size.height_px])
+            .collect(),
+        ..irtrack_firmware::cluster::ClusterConfig::default()
+    }
+}
