@@ -13,7 +13,9 @@
 //! - the plain-loopback variant runs everything on 127.0.0.1.
 //!
 //! A third test has one camera per board (the usual case): a solver with a camera of its own
-//! and three one-camera boards, a robot link on the solver.
+//! and three one-camera boards, a robot link on the solver. A fourth renders the cameras
+//! free-running with a rolling shutter (issue 39) and compares time-true solving across boards
+//! with one board and with solving as seen.
 //!
 //! Build the binaries first, with the same features as this test (the example brings in this
 //! crate's dev-dependencies, so irtrackd gets them; `--bins` alone would leave `cluster` out):
@@ -683,4 +685,206 @@ fn one_camera_boards_and_a_solver_with_its_own_camera() {
     );
     assert!(worst < 1.0, "a target {worst:.3} mm from the marker at its time");
     drop(rt);
+}
+
+/// Time-true tracking across boards (issue 39): the four cameras of the issue's cell (ring at
+/// 1.4 m, a hand's speed) free-running — phases over the whole frame period, ±50 ppm, 200 µs
+/// timestamp jitter — with a 15 µs/row rolling shutter, rendered by two camera boards (cameras
+/// 0–1 on b0, 2–3 on b1) as separate processes. Two solvers take the same observations side
+/// by side: one in the default accurate mode (each camera's blobs moved to the set's instant),
+/// one solving them as seen (`time_mode = "off"`); one board renders all four cameras itself.
+/// Each position is compared with the simulator's truth at the instant its record is for.
+#[test]
+fn free_running_rolling_shutter_cameras_across_boards_track_like_one_board() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    const TT_FPS: f64 = 60.0;
+    let t0 = Instant::now();
+    let dir = temp_dir("cluster-time-true");
+    let sim = |cameras: Option<&[usize]>| {
+        format!(
+            "[source.sim]\nrig = \"ring\"\nring_cameras = 4\ndistance_mm = 1400.0\nradius_mm = 200.0\n\
+             period_s = 2.5\nfps = {TT_FPS}\nwall_clock = true\n{}[source.sim.timing]\n\
+             preset = \"free_running\"\nline_time_us = 15.0\nexposure_us = 1000.0\n",
+            cameras.map_or(String::new(), |c| format!("cameras = {c:?}\n"))
+        )
+    };
+    // The same section as the processes get, for the truth and the timing table.
+    let sim_cfg: irtrack_firmware::source::sim::SimSourceConfig = serde_json::from_value(serde_json::json!({
+        "rig": "ring", "ring_cameras": 4, "distance_mm": 1400.0, "radius_mm": 200.0,
+        "period_s": 2.5, "fps": TT_FPS, "wall_clock": true,
+        "timing": {"preset": "free_running", "line_time_us": 15.0, "exposure_us": 1000.0}
+    }))
+    .unwrap();
+    sim_cfg.validate().unwrap();
+    let scenario = Scenario::new(sim_cfg.scenario_config()).unwrap();
+    let timings = sim_cfg.camera_timings();
+    assert!(timings.iter().all(|t| t.line_time_ns > 0), "{timings:?}");
+
+    // Two solvers, each with the placed rig and the cameras' timing (as wand-calibrate writes
+    // it); the boards connect to both.
+    // Both bound before either is freed, so the two ports differ.
+    let listeners: Vec<_> = (0..2)
+        .map(|_| std::net::TcpListener::bind("127.0.0.1:0").unwrap())
+        .collect();
+    let ports: Vec<u16> = listeners.iter().map(|l| l.local_addr().unwrap().port()).collect();
+    drop(listeners);
+    let mut solvers = Vec::new();
+    for (k, mode) in ["accurate", "off"].iter().enumerate() {
+        let state = dir.join(format!("solver-{mode}-state"));
+        timed_solver_params(&state, &timings);
+        let cfg = format!(
+            "[params]\nallow_unsigned = true\n[leds]\nbackend = \"none\"\n[tracking]\ntime_mode = \"{mode}\"\n\
+             [cluster]\nrole = \"solver\"\nrig = \"{RIG}\"\nlisten = [\"tcp/127.0.0.1:{}\"]\nfps = {TT_FPS}\n\
+             board_timeout_ms = 300\nimage_sizes_px = [[640, 480], [640, 480], [640, 480], [640, 480]]\n",
+            ports[k]
+        );
+        solvers.push(spawn(&dir, &format!("solver-{mode}"), &cfg, None, "127.0.0.1"));
+    }
+    let connect = format!("\"tcp/127.0.0.1:{}\", \"tcp/127.0.0.1:{}\"", ports[0], ports[1]);
+    let board = |name: &str, cameras: &[usize]| {
+        format!(
+            "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n{}\n[cluster]\nrole = \"camera\"\n\
+             rig = \"{RIG}\"\nboard = \"{name}\"\nconnect = [{connect}]\nfps = {TT_FPS}\n",
+            sim(Some(cameras))
+        )
+    };
+    let _b0 = spawn(&dir, "b0", &board("b0", &[0, 1]), None, "127.0.0.1");
+    let _b1 = spawn(&dir, "b1", &board("b1", &[2, 3]), None, "127.0.0.1");
+    let single_cfg = format!(
+        "[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n{}",
+        sim(None)
+    );
+    let single = spawn(&dir, "single", &single_cfg, None, "127.0.0.1");
+
+    // Wait until the accurate solver tracks with all four cameras and the clock models have
+    // settled, then take 4 s of every process's records.
+    wait_for(
+        "accurate solver tracks with 4 cameras",
+        Duration::from_secs(30),
+        || {
+            solvers[0]
+                .take_records()
+                .iter()
+                .any(|r| r["status"] == "ok" && r["cameras_used"] == 4)
+        },
+    );
+    std::thread::sleep(Duration::from_secs(2));
+    for n in solvers.iter().chain([&single]) {
+        n.take_records();
+    }
+    std::thread::sleep(Duration::from_secs(4));
+    let accurate = timed_errors(&solvers[0].take_records(), &scenario);
+    let as_seen = timed_errors(&solvers[1].take_records(), &scenario);
+    let one = timed_errors(&single.take_records(), &scenario);
+    let (acc_rms, seen_rms, one_rms) = (rms(&accurate.0), rms(&as_seen.0), rms(&one.0));
+    let worst = accurate.0.iter().copied().fold(0.0, f64::max);
+    eprintln!(
+        "free-running + 15 µs/row rolling shutter, {TT_FPS} fps, 0.5 m/s: two boards + solver \
+         (accurate): RMS {acc_rms:.4} mm, worst {worst:.4} mm, {} positions ({} records without); \
+         same observations solved as seen: RMS {seen_rms:.4} mm, {} positions ({} without); one \
+         board with all four cameras: RMS {one_rms:.4} mm, {} positions",
+        accurate.0.len(),
+        accurate.1,
+        as_seen.0.len(),
+        as_seen.1,
+        one.0.len()
+    );
+
+    // The accurate solver: most sets tracked, as good as one board with the same cameras, never
+    // a position far from where the marker was at the record's instant.
+    let sets = 4.0 * TT_FPS;
+    assert!(
+        accurate.0.len() as f64 >= 0.6 * sets,
+        "only {} positions in 4 s",
+        accurate.0.len()
+    );
+    assert!(
+        one.0.len() as f64 >= 0.6 * sets,
+        "one board: {} positions",
+        one.0.len()
+    );
+    assert!(
+        acc_rms <= 1.5 * one_rms + 0.02,
+        "solver RMS {acc_rms} mm vs one board's {one_rms} mm"
+    );
+    assert!(worst < 0.5, "a time-true position {worst:.3} mm from the truth");
+    // Solving the same observations as seen is much worse (or refuses the sets): the
+    // timestamps carried across the boards are what makes the difference.
+    assert!(
+        seen_rms > 3.0 * acc_rms || (as_seen.0.len() as f64) < 0.5 * accurate.0.len() as f64,
+        "as seen: RMS {seen_rms} mm over {} positions",
+        as_seen.0.len()
+    );
+
+    // The accurate solver's clock models see the remote cameras as the single board sees the
+    // same cameras: phase against camera 0 within 0.3 ms (they drift by up to 100 ppm against
+    // each other, so the two status reads are compared, not a fixed figure).
+    let (st_solver, st_one) = (solvers[0].status(), single.status());
+    let phases = |st: &serde_json::Value| -> Vec<Option<f64>> {
+        (0..4)
+            .map(|c| st["source"]["cameras"][c]["clock"]["phase_us"].as_f64())
+            .collect()
+    };
+    let (ps, po) = (phases(&st_solver), phases(&st_one));
+    eprintln!("phase against camera 0 (µs): solver {ps:?}, one board {po:?}");
+    let period_us = 1e6 / TT_FPS;
+    for c in 1..4 {
+        let (Some(s), Some(o)) = (ps[c], po[c]) else {
+            panic!("camera {c}: no phase (solver {:?}, one board {:?})", ps[c], po[c]);
+        };
+        // Phases wrap at ±½ period.
+        let d = (s - o).rem_euclid(period_us);
+        let d = d.min(period_us - d);
+        assert!(
+            d < 300.0,
+            "camera {c}: solver phase {s:.0} µs, one board {o:.0} µs"
+        );
+    }
+    eprintln!("test took {:.1} s", t0.elapsed().as_secs_f64());
+}
+
+/// The solver's parameter set for the time-true test: the ring rig of the issue's cell with the
+/// cameras' timing, cameras 0 and 1 on b0, 2 and 3 on b1.
+fn timed_solver_params(state: &std::path::Path, timings: &[irtrack_core::timing::CameraTiming]) {
+    let mut rig: irtrack_core::params::RigParams = irtrack_firmware::source::sim::ring_rig(4, 1400.0);
+    rig.rig_id = RIG.into();
+    rig.placement = [("b0", 0u8), ("b0", 1), ("b1", 0), ("b1", 1)]
+        .iter()
+        .map(|(b, i)| irtrack_core::params::CameraPlace {
+            board: (*b).into(),
+            local_index: *i,
+        })
+        .collect();
+    rig.timing = timings.to_vec();
+    rig.validate().unwrap();
+    std::fs::create_dir_all(state).unwrap();
+    std::fs::write(state.join("params.irp"), rig.to_blob().unwrap()).unwrap();
+}
+
+/// Errors (mm) of the `ok` records against the truth at each record's instant (its
+/// `capture_ts_ns`, on CLOCK_MONOTONIC, moved to the wall clock the simulated cameras run on),
+/// and the number of records without a position.
+fn timed_errors(records: &[serde_json::Value], scenario: &Scenario) -> (Vec<f64>, usize) {
+    let rt_ns = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as i128;
+    let rt_minus_mono = rt_ns - i128::from(irtrack_firmware::clock::monotonic_ns());
+    let (mut errors, mut missing) = (Vec::new(), 0);
+    for r in records {
+        if r["status"] != "ok" {
+            missing += 1;
+            continue;
+        }
+        let p = r["position_mm"].as_array().expect("position_mm");
+        let p = nalgebra::Vector3::new(
+            p[0].as_f64().unwrap(),
+            p[1].as_f64().unwrap(),
+            p[2].as_f64().unwrap(),
+        );
+        let t_rt = i128::from(r["capture_ts_ns"].as_u64().expect("capture_ts_ns")) + rt_minus_mono;
+        let truth = scenario.truth_at(t_rt as f64).markers[0].p_cam0_mm;
+        errors.push((p - truth).norm());
+    }
+    (errors, missing)
 }
