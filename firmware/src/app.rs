@@ -560,8 +560,8 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
             .map(|_| robot.deadman_flag.clone()),
     };
     // The system updater (docs/updates.md); one that cannot start leaves tracking running.
-    let updates = crate::update::Updates::from_config(&cfg.update, &cfg.service.state_dir)
-        .unwrap_or_else(|e| {
+    let updates =
+        crate::update::Updates::from_config(&cfg.update, &cfg.service.state_dir).unwrap_or_else(|e| {
             tracing::warn!(error = %e, "system updates are off");
             None
         });

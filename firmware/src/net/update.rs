@@ -38,12 +38,18 @@ pub struct ExchangeDeadline(Arc<(Mutex<tokio::time::Instant>, Notify)>);
 impl ExchangeDeadline {
     /// Ends `limit` from now.
     pub fn new(limit: Duration) -> Self {
-        Self(Arc::new((Mutex::new(tokio::time::Instant::now() + limit), Notify::new())))
+        Self(Arc::new((
+            Mutex::new(tokio::time::Instant::now() + limit),
+            Notify::new(),
+        )))
     }
 
     /// When the exchange ends.
     pub fn at(&self) -> tokio::time::Instant {
-        self.0.0.lock().map_or_else(|_| tokio::time::Instant::now(), |d| *d)
+        self.0
+            .0
+            .lock()
+            .map_or_else(|_| tokio::time::Instant::now(), |d| *d)
     }
 
     /// Moves the end to `limit` from now.

@@ -62,7 +62,9 @@ pub fn inspect(path: &Path) -> Result<BundleLayout, Refusal> {
         )));
     }
     if payload_len % 4096 != 0 {
-        return Err(truncated(format!("image size {payload_len} is not whole 4 KiB blocks")));
+        return Err(truncated(format!(
+            "image size {payload_len} is not whole 4 KiB blocks"
+        )));
     }
     Ok(BundleLayout {
         payload_len,
@@ -84,7 +86,11 @@ mod tests {
     }
 
     fn check(bytes: &[u8]) -> Result<BundleLayout, Refusal> {
-        let p = std::env::temp_dir().join(format!("irtrack-bundle-layout-{}-{}", std::process::id(), bytes.len()));
+        let p = std::env::temp_dir().join(format!(
+            "irtrack-bundle-layout-{}-{}",
+            std::process::id(),
+            bytes.len()
+        ));
         std::fs::write(&p, bytes).unwrap();
         let r = inspect(&p);
         std::fs::remove_file(&p).unwrap();

@@ -232,7 +232,10 @@ impl LastUpdate {
 
     /// Reads `path`; `None` when missing or without an outcome.
     pub fn read(path: &Path) -> Option<Self> {
-        std::fs::read_to_string(path).ok().as_deref().and_then(Self::parse)
+        std::fs::read_to_string(path)
+            .ok()
+            .as_deref()
+            .and_then(Self::parse)
     }
 
     /// Writes `path` atomically (temporary file, rename).
@@ -342,8 +345,7 @@ fn on_path(cmd: &Path) -> bool {
     if cmd.components().count() > 1 {
         return cmd.is_file();
     }
-    std::env::var_os("PATH")
-        .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join(cmd).is_file()))
+    std::env::var_os("PATH").is_some_and(|p| std::env::split_paths(&p).any(|d| d.join(cmd).is_file()))
 }
 
 /// Dotted numeric version as numbers (`+build`/`-pre` tails ignored); `None` if not one.
@@ -441,7 +443,11 @@ pub struct Updates {
 impl Updates {
     /// Wraps `updater`; uploads go to `upload_dir` (created if missing). Starts reading the
     /// slots in the background.
-    pub fn new(updater: Arc<dyn SystemUpdater>, upload_dir: PathBuf, max_bundle_bytes: u64) -> Result<Arc<Self>> {
+    pub fn new(
+        updater: Arc<dyn SystemUpdater>,
+        upload_dir: PathBuf,
+        max_bundle_bytes: u64,
+    ) -> Result<Arc<Self>> {
         std::fs::create_dir_all(&upload_dir).map_err(|source| FirmwareError::Storage {
             path: upload_dir.display().to_string(),
             source,
@@ -604,10 +610,12 @@ impl Updates {
         {
             return Err(disk_full(&self.upload_dir, Some(free)));
         }
-        let mut j = self
-            .job
-            .lock()
-            .map_err(|_| Refusal::new(RefusalKind::Failed, "the update state is unusable; restart irtrackd"))?;
+        let mut j = self.job.lock().map_err(|_| {
+            Refusal::new(
+                RefusalKind::Failed,
+                "the update state is unusable; restart irtrackd",
+            )
+        })?;
         if let Some(cur) = j.as_ref()
             && cur.running()
         {
@@ -692,7 +700,9 @@ fn too_large(len: u64, max: u64) -> Refusal {
 }
 
 fn disk_full(dir: &Path, free: Option<u64>) -> Refusal {
-    let free = free.map_or(String::new(), |f| format!(" ({:.1} MiB free)", f as f64 / 1048576.0));
+    let free = free.map_or(String::new(), |f| {
+        format!(" ({:.1} MiB free)", f as f64 / 1048576.0)
+    });
     Refusal::new(
         RefusalKind::DiskFull,
         format!(
@@ -749,7 +759,10 @@ impl UploadTicket {
         } else {
             Refusal::new(
                 RefusalKind::Failed,
-                format!("writing the bundle to {} failed: {e}", self.updates.upload_dir.display()),
+                format!(
+                    "writing the bundle to {} failed: {e}",
+                    self.updates.upload_dir.display()
+                ),
             )
         }
     }
@@ -780,7 +793,10 @@ impl UploadTicket {
         }
         let bundle = u.bundle_path();
         if let Err(e) = std::fs::rename(u.part_path(), &bundle) {
-            let r = Refusal::new(RefusalKind::Failed, format!("keeping the uploaded bundle failed: {e}"));
+            let r = Refusal::new(
+                RefusalKind::Failed,
+                format!("keeping the uploaded bundle failed: {e}"),
+            );
             u.finish_job(id, Err(r.clone()));
             return Err(r);
         }
@@ -810,7 +826,10 @@ impl UploadTicket {
                 worker.refresh_slots_now();
             });
         if let Err(e) = spawned {
-            let r = Refusal::new(RefusalKind::Failed, format!("cannot start the install thread: {e}"));
+            let r = Refusal::new(
+                RefusalKind::Failed,
+                format!("cannot start the install thread: {e}"),
+            );
             u.finish_job(id, Err(r.clone()));
             return Err(r);
         }
@@ -826,7 +845,10 @@ impl Drop for UploadTicket {
                 self.id,
                 Err(Refusal::new(
                     RefusalKind::Interrupted,
-                    format!("the upload stopped after {} bytes; send the bundle again", self.received),
+                    format!(
+                        "the upload stopped after {} bytes; send the bundle again",
+                        self.received
+                    ),
                 )),
             );
         }

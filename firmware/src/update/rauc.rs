@@ -9,7 +9,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use super::{Installed, LastUpdate, Progress, Refusal, RefusalKind, SlotInfo, SystemSlots, SystemUpdater, UpdateConfig};
+use super::{
+    Installed, LastUpdate, Progress, Refusal, RefusalKind, SlotInfo, SystemSlots, SystemUpdater, UpdateConfig,
+};
 
 /// `rauc status` that does not answer within this is given up on (a stuck D-Bus service).
 const STATUS_TIMEOUT: Duration = Duration::from_secs(20);
@@ -58,7 +60,9 @@ pub fn parse_rauc_status(json: &str) -> Result<SystemSlots, String> {
         let Some((name, slot)) = entry.as_object().and_then(|o| o.iter().next()) else {
             continue;
         };
-        let Some(bootname) = s(slot, "bootname") else { continue };
+        let Some(bootname) = s(slot, "bootname") else {
+            continue;
+        };
         let bundle = slot.get("slot_status").and_then(|st| st.get("bundle"));
         let version = bundle.and_then(|b| s(b, "version"));
         let build = bundle.and_then(|b| s(b, "build"));
@@ -82,8 +86,14 @@ pub fn parse_rauc_status(json: &str) -> Result<SystemSlots, String> {
             },
         ));
     }
-    let running = slots.iter().find(|(_, i)| i.state == "booted").map(|(_, i)| i.clone());
-    let other = slots.iter().find(|(_, i)| i.state != "booted").map(|(_, i)| i.clone());
+    let running = slots
+        .iter()
+        .find(|(_, i)| i.state == "booted")
+        .map(|(_, i)| i.clone());
+    let other = slots
+        .iter()
+        .find(|(_, i)| i.state != "booted")
+        .map(|(_, i)| i.clone());
     let boot_next = primary.and_then(|p| slots.iter().find(|(n, _)| *n == p).map(|(_, i)| i.slot.clone()));
     if running.is_none() && booted.is_none() {
         return Err("rauc status names no booted slot".into());
@@ -123,7 +133,10 @@ fn classify(error: &str, handler_detail: Option<&LastUpdate>) -> Refusal {
             format!("made for another board ({})", error.trim()),
         );
     }
-    if e.contains("signature size") || e.contains("too small") || e.contains("payload size") || e.contains("squashfs")
+    if e.contains("signature size")
+        || e.contains("too small")
+        || e.contains("payload size")
+        || e.contains("squashfs")
     {
         return Refusal::new(
             RefusalKind::Truncated,
@@ -142,7 +155,10 @@ fn classify(error: &str, handler_detail: Option<&LastUpdate>) -> Refusal {
             ),
         );
     }
-    Refusal::new(RefusalKind::Failed, format!("rauc install failed: {}", error.trim()))
+    Refusal::new(
+        RefusalKind::Failed,
+        format!("rauc install failed: {}", error.trim()),
+    )
 }
 
 impl SystemUpdater for RaucUpdater {
@@ -165,13 +181,18 @@ impl SystemUpdater for RaucUpdater {
                 Ok(None) if start.elapsed() > STATUS_TIMEOUT => {
                     let _ = child.kill();
                     let _ = child.wait();
-                    return Err(format!("rauc status did not answer within {} s", STATUS_TIMEOUT.as_secs()));
+                    return Err(format!(
+                        "rauc status did not answer within {} s",
+                        STATUS_TIMEOUT.as_secs()
+                    ));
                 }
                 Ok(None) => std::thread::sleep(Duration::from_millis(50)),
                 Err(e) => return Err(format!("waiting for rauc status: {e}")),
             }
         }
-        let out = child.wait_with_output().map_err(|e| format!("rauc status: {e}"))?;
+        let out = child
+            .wait_with_output()
+            .map_err(|e| format!("rauc status: {e}"))?;
         if !out.status.success() {
             return Err(format!(
                 "rauc status failed: {}",
@@ -202,7 +223,12 @@ impl SystemUpdater for RaucUpdater {
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
-            .map_err(|e| Refusal::new(RefusalKind::Failed, format!("cannot run {}: {e}", self.rauc.display())))?;
+            .map_err(|e| {
+                Refusal::new(
+                    RefusalKind::Failed,
+                    format!("cannot run {}: {e}", self.rauc.display()),
+                )
+            })?;
         let stderr = child.stderr.take();
         let err_thread = std::thread::spawn(move || {
             let mut text = String::new();
@@ -269,13 +295,22 @@ mod tests {
 
     #[test]
     fn progress_lines() {
-        assert_eq!(parse_progress_line("  0% Installing"), Some((0, "Installing".into())));
+        assert_eq!(
+            parse_progress_line("  0% Installing"),
+            Some((0, "Installing".into()))
+        );
         assert_eq!(
             parse_progress_line(" 40% Copying image to rootfs.1"),
             Some((40, "Copying image to rootfs.1".into()))
         );
-        assert_eq!(parse_progress_line("100% Installing done."), Some((100, "Installing done.".into())));
-        assert_eq!(parse_progress_line("Installing `/data/upload.raucb` succeeded"), None);
+        assert_eq!(
+            parse_progress_line("100% Installing done."),
+            Some((100, "Installing done.".into()))
+        );
+        assert_eq!(
+            parse_progress_line("Installing `/data/upload.raucb` succeeded"),
+            None
+        );
         assert_eq!(parse_progress_line("LastError: x"), None);
     }
 
@@ -283,15 +318,22 @@ mod tests {
     fn errors_in_plain_words() {
         let k = |e: &str| classify(e, None).kind;
         assert_eq!(
-            k("Failed to check bundle identifier: Compatible mismatch: Expected 'irtrack-qemu-arm64' but bundle manifest has 'other'"),
+            k(
+                "Failed to check bundle identifier: Compatible mismatch: Expected 'irtrack-qemu-arm64' but bundle manifest has 'other'"
+            ),
             RefusalKind::OtherBoard
         );
-        assert_eq!(k("Signature size (123456789) exceeds bundle size"), RefusalKind::Truncated);
+        assert_eq!(
+            k("Signature size (123456789) exceeds bundle size"),
+            RefusalKind::Truncated
+        );
         assert_eq!(
             k("signature verification failed: Verify error:unable to get local issuer certificate"),
             RefusalKind::Signature
         );
-        let handler = LastUpdate::parse("outcome=refused\nversion=0.0.0\ndetail=refused: downgrade from 1.2.0 to 0.0.0\n");
+        let handler = LastUpdate::parse(
+            "outcome=refused\nversion=0.0.0\ndetail=refused: downgrade from 1.2.0 to 0.0.0\n",
+        );
         let r = classify("Installation error: Pre-install handler error", handler.as_ref());
         assert_eq!(r.kind, RefusalKind::Downgrade);
         assert_eq!(r.reason, "refused: downgrade from 1.2.0 to 0.0.0");

@@ -13,8 +13,8 @@ use std::sync::Mutex;
 use serde::{Deserialize, Serialize};
 
 use super::{
-    Installed, LastUpdate, Progress, Refusal, RefusalKind, SlotInfo, SystemSlots, SystemUpdater, UpdateConfig,
-    bundle, is_downgrade, utc_now,
+    Installed, LastUpdate, Progress, Refusal, RefusalKind, SlotInfo, SystemSlots, SystemUpdater,
+    UpdateConfig, bundle, is_downgrade, utc_now,
 };
 use crate::error::{FirmwareError, Result};
 
@@ -62,7 +62,10 @@ impl SimUpdater {
         let last_update = dir.join("last-update");
         let mut state = match std::fs::read_to_string(&path) {
             Ok(text) => serde_json::from_str::<SimState>(&text).map_err(|e| FirmwareError::Config {
-                reason: format!("simulated system {}: {e}; remove the directory to start over", path.display()),
+                reason: format!(
+                    "simulated system {}: {e}; remove the directory to start over",
+                    path.display()
+                ),
             })?,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => SimState {
                 booted: "A".into(),
@@ -143,7 +146,11 @@ impl SimUpdater {
         Refusal::new(kind, reason)
     }
 
-    fn verify_signature(&self, path: &Path, layout: bundle::BundleLayout) -> std::result::Result<(), Refusal> {
+    fn verify_signature(
+        &self,
+        path: &Path,
+        layout: bundle::BundleLayout,
+    ) -> std::result::Result<(), Refusal> {
         let failed = |what: String| Refusal::new(RefusalKind::Failed, what);
         if !self.ca_cert.is_file() {
             return Err(failed(format!(
@@ -157,7 +164,8 @@ impl SimUpdater {
             .and_then(|_| f.read_exact(&mut sig))
             .map_err(|e| failed(format!("reading the signature: {e}")))?;
         let sig_path = self.dir.join(".signature.der");
-        std::fs::write(&sig_path, &sig).map_err(|e| failed(format!("writing {}: {e}", sig_path.display())))?;
+        std::fs::write(&sig_path, &sig)
+            .map_err(|e| failed(format!("writing {}: {e}", sig_path.display())))?;
         let mut child = Command::new("openssl")
             .args(["cms", "-verify", "-binary", "-inform", "DER", "-in"])
             .arg(&sig_path)
@@ -194,7 +202,11 @@ impl SimUpdater {
             format!(
                 "wrong signature: the bundle is not signed by a key this board trusts (CA {}), or it was changed after signing{}",
                 self.ca_cert.display(),
-                if first.is_empty() { String::new() } else { format!(" (openssl: {first})") }
+                if first.is_empty() {
+                    String::new()
+                } else {
+                    format!(" (openssl: {first})")
+                }
             ),
         ))
     }
@@ -342,7 +354,9 @@ impl SystemUpdater for SimUpdater {
             outcome: "installed".into(),
             ok: true,
             slot: Some(target.to_string()),
-            detail: format!("installed into slot {target}; restart irtrackd (the simulated reboot) to start it"),
+            detail: format!(
+                "installed into slot {target}; restart irtrackd (the simulated reboot) to start it"
+            ),
         };
         let _ = lu.write(&self.last_update);
         progress(100, "installed");
@@ -362,7 +376,10 @@ mod tests {
         let m = manifest_values(
             "[update]\ncompatible=irtrack-qemu-arm64\nversion=1.2.0\nbuild=abc\n\n[image.rootfs]\nfilename=rootfs.ext4\nversion=9\n",
         );
-        assert_eq!(m.get("compatible").map(String::as_str), Some("irtrack-qemu-arm64"));
+        assert_eq!(
+            m.get("compatible").map(String::as_str),
+            Some("irtrack-qemu-arm64")
+        );
         assert_eq!(m.get("version").map(String::as_str), Some("1.2.0"));
         assert_eq!(m.get("filename"), None);
     }
