@@ -63,6 +63,11 @@ pub struct UpdateConfig {
     /// The program run as `rauc` (tests point it elsewhere).
     #[serde(default = "default_rauc")]
     pub rauc_command: PathBuf,
+    /// The spool of the image's root agent (`irtrack-update-agent`): when irtrackd runs
+    /// unprivileged and this directory exists, RAUC is run through the agent (RAUC's D-Bus
+    /// API is root's only, and RAUC refuses a bundle owned by another user).
+    #[serde(default = "default_agent_dir")]
+    pub rauc_agent_dir: PathBuf,
     /// `key=value` outcome of the last update, written by the RAUC handlers and irtrackd.
     #[serde(default = "default_last_update")]
     pub last_update_file: PathBuf,
@@ -92,6 +97,9 @@ fn default_system_conf() -> PathBuf {
 fn default_rauc() -> PathBuf {
     PathBuf::from("rauc")
 }
+fn default_agent_dir() -> PathBuf {
+    PathBuf::from("/data/rauc/spool")
+}
 fn default_last_update() -> PathBuf {
     PathBuf::from("/data/rauc/last-update")
 }
@@ -116,6 +124,7 @@ impl Default for UpdateConfig {
             upload_dir: None,
             system_conf: default_system_conf(),
             rauc_command: default_rauc(),
+            rauc_agent_dir: default_agent_dir(),
             last_update_file: default_last_update(),
             release_file: default_release(),
             ca_cert: default_ca(),
@@ -325,7 +334,8 @@ pub trait SystemUpdater: Send + Sync {
 
 /// The updater `cfg` selects, or `None` (`none`, or `auto` without RAUC).
 pub fn from_config(cfg: &UpdateConfig, state_dir: &Path) -> Result<Option<Arc<dyn SystemUpdater>>> {
-    let rauc_here = || on_path(&cfg.rauc_command) && cfg.system_conf.is_file();
+    let rauc_here =
+        || cfg.system_conf.is_file() && (on_path(&cfg.rauc_command) || rauc::use_agent(&cfg.rauc_agent_dir));
     Ok(match cfg.backend {
         UpdateBackend::None => None,
         UpdateBackend::Auto if !rauc_here() => None,
@@ -475,7 +485,11 @@ impl Updates {
         };
         let upload_dir = cfg.upload_dir.clone().unwrap_or_else(|| {
             if updater.backend() == "rauc" {
-                PathBuf::from("/data")
+                if rauc::use_agent(&cfg.rauc_agent_dir) {
+                    cfg.rauc_agent_dir.clone()
+                } else {
+                    PathBuf::from("/data")
+                }
             } else {
                 cfg.sim_dir
                     .clone()
@@ -675,8 +689,9 @@ impl Updates {
                     slot: None,
                     detail: r.reason.clone(),
                 };
+                // Under the root agent the file is root's; the agent records the refusal then.
                 if let Err(e) = lu.write(self.updater.last_update_file()) {
-                    tracing::warn!(error = %e, "recording the refusal failed");
+                    tracing::debug!(error = %e, "recording the refusal failed");
                 }
                 self.update_job(id, |j| {
                     j.state = "refused";

@@ -16,11 +16,24 @@ use super::{
 /// `rauc status` that does not answer within this is given up on (a stuck D-Bus service).
 const STATUS_TIMEOUT: Duration = Duration::from_secs(20);
 
+/// An install through the agent that shows no sign of life for this long is given up on.
+const AGENT_SILENCE: Duration = Duration::from_secs(120);
+
+/// Whether RAUC is reached through the root agent: irtrackd is not root and the agent's
+/// spool exists.
+pub fn use_agent(dir: &Path) -> bool {
+    // SAFETY: geteuid has no preconditions.
+    let root = unsafe { libc::geteuid() } == 0;
+    !root && dir.is_dir()
+}
+
 /// See the module documentation.
 pub struct RaucUpdater {
     rauc: PathBuf,
     last_update: PathBuf,
     release_file: PathBuf,
+    /// The root agent's spool, when RAUC is run through it.
+    agent: Option<PathBuf>,
 }
 
 impl RaucUpdater {
@@ -30,7 +43,123 @@ impl RaucUpdater {
             rauc: cfg.rauc_command.clone(),
             last_update: cfg.last_update_file.clone(),
             release_file: cfg.release_file.clone(),
+            agent: use_agent(&cfg.rauc_agent_dir).then(|| cfg.rauc_agent_dir.clone()),
         }
+    }
+
+    /// `rauc status` JSON from the agent: asks for a fresh one and waits a little for it.
+    fn agent_status(dir: &Path) -> Result<String, String> {
+        let file = dir.join("status.json");
+        let before = std::fs::metadata(&file).and_then(|m| m.modified()).ok();
+        let _ = std::fs::write(dir.join("status-request"), b"");
+        let start = std::time::Instant::now();
+        while start.elapsed() < Duration::from_secs(5) {
+            let now = std::fs::metadata(&file).and_then(|m| m.modified()).ok();
+            if now.is_some() && now != before {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        std::fs::read_to_string(&file).map_err(|e| {
+            let why = std::fs::read_to_string(dir.join("status.err")).unwrap_or_default();
+            format!(
+                "no rauc status from the update agent ({}: {e}) {}",
+                file.display(),
+                why.trim()
+            )
+        })
+    }
+
+    /// `rauc install` through the agent: the request, then its output as it grows.
+    fn agent_install(
+        dir: &Path,
+        bundle: &Path,
+        progress: Progress,
+    ) -> Result<(bool, String, Option<String>), Refusal> {
+        let failed = |what: String| Refusal::new(RefusalKind::Failed, what);
+        let log = dir.join("install.log");
+        let rc = dir.join("install.rc");
+        for f in [&log, &rc] {
+            let _ = std::fs::remove_file(f);
+        }
+        std::fs::write(dir.join("install"), bundle.as_os_str().as_encoded_bytes())
+            .map_err(|e| failed(format!("asking the update agent to install: {e}")))?;
+        let mut seen = 0usize;
+        let mut last_error = None;
+        let mut output = String::new();
+        let mut last_news = std::time::Instant::now();
+        loop {
+            let text = std::fs::read_to_string(&log).unwrap_or_default();
+            if text.len() > seen {
+                last_news = std::time::Instant::now();
+                // Whole lines only; a partial last line is read again next time.
+                let upto = text[seen..].rfind('\n').map_or(seen, |i| seen + i + 1);
+                for line in text[seen..upto].lines() {
+                    scan_line(line, &mut last_error, progress);
+                }
+                output.push_str(&text[seen..upto]);
+                seen = upto;
+            }
+            if let Ok(code) = std::fs::read_to_string(&rc) {
+                let rest = std::fs::read_to_string(&log).unwrap_or_default();
+                for line in rest.get(seen..).unwrap_or("").lines() {
+                    scan_line(line, &mut last_error, progress);
+                    output.push_str(line);
+                    output.push('\n');
+                }
+                return Ok((code.trim() == "0", output, last_error));
+            }
+            if last_news.elapsed() > AGENT_SILENCE {
+                return Err(failed(format!(
+                    "the update agent did not answer within {} s (is irtrack-update-agent running?)",
+                    AGENT_SILENCE.as_secs()
+                )));
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
+    /// `rauc install` run here: its output line by line.
+    fn direct_install(
+        &self,
+        bundle: &Path,
+        progress: Progress,
+    ) -> Result<(bool, String, Option<String>), Refusal> {
+        let mut child = Command::new(&self.rauc)
+            .arg("install")
+            .arg(bundle)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .map_err(|e| {
+                Refusal::new(
+                    RefusalKind::Failed,
+                    format!("cannot run {}: {e}", self.rauc.display()),
+                )
+            })?;
+        let stderr = child.stderr.take();
+        let err_thread = std::thread::spawn(move || {
+            let mut text = String::new();
+            if let Some(e) = stderr {
+                for line in BufReader::new(e).lines().map_while(Result::ok) {
+                    text.push_str(&line);
+                    text.push('\n');
+                }
+            }
+            text
+        });
+        let mut last_error = None;
+        if let Some(out) = child.stdout.take() {
+            for line in BufReader::new(out).lines().map_while(Result::ok) {
+                scan_line(&line, &mut last_error, progress);
+            }
+        }
+        let status = child
+            .wait()
+            .map_err(|e| Refusal::new(RefusalKind::Failed, format!("waiting for rauc install: {e}")))?;
+        let stderr = err_thread.join().unwrap_or_default();
+        Ok((status.success(), stderr, last_error))
     }
 
     /// `VERSION` and `BUILD` of the running release file.
@@ -167,6 +296,33 @@ impl SystemUpdater for RaucUpdater {
     }
 
     fn slots(&self) -> Result<SystemSlots, String> {
+        let json = match &self.agent {
+            Some(dir) => Self::agent_status(dir)?,
+            None => self.run_status()?,
+        };
+        let mut slots = parse_rauc_status(&json)?;
+        // The running system's own release file is the truth for the booted slot (the first
+        // image was flashed, not installed, so RAUC knows no version for it).
+        let (version, build) = self.release();
+        if let Some(r) = slots.running.as_mut() {
+            r.version = version.or(r.version.take());
+            r.build = build.or(r.build.take());
+        }
+        Ok(slots)
+    }
+
+    fn last_update_file(&self) -> &Path {
+        &self.last_update
+    }
+
+    fn install(&self, bundle: &Path, progress: Progress) -> Result<Installed, Refusal> {
+        self.install_bundle(bundle, progress)
+    }
+}
+
+impl RaucUpdater {
+    /// `rauc status --detailed --output-format=json`, run here.
+    fn run_status(&self) -> Result<String, String> {
         let mut child = Command::new(&self.rauc)
             .args(["status", "--detailed", "--output-format=json"])
             .stdin(Stdio::null())
@@ -199,74 +355,40 @@ impl SystemUpdater for RaucUpdater {
                 String::from_utf8_lossy(&out.stderr).trim()
             ));
         }
-        let mut slots = parse_rauc_status(&String::from_utf8_lossy(&out.stdout))?;
-        // The running system's own release file is the truth for the booted slot (the first
-        // image was flashed, not installed, so RAUC knows no version for it).
-        let (version, build) = self.release();
-        if let Some(r) = slots.running.as_mut() {
-            r.version = version.or(r.version.take());
-            r.build = build.or(r.build.take());
-        }
-        Ok(slots)
+        Ok(String::from_utf8_lossy(&out.stdout).into_owned())
     }
+}
 
-    fn last_update_file(&self) -> &Path {
-        &self.last_update
-    }
-
-    fn install(&self, bundle: &Path, progress: Progress) -> Result<Installed, Refusal> {
+impl RaucUpdater {
+    /// `rauc install`, directly or through the agent, and its outcome in plain words.
+    fn install_bundle(&self, bundle: &Path, progress: Progress) -> Result<Installed, Refusal> {
         let before = LastUpdate::read(&self.last_update);
-        let mut child = Command::new(&self.rauc)
-            .arg("install")
-            .arg(bundle)
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .map_err(|e| {
-                Refusal::new(
-                    RefusalKind::Failed,
-                    format!("cannot run {}: {e}", self.rauc.display()),
-                )
-            })?;
-        let stderr = child.stderr.take();
-        let err_thread = std::thread::spawn(move || {
-            let mut text = String::new();
-            if let Some(e) = stderr {
-                for line in BufReader::new(e).lines().map_while(Result::ok) {
-                    text.push_str(&line);
-                    text.push('\n');
-                }
-            }
-            text
-        });
-        let mut last_error = None;
-        if let Some(out) = child.stdout.take() {
-            for line in BufReader::new(out).lines().map_while(Result::ok) {
-                // A terminal-less run prints plain lines; strip any escape codes anyway.
-                let line: String = line.chars().filter(|c| !c.is_control()).collect();
-                let line = line.trim_start_matches("[J").trim_start_matches("[F");
-                if let Some(msg) = line.split_once("LastError: ").map(|(_, m)| m) {
-                    last_error = Some(msg.to_string());
-                } else if let Some((pct, step)) = parse_progress_line(line) {
-                    progress(pct, &step);
-                }
-            }
-        }
-        let status = child
-            .wait()
-            .map_err(|e| Refusal::new(RefusalKind::Failed, format!("waiting for rauc install: {e}")))?;
-        let stderr = err_thread.join().unwrap_or_default();
+        let (ok, output, last_error) = match &self.agent {
+            Some(dir) => Self::agent_install(dir, bundle, progress)?,
+            None => self.direct_install(bundle, progress)?,
+        };
         let after = LastUpdate::read(&self.last_update).filter(|a| Some(a) != before.as_ref());
-        if status.success() {
+        if ok {
             let (slot, version) = after
                 .filter(|a| a.outcome == "installed")
                 .map(|a| (a.slot.unwrap_or_default(), a.version))
                 .unwrap_or_default();
             return Ok(Installed { slot, version });
         }
-        let error = last_error.unwrap_or_else(|| stderr.trim().to_string());
+        let error = last_error.unwrap_or_else(|| output.trim().to_string());
         Err(classify(&error, after.as_ref()))
+    }
+}
+
+/// One output line of `rauc install`: progress, or the `LastError` it ends with.
+fn scan_line(line: &str, last_error: &mut Option<String>, progress: Progress) {
+    // A terminal-less run prints plain lines; drop any escape codes anyway.
+    let line: String = line.chars().filter(|c| !c.is_control()).collect();
+    let line = line.trim_start_matches("[J").trim_start_matches("[F");
+    if let Some((_, msg)) = line.split_once("LastError: ") {
+        *last_error = Some(msg.to_string());
+    } else if let Some((pct, step)) = parse_progress_line(line) {
+        progress(pct, &step);
     }
 }
 
