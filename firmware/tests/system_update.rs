@@ -455,3 +455,134 @@ async fn too_large_and_concurrent_uploads_are_refused_while_one_runs() {
     assert!(!sim_dir.join(".upload.part").exists());
     running.shutdown().await;
 }
+
+/// A stand-in for RAUC's command line with RAUC 1.8's output formats: `status` prints the JSON
+/// status, `install` prints progress lines and ends as `mode` (a file beside it) says, writing
+/// `last-update` as the image's handlers do.
+fn fake_rauc(dir: &Path, last_update: &Path) -> PathBuf {
+    let path = dir.join("rauc");
+    std::fs::write(
+        &path,
+        format!(
+            r#"#!/bin/sh
+mode=$(cat "{dir}/mode")
+case "$1" in
+status)
+    echo '{{"compatible":"irtrack-qemu-arm64","variant":"","booted":"A","boot_primary":"rootfs.0","slots":[{{"rootfs.0":{{"class":"rootfs","device":"/dev/vda2","type":"ext4","bootname":"A","state":"booted","parent":null,"mountpoint":"/","boot_status":"good"}}}},{{"rootfs.1":{{"class":"rootfs","device":"/dev/vda3","type":"ext4","bootname":"B","state":"inactive","parent":null,"mountpoint":null,"boot_status":"good","slot_status":{{"bundle":{{"compatible":"irtrack-qemu-arm64","version":"1.0.9","build":"old.build"}},"status":"ok"}}}}}}]}}'
+    ;;
+install)
+    echo "  0% Installing"
+    echo "  0% Determining slot states"
+    echo " 20% Checking bundle"
+    case "$mode" in
+    ok)
+        echo " 40% Copying image to rootfs.1"
+        echo " 80% Copying image to rootfs.1 done."
+        printf 'outcome=installed\nslot=B\nversion=1.2.0\ndetail=installed into slot B; reboot to start it\ntime=2026-11-28T04:00:00Z\n' > "{lu}"
+        echo "100% Installing done."
+        echo "Installing \`$2' succeeded"
+        exit 0 ;;
+    signature)
+        echo " 20% Checking bundle failed."
+        echo "LastError: Failed to verify bundle: signature verification failed: Verify error:unable to get local issuer certificate"
+        echo "Installing \`$2' failed" >&2
+        exit 1 ;;
+    downgrade)
+        printf 'outcome=refused\nslot=none\nversion=0.0.1\ndetail=refused: downgrade from 1.1.0 to 0.0.1 (touch /data/rauc/allow-downgrade to allow one)\ntime=2026-11-28T04:00:00Z\n' > "{lu}"
+        echo "LastError: Installation error: Pre-install handler error: Failed to run handler"
+        exit 1 ;;
+    esac ;;
+esac
+"#,
+            dir = dir.display(),
+            lu = last_update.display()
+        ),
+    )
+    .unwrap();
+    use std::os::unix::fs::PermissionsExt as _;
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755)).unwrap();
+    path
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_rauc_updater_reads_rauc_status_and_follows_rauc_install() {
+    let dir = TempDir::new("system-update-rauc");
+    let keys = dir.path().join("keys");
+    make_ca(&keys);
+    let bundle = make_bundle(&keys, dir.path(), "good", COMPATIBLE, "1.2.0");
+    let tools = dir.path().join("tools");
+    std::fs::create_dir_all(&tools).unwrap();
+    let last_update = dir.path().join("last-update");
+    let rauc = fake_rauc(&tools, &last_update);
+    std::fs::write(
+        tools.join("system.conf"),
+        "[system]\ncompatible=irtrack-qemu-arm64\n",
+    )
+    .unwrap();
+    std::fs::write(
+        tools.join("release"),
+        "VERSION=1.1.0\nBUILD=abc123.20261128T030000Z\n",
+    )
+    .unwrap();
+    let hash = irtrack_firmware::net::auth::hash_password(PASSWORD).unwrap();
+    let extra = format!(
+        "operator_password_hash = \"{hash}\"\n[update]\nbackend = \"rauc\"\nrauc_command = \"{}\"\n\
+         system_conf = \"{}\"\nlast_update_file = \"{}\"\nrelease_file = \"{}\"\nupload_dir = \"{}\"\n",
+        rauc.display(),
+        tools.join("system.conf").display(),
+        last_update.display(),
+        tools.join("release").display(),
+        dir.path().join("upload").display()
+    );
+    let running = start(&dir, &extra).await;
+    let addr = running.addrs.status;
+
+    // The slots: the booted one's version from the release file, the other's from RAUC.
+    let start_t = Instant::now();
+    let sys = loop {
+        std::fs::write(tools.join("mode"), "ok").unwrap();
+        let sys = status_json(addr).await["system"].clone();
+        if !sys["running"].is_null() {
+            break sys;
+        }
+        assert!(start_t.elapsed() < Duration::from_secs(10), "no slots: {sys}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(sys["backend"], "rauc");
+    assert_eq!(sys["running"]["slot"], "A");
+    assert_eq!(sys["running"]["version"], "1.1.0");
+    assert_eq!(sys["running"]["build"], "abc123.20261128T030000Z");
+    assert_eq!(sys["other"]["slot"], "B");
+    assert_eq!(sys["other"]["version"], "1.0.9");
+    assert_eq!(sys["other"]["state"], "good");
+    assert_eq!(sys["boot_next"], "A");
+
+    let sys = upload_and_wait(addr, &bundle).await;
+    assert_eq!(sys["install"]["state"], "installed", "{sys}");
+    assert_eq!(sys["install"]["version"], "1.2.0");
+    assert!(
+        sys["install"]["step"].as_str().unwrap().contains("slot B"),
+        "{sys}"
+    );
+    assert_eq!(sys["last_update"]["outcome"], "installed");
+
+    std::fs::write(tools.join("mode"), "signature").unwrap();
+    let sys = upload_and_wait(addr, &bundle).await;
+    assert_eq!(sys["install"]["refusal"]["kind"], "signature", "{sys}");
+    let reason = sys["install"]["refusal"]["reason"].as_str().unwrap();
+    assert!(
+        reason.starts_with("wrong signature") && reason.contains("unable to get local issuer certificate"),
+        "{reason}"
+    );
+
+    // RAUC says only that the handler failed; the handler's own words are the reason.
+    std::fs::write(tools.join("mode"), "downgrade").unwrap();
+    let sys = upload_and_wait(addr, &bundle).await;
+    assert_eq!(sys["install"]["refusal"]["kind"], "downgrade", "{sys}");
+    assert_eq!(
+        sys["install"]["refusal"]["reason"],
+        "refused: downgrade from 1.1.0 to 0.0.1 (touch /data/rauc/allow-downgrade to allow one)"
+    );
+    assert_eq!(sys["last_update"]["version"], "0.0.1");
+    running.shutdown().await;
+}

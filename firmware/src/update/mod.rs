@@ -325,6 +325,10 @@ pub trait SystemUpdater: Send + Sync {
     fn backend(&self) -> &'static str;
     /// Both slots now (may take a moment: called off the async threads).
     fn slots(&self) -> std::result::Result<SystemSlots, String>;
+    /// Whether [`SystemUpdater::slots`] answers at once (read at start without a thread).
+    fn slots_are_cheap(&self) -> bool {
+        false
+    }
     /// The `last-update` file this updater and its handlers share.
     fn last_update_file(&self) -> &Path;
     /// Installs `bundle` into the other slot, reporting progress; the running system is left
@@ -474,7 +478,11 @@ impl Updates {
             slots: Mutex::new(SlotsCache::default()),
             next_id: AtomicU64::new(1),
         });
-        u.refresh_slots_in_background();
+        if u.updater.slots_are_cheap() {
+            u.refresh_slots_now();
+        } else {
+            u.refresh_slots_in_background();
+        }
         Ok(u)
     }
 

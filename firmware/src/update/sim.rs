@@ -258,6 +258,10 @@ impl SystemUpdater for SimUpdater {
         })
     }
 
+    fn slots_are_cheap(&self) -> bool {
+        true
+    }
+
     fn last_update_file(&self) -> &Path {
         &self.last_update
     }
