@@ -9,7 +9,8 @@
 //! - request head: 8 KiB within [`HEAD_TIMEOUT`] (hyper's header read timeout, which also
 //!   covers a connection that never sends anything);
 //! - request body: 64 KiB; a body that stops for [`BODY_IDLE_TIMEOUT`] fails (tower-http), and
-//!   the handler with its body has [`HANDLER_TIMEOUT`] in all (tower-http);
+//!   the handler with its body has [`HANDLER_TIMEOUT`] in all (tower-http); the update upload
+//!   (`net::update`) alone has its own size cap and moves its exchange deadline once signed in;
 //! - one request per connection (no idle keep-alive), and the whole HTTP exchange, answer
 //!   included, within [`HTTP_EXCHANGE_LIMIT`]; a WebSocket keeps its connection and has its own
 //!   send and pong timeouts (`live`).
