@@ -433,6 +433,8 @@ impl Job {
 
 /// How long a slot report is reused before RAUC is asked again.
 pub const SLOTS_MAX_AGE: Duration = Duration::from_secs(30);
+/// How soon a failed slot read is tried again.
+pub const SLOTS_RETRY_AFTER_ERROR: Duration = Duration::from_secs(3);
 /// Name of the uploaded bundle in the upload directory (one at a time).
 pub const UPLOAD_NAME: &str = "upload.raucb";
 
@@ -572,10 +574,18 @@ impl Updates {
     /// older than [`SLOTS_MAX_AGE`]), the last update's outcome, the current job.
     pub fn report_json(self: &Arc<Self>) -> serde_json::Value {
         let (slots, stale) = match self.slots.lock() {
-            Ok(c) => (
-                c.slots.clone(),
-                !c.refreshing && c.at.is_none_or(|t| t.elapsed() > SLOTS_MAX_AGE),
-            ),
+            Ok(c) => {
+                // A failed read (RAUC's service still starting) is tried again soon.
+                let max_age = if matches!(c.slots, Some(Err(_))) {
+                    SLOTS_RETRY_AFTER_ERROR
+                } else {
+                    SLOTS_MAX_AGE
+                };
+                (
+                    c.slots.clone(),
+                    !c.refreshing && c.at.is_none_or(|t| t.elapsed() > max_age),
+                )
+            }
             Err(_) => (None, false),
         };
         if stale {

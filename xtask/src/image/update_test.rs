@@ -355,15 +355,23 @@ fn upload_install(status_port: u16, bundle: &Path) -> Result<(f64, String)> {
     ))
 }
 
-/// `/status` → `system.running` as (slot, version).
-fn status_running(status_port: u16) -> Result<(String, String)> {
-    let st = get_status(status_port)?;
-    let field = |k: &str| {
-        json::str_at(&st, &format!("system.running.{k}"))
-            .unwrap_or("")
-            .to_owned()
-    };
-    Ok((field("slot"), field("version")))
+/// `/status` → `system.running` as (slot, version) once it names `want_slot` (irtrackd reads
+/// the slots from RAUC in the background after its start), or what it last said.
+fn status_running(status_port: u16, want_slot: &str) -> Result<(String, String)> {
+    let t0 = Instant::now();
+    loop {
+        let st = get_status(status_port)?;
+        let field = |k: &str| {
+            json::str_at(&st, &format!("system.running.{k}"))
+                .unwrap_or("")
+                .to_owned()
+        };
+        let got = (field("slot"), field("version"));
+        if got.0 == want_slot || t0.elapsed() > Duration::from_secs(60) {
+            return Ok(got);
+        }
+        thread::sleep(Duration::from_secs(1));
+    }
 }
 
 /// Runs every update check on a fresh copy of `image`. Errors only for setup failures.
@@ -520,7 +528,7 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
                 bail!("running slot {slot:?} version {version:?}, want B {good_version}");
             }
             // What an operator sees: /status names the new slot and version.
-            let (st_slot, st_version) = status_running(status_port)?;
+            let (st_slot, st_version) = status_running(status_port, "B")?;
             if st_slot != "B" || st_version != good_version {
                 bail!(
                     "/status system.running: slot {st_slot:?} version {st_version:?}, want B {good_version}"
