@@ -433,6 +433,22 @@ async fn too_large_and_concurrent_uploads_are_refused_while_one_runs() {
     let sys = install_outcome(addr, id).await;
     assert_eq!(sys["install"]["state"], "installed", "{sys}");
 
+    // The disk fills up while the bundle is written (ENOSPC, here from /dev/full standing in
+    // for the part file): 507 with a plain reason, nothing left behind.
+    std::os::unix::fs::symlink("/dev/full", sim_dir.join(".upload.part")).unwrap();
+    let (code, body) = post(addr, true, &bytes).await;
+    assert_eq!(code, 507, "{body}");
+    let v: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(v["kind"], "disk_full");
+    assert!(
+        v["reason"]
+            .as_str()
+            .unwrap()
+            .starts_with("no room for the bundle"),
+        "{body}"
+    );
+    assert!(std::fs::symlink_metadata(sim_dir.join(".upload.part")).is_err());
+
     // A client that goes away mid-upload: the job ends, the next upload is accepted.
     let mut gone = TcpStream::connect(addr).await.unwrap();
     gone.write_all(head.as_bytes()).await.unwrap();
