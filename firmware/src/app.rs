@@ -559,7 +559,14 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
             .filter(|rc| rc.deadman == DeadmanConfig::Flag)
             .map(|_| robot.deadman_flag.clone()),
     };
+    // The system updater (docs/updates.md); one that cannot start leaves tracking running.
+    let updates =
+        crate::update::Updates::from_config(&cfg.update, &cfg.service.state_dir).unwrap_or_else(|e| {
+            tracing::warn!(error = %e, "system updates are off");
+            None
+        });
     let service = crate::net::status::StatusService::new(status.clone())
+        .with_updates(updates)
         .with_control(control)
         .with_auth(auth)
         .with_view_policy(&cfg.status.allowed_hosts, cfg.status.public_view)

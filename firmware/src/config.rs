@@ -69,6 +69,9 @@ pub struct Config {
     /// the default (global shutter, timestamps are exposure instants).
     #[serde(default)]
     pub camera_timing: Vec<CameraTimingConfig>,
+    /// `[update]`: which system updater irtrackd reports and installs with (docs/updates.md).
+    #[serde(default)]
+    pub update: crate::update::UpdateConfig,
 }
 
 /// `[service]`
@@ -397,6 +400,7 @@ impl Config {
             ));
         }
         check_tracker_config(&self.tracking)?;
+        self.update.validate()?;
         self.outputs.validate()?;
         self.cluster.validate()?;
         self.clock.validate()?;

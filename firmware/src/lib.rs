@@ -29,6 +29,7 @@ pub mod source;
 pub mod status;
 pub mod storage;
 pub mod tuning;
+pub mod update;
 pub mod viewer;
 pub mod watchdog;
 

@@ -8,6 +8,7 @@ import { Health, serverFaults } from "./health.js";
 import { Live } from "./live.js";
 import { Robot } from "./robot.js";
 import { Scene3D } from "./scene3d.js";
+import { SystemPanel } from "./system.js";
 
 const $ = (id) => document.getElementById(id);
 
@@ -27,11 +28,14 @@ const tintBox = $("threshold-view");
 const cameras = new Cameras($("cameras"), () => ({ thresholdView: tintBox.checked, fps: Number(fpsSelect.value) }));
 const health = new Health();
 const robot = new Robot();
+const system = new SystemPanel();
 const scene = new Scene3D($("scene"), $("scene-info"), $("scene-frame"));
 const capture = new Capture($("capture-btn"), $("capture-msg"));
 const controls = new Controls((s) => {
   state.session = s;
   robot.setSession(s);
+  system.session = s;
+  system.buttons();
 });
 
 function refreshFaults() {
@@ -61,6 +65,7 @@ function onStatus(msg) {
   health.leds(st);
   health.update(st);
   robot.update(st, state.session);
+  system.update(st, state.session);
   if (st.tuning && typeof st.tuning === "object") controls.showLive(st.tuning);
   if (st.threshold_suggestion) controls.showStartupSuggestion(st.threshold_suggestion);
   refreshFaults();
@@ -118,6 +123,7 @@ window.__irtrack = {
   health: () => Array.from(document.querySelectorAll("#camera-health tbody tr")).map((tr) => Array.from(tr.children).map((td) => td.textContent)),
   headers: () => Array.from(document.querySelectorAll(".cam .stats")).map((e) => e.textContent),
   capturesSaved: () => capture.saved,
+  system: () => Array.from(document.querySelectorAll("#system dd")).map((dd) => dd.textContent),
 };
 
 live.connect();

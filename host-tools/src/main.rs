@@ -50,6 +50,8 @@ enum Command {
     Capture(cmd::capture::Args),
     /// Camera poses (and optionally intrinsics) from a wave of a collinear LED wand.
     WandCalibrate(cmd::wand_calibrate::Args),
+    /// Field updates of a board: `update push` uploads a signed bundle and installs it.
+    Update(cmd::update::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -74,5 +76,6 @@ fn main() -> anyhow::Result<()> {
         Command::Pivot(a) => cmd::pivot::run(a),
         Command::Capture(a) => cmd::capture::run(a),
         Command::WandCalibrate(a) => cmd::wand_calibrate::run(a),
+        Command::Update(a) => cmd::update::run(a),
     }
 }

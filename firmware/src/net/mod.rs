@@ -16,3 +16,4 @@ mod previews;
 pub mod server;
 pub mod status;
 pub mod stream;
+pub mod update;

@@ -9,7 +9,8 @@
 //! - request head: 8 KiB within [`HEAD_TIMEOUT`] (hyper's header read timeout, which also
 //!   covers a connection that never sends anything);
 //! - request body: 64 KiB; a body that stops for [`BODY_IDLE_TIMEOUT`] fails (tower-http), and
-//!   the handler with its body has [`HANDLER_TIMEOUT`] in all (tower-http);
+//!   the handler with its body has [`HANDLER_TIMEOUT`] in all (tower-http); the update upload
+//!   (`net::update`) alone has its own size cap and moves its exchange deadline once signed in;
 //! - one request per connection (no idle keep-alive), and the whole HTTP exchange, answer
 //!   included, within [`HTTP_EXCHANGE_LIMIT`]; a WebSocket keeps its connection and has its own
 //!   send and pong timeouts (`live`).
@@ -41,6 +42,7 @@ use super::http::{
 };
 use super::limit::{ConnLimiter, ConnSlot, STATUS_LIMITS};
 use super::status::{self as st, StatusService};
+use super::update::ExchangeDeadline;
 use super::{live, status};
 use crate::status::SharedStatus;
 
@@ -66,6 +68,11 @@ impl StatusService {
     /// a request without a connection then counts as coming from 127.0.0.1).
     pub fn router(self) -> Router {
         let state = Arc::new(self);
+        // The bundle upload streams a large body for minutes: outside the body cap and the
+        // handler timeout (it keeps the body idle timeout and sets its own exchange deadline).
+        let upload = Router::new()
+            .route("/api/update", post(super::update::upload))
+            .layer(DefaultBodyLimit::disable());
         let mut router = Router::new()
             .route("/", get(st::index))
             .route("/web/{*path}", get(st::asset))
@@ -85,13 +92,14 @@ impl StatusService {
             .fallback(st::fallback)
             .method_not_allowed_fallback(st::fallback)
             .layer(DefaultBodyLimit::max(MAX_REQUEST_BODY_BYTES))
-            .layer(axum::middleware::from_fn_with_state(state.clone(), guard))
-            .layer(axum::middleware::map_response(one_request_per_connection))
-            .layer(RequestBodyTimeoutLayer::new(BODY_IDLE_TIMEOUT))
             .layer(TimeoutLayer::with_status_code(
                 StatusCode::REQUEST_TIMEOUT,
                 HANDLER_TIMEOUT,
-            ));
+            ))
+            .merge(upload)
+            .layer(axum::middleware::from_fn_with_state(state.clone(), guard))
+            .layer(axum::middleware::map_response(one_request_per_connection))
+            .layer(RequestBodyTimeoutLayer::new(BODY_IDLE_TIMEOUT));
         let csp = content_security_policy(&st::page_inline_script_hashes());
         for (name, value) in security_headers(&csp) {
             router = router.layer(SetResponseHeaderLayer::if_not_present(name, value));
@@ -177,9 +185,12 @@ pub async fn serve_router(
                     super::stream::limit_send_buffer(&stream, STATUS_SNDBUF_BYTES);
                     let info = ConnInfo { peer, local };
                     let slot = ConnSlot(Some(permit.clone()));
+                    let deadline = ExchangeDeadline::new(HTTP_EXCHANGE_LIMIT);
+                    let handler_deadline = deadline.clone();
                     let svc = router.clone().map_request(move |mut req: Request<hyper::body::Incoming>| {
                         req.extensions_mut().insert(info);
                         req.extensions_mut().insert(slot.clone());
+                        req.extensions_mut().insert(handler_deadline.clone());
                         req
                     });
                     let svc = TowerToHyperService::new(svc);
@@ -191,27 +202,36 @@ pub async fn serve_router(
                             .header_read_timeout(HEAD_TIMEOUT)
                             .max_buf_size(MAX_REQUEST_HEAD_BYTES);
                         let conn = http.serve_connection(TokioIo::new(stream), svc).with_upgrades();
-                        let timed = tokio::time::timeout(HTTP_EXCHANGE_LIMIT, conn);
-                        let ended = tokio::select! {
-                            r = timed => r,
-                            _ = evict.notified() => {
-                                tracing::debug!(%peer, "status exchange closed for a fresh client at the cap");
-                                return;
+                        tokio::pin!(conn);
+                        // The exchange's deadline, which an upload may move (net::update).
+                        let ended = loop {
+                            tokio::select! {
+                                r = &mut conn => break Some(r),
+                                _ = tokio::time::sleep_until(deadline.at()) => {
+                                    if tokio::time::Instant::now() >= deadline.at() {
+                                        break None;
+                                    }
+                                }
+                                _ = deadline.moved() => {}
+                                _ = evict.notified() => {
+                                    tracing::debug!(%peer, "status exchange closed for a fresh client at the cap");
+                                    return;
+                                }
                             }
                         };
                         match ended {
-                            Err(_) => {
+                            None => {
                                 limiter.counters().timeouts.fetch_add(1, Ordering::Relaxed);
                                 tracing::debug!(%peer, "status connection timed out");
                             }
-                            Ok(Err(e)) if e.is_timeout() => {
+                            Some(Err(e)) if e.is_timeout() => {
                                 limiter.counters().timeouts.fetch_add(1, Ordering::Relaxed);
                                 tracing::debug!(%peer, "status connection sent no request head in time");
                             }
-                            Ok(Err(e)) => {
+                            Some(Err(e)) => {
                                 tracing::debug!(error = %e, "status connection ended with an error");
                             }
-                            Ok(Ok(())) => {}
+                            Some(Ok(())) => {}
                         }
                     });
                 }

@@ -65,6 +65,8 @@ pub struct StatusService {
     pub hosts: HostPolicy,
     /// `[status] public_view`: previews, frames and positions without sign-in.
     pub public_view: bool,
+    /// The system updater (`[update]`); `None` = updates off.
+    pub updates: Option<Arc<crate::update::Updates>>,
 }
 
 impl StatusService {
@@ -84,7 +86,14 @@ impl StatusService {
             previews: Arc::default(),
             hosts: HostPolicy::new(&[]),
             public_view: true,
+            updates: None,
         }
+    }
+
+    /// The system updater `/status` reports and `POST /api/update` installs with.
+    pub fn with_updates(mut self, updates: Option<Arc<crate::update::Updates>>) -> Self {
+        self.updates = updates;
+        self
     }
 
     /// `[status]`: extra host names and whether viewing needs a sign-in.
@@ -165,6 +174,13 @@ impl StatusService {
                     .map_or(serde_json::Value::Null, |s| s.report_json()),
             );
             o.insert("tuning".into(), serde_json::to_value(&tuning).unwrap_or_default());
+            // The slots, the last update and an install in progress (crate::update).
+            o.insert(
+                "system".into(),
+                self.updates
+                    .as_ref()
+                    .map_or_else(|| serde_json::json!({"backend": "none"}), |u| u.report_json()),
+            );
             // The whole-frame analysis every part of the set-up view shows (crate::advice).
             o.insert(
                 "frame_analysis".into(),
@@ -250,9 +266,23 @@ pub(super) async fn metrics(State(s): Shared) -> Response {
             header::CONTENT_TYPE,
             "application/openmetrics-text; version=1.0.0; charset=utf-8",
         )],
-        s.status.prometheus(),
+        with_update_metrics(s.status.prometheus(), s.updates.as_deref()),
     )
         .into_response()
+}
+
+/// The update gauges, before the exposition's `# EOF`.
+fn with_update_metrics(mut text: String, updates: Option<&crate::update::Updates>) -> String {
+    let Some(u) = updates else { return text };
+    let eof = text.ends_with("# EOF\n");
+    if eof {
+        text.truncate(text.len() - "# EOF\n".len());
+    }
+    text.push_str(&u.metrics_text());
+    if eof {
+        text.push_str("# EOF\n");
+    }
+    text
 }
 
 pub(super) async fn fallback(method: Method) -> Response {

@@ -18,4 +18,5 @@ pub mod show_params;
 pub mod simulate;
 pub mod survey;
 pub mod track;
+pub mod update;
 pub mod wand_calibrate;

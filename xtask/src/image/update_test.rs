@@ -13,7 +13,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
-use super::checks::{check_params_used, get_status, make_params, push_params, rig_id_of};
+use super::checks::{
+    check_params_used, get_status, make_params, push_params, rig_id_of, set_operator_password,
+};
 use super::qemu::{BOOT_TIMEOUT, Qemu, free_ports, qemu_command};
 use super::system::Report;
 use super::update::{self, Release, UpdateKeys};
@@ -282,6 +284,96 @@ fn rig_now(status_port: u16) -> Result<Option<String>> {
     Ok(json::str_at(&s, "params.rig_id").map(str::to_owned))
 }
 
+/// Uploads `bundle` to irtrackd's `POST /api/update` as the operator (raw HTTP, the file
+/// streamed), then follows `/status` → `system.install` to its end. Returns (seconds, the
+/// install steps seen) or the board's refusal.
+fn upload_install(status_port: u16, bundle: &Path) -> Result<(f64, String)> {
+    let t0 = Instant::now();
+    let len = fs::metadata(bundle)?.len();
+    let mut s = TcpStream::connect((Ipv4Addr::LOCALHOST, status_port))?;
+    s.set_read_timeout(Some(INSTALL_TIMEOUT))?;
+    s.write_all(
+        format!(
+            "POST /api/update HTTP/1.1\r\nHost: 127.0.0.1:{status_port}\r\nAuthorization: {}\r\n\
+             Content-Type: application/octet-stream\r\nContent-Length: {len}\r\n\r\n",
+            irtrack_testkit::harness::http::basic_authorization(crate::util::OPERATOR_PASSWORD)
+        )
+        .as_bytes(),
+    )?;
+    std::io::copy(&mut fs::File::open(bundle)?, &mut s)?;
+    let mut answer = String::new();
+    s.read_to_string(&mut answer)?;
+    let upload_s = t0.elapsed().as_secs_f64();
+    let code = answer.split_whitespace().nth(1).unwrap_or("");
+    let body = answer.split_once("\r\n\r\n").map_or("", |(_, b)| b).trim();
+    if code != "202" {
+        bail!("upload answered {code}: {body}");
+    }
+    let id = json::parse(body)?
+        .get("id")
+        .and_then(|i| i.as_u64())
+        .with_context(|| format!("upload answer without a job id: {body}"))?;
+    let mut steps: Vec<String> = Vec::new();
+    loop {
+        let st = get_status(status_port)?;
+        let job = st
+            .get("system")
+            .and_then(|s| s.get("install"))
+            .cloned()
+            .unwrap_or_default();
+        if job.get("id").and_then(|i| i.as_u64()) != Some(id) {
+            bail!("/status no longer shows install {id}: {job}");
+        }
+        let step = format!(
+            "{}% {}",
+            job.get("percent").and_then(|p| p.as_u64()).unwrap_or(0),
+            job.get("step").and_then(|p| p.as_str()).unwrap_or("")
+        );
+        if steps.last() != Some(&step) {
+            steps.push(step);
+        }
+        match job.get("state").and_then(|p| p.as_str()) {
+            Some("installed") => break,
+            Some("refused") => bail!("the board refused the upload: {job}"),
+            _ => {}
+        }
+        if t0.elapsed() > INSTALL_TIMEOUT {
+            bail!(
+                "install {id} did not end within {} s: {job}",
+                INSTALL_TIMEOUT.as_secs()
+            );
+        }
+        thread::sleep(Duration::from_millis(500));
+    }
+    Ok((
+        t0.elapsed().as_secs_f64(),
+        format!(
+            "upload {upload_s:.1} s; {} install steps seen, e.g. {}",
+            steps.len(),
+            steps[steps.len() / 2]
+        ),
+    ))
+}
+
+/// `/status` → `system.running` as (slot, version) once it names `want_slot` (irtrackd reads
+/// the slots from RAUC in the background after its start), or what it last said.
+fn status_running(status_port: u16, want_slot: &str) -> Result<(String, String)> {
+    let t0 = Instant::now();
+    loop {
+        let st = get_status(status_port)?;
+        let field = |k: &str| {
+            json::str_at(&st, &format!("system.running.{k}"))
+                .unwrap_or("")
+                .to_owned()
+        };
+        let got = (field("slot"), field("version"));
+        if got.0 == want_slot || t0.elapsed() > Duration::from_secs(60) {
+            return Ok(got);
+        }
+        thread::sleep(Duration::from_secs(1));
+    }
+}
+
 /// Runs every update check on a fresh copy of `image`. Errors only for setup failures.
 pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
     let work = work_dir(ctx);
@@ -403,25 +495,26 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
         report.check(what, res);
     }
 
-    // 3. A good update: install, reboot into slot B, healthy, parameters kept.
-    let good = install(&mut q, http_port, "good").and_then(|(rc, out, secs)| {
-        if rc != 0 {
-            bail!("rauc install failed ({rc}): {out}");
-        }
+    // 3. A good update, uploaded to irtrackd as the operator would from the set-up page or
+    //    `host-tools update push`: installed through irtrackd's updater (the root agent runs
+    //    RAUC), then reboot into slot B, healthy, parameters kept.
+    let password = set_operator_password(&mut q, status_port);
+    let good = password.and_then(|_| {
+        let (secs, seen) = upload_install(status_port, &bundle_dir.join("good.raucb"))?;
         let state = boot_state(&mut q)?;
         if !state.contains("BOOT_ORDER=B A") || !state.contains(&format!("pending=B {good_version}")) {
             bail!("after the install: {state}");
         }
-        Ok((secs, state))
+        Ok((secs, format!("{seen}; {state}")))
     });
     let installed = good.is_ok();
     if let Ok((secs, _)) = &good {
         report.figures.push(format!(
-            "install of the good bundle (download included): {secs:.1} s"
+            "install of the good bundle uploaded to irtrackd (upload over QEMU user networking included): {secs:.1} s"
         ));
     }
     report.check(
-        "signed update installed into slot B (download, check, write)",
+        "signed update uploaded to irtrackd (POST /api/update) and installed into slot B",
         good.map(|(secs, state)| format!("{secs:.1} s; {state}")),
     );
     if installed {
@@ -433,6 +526,13 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
             let (slot, version) = running(&mut q)?;
             if slot != "B" || version != good_version {
                 bail!("running slot {slot:?} version {version:?}, want B {good_version}");
+            }
+            // What an operator sees: /status names the new slot and version.
+            let (st_slot, st_version) = status_running(status_port, "B")?;
+            if st_slot != "B" || st_version != good_version {
+                bail!(
+                    "/status system.running: slot {st_slot:?} version {st_version:?}, want B {good_version}"
+                );
             }
             let now = rig_now(status_port)?;
             if now != rig || rig.is_none() {

@@ -1,0 +1,231 @@
+//! `host-tools update push` against a real irtrackd process with the simulated system
+//! (`[update] backend = "simulated"`, docs/updates.md): a good bundle installs with progress
+//! shown; a bundle from a foreign CA, a truncated one and a wrong password end non-zero with
+//! the board's reason. Build irtrackd first (`cargo build -p irtrack-firmware --bin
+//! irtrackd`); bundles are made with the host's `rauc` and `openssl` (`cargo xtask setup`).
+
+mod common;
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+use common::{host_tools, p, text};
+use irtrack_testkit::harness::http::Http;
+use irtrack_testkit::harness::irtrackd::{Irtrackd, IrtrackdConfig, operator_hash};
+use irtrack_testkit::harness::process::{TempDir, workspace_bin};
+
+const PASSWORD: &str = "update-cli operator";
+
+/// A CA and a signer it issued (as `cargo xtask image update-keys` makes them).
+fn make_keys(dir: &Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    std::fs::write(
+        dir.join("openssl.cnf"),
+        "[req]\ndistinguished_name=dn\n[dn]\n[ca]\nbasicConstraints=critical,CA:TRUE\n\
+         keyUsage=critical,keyCertSign,cRLSign\n[signer]\nbasicConstraints=critical,CA:FALSE\n\
+         keyUsage=critical,digitalSignature\n",
+    )
+    .unwrap();
+    let ssl = |args: &[&str]| {
+        let o = Command::new("openssl")
+            .args(args)
+            .current_dir(dir)
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "openssl {args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    };
+    for key in ["ca.key.pem", "signer.key.pem"] {
+        ssl(&[
+            "genpkey",
+            "-algorithm",
+            "EC",
+            "-pkeyopt",
+            "ec_paramgen_curve:P-256",
+            "-out",
+            key,
+        ]);
+    }
+    ssl(&[
+        "req",
+        "-new",
+        "-x509",
+        "-key",
+        "ca.key.pem",
+        "-out",
+        "ca.cert.pem",
+        "-days",
+        "30",
+        "-subj",
+        "/CN=cli CA",
+        "-config",
+        "openssl.cnf",
+        "-extensions",
+        "ca",
+    ]);
+    ssl(&[
+        "req",
+        "-new",
+        "-key",
+        "signer.key.pem",
+        "-out",
+        "signer.csr",
+        "-subj",
+        "/CN=cli signer",
+        "-config",
+        "openssl.cnf",
+    ]);
+    ssl(&[
+        "x509",
+        "-req",
+        "-in",
+        "signer.csr",
+        "-CA",
+        "ca.cert.pem",
+        "-CAkey",
+        "ca.key.pem",
+        "-CAcreateserial",
+        "-out",
+        "signer.cert.pem",
+        "-days",
+        "30",
+        "-extfile",
+        "openssl.cnf",
+        "-extensions",
+        "signer",
+    ]);
+}
+
+/// A signed bundle of `version` with a 2 MiB image of noise (so the upload has some length).
+fn make_bundle(keys: &Path, work: &Path, name: &str, version: &str) -> PathBuf {
+    let content = work.join(format!("content-{name}"));
+    std::fs::create_dir_all(&content).unwrap();
+    let mut x = 0x9e37_79b9_u32;
+    let image: Vec<u8> = (0..2 << 20)
+        .map(|_| {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x as u8
+        })
+        .collect();
+    std::fs::write(content.join("rootfs.ext4"), image).unwrap();
+    std::fs::write(
+        content.join("manifest.raucm"),
+        format!(
+            "[update]\ncompatible=irtrack-qemu-arm64\nversion={version}\nbuild=cli.{name}\n\n[bundle]\nformat=plain\n\n\
+             [image.rootfs]\nfilename=rootfs.ext4\n"
+        ),
+    )
+    .unwrap();
+    let out = work.join(format!("{name}.raucb"));
+    let r = Command::new("rauc")
+        .arg("bundle")
+        .arg("--cert")
+        .arg(keys.join("signer.cert.pem"))
+        .arg("--key")
+        .arg(keys.join("signer.key.pem"))
+        .arg(&content)
+        .arg(&out)
+        .output()
+        .expect("rauc (cargo xtask setup installs it)");
+    assert!(
+        r.status.success(),
+        "rauc bundle: {}",
+        String::from_utf8_lossy(&r.stderr)
+    );
+    out
+}
+
+fn push(board: SocketAddr, password_file: &Path, bundle: &Path) -> (bool, String, String) {
+    let o = host_tools(&[
+        "update",
+        "push",
+        "--board",
+        &board.to_string(),
+        "--password-file",
+        p(password_file),
+        p(bundle),
+    ]);
+    let (out, err) = text(&o);
+    (o.status.success(), out, err)
+}
+
+#[test]
+fn update_push_installs_and_reports_refusals() {
+    let dir = TempDir::new("update-cli").unwrap();
+    let keys = dir.path().join("keys");
+    let foreign = dir.path().join("foreign");
+    make_keys(&keys);
+    make_keys(&foreign);
+    let good = make_bundle(&keys, dir.path(), "good", "1.2.0");
+    let bad_sig = make_bundle(&foreign, dir.path(), "foreign", "1.3.0");
+    let bytes = std::fs::read(&good).unwrap();
+    let truncated = dir.path().join("truncated.raucb");
+    std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
+
+    let irtrackd = workspace_bin("irtrackd").unwrap();
+    let config = dir.path().join("irtrackd.toml");
+    IrtrackdConfig::simulated()
+        .operator_hash(&operator_hash(&irtrackd, PASSWORD).unwrap())
+        .set("update.backend", "simulated")
+        .set("update.ca_cert", p(&keys.join("ca.cert.pem")))
+        .set("update.sim_dir", p(&dir.path().join("system")))
+        .set("update.running_version", "1.1.0")
+        .write(&config)
+        .unwrap();
+    let board = Irtrackd::start(
+        &irtrackd,
+        &config,
+        &dir.path().join("state"),
+        Duration::from_secs(30),
+    )
+    .unwrap();
+    let status = board.ready().status;
+    let pw = dir.path().join("password");
+    std::fs::write(&pw, format!("{PASSWORD}\n")).unwrap();
+    let wrong = dir.path().join("wrong");
+    std::fs::write(&wrong, "not the password\n").unwrap();
+
+    let (ok, _, err) = push(status, &wrong, &good);
+    assert!(!ok);
+    assert!(
+        err.contains("refused the sign-in (401)") && err.contains("wrong operator password"),
+        "{err}"
+    );
+
+    let (ok, _, err) = push(status, &pw, &bad_sig);
+    assert!(!ok);
+    assert!(
+        err.contains("the board refused the bundle: wrong signature"),
+        "{err}"
+    );
+
+    let (ok, _, err) = push(status, &pw, &truncated);
+    assert!(!ok);
+    assert!(
+        err.contains("the board refused the bundle (422)") && err.contains("truncated"),
+        "{err}"
+    );
+
+    let (ok, out, err) = push(status, &pw, &good);
+    assert!(ok, "{out}\n{err}");
+    assert!(err.contains("upload: 100%"), "{err}");
+    assert!(
+        err.contains("upload done in") && err.contains("installing"),
+        "{err}"
+    );
+    assert!(out.contains("installed 1.2.0 into slot B"), "{out}");
+
+    let (code, body) = Http::new(Duration::from_secs(10)).get(status, "/status").unwrap();
+    assert_eq!(code, 200);
+    let v: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(v["system"]["other"]["version"], "1.2.0", "{}", v["system"]);
+    assert_eq!(v["system"]["boot_next"], "B");
+    assert_eq!(v["system"]["last_update"]["outcome"], "installed");
+}
