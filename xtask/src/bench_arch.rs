@@ -17,7 +17,8 @@
 //! Each case runs twice with different iteration counts; the difference divided by the extra
 //! iterations removes set-up (the synthetic frames, the tracker's warm-up) and the runtime.
 //! QEMU runs under `setarch -R` (no address randomisation), which makes the two runs' set-up
-//! identical; callgrind's runs are stable without it.
+//! nearly identical (QEMU's full-frame figure still varied by ~2 % between runs); callgrind's
+//! runs repeat exactly without it.
 
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader};
