@@ -100,6 +100,9 @@ pub const PHASES: &[Phase] = &[
     // source plus the armv7 debug build of the five crates (docs/development.md, "armv7").
     opt_in_phase("armv7-tests", "build std for armv7, cross-build core/sim/robot/cluster/firmware, run their tests under qemu-arm (Cortex-A9)", "armv7", armv7_tests, 35, &["armv7"]),
     // Not in CI either: the same aarch64 Zenoh build, then the cluster image booted in QEMU.
+    // Not in CI: the armv7 static irtrackd (std from source, cold about 12 minutes) and a boot
+    // of the 32-bit image in qemu-system-arm (docs/image.md, "The armv7 image").
+    opt_in_phase("image-armv7", "armv7 image built and booted in qemu-system-arm (virt, Cortex-A15): the image's system test", "system", |ctx| Outcome::from_counts(crate::image::armv7::ci_phase(ctx)), 40, &["image-armv7", "armv7-static", "debug"]),
     opt_in_phase("cluster-qemu-system", "cluster image booted in qemu-system-aarch64 as a camera board feeding a host solver", "system", cluster_qemu_system, 10, &["image-cluster", "aarch64-static", "debug"]),
 ];
 
@@ -785,6 +788,7 @@ mod tests {
         assert!(!default.contains(&"cluster-qemu-user"));
         assert!(!default.contains(&"cluster-qemu-system"));
         assert!(!default.contains(&"armv7-tests"));
+        assert!(!default.contains(&"image-armv7"));
         let only = Args {
             only: vec!["cluster-qemu-user".into()],
             ..Args::default()

@@ -15,9 +15,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
+use crate::cross::Arch;
 use crate::report::Counts;
 use crate::util::{self, Ctx};
 
+pub mod armv7;
 mod checks;
 mod crates;
 mod qemu;
@@ -58,6 +60,12 @@ pub enum ImageCmd {
         #[arg(long)]
         no_build: bool,
     },
+    /// The armv7 (Pandaboard, 32-bit) image: build, test or run it in qemu-system-arm
+    /// (xtask/src/image/armv7.rs).
+    Armv7 {
+        #[command(subcommand)]
+        cmd: armv7::Armv7Cmd,
+    },
     /// Write (or check) yocto-layer's irtrackd-crates.inc from Cargo.lock.
     Crates {
         /// Only check that the file is up to date.
@@ -79,7 +87,9 @@ const ROOT_MODULES: &[(&str, &str)] = &[("virtio_net", ""), ("vivid", "n_devs=2 
 pub struct Variant {
     /// Its build directory under target/.
     pub dir: &'static str,
-    /// Builds the aarch64 irtrackd it ships.
+    /// The board architecture: Debian packages, cross tools and the QEMU machine.
+    pub arch: Arch,
+    /// Builds the irtrackd it ships.
     pub irtrackd: fn(&Ctx) -> Result<PathBuf>,
     /// Modules loaded at start after [`ROOT_MODULES`].
     pub extra_modules: &'static [(&'static str, &'static str)],
@@ -99,6 +109,7 @@ pub struct Variant {
 /// The CI image: a standalone board on two vivid V4L2 cameras.
 pub const STANDARD: Variant = Variant {
     dir: "image",
+    arch: Arch::Aarch64,
     irtrackd: |ctx| crate::cross::build_irtrackd(ctx, crate::cross::Arch::Aarch64),
     // The A/B image mounts the boot (vfat) and data partitions and loop-mounts bundles
     // (squashfs).
@@ -120,6 +131,7 @@ pub const STANDARD: Variant = Variant {
 /// board config and the host's SNTP port (image/cluster/etc/irtrack/rc.local).
 pub const CLUSTER: Variant = Variant {
     dir: "image-cluster",
+    arch: Arch::Aarch64,
     irtrackd: |ctx| crate::cross::build_irtrackd_cluster(ctx, crate::cross::Arch::Aarch64),
     extra_modules: &[("qemu_fw_cfg", "")],
     overlay: Some("image/cluster"),
@@ -153,6 +165,7 @@ pub fn cli(ctx: &Ctx, cmd: ImageCmd) -> Result<()> {
             qemu::interactive(ctx, &image)
         }
         ImageCmd::Crates { check } => crates::cli(ctx, check),
+        ImageCmd::Armv7 { cmd } => armv7::cli(ctx, cmd),
         ImageCmd::Bundle { version, out } => {
             update::check_version(&version)?;
             let release = update::Release {
@@ -257,6 +270,8 @@ fn short(detail: &str) -> String {
 /// A built SD-card image.
 pub struct Image {
     pub sd_img: PathBuf,
+    /// What it runs on (the QEMU machine that boots it).
+    pub arch: Arch,
     pub kernel_version: String,
     pub size_bytes: u64,
     pub boot_bytes: u64,
@@ -337,6 +352,15 @@ fn work_dir(ctx: &Ctx) -> PathBuf {
     ctx.target_dir().join("image")
 }
 
+/// The build directory of `image` (the system test's and QEMU's scratch files go there, so
+/// the armv7 image's runs do not mix with the aarch64 image's).
+fn image_dir(ctx: &Ctx, image: &Image) -> PathBuf {
+    image
+        .sd_img
+        .parent()
+        .map_or_else(|| work_dir(ctx), Path::to_path_buf)
+}
+
 /// Runs a command quietly; on failure the error shows the command and its output.
 fn run_quiet(cmd: &mut Command) -> Result<String> {
     let shown = util::display_cmd(cmd);
@@ -373,6 +397,7 @@ pub fn existing(ctx: &Ctx) -> Result<Image> {
     let (kernel_version, _) = kernel_modules_dir(&work.join("kernel"))?;
     Ok(Image {
         sd_img: work.join("irtrack-sd.img"),
+        arch: Arch::Aarch64,
         kernel_version,
         size_bytes: len("irtrack-sd.img")?,
         boot_bytes: len("boot.vfat")?,
@@ -420,7 +445,7 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
         "mmd",
         "mke2fs",
         "sfdisk",
-        "qemu-aarch64",
+        variant.arch.qemu(),
     ]
     .into_iter()
     .chain(update_tools.iter().copied())
@@ -433,8 +458,11 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
         }
     }
 
-    println!("image: fetching Debian arm64 packages");
-    let debs = fetch_debs(&work.join("dl"))?;
+    println!("image: fetching Debian {} packages", debian_arch(variant.arch));
+    let debs = match variant.arch {
+        Arch::Aarch64 => fetch_debs(&work.join("dl"))?,
+        Arch::Armv7 => armv7::fetch_debs(&work)?,
+    };
     let kernel_root = extract_cached(&debs.kernel, &work.join("kernel"))?;
     let busybox_root = extract_cached(&debs.busybox, &work.join("busybox"))?;
     let (kver, modules_dir) = kernel_modules_dir(&kernel_root)?;
@@ -448,12 +476,15 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
         );
     }
 
-    println!("image: cross-building irtrackd (static, aarch64, release)");
+    println!(
+        "image: cross-building irtrackd (static, {}, release)",
+        variant.arch.name()
+    );
     let irtrackd_built = (variant.irtrackd)(ctx)?;
     let irtrackd = work.join("irtrackd");
     fs::copy(&irtrackd_built, &irtrackd)?;
     // The release profile keeps line tables for backtraces; the image does not need them.
-    run_quiet(Command::new("aarch64-linux-gnu-strip").arg(&irtrackd))?;
+    run_quiet(Command::new(format!("{}strip", variant.arch.tool_prefix())).arg(&irtrackd))?;
     let irtrackd_bytes = fs::metadata(&irtrackd)?.len();
 
     let index = ModuleIndex::scan(&modules_dir)?;
@@ -486,6 +517,7 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
     let rootfs = work.join("rootfs");
     stage_rootfs(
         ctx,
+        variant.arch,
         &rootfs,
         &busybox,
         &irtrackd,
@@ -616,6 +648,7 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
     let size_bytes = fs::metadata(&sd_img)?.len();
     Ok(Image {
         sd_img,
+        arch: variant.arch,
         kernel_version: kver,
         size_bytes,
         boot_bytes,
@@ -624,6 +657,14 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
         build_time: start.elapsed(),
         signing_key,
     })
+}
+
+/// Debian's name of the architecture.
+fn debian_arch(arch: Arch) -> &'static str {
+    match arch {
+        Arch::Aarch64 => "arm64",
+        Arch::Armv7 => "armhf",
+    }
 }
 
 struct Debs {
@@ -826,22 +867,37 @@ fn le_u64(b: &[u8], at: usize) -> Option<u64> {
     Some(u64::from_le_bytes(b.get(at..at + 8)?.try_into().ok()?))
 }
 
-/// The `depends=` list of a little-endian ELF64 kernel module's `.modinfo` section.
+/// The `depends=` list of a little-endian kernel module's `.modinfo` section: ELF64 (arm64)
+/// or ELF32 (armhf, the armv7 image).
 fn modinfo_depends(elf: &[u8]) -> Result<Vec<String>> {
-    if elf.get(..4) != Some(b"\x7fELF") || elf.get(4) != Some(&2) || elf.get(5) != Some(&1) {
-        bail!("not a little-endian ELF64 file");
-    }
+    let is64 = match (elf.get(..4), elf.get(4), elf.get(5)) {
+        (Some(b"\x7fELF"), Some(&2), Some(&1)) => true,
+        (Some(b"\x7fELF"), Some(&1), Some(&1)) => false,
+        _ => bail!("not a little-endian ELF32 or ELF64 file"),
+    };
+    // A word of the file's class (section header offsets and sizes).
+    let word = |at: usize| -> Option<usize> {
+        if is64 {
+            usize::try_from(le_u64(elf, at)?).ok()
+        } else {
+            usize::try_from(le_u32(elf, at)?).ok()
+        }
+    };
     let parse = || -> Option<Vec<String>> {
-        let shoff = usize::try_from(le_u64(elf, 0x28)?).ok()?;
-        let shentsize = usize::from(le_u16(elf, 0x3a)?);
-        let shnum = usize::from(le_u16(elf, 0x3c)?);
-        let shstrndx = usize::from(le_u16(elf, 0x3e)?);
+        // e_shoff, e_shentsize, e_shnum, e_shstrndx; sh_offset, sh_size.
+        let (shoff_at, sh_at, off_at, size_at) = if is64 {
+            (0x28, 0x3a, 0x18, 0x20)
+        } else {
+            (0x20, 0x2e, 0x10, 0x14)
+        };
+        let shoff = word(shoff_at)?;
+        let shentsize = usize::from(le_u16(elf, sh_at)?);
+        let shnum = usize::from(le_u16(elf, sh_at + 2)?);
+        let shstrndx = usize::from(le_u16(elf, sh_at + 4)?);
         let section = |i: usize| -> Option<(u32, usize, usize)> {
             let h = shoff + i * shentsize;
             let name = le_u32(elf, h)?;
-            let offset = usize::try_from(le_u64(elf, h + 0x18)?).ok()?;
-            let size = usize::try_from(le_u64(elf, h + 0x20)?).ok()?;
-            Some((name, offset, size))
+            Some((name, word(h + off_at)?, word(h + size_at)?))
         };
         let (_, str_off, str_size) = section(shstrndx)?;
         let names = elf.get(str_off..str_off + str_size)?;
@@ -947,6 +1003,7 @@ fn build_initramfs(
 #[allow(clippy::too_many_arguments)]
 fn stage_rootfs(
     ctx: &Ctx,
+    arch: Arch,
     stage: &Path,
     busybox: &Path,
     irtrackd: &Path,
@@ -978,7 +1035,7 @@ fn stage_rootfs(
     copy_tree(&ctx.root.join("image/rootfs"), stage)?;
     copy_file_mode(busybox, &stage.join("bin/busybox"), 0o755)?;
     // Applet links as busybox itself lists them (run through qemu-user on the x86 host).
-    let list = run_quiet(Command::new("qemu-aarch64").arg(busybox).arg("--list-full"))?;
+    let list = run_quiet(Command::new(arch.qemu()).arg(busybox).arg("--list-full"))?;
     for applet in list.lines().map(str::trim).filter(|l| !l.is_empty()) {
         let link = stage.join(applet);
         if link.exists() || applet == "bin/busybox" {

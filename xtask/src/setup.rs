@@ -97,7 +97,7 @@ const PACKAGES: &[Pkg] = &[
     pkg("cpio", "packs the initramfs of the QEMU system test"),
     pkg(
         "u-boot-qemu",
-        "U-Boot for booting the SD image in qemu-system-aarch64",
+        "U-Boot (qemu_arm64, qemu_arm) for booting the SD images in qemu-system-aarch64 and qemu-system-arm",
     ),
     Pkg {
         debian_only: true,
@@ -146,7 +146,10 @@ const PACKAGES: &[Pkg] = &[
     },
     Pkg {
         backports: true,
-        ..pkg("qemu-system-arm", "qemu-system-aarch64 boots the appliance image")
+        ..pkg(
+            "qemu-system-arm",
+            "qemu-system-aarch64 and qemu-system-arm boot the appliance images (aarch64, armv7)",
+        )
     },
     // BitBake's host tools (openembedded-core scarthgap's HOSTTOOLS and its sanity checks),
     // for the yocto-bitbake phase: the list /work/shared/yocto's README gives, without the

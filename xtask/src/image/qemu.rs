@@ -14,7 +14,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
-use super::{Image, UBOOT_QEMU, work_dir};
+use super::{Image, UBOOT_QEMU};
+use crate::cross::Arch;
 use crate::util::{self, Ctx};
 
 /// irtrackd's ports in the guest: parameters, NDJSON stream, binary stream, status.
@@ -37,31 +38,41 @@ pub fn free_ports<const N: usize>() -> Result<[u16; N]> {
 }
 
 pub fn qemu_command(disk: &Path, host_ports: &[u16; 4]) -> Command {
+    qemu_command_for(Arch::Aarch64, disk, host_ports)
+}
+
+/// The system emulator of `arch`.
+fn qemu_system(arch: Arch) -> &'static str {
+    match arch {
+        Arch::Aarch64 => "qemu-system-aarch64",
+        Arch::Armv7 => "qemu-system-arm",
+    }
+}
+
+/// [`qemu_command`] for the image of `arch`: armv7 boots on the same `virt` machine with a
+/// Cortex-A15 and U-Boot's 32-bit build (see [`super::armv7::QEMU_CPU`]).
+pub fn qemu_command_for(arch: Arch, disk: &Path, host_ports: &[u16; 4]) -> Command {
     let fwd: Vec<String> = host_ports
         .iter()
         .zip(GUEST_PORTS)
         .map(|(h, g)| format!("hostfwd=tcp:127.0.0.1:{h}-:{g}"))
         .collect();
-    let mut cmd = Command::new("qemu-system-aarch64");
-    // acpi=off keeps the PL061 GPIO in the device tree when booting through U-Boot.
-    cmd.args([
-        "-M",
-        "virt,acpi=off",
-        "-cpu",
-        "cortex-a53",
-        "-smp",
-        "2",
-        "-m",
-        "512",
-    ])
-    .args(["-display", "none", "-monitor", "none", "-serial", "stdio"])
-    .args(["-bios", UBOOT_QEMU])
-    .arg("-drive")
-    .arg(format!("if=none,file={},format=raw,id=sd", disk.display()))
-    .args(["-device", "virtio-blk-device,drive=sd"])
-    .arg("-netdev")
-    .arg(format!("user,id=net0,{}", fwd.join(",")))
-    .args(["-device", "virtio-net-device,netdev=net0"]);
+    let mut cmd = Command::new(qemu_system(arch));
+    let (machine, cpu, uboot) = match arch {
+        // acpi=off keeps the PL061 GPIO in the device tree when booting through U-Boot.
+        Arch::Aarch64 => ("virt,acpi=off", "cortex-a53", UBOOT_QEMU),
+        // The 32-bit virt machine has no ACPI.
+        Arch::Armv7 => ("virt", super::armv7::QEMU_CPU, super::armv7::UBOOT_QEMU_ARM),
+    };
+    cmd.args(["-M", machine, "-cpu", cpu, "-smp", "2", "-m", "512"])
+        .args(["-display", "none", "-monitor", "none", "-serial", "stdio"])
+        .args(["-bios", uboot])
+        .arg("-drive")
+        .arg(format!("if=none,file={},format=raw,id=sd", disk.display()))
+        .args(["-device", "virtio-blk-device,drive=sd"])
+        .arg("-netdev")
+        .arg(format!("user,id=net0,{}", fwd.join(",")))
+        .args(["-device", "virtio-net-device,netdev=net0"]);
     cmd
 }
 
@@ -82,9 +93,12 @@ impl Qemu {
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit());
         let started = Instant::now();
-        let mut child = cmd
-            .spawn()
-            .context("starting qemu-system-aarch64 (run `cargo xtask setup`)")?;
+        let mut child = cmd.spawn().with_context(|| {
+            format!(
+                "starting {} (run `cargo xtask setup`)",
+                cmd.get_program().to_string_lossy()
+            )
+        })?;
         let stdin = child.stdin.take().context("qemu stdin")?;
         let mut stdout = child.stdout.take().context("qemu stdout")?;
         let log = Arc::new(Mutex::new(String::new()));
@@ -204,12 +218,12 @@ impl Drop for Qemu {
 /// `cargo xtask image run`: boots the image with the console on this terminal.
 pub fn interactive(ctx: &Ctx, image: &Image) -> Result<()> {
     let ports = free_ports::<4>()?;
-    let disk = work_dir(ctx).join("interactive-sd.img");
+    let disk = super::image_dir(ctx, image).join("interactive-sd.img");
     fs::copy(&image.sd_img, &disk)?;
-    let mut cmd = qemu_command(&disk, &ports);
+    let mut cmd = qemu_command_for(image.arch, &disk, &ports);
     // The terminal becomes the serial console; Ctrl-A X quits QEMU.
     let args: Vec<String> = cmd.get_args().map(|a| a.to_string_lossy().into_owned()).collect();
-    let mut fixed = Command::new("qemu-system-aarch64");
+    let mut fixed = Command::new(qemu_system(image.arch));
     for a in &args {
         fixed.arg(if a == "stdio" { "mon:stdio" } else { a.as_str() });
     }
@@ -219,7 +233,9 @@ pub fn interactive(ctx: &Ctx, image: &Image) -> Result<()> {
         ports[0], ports[1], ports[2], ports[3]
     );
     println!("$ {}", util::display_cmd(&cmd));
-    let status = cmd.status().context("starting qemu-system-aarch64")?;
+    let status = cmd
+        .status()
+        .with_context(|| format!("starting {}", qemu_system(image.arch)))?;
     println!("QEMU exited: {status}");
     Ok(())
 }

@@ -12,9 +12,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Result, bail};
 
+use super::Image;
 use super::checks::*;
-use super::qemu::{BOOT_TIMEOUT, Qemu, free_ports, qemu_command};
-use super::{Image, work_dir};
+use super::qemu::{BOOT_TIMEOUT, Qemu, free_ports, qemu_command_for};
 use crate::util::Ctx;
 
 /// One named check of the system test.
@@ -77,7 +77,7 @@ impl fmt::Display for Report {
 /// Boots a copy of the image and runs every check. Errors only for setup failures; failed
 /// checks are in the report.
 pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
-    let dir = work_dir(ctx).join("system-test");
+    let dir = super::image_dir(ctx, image).join("system-test");
     fs::create_dir_all(&dir)?;
     // A parameter set for the vivid rig; if host-tools cannot make one, the checks that need
     // it fail and the others still run.
@@ -103,7 +103,10 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
         super::mib(image.boot_bytes),
         super::mib(image.root_bytes)
     ));
-    let mut q = Qemu::spawn(qemu_command(&disk, &ports), &dir.join("serial-boot1.log"))?;
+    let mut q = Qemu::spawn(
+        qemu_command_for(image.arch, &disk, &ports),
+        &dir.join("serial-boot1.log"),
+    )?;
 
     // 1. Boot to ready.
     let ready = q.wait_for("irtrackd ready", 0, BOOT_TIMEOUT);
