@@ -70,6 +70,7 @@ fn replay_directory_gives_positions_matching_truth() {
         speed: ReplaySpeed::Max,
         repeat: false,
         fps: None,
+        ..Default::default()
     };
     let source = ReplaySource::open(&cfg).unwrap();
     assert_eq!(source.camera_count(), 2);
@@ -128,6 +129,7 @@ fn replay_at_recorded_speed_keeps_intervals_and_reports_bad_files() {
         speed: ReplaySpeed::Recorded,
         repeat: false,
         fps: None,
+        ..Default::default()
     };
     let mut source = ReplaySource::open(&cfg).unwrap();
     let mut set = source.allocate_set();
@@ -166,6 +168,7 @@ fn replay_at_recorded_speed_keeps_intervals_and_reports_bad_files() {
         speed: ReplaySpeed::Max,
         repeat: false,
         fps: None,
+        ..Default::default()
     };
     let err = ReplaySource::open(&cfg).err().unwrap().to_string();
     assert!(err.contains("has no cam0/"), "{err}");
@@ -186,6 +189,7 @@ fn replay_without_timestamps_paces_at_the_default_rate_and_says_why_it_ended() {
         speed: ReplaySpeed::Recorded,
         repeat: false,
         fps: None,
+        ..Default::default()
     };
     let source = ReplaySource::open(&cfg).unwrap();
     assert_eq!(source.timing(), &ReplayTiming::DefaultFps(DEFAULT_REPLAY_FPS));
