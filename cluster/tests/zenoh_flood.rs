@@ -114,6 +114,16 @@ fn board_heard(
     }
 }
 
+/// Stops the flooder when the test ends, also when an assertion fails (else its thread
+/// would keep the test process alive).
+struct StopOnDrop(Arc<AtomicBool>);
+
+impl Drop for StopOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::Relaxed);
+    }
+}
+
 #[test]
 fn a_connection_flood_keeps_no_board_out() {
     let port = free_port();
@@ -129,6 +139,7 @@ fn a_connection_flood_keeps_no_board_out() {
     println!("board heard {:.0} ms after its start, no flood", t0.as_secs_f64() * 1e3);
 
     let stop = Arc::new(AtomicBool::new(false));
+    let _guard = StopOnDrop(stop.clone());
     let (closed, open) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
     let flooder = {
         let (stop, closed, open) = (stop.clone(), closed.clone(), open.clone());
