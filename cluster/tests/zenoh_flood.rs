@@ -136,7 +136,10 @@ fn a_connection_flood_keeps_no_board_out() {
 
     // The board before the flood.
     let (board, t0) = board_heard(port, &rx, 1);
-    println!("board heard {:.0} ms after its start, no flood", t0.as_secs_f64() * 1e3);
+    println!(
+        "board heard {:.0} ms after its start, no flood",
+        t0.as_secs_f64() * 1e3
+    );
 
     let stop = Arc::new(AtomicBool::new(false));
     let _guard = StopOnDrop(stop.clone());
@@ -165,7 +168,10 @@ fn a_connection_flood_keeps_no_board_out() {
             if rx.recv_timeout(Duration::from_millis(10)).is_ok() {
                 break start.elapsed();
             }
-            assert!(start.elapsed() < LIMIT, "the connected board was cut off by the flood");
+            assert!(
+                start.elapsed() < LIMIT,
+                "the connected board was cut off by the flood"
+            );
         }
     };
     // Restart: the old session closes, a new one opens while the flood goes on.

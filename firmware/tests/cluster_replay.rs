@@ -95,7 +95,10 @@ fn single_board(dir: &std::path::Path, rig: &RigParams) -> BTreeMap<u64, [f64; 3
     let crc = irtrack_core::params::BlobHeader::parse(&rig.to_blob().unwrap())
         .unwrap()
         .crc32;
-    handle.install(ActiveParams { rig: rig.clone(), crc });
+    handle.install(ActiveParams {
+        rig: rig.clone(),
+        crc,
+    });
     let status = Arc::new(SharedStatus::new(4, source.describe(), "none".into()));
     let (tx, _rx) = tokio::sync::watch::channel(None);
     let mut engine = Engine::new(
@@ -224,7 +227,10 @@ async fn two_boards_started_apart_replay_like_one_board() {
         tokio::spawn(async move { NdjsonCollector::start(addr).await })
     };
 
-    let (s0, s1) = (TempDir::new("cluster-replay-b0"), TempDir::new("cluster-replay-b1"));
+    let (s0, s1) = (
+        TempDir::new("cluster-replay-b0"),
+        TempDir::new("cluster-replay-b1"),
+    );
     let start_at = realtime_s() + start_after_ms as f64 / 1e3;
     let b0 = camera_board(&s0, rec.path(), "b0", &[0, 1], port, Some(start_at)).await;
     tokio::time::sleep(Duration::from_millis(gap_ms)).await;
@@ -272,13 +278,19 @@ async fn two_boards_started_apart_replay_like_one_board() {
         "solver cluster: sets_refused_disagreement {}, sets_board_dropped {}",
         solver_status["cluster"]["sets_refused_disagreement"], solver_status["cluster"]["sets_board_dropped"]
     );
-    assert_eq!(frames_off, 0, "ok positions more than 1 mm off their frame's truth");
+    assert_eq!(
+        frames_off, 0,
+        "ok positions more than 1 mm off their frame's truth"
+    );
     assert!(
         four.len() > 100,
         "only {} four-camera positions: the boards did not pair",
         four.len()
     );
-    assert!(rms < 0.01 && worst < 0.05, "RMS {rms} mm, worst {worst} mm against one board");
+    assert!(
+        rms < 0.01 && worst < 0.05,
+        "RMS {rms} mm, worst {worst} mm against one board"
+    );
     // b1 started after the start instant: it joined where the recording was, passing over
     // the sets already played (counted as dropped), and did not shift.
     assert!(st1["source"]["sets_dropped"].as_u64().unwrap() > 0);

@@ -74,7 +74,14 @@ const RESTART_AT: u64 = 60;
 /// `epoch + k·period` with sequence `k`. At frame `FORGE_AT` a forger publishes as b0's
 /// camera 0 with sequence 2^64−1 and with `k + 1 000 000` (a blob far off); at `RESTART_AT`
 /// b1 stops for 100 ms (under the 300 ms board timeout) and starts counting from 1 again.
-fn boards(port: u16, r: RigParams, p: Vector3<f64>, epoch: u64, stop: Arc<AtomicBool>, frame: Arc<AtomicU64>) {
+fn boards(
+    port: u16,
+    r: RigParams,
+    p: Vector3<f64>,
+    epoch: u64,
+    stop: Arc<AtomicBool>,
+    frame: Arc<AtomicU64>,
+) {
     let tc = TransportConfig {
         connect: vec![format!("tcp/127.0.0.1:{port}")],
         ..TransportConfig::default()
@@ -162,8 +169,14 @@ async fn sequence_jumps_are_refused_and_restarts_recognised() {
         "refused {}, senders {}, sequence_restarts {}",
         cl["refused"], cl["refused_senders"], cl["sequence_restarts"]
     );
-    assert_eq!(cl["refused"]["sequence_jump"], 2, "both forged jumps refused and counted");
-    assert!(cl["refused"].get("duplicate_sequence").is_none(), "no real observation refused as a duplicate");
+    assert_eq!(
+        cl["refused"]["sequence_jump"], 2,
+        "both forged jumps refused and counted"
+    );
+    assert!(
+        cl["refused"].get("duplicate_sequence").is_none(),
+        "no real observation refused as a duplicate"
+    );
     assert_eq!(cl["sequence_restarts"], 1, "b1's restart recognised once");
     assert!(
         cl["refused_senders"]
@@ -175,7 +188,10 @@ async fn sequence_jumps_are_refused_and_restarts_recognised() {
     );
     assert_eq!(
         metrics
-            .value("irtrackd_cluster_observations_refused_total", &[("reason", "sequence_jump")])
+            .value(
+                "irtrackd_cluster_observations_refused_total",
+                &[("reason", "sequence_jump")]
+            )
             .unwrap_or(0.0),
         2.0
     );
@@ -188,7 +204,8 @@ async fn sequence_jumps_are_refused_and_restarts_recognised() {
     let mut three_after_restart = 0;
     let mut after_forgery = 0;
     for rec in &records {
-        let k = ((rec.capture_ts_ns as i128 + rt_minus_mono - epoch as i128) as f64 / PERIOD_NS as f64).round() as u64;
+        let k = ((rec.capture_ts_ns as i128 + rt_minus_mono - epoch as i128) as f64 / PERIOD_NS as f64)
+            .round() as u64;
         if rec.status == TrackStatus::Ok {
             assert_eq!(rec.frame, k, "the solver's frame is the boards' frame counter");
             let e = dist_mm(rec.position_mm.unwrap(), [p.x, p.y, p.z]);
@@ -210,6 +227,9 @@ async fn sequence_jumps_are_refused_and_restarts_recognised() {
         three_after_forgery + 2 >= after_forgery && after_forgery > 20,
         "the forged sequences locked a camera out"
     );
-    assert!(three_after_restart >= 20, "b1's camera did not come back after its restart");
+    assert!(
+        three_after_restart >= 20,
+        "b1's camera did not come back after its restart"
+    );
     running.shutdown().await;
 }

@@ -257,7 +257,11 @@ fn replay_on_the_shared_clock_keeps_the_time_base_across_sources() {
     };
     let mut a = ReplaySource::open(&cfg(0)).unwrap();
     assert_eq!(a.camera_count(), 1);
-    assert!(a.describe().contains("cameras [0] of the recording"), "{}", a.describe());
+    assert!(
+        a.describe().contains("cameras [0] of the recording"),
+        "{}",
+        a.describe()
+    );
     let origin = a.origin_ns().unwrap();
     let mut set = a.allocate_set();
     // Camera 0 from the start: waits for the start instant, then frame 0.
@@ -275,11 +279,18 @@ fn replay_on_the_shared_clock_keeps_the_time_base_across_sources() {
     // Camera 1 opened now, after frames 0–4 were due: it joins where the recording is.
     std::thread::sleep(Duration::from_millis(20));
     let mut b = ReplaySource::open(&cfg(1)).unwrap();
-    assert_eq!(b.origin_ns(), Some(origin), "the same origin from the same timestamps.csv");
+    assert_eq!(
+        b.origin_ns(),
+        Some(origin),
+        "the same origin from the same timestamps.csv"
+    );
     let mut set_b = b.allocate_set();
     b.next_set(&mut set_b).unwrap();
     let first_b = set_b.index;
-    assert!(first_b >= 5, "the late source started at frame {first_b}, not at the beginning");
+    assert!(
+        first_b >= 5,
+        "the late source started at frame {first_b}, not at the beginning"
+    );
     assert!(b.late_skipped() >= 5, "{}", b.late_skipped());
     // From there both stamp every frame alike (camera 1 drops frame 5: that set is skipped).
     for _ in 0..3 {
@@ -290,7 +301,10 @@ fn replay_on_the_shared_clock_keeps_the_time_base_across_sources() {
     let mut check = |index: u64, mono: u64| {
         if let Some(ta) = stamps_a.get(&index) {
             let d = (mono as i128 + rt_minus_mono) - ta;
-            assert!(d.abs() < 50_000, "frame {index}: the sources' stamps differ by {d} ns");
+            assert!(
+                d.abs() < 50_000,
+                "frame {index}: the sources' stamps differ by {d} ns"
+            );
             compared += 1;
         }
     };
@@ -301,7 +315,10 @@ fn replay_on_the_shared_clock_keeps_the_time_base_across_sources() {
     }
     assert!(compared >= 2, "{compared} frames compared");
     let end = b.end_summary().unwrap();
-    assert!(end.contains("passed over because their time on the shared clock"), "{end}");
+    assert!(
+        end.contains("passed over because their time on the shared clock"),
+        "{end}"
+    );
 }
 
 /// Bad shared-clock settings are named.
@@ -334,7 +351,10 @@ fn replay_camera_selection_and_start_are_checked() {
     // refused with the hint, accepted with `cameras`.
     std::fs::rename(dir.path().join("cam1"), dir.path().join("other")).unwrap();
     let e = open_err(base.clone());
-    assert!(e.contains("no cam1/ directory") && e.contains("[source.replay] cameras"), "{e}");
+    assert!(
+        e.contains("no cam1/ directory") && e.contains("[source.replay] cameras"),
+        "{e}"
+    );
     let s = ReplaySource::open(&ReplayConfig {
         cameras: Some(vec![0]),
         ..base
@@ -375,7 +395,12 @@ fn replay_waits_for_a_parameter_set_and_a_client() {
         );
         assert_eq!(st["source"]["sets_delivered"], 0);
         assert_eq!(st["processing"]["source_errors"], 0, "waiting is no camera fault");
-        let codes: Vec<&str> = st["faults"].as_array().unwrap().iter().filter_map(|f| f.as_str()).collect();
+        let codes: Vec<&str> = st["faults"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|f| f.as_str())
+            .collect();
         assert!(!codes.contains(&"camera_lost"), "{codes:?}");
 
         // A parameter set: it still waits for a client, and says only that.
@@ -396,7 +421,10 @@ fn replay_waits_for_a_parameter_set_and_a_client() {
         // A client: the replay starts at its first frame, so the client gets frame 0 on.
         let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
         let first = client.next().await;
-        assert_eq!(first.frame, 0, "the recording was not consumed before the client came");
+        assert_eq!(
+            first.frame, 0,
+            "the recording was not consumed before the client came"
+        );
         assert_eq!(first.status, TrackStatus::Ok);
         tokio::time::sleep(Duration::from_millis(200)).await;
         let st = status_json(running.addrs.status).await;

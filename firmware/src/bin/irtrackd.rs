@@ -84,7 +84,9 @@ fn apply_overrides(cfg: &mut Config, cli: &Cli) -> anyhow::Result<()> {
     if let Some(at) = cli.replay_start_at {
         match cfg.source.replay.as_mut() {
             Some(r) => r.start_at_unix_s = Some(at),
-            None => anyhow::bail!("--replay-start-at needs a replay source ([source.replay] or --replay-dir)"),
+            None => {
+                anyhow::bail!("--replay-start-at needs a replay source ([source.replay] or --replay-dir)")
+            }
         }
     }
     if let Some(d) = &cli.state_dir {

@@ -303,7 +303,11 @@ impl ReplaySource {
                     ))
                 };
                 let mut it = line.split(',').map(str::trim);
-                let mut num = || it.next().and_then(|s| s.parse::<u64>().ok()).ok_or_else(|| bad(""));
+                let mut num = || {
+                    it.next()
+                        .and_then(|s| s.parse::<u64>().ok())
+                        .ok_or_else(|| bad(""))
+                };
                 let (frame, camera, ts, dropped) = (num()?, num()?, num()?, num()?);
                 let camera = usize::try_from(camera).map_err(|_| bad(""))?;
                 if dropped == 0 {
@@ -713,7 +717,12 @@ impl ReplaySource {
 
     /// Reads set `next` into `out`, each camera's timestamp mapped by `mapped`; with `pace`
     /// it waits until the set's latest frame is due.
-    fn deliver(&mut self, out: &mut FrameSet, mapped: impl Fn(u64) -> u64, pace: bool) -> Result<(), SourceError> {
+    fn deliver(
+        &mut self,
+        out: &mut FrameSet,
+        mapped: impl Fn(u64) -> u64,
+        pace: bool,
+    ) -> Result<(), SourceError> {
         if out.frames.len() != self.cameras {
             return Err(SourceError::Config(format!(
                 "frame set has {} frames, source has {} cameras",
