@@ -840,11 +840,12 @@ impl ClusterSource {
         // Every camera keeps its own capture time: the loop solves the set at one instant from
         // them (docs/timing.md), and camera 0's is the set's time when solving as seen.
         // The boards' frame counter (simulated boards share one) as it is; our own count only
-        // when a set has none or repeats the last one (sets must be numbered upwards).
+        // when a set has none or repeats the last one (sets must be numbered upwards). A
+        // board's first sequence may be anything (even 2^64 − 1): the count wraps, never panics.
         let index = match (index, self.last_index) {
             (Some(i), Some(last)) if i > last => i,
             (Some(i), None) => i,
-            (_, Some(last)) => last + 1,
+            (_, Some(last)) => last.wrapping_add(1),
             (None, None) => 0,
         };
         self.last_index = Some(index);
@@ -911,7 +912,7 @@ impl FrameSource for ClusterSource {
                 for r in &mut self.remote {
                     r.clear();
                 }
-                let i = self.last_index.map_or(0, |l| l + 1);
+                let i = self.last_index.map_or(0, |l| l.wrapping_add(1));
                 self.last_index = Some(i);
                 out.index = i;
                 let t = clock::monotonic_ns();
