@@ -149,6 +149,11 @@ fn json5_safe_path(p: &std::path::Path) -> Result<&str> {
         })
 }
 
+/// How long a new link may take to finish Zenoh's handshake before it is closed, ms.
+pub const ACCEPT_TIMEOUT_MS: u64 = 1_000;
+/// Links in their handshake at once; a further new link is closed at once.
+pub const ACCEPT_PENDING: usize = 500;
+
 impl TransportConfig {
     fn zenoh_config(&self) -> Result<zenoh::Config> {
         let bad = |e: Box<dyn std::error::Error + Send + Sync>| ClusterError::Transport {
@@ -179,6 +184,16 @@ impl TransportConfig {
         // (`wait_before_drop`), the third observation of a burst was dropped (reproduced under
         // load, docs/cluster.md). 16, Zenoh's maximum, lets a board's burst wait instead.
         c.insert_json5("transport/link/tx/queue/size/real_time", "16")
+            .map_err(bad)?;
+        // A connection flood: Zenoh closes every new link at once while `accept_pending`
+        // links are still in their handshake, each for up to `accept_timeout` (defaults 100
+        // and 10 s). 150 idle connections renewed every 8 s kept a restarting board out for
+        // 40 s (issue 40). A handshake on a LAN takes milliseconds, so a short timeout frees
+        // a silent connection's slot soon, and more slots need a faster flood to fill
+        // (docs/cluster.md, "A connection flood").
+        c.insert_json5("transport/unicast/accept_timeout", &ACCEPT_TIMEOUT_MS.to_string())
+            .map_err(bad)?;
+        c.insert_json5("transport/unicast/accept_pending", &ACCEPT_PENDING.to_string())
             .map_err(bad)?;
         if self.low_latency {
             // Zenoh's low-latency unicast transport writes each message from the publishing

@@ -186,7 +186,8 @@ pub fn robot_tool_index<'a>(
 pub enum StepOutcome {
     /// A set was processed and a record published.
     Published(PositionRecord),
-    /// The source reported a (retried) error; a fault record was published.
+    /// The source reported a (retried) error, and a fault record was published; or it holds
+    /// its first set on purpose (a replay waiting, `SourceError::Waiting`), publishing nothing.
     SourceError,
     /// The source has no more frames (replay end, frame limit).
     EndOfStream,
@@ -263,6 +264,8 @@ impl Engine {
         status: Arc<SharedStatus>,
         deadline: Duration,
     ) -> Self {
+        let mut source = source;
+        source.attach_status(&status);
         let set = source.allocate_set();
         for (c, f) in status.cameras.iter().zip(&set.frames) {
             c.width_px.store(u64::from(f.width_px), R);
@@ -610,6 +613,12 @@ impl Engine {
             match self.source.next_set(&mut self.set) {
                 Ok(()) => {}
                 Err(SourceError::EndOfStream) => return Ok(StepOutcome::EndOfStream),
+                // Held on purpose (a replay waiting for a parameter set or a client): no
+                // fault, no record; the source already waited a little and says why on /status.
+                Err(SourceError::Waiting { .. }) => {
+                    self.status.set_track(TrackIndication::None);
+                    return Ok(StepOutcome::SourceError);
+                }
                 Err(e @ (SourceError::CameraLost { .. } | SourceError::Timeout { .. })) => {
                     self.status.source_errors.fetch_add(1, R);
                     if !self.status.camera_lost.swap(true, R) {

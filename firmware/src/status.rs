@@ -340,6 +340,9 @@ pub struct SharedStatus {
     pub source_ended: AtomicBool,
     /// Why it ended, in words (set once, when it ends).
     pub end_reason: Mutex<Option<String>>,
+    /// What the source holds its first set for, in words (a replay's `wait_for_params` /
+    /// `wait_for_client`); `None` once it runs.
+    pub source_waiting: Mutex<Option<String>>,
 
     // LED driver output.
     led_levels: AtomicU8,
@@ -444,6 +447,7 @@ impl SharedStatus {
             alive: AtomicBool::new(false),
             source_ended: AtomicBool::new(false),
             end_reason: Mutex::new(None),
+            source_waiting: Mutex::new(None),
             led_levels: AtomicU8::new(0),
             indication: Mutex::new(Indication::STARTING),
             stream_clients: AtomicU64::new(0),
@@ -588,6 +592,7 @@ impl SharedStatus {
                 reconnects: self.reconnects.load(R),
                 pairing_error_last_us: self.pairing_error_last_ns.load(R) as f64 / 1e3,
                 pairing_error_max_us: self.pairing_error_max_ns.load(R) as f64 / 1e3,
+                waiting: self.source_waiting.lock().ok().and_then(|w| w.clone()),
                 cameras: self
                     .cameras
                     .iter()
@@ -1498,6 +1503,9 @@ pub struct SourceReport {
     pub pairing_error_last_us: f64,
     /// Largest timestamp spread since start, µs.
     pub pairing_error_max_us: f64,
+    /// What the source holds its first set for, in words (a replay waiting for a parameter
+    /// set or a client); `null` while it runs.
+    pub waiting: Option<String>,
     /// Per-camera counters, in camera order.
     pub cameras: Vec<CameraReport>,
 }

@@ -70,6 +70,7 @@ fn replay_directory_gives_positions_matching_truth() {
         speed: ReplaySpeed::Max,
         repeat: false,
         fps: None,
+        ..Default::default()
     };
     let source = ReplaySource::open(&cfg).unwrap();
     assert_eq!(source.camera_count(), 2);
@@ -128,6 +129,7 @@ fn replay_at_recorded_speed_keeps_intervals_and_reports_bad_files() {
         speed: ReplaySpeed::Recorded,
         repeat: false,
         fps: None,
+        ..Default::default()
     };
     let mut source = ReplaySource::open(&cfg).unwrap();
     let mut set = source.allocate_set();
@@ -166,6 +168,7 @@ fn replay_at_recorded_speed_keeps_intervals_and_reports_bad_files() {
         speed: ReplaySpeed::Max,
         repeat: false,
         fps: None,
+        ..Default::default()
     };
     let err = ReplaySource::open(&cfg).err().unwrap().to_string();
     assert!(err.contains("has no cam0/"), "{err}");
@@ -186,6 +189,7 @@ fn replay_without_timestamps_paces_at_the_default_rate_and_says_why_it_ended() {
         speed: ReplaySpeed::Recorded,
         repeat: false,
         fps: None,
+        ..Default::default()
     };
     let source = ReplaySource::open(&cfg).unwrap();
     assert_eq!(source.timing(), &ReplayTiming::DefaultFps(DEFAULT_REPLAY_FPS));
@@ -226,4 +230,205 @@ fn replay_without_timestamps_paces_at_the_default_rate_and_says_why_it_ended() {
             && end.contains("000005.pgm"),
         "{end}"
     );
+}
+
+fn realtime_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as u64
+}
+
+/// Two sources replaying one camera each of the same recording on the shared clock (as two
+/// camera boards do): opened at different moments, they stamp each recorded frame with the
+/// same instant (recorded time + one offset); the one opened after the start instant joins
+/// where the recording is, passing over the sets already past, without shifting.
+#[test]
+fn replay_on_the_shared_clock_keeps_the_time_base_across_sources() {
+    let dir = TempDir::new("replay-shared");
+    record(dir.path());
+    // The recording's earliest timestamp: frame 0 at 1 s + its render instant.
+    let start_rt_ns = realtime_ns() + 150_000_000;
+    let cfg = |camera: usize| ReplayConfig {
+        dir: dir.path().to_path_buf(),
+        cameras: Some(vec![camera]),
+        start_at_unix_s: Some(start_rt_ns as f64 / 1e9),
+        ..Default::default()
+    };
+    let mut a = ReplaySource::open(&cfg(0)).unwrap();
+    assert_eq!(a.camera_count(), 1);
+    assert!(
+        a.describe().contains("cameras [0] of the recording"),
+        "{}",
+        a.describe()
+    );
+    let origin = a.origin_ns().unwrap();
+    let mut set = a.allocate_set();
+    // Camera 0 from the start: waits for the start instant, then frame 0.
+    let rt_minus_mono = realtime_ns() as i128 - irtrack_firmware::clock::monotonic_ns() as i128;
+    let mut stamps_a = std::collections::BTreeMap::new();
+    for _ in 0..5 {
+        a.next_set(&mut set).unwrap();
+        let rt = set.frames[0].timestamp_ns as i128 + rt_minus_mono;
+        stamps_a.insert(set.index, rt);
+    }
+    assert_eq!(stamps_a.keys().copied().collect::<Vec<_>>(), vec![0, 1, 2, 3, 4]);
+    // Frame 0 plays at the start instant (recorded time − origin + start), to a few µs.
+    let off0 = stamps_a[&0] - start_rt_ns as i128;
+    assert!(off0.abs() < 50_000, "frame 0 at {off0} ns from the start instant");
+    // Camera 1 opened now, after frames 0–4 were due: it joins where the recording is.
+    std::thread::sleep(Duration::from_millis(20));
+    let mut b = ReplaySource::open(&cfg(1)).unwrap();
+    assert_eq!(
+        b.origin_ns(),
+        Some(origin),
+        "the same origin from the same timestamps.csv"
+    );
+    let mut set_b = b.allocate_set();
+    b.next_set(&mut set_b).unwrap();
+    let first_b = set_b.index;
+    assert!(
+        first_b >= 5,
+        "the late source started at frame {first_b}, not at the beginning"
+    );
+    assert!(b.late_skipped() >= 5, "{}", b.late_skipped());
+    // From there both stamp every frame alike (camera 1 drops frame 5: that set is skipped).
+    for _ in 0..3 {
+        a.next_set(&mut set).unwrap();
+        stamps_a.insert(set.index, set.frames[0].timestamp_ns as i128 + rt_minus_mono);
+    }
+    let mut compared = 0;
+    let mut check = |index: u64, mono: u64| {
+        if let Some(ta) = stamps_a.get(&index) {
+            let d = (mono as i128 + rt_minus_mono) - ta;
+            assert!(
+                d.abs() < 50_000,
+                "frame {index}: the sources' stamps differ by {d} ns"
+            );
+            compared += 1;
+        }
+    };
+    check(set_b.index, set_b.frames[0].timestamp_ns);
+    for _ in 0..2 {
+        b.next_set(&mut set_b).unwrap();
+        check(set_b.index, set_b.frames[0].timestamp_ns);
+    }
+    assert!(compared >= 2, "{compared} frames compared");
+    let end = b.end_summary().unwrap();
+    assert!(
+        end.contains("passed over because their time on the shared clock"),
+        "{end}"
+    );
+}
+
+/// Bad shared-clock settings are named.
+#[test]
+fn replay_camera_selection_and_start_are_checked() {
+    let dir = TempDir::new("replay-select");
+    record(dir.path());
+    let open_err = |cfg: ReplayConfig| ReplaySource::open(&cfg).err().unwrap().to_string();
+    let base = ReplayConfig {
+        dir: dir.path().to_path_buf(),
+        ..Default::default()
+    };
+    let e = open_err(ReplayConfig {
+        cameras: Some(vec![1, 1]),
+        ..base.clone()
+    });
+    assert!(e.contains("lists camera 1 twice"), "{e}");
+    let e = open_err(ReplayConfig {
+        cameras: Some(vec![3]),
+        ..base.clone()
+    });
+    assert!(e.contains("lists camera 3") && e.contains("no cam3/"), "{e}");
+    let e = open_err(ReplayConfig {
+        start_at_unix_s: Some(1.8e9),
+        speed: ReplaySpeed::Max,
+        ..base.clone()
+    });
+    assert!(e.contains("start_at_unix_s") && e.contains("recorded"), "{e}");
+    // A folder with only camera 0's directory but the whole recording's timestamps.csv:
+    // refused with the hint, accepted with `cameras`.
+    std::fs::rename(dir.path().join("cam1"), dir.path().join("other")).unwrap();
+    let e = open_err(base.clone());
+    assert!(
+        e.contains("no cam1/ directory") && e.contains("[source.replay] cameras"),
+        "{e}"
+    );
+    let s = ReplaySource::open(&ReplayConfig {
+        cameras: Some(vec![0]),
+        ..base
+    })
+    .unwrap();
+    // Camera 1's dropped frame no longer removes a set of camera 0.
+    assert_eq!(s.len() as u64, FRAMES);
+}
+
+/// `wait_for_params` and `wait_for_client`: the replay holds its first frame, says why on
+/// `/status`, and starts at frame 0 once both are there.
+#[test]
+fn replay_waits_for_a_parameter_set_and_a_client() {
+    runtime().block_on(async {
+        let dir = TempDir::new("replay-wait");
+        let state = TempDir::new("replay-wait-state");
+        let sc = record(dir.path());
+        let mut cfg = test_config(state.path());
+        cfg.source.kind = irtrack_firmware::config::SourceKind::Replay;
+        cfg.source.sim = None;
+        cfg.source.replay = Some(ReplayConfig {
+            dir: dir.path().to_path_buf(),
+            wait_for_params: true,
+            wait_for_client: true,
+            ..Default::default()
+        });
+        let running = irtrack_firmware::app::start(cfg, irtrack_firmware::app::Overrides::default())
+            .await
+            .unwrap();
+        tokio::time::sleep(Duration::from_millis(600)).await;
+        let st = status_json(running.addrs.status).await;
+        let waiting = st["source"]["waiting"].as_str().unwrap_or_default().to_string();
+        assert!(
+            waiting.contains("holds at its first frame")
+                && waiting.contains("a parameter set")
+                && waiting.contains("a position stream client"),
+            "{waiting}"
+        );
+        assert_eq!(st["source"]["sets_delivered"], 0);
+        assert_eq!(st["processing"]["source_errors"], 0, "waiting is no camera fault");
+        let codes: Vec<&str> = st["faults"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|f| f.as_str())
+            .collect();
+        assert!(!codes.contains(&"camera_lost"), "{codes:?}");
+
+        // A parameter set: it still waits for a client, and says only that.
+        let verdict = push_verdict(running.addrs.params, &sc.rig().to_blob().unwrap()).await;
+        assert!(
+            matches!(verdict, irtrack_core::param_wire::Verdict::Accepted { .. }),
+            "{verdict:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(400)).await;
+        let st = status_json(running.addrs.status).await;
+        let waiting = st["source"]["waiting"].as_str().unwrap_or_default().to_string();
+        assert!(
+            waiting.contains("a position stream client") && !waiting.contains("a parameter set"),
+            "{waiting}"
+        );
+        assert_eq!(st["source"]["sets_delivered"], 0);
+
+        // A client: the replay starts at its first frame, so the client gets frame 0 on.
+        let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
+        let first = client.next().await;
+        assert_eq!(
+            first.frame, 0,
+            "the recording was not consumed before the client came"
+        );
+        assert_eq!(first.status, TrackStatus::Ok);
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let st = status_json(running.addrs.status).await;
+        assert!(st["source"]["waiting"].is_null(), "{}", st["source"]["waiting"]);
+        running.shutdown().await;
+    });
 }

@@ -134,6 +134,7 @@ fn replay_keeps_each_cameras_recorded_skew() {
             speed,
             repeat: false,
             fps: None,
+            ..Default::default()
         })
         .unwrap();
         let mut set = src.allocate_set();

@@ -30,6 +30,11 @@ struct Cli {
     /// Replay directory (implies `--source replay`).
     #[arg(long)]
     replay_dir: Option<PathBuf>,
+    /// Replay on the shared clock: the recording's origin plays at this CLOCK_REALTIME
+    /// instant, seconds since 1970 (`[source.replay] start_at_unix_s`; give every camera
+    /// board of a multi-board recording the same, e.g. `$(( $(date +%s) + 10 ))`).
+    #[arg(long, value_name = "UNIX_S")]
+    replay_start_at: Option<f64>,
     /// Override `service.state_dir`.
     #[arg(long)]
     state_dir: Option<PathBuf>,
@@ -72,11 +77,17 @@ fn apply_overrides(cfg: &mut Config, cli: &Cli) -> anyhow::Result<()> {
             .replay
             .get_or_insert_with(|| irtrack_firmware::source::replay::ReplayConfig {
                 dir: dir.clone(),
-                speed: Default::default(),
-                repeat: false,
-                fps: None,
+                ..Default::default()
             });
         r.dir = dir.clone();
+    }
+    if let Some(at) = cli.replay_start_at {
+        match cfg.source.replay.as_mut() {
+            Some(r) => r.start_at_unix_s = Some(at),
+            None => {
+                anyhow::bail!("--replay-start-at needs a replay source ([source.replay] or --replay-dir)")
+            }
+        }
     }
     if let Some(d) = &cli.state_dir {
         cfg.service.state_dir = d.clone();

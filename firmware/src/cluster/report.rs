@@ -133,6 +133,9 @@ pub struct ClusterReport {
     /// Solver: refused observations by sender (board name; `rig R board B` for another
     /// rig's; `?` when the payload could not be read), their count and the last problem.
     pub refused_senders: Vec<(String, u64, &'static str)>,
+    /// Solver: camera sequences that went back while the capture time went on (a board
+    /// restarted and counts from its start again): taken as a restart, not refused.
+    pub sequence_restarts: u64,
 }
 
 impl ClusterReport {
@@ -287,6 +290,11 @@ impl prometheus_client::collector::Collector for ClusterReport {
                     "irtrackd_cluster_observations_clock_refused",
                     "observations of a board with a clock fault, kept out of the sets",
                     self.refused_clock,
+                ),
+                (
+                    "irtrackd_cluster_sequence_restarts",
+                    "camera sequences that started again lower with a newer capture time (a board restart)",
+                    self.sequence_restarts,
                 ),
                 (
                     "irtrackd_cluster_queue_overflow",

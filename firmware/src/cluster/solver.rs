@@ -41,6 +41,29 @@ const CLOCK_OFF_NS: i64 = 1_000_000;
 const REPORT_INTERVAL_NS: u64 = 200_000_000;
 /// With no observation at all for this long, the source reports a timeout (camera fault).
 const SILENCE_TIMEOUT_NS: u64 = 1_000_000_000;
+/// `cluster.refused` code of observations whose sequence jumps further ahead than the time
+/// since that camera's last observation allows.
+const SEQUENCE_JUMP_CODE: &str = "sequence_jump";
+/// A camera's sequence may step ahead by at most twice the frames the time since its last
+/// accepted observation holds at `[cluster] fps`, plus this many seconds of frames (a board
+/// whose observations were lost for a moment, a replay passing over late sets).
+const SEQUENCE_SLACK_S: f64 = 1.0;
+
+/// The last accepted observation of a rig camera: what the next one's sequence is checked
+/// against.
+#[derive(Debug, Clone, Copy)]
+struct SequenceSeen {
+    sequence: u64,
+    received_ns: u64,
+    capture_ns: u64,
+}
+
+/// The largest step a camera's sequence may take ahead after `elapsed_ns` without
+/// observations of it, at `fps` frames per second.
+fn max_sequence_step(elapsed_ns: u64, fps: f64) -> u64 {
+    let frames = (elapsed_ns as f64 / 1e9 * fps * 2.0 + SEQUENCE_SLACK_S * fps).ceil();
+    (frames as u64).max(64)
+}
 
 /// The rig's layout from the active parameter set.
 struct Layout {
@@ -98,6 +121,12 @@ pub struct ClusterSource {
     refused_senders: Vec<(String, u64, &'static str)>,
     /// Trigger mode: observations without a trigger counter, per board of the layout.
     no_trigger: Vec<u64>,
+    /// Per rig camera: its last accepted observation (the sequence-jump bound).
+    seen: Vec<Option<SequenceSeen>>,
+    /// Observations refused for a sequence jump.
+    sequence_jumps: u64,
+    /// Sequences that went back with a newer capture time: board restarts.
+    sequence_restarts: u64,
 }
 
 /// Senders of refused observations named one by one in `/status` (more are counted as
@@ -347,6 +376,9 @@ impl ClusterSource {
             started_ns: realtime_ns(),
             refused_senders: Vec::new(),
             no_trigger: Vec::new(),
+            seen: vec![None; n],
+            sequence_jumps: 0,
+            sequence_restarts: 0,
         })
     }
 
@@ -360,6 +392,7 @@ impl ClusterSource {
         self.layout = None;
         self.own_index.iter_mut().for_each(|o| *o = None);
         self.own_refused.iter_mut().for_each(|r| *r = false);
+        self.seen.iter_mut().for_each(|s| *s = None);
         let Some(p) = self.params.current() else { return };
         let placement = &p.rig.placement;
         self.check_own_cameras(placement);
@@ -503,12 +536,18 @@ impl ClusterSource {
             tracing::warn!(problem = %problem, sender = ?sender, "observation refused");
         }
         self.refused[i] += 1;
+        let code = ObservationProblem::CODES.get(i).copied().unwrap_or("refused");
+        self.count_sender(code, sender);
+    }
+
+    /// Counts a refused observation under its sender (see [`Self::refuse`]), `code` its
+    /// last problem.
+    fn count_sender(&mut self, code: &'static str, sender: Option<(&str, &str)>) {
         let name = match sender {
             Some((rig, board)) if rig == self.cfg.rig => board,
             Some(_) => "",
             None => "?",
         };
-        let code = ObservationProblem::CODES.get(i).copied().unwrap_or("refused");
         let same = |n: &str| match sender {
             Some((rig, board)) if name.is_empty() => {
                 n.strip_prefix("rig ")
@@ -567,10 +606,19 @@ impl ClusterSource {
                     tracing::info!(board = %layout.boards[b], "camera board back");
                     for &cam in &layout.board_cameras[b] {
                         layout.gate.reset_camera(cam);
+                        if let Some(s) = self.seen.get_mut(cam) {
+                            *s = None;
+                        }
                     }
                     layout.pairer.reset_board(b);
                 }
             }
+        }
+        // Sequence order is judged here, not by the gate (which would take a board's restart,
+        // counting from 1 again, for duplicates until it times out, and would remember a
+        // forged sequence near 2^64 for good: every real one after it "not newer").
+        if let Some(c) = layout.gate.camera_of(obs.header.board, obs.header.camera) {
+            layout.gate.reset_camera(c);
         }
         let camera = match layout.gate.check(&obs, m.received_ns) {
             Ok(c) => c,
@@ -579,6 +627,56 @@ impl ClusterSource {
             }
             Err(_) => return,
         };
+        if let Some(Some(seen)) = self.seen.get(camera).copied() {
+            let seq = obs.header.sequence;
+            if seq > seen.sequence {
+                // Ahead by more than the time since the last one allows: refused, and the
+                // camera's sequence stays where it was.
+                let step = seq - seen.sequence;
+                let limit = max_sequence_step(m.received_ns.saturating_sub(seen.received_ns), self.cfg.fps);
+                if step > limit {
+                    if self.sequence_jumps == 0 {
+                        tracing::warn!(
+                            board = %obs.header.board,
+                            camera,
+                            sequence = seq,
+                            last = seen.sequence,
+                            limit,
+                            "observation refused: its sequence jumps further ahead than the time since the camera's last observation allows"
+                        );
+                    }
+                    self.sequence_jumps += 1;
+                    return self.count_sender(SEQUENCE_JUMP_CODE, Some((obs.header.rig, obs.header.board)));
+                }
+            } else if seq < seen.sequence && obs.header.capture_ts_ns > seen.capture_ns {
+                // Back, with a newer capture time: the board restarted and counts from its
+                // start again.
+                tracing::info!(
+                    board = %obs.header.board,
+                    camera,
+                    sequence = seq,
+                    last = seen.sequence,
+                    "camera sequence started again with a newer capture time: its board restarted"
+                );
+                self.sequence_restarts += 1;
+            } else {
+                return self.refuse(
+                    ObservationProblem::DuplicateSequence {
+                        camera,
+                        sequence: seq,
+                        last: seen.sequence,
+                    },
+                    Some((obs.header.rig, obs.header.board)),
+                );
+            }
+        }
+        if let Some(s) = self.seen.get_mut(camera) {
+            *s = Some(SequenceSeen {
+                sequence: obs.header.sequence,
+                received_ns: m.received_ns,
+                capture_ns: obs.header.capture_ts_ns,
+            });
+        }
         if self.own.is_none() || obs.header.board != self.cfg.board {
             self.heard_from_boards = true;
         }
@@ -617,6 +715,10 @@ impl ClusterSource {
         r.no_placement = self.params.current().is_some() && self.layout.is_none();
         r.own_refused = self.own_refused_count;
         r.refused_senders.clone_from(&self.refused_senders);
+        if self.sequence_jumps > 0 {
+            r.refused.insert(SEQUENCE_JUMP_CODE, self.sequence_jumps);
+        }
+        r.sequence_restarts = self.sequence_restarts;
         let names: Vec<&str> = self
             .layout
             .iter()
@@ -738,11 +840,12 @@ impl ClusterSource {
         // Every camera keeps its own capture time: the loop solves the set at one instant from
         // them (docs/timing.md), and camera 0's is the set's time when solving as seen.
         // The boards' frame counter (simulated boards share one) as it is; our own count only
-        // when a set has none or repeats the last one (sets must be numbered upwards).
+        // when a set has none or repeats the last one (sets must be numbered upwards). A
+        // board's first sequence may be anything (even 2^64 − 1): the count wraps, never panics.
         let index = match (index, self.last_index) {
             (Some(i), Some(last)) if i > last => i,
             (Some(i), None) => i,
-            (_, Some(last)) => last + 1,
+            (_, Some(last)) => last.wrapping_add(1),
             (None, None) => 0,
         };
         self.last_index = Some(index);
@@ -809,7 +912,7 @@ impl FrameSource for ClusterSource {
                 for r in &mut self.remote {
                     r.clear();
                 }
-                let i = self.last_index.map_or(0, |l| l + 1);
+                let i = self.last_index.map_or(0, |l| l.wrapping_add(1));
                 self.last_index = Some(i);
                 out.index = i;
                 let t = clock::monotonic_ns();

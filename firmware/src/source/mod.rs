@@ -157,6 +157,13 @@ pub enum SourceError {
     /// A finite source (replay) has delivered its last set.
     #[error("end of recorded frames")]
     EndOfStream,
+    /// The source holds its first set until something it was told to wait for is there (a
+    /// replay's `wait_for_params`, `wait_for_client`); the loop asks again, publishing nothing.
+    #[error("waiting: {reason}")]
+    Waiting {
+        /// What it waits for, in words (also on `/status` → `source.waiting`).
+        reason: String,
+    },
     /// The source's configuration cannot be used; the text says what is wrong.
     #[error("source configuration: {0}")]
     Config(String),
@@ -220,6 +227,9 @@ pub trait FrameSource: Send {
     fn next_set(&mut self, out: &mut FrameSet) -> Result<(), SourceError>;
     /// Counters since start.
     fn stats(&self) -> SourceStats;
+    /// Hands the source the loop's status, once, when the loop is built: a replay that waits
+    /// for a parameter set or a client looks there and says there that it waits.
+    fn attach_status(&mut self, _status: &std::sync::Arc<crate::status::SharedStatus>) {}
     /// The rate the source really delivers at, when it knows better than the config (a
     /// replay: its recording's timestamps); the loop's deadline follows it.
     fn nominal_fps(&self) -> Option<f64> {
