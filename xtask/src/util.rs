@@ -38,6 +38,15 @@ impl Ctx {
     pub fn cargo(&self) -> Command {
         let mut cmd = Command::new(&self.cargo);
         cmd.current_dir(&self.root);
+        // `cargo xtask` is `cargo run`, which gives xtask its package's variables. Build
+        // scripts such as ring's rerun when these change (`rerun-if-env-changed=
+        // CARGO_MANIFEST_DIR`, ...), so a build started from xtask and the same build typed by
+        // hand would each recompile ring and everything above it (Zenoh, irtrackd) in turn.
+        for (name, _) in std::env::vars_os() {
+            if name.to_str().is_some_and(is_cargo_run_var) {
+                cmd.env_remove(&name);
+            }
+        }
         if std::env::var_os("CARGO_INCREMENTAL").is_none() {
             cmd.env("CARGO_INCREMENTAL", "0");
         }
@@ -414,5 +423,47 @@ mod tests {
         assert!(!out.success());
         assert!(!out.stdout.contains("never"));
         assert!(start.elapsed() < Duration::from_secs(10));
+    }
+}
+
+/// Variables `cargo run` sets for the program it runs (xtask), not for the cargo we start.
+fn is_cargo_run_var(name: &str) -> bool {
+    name.starts_with("CARGO_PKG_")
+        || matches!(
+            name,
+            "CARGO_MANIFEST_DIR"
+                | "CARGO_MANIFEST_PATH"
+                | "CARGO_MANIFEST_LINKS"
+                | "CARGO_CRATE_NAME"
+                | "CARGO_BIN_NAME"
+                | "CARGO_PRIMARY_PACKAGE"
+                | "OUT_DIR"
+        )
+}
+
+#[cfg(test)]
+mod cargo_env_tests {
+    use super::is_cargo_run_var;
+
+    #[test]
+    fn only_the_variables_cargo_run_gives_xtask_are_dropped() {
+        for v in [
+            "CARGO_MANIFEST_DIR",
+            "CARGO_PKG_NAME",
+            "CARGO_PKG_VERSION_MAJOR",
+            "OUT_DIR",
+        ] {
+            assert!(is_cargo_run_var(v), "{v}");
+        }
+        for v in [
+            "CARGO_HOME",
+            "CARGO_TARGET_DIR",
+            "CARGO_INCREMENTAL",
+            "CARGO",
+            "RUSTFLAGS",
+            "PATH",
+        ] {
+            assert!(!is_cargo_run_var(v), "{v}");
+        }
     }
 }
