@@ -766,6 +766,47 @@ pub fn append_timestamps(out: &Path, index: u64, set: &FrameSet) -> anyhow::Resu
         .with_context(|| format!("writing {}", path.display()))
 }
 
+/// One set's board search from its thread: set number, name, image sizes, corners per camera.
+type SearchResult = (
+    u64,
+    String,
+    Vec<(u32, u32)>,
+    anyhow::Result<Vec<Option<Vec<Point2f>>>>,
+);
+
+/// The board search of one set's images (run on a thread of its own).
+fn search_set(pgms: &[Vec<u8>], board: &Board) -> anyhow::Result<Vec<Option<Vec<Point2f>>>> {
+    pgms.iter()
+        .enumerate()
+        .map(|(c, pgm)| {
+            let img = grey_mat(pgm).with_context(|| format!("camera {c}"))?;
+            find_corners(&img, board)
+        })
+        .collect()
+}
+
+/// Adds a search's corners to the coverage grids; corners found per camera.
+fn apply_search(
+    dims: &[(u32, u32)],
+    found: Vec<Option<Vec<Point2f>>>,
+    coverage: &mut Vec<Coverage>,
+) -> Vec<Option<usize>> {
+    found
+        .into_iter()
+        .enumerate()
+        .map(|(c, corners)| {
+            while coverage.len() <= c {
+                let (w, h) = dims.get(coverage.len()).copied().unwrap_or((1, 1));
+                coverage.push(Coverage::new(w, h));
+            }
+            corners.map(|k| {
+                coverage[c].add(&k);
+                k.len()
+            })
+        })
+        .collect()
+}
+
 /// What happened to one saved set in checkerboard mode, per camera: corners found or not.
 pub fn detect_set(
     set: &FrameSet,
@@ -1093,6 +1134,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut camera_count: Option<usize> = None;
     let started = Instant::now();
     let mut next_due = Instant::now();
+    let (search_tx, search_rx) = mpsc::channel::<SearchResult>();
+    let mut searching = 0usize;
     while args.count.is_none_or(|n| saved < n) {
         // Wait for the trigger of this mode; `q` ends the session in every mode.
         if args.wand || args.every.is_some() {
@@ -1183,18 +1226,61 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
             continue;
         }
-        let found = detect_set(&set, &board, &mut coverage)?;
+        // The board search runs on its own thread: OpenCV's corner search takes seconds on
+        // some views (measured: 4.4 s for one set of four VGA frames, 0.2 s for most), and
+        // with --every a stalled loop would skip the poses shown meanwhile.
+        let dims: Vec<(u32, u32)> = set
+            .header
+            .cameras
+            .iter()
+            .map(|c| (c.width_px, c.height_px))
+            .collect();
+        let (pgms, tx) = (set.pgms.clone(), search_tx.clone());
+        std::thread::spawn(move || {
+            let _ = tx.send((saved, name, dims, search_set(&pgms, &board)));
+        });
+        searching += 1;
+        let budget = args.every.map(|e| Duration::from_secs_f64(e * 0.75));
+        let mut mine = false;
+        while !mine {
+            let got = match budget {
+                Some(b) => search_rx.recv_timeout(b).ok(),
+                None => search_rx.recv().ok(),
+            };
+            let Some((n, nm, dims, found)) = got else {
+                println!("set {saved}: board search still running (slow view); its result follows when done");
+                break;
+            };
+            searching -= 1;
+            mine = n == saved;
+            let found = apply_search(&dims, found?, &mut coverage);
+            if found.iter().all(Option::is_some) {
+                both += 1;
+            }
+            print!("{}", report(n, &nm, &found, &coverage, both));
+            if multi && mine {
+                println!(
+                    "boards paired within {} µs ({refused} sets refused so far)",
+                    set.header.pairing_error_ns / 1000
+                );
+            }
+        }
+        std::io::stdout().flush().ok();
+    }
+    // Searches still running: their results count too (nothing saved goes unreported).
+    while searching > 0 {
+        let Ok((n, nm, dims, found)) = search_rx.recv_timeout(Duration::from_secs(120)) else {
+            eprintln!(
+                "capture: {searching} board search(es) did not finish within 2 min; calibrate searches the saved images again"
+            );
+            break;
+        };
+        searching -= 1;
+        let found = apply_search(&dims, found?, &mut coverage);
         if found.iter().all(Option::is_some) {
             both += 1;
         }
-        print!("{}", report(saved, &name, &found, &coverage, both));
-        if multi {
-            println!(
-                "boards paired within {} µs ({refused} sets refused so far)",
-                set.header.pairing_error_ns / 1000
-            );
-        }
-        std::io::stdout().flush().ok();
+        print!("{}", report(n, &nm, &found, &coverage, both));
     }
     let refusals = if multi {
         format!(" ({refused} refused: boards not paired)")
