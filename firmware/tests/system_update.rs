@@ -7,13 +7,13 @@ mod common;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use base64::Engine as _;
 use common::{TempDir, status_json, test_config};
 use irtrack_firmware::app::{self, Overrides};
 use irtrack_firmware::config::Config;
+use irtrack_testkit::update_bundles;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -22,112 +22,13 @@ const COMPATIBLE: &str = "irtrack-qemu-arm64";
 
 /// A CA and a signer it issued (EC P-256, no extendedKeyUsage, as the image's keys).
 fn make_ca(dir: &Path) -> PathBuf {
-    std::fs::create_dir_all(dir).unwrap();
-    std::fs::write(
-        dir.join("openssl.cnf"),
-        "[req]\ndistinguished_name=dn\n[dn]\n[ca]\nbasicConstraints=critical,CA:TRUE\n\
-         keyUsage=critical,keyCertSign,cRLSign\nsubjectKeyIdentifier=hash\n[signer]\n\
-         basicConstraints=critical,CA:FALSE\nkeyUsage=critical,digitalSignature\n",
-    )
-    .unwrap();
-    let run = |args: &[&str]| {
-        let out = Command::new("openssl")
-            .args(args)
-            .current_dir(dir)
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "openssl {args:?}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-    };
-    let ec = ["-algorithm", "EC", "-pkeyopt", "ec_paramgen_curve:P-256", "-out"];
-    run(&[&["genpkey"][..], &ec, &["ca.key.pem"]].concat());
-    run(&[
-        "req",
-        "-new",
-        "-x509",
-        "-key",
-        "ca.key.pem",
-        "-out",
-        "ca.cert.pem",
-        "-days",
-        "30",
-        "-subj",
-        "/CN=test CA",
-        "-config",
-        "openssl.cnf",
-        "-extensions",
-        "ca",
-    ]);
-    run(&[&["genpkey"][..], &ec, &["signer.key.pem"]].concat());
-    run(&[
-        "req",
-        "-new",
-        "-key",
-        "signer.key.pem",
-        "-out",
-        "signer.csr",
-        "-subj",
-        "/CN=test signer",
-        "-config",
-        "openssl.cnf",
-    ]);
-    run(&[
-        "x509",
-        "-req",
-        "-in",
-        "signer.csr",
-        "-CA",
-        "ca.cert.pem",
-        "-CAkey",
-        "ca.key.pem",
-        "-CAcreateserial",
-        "-out",
-        "signer.cert.pem",
-        "-days",
-        "30",
-        "-extfile",
-        "openssl.cnf",
-        "-extensions",
-        "signer",
-    ]);
-    dir.join("ca.cert.pem")
+    update_bundles::make_update_keys(dir, "test").unwrap()
 }
 
 /// A signed plain bundle of `version` for `compatible` with a 256 KiB image.
 fn make_bundle(keys: &Path, work: &Path, name: &str, compatible: &str, version: &str) -> PathBuf {
-    let content = work.join(format!("content-{name}"));
-    std::fs::create_dir_all(&content).unwrap();
     let image: Vec<u8> = (0..256 * 1024u32).map(|i| (i * 7 % 251) as u8).collect();
-    std::fs::write(content.join("rootfs.ext4"), image).unwrap();
-    std::fs::write(
-        content.join("manifest.raucm"),
-        format!(
-            "[update]\ncompatible={compatible}\nversion={version}\nbuild=test.{name}\n\n[bundle]\nformat=plain\n\n\
-             [image.rootfs]\nfilename=rootfs.ext4\n"
-        ),
-    )
-    .unwrap();
-    let out = work.join(format!("{name}.raucb"));
-    let _ = std::fs::remove_file(&out);
-    let r = Command::new("rauc")
-        .arg("bundle")
-        .arg("--cert")
-        .arg(keys.join("signer.cert.pem"))
-        .arg("--key")
-        .arg(keys.join("signer.key.pem"))
-        .arg(&content)
-        .arg(&out)
-        .output()
-        .expect("rauc (cargo xtask setup installs it)");
-    assert!(
-        r.status.success(),
-        "rauc bundle: {}",
-        String::from_utf8_lossy(&r.stderr)
-    );
-    out
+    update_bundles::make_bundle(keys, work, name, compatible, version, &image).unwrap()
 }
 
 struct Bundles {

@@ -8,103 +8,23 @@ mod common;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Duration;
 
 use common::{host_tools, p, text};
 use irtrack_testkit::harness::http::Http;
 use irtrack_testkit::harness::irtrackd::{Irtrackd, IrtrackdConfig, operator_hash};
 use irtrack_testkit::harness::process::{TempDir, workspace_bin};
+use irtrack_testkit::update_bundles;
 
 const PASSWORD: &str = "update-cli operator";
 
 /// A CA and a signer it issued (as `cargo xtask image update-keys` makes them).
 fn make_keys(dir: &Path) {
-    std::fs::create_dir_all(dir).unwrap();
-    std::fs::write(
-        dir.join("openssl.cnf"),
-        "[req]\ndistinguished_name=dn\n[dn]\n[ca]\nbasicConstraints=critical,CA:TRUE\n\
-         keyUsage=critical,keyCertSign,cRLSign\n[signer]\nbasicConstraints=critical,CA:FALSE\n\
-         keyUsage=critical,digitalSignature\n",
-    )
-    .unwrap();
-    let ssl = |args: &[&str]| {
-        let o = Command::new("openssl")
-            .args(args)
-            .current_dir(dir)
-            .output()
-            .unwrap();
-        assert!(
-            o.status.success(),
-            "openssl {args:?}: {}",
-            String::from_utf8_lossy(&o.stderr)
-        );
-    };
-    for key in ["ca.key.pem", "signer.key.pem"] {
-        ssl(&[
-            "genpkey",
-            "-algorithm",
-            "EC",
-            "-pkeyopt",
-            "ec_paramgen_curve:P-256",
-            "-out",
-            key,
-        ]);
-    }
-    ssl(&[
-        "req",
-        "-new",
-        "-x509",
-        "-key",
-        "ca.key.pem",
-        "-out",
-        "ca.cert.pem",
-        "-days",
-        "30",
-        "-subj",
-        "/CN=cli CA",
-        "-config",
-        "openssl.cnf",
-        "-extensions",
-        "ca",
-    ]);
-    ssl(&[
-        "req",
-        "-new",
-        "-key",
-        "signer.key.pem",
-        "-out",
-        "signer.csr",
-        "-subj",
-        "/CN=cli signer",
-        "-config",
-        "openssl.cnf",
-    ]);
-    ssl(&[
-        "x509",
-        "-req",
-        "-in",
-        "signer.csr",
-        "-CA",
-        "ca.cert.pem",
-        "-CAkey",
-        "ca.key.pem",
-        "-CAcreateserial",
-        "-out",
-        "signer.cert.pem",
-        "-days",
-        "30",
-        "-extfile",
-        "openssl.cnf",
-        "-extensions",
-        "signer",
-    ]);
+    update_bundles::make_update_keys(dir, "cli").unwrap();
 }
 
 /// A signed bundle of `version` with a 2 MiB image of noise (so the upload has some length).
 fn make_bundle(keys: &Path, work: &Path, name: &str, version: &str) -> PathBuf {
-    let content = work.join(format!("content-{name}"));
-    std::fs::create_dir_all(&content).unwrap();
     let mut x = 0x9e37_79b9_u32;
     let image: Vec<u8> = (0..2 << 20)
         .map(|_| {
@@ -114,32 +34,7 @@ fn make_bundle(keys: &Path, work: &Path, name: &str, version: &str) -> PathBuf {
             x as u8
         })
         .collect();
-    std::fs::write(content.join("rootfs.ext4"), image).unwrap();
-    std::fs::write(
-        content.join("manifest.raucm"),
-        format!(
-            "[update]\ncompatible=irtrack-qemu-arm64\nversion={version}\nbuild=cli.{name}\n\n[bundle]\nformat=plain\n\n\
-             [image.rootfs]\nfilename=rootfs.ext4\n"
-        ),
-    )
-    .unwrap();
-    let out = work.join(format!("{name}.raucb"));
-    let r = Command::new("rauc")
-        .arg("bundle")
-        .arg("--cert")
-        .arg(keys.join("signer.cert.pem"))
-        .arg("--key")
-        .arg(keys.join("signer.key.pem"))
-        .arg(&content)
-        .arg(&out)
-        .output()
-        .expect("rauc (cargo xtask setup installs it)");
-    assert!(
-        r.status.success(),
-        "rauc bundle: {}",
-        String::from_utf8_lossy(&r.stderr)
-    );
-    out
+    update_bundles::make_bundle(keys, work, name, "irtrack-qemu-arm64", version, &image).unwrap()
 }
 
 fn push(board: SocketAddr, password_file: &Path, bundle: &Path) -> (bool, String, String) {

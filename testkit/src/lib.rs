@@ -8,6 +8,9 @@
 //! With `mcap-check`, [`mcap_check`] reads MCAP recordings back with PyPI's independent
 //! reader in a separate process.
 //!
+//! With `update-bundles`, [`update_bundles`] makes signing keys and RAUC bundles for the update
+//! tests with the host's `openssl` and `rauc`.
+//!
 //! [`CountingAlloc`] proves "no allocation per frame": install it as the global allocator of a
 //! test binary and compare [`allocations`] before and after the code under test.
 //!
@@ -25,6 +28,8 @@
 pub mod harness;
 #[cfg(feature = "mcap-check")]
 pub mod mcap_check;
+#[cfg(feature = "update-bundles")]
+pub mod update_bundles;
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
