@@ -14,63 +14,17 @@ use std::time::{Duration, Instant};
 
 use common::*;
 use irtrack_cluster::transport::{Auth, ObsPublisher, Session, TransportConfig, realtime_ns};
-use irtrack_core::observation::{ObsBlob, ObsClock, ObsHeader};
-use irtrack_core::params::{CameraPlace, RigParams};
+use irtrack_core::params::RigParams;
 use irtrack_core::stream::TrackStatus;
 use irtrack_firmware::app::{self, Overrides};
 use irtrack_firmware::cluster::{ClusterConfig, UNAUTHENTICATED};
 use irtrack_firmware::config::Config;
-use irtrack_firmware::source::sim::ring_rig;
 use nalgebra::Vector3;
 
 const RIG: &str = "cellauth";
 const FPS: f64 = 30.0;
 const PW0: &str = "b0-pw-7Tq2Lm9Xz4Kc8Vn1Rb5W";
 const PW1: &str = "b1-pw-3Hs6Jd0Fy2Gp7Qa9Ue4N";
-
-fn rig() -> RigParams {
-    let mut r = ring_rig(3, 600.0);
-    r.rig_id = RIG.into();
-    r.placement = [("b0", 0), ("b0", 1), ("b1", 0)]
-        .iter()
-        .map(|&(b, i)| CameraPlace {
-            board: b.into(),
-            local_index: i,
-        })
-        .collect();
-    r.validate().unwrap();
-    r
-}
-
-fn blob(r: &RigParams, cam: usize, p: &Vector3<f64>) -> ObsBlob {
-    let c = &r.cameras[cam];
-    let px = c.model.project(&c.cam_from_cam0.apply(p)).unwrap();
-    ObsBlob {
-        x_px: px.x as f32,
-        y_px: px.y as f32,
-        area_px: 9,
-        peak_dn: 200,
-        roundness: 1.0,
-        touches_frame_edge: false,
-        touches_roi_edge: false,
-        saturated: false,
-    }
-}
-
-fn header(board: &str, camera: u8, seq: u64, ts: u64) -> ObsHeader<'_> {
-    ObsHeader {
-        rig: RIG,
-        board,
-        camera,
-        sequence: seq,
-        trigger_count: None,
-        capture_ts_ns: ts,
-        clock: ObsClock::Realtime,
-        exposure_us: 0,
-        dropped: 0,
-        send_delay_us: 0,
-    }
-}
 
 fn connect(port: u16, auth: Auth) -> Option<Session> {
     Session::open(&TransportConfig {
@@ -111,21 +65,27 @@ fn publish(
         forgers.push(ObsPublisher::new(s, RIG, "b0", 0).unwrap());
         forgers.push(ObsPublisher::new(s, RIG, "b0", 1).unwrap());
     }
-    let good = [blob(&r, 0, &p), blob(&r, 1, &p), blob(&r, 2, &p)];
-    let bad = [blob(&r, 0, &forged), blob(&r, 1, &forged)];
+    let good = [obs_blob(&r, 0, &p), obs_blob(&r, 1, &p), obs_blob(&r, 2, &p)];
+    let bad = [obs_blob(&r, 0, &forged), obs_blob(&r, 1, &forged)];
     let period_ns = (1e9 / FPS) as u64;
     let start = Instant::now();
     let mut seq = 0u64;
     while !stop.load(Ordering::Relaxed) && start.elapsed() < Duration::from_secs(60) {
         seq += 1;
         let ts = realtime_ns();
-        c00.publish(&header("b0", 0, seq, ts), &good[..1]).unwrap();
-        c01.publish(&header("b0", 1, seq, ts), &good[1..2]).unwrap();
-        c10.publish(&header("b1", 0, seq, ts), &good[2..]).unwrap();
+        c00.publish(&obs_header(RIG, "b0", 0, seq, ts), &good[..1])
+            .unwrap();
+        c01.publish(&obs_header(RIG, "b0", 1, seq, ts), &good[1..2])
+            .unwrap();
+        c10.publish(&obs_header(RIG, "b1", 0, seq, ts), &good[2..])
+            .unwrap();
         for (i, f) in forgers.iter_mut().enumerate() {
             let cam = i % 2;
-            if f.publish(&header("b0", cam as u8, seq + 1000, ts), &bad[cam..cam + 1])
-                .is_ok()
+            if f.publish(
+                &obs_header(RIG, "b0", cam as u8, seq + 1000, ts),
+                &bad[cam..cam + 1],
+            )
+            .is_ok()
             {
                 forged_sent.fetch_add(1, Ordering::Relaxed);
             }
@@ -141,7 +101,7 @@ fn publish(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forged_peers_never_move_the_solver() {
     let dir = TempDir::new("cluster-auth");
-    let r = rig();
+    let r = placed_ring(RIG, &[("b0", 0), ("b0", 1), ("b1", 0)]);
     std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
     let dict = dir.path().join("solver.credentials");
     std::fs::write(&dict, format!("b0:{PW0}\nb1:{PW1}\n")).unwrap();

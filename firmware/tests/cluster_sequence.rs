@@ -13,58 +13,15 @@ use std::time::{Duration, Instant};
 
 use common::*;
 use irtrack_cluster::transport::{ObsPublisher, Session, TransportConfig, realtime_ns};
-use irtrack_core::observation::{ObsBlob, ObsClock, ObsHeader};
-use irtrack_core::params::{CameraPlace, RigParams};
+use irtrack_core::observation::ObsBlob;
+use irtrack_core::params::RigParams;
 use irtrack_core::stream::TrackStatus;
 use irtrack_firmware::app::{self, Overrides};
-use irtrack_firmware::source::sim::ring_rig;
 use nalgebra::Vector3;
 
 const RIG: &str = "seq";
 const FPS: f64 = 30.0;
 const PERIOD_NS: u64 = (1e9 / FPS) as u64;
-
-fn rig() -> RigParams {
-    let mut r = ring_rig(3, 600.0);
-    r.rig_id = RIG.into();
-    r.placement = [("b0", 0), ("b0", 1), ("b1", 0)]
-        .iter()
-        .map(|&(b, i)| CameraPlace {
-            board: b.into(),
-            local_index: i,
-        })
-        .collect();
-    r.validate().unwrap();
-    r
-}
-
-fn blob(r: &RigParams, cam: usize, p: &Vector3<f64>) -> ObsBlob {
-    let c = &r.cameras[cam];
-    let px = c.model.project(&c.cam_from_cam0.apply(p)).unwrap();
-    ObsBlob {
-        x_px: px.x as f32,
-        y_px: px.y as f32,
-        area_px: 9,
-        peak_dn: 200,
-        roundness: 1.0,
-        ..ObsBlob::default()
-    }
-}
-
-fn header<'a>(board: &'a str, camera: u8, seq: u64, ts: u64) -> ObsHeader<'a> {
-    ObsHeader {
-        rig: RIG,
-        board,
-        camera,
-        sequence: seq,
-        trigger_count: None,
-        capture_ts_ns: ts,
-        clock: ObsClock::Realtime,
-        exposure_us: 0,
-        dropped: 0,
-        send_delay_us: 0,
-    }
-}
 
 /// The phases of the run, driven by the boards' thread.
 const FORGE_AT: u64 = 30;
@@ -95,7 +52,7 @@ fn boards(
     let mut c01 = ObsPublisher::new(&s0, RIG, "b0", 1).unwrap();
     let mut c10 = ObsPublisher::new(&s1, RIG, "b1", 0).unwrap();
     let mut forged = ObsPublisher::new(&forger, RIG, "b0", 0).unwrap();
-    let blobs = [blob(&r, 0, &p), blob(&r, 1, &p), blob(&r, 2, &p)];
+    let blobs = [obs_blob(&r, 0, &p), obs_blob(&r, 1, &p), obs_blob(&r, 2, &p)];
     let far = [ObsBlob {
         x_px: 20.0,
         y_px: 20.0,
@@ -110,11 +67,17 @@ fn boards(
         std::thread::sleep(Duration::from_nanos(ts.saturating_sub(realtime_ns())));
         frame.store(k, Ordering::Relaxed);
         if k == FORGE_AT {
-            forged.publish(&header("b0", 0, u64::MAX, ts), &far).unwrap();
-            forged.publish(&header("b0", 0, k + 1_000_000, ts), &far).unwrap();
+            forged
+                .publish(&obs_header(RIG, "b0", 0, u64::MAX, ts), &far)
+                .unwrap();
+            forged
+                .publish(&obs_header(RIG, "b0", 0, k + 1_000_000, ts), &far)
+                .unwrap();
         }
-        c00.publish(&header("b0", 0, k, ts), &blobs[..1]).unwrap();
-        c01.publish(&header("b0", 1, k, ts), &blobs[1..2]).unwrap();
+        c00.publish(&obs_header(RIG, "b0", 0, k, ts), &blobs[..1])
+            .unwrap();
+        c01.publish(&obs_header(RIG, "b0", 1, k, ts), &blobs[1..2])
+            .unwrap();
         if k == RESTART_AT {
             // b1's irtrackd restarts: 100 ms silent, then its counter starts again at 1.
             std::thread::sleep(Duration::from_millis(100));
@@ -125,7 +88,8 @@ fn boards(
             continue;
         }
         b1_seq += 1;
-        c10.publish(&header("b1", 0, b1_seq, ts), &blobs[2..]).unwrap();
+        c10.publish(&obs_header(RIG, "b1", 0, b1_seq, ts), &blobs[2..])
+            .unwrap();
     }
     for s in [s0, s1, forger] {
         s.close();
@@ -135,7 +99,7 @@ fn boards(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sequence_jumps_are_refused_and_restarts_recognised() {
     let dir = TempDir::new("cluster-sequence");
-    let r = rig();
+    let r = placed_ring(RIG, &[("b0", 0), ("b0", 1), ("b1", 0)]);
     std::fs::write(dir.path().join("params.irp"), r.to_blob().unwrap()).unwrap();
     let port = free_tcp_port();
     let mut cfg = test_config(dir.path());

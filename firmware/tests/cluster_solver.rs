@@ -13,35 +13,18 @@ use std::time::{Duration, Instant};
 
 use common::*;
 use irtrack_cluster::transport::{ObsPublisher, Session, TransportConfig, realtime_ns};
-use irtrack_core::observation::{MAX_OBS_LEN, ObsBlob, ObsClock, ObsHeader, encode};
-use irtrack_core::params::{CameraPlace, RigParams};
+use irtrack_core::observation::{MAX_OBS_LEN, ObsBlob, encode};
+use irtrack_core::params::RigParams;
 use irtrack_core::stream::TrackStatus;
 use irtrack_firmware::app::{self, Overrides};
 use irtrack_firmware::cluster::{ClusterConfig, Role};
-use irtrack_firmware::source::sim::ring_rig;
 use nalgebra::Vector3;
 
 const RIG: &str = "cellx";
 const FPS: f64 = 30.0;
 
 fn rig() -> RigParams {
-    placed_ring(&[("b0", 0), ("b0", 1), ("b1", 0)])
-}
-
-/// The ring rig of one camera per `placement` entry (board, index on it), with this test's
-/// rig id; validated.
-fn placed_ring(placement: &[(&str, u8)]) -> RigParams {
-    let mut r = ring_rig(placement.len(), 600.0);
-    r.rig_id = RIG.into();
-    r.placement = placement
-        .iter()
-        .map(|&(b, i)| CameraPlace {
-            board: b.into(),
-            local_index: i,
-        })
-        .collect();
-    r.validate().unwrap();
-    r
+    placed_ring(RIG, &[("b0", 0), ("b0", 1), ("b1", 0)])
 }
 
 /// A solver on a free port (board `s0`, own cameras from `sim`) with the set `r` in its state
@@ -78,37 +61,6 @@ async fn start_solver_with_own_cameras(
     (app::start(cfg, Overrides::default()).await.unwrap(), port)
 }
 
-/// Camera `cam`'s blob of the point `p` (camera-0 frame, mm).
-fn blob(r: &RigParams, cam: usize, p: &Vector3<f64>) -> ObsBlob {
-    let c = &r.cameras[cam];
-    let px = c.model.project(&c.cam_from_cam0.apply(p)).unwrap();
-    ObsBlob {
-        x_px: px.x as f32,
-        y_px: px.y as f32,
-        area_px: 9,
-        peak_dn: 200,
-        roundness: 1.0,
-        touches_frame_edge: false,
-        touches_roi_edge: false,
-        saturated: false,
-    }
-}
-
-fn header<'a>(rig: &'a str, board: &'a str, camera: u8, seq: u64, ts: u64) -> ObsHeader<'a> {
-    ObsHeader {
-        rig,
-        board,
-        camera,
-        sequence: seq,
-        trigger_count: None,
-        capture_ts_ns: ts,
-        clock: ObsClock::Realtime,
-        exposure_us: 0,
-        dropped: 0,
-        send_delay_us: 0,
-    }
-}
-
 /// The two boards: good observations of `p` at `FPS`, and after `bad_after` frames one of
 /// each kind of bad input per frame. Runs until `stop`.
 fn boards(port: u16, r: RigParams, p: Vector3<f64>, bad_after: u64, stop: Arc<AtomicBool>) {
@@ -121,7 +73,7 @@ fn boards(port: u16, r: RigParams, p: Vector3<f64>, bad_after: u64, stop: Arc<At
     let mut c01 = ObsPublisher::new(&s0, RIG, "b0", 1).unwrap();
     let mut c10 = ObsPublisher::new(&s1, RIG, "b1", 0).unwrap();
     let mut c05 = ObsPublisher::new(&s0, RIG, "b0", 5).unwrap();
-    let blobs = [blob(&r, 0, &p), blob(&r, 1, &p), blob(&r, 2, &p)];
+    let blobs = [obs_blob(&r, 0, &p), obs_blob(&r, 1, &p), obs_blob(&r, 2, &p)];
     let period_ns = (1e9 / FPS) as u64;
     let mut buf = [0u8; MAX_OBS_LEN];
     let mut seq = 0u64;
@@ -129,9 +81,12 @@ fn boards(port: u16, r: RigParams, p: Vector3<f64>, bad_after: u64, stop: Arc<At
     while !stop.load(Ordering::Relaxed) && start.elapsed() < Duration::from_secs(60) {
         seq += 1;
         let ts = realtime_ns();
-        c00.publish(&header(RIG, "b0", 0, seq, ts), &blobs[..1]).unwrap();
-        c01.publish(&header(RIG, "b0", 1, seq, ts), &blobs[1..2]).unwrap();
-        c10.publish(&header(RIG, "b1", 0, seq, ts), &blobs[2..]).unwrap();
+        c00.publish(&obs_header(RIG, "b0", 0, seq, ts), &blobs[..1])
+            .unwrap();
+        c01.publish(&obs_header(RIG, "b0", 1, seq, ts), &blobs[1..2])
+            .unwrap();
+        c10.publish(&obs_header(RIG, "b1", 0, seq, ts), &blobs[2..])
+            .unwrap();
         if seq > bad_after {
             // An unknown camera of a known board, with a blob that would pull the point away.
             let far = [ObsBlob {
@@ -139,20 +94,20 @@ fn boards(port: u16, r: RigParams, p: Vector3<f64>, bad_after: u64, stop: Arc<At
                 y_px: 10.0,
                 ..blobs[0]
             }];
-            c05.publish(&header(RIG, "b0", 5, seq, ts), &far).unwrap();
+            c05.publish(&obs_header(RIG, "b0", 5, seq, ts), &far).unwrap();
             // Another rig's observation on this rig's key.
-            c00.publish(&header("other", "b0", 0, seq + 1_000_000, ts), &far)
+            c00.publish(&obs_header("other", "b0", 0, seq + 1_000_000, ts), &far)
                 .unwrap();
             // A capture time an hour ahead.
             c10.publish(
-                &header(RIG, "b1", 0, seq + 2_000_000, ts + 3_600_000_000_000),
+                &obs_header(RIG, "b1", 0, seq + 2_000_000, ts + 3_600_000_000_000),
                 &far,
             )
             .unwrap();
             // The same sequence again (a duplicate of the good observation, other content).
-            c01.publish(&header(RIG, "b0", 1, seq, ts), &far).unwrap();
+            c01.publish(&obs_header(RIG, "b0", 1, seq, ts), &far).unwrap();
             // Truncated and garbage payloads.
-            let n = encode(&header(RIG, "b0", 0, seq + 3_000_000, ts), &far, &mut buf).unwrap();
+            let n = encode(&obs_header(RIG, "b0", 0, seq + 3_000_000, ts), &far, &mut buf).unwrap();
             c00.publish_raw(&buf[..n - 7]).unwrap();
             c00.publish_raw(b"definitely not an observation").unwrap();
         }
@@ -326,7 +281,7 @@ const PASSWORD: &str = "own cameras";
 /// its simulator): its records come from its own observations through Zenoh and the pairing.
 /// `sizes`: `image_sizes_px` (and the parameter set's sizes).
 async fn start_own_solver(dir: &TempDir, sizes: [[u32; 2]; 2]) -> app::Running {
-    let mut r = placed_ring(&[("s0", 0), ("s0", 1)]);
+    let mut r = placed_ring(RIG, &[("s0", 0), ("s0", 1)]);
     for (c, s) in r.cameras.iter_mut().zip(sizes) {
         c.model.image_size.width_px = s[0];
         c.model.image_size.height_px = s[1];
@@ -688,7 +643,7 @@ async fn solver_refuses_an_own_camera_of_another_size() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn solver_status_gives_board_cameras_no_pixel_figures() {
     let dir = TempDir::new("cluster-mixed");
-    let r = placed_ring(&[("b0", 0), ("b0", 1), ("b1", 0), ("s0", 0)]);
+    let r = placed_ring(RIG, &[("b0", 0), ("b0", 1), ("b1", 0), ("s0", 0)]);
     let sim = irtrack_firmware::source::sim::SimSourceConfig {
         rig: irtrack_firmware::source::sim::SimRig::Ring,
         ring_cameras: 4,

@@ -410,3 +410,60 @@ pub fn solver_cluster(
         ..irtrack_firmware::cluster::ClusterConfig::default()
     }
 }
+
+/// The ring rig of one camera per `placement` entry (board, index on it) at 600 mm, named
+/// `rig_id`; validated. The cluster tests' rig.
+pub fn placed_ring(rig_id: &str, placement: &[(&str, u8)]) -> irtrack_core::params::RigParams {
+    let mut r = irtrack_firmware::source::sim::ring_rig(placement.len(), 600.0);
+    r.rig_id = rig_id.into();
+    r.placement = placement
+        .iter()
+        .map(|&(b, i)| irtrack_core::params::CameraPlace {
+            board: b.into(),
+            local_index: i,
+        })
+        .collect();
+    r.validate().unwrap();
+    r
+}
+
+/// Camera `cam` of `r` seeing a marker at `p_cam0_mm`: the observation blob a board sends.
+pub fn obs_blob(
+    r: &irtrack_core::params::RigParams,
+    cam: usize,
+    p_cam0_mm: &nalgebra::Vector3<f64>,
+) -> irtrack_core::observation::ObsBlob {
+    let c = &r.cameras[cam];
+    let px = c.model.project(&c.cam_from_cam0.apply(p_cam0_mm)).unwrap();
+    irtrack_core::observation::ObsBlob {
+        x_px: px.x as f32,
+        y_px: px.y as f32,
+        area_px: 9,
+        peak_dn: 200,
+        roundness: 1.0,
+        ..irtrack_core::observation::ObsBlob::default()
+    }
+}
+
+/// An observation header of `board`'s camera `camera`, frame `seq`, captured at `ts` on the
+/// shared realtime clock.
+pub fn obs_header<'a>(
+    rig: &'a str,
+    board: &'a str,
+    camera: u8,
+    seq: u64,
+    ts: u64,
+) -> irtrack_core::observation::ObsHeader<'a> {
+    irtrack_core::observation::ObsHeader {
+        rig,
+        board,
+        camera,
+        sequence: seq,
+        trigger_count: None,
+        capture_ts_ns: ts,
+        clock: irtrack_core::observation::ObsClock::Realtime,
+        exposure_us: 0,
+        dropped: 0,
+        send_delay_us: 0,
+    }
+}
