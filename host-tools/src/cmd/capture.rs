@@ -807,30 +807,6 @@ fn apply_search(
         .collect()
 }
 
-/// What happened to one saved set in checkerboard mode, per camera: corners found or not.
-pub fn detect_set(
-    set: &FrameSet,
-    board: &Board,
-    coverage: &mut Vec<Coverage>,
-) -> anyhow::Result<Vec<Option<usize>>> {
-    let mut out = Vec::with_capacity(set.pgms.len());
-    for (c, pgm) in set.pgms.iter().enumerate() {
-        let h = &set.header.cameras[c];
-        if coverage.len() <= c {
-            coverage.push(Coverage::new(h.width_px, h.height_px));
-        }
-        let img = grey_mat(pgm).with_context(|| format!("camera {c}"))?;
-        match find_corners(&img, board)? {
-            Some(corners) => {
-                coverage[c].add(&corners);
-                out.push(Some(corners.len()));
-            }
-            None => out.push(None),
-        }
-    }
-    Ok(out)
-}
-
 /// The terminal report after one set: found/not found per camera, then the coverage grids side
 /// by side.
 pub fn report(saved: u64, name: &str, found: &[Option<usize>], coverage: &[Coverage], both: u64) -> String {
