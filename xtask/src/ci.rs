@@ -79,7 +79,7 @@ const fn opt_in_phase(
 pub const PHASES: &[Phase] = &[
     phase("setup", "install missing system packages", "", setup_phase, 30, &[]),
     phase("fmt", "cargo fmt --all --check", "", fmt, 5, &[]),
-    phase("clippy", "cargo clippy --workspace --all-targets -- -D warnings", "", clippy, 60, &["debug"]),
+    phase("clippy", "clippy's lints (-D warnings) on every host target, in the host test build itself", "", clippy, 60, &["debug"]),
     phase("host-tests", "cargo test --workspace (all crates, host, + Zenoh features)", "host", host_tests, 25, &["debug"]),
     phase("no-std", "irtrack-core without its std feature", "", no_std, 30, &["debug"]),
     // The image runs right after the host phases: its system test runs host-tools from
@@ -440,22 +440,70 @@ fn fmt(ctx: &Ctx) -> Outcome {
     check(cmd, "cargo fmt --check")
 }
 
+/// Clippy's lints, `-D warnings`, on every target of the workspace (lib, bins, tests, benches,
+/// examples) with CI's features. This is `cargo test --all-targets --no-run` with clippy-driver as
+/// the workspace's compiler wrapper, which is how `cargo clippy` runs it, except that code is
+/// generated too: the lint pass and the host test build are one compile instead of a check-mode
+/// compile of the whole graph (Zenoh included) followed by a build of it, about 7 minutes of a
+/// cold run on 2 cores. `host-tests` then runs with the same wrapper and finds everything built.
 fn clippy(ctx: &Ctx) -> Outcome {
-    let mut cmd = ctx.cargo();
+    let mut cmd = match linted_cargo(ctx) {
+        Ok(cmd) => cmd,
+        Err(e) => return Outcome::failed(format!("{e:#}")),
+    };
     cmd.args([
-        "clippy",
+        "test",
         "--workspace",
         "--all-targets",
+        "--no-run",
         "--features",
         CLUSTER_FEATURES,
     ]);
-    cmd.args(["--", "-D", "warnings"]);
-    check(cmd, "cargo clippy")
+    check(cmd, "clippy (cargo test --all-targets --no-run with clippy-driver)")
+}
+
+/// `cargo` for the host debug build with clippy-driver as `RUSTC_WORKSPACE_WRAPPER` (workspace
+/// crates only; dependencies are compiled by rustc as usual) and `-D warnings`, set the way
+/// `cargo clippy -- -D warnings` sets them. The clippy and host-tests phases use it alike, so
+/// the second finds the first's artifacts fresh.
+fn linted_cargo(ctx: &Ctx) -> Result<Command> {
+    let driver = clippy_driver(ctx)?;
+    let mut cmd = ctx.cargo();
+    cmd.env("RUSTC_WORKSPACE_WRAPPER", driver);
+    cmd.env("CLIPPY_ARGS", clippy_args(&["-D", "warnings"]));
+    Ok(cmd)
+}
+
+/// cargo-clippy's encoding of the lint arguments for clippy-driver.
+fn clippy_args(args: &[&str]) -> String {
+    args.iter().map(|a| format!("{a}__CLIPPY_HACKERY__")).collect()
+}
+
+/// clippy-driver of the toolchain that builds: beside that toolchain's cargo (where
+/// `cargo clippy` looks for it), else in `rustc --print sysroot`'s bin.
+fn clippy_driver(ctx: &Ctx) -> Result<std::path::PathBuf> {
+    let beside = std::path::Path::new(&ctx.cargo).with_file_name("clippy-driver");
+    if beside.is_file() {
+        return Ok(beside);
+    }
+    let rustc = std::env::var_os("RUSTC").unwrap_or_else(|| "rustc".into());
+    let out = Command::new(&rustc).args(["--print", "sysroot"]).output()?;
+    let sysroot = String::from_utf8_lossy(&out.stdout).trim().to_owned();
+    let driver = std::path::Path::new(&sysroot).join("bin/clippy-driver");
+    if !driver.is_file() {
+        bail!(
+            "clippy-driver not found beside {} nor in {sysroot}/bin: install clippy \
+             (`rustup component add clippy`)",
+            beside.display()
+        );
+    }
+    Ok(driver)
 }
 
 fn host_tests(ctx: &Ctx) -> Outcome {
     cargo_test(|| {
-        let mut cmd = ctx.cargo();
+        // The clippy phase's wrapper too, so its build is reused rather than redone.
+        let mut cmd = linted_cargo(ctx)?;
         // --no-fail-fast: one failing binary must not hide the counts of the others.
         cmd.args([
             "test",
@@ -751,6 +799,16 @@ const EMULATION_SKIPS: &[&str] = &[
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The encoding cargo-clippy uses for CLIPPY_ARGS (each argument followed by the marker),
+    /// which clippy-driver splits again.
+    #[test]
+    fn clippy_args_are_encoded_as_cargo_clippy_does() {
+        assert_eq!(
+            clippy_args(&["-D", "warnings"]),
+            "-D__CLIPPY_HACKERY__warnings__CLIPPY_HACKERY__"
+        );
+    }
 
     #[test]
     fn finds_std_features_in_tree_output() {

@@ -50,6 +50,17 @@ impl Ctx {
         if std::env::var_os("CARGO_INCREMENTAL").is_none() {
             cmd.env("CARGO_INCREMENTAL", "0");
         }
+        // Zenoh stamps its version with `git describe` at compile time (the git-version macro),
+        // run in its own source directory under CARGO_HOME, and depends on that repository's
+        // `.git/index`. With CARGO_HOME inside a git work tree (a CI cache kept in the project,
+        // or a clone that holds its own cargo home), every git command that refreshes the index
+        // made the next build compile Zenoh and all above it again: the demo's last step
+        // rebuilt irtrackd that way. Git must not look above cargo's source trees for a repository.
+        if let Some(ceilings) = cargo_home().and_then(|home| {
+            git_ceilings(&home, std::env::var_os("GIT_CEILING_DIRECTORIES"))
+        }) {
+            cmd.env("GIT_CEILING_DIRECTORIES", ceilings);
+        }
         cmd
     }
 
@@ -427,6 +438,31 @@ mod tests {
 }
 
 /// Variables `cargo run` sets for the program it runs (xtask), not for the cargo we start.
+/// Cargo's home (`$CARGO_HOME`, else `~/.cargo`), absolute, if it can be known.
+fn cargo_home() -> Option<PathBuf> {
+    let home = match std::env::var_os("CARGO_HOME") {
+        Some(h) if !h.is_empty() => PathBuf::from(h),
+        _ => PathBuf::from(std::env::var_os("HOME")?).join(".cargo"),
+    };
+    if home.is_absolute() {
+        Some(home)
+    } else {
+        std::env::current_dir().ok().map(|d| d.join(home))
+    }
+}
+
+/// `GIT_CEILING_DIRECTORIES` with cargo's source trees under `home` added to `old`.
+fn git_ceilings(home: &Path, old: Option<OsString>) -> Option<OsString> {
+    let mut ceilings: Vec<PathBuf> = ["registry/src", "git/checkouts"]
+        .iter()
+        .map(|d| home.join(d))
+        .collect();
+    if let Some(old) = old {
+        ceilings.extend(std::env::split_paths(&old));
+    }
+    std::env::join_paths(ceilings).ok()
+}
+
 fn is_cargo_run_var(name: &str) -> bool {
     name.starts_with("CARGO_PKG_")
         || matches!(
@@ -443,7 +479,39 @@ fn is_cargo_run_var(name: &str) -> bool {
 
 #[cfg(test)]
 mod cargo_env_tests {
-    use super::is_cargo_run_var;
+    use super::{git_ceilings, is_cargo_run_var};
+    use std::ffi::OsString;
+    use std::process::Command;
+
+    /// With cargo's home inside a git work tree, git run in a crate's source directory (as
+    /// Zenoh's version macro does) must not find that work tree's repository.
+    #[test]
+    fn git_does_not_find_a_repository_above_cargo_sources() {
+        let dir = std::env::temp_dir().join(format!("xtask-ceiling-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let home = dir.join("cargo-home");
+        let krate = home.join("registry/src/index.example/some-crate-1.0.0");
+        std::fs::create_dir_all(&krate).unwrap();
+        let git = |envs: Option<OsString>| {
+            let mut cmd = Command::new("git");
+            cmd.args(["rev-parse", "--git-dir"]).current_dir(&krate);
+            cmd.env_remove("GIT_DIR");
+            if let Some(c) = envs {
+                cmd.env("GIT_CEILING_DIRECTORIES", c);
+            }
+            cmd.output().unwrap()
+        };
+        let init = Command::new("git").arg("init").arg("-q").arg(&dir).status().unwrap();
+        assert!(init.success());
+        // Without the ceiling git finds the work tree's repository (the failure mode)...
+        assert!(git(None).status.success());
+        // ...with it, none, as for a cargo home outside any repository.
+        let ceilings = git_ceilings(&home, Some(OsString::from("/nonexistent/a"))).unwrap();
+        assert!(ceilings.to_string_lossy().ends_with(":/nonexistent/a"), "{ceilings:?}");
+        let out = git(Some(ceilings));
+        assert!(!out.status.success(), "{}", String::from_utf8_lossy(&out.stdout));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn only_the_variables_cargo_run_gives_xtask_are_dropped() {
