@@ -775,6 +775,12 @@ type SearchResult = (
 );
 
 /// The board search of one set's images (run on a thread of its own).
+/// Live board searches allowed to run at once: one per core. Each holds a copy of its set's
+/// frames, so without a bound a run of slow views would pile up threads and memory.
+fn max_live_searches() -> usize {
+    std::thread::available_parallelism().map_or(2, |n| n.get()).max(1)
+}
+
 fn search_set(pgms: &[Vec<u8>], board: &Board) -> anyhow::Result<Vec<Option<Vec<Point2f>>>> {
     pgms.iter()
         .enumerate()
@@ -1112,6 +1118,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut next_due = Instant::now();
     let (search_tx, search_rx) = mpsc::channel::<SearchResult>();
     let mut searching = 0usize;
+    // Sets saved without a live board search (see max_live_searches).
+    let mut skipped_searches = 0usize;
     while args.count.is_none_or(|n| saved < n) {
         // Wait for the trigger of this mode; `q` ends the session in every mode.
         if args.wand || args.every.is_some() {
@@ -1211,6 +1219,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .iter()
             .map(|c| (c.width_px, c.height_px))
             .collect();
+        if searching >= max_live_searches() {
+            // Slow views piled up: searching this set too would only add to the backlog and
+            // slow the capture loop. The set is saved; calibrate searches it like every other.
+            println!(
+                "set {saved}: saved; live board search skipped ({searching} still running), calibrate will search it"
+            );
+            skipped_searches += 1;
+            std::io::stdout().flush().ok();
+            continue;
+        }
         let (pgms, tx) = (set.pgms.clone(), search_tx.clone());
         std::thread::spawn(move || {
             let _ = tx.send((saved, name, dims, search_set(&pgms, &board)));
@@ -1263,6 +1281,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     } else {
         String::new()
     };
+    if skipped_searches > 0 {
+        println!(
+            "{skipped_searches} saved set(s) had no live board search (slow views kept the searches busy); calibrate searches them"
+        );
+    }
     match camera_count {
         Some(n) => println!(
             "saved {saved} sets into {}/cam0..cam{}{refusals}",
