@@ -16,7 +16,11 @@
 //! 6. checks that irtrackd is built with the cluster roles;
 //! 7. for the layer's Pandaboard machine (`MACHINE = "pandaboard"`, a second build directory):
 //!    resolves the image's task graph with the board's kernel and boot loader, and checks its
-//!    Cortex-A9/NEON tune and the kernel's defconfig as BitBake expands them.
+//!    Cortex-A9/NEON tune and the kernel's defconfig as BitBake expands them;
+//! 8. the A/B update layout: the SD card's partitions (wic), RAUC's slots (system.conf) and the
+//!    boot counters' file (fw_env.config) agree, and BitBake expands the image and
+//!    irtrack-update for each machine as that layout needs (boot files, slot disk, board part of
+//!    the boot script). Check 5 also proves that SRCREV holds the files irtrack-update installs.
 //!
 //! BitBake refuses to run as root; as root the phase runs it as [`BITBAKE_USER`] (made by
 //! `cargo xtask setup`) through `runuser`.
@@ -47,8 +51,13 @@ const PANDABOARD: &str = "pandaboard";
 /// The machine of the main checks: the snapshots have no board layer.
 const QEMU_MACHINE: &str = "qemuarm64";
 const IMAGE: &str = "irtrack-image";
-/// The recipe with the pinned source revision.
-const SRC_RECIPE: &str = "recipes-irtrack/irtrackd/irtrackd_git.bb";
+/// The include with the pinned source revision (shared by irtrackd and irtrack-update).
+const SRC_RECIPE: &str = "recipes-irtrack/irtrack-source.inc";
+/// The recipe of the A/B update pieces, which installs files of the repository at SRCREV.
+const UPDATE_RECIPE: &str = "recipes-irtrack/irtrack-update/irtrack-update_git.bb";
+/// The A/B SD card layout and the slot configuration it must agree with.
+const AB_WKS: &str = "wic/irtrack-sdcard-ab.wks";
+const AB_SYSTEM_CONF: &str = "recipes-irtrack/irtrack-update/files/system.conf.in";
 /// The recipe the negative control adds to the layer's copy: line 3 is not BitBake syntax.
 const BROKEN_RECIPE: &str = "recipes-irtrack/ci-broken/ci-broken_1.0.bb";
 const BROKEN_TEXT: &str = "SUMMARY = \"deliberately broken (yocto-bitbake negative control)\"\n\
@@ -519,7 +528,7 @@ fn check(ctx: &Ctx) -> Result<u64> {
 
     println!("yocto: 3. resolving the task graph of {IMAGE}");
     let graph = resolve_image(&env)?;
-    for pn in [IMAGE, "irtrackd"] {
+    for pn in [IMAGE, "irtrackd", "rauc", "irtrack-update"] {
         if !graph.recipes.iter().any(|r| r == pn) {
             bail!("{pn} is not in the task graph of {IMAGE} (pn-buildlist)");
         }
@@ -576,6 +585,22 @@ fn check(ctx: &Ctx) -> Result<u64> {
         );
     }
     println!("yocto: SRCREV {rev} is a commit of this repository");
+    let update = fs::read_to_string(ctx.root.join("yocto-layer").join(LAYER).join(UPDATE_RECIPE))?;
+    let files = files_from_source(&update);
+    if files.is_empty() {
+        bail!("{UPDATE_RECIPE} installs no ${{S}}/... file: the check below would prove nothing");
+    }
+    for f in &files {
+        let out = Command::new("git")
+            .args(["cat-file", "-e", &format!("{rev}:{f}")])
+            .current_dir(&ctx.root)
+            .output()
+            .context("running git cat-file")?;
+        if !out.status.success() {
+            bail!("{UPDATE_RECIPE} installs {f}, which commit {rev} (SRCREV) does not have: pin a newer commit");
+        }
+    }
+    println!("yocto: SRCREV holds the {} files irtrack-update installs from the repository", files.len());
     passed += 1;
 
     println!("yocto: 6. irtrackd is built with the cluster roles (PACKAGECONFIG cluster)");
@@ -603,7 +628,174 @@ fn check(ctx: &Ctx) -> Result<u64> {
     );
     check_pandaboard(ctx)?;
     passed += 1;
+
+    println!("yocto: 8. A/B updates: the SD card layout, RAUC's slots and the boot counters' file agree");
+    check_ab(ctx, &env)?;
+    passed += 1;
     Ok(passed)
+}
+
+/// Check 8: the layer's A/B layout (wic) matches RAUC's slot configuration and fw_env.config,
+/// and BitBake expands the image and irtrack-update as that layout needs for both machines.
+fn check_ab(ctx: &Ctx, env: &BbEnv) -> Result<()> {
+    let layer = ctx.root.join("yocto-layer").join(LAYER);
+    let wks = fs::read_to_string(layer.join(AB_WKS))?;
+    let conf = fs::read_to_string(layer.join(AB_SYSTEM_CONF))?;
+    let fw_env = fs::read_to_string(ctx.root.join("image/update/rootfs/etc/fw_env.config"))?;
+    ab_layout_agrees(&wks, &conf, &fw_env)?;
+    println!(
+        "yocto: {AB_WKS}: boot on /uboot (fw_env.config's counters), slots A and B on partitions 2 and 3 as system.conf says, data on 4"
+    );
+    let image = bitbake_env(env, IMAGE)?;
+    let wks_file = exported_value(&image, "WKS_FILE").context("bitbake -e irtrack-image shows no WKS_FILE")?;
+    if wks_file != "irtrack-sdcard-ab.wks" {
+        bail!("{IMAGE} uses WKS_FILE {wks_file:?}, not the A/B layout");
+    }
+    let boot_files = exported_value(&image, "IMAGE_BOOT_FILES").unwrap_or_default();
+    for want in ["boot.scr", "uboot.env", "uboot-redund.env"] {
+        if !boot_files.split_whitespace().any(|f| f == want) {
+            bail!("{IMAGE}'s IMAGE_BOOT_FILES for {QEMU_MACHINE} lack {want}: {boot_files:?}");
+        }
+    }
+    let update = bitbake_env(env, "irtrack-update")?;
+    let disk = exported_value(&update, "IRTRACK_DISK").unwrap_or_default();
+    if disk != "/dev/vda" {
+        bail!("irtrack-update's IRTRACK_DISK for {QEMU_MACHINE} is {disk:?}, not /dev/vda");
+    }
+    let pandaboard = prepare(ctx, "build-pandaboard", true, PANDABOARD)?;
+    let image = bitbake_env(&pandaboard, IMAGE)?;
+    let boot_files = exported_value(&image, "IMAGE_BOOT_FILES").unwrap_or_default();
+    for want in ["MLO", "u-boot.img", "boot.scr", "uboot.env", "uboot-redund.env"] {
+        if !boot_files.split_whitespace().any(|f| f == want) {
+            bail!("{IMAGE}'s IMAGE_BOOT_FILES for {PANDABOARD} lack {want}: {boot_files:?}");
+        }
+    }
+    let update = bitbake_env(&pandaboard, "irtrack-update")?;
+    let disk = exported_value(&update, "IRTRACK_DISK").unwrap_or_default();
+    let compatible = exported_value(&update, "IRTRACK_COMPATIBLE").unwrap_or_default();
+    if disk != "/dev/mmcblk0p" || compatible != "irtrack-pandaboard" {
+        bail!("irtrack-update for {PANDABOARD}: IRTRACK_DISK {disk:?} (want /dev/mmcblk0p), IRTRACK_COMPATIBLE {compatible:?}");
+    }
+    // The board's half of the boot script must be the Pandaboard's (files/pandaboard/ first).
+    let filespath = exported_value(&update, "FILESPATH").unwrap_or_default();
+    let board_dir = filespath.split(':').position(|p| p.ends_with("/files/pandaboard"));
+    let common_dir = filespath.split(':').position(|p| p.ends_with("irtrack-update/files"));
+    match (board_dir, common_dir) {
+        (Some(b), Some(c)) if b < c => {}
+        _ => bail!("irtrack-update for {PANDABOARD} does not take files/pandaboard/ before files/: FILESPATH {filespath}"),
+    }
+    println!(
+        "yocto: {PANDABOARD}: boot partition {boot_files}; slots {disk}2/{disk}3, bundles for {compatible}; boot script half from files/pandaboard/"
+    );
+    Ok(())
+}
+
+/// One `part` line of a wic kickstart file.
+#[derive(Debug, PartialEq)]
+struct WksPart {
+    mount: Option<String>,
+    fstype: Option<String>,
+    label: Option<String>,
+}
+
+/// The `part` lines of a .wks file, in partition order.
+fn wks_partitions(text: &str) -> Vec<WksPart> {
+    text.lines()
+        .map(str::trim)
+        .filter_map(|l| l.strip_prefix("part "))
+        .map(|rest| {
+            let words: Vec<&str> = rest.split_whitespace().collect();
+            let value = |flag: &str| {
+                words.iter().enumerate().find_map(|(i, w)| {
+                    w.strip_prefix(&format!("{flag}="))
+                        .map(str::to_string)
+                        .or_else(|| (*w == flag).then(|| words.get(i + 1).map(|v| v.to_string())).flatten())
+                })
+            };
+            WksPart {
+                mount: words.first().filter(|w| w.starts_with('/')).map(|w| w.to_string()),
+                fstype: value("--fstype"),
+                label: value("--label"),
+            }
+        })
+        .collect()
+}
+
+/// `[slot.rootfs.N]` device and bootname pairs of a RAUC system.conf.
+fn rauc_slots(conf: &str) -> Vec<(String, String)> {
+    let mut slots = Vec::new();
+    let mut cur: Option<(Option<String>, Option<String>)> = None;
+    let mut flush = |cur: &mut Option<(Option<String>, Option<String>)>| {
+        if let Some((Some(dev), Some(name))) = cur.take() {
+            slots.push((dev, name));
+        }
+    };
+    for line in conf.lines().map(str::trim) {
+        if line.starts_with('[') {
+            flush(&mut cur);
+            if line.starts_with("[slot.rootfs.") {
+                cur = Some((None, None));
+            }
+        } else if let Some((dev, name)) = cur.as_mut() {
+            if let Some(v) = line.strip_prefix("device=") {
+                *dev = Some(v.to_string());
+            } else if let Some(v) = line.strip_prefix("bootname=") {
+                *name = Some(v.to_string());
+            }
+        }
+    }
+    flush(&mut cur);
+    slots
+}
+
+/// The A/B layout's three descriptions agree: the wks partitions, RAUC's slots and the path of
+/// the boot counters in fw_env.config.
+fn ab_layout_agrees(wks: &str, system_conf: &str, fw_env: &str) -> Result<()> {
+    let parts = wks_partitions(wks);
+    let part = |n: usize| parts.get(n - 1);
+    let boot = part(1).filter(|p| p.fstype.as_deref() == Some("vfat"));
+    let Some(boot_mount) = boot.and_then(|p| p.mount.clone()) else {
+        bail!("{AB_WKS}: partition 1 is not a mounted vfat boot partition: {:?}", part(1));
+    };
+    let env_file = fw_env
+        .lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty() && !l.starts_with('#'))
+        .and_then(|l| l.split_whitespace().next())
+        .context("fw_env.config names no environment file")?;
+    if !env_file.starts_with(&format!("{boot_mount}/")) {
+        bail!("fw_env.config keeps the boot counters in {env_file}, but the boot partition is mounted on {boot_mount}");
+    }
+    for (n, label) in [(2, "root-a"), (3, "root-b")] {
+        if part(n).and_then(|p| p.label.as_deref()) != Some(label) {
+            bail!("{AB_WKS}: partition {n} is not the slot {label}: {:?}", part(n));
+        }
+    }
+    if part(4).and_then(|p| p.mount.as_deref()) != Some("/data") {
+        bail!("{AB_WKS}: partition 4 is not the data partition on /data: {:?}", part(4));
+    }
+    let slots = rauc_slots(system_conf);
+    let want = [("@DISK@2".to_string(), "A".to_string()), ("@DISK@3".to_string(), "B".to_string())];
+    if slots != want {
+        bail!("{AB_SYSTEM_CONF}: slots {slots:?}, but the layout has A on partition 2 and B on 3");
+    }
+    if !system_conf.lines().any(|l| l.trim().starts_with("data-directory=/data/")) {
+        bail!("{AB_SYSTEM_CONF}: RAUC's data-directory is not on the data partition (/data)");
+    }
+    Ok(())
+}
+
+/// Repository paths a recipe installs from its source tree (`${S}/path`).
+fn files_from_source(recipe: &str) -> Vec<String> {
+    let mut out: Vec<String> = recipe
+        .split(|c: char| c.is_whitespace())
+        .filter_map(|w| w.strip_prefix("${S}/"))
+        .map(|p| p.trim_end_matches([';', '"']).to_string())
+        .filter(|p| !p.is_empty())
+        .collect();
+    out.sort();
+    out.dedup();
+    out
 }
 
 /// Check 7: the Pandaboard machine in its own build directory (a second MACHINE means a second
@@ -806,6 +998,53 @@ mod tests {
             Some("0123456789abcdef0123456789abcdef01234567")
         );
         assert_eq!(pinned_srcrev("SRCREV_FORMAT = \"x\"\n"), None);
+    }
+
+    #[test]
+    fn the_layers_ab_layout_agrees_and_disagreements_are_named() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+        let layer = root.join("yocto-layer").join(LAYER);
+        let wks = fs::read_to_string(layer.join(AB_WKS)).unwrap();
+        let conf = fs::read_to_string(layer.join(AB_SYSTEM_CONF)).unwrap();
+        let fw_env = fs::read_to_string(root.join("image/update/rootfs/etc/fw_env.config")).unwrap();
+        ab_layout_agrees(&wks, &conf, &fw_env).unwrap();
+        let parts = wks_partitions(&wks);
+        assert_eq!(parts.len(), 4);
+        assert_eq!(
+            parts[0],
+            WksPart {
+                mount: Some("/uboot".into()),
+                fstype: Some("vfat".into()),
+                label: Some("boot".into())
+            }
+        );
+        assert_eq!(parts[2].mount, None);
+        // Slots swapped in system.conf, the boot partition mounted elsewhere, the data
+        // partition missing: each is refused, naming what disagrees.
+        let swapped = conf.replace("bootname=A", "bootname=X").replace("bootname=B", "bootname=A");
+        let e = ab_layout_agrees(&wks, &swapped, &fw_env).unwrap_err().to_string();
+        assert!(e.contains("slots"), "{e}");
+        let e = ab_layout_agrees(&wks.replace("part /uboot", "part /boot"), &conf, &fw_env)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("mounted on /boot"), "{e}");
+        let no_data: String = wks.lines().filter(|l| !l.contains("/data")).map(|l| format!("{l}\n")).collect();
+        let e = ab_layout_agrees(&no_data, &conf, &fw_env).unwrap_err().to_string();
+        assert!(e.contains("partition 4"), "{e}");
+    }
+
+    #[test]
+    fn files_installed_from_the_source_tree_are_listed() {
+        let recipe = "do_install() {\n    install -m 0644 ${S}/image/a.conf ${D}${sysconfdir}/a.conf\n    \
+                      cat ${WORKDIR}/x ${S}/image/b.cmd > ${B}/b\n    install ${S}/image/a.conf ${D}/y\n}\n";
+        assert_eq!(files_from_source(recipe), vec!["image/a.conf", "image/b.cmd"]);
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+        let update = fs::read_to_string(root.join("yocto-layer").join(LAYER).join(UPDATE_RECIPE)).unwrap();
+        let files = files_from_source(&update);
+        assert!(files.iter().any(|f| f == "image/update/boot.cmd"), "{files:?}");
+        for f in &files {
+            assert!(root.join(f).is_file(), "{f} is installed by irtrack-update but not in the tree");
+        }
     }
 
     #[test]

@@ -1,7 +1,7 @@
 SUMMARY = "irtrack appliance image"
 DESCRIPTION = "Minimal systemd image for the board of the irtrack optical tracker: irtrackd \
-with its udev rules, linuxptp for the clocks of multi-board rigs, plus V4L2 and GPIO tools \
-for bring-up."
+with its udev rules, linuxptp for the clocks of multi-board rigs, RAUC A/B updates with \
+automatic rollback, plus V4L2 and GPIO tools for bring-up."
 HOMEPAGE = "https://example.invalid/irtrack"
 LICENSE = "MIT"
 
@@ -9,6 +9,8 @@ inherit core-image
 
 IMAGE_INSTALL = "packagegroup-core-boot \
                  irtrackd \
+                 rauc \
+                 irtrack-update \
                  linuxptp \
                  libgpiod-tools \
                  v4l-utils \
@@ -16,6 +18,12 @@ IMAGE_INSTALL = "packagegroup-core-boot \
                  "
 IMAGE_LINGUAS = ""
 
-# SD card: vfat boot partition (U-Boot, kernel, device tree) and ext4 root.
-IMAGE_FSTYPES = "wic.xz wic.bmap"
-WKS_FILE ?= "irtrack-sdcard.wks"
+# SD card with A/B root slots and a data partition (wic/irtrack-sdcard-ab.wks, docs/updates.md).
+# The ext4 root file system is also kept: it is what an update bundle carries (docs/updates.md,
+# "Yocto").
+IMAGE_FSTYPES = "wic.xz wic.bmap ext4"
+WKS_FILE ?= "irtrack-sdcard-ab.wks"
+# boot.scr and the first boot counters come from irtrack-update's deploy step; a machine that
+# sets IMAGE_BOOT_FILES itself lists them with its boot loader files (conf/machine/pandaboard.conf).
+IMAGE_BOOT_FILES ?= "boot.scr uboot.env uboot-redund.env"
+WKS_FILE_DEPENDS:append = " irtrack-update"

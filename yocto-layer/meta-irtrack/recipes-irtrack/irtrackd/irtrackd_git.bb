@@ -13,18 +13,15 @@ LIC_FILES_CHKSUM = "file://${COMMON_LICENSE_DIR}/MIT;md5=0835ade698e0bcf8506ecda
 
 PV = "0.1.0+git"
 
-# The repository's URL; a site with its own mirror overrides SRC_URI in a bbappend. For
-# development build a checkout instead: INHERIT += "externalsrc" and
-# EXTERNALSRC:pn-irtrackd = "/path/to/irtrack" (what yocto-layer/kas/irtrack.yml does).
+# The repository's URL; a site with its own mirror overrides SRC_URI in a bbappend. The pinned
+# commit (SRCREV) is in irtrack-source.inc, shared with irtrack-update. For development build a
+# checkout instead: INHERIT += "externalsrc" and EXTERNALSRC:pn-irtrackd = "/path/to/irtrack"
+# (what yocto-layer/kas/irtrack.yml does).
 SRC_URI = "git://example.invalid/irtrack.git;protocol=https;branch=main \
            file://irtrackd.toml \
            file://99-irtrack.rules \
            "
-# A fixed commit, so that parsing needs no network (AUTOREV would run `git ls-remote` at
-# parse time). A release sets it to the commit of its tag, `git rev-parse vX.Y.Z^{commit}`,
-# together with PV (docs/image.md, "Releasing the layer"); CI checks that it is a commit of
-# this repository.
-SRCREV = "cb33a292104bc79ae226f29d2e85a5580e8553f6"
+require recipes-irtrack/irtrack-source.inc
 
 # scarthgap (the layer's LAYERSERIES_COMPAT) unpacks fetched sources into WORKDIR.
 S = "${WORKDIR}/git"
