@@ -71,6 +71,45 @@ export function bridgeWords(c) {
   return [parts.join(", "), Boolean(c.unbridged)];
 }
 
+/** The cells of one camera's row in the clock table (camera, fps, vs camera 0, jitter, drift,
+ *  bridge, events): short figures, so the row stays on one line in the side column; the whole
+ *  sentence of `clockWords` and `bridgeWords` goes into the row's tooltip. Returns
+ *  {cells, title, bad}. */
+export function clockCells(index, c, cam = {}) {
+  const [words, badClock] = clockWords(index, c);
+  const [bridge, badBridge] = bridgeWords(cam);
+  const title = bridge ? `${words}; ${bridge}` : words;
+  const bad = badClock === "bad" || badBridge;
+  const cells = [`camera ${index}`];
+  if (!c || c.state === "warming_up") {
+    cells.push(c ? "measuring…" : "—", "—", "—", "—");
+  } else {
+    cells.push(typeof c.fps === "number" ? fmt(c.fps, 3) : "—");
+    if (index === 0) cells.push("reference");
+    else cells.push(typeof c.phase_us === "number" ? `${c.phase_us < 0 ? "−" : "+"}${ms(c.phase_us, 1)}` : "—");
+    cells.push(typeof c.jitter_rms_us === "number" ? ms(c.jitter_rms_us, 2) : "—");
+    if (index === 0 || typeof c.drift_us_per_min !== "number") {
+      cells.push("—");
+    } else {
+      const d = c.drift_us_per_min / 1000;
+      cells.push(Math.abs(d) < 0.05 ? "none" : `${d > 0 ? "+" : "−"}${fmt(Math.abs(d), 1)} ms/min`);
+    }
+  }
+  if (typeof cam.bridge_ms_last === "number" && Math.abs(cam.bridge_ms_last) >= 0.05) {
+    cells.push(`${ms(cam.bridge_ms_last * 1000, 1)} ${cam.bridge_ms_last < 0 ? "back" : "on"}`);
+  } else {
+    cells.push("—");
+  }
+  const events = [];
+  if (c && c.state === "relocking") events.push("re-locking");
+  if (c && c.drops) events.push(`${fmt(c.drops)} dropped`);
+  if (c && c.duplicates) events.push(`${fmt(c.duplicates)} dup.`);
+  if (c && c.jumps) events.push(`${fmt(c.jumps)} jump${c.jumps === 1 ? "" : "s"}`);
+  if (cam.unbridged) events.push(`${fmt(cam.unbridged)} left out`);
+  cells.push(events.length ? events.join(", ") : "none");
+  return { cells, title, bad };
+}
+
 /** The time mode row of the loop's health (`/status` processing.timing). */
 export function timingRow(t) {
   if (!t) return ["time mode", "—"];
@@ -246,14 +285,24 @@ export class Health {
         const size = document.createElement("td");
         size.textContent = c.width_px ? `${c.width_px}×${c.height_px}` : "—";
         tr.append(size);
-        // The clock model: period, phase against camera 0, jitter, drift, drops/jumps.
-        const [words, cls] = clockWords(c.index, c.clock);
-        const [bridge, bridgeBad] = bridgeWords(c);
-        const clock = document.createElement("td");
-        clock.className = cls || bridgeBad ? "clock bad" : "clock";
-        clock.textContent = bridge ? `${words}; ${bridge}` : words;
+        return tr;
+      })
+    );
+    // The clock models, one row per camera (period, phase against camera 0, jitter, drift,
+    // the time bridge, drops and jumps); the full sentence is the row's tooltip.
+    document.querySelector("#camera-clocks tbody").replaceChildren(
+      ...(src.cameras || []).map((c) => {
+        const { cells, title, bad } = clockCells(c.index, c.clock, c);
+        const tr = document.createElement("tr");
+        tr.dataset.camera = String(c.index);
         if (c.clock) tr.dataset.clock = c.clock.state;
-        tr.append(clock);
+        tr.title = title;
+        if (bad) tr.className = "bad";
+        for (const v of cells) {
+          const td = document.createElement("td");
+          td.textContent = v;
+          tr.append(td);
+        }
         return tr;
       })
     );
