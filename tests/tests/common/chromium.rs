@@ -203,3 +203,69 @@ pub async fn type_number(c: &Client, id: &str, value: &str) {
         .await
         .unwrap();
 }
+
+/// A screenshot of the element `css` alone, saved to `path`: the element is scrolled into view,
+/// the viewport shot and cut to the element's box. (chromedriver's own element screenshot
+/// sometimes cut a box further down the page here, after the page scrolled.) Taken again
+/// while the box moves (images arriving above it shift the layout).
+pub async fn element_screenshot(c: &Client, css: &str, path: &Path) {
+    let css_js = serde_json::to_string(css).unwrap();
+    js(
+        c,
+        &format!("(document.querySelector({css_js}).scrollIntoView({{block: 'center'}}), true)"),
+    )
+    .await;
+    let rect_js = format!(
+        "(() => {{ const r = document.querySelector({css_js}).getBoundingClientRect(); \
+         return [r.left, r.top, r.width, r.height, window.devicePixelRatio]; }})()"
+    );
+    let mut tries = 0;
+    let (png, rect) = loop {
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let before = js(c, &rect_js).await;
+        let png = c.screenshot().await.unwrap();
+        let after = js(c, &rect_js).await;
+        tries += 1;
+        if before == after || tries == 10 {
+            break (png, after);
+        }
+    };
+    let f = |i: usize| rect[i].as_f64().unwrap_or_else(|| panic!("{css}: no box {rect}"));
+    let dpr = f(4);
+    let cut = [f(0), f(1), f(2), f(3)].map(|v| (v * dpr).round().max(0.0) as u32);
+    let out = crop_png(&png, cut).unwrap_or_else(|e| panic!("{css}: cutting the screenshot: {e}"));
+    std::fs::write(path, &out).unwrap();
+    println!("screenshot: {} ({} bytes, {css})", path.display(), out.len());
+}
+
+/// The part `[x, y, w, h]` (pixels, clamped to the picture) of a PNG, as a PNG.
+fn crop_png(png: &[u8], [x, y, w, h]: [u32; 4]) -> Result<Vec<u8>, String> {
+    let mut reader = png::Decoder::new(png).read_info().map_err(|e| e.to_string())?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).map_err(|e| e.to_string())?;
+    if info.bit_depth != png::BitDepth::Eight {
+        return Err(format!("{:?} bits per sample", info.bit_depth));
+    }
+    let px = info.color_type.samples();
+    let (x, y) = (x.min(info.width), y.min(info.height));
+    let (w, h) = (w.min(info.width - x), h.min(info.height - y));
+    if w == 0 || h == 0 {
+        return Err(format!(
+            "the box {x},{y} {w}×{h} is outside the {}×{} picture",
+            info.width, info.height
+        ));
+    }
+    let mut data = Vec::with_capacity((w * h) as usize * px);
+    for row in y..y + h {
+        let start = row as usize * info.line_size + x as usize * px;
+        data.extend_from_slice(&buf[start..start + w as usize * px]);
+    }
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(&mut out, w, h);
+    enc.set_color(info.color_type);
+    enc.set_depth(info.bit_depth);
+    let mut writer = enc.write_header().map_err(|e| e.to_string())?;
+    writer.write_image_data(&data).map_err(|e| e.to_string())?;
+    writer.finish().map_err(|e| e.to_string())?;
+    Ok(out)
+}
