@@ -173,7 +173,7 @@ async fn update_upload_from_the_system_panel_in_headless_chromium() {
 
     let (_driver, c, _) = open_browser(&dir).await;
     c.set_window_size(LAPTOP.0, LAPTOP.1).await.unwrap();
-    let result = tokio::time::timeout(Duration::from_secs(150), async {
+    let result = tokio::time::timeout(Duration::from_secs(180), async {
         // 1. A board without an operator password: no upload, and the panel says how to set one.
         {
             let cfg = config(&dir, &ca, None);
@@ -472,6 +472,6 @@ async fn update_upload_from_the_system_panel_in_headless_chromium() {
     })
     .await;
     let _ = c.close().await;
-    result.expect("update browser test took longer than 150 s");
+    result.expect("update browser test took longer than 180 s");
     println!("update browser test took {:.1} s", t0.elapsed().as_secs_f64());
 }
