@@ -124,6 +124,8 @@ window.__irtrack = {
   headers: () => Array.from(document.querySelectorAll(".cam .stats")).map((e) => e.textContent),
   capturesSaved: () => capture.saved,
   system: () => Array.from(document.querySelectorAll("#system dd")).map((dd) => dd.textContent),
+  update: () => system.summary(),
+  clocks: () => Array.from(document.querySelectorAll("#camera-clocks tbody tr")).map((tr) => ({ cells: Array.from(tr.children).map((td) => td.textContent), title: tr.title, bad: tr.className === "bad" })),
 };
 
 live.connect();

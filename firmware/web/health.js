@@ -67,8 +67,46 @@ export function bridgeWords(c) {
   if (typeof c.bridge_ms_last === "number" && Math.abs(c.bridge_ms_last) >= 0.05) {
     parts.push(`track carried ${ms(c.bridge_ms_last * 1000, 1)} ${c.bridge_ms_last < 0 ? "back" : "on"}`);
   }
-  if (c.unbridged) parts.push(`${fmt(c.unbridged)} blobs too far in time, left out`);
+  if (c.unbridged) parts.push(`${fmt(c.unbridged)} blob${c.unbridged === 1 ? "" : "s"} too far in time, left out`);
   return [parts.join(", "), Boolean(c.unbridged)];
+}
+
+/** The cells of one camera's row in the clock table: camera, fps, offset to camera 0 (ms, +
+ *  after / − before), jitter (ms RMS), drift (ms/min), bridge (ms, − back / + on), events —
+ *  numbers only, the units in the headers, so the row stays on one line in the side column;
+ *  the whole sentence of `clockWords` and `bridgeWords` goes into the row's tooltip. Returns
+ *  {cells, title, bad}: `bad` marks the events cell (a jump, re-locking, blobs left out). */
+export function clockCells(index, c, cam = {}) {
+  const [words, badClock] = clockWords(index, c);
+  const [bridge, badBridge] = bridgeWords(cam);
+  const title = bridge ? `${words}; ${bridge}` : words;
+  const bad = badClock === "bad" || badBridge;
+  const signed = (v, digits) => `${v < 0 ? "−" : "+"}${fmt(Math.abs(v), digits)}`;
+  const cells = [`camera ${index}`];
+  if (!c || c.state === "warming_up") {
+    cells.push(c ? "measuring…" : "—", "—", "—", "—");
+  } else {
+    cells.push(typeof c.fps === "number" ? fmt(c.fps, 3) : "—");
+    if (index === 0) cells.push("reference");
+    else cells.push(typeof c.phase_us === "number" ? signed(c.phase_us / 1000, 1) : "—");
+    cells.push(typeof c.jitter_rms_us === "number" ? fmt(c.jitter_rms_us / 1000, 2) : "—");
+    if (index === 0 || typeof c.drift_us_per_min !== "number") {
+      cells.push("—");
+    } else {
+      const d = c.drift_us_per_min / 1000;
+      cells.push(Math.abs(d) < 0.05 ? "0" : signed(d, 1));
+    }
+  }
+  const b = cam.bridge_ms_last;
+  cells.push(typeof b === "number" && Math.abs(b) >= 0.05 ? signed(b, 1) : "—");
+  const events = [];
+  if (c && c.state === "relocking") events.push("re-locking");
+  if (c && c.drops) events.push(`${fmt(c.drops)} dropped`);
+  if (c && c.duplicates) events.push(`${fmt(c.duplicates)} dup.`);
+  if (c && c.jumps) events.push(`${fmt(c.jumps)} jump${c.jumps === 1 ? "" : "s"}`);
+  if (cam.unbridged) events.push(`${fmt(cam.unbridged)} left out`);
+  cells.push(events.length ? events.join(", ") : "none");
+  return { cells, title, bad };
 }
 
 /** The time mode row of the loop's health (`/status` processing.timing). */
@@ -246,14 +284,24 @@ export class Health {
         const size = document.createElement("td");
         size.textContent = c.width_px ? `${c.width_px}×${c.height_px}` : "—";
         tr.append(size);
-        // The clock model: period, phase against camera 0, jitter, drift, drops/jumps.
-        const [words, cls] = clockWords(c.index, c.clock);
-        const [bridge, bridgeBad] = bridgeWords(c);
-        const clock = document.createElement("td");
-        clock.className = cls || bridgeBad ? "clock bad" : "clock";
-        clock.textContent = bridge ? `${words}; ${bridge}` : words;
+        return tr;
+      })
+    );
+    // The clock models, one row per camera (period, phase against camera 0, jitter, drift,
+    // the time bridge, drops and jumps); the full sentence is the row's tooltip.
+    document.querySelector("#camera-clocks tbody").replaceChildren(
+      ...(src.cameras || []).map((c) => {
+        const { cells, title, bad } = clockCells(c.index, c.clock, c);
+        const tr = document.createElement("tr");
+        tr.dataset.camera = String(c.index);
         if (c.clock) tr.dataset.clock = c.clock.state;
-        tr.append(clock);
+        tr.title = title;
+        for (const v of cells) {
+          const td = document.createElement("td");
+          td.textContent = v;
+          tr.append(td);
+        }
+        if (bad) tr.lastElementChild.className = "bad";
         return tr;
       })
     );

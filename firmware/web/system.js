@@ -31,18 +31,48 @@ export function lastUpdateWords(u) {
 export function refusalText(status, body) {
   try {
     const v = JSON.parse(body);
-    if (v && typeof v.reason === "string") return `refused: ${v.reason}`;
+    if (v && typeof v.reason === "string") return `Refused: ${v.reason}`;
   } catch (_) {
     // not JSON: the board's own sentence
   }
   return explain(status, body);
 }
 
+/** An installed job in words: "Installed 1.2.0 into slot B; reboot to start it." (the board's
+ *  step says where and what next). */
+export function installedText(job) {
+  const step = (job.step || "").replace(/^installed\s*/, "");
+  return `Installed ${job.version || "the bundle"}${step ? ` ${step}` : ""}.`;
+}
+
+/** Why the upload cannot be used now, with what to do about it ("" when it can). */
+export function uploadBlocked(sys, session, { busy = false, uploading = false, file = null } = {}) {
+  if (!sys) return "";
+  if (sys.backend === "none") {
+    return "Updates are off on this board: irtrackd runs no system updater ([update] backend in irtrackd.toml; see docs/updates.md).";
+  }
+  if (!session) return "";
+  if (!session.operator_configured) {
+    return "Upload is disabled: no operator password is set on this board. Make a hash with irtrackd --hash-password, put it in irtrackd.toml as [service] operator_password_hash (docs/security.md), restart irtrackd, then sign in.";
+  }
+  if (!session.signed_in) return "Upload is disabled until you sign in: enter the operator password at the top right.";
+  if (busy) return "An update is running on the board; wait until it is done.";
+  if (uploading) return "";
+  if (!file) return "Choose a signed bundle (.raucb), then Upload and install.";
+  return "";
+}
+
 export class SystemPanel {
   constructor() {
     this.uploading = false;
+    this.busy = false;
     this.sys = null;
     this.session = null;
+    // The job of this page's last upload (202's id): older jobs in a late status report
+    // must not overwrite its outcome.
+    this.jobId = null;
+    // What the bars showed, for the browser test: upload percentages and install states.
+    this.seen = { upload: [], install: [] };
     $("update-btn").addEventListener("click", () => this.upload());
     $("update-file").addEventListener("change", () => this.buttons());
   }
@@ -66,25 +96,29 @@ export class SystemPanel {
     }
     kv($("system"), rows);
     const job = sys.install;
+    const current = job && (this.jobId === null || job.id >= this.jobId);
     const bar = $("install-progress");
     const running = job && (job.state === "receiving" || job.state === "installing");
-    if (job && job.state === "installing") {
+    if (current && job.state === "installing") {
       bar.hidden = false;
       bar.value = job.percent;
       $("install-label").textContent = `install ${job.percent}% — ${job.step}`;
-    } else if (job && !this.uploading) {
+      this.seen.install.push(`${job.percent}% ${job.step}`);
+    } else if (current && !this.uploading) {
       bar.hidden = job.state !== "installed";
       bar.value = job.state === "installed" ? 100 : 0;
       const msg = $("update-msg");
       if (job.state === "installed") {
-        $("install-label").textContent = "";
-        msg.textContent = `Installed ${job.version || ""} — ${job.step}.`;
+        $("install-label").textContent = "install 100% — done";
+        msg.textContent = installedText(job);
         msg.className = "msg ok";
       } else if (job.state === "refused" && job.refusal) {
         $("install-label").textContent = "";
         msg.textContent = `Refused: ${job.refusal.reason}`;
         msg.className = "msg error";
       }
+      const last = this.seen.install[this.seen.install.length - 1];
+      if (last !== job.state) this.seen.install.push(job.state);
     }
     this.busy = !!running;
     this.buttons();
@@ -92,11 +126,16 @@ export class SystemPanel {
 
   buttons() {
     const btn = $("update-btn");
+    const input = $("update-file");
     const signedIn = !!(this.session && this.session.signed_in);
-    const on = this.sys && this.sys.backend !== "none";
-    const file = $("update-file").files[0];
+    const on = !!this.sys && this.sys.backend !== "none";
+    const file = input.files[0] || null;
+    const why = uploadBlocked(this.sys, this.session, { busy: this.busy, uploading: this.uploading, file });
+    // Choosing a file is pointless when it cannot be sent.
+    input.disabled = !signedIn || !on || this.uploading;
     btn.disabled = !signedIn || !on || !file || this.busy || this.uploading;
-    btn.title = !on ? "this board has no system updater" : !signedIn ? "sign in to upload" : this.busy ? "an update is running" : !file ? "choose a bundle (.raucb) first" : "";
+    btn.title = why;
+    $("update-why").textContent = why;
   }
 
   /** Sends the chosen file; the browser reports the upload's progress. */
@@ -106,9 +145,14 @@ export class SystemPanel {
     const msg = $("update-msg");
     const bar = $("upload-progress");
     this.uploading = true;
+    this.jobId = null;
+    this.seen.upload = [];
     this.buttons();
     bar.hidden = false;
     bar.value = 0;
+    $("install-progress").hidden = true;
+    $("install-label").textContent = "";
+    $("upload-label").textContent = "upload 0%";
     msg.className = "msg";
     msg.textContent = `Uploading ${file.name} (${(file.size / 1048576).toFixed(1)} MiB)…`;
     const xhr = new XMLHttpRequest();
@@ -119,6 +163,7 @@ export class SystemPanel {
       if (e.lengthComputable) {
         bar.value = Math.round((e.loaded * 100) / e.total);
         $("upload-label").textContent = `upload ${bar.value}%`;
+        this.seen.upload.push(bar.value);
       }
     };
     const done = (text, cls) => {
@@ -129,7 +174,13 @@ export class SystemPanel {
     };
     xhr.onload = () => {
       if (xhr.status === 202) {
+        bar.value = 100;
         $("upload-label").textContent = "upload 100%";
+        try {
+          this.jobId = JSON.parse(xhr.responseText).id ?? null;
+        } catch (_) {
+          this.jobId = null;
+        }
         done("Bundle received; installing (the board keeps tracking meanwhile)…", "");
       } else {
         bar.hidden = true;
@@ -139,8 +190,28 @@ export class SystemPanel {
     };
     xhr.onerror = () => {
       bar.hidden = true;
+      $("upload-label").textContent = "";
       done(explain(0, "the upload was cut off"), "error");
     };
     xhr.send(file);
+  }
+
+  /** What the panel shows, as data (the browser test reads it). */
+  summary() {
+    const bar = (id) => ($(id).hidden ? null : $(id).value);
+    return {
+      rows: Array.from(document.querySelectorAll("#system dt")).map((dt) => [dt.textContent, dt.nextElementSibling ? dt.nextElementSibling.textContent : ""]),
+      file_enabled: !$("update-file").disabled,
+      button_enabled: !$("update-btn").disabled,
+      why: $("update-why").textContent,
+      message: $("update-msg").textContent,
+      message_class: $("update-msg").className,
+      upload_bar: bar("upload-progress"),
+      upload_label: $("upload-label").textContent,
+      install_bar: bar("install-progress"),
+      install_label: $("install-label").textContent,
+      uploading: this.uploading,
+      seen: this.seen,
+    };
   }
 }

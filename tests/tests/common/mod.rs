@@ -1,6 +1,6 @@
 //! Running the real `irtrackd` and `host-tools` binaries from the system tests: the shared
 //! harness (`irtrack_testkit::harness`), unwrapped for tests, plus the operator password of the
-//! tests' configs.
+//! tests' configs; `chromium`: driving the set-up page in headless Chromium (browser tests).
 #![allow(dead_code)] // each test binary uses a different subset
 
 use std::net::SocketAddr;
@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use irtrack_testkit::harness::{self, irtrackd};
 
+pub mod chromium;
 pub mod cluster;
 #[allow(unused_imports)] // each test binary uses a different subset
 pub use irtrack_testkit::harness::{Http, Irtrackd, IrtrackdConfig, Proc, TempDir};
