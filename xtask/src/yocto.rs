@@ -678,8 +678,9 @@ fn check_ab(ctx: &Ctx, env: &BbEnv) -> Result<()> {
     }
     // The board's half of the boot script must be the Pandaboard's (files/pandaboard/ first).
     let filespath = exported_value(&update, "FILESPATH").unwrap_or_default();
-    let board_dir = filespath.split(':').position(|p| p.ends_with("/files/pandaboard"));
-    let common_dir = filespath.split(':').position(|p| p.ends_with("irtrack-update/files"));
+    let dirs: Vec<&str> = filespath.split(':').map(|p| p.trim_end_matches('/')).collect();
+    let board_dir = dirs.iter().position(|p| p.ends_with("irtrack-update/files/pandaboard"));
+    let common_dir = dirs.iter().position(|p| p.ends_with("irtrack-update/files"));
     match (board_dir, common_dir) {
         (Some(b), Some(c)) if b < c => {}
         _ => bail!("irtrack-update for {PANDABOARD} does not take files/pandaboard/ before files/: FILESPATH {filespath}"),
