@@ -459,7 +459,10 @@ fn clippy(ctx: &Ctx) -> Outcome {
         "--features",
         CLUSTER_FEATURES,
     ]);
-    check(cmd, "clippy (cargo test --all-targets --no-run with clippy-driver)")
+    check(
+        cmd,
+        "clippy (cargo test --all-targets --no-run with clippy-driver)",
+    )
 }
 
 /// `cargo` for the host debug build with clippy-driver as `RUSTC_WORKSPACE_WRAPPER` (workspace

@@ -56,9 +56,9 @@ impl Ctx {
         // or a clone that holds its own cargo home), every git command that refreshes the index
         // made the next build compile Zenoh and all above it again: the demo's last step
         // rebuilt irtrackd that way. Git must not look above cargo's source trees for a repository.
-        if let Some(ceilings) = cargo_home().and_then(|home| {
-            git_ceilings(&home, std::env::var_os("GIT_CEILING_DIRECTORIES"))
-        }) {
+        if let Some(ceilings) =
+            cargo_home().and_then(|home| git_ceilings(&home, std::env::var_os("GIT_CEILING_DIRECTORIES")))
+        {
             cmd.env("GIT_CEILING_DIRECTORIES", ceilings);
         }
         cmd
@@ -501,13 +501,21 @@ mod cargo_env_tests {
             }
             cmd.output().unwrap()
         };
-        let init = Command::new("git").arg("init").arg("-q").arg(&dir).status().unwrap();
+        let init = Command::new("git")
+            .arg("init")
+            .arg("-q")
+            .arg(&dir)
+            .status()
+            .unwrap();
         assert!(init.success());
         // Without the ceiling git finds the work tree's repository (the failure mode)...
         assert!(git(None).status.success());
         // ...with it, none, as for a cargo home outside any repository.
         let ceilings = git_ceilings(&home, Some(OsString::from("/nonexistent/a"))).unwrap();
-        assert!(ceilings.to_string_lossy().ends_with(":/nonexistent/a"), "{ceilings:?}");
+        assert!(
+            ceilings.to_string_lossy().ends_with(":/nonexistent/a"),
+            "{ceilings:?}"
+        );
         let out = git(Some(ceilings));
         assert!(!out.status.success(), "{}", String::from_utf8_lossy(&out.stdout));
         std::fs::remove_dir_all(&dir).unwrap();

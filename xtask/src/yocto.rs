@@ -597,10 +597,15 @@ fn check(ctx: &Ctx) -> Result<u64> {
             .output()
             .context("running git cat-file")?;
         if !out.status.success() {
-            bail!("{UPDATE_RECIPE} installs {f}, which commit {rev} (SRCREV) does not have: pin a newer commit");
+            bail!(
+                "{UPDATE_RECIPE} installs {f}, which commit {rev} (SRCREV) does not have: pin a newer commit"
+            );
         }
     }
-    println!("yocto: SRCREV holds the {} files irtrack-update installs from the repository", files.len());
+    println!(
+        "yocto: SRCREV holds the {} files irtrack-update installs from the repository",
+        files.len()
+    );
     passed += 1;
 
     println!("yocto: 6. irtrackd is built with the cluster roles (PACKAGECONFIG cluster)");
@@ -647,7 +652,8 @@ fn check_ab(ctx: &Ctx, env: &BbEnv) -> Result<()> {
         "yocto: {AB_WKS}: boot on /uboot (fw_env.config's counters), slots A and B on partitions 2 and 3 as system.conf says, data on 4"
     );
     let image = bitbake_env(env, IMAGE)?;
-    let wks_file = exported_value(&image, "WKS_FILE").context("bitbake -e irtrack-image shows no WKS_FILE")?;
+    let wks_file =
+        exported_value(&image, "WKS_FILE").context("bitbake -e irtrack-image shows no WKS_FILE")?;
     if wks_file != "irtrack-sdcard-ab.wks" {
         bail!("{IMAGE} uses WKS_FILE {wks_file:?}, not the A/B layout");
     }
@@ -674,16 +680,22 @@ fn check_ab(ctx: &Ctx, env: &BbEnv) -> Result<()> {
     let disk = exported_value(&update, "IRTRACK_DISK").unwrap_or_default();
     let compatible = exported_value(&update, "IRTRACK_COMPATIBLE").unwrap_or_default();
     if disk != "/dev/mmcblk0p" || compatible != "irtrack-pandaboard" {
-        bail!("irtrack-update for {PANDABOARD}: IRTRACK_DISK {disk:?} (want /dev/mmcblk0p), IRTRACK_COMPATIBLE {compatible:?}");
+        bail!(
+            "irtrack-update for {PANDABOARD}: IRTRACK_DISK {disk:?} (want /dev/mmcblk0p), IRTRACK_COMPATIBLE {compatible:?}"
+        );
     }
     // The board's half of the boot script must be the Pandaboard's (files/pandaboard/ first).
     let filespath = exported_value(&update, "FILESPATH").unwrap_or_default();
     let dirs: Vec<&str> = filespath.split(':').map(|p| p.trim_end_matches('/')).collect();
-    let board_dir = dirs.iter().position(|p| p.ends_with("irtrack-update/files/pandaboard"));
+    let board_dir = dirs
+        .iter()
+        .position(|p| p.ends_with("irtrack-update/files/pandaboard"));
     let common_dir = dirs.iter().position(|p| p.ends_with("irtrack-update/files"));
     match (board_dir, common_dir) {
         (Some(b), Some(c)) if b < c => {}
-        _ => bail!("irtrack-update for {PANDABOARD} does not take files/pandaboard/ before files/: FILESPATH {filespath}"),
+        _ => bail!(
+            "irtrack-update for {PANDABOARD} does not take files/pandaboard/ before files/: FILESPATH {filespath}"
+        ),
     }
     println!(
         "yocto: {PANDABOARD}: boot partition {boot_files}; slots {disk}2/{disk}3, bundles for {compatible}; boot script half from files/pandaboard/"
@@ -710,11 +722,18 @@ fn wks_partitions(text: &str) -> Vec<WksPart> {
                 words.iter().enumerate().find_map(|(i, w)| {
                     w.strip_prefix(&format!("{flag}="))
                         .map(str::to_string)
-                        .or_else(|| (*w == flag).then(|| words.get(i + 1).map(|v| v.to_string())).flatten())
+                        .or_else(|| {
+                            (*w == flag)
+                                .then(|| words.get(i + 1).map(|v| v.to_string()))
+                                .flatten()
+                        })
                 })
             };
             WksPart {
-                mount: words.first().filter(|w| w.starts_with('/')).map(|w| w.to_string()),
+                mount: words
+                    .first()
+                    .filter(|w| w.starts_with('/'))
+                    .map(|w| w.to_string()),
                 fstype: value("--fstype"),
                 label: value("--label"),
             }
@@ -756,7 +775,10 @@ fn ab_layout_agrees(wks: &str, system_conf: &str, fw_env: &str) -> Result<()> {
     let part = |n: usize| parts.get(n - 1);
     let boot = part(1).filter(|p| p.fstype.as_deref() == Some("vfat"));
     let Some(boot_mount) = boot.and_then(|p| p.mount.clone()) else {
-        bail!("{AB_WKS}: partition 1 is not a mounted vfat boot partition: {:?}", part(1));
+        bail!(
+            "{AB_WKS}: partition 1 is not a mounted vfat boot partition: {:?}",
+            part(1)
+        );
     };
     let env_file = fw_env
         .lines()
@@ -765,7 +787,9 @@ fn ab_layout_agrees(wks: &str, system_conf: &str, fw_env: &str) -> Result<()> {
         .and_then(|l| l.split_whitespace().next())
         .context("fw_env.config names no environment file")?;
     if !env_file.starts_with(&format!("{boot_mount}/")) {
-        bail!("fw_env.config keeps the boot counters in {env_file}, but the boot partition is mounted on {boot_mount}");
+        bail!(
+            "fw_env.config keeps the boot counters in {env_file}, but the boot partition is mounted on {boot_mount}"
+        );
     }
     for (n, label) in [(2, "root-a"), (3, "root-b")] {
         if part(n).and_then(|p| p.label.as_deref()) != Some(label) {
@@ -773,14 +797,23 @@ fn ab_layout_agrees(wks: &str, system_conf: &str, fw_env: &str) -> Result<()> {
         }
     }
     if part(4).and_then(|p| p.mount.as_deref()) != Some("/data") {
-        bail!("{AB_WKS}: partition 4 is not the data partition on /data: {:?}", part(4));
+        bail!(
+            "{AB_WKS}: partition 4 is not the data partition on /data: {:?}",
+            part(4)
+        );
     }
     let slots = rauc_slots(system_conf);
-    let want = [("@DISK@2".to_string(), "A".to_string()), ("@DISK@3".to_string(), "B".to_string())];
+    let want = [
+        ("@DISK@2".to_string(), "A".to_string()),
+        ("@DISK@3".to_string(), "B".to_string()),
+    ];
     if slots != want {
         bail!("{AB_SYSTEM_CONF}: slots {slots:?}, but the layout has A on partition 2 and B on 3");
     }
-    if !system_conf.lines().any(|l| l.trim().starts_with("data-directory=/data/")) {
+    if !system_conf
+        .lines()
+        .any(|l| l.trim().starts_with("data-directory=/data/"))
+    {
         bail!("{AB_SYSTEM_CONF}: RAUC's data-directory is not on the data partition (/data)");
     }
     Ok(())
@@ -1022,15 +1055,23 @@ mod tests {
         assert_eq!(parts[2].mount, None);
         // Slots swapped in system.conf, the boot partition mounted elsewhere, the data
         // partition missing: each is refused, naming what disagrees.
-        let swapped = conf.replace("bootname=A", "bootname=X").replace("bootname=B", "bootname=A");
+        let swapped = conf
+            .replace("bootname=A", "bootname=X")
+            .replace("bootname=B", "bootname=A");
         let e = ab_layout_agrees(&wks, &swapped, &fw_env).unwrap_err().to_string();
         assert!(e.contains("slots"), "{e}");
         let e = ab_layout_agrees(&wks.replace("part /uboot", "part /boot"), &conf, &fw_env)
             .unwrap_err()
             .to_string();
         assert!(e.contains("mounted on /boot"), "{e}");
-        let no_data: String = wks.lines().filter(|l| !l.contains("/data")).map(|l| format!("{l}\n")).collect();
-        let e = ab_layout_agrees(&no_data, &conf, &fw_env).unwrap_err().to_string();
+        let no_data: String = wks
+            .lines()
+            .filter(|l| !l.contains("/data"))
+            .map(|l| format!("{l}\n"))
+            .collect();
+        let e = ab_layout_agrees(&no_data, &conf, &fw_env)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("partition 4"), "{e}");
     }
 
@@ -1044,7 +1085,10 @@ mod tests {
         let files = files_from_source(&update);
         assert!(files.iter().any(|f| f == "image/update/boot.cmd"), "{files:?}");
         for f in &files {
-            assert!(root.join(f).is_file(), "{f} is installed by irtrack-update but not in the tree");
+            assert!(
+                root.join(f).is_file(),
+                "{f} is installed by irtrack-update but not in the tree"
+            );
         }
     }
 
