@@ -104,7 +104,7 @@ else
     setexpr irtrack_from ${irtrack_at} + 5
     cp.b ${irtrack_from} ${irtrack_env_data} 3ffb
     env import -c ${irtrack_env} 3fff BOOT_ORDER BOOT_A_LEFT BOOT_B_LEFT
-    echo "irtrack-boot: boot counters from copy ${irtrack_cur} (flags ${irtrack_flags}; uboot.env valid ${irtrack_ok0} flags ${irtrack_f0}, uboot-redund.env valid ${irtrack_ok1} flags ${irtrack_f1})"
+    echo "irtrack-boot: boot counters from copy ${irtrack_cur} (flags 0x${irtrack_flags}; uboot.env valid ${irtrack_ok0} flags 0x${irtrack_f0}, uboot-redund.env valid ${irtrack_ok1} flags 0x${irtrack_f1})"
 fi
 test -n "${BOOT_ORDER}" || setenv BOOT_ORDER "A B"
 test -n "${BOOT_A_LEFT}" || setenv BOOT_A_LEFT 3
@@ -155,7 +155,7 @@ if test "x${irtrack_slot}" = "x"; then
     reset
 fi
 
-echo "irtrack-boot: slot ${irtrack_slot} (BOOT_ORDER=${BOOT_ORDER}, A left ${BOOT_A_LEFT}, B left ${BOOT_B_LEFT}; written to ${irtrack_next_file} with flags ${irtrack_next_flags})"
+echo "irtrack-boot: slot ${irtrack_slot} (BOOT_ORDER=${BOOT_ORDER}, A left ${BOOT_A_LEFT}, B left ${BOOT_B_LEFT}; written to ${irtrack_next_file} with flags 0x${irtrack_next_flags})"
 
 # Kernel and initramfs come from the slot itself, so an update replaces them with the modules.
 load virtio 0:${irtrack_part} ${kernel_addr_r} /boot/Image

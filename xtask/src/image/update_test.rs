@@ -807,7 +807,7 @@ fn describe(c: &[bootenv::EnvCopy; 2]) -> String {
         .map(|(c, name)| {
             if c.valid {
                 format!(
-                    "{name} valid, flags {} (BOOT_ORDER={}, A {}, B {}{})",
+                    "{name} valid, flags {:#04x} (BOOT_ORDER={}, A {}, B {}{})",
                     c.flags,
                     c.get("BOOT_ORDER").unwrap_or("-"),
                     c.get("BOOT_A_LEFT").unwrap_or("-"),
@@ -896,7 +896,7 @@ fn env_damaged(q: &mut Qemu, d: &EnvDisk) -> Result<String> {
     let line = expect_boot(q, w, "B A", "0", 1)?;
     let healthy_s = wait_healthy(q, 0, "B")?;
     Ok(format!(
-        "before: {before}; then copy {w} says B A / A 0 / B 2 (flags {f}), copy {} newer (flags {}) with a bad CRC; {line}; slot B healthy {healthy_s:.1} s after power-on",
+        "before: {before}; then copy {w} says B A / A 0 / B 2 (flags {f:#04x}), copy {} newer (flags {:#04x}) with a bad CRC; {line}; slot B healthy {healthy_s:.1} s after power-on",
         1 - w,
         bootenv::next_flags(f)
     ))
@@ -950,7 +950,7 @@ fn env_truncated(q: &mut Qemu, d: &EnvDisk) -> Result<String> {
 /// over the copy that lost. U-Boot must take the newest valid copy's counters.
 fn env_setenv_cut(q: &mut Qemu, d: &EnvDisk) -> Result<String> {
     q.console(
-        "(i=0; while [ $i -lt 100000 ]; do i=$((i+1)); fw_setenv irtrack_env_test $i || break; done) >/dev/null 2>&1 &",
+        "(i=0; while [ $i -lt 100000 ]; do i=$((i+1)); fw_setenv irtrack_env_test $i || break; done) >/dev/null 2>&1 & echo loop=$!",
         Duration::from_secs(10),
     )?;
     thread::sleep(Duration::from_secs(4));
@@ -994,7 +994,7 @@ fn env_setenv_cut(q: &mut Qemu, d: &EnvDisk) -> Result<String> {
     let line = expect_boot(q, w, &order, &a_left, b_left - 1)?;
     let healthy_s = wait_healthy(q, 0, "B")?;
     Ok(format!(
-        "{writes} fw_setenv writes before the cut; after it: {after_cut} ({}); then the first half of a newer copy (flags {}, A B) over copy {}; {line}; healthy {healthy_s:.1} s after power-on",
+        "{writes} fw_setenv writes before the cut; after it: {after_cut} ({}); then the first half of a newer copy (flags {:#04x}, A B) over copy {}; {line}; healthy {healthy_s:.1} s after power-on",
         if torn_by_cut {
             "the cut tore a copy"
         } else {
