@@ -153,14 +153,16 @@ fn push_reboot(
         .unwrap()
 }
 
-/// Plays the board's part of a reboot: once the simulated system records the request, stop
-/// irtrackd, stay down a moment, start it again on the same status port.
+/// Plays the board's part of a reboot: once the simulated system records the request, wait
+/// 2 s as the image's root agent does, stop irtrackd, stay down a moment, start it again on the
+/// same status port.
 fn reboot_when_asked(board: Irtrackd, sim_dir: &Path, restart: impl FnOnce() -> Irtrackd) -> Irtrackd {
     let t0 = std::time::Instant::now();
     while !sim_dir.join("reboot-requested").exists() {
         assert!(t0.elapsed() < Duration::from_secs(60), "no reboot asked for");
         std::thread::sleep(Duration::from_millis(50));
     }
+    std::thread::sleep(Duration::from_secs(2));
     board.shutdown(Duration::from_secs(10)).unwrap();
     std::thread::sleep(Duration::from_millis(1500));
     restart()
