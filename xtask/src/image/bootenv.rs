@@ -226,11 +226,14 @@ mod tests {
         assert!(!short.valid);
         assert_eq!(short.problem.as_deref(), Some("1000 bytes, not 16384"));
         assert!(!decode(&[]).valid);
-        // A torn write: the first half of a newer copy over an older one.
-        let newer = encode(&[("BOOT_ORDER", "B A")], 4).unwrap();
+        // A torn write: the first half of a newer copy over an older one. (Its data must reach
+        // past the tear: bytes the new copy shares with the old one tear nothing.)
+        let pad = "x".repeat(ENV_BYTES * 3 / 4);
+        let newer = encode(&[("BOOT_ORDER", "B A"), ("PAD", &pad)], 4).unwrap();
         let mut torn = good.clone();
         torn[..ENV_BYTES / 2].copy_from_slice(&newer[..ENV_BYTES / 2]);
         assert!(!decode(&torn).valid);
+        assert!(decode(&newer).valid);
         assert!(encode(&[("A=B", "1")], 0).is_err());
         assert!(encode(&[("BIG", &"x".repeat(ENV_BYTES))], 0).is_err());
     }

@@ -974,12 +974,16 @@ fn env_setenv_cut(q: &mut Qemu, d: &EnvDisk) -> Result<String> {
     }
     let torn_by_cut = !(c[0].valid && c[1].valid);
     let seq = (writes + 1).to_string();
+    // Its data reaches past the tear, so the half that did not arrive differs from what the
+    // old copy holds there (bytes both share would tear nothing).
+    let pad = "x".repeat(bootenv::ENV_BYTES * 3 / 4);
     let next = bootenv::encode(
         &[
             ("BOOT_ORDER", "A B"),
             ("BOOT_A_LEFT", "3"),
             ("BOOT_B_LEFT", "3"),
             ("irtrack_env_test", seq.as_str()),
+            ("irtrack_env_pad", pad.as_str()),
         ],
         bootenv::next_flags(c[w].flags),
     )?;
