@@ -81,9 +81,14 @@ fn basic() -> String {
 
 /// POST `body` to /api/update; returns (code, body).
 async fn post(addr: SocketAddr, auth: bool, body: &[u8]) -> (u16, String) {
+    post_to(addr, "/api/update", auth, body).await
+}
+
+/// POST `body` to `path` (with its query); returns (code, body).
+async fn post_to(addr: SocketAddr, path: &str, auth: bool, body: &[u8]) -> (u16, String) {
     let mut s = TcpStream::connect(addr).await.unwrap();
     let head = format!(
-        "POST /api/update HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/octet-stream\r\n\
+        "POST {path} HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/octet-stream\r\n\
          Content-Length: {}\r\n{}\r\n",
         body.len(),
         if auth { basic() } else { String::new() }
@@ -212,6 +217,16 @@ async fn upload_installs_into_the_other_slot_and_refuses_bad_bundles_plainly() {
     assert_eq!(sys["other"]["state"], "good");
     assert_eq!(sys["boot_next"], "B");
     assert_eq!(sys["running"]["slot"], "A");
+    // No reboot was asked for: none is pending, the operator reboots.
+    assert_eq!(sys["install"]["reboot"], false);
+    assert!(sys["reboot"].is_null(), "{sys}");
+    assert!(!sim_dir.join("reboot-requested").exists());
+    assert!(
+        sys["install"]["step"]
+            .as_str()
+            .unwrap()
+            .ends_with("reboot to start it")
+    );
     // The slot holds the bundle's signed image, byte for byte.
     let layout = irtrack_firmware::update::inspect_bundle(&b.good).unwrap();
     let slot = std::fs::read(sim_dir.join("slot-B.img")).unwrap();
@@ -240,6 +255,123 @@ async fn upload_installs_into_the_other_slot_and_refuses_bad_bundles_plainly() {
     assert_eq!(sys["running"]["version"], "1.2.0");
     assert_eq!(sys["other"]["version"], "1.1.0");
     assert_eq!(sys["last_update"]["outcome"], "healthy");
+    running.shutdown().await;
+}
+
+/// `/status` → `system` once `system.reboot` is set (asked for after the install).
+async fn reboot_requested(addr: SocketAddr) -> serde_json::Value {
+    let start = Instant::now();
+    loop {
+        let sys = status_json(addr).await["system"].clone();
+        if !sys["reboot"].is_null() && sys["reboot"]["detail"] != "asking for the reboot" {
+            return sys;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "no reboot asked for: {sys}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_upload_with_reboot_reboots_into_the_update_or_rolls_back() {
+    let dir = TempDir::new("system-update-reboot");
+    let keys = dir.path().join("keys");
+    let ca = make_ca(&keys);
+    let good = make_bundle(&keys, dir.path(), "good", COMPATIBLE, "1.2.0");
+    let next = make_bundle(&keys, dir.path(), "next", COMPATIBLE, "1.3.0");
+    let sim_dir = dir.path().join("system");
+    let toml = update_toml(&ca, &sim_dir, 16);
+    let running = start(&dir, &toml).await;
+    let addr = running.addrs.status;
+    let bytes = std::fs::read(&good).unwrap();
+
+    // A query irtrackd does not know is refused before the upload, by name.
+    let (code, body) = post_to(addr, "/api/update?reboot=maybe", true, &bytes).await;
+    assert_eq!(code, 400, "{body}");
+    assert!(body.contains(r#"reboot=\"maybe\" is not 1 or 0"#), "{body}");
+    let (code, body) = post_to(addr, "/api/update?rebot=1", true, &bytes).await;
+    assert_eq!(code, 400, "{body}");
+    assert!(body.contains(r#"unknown parameter \"rebot\""#), "{body}");
+    assert!(status_json(addr).await["system"]["install"].is_null());
+    // Not signed in: 401 before the query is even looked at.
+    let (code, _) = post_to(addr, "/api/update?reboot=1", false, &bytes).await;
+    assert_eq!(code, 401);
+
+    // reboot=1: installed into B, then the reboot is asked for; the simulated system records it.
+    let (code, body) = post_to(addr, "/api/update?reboot=1", true, &bytes).await;
+    assert_eq!(code, 202, "{body}");
+    let v: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(v["reboot"], true);
+    let sys = install_outcome(addr, v["id"].as_u64().unwrap()).await;
+    assert_eq!(sys["install"]["state"], "installed", "{sys}");
+    assert_eq!(sys["install"]["reboot"], true);
+    let sys = reboot_requested(addr).await;
+    assert_eq!(sys["reboot"]["state"], "pending", "{sys}");
+    assert_eq!(sys["reboot"]["slot"], "B");
+    assert_eq!(sys["reboot"]["version"], "1.2.0");
+    assert!(
+        sys["reboot"]["detail"]
+            .as_str()
+            .unwrap()
+            .contains("restart irtrackd (the simulated reboot) to boot slot B"),
+        "{sys}"
+    );
+    assert_eq!(sys["install"]["step"], "installed into slot B; rebooting into it");
+    let record = std::fs::read_to_string(sim_dir.join("reboot-requested")).unwrap();
+    assert!(record.starts_with("slot=B\nversion=1.2.0\ntime=20"), "{record}");
+    let (_, metrics) = common::http_get(addr, "/metrics").await;
+    assert!(
+        metrics.contains("irtrackd_update_reboot_pending 1\n"),
+        "{metrics}"
+    );
+    running.shutdown().await;
+
+    // The reboot (a restart of irtrackd): slot B runs 1.2.0, nothing pending any more.
+    let running = start(&dir, &toml).await;
+    let addr = running.addrs.status;
+    let sys = status_json(addr).await["system"].clone();
+    assert_eq!(sys["running"]["slot"], "B", "{sys}");
+    assert_eq!(sys["running"]["version"], "1.2.0");
+    assert_eq!(sys["last_update"]["outcome"], "healthy");
+    assert!(sys["reboot"].is_null(), "{sys}");
+    assert!(!sim_dir.join("reboot-requested").exists());
+    let (_, metrics) = common::http_get(addr, "/metrics").await;
+    assert!(
+        metrics.contains("irtrackd_update_reboot_pending 0\n"),
+        "{metrics}"
+    );
+
+    // A new system that never becomes healthy: the next boot stays on B and says so.
+    let (code, body) = post_to(addr, "/api/update?reboot=1", true, &std::fs::read(&next).unwrap()).await;
+    assert_eq!(code, 202, "{body}");
+    let id = serde_json::from_str::<serde_json::Value>(&body).unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    assert_eq!(install_outcome(addr, id).await["install"]["state"], "installed");
+    let sys = reboot_requested(addr).await;
+    assert_eq!(sys["reboot"]["slot"], "A", "{sys}");
+    std::fs::write(sim_dir.join("fail-next-boot"), b"").unwrap();
+    running.shutdown().await;
+    let running = start(&dir, &toml).await;
+    let sys = status_json(running.addrs.status).await["system"].clone();
+    assert_eq!(sys["running"]["slot"], "B", "{sys}");
+    assert_eq!(sys["running"]["version"], "1.2.0");
+    assert_eq!(sys["boot_next"], "B");
+    assert_eq!(sys["other"]["slot"], "A");
+    assert_eq!(sys["other"]["version"], "1.3.0");
+    assert_eq!(sys["other"]["state"], "bad");
+    assert_eq!(sys["last_update"]["outcome"], "rolled-back");
+    assert_eq!(sys["last_update"]["ok"], false);
+    assert!(
+        sys["last_update"]["detail"]
+            .as_str()
+            .unwrap()
+            .starts_with("slot A (version 1.3.0) did not become healthy"),
+        "{sys}"
+    );
+    assert!(!sim_dir.join("fail-next-boot").exists());
     running.shutdown().await;
 }
 
@@ -441,15 +573,31 @@ async fn the_rauc_updater_reads_rauc_status_and_follows_rauc_install() {
         "VERSION=1.1.0\nBUILD=abc123.20261128T030000Z\n",
     )
     .unwrap();
+    // The board's reboot command, here a script that records it was run (or fails when told to).
+    let reboot = tools.join("reboot");
+    std::fs::write(
+        &reboot,
+        format!(
+            "#!/bin/sh\n[ -e {dir}/reboot-fails ] && {{ echo 'reboot: permission denied' >&2; exit 1; }}\necho rebooted >> {dir}/rebooted\n",
+            dir = tools.display()
+        ),
+    )
+    .unwrap();
+    {
+        use std::os::unix::fs::PermissionsExt as _;
+        std::fs::set_permissions(&reboot, std::fs::Permissions::from_mode(0o755)).unwrap();
+    }
     let hash = irtrack_firmware::net::auth::hash_password(PASSWORD).unwrap();
     let extra = format!(
         "operator_password_hash = \"{hash}\"\n[update]\nbackend = \"rauc\"\nrauc_command = \"{}\"\n\
-         system_conf = \"{}\"\nlast_update_file = \"{}\"\nrelease_file = \"{}\"\nupload_dir = \"{}\"\n",
+         system_conf = \"{}\"\nlast_update_file = \"{}\"\nrelease_file = \"{}\"\nupload_dir = \"{}\"\n\
+         reboot_command = \"{}\"\n",
         rauc.display(),
         tools.join("system.conf").display(),
         last_update.display(),
         tools.join("release").display(),
-        dir.path().join("upload").display()
+        dir.path().join("upload").display(),
+        reboot.display()
     );
     let running = start(&dir, &extra).await;
     let addr = running.addrs.status;
@@ -501,5 +649,67 @@ async fn the_rauc_updater_reads_rauc_status_and_follows_rauc_install() {
         "refused: downgrade from 1.1.0 to 0.0.1 (touch /data/rauc/allow-downgrade to allow one)"
     );
     assert_eq!(sys["last_update"]["version"], "0.0.1");
+    assert!(
+        sys["reboot"].is_null(),
+        "a refused install asks for no reboot: {sys}"
+    );
+
+    // reboot=1 with RAUC run here (irtrackd as root, no agent): the reboot command runs.
+    std::fs::write(tools.join("mode"), "ok").unwrap();
+    let bytes = std::fs::read(&bundle).unwrap();
+    let (code, body) = post_to(addr, "/api/update?reboot=1", true, &bytes).await;
+    assert_eq!(code, 202, "{body}");
+    let id = serde_json::from_str::<serde_json::Value>(&body).unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    assert_eq!(install_outcome(addr, id).await["install"]["state"], "installed");
+    let sys = reboot_requested(addr).await;
+    assert_eq!(sys["reboot"]["state"], "pending", "{sys}");
+    assert!(
+        sys["reboot"]["detail"]
+            .as_str()
+            .unwrap()
+            .ends_with("ran; the board reboots into slot B"),
+        "{sys}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(tools.join("rebooted")).unwrap(),
+        "rebooted\n"
+    );
+
+    // A reboot command that fails: said in /status, the operator reboots by hand.
+    std::fs::write(tools.join("reboot-fails"), b"").unwrap();
+    let (code, body) = post_to(addr, "/api/update?reboot=1", true, &bytes).await;
+    assert_eq!(code, 202, "{body}");
+    let id = serde_json::from_str::<serde_json::Value>(&body).unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    install_outcome(addr, id).await;
+    let start_t = Instant::now();
+    let sys = loop {
+        let sys = status_json(addr).await["system"].clone();
+        if sys["reboot"]["state"] == "failed" {
+            break sys;
+        }
+        assert!(start_t.elapsed() < Duration::from_secs(20), "{sys}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    let detail = sys["reboot"]["detail"].as_str().unwrap();
+    assert!(
+        detail.contains("permission denied") && detail.ends_with("reboot the board by hand"),
+        "{detail}"
+    );
+    assert!(
+        sys["install"]["step"]
+            .as_str()
+            .unwrap()
+            .contains("the reboot failed"),
+        "{sys}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(tools.join("rebooted")).unwrap(),
+        "rebooted\n",
+        "not run again"
+    );
     running.shutdown().await;
 }

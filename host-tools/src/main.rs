@@ -54,9 +54,9 @@ enum Command {
     Update(cmd::update::Args),
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
-    match cli.command {
+    let result = match cli.command {
         Command::Simulate(a) => cmd::simulate::run(a),
         Command::Track(a) => cmd::track::run(a),
         Command::Plan(a) => cmd::plan::run(a),
@@ -77,5 +77,15 @@ fn main() -> anyhow::Result<()> {
         Command::Capture(a) => cmd::capture::run(a),
         Command::WandCalibrate(a) => cmd::wand_calibrate::run(a),
         Command::Update(a) => cmd::update::run(a),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            // As anyhow's own report from main, with a command's own exit code where it has one
+            // (`update push --reboot`: 3 rolled back, 4 not back in time).
+            eprintln!("Error: {e:?}");
+            let code = e.downcast_ref::<cmd::update::PushExit>().map_or(1, |x| x.code);
+            std::process::ExitCode::from(code)
+        }
     }
 }

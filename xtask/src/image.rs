@@ -20,6 +20,7 @@ use crate::report::Counts;
 use crate::util::{self, Ctx};
 
 pub mod armv7;
+mod bootenv;
 mod checks;
 mod crates;
 mod qemu;
@@ -424,14 +425,7 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
     let work = ctx.target_dir().join(variant.dir);
     fs::create_dir_all(&work)?;
     let update_tools: &[&str] = if variant.ab_updates {
-        &[
-            "rauc",
-            "mksquashfs",
-            "mkimage",
-            "mkenvimage",
-            "openssl",
-            "readelf",
-        ]
+        &["rauc", "mksquashfs", "mkimage", "openssl", "readelf"]
     } else {
         &[]
     };

@@ -114,7 +114,7 @@ const PACKAGES: &[Pkg] = &[
     ),
     pkg(
         "u-boot-tools",
-        "mkimage (boot.scr) and mkenvimage (boot counters) for the A/B image",
+        "mkimage (boot.scr) for the A/B image; mkenvimage cross-checks its boot counter format in xtask's tests",
     ),
     pkg(
         "binutils",

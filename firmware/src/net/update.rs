@@ -6,6 +6,10 @@
 //! runs, 413 too large, 507 no room, 422 the bundle itself (truncated, wrong signature,
 //! downgrade, another board), 400 the upload stopped early.
 //!
+//! `POST /api/update?reboot=1` reboots the board into the new system once it is installed
+//! (the root agent does it on the image; `/status` → `system.reboot` shows it pending). Any
+//! other query parameter, or another `reboot` value, is refused with 400 before the upload.
+//!
 //! An upload takes longer than the listener's usual 30 s exchange: once signed in, the
 //! connection's deadline is moved to [`UPLOAD_EXCHANGE_LIMIT`] ([`ExchangeDeadline`]); a body
 //! that stalls still fails after the usual idle timeout.
@@ -85,6 +89,34 @@ fn refused(r: &Refusal) -> Response {
     )
 }
 
+/// The upload's query: whether it asks for a reboot after the install (`reboot=1`, also
+/// `true`/`yes`; `0`/`false`/`no` or no query: no). Anything else is an error naming it.
+pub fn parse_upload_query(query: Option<&str>) -> std::result::Result<bool, String> {
+    let mut reboot = false;
+    for pair in query.unwrap_or("").split('&').filter(|p| !p.is_empty()) {
+        let (key, value) = pair.split_once('=').unwrap_or((pair, ""));
+        match key {
+            "reboot" => {
+                reboot = match value {
+                    "1" | "true" | "yes" => true,
+                    "0" | "false" | "no" => false,
+                    other => {
+                        return Err(format!(
+                            "reboot={other:?} is not 1 or 0 (POST /api/update?reboot=1 reboots into the update once it is installed)"
+                        ));
+                    }
+                };
+            }
+            other => {
+                return Err(format!(
+                    "unknown parameter {other:?} (POST /api/update takes only reboot=1)"
+                ));
+            }
+        }
+    }
+    Ok(reboot)
+}
+
 /// Opens the part file: mode 0644, as RAUC refuses bundles others may write.
 fn open_part(path: &std::path::Path) -> std::io::Result<std::fs::File> {
     use std::os::unix::fs::OpenOptionsExt as _;
@@ -107,6 +139,7 @@ pub(super) async fn upload(
     State(s): State<Arc<StatusService>>,
     axum::Extension(conn): axum::Extension<ConnInfo>,
     deadline: Option<axum::Extension<ExchangeDeadline>>,
+    axum::extract::RawQuery(query): axum::extract::RawQuery,
     headers: HeaderMap,
     body: Body,
 ) -> Response {
@@ -120,18 +153,27 @@ pub(super) async fn upload(
     if let Err(r) = s.auth.authorize(&headers, conn.peer.ip()).await {
         return s.refusal(r);
     }
+    let reboot = match parse_upload_query(query.as_deref()) {
+        Ok(r) => r,
+        Err(why) => {
+            return json_text(
+                StatusCode::BAD_REQUEST,
+                json_line(&serde_json::json!({"ok": false, "kind": "bad_request", "reason": why})),
+            );
+        }
+    };
     let length = headers
         .get(header::CONTENT_LENGTH)
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
-    let mut ticket = match updates.begin_upload(length) {
+    let mut ticket = match updates.begin_upload(length, reboot) {
         Ok(t) => t,
         Err(r) => return refused(&r),
     };
     if let Some(axum::Extension(d)) = deadline {
         d.extend(UPLOAD_EXCHANGE_LIMIT);
     }
-    tracing::info!(peer = %conn.peer, bytes = ?length, "update upload started");
+    tracing::info!(peer = %conn.peer, bytes = ?length, reboot, "update upload started");
     let part = updates.part_path();
     let mut file = match open_part(&part) {
         Ok(f) => f,
@@ -193,9 +235,36 @@ pub(super) async fn upload(
                 "ok": true,
                 "id": id,
                 "state": "installing",
-                "message": "bundle received; installing (progress in /status → system.install)",
+                "reboot": reboot,
+                "message": if reboot {
+                    "bundle received; installing, then rebooting into it (progress in /status → system.install and system.reboot)"
+                } else {
+                    "bundle received; installing (progress in /status → system.install)"
+                },
             })),
         ),
         Err(r) => refused(&r),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_upload_query;
+
+    #[test]
+    fn the_upload_query_asks_for_a_reboot_or_is_refused_by_name() {
+        assert_eq!(parse_upload_query(None), Ok(false));
+        assert_eq!(parse_upload_query(Some("")), Ok(false));
+        for yes in ["reboot=1", "reboot=true", "reboot=yes", "reboot=0&reboot=1"] {
+            assert_eq!(parse_upload_query(Some(yes)), Ok(true), "{yes}");
+        }
+        for no in ["reboot=0", "reboot=false", "reboot=no"] {
+            assert_eq!(parse_upload_query(Some(no)), Ok(false), "{no}");
+        }
+        let e = parse_upload_query(Some("reboot=maybe")).unwrap_err();
+        assert!(e.contains("reboot=\"maybe\" is not 1 or 0"), "{e}");
+        let e = parse_upload_query(Some("rebot=1")).unwrap_err();
+        assert!(e.contains("unknown parameter \"rebot\""), "{e}");
+        assert!(parse_upload_query(Some("reboot")).is_err());
     }
 }

@@ -86,6 +86,10 @@ pub struct UpdateConfig {
     /// Simulated: the version slot A starts with (default this irtrackd's version).
     #[serde(default = "default_version")]
     pub running_version: String,
+    /// What reboots the board after an install with `reboot=1` when irtrackd runs RAUC itself
+    /// (as root, without the root agent; the agent reboots on its own).
+    #[serde(default = "default_reboot_command")]
+    pub reboot_command: PathBuf,
 }
 
 fn default_max_bundle_mib() -> u64 {
@@ -115,6 +119,9 @@ fn default_compatible() -> String {
 fn default_version() -> String {
     env!("CARGO_PKG_VERSION").into()
 }
+fn default_reboot_command() -> PathBuf {
+    PathBuf::from("reboot")
+}
 
 impl Default for UpdateConfig {
     fn default() -> Self {
@@ -131,6 +138,7 @@ impl Default for UpdateConfig {
             compatible: default_compatible(),
             sim_dir: None,
             running_version: default_version(),
+            reboot_command: default_reboot_command(),
         }
     }
 }
@@ -316,6 +324,22 @@ pub struct Installed {
     pub version: String,
 }
 
+/// A reboot asked for after an install (`POST /api/update?reboot=1`), as `/status` →
+/// `system.reboot` shows it until the board goes down.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct RebootRequest {
+    /// `pending` (asked for: the board goes down shortly) or `failed` (reboot it by hand).
+    pub state: &'static str,
+    /// UTC time it was asked for.
+    pub requested: String,
+    /// The slot that boots next.
+    pub slot: String,
+    /// The version installed there.
+    pub version: String,
+    /// Who reboots the board, or why that failed, in plain words.
+    pub detail: String,
+}
+
 /// Progress callback of an install: percent (0..=100) and the step in words.
 pub type Progress<'a> = &'a mut dyn FnMut(u8, &str);
 
@@ -334,6 +358,9 @@ pub trait SystemUpdater: Send + Sync {
     /// Installs `bundle` into the other slot, reporting progress; the running system is left
     /// unchanged when it refuses.
     fn install(&self, bundle: &Path, progress: Progress) -> std::result::Result<Installed, Refusal>;
+    /// Reboots the board into what was just `installed`: asks whoever may do it and says who
+    /// does it, in plain words. The board goes down shortly after (irtrackd with it).
+    fn request_reboot(&self, installed: &Installed) -> std::result::Result<String, String>;
 }
 
 /// The updater `cfg` selects, or `None` (`none`, or `auto` without RAUC).
@@ -422,6 +449,8 @@ pub struct Job {
     pub refusal: Option<Refusal>,
     /// UTC time it started.
     pub started: String,
+    /// The upload asked for a reboot into the new system once it is installed (`reboot=1`).
+    pub reboot: bool,
 }
 
 impl Job {
@@ -454,6 +483,7 @@ pub struct Updates {
     job: Mutex<Option<Job>>,
     slots: Mutex<SlotsCache>,
     next_id: AtomicU64,
+    reboot: Mutex<Option<RebootRequest>>,
 }
 
 impl Updates {
@@ -479,6 +509,7 @@ impl Updates {
             job: Mutex::new(None),
             slots: Mutex::new(SlotsCache::default()),
             next_id: AtomicU64::new(1),
+            reboot: Mutex::new(None),
         });
         if u.updater.slots_are_cheap() {
             u.refresh_slots_now();
@@ -561,6 +592,51 @@ impl Updates {
         self.job.lock().ok().and_then(|j| j.clone())
     }
 
+    /// The reboot asked for after an install, if any (until irtrackd ends with the board).
+    pub fn reboot(&self) -> Option<RebootRequest> {
+        self.reboot.lock().ok().and_then(|r| r.clone())
+    }
+
+    fn set_reboot(&self, req: RebootRequest) {
+        if let Ok(mut r) = self.reboot.lock() {
+            *r = Some(req);
+        }
+    }
+
+    /// Asks the updater to reboot into `inst` (job `id` asked for it) and records the outcome
+    /// where `/status` shows it.
+    fn reboot_into(&self, id: u64, inst: &Installed) {
+        let mut req = RebootRequest {
+            state: "pending",
+            requested: utc_now(),
+            slot: inst.slot.clone(),
+            version: inst.version.clone(),
+            detail: "asking for the reboot".into(),
+        };
+        self.set_reboot(req.clone());
+        match self.updater.request_reboot(inst) {
+            Ok(how) => {
+                tracing::info!(slot = %inst.slot, version = %inst.version, how = %how, "rebooting into the update");
+                req.detail = how;
+                self.update_job(id, |j| {
+                    j.step = format!("installed into slot {}; rebooting into it", inst.slot);
+                });
+            }
+            Err(why) => {
+                tracing::warn!(error = %why, "the reboot after the install failed");
+                req.state = "failed";
+                req.detail = format!("{why}; reboot the board by hand");
+                self.update_job(id, |j| {
+                    j.step = format!(
+                        "installed into slot {}; the reboot failed ({why}): reboot the board by hand",
+                        inst.slot
+                    );
+                });
+            }
+        }
+        self.set_reboot(req);
+    }
+
     fn update_job(&self, id: u64, f: impl FnOnce(&mut Job)) {
         if let Ok(mut j) = self.job.lock()
             && let Some(job) = j.as_mut()
@@ -605,6 +681,7 @@ impl Updates {
             "slots_error": slots_error,
             "last_update": LastUpdate::read(self.updater.last_update_file()),
             "install": self.job(),
+            "reboot": self.reboot(),
             "max_bundle_bytes": self.max_bundle_bytes,
         })
     }
@@ -620,6 +697,11 @@ impl Updates {
              # HELP irtrackd_update_progress_percent Percent of the running upload or install.\n# TYPE irtrackd_update_progress_percent gauge\nirtrackd_update_progress_percent {pct}\n",
             u8::from(running)
         );
+        let pending = self.reboot().is_some_and(|r| r.state == "pending");
+        s.push_str(&format!(
+            "# HELP irtrackd_update_reboot_pending 1 once a reboot into an installed update was asked for.\n# TYPE irtrackd_update_reboot_pending gauge\nirtrackd_update_reboot_pending {}\n",
+            u8::from(pending)
+        ));
         if let Some(ok) = last_ok {
             s.push_str(&format!(
                 "# HELP irtrackd_update_last_ok 1 if the last update went in, 0 if refused or rolled back.\n# TYPE irtrackd_update_last_ok gauge\nirtrackd_update_last_ok {ok}\n"
@@ -628,9 +710,14 @@ impl Updates {
         s
     }
 
-    /// Starts an upload of `length` bytes (if announced): refused while another runs, when
-    /// too large, or when the upload directory has no room for it.
-    pub fn begin_upload(self: &Arc<Self>, length: Option<u64>) -> std::result::Result<UploadTicket, Refusal> {
+    /// Starts an upload of `length` bytes (if announced), to be followed by a reboot into it
+    /// when `reboot`: refused while another runs, when too large, or when the upload directory
+    /// has no room for it.
+    pub fn begin_upload(
+        self: &Arc<Self>,
+        length: Option<u64>,
+        reboot: bool,
+    ) -> std::result::Result<UploadTicket, Refusal> {
         if let Some(len) = length
             && len > self.max_bundle_bytes
         {
@@ -670,6 +757,7 @@ impl Updates {
             version: None,
             refusal: None,
             started: utc_now(),
+            reboot,
         });
         Ok(UploadTicket {
             updates: Arc::clone(self),
@@ -677,6 +765,7 @@ impl Updates {
             total: length,
             received: 0,
             done: false,
+            reboot,
         })
     }
 
@@ -687,7 +776,11 @@ impl Updates {
                 self.update_job(id, |j| {
                     j.state = "installed";
                     j.percent = 100;
-                    j.step = format!("installed into slot {}; reboot to start it", inst.slot);
+                    j.step = if j.reboot {
+                        format!("installed into slot {}; rebooting into it", inst.slot)
+                    } else {
+                        format!("installed into slot {}; reboot to start it", inst.slot)
+                    };
                     j.version = Some(inst.version);
                 });
             }
@@ -763,6 +856,7 @@ pub struct UploadTicket {
     total: Option<u64>,
     received: u64,
     done: bool,
+    reboot: bool,
 }
 
 impl UploadTicket {
@@ -808,9 +902,11 @@ impl UploadTicket {
     }
 
     /// The whole bundle is in `part_path()`: checks its layout now (a truncated file is
-    /// refused at once) and installs it on a thread of its own.
+    /// refused at once) and installs it on a thread of its own; then, if the upload asked for
+    /// it, reboots into it.
     pub fn install(mut self) -> std::result::Result<u64, Refusal> {
         self.done = true;
+        let reboot = self.reboot;
         let u = Arc::clone(&self.updates);
         let id = self.id;
         if let Some(t) = self.total
@@ -855,8 +951,12 @@ impl UploadTicket {
                 };
                 let result = worker.updater.install(&bundle, &mut progress);
                 let _ = std::fs::remove_file(&bundle);
+                let installed = result.as_ref().ok().cloned();
                 worker.finish_job(id, result);
                 worker.refresh_slots_now();
+                if reboot && let Some(inst) = installed {
+                    worker.reboot_into(id, &inst);
+                }
             });
         if let Err(e) = spawned {
             let r = Refusal::new(

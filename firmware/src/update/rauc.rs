@@ -19,6 +19,10 @@ const STATUS_TIMEOUT: Duration = Duration::from_secs(20);
 /// An install through the agent that shows no sign of life for this long is given up on.
 const AGENT_SILENCE: Duration = Duration::from_secs(120);
 
+/// Between asking for a reboot and running the reboot command here: `/status` shows the
+/// pending reboot meanwhile (the root agent waits as long before it reboots).
+const REBOOT_DELAY: Duration = Duration::from_secs(2);
+
 /// Whether RAUC is reached through the root agent: irtrackd is not root and the agent's
 /// spool exists.
 pub fn use_agent(dir: &Path) -> bool {
@@ -34,6 +38,8 @@ pub struct RaucUpdater {
     release_file: PathBuf,
     /// The root agent's spool, when RAUC is run through it.
     agent: Option<PathBuf>,
+    /// Reboots the board when RAUC runs here (not through the agent).
+    reboot_command: PathBuf,
 }
 
 impl RaucUpdater {
@@ -44,6 +50,7 @@ impl RaucUpdater {
             last_update: cfg.last_update_file.clone(),
             release_file: cfg.release_file.clone(),
             agent: use_agent(&cfg.rauc_agent_dir).then(|| cfg.rauc_agent_dir.clone()),
+            reboot_command: cfg.reboot_command.clone(),
         }
     }
 
@@ -317,6 +324,41 @@ impl SystemUpdater for RaucUpdater {
 
     fn install(&self, bundle: &Path, progress: Progress) -> Result<Installed, Refusal> {
         self.install_bundle(bundle, progress)
+    }
+
+    fn request_reboot(&self, installed: &Installed) -> Result<String, String> {
+        match &self.agent {
+            // The agent (root) reboots, and only while an installed update is pending.
+            Some(dir) => {
+                let path = dir.join("reboot");
+                std::fs::write(&path, format!("{} {}\n", installed.slot, installed.version))
+                    .map_err(|e| format!("asking the update agent to reboot ({}): {e}", path.display()))?;
+                Ok(format!(
+                    "the update agent reboots the board into slot {}",
+                    installed.slot
+                ))
+            }
+            None => {
+                std::thread::sleep(REBOOT_DELAY);
+                let out = Command::new(&self.reboot_command)
+                    .stdin(Stdio::null())
+                    .output()
+                    .map_err(|e| format!("cannot run {}: {e}", self.reboot_command.display()))?;
+                if !out.status.success() {
+                    return Err(format!(
+                        "{} failed ({}): {}",
+                        self.reboot_command.display(),
+                        out.status,
+                        String::from_utf8_lossy(&out.stderr).trim()
+                    ));
+                }
+                Ok(format!(
+                    "{} ran; the board reboots into slot {}",
+                    self.reboot_command.display(),
+                    installed.slot
+                ))
+            }
+        }
     }
 }
 

@@ -3,6 +3,11 @@
 //! configured CA (`openssl cms -verify`), board type and version from its manifest
 //! (`unsquashfs -cat`) — and then "writes" the other slot by copying the bundle's image into
 //! `slot-<X>.img`. Restarting irtrackd stands for the reboot: the slot installed last runs.
+//!
+//! A reboot asked for after an install (`reboot=1`) is recorded in [`REBOOT_REQUESTED`] (whoever
+//! runs the simulated board restarts irtrackd on seeing it; tests assert it); the next start
+//! removes it. [`FAIL_NEXT_BOOT`] stands for a new system that never becomes healthy: the next
+//! start stays on the running slot and records a rollback, as the board's bootloader would.
 
 use std::collections::BTreeMap;
 use std::io::{Read, Seek, SeekFrom, Write};
@@ -21,6 +26,12 @@ use crate::error::{FirmwareError, Result};
 const STATE_FILE: &str = "state.json";
 /// Present in the directory: the next downgrade is allowed once (as `/data/rauc/allow-downgrade`).
 pub const ALLOW_DOWNGRADE: &str = "allow-downgrade";
+/// Written when a reboot is asked for after an install (`key=value`: `slot`, `version`,
+/// `time`); removed by the next start, the simulated reboot.
+pub const REBOOT_REQUESTED: &str = "reboot-requested";
+/// Present at a start that would boot a newly installed slot: that slot "fails" its boots and
+/// the running one stays (a simulated rollback). Removed when used.
+pub const FAIL_NEXT_BOOT: &str = "fail-next-boot";
 
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 struct SimSlot {
@@ -84,7 +95,37 @@ impl SimUpdater {
             },
             Err(e) => return Err(storage(e)),
         };
-        if state.boot_next != state.booted {
+        // This start is the reboot that was asked for.
+        let _ = std::fs::remove_file(dir.join(REBOOT_REQUESTED));
+        let fail = dir.join(FAIL_NEXT_BOOT);
+        if state.boot_next != state.booted && fail.exists() {
+            let _ = std::fs::remove_file(&fail);
+            let failed = std::mem::replace(&mut state.boot_next, state.booted.clone());
+            let failed_version = match state.slots.get_mut(&failed) {
+                Some(slot) => {
+                    slot.good = false;
+                    slot.version.clone().unwrap_or_default()
+                }
+                None => String::new(),
+            };
+            let version = state
+                .slots
+                .get(&state.booted)
+                .and_then(|s| s.version.clone())
+                .unwrap_or_default();
+            let lu = LastUpdate {
+                time: utc_now(),
+                version: version.clone(),
+                outcome: "rolled-back".into(),
+                ok: false,
+                slot: Some(state.booted.clone()),
+                detail: format!(
+                    "slot {failed} (version {failed_version}) did not become healthy (simulated, {FAIL_NEXT_BOOT}); back on slot {} (version {version})",
+                    state.booted
+                ),
+            };
+            lu.write(&last_update)?;
+        } else if state.boot_next != state.booted {
             state.booted = state.boot_next.clone();
             let slot = state.slots.get(&state.booted).cloned().unwrap_or_default();
             let version = slot.version.unwrap_or_default();
@@ -368,6 +409,23 @@ impl SystemUpdater for SimUpdater {
             slot: target.to_string(),
             version: version.clone(),
         })
+    }
+
+    fn request_reboot(&self, installed: &Installed) -> std::result::Result<String, String> {
+        let path = self.dir.join(REBOOT_REQUESTED);
+        let text = format!(
+            "slot={}\nversion={}\ntime={}\n",
+            installed.slot,
+            installed.version,
+            utc_now()
+        );
+        std::fs::write(&path, text)
+            .map_err(|e| format!("recording the reboot in {}: {e}", path.display()))?;
+        Ok(format!(
+            "simulated: recorded in {}; restart irtrackd (the simulated reboot) to boot slot {}",
+            path.display(),
+            installed.slot
+        ))
     }
 }
 

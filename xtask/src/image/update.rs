@@ -11,7 +11,7 @@ use std::process::Command;
 
 use anyhow::{Context, Result, bail};
 
-use super::{find_deb, fresh_dir, run_quiet};
+use super::{bootenv, find_deb, fresh_dir, run_quiet};
 use crate::util::Ctx;
 
 /// The board type in RAUC's `system.conf` and in every bundle's manifest: RAUC refuses a
@@ -23,8 +23,6 @@ pub const BOOT_MIB: u64 = 16;
 pub const SLOT_MIB: u64 = 256;
 /// The data partition: parameter sets, tuning, RAUC's status, a downloaded bundle.
 pub const DATA_MIB: u64 = 192;
-/// Size of the U-Boot environment file that boot.scr and fw_setenv share (fw_env.config).
-const ENV_BYTES: &str = "0x4000";
 
 /// arm64 packages whose files the image carries: RAUC, dbus-daemon (RAUC's command line talks
 /// to `rauc service` over D-Bus), libubootenv's fw_printenv/fw_setenv, and the packages of the
@@ -382,19 +380,20 @@ pub fn make_ca(dir: &Path, name: &str) -> Result<UpdateKeys> {
 }
 
 /// The initial boot counters: slot A first with all its attempts; slot B is empty until the
-/// first update, so it is neither in BOOT_ORDER nor given attempts.
-pub fn initial_env(work: &Path) -> Result<PathBuf> {
-    let text = work.join("uboot-env.txt");
-    fs::write(&text, "BOOT_ORDER=A\nBOOT_A_LEFT=3\nBOOT_B_LEFT=0\n")?;
-    let env = work.join("uboot.env");
-    run_quiet(
-        Command::new("mkenvimage")
-            .args(["-s", ENV_BYTES, "-o"])
-            .arg(&env)
-            .arg(&text),
-    )
-    .context("mkenvimage (u-boot-tools; run `cargo xtask setup`)")?;
-    Ok(env)
+/// first update, so it is neither in BOOT_ORDER nor given attempts. Both copies of the
+/// redundant environment (bootenv.rs) hold them; copy 0 is the newer (flags 1 against 0).
+/// Returns the two files, copy 0 first.
+pub fn initial_env(work: &Path) -> Result<[PathBuf; 2]> {
+    let vars = [("BOOT_ORDER", "A"), ("BOOT_A_LEFT", "3"), ("BOOT_B_LEFT", "0")];
+    let mut out = [PathBuf::new(), PathBuf::new()];
+    for (i, name) in bootenv::COPY_FILES.iter().enumerate() {
+        let path = work.join(name);
+        let flags = if i == 0 { 1 } else { 0 };
+        fs::write(&path, bootenv::encode(&vars, flags)?)
+            .with_context(|| format!("writing {}", path.display()))?;
+        out[i] = path;
+    }
+    Ok(out)
 }
 
 /// boot.scr from image/update/boot.cmd.
@@ -422,8 +421,8 @@ pub fn boot_script(ctx: &Ctx, work: &Path) -> Result<PathBuf> {
     Ok(scr)
 }
 
-/// vfat boot partition of the A/B image: boot.scr and the boot counters.
-pub fn make_boot_partition(out: &Path, boot_scr: &Path, env: &Path) -> Result<u64> {
+/// vfat boot partition of the A/B image: boot.scr and the two copies of the boot counters.
+pub fn make_boot_partition(out: &Path, boot_scr: &Path, env: &[PathBuf; 2]) -> Result<u64> {
     let _ = fs::remove_file(out);
     run_quiet(
         Command::new("mkfs.vfat")
@@ -432,7 +431,11 @@ pub fn make_boot_partition(out: &Path, boot_scr: &Path, env: &Path) -> Result<u6
             .arg((BOOT_MIB * 1024).to_string()),
     )?;
     let img = out.to_string_lossy().into_owned();
-    for (src, dest) in [(boot_scr, "::/boot.scr"), (env, "::/uboot.env")] {
+    let mut files = vec![(boot_scr.to_path_buf(), "::/boot.scr".to_owned())];
+    for (path, name) in env.iter().zip(bootenv::COPY_FILES) {
+        files.push((path.clone(), format!("::/{name}")));
+    }
+    for (src, dest) in files {
         run_quiet(Command::new("mcopy").args(["-i", &img]).arg(src).arg(dest))?;
     }
     Ok(BOOT_MIB << 20)

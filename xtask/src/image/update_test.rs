@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
+use super::bootenv;
 use super::checks::{
     check_params_used, get_status, make_params, push_params, rig_id_of, set_operator_password,
 };
@@ -284,75 +285,70 @@ fn rig_now(status_port: u16) -> Result<Option<String>> {
     Ok(json::str_at(&s, "params.rig_id").map(str::to_owned))
 }
 
-/// Uploads `bundle` to irtrackd's `POST /api/update` as the operator (raw HTTP, the file
-/// streamed), then follows `/status` → `system.install` to its end. Returns (seconds, the
-/// install steps seen) or the board's refusal.
-fn upload_install(status_port: u16, bundle: &Path) -> Result<(f64, String)> {
+/// What `host-tools update push --reboot` reported.
+struct Pushed {
+    /// Upload and install, as host-tools timed it.
+    install_s: f64,
+    /// From the reboot request to the new slot marked good, as host-tools timed it.
+    reboot_s: f64,
+    /// The whole command.
+    total_s: f64,
+    /// Its progress lines (standard error) and closing message.
+    stderr: String,
+    stdout: String,
+}
+
+/// The number just before `marker` in `text` ("... in 26.1 s; rebooted" → 26.1 for " s; rebooted").
+fn number_before(text: &str, marker: &str) -> Option<f64> {
+    let at = text.find(marker)?;
+    text[..at].rsplit(' ').next()?.parse().ok()
+}
+
+/// `host-tools update push --reboot` against the forwarded status port, as an operator would
+/// push from the PC: upload, install through the root agent, reboot, wait for the board.
+fn push_with_reboot(ctx: &Ctx, dir: &Path, status_port: u16, bundle: &Path) -> Result<Pushed> {
+    let pw = dir.join("operator-password");
+    fs::write(&pw, format!("{}\n", crate::util::OPERATOR_PASSWORD))?;
     let t0 = Instant::now();
-    let len = fs::metadata(bundle)?.len();
-    let mut s = TcpStream::connect((Ipv4Addr::LOCALHOST, status_port))?;
-    s.set_read_timeout(Some(INSTALL_TIMEOUT))?;
-    s.write_all(
-        format!(
-            "POST /api/update HTTP/1.1\r\nHost: 127.0.0.1:{status_port}\r\nAuthorization: {}\r\n\
-             Content-Type: application/octet-stream\r\nContent-Length: {len}\r\n\r\n",
-            irtrack_testkit::harness::http::basic_authorization(crate::util::OPERATOR_PASSWORD)
-        )
-        .as_bytes(),
-    )?;
-    std::io::copy(&mut fs::File::open(bundle)?, &mut s)?;
-    let mut answer = String::new();
-    s.read_to_string(&mut answer)?;
-    let upload_s = t0.elapsed().as_secs_f64();
-    let code = answer.split_whitespace().nth(1).unwrap_or("");
-    let body = answer.split_once("\r\n\r\n").map_or("", |(_, b)| b).trim();
-    if code != "202" {
-        bail!("upload answered {code}: {body}");
-    }
-    let id = json::parse(body)?
-        .get("id")
-        .and_then(|i| i.as_u64())
-        .with_context(|| format!("upload answer without a job id: {body}"))?;
-    let mut steps: Vec<String> = Vec::new();
-    loop {
-        let st = get_status(status_port)?;
-        let job = st
-            .get("system")
-            .and_then(|s| s.get("install"))
-            .cloned()
-            .unwrap_or_default();
-        if job.get("id").and_then(|i| i.as_u64()) != Some(id) {
-            bail!("/status no longer shows install {id}: {job}");
-        }
-        let step = format!(
-            "{}% {}",
-            job.get("percent").and_then(|p| p.as_u64()).unwrap_or(0),
-            job.get("step").and_then(|p| p.as_str()).unwrap_or("")
+    let out = ctx
+        .cargo()
+        .args([
+            "run",
+            "-q",
+            "-p",
+            "irtrack-host-tools",
+            "--",
+            "update",
+            "push",
+            "--board",
+        ])
+        .arg(format!("127.0.0.1:{status_port}"))
+        .arg("--password-file")
+        .arg(&pw)
+        .args(["--reboot", "--reboot-timeout-s", "600"])
+        .arg(bundle)
+        .output()
+        .context("running host-tools update push --reboot")?;
+    let total_s = t0.elapsed().as_secs_f64();
+    let stdout = String::from_utf8_lossy(&out.stdout).trim().to_owned();
+    let stderr = String::from_utf8_lossy(&out.stderr).trim().to_owned();
+    if !out.status.success() {
+        bail!(
+            "host-tools update push --reboot exited with {}: {stdout}\n{stderr}",
+            out.status
         );
-        if steps.last() != Some(&step) {
-            steps.push(step);
-        }
-        match job.get("state").and_then(|p| p.as_str()) {
-            Some("installed") => break,
-            Some("refused") => bail!("the board refused the upload: {job}"),
-            _ => {}
-        }
-        if t0.elapsed() > INSTALL_TIMEOUT {
-            bail!(
-                "install {id} did not end within {} s: {job}",
-                INSTALL_TIMEOUT.as_secs()
-            );
-        }
-        thread::sleep(Duration::from_millis(500));
     }
-    Ok((
-        t0.elapsed().as_secs_f64(),
-        format!(
-            "upload {upload_s:.1} s; {} install steps seen, e.g. {}",
-            steps.len(),
-            steps[steps.len() / 2]
-        ),
-    ))
+    let install_s = number_before(&stdout, " s; rebooted")
+        .with_context(|| format!("no install time in host-tools' answer: {stdout}"))?;
+    let reboot_s = number_before(&stdout, " s after the reboot was asked for")
+        .with_context(|| format!("no reboot time in host-tools' answer: {stdout}"))?;
+    Ok(Pushed {
+        install_s,
+        reboot_s,
+        total_s,
+        stderr,
+        stdout,
+    })
 }
 
 /// `/status` → `system.running` as (slot, version) once it names `want_slot` (irtrackd reads
@@ -495,34 +491,46 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
         report.check(what, res);
     }
 
-    // 3. A good update, uploaded to irtrackd as the operator would from the set-up page or
-    //    `host-tools update push`: installed through irtrackd's updater (the root agent runs
-    //    RAUC), then reboot into slot B, healthy, parameters kept.
+    // 3. A good update pushed from the PC with `host-tools update push --reboot`: uploaded to
+    //    irtrackd's POST /api/update?reboot=1, installed through its updater (the root agent
+    //    runs RAUC), the agent reboots the board, host-tools waits for it and reports slot B
+    //    marked good. Then: slot B runs the new version, healthy, parameters kept.
     let password = set_operator_password(&mut q, status_port);
+    let from = q.log_len();
     let good = password.and_then(|_| {
-        let (secs, seen) = upload_install(status_port, &bundle_dir.join("good.raucb"))?;
-        let state = boot_state(&mut q)?;
-        if !state.contains("BOOT_ORDER=B A") || !state.contains(&format!("pending=B {good_version}")) {
-            bail!("after the install: {state}");
+        let pushed = push_with_reboot(ctx, &dir, status_port, &bundle_dir.join("good.raucb"))?;
+        if !q
+            .log_since(from)
+            .contains("irtrack-update-agent: rebooting into the installed update")
+        {
+            bail!(
+                "host-tools reported success, but the root agent did not reboot: {}",
+                pushed.stdout
+            );
         }
-        Ok((secs, format!("{seen}; {state}")))
+        Ok(pushed)
     });
-    let installed = good.is_ok();
-    if let Ok((secs, _)) = &good {
+    let pushed = good.is_ok();
+    if let Ok(p) = &good {
         report.figures.push(format!(
-            "install of the good bundle uploaded to irtrackd (upload over QEMU user networking included): {secs:.1} s"
+            "install of the good bundle with host-tools update push --reboot (upload over QEMU user networking included): {:.1} s",
+            p.install_s
+        ));
+        report.figures.push(format!(
+            "reboot into the updated slot to healthy (marked good), timed by host-tools from the reboot request: {:.1} s; the whole push {:.1} s",
+            p.reboot_s, p.total_s
         ));
     }
     report.check(
-        "signed update uploaded to irtrackd (POST /api/update) and installed into slot B",
-        good.map(|(secs, state)| format!("{secs:.1} s; {state}")),
+        "signed update pushed with host-tools update push --reboot: installed into slot B, rebooted by the root agent, back on slot B marked good",
+        good.map(|p| {
+            let steps = p.stderr.lines().filter(|l| l.starts_with("install:")).count();
+            let reboot: Vec<&str> = p.stderr.lines().filter(|l| l.starts_with("reboot:")).collect();
+            format!("{}; {steps} install steps shown; {}", p.stdout, reboot.join(" | "))
+        }),
     );
-    if installed {
-        let from = q.log_len();
-        let t0 = Instant::now();
-        q.type_line("reboot")?;
-        let res = wait_healthy(&mut q, from, "B").and_then(|_| {
-            let secs = t0.elapsed().as_secs_f64();
+    if pushed {
+        let res = (|| {
             let (slot, version) = running(&mut q)?;
             if slot != "B" || version != good_version {
                 bail!("running slot {slot:?} version {version:?}, want B {good_version}");
@@ -543,22 +551,20 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
                 bail!("last update: {outcome}");
             }
             let state = boot_state(&mut q)?;
-            Ok((
-                secs,
-                format!(
-                    "slot B version {version} healthy {secs:.1} s after `reboot`; rig {} kept; {state}",
-                    rig.clone().unwrap_or_default()
-                ),
+            if !state.contains("BOOT_ORDER=B A")
+                || !state.contains("BOOT_B_LEFT=3")
+                || !state.ends_with("pending=")
+            {
+                bail!("boot state after the update: {state}");
+            }
+            Ok(format!(
+                "slot B version {version} healthy; rig {} kept; {state}",
+                rig.clone().unwrap_or_default()
             ))
-        });
-        if let Ok((secs, _)) = &res {
-            report.figures.push(format!(
-                "reboot into the updated slot to healthy (marked good): {secs:.1} s"
-            ));
-        }
+        })();
         report.check(
             "reboot into the update: irtrackd healthy, parameters kept, marked good",
-            res.map(|(_, d)| d),
+            res,
         );
     }
 
@@ -630,6 +636,7 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
         rig.as_deref(),
         &good_version,
     );
+    let mut env_ok = res.is_ok();
     match res {
         Ok((new_q, detail)) => {
             q = new_q;
@@ -642,6 +649,47 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
             "power cut during an install: the running slot boots unharmed",
             Err(e),
         ),
+    }
+
+    // 6. The boot counters (two copies in libubootenv's redundant layout, bootenv.rs) survive
+    //    a damaged copy and a cut in the middle of fw_setenv. Slot A now holds the half-written
+    //    system of the power cut: a board that fell back to the defaults ("A B") or trusted a
+    //    broken copy would boot slot A, so only slot B with the valid copy's counters passes.
+    let rig_disk = EnvDisk {
+        disk: &disk,
+        ports: &ports,
+        dir: &dir,
+    };
+    type EnvStep = fn(&mut Qemu, &EnvDisk) -> Result<String>;
+    let env_steps: [(&'static str, EnvStep); 3] = [
+        (
+            "boot counters: the newer copy damaged (bad CRC): U-Boot boots the slot the other copy says, with its counters",
+            env_damaged,
+        ),
+        (
+            "boot counters: a copy truncated: U-Boot boots from the other and writes the short one whole again (fw_printenv works)",
+            env_truncated,
+        ),
+        (
+            "boot counters: power cut in a fw_setenv loop, then a half-written newer copy: the newest valid copy wins, not the defaults",
+            env_setenv_cut,
+        ),
+    ];
+    for (name, step) in env_steps {
+        if !env_ok {
+            break;
+        }
+        let t0 = Instant::now();
+        let res = step(&mut q, &rig_disk);
+        env_ok = res.is_ok();
+        if env_ok {
+            report.figures.push(format!(
+                "{}: {:.1} s (power off, edit, boot to healthy)",
+                name.split(':').nth(1).unwrap_or(name).trim(),
+                t0.elapsed().as_secs_f64()
+            ));
+        }
+        report.check(name, res);
     }
     report.figures.push(format!(
         "update test in QEMU: {:.0} s (first boot to the last check)",
@@ -695,9 +743,286 @@ fn power_cut(
     ))
 }
 
+/// The stopped guest's disk, for the boot counter checks.
+struct EnvDisk<'a> {
+    disk: &'a Path,
+    ports: &'a [u16; 4],
+    dir: &'a Path,
+}
+
+/// Partition 1, the FAT boot partition, starts 1 MiB into the SD image (`assemble_sd`).
+const BOOT_PARTITION_OFFSET: u64 = 1 << 20;
+
+impl EnvDisk<'_> {
+    /// `mtools` image argument for the boot partition inside the disk image.
+    fn mtools_image(&self) -> String {
+        format!("{}@@{BOOT_PARTITION_OFFSET}", self.disk.display())
+    }
+
+    fn mcopy(&self, from: &str, to: &str) -> Result<()> {
+        let out = Command::new("mcopy")
+            .env("MTOOLS_SKIP_CHECK", "1")
+            .args(["-n", "-o", "-i", &self.mtools_image(), from, to])
+            .output()
+            .context("running mcopy (mtools; run `cargo xtask setup`)")?;
+        if !out.status.success() {
+            bail!(
+                "mcopy {from} {to}: {}",
+                String::from_utf8_lossy(&out.stderr).trim()
+            );
+        }
+        Ok(())
+    }
+
+    /// Both copies' bytes as the boot partition holds them (any length).
+    fn read(&self) -> Result<[Vec<u8>; 2]> {
+        let mut out = [Vec::new(), Vec::new()];
+        for (i, name) in bootenv::COPY_FILES.iter().enumerate() {
+            let local = self.dir.join(format!("env-read-{name}"));
+            let _ = fs::remove_file(&local);
+            self.mcopy(&format!("::/{name}"), &local.to_string_lossy())?;
+            out[i] = fs::read(&local)?;
+        }
+        Ok(out)
+    }
+
+    /// Replaces copy `i` with `bytes`.
+    fn write(&self, i: usize, bytes: &[u8]) -> Result<()> {
+        let name = bootenv::COPY_FILES[i];
+        let local = self.dir.join(format!("env-write-{name}"));
+        fs::write(&local, bytes)?;
+        self.mcopy(&local.to_string_lossy(), &format!("::/{name}"))
+    }
+
+    fn power_on(&self, q: &mut Qemu, log: &str) -> Result<()> {
+        *q = Qemu::spawn(qemu_command(self.disk, self.ports), &self.dir.join(log))?;
+        Ok(())
+    }
+}
+
+/// Both copies in a few words.
+fn describe(c: &[bootenv::EnvCopy; 2]) -> String {
+    c.iter()
+        .zip(bootenv::COPY_FILES)
+        .map(|(c, name)| {
+            if c.valid {
+                format!(
+                    "{name} valid, flags {:#04x} (BOOT_ORDER={}, A {}, B {}{})",
+                    c.flags,
+                    c.get("BOOT_ORDER").unwrap_or("-"),
+                    c.get("BOOT_A_LEFT").unwrap_or("-"),
+                    c.get("BOOT_B_LEFT").unwrap_or("-"),
+                    c.get("irtrack_env_test")
+                        .map(|v| format!(", test {v}"))
+                        .unwrap_or_default()
+                )
+            } else {
+                format!("{name} invalid ({})", c.problem.as_deref().unwrap_or("?"))
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+fn decode_both(bytes: &[Vec<u8>; 2]) -> [bootenv::EnvCopy; 2] {
+    [bootenv::decode(&bytes[0]), bootenv::decode(&bytes[1])]
+}
+
+/// The whole console line that starts with `needle` (after log offset `from`).
+fn console_line(q: &mut Qemu, needle: &str, from: usize) -> Result<String> {
+    let end = q.wait_for(needle, from, BOOT_TIMEOUT)?;
+    let start = end - needle.len();
+    let nl = q.wait_for("\n", end, Duration::from_secs(10))?;
+    Ok(q.log_since(start)
+        .get(..nl - 1 - start)
+        .unwrap_or("")
+        .trim()
+        .to_owned())
+}
+
+/// Checks U-Boot's lines of a boot: the counters came from copy `copy` and slot B was booted
+/// with `order` and, after taking the attempt, `a_left`/`b_left`. Returns the slot line.
+fn expect_boot(q: &mut Qemu, copy: usize, order: &str, a_left: &str, b_left: u32) -> Result<String> {
+    let line = console_line(q, "irtrack-boot: slot ", 0)?;
+    let want = format!("irtrack-boot: slot B (BOOT_ORDER={order}, A left {a_left}, B left {b_left};");
+    if !line.starts_with(&want) {
+        bail!("U-Boot said {line:?}, want {want:?}");
+    }
+    let log = q.log_since(0);
+    let from = log
+        .lines()
+        .find(|l| l.contains("irtrack-boot: boot counters from") || l.contains("no valid boot counter copy"))
+        .unwrap_or("(no line about the copies)")
+        .trim()
+        .to_owned();
+    if !from.contains(&format!("from copy {copy} ")) {
+        bail!("U-Boot took the counters from another copy than {copy}: {from}");
+    }
+    Ok(line)
+}
+
+/// The values of the copy that counts, for writing it again with distinct counters.
+fn slot_b_env(order: &str, a_left: &str, b_left: &str) -> [(&'static str, String); 3] {
+    [
+        ("BOOT_ORDER", order.to_owned()),
+        ("BOOT_A_LEFT", a_left.to_owned()),
+        ("BOOT_B_LEFT", b_left.to_owned()),
+    ]
+}
+
+fn encode_owned(vars: &[(&str, String)], flags: u8) -> Result<Vec<u8>> {
+    let v: Vec<(&str, &str)> = vars.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    bootenv::encode(&v, flags)
+}
+
+/// Power off after `sync`; the copy that counts says slot B (A 0, B 2 attempts); the other is
+/// newer (flags + 1) but has a bad CRC and says "A B". U-Boot must boot B with B left 1.
+fn env_damaged(q: &mut Qemu, d: &EnvDisk) -> Result<String> {
+    q.console("sync", Duration::from_secs(30))?;
+    q.kill();
+    let c = decode_both(&d.read()?);
+    let before = describe(&c);
+    let w =
+        bootenv::winner(&c[0], &c[1]).with_context(|| format!("no valid copy before the test: {before}"))?;
+    let f = c[w].flags;
+    d.write(w, &encode_owned(&slot_b_env("B A", "0", "2"), f)?)?;
+    let mut bad = bootenv::encode(
+        &[("BOOT_ORDER", "A B"), ("BOOT_A_LEFT", "3"), ("BOOT_B_LEFT", "3")],
+        bootenv::next_flags(f),
+    )?;
+    bad[40] ^= 0x5a;
+    d.write(1 - w, &bad)?;
+    d.power_on(q, "serial-env-damaged.log")?;
+    let line = expect_boot(q, w, "B A", "0", 1)?;
+    let healthy_s = wait_healthy(q, 0, "B")?;
+    Ok(format!(
+        "before: {before}; then copy {w} says B A / A 0 / B 2 (flags {f:#04x}), copy {} newer (flags {:#04x}) with a bad CRC; {line}; slot B healthy {healthy_s:.1} s after power-on",
+        1 - w,
+        bootenv::next_flags(f)
+    ))
+}
+
+/// Both copies must be valid again (U-Boot rewrote the damaged one, fw_setenv the other); then
+/// the newer one is cut to 1000 bytes. U-Boot must boot from the whole one and write the short
+/// file whole again, which libubootenv needs (it refuses a short copy outright).
+fn env_truncated(q: &mut Qemu, d: &EnvDisk) -> Result<String> {
+    q.console("sync", Duration::from_secs(30))?;
+    q.kill();
+    let c = decode_both(&d.read()?);
+    let before = describe(&c);
+    if !(c[0].valid && c[1].valid) {
+        bail!("the damaged copy was not written whole again by the last boot: {before}");
+    }
+    let w = bootenv::winner(&c[0], &c[1]).context("no winner of two valid copies")?;
+    let f = c[w].flags;
+    d.write(w, &encode_owned(&slot_b_env("B A", "0", "3"), f)?)?;
+    let newer = bootenv::encode(
+        &[("BOOT_ORDER", "A B"), ("BOOT_A_LEFT", "3"), ("BOOT_B_LEFT", "3")],
+        bootenv::next_flags(f),
+    )?;
+    d.write(1 - w, &newer[..1000])?;
+    d.power_on(q, "serial-env-truncated.log")?;
+    let line = expect_boot(q, w, "B A", "0", 2)?;
+    let short = format!("{} is 3e8 bytes, not 4000", bootenv::COPY_FILES[1 - w]);
+    if !q.log_since(0).contains(&short) {
+        bail!("U-Boot did not report the short copy ({short:?})");
+    }
+    let healthy_s = wait_healthy(q, 0, "B")?;
+    let env = console_clean(
+        q,
+        "fw_printenv BOOT_ORDER BOOT_A_LEFT BOOT_B_LEFT; echo rc=$?",
+        Duration::from_secs(20),
+    )?;
+    if value_of(&env, "rc").as_deref() != Some("0") || value_of(&env, "BOOT_ORDER").as_deref() != Some("B A")
+    {
+        bail!("fw_printenv after the boot: {env}");
+    }
+    Ok(format!(
+        "before: both copies valid ({before}); copy {} cut to 1000 bytes; {line}; healthy {healthy_s:.1} s after power-on; fw_printenv then: {}",
+        1 - w,
+        env.split_whitespace().collect::<Vec<_>>().join(" ")
+    ))
+}
+
+/// A loop rewrites the environment with fw_setenv (a harmless variable; the counters stay) and
+/// the power is cut in the middle of it, at no chosen moment. The copies are then inspected,
+/// and the next write is cut short on purpose: the first half of a newer copy that says "A B"
+/// over the copy that lost. U-Boot must take the newest valid copy's counters.
+fn env_setenv_cut(q: &mut Qemu, d: &EnvDisk) -> Result<String> {
+    q.console(
+        "(i=0; while [ $i -lt 100000 ]; do i=$((i+1)); fw_setenv irtrack_env_test $i || break; done) >/dev/null 2>&1 & echo loop=$!",
+        Duration::from_secs(10),
+    )?;
+    thread::sleep(Duration::from_secs(4));
+    q.kill();
+    let c = decode_both(&d.read()?);
+    let after_cut = describe(&c);
+    let w =
+        bootenv::winner(&c[0], &c[1]).with_context(|| format!("no valid copy after the cut: {after_cut}"))?;
+    let writes: u64 = c[w]
+        .get("irtrack_env_test")
+        .and_then(|v| v.parse().ok())
+        .with_context(|| format!("the fw_setenv loop wrote nothing before the cut: {after_cut}"))?;
+    let order = c[w].get("BOOT_ORDER").unwrap_or("").to_owned();
+    let a_left = c[w].get("BOOT_A_LEFT").unwrap_or("").to_owned();
+    let b_left: u32 = c[w]
+        .get("BOOT_B_LEFT")
+        .and_then(|v| v.parse().ok())
+        .with_context(|| format!("BOOT_B_LEFT missing: {after_cut}"))?;
+    if order != "B A" || b_left == 0 {
+        bail!("the counters changed during the fw_setenv loop: {after_cut}");
+    }
+    let torn_by_cut = !(c[0].valid && c[1].valid);
+    let seq = (writes + 1).to_string();
+    // Its data reaches past the tear, so the half that did not arrive differs from what the
+    // old copy holds there (bytes both share would tear nothing).
+    let pad = "x".repeat(bootenv::ENV_BYTES * 3 / 4);
+    let next = bootenv::encode(
+        &[
+            ("BOOT_ORDER", "A B"),
+            ("BOOT_A_LEFT", "3"),
+            ("BOOT_B_LEFT", "3"),
+            ("irtrack_env_test", seq.as_str()),
+            ("irtrack_env_pad", pad.as_str()),
+        ],
+        bootenv::next_flags(c[w].flags),
+    )?;
+    let mut torn = d.read()?[1 - w].clone();
+    torn.resize(bootenv::ENV_BYTES, 0);
+    torn[..bootenv::ENV_BYTES / 2].copy_from_slice(&next[..bootenv::ENV_BYTES / 2]);
+    if bootenv::decode(&torn).valid {
+        bail!("the half-written copy is valid; the test cannot tell anything");
+    }
+    d.write(1 - w, &torn)?;
+    d.power_on(q, "serial-env-setenv-cut.log")?;
+    let line = expect_boot(q, w, &order, &a_left, b_left - 1)?;
+    let healthy_s = wait_healthy(q, 0, "B")?;
+    Ok(format!(
+        "{writes} fw_setenv writes before the cut; after it: {after_cut} ({}); then the first half of a newer copy (flags {:#04x}, A B) over copy {}; {line}; healthy {healthy_s:.1} s after power-on",
+        if torn_by_cut {
+            "the cut tore a copy"
+        } else {
+            "the cut fell between two writes"
+        },
+        bootenv::next_flags(c[w].flags),
+        1 - w
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn numbers_are_read_before_their_unit() {
+        let out = "installed 0.1.1 into slot B in 26.1 s; rebooted: slot B runs 0.1.1, healthy and marked good 17.5 s after the reboot was asked for";
+        assert_eq!(number_before(out, " s; rebooted"), Some(26.1));
+        assert_eq!(
+            number_before(out, " s after the reboot was asked for"),
+            Some(17.5)
+        );
+        assert_eq!(number_before(out, " s; missing"), None);
+    }
 
     #[test]
     fn versions_bump_in_their_last_number() {
