@@ -149,7 +149,7 @@ pub fn password_path(dir: &Path, board: &str) -> std::path::PathBuf {
 
 /// Writes `text` to `path` through a new temporary file created with mode 0600 and a rename,
 /// so the secret is never readable by others, not even for a moment.
-fn write_private(path: &Path, text: &str) -> Result<()> {
+pub fn write_private(path: &Path, text: &str) -> Result<()> {
     use std::io::Write;
     use std::os::unix::fs::{OpenOptionsExt, PermissionsExt};
     let io = |e: std::io::Error| bad(path, format!("cannot write: {e}"));

@@ -26,6 +26,15 @@ pub enum ClusterError {
         /// What is wrong.
         reason: String,
     },
+    /// A pushed credential envelope is refused (docs/cluster-envelope.md); `why` gives the
+    /// parameter port's verdict code.
+    #[error("credential envelope refused: {reason}")]
+    Envelope {
+        /// The kind of refusal.
+        why: crate::envelope::Refusal,
+        /// What is wrong, in words (never the secret).
+        reason: String,
+    },
     /// An observation did not encode (id too long, too many blobs).
     #[error("observation: {0}")]
     Observation(#[from] irtrack_core::Error),

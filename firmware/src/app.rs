@@ -252,6 +252,7 @@ fn start_params(
     sim_rig: Option<RigParams>,
     handle: Arc<ParamsHandle>,
     status: Arc<SharedStatus>,
+    credentials: Option<Arc<dyn crate::params::CredentialInbox>>,
 ) -> Result<Arc<ParamService>> {
     let trusted_keys = cfg.params.load_keys()?;
     let store = ParamStore::open(&cfg.service.state_dir)?;
@@ -261,7 +262,8 @@ fn start_params(
         ParamService::new(store, shape, cfg.tracking, handle, status)
             .with_signature_policy(trusted_keys, cfg.params.policy())
             .with_pose_config(cfg.pose)
-            .with_robot_tool(cfg.robot.as_ref().and_then(|r| r.tool.clone())),
+            .with_robot_tool(cfg.robot.as_ref().and_then(|r| r.tool.clone()))
+            .with_credential_inbox(credentials),
     );
     let loaded = params.load_stored();
     if !loaded
@@ -394,7 +396,12 @@ fn start_robot(
 
 /// Starts everything. Must be called inside a tokio runtime. The config is validated first;
 /// listeners are bound before anything else starts, so a port clash fails fast.
-pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
+pub async fn start(mut cfg: Config, overrides: Overrides) -> Result<Running> {
+    // Credentials pushed to this board earlier (docs/cluster.md, "Pushing credentials").
+    let pushed = cfg.cluster.adopt_pushed_credentials(&cfg.service.state_dir);
+    if let Some(f) = &pushed {
+        tracing::info!(file = %f.display(), "cluster transport: using the pushed credentials");
+    }
     let resolved = cfg.validate()?;
     let listeners = bind_listeners(&cfg.listen).await?;
     let outputs = crate::outputs::Outputs::bind(&cfg.outputs, &cfg.service.state_dir)?;
@@ -421,12 +428,15 @@ pub async fn start(cfg: Config, overrides: Overrides) -> Result<Running> {
     // /status and /metrics show the outputs' counters.
     let _ = status.outputs.set(outputs.stats.clone());
 
+    let inbox =
+        crate::cluster::credential_inbox(&cfg.cluster, &cfg.service.state_dir, &cluster, pushed.is_some())?;
     let params = start_params(
         &cfg,
         devices.source.as_ref(),
         devices.sim_rig,
         handle.clone(),
         status.clone(),
+        inbox,
     )?;
     // Tools named by outputs exist in the set irtrackd starts with.
     outputs.check_params(&handle)?;

@@ -69,6 +69,8 @@ pub struct ParamService {
     pose_cfg: PoseConfig,
     /// `[robot] tool`: a set without a tool of this name is rejected.
     robot_tool: Option<String>,
+    /// Where pushed credential envelopes go (cluster roles); none: they are refused.
+    credentials: Option<Arc<dyn CredentialInbox>>,
 }
 
 /// The policy's name in status and logs.
@@ -77,6 +79,17 @@ pub fn policy_name(policy: SignaturePolicy) -> &'static str {
         SignaturePolicy::RequireSigned => "require_signed",
         SignaturePolicy::AllowUnsigned => "allow_unsigned",
     }
+}
+
+/// First bytes of a sealed credential envelope (`irtrack_cluster::envelope`,
+/// docs/cluster-envelope.md), pushed on the parameter port like a parameter blob.
+pub const CREDENTIAL_ENVELOPE_MAGIC: [u8; 4] = *b"IRCK";
+
+/// Takes sealed credential envelopes pushed on the parameter port (cluster camera boards and
+/// solvers): they are signed by the same trusted keys as parameter sets.
+pub trait CredentialInbox: Send + Sync + std::fmt::Debug {
+    /// Verifies, opens and stores one envelope; the verdict as for a parameter set.
+    fn accept(&self, envelope: &[u8], trusted: &[VerifyingKey]) -> Verdict;
 }
 
 fn reject(code: RejectCode, message: String) -> Verdict {
@@ -111,7 +124,14 @@ impl ParamService {
             policy: SignaturePolicy::AllowUnsigned,
             pose_cfg: PoseConfig::default(),
             robot_tool: None,
+            credentials: None,
         }
+    }
+
+    /// Takes credential envelopes pushed on this port (cluster roles).
+    pub fn with_credential_inbox(mut self, inbox: Option<Arc<dyn CredentialInbox>>) -> Self {
+        self.credentials = inbox;
+        self
     }
 
     /// The 6-DOF settings of the processing loop (`[pose]`), so that tools are checked with
@@ -233,6 +253,18 @@ impl ParamService {
         let Ok(_guard) = self.busy.try_lock() else {
             return reject(RejectCode::Busy, "another parameter push is being stored".into());
         };
+        if blob.starts_with(&CREDENTIAL_ENVELOPE_MAGIC) {
+            // Always signed: development mode's unsigned sets do not extend to secrets.
+            let verdict = match &self.credentials {
+                Some(inbox) => inbox.accept(blob, &self.trusted_keys),
+                None => reject(
+                    RejectCode::BadBlob,
+                    "a cluster credential envelope, but this irtrackd takes none (not a camera board or solver of an irtrackd built with the cluster feature)".into(),
+                ),
+            };
+            self.note_rejection(&verdict);
+            return verdict;
+        }
         let verdict = match self.check_blob(blob).and_then(|(rig, crc, signed_by)| {
             let rollback = self.check_rollback(&rig, options)?;
             Ok((rig, crc, signed_by, rollback))

@@ -27,8 +27,14 @@ const PW0: &str = "b0-pw-7Tq2Lm9Xz4Kc8Vn1Rb5W";
 const PW1: &str = "b1-pw-3Hs6Jd0Fy2Gp7Qa9Ue4N";
 
 fn connect(port: u16, auth: Auth) -> Option<Session> {
+    connect_from(port, None, auth)
+}
+
+/// A peer connecting to the solver, from the source address `from` (`ip:port`) when given.
+fn connect_from(port: u16, from: Option<&str>, auth: Auth) -> Option<Session> {
+    let bind = from.map_or(String::new(), |a| format!("#bind={a}"));
     Session::open(&TransportConfig {
-        connect: vec![format!("tcp/127.0.0.1:{port}")],
+        connect: vec![format!("tcp/127.0.0.1:{port}{bind}")],
         auth,
         ..TransportConfig::default()
     })
@@ -44,7 +50,8 @@ fn board_auth(board: &str, password: &str) -> Auth {
 
 /// The genuine boards (b0 cameras 0 and 1, b1 camera 0) observing `p`, and the forgers
 /// observing `forged` under b0's keys with sequence numbers 1000 ahead; until `stop`.
-/// `forged_sent` counts the forgers' puts that Zenoh accepted locally.
+/// `forged_sent` counts the forgers' puts that Zenoh accepted locally. `outsiders`: the peers
+/// (source address if bound, credentials) that forge besides b1's own session.
 fn publish(
     port: u16,
     r: RigParams,
@@ -52,16 +59,20 @@ fn publish(
     forged: Vector3<f64>,
     stop: Arc<AtomicBool>,
     forged_sent: Arc<AtomicU64>,
+    outsiders: Vec<(Option<String>, Auth)>,
 ) {
     let s0 = connect(port, board_auth("b0", PW0)).expect("board b0 opens");
     let s1 = connect(port, board_auth("b1", PW1)).expect("board b1 opens");
     let mut c00 = ObsPublisher::new(&s0, RIG, "b0", 0).unwrap();
     let mut c01 = ObsPublisher::new(&s0, RIG, "b0", 1).unwrap();
     let mut c10 = ObsPublisher::new(&s1, RIG, "b1", 0).unwrap();
-    // Forger 1: no credentials. Forger 2: b1's own session, publishing as b0.
-    let anon = connect(port, Auth::None);
+    // The outsiders (e.g. one without credentials), and b1's own session publishing as b0.
+    let outsiders: Vec<Session> = outsiders
+        .into_iter()
+        .filter_map(|(from, auth)| connect_from(port, from.as_deref(), auth))
+        .collect();
     let mut forgers: Vec<ObsPublisher> = Vec::new();
-    for s in anon.iter().chain([&s1]) {
+    for s in outsiders.iter().chain([&s1]) {
         forgers.push(ObsPublisher::new(s, RIG, "b0", 0).unwrap());
         forgers.push(ObsPublisher::new(s, RIG, "b0", 1).unwrap());
     }
@@ -93,7 +104,7 @@ fn publish(
         let next = start + Duration::from_nanos(seq * period_ns);
         std::thread::sleep(next.saturating_duration_since(Instant::now()));
     }
-    for s in anon.iter().chain([&s0, &s1]) {
+    for s in outsiders.iter().chain([&s0, &s1]) {
         s.close();
     }
 }
@@ -119,7 +130,7 @@ async fn forged_peers_never_move_the_solver() {
     let forged_sent = Arc::new(AtomicU64::new(0));
     let publisher = {
         let (r, stop, sent) = (r.clone(), stop.clone(), forged_sent.clone());
-        std::thread::spawn(move || publish(port, r, p, forged, stop, sent))
+        std::thread::spawn(move || publish(port, r, p, forged, stop, sent, vec![(None, Auth::None)]))
     };
 
     let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
@@ -158,6 +169,416 @@ async fn forged_peers_never_move_the_solver() {
     assert!(sent > 100, "the forgers sent only {sent} observations");
     eprintln!("{n} positions in 3 s, all on the real point; forgers sent {sent}, none arrived");
     running.shutdown().await;
+}
+
+/// irtrackd as a child process, as a unit runs it; killed when dropped.
+struct Irtrackd {
+    child: std::process::Child,
+    params: std::net::SocketAddr,
+    stream: std::net::SocketAddr,
+    status: std::net::SocketAddr,
+}
+
+impl Drop for Irtrackd {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Starts irtrackd `name` with `config` (`dir/<name>.toml`), state in `dir/<name>-state`, log
+/// in `dir/<name>.log` (appended across restarts).
+fn spawn_irtrackd(dir: &std::path::Path, name: &str, config: &str) -> Irtrackd {
+    use std::io::BufRead;
+    let cfg = dir.join(format!("{name}.toml"));
+    std::fs::write(&cfg, config).unwrap();
+    let state = dir.join(format!("{name}-state"));
+    std::fs::create_dir_all(&state).unwrap();
+    let log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(dir.join(format!("{name}.log")))
+        .unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_irtrackd"))
+        .arg("-c")
+        .arg(&cfg)
+        .args(["--ephemeral-ports", "127.0.0.1", "--state-dir"])
+        .arg(&state)
+        .env("RUST_LOG", "info")
+        .stdout(std::process::Stdio::piped())
+        .stderr(log)
+        .spawn()
+        .unwrap();
+    let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    stdout.read_line(&mut line).unwrap();
+    assert!(line.starts_with("irtrackd ready"), "{line}");
+    std::thread::spawn(move || std::io::copy(&mut stdout, &mut std::io::sink()));
+    let addr = |key: &str| -> std::net::SocketAddr {
+        line.split_whitespace()
+            .find_map(|f| f.strip_prefix(key))
+            .unwrap_or_else(|| panic!("{key} in {line}"))
+            .parse()
+            .unwrap()
+    };
+    Irtrackd {
+        params: addr("params="),
+        stream: addr("stream="),
+        status: addr("status="),
+        child,
+    }
+}
+
+/// A free port on a loopback address of its own, as `ip:port`: a forger's source address.
+fn own_address(ip: &str) -> String {
+    let port = std::net::TcpListener::bind((ip, 0))
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    format!("{ip}:{port}")
+}
+
+/// Issue 40, item 4: "an unauthenticated peer is refused and counted". The solver is a real
+/// irtrackd process; a forger without credentials (from 127.0.0.66) and one that claims board
+/// b1 with b0's password (from 127.0.0.67) try to publish. Both are counted with their
+/// address in `/status`, `/metrics` and a plain-words fault; the positions stay on the real
+/// point from all three cameras.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn refused_peers_are_counted_with_their_address() {
+    let dir = TempDir::new("cluster-auth-refused");
+    let r = placed_ring(RIG, &[("b0", 0), ("b0", 1), ("b1", 0)]);
+    let dict = dir.path().join("solver.credentials");
+    std::fs::write(&dict, format!("b0:{PW0}\nb1:{PW1}\n")).unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&dict, std::fs::Permissions::from_mode(0o600)).unwrap();
+    let port = free_tcp_port();
+    let sizes: Vec<String> = r
+        .cameras
+        .iter()
+        .map(|c| {
+            format!(
+                "[{}, {}]",
+                c.model.image_size.width_px, c.model.image_size.height_px
+            )
+        })
+        .collect();
+    let solver = spawn_irtrackd(
+        dir.path(),
+        "solver",
+        &format!(
+            "[params]\nallow_unsigned = true\n[leds]\nbackend = \"none\"\n[cluster]\nrole = \"solver\"\nrig = \"{RIG}\"\n\
+             listen = [\"tcp/127.0.0.1:{port}\"]\nfps = {FPS:.1}\nboard_timeout_ms = 300.0\nimage_sizes_px = [{}]\ncredentials_file = {:?}\n",
+            sizes.join(", "),
+            dict.display().to_string()
+        ),
+    );
+    let verdict = push(solver.params, &r.to_blob().unwrap()).await;
+    assert!(verdict.starts_with("OK"), "{verdict}");
+
+    let anon = own_address("127.0.0.66");
+    let wrong = own_address("127.0.0.67");
+    let p = Vector3::new(20.0, -10.0, 580.0);
+    let forged = Vector3::new(320.0, -10.0, 580.0);
+    let stop = Arc::new(AtomicBool::new(false));
+    let forged_sent = Arc::new(AtomicU64::new(0));
+    let publisher = {
+        let (r, stop, sent) = (r.clone(), stop.clone(), forged_sent.clone());
+        let more = vec![
+            (Some(anon.clone()), Auth::None),
+            (Some(wrong.clone()), board_auth("b1", PW0)),
+        ];
+        std::thread::spawn(move || publish(port, r, p, forged, stop, sent, more))
+    };
+
+    let mut client = NdjsonClient::connect(solver.stream).await;
+    client
+        .until(10 * FPS as usize, |rec| {
+            rec.status == TrackStatus::Ok && rec.cameras_used == 3
+        })
+        .await;
+    // 3 s of records: every position on the real point, from all three cameras.
+    let mut n = 0;
+    let until = Instant::now() + Duration::from_secs(3);
+    while Instant::now() < until {
+        let rec = client.next().await;
+        if let Some(pos) = rec.position_mm {
+            let e = dist_mm(pos, [p.x, p.y, p.z]);
+            assert!(e < 0.05, "a forged position got through: {pos:?} ({e} mm)");
+            assert_eq!(rec.cameras_used, 3, "{rec:?}");
+            n += 1;
+        }
+    }
+    assert!(n as f64 >= 2.0 * FPS, "only {n} positions in 3 s");
+
+    // Both forgers are counted with the address they came from (Zenoh retries a refused
+    // link, so each may be counted more than once).
+    let find = |st: &serde_json::Value, addr: &str| -> Option<serde_json::Value> {
+        st["cluster"]["refused_peers"]["recent"]
+            .as_array()?
+            .iter()
+            .find(|e| e["address"].as_str() == Some(addr))
+            .cloned()
+    };
+    let t0 = Instant::now();
+    let st = loop {
+        let st = status_json(solver.status).await;
+        if (find(&st, &anon).is_some() && find(&st, &wrong).is_some())
+            || t0.elapsed() > Duration::from_secs(10)
+        {
+            break st;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    let refused = &st["cluster"]["refused_peers"];
+    eprintln!("refused_peers: {refused:#}");
+    assert_eq!(refused["counting"], true, "{refused}");
+    for (addr, problem) in [(&anon, "missing"), (&wrong, "wrong_password")] {
+        let e = find(&st, addr).unwrap_or_else(|| panic!("{addr} not counted: {refused:#}"));
+        assert_eq!(e["reason"], "credentials", "{e}");
+        assert_eq!(e["problem"], problem, "{e}");
+        assert!(e["count"].as_u64().unwrap() >= 1, "{e}");
+        let words = e["words"].as_str().unwrap();
+        assert!(
+            words.starts_with(&format!(
+                "a peer at {addr} was refused: wrong or missing credentials"
+            )),
+            "{words}"
+        );
+    }
+    let credentials = refused["by_reason"]["credentials"].as_u64().unwrap();
+    assert!(credentials >= 2, "{refused}");
+    assert!(
+        refused["recent"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|e| e["address"].as_str().is_none_or(|a| a == anon || a == wrong)),
+        "only the forgers are refused, never the boards: {refused:#}"
+    );
+    let faults = &st["fault_texts"];
+    let fault = faults
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| f["code"] == "peer_refused")
+        .unwrap_or_else(|| panic!("no peer_refused fault: {faults:#}"));
+    let text = fault["message"].as_str().unwrap();
+    assert!(
+        [&anon, &wrong].iter().any(|a| text.starts_with(&format!(
+            "a peer at {a} was refused: wrong or missing credentials"
+        ))),
+        "{text}"
+    );
+    // Nothing the forgers sent reached the pairing.
+    assert!(
+        st["cluster"]["refused"].as_object().is_none_or(|m| m.is_empty()),
+        "{}",
+        st["cluster"]["refused"]
+    );
+    let metrics = scrape_metrics(solver.status).await;
+    let counted = metrics
+        .value(
+            "irtrackd_cluster_peers_refused_total",
+            &[("reason", "credentials")],
+        )
+        .unwrap_or_else(|| panic!("no irtrackd_cluster_peers_refused_total: {}", metrics.0));
+    assert!(counted >= 2.0, "{counted}");
+    assert_eq!(
+        metrics.family_type("irtrackd_cluster_peers_refused"),
+        Some("counter")
+    );
+    stop.store(true, Ordering::Relaxed);
+    publisher.join().unwrap();
+    let log = std::fs::read_to_string(dir.path().join("solver.log")).unwrap();
+    assert!(
+        log.lines()
+            .any(|l| l.contains("WARN") && l.contains("was refused: wrong or missing credentials")),
+        "no log line about the refusals:\n{log}"
+    );
+    eprintln!(
+        "{n} positions in 3 s, all on the real point; {credentials} credential refusals counted; forgers sent {}",
+        forged_sent.load(Ordering::Relaxed)
+    );
+}
+
+/// `/status` of irtrackd at `addr` (blocking).
+fn status_now(addr: std::net::SocketAddr) -> serde_json::Value {
+    common::runtime().block_on(status_json(addr))
+}
+
+/// Pushes `bytes` to a parameter port and returns the verdict line (blocking).
+fn push_now(addr: std::net::SocketAddr, bytes: &[u8]) -> String {
+    common::runtime().block_on(push(addr, bytes))
+}
+
+/// Issue 40, item 4: "keys pushed like parameter sets". A solver and a camera board start
+/// without credentials (each makes its key pair); the test seals b0's password to b0's key
+/// and the dictionary to the solver's key, signs both with the PC key they trust, and pushes
+/// them through their parameter ports. Refused over the same sockets: a replay, an envelope
+/// for the other board, one signed by an untrusted key. After a restart both use the pushed
+/// credentials: the board is heard by the solver, and a peer without credentials is refused.
+#[test]
+fn pushed_credentials_let_the_board_in_after_a_restart() {
+    use irtrack_cluster::envelope::{self, Sealing, SecretKind};
+    let dir = TempDir::new("cluster-auth-push");
+    let pc = irtrack_core::signing::SigningKey::from_bytes(&[0x42; 32]);
+    let pub_file = dir.path().join("pc.pub");
+    std::fs::write(
+        &pub_file,
+        irtrack_core::signing::public_key_file(&pc.verifying_key()),
+    )
+    .unwrap();
+    let port = free_tcp_port();
+    let solver_cfg = format!(
+        "[params]\nallow_unsigned = true\ntrusted_keys = [{pub_file:?}]\n[leds]\nbackend = \"none\"\n[cluster]\nrole = \"solver\"\nrig = \"rt\"\nboard = \"s0\"\n\
+         listen = [\"tcp/127.0.0.1:{port}\"]\nfps = 30.0\nimage_sizes_px = [[640, 480], [640, 480]]\n"
+    );
+    let board_cfg = format!(
+        "[params]\ntrusted_keys = [{pub_file:?}]\n[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n\
+         [source.sim]\nfps = 30.0\nwall_clock = true\n\
+         [cluster]\nrole = \"camera\"\nrig = \"rt\"\nboard = \"b0\"\nconnect = [\"tcp/127.0.0.1:{port}\"]\nfps = 30.0\n"
+    );
+    let solver = spawn_irtrackd(dir.path(), "solver", &solver_cfg);
+    let board = spawn_irtrackd(dir.path(), "board", &board_cfg);
+    let key_of = |st: &serde_json::Value| {
+        envelope::parse_key_hex(
+            st["cluster"]["box_public_key"]
+                .as_str()
+                .unwrap_or_else(|| panic!("{st}")),
+        )
+        .unwrap()
+    };
+    let (solver_key, board_key) = (
+        key_of(&status_now(solver.status)),
+        key_of(&status_now(board.status)),
+    );
+    assert_ne!(solver_key, board_key);
+
+    let keys = dir.path().join("keys");
+    irtrack_cluster::credentials::write_new_credentials(&keys, &["b0"], false).unwrap();
+    let password = std::fs::read(irtrack_cluster::credentials::password_path(&keys, "b0")).unwrap();
+    let dictionary = std::fs::read(irtrack_cluster::credentials::dictionary_path(&keys)).unwrap();
+    let seal = |kind,
+                board: &str,
+                serial,
+                recipient,
+                plaintext: &[u8],
+                signer: &irtrack_core::signing::SigningKey| {
+        envelope::seal(
+            &Sealing {
+                kind,
+                board,
+                serial,
+                created_unix_s: 1_795_000_000,
+                recipient,
+                plaintext,
+            },
+            signer,
+        )
+        .unwrap()
+    };
+    let to_board = seal(SecretKind::BoardPassword, "b0", 5, board_key, &password, &pc);
+    let to_solver = seal(
+        SecretKind::SolverDictionary,
+        "s0",
+        5,
+        solver_key,
+        &dictionary,
+        &pc,
+    );
+    // Refused before anything is stored: signed by a key neither trusts; b0's envelope at
+    // the solver (sealed to b0's key).
+    let stranger = irtrack_core::signing::SigningKey::from_bytes(&[0x43; 32]);
+    let forged = seal(
+        SecretKind::BoardPassword,
+        "b0",
+        6,
+        board_key,
+        &password,
+        &stranger,
+    );
+    let v = push_now(board.params, &forged);
+    assert!(
+        v.starts_with("ERR UNAUTHORIZED") && v.contains("does not trust"),
+        "{v}"
+    );
+    let v = push_now(solver.params, &to_board);
+    assert!(
+        v.starts_with("ERR RIG_MISMATCH") && v.contains("sealed to key"),
+        "{v}"
+    );
+    // Accepted, then the same envelope again is a replay.
+    assert_eq!(push_now(board.params, &to_board).trim(), "OK credentials-b0-5");
+    assert_eq!(push_now(solver.params, &to_solver).trim(), "OK credentials-s0-5");
+    let v = push_now(board.params, &to_board);
+    assert!(
+        v.starts_with("ERR ROLLBACK") && v.contains("replayed or older"),
+        "{v}"
+    );
+    let st = status_now(board.status);
+    let pushed = &st["cluster"]["pushed_credentials"];
+    assert_eq!(pushed["serial"], 5, "{pushed}");
+    assert_eq!(pushed["in_use"], false, "{pushed}");
+    assert!(
+        pushed["words"]
+            .as_str()
+            .unwrap()
+            .contains("takes effect at the next start"),
+        "{pushed}"
+    );
+    // The secret is stored mode 0600, and the envelope never carried it in clear.
+    use std::os::unix::fs::PermissionsExt;
+    let stored = dir.path().join("board-state/cluster-credentials/board.password");
+    assert_eq!(
+        std::fs::metadata(&stored).unwrap().permissions().mode() & 0o777,
+        0o600
+    );
+    assert_eq!(std::fs::read(&stored).unwrap(), password);
+    assert!(!to_board.windows(16).any(|w| w == &password[..16]));
+
+    // Restart both: they take the pushed credentials; the board is heard by the solver.
+    drop(board);
+    drop(solver);
+    let solver = spawn_irtrackd(dir.path(), "solver", &solver_cfg);
+    let board = spawn_irtrackd(dir.path(), "board", &board_cfg);
+    let outsider = own_address("127.0.0.66");
+    let _anon = connect_from(port, Some(outsider.as_str()), Auth::None);
+    let t0 = Instant::now();
+    let (mut received, mut refused) = (0, false);
+    while t0.elapsed() < Duration::from_secs(10) && (received < 30 || !refused) {
+        std::thread::sleep(Duration::from_millis(200));
+        let st = status_now(solver.status);
+        received = st["cluster"]["received"].as_u64().unwrap_or(0);
+        refused = st["cluster"]["refused_peers"]["recent"]
+            .as_array()
+            .is_some_and(|a| a.iter().any(|e| e["address"].as_str() == Some(outsider.as_str())));
+    }
+    let st = status_now(solver.status);
+    assert!(
+        received >= 30,
+        "the board was not heard with its pushed password: {}",
+        st["cluster"]
+    );
+    assert!(
+        refused,
+        "a peer without credentials was not refused: {}",
+        st["cluster"]["refused_peers"]
+    );
+    assert_eq!(
+        st["cluster"]["pushed_credentials"]["in_use"], true,
+        "{}",
+        st["cluster"]
+    );
+    let bst = status_now(board.status);
+    assert_eq!(
+        bst["cluster"]["pushed_credentials"]["in_use"], true,
+        "{}",
+        bst["cluster"]
+    );
+    eprintln!(
+        "after the restart the solver received {received} observations from b0 with its pushed password"
+    );
 }
 
 #[test]

@@ -135,18 +135,25 @@ fn load_config(cli: &Cli) -> anyhow::Result<Config> {
 }
 
 fn init_logging() {
-    use tracing_subscriber::EnvFilter;
+    use tracing_subscriber::prelude::*;
+    use tracing_subscriber::{EnvFilter, Layer, fmt};
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr);
     // journald stamps lines itself and shows escape codes literally.
-    let tty = std::io::stderr().is_terminal();
-    if std::env::var_os("JOURNAL_STREAM").is_some() {
-        builder.with_ansi(false).without_time().init();
+    let journald = std::env::var_os("JOURNAL_STREAM").is_some();
+    let log = fmt::layer()
+        .with_writer(std::io::stderr)
+        .with_ansi(!journald && std::io::stderr().is_terminal());
+    let log = if journald {
+        log.without_time().boxed()
     } else {
-        builder.with_ansi(tty).init();
-    }
+        log.boxed()
+    };
+    // The log's filter is the log's own (a layer filter), so the cluster's refusal counter
+    // gets Zenoh's accept events whatever RUST_LOG says (docs/cluster.md, "Refused peers").
+    let subscriber = tracing_subscriber::registry().with(log.with_filter(filter));
+    #[cfg(feature = "cluster")]
+    let subscriber = subscriber.with(irtrack_cluster::refusals::refusal_layer());
+    subscriber.init();
 }
 
 /// `--hash-password`: one line from stdin (trailing newline removed) → PHC string on stdout.
@@ -168,13 +175,15 @@ fn main() -> anyhow::Result<()> {
         return hash_password();
     }
     init_logging();
-    let cfg = match load_config(&cli) {
+    let mut cfg = match load_config(&cli) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("irtrackd: {e:#}");
             std::process::exit(2);
         }
     };
+    // Credentials pushed earlier count for `--check-config` as they do at start.
+    cfg.cluster.adopt_pushed_credentials(&cfg.service.state_dir);
     if let Some(dir) = &cli.write_ptp_config {
         if !cfg.clock.ptp {
             println!("irtrackd: [clock] ptp is off: no PTP config written");

@@ -12,6 +12,8 @@ use crate::error::{FirmwareError, Result};
 pub mod agreement;
 #[cfg(feature = "cluster")]
 pub mod camera;
+#[cfg(feature = "cluster")]
+pub mod keys;
 pub mod report;
 pub use report::{BoardReport, ClusterReport};
 #[cfg(feature = "cluster")]
@@ -391,6 +393,43 @@ pub fn new_report(cfg: &ClusterConfig) -> Option<SharedReport> {
 pub fn register(status: &crate::status::SharedStatus, report: &Option<SharedReport>) {
     if let (Some(r), Ok(mut g)) = (report, status.cluster.lock()) {
         *g = Some(r.clone());
+    }
+}
+
+/// The parameter port's handler of pushed credential envelopes for a camera board or solver
+/// (`keys::Inbox`; its key pair is made at the first start). `in_use`: the running credentials
+/// came from an earlier push.
+#[cfg(feature = "cluster")]
+pub fn credential_inbox(
+    cfg: &ClusterConfig,
+    state_dir: &std::path::Path,
+    report: &Option<SharedReport>,
+    in_use: bool,
+) -> Result<Option<std::sync::Arc<dyn crate::params::CredentialInbox>>> {
+    let Some(report) = report else { return Ok(None) };
+    let inbox = keys::Inbox::open(cfg, state_dir, report.clone(), in_use)?;
+    Ok(Some(
+        std::sync::Arc::new(inbox) as std::sync::Arc<dyn crate::params::CredentialInbox>
+    ))
+}
+
+/// Without the `cluster` feature no credentials are taken.
+#[cfg(not(feature = "cluster"))]
+pub fn credential_inbox(
+    _cfg: &ClusterConfig,
+    _state_dir: &std::path::Path,
+    _report: &Option<SharedReport>,
+    _in_use: bool,
+) -> Result<Option<std::sync::Arc<dyn crate::params::CredentialInbox>>> {
+    Ok(None)
+}
+
+/// Without the `cluster` feature there are no pushed credentials to adopt.
+#[cfg(not(feature = "cluster"))]
+impl ClusterConfig {
+    /// Always `None` without the `cluster` feature.
+    pub fn adopt_pushed_credentials(&mut self, _state_dir: &std::path::Path) -> Option<std::path::PathBuf> {
+        None
     }
 }
 

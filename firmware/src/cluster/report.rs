@@ -60,6 +60,88 @@ pub struct BoardReport {
     pub disagrees_with: Option<String>,
 }
 
+/// A peer the solver's Zenoh refused (`/status` → `cluster.refused_peers.recent`).
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct RefusedPeerReport {
+    /// `ip:port` it connected from; `None`: it sent nothing before its link ended.
+    pub address: Option<String>,
+    /// `credentials`, `handshake_timeout` or `accept_limit`.
+    pub reason: &'static str,
+    /// For `credentials`: `missing`, `unknown_user`, `wrong_password` or `unreadable`.
+    pub problem: Option<&'static str>,
+    /// Refusals of this address for this reason.
+    pub count: u64,
+    /// Time since the newest, s.
+    pub age_s: f64,
+    /// The newest, Unix time, ms.
+    pub last_unix_ms: u64,
+    /// In plain words ("a peer at 10.0.0.66:51234 was refused: wrong or missing credentials
+    /// (it sent no credentials)").
+    pub words: String,
+}
+
+/// Peers the solver's Zenoh refused while they opened a link (`/status` →
+/// `cluster.refused_peers`; docs/cluster.md, "Refused peers").
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct PeerRefusalsReport {
+    /// Refusals are being counted (irtrackd's log layer is installed); `false`: every count is
+    /// 0 because nothing looks, not because nothing was refused.
+    pub counting: bool,
+    /// Every refusal since start.
+    pub total: u64,
+    /// Per reason (`credentials`, `handshake_timeout`, `accept_limit`).
+    pub by_reason: std::collections::BTreeMap<&'static str, u64>,
+    /// Credential refusals per problem.
+    pub credentials: std::collections::BTreeMap<&'static str, u64>,
+    /// The latest refused addresses (at most 16), newest first.
+    pub recent: Vec<RefusedPeerReport>,
+}
+
+/// Credentials pushed to this board (`/status` → `cluster.pushed_credentials`).
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct PushedCredentialsReport {
+    /// The accepted envelope's serial.
+    pub serial: u64,
+    /// The key id that signed it (known for a push since this start).
+    pub signed_by: Option<String>,
+    /// The Zenoh session runs with them (they were there at start).
+    pub in_use: bool,
+    /// In words ("stored (serial 7); takes effect at the next start of irtrackd").
+    pub words: String,
+}
+
+/// How long the `peer_refused` fault stays after the newest refusal, s.
+pub const PEER_REFUSED_FAULT_S: f64 = 60.0;
+
+impl PeerRefusalsReport {
+    /// The `peer_refused` fault while the newest refusal is under a minute old: who, why, how
+    /// many, and what to do.
+    pub fn fault_text(&self) -> Option<String> {
+        let newest = self.recent.first().filter(|p| p.age_s < PEER_REFUSED_FAULT_S)?;
+        let counts: Vec<String> = self
+            .by_reason
+            .iter()
+            .filter(|(_, n)| **n > 0)
+            .map(|(k, n)| format!("{} {n}", k.replace('_', " ")))
+            .collect();
+        let advice = match newest.reason {
+            "credentials" => {
+                "if it is a camera board, give it its password file and list it in the solver's credentials file (host-tools cluster-keys, docs/cluster.md \"Credentials\"); otherwise a host on the cell network tries to publish observations: find it by its address"
+            }
+            _ => {
+                "connections that never finish Zenoh's handshake are a port scan or a connection flood: keep the Zenoh port to the boards' addresses (docs/security.md, \"Cluster transport\")"
+            }
+        };
+        Some(format!(
+            "{}, {:.0} s ago; {} refused since start ({}) — nothing it sent was used; {advice}",
+            newest.words,
+            newest.age_s,
+            self.total,
+            counts.join(", ")
+        ))
+    }
+}
+
 /// `/status` → `cluster` (camera and solver roles).
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
 pub struct ClusterReport {
@@ -136,6 +218,14 @@ pub struct ClusterReport {
     /// Solver: camera sequences that went back while the capture time went on (a board
     /// restarted and counts from its start again): taken as a restart, not refused.
     pub sequence_restarts: u64,
+    /// Solver: peers its Zenoh refused while they opened a link (wrong or missing
+    /// credentials, handshake timeout, accept limit), with their addresses.
+    pub refused_peers: Option<PeerRefusalsReport>,
+    /// This board's X25519 public key for pushed credentials (64 hex digits), which
+    /// `host-tools cluster-keys push` pins (docs/cluster.md, "Pushing credentials").
+    pub box_public_key: Option<String>,
+    /// Credentials pushed to this board, if any.
+    pub pushed_credentials: Option<PushedCredentialsReport>,
 }
 
 impl ClusterReport {
@@ -206,6 +296,13 @@ impl ClusterReport {
                     ),
                 ));
             }
+        }
+        if let Some(text) = self
+            .refused_peers
+            .as_ref()
+            .and_then(PeerRefusalsReport::fault_text)
+        {
+            out.push(("peer_refused", None, text));
         }
         let refused: u64 = self.refused.values().sum();
         if refused > 0 {
@@ -339,6 +436,17 @@ impl prometheus_client::collector::Collector for ClusterReport {
         for (reason, n) in &self.refused {
             ConstCounter::new(*n).encode(m.encode_family(&[("reason", *reason)])?)?;
         }
+        if let Some(p) = self.refused_peers.as_ref().filter(|p| p.counting) {
+            let mut m = enc.encode_descriptor(
+                "irtrackd_cluster_peers_refused",
+                "links the solver's Zenoh refused while they opened, by reason (credentials, handshake_timeout, accept_limit)",
+                None,
+                MetricType::Counter,
+            )?;
+            for (reason, n) in &p.by_reason {
+                ConstCounter::new(*n).encode(m.encode_family(&[("reason", *reason)])?)?;
+            }
+        }
         let mut m = enc.encode_descriptor(
             "irtrackd_cluster_camera_missing",
             "empty slots of this camera in closed sets",
@@ -465,6 +573,62 @@ fn camera_words(cameras: &[usize]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_refused_peer_is_a_fault_for_a_minute_and_a_metric() {
+        let mut p = PeerRefusalsReport {
+            counting: true,
+            total: 3,
+            by_reason: [("accept_limit", 0), ("credentials", 2), ("handshake_timeout", 1)].into(),
+            credentials: [("missing", 2)].into(),
+            recent: vec![RefusedPeerReport {
+                address: Some("10.0.0.66:51234".into()),
+                reason: "credentials",
+                problem: Some("missing"),
+                count: 2,
+                age_s: 4.2,
+                last_unix_ms: 0,
+                words: "a peer at 10.0.0.66:51234 was refused: wrong or missing credentials (it sent no credentials)".into(),
+            }],
+        };
+        let report = ClusterReport {
+            role: "solver",
+            refused_peers: Some(p.clone()),
+            ..ClusterReport::default()
+        };
+        let texts = report.fault_texts();
+        assert_eq!(texts.len(), 1, "{texts:?}");
+        assert_eq!(texts[0].0, "peer_refused");
+        assert!(
+            texts[0].2.starts_with(
+                "a peer at 10.0.0.66:51234 was refused: wrong or missing credentials (it sent no credentials), 4 s ago; 3 refused since start (credentials 2, handshake timeout 1) — nothing it sent was used; if it is a camera board, give it its password file"
+            ),
+            "{}",
+            texts[0].2
+        );
+        let mut text = String::new();
+        let mut reg = prometheus_client::registry::Registry::default();
+        reg.register_collector(Box::new(report));
+        prometheus_client::encoding::text::encode(&mut text, &reg).unwrap();
+        assert!(
+            text.contains("irtrackd_cluster_peers_refused_total{reason=\"credentials\"} 2"),
+            "{text}"
+        );
+        assert!(
+            text.contains("irtrackd_cluster_peers_refused_total{reason=\"accept_limit\"} 0"),
+            "{text}"
+        );
+        // A minute later the fault is gone; the counts stay.
+        p.recent[0].age_s = PEER_REFUSED_FAULT_S + 1.0;
+        assert_eq!(p.fault_text(), None);
+        p.recent[0].age_s = 1.0;
+        p.recent[0].reason = "handshake_timeout";
+        assert!(
+            p.fault_text()
+                .unwrap()
+                .contains("port scan or a connection flood")
+        );
+    }
 
     #[test]
     fn a_down_board_is_named_with_its_cameras_in_words() {

@@ -705,6 +705,7 @@ impl ClusterSource {
         }
         self.last_report_ns = now_ns;
         let Ok(mut r) = self.report.try_lock() else { return };
+        r.refused_peers = Some(peer_refusals_report(irtrack_cluster::refusals::global()));
         r.received = self.received;
         r.queue_overflow = self.sub.stats.overflow.load(std::sync::atomic::Ordering::Relaxed);
         for (i, code) in ObservationProblem::CODES.iter().enumerate() {
@@ -1088,4 +1089,33 @@ fn record_hop(
     }
     let sent_ns = h.capture_ts_ns.saturating_add(u64::from(h.send_delay_us) * 1000);
     hop.record_ns(received_ns.saturating_sub(sent_ns));
+}
+
+/// The peers Zenoh refused, as `/status` shows them; logs a line about new refusals at most
+/// every 10 s (a flood must not flood the journal).
+fn peer_refusals_report(log: &irtrack_cluster::refusals::PeerRefusals) -> super::report::PeerRefusalsReport {
+    let now = std::time::Instant::now();
+    if let Some(line) = log.take_notice(now) {
+        tracing::warn!("{line}");
+    }
+    let snap = log.snapshot();
+    super::report::PeerRefusalsReport {
+        counting: snap.counting,
+        total: snap.total,
+        by_reason: snap.by_reason.iter().map(|(r, n)| (r.code(), *n)).collect(),
+        credentials: snap.by_problem.iter().map(|(p, n)| (p.code(), *n)).collect(),
+        recent: snap
+            .recent
+            .iter()
+            .map(|p| super::report::RefusedPeerReport {
+                address: p.address.clone(),
+                reason: p.reason.code(),
+                problem: p.problem.map(|x| x.code()),
+                count: p.count,
+                age_s: now.saturating_duration_since(p.last).as_secs_f64(),
+                last_unix_ms: p.last_unix_ms,
+                words: p.words(),
+            })
+            .collect(),
+    }
 }

@@ -1,0 +1,693 @@
+//! Peers the solver's Zenoh refuses, counted with their address (docs/cluster.md, "Refused
+//! peers").
+//!
+//! Zenoh's API reports only links that finished the handshake (`session.info()`, its transport
+//! events); a link refused by the user/password check, one that ran out of handshake time and
+//! one closed at the accept limit are seen only in Zenoh's own `tracing` events. So this
+//! module is a `tracing` layer that recognises those events of the pinned `zenoh-transport`
+//! ([`ZENOH_TRANSPORT_VERSION`]; read in its `unicast/establishment/accept.rs`,
+//! `unicast/manager.rs` and `unicast/establishment/ext/auth/usrpwd.rs`):
+//!
+//! - every accepted link's handshake runs in a tokio task of its own, which traces
+//!   `Establishment Accept InitSyn: <local> => <remote>. Received: …` (and `… OpenSyn: …`)
+//!   when a handshake message arrives: the remote address, keyed by that task's id;
+//! - a failed step logs the error at debug level in the same task; the user/password check's
+//!   errors start with `UsrPwd extension - Recv` and end in `Expected extension.` (the peer
+//!   sent no credentials), `Invalid user.` or `Invalid password.`;
+//! - the task's deadline: `Failed to accept link before deadline (…ms)` (target
+//!   `…::unicast::manager`, same task);
+//! - the accept limit: `Closing link for preventing potential DoS: <local> => <remote>`
+//!   (trace, `…::unicast::manager`).
+//!
+//! Matching log text is brittle by nature, so it is pinned twice: a test checks that the
+//! lock file still has this `zenoh-transport` version, and a test over real Zenoh sessions
+//! checks that a peer without credentials and one with a wrong password are counted with the
+//! address they connected from. An upgrade that changes the events fails those tests instead
+//! of counting zero.
+
+use std::collections::{HashMap, VecDeque};
+use std::fmt::Write as _;
+use std::sync::{Mutex, OnceLock};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use tracing::{Level, Subscriber};
+use tracing_subscriber::Layer;
+use tracing_subscriber::filter::Targets;
+use tracing_subscriber::layer::Context;
+
+/// The `zenoh-transport` version whose events [`classify`] recognises.
+pub const ZENOH_TRANSPORT_VERSION: &str = "1.10.2";
+/// Target of the accept handshake's events.
+pub const ACCEPT_TARGET: &str = "zenoh_transport::unicast::establishment::accept";
+/// Target of the transport manager's events (accept limit, handshake deadline).
+pub const MANAGER_TARGET: &str = "zenoh_transport::unicast::manager";
+
+/// Refused peers remembered by address (the newest first out when full).
+pub const MAX_RECENT: usize = 16;
+/// Handshakes in flight remembered (Zenoh's `accept_pending` is 500 in irtrackd).
+const MAX_PENDING: usize = 1024;
+/// A handshake entry older than this is forgotten (Zenoh's accept timeout is 1 s).
+const PENDING_TTL: Duration = Duration::from_secs(30);
+/// A log line about refusals at most this often.
+pub const NOTICE_INTERVAL: Duration = Duration::from_secs(10);
+
+/// Why a link was refused.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub enum RefusalReason {
+    /// The user/password check failed: no credentials, an unknown user or a wrong password.
+    #[default]
+    Credentials,
+    /// The handshake did not finish within Zenoh's `accept_timeout`.
+    HandshakeTimeout,
+    /// Closed at once: `accept_pending` links were already in their handshake (a flood).
+    AcceptLimit,
+}
+
+impl RefusalReason {
+    /// Every reason, in the order of [`RefusalSnapshot::by_reason`].
+    pub const ALL: [RefusalReason; 3] = [
+        RefusalReason::Credentials,
+        RefusalReason::HandshakeTimeout,
+        RefusalReason::AcceptLimit,
+    ];
+
+    /// Its code in `/status` and `/metrics`.
+    pub fn code(self) -> &'static str {
+        match self {
+            RefusalReason::Credentials => "credentials",
+            RefusalReason::HandshakeTimeout => "handshake_timeout",
+            RefusalReason::AcceptLimit => "accept_limit",
+        }
+    }
+
+    /// In plain words.
+    pub fn words(self) -> &'static str {
+        match self {
+            RefusalReason::Credentials => "wrong or missing credentials",
+            RefusalReason::HandshakeTimeout => "it did not finish Zenoh's handshake in time",
+            RefusalReason::AcceptLimit => "too many links were opening at once (a connection flood?)",
+        }
+    }
+}
+
+/// What was wrong with a refused peer's credentials.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum CredentialProblem {
+    /// It sent none.
+    Missing,
+    /// Its user name is not in the solver's dictionary.
+    UnknownUser,
+    /// Its password's HMAC did not match.
+    WrongPassword,
+    /// They could not be decoded.
+    Unreadable,
+}
+
+impl CredentialProblem {
+    /// Its code in `/status`.
+    pub fn code(self) -> &'static str {
+        match self {
+            CredentialProblem::Missing => "missing",
+            CredentialProblem::UnknownUser => "unknown_user",
+            CredentialProblem::WrongPassword => "wrong_password",
+            CredentialProblem::Unreadable => "unreadable",
+        }
+    }
+
+    /// In plain words.
+    pub fn words(self) -> &'static str {
+        match self {
+            CredentialProblem::Missing => "it sent no credentials",
+            CredentialProblem::UnknownUser => "its user name is not in the solver's credentials file",
+            CredentialProblem::WrongPassword => "its password is wrong",
+            CredentialProblem::Unreadable => "its credentials could not be read",
+        }
+    }
+}
+
+/// What one of Zenoh's events says about a link being accepted.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ZenohEvent {
+    /// A handshake message arrived on an accepted link from this remote address.
+    HandshakeFrom(String),
+    /// The user/password check refused the link.
+    CredentialsRefused(CredentialProblem),
+    /// Another handshake step failed (not a refusal this module counts).
+    HandshakeFailed,
+    /// The handshake ran out of time.
+    HandshakeTimeout,
+    /// A link from this remote address was closed at the accept limit.
+    AcceptLimit(String),
+    /// The link was accepted.
+    Accepted,
+}
+
+/// The remote end of a link as Zenoh displays it, `<local> => <remote>` with locators such as
+/// `tcp/127.0.0.1:7447`: the remote's `ip:port` (`[v6]:port`), without protocol or metadata.
+fn remote_of(link: &str) -> Option<String> {
+    let (_, remote) = link.split_once(" => ")?;
+    let remote = remote.split_whitespace().next()?;
+    let addr = remote.split_once('/').map_or(remote, |(_, a)| a);
+    let addr = addr.split(['?', '#']).next()?;
+    (!addr.is_empty()).then(|| addr.to_string())
+}
+
+/// Recognises an event of `zenoh-transport` [`ZENOH_TRANSPORT_VERSION`] by its target, level
+/// and message (the formatted text); `None` for every other event.
+pub fn classify(target: &str, level: Level, message: &str) -> Option<ZenohEvent> {
+    if target == ACCEPT_TARGET {
+        if level == Level::TRACE {
+            for prefix in ["Establishment Accept InitSyn: ", "Establishment Accept OpenSyn: "] {
+                if let Some(rest) = message.strip_prefix(prefix) {
+                    // "<local> => <remote>. Received: …"
+                    let link = rest.split(". Received").next().unwrap_or(rest);
+                    return remote_of(link).map(ZenohEvent::HandshakeFrom);
+                }
+            }
+            return None;
+        }
+        if level != Level::DEBUG {
+            return None;
+        }
+        if message.starts_with("New transport link accepted from") {
+            return Some(ZenohEvent::Accepted);
+        }
+        if message.contains("UsrPwd extension - Recv") {
+            let problem = if message.contains("Expected extension") {
+                CredentialProblem::Missing
+            } else if message.contains("Invalid user") {
+                CredentialProblem::UnknownUser
+            } else if message.contains("Invalid password") {
+                CredentialProblem::WrongPassword
+            } else {
+                CredentialProblem::Unreadable
+            };
+            return Some(ZenohEvent::CredentialsRefused(problem));
+        }
+        // The step error of any other handshake step (`accept_link`'s `step!`).
+        return Some(ZenohEvent::HandshakeFailed);
+    }
+    if target == MANAGER_TARGET {
+        if level == Level::TRACE
+            && let Some(link) = message.strip_prefix("Closing link for preventing potential DoS: ")
+        {
+            return remote_of(link).map(ZenohEvent::AcceptLimit);
+        }
+        if level == Level::DEBUG && message.starts_with("Failed to accept link before deadline") {
+            return Some(ZenohEvent::HandshakeTimeout);
+        }
+    }
+    None
+}
+
+/// Which handshake an event belongs to: Zenoh runs each accepted link's handshake in a tokio
+/// task of its own; outside a task, the thread (never seen with 1.10.2).
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub enum HandshakeKey {
+    /// The tokio task.
+    Task(tokio::task::Id),
+    /// The thread.
+    Thread(std::thread::ThreadId),
+}
+
+impl HandshakeKey {
+    /// The key of the code running now.
+    pub fn current() -> HandshakeKey {
+        tokio::task::try_id().map_or_else(
+            || HandshakeKey::Thread(std::thread::current().id()),
+            HandshakeKey::Task,
+        )
+    }
+}
+
+/// One address's refusals.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefusedPeer {
+    /// `ip:port` it connected from; `None` when it sent nothing before its link ended (a
+    /// silent connection timing out).
+    pub address: Option<String>,
+    /// Why.
+    pub reason: RefusalReason,
+    /// For credentials: what was wrong.
+    pub problem: Option<CredentialProblem>,
+    /// Refusals of this address for this reason.
+    pub count: u64,
+    /// The newest, on the monotonic clock.
+    pub last: Instant,
+    /// The newest, Unix time in ms.
+    pub last_unix_ms: u64,
+}
+
+impl RefusedPeer {
+    /// "a peer at 10.0.0.66:51234 was refused: wrong or missing credentials (it sent no
+    /// credentials)".
+    pub fn words(&self) -> String {
+        let who = match &self.address {
+            Some(a) => format!("a peer at {a}"),
+            None => "a peer whose address Zenoh did not log (it sent nothing)".to_string(),
+        };
+        let detail = self
+            .problem
+            .map_or(String::new(), |p| format!(" ({})", p.words()));
+        format!("{who} was refused: {}{detail}", self.reason.words())
+    }
+}
+
+#[derive(Debug, Default)]
+struct State {
+    pending: HashMap<HandshakeKey, (String, Instant)>,
+    counts: [u64; 3],
+    by_problem: [u64; 4],
+    recent: VecDeque<RefusedPeer>,
+    last_notice: Option<Instant>,
+    since_notice: u64,
+}
+
+/// The refusal counts and the latest refused peers (`/status` → `cluster.refused_peers`).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RefusalSnapshot {
+    /// The layer is installed: refusals are being counted (otherwise every count is 0 because
+    /// nobody looks, not because nothing was refused).
+    pub counting: bool,
+    /// Every refusal.
+    pub total: u64,
+    /// Per reason, in [`RefusalReason::ALL`]'s order.
+    pub by_reason: [(RefusalReason, u64); 3],
+    /// Credential refusals per problem.
+    pub by_problem: Vec<(CredentialProblem, u64)>,
+    /// The latest refused addresses, newest first.
+    pub recent: Vec<RefusedPeer>,
+}
+
+impl RefusalSnapshot {
+    /// The newest refusal.
+    pub fn newest(&self) -> Option<&RefusedPeer> {
+        self.recent.first()
+    }
+}
+
+/// Refusals seen by the layer. One per process ([`global`]): `tracing`'s subscriber is global,
+/// and so are Zenoh's sessions' events.
+#[derive(Debug, Default)]
+pub struct PeerRefusals {
+    counting: std::sync::atomic::AtomicBool,
+    state: Mutex<State>,
+}
+
+/// The process's refusal log (the one [`refusal_layer`] fills).
+pub fn global() -> &'static PeerRefusals {
+    static LOG: OnceLock<PeerRefusals> = OnceLock::new();
+    LOG.get_or_init(PeerRefusals::default)
+}
+
+fn unix_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+impl PeerRefusals {
+    /// Marks the log as filled by an installed layer.
+    pub fn set_counting(&self) {
+        self.counting.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Whether a layer fills it.
+    pub fn counting(&self) -> bool {
+        self.counting.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Takes one recognised event of handshake `key` at `now`.
+    pub fn observe(&self, key: HandshakeKey, event: ZenohEvent, now: Instant) {
+        let Ok(mut st) = self.state.lock() else { return };
+        match event {
+            ZenohEvent::HandshakeFrom(addr) => {
+                if st.pending.len() >= MAX_PENDING {
+                    st.pending
+                        .retain(|_, (_, at)| now.saturating_duration_since(*at) < PENDING_TTL);
+                }
+                if st.pending.len() < MAX_PENDING {
+                    st.pending.insert(key, (addr, now));
+                }
+            }
+            ZenohEvent::Accepted | ZenohEvent::HandshakeFailed => {
+                st.pending.remove(&key);
+            }
+            ZenohEvent::CredentialsRefused(problem) => {
+                let addr = st.pending.remove(&key).map(|(a, _)| a);
+                st.by_problem[problem as usize] += 1;
+                st.record(addr, RefusalReason::Credentials, Some(problem), now);
+            }
+            ZenohEvent::HandshakeTimeout => {
+                let addr = st.pending.remove(&key).map(|(a, _)| a);
+                st.record(addr, RefusalReason::HandshakeTimeout, None, now);
+            }
+            ZenohEvent::AcceptLimit(addr) => st.record(Some(addr), RefusalReason::AcceptLimit, None, now),
+        }
+    }
+
+    /// The counts and the latest refused peers.
+    pub fn snapshot(&self) -> RefusalSnapshot {
+        let counting = self.counting();
+        let Ok(st) = self.state.lock() else {
+            return RefusalSnapshot {
+                counting,
+                ..RefusalSnapshot::default()
+            };
+        };
+        let by_reason = RefusalReason::ALL.map(|r| (r, st.counts[r as usize]));
+        RefusalSnapshot {
+            counting,
+            total: st.counts.iter().sum(),
+            by_reason,
+            by_problem: [
+                CredentialProblem::Missing,
+                CredentialProblem::UnknownUser,
+                CredentialProblem::WrongPassword,
+                CredentialProblem::Unreadable,
+            ]
+            .into_iter()
+            .map(|p| (p, st.by_problem[p as usize]))
+            .filter(|(_, n)| *n > 0)
+            .collect(),
+            recent: st.recent.iter().cloned().collect(),
+        }
+    }
+
+    /// A line for the log when refusals happened since the last one, at most every
+    /// [`NOTICE_INTERVAL`] (a flood must not flood the journal too).
+    pub fn take_notice(&self, now: Instant) -> Option<String> {
+        let mut st = self.state.lock().ok()?;
+        if st.since_notice == 0
+            || st
+                .last_notice
+                .is_some_and(|t| now.saturating_duration_since(t) < NOTICE_INTERVAL)
+        {
+            return None;
+        }
+        let n = std::mem::take(&mut st.since_notice);
+        st.last_notice = Some(now);
+        let newest = st.recent.front()?.words();
+        let mut line = format!("cluster transport: {newest}");
+        if n > 1 {
+            let _ = write!(line, "; {n} peers refused since the last such line");
+        }
+        Some(line)
+    }
+}
+
+impl State {
+    fn record(
+        &mut self,
+        address: Option<String>,
+        reason: RefusalReason,
+        problem: Option<CredentialProblem>,
+        now: Instant,
+    ) {
+        self.counts[reason as usize] += 1;
+        self.since_notice += 1;
+        let at_ms = unix_ms();
+        if let Some(i) = self
+            .recent
+            .iter()
+            .position(|p| p.address == address && p.reason == reason)
+            && let Some(mut p) = self.recent.remove(i)
+        {
+            p.count += 1;
+            p.problem = problem;
+            p.last = now;
+            p.last_unix_ms = at_ms;
+            self.recent.push_front(p);
+            return;
+        }
+        if self.recent.len() >= MAX_RECENT {
+            self.recent.pop_back();
+        }
+        self.recent.push_front(RefusedPeer {
+            address,
+            reason,
+            problem,
+            count: 1,
+            last: now,
+            last_unix_ms: at_ms,
+        });
+    }
+}
+
+/// Takes an event's `message` field as text.
+struct MessageText(String);
+
+impl tracing::field::Visit for MessageText {
+    fn record_debug(&mut self, field: &tracing::field::Field, value: &dyn std::fmt::Debug) {
+        if field.name() == "message" {
+            let _ = write!(self.0, "{value:?}");
+        }
+    }
+
+    fn record_str(&mut self, field: &tracing::field::Field, value: &str) {
+        if field.name() == "message" {
+            self.0.push_str(value);
+        }
+    }
+}
+
+/// The `tracing` layer that feeds [`global`].
+#[derive(Debug, Clone, Copy)]
+pub struct RefusalLayer {
+    log: &'static PeerRefusals,
+}
+
+impl<S: Subscriber> Layer<S> for RefusalLayer {
+    fn on_event(&self, event: &tracing::Event<'_>, _ctx: Context<'_, S>) {
+        let meta = event.metadata();
+        let target = meta.target();
+        if target != ACCEPT_TARGET && target != MANAGER_TARGET {
+            return;
+        }
+        let mut text = MessageText(String::new());
+        event.record(&mut text);
+        if let Some(e) = classify(target, *meta.level(), &text.0) {
+            self.log.observe(HandshakeKey::current(), e, Instant::now());
+        }
+    }
+}
+
+/// The layer and the events it needs, whatever the log's own filter: Zenoh's accept path at
+/// trace level (a few events per new link, none per message). Add it to the subscriber beside
+/// the log's layer; it marks [`global`] as counting.
+pub fn refusal_layer<S>() -> impl Layer<S>
+where
+    S: Subscriber + for<'a> tracing_subscriber::registry::LookupSpan<'a>,
+{
+    let log = global();
+    log.set_counting();
+    RefusalLayer { log }.with_filter(
+        Targets::new()
+            .with_target(ACCEPT_TARGET, Level::TRACE)
+            .with_target(MANAGER_TARGET, Level::TRACE),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    // The texts zenoh-transport 1.10.2 logs, as its source formats them (`ZError`'s Display
+    // appends " at <file>:<line>.").
+    const INIT_SYN: &str = "Establishment Accept InitSyn: tcp/127.0.0.1:7447 => tcp/127.0.0.66:51234. Received: TransportMessage { body: InitSyn(..) }";
+    const NO_EXT: &str = "UsrPwd extension - Recv InitSyn. Expected extension. at /root/.cargo/registry/src/x/zenoh-transport-1.10.2/src/unicast/establishment/ext/auth/usrpwd.rs:380.";
+    const BAD_PW: &str = "UsrPwd extension - Recv OpenSyn. Invalid password. at /x/usrpwd.rs:424.";
+    const BAD_USER: &str = "UsrPwd extension - Recv OpenSyn. Invalid user. at /x/usrpwd.rs:418.";
+
+    #[test]
+    fn zenoh_events_are_recognised() {
+        assert_eq!(
+            classify(ACCEPT_TARGET, Level::TRACE, INIT_SYN),
+            Some(ZenohEvent::HandshakeFrom("127.0.0.66:51234".into()))
+        );
+        let v6 = "Establishment Accept OpenSyn: tcp/[::1]:7447 => tcp/[::1]:40000. Received: x";
+        assert_eq!(
+            classify(ACCEPT_TARGET, Level::TRACE, v6),
+            Some(ZenohEvent::HandshakeFrom("[::1]:40000".into()))
+        );
+        for (text, p) in [
+            (NO_EXT, CredentialProblem::Missing),
+            (BAD_PW, CredentialProblem::WrongPassword),
+            (BAD_USER, CredentialProblem::UnknownUser),
+            (
+                "UsrPwd extension - Recv OpenSyn. Decoding error. at x:1.",
+                CredentialProblem::Unreadable,
+            ),
+        ] {
+            assert_eq!(
+                classify(ACCEPT_TARGET, Level::DEBUG, text),
+                Some(ZenohEvent::CredentialsRefused(p)),
+                "{text}"
+            );
+        }
+        assert_eq!(
+            classify(
+                ACCEPT_TARGET,
+                Level::DEBUG,
+                "New transport link accepted from abc to def: x"
+            ),
+            Some(ZenohEvent::Accepted)
+        );
+        assert_eq!(
+            classify(
+                ACCEPT_TARGET,
+                Level::DEBUG,
+                "Received invalid message instead of an InitSyn"
+            ),
+            Some(ZenohEvent::HandshakeFailed)
+        );
+        assert_eq!(
+            classify(
+                MANAGER_TARGET,
+                Level::TRACE,
+                "Closing link for preventing potential DoS: tcp/10.0.0.10:7447 => tcp/10.0.0.66:40001"
+            ),
+            Some(ZenohEvent::AcceptLimit("10.0.0.66:40001".into()))
+        );
+        assert_eq!(
+            classify(
+                MANAGER_TARGET,
+                Level::DEBUG,
+                "Failed to accept link before deadline (1000ms)"
+            ),
+            Some(ZenohEvent::HandshakeTimeout)
+        );
+        // Other targets, levels and texts are not refusals.
+        assert_eq!(
+            classify(
+                "zenoh_transport::unicast::establishment::open",
+                Level::DEBUG,
+                BAD_PW
+            ),
+            None
+        );
+        assert_eq!(classify(ACCEPT_TARGET, Level::INFO, BAD_PW), None);
+        assert_eq!(
+            classify(
+                ACCEPT_TARGET,
+                Level::TRACE,
+                "Establishment Accept InitAck: a => b. Sent: x"
+            ),
+            None
+        );
+        assert_eq!(
+            classify(MANAGER_TARGET, Level::TRACE, "Accepting link... a => b"),
+            None
+        );
+    }
+
+    #[test]
+    fn refusals_are_counted_per_handshake_with_the_address() {
+        let log = PeerRefusals::default();
+        let t0 = Instant::now();
+        let (a, b) = (
+            HandshakeKey::Thread(std::thread::current().id()),
+            HandshakeKey::Thread(std::thread::spawn(|| std::thread::current().id()).join().unwrap()),
+        );
+        // Two handshakes interleaved: each refusal gets its own task's address.
+        log.observe(a.clone(), ZenohEvent::HandshakeFrom("10.0.0.66:51234".into()), t0);
+        log.observe(b.clone(), ZenohEvent::HandshakeFrom("10.0.0.11:40000".into()), t0);
+        log.observe(b.clone(), ZenohEvent::Accepted, t0);
+        log.observe(
+            a.clone(),
+            ZenohEvent::CredentialsRefused(CredentialProblem::Missing),
+            t0,
+        );
+        log.observe(a.clone(), ZenohEvent::HandshakeTimeout, t0);
+        log.observe(b, ZenohEvent::AcceptLimit("10.0.0.67:1".into()), t0);
+        let s = log.snapshot();
+        assert!(!s.counting, "no layer installed");
+        assert_eq!(s.total, 3);
+        assert_eq!(
+            s.by_reason,
+            [
+                (RefusalReason::Credentials, 1),
+                (RefusalReason::HandshakeTimeout, 1),
+                (RefusalReason::AcceptLimit, 1)
+            ]
+        );
+        assert_eq!(s.by_problem, vec![(CredentialProblem::Missing, 1)]);
+        let words: Vec<String> = s.recent.iter().map(RefusedPeer::words).collect();
+        assert_eq!(
+            words,
+            [
+                "a peer at 10.0.0.67:1 was refused: too many links were opening at once (a connection flood?)",
+                "a peer whose address Zenoh did not log (it sent nothing) was refused: it did not finish Zenoh's handshake in time",
+                "a peer at 10.0.0.66:51234 was refused: wrong or missing credentials (it sent no credentials)",
+            ]
+        );
+        // The same address again: one entry, counted twice, moved to the front.
+        log.observe(a.clone(), ZenohEvent::HandshakeFrom("10.0.0.66:51234".into()), t0);
+        log.observe(
+            a,
+            ZenohEvent::CredentialsRefused(CredentialProblem::WrongPassword),
+            t0,
+        );
+        let s = log.snapshot();
+        assert_eq!(s.recent.len(), 3);
+        assert_eq!(s.recent[0].count, 2);
+        assert_eq!(s.recent[0].problem, Some(CredentialProblem::WrongPassword));
+        // One notice, then none within the interval, then one saying how many since.
+        let first = log.take_notice(t0).unwrap();
+        assert!(first.contains("a peer at 10.0.0.66:51234 was refused"), "{first}");
+        assert!(
+            first.contains("4 peers refused since the last such line"),
+            "{first}"
+        );
+        assert_eq!(log.take_notice(t0 + Duration::from_secs(20)), None, "nothing new");
+        log.observe(
+            HandshakeKey::Thread(std::thread::current().id()),
+            ZenohEvent::AcceptLimit("10.0.0.68:2".into()),
+            t0,
+        );
+        assert_eq!(log.take_notice(t0 + Duration::from_secs(5)), None, "rate-limited");
+        let next = log.take_notice(t0 + Duration::from_secs(11)).unwrap();
+        assert!(
+            next.ends_with(
+                "a peer at 10.0.0.68:2 was refused: too many links were opening at once (a connection flood?)"
+            ),
+            "{next}"
+        );
+    }
+
+    #[test]
+    fn the_pending_table_is_bounded() {
+        let log = PeerRefusals::default();
+        let t0 = Instant::now();
+        // Distinct handshake keys: the ids of tokio tasks, as Zenoh's handshakes have.
+        let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
+        let keys: Vec<HandshakeKey> = rt.block_on(async {
+            let mut v = Vec::new();
+            for _ in 0..MAX_PENDING + 100 {
+                v.push(tokio::spawn(async { HandshakeKey::current() }).await.unwrap());
+            }
+            v
+        });
+        assert!(keys.iter().all(|k| matches!(k, HandshakeKey::Task(_))));
+        for (i, k) in keys.iter().enumerate() {
+            log.observe(
+                k.clone(),
+                ZenohEvent::HandshakeFrom(format!("10.0.{}.{}:1", i / 256, i % 256)),
+                t0,
+            );
+        }
+        assert_eq!(
+            log.state.lock().unwrap().pending.len(),
+            MAX_PENDING,
+            "full, not growing"
+        );
+        // Once full, entries older than the TTL make room.
+        let later = t0 + PENDING_TTL * 2;
+        log.observe(
+            keys[0].clone(),
+            ZenohEvent::HandshakeFrom("10.1.0.0:1".into()),
+            later,
+        );
+        assert_eq!(log.state.lock().unwrap().pending.len(), 1);
+    }
+}

@@ -1,0 +1,196 @@
+//! The refusal counter against real Zenoh sessions on loopback (docs/cluster.md, "Refused
+//! peers"): a solver with a dictionary and, each from an address of its own (`#bind=` on the
+//! connect endpoint), a peer without credentials, one claiming board b1 with b0's password,
+//! one with a user name the dictionary does not list, a genuine board, and a TCP connection
+//! that never speaks. The layer must count each refusal with the address it came from, the
+//! genuine board not at all. This is what fails when a Zenoh upgrade changes the events the
+//! layer recognises (refusals.rs): counting zero would pass silently otherwise.
+#![cfg(feature = "zenoh")]
+
+use std::time::{Duration, Instant};
+
+use irtrack_cluster::credentials::{BoardCredential, dictionary_text};
+use irtrack_cluster::refusals::{
+    self, CredentialProblem, RefusalReason, RefusalSnapshot, ZENOH_TRANSPORT_VERSION,
+};
+use irtrack_cluster::transport::{Auth, ObsPublisher, ObsSubscriber, Session, TransportConfig, realtime_ns};
+use irtrack_core::observation::{ObsClock, ObsHeader};
+use tracing_subscriber::layer::SubscriberExt;
+
+const PW0: &str = "b0-secret-4Kq9zT2wXn7Lp3Rv";
+const PW1: &str = "b1-secret-8Hd5sY6cMa1Qe0Uf";
+
+/// A free TCP port on `ip` (any loopback address works on Linux).
+fn free_port_on(ip: &str) -> u16 {
+    std::net::TcpListener::bind((ip, 0))
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// Opens a peer connecting to the solver from `from` (`ip:port`); a refused peer may fail to
+/// open or open without a link, which is the same here.
+fn peer(port: u16, from: &str, auth: Auth) -> Option<Session> {
+    Session::open(&TransportConfig {
+        connect: vec![format!("tcp/127.0.0.1:{port}#bind={from}")],
+        auth,
+        ..TransportConfig::default()
+    })
+    .ok()
+}
+
+fn board(name: &str, password: &str) -> Auth {
+    Auth::Board {
+        board: name.into(),
+        password: password.into(),
+    }
+}
+
+fn refused<'a>(s: &'a RefusalSnapshot, addr: &str) -> Option<&'a refusals::RefusedPeer> {
+    s.recent.iter().find(|p| p.address.as_deref() == Some(addr))
+}
+
+#[test]
+fn the_lock_file_pins_the_zenoh_transport_whose_events_are_recognised() {
+    let lock = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../Cargo.lock")).unwrap();
+    let version = lock
+        .split("[[package]]")
+        .find(|p| p.contains("name = \"zenoh-transport\"\n"))
+        .and_then(|p| p.lines().find_map(|l| l.strip_prefix("version = ")))
+        .map(|v| v.trim_matches('"').to_string());
+    assert_eq!(
+        version.as_deref(),
+        Some(ZENOH_TRANSPORT_VERSION),
+        "cluster/src/refusals.rs recognises zenoh-transport {ZENOH_TRANSPORT_VERSION}'s accept events: read the new version's unicast/establishment/accept.rs, unicast/manager.rs and ext/auth/usrpwd.rs, update classify() and ZENOH_TRANSPORT_VERSION"
+    );
+}
+
+#[test]
+fn refused_peers_are_counted_with_their_address() {
+    tracing::subscriber::set_global_default(tracing_subscriber::registry().with(refusals::refusal_layer()))
+        .expect("the only subscriber of this test binary");
+    let log = refusals::global();
+    assert!(log.counting());
+
+    let dir = std::env::temp_dir().join(format!("irtrack-zrefusals-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let dict = dir.join("solver.dict");
+    std::fs::write(
+        &dict,
+        dictionary_text(&[
+            BoardCredential {
+                board: "b0".into(),
+                password: PW0.into(),
+            },
+            BoardCredential {
+                board: "b1".into(),
+                password: PW1.into(),
+            },
+        ]),
+    )
+    .unwrap();
+    let port = free_port_on("127.0.0.1");
+    let (auth, _) = Auth::solver_from_file("cell1", &dict).unwrap();
+    let solver = Session::open(&TransportConfig {
+        listen: vec![format!("tcp/127.0.0.1:{port}")],
+        auth,
+        ..TransportConfig::default()
+    })
+    .unwrap();
+    let (_sub, rx) = ObsSubscriber::new(&solver, "cell1", 64, realtime_ns).unwrap();
+
+    let anon = format!("127.0.0.66:{}", free_port_on("127.0.0.66"));
+    let wrong = format!("127.0.0.67:{}", free_port_on("127.0.0.67"));
+    let stranger = format!("127.0.0.68:{}", free_port_on("127.0.0.68"));
+    let genuine = format!("127.0.0.69:{}", free_port_on("127.0.0.69"));
+    let t0 = Instant::now();
+    let p_anon = peer(port, &anon, Auth::None);
+    let p_wrong = peer(port, &wrong, board("b1", PW0));
+    let p_stranger = peer(port, &stranger, board("b9", PW1));
+    let p_genuine = peer(port, &genuine, board("b0", PW0)).expect("the genuine board opens");
+    // A connection that never speaks: refused when Zenoh's 1 s handshake time runs out.
+    let silent = silent_connect("127.0.0.70", port);
+
+    // The genuine board is heard: the solver's authentication works in this run.
+    let mut publ = ObsPublisher::new(&p_genuine, "cell1", "b0", 0).unwrap();
+    let header = |seq| ObsHeader {
+        rig: "cell1",
+        board: "b0",
+        camera: 0,
+        sequence: seq,
+        trigger_count: None,
+        capture_ts_ns: realtime_ns(),
+        clock: ObsClock::Realtime,
+        exposure_us: 250,
+        dropped: 0,
+        send_delay_us: 100,
+    };
+    let mut heard = false;
+    let mut snap = log.snapshot();
+    let deadline = t0 + Duration::from_secs(8);
+    let done = |s: &RefusalSnapshot| {
+        [&anon, &wrong, &stranger].iter().all(|a| refused(s, a).is_some()) && s.by_reason[1].1 >= 1
+    };
+    let mut seq = 0;
+    while Instant::now() < deadline && !(heard && done(&snap)) {
+        seq += 1;
+        publ.publish(&header(seq), &[]).unwrap();
+        heard |= rx.try_recv().is_ok();
+        std::thread::sleep(Duration::from_millis(50));
+        snap = log.snapshot();
+    }
+    drop(silent);
+    eprintln!("after {:.1} s: {snap:#?}", t0.elapsed().as_secs_f64());
+    assert!(heard, "the genuine board b0 was not heard");
+    let check = |addr: &str, problem: CredentialProblem| {
+        let p = refused(&snap, addr).unwrap_or_else(|| panic!("no refusal from {addr}: {snap:#?}"));
+        assert_eq!(p.reason, RefusalReason::Credentials, "{p:?}");
+        assert_eq!(p.problem, Some(problem), "{p:?}");
+        assert!(p.count >= 1);
+        let words = p.words();
+        assert!(
+            words.starts_with(&format!(
+                "a peer at {addr} was refused: wrong or missing credentials"
+            )),
+            "{words}"
+        );
+    };
+    check(&anon, CredentialProblem::Missing);
+    check(&wrong, CredentialProblem::WrongPassword);
+    check(&stranger, CredentialProblem::UnknownUser);
+    assert!(
+        refused(&snap, &genuine).is_none(),
+        "the genuine board was counted: {snap:#?}"
+    );
+    let credentials = snap.by_reason[0];
+    assert_eq!(credentials.0, RefusalReason::Credentials);
+    assert!(credentials.1 >= 3, "{snap:#?}");
+    assert!(
+        snap.by_reason[1].1 >= 1,
+        "the silent connection's timeout: {snap:#?}"
+    );
+    for p in [p_anon, p_wrong, p_stranger].into_iter().flatten() {
+        p.close();
+    }
+    p_genuine.close();
+    solver.close();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A plain TCP connection to `127.0.0.1:port` from `ip` (std cannot bind before connecting;
+/// tokio's socket can), held open without a byte sent.
+fn silent_connect(ip: &str, port: u16) -> std::net::TcpStream {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let ip: std::net::IpAddr = ip.parse().unwrap();
+    let s = rt.block_on(async {
+        let sock = tokio::net::TcpSocket::new_v4().unwrap();
+        sock.bind((ip, 0).into()).unwrap();
+        sock.connect(([127, 0, 0, 1], port).into()).await.unwrap()
+    });
+    s.into_std().unwrap()
+}
