@@ -45,6 +45,14 @@ export function installedText(job) {
   return `Installed ${job.version || "the bundle"}${step ? ` ${step}` : ""}.`;
 }
 
+/** A reboot asked for after an install (`system.reboot`) in words and its class, or null. */
+export function rebootWords(r) {
+  if (!r) return null;
+  const into = r.slot ? ` into slot ${r.slot}${r.version ? ` (${r.version})` : ""}` : "";
+  if (r.state === "failed") return [`failed${into}: ${r.detail || ""}`.trim(), "bad"];
+  return [`rebooting${into}: ${r.detail || "the board goes down shortly"}; it is kept only if irtrackd comes up healthy`, ""];
+}
+
 /** Why the upload cannot be used now, with what to do about it ("" when it can). */
 export function uploadBlocked(sys, session, { busy = false, uploading = false, file = null } = {}) {
   if (!sys) return "";
@@ -92,6 +100,8 @@ export class SystemPanel {
       const [last, cls] = lastUpdateWords(sys.last_update);
       rows.push(["last update", last, cls]);
       if (sys.slots_error) rows.push(["slots", sys.slots_error, "bad"]);
+      const reboot = rebootWords(sys.reboot);
+      if (reboot) rows.push(["reboot", reboot[0], reboot[1]]);
       if (sys.backend === "simulated") rows.push(["updater", "simulated (slots in a directory, nothing flashed)"]);
     }
     kv($("system"), rows);
@@ -133,6 +143,7 @@ export class SystemPanel {
     const why = uploadBlocked(this.sys, this.session, { busy: this.busy, uploading: this.uploading, file });
     // Choosing a file is pointless when it cannot be sent.
     input.disabled = !signedIn || !on || this.uploading;
+    $("update-reboot").disabled = input.disabled;
     btn.disabled = !signedIn || !on || !file || this.busy || this.uploading;
     btn.title = why;
     $("update-why").textContent = why;
@@ -156,7 +167,8 @@ export class SystemPanel {
     msg.className = "msg";
     msg.textContent = `Uploading ${file.name} (${(file.size / 1048576).toFixed(1)} MiB)…`;
     const xhr = new XMLHttpRequest();
-    xhr.open("POST", "/api/update");
+    // reboot=1: the board restarts into the new system once it is installed (docs/updates.md).
+    xhr.open("POST", $("update-reboot").checked ? "/api/update?reboot=1" : "/api/update");
     xhr.withCredentials = true;
     xhr.setRequestHeader("Content-Type", "application/octet-stream");
     xhr.upload.onprogress = (e) => {
@@ -202,6 +214,7 @@ export class SystemPanel {
     return {
       rows: Array.from(document.querySelectorAll("#system dt")).map((dt) => [dt.textContent, dt.nextElementSibling ? dt.nextElementSibling.textContent : ""]),
       file_enabled: !$("update-file").disabled,
+      reboot_checked: $("update-reboot").checked,
       button_enabled: !$("update-btn").disabled,
       why: $("update-why").textContent,
       message: $("update-msg").textContent,

@@ -15,7 +15,17 @@
 # wins over 255), as libubootenv decides. Every write, here and by fw_setenv, goes to the
 # copy that did not win, with the winner's flags + 1, so a power cut during a write leaves the
 # winning copy untouched and the next boot reads it.
-#
+
+# The board's part: where the SD card is, which console, and how to load and start the chosen
+# slot's kernel. The defaults are QEMU's arm64 virt machine (this image); a board sets them
+# before this script runs (the Yocto layer puts its files/<MACHINE>/boot-board.cmd first).
+test -n "${irtrack_iface}" || setenv irtrack_iface virtio
+test -n "${irtrack_devnum}" || setenv irtrack_devnum 0
+test -n "${irtrack_root}" || setenv irtrack_root /dev/vda
+test -n "${irtrack_console}" || setenv irtrack_console ttyAMA0
+# Kernel and initramfs come from the slot itself, so an update replaces them with the modules.
+test -n "${irtrack_boot}" || setenv irtrack_boot 'load ${irtrack_iface} ${irtrack_devnum}:${irtrack_part} ${kernel_addr_r} /boot/Image; load ${irtrack_iface} ${irtrack_devnum}:${irtrack_part} ${ramdisk_addr_r} /boot/initrd.gz; setenv irtrack_initrd_size ${filesize}; booti ${kernel_addr_r} ${ramdisk_addr_r}:${irtrack_initrd_size} ${fdt_addr}'
+
 # Scratch memory is at kernel_addr_r (the kernel is loaded there only later): each copy as
 # read, the copy to write, and a buffer in `env import/export -c` layout (CRC, then the
 # data), which has no flags byte. `env export` clears its whole maximum environment size
@@ -39,7 +49,7 @@ for irtrack_i in 0 1; do
     setenv irtrack_valid no
     # Cleared first: a short (truncated) file must not be completed by older memory.
     mw.b ${irtrack_at} 0 4000
-    if load virtio 0:1 ${irtrack_at} ${irtrack_file}; then
+    if load ${irtrack_iface} ${irtrack_devnum}:1 ${irtrack_at} ${irtrack_file}; then
         if test "${filesize}" = "4000"; then
             # env import -c checks the CRC; it wants the data right after the CRC.
             cp.b ${irtrack_at} ${irtrack_env} 4
@@ -149,7 +159,7 @@ setexpr irtrack_to ${irtrack_out} + 4
 mw.b ${irtrack_to} ${irtrack_next_flags}
 setexpr irtrack_to ${irtrack_out} + 5
 cp.b ${irtrack_env_data} ${irtrack_to} 3ffb
-fatwrite virtio 0:1 ${irtrack_out} ${irtrack_next_file} 4000
+fatwrite ${irtrack_iface} ${irtrack_devnum}:1 ${irtrack_out} ${irtrack_next_file} 4000
 
 if test "x${irtrack_slot}" = "x"; then
     reset
@@ -157,12 +167,8 @@ fi
 
 echo "irtrack-boot: slot ${irtrack_slot} (BOOT_ORDER=${BOOT_ORDER}, A left ${BOOT_A_LEFT}, B left ${BOOT_B_LEFT}; written to ${irtrack_next_file} with flags 0x${irtrack_next_flags})"
 
-# Kernel and initramfs come from the slot itself, so an update replaces them with the modules.
-load virtio 0:${irtrack_part} ${kernel_addr_r} /boot/Image
-load virtio 0:${irtrack_part} ${ramdisk_addr_r} /boot/initrd.gz
-setenv irtrack_initrd_size ${filesize}
-setenv bootargs "console=ttyAMA0 root=/dev/vda${irtrack_part} rootwait quiet rauc.slot=${irtrack_slot}"
-booti ${kernel_addr_r} ${ramdisk_addr_r}:${irtrack_initrd_size} ${fdt_addr}
+setenv bootargs "console=${irtrack_console} root=${irtrack_root}${irtrack_part} rootwait quiet rauc.slot=${irtrack_slot}"
+run irtrack_boot
 echo "irtrack-boot: booting slot ${irtrack_slot} failed"
 # The attempt is spent; the next reset tries again or falls back.
 reset

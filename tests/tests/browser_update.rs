@@ -300,26 +300,34 @@ async fn update_upload_from_the_system_panel_in_headless_chromium() {
             "{p}"
         );
 
-        // 5. The good bundle: upload progress to 100 %, installed into slot B.
+        // 5. The good bundle, with "reboot into it when installed" ticked: upload progress to
+        // 100 %, installed into slot B, and the reboot asked for (`?reboot=1`).
+        c.find(Locator::Id("update-reboot"))
+            .await
+            .unwrap()
+            .click()
+            .await
+            .unwrap();
         upload(&c, &good).await;
         let p = wait_for(
             &c,
-            "the good bundle installed",
+            "the good bundle installed and the reboot asked for",
             60,
             "window.__irtrack.update()",
             |v| {
                 v["message"]
                     .as_str()
-                    .is_some_and(|s| s.starts_with("Installed") || s.starts_with("Refused"))
+                    .is_some_and(|s| s.contains("rebooting into it") || s.starts_with("Refused"))
             },
         )
         .await;
+        assert_eq!(p["reboot_checked"], true, "{p}");
         println!(
             "good bundle: {}; upload progress shown {}; install states shown {}",
             p["message"], p["seen"]["upload"], p["seen"]["install"]
         );
         assert_eq!(
-            p["message"], "Installed 1.2.0 into slot B; reboot to start it.",
+            p["message"], "Installed 1.2.0 into slot B; rebooting into it.",
             "{p}"
         );
         assert_eq!(p["message_class"], "msg ok", "{p}");
@@ -369,6 +377,29 @@ async fn update_upload_from_the_system_panel_in_headless_chromium() {
         let sys = board_system(status);
         assert_eq!(sys["other"]["version"], "1.2.0", "{sys}");
         assert_eq!(sys["boot_next"], "B", "{sys}");
+        // The reboot: asked for by the page, recorded by the simulated system (whose restart
+        // stands for it), and shown in the panel.
+        assert_eq!(sys["reboot"]["state"], "pending", "{sys}");
+        assert_eq!(sys["reboot"]["slot"], "B", "{sys}");
+        assert!(
+            dir.join("system/reboot-requested").is_file(),
+            "the simulated system recorded no reboot request"
+        );
+        let p = wait_for(
+            &c,
+            "the reboot row",
+            10,
+            "window.__irtrack.update()",
+            |v| {
+                v["rows"].as_array().is_some_and(|rows| {
+                    rows.iter().any(|r| {
+                        r[0] == "reboot" && r[1].as_str().is_some_and(|s| s.starts_with("rebooting into slot B (1.2.0)"))
+                    })
+                })
+            },
+        )
+        .await;
+        println!("reboot row: {}", row(&p, "reboot"));
         // The slot holds the bundle's signed image: all but the signature and its 8-byte size.
         let sig_len = u64::from_be_bytes(bytes[bytes.len() - 8..].try_into().unwrap()) as usize;
         let image = &bytes[..bytes.len() - 8 - sig_len];
@@ -380,6 +411,13 @@ async fn update_upload_from_the_system_panel_in_headless_chromium() {
             image.len()
         );
         element_screenshot(&c, ".system-panel", &out.join("system-installed.png")).await;
+        // The refusals below are uploaded without a reboot.
+        c.find(Locator::Id("update-reboot"))
+            .await
+            .unwrap()
+            .click()
+            .await
+            .unwrap();
 
         // 6. Signed by a key the board does not trust: refused, said in words; slot B unchanged.
         upload(&c, &untrusted).await;
