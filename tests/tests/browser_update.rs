@@ -385,19 +385,16 @@ async fn update_upload_from_the_system_panel_in_headless_chromium() {
             dir.join("system/reboot-requested").is_file(),
             "the simulated system recorded no reboot request"
         );
-        let p = wait_for(
-            &c,
-            "the reboot row",
-            10,
-            "window.__irtrack.update()",
-            |v| {
-                v["rows"].as_array().is_some_and(|rows| {
-                    rows.iter().any(|r| {
-                        r[0] == "reboot" && r[1].as_str().is_some_and(|s| s.starts_with("rebooting into slot B (1.2.0)"))
-                    })
+        let p = wait_for(&c, "the reboot row", 10, "window.__irtrack.update()", |v| {
+            v["rows"].as_array().is_some_and(|rows| {
+                rows.iter().any(|r| {
+                    r[0] == "reboot"
+                        && r[1]
+                            .as_str()
+                            .is_some_and(|s| s.starts_with("rebooting into slot B (1.2.0)"))
                 })
-            },
-        )
+            })
+        })
         .await;
         println!("reboot row: {}", row(&p, "reboot"));
         // The slot holds the bundle's signed image: all but the signature and its 8-byte size.
