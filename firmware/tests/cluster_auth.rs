@@ -109,6 +109,24 @@ fn publish(
     }
 }
 
+/// 3 s of records while forgers publish: every position on the real point `p`, from all three
+/// cameras, and at least two thirds of the frames with one; returns how many.
+async fn positions_stay_on(client: &mut NdjsonClient, p: Vector3<f64>) -> usize {
+    let mut n = 0;
+    let until = Instant::now() + Duration::from_secs(3);
+    while Instant::now() < until {
+        let rec = client.next().await;
+        if let Some(pos) = rec.position_mm {
+            let e = dist_mm(pos, [p.x, p.y, p.z]);
+            assert!(e < 0.05, "a forged position got through: {pos:?} ({e} mm)");
+            assert_eq!(rec.cameras_used, 3, "{rec:?}");
+            n += 1;
+        }
+    }
+    assert!(n as f64 >= 2.0 * FPS, "only {n} positions in 3 s");
+    n
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forged_peers_never_move_the_solver() {
     let dir = TempDir::new("cluster-auth");
@@ -140,19 +158,7 @@ async fn forged_peers_never_move_the_solver() {
         })
         .await;
     assert!(dist_mm(first.position_mm.unwrap(), [p.x, p.y, p.z]) < 0.05);
-    // 3 s of records: every position on the real point, all three cameras.
-    let mut n = 0;
-    let until = Instant::now() + Duration::from_secs(3);
-    while Instant::now() < until {
-        let rec = client.next().await;
-        if let Some(pos) = rec.position_mm {
-            let e = dist_mm(pos, [p.x, p.y, p.z]);
-            assert!(e < 0.05, "a forged position got through: {pos:?} ({e} mm)");
-            assert_eq!(rec.cameras_used, 3, "{rec:?}");
-            n += 1;
-        }
-    }
-    assert!(n as f64 >= 2.0 * FPS, "only {n} positions in 3 s");
+    let n = positions_stay_on(&mut client, p).await;
     // Nothing of the forgers reached the solver: not even as refused duplicates (in issue 40
     // the real boards' observations were the ones refused, as `duplicate_sequence`).
     let st = status_json(running.addrs.status).await;
@@ -297,19 +303,7 @@ async fn refused_peers_are_counted_with_their_address() {
             rec.status == TrackStatus::Ok && rec.cameras_used == 3
         })
         .await;
-    // 3 s of records: every position on the real point, from all three cameras.
-    let mut n = 0;
-    let until = Instant::now() + Duration::from_secs(3);
-    while Instant::now() < until {
-        let rec = client.next().await;
-        if let Some(pos) = rec.position_mm {
-            let e = dist_mm(pos, [p.x, p.y, p.z]);
-            assert!(e < 0.05, "a forged position got through: {pos:?} ({e} mm)");
-            assert_eq!(rec.cameras_used, 3, "{rec:?}");
-            n += 1;
-        }
-    }
-    assert!(n as f64 >= 2.0 * FPS, "only {n} positions in 3 s");
+    let n = positions_stay_on(&mut client, p).await;
 
     // Both forgers are counted with the address they came from (Zenoh retries a refused
     // link, so each may be counted more than once).

@@ -104,12 +104,26 @@ async fn upload(c: &Client, bundle: &Path) {
         |v| v["button_enabled"] == true,
     )
     .await;
-    c.find(Locator::Id("update-btn"))
-        .await
-        .unwrap()
-        .click()
-        .await
-        .unwrap();
+    click(c, "update-btn").await;
+}
+
+/// Uploads `bundle` and waits up to `secs` until the panel's message says how it ended.
+async fn upload_until(
+    c: &Client,
+    bundle: &Path,
+    what: &str,
+    secs: u64,
+    ended: impl Fn(&str) -> bool,
+) -> Value {
+    upload(c, bundle).await;
+    wait_for(c, what, secs, "window.__irtrack.update()", |v| {
+        v["message"].as_str().is_some_and(&ended)
+    })
+    .await
+}
+
+async fn click(c: &Client, id: &str) {
+    c.find(Locator::Id(id)).await.unwrap().click().await.unwrap();
 }
 
 /// The board's own `/status` → `system`.
@@ -302,23 +316,13 @@ async fn update_upload_from_the_system_panel_in_headless_chromium() {
 
         // 5. The good bundle, with "reboot into it when installed" ticked: upload progress to
         // 100 %, installed into slot B, and the reboot asked for (`?reboot=1`).
-        c.find(Locator::Id("update-reboot"))
-            .await
-            .unwrap()
-            .click()
-            .await
-            .unwrap();
-        upload(&c, &good).await;
-        let p = wait_for(
+        click(&c, "update-reboot").await;
+        let p = upload_until(
             &c,
+            &good,
             "the good bundle installed and the reboot asked for",
             60,
-            "window.__irtrack.update()",
-            |v| {
-                v["message"]
-                    .as_str()
-                    .is_some_and(|s| s.contains("rebooting into it") || s.starts_with("Refused"))
-            },
+            |s| s.contains("rebooting into it") || s.starts_with("Refused"),
         )
         .await;
         assert_eq!(p["reboot_checked"], true, "{p}");
@@ -409,26 +413,12 @@ async fn update_upload_from_the_system_panel_in_headless_chromium() {
         );
         element_screenshot(&c, ".system-panel", &out.join("system-installed.png")).await;
         // The refusals below are uploaded without a reboot.
-        c.find(Locator::Id("update-reboot"))
-            .await
-            .unwrap()
-            .click()
-            .await
-            .unwrap();
+        click(&c, "update-reboot").await;
 
         // 6. Signed by a key the board does not trust: refused, said in words; slot B unchanged.
-        upload(&c, &untrusted).await;
-        let p = wait_for(
-            &c,
-            "the untrusted bundle refused",
-            30,
-            "window.__irtrack.update()",
-            |v| {
-                v["message"]
-                    .as_str()
-                    .is_some_and(|s| s.starts_with("Refused") || s.starts_with("Installed"))
-            },
-        )
+        let p = upload_until(&c, &untrusted, "the untrusted bundle refused", 30, |s| {
+            s.starts_with("Refused") || s.starts_with("Installed")
+        })
         .await;
         println!("untrusted bundle: {}", p["message"]);
         let msg = p["message"].as_str().unwrap();
