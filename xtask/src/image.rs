@@ -296,17 +296,8 @@ fn signing_keys(ctx: &Ctx, work: &Path) -> Result<(PathBuf, Vec<PathBuf>)> {
     if !secret.is_file() || !public.is_file() {
         fs::create_dir_all(&dir)?;
         let out = ctx
-            .cargo()
-            .args([
-                "run",
-                "-q",
-                "-p",
-                "irtrack-host-tools",
-                "--",
-                "keygen",
-                "--force",
-                "--out",
-            ])
+            .host_tools()
+            .args(["keygen", "--force", "--out"])
             .arg(&prefix)
             .output()
             .context("running host-tools keygen")?;

@@ -64,6 +64,14 @@ impl Ctx {
         cmd
     }
 
+    /// `cargo run -q -p irtrack-host-tools --`: the PC tools, built like every host build;
+    /// the caller adds the subcommand and its arguments.
+    pub fn host_tools(&self) -> Command {
+        let mut cmd = self.cargo();
+        cmd.args(["run", "-q", "-p", "irtrack-host-tools", "--"]);
+        cmd
+    }
+
     /// Base target directory of host builds (`$CARGO_TARGET_DIR` or `<root>/target`).
     pub fn target_dir(&self) -> PathBuf {
         match std::env::var_os("CARGO_TARGET_DIR") {

@@ -303,18 +303,8 @@ pub(super) fn sample_fault_led(q: &mut Qemu, samples: usize) -> Result<(usize, u
 pub(super) fn make_params(ctx: &Ctx, dir: &Path) -> Result<PathBuf> {
     let out_dir = dir.join("sim");
     let out = ctx
-        .cargo()
-        .args([
-            "run",
-            "-q",
-            "-p",
-            "irtrack-host-tools",
-            "--",
-            "simulate",
-            "--frames",
-            "1",
-            "--out",
-        ])
+        .host_tools()
+        .args(["simulate", "--frames", "1", "--out"])
         .arg(&out_dir)
         .output()
         .context("running host-tools simulate")?;
@@ -333,8 +323,8 @@ pub(super) fn make_params(ctx: &Ctx, dir: &Path) -> Result<PathBuf> {
 
 pub(super) fn rig_id_of(ctx: &Ctx, file: &Path) -> Result<String> {
     let out = ctx
-        .cargo()
-        .args(["run", "-q", "-p", "irtrack-host-tools", "--", "show-params"])
+        .host_tools()
+        .args(["show-params"])
         .arg(file)
         .output()
         .context("running host-tools show-params")?;
@@ -360,17 +350,8 @@ pub(super) fn check_unsigned_refused(ctx: &Ctx, port: u16, file: &Path) -> Resul
 }
 
 pub(super) fn push_params(ctx: &Ctx, port: u16, file: &Path, sign_key: Option<&Path>) -> Result<String> {
-    let mut cmd = ctx.cargo();
-    cmd.args([
-        "run",
-        "-q",
-        "-p",
-        "irtrack-host-tools",
-        "--",
-        "push-params",
-        "--to",
-    ])
-    .arg(format!("127.0.0.1:{port}"));
+    let mut cmd = ctx.host_tools();
+    cmd.args(["push-params", "--to"]).arg(format!("127.0.0.1:{port}"));
     if let Some(key) = sign_key {
         cmd.arg("--sign-key").arg(key);
     }

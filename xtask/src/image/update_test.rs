@@ -311,17 +311,8 @@ fn push_with_reboot(ctx: &Ctx, dir: &Path, status_port: u16, bundle: &Path) -> R
     fs::write(&pw, format!("{}\n", crate::util::OPERATOR_PASSWORD))?;
     let t0 = Instant::now();
     let out = ctx
-        .cargo()
-        .args([
-            "run",
-            "-q",
-            "-p",
-            "irtrack-host-tools",
-            "--",
-            "update",
-            "push",
-            "--board",
-        ])
+        .host_tools()
+        .args(["update", "push", "--board"])
         .arg(format!("127.0.0.1:{status_port}"))
         .arg("--password-file")
         .arg(&pw)
