@@ -444,8 +444,9 @@ fn fmt(ctx: &Ctx) -> Outcome {
 /// examples) with CI's features. This is `cargo test --all-targets --no-run` with clippy-driver as
 /// the workspace's compiler wrapper, which is how `cargo clippy` runs it, except that code is
 /// generated too: the lint pass and the host test build are one compile instead of a check-mode
-/// compile of the whole graph (Zenoh included) followed by a build of it, about 7 minutes of a
-/// cold run on 2 cores. `host-tests` then runs with the same wrapper and finds everything built.
+/// compile of the whole graph (Zenoh included) followed by a build of it (docs/development.md,
+/// "Lints and the host build"). `host-tests` then runs with the same wrapper and finds
+/// everything built.
 fn clippy(ctx: &Ctx) -> Outcome {
     let mut cmd = match linted_cargo(ctx) {
         Ok(cmd) => cmd,
