@@ -806,6 +806,37 @@ mod tests {
 
     /// The encoding cargo-clippy uses for CLIPPY_ARGS (each argument followed by the marker),
     /// which clippy-driver splits again.
+    /// Negative control of the clippy phase's mechanism: a crate with a clippy lint (and
+    /// nothing rustc itself warns about) must fail to build with [`linted_cargo`], and build
+    /// once the lint is gone.
+    #[test]
+    fn the_linted_build_fails_on_a_clippy_lint() {
+        let dir = std::env::temp_dir().join(format!("xtask-linted-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("src")).unwrap();
+        std::fs::write(
+            dir.join("Cargo.toml"),
+            "[package]\nname = \"linted\"\nversion = \"0.1.0\"\nedition = \"2021\"\n[workspace]\n",
+        )
+        .unwrap();
+        let ctx = Ctx::new().unwrap();
+        let build = |src: &str| {
+            std::fs::write(dir.join("src/lib.rs"), src).unwrap();
+            let mut cmd = linted_cargo(&ctx).unwrap();
+            cmd.arg("build")
+                .arg("--manifest-path")
+                .arg(dir.join("Cargo.toml"))
+                .env("CARGO_TARGET_DIR", dir.join("target"));
+            cmd.output().unwrap()
+        };
+        let out = build("pub fn add(a: u32, b: u32) -> u32 {\n    return a + b;\n}\n");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains("needless_return"), "{err}");
+        let out = build("pub fn add(a: u32, b: u32) -> u32 {\n    a + b\n}\n");
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
     #[test]
     fn clippy_args_are_encoded_as_cargo_clippy_does() {
         assert_eq!(
