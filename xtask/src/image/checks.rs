@@ -218,41 +218,63 @@ pub(super) fn parse_debugfs_gpio(text: &str, label: &str, consumer: &str) -> Vec
     out
 }
 
-/// Samples the LED lines through the kernel for about 3 s. Always: the four configured lines
-/// are outputs held by irtrackd and the heartbeat toggles. `expect_no_params_fault`: the fault
-/// LED flashes (no parameters yet); otherwise, with no fault reported, it stays off.
+/// Samples the LED lines through the kernel, 30 samples at a time (about 3 s; up to three
+/// rounds while the heartbeat has not shown both levels: under a loaded emulator a round can
+/// fall between pulses). Always: the four configured lines are outputs held by irtrackd and the
+/// heartbeat toggles. `expect_no_params_fault`: the fault LED flashes (no parameters yet);
+/// otherwise, with no fault reported, it stays off.
 pub(super) fn check_gpio(q: &mut Qemu, status_port: u16, expect_no_params_fault: bool) -> Result<String> {
     let before = get_status(status_port)?;
     let samples = 30;
-    // A script on the image loops over gpiolib's debugfs view (a loop typed into the piped
-    // console shell would only run once the next line arrives).
-    let out = q.console(
-        &format!("irtrack-gpio-sample 9030000.pl061 {samples}"),
-        Duration::from_secs(40),
-    )?;
-    let after = get_status(status_port)?;
+    let rounds = 3;
     let mut seen = [[false; 2]; 4];
     let mut n = 0;
-    for sample in out.split("SAMPLE\n").skip(1) {
-        let lines = parse_debugfs_gpio(sample, "9030000.pl061", "irtrackd");
-        for (i, (name, offset)) in LED_LINES.iter().enumerate() {
-            let line = lines
-                .iter()
-                .find(|l| l.offset == *offset)
-                .with_context(|| format!("{name} LED line {offset} not held by irtrackd:\n{sample}"))?;
-            if !line.output {
-                bail!("{name} LED line {offset} is not an output:\n{sample}");
+    let mut span_s = 0.0;
+    let mut alive_after = Vec::new();
+    for _ in 0..rounds {
+        // A script on the image loops over gpiolib's debugfs view (a loop typed into the piped
+        // console shell would only run once the next line arrives).
+        let started = Instant::now();
+        let out = q.console(
+            &format!("irtrack-gpio-sample 9030000.pl061 {samples}"),
+            Duration::from_secs(40),
+        )?;
+        span_s += started.elapsed().as_secs_f64();
+        let mut parsed = 0;
+        for sample in out.split("SAMPLE\n").skip(1) {
+            let lines = parse_debugfs_gpio(sample, "9030000.pl061", "irtrackd");
+            for (i, (name, offset)) in LED_LINES.iter().enumerate() {
+                let line = lines
+                    .iter()
+                    .find(|l| l.offset == *offset)
+                    .with_context(|| format!("{name} LED line {offset} not held by irtrackd:\n{sample}"))?;
+                if !line.output {
+                    bail!("{name} LED line {offset} is not an output:\n{sample}");
+                }
+                seen[i][usize::from(line.high)] = true;
             }
-            seen[i][usize::from(line.high)] = true;
+            parsed += 1;
         }
-        n += 1;
-    }
-    if n < samples / 2 {
-        bail!("only {n} of {samples} gpio samples parsed:\n{out}");
+        if parsed < samples / 2 {
+            bail!("only {parsed} of {samples} gpio samples parsed:\n{out}");
+        }
+        n += parsed;
+        // The service's own view of its loop, to tell a stalled loop from a missed pulse.
+        let st = get_status(status_port)?;
+        alive_after.push(json::at(&st, "leds.indication.alive").and_then(Json::as_bool));
+        if seen[0][0] && seen[0][1] {
+            break;
+        }
     }
     if !(seen[0][0] && seen[0][1]) {
-        bail!("run LED (heartbeat) did not toggle in {n} samples");
+        bail!(
+            "run LED (heartbeat) did not toggle in {n} samples over {span_s:.1} s (levels seen: \
+             low {}, high {}); the service's leds.indication.alive after each round: {alive_after:?}",
+            seen[0][0],
+            seen[0][1]
+        );
     }
+    let after = get_status(status_port)?;
     let (f0, f1) = (faults_of(&before), faults_of(&after));
     let fault_detail = if expect_no_params_fault {
         if !f0.iter().chain(&f1).any(|f| f == "no_params") {
@@ -271,7 +293,7 @@ pub(super) fn check_gpio(q: &mut Qemu, status_port: u16, expect_no_params_fault:
         format!("fault LED not checked: status reports faults {f0:?} {f1:?}")
     };
     Ok(format!(
-        "lines 4-7 outputs held by irtrackd, heartbeat toggling over {n} samples; {fault_detail}"
+        "lines 4-7 outputs held by irtrackd, heartbeat toggling over {n} samples ({span_s:.1} s); {fault_detail}"
     ))
 }
 
