@@ -85,7 +85,7 @@ pub const PHASES: &[Phase] = &[
     // The image runs right after the host phases: its system test runs host-tools from
     // target/debug, and with that phase done a machine short of disk can drop target/debug
     // before the aarch64 test build (crate::disk).
-    phase("image", "aarch64 image build + QEMU system test", "system", |ctx| Outcome::from_counts(crate::image::ci_phase(ctx)), 20, &["image", "aarch64-static", "debug"]),
+    phase("image", "aarch64 image (irtrackd of the aarch64 test build) + QEMU system test", "system", |ctx| Outcome::from_counts(crate::image::ci_phase(ctx)), 20, &["image", "aarch64", "debug"]),
     phase("aarch64-tests", "cross-build core/sim/firmware, run their tests under qemu-aarch64", "aarch64", aarch64_tests, 35, &["aarch64"]),
     phase("systemd", "systemd-analyze verify on systemd/ units", "", lint::systemd_phase, 2, &[]),
     phase("yocto-lint", "oelint-adv on yocto-layer/ recipes", "", lint::yocto_phase, 5, &[]),
@@ -636,17 +636,7 @@ fn cross_tests(ctx: &Ctx, arch: cross::Arch, extra_skips: &[&str]) -> Outcome {
         all_skips.join(", ")
     );
     let skips: Vec<&str> = all_skips.iter().flat_map(|s| ["--skip", s]).collect();
-    cargo_test_with_args(
-        || {
-            let mut cmd = cross::cargo(ctx, arch, arch.test_subdir())?;
-            cmd.args(["test", "--no-fail-fast", "--target", arch.triple()]);
-            for c in arch.test_crates() {
-                cmd.args(["-p", c]);
-            }
-            Ok(cmd)
-        },
-        &skips,
-    )
+    cargo_test_with_args(|| cross::test_command(ctx, arch), &skips)
 }
 
 /// An aarch64 `irtrackd` with `cluster` under QEMU user mode as a camera board, and a host

@@ -123,10 +123,12 @@ impl Arch {
         }
     }
 
-    /// RUSTFLAGS of the test builds.
+    /// RUSTFLAGS of the test builds. aarch64's is static like the image's: CI's image phase
+    /// ships the irtrackd of that build ([`test_build_irtrackd`]), so a CI run compiles the
+    /// aarch64 graph once, not once for the tests and again for the image.
     pub fn rustflags(self) -> &'static str {
         match self {
-            Arch::Aarch64 => "",
+            Arch::Aarch64 => STATIC_RUSTFLAGS,
             Arch::Armv7 => ARMV7_TUNING,
         }
     }
@@ -251,6 +253,41 @@ fn rustup_has(arch: Arch) -> bool {
                 .lines()
                 .any(|l| l.trim() == arch.triple())
         })
+}
+
+/// The test build of `arch` (`cargo test` of [`Arch::test_crates`] in `target/<arch>`); the
+/// caller adds `--no-run` or the test arguments. One function, so the image phase and the
+/// test phase run the same command and the second finds everything built.
+pub fn test_command(ctx: &Ctx, arch: Arch) -> Result<Command> {
+    let mut cmd = cargo(ctx, arch, arch.test_subdir())?;
+    cmd.args(["test", "--no-fail-fast", "--target", arch.triple()]);
+    for c in arch.test_crates() {
+        cmd.args(["-p", c]);
+    }
+    Ok(cmd)
+}
+
+/// The irtrackd that the test build of `arch` links for the firmware's integration tests
+/// (test profile: opt-level 1, dependencies at 2, debug assertions and overflow checks on;
+/// static for aarch64, see [`Arch::rustflags`]). CI's image runs it, so the system test
+/// exercises the same compiled code as the aarch64 unit tests, with its assertions armed;
+/// `cargo xtask image build` keeps the release binary ([`build_irtrackd`]).
+pub fn test_build_irtrackd(ctx: &Ctx, arch: Arch) -> Result<PathBuf> {
+    let mut cmd = test_command(ctx, arch)?;
+    cmd.arg("--no-run");
+    let out = util::run(&mut cmd, RunOpts::default())?;
+    if !out.success() {
+        bail!("{} test build {}", arch.name(), out.describe());
+    }
+    let bin = ctx
+        .target_dir()
+        .join(arch.test_subdir())
+        .join(arch.triple())
+        .join("debug/irtrackd");
+    if !bin.is_file() {
+        bail!("the {} test build made no {}", arch.name(), bin.display());
+    }
+    Ok(bin)
 }
 
 /// Builds `irtrackd` for `arch`, release, statically linked; returns the binary's path.

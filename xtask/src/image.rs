@@ -92,6 +92,8 @@ pub struct Variant {
     pub arch: Arch,
     /// Builds the irtrackd it ships.
     pub irtrackd: fn(&Ctx) -> Result<PathBuf>,
+    /// How that irtrackd is built, for the build's log line.
+    pub irtrackd_profile: &'static str,
     /// Modules loaded at start after [`ROOT_MODULES`].
     pub extra_modules: &'static [(&'static str, &'static str)],
     /// A directory of the repository copied over image/rootfs (replacing files there).
@@ -112,6 +114,7 @@ pub const STANDARD: Variant = Variant {
     dir: "image",
     arch: Arch::Aarch64,
     irtrackd: |ctx| crate::cross::build_irtrackd(ctx, crate::cross::Arch::Aarch64),
+    irtrackd_profile: "release",
     // The A/B image mounts the boot (vfat) and data partitions and loop-mounts bundles
     // (squashfs).
     extra_modules: &[
@@ -134,6 +137,7 @@ pub const CLUSTER: Variant = Variant {
     dir: "image-cluster",
     arch: Arch::Aarch64,
     irtrackd: |ctx| crate::cross::build_irtrackd_cluster(ctx, crate::cross::Arch::Aarch64),
+    irtrackd_profile: "release",
     extra_modules: &[("qemu_fw_cfg", "")],
     overlay: Some("image/cluster"),
     // Sets the guest's clock from the test's SNTP server (the image has no NTP client).
@@ -223,7 +227,14 @@ pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
             failed.push(format!("crate list: {}", short(&format!("{e:#}"))));
         }
     }
-    let image = build(ctx).context("building the image")?;
+    // The irtrackd of the aarch64 test build (aarch64-tests runs the same command and finds
+    // it built): one aarch64 compile per CI run. `cargo xtask image build|test` ship release.
+    let variant = Variant {
+        irtrackd: |ctx| crate::cross::test_build_irtrackd(ctx, Arch::Aarch64),
+        irtrackd_profile: "test profile, shared with aarch64-tests",
+        ..STANDARD
+    };
+    let image = build_variant(ctx, &variant).context("building the image")?;
     println!("{}", image.summary());
     let report = system::run(ctx, &image)?;
     println!("{report}");
@@ -462,8 +473,9 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
     }
 
     println!(
-        "image: cross-building irtrackd (static, {}, release)",
-        variant.arch.name()
+        "image: cross-building irtrackd (static, {}, {})",
+        variant.arch.name(),
+        variant.irtrackd_profile
     );
     let irtrackd_built = (variant.irtrackd)(ctx)?;
     let irtrackd = work.join("irtrackd");

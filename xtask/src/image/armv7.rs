@@ -47,6 +47,7 @@ pub const ARMV7: Variant = Variant {
     dir: "image-armv7",
     arch: Arch::Armv7,
     irtrackd: |ctx| crate::cross::build_irtrackd(ctx, Arch::Armv7),
+    irtrackd_profile: "release",
     extra_modules: &[],
     overlay: None,
     tools: &[],
