@@ -95,7 +95,10 @@ pub const PHASES: &[Phase] = &[
     // Not in CI: the aarch64 Zenoh build alone is several cold minutes (docs/cluster.md).
     opt_in_phase("cluster-qemu-user", "aarch64 irtrackd with Zenoh under qemu-aarch64 as a camera board feeding a host solver", "aarch64", cluster_qemu_user, 10, &["aarch64-static", "debug"]),
     // Not in CI: the A/B update test boots QEMU about eight times (docs/updates.md).
-    opt_in_phase("image-update", "A/B updates with RAUC in qemu-system-aarch64: install, reboot, rollback, refusals, power cut", "system", |ctx| Outcome::from_counts(crate::image::update_phase(ctx)), 30, &["image", "aarch64-static", "debug"]),
+    opt_in_phase("image-update", "A/B updates with RAUC in qemu-system-aarch64: install, reboot, rollback, refusals, power cut", "system", |ctx| Outcome::from_counts(crate::image::update_phase(ctx, &crate::image::STANDARD)), 30, &["image", "aarch64-static", "debug"]),
+    // Not in CI: the same update test on the armv7 image in qemu-system-arm, slower under TCG,
+    // plus the armv7 irtrackd (std from source) when it is not built yet (docs/updates.md).
+    opt_in_phase("image-update-armv7", "A/B updates with RAUC on the armv7 image in qemu-system-arm: install, reboot, rollback, refusals (an aarch64 board's bundle too), power cut", "system", |ctx| Outcome::from_counts(crate::image::armv7::update_phase(ctx)), 60, &["image-armv7", "armv7-static", "debug"]),
     // Not in CI: on top of a cold CI run that already takes about an hour, std built from
     // source plus the armv7 debug build of the five crates (docs/development.md, "armv7").
     opt_in_phase("armv7-tests", "build std for armv7, cross-build core/sim/robot/cluster/firmware, run their tests under qemu-arm (Cortex-A9)", "armv7", armv7_tests, 35, &["armv7"]),
@@ -872,6 +875,8 @@ mod tests {
         assert!(!default.contains(&"cluster-qemu-system"));
         assert!(!default.contains(&"armv7-tests"));
         assert!(!default.contains(&"image-armv7"));
+        assert!(!default.contains(&"image-update"));
+        assert!(!default.contains(&"image-update-armv7"));
         let only = Args {
             only: vec!["cluster-qemu-user".into()],
             ..Args::default()

@@ -107,7 +107,24 @@ pub struct Variant {
     /// partition, two root slots carrying their own kernel, a data partition. Otherwise one
     /// root partition booted through extlinux.
     pub ab_updates: bool,
+    /// The board type of the A/B image: RAUC's `compatible` in `system.conf` and in every
+    /// bundle made for it, so that a bundle for another board is refused.
+    pub compatible: &'static str,
+    /// The board's part of the boot script (a file of the repository put before
+    /// image/update/boot.cmd: disk, console, how to load and start the slot's kernel); None
+    /// keeps boot.cmd's defaults, QEMU's arm64 virt machine.
+    pub boot_board: Option<&'static str>,
 }
+
+/// Modules of an A/B image: it mounts the boot (vfat) and data partitions and loop-mounts
+/// bundles (squashfs).
+pub const AB_MODULES: &[(&str, &str)] = &[
+    ("vfat", ""),
+    ("nls_cp437", ""),
+    ("nls_ascii", ""),
+    ("loop", ""),
+    ("squashfs", ""),
+];
 
 /// The CI image: a standalone board on two vivid V4L2 cameras.
 pub const STANDARD: Variant = Variant {
@@ -115,20 +132,17 @@ pub const STANDARD: Variant = Variant {
     arch: Arch::Aarch64,
     irtrackd: |ctx| crate::cross::build_irtrackd(ctx, crate::cross::Arch::Aarch64),
     irtrackd_profile: "release",
-    // The A/B image mounts the boot (vfat) and data partitions and loop-mounts bundles
-    // (squashfs).
-    extra_modules: &[
-        ("vfat", ""),
-        ("nls_cp437", ""),
-        ("nls_ascii", ""),
-        ("loop", ""),
-        ("squashfs", ""),
-    ],
+    extra_modules: AB_MODULES,
     overlay: None,
     tools: &[],
     signing_keys: true,
     ab_updates: true,
+    compatible: update::COMPATIBLE,
+    boot_board: None,
 };
+
+/// The images with the A/B update layout: each refuses the others' bundles.
+pub const AB_VARIANTS: &[&Variant] = &[&STANDARD, &armv7::ARMV7];
 
 /// The cluster test image (`cargo xtask test --only cluster-qemu-system`): irtrackd built with
 /// `cluster` (Zenoh) as a camera board on simulated cameras. QEMU's fw_cfg hands it the test's
@@ -144,6 +158,8 @@ pub const CLUSTER: Variant = Variant {
     tools: &[("image/tools/sntp-step.rs", "usr/sbin/sntp-step")],
     signing_keys: false,
     ab_updates: false,
+    compatible: "",
+    boot_board: None,
 };
 const UBOOT_QEMU: &str = "/usr/lib/u-boot/qemu_arm64/u-boot.bin";
 
@@ -156,7 +172,11 @@ pub fn cli(ctx: &Ctx, cmd: ImageCmd) -> Result<()> {
             Ok(())
         }
         ImageCmd::Test { no_build } => {
-            let image = if no_build { existing(ctx)? } else { build(ctx)? };
+            let image = if no_build {
+                existing(ctx, &STANDARD)?
+            } else {
+                build(ctx)?
+            };
             println!("{}", image.summary());
             let report = system::run(ctx, &image)?;
             println!("{report}");
@@ -171,28 +191,7 @@ pub fn cli(ctx: &Ctx, cmd: ImageCmd) -> Result<()> {
         }
         ImageCmd::Crates { check } => crates::cli(ctx, check),
         ImageCmd::Armv7 { cmd } => armv7::cli(ctx, cmd),
-        ImageCmd::Bundle { version, out } => {
-            update::check_version(&version)?;
-            let release = update::Release {
-                version: version.clone(),
-                build: update::Release::current(ctx)?.build,
-            };
-            let image = build_release(ctx, &STANDARD, Some(release.clone()))?;
-            println!("{}", image.summary());
-            let work = work_dir(ctx);
-            let keys = update::update_keys(&work)?;
-            let out = out.unwrap_or_else(|| work.join(format!("irtrack-{version}.raucb")));
-            update::make_bundle(&work, &work.join("root.ext4"), &release, &keys, &out)?;
-            println!(
-                "bundle: {} ({:.1} MiB), version {version}, build {}, compatible {}, signed by {}",
-                out.display(),
-                mib(fs::metadata(&out)?.len()),
-                release.build,
-                update::COMPATIBLE,
-                keys.signer_cert.display()
-            );
-            Ok(())
-        }
+        ImageCmd::Bundle { version, out } => bundle_cli(ctx, &STANDARD, &version, out),
         ImageCmd::UpdateKeys => {
             let keys = update::update_keys(&work_dir(ctx))?;
             println!("CA certificate (the boards' keyring): {}", keys.ca_cert.display());
@@ -200,17 +199,62 @@ pub fn cli(ctx: &Ctx, cmd: ImageCmd) -> Result<()> {
             println!("signing key: {}", keys.signer_key.display());
             Ok(())
         }
-        ImageCmd::UpdateTest { no_build } => {
-            let image = if no_build { existing(ctx)? } else { build(ctx)? };
-            println!("{}", image.summary());
-            let report = update_test::run(ctx, &image)?;
-            println!("{report}");
-            if report.failed() > 0 {
-                bail!("update test: {} check(s) failed", report.failed());
-            }
-            Ok(())
-        }
+        ImageCmd::UpdateTest { no_build } => update_test_cli(ctx, &STANDARD, no_build),
     }
+}
+
+/// `cargo xtask image [armv7] bundle`: builds the A/B image `variant` as `version` and makes a
+/// signed bundle of its root file system for that board.
+fn bundle_cli(ctx: &Ctx, variant: &Variant, version: &str, out: Option<PathBuf>) -> Result<()> {
+    update::check_version(version)?;
+    let release = update::Release {
+        version: version.to_owned(),
+        build: update::Release::current(ctx)?.build,
+    };
+    let image = build_release(ctx, variant, Some(release.clone()))?;
+    println!("{}", image.summary());
+    let work = image_dir(ctx, &image);
+    // One update CA for every board type (target/image/update-keys/): the CA says who may
+    // sign, the compatible string which board a bundle is for.
+    let keys = update::update_keys(&work_dir(ctx))?;
+    let out = out.unwrap_or_else(|| work.join(format!("irtrack-{version}.raucb")));
+    update::make_bundle_for(
+        &work,
+        &work.join("root.ext4"),
+        &release,
+        &keys,
+        variant.compatible,
+        &out,
+    )?;
+    println!(
+        "bundle: {} ({:.1} MiB), version {version}, build {}, compatible {}, signed by {}",
+        out.display(),
+        mib(fs::metadata(&out)?.len()),
+        release.build,
+        variant.compatible,
+        keys.signer_cert.display()
+    );
+    Ok(())
+}
+
+/// `cargo xtask image [armv7] update-test`.
+fn update_test_cli(ctx: &Ctx, variant: &Variant, no_build: bool) -> Result<()> {
+    let image = if no_build {
+        existing(ctx, variant)?
+    } else {
+        build_variant(ctx, variant)?
+    };
+    println!("{}", image.summary());
+    let report = update_test::run(ctx, &image)?;
+    println!("{report}");
+    if report.failed() > 0 {
+        bail!(
+            "{} update test: {} check(s) failed",
+            variant.arch.name(),
+            report.failed()
+        );
+    }
+    Ok(())
 }
 
 /// CI: the crate list matches Cargo.lock, the image builds, and every system-test check passes.
@@ -249,9 +293,11 @@ pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
     Ok(counts)
 }
 
-/// CI opt-in phase `image-update`: builds the image and runs the A/B update test.
-pub fn update_phase(ctx: &Ctx) -> Result<Counts> {
-    let image = build(ctx).context("building the image")?;
+/// CI opt-in phases `image-update` (the aarch64 image) and `image-update-armv7`: builds the
+/// A/B image `variant` and runs the update test on it.
+pub fn update_phase(ctx: &Ctx, variant: &Variant) -> Result<Counts> {
+    let image =
+        build_variant(ctx, variant).with_context(|| format!("building the {} image", variant.arch.name()))?;
     println!("{}", image.summary());
     let report = update_test::run(ctx, &image)?;
     println!("{report}");
@@ -262,7 +308,12 @@ pub fn update_phase(ctx: &Ctx) -> Result<Counts> {
         .map(|c| format!("{}: {}", c.name, short(&c.detail)))
         .collect();
     if !failed.is_empty() {
-        bail!("{} update check(s) failed: {}", failed.len(), failed.join("; "));
+        bail!(
+            "{} {} update check(s) failed: {}",
+            failed.len(),
+            variant.arch.name(),
+            failed.join("; ")
+        );
     }
     Ok(Counts {
         passed: report.passed(),
@@ -294,6 +345,8 @@ pub struct Image {
     /// (`/etc/irtrack/trusted-keys/image-build.pub`); `push-params --sign-key` uses it. Empty
     /// for a variant without keys.
     pub signing_key: PathBuf,
+    /// The board type bundles for it must name (A/B images; empty otherwise).
+    pub compatible: &'static str,
 }
 
 /// The build's signing key pair in target/image/keys/, created once by `host-tools keygen` and
@@ -389,18 +442,27 @@ fn fresh_dir(dir: &Path) -> Result<()> {
 }
 
 /// The image of the last `build`, for re-running the system test without rebuilding.
-pub fn existing(ctx: &Ctx) -> Result<Image> {
-    let work = work_dir(ctx);
+pub fn existing(ctx: &Ctx, variant: &Variant) -> Result<Image> {
+    let work = ctx.target_dir().join(variant.dir);
+    let build_cmd = match variant.arch {
+        Arch::Aarch64 => "cargo xtask image build",
+        Arch::Armv7 => "cargo xtask image armv7 build",
+    };
     let len = |name: &str| -> Result<u64> {
         let path = work.join(name);
         Ok(fs::metadata(&path)
-            .with_context(|| format!("{} missing; run `cargo xtask image build`", path.display()))?
+            .with_context(|| format!("{} missing; run `{build_cmd}`", path.display()))?
             .len())
     };
     let (kernel_version, _) = kernel_modules_dir(&work.join("kernel"))?;
     Ok(Image {
         sd_img: work.join("irtrack-sd.img"),
-        arch: Arch::Aarch64,
+        arch: variant.arch,
+        compatible: if variant.ab_updates {
+            variant.compatible
+        } else {
+            ""
+        },
         kernel_version,
         size_bytes: len("irtrack-sd.img")?,
         boot_bytes: len("boot.vfat")?,
@@ -563,23 +625,31 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
             "image: A/B update tools (RAUC), release {} build {}",
             release.version, release.build
         );
-        let pkgs = update::fetch_tools(&work.join("dl"), &work.join("update-pkgs"))?;
-        let libs = update::install_tools(&pkgs, &rootfs)?;
+        let pkgs = update::fetch_tools(variant.arch, &work, &work.join("update-pkgs"))?;
+        let libs = update::install_tools(variant.arch, &pkgs, &rootfs)?;
         copy_tree(&ctx.root.join("image/update/rootfs"), &rootfs)?;
+        update::set_compatible(&rootfs, variant.compatible)?;
         // GDBus and libdbus look for the system bus under /var/run.
         std::os::unix::fs::symlink("../run", rootfs.join("var/run"))?;
-        let keys = update::update_keys(&work)?;
+        // One update CA for every board type (target/image/update-keys/).
+        let keys = update::update_keys(&work_dir(ctx))?;
         copy_file_mode(&keys.ca_cert, &rootfs.join("etc/rauc/ca.cert.pem"), 0o644)?;
-        update::write_release(&rootfs, &release)?;
+        update::write_release(&rootfs, &release, variant.compatible)?;
         // Each slot boots its own kernel and initramfs (boot.scr loads them from the slot), so
         // an update brings the kernel and its modules together.
-        copy_file_mode(&kernel_image, &rootfs.join("boot/Image"), 0o644)?;
+        copy_file_mode(
+            &kernel_image,
+            &rootfs.join("boot").join(update::kernel_file(variant.arch)),
+            0o644,
+        )?;
         copy_file_mode(&initrd, &rootfs.join("boot/initrd.gz"), 0o644)?;
         println!(
-            "image: RAUC, dbus-daemon, fw_printenv/fw_setenv and {libs} shared libraries; bundles signed under {}",
+            "image: RAUC, dbus-daemon, fw_printenv/fw_setenv and {libs} shared libraries ({}); board type {}; bundles signed under {}",
+            debian_arch(variant.arch),
+            variant.compatible,
             keys.ca_cert.display()
         );
-        let scr = update::boot_script(ctx, &work)?;
+        let scr = update::boot_script(ctx, &work, variant)?;
         let env = update::initial_env(&work)?;
         boot_bytes = update::make_boot_partition(&boot_img, &scr, &env)?;
         root_bytes = make_root_partition(&root_img, &rootfs)?;
@@ -653,6 +723,11 @@ pub fn build_release(ctx: &Ctx, variant: &Variant, release: Option<update::Relea
         irtrackd_bytes,
         build_time: start.elapsed(),
         signing_key,
+        compatible: if variant.ab_updates {
+            variant.compatible
+        } else {
+            ""
+        },
     })
 }
 

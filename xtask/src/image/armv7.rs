@@ -1,7 +1,7 @@
-//! The armv7 image (`cargo xtask image armv7 build|test|run`, CI opt-in phase `image-armv7`):
-//! the image of docs/image.md for the Pandaboard's 32-bit ARMv7-A, booted in
-//! `qemu-system-arm -M virt -cpu cortex-a15` and checked by the same system test as the
-//! aarch64 image.
+//! The armv7 image (`cargo xtask image armv7 build|test|run|update-test|bundle`, CI opt-in
+//! phases `image-armv7` and `image-update-armv7`): the image of docs/image.md for the
+//! Pandaboard's 32-bit ARMv7-A, booted in `qemu-system-arm -M virt -cpu cortex-a15` and checked
+//! by the same system test and the same A/B update test as the aarch64 image.
 //!
 //! What differs from the aarch64 image:
 //! - Debian armhf packages: the `armmp` kernel (Debian's ARMv7 multiplatform flavour, the one
@@ -11,8 +11,12 @@
 //!   machine's own apt sources: the system's apt configuration is left alone and no root is
 //!   needed for that step.
 //! - The armv7 irtrackd (`cargo xtask cross --arch armv7`: Cortex-A9 tuning with NEON).
-//! - One root partition booted through extlinux by U-Boot's `qemu_arm` build (no A/B slots,
-//!   no RAUC: the update path stays aarch64-only).
+//! - The same A/B layout as the aarch64 image (docs/updates.md): boot.scr and the boot counters
+//!   on the boot partition, slots A and B, the data partition, RAUC 1.8 with dbus-daemon and
+//!   libubootenv from Debian's armhf packages. U-Boot's `qemu_arm` build runs boot.scr with the
+//!   board part [`BOOT_BOARD`] (the slot's `/boot/zImage`, started with `bootz`), and bundles
+//!   name the board type [`COMPATIBLE`], so an aarch64 bundle is refused here and an armv7
+//!   bundle on the aarch64 image.
 //! - The QEMU machine: `virt` with a Cortex-A15 (see [`QEMU_CPU`]).
 
 use std::fs;
@@ -21,7 +25,7 @@ use std::process::Command;
 
 use anyhow::{Context, Result, bail};
 
-use super::{Debs, Variant, find_deb, run_quiet, system};
+use super::{AB_MODULES, Debs, Variant, find_deb, run_quiet, system};
 use crate::cross::Arch;
 use crate::report::Counts;
 use crate::util::Ctx;
@@ -42,17 +46,26 @@ pub const UBOOT_QEMU_ARM: &str = "/usr/lib/u-boot/qemu_arm/u-boot.bin";
 /// Debian's ARMv7 multiplatform kernel (meta package; it depends on the versioned one).
 const KERNEL_META: &str = "linux-image-armmp";
 
-/// The armv7 image: the standalone board on two vivid cameras, one root partition.
+/// The armv7 image's board type (RAUC's `compatible`): QEMU's 32-bit virt machine. A Yocto
+/// Pandaboard image names its own (`irtrack-pandaboard`).
+pub const COMPATIBLE: &str = "irtrack-qemu-armv7";
+
+/// The board's part of boot.cmd for this image (the slot's zImage through `bootz`).
+pub const BOOT_BOARD: &str = "image/update/board/qemu-armv7.cmd";
+
+/// The armv7 image: the standalone board on two vivid cameras, A/B slots with RAUC.
 pub const ARMV7: Variant = Variant {
     dir: "image-armv7",
     arch: Arch::Armv7,
     irtrackd: |ctx| crate::cross::build_irtrackd(ctx, Arch::Armv7),
     irtrackd_profile: "release",
-    extra_modules: &[],
+    extra_modules: AB_MODULES,
     overlay: None,
     tools: &[],
     signing_keys: true,
-    ab_updates: false,
+    ab_updates: true,
+    compatible: COMPATIBLE,
+    boot_board: Some(BOOT_BOARD),
 };
 
 /// `cargo xtask image armv7 <command>`.
@@ -60,21 +73,51 @@ pub const ARMV7: Variant = Variant {
 pub enum Armv7Cmd {
     /// Build target/image-armv7/irtrack-sd.img.
     Build,
-    /// Build, boot in qemu-system-arm, run the system test.
-    Test,
+    /// Build (or reuse the last build), boot in qemu-system-arm, run the system test.
+    Test {
+        /// Reuse the last build.
+        #[arg(long)]
+        no_build: bool,
+    },
     /// Build, then boot it interactively (console on this terminal; Ctrl-A X quits).
     Run,
+    /// Build (or reuse the last build), then the A/B update test in qemu-system-arm (the
+    /// aarch64 image's checks, docs/updates.md).
+    UpdateTest {
+        /// Reuse the last build.
+        #[arg(long)]
+        no_build: bool,
+    },
+    /// Build the image as VERSION and make a signed RAUC bundle of its root file system for
+    /// the armv7 board (compatible irtrack-qemu-armv7).
+    Bundle {
+        /// The bundle's version (dotted numbers); boards refuse bundles older than what they run.
+        #[arg(long)]
+        version: String,
+        /// Where to write it (default target/image-armv7/irtrack-VERSION.raucb).
+        #[arg(long)]
+        out: Option<std::path::PathBuf>,
+    },
 }
 
 pub fn cli(ctx: &Ctx, cmd: Armv7Cmd) -> Result<()> {
-    let image = super::build_variant(ctx, &ARMV7)?;
-    println!("{}", image.summary());
+    let build_or_reuse = |no_build: bool| {
+        if no_build {
+            super::existing(ctx, &ARMV7)
+        } else {
+            super::build_variant(ctx, &ARMV7)
+        }
+    };
     match cmd {
         Armv7Cmd::Build => {
+            let image = super::build_variant(ctx, &ARMV7)?;
+            println!("{}", image.summary());
             println!("{}", image.sd_img.display());
             Ok(())
         }
-        Armv7Cmd::Test => {
+        Armv7Cmd::Test { no_build } => {
+            let image = build_or_reuse(no_build)?;
+            println!("{}", image.summary());
             let report = system::run(ctx, &image)?;
             println!("{report}");
             if report.failed() > 0 {
@@ -82,8 +125,19 @@ pub fn cli(ctx: &Ctx, cmd: Armv7Cmd) -> Result<()> {
             }
             Ok(())
         }
-        Armv7Cmd::Run => super::qemu::interactive(ctx, &image),
+        Armv7Cmd::Run => {
+            let image = super::build_variant(ctx, &ARMV7)?;
+            println!("{}", image.summary());
+            super::qemu::interactive(ctx, &image)
+        }
+        Armv7Cmd::UpdateTest { no_build } => super::update_test_cli(ctx, &ARMV7, no_build),
+        Armv7Cmd::Bundle { version, out } => super::bundle_cli(ctx, &ARMV7, &version, out),
     }
+}
+
+/// CI opt-in phase `image-update-armv7`: the A/B update test on the armv7 image.
+pub fn update_phase(ctx: &Ctx) -> Result<Counts> {
+    super::update_phase(ctx, &ARMV7)
 }
 
 /// CI opt-in phase `image-armv7`: builds the armv7 image and runs the system test on it.
@@ -164,6 +218,16 @@ fn apt_download(apt_dir: &Path, dl: &Path, packages: &[&str]) -> Result<()> {
     run_quiet(apt(apt_dir).arg("download").args(packages).current_dir(dl))
         .with_context(|| format!("downloading {} (armhf)", packages.join(" ")))?;
     Ok(())
+}
+
+/// Downloads armhf `packages` into `work/dl/` through the private apt state (the update tools
+/// of the A/B image, xtask/src/image/update.rs).
+pub(super) fn download(work: &Path, packages: &[&str]) -> Result<()> {
+    let dl = work.join("dl");
+    let apt_dir = work.join("apt");
+    fs::create_dir_all(&dl)?;
+    apt_update(&apt_dir)?;
+    apt_download(&apt_dir, &dl, packages)
 }
 
 /// The armhf kernel (through [`KERNEL_META`]) and busybox-static in `work/dl/`, reusing what is
@@ -273,9 +337,46 @@ mod tests {
     }
 
     #[test]
-    fn the_variant_is_armv7_without_ab() {
+    fn the_variant_is_armv7_with_ab_for_its_own_board() {
         assert_eq!(ARMV7.arch, Arch::Armv7);
-        assert!(!ARMV7.ab_updates && ARMV7.tools.is_empty());
+        assert!(ARMV7.ab_updates && ARMV7.tools.is_empty());
         assert_ne!(ARMV7.dir, super::super::STANDARD.dir);
+        // Bundles for one board are refused by the other.
+        assert_ne!(ARMV7.compatible, super::super::STANDARD.compatible);
+        assert_eq!(ARMV7.extra_modules, super::super::STANDARD.extra_modules);
+    }
+
+    #[test]
+    fn the_board_part_sets_every_board_variable_and_boots_a_zimage() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let board = fs::read_to_string(root.join(BOOT_BOARD)).unwrap();
+        let generic = fs::read_to_string(root.join("image/update/boot.cmd")).unwrap();
+        // Every variable boot.cmd lets a board set is set here, so none of its arm64 defaults
+        // (booti of /boot/Image) applies.
+        for var in [
+            "irtrack_iface",
+            "irtrack_devnum",
+            "irtrack_root",
+            "irtrack_console",
+            "irtrack_boot",
+        ] {
+            assert!(
+                generic.contains(&format!("test -n \"${{{var}}}\" || setenv {var} ")),
+                "boot.cmd no longer defaults {var}"
+            );
+            assert!(
+                board.lines().any(|l| l.starts_with(&format!("setenv {var} "))),
+                "{BOOT_BOARD} does not set {var}"
+            );
+        }
+        let boot = board
+            .lines()
+            .find(|l| l.starts_with("setenv irtrack_boot "))
+            .unwrap();
+        assert!(boot.contains("/boot/zImage") && boot.contains("bootz ") && !boot.contains("booti"));
+        assert!(boot.contains(&format!(
+            "/boot/{}",
+            super::super::update::kernel_file(Arch::Armv7)
+        )));
     }
 }

@@ -1,5 +1,6 @@
-//! The QEMU driver of the image's system test: `qemu-system-aarch64 -M virt,acpi=off` booting
-//! the SD image through U-Boot, irtrackd's ports forwarded to free host ports, the serial
+//! The QEMU driver of the image's system and update tests: `qemu-system-aarch64 -M
+//! virt,acpi=off` (or `qemu-system-arm -M virt` for the armv7 image) booting the SD image
+//! through U-Boot, irtrackd's ports forwarded to free host ports, the serial
 //! console collected into a log and used as a shell (commands typed, output read back between
 //! markers). QEMU is killed on every path (`Drop`).
 
@@ -37,10 +38,6 @@ pub fn free_ports<const N: usize>() -> Result<[u16; N]> {
     Ok(ports)
 }
 
-pub fn qemu_command(disk: &Path, host_ports: &[u16; 4]) -> Command {
-    qemu_command_for(Arch::Aarch64, disk, host_ports)
-}
-
 /// The system emulator of `arch`.
 fn qemu_system(arch: Arch) -> &'static str {
     match arch {
@@ -49,7 +46,8 @@ fn qemu_system(arch: Arch) -> &'static str {
     }
 }
 
-/// [`qemu_command`] for the image of `arch`: armv7 boots on the same `virt` machine with a
+/// QEMU booting `disk` through U-Boot for the image of `arch`, irtrackd's ports forwarded to
+/// `host_ports`: aarch64 on `virt` with a Cortex-A53; armv7 on the same `virt` machine with a
 /// Cortex-A15 and U-Boot's 32-bit build (see [`super::armv7::QEMU_CPU`]).
 pub fn qemu_command_for(arch: Arch, disk: &Path, host_ports: &[u16; 4]) -> Command {
     let fwd: Vec<String> = host_ports

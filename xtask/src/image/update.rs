@@ -1,5 +1,6 @@
-//! A/B field updates of the CI image with RAUC (docs/updates.md): the update tools copied from
-//! Debian's arm64 packages into the busybox root file system (RAUC, D-Bus for its service,
+//! A/B field updates of the CI images with RAUC (docs/updates.md): the update tools copied from
+//! Debian's packages of the board's architecture (arm64 for the aarch64 image, armhf for the
+//! armv7 one) into the busybox root file system (RAUC, D-Bus for its service,
 //! fw_printenv/fw_setenv for U-Boot's boot counters, and every shared library they need), the
 //! boot partition with `boot.scr` and the counters, the data partition, the update CA and
 //! signed bundles.
@@ -11,11 +12,13 @@ use std::process::Command;
 
 use anyhow::{Context, Result, bail};
 
-use super::{bootenv, find_deb, fresh_dir, run_quiet};
+use super::{Variant, bootenv, find_deb, fresh_dir, run_quiet};
+use crate::cross::Arch;
 use crate::util::Ctx;
 
-/// The board type in RAUC's `system.conf` and in every bundle's manifest: RAUC refuses a
-/// bundle made for another board.
+/// The aarch64 image's board type in RAUC's `system.conf` and in every bundle's manifest: RAUC
+/// refuses a bundle made for another board. (The armv7 image's is
+/// [`super::armv7::COMPATIBLE`].)
 pub const COMPATIBLE: &str = "irtrack-qemu-arm64";
 /// Boot partition (boot.scr and the boot counters only: kernels live in the slots).
 pub const BOOT_MIB: u64 = 16;
@@ -24,7 +27,8 @@ pub const SLOT_MIB: u64 = 256;
 /// The data partition: parameter sets, tuning, RAUC's status, a downloaded bundle.
 pub const DATA_MIB: u64 = 192;
 
-/// arm64 packages whose files the image carries: RAUC, dbus-daemon (RAUC's command line talks
+/// Debian packages (the same names for arm64 and armhf) whose files the image carries: RAUC,
+/// dbus-daemon (RAUC's command line talks
 /// to `rauc service` over D-Bus), libubootenv's fw_printenv/fw_setenv, and the packages of the
 /// shared libraries they load. [`install_tools`] resolves the libraries by DT_NEEDED and fails
 /// naming any that none of these packages provides.
@@ -90,21 +94,51 @@ const TOOL_BINARIES: &[&str] = &[
     "usr/bin/fw_setenv",
 ];
 
-/// Where Debian's arm64 libraries live (the loader's built-in search path).
-const LIB_DIRS: &[&str] = &["lib/aarch64-linux-gnu", "usr/lib/aarch64-linux-gnu"];
+/// Where Debian's libraries of `arch` live (the loader's built-in search path).
+fn lib_dirs(arch: Arch) -> [&'static str; 2] {
+    match arch {
+        Arch::Aarch64 => ["lib/aarch64-linux-gnu", "usr/lib/aarch64-linux-gnu"],
+        Arch::Armv7 => ["lib/arm-linux-gnueabihf", "usr/lib/arm-linux-gnueabihf"],
+    }
+}
 
-/// Downloads the tool packages into `dl` (what is not there yet) and extracts them all into
-/// `dest` (once per set of package files).
-pub fn fetch_tools(dl: &Path, dest: &Path) -> Result<PathBuf> {
+/// The dynamic loader of `arch` (glibc's, hard-float for armhf).
+fn loader(arch: Arch) -> &'static str {
+    match arch {
+        Arch::Aarch64 => "ld-linux-aarch64.so.1",
+        Arch::Armv7 => "ld-linux-armhf.so.3",
+    }
+}
+
+/// The kernel's file name in each slot's `/boot` (what the board's part of boot.cmd loads):
+/// an arm64 `Image` (booti) or an ARM `zImage` (bootz).
+pub fn kernel_file(arch: Arch) -> &'static str {
+    match arch {
+        Arch::Aarch64 => "Image",
+        Arch::Armv7 => "zImage",
+    }
+}
+
+/// Downloads the tool packages of `arch` into `work/dl` (what is not there yet) and extracts
+/// them all into `dest` (once per set of package files).
+pub fn fetch_tools(arch: Arch, work: &Path, dest: &Path) -> Result<PathBuf> {
+    let dl = &work.join("dl");
     fs::create_dir_all(dl)?;
-    let missing: Vec<String> = TOOL_DEBS
+    let missing: Vec<&str> = TOOL_DEBS
         .iter()
+        .copied()
         .filter(|name| find_deb(dl, name).is_none())
-        .map(|name| format!("{name}:arm64"))
         .collect();
     if !missing.is_empty() {
         // One apt-get run for all of them: each run costs seconds of its own.
-        super::apt_download(dl, &missing.join(" "))?;
+        match arch {
+            Arch::Aarch64 => {
+                let names: Vec<String> = missing.iter().map(|n| format!("{n}:arm64")).collect();
+                super::apt_download(dl, &names.join(" "))?;
+            }
+            // armhf through the armv7 image's private apt state (no dpkg architecture added).
+            Arch::Armv7 => super::armv7::download(work, &missing)?,
+        }
     }
     let mut debs = Vec::new();
     for name in TOOL_DEBS {
@@ -155,7 +189,7 @@ pub const TOOLS_DIR: &str = "usr/lib/irtrack-update";
 /// packages into [`TOOLS_DIR`] of the staged root file system, and puts a wrapper for each
 /// tool in /usr/bin that starts it through the loader with that library path. Returns the
 /// number of libraries.
-pub fn install_tools(pkgs: &Path, stage: &Path) -> Result<usize> {
+pub fn install_tools(arch: Arch, pkgs: &Path, stage: &Path) -> Result<usize> {
     use std::os::unix::fs::PermissionsExt;
     let dir = stage.join(TOOLS_DIR);
     let mut queue: Vec<(PathBuf, String)> = Vec::new();
@@ -167,7 +201,7 @@ pub fn install_tools(pkgs: &Path, stage: &Path) -> Result<usize> {
             .into_owned();
         super::copy_file_mode(&pkgs.join(bin), &dir.join("bin").join(&name), 0o755)?;
         let wrapper = stage.join("usr/bin").join(&name);
-        fs::write(&wrapper, wrapper_script(&name))?;
+        fs::write(&wrapper, wrapper_script(&name, arch))?;
         fs::set_permissions(&wrapper, fs::Permissions::from_mode(0o755))?;
         queue.push((pkgs.join(bin), (*bin).to_owned()));
     }
@@ -177,7 +211,7 @@ pub fn install_tools(pkgs: &Path, stage: &Path) -> Result<usize> {
             if !seen.insert(soname.clone()) {
                 continue;
             }
-            let found = LIB_DIRS
+            let found = lib_dirs(arch)
                 .iter()
                 .map(|d| pkgs.join(d).join(&soname))
                 .find(|p| p.exists())
@@ -190,21 +224,21 @@ pub fn install_tools(pkgs: &Path, stage: &Path) -> Result<usize> {
             queue.push((real, soname));
         }
     }
-    if !dir.join(LOADER).is_file() {
-        bail!("the dynamic loader {LOADER} was not among the libraries");
+    if !dir.join(loader(arch)).is_file() {
+        bail!("the dynamic loader {} was not among the libraries", loader(arch));
     }
     Ok(seen.len())
 }
 
-const LOADER: &str = "ld-linux-aarch64.so.1";
-
 /// /usr/bin/NAME: runs the tool through the loader with the private library path, which is
 /// not passed on to the programs it starts (`--library-path`, unlike LD_LIBRARY_PATH).
 /// `--argv0` keeps the name: fw_printenv and fw_setenv act by it.
-fn wrapper_script(name: &str) -> String {
+fn wrapper_script(name: &str, arch: Arch) -> String {
     format!(
-        "#!/bin/sh\n# {name} from Debian's arm64 package with its own libraries (xtask/src/image/update.rs).\n\
-         exec /{TOOLS_DIR}/{LOADER} --library-path /{TOOLS_DIR} --argv0 {name} /{TOOLS_DIR}/bin/{name} \"$@\"\n"
+        "#!/bin/sh\n# {name} from Debian's {} package with its own libraries (xtask/src/image/update.rs).\n\
+         exec /{TOOLS_DIR}/{} --library-path /{TOOLS_DIR} --argv0 {name} /{TOOLS_DIR}/bin/{name} \"$@\"\n",
+        super::debian_arch(arch),
+        loader(arch)
     )
 }
 
@@ -244,9 +278,10 @@ impl Release {
         })
     }
 
-    pub fn file_text(&self) -> String {
+    /// The release file of an image for the board type `compatible`.
+    pub fn file_text(&self, compatible: &str) -> String {
         format!(
-            "# Written by `cargo xtask image build`; read by irtrack-health and RAUC's handlers.\nVERSION={}\nBUILD={}\nCOMPATIBLE={COMPATIBLE}\n",
+            "# Written by `cargo xtask image build`; read by irtrack-health and RAUC's handlers.\nVERSION={}\nBUILD={}\nCOMPATIBLE={compatible}\n",
             self.version, self.build
         )
     }
@@ -268,10 +303,37 @@ pub fn check_version(v: &str) -> Result<()> {
     Ok(())
 }
 
-/// Writes `/etc/irtrack/release` into a staged root file system.
-pub fn write_release(stage: &Path, release: &Release) -> Result<()> {
+/// Writes `/etc/irtrack/release` into a staged root file system for the board type
+/// `compatible`.
+pub fn write_release(stage: &Path, release: &Release, compatible: &str) -> Result<()> {
     let path = stage.join("etc/irtrack/release");
-    fs::write(&path, release.file_text()).with_context(|| format!("writing {}", path.display()))
+    fs::write(&path, release.file_text(compatible)).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Sets the board type in the staged `/etc/rauc/system.conf` (image/update/rootfs has the
+/// aarch64 image's).
+pub fn set_compatible(stage: &Path, compatible: &str) -> Result<()> {
+    let path = stage.join("etc/rauc/system.conf");
+    let text = fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let new = with_compatible(&text, compatible)
+        .with_context(|| format!("{} has no compatible= line", path.display()))?;
+    fs::write(&path, new).with_context(|| format!("writing {}", path.display()))
+}
+
+/// `system.conf` text with its `compatible=` line (in `[system]`) replaced.
+fn with_compatible(text: &str, compatible: &str) -> Option<String> {
+    let mut found = false;
+    let mut out = String::with_capacity(text.len());
+    for line in text.lines() {
+        if !found && line.trim_start().starts_with("compatible=") {
+            found = true;
+            out.push_str(&format!("compatible={compatible}"));
+        } else {
+            out.push_str(line);
+        }
+        out.push('\n');
+    }
+    found.then_some(out)
 }
 
 /// The update signing material on the PC: a CA (whose certificate the board trusts) and a
@@ -396,14 +458,35 @@ pub fn initial_env(work: &Path) -> Result<[PathBuf; 2]> {
     Ok(out)
 }
 
-/// boot.scr from image/update/boot.cmd.
-pub fn boot_script(ctx: &Ctx, work: &Path) -> Result<PathBuf> {
+/// boot.scr from the board's part ([`Variant::boot_board`], if any) followed by
+/// image/update/boot.cmd, whose defaults are QEMU's arm64 virt machine.
+pub fn boot_script(ctx: &Ctx, work: &Path, variant: &Variant) -> Result<PathBuf> {
     let scr = work.join("boot.scr");
+    let generic = ctx.root.join("image/update/boot.cmd");
+    let source = match variant.boot_board {
+        None => generic,
+        Some(board) => {
+            let board = ctx.root.join(board);
+            let mut text =
+                fs::read_to_string(&board).with_context(|| format!("reading {}", board.display()))?;
+            text.push('\n');
+            text.push_str(
+                &fs::read_to_string(&generic).with_context(|| format!("reading {}", generic.display()))?,
+            );
+            let joined = work.join("boot.cmd");
+            fs::write(&joined, text)?;
+            joined
+        }
+    };
+    let mkimage_arch = match variant.arch {
+        Arch::Aarch64 => "arm64",
+        Arch::Armv7 => "arm",
+    };
     run_quiet(
         Command::new("mkimage")
             .args([
                 "-A",
-                "arm64",
+                mkimage_arch,
                 "-O",
                 "linux",
                 "-T",
@@ -414,7 +497,7 @@ pub fn boot_script(ctx: &Ctx, work: &Path) -> Result<PathBuf> {
                 "irtrack A/B boot",
                 "-d",
             ])
-            .arg(ctx.root.join("image/update/boot.cmd"))
+            .arg(&source)
             .arg(&scr),
     )
     .context("mkimage (u-boot-tools; run `cargo xtask setup`)")?;
@@ -468,18 +551,8 @@ pub fn make_data_partition(work: &Path, out: &Path) -> Result<u64> {
     Ok(DATA_MIB << 20)
 }
 
-/// A signed RAUC bundle holding `rootfs_ext4` as the image of the `rootfs` slot class.
-pub fn make_bundle(
-    work: &Path,
-    rootfs_ext4: &Path,
-    release: &Release,
-    keys: &UpdateKeys,
-    out: &Path,
-) -> Result<()> {
-    make_bundle_for(work, rootfs_ext4, release, keys, COMPATIBLE, out)
-}
-
-/// [`make_bundle`] for the board type `compatible`.
+/// A signed RAUC bundle for the board type `compatible`, holding `rootfs_ext4` as the image of
+/// the `rootfs` slot class.
 pub fn make_bundle_for(
     work: &Path,
     rootfs_ext4: &Path,
@@ -542,6 +615,32 @@ mod tests {
                    0x000000000000000e (SONAME)             Library soname: [librauc.so]\n";
         assert_eq!(parse_needed(out), vec!["libglib-2.0.so.0", "libc.so.6"]);
         assert!(parse_needed("not an ELF file").is_empty());
+    }
+
+    #[test]
+    fn the_board_type_is_set_in_system_conf() {
+        let conf = "[system]\ncompatible=irtrack-qemu-arm64\nbootloader=uboot\n\n[slot.rootfs.0]\ndevice=/dev/vda2\n";
+        let armv7 = with_compatible(conf, "irtrack-qemu-armv7").unwrap();
+        assert_eq!(
+            armv7,
+            "[system]\ncompatible=irtrack-qemu-armv7\nbootloader=uboot\n\n[slot.rootfs.0]\ndevice=/dev/vda2\n"
+        );
+        assert!(with_compatible("[system]\nbootloader=uboot\n", "x").is_none());
+        // The repository's system.conf has the line this replaces.
+        let repo = include_str!("../../../image/update/rootfs/etc/rauc/system.conf");
+        let set = with_compatible(repo, "irtrack-qemu-armv7").unwrap();
+        assert!(set.contains("\ncompatible=irtrack-qemu-armv7\n") && !set.contains("arm64"));
+    }
+
+    #[test]
+    fn wrappers_start_the_architecture_loader() {
+        let arm = wrapper_script("rauc", Arch::Armv7);
+        assert!(
+            arm.contains("exec /usr/lib/irtrack-update/ld-linux-armhf.so.3 --library-path /usr/lib/irtrack-update --argv0 rauc /usr/lib/irtrack-update/bin/rauc \"$@\""),
+            "{arm}"
+        );
+        assert!(wrapper_script("fw_setenv", Arch::Aarch64).contains("/ld-linux-aarch64.so.1 "));
+        assert_eq!(kernel_file(Arch::Armv7), "zImage");
     }
 
     #[test]

@@ -1,7 +1,9 @@
-//! The A/B update test (`cargo xtask image update-test`, CI opt-in phase `image-update`):
-//! boots a fresh copy of the image in QEMU and, through the console shell and irtrackd's
-//! forwarded ports, installs RAUC bundles that the guest downloads from a small HTTP server
-//! on the host (10.0.2.2 under QEMU user networking). docs/updates.md lists the checks.
+//! The A/B update test (`cargo xtask image update-test` and `cargo xtask image armv7
+//! update-test`, CI opt-in phases `image-update` and `image-update-armv7`): boots a fresh copy
+//! of the image in QEMU (`qemu-system-aarch64` or `qemu-system-arm`, by the image's
+//! architecture) and, through the console shell and irtrackd's forwarded ports, installs RAUC
+//! bundles that the guest downloads from a small HTTP server on the host (10.0.2.2 under QEMU
+//! user networking). The same checks run on both images; docs/updates.md lists them.
 
 use std::fs;
 use std::io::{BufRead, BufReader, Read, Write};
@@ -17,10 +19,11 @@ use super::bootenv;
 use super::checks::{
     check_params_used, get_status, make_params, push_params, rig_id_of, set_operator_password,
 };
-use super::qemu::{BOOT_TIMEOUT, Qemu, free_ports, qemu_command};
+use super::qemu::{BOOT_TIMEOUT, Qemu, free_ports, qemu_command_for};
 use super::system::Report;
 use super::update::{self, Release, UpdateKeys};
-use super::{Image, work_dir};
+use super::{AB_VARIANTS, Image, image_dir, work_dir};
+use crate::cross::Arch;
 use crate::util::{Ctx, json};
 
 /// The guest's health timeout in this test (a board's default is 120 s): a broken slot
@@ -114,11 +117,12 @@ fn image_release(work: &Path) -> Result<Release> {
 }
 
 /// A root file system image made from the last build's staged tree, with its release file
-/// set to `release` and `tweak` applied to a copy of the tree.
+/// set to `release` (for the board type `compatible`) and `tweak` applied to a copy of the tree.
 fn rootfs_variant(
     work: &Path,
     name: &str,
     release: &Release,
+    compatible: &str,
     tweak: impl Fn(&Path) -> Result<()>,
 ) -> Result<PathBuf> {
     let stage = work.join(format!("rootfs-{name}"));
@@ -133,7 +137,7 @@ fn rootfs_variant(
     if !cp.success() {
         bail!("copying the staged root file system to {}", stage.display());
     }
-    update::write_release(&stage, release)?;
+    update::write_release(&stage, release, compatible)?;
     tweak(&stage)?;
     let out = work.join(format!("rootfs-{name}.ext4"));
     super::make_root_partition(&out, &stage)?;
@@ -141,9 +145,26 @@ fn rootfs_variant(
     Ok(out)
 }
 
-/// Makes good.raucb, broken.raucb, foreign.raucb, older.raucb, other-board.raucb and
-/// truncated.raucb; returns the good and the broken version and the seconds it took.
-fn make_bundles(work: &Path, dir: &Path, base: &Release, keys: &UpdateKeys) -> Result<(String, String, f64)> {
+/// The board type of the other A/B image (the armv7 one for the aarch64 image and the other
+/// way round): its bundles must be refused here.
+fn other_board(compatible: &str) -> Result<&'static str> {
+    AB_VARIANTS
+        .iter()
+        .map(|v| v.compatible)
+        .find(|c| *c != compatible)
+        .with_context(|| format!("no A/B image other than {compatible:?}"))
+}
+
+/// Makes good.raucb, broken.raucb, foreign.raucb, older.raucb, other-board.raucb (for the
+/// other A/B image's board type) and truncated.raucb for the board type `compatible`; returns
+/// the good and the broken version and the seconds it took.
+fn make_bundles(
+    work: &Path,
+    dir: &Path,
+    base: &Release,
+    keys: &UpdateKeys,
+    compatible: &str,
+) -> Result<(String, String, f64)> {
     let t0 = Instant::now();
     fs::create_dir_all(dir)?;
     let good = Release {
@@ -154,9 +175,9 @@ fn make_bundles(work: &Path, dir: &Path, base: &Release, keys: &UpdateKeys) -> R
         version: bump(&base.version, 2)?,
         build: format!("{}.broken", base.build),
     };
-    let good_fs = rootfs_variant(work, "good", &good, |_| Ok(()))?;
+    let good_fs = rootfs_variant(work, "good", &good, compatible, |_| Ok(()))?;
     // irtrackd that cannot start: the supervisor restarts it forever, /status never answers.
-    let broken_fs = rootfs_variant(work, "broken", &broken, |stage| {
+    let broken_fs = rootfs_variant(work, "broken", &broken, compatible, |stage| {
         let bin = stage.join("usr/bin/irtrackd");
         fs::write(
             &bin,
@@ -164,11 +185,14 @@ fn make_bundles(work: &Path, dir: &Path, base: &Release, keys: &UpdateKeys) -> R
         )?;
         Ok(())
     })?;
-    update::make_bundle(work, &good_fs, &good, keys, &dir.join("good.raucb"))?;
-    update::make_bundle(work, &broken_fs, &broken, keys, &dir.join("broken.raucb"))?;
+    let bundle = |fs: &Path, release: &Release, keys: &UpdateKeys, name: &str| {
+        update::make_bundle_for(work, fs, release, keys, compatible, &dir.join(name))
+    };
+    bundle(&good_fs, &good, keys, "good.raucb")?;
+    bundle(&broken_fs, &broken, keys, "broken.raucb")?;
     // Signed by a CA the board does not trust.
     let foreign = update::make_ca(&work.join("update-test-foreign-ca"), "someone else")?;
-    update::make_bundle(work, &good_fs, &good, &foreign, &dir.join("foreign.raucb"))?;
+    bundle(&good_fs, &good, &foreign, "foreign.raucb")?;
     // Older than the running system.
     let older = Release {
         version: "0.0.0".into(),
@@ -181,14 +205,15 @@ fn make_bundles(work: &Path, dir: &Path, base: &Release, keys: &UpdateKeys) -> R
             base.version
         );
     }
-    update::make_bundle(work, &good_fs, &older, keys, &dir.join("older.raucb"))?;
-    // For another board.
+    bundle(&good_fs, &older, keys, "older.raucb")?;
+    // For the other A/B image's board, signed by the same CA (one CA signs for every board):
+    // only the compatible string tells the board it is not meant for it.
     update::make_bundle_for(
         work,
         &good_fs,
         &good,
         keys,
-        "irtrack-other-board",
+        other_board(compatible)?,
         &dir.join("other-board.raucb"),
     )?;
     // Cut short, as an interrupted download leaves it.
@@ -363,14 +388,22 @@ fn status_running(status_port: u16, want_slot: &str) -> Result<(String, String)>
 
 /// Runs every update check on a fresh copy of `image`. Errors only for setup failures.
 pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
-    let work = work_dir(ctx);
+    if image.compatible.is_empty() {
+        bail!(
+            "{} has no A/B update layout (RAUC, slots A and B)",
+            image.sd_img.display()
+        );
+    }
+    let work = image_dir(ctx, image);
     let dir = work.join("update-test");
     fs::create_dir_all(&dir)?;
     let mut report = Report::default();
     let base = image_release(&work)?;
-    let keys = update::update_keys(&work)?;
+    // The CA every A/B image trusts (target/image/update-keys/, or IRTRACK_UPDATE_KEYS).
+    let keys = update::update_keys(&work_dir(ctx))?;
     let bundle_dir = dir.join("bundles");
-    let (good_version, broken_version, bundle_s) = make_bundles(&work, &bundle_dir, &base, &keys)?;
+    let (good_version, broken_version, bundle_s) =
+        make_bundles(&work, &bundle_dir, &base, &keys, image.compatible)?;
     let size = fs::metadata(bundle_dir.join("good.raucb"))?.len();
     report.figures.push(format!(
         "bundles made in {bundle_s:.0} s; good bundle {:.1} MiB (version {good_version})",
@@ -391,7 +424,10 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
     }
     let ports = free_ports::<4>()?;
     let [params_port, _, _, status_port] = ports;
-    let mut q = Qemu::spawn(qemu_command(&disk, &ports), &dir.join("serial-1.log"))?;
+    let mut q = Qemu::spawn(
+        qemu_command_for(image.arch, &disk, &ports),
+        &dir.join("serial-1.log"),
+    )?;
     let test_start = Instant::now();
 
     // 1. First boot: slot A, marked good by the health check.
@@ -443,7 +479,11 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
             "downgrade refused with its reason",
             "refused: downgrade from",
         ),
-        ("other-board", "bundle for another board refused", "compatible"),
+        (
+            "other-board",
+            "bundle for another board (the other A/B image's board type) refused",
+            "compatible",
+        ),
     ] {
         let res = install(&mut q, http_port, name).and_then(|(rc, out, _)| {
             if rc == 0 {
@@ -620,6 +660,7 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
     let res = power_cut(
         &mut q,
         http_port,
+        image.arch,
         &disk,
         &ports,
         &dir,
@@ -647,6 +688,7 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
     //    system of the power cut: a board that fell back to the defaults ("A B") or trusted a
     //    broken copy would boot slot A, so only slot B with the valid copy's counters passes.
     let rig_disk = EnvDisk {
+        arch: image.arch,
         disk: &disk,
         ports: &ports,
         dir: &dir,
@@ -694,6 +736,7 @@ pub fn run(ctx: &Ctx, image: &Image) -> Result<Report> {
 fn power_cut(
     q: &mut Qemu,
     http_port: u16,
+    arch: Arch,
     disk: &Path,
     ports: &[u16; 4],
     dir: &Path,
@@ -713,7 +756,10 @@ fn power_cut(
     q.wait_for("Copying image", from, INSTALL_TIMEOUT)?;
     thread::sleep(Duration::from_secs(2));
     q.kill();
-    let mut q2 = Qemu::spawn(qemu_command(disk, ports), &dir.join("serial-after-power-cut.log"))?;
+    let mut q2 = Qemu::spawn(
+        qemu_command_for(arch, disk, ports),
+        &dir.join("serial-after-power-cut.log"),
+    )?;
     let healthy_s = wait_healthy(&mut q2, 0, &slot_before)?;
     let (slot, version) = running(&mut q2)?;
     if slot != slot_before || version != version_before || version != good_version {
@@ -736,6 +782,7 @@ fn power_cut(
 
 /// The stopped guest's disk, for the boot counter checks.
 struct EnvDisk<'a> {
+    arch: Arch,
     disk: &'a Path,
     ports: &'a [u16; 4],
     dir: &'a Path,
@@ -786,7 +833,10 @@ impl EnvDisk<'_> {
     }
 
     fn power_on(&self, q: &mut Qemu, log: &str) -> Result<()> {
-        *q = Qemu::spawn(qemu_command(self.disk, self.ports), &self.dir.join(log))?;
+        *q = Qemu::spawn(
+            qemu_command_for(self.arch, self.disk, self.ports),
+            &self.dir.join(log),
+        )?;
         Ok(())
     }
 }
@@ -1013,6 +1063,18 @@ mod tests {
             Some(17.5)
         );
         assert_eq!(number_before(out, " s; missing"), None);
+    }
+
+    #[test]
+    fn each_board_refuses_the_other_boards_bundles() {
+        assert_eq!(
+            other_board(update::COMPATIBLE).unwrap(),
+            super::super::armv7::COMPATIBLE
+        );
+        assert_eq!(
+            other_board(super::super::armv7::COMPATIBLE).unwrap(),
+            update::COMPATIBLE
+        );
     }
 
     #[test]
