@@ -463,10 +463,15 @@ fn clippy(ctx: &Ctx) -> Outcome {
         "--features",
         CLUSTER_FEATURES,
     ]);
-    check(
+    let outcome = check(
         cmd,
         "clippy (cargo test --all-targets --no-run with clippy-driver)",
-    )
+    );
+    if outcome.failure.is_none() {
+        // The image checks run host-tools: this build's, not a `cargo run` of another config.
+        util::use_built_host_tools(ctx);
+    }
+    outcome
 }
 
 /// `cargo` for the host debug build with clippy-driver as `RUSTC_WORKSPACE_WRAPPER` (workspace

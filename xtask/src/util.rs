@@ -64,9 +64,17 @@ impl Ctx {
         cmd
     }
 
-    /// `cargo run -q -p irtrack-host-tools --`: the PC tools, built like every host build;
-    /// the caller adds the subcommand and its arguments.
+    /// The PC tools; the caller adds the subcommand and its arguments. In a CI run after the
+    /// host build, that build's `host-tools` ([`use_built_host_tools`]); otherwise `cargo run
+    /// -q -p irtrack-host-tools --`. `cargo run -p` resolves features for host-tools alone and
+    /// runs rustc without the host build's clippy wrapper, so in CI it compiled host-tools and
+    /// the workspace crates under it a second time (about a minute here, in the image phase).
     pub fn host_tools(&self) -> Command {
+        if let Some(exe) = BUILT_HOST_TOOLS.get() {
+            let mut cmd = Command::new(exe);
+            cmd.current_dir(&self.root);
+            return cmd;
+        }
         let mut cmd = self.cargo();
         cmd.args(["run", "-q", "-p", "irtrack-host-tools", "--"]);
         cmd
@@ -85,6 +93,19 @@ impl Ctx {
             }
             _ => self.root.join("target"),
         }
+    }
+}
+
+/// `host-tools` of the host build that finished in this run, for [`Ctx::host_tools`].
+static BUILT_HOST_TOOLS: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+
+/// Called by CI once its host build (every workspace target, current sources) has succeeded:
+/// later phases run that build's `host-tools` instead of compiling it again. No effect when the
+/// build left no such binary.
+pub fn use_built_host_tools(ctx: &Ctx) {
+    let exe = ctx.target_dir().join("debug/host-tools");
+    if exe.is_file() {
+        let _ = BUILT_HOST_TOOLS.set(exe);
     }
 }
 
