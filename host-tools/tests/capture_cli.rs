@@ -20,15 +20,6 @@ use common::*;
 use irtrack_sim::checkerboard::{self, BoardSpec, PoseConfig, RenderSettings};
 use irtrack_sim::rig::{CameraSpec, RigPreset, build_rig};
 
-fn scratch(name: &str) -> PathBuf {
-    let d = Path::new(env!("CARGO_TARGET_TMPDIR"))
-        .join("capture_cli")
-        .join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 /// Serves `responses` to consecutive HTTP requests (status line, content type, body), then stops.
 /// JSON answers are for `GET /status`, all others for `GET /api/frameset`.
 fn serve(responses: Responses) -> (String, thread::JoinHandle<usize>) {

@@ -4,7 +4,7 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use clap::Parser;
 use common::*;
@@ -17,15 +17,6 @@ use nalgebra::Vector3;
 struct SimCli {
     #[command(flatten)]
     sim: simulate::Args,
-}
-
-fn scratch(name: &str) -> PathBuf {
-    let d = Path::new(env!("CARGO_TARGET_TMPDIR"))
-        .join("pivot_cli")
-        .join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
 }
 
 /// Renders the pivot motion; returns the true tip (tool frame) and pivot (camera 0 frame).

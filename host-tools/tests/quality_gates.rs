@@ -6,11 +6,13 @@
 //! The wand cases share one short wave (150 frames) of a 90° rig whose two cameras have
 //! different lenses (so that swapped or wrong intrinsics show), rendered once.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
-use irtrack_core::camera::{Distortion, ImageSize};
+use common::{lens, scratch};
 use irtrack_core::params::{RigParams, Verdict};
 use irtrack_host_tools::opencv_yaml::write_rig_yaml;
 use irtrack_sim::checkerboard::{self, BoardSpec, PoseConfig, RenderSettings};
@@ -19,32 +21,6 @@ use irtrack_sim::wand::{WandConfig, WandWave};
 use nalgebra::Vector3;
 
 const DISTANCE_MM: f64 = 1200.0;
-
-fn scratch(name: &str) -> PathBuf {
-    let d = Path::new(env!("CARGO_TARGET_TMPDIR"))
-        .join("quality_gates")
-        .join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn lens(focal_px: f64, k1: f64, k2: f64) -> CameraSpec {
-    CameraSpec {
-        focal_px,
-        image_size: ImageSize {
-            width_px: 752,
-            height_px: 480,
-        },
-        distortion: Distortion {
-            k1,
-            k2,
-            p1: 0.0,
-            p2: 0.0,
-            k3: 0.0,
-        },
-    }
-}
 
 /// The 90° rig of wand_cli.rs, camera 1 with another lens (weaker barrel distortion).
 fn rig() -> RigParams {

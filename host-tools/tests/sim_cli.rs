@@ -1,17 +1,13 @@
 //! End-to-end tests of `host-tools simulate`, `track`, `plan` and the accuracy study.
 
+mod common;
+
+use common::scratch;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_host-tools"))
-}
-
-fn scratch(name: &str) -> PathBuf {
-    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join("sim_cli").join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
 }
 
 fn run_ok(cmd: &mut Command) -> String {

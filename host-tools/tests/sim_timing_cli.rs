@@ -1,21 +1,15 @@
 //! `host-tools simulate` with per-camera timing (free-running phases, drift, jitter, rolling
 //! shutter; issue 39) and `host-tools track` reading what it writes.
 
+mod common;
+
+use common::scratch;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_host-tools"))
-}
-
-fn scratch(name: &str) -> PathBuf {
-    let d = Path::new(env!("CARGO_TARGET_TMPDIR"))
-        .join("sim_timing_cli")
-        .join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
 }
 
 fn run_ok(cmd: &mut Command) -> String {

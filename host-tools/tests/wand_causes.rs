@@ -8,11 +8,14 @@
 //! which a mistyped spacing used to be blamed on camera 1's intrinsics (its raw spots bend with
 //! the shutter's row delays). Camera 2's lens differs again.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
-use irtrack_core::camera::{CameraModel, Distortion, ImageSize};
+use common::{lens, scratch};
+use irtrack_core::camera::{CameraModel, ImageSize};
 use irtrack_core::params::{CameraParams, RigParams};
 use irtrack_host_tools::opencv_yaml::write_rig_yaml;
 use irtrack_sim::rig::{CameraSpec, RigPreset, build_rig};
@@ -24,32 +27,6 @@ const DISTANCE_MM: f64 = 1200.0;
 /// Camera 1's rolling shutter: 15 µs per row (7.2 ms over its 480 rows).
 const LINE_TIME_US: f64 = 15.0;
 const TIMING: &str = "1:rolling:line_time_us=15";
-
-fn scratch(name: &str) -> PathBuf {
-    let d = Path::new(env!("CARGO_TARGET_TMPDIR"))
-        .join("wand_causes")
-        .join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn lens(focal_px: f64, k1: f64, k2: f64) -> CameraSpec {
-    CameraSpec {
-        focal_px,
-        image_size: ImageSize {
-            width_px: 752,
-            height_px: 480,
-        },
-        distortion: Distortion {
-            k1,
-            k2,
-            p1: 0.0,
-            p2: 0.0,
-            k3: 0.0,
-        },
-    }
-}
 
 fn centre() -> Vector3<f64> {
     Vector3::new(0.0, 0.0, DISTANCE_MM)

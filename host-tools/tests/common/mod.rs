@@ -3,12 +3,14 @@
 
 use std::io::{Read, Write};
 use std::net::TcpListener;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::thread;
 use std::time::Duration;
 
+use irtrack_core::camera::{Distortion, ImageSize};
 use irtrack_core::param_wire::{self, Verdict};
+use irtrack_sim::rig::CameraSpec;
 
 /// Runs the host-tools binary built for this test run.
 pub fn host_tools(args: &[&str]) -> Output {
@@ -54,4 +56,34 @@ pub fn serve_push_once<T: Send + 'static>(
         s.write_all(verdict.to_line().as_bytes()).unwrap();
         kept
     })
+}
+
+/// A fresh, empty scratch directory `name` in this test binary's own folder under
+/// `CARGO_TARGET_TMPDIR` (`CARGO_CRATE_NAME` is the test file's name, so binaries never share
+/// one).
+pub fn scratch(name: &str) -> PathBuf {
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR"))
+        .join(env!("CARGO_CRATE_NAME"))
+        .join(name);
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A 752×480 camera of focal length `focal_px` with radial distortion `k1`, `k2` only.
+pub fn lens(focal_px: f64, k1: f64, k2: f64) -> CameraSpec {
+    CameraSpec {
+        focal_px,
+        image_size: ImageSize {
+            width_px: 752,
+            height_px: 480,
+        },
+        distortion: Distortion {
+            k1,
+            k2,
+            p1: 0.0,
+            p2: 0.0,
+            k3: 0.0,
+        },
+    }
 }
