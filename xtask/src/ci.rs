@@ -156,6 +156,8 @@ struct Row {
     label: &'static str,
     outcome: Outcome,
     elapsed: Duration,
+    /// CPU time of the phase's processes (user + system), where known.
+    cpu: Option<Duration>,
 }
 
 /// Runs the selected phases and prints the summary. Returns the process exit code; the
@@ -186,14 +188,18 @@ pub fn run(ctx: &Ctx, opts: &Args) -> i32 {
         );
         println!("{}", "=".repeat(100));
         let t0 = Instant::now();
+        let cpu0 = util::children_cpu();
         set_phase_timeout(phase.timeout);
         let outcome = (phase.run)(ctx);
         let elapsed = t0.elapsed();
+        let cpu = cpu0.zip(util::children_cpu()).map(|(a, b)| b.saturating_sub(a));
         println!(
-            "<== {}: {} in {}{}",
+            "<== {}: {} in {}{}{}",
             phase.name,
             status_text(&outcome),
             util::fmt_duration(elapsed),
+            cpu.map(|c| format!(", CPU {}", cpu_text(c, elapsed)))
+                .unwrap_or_default(),
             disk::free_bytes(&ctx.target_dir())
                 .map(|b| format!(" ({} free on disk)", disk::fmt_gib(b)))
                 .unwrap_or_default()
@@ -203,6 +209,7 @@ pub fn run(ctx: &Ctx, opts: &Args) -> i32 {
             label: phase.label,
             outcome,
             elapsed,
+            cpu,
         });
     }
     print_summary(&rows, started.elapsed())
@@ -275,6 +282,13 @@ fn status_text(o: &Outcome) -> String {
     }
 }
 
+/// CPU time and the cores it kept busy on average over `wall`: "12m40s (1.6 cores)". On this
+/// 2-core machine size, a phase far below 2 leaves a core idle (docs/development.md).
+fn cpu_text(cpu: Duration, wall: Duration) -> String {
+    let cores = cpu.as_secs_f64() / wall.as_secs_f64().max(1e-3);
+    format!("{} ({cores:.1} cores)", util::fmt_duration(cpu))
+}
+
 fn first_line(s: &str) -> &str {
     s.lines().next().unwrap_or("")
 }
@@ -283,7 +297,10 @@ fn print_summary(rows: &[Row], total: Duration) -> i32 {
     println!("\n{}", "=".repeat(100));
     println!("Summary");
     println!("{}", "=".repeat(100));
-    println!("{:<14} {:>8}  {:<44} tests", "phase", "time", "result");
+    println!(
+        "{:<14} {:>8} {:>20}  {:<44} tests",
+        "phase", "time", "CPU", "result"
+    );
     let mut all = Counts::default();
     let mut phase_failures = 0u64;
     for r in rows {
@@ -302,8 +319,12 @@ fn print_summary(rows: &[Row], total: Duration) -> i32 {
             // By characters: a byte cut could split a multi-byte character and panic.
             status = status.chars().take(41).collect::<String>() + "...";
         }
+        let cpu = r
+            .cpu
+            .map(|c| cpu_text(c, r.elapsed))
+            .unwrap_or_else(|| "-".into());
         println!(
-            "{:<14} {:>8}  {:<44} {tests}",
+            "{:<14} {:>8} {cpu:>20}  {:<44} {tests}",
             r.name,
             util::fmt_duration(r.elapsed),
             status
@@ -322,6 +343,10 @@ fn print_summary(rows: &[Row], total: Duration) -> i32 {
         );
     }
     println!("\ntotal time {}", util::fmt_duration(total));
+    let cpu: Option<Duration> = rows.iter().map(|r| r.cpu).sum();
+    if let Some(cpu) = cpu {
+        println!("total CPU {}", cpu_text(cpu, total));
+    }
     if phase_failures > 0 {
         println!("({phase_failures} failed phase(s) without a failed test are counted as failures below)");
     }

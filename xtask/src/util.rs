@@ -325,6 +325,26 @@ pub fn fmt_duration(d: Duration) -> String {
     }
 }
 
+/// CPU time (user + system) of every child process this process has waited for, as the kernel
+/// sums it (`cutime` + `cstime` of /proc/self/stat): a child's own waited-for children are
+/// included, daemons that were never reaped are not. `None` off Linux.
+pub fn children_cpu() -> Option<Duration> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    children_cpu_from_stat(&stat)
+}
+
+/// Parses `cutime` and `cstime` (fields 16 and 17) of a /proc/PID/stat line. The command name
+/// (field 2) may hold spaces and parentheses, so fields are counted after its last `)`.
+fn children_cpu_from_stat(stat: &str) -> Option<Duration> {
+    // USER_HZ, the unit of these fields, is 100 on every Linux architecture.
+    const TICKS_PER_S: u64 = 100;
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let mut fields = rest.split_whitespace().skip(13); // state is field 3 -> index 0
+    let cutime: u64 = fields.next()?.parse().ok()?;
+    let cstime: u64 = fields.next()?.parse().ok()?;
+    Some(Duration::from_millis((cutime + cstime) * 1000 / TICKS_PER_S))
+}
+
 /// Whether an executable named `name` is on PATH.
 pub fn on_path(name: &str) -> bool {
     find_on_path(name).is_some()
@@ -409,6 +429,28 @@ pub fn start_irtrackd(irtrackd: &Path, config: &Path, state: &Path) -> Result<Ir
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn children_cpu_fields_parsed_after_command_name() {
+        // pid (comm) state ppid pgrp session tty tpgid flags minflt cminflt majflt cmajflt
+        // utime stime cutime cstime ...
+        let stat = "77 (a) b) c) S 1 77 77 0 -1 0 10 20 0 0 5 6 250 130 20 0";
+        assert_eq!(children_cpu_from_stat(stat), Some(Duration::from_millis(3800)));
+        assert_eq!(children_cpu_from_stat("77 (short) S 1 2"), None);
+    }
+
+    /// A child that burns CPU shows up in the sum once it has been waited for.
+    #[test]
+    fn children_cpu_grows_by_a_waited_for_childs_cpu() {
+        let before = children_cpu().expect("Linux /proc");
+        let status = Command::new("sh")
+            .args(["-c", "i=0; while [ $i -lt 300000 ]; do i=$((i+1)); done"])
+            .status()
+            .unwrap();
+        assert!(status.success());
+        let grown = children_cpu().unwrap() - before;
+        assert!(grown >= Duration::from_millis(50), "child CPU {grown:?}");
+    }
 
     #[test]
     fn ppid_parsed_after_command_name_with_spaces_and_parens() {
