@@ -538,7 +538,7 @@ fn clippy_driver(ctx: &Ctx) -> Result<std::path::PathBuf> {
 }
 
 fn host_tests(ctx: &Ctx) -> Outcome {
-    cargo_test(|| {
+    let make = || -> Result<Command> {
         // The clippy phase's wrapper too, so its build is reused rather than redone.
         let mut cmd = linted_cargo(ctx)?;
         // --no-fail-fast: one failing binary must not hide the counts of the others.
@@ -555,6 +555,123 @@ fn host_tests(ctx: &Ctx) -> Outcome {
             cmd.env("IRTRACK_REQUIRE_NETNS", "1");
         }
         Ok(cmd)
+    };
+    let jobs = test_jobs();
+    if jobs <= 1 {
+        return cargo_test(make);
+    }
+    Outcome::from_result(host_tests_side_by_side(make, jobs))
+}
+
+/// Test binaries run at once by the host-tests phase: `IRTRACK_TEST_JOBS`, else one per core.
+/// `IRTRACK_TEST_JOBS=1` is `cargo test`'s own one-after-another run.
+fn test_jobs() -> usize {
+    std::env::var("IRTRACK_TEST_JOBS")
+        .ok()
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+}
+
+/// The host tests with their binaries side by side ([`crate::test_pool`]): the build (found
+/// fresh after the clippy phase) lists the binaries, the pool runs them, then the doc tests.
+fn host_tests_side_by_side(make: impl Fn() -> Result<Command>, jobs: usize) -> Result<Outcome> {
+    let t0 = Instant::now();
+    let mut build = make()?;
+    build.args(["--no-run", "--message-format=json-render-diagnostics"]);
+    let out = util::run(
+        &mut build,
+        RunOpts {
+            capture_stdout: true,
+            quiet_stdout: true,
+            timeout: Some(BUILD_LIMIT),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        return Ok(Outcome::failed(format!("building the tests {}", out.describe())));
+    }
+    let bins = crate::test_pool::test_binaries(&out.stdout);
+    if bins.is_empty() {
+        return Ok(Outcome::failed(
+            "the test build listed no test binary".to_string(),
+        ));
+    }
+    println!(
+        "(tests built in {}; running {} binaries, {jobs} at a time)",
+        util::fmt_duration(t0.elapsed()),
+        bins.len()
+    );
+    // The binaries get what cargo would give them: the environment set on its command.
+    let env: Vec<(std::ffi::OsString, std::ffi::OsString)> = build
+        .get_envs()
+        .filter_map(|(k, v)| Some((k.to_os_string(), v?.to_os_string())))
+        .collect();
+    let cargo = build.get_program().to_os_string();
+    let deadline = phase_opts().timeout.map(|t| Instant::now() + t);
+    let t_run = Instant::now();
+    let runs = crate::test_pool::run_all(
+        crate::test_pool::schedule(bins),
+        jobs,
+        &env,
+        &[],
+        &cargo,
+        deadline,
+    );
+    let mut all = Counts::default();
+    let mut broken = Vec::new();
+    let mut timed_out = Vec::new();
+    for r in &runs {
+        let (c, n) = parse_test_results(&r.out.stdout);
+        all.add(c);
+        if r.out.timed_out {
+            timed_out.push(r.bin.src.clone());
+        } else if !r.out.success() && (n == 0 || c.failed == 0) {
+            // Crashed or exited non-zero with no failed test to show for it.
+            broken.push(format!("{} ({})", r.bin.src, r.out.describe()));
+        }
+    }
+    let busy: Duration = runs.iter().map(|r| r.elapsed).sum();
+    println!(
+        "(test binaries: {} of run time in {} of wall time)",
+        util::fmt_duration(busy),
+        util::fmt_duration(t_run.elapsed())
+    );
+    // Doc tests are not in the binaries above; cargo compiles and runs them itself.
+    let mut doc = make()?;
+    doc.arg("--doc");
+    let doc_out = util::run(
+        &mut doc,
+        RunOpts {
+            capture_stdout: true,
+            ..phase_opts()
+        },
+    )?;
+    let (dc, dn) = parse_test_results(&doc_out.stdout);
+    all.add(dc);
+    if !doc_out.success() && dc.failed == 0 {
+        broken.push(format!("doc tests ({})", doc_out.describe()));
+    } else if dn == 0 {
+        broken.push("doc tests: no `test result:` line".to_string());
+    }
+    let failure = if !timed_out.is_empty() {
+        Some(format!(
+            "running the tests timed out (a hung test?) in {}",
+            timed_out.join(", ")
+        ))
+    } else if all.failed > 0 {
+        Some(format!("{} test(s) failed", all.failed))
+    } else if !broken.is_empty() {
+        Some(format!(
+            "test binaries failed without a failed test: {}",
+            broken.join("; ")
+        ))
+    } else {
+        None
+    };
+    Ok(Outcome {
+        counts: Some(all),
+        failure,
+        skipped: None,
     })
 }
 

@@ -21,6 +21,7 @@ mod lint;
 mod report;
 mod setup;
 mod soak;
+mod test_pool;
 mod util;
 mod yocto;
 

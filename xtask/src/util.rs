@@ -150,6 +150,8 @@ pub struct RunOpts {
     pub timeout: Option<Duration>,
     /// Do not echo stdout (capture only).
     pub quiet_stdout: bool,
+    /// Do not echo stderr (capture only).
+    pub quiet_stderr: bool,
 }
 
 /// Quotes a command for display so it can be copied into a shell.
@@ -211,7 +213,8 @@ pub fn run(cmd: &mut Command, opts: RunOpts) -> Result<Output> {
     let err_pipe = child.stderr.take().context("child stderr missing")?;
     let echo_stdout = !opts.quiet_stdout;
     let out_thread = thread::spawn(move || pump(out_pipe, false, echo_stdout, opts.capture_stdout));
-    let err_thread = thread::spawn(move || pump(err_pipe, true, true, opts.capture_stderr));
+    let echo_stderr = !opts.quiet_stderr;
+    let err_thread = thread::spawn(move || pump(err_pipe, true, echo_stderr, opts.capture_stderr));
 
     let start = Instant::now();
     let mut timed_out = false;

@@ -226,6 +226,7 @@ impl BbEnv {
                 capture_stderr: true,
                 quiet_stdout: quiet,
                 timeout: Some(Duration::from_secs(25 * 60)),
+                ..RunOpts::default()
             },
         )
     }
