@@ -629,14 +629,20 @@ fn capture_across_boards_refuses_unpaired_sets_and_names_silent_boards() {
     );
     run.served();
 
-    // Nothing listens on B.
-    let port = TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let silent = format!("127.0.0.1:{port}");
+    // Nothing listens on B. A port just freed may be handed out again, so B's is taken after
+    // A's server holds its own (once both came out equal and capture refused `--from` twice).
     let (addr_a, _) = serve(vec![status_of("b0")]);
+    let silent = (0..20)
+        .map(|_| {
+            let port = TcpListener::bind("127.0.0.1:0")
+                .unwrap()
+                .local_addr()
+                .unwrap()
+                .port();
+            format!("127.0.0.1:{port}")
+        })
+        .find(|a| *a != addr_a)
+        .expect("a free port other than A's");
     let out = dir.join("silent");
     let o = host_tools(&[
         "capture",
