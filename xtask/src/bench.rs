@@ -63,6 +63,14 @@ pub fn ci_phase(ctx: &Ctx) -> Result<Counts> {
     Ok(Counts::default())
 }
 
+/// The release build of `irtrack-bench` (also started ahead of the phase by CI, see
+/// `ci::Prebuilds`: one function, so both are the same build).
+pub fn build_command(ctx: &Ctx) -> Command {
+    let mut build = ctx.cargo();
+    build.args(["build", "--release", "-p", "irtrack-bench"]);
+    build
+}
+
 /// `cargo xtask bench`.
 #[derive(Debug, Default, clap::Args)]
 pub struct Args {
@@ -145,8 +153,7 @@ pub fn cli(ctx: &Ctx, args: &Args) -> Result<()> {
     // The latency run builds the firmware in release and takes ~20 s of wall time: not in the
     // quick (CI) run.
     let latency = latency.unwrap_or(!quick);
-    let mut build = ctx.cargo();
-    build.args(["build", "--release", "-p", "irtrack-bench"]);
+    let mut build = build_command(ctx);
     util::run_ok(
         &mut build,
         "building irtrack-bench",

@@ -174,6 +174,7 @@ pub fn run(ctx: &Ctx, opts: &Args) -> i32 {
             return 2;
         }
     };
+    let mut prebuilds: Option<Prebuilds> = None;
     for (i, phase) in selected.iter().enumerate() {
         let done: Vec<&[&str]> = selected[..i].iter().map(|p| p.builds).collect();
         let remaining: Vec<&[&str]> = selected[i..].iter().map(|p| p.builds).collect();
@@ -187,6 +188,12 @@ pub fn run(ctx: &Ctx, opts: &Args) -> i32 {
             phase.about
         );
         println!("{}", "=".repeat(100));
+        if phase.name == "host-tests" && prebuilds.is_none() {
+            prebuilds = Prebuilds::start(ctx, &selected[i + 1..]);
+        }
+        if let Some(p) = &prebuilds {
+            p.wait_for(phase.name);
+        }
         let t0 = Instant::now();
         let cpu0 = util::children_cpu();
         set_phase_timeout(phase.timeout);
@@ -212,7 +219,180 @@ pub fn run(ctx: &Ctx, opts: &Args) -> i32 {
             cpu,
         });
     }
+    if let Some(p) = prebuilds {
+        p.finish();
+    }
     print_summary(&rows, started.elapsed())
+}
+
+/// Builds of later phases started ahead of them, in the background, when the host tests start.
+///
+/// The host tests keep about one of CI's two cores busy (most of them wait on wall-clock work:
+/// a cell at 60 fps, a robot link's timeouts, a browser), and the image's QEMU checks and the
+/// benchmark runs about one as well. The builds the later phases would start cold (the aarch64
+/// test build, the benchmark's release build, the instrumented fuzz targets) run one after
+/// another in that idle time, in the kernel's idle scheduling class (`chrt --idle 0`): they
+/// get a core only when no normal task wants it, so a test waking up takes the core at once
+/// and wall-clock tests see the machine as before. Each is the very command its phase runs
+/// (`cross::test_command`, `bench::build_command`, `fuzz::build_command`); the phase waits for
+/// it, then runs its own build, which finds everything fresh, or fails with the same errors
+/// printed in its own log. The background builds' output is in `target/ci-prebuild.log`.
+struct Prebuilds {
+    /// The builds queued, each with the phases that wait for it.
+    queued: Vec<(&'static str, &'static [&'static str])>,
+    /// Names of the builds that have ended.
+    ended: std::sync::Arc<(std::sync::Mutex<Vec<&'static str>>, std::sync::Condvar)>,
+    worker: std::thread::JoinHandle<()>,
+    log: std::path::PathBuf,
+}
+
+impl Prebuilds {
+    /// Queues the builds `later` phases need; `None` when there is none or no `chrt`.
+    fn start(ctx: &Ctx, later: &[&Phase]) -> Option<Prebuilds> {
+        if !util::on_path("chrt") {
+            println!("(no chrt: later phases build when they start)");
+            return None;
+        }
+        let has = |n: &str| later.iter().any(|p| p.name == n);
+        let mut items: Vec<(&'static str, &'static [&'static str], Command)> = Vec::new();
+        if (has("image") || has("aarch64-tests"))
+            && let Ok(mut c) = cross::test_command(ctx, cross::Arch::Aarch64)
+        {
+            c.arg("--no-run");
+            items.push(("aarch64 test build", &["image", "aarch64-tests"], c));
+        }
+        if has("bench") {
+            items.push((
+                "benchmark release build",
+                &["bench"],
+                crate::bench::build_command(ctx),
+            ));
+        }
+        if has("fuzz")
+            && let Ok(c) = crate::fuzz::build_command(ctx)
+        {
+            // The benchmark waits for it too: its timing runs get the machine to themselves.
+            items.push(("fuzz targets build", &["bench", "fuzz"], c));
+        }
+        if items.is_empty() {
+            return None;
+        }
+        let log = ctx.target_dir().join("ci-prebuild.log");
+        let _ = std::fs::create_dir_all(ctx.target_dir());
+        let _ = std::fs::write(&log, "");
+        let names: Vec<&str> = items.iter().map(|i| i.0).collect();
+        println!(
+            "(background, idle class, while the host tests run: {}; log {})",
+            names.join(", "),
+            log.display()
+        );
+        let queued = items.iter().map(|i| (i.0, i.1)).collect();
+        let ended = std::sync::Arc::new((std::sync::Mutex::new(Vec::new()), std::sync::Condvar::new()));
+        let (ended2, log2) = (ended.clone(), log.clone());
+        let worker = std::thread::spawn(move || {
+            for (name, _, cmd) in items {
+                let t0 = Instant::now();
+                let mut idle = idle_class(&cmd);
+                let result = util::run(
+                    &mut idle,
+                    RunOpts {
+                        capture_stdout: true,
+                        capture_stderr: true,
+                        quiet_stdout: true,
+                        quiet_stderr: true,
+                        timeout: Some(BUILD_LIMIT),
+                    },
+                );
+                let text = match result {
+                    Ok(out) => format!(
+                        "==> {name}: {} in {}\n$ {}\n{}{}\n",
+                        if out.success() {
+                            "done".to_string()
+                        } else {
+                            out.describe()
+                        },
+                        util::fmt_duration(t0.elapsed()),
+                        util::display_cmd(&idle),
+                        out.stdout,
+                        out.stderr
+                    ),
+                    Err(e) => format!("==> {name}: could not start: {e:#}\n"),
+                };
+                if let Ok(mut f) = std::fs::OpenOptions::new().append(true).open(&log2) {
+                    let _ = std::io::Write::write_all(&mut f, text.as_bytes());
+                }
+                let (lock, cv) = &*ended2;
+                if let Ok(mut e) = lock.lock() {
+                    e.push(name);
+                }
+                cv.notify_all();
+            }
+        });
+        Some(Prebuilds {
+            queued,
+            ended,
+            worker,
+            log,
+        })
+    }
+
+    /// Blocks until every queued build that `phase` waits for has ended.
+    fn wait_for(&self, phase: &str) {
+        let needed: Vec<&str> = self
+            .queued
+            .iter()
+            .filter(|(_, phases)| phases.contains(&phase))
+            .map(|(name, _)| *name)
+            .collect();
+        if needed.is_empty() {
+            return;
+        }
+        let t0 = Instant::now();
+        let (lock, cv) = &*self.ended;
+        let Ok(mut ended) = lock.lock() else { return };
+        let mut said = false;
+        while !needed.iter().all(|n| ended.contains(n)) {
+            if !said {
+                println!("(waiting for the background {})", needed.join(", "));
+                said = true;
+            }
+            match cv.wait(ended) {
+                Ok(e) => ended = e,
+                Err(_) => return,
+            }
+        }
+        if said {
+            println!(
+                "(waited {} for it; its output: {})",
+                util::fmt_duration(t0.elapsed()),
+                self.log.display()
+            );
+        }
+    }
+
+    /// Waits for the queue to end (a run that stops early leaves no build behind).
+    fn finish(self) {
+        let _ = self.worker.join();
+    }
+}
+
+/// `cmd` under the kernel's idle scheduling class (`chrt --idle 0`), same directory and
+/// environment.
+fn idle_class(cmd: &Command) -> Command {
+    let mut idle = Command::new("chrt");
+    idle.args(["--idle", "0"])
+        .arg(cmd.get_program())
+        .args(cmd.get_args());
+    if let Some(dir) = cmd.get_current_dir() {
+        idle.current_dir(dir);
+    }
+    for (k, v) in cmd.get_envs() {
+        match v {
+            Some(v) => idle.env(k, v),
+            None => idle.env_remove(k),
+        };
+    }
+    idle
 }
 
 /// The phases `opts` selects: those named by `--only`, else every phase that is not opt-in.

@@ -145,6 +145,23 @@ fn host_triple() -> Result<String> {
 /// Builds every fuzz target with libFuzzer and coverage instrumentation (plain `cargo build`,
 /// see [`SANCOV_RUSTFLAGS`]); returns the directory holding the binaries.
 fn build_targets(ctx: &Ctx) -> Result<PathBuf> {
+    let mut build = build_command(ctx)?;
+    let out = util::run(
+        &mut build,
+        RunOpts {
+            timeout: Some(Duration::from_secs(3600)),
+            ..RunOpts::default()
+        },
+    )?;
+    if !out.success() {
+        bail!("building the fuzz targets {}", out.describe());
+    }
+    Ok(ctx.target_dir().join("fuzz").join(host_triple()?).join("release"))
+}
+
+/// The instrumented build of every fuzz target (also started ahead of the phase by CI, see
+/// `ci::Prebuilds`: one function, so both are the same build).
+pub fn build_command(ctx: &Ctx) -> Result<Command> {
     let fuzz_dir = ctx.root.join("fuzz");
     let target_dir = ctx.target_dir().join("fuzz");
     let triple = host_triple()?;
@@ -157,17 +174,7 @@ fn build_targets(ctx: &Ctx) -> Result<PathBuf> {
         .arg("--target-dir")
         .arg(&target_dir)
         .env("RUSTFLAGS", SANCOV_RUSTFLAGS.join(" "));
-    let out = util::run(
-        &mut build,
-        RunOpts {
-            timeout: Some(Duration::from_secs(3600)),
-            ..RunOpts::default()
-        },
-    )?;
-    if !out.success() {
-        bail!("building the fuzz targets {}", out.describe());
-    }
-    Ok(target_dir.join(triple).join("release"))
+    Ok(build)
 }
 
 fn run_targets(ctx: &Ctx, targets: &[&str], secs: u64) -> Result<Vec<RunResult>> {
