@@ -19,6 +19,14 @@
 //! - the accept limit: `Closing link for preventing potential DoS: <local> => <remote>`
 //!   (trace, `…::unicast::manager`).
 //!
+//! The access control's refusals are per message, not per link: a peer whose credentials are
+//! valid but that publishes under a key its user may not use (a board under another board's
+//! name) is let in, and each such put is dropped by Zenoh's ingress interceptor (`zenoh`
+//! [`ZENOH_VERSION`], `net/routing/interceptor/access_control.rs`), which traces
+//! `<zid> on <subject> is unauthorized to Put (ingress) on <key>` when it first decides for a
+//! key and `Using cached result: <zid> is unauthorized to Put (ingress) on <key>` for each
+//! message after. Those are counted as denied publications, by sender and key.
+//!
 //! Matching log text is brittle by nature, so it is pinned twice: a test checks that the
 //! lock file still has this `zenoh-transport` version, and a test over real Zenoh sessions
 //! checks that a peer without credentials and one with a wrong password are counted with the
@@ -41,6 +49,12 @@ pub const ZENOH_TRANSPORT_VERSION: &str = "1.10.2";
 pub const ACCEPT_TARGET: &str = "zenoh_transport::unicast::establishment::accept";
 /// Target of the transport manager's events (accept limit, handshake deadline).
 pub const MANAGER_TARGET: &str = "zenoh_transport::unicast::manager";
+/// The `zenoh` version whose access-control events [`classify`] recognises.
+pub const ZENOH_VERSION: &str = "1.10.2";
+/// Target of the access control's decisions (trace level, one per message).
+pub const ACL_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
+/// Senders of denied publications remembered (the oldest first out when full).
+pub const MAX_DENIED_RECENT: usize = 16;
 
 /// Refused peers remembered by address (the newest first out when full).
 pub const MAX_RECENT: usize = 16;
@@ -140,6 +154,24 @@ pub enum ZenohEvent {
     AcceptLimit(String),
     /// The link was accepted.
     Accepted,
+    /// The access control decides, for a key a peer declared, every action at once (the
+    /// decisions traced next in the same task are that, not messages).
+    AclCaching {
+        /// The key expression.
+        key: String,
+    },
+    /// The access control refused a put of a peer that is let in.
+    PublishDenied {
+        /// The peer's Zenoh ID, as Zenoh prints it.
+        zid: String,
+        /// The ACL subject it matched (`Interface(lo)+Username(b1)+Transport(Tcp)+<zid>`);
+        /// `None` on the per-message events, which do not name it.
+        subject: Option<String>,
+        /// The key expression it published on.
+        key: String,
+        /// Decided from the cache (`Using cached result: …`): always a message.
+        cached: bool,
+    },
 }
 
 /// The remote end of a link as Zenoh displays it, `<local> => <remote>` with locators such as
@@ -155,6 +187,12 @@ fn remote_of(link: &str) -> Option<String> {
 /// Recognises an event of `zenoh-transport` [`ZENOH_TRANSPORT_VERSION`] by its target, level
 /// and message (the formatted text); `None` for every other event.
 pub fn classify(target: &str, level: Level, message: &str) -> Option<ZenohEvent> {
+    if target == ACL_TARGET {
+        if level != Level::TRACE {
+            return None;
+        }
+        return publish_denied(message);
+    }
     if target == ACCEPT_TARGET {
         if level == Level::TRACE {
             for prefix in ["Establishment Accept InitSyn: ", "Establishment Accept OpenSyn: "] {
@@ -198,6 +236,41 @@ pub fn classify(target: &str, level: Level, message: &str) -> Option<ZenohEvent>
         }
     }
     None
+}
+
+/// `[Using cached result: ]<zid>[ on <subject>] is unauthorized to Put (ingress) on <key>`:
+/// the access control's refusal of a peer's publication, or `ACL (ingress): caching
+/// permissions for `<key>` ...`. Egress decisions (what the solver may send) and other
+/// actions are not a peer's publications. When a peer declares a key (its observation key,
+/// or a prefix such as `irtrack/<rig>` for compressed keys), Zenoh traces the caching line
+/// and then decides every action for that key at once: a genuine board's prefix gets a
+/// "denied put" that no message caused. [`PeerRefusals::observe`] takes those decisions
+/// only for the subject's name.
+fn publish_denied(message: &str) -> Option<ZenohEvent> {
+    // "ACL (ingress): caching permissions for `<key>` ..."
+    if let Some(rest) = message.strip_prefix("ACL (ingress): caching permissions for `") {
+        let key = rest.split('`').next()?;
+        return Some(ZenohEvent::AclCaching { key: key.to_string() });
+    }
+    let (cached, rest) = match message.strip_prefix("Using cached result: ") {
+        Some(rest) => (true, rest),
+        None => (false, message),
+    };
+    let (who, key) = rest.split_once(" is unauthorized to Put (ingress) on ")?;
+    let (zid, subject) = match who.split_once(" on ") {
+        Some((zid, subject)) if !cached => (zid, Some(subject.trim().to_string())),
+        _ => (who, None),
+    };
+    let (zid, key) = (zid.trim(), key.trim());
+    if zid.is_empty() || key.is_empty() {
+        return None;
+    }
+    Some(ZenohEvent::PublishDenied {
+        zid: zid.to_string(),
+        subject,
+        key: key.to_string(),
+        cached,
+    })
 }
 
 /// Which handshake an event belongs to: Zenoh runs each accepted link's handshake in a tokio
@@ -253,14 +326,69 @@ impl RefusedPeer {
     }
 }
 
+/// One sender's publications on one key that the access control dropped.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DeniedPublication {
+    /// The sender's Zenoh ID.
+    pub zid: String,
+    /// The ACL subject it signed in as (its user name and Zenoh's other subject fields), once
+    /// known.
+    pub subject: Option<String>,
+    /// The key expression it published on.
+    pub key: String,
+    /// Dropped messages (the decision Zenoh makes when the key is declared is not one).
+    pub count: u64,
+    /// The newest, on the monotonic clock.
+    pub last: Instant,
+    /// The newest, Unix time in ms.
+    pub last_unix_ms: u64,
+}
+
+impl DeniedPublication {
+    /// The user name in the subject (`…+Username(b1)+…`).
+    pub fn user(&self) -> Option<&str> {
+        self.subject.as_deref().and_then(user_of)
+    }
+
+    /// "a peer signed in as b1 (Zenoh ID 4f2a…) published on cell1/obs/b0/0, which its
+    /// credentials do not allow: dropped by the access control".
+    pub fn words(&self) -> String {
+        let who = match (self.user(), &self.subject) {
+            (Some(u), _) => format!("a peer signed in as {u} (Zenoh ID {})", self.zid),
+            (None, Some(s)) => format!("a peer matching {s} (Zenoh ID {})", self.zid),
+            (None, None) => format!("a peer with Zenoh ID {}", self.zid),
+        };
+        format!(
+            "{who} published on {}, which its credentials do not allow: dropped by the access control",
+            self.key
+        )
+    }
+}
+
+/// `b1` of an access-control subject `Interface(lo)+Username(b1)+Transport(Tcp)+<zid>`.
+pub fn user_of(subject: &str) -> Option<&str> {
+    subject
+        .split('+')
+        .find_map(|part| part.strip_prefix("Username(")?.strip_suffix(')'))
+}
+
 #[derive(Debug, Default)]
 struct State {
     pending: HashMap<HandshakeKey, (String, Instant)>,
     counts: [u64; 3],
     by_problem: [u64; 4],
     recent: VecDeque<RefusedPeer>,
+    denied: u64,
+    denied_recent: VecDeque<DeniedPublication>,
+    /// Subjects by Zenoh ID, from the first decision for each key (bounded like `pending`).
+    subjects: HashMap<String, String>,
+    /// The key whose permissions the access control is caching, by task or thread.
+    acl_caching: HashMap<HandshakeKey, String>,
     last_notice: Option<Instant>,
+    /// Refused links since the last notice.
     since_notice: u64,
+    /// Denied publications since the last notice.
+    since_denied: u64,
 }
 
 /// The refusal counts and the latest refused peers (`/status` → `cluster.refused_peers`).
@@ -277,6 +405,10 @@ pub struct RefusalSnapshot {
     pub by_problem: Vec<(CredentialProblem, u64)>,
     /// The latest refused addresses, newest first.
     pub recent: Vec<RefusedPeer>,
+    /// Publications the access control dropped (peers let in, keys not theirs).
+    pub denied_publications: u64,
+    /// Their latest senders and keys, newest first.
+    pub denied_recent: Vec<DeniedPublication>,
 }
 
 impl RefusalSnapshot {
@@ -343,6 +475,29 @@ impl PeerRefusals {
                 st.record(addr, RefusalReason::HandshakeTimeout, None, now);
             }
             ZenohEvent::AcceptLimit(addr) => st.record(Some(addr), RefusalReason::AcceptLimit, None, now),
+            ZenohEvent::AclCaching { key: k } => {
+                if st.acl_caching.len() >= MAX_PENDING {
+                    st.acl_caching.clear();
+                }
+                st.acl_caching.insert(key, k);
+            }
+            ZenohEvent::PublishDenied {
+                zid,
+                subject,
+                key: k,
+                cached,
+            } => {
+                let at_declaration = !cached && st.acl_caching.get(&key) == Some(&k);
+                if at_declaration {
+                    // A decision made when the key was declared, not a message: learn who.
+                    st.acl_caching.remove(&key);
+                    if let Some(s) = subject {
+                        st.remember_subject(zid, s);
+                    }
+                } else {
+                    st.record_denied(zid, subject, k, now);
+                }
+            }
         }
     }
 
@@ -371,6 +526,8 @@ impl PeerRefusals {
             .filter(|(_, n)| *n > 0)
             .collect(),
             recent: st.recent.iter().cloned().collect(),
+            denied_publications: st.denied,
+            denied_recent: st.denied_recent.iter().cloned().collect(),
         }
     }
 
@@ -378,21 +535,36 @@ impl PeerRefusals {
     /// [`NOTICE_INTERVAL`] (a flood must not flood the journal too).
     pub fn take_notice(&self, now: Instant) -> Option<String> {
         let mut st = self.state.lock().ok()?;
-        if st.since_notice == 0
+        if st.since_notice + st.since_denied == 0
             || st
                 .last_notice
                 .is_some_and(|t| now.saturating_duration_since(t) < NOTICE_INTERVAL)
         {
             return None;
         }
-        let n = std::mem::take(&mut st.since_notice);
+        let refused = std::mem::take(&mut st.since_notice);
+        let denied = std::mem::take(&mut st.since_denied);
         st.last_notice = Some(now);
-        let newest = st.recent.front()?.words();
-        let mut line = format!("cluster transport: {newest}");
-        if n > 1 {
-            let _ = write!(line, "; {n} peers refused since the last such line");
+        let mut parts = Vec::new();
+        if refused > 0
+            && let Some(p) = st.recent.front()
+        {
+            let mut part = p.words();
+            if refused > 1 {
+                let _ = write!(part, "; {refused} peers refused since the last such line");
+            }
+            parts.push(part);
         }
-        Some(line)
+        if denied > 0
+            && let Some(d) = st.denied_recent.front()
+        {
+            let mut part = d.words();
+            if denied > 1 {
+                let _ = write!(part, "; {denied} publications dropped since the last such line");
+            }
+            parts.push(part);
+        }
+        (!parts.is_empty()).then(|| format!("cluster transport: {}", parts.join("; ")))
     }
 }
 
@@ -423,14 +595,60 @@ impl State {
         if self.recent.len() >= MAX_RECENT {
             self.recent.pop_back();
         }
-        self.recent.push_front(RefusedPeer {
+        let peer = RefusedPeer {
             address,
             reason,
             problem,
             count: 1,
             last: now,
             last_unix_ms: at_ms,
-        });
+        };
+        self.recent.push_front(peer);
+    }
+
+    fn remember_subject(&mut self, zid: String, subject: String) {
+        if self.subjects.len() >= MAX_PENDING && !self.subjects.contains_key(&zid) {
+            self.subjects.clear();
+        }
+        self.subjects.insert(zid, subject);
+    }
+
+    fn record_denied(&mut self, zid: String, subject: Option<String>, key: String, now: Instant) {
+        self.denied += 1;
+        self.since_denied += 1;
+        if let Some(s) = &subject {
+            self.remember_subject(zid.clone(), s.clone());
+        }
+        let subject = subject.or_else(|| self.subjects.get(&zid).cloned());
+        let at_ms = unix_ms();
+        let mut entry = match self
+            .denied_recent
+            .iter()
+            .position(|d| d.zid == zid && d.key == key)
+            .and_then(|i| self.denied_recent.remove(i))
+        {
+            Some(mut d) => {
+                d.count += 1;
+                d.last = now;
+                d.last_unix_ms = at_ms;
+                d
+            }
+            None => DeniedPublication {
+                zid,
+                subject: None,
+                key,
+                count: 1,
+                last: now,
+                last_unix_ms: at_ms,
+            },
+        };
+        if subject.is_some() {
+            entry.subject = subject;
+        }
+        if self.denied_recent.len() >= MAX_DENIED_RECENT {
+            self.denied_recent.pop_back();
+        }
+        self.denied_recent.push_front(entry);
     }
 }
 
@@ -461,7 +679,7 @@ impl<S: Subscriber> Layer<S> for RefusalLayer {
     fn on_event(&self, event: &tracing::Event<'_>, _ctx: Context<'_, S>) {
         let meta = event.metadata();
         let target = meta.target();
-        if target != ACCEPT_TARGET && target != MANAGER_TARGET {
+        if target != ACCEPT_TARGET && target != MANAGER_TARGET && target != ACL_TARGET {
             return;
         }
         let mut text = MessageText(String::new());
@@ -473,8 +691,10 @@ impl<S: Subscriber> Layer<S> for RefusalLayer {
 }
 
 /// The layer and the events it needs, whatever the log's own filter: Zenoh's accept path at
-/// trace level (a few events per new link, none per message). Add it to the subscriber beside
-/// the log's layer; it marks [`global`] as counting.
+/// trace level (a few events per new link) and the access control's decisions at trace level
+/// (one per message received from a peer, formatted and matched here: about a microsecond
+/// each, off the frame path). Add it to the subscriber beside the log's layer; it marks
+/// [`global`] as counting.
 pub fn refusal_layer<S>() -> impl Layer<S>
 where
     S: Subscriber + for<'a> tracing_subscriber::registry::LookupSpan<'a>,
@@ -484,7 +704,8 @@ where
     RefusalLayer { log }.with_filter(
         Targets::new()
             .with_target(ACCEPT_TARGET, Level::TRACE)
-            .with_target(MANAGER_TARGET, Level::TRACE),
+            .with_target(MANAGER_TARGET, Level::TRACE)
+            .with_target(ACL_TARGET, Level::TRACE),
     )
 }
 
@@ -652,6 +873,133 @@ mod tests {
                 "a peer at 10.0.0.68:2 was refused: too many links were opening at once (a connection flood?)"
             ),
             "{next}"
+        );
+    }
+
+    /// The access control's texts as zenoh 1.10.2 formats them (`{zid} on {subject} is
+    /// unauthorized to {action} on {key}`, the subject being Zenoh's `SubjectQuery` display,
+    /// as seen in `cluster/tests/zenoh_refusals.rs`).
+    #[test]
+    fn access_control_denials_are_recognised_and_counted_by_sender_and_key() {
+        const B1: &str = "Interface(lo)+Username(b1)+Transport(Tcp)+4f2a9c";
+        let caching = "ACL (ingress): caching permissions for `cell1/obs/b0/0` ...";
+        let first = format!("4f2a9c on {B1} is unauthorized to Put (ingress) on cell1/obs/b0/0");
+        let cached = "Using cached result: 4f2a9c is unauthorized to Put (ingress) on cell1/obs/b0/0";
+        assert_eq!(
+            classify(ACL_TARGET, Level::TRACE, caching),
+            Some(ZenohEvent::AclCaching {
+                key: "cell1/obs/b0/0".into()
+            })
+        );
+        assert_eq!(
+            classify(ACL_TARGET, Level::TRACE, &first),
+            Some(ZenohEvent::PublishDenied {
+                zid: "4f2a9c".into(),
+                subject: Some(B1.into()),
+                key: "cell1/obs/b0/0".into(),
+                cached: false,
+            })
+        );
+        assert_eq!(
+            classify(ACL_TARGET, Level::TRACE, cached),
+            Some(ZenohEvent::PublishDenied {
+                zid: "4f2a9c".into(),
+                subject: None,
+                key: "cell1/obs/b0/0".into(),
+                cached: true,
+            })
+        );
+        assert_eq!(user_of(B1), Some("b1"));
+        assert_eq!(user_of("Interface(lo)+Transport(Tcp)"), None);
+        // Allowed messages, egress decisions, other actions and other levels are not denials.
+        for (level, text) in [
+            (
+                Level::TRACE,
+                "Using cached result: 4f2a9c is authorized to Put (ingress) on cell1/obs/b0/0",
+            ),
+            (
+                Level::TRACE,
+                "4f2a9c on b0 is authorized to Put (ingress) on cell1/obs/b0/0",
+            ),
+            (
+                Level::TRACE,
+                "Using cached result: 11 is unauthorized to Put (egress) on cell1/status",
+            ),
+            (
+                Level::TRACE,
+                "ACL (egress): caching permissions for `cell1/status` ...",
+            ),
+            (
+                Level::TRACE,
+                "11 on b0 is unauthorized to Query (ingress) on cell1/**",
+            ),
+            (
+                Level::TRACE,
+                "11 on b0 is unauthorized to Delete (ingress) on cell1/obs/b0/0",
+            ),
+            (Level::DEBUG, cached),
+        ] {
+            assert_eq!(classify(ACL_TARGET, level, text), None, "{text}");
+        }
+
+        let log = PeerRefusals::default();
+        let t0 = Instant::now();
+        let here = HandshakeKey::Thread(std::thread::current().id());
+        let feed = |text: &str| {
+            let e = classify(ACL_TARGET, Level::TRACE, text).unwrap();
+            log.observe(here.clone(), e, t0);
+        };
+        // b1 declares b0's key: the decision made then is no message, only b1's name.
+        feed(caching);
+        feed(&first);
+        assert_eq!(
+            log.snapshot().denied_publications,
+            0,
+            "a declaration is not a put"
+        );
+        // A genuine board's prefix declaration: the same, never counted.
+        feed("ACL (ingress): caching permissions for `cell1` ...");
+        feed("77 on Interface(lo)+Username(b0)+Transport(Tcp)+77 is unauthorized to Put (ingress) on cell1");
+        assert_eq!(log.snapshot().denied_publications, 0);
+        // Each put b1 then makes is decided from the cache and counted, under b1's name.
+        feed(cached);
+        feed(cached);
+        // A put decided without a cache (no declaration before it) is a message too.
+        feed(
+            "88 on Interface(lo)+Username(b2)+Transport(Tcp)+88 is unauthorized to Put (ingress) on cell1/obs/b0/1",
+        );
+        let s = log.snapshot();
+        assert_eq!(s.denied_publications, 3);
+        assert_eq!(s.total, 0, "no link was refused");
+        assert_eq!(s.denied_recent.len(), 2);
+        let b1 = &s.denied_recent[1];
+        assert_eq!(
+            (b1.zid.as_str(), b1.key.as_str(), b1.count),
+            ("4f2a9c", "cell1/obs/b0/0", 2)
+        );
+        assert_eq!(b1.user(), Some("b1"));
+        assert_eq!(
+            b1.words(),
+            "a peer signed in as b1 (Zenoh ID 4f2a9c) published on cell1/obs/b0/0, which its credentials do not allow: dropped by the access control"
+        );
+        assert_eq!(s.denied_recent[0].user(), Some("b2"), "newest first");
+        let notice = log.take_notice(t0).unwrap();
+        assert!(notice.contains("a peer signed in as b2"), "{notice}");
+        assert!(
+            notice.contains("3 publications dropped since the last such line"),
+            "{notice}"
+        );
+        // A sender seen only in per-message events (its declaration before the layer was
+        // there) has no name to give.
+        feed("Using cached result: 99 is unauthorized to Put (ingress) on k");
+        let newest = log.snapshot().denied_recent[0].clone();
+        assert_eq!(newest.subject, None);
+        assert!(
+            newest
+                .words()
+                .starts_with("a peer with Zenoh ID 99 published on k,"),
+            "{}",
+            newest.words()
         );
     }
 

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use irtrack_cluster::credentials::{BoardCredential, dictionary_text};
 use irtrack_cluster::refusals::{
-    self, CredentialProblem, RefusalReason, RefusalSnapshot, ZENOH_TRANSPORT_VERSION,
+    self, CredentialProblem, RefusalReason, RefusalSnapshot, ZENOH_TRANSPORT_VERSION, ZENOH_VERSION,
 };
 use irtrack_cluster::transport::{Auth, ObsPublisher, ObsSubscriber, Session, TransportConfig, realtime_ns};
 use irtrack_core::observation::{ObsClock, ObsHeader};
@@ -54,11 +54,18 @@ fn refused<'a>(s: &'a RefusalSnapshot, addr: &str) -> Option<&'a refusals::Refus
 #[test]
 fn the_lock_file_pins_the_zenoh_transport_whose_events_are_recognised() {
     let lock = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../Cargo.lock")).unwrap();
-    let version = lock
-        .split("[[package]]")
-        .find(|p| p.contains("name = \"zenoh-transport\"\n"))
-        .and_then(|p| p.lines().find_map(|l| l.strip_prefix("version = ")))
-        .map(|v| v.trim_matches('"').to_string());
+    let locked = |name: &str| {
+        lock.split("[[package]]")
+            .find(|p| p.contains(&format!("name = \"{name}\"\n")))
+            .and_then(|p| p.lines().find_map(|l| l.strip_prefix("version = ")))
+            .map(|v| v.trim_matches('"').to_string())
+    };
+    assert_eq!(
+        locked("zenoh").as_deref(),
+        Some(ZENOH_VERSION),
+        "cluster/src/refusals.rs recognises zenoh {ZENOH_VERSION}'s access-control events: read the new version's net/routing/interceptor/access_control.rs, update classify() and ZENOH_VERSION"
+    );
+    let version = locked("zenoh-transport");
     assert_eq!(
         version.as_deref(),
         Some(ZENOH_TRANSPORT_VERSION),
@@ -110,6 +117,11 @@ fn refused_peers_are_counted_with_their_address() {
     let p_wrong = peer(port, &wrong, board("b1", PW0));
     let p_stranger = peer(port, &stranger, board("b9", PW1));
     let p_genuine = peer(port, &genuine, board("b0", PW0)).expect("the genuine board opens");
+    // Board b1 with its own, valid credentials, publishing under b0's name: let in, and each
+    // put dropped by the access control, counted as a denied publication.
+    let impostor_addr = format!("127.0.0.71:{}", free_port_on("127.0.0.71"));
+    let p_impostor = peer(port, &impostor_addr, board("b1", PW1)).expect("b1 opens with its own credentials");
+    let mut impostor = ObsPublisher::new(&p_impostor, "cell1", "b0", 1).unwrap();
     // A connection that never speaks: refused when Zenoh's 1 s handshake time runs out.
     let silent = silent_connect("127.0.0.70", port);
 
@@ -131,13 +143,31 @@ fn refused_peers_are_counted_with_their_address() {
     let mut snap = log.snapshot();
     let deadline = t0 + Duration::from_secs(8);
     let done = |s: &RefusalSnapshot| {
-        [&anon, &wrong, &stranger].iter().all(|a| refused(s, a).is_some()) && s.by_reason[1].1 >= 1
+        [&anon, &wrong, &stranger].iter().all(|a| refused(s, a).is_some())
+            && s.by_reason[1].1 >= 1
+            && s.denied_publications >= 10
     };
     let mut seq = 0;
+    let mut forged = 0u64;
+    let mut forged_heard = 0u64;
     while Instant::now() < deadline && !(heard && done(&snap)) {
         seq += 1;
         publ.publish(&header(seq), &[]).unwrap();
-        heard |= rx.try_recv().is_ok();
+        impostor
+            .publish(
+                &ObsHeader {
+                    camera: 1,
+                    ..header(seq)
+                },
+                &[],
+            )
+            .unwrap();
+        forged += 1;
+        while let Ok(obs) = rx.try_recv() {
+            heard = true;
+            let camera = irtrack_core::observation::decode(obs.payload()).map(|o| o.header.camera);
+            forged_heard += u64::from(camera.ok() == Some(1));
+        }
         std::thread::sleep(Duration::from_millis(50));
         snap = log.snapshot();
     }
@@ -171,10 +201,38 @@ fn refused_peers_are_counted_with_their_address() {
         snap.by_reason[1].1 >= 1,
         "the silent connection's timeout: {snap:#?}"
     );
+    // The impostor's puts: none reached the subscriber, each was counted once, under b1's
+    // name on b0's key; nothing of the genuine board (whose prefix declaration Zenoh also
+    // decides "denied" for a put that never comes).
+    assert_eq!(forged_heard, 0, "a forged observation reached the solver");
+    assert!(
+        snap.denied_publications >= 10 && snap.denied_publications <= forged,
+        "{} denied of {forged} forged: {snap:#?}",
+        snap.denied_publications
+    );
+    let denied = snap
+        .denied_recent
+        .iter()
+        .find(|d| d.key == "irtrack/cell1/b0/cam/1/obs")
+        .unwrap_or_else(|| panic!("no denial on b0's camera 1: {snap:#?}"));
+    assert_eq!(denied.user(), Some("b1"), "{denied:?}");
+    let words = denied.words();
+    assert!(
+        words.starts_with("a peer signed in as b1 (Zenoh ID ")
+            && words.contains("published on irtrack/cell1/b0/cam/1/obs, which its credentials do not allow"),
+        "{words}"
+    );
+    assert!(
+        snap.denied_recent
+            .iter()
+            .all(|d| d.key == "irtrack/cell1/b0/cam/1/obs" && d.user() == Some("b1")),
+        "only the impostor's puts: {snap:#?}"
+    );
     for p in [p_anon, p_wrong, p_stranger].into_iter().flatten() {
         p.close();
     }
     p_genuine.close();
+    p_impostor.close();
     solver.close();
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -382,6 +382,40 @@ async fn refused_peers_are_counted_with_their_address() {
         metrics.family_type("irtrackd_cluster_peers_refused"),
         Some("counter")
     );
+    // Board b1's own session publishing as b0 (the `publish` helper's last forgers) is let in;
+    // each of its puts is dropped by the access control and counted under its user name.
+    let denied = refused["denied_publications"].as_u64().unwrap();
+    assert!(denied >= 10, "{refused:#}");
+    let recent = refused["denied_recent"].as_array().unwrap();
+    assert!(
+        recent
+            .iter()
+            .any(|d| d["key"] == format!("irtrack/{RIG}/b0/cam/0/obs") && d["user"] == "b1"),
+        "{refused:#}"
+    );
+    assert!(
+        recent.iter().all(|d| d["user"] == "b1"
+            && d["key"]
+                .as_str()
+                .is_some_and(|k| k.starts_with(&format!("irtrack/{RIG}/b0/cam/")))),
+        "only b1's puts under b0's name, never the boards' own: {refused:#}"
+    );
+    let fault = faults
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| f["code"] == "publication_denied")
+        .unwrap_or_else(|| panic!("no publication_denied fault: {faults:#}"));
+    let text = fault["message"].as_str().unwrap();
+    assert!(
+        text.contains("which its credentials do not allow: dropped by the access control")
+            && text.contains("a board publishes under another board's name"),
+        "{text}"
+    );
+    let counted = metrics
+        .value("irtrackd_cluster_publications_denied_total", &[])
+        .unwrap_or_else(|| panic!("no irtrackd_cluster_publications_denied_total: {}", metrics.0));
+    assert!(counted >= 10.0, "{counted}");
     stop.store(true, Ordering::Relaxed);
     publisher.join().unwrap();
     let log = std::fs::read_to_string(dir.path().join("solver.log")).unwrap();

@@ -191,11 +191,13 @@ pub fn run(ctx: &Ctx, opts: &Args) -> i32 {
         if phase.name == "host-tests" && prebuilds.is_none() {
             prebuilds = Prebuilds::start(ctx, &selected[i + 1..]);
         }
+        // The phase's time includes waiting for its background build, so the phases' times
+        // add up to the run's.
+        let t0 = Instant::now();
+        let cpu0 = util::children_cpu();
         if let Some(p) = &prebuilds {
             p.wait_for(phase.name);
         }
-        let t0 = Instant::now();
-        let cpu0 = util::children_cpu();
         set_phase_timeout(phase.timeout);
         let outcome = (phase.run)(ctx);
         let elapsed = t0.elapsed();

@@ -95,6 +95,34 @@ pub struct PeerRefusalsReport {
     pub credentials: std::collections::BTreeMap<&'static str, u64>,
     /// The latest refused addresses (at most 16), newest first.
     pub recent: Vec<RefusedPeerReport>,
+    /// Publications the access control dropped: a peer let in with valid credentials put
+    /// under a key its user may not use (another board's observations); one per message.
+    pub denied_publications: u64,
+    /// Their latest senders and keys (at most 16), newest first.
+    pub denied_recent: Vec<DeniedPublicationReport>,
+}
+
+/// A sender whose publications on a key the solver's access control dropped (`/status` →
+/// `cluster.refused_peers.denied_recent`).
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct DeniedPublicationReport {
+    /// Its Zenoh ID.
+    pub zid: String,
+    /// The user name it signed in with, once known.
+    pub user: Option<String>,
+    /// The access-control subject it matched (`Interface(lo)+Username(b1)+Transport(Tcp)+
+    /// <zid>`), once known.
+    pub subject: Option<String>,
+    /// The key expression it published on.
+    pub key: String,
+    /// Denials logged.
+    pub count: u64,
+    /// Time since the newest, s.
+    pub age_s: f64,
+    /// The newest, Unix time, ms.
+    pub last_unix_ms: u64,
+    /// In plain words.
+    pub words: String,
 }
 
 /// Credentials pushed to this board (`/status` → `cluster.pushed_credentials`).
@@ -138,6 +166,18 @@ impl PeerRefusalsReport {
             newest.age_s,
             self.total,
             counts.join(", ")
+        ))
+    }
+
+    /// The `publication_denied` fault while the newest denial is under a minute old.
+    pub fn denied_fault_text(&self) -> Option<String> {
+        let newest = self
+            .denied_recent
+            .first()
+            .filter(|d| d.age_s < PEER_REFUSED_FAULT_S)?;
+        Some(format!(
+            "{}, {:.0} s ago; {} dropped since start — none of it was used; a board publishes under another board's name: check its [cluster] board and that it has its own password file (host-tools cluster-keys, docs/cluster.md \"Credentials\")",
+            newest.words, newest.age_s, self.denied_publications
         ))
     }
 }
@@ -304,6 +344,13 @@ impl ClusterReport {
         {
             out.push(("peer_refused", None, text));
         }
+        if let Some(text) = self
+            .refused_peers
+            .as_ref()
+            .and_then(PeerRefusalsReport::denied_fault_text)
+        {
+            out.push(("publication_denied", None, text));
+        }
         let refused: u64 = self.refused.values().sum();
         if refused > 0 {
             let list: Vec<String> = self.refused.iter().map(|(k, v)| format!("{k} {v}")).collect();
@@ -446,6 +493,13 @@ impl prometheus_client::collector::Collector for ClusterReport {
             for (reason, n) in &p.by_reason {
                 ConstCounter::new(*n).encode(m.encode_family(&[("reason", *reason)])?)?;
             }
+            let m = enc.encode_descriptor(
+                "irtrackd_cluster_publications_denied",
+                "publications the solver's Zenoh access control dropped (a peer let in put under a key its user may not use)",
+                None,
+                MetricType::Counter,
+            )?;
+            ConstCounter::new(p.denied_publications).encode(m)?;
         }
         let mut m = enc.encode_descriptor(
             "irtrackd_cluster_camera_missing",
@@ -590,6 +644,8 @@ mod tests {
                 last_unix_ms: 0,
                 words: "a peer at 10.0.0.66:51234 was refused: wrong or missing credentials (it sent no credentials)".into(),
             }],
+            denied_publications: 0,
+            denied_recent: Vec::new(),
         };
         let report = ClusterReport {
             role: "solver",
@@ -628,6 +684,54 @@ mod tests {
                 .unwrap()
                 .contains("port scan or a connection flood")
         );
+    }
+
+    #[test]
+    fn a_denied_publication_is_its_own_fault_for_a_minute_and_a_metric() {
+        let mut p = PeerRefusalsReport {
+            counting: true,
+            denied_publications: 41,
+            denied_recent: vec![DeniedPublicationReport {
+                zid: "4f2a9c".into(),
+                user: Some("b1".into()),
+                subject: Some("Interface(lo)+Username(b1)+Transport(Tcp)+4f2a9c".into()),
+                key: "irtrack/cell1/b0/cam/0/obs".into(),
+                count: 41,
+                age_s: 2.0,
+                last_unix_ms: 0,
+                words: "a peer signed in as b1 (Zenoh ID 4f2a9c) published on irtrack/cell1/b0/cam/0/obs, which its credentials do not allow: dropped by the access control".into(),
+            }],
+            ..PeerRefusalsReport::default()
+        };
+        let report = ClusterReport {
+            role: "solver",
+            refused_peers: Some(p.clone()),
+            ..ClusterReport::default()
+        };
+        let texts = report.fault_texts();
+        assert_eq!(
+            texts.len(),
+            1,
+            "no link was refused, so no peer_refused: {texts:?}"
+        );
+        assert_eq!(texts[0].0, "publication_denied");
+        assert!(
+            texts[0].2.starts_with(
+                "a peer signed in as b1 (Zenoh ID 4f2a9c) published on irtrack/cell1/b0/cam/0/obs, which its credentials do not allow: dropped by the access control, 2 s ago; 41 dropped since start — none of it was used; a board publishes under another board's name"
+            ),
+            "{}",
+            texts[0].2
+        );
+        let mut text = String::new();
+        let mut reg = prometheus_client::registry::Registry::default();
+        reg.register_collector(Box::new(report));
+        prometheus_client::encoding::text::encode(&mut text, &reg).unwrap();
+        assert!(
+            text.contains("irtrackd_cluster_publications_denied_total 41"),
+            "{text}"
+        );
+        p.denied_recent[0].age_s = PEER_REFUSED_FAULT_S + 1.0;
+        assert_eq!(p.denied_fault_text(), None);
     }
 
     #[test]

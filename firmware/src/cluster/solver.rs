@@ -1117,5 +1117,20 @@ fn peer_refusals_report(log: &irtrack_cluster::refusals::PeerRefusals) -> super:
                 words: p.words(),
             })
             .collect(),
+        denied_publications: snap.denied_publications,
+        denied_recent: snap
+            .denied_recent
+            .iter()
+            .map(|d| super::report::DeniedPublicationReport {
+                zid: d.zid.clone(),
+                user: d.user().map(str::to_string),
+                subject: d.subject.clone(),
+                key: d.key.clone(),
+                count: d.count,
+                age_s: now.saturating_duration_since(d.last).as_secs_f64(),
+                last_unix_ms: d.last_unix_ms,
+                words: d.words(),
+            })
+            .collect(),
     }
 }
