@@ -545,25 +545,29 @@ impl PeerRefusals {
         let refused = std::mem::take(&mut st.since_notice);
         let denied = std::mem::take(&mut st.since_denied);
         st.last_notice = Some(now);
-        let mut parts = Vec::new();
-        if refused > 0
-            && let Some(p) = st.recent.front()
-        {
-            let mut part = p.words();
-            if refused > 1 {
-                let _ = write!(part, "; {refused} peers refused since the last such line");
+        // The newest of each kind in words, and how many there were when more than one.
+        let part = |words: Option<String>, n: u64, what: &str| {
+            let mut part = words.filter(|_| n > 0)?;
+            if n > 1 {
+                let _ = write!(part, "; {n} {what} since the last such line");
             }
-            parts.push(part);
-        }
-        if denied > 0
-            && let Some(d) = st.denied_recent.front()
-        {
-            let mut part = d.words();
-            if denied > 1 {
-                let _ = write!(part, "; {denied} publications dropped since the last such line");
-            }
-            parts.push(part);
-        }
+            Some(part)
+        };
+        let parts: Vec<String> = [
+            part(
+                st.recent.front().map(RefusedPeer::words),
+                refused,
+                "peers refused",
+            ),
+            part(
+                st.denied_recent.front().map(DeniedPublication::words),
+                denied,
+                "publications dropped",
+            ),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
         (!parts.is_empty()).then(|| format!("cluster transport: {}", parts.join("; ")))
     }
 }

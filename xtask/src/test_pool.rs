@@ -100,6 +100,16 @@ fn group(b: &TestBinary) -> Option<&'static str> {
     None
 }
 
+/// Binaries that run with nothing beside them: their wall-clock figures are what they test.
+/// `cluster_e2e`'s free-running cameras across boards (simulated boards at 60 fps in real
+/// time, the solver's clock models judged to 0.5 mm) failed once beside `wand_cli`'s
+/// calibrations (worst 1.27 mm, 197 of 240 positions; 2026-11-28) and passed alone.
+const ALONE: &[&str] = &["cluster_e2e"];
+
+fn alone(b: &TestBinary) -> bool {
+    ALONE.contains(&b.target.as_str())
+}
+
 /// The slowest binaries of a CI run (seconds, docs/development.md), started first so the
 /// workers finish together instead of one of them starting a minute-long binary last.
 const KNOWN_LONG: &[&str] = &[
@@ -118,13 +128,15 @@ const KNOWN_LONG: &[&str] = &[
     "calibrate_push_e2e",
 ];
 
-/// Run order: the known long ones first (in [`KNOWN_LONG`]'s order), then cargo's order.
+/// Run order: those that run alone, then the known long ones (in [`KNOWN_LONG`]'s order), then
+/// cargo's order.
 pub fn schedule(mut bins: Vec<TestBinary>) -> Vec<TestBinary> {
     let rank = |b: &TestBinary| {
-        KNOWN_LONG
+        let long = KNOWN_LONG
             .iter()
             .position(|k| *k == b.target)
-            .unwrap_or(KNOWN_LONG.len())
+            .unwrap_or(KNOWN_LONG.len());
+        (!alone(b), long)
     };
     bins.sort_by_key(rank); // stable: cargo's order among the rest
     bins
@@ -140,6 +152,8 @@ pub struct BinRun {
 struct Queue {
     waiting: VecDeque<TestBinary>,
     busy_groups: Vec<&'static str>,
+    running: usize,
+    alone_running: bool,
 }
 
 /// Runs `bins` (in order) on `workers` threads, each with `env` set and `args` after its
@@ -156,6 +170,8 @@ pub fn run_all(
     let queue = Mutex::new(Queue {
         waiting: bins.into(),
         busy_groups: Vec::new(),
+        running: 0,
+        alone_running: false,
     });
     let changed = Condvar::new();
     let done = Mutex::new(Vec::new());
@@ -165,8 +181,12 @@ pub fn run_all(
                 while let Some(bin) = take_next(&queue, &changed) {
                     let run = run_one(&bin, env, args, cargo, deadline);
                     print_block(&run);
-                    if let (Ok(mut q), Some(g)) = (queue.lock(), group(&bin)) {
-                        q.busy_groups.retain(|b| *b != g);
+                    if let Ok(mut q) = queue.lock() {
+                        if let Some(g) = group(&bin) {
+                            q.busy_groups.retain(|b| *b != g);
+                        }
+                        q.running -= 1;
+                        q.alone_running &= !alone(&bin);
                     }
                     changed.notify_all();
                     if let Ok(mut d) = done.lock() {
@@ -180,7 +200,8 @@ pub fn run_all(
 }
 
 /// The first waiting binary whose group is free (marking the group busy); waits while every
-/// waiting binary's group is busy; `None` when nothing is left.
+/// waiting binary's group is busy, while one that runs alone runs, and, when the first free
+/// one must run alone, until nothing else runs; `None` when nothing is left.
 fn take_next(queue: &Mutex<Queue>, changed: &Condvar) -> Option<TestBinary> {
     let mut q = queue.lock().ok()?;
     loop {
@@ -191,11 +212,16 @@ fn take_next(queue: &Mutex<Queue>, changed: &Condvar) -> Option<TestBinary> {
             .waiting
             .iter()
             .position(|b| group(b).is_none_or(|g| !q.busy_groups.contains(&g)));
-        if let Some(i) = free {
+        if let Some(i) = free
+            && !q.alone_running
+            && (q.running == 0 || !alone(&q.waiting[i]))
+        {
             let bin = q.waiting.remove(i)?;
             if let Some(g) = group(&bin) {
                 q.busy_groups.push(g);
             }
+            q.running += 1;
+            q.alone_running = alone(&bin);
             return Some(bin);
         }
         q = changed.wait(q).ok()?;
@@ -321,7 +347,8 @@ not json at all"#;
         assert_eq!(names, ["cluster_checkerboard_e2e", "web", "a", "b"]);
     }
 
-    /// Two binaries of one group never overlap; others run beside them. Real processes
+    /// Two binaries of one group never overlap; others run beside them; one that runs alone
+    /// has the machine to itself. Real processes
     /// (`sh` scripts standing in for test binaries) record when they start and end.
     #[test]
     fn a_group_runs_one_at_a_time_and_others_run_beside_it() {
@@ -352,6 +379,15 @@ not json at all"#;
         let runs = run_all(bins, 2, &[], &[], &OsString::from("cargo"), None);
         let wall = t0.elapsed();
         assert_eq!(runs.len(), 4);
+        let alone_run = run_all(
+            schedule(vec![mk("plain_c"), mk("cluster_e2e"), mk("plain_d")]),
+            2,
+            &[],
+            &[],
+            &OsString::from("cargo"),
+            None,
+        );
+        assert_eq!(alone_run.len(), 3);
         assert!(
             runs.iter()
                 .all(|r| r.out.success() && r.out.stdout.contains("1 passed"))
@@ -366,6 +402,9 @@ not json at all"#;
         );
         // ... and two workers still beat one after another (4 x 0.3 s).
         assert!(wall < Duration::from_millis(1100), "{wall:?} {events:?}");
+        // The one that runs alone ran first, and nothing started before it ended.
+        assert_eq!(events[8], "start cluster_e2e", "{events:?}");
+        assert_eq!(events[9], "end cluster_e2e", "{events:?}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

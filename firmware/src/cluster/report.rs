@@ -628,6 +628,15 @@ fn camera_words(cameras: &[usize]) -> String {
 mod tests {
     use super::*;
 
+    /// The report's `/metrics` families as OpenMetrics text.
+    fn metrics_text(report: ClusterReport) -> String {
+        let mut text = String::new();
+        let mut reg = prometheus_client::registry::Registry::default();
+        reg.register_collector(Box::new(report));
+        prometheus_client::encoding::text::encode(&mut text, &reg).unwrap();
+        text
+    }
+
     #[test]
     fn a_refused_peer_is_a_fault_for_a_minute_and_a_metric() {
         let mut p = PeerRefusalsReport {
@@ -662,10 +671,7 @@ mod tests {
             "{}",
             texts[0].2
         );
-        let mut text = String::new();
-        let mut reg = prometheus_client::registry::Registry::default();
-        reg.register_collector(Box::new(report));
-        prometheus_client::encoding::text::encode(&mut text, &reg).unwrap();
+        let text = metrics_text(report);
         assert!(
             text.contains("irtrackd_cluster_peers_refused_total{reason=\"credentials\"} 2"),
             "{text}"
@@ -722,10 +728,7 @@ mod tests {
             "{}",
             texts[0].2
         );
-        let mut text = String::new();
-        let mut reg = prometheus_client::registry::Registry::default();
-        reg.register_collector(Box::new(report));
-        prometheus_client::encoding::text::encode(&mut text, &reg).unwrap();
+        let text = metrics_text(report);
         assert!(
             text.contains("irtrackd_cluster_publications_denied_total 41"),
             "{text}"
