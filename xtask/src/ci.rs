@@ -794,14 +794,7 @@ fn host_tests_side_by_side(make: impl Fn() -> Result<Command>, jobs: usize) -> R
     let cargo = build.get_program().to_os_string();
     let deadline = phase_opts().timeout.map(|t| Instant::now() + t);
     let t_run = Instant::now();
-    let runs = crate::test_pool::run_all(
-        crate::test_pool::schedule(bins),
-        jobs,
-        &env,
-        &[],
-        &cargo,
-        deadline,
-    );
+    let runs = crate::test_pool::run_all(crate::test_pool::schedule(bins), jobs, &env, &cargo, deadline);
     let mut all = Counts::default();
     let mut broken = Vec::new();
     let mut timed_out = Vec::new();

@@ -156,14 +156,12 @@ struct Queue {
     alone_running: bool,
 }
 
-/// Runs `bins` (in order) on `workers` threads, each with `env` set and `args` after its
-/// name, and with what is left of `deadline` as its time limit. Returns every run, in the
-/// order they ended.
+/// Runs `bins` (in order) on `workers` threads, each with `env` set and what is left of
+/// `deadline` as its time limit. Returns every run, in the order they ended.
 pub fn run_all(
     bins: Vec<TestBinary>,
     workers: usize,
     env: &[(OsString, OsString)],
-    args: &[&str],
     cargo: &OsString,
     deadline: Option<Instant>,
 ) -> Vec<BinRun> {
@@ -179,7 +177,7 @@ pub fn run_all(
         for _ in 0..workers.max(1) {
             scope.spawn(|| {
                 while let Some(bin) = take_next(&queue, &changed) {
-                    let run = run_one(&bin, env, args, cargo, deadline);
+                    let run = run_one(&bin, env, cargo, deadline);
                     print_block(&run);
                     if let Ok(mut q) = queue.lock() {
                         if let Some(g) = group(&bin) {
@@ -231,12 +229,11 @@ fn take_next(queue: &Mutex<Queue>, changed: &Condvar) -> Option<TestBinary> {
 fn run_one(
     bin: &TestBinary,
     env: &[(OsString, OsString)],
-    args: &[&str],
     cargo: &OsString,
     deadline: Option<Instant>,
 ) -> BinRun {
     let mut cmd = Command::new(&bin.path);
-    cmd.current_dir(&bin.package_dir).args(args);
+    cmd.current_dir(&bin.package_dir);
     // What `cargo test` gives a test binary at run time.
     cmd.env("CARGO", cargo)
         .env("CARGO_MANIFEST_DIR", &bin.package_dir)
@@ -376,13 +373,12 @@ not json at all"#;
         };
         let bins = vec![mk("natnet"), mk("ros2_dds"), mk("plain_a"), mk("plain_b")];
         let t0 = Instant::now();
-        let runs = run_all(bins, 2, &[], &[], &OsString::from("cargo"), None);
+        let runs = run_all(bins, 2, &[], &OsString::from("cargo"), None);
         let wall = t0.elapsed();
         assert_eq!(runs.len(), 4);
         let alone_run = run_all(
             schedule(vec![mk("plain_c"), mk("cluster_e2e"), mk("plain_d")]),
             2,
-            &[],
             &[],
             &OsString::from("cargo"),
             None,
