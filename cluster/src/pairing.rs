@@ -2,8 +2,11 @@
 //!
 //! Each camera's observation carries a capture timestamp on a clock the boards share (PTP or
 //! chrony) and, with a hardware trigger, the trigger's frame counter. The [`Pairer`] groups
-//! them by trigger counter when configured, otherwise by timestamps within a tolerance (half a
-//! frame period by default). A set closes when every camera that is not faulted contributed,
+//! them by trigger counter when configured, otherwise by timestamps: each frame is given a slot
+//! of a frame-period grid centred on camera 0's frames ([`irtrack_core::slots`]), and a set is
+//! the frames of one slot, whatever order they arrive in. Free-running cameras at any phase
+//! keep their slot through timestamp jitter, so sets do not fall apart when a camera's phase
+//! is half a period from camera 0's. A set closes when every camera that is not faulted contributed,
 //! when a newer set completed, or at its deadline; observations arriving for a closed set are
 //! counted late, cameras absent from a closed set are counted missing. Nothing is waited on
 //! without bound.
@@ -18,6 +21,7 @@
 
 use irtrack_core::observation::{MAX_OBS_BLOBS, ObsBlob, Observation};
 use irtrack_core::params::MAX_CAMERAS;
+use irtrack_core::slots::SlotGrid;
 
 use crate::error::{ClusterError, Result};
 
@@ -26,10 +30,10 @@ use crate::error::{ClusterError, Result};
 pub enum PairingMode {
     /// By the hardware trigger's frame counter (every observation must carry one).
     Trigger,
-    /// By capture timestamps no further apart than `tolerance_ns`.
+    /// By capture timestamps: one slot of a grid of `period_ns` per set.
     Timestamp {
-        /// Largest capture-time difference within one set, ns.
-        tolerance_ns: u64,
+        /// The cameras' frame period, ns (the grid's pitch).
+        period_ns: u64,
     },
 }
 
@@ -49,15 +53,13 @@ pub struct PairingConfig {
 }
 
 impl PairingConfig {
-    /// Timestamp pairing at `fps`: tolerance and clock limit half a frame period, deadline
-    /// two periods.
+    /// Timestamp pairing at `fps`: slots of one frame period, clock limit half a period,
+    /// deadline two periods.
     pub fn for_fps(camera_board: Vec<usize>, fps: f64) -> PairingConfig {
         let period_ns = (1e9 / fps) as u64;
         PairingConfig {
             camera_board,
-            mode: PairingMode::Timestamp {
-                tolerance_ns: period_ns / 2,
-            },
+            mode: PairingMode::Timestamp { period_ns },
             deadline_ns: 2 * period_ns,
             max_clock_offset_ns: period_ns / 2,
             offset_window: 64,
@@ -110,7 +112,7 @@ impl CameraEntry {
 /// A closed frame set.
 #[derive(Debug, Clone)]
 pub struct PairedSet {
-    /// Trigger counter (trigger mode) or the first observation's timestamp.
+    /// Trigger counter (trigger mode) or slot number (timestamp mode).
     pub key: u64,
     /// Earliest capture timestamp in the set, ns.
     pub capture_ts_ns: u64,
@@ -200,6 +202,8 @@ pub struct Pairer {
     sets: Vec<PairedSet>,
     open: Vec<bool>,
     boards: Vec<BoardClock>,
+    /// Timestamp mode: the slot grid.
+    grid: Option<SlotGrid>,
     /// Key of the newest closed set: anything at or before it is late.
     closed_key: Option<u64>,
     stats: PairStats,
@@ -224,7 +228,18 @@ impl Pairer {
             });
         }
         let boards = cfg.camera_board.iter().copied().max().unwrap_or(0) + 1;
+        let grid = match cfg.mode {
+            PairingMode::Trigger => None,
+            PairingMode::Timestamp { period_ns } => Some(
+                SlotGrid::new(n, period_ns, 0, SlotGrid::DEFAULT_HYSTERESIS).map_err(|e| {
+                    ClusterError::Config {
+                        reason: e.to_string(),
+                    }
+                })?,
+            ),
+        };
         Ok(Pairer {
+            grid,
             cameras: n,
             sets: (0..Self::OPEN_SETS).map(|_| PairedSet::empty()).collect(),
             open: vec![false; Self::OPEN_SETS],
@@ -296,7 +311,12 @@ impl Pairer {
                     return PushOutcome::NoTrigger;
                 }
             },
-            PairingMode::Timestamp { .. } => h.capture_ts_ns,
+            PairingMode::Timestamp { .. } => {
+                match self.grid.as_mut().and_then(|g| g.assign(camera, h.capture_ts_ns)) {
+                    Some(slot) => slot.index,
+                    None => return PushOutcome::Late,
+                }
+            }
         };
         if let Some(closed) = self.closed_key
             && !self.after_closed(key, closed)
@@ -330,25 +350,17 @@ impl Pairer {
 
     /// Whether `key` belongs after the newest closed set's key.
     fn after_closed(&self, key: u64, closed: u64) -> bool {
-        match self.cfg.mode {
-            PairingMode::Trigger => key > closed,
-            PairingMode::Timestamp { tolerance_ns } => key > closed.saturating_add(tolerance_ns),
-        }
-    }
-
-    fn matches(&self, set_key: u64, key: u64) -> bool {
-        match self.cfg.mode {
-            PairingMode::Trigger => set_key == key,
-            PairingMode::Timestamp { tolerance_ns } => set_key.abs_diff(key) <= tolerance_ns,
-        }
+        key > closed
     }
 
     fn find_open(&self, key: u64) -> Option<usize> {
-        // The closest matching set, so that a tolerance wider than half a period still picks
-        // the right instant.
-        (0..self.sets.len())
-            .filter(|&i| self.open[i] && self.matches(self.sets[i].key, key))
-            .min_by_key(|&i| self.sets[i].key.abs_diff(key))
+        (0..self.sets.len()).find(|&i| self.open[i] && self.sets[i].key == key)
+    }
+
+    /// Timestamp mode: how often a camera's frame went to another slot than its previous
+    /// frame's plus the frames between (drift across a slot boundary, a restart).
+    pub fn slot_moves(&self) -> u64 {
+        self.grid.as_ref().map_or(0, SlotGrid::moves)
     }
 
     fn open_set(&mut self, key: u64, now_ns: u64) -> usize {
@@ -431,6 +443,17 @@ impl Pairer {
     pub fn reset_board(&mut self, board: usize) {
         if let Some(b) = self.boards.get_mut(board) {
             *b = BoardClock::default();
+        }
+        if let Some(grid) = self.grid.as_mut() {
+            for (c, _) in self
+                .cfg
+                .camera_board
+                .iter()
+                .enumerate()
+                .filter(|(_, b)| **b == board)
+            {
+                grid.reset_camera(c);
+            }
         }
     }
 }
@@ -543,9 +566,10 @@ mod tests {
             );
         }
         let first = p.poll(t + PERIOD + 1_000_000).unwrap();
-        assert_eq!((first.key, first.present), (t, 1));
+        let (first_key, first_present) = (first.key, first.present);
+        assert_eq!((first.capture_ts_ns, first_present), (t, 1));
         let second = p.poll(t + PERIOD + 1_000_000).unwrap();
-        assert_eq!(second.present, 4);
+        assert_eq!((second.key, second.present), (first_key + 1, 4));
     }
 
     #[test]
@@ -722,5 +746,59 @@ mod tests {
             );
         }
         assert_eq!(p.poll(t0 + PERIOD + 1_000_000).expect("complete").present, 4);
+    }
+
+    /// Free-running cameras on two boards, phases spread over the whole period (camera 2 half a
+    /// period from camera 0, on a slot boundary), ±300 µs timestamp jitter, observations
+    /// arriving in a different order every frame. Every set holds each camera's frame of the
+    /// same slot: complete, and never two frames of one camera further apart than the grid.
+    /// (Grouping around the first observation to arrive split such sets, issue 39's cell.)
+    #[test]
+    fn free_running_cameras_at_any_phase_pair_into_complete_sets_whatever_the_arrival_order() {
+        let mut p = Pairer::new(cfg()).unwrap();
+        let t0 = 9_000 * PERIOD;
+        let phase = [0, PERIOD / 4, PERIOD / 2, PERIOD - PERIOD / 4];
+        let mut rng = 99u64;
+        let mut next = || {
+            rng = rng
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            rng >> 33
+        };
+        let (mut sets, mut complete, mut frames_of_one_instant) = (0, 0, 0);
+        for k in 0..500u64 {
+            let mut order = [0usize, 1, 2, 3];
+            for i in (1..4).rev() {
+                order.swap(i, (next() % (i as u64 + 1)) as usize);
+            }
+            for c in order {
+                let jitter = (next() % 600_000) as i64 - 300_000;
+                let ts = (t0 + k * PERIOD + phase[c]) as i64 + jitter;
+                // 1–3 ms in transit (board 1's later, with its later phases).
+                let recv = ts as u64 + 1_000_000 + next() % 2_000_000;
+                push(&mut p, c, &msg(c as u8 % 2, k, ts as u64, None, k as f32), recv);
+            }
+            while let Some(set) = p.poll(t0 + k * PERIOD + PERIOD + 3_000_000) {
+                sets += 1;
+                if set.present == 4 {
+                    complete += 1;
+                }
+                let frames: Vec<f32> = set.cameras[..4]
+                    .iter()
+                    .filter(|e| e.present)
+                    .map(|e| e.blobs()[0].x_px)
+                    .collect();
+                // Camera 3 (phase −T/4) exposes frame k+1 a quarter period before camera 0's
+                // k+1: its frame k+1 belongs to camera 0's slot k+1, so a set holds frames of
+                // one number or, for camera 3, the one before camera 0's slot's.
+                if frames.iter().all(|&x| (x - frames[0]).abs() <= 1.0) {
+                    frames_of_one_instant += 1;
+                }
+            }
+        }
+        assert!(complete >= 495, "{complete} complete sets of {sets}");
+        assert_eq!(frames_of_one_instant, sets);
+        assert_eq!(p.stats().conflicting, 0);
+        assert_eq!(p.slot_moves(), 0);
     }
 }

@@ -28,6 +28,7 @@ pub mod retime;
 pub mod robot_proto;
 pub mod signing;
 pub mod simd;
+pub mod slots;
 pub mod stream;
 pub mod timing;
 pub mod triangulate;

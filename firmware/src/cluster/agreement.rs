@@ -71,6 +71,11 @@ pub struct BoardAgreement {
     pub dropped: u64,
     /// Its cameras are left out of every set.
     pub suspect: bool,
+    /// Its measured clock offset says its clock runs ahead of the solver's by more than a
+    /// healthy board's ever does while another board's does not: its timestamps are late,
+    /// by at least that much, whether or not its rays miss by more than the gate. Its cameras
+    /// are left out of every set.
+    pub clock_ahead: bool,
     /// How far its rays missed the others' point when it disagreed (EWMA, mm).
     pub miss_mm: Option<f64>,
     /// Its reprojection error against the others' point when it disagreed (EWMA, px).
@@ -273,9 +278,10 @@ impl Agreement {
 
     /// Checks the set the tracker just solved (see the module documentation) and leaves in the
     /// tracker the measurement to publish. `clock_off[b]`: board `b`'s measured clock offset
-    /// is noticeably off (decides between two disagreeing boards). Returns false when the set
-    /// must not give a position.
-    pub fn vet(&mut self, tracker: &mut Tracker, clock_off: &[bool]) -> bool {
+    /// is noticeably off (decides between two disagreeing boards); `clock_ahead[b]`: it is
+    /// ahead, which transit cannot explain (its cameras are left out). Returns false when the
+    /// set must not give a position.
+    pub fn vet(&mut self, tracker: &mut Tracker, clock_off: &[bool], clock_ahead: &[bool]) -> bool {
         let n = tracker.camera_count();
         if n != self.camera_board.len() || n > MAX_CAMERAS {
             return true;
@@ -336,11 +342,14 @@ impl Agreement {
         // other camera that saw the marker agrees with — or, leaving out one more board whose
         // cameras miss it, a point two or more boards still agree on. Never a point one board
         // gives while another contradicts it.
+        for (b, &ahead) in self.boards.iter_mut().zip(clock_ahead) {
+            b.clock_ahead = ahead;
+        }
         let suspect_boards = self
             .boards
             .iter()
             .enumerate()
-            .filter(|(_, b)| b.suspect)
+            .filter(|(_, b)| b.suspect || b.clock_ahead)
             .fold(0u32, |acc, (i, _)| acc | (1u32 << i));
         let excluded = self.cameras_of(suspect_boards);
         let m = if excluded != 0 || changed {

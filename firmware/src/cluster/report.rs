@@ -32,6 +32,10 @@ pub struct BoardReport {
     pub clock_offset_ms: Option<f64>,
     /// Clock offset beyond the limit: its observations are kept out of every set.
     pub clock_fault: bool,
+    /// Its clock is ahead of the solver's by more than 1 ms (or a quarter of the tolerance)
+    /// while another board's is not: its timestamps are late by at least `clock_offset_ms`,
+    /// so its cameras are left out of every set (fault `clock_ahead`; docs/cluster.md).
+    pub clock_ahead: bool,
     /// Silent longer than `board_timeout_ms`.
     pub down: bool,
     /// Its cameras' rays miss the other boards' point in too many recent sets: its cameras
@@ -325,6 +329,18 @@ impl ClusterReport {
             if b.disagreeing {
                 out.push(("board_disagrees", None, disagreement_words(b)));
             }
+            if b.clock_ahead && !b.clock_fault {
+                out.push((
+                    "clock_ahead",
+                    None,
+                    format!(
+                        "camera board {} ({}): its clock runs at least {:.1} ms ahead of the solver's while the other boards' do not — its timestamps would misplace the marker by that much of its motion, so its cameras are left out of the positions; check PTP/chrony on it (and [cluster] clock_offset_ms)",
+                        b.name,
+                        camera_words(&b.cameras),
+                        b.clock_offset_ms.unwrap_or(f64::NAN)
+                    ),
+                ));
+            }
             if b.clock_fault {
                 out.push((
                     "clock_offset",
@@ -519,7 +535,7 @@ impl prometheus_client::collector::Collector for ClusterReport {
         )?;
         ConstGauge::new(i64::from(self.no_placement)).encode(m)?;
         type Get = fn(&BoardReport) -> Option<f64>;
-        let gauges: [(&str, &str, Get); 6] = [
+        let gauges: [(&str, &str, Get); 7] = [
             (
                 "irtrackd_cluster_board_disagreeing",
                 "1 while the board's rays miss the other boards' point in too many sets (its cameras left out)",
@@ -539,6 +555,11 @@ impl prometheus_client::collector::Collector for ClusterReport {
                 "irtrackd_cluster_board_clock_fault",
                 "1 while the board's clock offset is beyond the limit (its observations are left out)",
                 |b| Some(if b.clock_fault { 1.0 } else { 0.0 }),
+            ),
+            (
+                "irtrackd_cluster_board_clock_ahead",
+                "1 while the board's clock runs ahead of the solver's and the other boards' do not (its cameras are left out)",
+                |b| Some(if b.clock_ahead { 1.0 } else { 0.0 }),
             ),
             (
                 "irtrackd_cluster_board_clock_offset_seconds",
@@ -764,5 +785,49 @@ mod tests {
             "{}",
             texts[0].2
         );
+    }
+
+    /// A board whose clock is ahead: its own fault naming the board, its cameras and the
+    /// measured offset, and a metric; not a second fault once the offset faults it outright.
+    #[test]
+    fn a_board_ahead_is_a_fault_and_a_metric() {
+        let ahead = BoardReport {
+            name: "b1".into(),
+            cameras: vec![2, 3],
+            last_seen_ms: Some(3.0),
+            clock_offset_ms: Some(6.53),
+            clock_ahead: true,
+            ..BoardReport::default()
+        };
+        let report = ClusterReport {
+            boards: vec![ahead.clone()],
+            ..ClusterReport::default()
+        };
+        let texts = report.fault_texts();
+        assert_eq!(texts.len(), 1, "{texts:?}");
+        assert_eq!(texts[0].0, "clock_ahead");
+        assert!(
+            texts[0]
+                .2
+                .starts_with("camera board b1 (cameras 2, 3): its clock runs at least 6.5 ms ahead"),
+            "{}",
+            texts[0].2
+        );
+        assert!(texts[0].2.contains("left out"), "{}", texts[0].2);
+        let text = metrics_text(report);
+        assert!(
+            text.contains("irtrackd_cluster_board_clock_ahead{board=\"b1\"} 1"),
+            "{text}"
+        );
+        let faulted = ClusterReport {
+            boards: vec![BoardReport {
+                clock_fault: true,
+                clock_offset_ms: Some(50.0),
+                ..ahead
+            }],
+            ..ClusterReport::default()
+        };
+        let codes: Vec<&str> = faulted.fault_texts().iter().map(|t| t.0).collect();
+        assert_eq!(codes, ["clock_offset"]);
     }
 }

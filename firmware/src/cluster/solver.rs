@@ -443,7 +443,7 @@ impl ClusterSource {
             PairingMode::Trigger
         } else {
             PairingMode::Timestamp {
-                tolerance_ns: self.cfg.tolerance_ns(),
+                period_ns: self.cfg.period_ns(),
             }
         };
         let pairing = PairingConfig {
@@ -774,6 +774,7 @@ impl ClusterSource {
                 let a = layout.agreement.boards.get(b).cloned().unwrap_or_default();
                 BoardReport {
                     disagreeing: a.suspect,
+                    clock_ahead: a.clock_ahead,
                     disagreement_share: a.share,
                     compared_sets: a.compared,
                     disagreed_sets: a.disagreed,
@@ -969,10 +970,29 @@ impl FrameSource for ClusterSource {
         // (healthy boards on PTP or chrony measure well under 1 ms).
         let limit_ns = CLOCK_OFF_NS.max(self.cfg.tolerance_ns() as i64 / 4);
         let mut clock_off = [false; irtrack_core::pipeline::MAX_CAMERAS];
-        for (off, b) in clock_off.iter_mut().zip(layout.pairer.boards()) {
+        let mut clock_ahead = [false; irtrack_core::pipeline::MAX_CAMERAS];
+        for ((off, ahead), b) in clock_off
+            .iter_mut()
+            .zip(clock_ahead.iter_mut())
+            .zip(layout.pairer.boards())
+        {
             *off = b.offset_ns.is_some_and(|o| o.abs() > limit_ns);
+            *ahead = b.offset_ns.is_some_and(|o| o > limit_ns);
         }
-        layout.agreement.vet(tracker, &clock_off)
+        // The measured offset is the board's clock minus ours less the transit, so a positive
+        // one is a lower bound of how far its clock is ahead: its timestamps are that late
+        // against the others'. Taken as evidence only while another board's clock is in line
+        // (all ahead alike is our clock behind, which does not misalign the boards).
+        let in_line = layout
+            .pairer
+            .boards()
+            .iter()
+            .zip(&clock_ahead)
+            .any(|(b, &ahead)| b.offset_ns.is_some() && !ahead);
+        if !in_line {
+            clock_ahead = [false; irtrack_core::pipeline::MAX_CAMERAS];
+        }
+        layout.agreement.vet(tracker, &clock_off, &clock_ahead)
     }
 
     fn has_pixels(&self, camera: usize) -> bool {

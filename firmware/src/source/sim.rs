@@ -1360,11 +1360,16 @@ impl FrameSource for SimSource {
                 }
                 // Each camera's own timestamp against the set's nominal instant (0 for
                 // synchronous cameras; `[source.sim.timing]` makes them differ).
-                let skew_ns = self.scenario.frame_time(index, camera).reported_ns - nominal_ns;
+                let time = self.scenario.frame_time(index, camera);
+                let skew_ns = time.reported_ns - nominal_ns;
                 self.skew_ns[slot] = skew_ns;
                 min_ts = min_ts.min(skew_ns);
                 max_ts = max_ts.max(skew_ns);
-                frame.sequence = index;
+                // The camera's own frame counter, as a real camera's driver gives it: a
+                // free-running camera that drifted a period against the set grid shows the
+                // same exposure twice (same sequence and timestamp) or skips one, never a new
+                // number on an old exposure. Synchronous cameras: the set index.
+                frame.sequence = u64::try_from(time.exposure_index).unwrap_or(0);
             }
             let render_end_ns = clock::monotonic_ns();
             let render_ns = render_end_ns - render_start_ns;
@@ -1377,7 +1382,11 @@ impl FrameSource for SimSource {
             // Unpaced: the frames are captured when they are handed over, now.
             let capture_ns = match capture_ns {
                 Some(due) => {
-                    clock::sleep_until_ns(due);
+                    // Not before the last camera's own timestamp: a free-running camera
+                    // stamped after the set's nominal instant has not exposed its frame yet
+                    // (handing it over early showed its board's clock as ahead, by up to half
+                    // a period, to a cluster solver).
+                    clock::sleep_until_ns(due.saturating_add(max_ts.max(0).unsigned_abs()));
                     due
                 }
                 None => render_end_ns,

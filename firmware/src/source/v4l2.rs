@@ -10,6 +10,7 @@
 //! released at once (its stale descriptor would otherwise keep the node number taken and the
 //! returning driver would register the camera under another path).
 
+use irtrack_core::slots::SlotGrid;
 use std::collections::BTreeMap;
 use std::io;
 use std::os::raw::c_int;
@@ -55,7 +56,8 @@ pub struct V4l2Config {
     /// Further controls by their V4L2 name (case-insensitive), e.g. `"Test Pattern" = 1`.
     #[serde(default)]
     pub controls: BTreeMap<String, i64>,
-    /// Largest timestamp difference accepted between paired frames; default half a frame period.
+    /// Largest timestamp difference accepted between paired frames; default none (one frame per
+    /// camera and slot of the frame-period grid, the loop judges the spread).
     #[serde(default)]
     pub max_pairing_error_us: Option<u64>,
     /// A set not complete within this time is reported as a timeout.
@@ -191,11 +193,15 @@ impl V4l2Config {
         Ok(formats)
     }
 
-    fn pairing_tolerance_ns(&self) -> u64 {
-        match self.max_pairing_error_us {
-            Some(us) => us.saturating_mul(1000),
-            None => 500_000_000 / u64::from(self.fps.max(1)),
-        }
+    /// Largest spread of a set's timestamps when configured (`max_pairing_error_us`); by
+    /// default the pairing takes one frame per camera and slot, and the loop judges the spread.
+    fn pairing_tolerance_ns(&self) -> Option<u64> {
+        self.max_pairing_error_us.map(|us| us.saturating_mul(1000))
+    }
+
+    /// The nominal frame period, ns.
+    fn period_ns(&self) -> u64 {
+        1_000_000_000 / u64::from(self.fps.max(1))
     }
 }
 
@@ -275,68 +281,95 @@ pub fn convert_into(
 
 /// Matches frames of several cameras by timestamp.
 ///
-/// Each camera has one slot holding the timestamp of its newest unpaired frame. A set is complete
-/// when every slot is full and the spread is within tolerance; otherwise frames older than the
-/// newest by more than the tolerance can never pair and are dropped.
+/// Each frame is given a slot of a frame-period grid centred on camera 0's frames
+/// ([`irtrack_core::slots`]); a set is every camera's frame of one slot. Free-running USB
+/// cameras expose at any phase: three of them a third of a period apart have no three frames
+/// within half a period of each other, yet each has one frame per slot. Each camera has one
+/// pending frame; a frame of an older slot than another camera's pending one can never pair
+/// and is dropped. With `max_spread_ns` (`max_pairing_error_us`), a slot's frames further apart
+/// than that are not paired either (the older ones are dropped).
 #[derive(Debug, Clone)]
 pub struct Pairer {
-    slots: Vec<Option<u64>>,
-    tolerance_ns: u64,
+    /// Per camera: slot and timestamp of its newest unpaired frame.
+    pending: Vec<Option<(u64, u64)>>,
+    grid: SlotGrid,
+    max_spread_ns: Option<u64>,
 }
 
 impl Pairer {
-    /// A pairer for `cameras` cameras accepting sets whose timestamps spread at most
-    /// `tolerance_ns`, ns.
-    pub fn new(cameras: usize, tolerance_ns: u64) -> Self {
-        Self {
-            slots: vec![None; cameras],
-            tolerance_ns,
-        }
+    /// A pairer for `cameras` cameras (at least one) delivering a frame every `period_ns`.
+    pub fn new(cameras: usize, period_ns: u64, max_spread_ns: Option<u64>) -> Result<Self, SourceError> {
+        Ok(Self {
+            pending: vec![None; cameras],
+            grid: SlotGrid::new(cameras, period_ns.max(1), 0, SlotGrid::DEFAULT_HYSTERESIS)
+                .map_err(|e| SourceError::Config(format!("frame pairing: {e}")))?,
+            max_spread_ns,
+        })
     }
 
     /// Records a frame; returns how many frames were dropped (1 if it replaced an unpaired one).
     pub fn offer(&mut self, camera: usize, timestamp_ns: u64) -> u64 {
-        let replaced = self.slots[camera].replace(timestamp_ns).is_some();
+        let Some(slot) = self.grid.assign(camera, timestamp_ns) else {
+            return 1;
+        };
+        let replaced = self.pending[camera].replace((slot.index, timestamp_ns)).is_some();
         u64::from(replaced)
     }
 
     /// Forgets a camera's pending frame (e.g. the camera was lost); returns frames dropped.
     pub fn clear(&mut self, camera: usize) -> u64 {
-        u64::from(self.slots[camera].take().is_some())
+        u64::from(self.pending[camera].take().is_some())
     }
 
     /// Pending frames that were never paired; used when a set is abandoned.
     pub fn clear_all(&mut self) -> u64 {
-        (0..self.slots.len()).map(|c| self.clear(c)).sum()
+        (0..self.pending.len()).map(|c| self.clear(c)).sum()
     }
 
     /// Whether `camera` has a frame waiting for its partners.
     pub fn is_pending(&self, camera: usize) -> bool {
-        self.slots[camera].is_some()
+        self.pending[camera].is_some()
+    }
+
+    /// How often a camera's frame went to another slot than its previous one's plus the frames
+    /// between (drift across a slot boundary, a restarted camera).
+    pub fn slot_moves(&self) -> u64 {
+        self.grid.moves()
     }
 
     /// Tries to complete a set: `Ok(pairing_error_ns)` and the slots emptied, or `Err(dropped)`
-    /// with frames too old for the newest one removed (0 when still waiting for a camera).
+    /// with frames that can no longer pair removed (0 when still waiting for a camera).
     pub fn try_pair(&mut self) -> Result<u64, u64> {
-        let mut newest = 0;
-        let mut oldest = u64::MAX;
-        for slot in &self.slots {
-            let Some(ts) = *slot else { return Err(0) };
-            newest = newest.max(ts);
-            oldest = oldest.min(ts);
-        }
-        if newest - oldest <= self.tolerance_ns {
-            self.slots.iter_mut().for_each(|s| *s = None);
-            return Ok(newest - oldest);
-        }
+        let newest_slot = self.pending.iter().flatten().map(|p| p.0).max();
+        let Some(newest_slot) = newest_slot else {
+            return Err(0);
+        };
+        // Frames of an older slot than another camera's pending frame never pair.
         let mut dropped = 0;
-        for slot in &mut self.slots {
-            if slot.is_some_and(|ts| newest - ts > self.tolerance_ns) {
-                *slot = None;
+        for p in &mut self.pending {
+            if p.is_some_and(|(slot, _)| slot < newest_slot) {
+                *p = None;
                 dropped += 1;
             }
         }
-        Err(dropped)
+        if self.pending.iter().any(Option::is_none) {
+            return Err(dropped);
+        }
+        let ts = || self.pending.iter().flatten().map(|p| p.1);
+        let (oldest, newest) = (ts().min().unwrap_or(0), ts().max().unwrap_or(0));
+        if let Some(limit) = self.max_spread_ns
+            && newest - oldest > limit
+        {
+            for p in &mut self.pending {
+                if p.is_some_and(|(_, t)| newest - t > limit) {
+                    *p = None;
+                    dropped += 1;
+                }
+            }
+            return Err(dropped);
+        }
+        self.pending.iter_mut().for_each(|p| *p = None);
+        Ok(newest - oldest)
     }
 }
 
@@ -719,7 +752,7 @@ impl V4l2Source {
             config: config.clone(),
             formats,
             cameras,
-            pairer: Pairer::new(n, config.pairing_tolerance_ns()),
+            pairer: Pairer::new(n, config.period_ns(), config.pairing_tolerance_ns())?,
             stats: SourceStats::default(),
             next_index: 0,
             pollfds: Vec::with_capacity(n),
@@ -1089,8 +1122,9 @@ mod tests {
             ]
         );
         assert_eq!(cfg.buffer_count, 4);
-        // Half a frame period at 30 fps.
-        assert_eq!(cfg.pairing_tolerance_ns(), 16_666_666);
+        // No spread limit unless configured; slots of a period at 30 fps.
+        assert_eq!(cfg.pairing_tolerance_ns(), None);
+        assert_eq!(cfg.period_ns(), 33_333_333);
     }
 
     #[test]
@@ -1102,7 +1136,7 @@ mod tests {
         .unwrap();
         assert_eq!(cfg.validate().unwrap(), vec![PixelFormat::Yuyv]);
         assert_eq!(cfg.controls.get("Test Pattern"), Some(&20));
-        assert_eq!(cfg.pairing_tolerance_ns(), 2_000_000);
+        assert_eq!(cfg.pairing_tolerance_ns(), Some(2_000_000));
     }
 
     #[test]
@@ -1184,36 +1218,71 @@ mod tests {
         assert!(convert_into(PixelFormat::Y16, &[0; 12], 6, &mut f).is_err());
     }
 
+    const P30: u64 = 33_333_333;
+
     #[test]
-    fn pairer_pairs_within_tolerance() {
-        let mut p = Pairer::new(2, 5_000);
-        assert_eq!(p.offer(0, 100_000), 0);
+    fn pairer_pairs_one_frame_per_camera_and_slot() {
+        let mut p = Pairer::new(2, P30, None).unwrap();
+        let t = 1_000 * P30;
+        assert_eq!(p.offer(0, t), 0);
         assert_eq!(p.try_pair(), Err(0));
-        assert_eq!(p.offer(1, 103_000), 0);
+        assert_eq!(p.offer(1, t + 3_000), 0);
         assert_eq!(p.try_pair(), Ok(3_000));
         assert!(!p.is_pending(0) && !p.is_pending(1));
+        assert!(Pairer::new(0, P30, None).is_err());
     }
 
     #[test]
     fn pairer_drops_stale_and_replaced_frames() {
-        let mut p = Pairer::new(2, 5_000);
-        p.offer(0, 100_000);
+        let mut p = Pairer::new(2, P30, None).unwrap();
+        let t = 2_000 * P30;
+        p.offer(0, t);
         // A newer frame of the same camera replaces the unpaired one.
-        assert_eq!(p.offer(0, 133_000), 1);
-        // Camera 1's frame is far older than camera 0's: it can never pair and is dropped.
-        p.offer(1, 120_000);
+        assert_eq!(p.offer(0, t + P30), 1);
+        // Camera 1's frame is of the slot before camera 0's: it can never pair.
+        p.offer(1, t + 1_000);
         assert_eq!(p.try_pair(), Err(1));
         assert!(p.is_pending(0));
-        p.offer(1, 135_500);
+        p.offer(1, t + P30 + 2_500);
         assert_eq!(p.try_pair(), Ok(2_500));
-        // Three cameras: only the stale one goes.
-        let mut p = Pairer::new(3, 1_000);
-        p.offer(0, 10_000);
-        p.offer(1, 10_500);
-        p.offer(2, 20_000);
+        // A spread limit (`max_pairing_error_us`): frames of one slot further apart are not
+        // paired; the older one goes.
+        let mut p = Pairer::new(3, P30, Some(1_000)).unwrap();
+        p.offer(0, t);
+        p.offer(1, t + 500);
+        p.offer(2, t + 9_000_000);
         assert_eq!(p.try_pair(), Err(2));
         assert!(p.is_pending(2));
         assert_eq!(p.clear_all(), 1);
+    }
+
+    /// Three free-running cameras a third of a period apart (no three frames within half a
+    /// period of each other) with ±400 µs timestamp jitter: every slot pairs, one frame each.
+    #[test]
+    fn pairer_pairs_free_running_cameras_at_any_phase() {
+        let mut p = Pairer::new(3, P30, None).unwrap();
+        let t0 = 3_000 * P30;
+        let mut rng = 5u64;
+        let (mut sets, mut dropped) = (0, 0);
+        for k in 0..1_000u64 {
+            for c in 0..3u64 {
+                rng = rng
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                let jitter = (rng >> 33) % 800_000;
+                let ts = t0 + k * P30 + c * P30 / 3 + jitter - 400_000;
+                dropped += p.offer(c as usize, ts);
+                match p.try_pair() {
+                    Ok(spread) => {
+                        sets += 1;
+                        assert!(spread < P30, "spread {spread}");
+                    }
+                    Err(d) => dropped += d,
+                }
+            }
+        }
+        assert!(sets >= 999, "{sets} sets of 1000, {dropped} frames dropped");
+        assert_eq!(p.slot_moves(), 0);
     }
 
     fn pipe() -> (c_int, c_int) {
@@ -1296,7 +1365,7 @@ mod tests {
             })
             .collect();
         V4l2Source {
-            pairer: Pairer::new(devices.len(), cfg.pairing_tolerance_ns()),
+            pairer: Pairer::new(devices.len(), cfg.period_ns(), cfg.pairing_tolerance_ns()).unwrap(),
             config: cfg,
             formats,
             cameras,
