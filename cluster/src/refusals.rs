@@ -657,9 +657,9 @@ impl State {
 }
 
 /// Takes an event's `message` field as text.
-struct MessageText(String);
+struct MessageText<'a>(&'a mut String);
 
-impl tracing::field::Visit for MessageText {
+impl tracing::field::Visit for MessageText<'_> {
     fn record_debug(&mut self, field: &tracing::field::Field, value: &dyn std::fmt::Debug) {
         if field.name() == "message" {
             let _ = write!(self.0, "{value:?}");
@@ -671,6 +671,11 @@ impl tracing::field::Visit for MessageText {
             self.0.push_str(value);
         }
     }
+}
+
+thread_local! {
+    /// [`RefusalLayer::on_event`]'s text buffer.
+    static TEXT: std::cell::RefCell<String> = const { std::cell::RefCell::new(String::new()) };
 }
 
 /// The `tracing` layer that feeds [`global`].
@@ -686,11 +691,22 @@ impl<S: Subscriber> Layer<S> for RefusalLayer {
         if target != ACCEPT_TARGET && target != MANAGER_TARGET && target != ACL_TARGET {
             return;
         }
-        let mut text = MessageText(String::new());
-        event.record(&mut text);
-        if let Some(e) = classify(target, *meta.level(), &text.0) {
-            self.log.observe(HandshakeKey::current(), e, Instant::now());
-        }
+        // One access-control event per message a peer sends: the text goes into a buffer
+        // kept per thread (Zenoh's receive threads), not a new string each time. A nested
+        // event on the same thread (none expected) gets its own.
+        TEXT.with(|buf| {
+            let mut own = String::new();
+            let mut held = buf.try_borrow_mut();
+            let text = match held.as_deref_mut() {
+                Ok(t) => t,
+                Err(_) => &mut own,
+            };
+            text.clear();
+            event.record(&mut MessageText(text));
+            if let Some(e) = classify(target, *meta.level(), text) {
+                self.log.observe(HandshakeKey::current(), e, Instant::now());
+            }
+        });
     }
 }
 
