@@ -705,10 +705,11 @@ fn free_running_rolling_shutter_cameras_across_boards_track_like_one_board() {
 
 /// The same cell with the cameras' phases fixed a quarter period apart and no drift: camera 2
 /// exposes half a period after camera 0, on the edge between two of the solver's sets, with
-/// 200 µs timestamp jitter. Sets formed around the first observation to arrive fell apart
-/// here (positions 0.5–1.1 mm off, a third of the sets partial); one slot per frame period
-/// keeps every set whole. (All phases an eighth of a period off the simulator's own grid, so
-/// no camera sits on its edge between two exposures.)
+/// 200 µs timestamp jitter. Grouping around the first observation to arrive split sets at
+/// such phases (the test above, at the phases of the day: positions 0.3–1.1 mm off, up to a
+/// quarter of the sets partial); one slot per frame period keeps every set whole. (All phases
+/// an eighth of a period off the simulator's own grid, so no camera sits on its edge between
+/// two exposures.)
 #[test]
 fn cameras_half_a_period_apart_across_boards_track_like_one_board() {
     let eighth_ms = 125.0 / 60.0;
