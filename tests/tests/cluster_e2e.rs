@@ -774,6 +774,43 @@ fn a_board_whose_clock_is_a_few_ms_ahead_is_named_and_gives_no_wrong_position() 
     );
 }
 
+/// The other direction: b1's clock 6 ms *behind*. Its observations then arrive 6 ms later
+/// than their timestamps say, which a slow link would also do, so the solver cannot tell a
+/// wrong clock from transit and keeps its cameras; it must still say so (fault `clock_behind`,
+/// naming b1), and no position may be more than a few millimetres off (issue 40's bound: 6 ms
+/// is 3 mm of the marker's motion; b1's two of four cameras carry half of it).
+#[test]
+fn a_board_whose_clock_is_a_few_ms_behind_is_named() {
+    let run = time_true_cell(
+        "cluster-clock-behind",
+        "",
+        serde_json::json!({}),
+        "clock_offset_ms = -6.0\n",
+    );
+    let worst = run.accurate.0.iter().copied().fold(0.0, f64::max);
+    let b1 = board(&run.st_solver, "b1");
+    eprintln!(
+        "b1 6 ms behind: RMS {:.4} mm, worst {worst:.4} mm over {} positions; b1 on the solver: {b1}",
+        rms(&run.accurate.0),
+        run.accurate.0.len()
+    );
+    assert!(
+        run.accurate.0.len() as f64 >= 0.6 * 4.0 * 60.0,
+        "only {} positions in 4 s",
+        run.accurate.0.len()
+    );
+    assert!(worst < 3.0, "an ok position {worst:.3} mm off");
+    assert_eq!(b1["clock_fault"], false, "inside the clock limit: {b1}");
+    assert_eq!(b1["clock_behind"], true, "{b1}");
+    assert_eq!(b1["clock_ahead"], false, "{b1}");
+    assert_eq!(board(&run.st_solver, "b0")["clock_behind"], false);
+    let faults = run.st_solver["fault_texts"].to_string();
+    assert!(
+        has_fault(&run.st_solver, "clock_behind") && faults.contains("camera board b1"),
+        "{faults}"
+    );
+}
+
 /// What a time-true run measured: errors against the truth at each record's instant (and the
 /// records without a position), the solvers' and the single board's `/status` at the end.
 struct TimeTrueRun {

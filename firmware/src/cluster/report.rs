@@ -36,6 +36,10 @@ pub struct BoardReport {
     /// while another board's is not: its timestamps are late by at least `clock_offset_ms`,
     /// so its cameras are left out of every set (fault `clock_ahead`; docs/cluster.md).
     pub clock_ahead: bool,
+    /// Its observations arrive later than their timestamps say by more than that limit, while
+    /// another board's do not: its clock is behind the solver's, or its link is slow. Only a
+    /// warning (fault `clock_behind`): a slow link would not make its data wrong.
+    pub clock_behind: bool,
     /// Silent longer than `board_timeout_ms`.
     pub down: bool,
     /// Its cameras' rays miss the other boards' point in too many recent sets: its cameras
@@ -341,6 +345,18 @@ impl ClusterReport {
                     ),
                 ));
             }
+            if b.clock_behind {
+                out.push((
+                    "clock_behind",
+                    None,
+                    format!(
+                        "camera board {} ({}): its observations arrive at least {:.1} ms later than their timestamps say, while another board's arrive at once — its clock is behind the solver's, or its link is slow. If it is the clock, its cameras saw the marker that much earlier than their timestamps say (0.5 mm per ms at 0.5 m/s), which shows as disagreement only beyond the ray gate; check PTP/chrony on it (and [cluster] clock_offset_ms), and its network",
+                        b.name,
+                        camera_words(&b.cameras),
+                        -b.clock_offset_ms.unwrap_or(f64::NAN)
+                    ),
+                ));
+            }
             if b.clock_fault {
                 out.push((
                     "clock_offset",
@@ -535,7 +551,7 @@ impl prometheus_client::collector::Collector for ClusterReport {
         )?;
         ConstGauge::new(i64::from(self.no_placement)).encode(m)?;
         type Get = fn(&BoardReport) -> Option<f64>;
-        let gauges: [(&str, &str, Get); 7] = [
+        let gauges: [(&str, &str, Get); 8] = [
             (
                 "irtrackd_cluster_board_disagreeing",
                 "1 while the board's rays miss the other boards' point in too many sets (its cameras left out)",
@@ -560,6 +576,11 @@ impl prometheus_client::collector::Collector for ClusterReport {
                 "irtrackd_cluster_board_clock_ahead",
                 "1 while the board's clock runs ahead of the solver's and the other boards' do not (its cameras are left out)",
                 |b| Some(if b.clock_ahead { 1.0 } else { 0.0 }),
+            ),
+            (
+                "irtrackd_cluster_board_clock_behind",
+                "1 while the board's observations arrive later than their timestamps say and another board's do not (its clock behind, or a slow link)",
+                |b| Some(if b.clock_behind { 1.0 } else { 0.0 }),
             ),
             (
                 "irtrackd_cluster_board_clock_offset_seconds",
@@ -829,5 +850,30 @@ mod tests {
         };
         let codes: Vec<&str> = faulted.fault_texts().iter().map(|t| t.0).collect();
         assert_eq!(codes, ["clock_offset"]);
+        let behind = ClusterReport {
+            boards: vec![BoardReport {
+                name: "b2".into(),
+                cameras: vec![4],
+                clock_offset_ms: Some(-5.96),
+                clock_behind: true,
+                ..BoardReport::default()
+            }],
+            ..ClusterReport::default()
+        };
+        let texts = behind.fault_texts();
+        assert_eq!(texts.len(), 1, "{texts:?}");
+        assert_eq!(texts[0].0, "clock_behind");
+        assert!(
+            texts[0].2.starts_with(
+                "camera board b2 (camera 4): its observations arrive at least 6.0 ms later than their timestamps say"
+            ),
+            "{}",
+            texts[0].2
+        );
+        let text = metrics_text(behind);
+        assert!(
+            text.contains("irtrackd_cluster_board_clock_behind{board=\"b2\"} 1"),
+            "{text}"
+        );
     }
 }

@@ -37,6 +37,32 @@ const MAX_TIMESTAMP_OFFSET_NS: u64 = 1_000_000_000;
 /// A board whose measured clock offset exceeds this (or a quarter of the tolerance) is taken
 /// as the culprit when it and one other board disagree.
 const CLOCK_OFF_NS: i64 = 1_000_000;
+
+/// Per board: its measured clock offset is beyond `limit_ns` ahead (`.0`) or behind (`.1`).
+/// The measured offset is the board's clock minus ours less the transit, so *ahead* is a lower
+/// bound no network delay explains: its timestamps are late against the others' (its cameras
+/// are left out), taken as evidence while another board is not ahead. *Behind* may be its
+/// clock or a slow link (a warning), flagged while another board is within the limit. All
+/// boards off alike (our own clock off) misaligns nothing and flags none.
+fn clock_flags(
+    boards: &[irtrack_cluster::pairing::BoardClock],
+    limit_ns: i64,
+) -> (
+    [bool; irtrack_core::pipeline::MAX_CAMERAS],
+    [bool; irtrack_core::pipeline::MAX_CAMERAS],
+) {
+    let mut ahead = [false; irtrack_core::pipeline::MAX_CAMERAS];
+    let mut behind = [false; irtrack_core::pipeline::MAX_CAMERAS];
+    let not_ahead = boards.iter().any(|b| b.offset_ns.is_some_and(|o| o <= limit_ns));
+    let in_line = boards
+        .iter()
+        .any(|b| b.offset_ns.is_some_and(|o| o.abs() <= limit_ns));
+    for ((a, bh), b) in ahead.iter_mut().zip(behind.iter_mut()).zip(boards) {
+        *a = not_ahead && b.offset_ns.is_some_and(|o| o > limit_ns);
+        *bh = in_line && b.offset_ns.is_some_and(|o| o < -limit_ns);
+    }
+    (ahead, behind)
+}
 /// How often `/status` gets a fresh copy of the counters.
 const REPORT_INTERVAL_NS: u64 = 200_000_000;
 /// With no observation at all for this long, the source reports a timeout (camera fault).
@@ -764,6 +790,8 @@ impl ClusterSource {
         r.sets_refused_disagreement = ag.sets_refused;
         r.sets_board_dropped = ag.sets_board_dropped;
         let timeout_ns = (self.cfg.board_timeout_ms * 1e6) as u64;
+        let limit_ns = CLOCK_OFF_NS.max(self.cfg.tolerance_ns() as i64 / 4);
+        let (_, behind) = clock_flags(layout.pairer.boards(), limit_ns);
         r.boards = layout
             .boards
             .iter()
@@ -775,6 +803,7 @@ impl ClusterSource {
                 BoardReport {
                     disagreeing: a.suspect,
                     clock_ahead: a.clock_ahead,
+                    clock_behind: behind.get(b).copied().unwrap_or(false) && !clock.faulted,
                     disagreement_share: a.share,
                     compared_sets: a.compared,
                     disagreed_sets: a.disagreed,
@@ -970,28 +999,10 @@ impl FrameSource for ClusterSource {
         // (healthy boards on PTP or chrony measure well under 1 ms).
         let limit_ns = CLOCK_OFF_NS.max(self.cfg.tolerance_ns() as i64 / 4);
         let mut clock_off = [false; irtrack_core::pipeline::MAX_CAMERAS];
-        let mut clock_ahead = [false; irtrack_core::pipeline::MAX_CAMERAS];
-        for ((off, ahead), b) in clock_off
-            .iter_mut()
-            .zip(clock_ahead.iter_mut())
-            .zip(layout.pairer.boards())
-        {
+        for (off, b) in clock_off.iter_mut().zip(layout.pairer.boards()) {
             *off = b.offset_ns.is_some_and(|o| o.abs() > limit_ns);
-            *ahead = b.offset_ns.is_some_and(|o| o > limit_ns);
         }
-        // The measured offset is the board's clock minus ours less the transit, so a positive
-        // one is a lower bound of how far its clock is ahead: its timestamps are that late
-        // against the others'. Taken as evidence only while another board's clock is in line
-        // (all ahead alike is our clock behind, which does not misalign the boards).
-        let in_line = layout
-            .pairer
-            .boards()
-            .iter()
-            .zip(&clock_ahead)
-            .any(|(b, &ahead)| b.offset_ns.is_some() && !ahead);
-        if !in_line {
-            clock_ahead = [false; irtrack_core::pipeline::MAX_CAMERAS];
-        }
+        let (clock_ahead, _) = clock_flags(layout.pairer.boards(), limit_ns);
         layout.agreement.vet(tracker, &clock_off, &clock_ahead)
     }
 
