@@ -217,7 +217,11 @@ async fn run_cell(test: &str, boards: &[Board], moving: bool, close: bool, seed:
     cfg.cluster = solver_cluster(&r, RIG, port, FPS);
     let running = app::start(cfg, Overrides::default()).await.unwrap();
     let stop = Arc::new(AtomicBool::new(false));
-    let epoch = realtime_ns() + 200_000_000;
+    // Every board's session is open before the first frame (Zenoh may take 0.5 s or more to
+    // start a session, more under load): a board that joins late is another scenario (while
+    // it is missing, two one-camera boards' rays always "meet", and that agreement kept a
+    // moved camera from being named in about one run in ten under load; docs/cluster.md).
+    let epoch = realtime_ns() + 1_000_000_000;
     let mut rng = seed;
     let mut threads = Vec::new();
     let mut phases = Vec::new();
@@ -230,7 +234,7 @@ async fn run_cell(test: &str, boards: &[Board], moving: bool, close: bool, seed:
         }));
     }
     println!("{test}: seed {seed:#x}, phases {phases:?}");
-    tokio::time::sleep(Duration::from_millis(1200)).await;
+    tokio::time::sleep(Duration::from_millis(2000)).await;
     let collector = NdjsonCollector::start(running.addrs.stream_ndjson).await;
     tokio::time::sleep(Duration::from_secs_f64(seconds)).await;
     let status = status_json(running.addrs.status).await;
