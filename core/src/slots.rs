@@ -40,12 +40,6 @@ pub struct Slot {
     pub offset_ns: f64,
 }
 
-#[derive(Debug, Clone, Copy, Default)]
-struct CameraPlace {
-    /// Timestamp and slot of the camera's previous frame.
-    last: Option<(u64, u64)>,
-}
-
 /// Slot assignment for a rig's cameras (see the module documentation).
 #[derive(Debug, Clone)]
 pub struct SlotGrid {
@@ -57,7 +51,8 @@ pub struct SlotGrid {
     /// The reference camera has been seen (until then the first frame of any camera centres
     /// the grid).
     reference_seen: bool,
-    cameras: Vec<CameraPlace>,
+    /// Per camera: timestamp and slot of its previous frame.
+    cameras: Vec<Option<(u64, u64)>>,
     moves: u64,
 }
 
@@ -86,7 +81,7 @@ impl SlotGrid {
             reference,
             anchor: None,
             reference_seen: false,
-            cameras: vec![CameraPlace::default(); cameras],
+            cameras: vec![None; cameras],
             moves: 0,
         })
     }
@@ -115,7 +110,7 @@ impl SlotGrid {
     /// one camera must come in capture order; an earlier timestamp is taken as a restart.
     /// `None` for a camera index beyond the grid.
     pub fn assign(&mut self, camera: usize, ts_ns: u64) -> Option<Slot> {
-        let place = *self.cameras.get(camera)?;
+        let last = *self.cameras.get(camera)?;
         let is_reference = camera == self.reference;
         let anchor = match self.anchor {
             Some(a) if self.reference_seen || !is_reference => a,
@@ -135,7 +130,7 @@ impl SlotGrid {
         let nearest = libm::round(x) as i64;
         // The camera's place continued: its previous slot plus the frames since (counted from
         // the timestamps, so a dropped frame is a step of two).
-        let continued = place.last.and_then(|(last_ts, last_slot)| {
+        let continued = last.and_then(|(last_ts, last_slot)| {
             (ts_ns > last_ts).then(|| {
                 let frames = libm::round((ts_ns - last_ts) as f64 / self.period_ns) as i128;
                 (i128::from(last_slot) - i128::from(anchor.1) + frames) as i64
@@ -145,12 +140,12 @@ impl SlotGrid {
             Some(k) if libm::fabs(x - k as f64) <= 0.5 + self.hysteresis => k,
             _ => nearest,
         };
-        if place.last.is_some() && continued != Some(steps) {
+        if last.is_some() && continued != Some(steps) {
             self.moves += 1;
         }
         let index = Self::slot_at(anchor, steps);
         let offset = x - steps as f64;
-        self.cameras[camera].last = Some((ts_ns, index));
+        self.cameras[camera] = Some((ts_ns, index));
         if is_reference && self.reference_seen {
             // Follow the reference camera's phase (and so its rate).
             let centre = i128::from(anchor.0) + libm::round(steps as f64 * self.period_ns) as i128;
@@ -167,7 +162,7 @@ impl SlotGrid {
     /// nearest slot.
     pub fn reset_camera(&mut self, camera: usize) {
         if let Some(p) = self.cameras.get_mut(camera) {
-            *p = CameraPlace::default();
+            *p = None;
         }
         if camera == self.reference {
             self.reference_seen = false;

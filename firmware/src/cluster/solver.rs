@@ -1165,3 +1165,42 @@ fn peer_refusals_report(log: &irtrack_cluster::refusals::PeerRefusals) -> super:
             .collect(),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn boards(offsets_ms: &[Option<f64>]) -> Vec<irtrack_cluster::pairing::BoardClock> {
+        offsets_ms
+            .iter()
+            .map(|o| {
+                let mut b = irtrack_cluster::pairing::BoardClock::default();
+                b.offset_ns = o.map(|ms| (ms * 1e6) as i64);
+                b
+            })
+            .collect()
+    }
+
+    /// Ahead is flagged while another board is not ahead, behind while another is in line;
+    /// every board off alike (the solver's own clock off) flags none; no offset yet, no flag.
+    #[test]
+    fn clock_flags_name_the_board_out_of_line_only() {
+        let limit = 2_000_000;
+        let (ahead, behind) = clock_flags(&boards(&[Some(0.1), Some(6.0), None]), limit);
+        assert_eq!(
+            (&ahead[..3], &behind[..3]),
+            (&[false, true, false][..], &[false; 3][..])
+        );
+        let (ahead, behind) = clock_flags(&boards(&[Some(-0.2), Some(-6.0)]), limit);
+        assert_eq!((&ahead[..2], &behind[..2]), (&[false; 2][..], &[false, true][..]));
+        // All ahead, or all behind, alike: nothing to compare with.
+        let (ahead, behind) = clock_flags(&boards(&[Some(6.0), Some(6.5)]), limit);
+        assert!(ahead.iter().chain(&behind).all(|f| !f));
+        let (ahead, behind) = clock_flags(&boards(&[Some(-6.0), Some(-6.5)]), limit);
+        assert!(ahead.iter().chain(&behind).all(|f| !f));
+        // One behind, one ahead: the ahead one is still evidence (transit cannot explain it);
+        // the behind one is not warned about, nothing being in line.
+        let (ahead, behind) = clock_flags(&boards(&[Some(-6.0), Some(6.0)]), limit);
+        assert_eq!((&ahead[..2], &behind[..2]), (&[false, true][..], &[false; 2][..]));
+    }
+}
