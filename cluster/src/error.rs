@@ -35,6 +35,12 @@ pub enum ClusterError {
         /// What is wrong, in words (never the secret).
         reason: String,
     },
+    /// A clock probe message that cannot be read (cluster::clock).
+    #[error("clock probe: {reason}")]
+    Probe {
+        /// What is wrong.
+        reason: String,
+    },
     /// An observation did not encode (id too long, too many blobs).
     #[error("observation: {0}")]
     Observation(#[from] irtrack_core::Error),

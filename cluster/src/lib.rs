@@ -1,5 +1,7 @@
 //! irtrack-cluster: camera boards and one solver over Zenoh (docs/cluster.md).
 //!
+//! - [`clock`]: the clock probe's message and the estimator of a board's clock against the
+//!   solver's (two-way exchange; plain code);
 //! - [`credentials`]: the boards' password files and the solver's dictionary (plain code);
 //! - [`envelope`]: sealed credential envelopes pushed from the PC (encrypted to a board's
 //!   X25519 key, signed by a trusted Ed25519 key; docs/cluster-envelope.md);
@@ -16,6 +18,7 @@
 // Every public item says what it is for (issue 24).
 #![deny(missing_docs)]
 
+pub mod clock;
 pub mod credentials;
 pub mod envelope;
 pub mod error;

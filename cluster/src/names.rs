@@ -13,6 +13,26 @@ pub fn rig_observations_key(rig: &str) -> String {
     format!("irtrack/{rig}/*/cam/*/obs")
 }
 
+/// Key expression of a board's clock probe queryable (cluster::clock).
+pub fn clock_key(rig: &str, board: &str) -> String {
+    format!("irtrack/{rig}/{board}/clock")
+}
+
+/// Key expression the solver's clock probe asks: every board of the rig.
+pub fn rig_clock_key(rig: &str) -> String {
+    format!("irtrack/{rig}/*/clock")
+}
+
+/// The board named by a clock reply's key `irtrack/<rig>/<board>/clock`.
+pub fn board_of_clock_key<'k>(rig: &str, key: &'k str) -> Option<&'k str> {
+    let board = key
+        .strip_prefix("irtrack/")?
+        .strip_prefix(rig)?
+        .strip_prefix('/')?
+        .strip_suffix("/clock")?;
+    (!board.is_empty() && !board.contains('/')).then_some(board)
+}
+
 /// Checks a rig or board name for use in a key expression: 1..=32 bytes of `[A-Za-z0-9_-]`.
 pub fn check_name(what: &str, name: &str) -> Result<()> {
     let ok = !name.is_empty()

@@ -14,9 +14,12 @@ use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
 use irtrack_core::observation::{MAX_OBS_LEN, ObsBlob, ObsHeader, encode};
 use zenoh::Wait;
 
+use crate::clock::{ProbeKind, ProbeMessage, ProbeSample};
 use crate::error::{ClusterError, Result};
 
-pub use crate::names::{check_name, observation_key, rig_observations_key};
+pub use crate::names::{
+    board_of_clock_key, check_name, clock_key, observation_key, rig_clock_key, rig_observations_key,
+};
 
 /// How a node joins the Zenoh network.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
@@ -113,21 +116,33 @@ impl Auth {
     }
 
     /// The access-control section of the solver's configuration (JSON5): deny by default;
-    /// board `X` may put on its own observation keys and receive the solver's subscription.
+    /// board `X` may put on its own observation keys, answer the clock probe on its own clock
+    /// key, and receive the solver's subscription and probes.
     fn solver_acl(rig: &str, boards: &[String]) -> String {
-        let mut rules = vec![format!(
-            "{{id:\"solver-subscription\",messages:[\"declare_subscriber\"],flows:[\"egress\"],permission:\"allow\",key_exprs:[\"{}\"]}}",
-            rig_observations_key(rig)
-        )];
+        let mut rules = vec![
+            format!(
+                "{{id:\"solver-subscription\",messages:[\"declare_subscriber\"],flows:[\"egress\"],permission:\"allow\",key_exprs:[\"{}\"]}}",
+                rig_observations_key(rig)
+            ),
+            format!(
+                "{{id:\"solver-clock-probe\",messages:[\"query\"],flows:[\"egress\"],permission:\"allow\",key_exprs:[\"{}\"]}}",
+                rig_clock_key(rig)
+            ),
+        ];
         let mut subjects = Vec::new();
         let mut policies = Vec::new();
         for b in boards {
             rules.push(format!(
                 "{{id:\"obs-{b}\",messages:[\"put\"],flows:[\"ingress\"],permission:\"allow\",key_exprs:[\"irtrack/{rig}/{b}/cam/*/obs\"]}}"
             ));
+            // Its clock probe answers only on its own key.
+            rules.push(format!(
+                "{{id:\"clock-{b}\",messages:[\"declare_queryable\",\"reply\"],flows:[\"ingress\"],permission:\"allow\",key_exprs:[\"{}\"]}}",
+                clock_key(rig, b)
+            ));
             subjects.push(format!("{{id:\"board-{b}\",usernames:[\"{b}\"]}}"));
             policies.push(format!(
-                "{{rules:[\"obs-{b}\",\"solver-subscription\"],subjects:[\"board-{b}\"]}}"
+                "{{rules:[\"obs-{b}\",\"clock-{b}\",\"solver-subscription\",\"solver-clock-probe\"],subjects:[\"board-{b}\"]}}"
             ));
         }
         format!(
@@ -422,6 +437,178 @@ impl ObsSubscriber {
             },
             rx,
         ))
+    }
+}
+
+/// A board's answer to the solver's clock probe (cluster::clock): a queryable on
+/// `irtrack/<rig>/<board>/clock` that stamps each request as it arrives and its reply as it
+/// leaves, on `clock_ns` (the clock its observations carry).
+pub struct ClockResponder {
+    _queryable: zenoh::query::Queryable<()>,
+    /// Probes answered.
+    pub answered: Arc<AtomicU64>,
+}
+
+impl std::fmt::Debug for ClockResponder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ClockResponder")
+    }
+}
+
+impl ClockResponder {
+    /// Declares the queryable (blocking).
+    pub fn new(
+        session: &Session,
+        rig: &str,
+        board: &str,
+        clock_ns: impl Fn() -> u64 + Send + Sync + 'static,
+    ) -> Result<ClockResponder> {
+        check_name("rig", rig)?;
+        check_name("board", board)?;
+        let key = clock_key(rig, board);
+        let answered = Arc::new(AtomicU64::new(0));
+        let count = answered.clone();
+        let reply_key = key.clone();
+        let queryable = session
+            .inner
+            .declare_queryable(key)
+            .callback(move |query| {
+                let t2 = clock_ns();
+                let Some(req) = query
+                    .payload()
+                    .and_then(|p| ProbeMessage::decode(&p.to_bytes()).ok())
+                    .filter(|m| m.kind == ProbeKind::Request)
+                else {
+                    return;
+                };
+                let t3 = clock_ns();
+                let reply = req.reply(t2, t3).encode();
+                if query
+                    .reply(reply_key.as_str(), reply.to_vec())
+                    .express(true)
+                    .wait()
+                    .is_ok()
+                {
+                    count.fetch_add(1, Ordering::Relaxed);
+                }
+            })
+            .wait()
+            .map_err(transport("declare clock queryable"))?;
+        Ok(ClockResponder {
+            _queryable: queryable,
+            answered,
+        })
+    }
+}
+
+/// One board's completed probe, as the solver received it.
+#[derive(Debug, Clone)]
+pub struct ProbeReply {
+    /// The board (from the reply's key).
+    pub board: String,
+    /// The exchange's times.
+    pub sample: ProbeSample,
+}
+
+/// The solver's clock probe: a thread asking every board of the rig every `interval`,
+/// handing each completed exchange to the returned receiver. Stops when dropped.
+pub struct ClockProber {
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    /// Probes sent.
+    pub sent: Arc<AtomicU64>,
+}
+
+impl std::fmt::Debug for ClockProber {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ClockProber")
+    }
+}
+
+impl Drop for ClockProber {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+impl ClockProber {
+    /// Starts the probing thread; `clock_ns` must be the clock the solver pairs on.
+    pub fn start(
+        session: &Session,
+        rig: &str,
+        interval: std::time::Duration,
+        clock_ns: fn() -> u64,
+    ) -> Result<(ClockProber, Receiver<ProbeReply>)> {
+        check_name("rig", rig)?;
+        let (tx, rx) = sync_channel::<ProbeReply>(64);
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let sent = Arc::new(AtomicU64::new(0));
+        let (session, rig, st, sn) = (session.inner.clone(), rig.to_string(), stop.clone(), sent.clone());
+        std::thread::Builder::new()
+            .name("cluster-clock-probe".into())
+            .spawn(move || {
+                let key = rig_clock_key(&rig);
+                let mut id = 0u64;
+                while !st.load(Ordering::Relaxed) {
+                    id += 1;
+                    let (tx, rig) = (tx.clone(), rig.clone());
+                    let t1 = clock_ns();
+                    // Zenoh builds, routes and queues the query within the call, which took
+                    // 90–320 µs here (debug build): stamped before it, that time counted as
+                    // transit towards the board and offsets came out ~100 µs high; stamped
+                    // after it, a query that had left early looked like a 30 µs round trip
+                    // and won, 240 µs off. So the sample keeps both ends of the call.
+                    let sent = Arc::new(AtomicU64::new(0));
+                    let sent_cb = sent.clone();
+                    let asked = session
+                        .get(key.as_str())
+                        .payload(ProbeMessage::request(id, t1).encode().to_vec())
+                        .target(zenoh::query::QueryTarget::All)
+                        // Each reply as it comes: its arrival time is the measurement.
+                        .consolidation(zenoh::query::ConsolidationMode::None)
+                        .express(true)
+                        .timeout(interval)
+                        .callback(move |reply| {
+                            let t4 = clock_ns();
+                            let Ok(sample) = reply.result() else { return };
+                            let Some(board) = board_of_clock_key(&rig, sample.key_expr().as_str()) else {
+                                return;
+                            };
+                            let Ok(m) = ProbeMessage::decode(&sample.payload().to_bytes()) else {
+                                return;
+                            };
+                            // Only the answer to this request, with the time it left.
+                            if m.kind != ProbeKind::Reply || m.id != id || m.t1_ns != t1 {
+                                return;
+                            }
+                            // Answered before the call returned: it lasted until now at most.
+                            let span = match sent_cb.load(Ordering::Relaxed) {
+                                0 => t4.saturating_sub(t1),
+                                t => t.saturating_sub(t1),
+                            };
+                            let _ = tx.try_send(ProbeReply {
+                                board: board.to_string(),
+                                sample: ProbeSample {
+                                    t1_ns: t1,
+                                    send_span_ns: span,
+                                    t2_ns: m.t2_ns,
+                                    t3_ns: m.t3_ns,
+                                    t4_ns: t4,
+                                },
+                            });
+                        })
+                        .wait();
+                    sent.store(clock_ns(), Ordering::Relaxed);
+                    if asked.is_ok() {
+                        sn.fetch_add(1, Ordering::Relaxed);
+                    }
+                    std::thread::sleep(interval);
+                }
+            })
+            .map_err(|e| ClusterError::Transport {
+                what: "clock probe thread",
+                reason: e.to_string(),
+            })?;
+        Ok((ClockProber { stop, sent }, rx))
     }
 }
 

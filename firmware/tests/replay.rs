@@ -421,13 +421,19 @@ fn replay_waits_for_a_parameter_set_and_a_client() {
         // A client: the replay starts at its first frame, so the client gets frame 0 on.
         let mut client = NdjsonClient::connect(running.addrs.stream_ndjson).await;
         let first = client.next().await;
-        assert_eq!(
-            first.frame, 0,
-            "the recording was not consumed before the client came"
-        );
         assert_eq!(first.status, TrackStatus::Ok);
         tokio::time::sleep(Duration::from_millis(200)).await;
         let st = status_json(running.addrs.status).await;
+        // Frame 0 comes first unless the hub task was slower than the 10 ms frames (QEMU under
+        // load): then the records it missed were overwritten in the latest-value slot, and
+        // counted there; none were consumed before the client came.
+        let overwritten = st["stream"]["slot_overwrites"].as_u64().unwrap();
+        assert!(
+            first.frame <= overwritten,
+            "the recording was consumed before the client came: first frame {} with {overwritten} \
+             records overwritten in the slot",
+            first.frame
+        );
         assert!(st["source"]["waiting"].is_null(), "{}", st["source"]["waiting"]);
         running.shutdown().await;
     });

@@ -178,8 +178,15 @@ fn run_cluster(netns: Option<&Netns>) {
         }
     );
 
+    // The clock probe runs where it matters most, across links with real addresses (the
+    // namespaces); the loopback run has it off and covers the one-way clock checks.
+    let probe = netns.is_some();
+    let solver_cfg = format!(
+        "{}correct_board_clocks = {probe}\n",
+        solver_config(&solver_listen)
+    );
     solver_params(&dir.join("solver-state"));
-    let solver = spawn(&dir, "solver", &solver_config(&solver_listen), None, &ips[0]);
+    let solver = spawn(&dir, "solver", &solver_cfg, None, &ips[0]);
     let b0 = spawn(
         &dir,
         "b0",
@@ -323,8 +330,7 @@ fn run_cluster(netns: Option<&Netns>) {
     drop(single);
     b1.kill();
 
-    // 4. b1's clock 50 ms off (more than the 16.7 ms tolerance at 30 fps): fault, and no set
-    //    ever mixes its observations with b0's (no wrong pairing).
+    // 4. b1's clock 50 ms off (more than the 16.7 ms tolerance at 30 fps).
     let b1 = spawn(
         &dir,
         "b1",
@@ -332,6 +338,64 @@ fn run_cluster(netns: Option<&Netns>) {
         ns[2].as_deref(),
         &ips[2],
     );
+    if probe {
+        // With the clock probe the solver measures b1's clock and puts its timestamps on its
+        // own: four cameras again, as accurate as before, and a warning naming b1.
+        wait_for("b1's clock corrected", Duration::from_secs(20), || {
+            board(&solver.status(), "b1")["clock_probe"]["corrected"] == true
+        });
+        wait_for(
+            "solver tracks with 4 cameras again",
+            Duration::from_secs(20),
+            || {
+                solver
+                    .take_records()
+                    .iter()
+                    .any(|r| r["status"] == "ok" && r["cameras_used"] == 4)
+            },
+        );
+        std::thread::sleep(Duration::from_secs(3));
+        let corrected = errors(&solver.take_records(), &scenario);
+        // As accurate as the synchronised boards of step 1 (the single board is gone).
+        let (rms_corr, rms_sync) = (rms(&errs(&corrected)), rms(&errs(&cluster)));
+        let u = used(&corrected);
+        eprintln!(
+            "b1's clock 50 ms off, corrected: {} positions in 3 s, RMS {rms_corr:.4} mm (synchronised: {rms_sync:.4} mm)",
+            corrected.len()
+        );
+        assert!(
+            corrected.len() as f64 >= 0.6 * 3.0 * FPS,
+            "{} positions",
+            corrected.len()
+        );
+        assert!(
+            u.iter().filter(|&&c| c == 4).count() as f64 >= 0.9 * u.len() as f64,
+            "cameras used: {u:?}"
+        );
+        assert!(
+            rms_corr <= 1.2 * rms_sync + 0.005,
+            "RMS {rms_corr} mm vs {rms_sync} mm"
+        );
+        assert_no_wrong_position("clock corrected", &corrected);
+        let st = solver.status();
+        let p = &board(&st, "b1")["clock_probe"];
+        eprintln!("clock probe of b1 (50 ms off): {p}");
+        let off = p["offset_ms"].as_f64().unwrap();
+        assert!((off - 50.0).abs() < 1.0, "probed offset {off} ms");
+        assert_eq!(board(&st, "b1")["clock_fault"], false);
+        let b0_off = board(&st, "b0")["clock_probe"]["offset_ms"].as_f64().unwrap();
+        assert!(b0_off.abs() < 1.0, "b0 probed {b0_off} ms");
+        assert!(
+            has_fault(&st, "clock_corrected") && st["fault_texts"].to_string().contains("camera board b1"),
+            "{}",
+            st["fault_texts"]
+        );
+        drop(b1);
+        drop(b0);
+        eprintln!("cluster test took {:.1} s", t0.elapsed().as_secs_f64());
+        return;
+    }
+    // Without it: fault, and no set ever mixes its observations with b0's (no wrong pairing).
     wait_for("clock fault of b1", Duration::from_secs(20), || {
         board(&solver.status(), "b1")["clock_fault"] == true
     });
@@ -699,7 +763,7 @@ fn one_camera_boards_and_a_solver_with_its_own_camera() {
 /// turn every few minutes), so each run meets other phases; the next test holds the worst case.
 #[test]
 fn free_running_rolling_shutter_cameras_across_boards_track_like_one_board() {
-    let run = time_true_cell("cluster-time-true", "", serde_json::json!({}), "");
+    let run = time_true_cell("cluster-time-true", "", serde_json::json!({}), "", "", 4);
     assert_time_true_like_one_board(&run);
 }
 
@@ -719,6 +783,8 @@ fn cameras_half_a_period_apart_across_boards_track_like_one_board() {
         &format!("phase_ms = {phases_ms:?}\nppm = 0.0\n"),
         serde_json::json!({"phase_ms": phases_ms, "ppm": 0.0}),
         "",
+        "",
+        4,
     );
     assert_time_true_like_one_board(&run);
 }
@@ -728,16 +794,74 @@ fn cameras_half_a_period_apart_across_boards_track_like_one_board() {
 /// observations pair and its clock is not faulted, and its rays miss b0's point by less than
 /// the tracker's 3 mm gate, so they do not visibly disagree; yet its timestamps say 6 ms later
 /// than its exposures. Trusted, they put every four-camera position 1.5 mm off (RMS 1.50–1.54
-/// mm, worst 1.8 mm, all published `ok`, measured 2026-11-28 before the check). The solver's
-/// measured offset of b1 (its clock minus ours, less the transit) is positive, which transit
-/// cannot explain: b1 must be named, its cameras left out, and b0's two cameras go on.
+/// mm, worst 1.8 mm, all published `ok`, measured 2026-11-28 before any check). The solver's
+/// clock probe measures b1's clock and puts its timestamps on the solver's: the cell tracks as
+/// one board does, with all four cameras, and a warning names b1.
 #[test]
-fn a_board_whose_clock_is_a_few_ms_ahead_is_named_and_gives_no_wrong_position() {
+fn a_board_whose_clock_is_a_few_ms_ahead_is_corrected_and_tracks_like_one_board() {
+    clock_corrected(6.0);
+}
+
+/// The other direction, which no one-way measurement can tell from a slow link: b1's clock
+/// 6 ms *behind* (before the probe: positions 1.5 mm off, RMS 1.53 mm, only warned).
+#[test]
+fn a_board_whose_clock_is_a_few_ms_behind_is_corrected_and_tracks_like_one_board() {
+    clock_corrected(-6.0);
+}
+
+fn clock_corrected(offset_ms: f64) {
+    let run = time_true_cell(
+        &format!("cluster-clock-corrected-{offset_ms}"),
+        "",
+        serde_json::json!({}),
+        &format!("clock_offset_ms = {offset_ms:?}\n"),
+        "",
+        4,
+    );
+    let b1 = board(&run.st_solver, "b1");
+    eprintln!("b1 {offset_ms} ms off, on the solver: {b1}");
+    assert_time_true_like_one_board(&run);
+    let probe = &b1["clock_probe"];
+    assert_eq!(probe["corrected"], true, "{b1}");
+    let off = probe["offset_ms"].as_f64().unwrap();
+    assert!((off - offset_ms).abs() < 0.5, "probed offset {off} ms");
+    let b0 = board(&run.st_solver, "b0")["clock_probe"]["offset_ms"]
+        .as_f64()
+        .unwrap();
+    assert!(b0.abs() < 0.5, "b0 probed at {b0} ms");
+    for k in ["clock_fault", "clock_ahead", "clock_behind", "disagreeing"] {
+        assert_eq!(b1[k], false, "{k}: {b1}");
+    }
+    let faults = run.st_solver["fault_texts"].to_string();
+    assert!(
+        has_fault(&run.st_solver, "clock_corrected") && faults.contains("camera board b1"),
+        "{faults}"
+    );
+    assert!(!has_fault(&run.st_solver, "clock_ahead") && !has_fault(&run.st_solver, "clock_behind"));
+    // Nearly every position from all four cameras.
+    let used: Vec<u64> = run
+        .accurate_records
+        .iter()
+        .filter(|r| r["status"] == "ok")
+        .filter_map(|r| r["cameras_used"].as_u64())
+        .collect();
+    let four = used.iter().filter(|&&u| u == 4).count();
+    assert!(four as f64 >= 0.9 * used.len() as f64, "cameras used: {used:?}");
+}
+
+/// Without the clock probe (`correct_board_clocks = false`, or boards that do not answer it)
+/// the solver has only arrival times: b1's measured offset (its clock minus ours, less the
+/// transit) is positive, which transit cannot explain, so b1 must be named, its cameras left
+/// out, and b0's two cameras go on.
+#[test]
+fn without_the_probe_a_board_whose_clock_is_ahead_is_named_and_gives_no_wrong_position() {
     let run = time_true_cell(
         "cluster-clock-ahead",
         "",
         serde_json::json!({}),
         "clock_offset_ms = 6.0\n",
+        "correct_board_clocks = false\n",
+        2,
     );
     let worst = run.accurate.0.iter().copied().fold(0.0, f64::max);
     let b1 = board(&run.st_solver, "b1");
@@ -751,6 +875,7 @@ fn a_board_whose_clock_is_a_few_ms_ahead_is_named_and_gives_no_wrong_position() 
         worst < 0.5,
         "an ok position {worst:.3} mm off with b1's clock 6 ms ahead"
     );
+    assert!(b1["clock_probe"].is_null(), "{b1}");
     assert_eq!(b1["clock_fault"], false, "inside the clock limit: {b1}");
     assert_eq!(b1["clock_ahead"], true, "{b1}");
     let off = b1["clock_offset_ms"].as_f64().unwrap();
@@ -774,18 +899,20 @@ fn a_board_whose_clock_is_a_few_ms_ahead_is_named_and_gives_no_wrong_position() 
     );
 }
 
-/// The other direction: b1's clock 6 ms *behind*. Its observations then arrive 6 ms later
-/// than their timestamps say, which a slow link would also do, so the solver cannot tell a
-/// wrong clock from transit and keeps its cameras; it must still say so (fault `clock_behind`,
-/// naming b1), and no position may be more than a few millimetres off (issue 40's bound: 6 ms
-/// is 3 mm of the marker's motion; b1's two of four cameras carry half of it).
+/// Without the probe, b1's clock 6 ms *behind*: its observations arrive 6 ms later than their
+/// timestamps say, which a slow link would also do, so the solver cannot tell a wrong clock
+/// from transit and keeps its cameras; it must still say so (fault `clock_behind`, naming b1),
+/// and no position may be more than a few millimetres off (issue 40's bound: 6 ms is 3 mm of
+/// the marker's motion; b1's two of four cameras carry half of it).
 #[test]
-fn a_board_whose_clock_is_a_few_ms_behind_is_named() {
+fn without_the_probe_a_board_whose_clock_is_behind_is_named() {
     let run = time_true_cell(
         "cluster-clock-behind",
         "",
         serde_json::json!({}),
         "clock_offset_ms = -6.0\n",
+        "correct_board_clocks = false\n",
+        2,
     );
     let worst = run.accurate.0.iter().copied().fold(0.0, f64::max);
     let b1 = board(&run.st_solver, "b1");
@@ -833,6 +960,8 @@ fn time_true_cell(
     timing_toml: &str,
     timing_json: serde_json::Value,
     b1_cluster: &str,
+    solver_cluster: &str,
+    want_cameras: u64,
 ) -> TimeTrueRun {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     const TT_FPS: f64 = 60.0;
@@ -877,7 +1006,7 @@ fn time_true_cell(
         let cfg = format!(
             "[params]\nallow_unsigned = true\n[leds]\nbackend = \"none\"\n[tracking]\ntime_mode = \"{mode}\"\n\
              [cluster]\nrole = \"solver\"\nrig = \"{RIG}\"\nlisten = [\"tcp/127.0.0.1:{}\"]\nfps = {TT_FPS}\n\
-             board_timeout_ms = 300\nimage_sizes_px = [[640, 480], [640, 480], [640, 480], [640, 480]]\n",
+             board_timeout_ms = 300\nimage_sizes_px = [[640, 480], [640, 480], [640, 480], [640, 480]]\n{solver_cluster}",
             ports[k]
         );
         solvers.push(spawn(&dir, &format!("solver-{mode}"), &cfg, None, "127.0.0.1"));
@@ -900,8 +1029,8 @@ fn time_true_cell(
 
     // Wait until the accurate solver tracks with all four cameras and the clock models have
     // settled, then take 4 s of every process's records.
-    // (With a wrong board, positions from the other board's cameras.)
-    let want = if b1_cluster.is_empty() { 4 } else { 2 };
+    // (With a board left out, positions from the other board's cameras.)
+    let want = want_cameras;
     wait_for("accurate solver tracks", Duration::from_secs(30), || {
         solvers[0]
             .take_records()

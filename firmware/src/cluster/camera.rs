@@ -8,7 +8,7 @@
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::sync::{Arc, Mutex};
 
-use irtrack_cluster::transport::{ObsPublisher, Session, TransportConfig};
+use irtrack_cluster::transport::{ClockResponder, ObsPublisher, Session, TransportConfig};
 use irtrack_core::blob::Blob;
 use irtrack_core::observation::{MAX_OBS_BLOBS, ObsBlob, ObsClock, ObsHeader};
 
@@ -47,6 +47,8 @@ pub struct CameraPublisher {
     published: u64,
     errors: u64,
     losses: u64,
+    /// Answers the solver's clock probe on the clock the observations carry (kept alive).
+    _clock: Option<ClockResponder>,
 }
 
 fn transport_config(cfg: &ClusterConfig) -> Result<TransportConfig> {
@@ -74,6 +76,14 @@ pub fn open_session(cfg: &ClusterConfig) -> Result<Session> {
     })
 }
 
+/// The board's shared clock at monotonic `mono_ns`, with the test knobs' clock error
+/// (`clock_offset_ms`, and `clock_drift_ppm` since `epoch_mono_ns`).
+fn board_clock_ns(mono_ns: u64, epoch_mono_ns: u64, offset_ms: f64, drift_ppm: f64) -> u64 {
+    let elapsed_s = mono_ns.saturating_sub(epoch_mono_ns) as f64 / 1e9;
+    let error_ns = offset_ms * 1e6 + drift_ppm * 1e3 * elapsed_s;
+    (i128::from(mono_ns) + realtime_minus_mono_ns() + error_ns as i128).max(0) as u64
+}
+
 fn realtime_minus_mono_ns() -> i128 {
     i128::from(irtrack_cluster::transport::realtime_ns()) - i128::from(clock::monotonic_ns())
 }
@@ -84,6 +94,17 @@ impl CameraPublisher {
         let session = open_session(cfg)?;
         let mut p = Self::on_session(session, cfg, cameras, report)?;
         p.owns_session = true;
+        // The probe is stamped on the observations' clock, simulated error included, so the
+        // solver measures (and corrects) the same clock it pairs by.
+        let (epoch, offset_ms, drift_ppm) = (p.epoch_mono_ns, cfg.clock_offset_ms, cfg.clock_drift_ppm);
+        p._clock = Some(
+            ClockResponder::new(&p.session, &cfg.rig, &cfg.board, move || {
+                board_clock_ns(clock::monotonic_ns(), epoch, offset_ms, drift_ppm)
+            })
+            .map_err(|e| FirmwareError::Config {
+                reason: format!("cluster: {e}"),
+            })?,
+        );
         Ok(p)
     }
 
@@ -143,6 +164,7 @@ impl CameraPublisher {
             published: 0,
             errors: 0,
             losses: 0,
+            _clock: None,
         })
     }
 
@@ -156,9 +178,12 @@ impl CameraPublisher {
 
     /// The capture time on the shared clock, with the simulated clock error.
     fn capture_rt_ns(&self, mono_ns: u64) -> u64 {
-        let elapsed_s = mono_ns.saturating_sub(self.epoch_mono_ns) as f64 / 1e9;
-        let error_ns = self.cfg.clock_offset_ms * 1e6 + self.cfg.clock_drift_ppm * 1e3 * elapsed_s;
-        (i128::from(mono_ns) + realtime_minus_mono_ns() + error_ns as i128).max(0) as u64
+        board_clock_ns(
+            mono_ns,
+            self.epoch_mono_ns,
+            self.cfg.clock_offset_ms,
+            self.cfg.clock_drift_ppm,
+        )
     }
 
     fn update_report(&self) {

@@ -79,6 +79,12 @@ pub struct ClusterConfig {
     /// tolerance).
     #[serde(default)]
     pub max_clock_offset_ms: Option<f64>,
+    /// Solver: measure each camera board's clock by a two-way probe (four times a second) and
+    /// put its observations' timestamps on the solver's clock (docs/cluster.md, "Clock
+    /// probe"). On by default; off, a board's clock error is only judged from one-way
+    /// arrival times (left out when ahead, warned when behind).
+    #[serde(default = "d_true")]
+    pub correct_board_clocks: bool,
     /// Solver: a board silent this long is reported down, ms.
     #[serde(default = "d_board_timeout")]
     pub board_timeout_ms: f64,
@@ -125,6 +131,9 @@ fn d_board() -> String {
 fn d_fps() -> f64 {
     60.0
 }
+fn d_true() -> bool {
+    true
+}
 fn d_board_timeout() -> f64 {
     500.0
 }
@@ -145,6 +154,7 @@ impl Default for ClusterConfig {
             tolerance_ms: None,
             set_deadline_ms: None,
             max_clock_offset_ms: None,
+            correct_board_clocks: true,
             board_timeout_ms: d_board_timeout(),
             image_sizes_px: Vec::new(),
             own_cameras: false,

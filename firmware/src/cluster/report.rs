@@ -19,6 +19,10 @@ impl PartialEq for SharedHistogram {
     }
 }
 
+/// A board whose probed clock is further off than this gets the warning `clock_corrected`, ms
+/// (healthy boards on PTP or chrony are well under it).
+pub const CLOCK_CORRECTED_WARN_MS: f64 = 1.0;
+
 /// One board as the solver sees it (`/status` → `cluster.boards`).
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
 pub struct BoardReport {
@@ -28,8 +32,13 @@ pub struct BoardReport {
     pub cameras: Vec<usize>,
     /// Time since its last observation, ms; `None`: never heard from.
     pub last_seen_ms: Option<f64>,
-    /// Its clock minus the solver's (less the smallest transit), ms.
+    /// Its timestamps minus the solver's clock at their arrival (less the smallest transit),
+    /// ms, after the clock probe's correction when that applies (then what is left of the
+    /// board's clock error: about minus the transit).
     pub clock_offset_ms: Option<f64>,
+    /// The clock probe's measurement of the board's clock (`None`: probe off, or no answer
+    /// yet; docs/cluster.md, "Clock probe").
+    pub clock_probe: Option<ClockProbeReport>,
     /// Clock offset beyond the limit: its observations are kept out of every set.
     pub clock_fault: bool,
     /// Its clock is ahead of the solver's by more than 1 ms (or a quarter of the tolerance)
@@ -66,6 +75,29 @@ pub struct BoardReport {
     pub likely_cause: Option<&'static str>,
     /// While `disagreeing` with no third board to decide: the board it disagrees with.
     pub disagrees_with: Option<String>,
+}
+
+/// A board's clock as the solver's two-way probe measures it (`/status` →
+/// `cluster.boards[].clock_probe`).
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct ClockProbeReport {
+    /// Its clock minus the solver's, ms (what its timestamps are corrected by).
+    pub offset_ms: Option<f64>,
+    /// The worst error an unequal split of transit could cause (the best sample's bound: half
+    /// its round trip plus half the solver's send call), ms.
+    pub uncertainty_ms: Option<f64>,
+    /// Its clock's rate against the solver's, ppm.
+    pub drift_ppm: Option<f64>,
+    /// The best sample's round trip, ms.
+    pub rtt_ms: Option<f64>,
+    /// Samples used (of the last 32).
+    pub samples: usize,
+    /// Replies taken since start, and refused (negative spans, round trip over 20 ms).
+    pub replies: u64,
+    /// See `replies`.
+    pub refused: u64,
+    /// Its observations' timestamps are being corrected by `offset_ms` now.
+    pub corrected: bool,
 }
 
 /// A peer the solver's Zenoh refused (`/status` → `cluster.refused_peers.recent`).
@@ -357,6 +389,23 @@ impl ClusterReport {
                     ),
                 ));
             }
+            if let Some(p) = &b.clock_probe
+                && p.corrected
+                && let Some(off) = p.offset_ms.filter(|o| o.abs() > CLOCK_CORRECTED_WARN_MS)
+            {
+                out.push((
+                    "clock_corrected",
+                    None,
+                    format!(
+                        "camera board {} ({}): its clock is {:.1} ms {} the solver's (clock probe, ±{:.2} ms) — the solver puts its timestamps on its own clock, so positions are not affected; fix PTP/chrony on it all the same, as its own records and logs carry the wrong time",
+                        b.name,
+                        camera_words(&b.cameras),
+                        off.abs(),
+                        if off > 0.0 { "ahead of" } else { "behind" },
+                        p.uncertainty_ms.unwrap_or(f64::NAN)
+                    ),
+                ));
+            }
             if b.clock_fault {
                 out.push((
                     "clock_offset",
@@ -551,7 +600,7 @@ impl prometheus_client::collector::Collector for ClusterReport {
         )?;
         ConstGauge::new(i64::from(self.no_placement)).encode(m)?;
         type Get = fn(&BoardReport) -> Option<f64>;
-        let gauges: [(&str, &str, Get); 8] = [
+        let gauges: [(&str, &str, Get); 9] = [
             (
                 "irtrackd_cluster_board_disagreeing",
                 "1 while the board's rays miss the other boards' point in too many sets (its cameras left out)",
@@ -586,6 +635,16 @@ impl prometheus_client::collector::Collector for ClusterReport {
                 "irtrackd_cluster_board_clock_offset_seconds",
                 "the board's clock minus the solver's, less the smallest transit",
                 |b| b.clock_offset_ms.map(|ms| ms / 1e3),
+            ),
+            (
+                "irtrackd_cluster_board_clock_probe_offset_seconds",
+                "the board's clock minus the solver's as the two-way clock probe measures it (its timestamps are corrected by it)",
+                |b| {
+                    b.clock_probe
+                        .as_ref()
+                        .and_then(|p| p.offset_ms)
+                        .map(|ms| ms / 1e3)
+                },
             ),
             (
                 "irtrackd_cluster_board_last_seen_seconds",
@@ -875,5 +934,71 @@ mod tests {
             text.contains("irtrackd_cluster_board_clock_behind{board=\"b2\"} 1"),
             "{text}"
         );
+    }
+
+    /// A board the clock probe corrects: a warning naming it, which way and how far its clock
+    /// is off and the probe's uncertainty, and the probed offset as a metric; none while the
+    /// correction is under the warning limit or not applied.
+    #[test]
+    fn a_corrected_board_is_a_warning_and_a_metric() {
+        let probe = ClockProbeReport {
+            offset_ms: Some(-6.02),
+            uncertainty_ms: Some(0.08),
+            drift_ppm: Some(1.5),
+            rtt_ms: Some(0.16),
+            samples: 12,
+            replies: 40,
+            refused: 0,
+            corrected: true,
+        };
+        let board = BoardReport {
+            name: "b1".into(),
+            cameras: vec![2, 3],
+            last_seen_ms: Some(3.0),
+            clock_offset_ms: Some(-0.1),
+            clock_probe: Some(probe.clone()),
+            ..BoardReport::default()
+        };
+        let report = ClusterReport {
+            boards: vec![board.clone()],
+            ..ClusterReport::default()
+        };
+        let texts = report.fault_texts();
+        assert_eq!(texts.len(), 1, "{texts:?}");
+        assert_eq!(texts[0].0, "clock_corrected");
+        assert!(
+            texts[0].2.starts_with(
+                "camera board b1 (cameras 2, 3): its clock is 6.0 ms behind the solver's (clock probe, ±0.08 ms)"
+            ),
+            "{}",
+            texts[0].2
+        );
+        let text = metrics_text(report);
+        let value: f64 = text
+            .lines()
+            .find_map(|l| l.strip_prefix("irtrackd_cluster_board_clock_probe_offset_seconds{board=\"b1\"} "))
+            .unwrap_or_else(|| panic!("{text}"))
+            .parse()
+            .unwrap();
+        assert!((value + 0.00602).abs() < 1e-9, "{value}");
+        for quiet in [
+            ClockProbeReport {
+                offset_ms: Some(0.4),
+                ..probe.clone()
+            },
+            ClockProbeReport {
+                corrected: false,
+                ..probe
+            },
+        ] {
+            let r = ClusterReport {
+                boards: vec![BoardReport {
+                    clock_probe: Some(quiet),
+                    ..board.clone()
+                }],
+                ..ClusterReport::default()
+            };
+            assert!(r.fault_texts().is_empty(), "{:?}", r.fault_texts());
+        }
     }
 }

@@ -13,8 +13,9 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use irtrack_cluster::clock::ClockEstimator;
 use irtrack_cluster::pairing::{Pairer, PairingConfig, PairingMode, PushOutcome};
-use irtrack_cluster::transport::{ObsSubscriber, Received, Session, realtime_ns};
+use irtrack_cluster::transport::{ClockProber, ObsSubscriber, ProbeReply, Received, Session, realtime_ns};
 use irtrack_core::blob::Blob;
 use irtrack_core::image::GrayImage;
 use irtrack_core::observation::{MAX_OBS_BLOBS, ObsClock, ObservationGate, ObservationProblem, decode};
@@ -22,6 +23,7 @@ use irtrack_core::pipeline::{Tracker, TrackerConfig};
 
 use super::agreement::{Agreement, Cause};
 use super::camera::CameraPublisher;
+use super::report::ClockProbeReport;
 use super::{BoardReport, ClusterConfig, ClusterReport};
 use crate::clock;
 use crate::engine::ObservationSink;
@@ -153,7 +155,31 @@ pub struct ClusterSource {
     sequence_jumps: u64,
     /// Sequences that went back with a newer capture time: board restarts.
     sequence_restarts: u64,
+    /// The clock probe (`correct_board_clocks`): its thread and its replies.
+    prober: Option<(ClockProber, Receiver<ProbeReply>)>,
+    /// What the probe knows of each board's clock, by board name (a few boards: a list).
+    clocks: Vec<BoardProbe>,
 }
+
+/// One camera board's clock as the probe measures it.
+struct BoardProbe {
+    board: String,
+    estimator: ClockEstimator,
+    /// The correction applied to its last observation (board clock − solver clock), ns.
+    applied_ns: Option<i64>,
+    replies: u64,
+    refused: u64,
+}
+
+/// Probes per second per board (each a request and a reply of 40 bytes).
+const PROBE_INTERVAL: Duration = Duration::from_millis(250);
+/// A probe whose round trip is longer than this met a queue on the way: not used, ns.
+const PROBE_MAX_RTT_NS: u64 = 20_000_000;
+/// A board whose probe has not answered for this long is no longer corrected, ns.
+const PROBE_MAX_AGE_NS: u64 = 5_000_000_000;
+/// A correction that moves by more than this at once (the board's clock stepped, or it
+/// restarted) restarts the board's pairing state, ns.
+const PROBE_STEP_NS: i64 = 1_000_000;
 
 /// Senders of refused observations named one by one in `/status` (more are counted as
 /// "other senders": a flood of forged names must not grow the list without bound).
@@ -362,6 +388,17 @@ impl ClusterSource {
             Some((source, tracker_cfg)) => Some(spawn_own_cameras(cfg, &session, source, tracker_cfg)?),
             None => None,
         };
+        let prober = if cfg.correct_board_clocks {
+            Some(
+                ClockProber::start(&session, &cfg.rig, PROBE_INTERVAL, realtime_ns).map_err(|e| {
+                    FirmwareError::Config {
+                        reason: format!("cluster: {e}"),
+                    }
+                })?,
+            )
+        } else {
+            None
+        };
         let n = cfg.image_sizes_px.len();
         let mut hop = Arc::default();
         if let Ok(mut r) = report.lock() {
@@ -405,7 +442,76 @@ impl ClusterSource {
             seen: vec![None; n],
             sequence_jumps: 0,
             sequence_restarts: 0,
+            prober,
+            clocks: Vec::new(),
         })
+    }
+
+    /// Takes the probe's replies that came in: each board's estimator.
+    fn take_probe_replies(&mut self) {
+        let Some((_, rx)) = &self.prober else { return };
+        while let Ok(r) = rx.try_recv() {
+            if self.own.is_some() && r.board == self.cfg.board {
+                continue;
+            }
+            let i = match self.clocks.iter().position(|c| c.board == r.board) {
+                Some(i) => i,
+                // Boards the parameter set places, and a few more (a board not yet placed):
+                // replies from a flood of names do not grow the list without bound.
+                None if self.clocks.len() < MAX_REFUSED_SENDERS => {
+                    self.clocks.push(BoardProbe {
+                        board: r.board.clone(),
+                        estimator: ClockEstimator::new(PROBE_MAX_RTT_NS, PROBE_MAX_AGE_NS),
+                        applied_ns: None,
+                        replies: 0,
+                        refused: 0,
+                    });
+                    self.clocks.len() - 1
+                }
+                None => continue,
+            };
+            let c = &mut self.clocks[i];
+            match c.estimator.push(&r.sample) {
+                Ok(()) => c.replies += 1,
+                Err(_) => c.refused += 1,
+            }
+        }
+    }
+
+    /// Puts a camera board's capture time on the solver's clock by the probe's estimate of its
+    /// clock; restarts the board's pairing state when the correction starts, stops or steps.
+    fn correct_capture_time(&mut self, board: &str, capture_ts_ns: u64, now_ns: u64) -> u64 {
+        if self.prober.is_none() || (self.own.is_some() && board == self.cfg.board) {
+            return capture_ts_ns;
+        }
+        let Some(c) = self.clocks.iter_mut().find(|c| c.board == board) else {
+            return capture_ts_ns;
+        };
+        let offset = c.estimator.estimate(now_ns).map(|e| e.offset_ns);
+        let stepped = match (c.applied_ns, offset) {
+            (Some(a), Some(o)) => (a - o).abs() > PROBE_STEP_NS,
+            (None, None) => false,
+            _ => true,
+        };
+        if stepped {
+            tracing::info!(
+                board,
+                from_ms = c.applied_ns.map(|o| o as f64 / 1e6),
+                to_ms = offset.map(|o| o as f64 / 1e6),
+                "camera board's clock correction (clock probe) changed"
+            );
+            c.applied_ns = offset;
+            if let Some(layout) = self.layout.as_mut()
+                && let Some(b) = layout.boards.iter().position(|n| n == board)
+            {
+                layout.pairer.reset_board(b);
+            }
+        }
+        c.applied_ns = offset;
+        match offset {
+            Some(o) => (i128::from(capture_ts_ns) - i128::from(o)).max(0) as u64,
+            None => capture_ts_ns,
+        }
     }
 
     /// Rebuilds gate and pairer when the parameter set changed (allocates; only then).
@@ -605,13 +711,21 @@ impl ClusterSource {
     fn handle(&mut self, m: &Received) {
         self.received += 1;
         self.last_any_ns = m.received_ns;
-        let Some(layout) = self.layout.as_mut() else {
+        if self.layout.is_none() {
             return;
-        };
-        let obs = match decode(m.payload()) {
+        }
+        let mut obs = match decode(m.payload()) {
             Ok(o) => o,
             Err(irtrack_core::Error::Observation { problem }) => return self.refuse(problem, None),
             Err(_) => return,
+        };
+        // On the solver's clock from here on: pairing, the clock checks, the loop's timing.
+        if obs.header.clock == ObsClock::Realtime {
+            obs.header.capture_ts_ns =
+                self.correct_capture_time(obs.header.board, obs.header.capture_ts_ns, m.received_ns);
+        }
+        let Some(layout) = self.layout.as_mut() else {
+            return;
         };
         record_hop(
             &self.hop,
@@ -637,6 +751,10 @@ impl ClusterSource {
                         }
                     }
                     layout.pairer.reset_board(b);
+                    // Its clock may be another after a restart: measured afresh.
+                    if let Some(c) = self.clocks.iter_mut().find(|c| c.board == layout.boards[b]) {
+                        c.estimator.reset();
+                    }
                 }
             }
         }
@@ -824,6 +942,19 @@ impl ClusterSource {
                     cameras: layout.board_cameras[b].clone(),
                     last_seen_ms: last.map(|t| now_ns.saturating_sub(t) as f64 / 1e6),
                     clock_offset_ms: clock.offset_ns.map(|o| o as f64 / 1e6),
+                    clock_probe: self.clocks.iter().find(|c| c.board == *name).map(|c| {
+                        let e = c.estimator.estimate(now_ns);
+                        ClockProbeReport {
+                            offset_ms: e.map(|e| e.offset_ns as f64 / 1e6),
+                            uncertainty_ms: e.map(|e| e.uncertainty_ns as f64 / 1e6),
+                            drift_ppm: e.map(|e| e.drift_ppm),
+                            rtt_ms: e.map(|e| e.rtt_ns as f64 / 1e6),
+                            samples: e.map_or(0, |e| e.samples),
+                            replies: c.replies,
+                            refused: c.refused,
+                            corrected: c.applied_ns.is_some(),
+                        }
+                    }),
                     clock_fault: clock.faulted,
                     down: last.is_none_or(|t| now_ns.saturating_sub(t) > timeout_ns),
                 }
@@ -928,6 +1059,7 @@ impl FrameSource for ClusterSource {
         let period = Duration::from_nanos(self.cfg.period_ns().max(1));
         loop {
             let now = realtime_ns();
+            self.take_probe_replies();
             self.update_report(now);
             if self.take_set(now, out) {
                 return Ok(());
