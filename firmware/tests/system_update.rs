@@ -482,16 +482,30 @@ async fn too_large_and_concurrent_uploads_are_refused_while_one_runs() {
     );
     assert!(std::fs::symlink_metadata(sim_dir.join(".upload.part")).is_err());
 
-    // A client that goes away mid-upload: the job ends, the next upload is accepted.
+    // A client that goes away mid-upload: the job ends, the next upload is accepted. It goes
+    // once its job is receiving (under QEMU the server took longer than a fixed 200 ms to start
+    // it, and the status still showed the disk-full job).
+    let full_id = status_json(addr).await["system"]["install"]["id"].clone();
     let mut gone = TcpStream::connect(addr).await.unwrap();
     gone.write_all(head.as_bytes()).await.unwrap();
     gone.write_all(&bytes[..1000]).await.unwrap();
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    let start = Instant::now();
+    loop {
+        let job = status_json(addr).await["system"]["install"].clone();
+        if job["id"] != full_id && job["state"] == "receiving" {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "the upload did not start: {job}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
     drop(gone);
     let start = Instant::now();
     loop {
         let job = status_json(addr).await["system"]["install"].clone();
-        if job["state"] == "refused" {
+        if job["id"] != full_id && job["state"] == "refused" {
             assert_eq!(job["refusal"]["kind"], "interrupted", "{job}");
             break;
         }
