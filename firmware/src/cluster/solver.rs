@@ -514,7 +514,6 @@ impl ClusterSource {
                 to_ms = offset.map(|o| o as f64 / 1e6),
                 "camera board's clock correction (clock probe) changed"
             );
-            c.applied_ns = offset;
             if let Some(layout) = self.layout.as_mut()
                 && let Some(b) = layout.boards.iter().position(|n| n == board)
             {
