@@ -1213,6 +1213,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         // The board search runs on its own thread: OpenCV's corner search takes seconds on
         // some views (measured: 4.4 s for one set of four VGA frames, 0.2 s for most), and
         // with --every a stalled loop would skip the poses shown meanwhile.
+        // The pairing is known now; it is reported whether or not the board search keeps up.
+        if multi {
+            println!(
+                "set {saved}: boards paired within {} µs ({refused} sets refused so far)",
+                set.header.pairing_error_ns / 1000
+            );
+        }
         let dims: Vec<(u32, u32)> = set
             .header
             .cameras
@@ -1252,12 +1259,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 both += 1;
             }
             print!("{}", report(n, &nm, &found, &coverage, both));
-            if multi && mine {
-                println!(
-                    "boards paired within {} µs ({refused} sets refused so far)",
-                    set.header.pairing_error_ns / 1000
-                );
-            }
         }
         std::io::stdout().flush().ok();
     }
