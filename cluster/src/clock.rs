@@ -222,6 +222,21 @@ struct Entry {
     uncertainty_ns: u64,
 }
 
+/// What became of a sample the estimator took.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Taken {
+    /// Added to the samples.
+    Added,
+    /// Its interval of possible offsets lies outside the estimate's by more than
+    /// [`ClockEstimator::STEP_SLACK_NS`]: the board's clock stepped (an NTP step, two time
+    /// daemons fighting, someone setting the date). The older samples were forgotten; this one
+    /// starts a new estimate. `by_ns` is the sample's offset less the estimate's.
+    Stepped {
+        /// New offset minus the estimated one, ns.
+        by_ns: i64,
+    },
+}
+
 /// Why a sample was not taken.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SampleRefusal {
@@ -258,6 +273,12 @@ impl ClockEstimator {
     /// Fitted drift is held within ± this (a quartz is within ±100 ppm; more is a stepping
     /// clock, which the line must not follow).
     pub const MAX_DRIFT_PPM: f64 = 500.0;
+    /// A sample's offset is sure to lie within its bound of the true one (the request cannot
+    /// arrive before it left, nor the reply leave after it arrived), so one outside the
+    /// estimate's bound plus its own means the clock changed. This slack covers what the
+    /// estimate itself may have missed (drift not yet fitted: 100 ppm over the 2 s before a fit
+    /// is 200 µs) before a sample is called a step.
+    pub const STEP_SLACK_NS: u64 = 500_000;
 
     /// An estimator taking samples whose round trip is at most `max_rtt_ns`, giving estimates
     /// while its newest sample is at most `max_age_ns` old.
@@ -276,20 +297,34 @@ impl ClockEstimator {
         self.next = 0;
     }
 
-    /// Takes a sample, or says why not.
-    pub fn push(&mut self, s: &ProbeSample) -> core::result::Result<(), SampleRefusal> {
+    /// Takes a sample (forgetting the older ones when it shows the clock stepped), or says why
+    /// not.
+    pub fn push(&mut self, s: &ProbeSample) -> core::result::Result<Taken, SampleRefusal> {
         let rtt_ns = s.rtt_ns().ok_or(SampleRefusal::Negative)?;
         if rtt_ns > self.max_rtt_ns {
             return Err(SampleRefusal::TooSlow);
         }
-        self.ring[self.next] = Some(Entry {
+        let entry = Entry {
             mid_ns: s.mid_ns(),
             offset_ns: s.offset_ns(),
             rtt_ns,
             uncertainty_ns: s.uncertainty_ns().unwrap_or(u64::MAX),
-        });
+        };
+        let mut taken = Taken::Added;
+        if let Some(e) = self.estimate(entry.mid_ns) {
+            let by_ns = entry.offset_ns.saturating_sub(e.offset_ns);
+            let allowed = entry
+                .uncertainty_ns
+                .saturating_add(e.uncertainty_ns)
+                .saturating_add(Self::STEP_SLACK_NS);
+            if by_ns.unsigned_abs() > allowed {
+                self.reset();
+                taken = Taken::Stepped { by_ns };
+            }
+        }
+        self.ring[self.next] = Some(entry);
         self.next = (self.next + 1) % Self::SAMPLES;
-        Ok(())
+        Ok(taken)
     }
 
     /// The board's offset at `now_ns` (solver clock); `None` with fewer than
@@ -436,14 +471,17 @@ mod tests {
             let leave = arrive + 20_000.0;
             let t3 = (leave + true_offset(leave as u64)) as u64;
             let t4 = (leave + down) as u64;
-            est.push(&ProbeSample {
-                t1_ns: t1,
-                send_span_ns: 0,
-                t2_ns: t2,
-                t3_ns: t3,
-                t4_ns: t4,
-            })
-            .unwrap();
+            let taken = est
+                .push(&ProbeSample {
+                    t1_ns: t1,
+                    send_span_ns: 0,
+                    t2_ns: t2,
+                    t3_ns: t3,
+                    t4_ns: t4,
+                })
+                .unwrap();
+            // Queueing and drift are not a step.
+            assert_eq!(taken, Taken::Added, "{drift_ppm} ppm, probe {k}");
             if k >= 8 {
                 // Asked between this probe and the next.
                 let at = t4 + 120_000_000;
@@ -537,5 +575,55 @@ mod tests {
         assert!(est.estimate(1_500_000_000 + 2_100_000_000).is_none(), "expired");
         est.reset();
         assert!(est.estimate(1_600_000_000).is_none());
+    }
+
+    /// A board whose clock steps (+8 ms, then back −8 ms, as two time daemons fighting over
+    /// it would): the first sample after each step is called a step by how much, the older
+    /// samples are forgotten (no estimate until three new ones), and the new offset is found;
+    /// a sample that only met a queue (2 ms round trip) is not a step.
+    #[test]
+    fn a_clock_step_is_recognised_and_the_estimate_starts_again() {
+        let mut est = ClockEstimator::new(10_000_000, 5_000_000_000);
+        let sample = |t1: u64, offset_ns: i64, up_ns: u64, down_ns: u64| {
+            let board = |t: u64| (t as i64 + offset_ns) as u64;
+            ProbeSample {
+                t1_ns: t1,
+                send_span_ns: 0,
+                t2_ns: board(t1 + up_ns),
+                t3_ns: board(t1 + up_ns + 20_000),
+                t4_ns: t1 + up_ns + 20_000 + down_ns,
+            }
+        };
+        let mut t = 1_000_000_000u64;
+        let mut next = |offset_ns: i64, up_ns: u64, down_ns: u64| {
+            t += 250_000_000;
+            (
+                t,
+                est.push(&sample(t, offset_ns, up_ns, down_ns)).unwrap(),
+                est.clone(),
+            )
+        };
+        for _ in 0..10 {
+            assert_eq!(next(1_000_000, 80_000, 80_000).1, Taken::Added);
+        }
+        // Queued 1.9 ms one way: its offset is 0.95 ms off, within its own bound.
+        assert_eq!(next(1_000_000, 1_900_000, 80_000).1, Taken::Added);
+        let (at, taken, e) = next(9_000_000, 80_000, 80_000);
+        let Taken::Stepped { by_ns } = taken else {
+            panic!("+8 ms not seen as a step: {taken:?}");
+        };
+        assert!((by_ns - 8_000_000).abs() < 100_000, "stepped by {by_ns} ns");
+        assert!(e.estimate(at + 1_000_000).is_none(), "one sample after a step");
+        assert_eq!(next(9_000_000, 80_000, 80_000).1, Taken::Added);
+        let (at, taken, e) = next(9_000_000, 80_000, 80_000);
+        assert_eq!(taken, Taken::Added);
+        let got = e.estimate(at + 1_000_000).expect("three samples after the step");
+        assert!((got.offset_ns - 9_000_000).abs() < 100_000, "{got:?}");
+        assert_eq!(got.samples, 3);
+        let (_, taken, _) = next(1_000_000, 80_000, 80_000);
+        assert!(
+            matches!(taken, Taken::Stepped { by_ns } if (by_ns + 8_000_000).abs() < 100_000),
+            "{taken:?}"
+        );
     }
 }

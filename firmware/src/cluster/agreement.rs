@@ -279,9 +279,16 @@ impl Agreement {
     /// Checks the set the tracker just solved (see the module documentation) and leaves in the
     /// tracker the measurement to publish. `clock_off[b]`: board `b`'s measured clock offset
     /// is noticeably off (decides between two disagreeing boards); `clock_ahead[b]`: it is
-    /// ahead, which transit cannot explain (its cameras are left out). Returns false when the
-    /// set must not give a position.
-    pub fn vet(&mut self, tracker: &mut Tracker, clock_off: &[bool], clock_ahead: &[bool]) -> bool {
+    /// ahead, which transit cannot explain (its cameras are left out); `clock_settling[b]`: its
+    /// clock just stepped and is not yet measured again (its cameras are left out). Returns
+    /// false when the set must not give a position.
+    pub fn vet(
+        &mut self,
+        tracker: &mut Tracker,
+        clock_off: &[bool],
+        clock_ahead: &[bool],
+        clock_settling: &[bool],
+    ) -> bool {
         let n = tracker.camera_count();
         if n != self.camera_board.len() || n > MAX_CAMERAS {
             return true;
@@ -349,7 +356,7 @@ impl Agreement {
             .boards
             .iter()
             .enumerate()
-            .filter(|(_, b)| b.suspect || b.clock_ahead)
+            .filter(|(i, b)| b.suspect || b.clock_ahead || clock_settling.get(*i).copied().unwrap_or(false))
             .fold(0u32, |acc, (i, _)| acc | (1u32 << i));
         let excluded = self.cameras_of(suspect_boards);
         let m = if excluded != 0 || changed {

@@ -76,12 +76,37 @@ pub fn open_session(cfg: &ClusterConfig) -> Result<Session> {
     })
 }
 
-/// The board's shared clock at monotonic `mono_ns`, with the test knobs' clock error
-/// (`clock_offset_ms`, and `clock_drift_ppm` since `epoch_mono_ns`).
-fn board_clock_ns(mono_ns: u64, epoch_mono_ns: u64, offset_ms: f64, drift_ppm: f64) -> u64 {
-    let elapsed_s = mono_ns.saturating_sub(epoch_mono_ns) as f64 / 1e9;
-    let error_ns = offset_ms * 1e6 + drift_ppm * 1e3 * elapsed_s;
-    (i128::from(mono_ns) + realtime_minus_mono_ns() + error_ns as i128).max(0) as u64
+/// The simulated error of a board's clock (test knobs `clock_offset_ms`, `clock_drift_ppm`,
+/// `clock_step_ms` every `clock_step_every_s`), counted from `epoch_mono_ns`.
+#[derive(Debug, Clone, Copy)]
+struct ClockError {
+    epoch_mono_ns: u64,
+    offset_ms: f64,
+    drift_ppm: f64,
+    step_ms: f64,
+    step_every_s: f64,
+}
+
+impl ClockError {
+    fn of(cfg: &ClusterConfig, epoch_mono_ns: u64) -> ClockError {
+        ClockError {
+            epoch_mono_ns,
+            offset_ms: cfg.clock_offset_ms,
+            drift_ppm: cfg.clock_drift_ppm,
+            step_ms: cfg.clock_step_ms,
+            step_every_s: cfg.clock_step_every_s,
+        }
+    }
+
+    /// The board's shared clock at monotonic `mono_ns`, error included.
+    fn board_clock_ns(&self, mono_ns: u64) -> u64 {
+        let elapsed_s = mono_ns.saturating_sub(self.epoch_mono_ns) as f64 / 1e9;
+        // Stepped in every odd period: +step, back, +step, ...
+        let stepped = self.step_every_s > 0.0 && (elapsed_s / self.step_every_s) as u64 % 2 == 1;
+        let error_ms = self.offset_ms + if stepped { self.step_ms } else { 0.0 };
+        let error_ns = error_ms * 1e6 + self.drift_ppm * 1e3 * elapsed_s;
+        (i128::from(mono_ns) + realtime_minus_mono_ns() + error_ns as i128).max(0) as u64
+    }
 }
 
 fn realtime_minus_mono_ns() -> i128 {
@@ -96,10 +121,10 @@ impl CameraPublisher {
         p.owns_session = true;
         // The probe is stamped on the observations' clock, simulated error included, so the
         // solver measures (and corrects) the same clock it pairs by.
-        let (epoch, offset_ms, drift_ppm) = (p.epoch_mono_ns, cfg.clock_offset_ms, cfg.clock_drift_ppm);
+        let error = ClockError::of(cfg, p.epoch_mono_ns);
         p._clock = Some(
             ClockResponder::new(&p.session, &cfg.rig, &cfg.board, move || {
-                board_clock_ns(clock::monotonic_ns(), epoch, offset_ms, drift_ppm)
+                error.board_clock_ns(clock::monotonic_ns())
             })
             .map_err(|e| FirmwareError::Config {
                 reason: format!("cluster: {e}"),
@@ -178,12 +203,7 @@ impl CameraPublisher {
 
     /// The capture time on the shared clock, with the simulated clock error.
     fn capture_rt_ns(&self, mono_ns: u64) -> u64 {
-        board_clock_ns(
-            mono_ns,
-            self.epoch_mono_ns,
-            self.cfg.clock_offset_ms,
-            self.cfg.clock_drift_ppm,
-        )
+        ClockError::of(&self.cfg, self.epoch_mono_ns).board_clock_ns(mono_ns)
     }
 
     fn update_report(&self) {
@@ -311,6 +331,56 @@ fn jitter_thread(
             && let Ok(mut r) = report.try_lock()
         {
             r.published = sent;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The simulated stepping clock: in line, +step for a period, back, +step again; drift on
+    /// top; a negative or non-finite period is refused by the config check.
+    #[test]
+    fn a_stepping_clock_steps_and_comes_back() {
+        let cfg = ClusterConfig {
+            clock_offset_ms: 1.0,
+            clock_drift_ppm: 10.0,
+            clock_step_ms: 8.0,
+            clock_step_every_s: 2.0,
+            ..ClusterConfig::default()
+        };
+        let e = ClockError::of(&cfg, 1_000_000_000);
+        let error_ms = |s: f64| {
+            let mono = 1_000_000_000 + (s * 1e9) as u64;
+            let plain = ClockError {
+                offset_ms: 0.0,
+                drift_ppm: 0.0,
+                step_ms: 0.0,
+                ..e
+            };
+            (e.board_clock_ns(mono) as i64 - plain.board_clock_ns(mono) as i64) as f64 / 1e6
+        };
+        for (s, want) in [(0.5, 1.0), (2.5, 9.0), (4.5, 1.0), (6.5, 9.0)] {
+            let got = error_ms(s) - 10e-6 * s * 1e3;
+            assert!((got - want).abs() < 0.01, "at {s} s: {got} ms, want {want}");
+        }
+        let good = ClusterConfig {
+            role: crate::cluster::Role::Camera,
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            ..cfg
+        };
+        good.validate().unwrap();
+        for (step, every) in [(f64::NAN, 1.0), (1.0, -1.0), (1.0, f64::INFINITY)] {
+            let bad = ClusterConfig {
+                role: crate::cluster::Role::Camera,
+                connect: vec!["tcp/127.0.0.1:7447".into()],
+                clock_step_ms: step,
+                clock_step_every_s: every,
+                ..ClusterConfig::default()
+            };
+            let err = bad.validate().unwrap_err().to_string();
+            assert!(err.contains("clock_step_ms"), "{err}");
         }
     }
 }

@@ -120,6 +120,14 @@ pub struct ClusterConfig {
     /// Camera role, simulation and tests: this board's clock drift, ppm.
     #[serde(default)]
     pub clock_drift_ppm: f64,
+    /// Camera role, simulation and tests: with `clock_step_every_s`, the board's clock steps by
+    /// this much, ms, every `clock_step_every_s` seconds, and back again as often (two time
+    /// services fighting over the clock).
+    #[serde(default)]
+    pub clock_step_ms: f64,
+    /// See `clock_step_ms`; 0: never.
+    #[serde(default)]
+    pub clock_step_every_s: f64,
 }
 
 fn d_rig() -> String {
@@ -164,6 +172,8 @@ impl Default for ClusterConfig {
             inject_jitter_ms: 0.0,
             clock_offset_ms: 0.0,
             clock_drift_ppm: 0.0,
+            clock_step_ms: 0.0,
+            clock_step_every_s: 0.0,
         }
     }
 }
@@ -234,6 +244,15 @@ impl ClusterConfig {
         }
         if !(self.clock_offset_ms.is_finite() && self.clock_drift_ppm.is_finite()) {
             return bad("cluster.clock_offset_ms and clock_drift_ppm must be finite".into());
+        }
+        if !(self.clock_step_ms.is_finite()
+            && self.clock_step_every_s.is_finite()
+            && self.clock_step_every_s >= 0.0)
+        {
+            return bad(format!(
+                "cluster.clock_step_ms must be finite and clock_step_every_s at least 0, got {} and {}",
+                self.clock_step_ms, self.clock_step_every_s
+            ));
         }
         if self.own_cameras && self.role != Role::Solver {
             return bad(

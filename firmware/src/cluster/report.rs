@@ -98,7 +98,19 @@ pub struct ClockProbeReport {
     pub refused: u64,
     /// Its observations' timestamps are being corrected by `offset_ms` now.
     pub corrected: bool,
+    /// Times its clock stepped since start (a probe sample outside the estimate's bound).
+    pub steps: u64,
+    /// The last step: new offset minus the old one, ms, and how long ago it was seen, s.
+    pub last_step_ms: Option<f64>,
+    /// See `last_step_ms`.
+    pub last_step_ago_s: Option<f64>,
+    /// Stepped and not yet measured again: its cameras are left out of every set.
+    pub settling: bool,
 }
+
+/// A clock step stays a fault this long after it was seen, s (a clock stepping every few
+/// seconds keeps it up; a single step is still shown for a minute).
+pub const CLOCK_STEP_FAULT_S: f64 = 60.0;
 
 /// A peer the solver's Zenoh refused (`/status` → `cluster.refused_peers.recent`).
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
@@ -406,6 +418,28 @@ impl ClusterReport {
                     ),
                 ));
             }
+            if let Some(p) = &b.clock_probe
+                && let (Some(by), Some(ago)) = (p.last_step_ms, p.last_step_ago_s)
+                && (p.settling || ago < CLOCK_STEP_FAULT_S)
+            {
+                out.push((
+                    "clock_stepped",
+                    None,
+                    format!(
+                        "camera board {} ({}): its clock stepped by {:+.1} ms {:.0} s ago ({} step(s) since the solver started; clock probe) — {}; a clock that jumps while the cell runs usually has two time services setting it (ptp4l/phc2sys and chrony, NTP or systemd-timesyncd): let only one set it",
+                        b.name,
+                        camera_words(&b.cameras),
+                        by,
+                        ago,
+                        p.steps,
+                        if p.settling {
+                            "its cameras are left out until the probe has measured its clock again (about a second)"
+                        } else {
+                            "its cameras were left out until the probe had measured its clock again"
+                        }
+                    ),
+                ));
+            }
             if b.clock_fault {
                 out.push((
                     "clock_offset",
@@ -600,7 +634,7 @@ impl prometheus_client::collector::Collector for ClusterReport {
         )?;
         ConstGauge::new(i64::from(self.no_placement)).encode(m)?;
         type Get = fn(&BoardReport) -> Option<f64>;
-        let gauges: [(&str, &str, Get); 9] = [
+        let gauges: [(&str, &str, Get); 10] = [
             (
                 "irtrackd_cluster_board_disagreeing",
                 "1 while the board's rays miss the other boards' point in too many sets (its cameras left out)",
@@ -645,6 +679,11 @@ impl prometheus_client::collector::Collector for ClusterReport {
                         .and_then(|p| p.offset_ms)
                         .map(|ms| ms / 1e3)
                 },
+            ),
+            (
+                "irtrackd_cluster_board_clock_steps",
+                "clock steps the two-way clock probe saw on the board since the solver started",
+                |b| b.clock_probe.as_ref().map(|p| p.steps as f64),
             ),
             (
                 "irtrackd_cluster_board_last_seen_seconds",
@@ -950,6 +989,7 @@ mod tests {
             replies: 40,
             refused: 0,
             corrected: true,
+            ..ClockProbeReport::default()
         };
         let board = BoardReport {
             name: "b1".into(),
@@ -1000,5 +1040,66 @@ mod tests {
             };
             assert!(r.fault_texts().is_empty(), "{:?}", r.fault_texts());
         }
+    }
+
+    /// A board whose clock stepped: a fault with the step, how long ago, how many, and whether
+    /// its cameras are still left out; the count as a metric; no fault once a single step is a
+    /// minute old.
+    #[test]
+    fn a_clock_step_is_a_fault_naming_the_board_and_the_step() {
+        let probe = ClockProbeReport {
+            offset_ms: None,
+            samples: 1,
+            replies: 30,
+            steps: 3,
+            last_step_ms: Some(-8.04),
+            last_step_ago_s: Some(0.3),
+            settling: true,
+            ..ClockProbeReport::default()
+        };
+        let board = |p: &ClockProbeReport| BoardReport {
+            name: "b1".into(),
+            cameras: vec![2, 3],
+            clock_probe: Some(p.clone()),
+            ..BoardReport::default()
+        };
+        let report = ClusterReport {
+            boards: vec![board(&probe)],
+            ..ClusterReport::default()
+        };
+        let texts = report.fault_texts();
+        assert_eq!(texts.len(), 1, "{texts:?}");
+        assert_eq!(texts[0].0, "clock_stepped");
+        assert!(
+            texts[0].2.starts_with(
+                "camera board b1 (cameras 2, 3): its clock stepped by -8.0 ms 0 s ago (3 step(s) since the solver started; clock probe) — its cameras are left out until"
+            ),
+            "{}",
+            texts[0].2
+        );
+        assert!(metrics_text(report).contains("irtrackd_cluster_board_clock_steps{board=\"b1\"} 3"),);
+        let after = ClockProbeReport {
+            settling: false,
+            last_step_ago_s: Some(20.0),
+            ..probe.clone()
+        };
+        let texts = ClusterReport {
+            boards: vec![board(&after)],
+            ..ClusterReport::default()
+        }
+        .fault_texts();
+        assert!(
+            texts[0].2.contains("were left out until the probe had measured"),
+            "{texts:?}"
+        );
+        let old = ClockProbeReport {
+            last_step_ago_s: Some(CLOCK_STEP_FAULT_S + 1.0),
+            ..after
+        };
+        let r = ClusterReport {
+            boards: vec![board(&old)],
+            ..ClusterReport::default()
+        };
+        assert!(r.fault_texts().is_empty(), "{:?}", r.fault_texts());
     }
 }

@@ -13,7 +13,7 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use irtrack_cluster::clock::ClockEstimator;
+use irtrack_cluster::clock::{ClockEstimator, Taken};
 use irtrack_cluster::pairing::{Pairer, PairingConfig, PairingMode, PushOutcome};
 use irtrack_cluster::transport::{ClockProber, ObsSubscriber, ProbeReply, Received, Session, realtime_ns};
 use irtrack_core::blob::Blob;
@@ -169,9 +169,20 @@ struct BoardProbe {
     applied_ns: Option<i64>,
     replies: u64,
     refused: u64,
+    /// Clock steps the probe saw, the last one's size (ns) and when it was seen (solver's
+    /// monotonic clock, ns).
+    steps: u64,
+    last_step: Option<(i64, u64)>,
+    /// Stepped and not yet measured again: its cameras are left out of every set.
+    settling: bool,
 }
 
-/// Probes per second per board (each a request and a reply of 40 bytes).
+/// Time between probes of every board (each a request and a reply of 40 bytes): also the
+/// longest a board's clock step goes unseen by the probe (a step ahead shows at once in the
+/// one-way check; one back only here). Measured 2026-11-29 in cluster_e2e's stepping clock
+/// (±8 ms every 2 s): at 250 ms, 0–4 positions of 4 s 2.1–2.4 mm off after a step back; at
+/// 100 ms none over 1 mm, but a board corrected by 6 ms then tracked worse (RMS 0.045 →
+/// 0.10 mm, not yet understood), so 250 ms stays.
 const PROBE_INTERVAL: Duration = Duration::from_millis(250);
 /// A probe whose round trip is longer than this met a queue on the way: not used, ns.
 const PROBE_MAX_RTT_NS: u64 = 20_000_000;
@@ -467,6 +478,9 @@ impl ClusterSource {
                         applied_ns: None,
                         replies: 0,
                         refused: 0,
+                        steps: 0,
+                        last_step: None,
+                        settling: false,
                     });
                     self.clocks.len() - 1
                 }
@@ -474,7 +488,21 @@ impl ClusterSource {
             };
             let c = &mut self.clocks[i];
             match c.estimator.push(&r.sample) {
-                Ok(()) => c.replies += 1,
+                Ok(Taken::Added) => c.replies += 1,
+                Ok(Taken::Stepped { by_ns }) => {
+                    c.replies += 1;
+                    c.steps += 1;
+                    c.last_step = Some((by_ns, clock::monotonic_ns()));
+                    // Observations stamped after the step carry the new offset: until the
+                    // probe has measured it, the board's cameras are left out.
+                    c.settling = true;
+                    tracing::warn!(
+                        board = %c.board,
+                        by_ms = by_ns as f64 / 1e6,
+                        steps = c.steps,
+                        "camera board's clock stepped (clock probe): its cameras are left out until it is measured again"
+                    );
+                }
                 Err(_) => c.refused += 1,
             }
         }
@@ -493,7 +521,11 @@ impl ClusterSource {
         // more than the bound to go on. A board already on the solver's time (PTP, chrony, or
         // the same machine) is left alone: correcting it by the probe's own error (50–80 µs
         // here) made positions worse (RMS 0.043 → 0.055–0.070 mm, measured 2026-11-28).
-        let offset = c.estimator.estimate(now_ns).and_then(|e| {
+        let estimate = c.estimator.estimate(now_ns);
+        if estimate.is_some() {
+            c.settling = false;
+        }
+        let offset = estimate.and_then(|e| {
             let surely_off_ns = e.offset_ns.unsigned_abs().saturating_sub(e.uncertainty_ns);
             let start = if c.applied_ns.is_some() {
                 0
@@ -966,6 +998,12 @@ impl ClusterSource {
                             replies: c.replies,
                             refused: c.refused,
                             corrected: c.applied_ns.is_some(),
+                            steps: c.steps,
+                            last_step_ms: c.last_step.map(|(by, _)| by as f64 / 1e6),
+                            last_step_ago_s: c
+                                .last_step
+                                .map(|(_, at)| clock::monotonic_ns().saturating_sub(at) as f64 / 1e9),
+                            settling: c.settling,
                         }
                     }),
                     clock_fault: clock.faulted,
@@ -1148,7 +1186,15 @@ impl FrameSource for ClusterSource {
             *off = b.offset_ns.is_some_and(|o| o.abs() > limit_ns);
         }
         let (clock_ahead, _) = clock_flags(layout.pairer.boards(), limit_ns);
-        layout.agreement.vet(tracker, &clock_off, &clock_ahead)
+        // A board whose clock just stepped: its newest observations may carry either offset.
+        let mut settling = [false; irtrack_core::pipeline::MAX_CAMERAS];
+        for (s, name) in settling.iter_mut().zip(&layout.boards) {
+            *s = self.clocks.iter().any(|c| c.settling && c.board == *name);
+        }
+        for (off, s) in clock_off.iter_mut().zip(settling) {
+            *off |= s;
+        }
+        layout.agreement.vet(tracker, &clock_off, &clock_ahead, &settling)
     }
 
     fn has_pixels(&self, camera: usize) -> bool {
