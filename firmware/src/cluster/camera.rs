@@ -42,7 +42,8 @@ pub struct CameraPublisher {
     report: Arc<Mutex<ClusterReport>>,
     blobs: [ObsBlob; MAX_OBS_BLOBS],
     rng: u64,
-    epoch_mono_ns: u64,
+    /// The simulated clock error its timestamps and probe answers carry.
+    clock_error: ClockError,
     jitter_tx: Option<SyncSender<Pending>>,
     published: u64,
     errors: u64,
@@ -121,7 +122,7 @@ impl CameraPublisher {
         p.owns_session = true;
         // The probe is stamped on the observations' clock, simulated error included, so the
         // solver measures (and corrects) the same clock it pairs by.
-        let error = ClockError::of(cfg, p.epoch_mono_ns);
+        let error = p.clock_error;
         p._clock = Some(
             ClockResponder::new(&p.session, &cfg.rig, &cfg.board, move || {
                 error.board_clock_ns(clock::monotonic_ns())
@@ -184,7 +185,7 @@ impl CameraPublisher {
                     .board
                     .bytes()
                     .fold(0u64, |a, b| a.rotate_left(8) ^ u64::from(b)),
-            epoch_mono_ns: clock::monotonic_ns(),
+            clock_error: ClockError::of(cfg, clock::monotonic_ns()),
             jitter_tx,
             published: 0,
             errors: 0,
@@ -203,7 +204,7 @@ impl CameraPublisher {
 
     /// The capture time on the shared clock, with the simulated clock error.
     fn capture_rt_ns(&self, mono_ns: u64) -> u64 {
-        ClockError::of(&self.cfg, self.epoch_mono_ns).board_clock_ns(mono_ns)
+        self.clock_error.board_clock_ns(mono_ns)
     }
 
     fn update_report(&self) {

@@ -768,6 +768,16 @@ fn camera_words(cameras: &[usize]) -> String {
 mod tests {
     use super::*;
 
+    /// Asserts that `report` gives exactly one fault, `code`, whose text starts with `start`;
+    /// returns its text.
+    fn the_one_fault(report: &ClusterReport, code: &str, start: &str) -> String {
+        let texts = report.fault_texts();
+        assert_eq!(texts.len(), 1, "{texts:?}");
+        assert_eq!(texts[0].0, code);
+        assert!(texts[0].2.starts_with(start), "{}", texts[0].2);
+        texts[0].2.clone()
+    }
+
     /// The report's `/metrics` families as OpenMetrics text.
     fn metrics_text(report: ClusterReport) -> String {
         let mut text = String::new();
@@ -801,15 +811,10 @@ mod tests {
             refused_peers: Some(p.clone()),
             ..ClusterReport::default()
         };
-        let texts = report.fault_texts();
-        assert_eq!(texts.len(), 1, "{texts:?}");
-        assert_eq!(texts[0].0, "peer_refused");
-        assert!(
-            texts[0].2.starts_with(
-                "a peer at 10.0.0.66:51234 was refused: wrong or missing credentials (it sent no credentials), 4 s ago; 3 refused since start (credentials 2, handshake timeout 1) — nothing it sent was used; if it is a camera board, give it its password file"
-            ),
-            "{}",
-            texts[0].2
+        the_one_fault(
+            &report,
+            "peer_refused",
+            "a peer at 10.0.0.66:51234 was refused: wrong or missing credentials (it sent no credentials), 4 s ago; 3 refused since start (credentials 2, handshake timeout 1) — nothing it sent was used; if it is a camera board, give it its password file",
         );
         let text = metrics_text(report);
         assert!(
@@ -894,15 +899,10 @@ mod tests {
             }],
             ..ClusterReport::default()
         };
-        let texts = report.fault_texts();
-        assert_eq!(texts.len(), 1, "{texts:?}");
-        assert_eq!(texts[0].0, "board_down");
-        assert!(
-            texts[0]
-                .2
-                .starts_with("camera board b1 (camera 2) sends nothing for 4.4 s — check its power"),
-            "{}",
-            texts[0].2
+        the_one_fault(
+            &report,
+            "board_down",
+            "camera board b1 (camera 2) sends nothing for 4.4 s — check its power",
         );
     }
 
@@ -922,17 +922,12 @@ mod tests {
             boards: vec![ahead.clone()],
             ..ClusterReport::default()
         };
-        let texts = report.fault_texts();
-        assert_eq!(texts.len(), 1, "{texts:?}");
-        assert_eq!(texts[0].0, "clock_ahead");
-        assert!(
-            texts[0]
-                .2
-                .starts_with("camera board b1 (cameras 2, 3): its clock runs at least 6.5 ms ahead"),
-            "{}",
-            texts[0].2
+        let fault = the_one_fault(
+            &report,
+            "clock_ahead",
+            "camera board b1 (cameras 2, 3): its clock runs at least 6.5 ms ahead",
         );
-        assert!(texts[0].2.contains("left out"), "{}", texts[0].2);
+        assert!(fault.contains("left out"), "{fault}");
         let text = metrics_text(report);
         assert!(
             text.contains("irtrackd_cluster_board_clock_ahead{board=\"b1\"} 1"),
@@ -958,15 +953,10 @@ mod tests {
             }],
             ..ClusterReport::default()
         };
-        let texts = behind.fault_texts();
-        assert_eq!(texts.len(), 1, "{texts:?}");
-        assert_eq!(texts[0].0, "clock_behind");
-        assert!(
-            texts[0].2.starts_with(
-                "camera board b2 (camera 4): its observations arrive at least 6.0 ms later than their timestamps say"
-            ),
-            "{}",
-            texts[0].2
+        the_one_fault(
+            &behind,
+            "clock_behind",
+            "camera board b2 (camera 4): its observations arrive at least 6.0 ms later than their timestamps say",
         );
         let text = metrics_text(behind);
         assert!(
@@ -1003,15 +993,10 @@ mod tests {
             boards: vec![board.clone()],
             ..ClusterReport::default()
         };
-        let texts = report.fault_texts();
-        assert_eq!(texts.len(), 1, "{texts:?}");
-        assert_eq!(texts[0].0, "clock_corrected");
-        assert!(
-            texts[0].2.starts_with(
-                "camera board b1 (cameras 2, 3): its clock is 6.0 ms behind the solver's (clock probe, ±0.08 ms)"
-            ),
-            "{}",
-            texts[0].2
+        the_one_fault(
+            &report,
+            "clock_corrected",
+            "camera board b1 (cameras 2, 3): its clock is 6.0 ms behind the solver's (clock probe, ±0.08 ms)",
         );
         let text = metrics_text(report);
         let value: f64 = text
@@ -1067,30 +1052,28 @@ mod tests {
             boards: vec![board(&probe)],
             ..ClusterReport::default()
         };
-        let texts = report.fault_texts();
-        assert_eq!(texts.len(), 1, "{texts:?}");
-        assert_eq!(texts[0].0, "clock_stepped");
-        assert!(
-            texts[0].2.starts_with(
-                "camera board b1 (cameras 2, 3): its clock stepped by -8.0 ms 0 s ago (3 step(s) since the solver started; clock probe) — its cameras are left out until"
-            ),
-            "{}",
-            texts[0].2
+        the_one_fault(
+            &report,
+            "clock_stepped",
+            "camera board b1 (cameras 2, 3): its clock stepped by -8.0 ms 0 s ago (3 step(s) since the solver started; clock probe) — its cameras are left out until",
         );
-        assert!(metrics_text(report).contains("irtrackd_cluster_board_clock_steps{board=\"b1\"} 3"),);
+        assert!(metrics_text(report).contains("irtrackd_cluster_board_clock_steps{board=\"b1\"} 3"));
         let after = ClockProbeReport {
             settling: false,
             last_step_ago_s: Some(20.0),
             ..probe.clone()
         };
-        let texts = ClusterReport {
-            boards: vec![board(&after)],
-            ..ClusterReport::default()
-        }
-        .fault_texts();
+        let fault = the_one_fault(
+            &ClusterReport {
+                boards: vec![board(&after)],
+                ..ClusterReport::default()
+            },
+            "clock_stepped",
+            "camera board b1 (cameras 2, 3): its clock stepped by -8.0 ms 20 s ago",
+        );
         assert!(
-            texts[0].2.contains("were left out until the probe had measured"),
-            "{texts:?}"
+            fault.contains("were left out until the probe had measured"),
+            "{fault}"
         );
         let old = ClockProbeReport {
             last_step_ago_s: Some(CLOCK_STEP_FAULT_S + 1.0),

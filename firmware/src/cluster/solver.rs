@@ -180,9 +180,9 @@ struct BoardProbe {
 /// Time between probes of every board (each a request and a reply of 40 bytes): also the
 /// longest a board's clock step goes unseen by the probe (a step ahead shows at once in the
 /// one-way check; one back only here). Measured 2026-11-29 in cluster_e2e's stepping clock
-/// (±8 ms every 2 s): at 250 ms, 0–4 positions of 4 s 2.1–2.4 mm off after a step back; at
-/// 100 ms none over 1 mm, but a board corrected by 6 ms then tracked worse (RMS 0.045 →
-/// 0.10 mm, not yet understood), so 250 ms stays.
+/// (±8 ms every 2 s): at 250 ms, up to 7 positions of 4 s about 2.1 mm off after a step
+/// back; at 100 ms none over 1 mm, but a board corrected by 6 ms then tracked worse (RMS
+/// 0.045 → 0.10 mm, not yet understood), so 250 ms stays.
 const PROBE_INTERVAL: Duration = Duration::from_millis(250);
 /// A probe whose round trip is longer than this met a queue on the way: not used, ns.
 const PROBE_MAX_RTT_NS: u64 = 20_000_000;
