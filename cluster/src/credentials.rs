@@ -50,6 +50,55 @@ pub fn check_password(password: &str) -> std::result::Result<(), String> {
     Ok(())
 }
 
+/// What a TLS PEM text holds: certificates and private keys.
+fn pem_sections(file: &Path, text: &str) -> Result<(usize, usize)> {
+    use rustls_pki_types::pem::{PemObject, SectionKind};
+    let mut certs = 0;
+    let mut keys = 0;
+    for item in <(SectionKind, Vec<u8>)>::pem_slice_iter(text.as_bytes()) {
+        let (kind, _) = item.map_err(|e| bad(file, format!("not PEM: {e}")))?;
+        match kind {
+            SectionKind::Certificate => certs += 1,
+            SectionKind::PrivateKey | SectionKind::RsaPrivateKey | SectionKind::EcPrivateKey => keys += 1,
+            _ => {}
+        }
+    }
+    Ok((certs, keys))
+}
+
+/// Checks the solver's TLS identity (its certificate and private key, PEM; crate::tls).
+pub fn parse_tls_identity(file: &Path, text: &str) -> Result<()> {
+    match pem_sections(file, text)? {
+        (0, _) => Err(bad(
+            file,
+            "holds no certificate (expected -----BEGIN CERTIFICATE-----)".into(),
+        )),
+        (_, 0) => Err(bad(
+            file,
+            "holds no private key: the solver needs its key with its certificate".into(),
+        )),
+        (_, 1) => Ok(()),
+        (_, n) => Err(bad(file, format!("holds {n} private keys, one expected"))),
+    }
+}
+
+/// Checks the solver certificate a board pins (PEM, without any private key: a key pushed to
+/// a board by mistake would spread the solver's secret).
+pub fn parse_pinned_certificate(file: &Path, text: &str) -> Result<()> {
+    match pem_sections(file, text)? {
+        (0, _) => Err(bad(
+            file,
+            "holds no certificate (expected -----BEGIN CERTIFICATE-----)".into(),
+        )),
+        (_, 0) => Ok(()),
+        _ => Err(bad(
+            file,
+            "holds a private key: a board pins the solver's certificate only (solver.tls.crt, not the key)"
+                .into(),
+        )),
+    }
+}
+
 /// Parses a board's password file: one line (a final newline is allowed).
 pub fn parse_password(file: &Path, text: &str) -> Result<String> {
     let mut lines = text.lines().filter(|l| !l.trim().is_empty());

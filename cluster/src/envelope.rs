@@ -44,6 +44,10 @@ pub enum SecretKind {
     BoardPassword = 1,
     /// The solver's dictionary (`board:password` lines).
     SolverDictionary = 2,
+    /// The solver's TLS identity: its certificate and private key (PEM).
+    SolverTls = 3,
+    /// The solver's TLS certificate a camera board pins (PEM, no key).
+    PinnedSolverCertificate = 4,
 }
 
 impl SecretKind {
@@ -51,6 +55,8 @@ impl SecretKind {
         match b {
             1 => Some(SecretKind::BoardPassword),
             2 => Some(SecretKind::SolverDictionary),
+            3 => Some(SecretKind::SolverTls),
+            4 => Some(SecretKind::PinnedSolverCertificate),
             _ => None,
         }
     }
@@ -60,6 +66,8 @@ impl SecretKind {
         match self {
             SecretKind::BoardPassword => "board password",
             SecretKind::SolverDictionary => "solver credentials",
+            SecretKind::SolverTls => "the solver's TLS certificate and key",
+            SecretKind::PinnedSolverCertificate => "the solver's TLS certificate (to pin)",
         }
     }
 }
@@ -507,6 +515,8 @@ pub fn open(bytes: &[u8], to: &Recipient<'_>) -> Result<Opened> {
     let check = match h.kind {
         SecretKind::BoardPassword => crate::credentials::parse_password(file, &secret).map(|_| ()),
         SecretKind::SolverDictionary => crate::credentials::parse_dictionary(file, &secret).map(|_| ()),
+        SecretKind::SolverTls => crate::credentials::parse_tls_identity(file, &secret),
+        SecretKind::PinnedSolverCertificate => crate::credentials::parse_pinned_certificate(file, &secret),
     };
     check.map_err(|e| refuse(Refusal::Invalid, e.to_string()))?;
     Ok(Opened {

@@ -11,7 +11,9 @@
 //!   `irtrack/<rig>/<board>/cam/<i>/obs` and the solver's subscriber, in peer mode with
 //!   configured endpoints (multicast scouting optional);
 //! - [`refusals`] (feature `zenoh`): the peers Zenoh refuses (credentials, handshake time,
-//!   accept limit), counted with their address from Zenoh's own `tracing` events.
+//!   accept limit), counted with their address from Zenoh's own `tracing` events;
+//! - [`tls`] (feature `zenoh`): TLS tunnels around the Zenoh links (the solver proves itself
+//!   with a certificate the boards pin; every link encrypted).
 //!
 //! The message itself is `irtrack_core::observation` (docs/observation-protocol.md).
 
@@ -26,6 +28,8 @@ pub mod names;
 pub mod pairing;
 #[cfg(feature = "zenoh")]
 pub mod refusals;
+#[cfg(feature = "zenoh")]
+pub mod tls;
 #[cfg(feature = "zenoh")]
 pub mod transport;
 

@@ -3,6 +3,10 @@
 
 use crate::error::{ClusterError, Result};
 
+/// The DNS name in the solver's TLS certificate, which boards check whatever address they
+/// connect to (the certificate is pinned, so the name only ties it to its role; crate::tls).
+pub const SOLVER_TLS_NAME: &str = "irtrack-solver";
+
 /// Key expression of one camera's observations.
 pub fn observation_key(rig: &str, board: &str, camera: usize) -> String {
     format!("irtrack/{rig}/{board}/cam/{camera}/obs")

@@ -75,14 +75,18 @@ pub enum RefusalReason {
     HandshakeTimeout,
     /// Closed at once: `accept_pending` links were already in their handshake (a flood).
     AcceptLimit,
+    /// Its TLS handshake with the solver's tunnel failed (a peer without TLS, or not speaking
+    /// TLS 1.3; crate::tls).
+    Tls,
 }
 
 impl RefusalReason {
     /// Every reason, in the order of [`RefusalSnapshot::by_reason`].
-    pub const ALL: [RefusalReason; 3] = [
+    pub const ALL: [RefusalReason; 4] = [
         RefusalReason::Credentials,
         RefusalReason::HandshakeTimeout,
         RefusalReason::AcceptLimit,
+        RefusalReason::Tls,
     ];
 
     /// Its code in `/status` and `/metrics`.
@@ -91,6 +95,7 @@ impl RefusalReason {
             RefusalReason::Credentials => "credentials",
             RefusalReason::HandshakeTimeout => "handshake_timeout",
             RefusalReason::AcceptLimit => "accept_limit",
+            RefusalReason::Tls => "tls",
         }
     }
 
@@ -100,6 +105,7 @@ impl RefusalReason {
             RefusalReason::Credentials => "wrong or missing credentials",
             RefusalReason::HandshakeTimeout => "it did not finish Zenoh's handshake in time",
             RefusalReason::AcceptLimit => "too many links were opening at once (a connection flood?)",
+            RefusalReason::Tls => "its TLS handshake failed (no TLS, or not TLS 1.3)",
         }
     }
 }
@@ -303,6 +309,8 @@ pub struct RefusedPeer {
     pub reason: RefusalReason,
     /// For credentials: what was wrong.
     pub problem: Option<CredentialProblem>,
+    /// For TLS: the handshake's error, as rustls gives it.
+    pub detail: Option<String>,
     /// Refusals of this address for this reason.
     pub count: u64,
     /// The newest, on the monotonic clock.
@@ -319,9 +327,11 @@ impl RefusedPeer {
             Some(a) => format!("a peer at {a}"),
             None => "a peer whose address Zenoh did not log (it sent nothing)".to_string(),
         };
-        let detail = self
-            .problem
-            .map_or(String::new(), |p| format!(" ({})", p.words()));
+        let detail = match (self.problem, &self.detail) {
+            (Some(p), _) => format!(" ({})", p.words()),
+            (None, Some(d)) => format!(" ({d})"),
+            (None, None) => String::new(),
+        };
         format!("{who} was refused: {}{detail}", self.reason.words())
     }
 }
@@ -375,7 +385,9 @@ pub fn user_of(subject: &str) -> Option<&str> {
 #[derive(Debug, Default)]
 struct State {
     pending: HashMap<HandshakeKey, (String, Instant)>,
-    counts: [u64; 3],
+    counts: [u64; 4],
+    /// The real peer behind each loopback address the TLS tunnel connects to Zenoh from.
+    aliases: HashMap<String, String>,
     by_problem: [u64; 4],
     recent: VecDeque<RefusedPeer>,
     denied: u64,
@@ -400,7 +412,7 @@ pub struct RefusalSnapshot {
     /// Every refusal.
     pub total: u64,
     /// Per reason, in [`RefusalReason::ALL`]'s order.
-    pub by_reason: [(RefusalReason, u64); 3],
+    pub by_reason: [(RefusalReason, u64); 4],
     /// Credential refusals per problem.
     pub by_problem: Vec<(CredentialProblem, u64)>,
     /// The latest refused addresses, newest first.
@@ -454,6 +466,7 @@ impl PeerRefusals {
         let Ok(mut st) = self.state.lock() else { return };
         match event {
             ZenohEvent::HandshakeFrom(addr) => {
+                let addr = st.aliases.get(&addr).cloned().unwrap_or(addr);
                 if st.pending.len() >= MAX_PENDING {
                     st.pending
                         .retain(|_, (_, at)| now.saturating_duration_since(*at) < PENDING_TTL);
@@ -474,7 +487,10 @@ impl PeerRefusals {
                 let addr = st.pending.remove(&key).map(|(a, _)| a);
                 st.record(addr, RefusalReason::HandshakeTimeout, None, now);
             }
-            ZenohEvent::AcceptLimit(addr) => st.record(Some(addr), RefusalReason::AcceptLimit, None, now),
+            ZenohEvent::AcceptLimit(addr) => {
+                let addr = st.aliases.get(&addr).cloned().unwrap_or(addr);
+                st.record(Some(addr), RefusalReason::AcceptLimit, None, now);
+            }
             ZenohEvent::AclCaching { key: k } => {
                 if st.acl_caching.len() >= MAX_PENDING {
                     st.acl_caching.clear();
@@ -498,6 +514,31 @@ impl PeerRefusals {
                     st.record_denied(zid, subject, k, now);
                 }
             }
+        }
+    }
+
+    /// A refusal by the TLS tunnel (crate::tls), which knows the peer's address itself.
+    pub fn record_tls(&self, address: String, reason: RefusalReason, detail: Option<String>) {
+        let Ok(mut st) = self.state.lock() else { return };
+        st.record(Some(address), reason, None, Instant::now());
+        if let Some(p) = st.recent.front_mut() {
+            p.detail = detail;
+        }
+    }
+
+    /// Zenoh will see `peer` at `loopback` (the TLS tunnel's own end): name `peer` instead.
+    pub fn alias(&self, loopback: String, peer: String) {
+        let Ok(mut st) = self.state.lock() else { return };
+        if st.aliases.len() >= MAX_PENDING {
+            st.aliases.clear();
+        }
+        st.aliases.insert(loopback, peer);
+    }
+
+    /// The tunnel's link from `loopback` ended.
+    pub fn unalias(&self, loopback: &str) {
+        if let Ok(mut st) = self.state.lock() {
+            st.aliases.remove(loopback);
         }
     }
 
@@ -603,6 +644,7 @@ impl State {
             address,
             reason,
             problem,
+            detail: None,
             count: 1,
             last: now,
             last_unix_ms: at_ms,
@@ -849,7 +891,8 @@ mod tests {
             [
                 (RefusalReason::Credentials, 1),
                 (RefusalReason::HandshakeTimeout, 1),
-                (RefusalReason::AcceptLimit, 1)
+                (RefusalReason::AcceptLimit, 1),
+                (RefusalReason::Tls, 0)
             ]
         );
         assert_eq!(s.by_problem, vec![(CredentialProblem::Missing, 1)]);
@@ -899,6 +942,42 @@ mod tests {
     /// The access control's texts as zenoh 1.10.2 formats them (`{zid} on {subject} is
     /// unauthorized to {action} on {key}`, the subject being Zenoh's `SubjectQuery` display,
     /// as seen in `cluster/tests/zenoh_refusals.rs`).
+    #[test]
+    fn behind_the_tls_tunnel_a_refusal_names_the_real_peer() {
+        let log = PeerRefusals::default();
+        let t0 = Instant::now();
+        let k = HandshakeKey::Thread(std::thread::current().id());
+        // Zenoh sees the tunnel's loopback end; the tunnel told the log whom it carries.
+        log.alias("127.0.0.1:40001".into(), "10.0.0.66:51234".into());
+        log.observe(k.clone(), ZenohEvent::HandshakeFrom("127.0.0.1:40001".into()), t0);
+        log.observe(
+            k.clone(),
+            ZenohEvent::CredentialsRefused(CredentialProblem::WrongPassword),
+            t0,
+        );
+        // A handshake the tunnel itself refused, with rustls's words.
+        log.record_tls(
+            "10.0.0.67:5000".into(),
+            RefusalReason::Tls,
+            Some("received corrupt message of type InvalidContentType".into()),
+        );
+        log.unalias("127.0.0.1:40001");
+        log.observe(k.clone(), ZenohEvent::HandshakeFrom("127.0.0.1:40001".into()), t0);
+        log.observe(k, ZenohEvent::CredentialsRefused(CredentialProblem::Missing), t0);
+        let s = log.snapshot();
+        let words: Vec<String> = s.recent.iter().map(RefusedPeer::words).collect();
+        assert_eq!(
+            words,
+            [
+                "a peer at 127.0.0.1:40001 was refused: wrong or missing credentials (it sent no credentials)",
+                "a peer at 10.0.0.67:5000 was refused: its TLS handshake failed (no TLS, or not TLS 1.3) (received corrupt message of type InvalidContentType)",
+                "a peer at 10.0.0.66:51234 was refused: wrong or missing credentials (its password is wrong)",
+            ]
+        );
+        assert_eq!(s.by_reason[3], (RefusalReason::Tls, 1));
+        assert_eq!(s.total, 3);
+    }
+
     #[test]
     fn access_control_denials_are_recognised_and_counted_by_sender_and_key() {
         const B1: &str = "Interface(lo)+Username(b1)+Transport(Tcp)+4f2a9c";

@@ -35,6 +35,8 @@ pub struct TransportConfig {
     pub low_latency: bool,
     /// Who this node is on the transport (none: anyone who reaches the port is a peer).
     pub auth: Auth,
+    /// TLS around every link (the solver proves itself; crate::tls). Needs `auth`.
+    pub tls: Option<crate::tls::TlsRole>,
 }
 
 /// Authentication and access control of a node (docs/cluster.md, "Credentials").
@@ -43,7 +45,7 @@ pub struct TransportConfig {
 /// password (an HMAC of a nonce the other side chose; the password never travels), the side
 /// that accepts checks it against its dictionary. So camera boards connect and the solver
 /// listens. The solver's access control denies everything by default and lets user `X` put
-/// only on `irtrack/<rig>/X/cam/*/obs`. The link is not encrypted (no TLS in this build).
+/// only on `irtrack/<rig>/X/cam/*/obs`. The link is encrypted only with [`TransportConfig::tls`].
 #[derive(Clone, PartialEq, Eq, Default)]
 pub enum Auth {
     /// No credentials: every peer is accepted and may publish anything (the default, warned).
@@ -263,6 +265,8 @@ impl TransportConfig {
 #[derive(Clone)]
 pub struct Session {
     inner: zenoh::Session,
+    /// Its TLS tunnels, when it has any (stopped with the last clone).
+    tunnels: Option<Arc<crate::tls::Tunnels>>,
 }
 
 impl std::fmt::Debug for Session {
@@ -281,10 +285,69 @@ fn transport(what: &'static str) -> impl Fn(Box<dyn std::error::Error + Send + S
 impl Session {
     /// Opens a session (blocking; call from a plain thread or with `spawn_blocking`).
     pub fn open(cfg: &TransportConfig) -> Result<Session> {
+        use crate::tls::{TlsRole, Tunnels};
+        let mut cfg = cfg.clone();
+        let tunnels = match cfg.tls.clone() {
+            None => None,
+            Some(role) => {
+                // TLS proves the solver to the boards; the boards still prove themselves by
+                // user/password inside it, without which any TLS client would be let in.
+                match (&role, &cfg.auth) {
+                    (TlsRole::Solver { .. }, Auth::Solver { .. })
+                    | (TlsRole::Board { .. }, Auth::Board { .. }) => {}
+                    _ => {
+                        return Err(ClusterError::Config {
+                            reason: "TLS needs the credentials of the same role (a board's password_file, the solver's credentials_file)".into(),
+                        });
+                    }
+                }
+                if cfg.multicast_scouting {
+                    return Err(ClusterError::Config {
+                        reason: "TLS works with configured endpoints, not multicast scouting".into(),
+                    });
+                }
+                let t = match &role {
+                    TlsRole::Solver {
+                        certificate_file,
+                        key_file,
+                    } => {
+                        if cfg.listen.is_empty() || !cfg.connect.is_empty() {
+                            return Err(ClusterError::Config {
+                                reason: "with TLS the solver listens (listen endpoints, no connect)".into(),
+                            });
+                        }
+                        let (t, eps) = Tunnels::solver(&cfg.listen, certificate_file, key_file)?;
+                        cfg.listen = eps;
+                        t
+                    }
+                    TlsRole::Board {
+                        solver_certificate_file,
+                    } => {
+                        if cfg.connect.is_empty() || !cfg.listen.is_empty() {
+                            return Err(ClusterError::Config {
+                                reason: "with TLS a camera board connects (connect endpoints, no listen)"
+                                    .into(),
+                            });
+                        }
+                        let (t, eps) = Tunnels::board(&cfg.connect, solver_certificate_file)?;
+                        cfg.connect = eps;
+                        t
+                    }
+                };
+                Some(Arc::new(t))
+            }
+        };
         let inner = zenoh::open(cfg.zenoh_config()?)
             .wait()
             .map_err(transport("open"))?;
-        Ok(Session { inner })
+        Ok(Session { inner, tunnels })
+    }
+
+    /// The addresses its TLS tunnels listen on (the solver's TLS ports; empty without TLS).
+    pub fn tls_addrs(&self) -> Vec<std::net::SocketAddr> {
+        self.tunnels
+            .as_ref()
+            .map_or_else(Vec::new, |t| t.local_addrs.clone())
     }
 
     /// Closes the session (blocking).

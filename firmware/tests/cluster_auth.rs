@@ -609,6 +609,197 @@ fn pushed_credentials_let_the_board_in_after_a_restart() {
     );
 }
 
+/// TLS pushed like the passwords: the board gets the solver's certificate to pin, the solver
+/// its certificate and key; after a restart the board reaches the solver only through TLS,
+/// both say so on `/status`, and a peer without TLS is refused with its address.
+#[test]
+fn pushed_tls_files_make_the_solver_prove_itself_after_a_restart() {
+    use irtrack_cluster::envelope::{self, Sealing, SecretKind};
+    let dir = TempDir::new("cluster-auth-tls");
+    let pc = irtrack_core::signing::SigningKey::from_bytes(&[0x42; 32]);
+    let pub_file = dir.path().join("pc.pub");
+    std::fs::write(
+        &pub_file,
+        irtrack_core::signing::public_key_file(&pc.verifying_key()),
+    )
+    .unwrap();
+    let port = free_tcp_port();
+    let solver_cfg = format!(
+        "[params]\nallow_unsigned = true\ntrusted_keys = [{pub_file:?}]\n[leds]\nbackend = \"none\"\n[cluster]\nrole = \"solver\"\nrig = \"rt\"\nboard = \"s0\"\n\
+         listen = [\"tcp/127.0.0.1:{port}\"]\nfps = 30.0\nimage_sizes_px = [[640, 480], [640, 480]]\n"
+    );
+    let board_cfg = format!(
+        "[params]\ntrusted_keys = [{pub_file:?}]\n[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n\
+         [source.sim]\nfps = 30.0\nwall_clock = true\n\
+         [cluster]\nrole = \"camera\"\nrig = \"rt\"\nboard = \"b0\"\nconnect = [\"tcp/127.0.0.1:{port}\"]\nfps = 30.0\n"
+    );
+    let solver = spawn_irtrackd(dir.path(), "solver", &solver_cfg);
+    let board = spawn_irtrackd(dir.path(), "board", &board_cfg);
+    let key_of = |st: &serde_json::Value| {
+        envelope::parse_key_hex(
+            st["cluster"]["box_public_key"]
+                .as_str()
+                .unwrap_or_else(|| panic!("{st}")),
+        )
+        .unwrap()
+    };
+    let (solver_key, board_key) = (
+        key_of(&status_now(solver.status)),
+        key_of(&status_now(board.status)),
+    );
+
+    let keys = dir.path().join("keys");
+    irtrack_cluster::credentials::write_new_credentials(&keys, &["b0"], false).unwrap();
+    let password = std::fs::read(irtrack_cluster::credentials::password_path(&keys, "b0")).unwrap();
+    let dictionary = std::fs::read(irtrack_cluster::credentials::dictionary_path(&keys)).unwrap();
+    // The solver's identity as `cluster-keys --tls` makes it.
+    let tls_key = rcgen::KeyPair::generate().unwrap();
+    let cert = rcgen::CertificateParams::new(vec![irtrack_cluster::names::SOLVER_TLS_NAME.to_string()])
+        .unwrap()
+        .self_signed(&tls_key)
+        .unwrap()
+        .pem();
+    let identity = format!("{cert}{}", tls_key.serialize_pem());
+    let seal = |kind, board: &str, serial, recipient, plaintext: &[u8]| {
+        envelope::seal(
+            &Sealing {
+                kind,
+                board,
+                serial,
+                created_unix_s: 1_795_000_000,
+                recipient,
+                plaintext,
+            },
+            &pc,
+        )
+        .unwrap()
+    };
+    // The solver's key never goes to a board: not as the solver's identity (the wrong kind
+    // for a camera board), nor inside the certificate to pin.
+    let v = push_now(
+        board.params,
+        &seal(SecretKind::SolverTls, "b0", 4, board_key, identity.as_bytes()),
+    );
+    assert!(
+        v.starts_with("ERR RIG_MISMATCH") && v.contains("takes board password or"),
+        "{v}"
+    );
+    let v = push_now(
+        board.params,
+        &seal(
+            SecretKind::PinnedSolverCertificate,
+            "b0",
+            4,
+            board_key,
+            identity.as_bytes(),
+        ),
+    );
+    assert!(
+        v.starts_with("ERR INVALID_PARAMS") && v.contains("holds a private key"),
+        "{v}"
+    );
+    for (to, name, key, kind, serial, text) in [
+        (
+            board.params,
+            "b0",
+            board_key,
+            SecretKind::BoardPassword,
+            5,
+            password.as_slice(),
+        ),
+        (
+            board.params,
+            "b0",
+            board_key,
+            SecretKind::PinnedSolverCertificate,
+            6,
+            cert.as_bytes(),
+        ),
+        (
+            solver.params,
+            "s0",
+            solver_key,
+            SecretKind::SolverDictionary,
+            5,
+            dictionary.as_slice(),
+        ),
+        (
+            solver.params,
+            "s0",
+            solver_key,
+            SecretKind::SolverTls,
+            6,
+            identity.as_bytes(),
+        ),
+    ] {
+        assert_eq!(
+            push_now(to, &seal(kind, name, serial, key, text)).trim(),
+            format!("OK credentials-{name}-{serial}"),
+            "{}",
+            kind.words()
+        );
+    }
+
+    drop(board);
+    drop(solver);
+    let solver = spawn_irtrackd(dir.path(), "solver", &solver_cfg);
+    let board = spawn_irtrackd(dir.path(), "board", &board_cfg);
+    // A peer with b0's own password but no TLS, from an address of its own.
+    let outsider = own_address("127.0.0.67");
+    let b0_password = String::from_utf8(password.clone()).unwrap();
+    let _plain = connect_from(
+        port,
+        Some(outsider.as_str()),
+        board_auth("b0", b0_password.trim()),
+    );
+    let t0 = Instant::now();
+    let (mut received, mut refused) = (0, None);
+    while t0.elapsed() < Duration::from_secs(10) && (received < 30 || refused.is_none()) {
+        std::thread::sleep(Duration::from_millis(200));
+        let st = status_now(solver.status);
+        received = st["cluster"]["received"].as_u64().unwrap_or(0);
+        refused = st["cluster"]["refused_peers"]["recent"].as_array().and_then(|a| {
+            a.iter()
+                .find(|e| e["address"].as_str() == Some(outsider.as_str()))
+                .cloned()
+        });
+    }
+    let st = status_now(solver.status);
+    assert!(
+        received >= 30,
+        "the board was not heard through TLS: {}",
+        st["cluster"]
+    );
+    let refused = refused.unwrap_or_else(|| {
+        panic!(
+            "the peer without TLS was not refused: {}",
+            st["cluster"]["refused_peers"]
+        )
+    });
+    assert_eq!(refused["reason"], "tls", "{refused}");
+    assert_eq!(st["cluster"]["tls"]["side"], "solver", "{}", st["cluster"]);
+    assert_eq!(
+        st["cluster"]["refused_peers"]["by_reason"]["tls"]
+            .as_u64()
+            .map(|n| n >= 1),
+        Some(true),
+        "{}",
+        st["cluster"]["refused_peers"]
+    );
+    let bst = status_now(board.status);
+    let tls = &bst["cluster"]["tls"];
+    assert_eq!(tls["side"], "board", "{}", bst["cluster"]);
+    assert!(tls["carried"].as_u64().is_some_and(|n| n >= 1), "{tls}");
+    assert_eq!(tls["solver_refused"], 0, "{tls}");
+    assert!(
+        tls["certificate_file"]
+            .as_str()
+            .is_some_and(|f| f.ends_with("cluster-credentials/solver.tls.crt")),
+        "{tls}"
+    );
+    eprintln!("through pushed TLS: the solver received {received}; refused without TLS: {refused}");
+}
+
 #[test]
 fn credentials_config_is_checked_and_unauthenticated_is_said() {
     let dir = TempDir::new("cluster-auth-config");
@@ -660,4 +851,70 @@ fn credentials_config_is_checked_and_unauthenticated_is_said() {
     assert!(line.contains("only the boards in"), "{line}");
     let e = err(&solver.replace("listen = ", "connect = "));
     assert!(e.contains("the solver listens"), "{e}");
+
+    // TLS: the files load, the keys fit the role, and they come with credentials.
+    let key = rcgen::KeyPair::generate().unwrap();
+    let cert = rcgen::CertificateParams::new(vec!["irtrack-solver".to_string()])
+        .unwrap()
+        .self_signed(&key)
+        .unwrap();
+    let (crt, kf) = (
+        dir.path().join("solver.tls.crt"),
+        dir.path().join("solver.tls.key"),
+    );
+    std::fs::write(&crt, cert.pem()).unwrap();
+    std::fs::write(&kf, key.serialize_pem()).unwrap();
+    let tls_solver = format!("{solver}tls_certificate_file = {crt:?}\ntls_key_file = {kf:?}\n");
+    let c = Config::from_toml(&tls_solver, "t").unwrap();
+    let line = c.cluster.auth_summary().unwrap();
+    assert!(
+        line.contains("TLS: proves itself with") && line.contains("solver.tls.crt"),
+        "{line}"
+    );
+    let e = err(&format!("{solver}tls_certificate_file = {crt:?}\n"));
+    assert!(
+        e.contains("tls_certificate_file and tls_key_file go together"),
+        "{e}"
+    );
+    let e = err(&tls_solver.replace(&format!("credentials_file = {dict:?}\n"), ""));
+    assert!(e.contains("TLS needs credentials too"), "{e}");
+    // A key that is not the certificate's; a certificate file that is not PEM: named.
+    let other = rcgen::KeyPair::generate().unwrap();
+    let other_file = dir.path().join("other.key");
+    std::fs::write(&other_file, other.serialize_pem()).unwrap();
+    let e = err(&format!(
+        "{solver}tls_certificate_file = {crt:?}\ntls_key_file = {other_file:?}\n"
+    ));
+    assert!(e.contains("other.key") && e.contains("does not go with"), "{e}");
+    let e = err(&format!(
+        "{solver}tls_certificate_file = {pw:?}\ntls_key_file = {kf:?}\n"
+    ));
+    assert!(e.contains("b0.password") && e.contains("no certificate"), "{e}");
+    // A board pins the certificate; the solver's keys are not a board's.
+    std::fs::write(&pw, format!("{PW0}\n")).unwrap();
+    let c = Config::from_toml(
+        &camera(&format!("{with_pw}tls_solver_certificate_file = {crt:?}\n")),
+        "t",
+    )
+    .unwrap();
+    let line = c.cluster.auth_summary().unwrap();
+    assert!(
+        line.contains("talks only to the solver that proves itself with"),
+        "{line}"
+    );
+    let e = err(&camera(&format!(
+        "{with_pw}tls_certificate_file = {crt:?}\ntls_key_file = {kf:?}\n"
+    )));
+    assert!(
+        e.contains("a camera board takes tls_solver_certificate_file"),
+        "{e}"
+    );
+    let e = err(&camera(&format!(
+        "connect = [\"tcp/127.0.0.1:7447\"]\ntls_solver_certificate_file = {crt:?}\n"
+    )));
+    assert!(e.contains("TLS needs credentials too"), "{e}");
+    let e = err(&camera(&format!(
+        "{with_pw}tls_solver_certificate_file = {pw:?}\n"
+    )));
+    assert!(e.contains("no certificate"), "{e}");
 }

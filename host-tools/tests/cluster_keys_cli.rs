@@ -70,6 +70,49 @@ fn cluster_keys_writes_private_files_that_irtrackd_reads() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+#[test]
+fn cluster_keys_tls_makes_the_certificate_the_boards_pin_and_a_private_key() {
+    use irtrack_cluster::credentials::{parse_pinned_certificate, parse_tls_identity};
+    let dir = std::env::temp_dir().join(format!("irtrack-cluster-tls-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = dir.join("cell1");
+    let o = host_tools(&["cluster-keys", "--boards", "b0,b1", "--out", p(&out), "--tls"]);
+    let (stdout, stderr) = text(&o);
+    assert!(o.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stdout.contains("tls_key_file") && stdout.contains("tls_solver_certificate_file"),
+        "{stdout}"
+    );
+    let (crt, key) = (out.join("solver.tls.crt"), out.join("solver.tls.key"));
+    assert_eq!(mode(&key), 0o600);
+    let crt_text = std::fs::read_to_string(&crt).unwrap();
+    let key_text = std::fs::read_to_string(&key).unwrap();
+    parse_pinned_certificate(&crt, &crt_text).unwrap();
+    parse_tls_identity(&key, &format!("{crt_text}{key_text}")).unwrap();
+    // The key is not printed; the certificate names the solver's role.
+    assert!(!stdout.contains(key_text.lines().nth(1).unwrap()));
+    // Refuses to overwrite them; --force makes a new pair.
+    let o = host_tools(&["cluster-keys", "--boards", "b0,b1", "--out", p(&out), "--tls"]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).1.contains("solver.tls") || text(&o).1.contains("--force"),
+        "{:?}",
+        text(&o)
+    );
+    let o = host_tools(&[
+        "cluster-keys",
+        "--boards",
+        "b0,b1",
+        "--out",
+        p(&out),
+        "--tls",
+        "--force",
+    ]);
+    assert!(o.status.success(), "{:?}", text(&o));
+    assert_ne!(std::fs::read_to_string(&crt).unwrap(), crt_text);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// A stand-in board for `cluster-keys push` over real sockets: `/status` on one port (its
 /// name and public key), the parameter port on another, which opens each envelope with the
 /// board's key exactly as irtrackd does (`envelope::open`) and answers a verdict line.
@@ -139,7 +182,7 @@ fn cluster_keys_push_pins_the_board_key_and_sends_the_password_sealed() {
     let _ = std::fs::remove_dir_all(&dir);
     let out = dir.join("cell1");
     assert!(
-        host_tools(&["cluster-keys", "--boards", "b0", "--out", p(&out)])
+        host_tools(&["cluster-keys", "--boards", "b0", "--out", p(&out), "--tls"])
             .status
             .success()
     );
@@ -193,6 +236,20 @@ fn cluster_keys_push_pins_the_board_key_and_sends_the_password_sealed() {
     assert_eq!(secret, std::fs::read_to_string(out.join("b0.password")).unwrap());
     let pinned = std::fs::read_to_string(out.join("known_boards")).unwrap();
     assert_eq!(pinned.trim(), format!("b0 {shown}"));
+    // The solver's certificate for the board to pin: the certificate alone, never the key.
+    let o = push(&["--tls", "--serial", "12"]);
+    let (stdout, stderr) = text(&o);
+    assert!(o.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stdout.contains("the solver's TLS certificate (to pin)"),
+        "{stdout}"
+    );
+    let secret = received.recv_timeout(std::time::Duration::from_secs(5)).unwrap();
+    assert_eq!(
+        secret,
+        std::fs::read_to_string(out.join("solver.tls.crt")).unwrap()
+    );
+    assert!(!secret.contains("PRIVATE KEY"));
     // An older serial: the board's refusal is printed and the exit status is 1.
     let o = push(&["--serial", "9"]);
     let (_, stderr) = text(&o);

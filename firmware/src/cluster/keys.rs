@@ -35,12 +35,26 @@ pub fn pushed_file(state_dir: &Path, role: Role) -> PathBuf {
     state_dir.join(PUSHED_DIR).join(name)
 }
 
-/// The kind of secret `role` takes.
-fn kind_for(role: Role) -> SecretKind {
+/// The pushed TLS file for `role` under `state_dir`: the solver's certificate and key in one
+/// PEM file, or the solver certificate a camera board pins.
+pub fn pushed_tls_file(state_dir: &Path, role: Role) -> PathBuf {
+    let name = match role {
+        Role::Solver => "solver.tls.pem",
+        _ => "solver.tls.crt",
+    };
+    state_dir.join(PUSHED_DIR).join(name)
+}
+
+/// The kinds of secret `role` takes: its credentials, and its TLS file.
+fn kinds_for(role: Role) -> [SecretKind; 2] {
     match role {
-        Role::Solver => SecretKind::SolverDictionary,
-        _ => SecretKind::BoardPassword,
+        Role::Solver => [SecretKind::SolverDictionary, SecretKind::SolverTls],
+        _ => [SecretKind::BoardPassword, SecretKind::PinnedSolverCertificate],
     }
+}
+
+fn is_tls(kind: SecretKind) -> bool {
+    matches!(kind, SecretKind::SolverTls | SecretKind::PinnedSolverCertificate)
 }
 
 fn read_serial(dir: &Path) -> Option<u64> {
@@ -62,14 +76,36 @@ impl ClusterConfig {
             Role::Standalone => return None,
         };
         let file = pushed_file(state_dir, self.role);
-        if slot.as_ref() == Some(&file) {
-            return Some(file);
+        let taken = if slot.as_ref() == Some(&file) {
+            Some(file)
+        } else if slot.is_some() || !file.exists() {
+            None
+        } else {
+            *slot = Some(file.clone());
+            Some(file)
+        };
+        self.adopt_pushed_tls(state_dir);
+        taken
+    }
+
+    /// Without TLS files in the config, takes the pushed one when there is one (the solver's
+    /// certificate and key are in one file).
+    fn adopt_pushed_tls(&mut self, state_dir: &Path) {
+        let file = pushed_tls_file(state_dir, self.role);
+        if !file.exists() {
+            return;
         }
-        if slot.is_some() || !file.exists() {
-            return None;
+        match self.role {
+            Role::Solver if self.tls_certificate_file.is_none() && self.tls_key_file.is_none() => {
+                self.tls_certificate_file = Some(file.clone());
+                self.tls_key_file = Some(file.clone());
+            }
+            Role::Camera if self.tls_solver_certificate_file.is_none() => {
+                self.tls_solver_certificate_file = Some(file.clone());
+            }
+            _ => return,
         }
-        *slot = Some(file.clone());
-        Some(file)
+        tracing::info!(file = %file.display(), "cluster transport: using the pushed TLS file");
     }
 }
 
@@ -81,6 +117,8 @@ pub struct Inbox {
     key: BoxKey,
     /// The config names its own credentials file: pushes are refused (it would be ignored).
     configured: Option<PathBuf>,
+    /// Likewise its own TLS file.
+    configured_tls: Option<PathBuf>,
     report: SharedReport,
     last_serial: Mutex<Option<u64>>,
 }
@@ -111,6 +149,12 @@ impl Inbox {
             Role::Standalone => None,
         }
         .filter(|f| *f != pushed_file(state_dir, cfg.role));
+        let configured_tls = match cfg.role {
+            Role::Camera => cfg.tls_solver_certificate_file.clone(),
+            Role::Solver => cfg.tls_certificate_file.clone(),
+            Role::Standalone => None,
+        }
+        .filter(|f| *f != pushed_tls_file(state_dir, cfg.role));
         if let Ok(mut r) = report.lock() {
             r.box_public_key = Some(public);
             r.pushed_credentials = last_serial.map(|serial| super::report::PushedCredentialsReport {
@@ -130,6 +174,7 @@ impl Inbox {
             dir,
             key,
             configured,
+            configured_tls,
             report,
             last_serial: Mutex::new(last_serial),
         })
@@ -140,14 +185,15 @@ impl Inbox {
         self.key.public()
     }
 
-    fn store(&self, secret: &str, serial: u64) -> std::result::Result<PathBuf, String> {
+    fn store(&self, secret: &str, serial: u64, kind: SecretKind) -> std::result::Result<PathBuf, String> {
         std::fs::create_dir_all(&self.dir)
             .map_err(|e| format!("cannot create {}: {e}", self.dir.display()))?;
-        let file = self.dir.join(
+        let name = if is_tls(kind) {
+            pushed_tls_file(Path::new(""), self.role)
+        } else {
             pushed_file(Path::new(""), self.role)
-                .file_name()
-                .unwrap_or_default(),
-        );
+        };
+        let file = self.dir.join(name.file_name().unwrap_or_default());
         irtrack_cluster::credentials::write_private(&file, secret).map_err(|e| e.to_string())?;
         // The serial after the secret: a crash between them leaves an older serial, which
         // accepts a replay of the stored envelope only (the same secret again).
@@ -166,20 +212,6 @@ impl crate::params::CredentialInbox for Inbox {
         let Ok(mut last) = self.last_serial.lock() else {
             return reject(RejectCode::Internal, "credential state poisoned".into());
         };
-        if let Some(f) = &self.configured {
-            return reject(
-                RejectCode::InvalidParams,
-                format!(
-                    "this board's credentials come from {} ([cluster] {}); remove that key to take pushed credentials",
-                    f.display(),
-                    if self.role == Role::Solver {
-                        "credentials_file"
-                    } else {
-                        "password_file"
-                    }
-                ),
-            );
-        }
         let opened = match envelope::open(
             bytes,
             &Recipient {
@@ -196,24 +228,59 @@ impl crate::params::CredentialInbox for Inbox {
             }
             Err(e) => return reject(RejectCode::BadBlob, e.to_string()),
         };
-        let want = kind_for(self.role);
-        if opened.header.kind != want {
+        let want = kinds_for(self.role);
+        let kind = opened.header.kind;
+        if !want.contains(&kind) {
             return reject(
                 RejectCode::RigMismatch,
                 format!(
-                    "the envelope holds {}, this board ({}) takes {}",
-                    opened.header.kind.words(),
+                    "the envelope holds {}, this board ({}) takes {} or {}",
+                    kind.words(),
                     if self.role == Role::Solver {
                         "the solver"
                     } else {
                         "a camera board"
                     },
-                    want.words()
+                    want[0].words(),
+                    want[1].words()
+                ),
+            );
+        }
+        let configured = if is_tls(kind) {
+            self.configured_tls.as_ref().map(|f| {
+                (
+                    f,
+                    if self.role == Role::Solver {
+                        "tls_certificate_file"
+                    } else {
+                        "tls_solver_certificate_file"
+                    },
+                )
+            })
+        } else {
+            self.configured.as_ref().map(|f| {
+                (
+                    f,
+                    if self.role == Role::Solver {
+                        "credentials_file"
+                    } else {
+                        "password_file"
+                    },
+                )
+            })
+        };
+        if let Some((f, key)) = configured {
+            return reject(
+                RejectCode::InvalidParams,
+                format!(
+                    "this board's {} comes from {} ([cluster] {key}); remove that key to take a pushed one",
+                    kind.words(),
+                    f.display()
                 ),
             );
         }
         let serial = opened.header.serial;
-        match self.store(&opened.secret, serial) {
+        match self.store(&opened.secret, serial, kind) {
             Err(e) => reject(RejectCode::Storage, format!("{e}; the credentials in use stay")),
             Ok(file) => {
                 *last = Some(serial);

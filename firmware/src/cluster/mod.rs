@@ -107,6 +107,18 @@ pub struct ClusterConfig {
     /// observations. Unset: any peer that reaches the port may publish (warned).
     #[serde(default)]
     pub credentials_file: Option<std::path::PathBuf>,
+    /// Solver: its TLS certificate (PEM, made by `host-tools cluster-keys --tls`), which every
+    /// board pins. Set with `tls_key_file`: the solver proves itself to the boards and every
+    /// link is encrypted (docs/cluster.md, "TLS"). Needs `credentials_file`.
+    #[serde(default)]
+    pub tls_certificate_file: Option<std::path::PathBuf>,
+    /// Solver: the private key of `tls_certificate_file` (PEM, mode 0600).
+    #[serde(default)]
+    pub tls_key_file: Option<std::path::PathBuf>,
+    /// Camera role: the solver's TLS certificate this board pins (PEM). Set: the board talks
+    /// only to a solver that proves itself with it, over TLS. Needs `password_file`.
+    #[serde(default)]
+    pub tls_solver_certificate_file: Option<std::path::PathBuf>,
     /// Camera role, tests: probability of not sending an observation (loss injection).
     #[serde(default)]
     pub inject_loss: f64,
@@ -168,6 +180,9 @@ impl Default for ClusterConfig {
             own_cameras: false,
             password_file: None,
             credentials_file: None,
+            tls_certificate_file: None,
+            tls_key_file: None,
+            tls_solver_certificate_file: None,
             inject_loss: 0.0,
             inject_jitter_ms: 0.0,
             clock_offset_ms: 0.0,
@@ -300,6 +315,7 @@ impl ClusterConfig {
             Role::Solver => self.credentials_file.is_some(),
             Role::Standalone => false,
         };
+        self.validate_tls(authenticated)?;
         if !authenticated {
             return Ok(());
         }
@@ -327,6 +343,67 @@ impl ClusterConfig {
             }
         }
         Ok(())
+    }
+
+    /// The TLS keys fit the role, come with credentials, and (cluster builds) the files load.
+    fn validate_tls(&self, authenticated: bool) -> Result<()> {
+        let bad = |reason: String| Err(FirmwareError::Config { reason });
+        let solver_keys = self.tls_certificate_file.is_some() || self.tls_key_file.is_some();
+        let board_key = self.tls_solver_certificate_file.is_some();
+        match self.role {
+            Role::Camera if solver_keys => {
+                return bad("cluster.tls_certificate_file and tls_key_file are the solver's; a camera board takes tls_solver_certificate_file (the solver's certificate it pins)".into());
+            }
+            Role::Solver if board_key => {
+                return bad("cluster.tls_solver_certificate_file is a camera board's; the solver takes tls_certificate_file and tls_key_file".into());
+            }
+            Role::Solver if self.tls_certificate_file.is_some() != self.tls_key_file.is_some() => {
+                return bad("cluster.tls_certificate_file and tls_key_file go together".into());
+            }
+            Role::Standalone if solver_keys || board_key => {
+                return bad("cluster TLS keys need role = \"camera\" or \"solver\"".into());
+            }
+            _ => {}
+        }
+        if (solver_keys || board_key) && !authenticated {
+            return bad("cluster TLS needs credentials too (password_file on a camera board, credentials_file on the solver): TLS proves the solver, the password each board".into());
+        }
+        #[cfg(feature = "cluster")]
+        self.transport_tls()?;
+        Ok(())
+    }
+
+    /// The TLS role of this node from its files (none when not configured); the files are
+    /// loaded here so that a bad one is a start error naming it.
+    #[cfg(feature = "cluster")]
+    pub fn transport_tls(&self) -> Result<Option<irtrack_cluster::tls::TlsRole>> {
+        use irtrack_cluster::tls::{TlsRole, client_config, server_config};
+        let to_err = |e: irtrack_cluster::ClusterError| FirmwareError::Config {
+            reason: e.to_string(),
+        };
+        Ok(
+            match (
+                self.role,
+                &self.tls_certificate_file,
+                &self.tls_key_file,
+                &self.tls_solver_certificate_file,
+            ) {
+                (Role::Solver, Some(c), Some(k), _) => {
+                    server_config(c, k).map_err(to_err)?;
+                    Some(TlsRole::Solver {
+                        certificate_file: c.clone(),
+                        key_file: k.clone(),
+                    })
+                }
+                (Role::Camera, _, _, Some(c)) => {
+                    client_config(c).map_err(to_err)?;
+                    Some(TlsRole::Board {
+                        solver_certificate_file: c.clone(),
+                    })
+                }
+                _ => None,
+            },
+        )
     }
 
     /// The Zenoh credentials of this role from its files (none when not configured).
@@ -363,16 +440,28 @@ impl ClusterConfig {
             Role::Standalone => return None,
             Role::Camera => match &self.password_file {
                 Some(f) => format!(
-                    "cluster transport: authenticated as board {:?} (password file {})",
+                    "cluster transport: authenticated as board {:?} (password file {}); {}",
                     self.board,
-                    f.display()
+                    f.display(),
+                    match &self.tls_solver_certificate_file {
+                        Some(c) => format!(
+                            "TLS: talks only to the solver that proves itself with {}, encrypted",
+                            c.display()
+                        ),
+                        None => "no TLS: the solver is not checked and links are not encrypted".to_string(),
+                    }
                 ),
                 None => UNAUTHENTICATED.to_string(),
             },
             Role::Solver => match &self.credentials_file {
                 Some(f) => format!(
-                    "cluster transport: only the boards in {} are accepted, each on its own key expressions",
-                    f.display()
+                    "cluster transport: only the boards in {} are accepted, each on its own key expressions; {}",
+                    f.display(),
+                    match &self.tls_certificate_file {
+                        Some(c) => format!("TLS: proves itself with {}, encrypted", c.display()),
+                        None =>
+                            "no TLS: boards cannot check the solver and links are not encrypted".to_string(),
+                    }
                 ),
                 None => UNAUTHENTICATED.to_string(),
             },

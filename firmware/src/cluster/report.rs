@@ -117,7 +117,7 @@ pub const CLOCK_STEP_FAULT_S: f64 = 60.0;
 pub struct RefusedPeerReport {
     /// `ip:port` it connected from; `None`: it sent nothing before its link ended.
     pub address: Option<String>,
-    /// `credentials`, `handshake_timeout` or `accept_limit`.
+    /// `credentials`, `handshake_timeout`, `accept_limit` or `tls`.
     pub reason: &'static str,
     /// For `credentials`: `missing`, `unknown_user`, `wrong_password` or `unreadable`.
     pub problem: Option<&'static str>,
@@ -177,6 +177,29 @@ pub struct DeniedPublicationReport {
     pub words: String,
 }
 
+/// TLS between the boards and the solver (`/status` → `cluster.tls`; docs/cluster.md, "TLS").
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct TlsReport {
+    /// `solver` (proves itself with its certificate) or `board` (talks only to the solver
+    /// that proves itself with the pinned one).
+    pub side: &'static str,
+    /// The certificate file (the solver's own, or the one a board pins).
+    pub certificate_file: String,
+    /// Board: links carried to the solver after it proved itself.
+    pub carried: u64,
+    /// Board: handshakes in which the peer at the solver's address did not prove itself.
+    pub solver_refused: u64,
+    /// Board: connections to the solver's address that did not open.
+    pub unreachable: u64,
+    /// Board: the newest problem, in words.
+    pub last_problem: Option<String>,
+    /// Board: how long ago, s.
+    pub last_problem_age_s: Option<f64>,
+}
+
+/// The `solver_unverified` fault stays this long after the newest failed handshake, s.
+pub const SOLVER_UNVERIFIED_FAULT_S: f64 = 60.0;
+
 /// Credentials pushed to this board (`/status` → `cluster.pushed_credentials`).
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
 pub struct PushedCredentialsReport {
@@ -205,6 +228,9 @@ impl PeerRefusalsReport {
             .map(|(k, n)| format!("{} {n}", k.replace('_', " ")))
             .collect();
         let advice = match newest.reason {
+            "tls" => {
+                "the solver talks TLS only (docs/cluster.md \"TLS\"): if it is a camera board, give it the solver's certificate as [cluster] tls_solver_certificate_file; otherwise a host on the cell network tries to reach the solver: find it by its address"
+            }
             "credentials" => {
                 "if it is a camera board, give it its password file and list it in the solver's credentials file (host-tools cluster-keys, docs/cluster.md \"Credentials\"); otherwise a host on the cell network tries to publish observations: find it by its address"
             }
@@ -318,6 +344,8 @@ pub struct ClusterReport {
     pub box_public_key: Option<String>,
     /// Credentials pushed to this board, if any.
     pub pushed_credentials: Option<PushedCredentialsReport>,
+    /// TLS, when configured.
+    pub tls: Option<TlsReport>,
 }
 
 impl ClusterReport {
@@ -465,6 +493,21 @@ impl ClusterReport {
             .and_then(PeerRefusalsReport::denied_fault_text)
         {
             out.push(("publication_denied", None, text));
+        }
+        if let Some(t) = &self.tls
+            && t.solver_refused > 0
+            && let (Some(words), Some(age)) = (&t.last_problem, t.last_problem_age_s)
+            && age < SOLVER_UNVERIFIED_FAULT_S
+            && words.contains("did not prove itself")
+        {
+            out.push((
+                "solver_unverified",
+                None,
+                format!(
+                    "{words}, {age:.0} s ago; {} such handshakes since start, {} links carried — nothing was sent to it; if the solver was given a new certificate (cluster-keys --tls --force), give this board the new one as [cluster] tls_solver_certificate_file; otherwise a host at the solver's address pretends to be it (docs/security.md)",
+                    t.solver_refused, t.carried
+                ),
+            ));
         }
         let refused: u64 = self.refused.values().sum();
         if refused > 0 {
@@ -776,6 +819,42 @@ mod tests {
         assert_eq!(texts[0].0, code);
         assert!(texts[0].2.starts_with(start), "{}", texts[0].2);
         texts[0].2.clone()
+    }
+
+    #[test]
+    fn a_solver_that_does_not_prove_itself_is_a_board_fault_for_a_minute() {
+        let problem = "the peer at 10.0.0.10:7447 did not prove itself as this cell's solver (invalid peer certificate: BadSignature): is it the solver, with the certificate this board pins?";
+        let mut report = ClusterReport {
+            role: "camera",
+            tls: Some(TlsReport {
+                side: "board",
+                certificate_file: "/var/lib/irtrack/cluster-credentials/solver.tls.crt".into(),
+                carried: 3,
+                solver_refused: 2,
+                unreachable: 0,
+                last_problem: Some(problem.into()),
+                last_problem_age_s: Some(4.2),
+            }),
+            ..ClusterReport::default()
+        };
+        let text = the_one_fault(&report, "solver_unverified", problem);
+        assert!(
+            text.contains("4 s ago; 2 such handshakes since start, 3 links carried — nothing was sent to it"),
+            "{text}"
+        );
+        // A minute later it is gone; an unreachable solver is not this fault (no proof failed).
+        if let Some(t) = report.tls.as_mut() {
+            t.last_problem_age_s = Some(61.0);
+        }
+        assert!(report.fault_texts().is_empty(), "{:?}", report.fault_texts());
+        report.tls = Some(TlsReport {
+            side: "board",
+            unreachable: 5,
+            last_problem: Some("the solver at 10.0.0.10:7447 cannot be reached: Connection refused".into()),
+            last_problem_age_s: Some(1.0),
+            ..TlsReport::default()
+        });
+        assert!(report.fault_texts().is_empty(), "{:?}", report.fault_texts());
     }
 
     /// The report's `/metrics` families as OpenMetrics text.

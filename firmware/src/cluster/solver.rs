@@ -895,6 +895,15 @@ impl ClusterSource {
         self.last_report_ns = now_ns;
         let Ok(mut r) = self.report.try_lock() else { return };
         r.refused_peers = Some(peer_refusals_report(irtrack_cluster::refusals::global()));
+        if r.tls.is_none()
+            && let Some(c) = &self.cfg.tls_certificate_file
+        {
+            r.tls = Some(super::report::TlsReport {
+                side: "solver",
+                certificate_file: c.display().to_string(),
+                ..super::report::TlsReport::default()
+            });
+        }
         r.received = self.received;
         r.queue_overflow = self.sub.stats.overflow.load(std::sync::atomic::Ordering::Relaxed);
         for (i, code) in ObservationProblem::CODES.iter().enumerate() {

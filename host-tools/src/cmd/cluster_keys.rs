@@ -15,8 +15,9 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, anyhow, bail};
-use irtrack_cluster::credentials::{dictionary_path, password_path, write_new_credentials};
+use irtrack_cluster::credentials::{dictionary_path, password_path, write_new_credentials, write_private};
 use irtrack_cluster::envelope::{self, Sealing, SecretKind};
+use irtrack_cluster::names::SOLVER_TLS_NAME;
 use irtrack_core::param_wire::Verdict;
 
 /// Arguments.
@@ -36,6 +37,10 @@ pub struct Args {
     /// dictionary).
     #[arg(long)]
     pub force: bool,
+    /// Also make the solver's TLS certificate and key (`solver.tls.crt`, which every board
+    /// pins, and `solver.tls.key`, mode 0600): the solver proves itself, links are encrypted.
+    #[arg(long)]
+    pub tls: bool,
 }
 
 /// What else `cluster-keys` does.
@@ -55,6 +60,10 @@ pub struct PushArgs {
     /// Push the solver's dictionary (`DIR/solver.credentials`) instead of `DIR/<board>.password`.
     #[arg(long)]
     pub solver: bool,
+    /// Push the TLS file instead (`cluster-keys --tls`): to a camera board the solver's
+    /// certificate it pins (`DIR/solver.tls.crt`), with --solver its certificate and key.
+    #[arg(long)]
+    pub tls: bool,
     /// The directory `cluster-keys --out` wrote.
     #[arg(long, value_name = "DIR")]
     pub dir: PathBuf,
@@ -88,6 +97,40 @@ pub struct PushArgs {
     pub timeout_s: f64,
 }
 
+/// The solver's TLS certificate in DIR.
+pub fn tls_certificate_path(dir: &Path) -> PathBuf {
+    dir.join("solver.tls.crt")
+}
+
+/// The solver's TLS private key in DIR.
+pub fn tls_key_path(dir: &Path) -> PathBuf {
+    dir.join("solver.tls.key")
+}
+
+/// Makes the solver's TLS identity: an ECDSA P-256 key and a self-signed certificate for
+/// [`SOLVER_TLS_NAME`], which the boards pin. Valid from 1970: a board without a real-time
+/// clock starts in 1970 until its time service sets it, and must not refuse the solver
+/// then; it does not expire (it is pinned, not trusted through a CA; replace it with
+/// `--tls --force`).
+fn write_tls_identity(dir: &Path) -> Result<(PathBuf, PathBuf)> {
+    let key = rcgen::KeyPair::generate().context("making the solver's TLS key")?;
+    let mut params = rcgen::CertificateParams::new(vec![SOLVER_TLS_NAME.to_string()])
+        .context("the solver's TLS certificate")?;
+    params
+        .distinguished_name
+        .push(rcgen::DnType::CommonName, "irtrack solver");
+    params.not_before = rcgen::date_time_ymd(1970, 1, 1);
+    params.not_after = rcgen::date_time_ymd(4000, 1, 1);
+    let cert = params
+        .self_signed(&key)
+        .context("signing the solver's TLS certificate")?;
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let (crt, key_path) = (tls_certificate_path(dir), tls_key_path(dir));
+    write_private(&key_path, &key.serialize_pem())?;
+    std::fs::write(&crt, cert.pem()).with_context(|| format!("writing {}", crt.display()))?;
+    Ok((crt, key_path))
+}
+
 /// Runs the subcommand.
 pub fn run(args: Args) -> Result<()> {
     if let Some(Action::Push(p)) = args.action {
@@ -95,6 +138,16 @@ pub fn run(args: Args) -> Result<()> {
     }
     let out = args.out.ok_or_else(|| anyhow!("--out DIR is required"))?;
     let boards: Vec<&str> = args.boards.iter().map(|b| b.trim()).collect();
+    if args.tls && !args.force {
+        for p in [tls_certificate_path(&out), tls_key_path(&out)] {
+            if p.exists() {
+                bail!(
+                    "{}: already exists; refusing to overwrite (--force makes new ones)",
+                    p.display()
+                );
+            }
+        }
+    }
     let written = write_new_credentials(&out, &boards, args.force)?;
     for c in &written {
         println!(
@@ -107,6 +160,18 @@ pub fn run(args: Args) -> Result<()> {
         "solver: {} (mode 600) -> its [cluster] credentials_file",
         dictionary_path(&out).display()
     );
+    if args.tls {
+        let (crt, key) = write_tls_identity(&out)?;
+        println!(
+            "solver: {} (mode 600) -> its [cluster] tls_key_file; {} -> its tls_certificate_file",
+            key.display(),
+            crt.display()
+        );
+        println!(
+            "every camera board: {} -> its [cluster] tls_solver_certificate_file (public, but it must be this file: the board trusts nothing else)",
+            crt.display()
+        );
+    }
     println!(
         "push each to its board sealed (host-tools cluster-keys push --board NAME --dir {} --to HOST --sign-key KEY), or copy it by hand (scp, then chmod 600); docs/cluster.md \"Credentials\"",
         out.display()
@@ -189,13 +254,33 @@ fn unix_ms() -> u64 {
 /// `cluster-keys push`.
 pub fn push(args: PushArgs) -> Result<()> {
     let timeout = std::time::Duration::from_secs_f64(args.timeout_s);
-    let (kind, file) = if args.solver {
-        (SecretKind::SolverDictionary, dictionary_path(&args.dir))
-    } else {
-        (SecretKind::BoardPassword, password_path(&args.dir, &args.board))
+    let (kind, file) = match (args.solver, args.tls) {
+        (true, false) => (SecretKind::SolverDictionary, dictionary_path(&args.dir)),
+        (false, false) => (SecretKind::BoardPassword, password_path(&args.dir, &args.board)),
+        (true, true) => (SecretKind::SolverTls, tls_key_path(&args.dir)),
+        (false, true) => (
+            SecretKind::PinnedSolverCertificate,
+            tls_certificate_path(&args.dir),
+        ),
     };
     // Checked here as the board will check it: a bad file is not sent.
     let secret = match kind {
+        SecretKind::SolverTls => {
+            // The solver's key and certificate travel as one PEM text (its one file).
+            let key = irtrack_cluster::credentials::read_secret(&file)?.0;
+            let crt_file = tls_certificate_path(&args.dir);
+            let crt = std::fs::read_to_string(&crt_file)
+                .with_context(|| format!("reading {}", crt_file.display()))?;
+            let text = format!("{crt}{key}");
+            irtrack_cluster::credentials::parse_tls_identity(&file, &text)?;
+            text
+        }
+        SecretKind::PinnedSolverCertificate => {
+            let text =
+                std::fs::read_to_string(&file).with_context(|| format!("reading {}", file.display()))?;
+            irtrack_cluster::credentials::parse_pinned_certificate(&file, &text)?;
+            text
+        }
         SecretKind::BoardPassword => {
             irtrack_cluster::credentials::read_password_file(&file)?;
             irtrack_cluster::credentials::read_secret(&file)?.0
