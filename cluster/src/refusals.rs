@@ -166,7 +166,13 @@ pub enum ZenohEvent {
         /// The key expression.
         key: String,
     },
-    /// The access control refused a put of a peer that is let in.
+    /// The last decision of that batch (Zenoh 1.10.2 decides "Declare Liveliness
+    /// Subscriber" last): the decisions after it are messages again.
+    AclCachingEnd {
+        /// The key expression.
+        key: String,
+    },
+    /// The access control refused a put (or a reply) of a peer that is let in.
     PublishDenied {
         /// The peer's Zenoh ID, as Zenoh prints it.
         zid: String,
@@ -177,7 +183,28 @@ pub enum ZenohEvent {
         key: String,
         /// Decided from the cache (`Using cached result: …`): always a message.
         cached: bool,
+        /// A put (an observation) or a reply (an answer to the solver's clock probe).
+        action: DeniedAction,
     },
+}
+
+/// What a denied message of a peer that is let in was.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum DeniedAction {
+    /// A put: an observation under a key its user may not use.
+    Put,
+    /// A reply: an answer to a query (the clock probe) under a key its user may not use.
+    Reply,
+}
+
+impl DeniedAction {
+    /// Its code in `/status`.
+    pub fn code(self) -> &'static str {
+        match self {
+            DeniedAction::Put => "put",
+            DeniedAction::Reply => "reply",
+        }
+    }
 }
 
 /// The remote end of a link as Zenoh displays it, `<local> => <remote>` with locators such as
@@ -258,11 +285,26 @@ fn publish_denied(message: &str) -> Option<ZenohEvent> {
         let key = rest.split('`').next()?;
         return Some(ZenohEvent::AclCaching { key: key.to_string() });
     }
+    for last in [
+        " is authorized to Declare Liveliness Subscriber (ingress) on ",
+        " is unauthorized to Declare Liveliness Subscriber (ingress) on ",
+    ] {
+        if let Some((_, key)) = message.split_once(last) {
+            return Some(ZenohEvent::AclCachingEnd {
+                key: key.trim().to_string(),
+            });
+        }
+    }
     let (cached, rest) = match message.strip_prefix("Using cached result: ") {
         Some(rest) => (true, rest),
         None => (false, message),
     };
-    let (who, key) = rest.split_once(" is unauthorized to Put (ingress) on ")?;
+    let (action, (who, key)) = [
+        (DeniedAction::Put, " is unauthorized to Put (ingress) on "),
+        (DeniedAction::Reply, " is unauthorized to Reply (ingress) on "),
+    ]
+    .into_iter()
+    .find_map(|(a, marker)| rest.split_once(marker).map(|parts| (a, parts)))?;
     let (zid, subject) = match who.split_once(" on ") {
         Some((zid, subject)) if !cached => (zid, Some(subject.trim().to_string())),
         _ => (who, None),
@@ -276,6 +318,7 @@ fn publish_denied(message: &str) -> Option<ZenohEvent> {
         subject,
         key: key.to_string(),
         cached,
+        action,
     })
 }
 
@@ -344,8 +387,10 @@ pub struct DeniedPublication {
     /// The ACL subject it signed in as (its user name and Zenoh's other subject fields), once
     /// known.
     pub subject: Option<String>,
-    /// The key expression it published on.
+    /// The key expression it published (or answered) on.
     pub key: String,
+    /// A put (observations) or a reply (clock probe answers).
+    pub action: DeniedAction,
     /// Dropped messages (the decision Zenoh makes when the key is declared is not one).
     pub count: u64,
     /// The newest, on the monotonic clock.
@@ -368,8 +413,12 @@ impl DeniedPublication {
             (None, Some(s)) => format!("a peer matching {s} (Zenoh ID {})", self.zid),
             (None, None) => format!("a peer with Zenoh ID {}", self.zid),
         };
+        let did = match self.action {
+            DeniedAction::Put => "published on",
+            DeniedAction::Reply => "answered the clock probe on",
+        };
         format!(
-            "{who} published on {}, which its credentials do not allow: dropped by the access control",
+            "{who} {did} {}, which its credentials do not allow: dropped by the access control",
             self.key
         )
     }
@@ -497,21 +546,34 @@ impl PeerRefusals {
                 }
                 st.acl_caching.insert(key, k);
             }
+            ZenohEvent::AclCachingEnd { key: k } => {
+                if st.acl_caching.get(&key) == Some(&k) {
+                    st.acl_caching.remove(&key);
+                }
+            }
             ZenohEvent::PublishDenied {
                 zid,
                 subject,
                 key: k,
                 cached,
+                action,
             } => {
+                // When a peer declares a key, Zenoh decides every action for it at once
+                // (query, reply, put, …) after one "caching permissions" line: those are no
+                // messages. The marker stays for the whole batch, until its last decision or
+                // a decision from the cache (a message) in the same task. Replies are decided
+                // without the cache, message by message.
                 let at_declaration = !cached && st.acl_caching.get(&key) == Some(&k);
+                if cached {
+                    st.acl_caching.remove(&key);
+                }
                 if at_declaration {
                     // A decision made when the key was declared, not a message: learn who.
-                    st.acl_caching.remove(&key);
                     if let Some(s) = subject {
                         st.remember_subject(zid, s);
                     }
                 } else {
-                    st.record_denied(zid, subject, k, now);
+                    st.record_denied(zid, subject, k, action, now);
                 }
             }
         }
@@ -659,7 +721,14 @@ impl State {
         self.subjects.insert(zid, subject);
     }
 
-    fn record_denied(&mut self, zid: String, subject: Option<String>, key: String, now: Instant) {
+    fn record_denied(
+        &mut self,
+        zid: String,
+        subject: Option<String>,
+        key: String,
+        action: DeniedAction,
+        now: Instant,
+    ) {
         self.denied += 1;
         self.since_denied += 1;
         if let Some(s) = &subject {
@@ -670,7 +739,7 @@ impl State {
         let mut entry = match self
             .denied_recent
             .iter()
-            .position(|d| d.zid == zid && d.key == key)
+            .position(|d| d.zid == zid && d.key == key && d.action == action)
             .and_then(|i| self.denied_recent.remove(i))
         {
             Some(mut d) => {
@@ -683,6 +752,7 @@ impl State {
                 zid,
                 subject: None,
                 key,
+                action,
                 count: 1,
                 last: now,
                 last_unix_ms: at_ms,
@@ -979,6 +1049,57 @@ mod tests {
     }
 
     #[test]
+    fn denied_clock_answers_are_counted_but_not_the_decisions_of_a_declaration() {
+        const B1: &str = "Interface(lo)+Username(b1)+Transport(Tcp)+4f2a9c";
+        let key = "irtrack/cell1/b0/clock";
+        let log = PeerRefusals::default();
+        let t0 = Instant::now();
+        let here = HandshakeKey::Thread(std::thread::current().id());
+        let feed = |text: &str| {
+            let e = classify(ACL_TARGET, Level::TRACE, text).unwrap_or_else(|| panic!("{text}"));
+            log.observe(here.clone(), e, t0);
+        };
+        // b1 declares b0's clock key: Zenoh decides query, reply, put, … at once. None of
+        // those is a message, whatever their order (reply comes before put in 1.10.2).
+        feed(&format!("ACL (ingress): caching permissions for `{key}` ..."));
+        feed(&format!(
+            "4f2a9c on {B1} is unauthorized to Reply (ingress) on {key}"
+        ));
+        feed(&format!(
+            "4f2a9c on {B1} is unauthorized to Put (ingress) on {key}"
+        ));
+        assert_eq!(
+            log.snapshot().denied_publications,
+            0,
+            "a declaration is no message"
+        );
+        // The batch's last decision; then each answer is decided anew (replies are not
+        // taken from the cache in 1.10.2) and counted, as a reply.
+        feed(&format!(
+            "4f2a9c on {B1} is unauthorized to Declare Liveliness Subscriber (ingress) on {key}"
+        ));
+        let answer = format!("4f2a9c on {B1} is unauthorized to Reply (ingress) on {key}");
+        feed(&answer);
+        feed(&answer);
+        feed(&answer);
+        feed(&format!(
+            "Using cached result: 4f2a9c is unauthorized to Reply (ingress) on {key}"
+        ));
+        let s = log.snapshot();
+        assert_eq!(s.denied_publications, 4);
+        assert_eq!(s.denied_recent.len(), 1);
+        let d = &s.denied_recent[0];
+        assert_eq!(
+            (d.action, d.count, d.user()),
+            (DeniedAction::Reply, 4, Some("b1"))
+        );
+        assert_eq!(
+            d.words(),
+            "a peer signed in as b1 (Zenoh ID 4f2a9c) answered the clock probe on irtrack/cell1/b0/clock, which its credentials do not allow: dropped by the access control"
+        );
+    }
+
+    #[test]
     fn access_control_denials_are_recognised_and_counted_by_sender_and_key() {
         const B1: &str = "Interface(lo)+Username(b1)+Transport(Tcp)+4f2a9c";
         let caching = "ACL (ingress): caching permissions for `cell1/obs/b0/0` ...";
@@ -997,6 +1118,7 @@ mod tests {
                 subject: Some(B1.into()),
                 key: "cell1/obs/b0/0".into(),
                 cached: false,
+                action: DeniedAction::Put,
             })
         );
         assert_eq!(
@@ -1006,6 +1128,7 @@ mod tests {
                 subject: None,
                 key: "cell1/obs/b0/0".into(),
                 cached: true,
+                action: DeniedAction::Put,
             })
         );
         assert_eq!(user_of(B1), Some("b1"));

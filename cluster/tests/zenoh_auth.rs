@@ -4,24 +4,22 @@
 //! "Credentials").
 #![cfg(feature = "zenoh")]
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::mpsc::Receiver;
 use std::time::{Duration, Instant};
 
+use common::{blob, free_port};
 use irtrack_cluster::credentials::{BoardCredential, dictionary_text};
 use irtrack_cluster::transport::{
     Auth, ObsPublisher, ObsSubscriber, Received, Session, TransportConfig, realtime_ns,
 };
-use irtrack_core::observation::{ObsBlob, ObsClock, ObsHeader, decode};
+use irtrack_core::observation::decode;
 
 const PW0: &str = "b0-secret-4Kq9zT2wXn7Lp3Rv";
 const PW1: &str = "b1-secret-8Hd5sY6cMa1Qe0Uf";
-
-fn free_port() -> u16 {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap().port()
-}
 
 fn temp_dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("irtrack-zauth-{name}-{}", std::process::id()));
@@ -86,32 +84,8 @@ fn board(port: u16, board: &str, password: &str) -> Session {
     }
 }
 
-fn header(board: &str, camera: u8, seq: u64) -> ObsHeader<'_> {
-    ObsHeader {
-        rig: "cell1",
-        board,
-        camera,
-        sequence: seq,
-        trigger_count: None,
-        capture_ts_ns: realtime_ns(),
-        clock: ObsClock::Realtime,
-        exposure_us: 250,
-        dropped: 0,
-        send_delay_us: 100,
-    }
-}
-
-fn blob() -> ObsBlob {
-    ObsBlob {
-        x_px: 320.5,
-        y_px: 240.25,
-        area_px: 9,
-        peak_dn: 240,
-        roundness: 1.0,
-        touches_frame_edge: false,
-        touches_roi_edge: false,
-        saturated: false,
-    }
+fn header(board: &str, camera: u8, seq: u64) -> irtrack_core::observation::ObsHeader<'_> {
+    common::header("cell1", board, camera, seq)
 }
 
 /// Who sent what: the sequence ranges tell the senders apart (1M per sender).

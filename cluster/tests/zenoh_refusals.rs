@@ -228,6 +228,80 @@ fn refused_peers_are_counted_with_their_address() {
             .all(|d| d.key == "irtrack/cell1/b0/cam/1/obs" && d.user() == Some("b1")),
         "only the impostor's puts: {snap:#?}"
     );
+
+    // The clock probe: the impostor answers under b0's clock key as well. Each answer is
+    // dropped by the access control and counted as a denied reply under b1's name; the
+    // genuine board's answers on its own key, and the decisions Zenoh makes when either
+    // declares its queryable, are not.
+    use irtrack_cluster::refusals::DeniedAction;
+    use irtrack_cluster::transport::{ClockProber, ClockResponder};
+    use std::sync::atomic::Ordering;
+    let own = ClockResponder::new(&p_genuine, "cell1", "b0", realtime_ns).unwrap();
+    // b1's own answers bring the probe's query to b1's session, where the forger hears it.
+    let b1_own = ClockResponder::new(&p_impostor, "cell1", "b1", realtime_ns).unwrap();
+    let forger = ClockResponder::new(&p_impostor, "cell1", "b0", || realtime_ns() + 100_000_000).unwrap();
+    let (prober, replies) =
+        ClockProber::start(&solver, "cell1", Duration::from_millis(50), realtime_ns).unwrap();
+    let until = Instant::now() + Duration::from_secs(8);
+    let (mut genuine_answers, mut forged_answers) = (0u64, 0u64);
+    let reply_denial = |s: &RefusalSnapshot| {
+        s.denied_recent
+            .iter()
+            .find(|d| d.action == DeniedAction::Reply)
+            .cloned()
+    };
+    loop {
+        while let Ok(r) = replies.try_recv() {
+            if r.sample.offset_ns() > 50_000_000 {
+                forged_answers += 1;
+            } else {
+                genuine_answers += 1;
+            }
+        }
+        let s = log.snapshot();
+        if genuine_answers >= 10 && reply_denial(&s).is_some_and(|d| d.count >= 10) || Instant::now() > until
+        {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let snap = log.snapshot();
+    let answered = forger.answered.load(Ordering::Relaxed);
+    eprintln!(
+        "clock probe: genuine answers taken {genuine_answers}, forged taken {forged_answers}, forger answered {answered}, own answered {}; replies denied {:?}",
+        own.answered.load(Ordering::Relaxed),
+        reply_denial(&snap)
+    );
+    assert_eq!(forged_answers, 0, "a forged clock answer reached the prober");
+    assert!(
+        genuine_answers >= 10,
+        "the genuine board's answers: {genuine_answers}"
+    );
+    let d = reply_denial(&snap).unwrap_or_else(|| panic!("no denied clock answer counted: {snap:#?}"));
+    assert_eq!(
+        (d.key.as_str(), d.user()),
+        ("irtrack/cell1/b0/clock", Some("b1")),
+        "{d:?}"
+    );
+    assert!(
+        d.count >= 10 && d.count <= answered,
+        "{} denied of {answered} answered",
+        d.count
+    );
+    assert!(
+        d.words()
+            .contains("answered the clock probe on irtrack/cell1/b0/clock"),
+        "{}",
+        d.words()
+    );
+    assert!(
+        snap.denied_recent.iter().all(|x| x.user() == Some("b1")),
+        "nothing of the genuine board: {snap:#?}"
+    );
+    drop(prober);
+    drop(own);
+    drop(b1_own);
+    drop(forger);
     for p in [p_anon, p_wrong, p_stranger].into_iter().flatten() {
         p.close();
     }

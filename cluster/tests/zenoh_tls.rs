@@ -4,6 +4,8 @@
 //! counted with its address, and a flood of failing handshakes does not keep a board out.
 #![cfg(feature = "zenoh")]
 
+mod common;
+
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
@@ -12,20 +14,16 @@ use std::sync::mpsc::Receiver;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use common::{blob, free_port, header};
 use irtrack_cluster::credentials::{BoardCredential, dictionary_text};
 use irtrack_cluster::refusals::{RefusalReason, global};
 use irtrack_cluster::tls::{SOLVER_NAME, TlsRole, board_log};
 use irtrack_cluster::transport::{
     Auth, ObsPublisher, ObsSubscriber, Received, Session, TransportConfig, realtime_ns,
 };
-use irtrack_core::observation::{ObsBlob, ObsClock, ObsHeader, decode};
+use irtrack_core::observation::decode;
 
 const PW0: &str = "b0-secret-4Kq9zT2wXn7Lp3Rv";
-
-fn free_port() -> u16 {
-    let l = TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap().port()
-}
 
 fn temp_dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("irtrack-ztls-{name}-{}", std::process::id()));
@@ -93,34 +91,6 @@ fn board(port: u16, pinned: Option<&Path>) -> Session {
     .unwrap()
 }
 
-fn header(seq: u64) -> ObsHeader<'static> {
-    ObsHeader {
-        rig: "cell1",
-        board: "b0",
-        camera: 0,
-        sequence: seq,
-        trigger_count: None,
-        capture_ts_ns: realtime_ns(),
-        clock: ObsClock::Realtime,
-        exposure_us: 250,
-        dropped: 0,
-        send_delay_us: 100,
-    }
-}
-
-fn blob() -> ObsBlob {
-    ObsBlob {
-        x_px: 320.5,
-        y_px: 240.25,
-        area_px: 9,
-        peak_dn: 240,
-        roundness: 1.0,
-        touches_frame_edge: false,
-        touches_roi_edge: false,
-        saturated: false,
-    }
-}
-
 /// Publishes from `board` every 2 ms until `want` observations arrived or `limit` passed;
 /// returns how many arrived, and when the first did (from the start).
 fn deliver(
@@ -135,7 +105,7 @@ fn deliver(
     let mut seq = 0u64;
     while got < want && start.elapsed() < limit {
         seq += 1;
-        p.publish(&header(seq), &[blob()]).unwrap();
+        p.publish(&header("cell1", "b0", 0, seq), &[blob()]).unwrap();
         std::thread::sleep(Duration::from_millis(2));
         while let Ok(m) = rx.try_recv() {
             let obs = decode(m.payload()).unwrap();

@@ -116,13 +116,73 @@ impl std::fmt::Display for Hop {
     }
 }
 
+/// Credentials and the solver's TLS identity for boards b0..b3 of rig `bench` (the secured
+/// row: user/password inside the TLS tunnels, docs/cluster.md "TLS").
+struct Secure {
+    dictionary: std::path::PathBuf,
+    certificate: std::path::PathBuf,
+    key: std::path::PathBuf,
+    passwords: Vec<String>,
+}
+
+fn secure_files() -> Secure {
+    let dir = std::env::temp_dir().join(format!("irtrack-bench-tls-{}", std::process::id()));
+    let names = ["b0", "b1", "b2", "b3"];
+    let creds = irtrack_cluster::credentials::write_new_credentials(&dir, &names, true).unwrap();
+    let key = rcgen::KeyPair::generate().unwrap();
+    let cert = rcgen::CertificateParams::new(vec![irtrack_cluster::names::SOLVER_TLS_NAME.to_string()])
+        .unwrap()
+        .self_signed(&key)
+        .unwrap();
+    let (certificate, key_file) = (dir.join("solver.tls.crt"), dir.join("solver.tls.key"));
+    std::fs::write(&certificate, cert.pem()).unwrap();
+    irtrack_cluster::credentials::write_private(&key_file, &key.serialize_pem()).unwrap();
+    Secure {
+        dictionary: irtrack_cluster::credentials::dictionary_path(&dir),
+        certificate,
+        key: key_file,
+        passwords: creds.into_iter().map(|c| c.password).collect(),
+    }
+}
+
+/// The transport of the solver (`board` None) or of board `b<i>`, secured when `secure`.
+fn node(low_latency: bool, port: u16, board: Option<usize>, secure: Option<&Secure>) -> TransportConfig {
+    use irtrack_cluster::tls::TlsRole;
+    use irtrack_cluster::transport::Auth;
+    let mut t = match board {
+        None => transport(low_latency, Some(port), None),
+        Some(_) => transport(low_latency, None, Some(port)),
+    };
+    if let Some(s) = secure {
+        match board {
+            None => {
+                t.auth = Auth::solver_from_file("bench", &s.dictionary).unwrap().0;
+                t.tls = Some(TlsRole::Solver {
+                    certificate_file: s.certificate.clone(),
+                    key_file: s.key.clone(),
+                });
+            }
+            Some(i) => {
+                t.auth = Auth::Board {
+                    board: format!("b{i}"),
+                    password: s.passwords[i].clone(),
+                };
+                t.tls = Some(TlsRole::Board {
+                    solver_certificate_file: s.certificate.clone(),
+                });
+            }
+        }
+    }
+    t
+}
+
 /// Hop latency with `boards` boards of 2 cameras each at 120 fps for `secs` s.
-fn hop(boards: usize, secs: f64, low_latency: bool) -> Hop {
+fn hop(boards: usize, secs: f64, low_latency: bool, secure: Option<&Secure>) -> Hop {
     let port = free_port();
-    let solver = Session::open(&transport(low_latency, Some(port), None)).unwrap();
+    let solver = Session::open(&node(low_latency, port, None, secure)).unwrap();
     let (_sub, rx) = ObsSubscriber::new(&solver, "bench", 4096, realtime_ns).unwrap();
     let sessions: Vec<Session> = (0..boards)
-        .map(|_| Session::open(&transport(low_latency, None, Some(port))).unwrap())
+        .map(|b| Session::open(&node(low_latency, port, Some(b), secure)).unwrap())
         .collect();
     let names: Vec<String> = (0..boards).map(|b| format!("b{b}")).collect();
     let mut pubs: Vec<(usize, ObsPublisher)> = sessions
@@ -437,8 +497,11 @@ fn main() {
     for &ll in &o.transports {
         print!(" Zenoh {} transport |", transport_name(ll));
     }
+    // The secured cell: passwords inside TLS tunnels, on the first transport.
+    let secure = secure_files();
+    print!(" {} + passwords + TLS tunnels |", transport_name(o.transports[0]));
     println!(" plain TCP, same traffic (this machine's baseline) |");
-    println!("|---|---|{}---|", "---|".repeat(o.transports.len()));
+    println!("|---|---|{}---|---|", "---|".repeat(o.transports.len()));
     let scheds: Vec<Option<i32>> = std::iter::once(None).chain(o.fifo.map(Some)).collect();
     for boards in [2usize, 4] {
         for &prio in &scheds {
@@ -455,8 +518,9 @@ fn main() {
             };
             print!("| {boards} | {sched} |");
             for &ll in &o.transports {
-                print!(" {} |", hop(boards, secs, ll));
+                print!(" {} |", hop(boards, secs, ll, None));
             }
+            print!(" {} |", hop(boards, secs, o.transports[0], Some(&secure)));
             println!(" {} |", tcp_hop(2 * boards, secs));
             if prio.is_some() {
                 schedule_all(None).expect("back to normal scheduling");

@@ -440,61 +440,90 @@ fn push_now(addr: std::net::SocketAddr, bytes: &[u8]) -> String {
     common::runtime().block_on(push(addr, bytes))
 }
 
-/// Issue 40, item 4: "keys pushed like parameter sets". A solver and a camera board start
-/// without credentials (each makes its key pair); the test seals b0's password to b0's key
-/// and the dictionary to the solver's key, signs both with the PC key they trust, and pushes
-/// them through their parameter ports. Refused over the same sockets: a replay, an envelope
-/// for the other board, one signed by an untrusted key. After a restart both use the pushed
-/// credentials: the board is heard by the solver, and a peer without credentials is refused.
-#[test]
-fn pushed_credentials_let_the_board_in_after_a_restart() {
-    use irtrack_cluster::envelope::{self, Sealing, SecretKind};
-    let dir = TempDir::new("cluster-auth-push");
-    let pc = irtrack_core::signing::SigningKey::from_bytes(&[0x42; 32]);
-    let pub_file = dir.path().join("pc.pub");
-    std::fs::write(
-        &pub_file,
-        irtrack_core::signing::public_key_file(&pc.verifying_key()),
-    )
-    .unwrap();
-    let port = free_tcp_port();
-    let solver_cfg = format!(
-        "[params]\nallow_unsigned = true\ntrusted_keys = [{pub_file:?}]\n[leds]\nbackend = \"none\"\n[cluster]\nrole = \"solver\"\nrig = \"rt\"\nboard = \"s0\"\n\
-         listen = [\"tcp/127.0.0.1:{port}\"]\nfps = 30.0\nimage_sizes_px = [[640, 480], [640, 480]]\n"
-    );
-    let board_cfg = format!(
-        "[params]\ntrusted_keys = [{pub_file:?}]\n[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n\
-         [source.sim]\nfps = 30.0\nwall_clock = true\n\
-         [cluster]\nrole = \"camera\"\nrig = \"rt\"\nboard = \"b0\"\nconnect = [\"tcp/127.0.0.1:{port}\"]\nfps = 30.0\n"
-    );
-    let solver = spawn_irtrackd(dir.path(), "solver", &solver_cfg);
-    let board = spawn_irtrackd(dir.path(), "board", &board_cfg);
-    let key_of = |st: &serde_json::Value| {
-        envelope::parse_key_hex(
-            st["cluster"]["box_public_key"]
-                .as_str()
-                .unwrap_or_else(|| panic!("{st}")),
-        )
-        .unwrap()
-    };
-    let (solver_key, board_key) = (
-        key_of(&status_now(solver.status)),
-        key_of(&status_now(board.status)),
-    );
-    assert_ne!(solver_key, board_key);
+/// A solver s0 and a camera board b0 of rig `rt` that start without credentials and trust
+/// the PC key for pushes, b0's password and the dictionary made on the PC, and each board's
+/// public key for sealing (the push tests).
+struct PushCell {
+    dir: TempDir,
+    port: u16,
+    pc: irtrack_core::signing::SigningKey,
+    solver_cfg: String,
+    board_cfg: String,
+    solver_key: [u8; 32],
+    board_key: [u8; 32],
+    password: Vec<u8>,
+    dictionary: Vec<u8>,
+}
 
-    let keys = dir.path().join("keys");
-    irtrack_cluster::credentials::write_new_credentials(&keys, &["b0"], false).unwrap();
-    let password = std::fs::read(irtrack_cluster::credentials::password_path(&keys, "b0")).unwrap();
-    let dictionary = std::fs::read(irtrack_cluster::credentials::dictionary_path(&keys)).unwrap();
-    let seal = |kind,
-                board: &str,
-                serial,
-                recipient,
-                plaintext: &[u8],
-                signer: &irtrack_core::signing::SigningKey| {
-        envelope::seal(
-            &Sealing {
+impl PushCell {
+    /// Starts both (returned: solver, board) and reads their keys.
+    fn start(name: &str) -> (PushCell, Irtrackd, Irtrackd) {
+        let dir = TempDir::new(name);
+        let pc = irtrack_core::signing::SigningKey::from_bytes(&[0x42; 32]);
+        let pub_file = dir.path().join("pc.pub");
+        std::fs::write(
+            &pub_file,
+            irtrack_core::signing::public_key_file(&pc.verifying_key()),
+        )
+        .unwrap();
+        let port = free_tcp_port();
+        let solver_cfg = format!(
+            "[params]\nallow_unsigned = true\ntrusted_keys = [{pub_file:?}]\n[leds]\nbackend = \"none\"\n[cluster]\nrole = \"solver\"\nrig = \"rt\"\nboard = \"s0\"\n\
+             listen = [\"tcp/127.0.0.1:{port}\"]\nfps = 30.0\nimage_sizes_px = [[640, 480], [640, 480]]\n"
+        );
+        let board_cfg = format!(
+            "[params]\ntrusted_keys = [{pub_file:?}]\n[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n\
+             [source.sim]\nfps = 30.0\nwall_clock = true\n\
+             [cluster]\nrole = \"camera\"\nrig = \"rt\"\nboard = \"b0\"\nconnect = [\"tcp/127.0.0.1:{port}\"]\nfps = 30.0\n"
+        );
+        let keys = dir.path().join("keys");
+        irtrack_cluster::credentials::write_new_credentials(&keys, &["b0"], false).unwrap();
+        let password = std::fs::read(irtrack_cluster::credentials::password_path(&keys, "b0")).unwrap();
+        let dictionary = std::fs::read(irtrack_cluster::credentials::dictionary_path(&keys)).unwrap();
+        let mut cell = PushCell {
+            dir,
+            port,
+            pc,
+            solver_cfg,
+            board_cfg,
+            solver_key: [0; 32],
+            board_key: [0; 32],
+            password,
+            dictionary,
+        };
+        let (solver, board) = cell.spawn();
+        let key_of = |st: &serde_json::Value| {
+            irtrack_cluster::envelope::parse_key_hex(
+                st["cluster"]["box_public_key"]
+                    .as_str()
+                    .unwrap_or_else(|| panic!("{st}")),
+            )
+            .unwrap()
+        };
+        cell.solver_key = key_of(&status_now(solver.status));
+        cell.board_key = key_of(&status_now(board.status));
+        (cell, solver, board)
+    }
+
+    /// Starts (again) both irtrackd processes: solver, board.
+    fn spawn(&self) -> (Irtrackd, Irtrackd) {
+        (
+            spawn_irtrackd(self.dir.path(), "solver", &self.solver_cfg),
+            spawn_irtrackd(self.dir.path(), "board", &self.board_cfg),
+        )
+    }
+
+    /// An envelope of `kind` for `board`, sealed to `recipient`, signed by `signer`.
+    fn seal_by(
+        kind: irtrack_cluster::envelope::SecretKind,
+        board: &str,
+        serial: u64,
+        recipient: [u8; 32],
+        plaintext: &[u8],
+        signer: &irtrack_core::signing::SigningKey,
+    ) -> Vec<u8> {
+        irtrack_cluster::envelope::seal(
+            &irtrack_cluster::envelope::Sealing {
                 kind,
                 board,
                 serial,
@@ -505,20 +534,40 @@ fn pushed_credentials_let_the_board_in_after_a_restart() {
             signer,
         )
         .unwrap()
-    };
-    let to_board = seal(SecretKind::BoardPassword, "b0", 5, board_key, &password, &pc);
-    let to_solver = seal(
-        SecretKind::SolverDictionary,
-        "s0",
-        5,
-        solver_key,
-        &dictionary,
-        &pc,
-    );
+    }
+
+    /// The same, signed by the PC key both trust.
+    fn seal(
+        &self,
+        kind: irtrack_cluster::envelope::SecretKind,
+        board: &str,
+        serial: u64,
+        recipient: [u8; 32],
+        plaintext: &[u8],
+    ) -> Vec<u8> {
+        Self::seal_by(kind, board, serial, recipient, plaintext, &self.pc)
+    }
+}
+
+/// Issue 40, item 4: "keys pushed like parameter sets". A solver and a camera board start
+/// without credentials (each makes its key pair); the test seals b0's password to b0's key
+/// and the dictionary to the solver's key, signs both with the PC key they trust, and pushes
+/// them through their parameter ports. Refused over the same sockets: a replay, an envelope
+/// for the other board, one signed by an untrusted key. After a restart both use the pushed
+/// credentials: the board is heard by the solver, and a peer without credentials is refused.
+#[test]
+fn pushed_credentials_let_the_board_in_after_a_restart() {
+    use irtrack_cluster::envelope::SecretKind;
+    let (cell, solver, board) = PushCell::start("cluster-auth-push");
+    let (solver_key, board_key, port) = (cell.solver_key, cell.board_key, cell.port);
+    let (password, dictionary) = (cell.password.clone(), cell.dictionary.clone());
+    assert_ne!(solver_key, board_key);
+    let to_board = cell.seal(SecretKind::BoardPassword, "b0", 5, board_key, &password);
+    let to_solver = cell.seal(SecretKind::SolverDictionary, "s0", 5, solver_key, &dictionary);
     // Refused before anything is stored: signed by a key neither trusts; b0's envelope at
     // the solver (sealed to b0's key).
     let stranger = irtrack_core::signing::SigningKey::from_bytes(&[0x43; 32]);
-    let forged = seal(
+    let forged = PushCell::seal_by(
         SecretKind::BoardPassword,
         "b0",
         6,
@@ -557,7 +606,10 @@ fn pushed_credentials_let_the_board_in_after_a_restart() {
     );
     // The secret is stored mode 0600, and the envelope never carried it in clear.
     use std::os::unix::fs::PermissionsExt;
-    let stored = dir.path().join("board-state/cluster-credentials/board.password");
+    let stored = cell
+        .dir
+        .path()
+        .join("board-state/cluster-credentials/board.password");
     assert_eq!(
         std::fs::metadata(&stored).unwrap().permissions().mode() & 0o777,
         0o600
@@ -568,8 +620,7 @@ fn pushed_credentials_let_the_board_in_after_a_restart() {
     // Restart both: they take the pushed credentials; the board is heard by the solver.
     drop(board);
     drop(solver);
-    let solver = spawn_irtrackd(dir.path(), "solver", &solver_cfg);
-    let board = spawn_irtrackd(dir.path(), "board", &board_cfg);
+    let (solver, board) = cell.spawn();
     let outsider = own_address("127.0.0.66");
     let _anon = connect_from(port, Some(outsider.as_str()), Auth::None);
     let t0 = Instant::now();
@@ -614,44 +665,10 @@ fn pushed_credentials_let_the_board_in_after_a_restart() {
 /// both say so on `/status`, and a peer without TLS is refused with its address.
 #[test]
 fn pushed_tls_files_make_the_solver_prove_itself_after_a_restart() {
-    use irtrack_cluster::envelope::{self, Sealing, SecretKind};
-    let dir = TempDir::new("cluster-auth-tls");
-    let pc = irtrack_core::signing::SigningKey::from_bytes(&[0x42; 32]);
-    let pub_file = dir.path().join("pc.pub");
-    std::fs::write(
-        &pub_file,
-        irtrack_core::signing::public_key_file(&pc.verifying_key()),
-    )
-    .unwrap();
-    let port = free_tcp_port();
-    let solver_cfg = format!(
-        "[params]\nallow_unsigned = true\ntrusted_keys = [{pub_file:?}]\n[leds]\nbackend = \"none\"\n[cluster]\nrole = \"solver\"\nrig = \"rt\"\nboard = \"s0\"\n\
-         listen = [\"tcp/127.0.0.1:{port}\"]\nfps = 30.0\nimage_sizes_px = [[640, 480], [640, 480]]\n"
-    );
-    let board_cfg = format!(
-        "[params]\ntrusted_keys = [{pub_file:?}]\n[service]\nparams_from_simulator = true\n[leds]\nbackend = \"none\"\n\
-         [source.sim]\nfps = 30.0\nwall_clock = true\n\
-         [cluster]\nrole = \"camera\"\nrig = \"rt\"\nboard = \"b0\"\nconnect = [\"tcp/127.0.0.1:{port}\"]\nfps = 30.0\n"
-    );
-    let solver = spawn_irtrackd(dir.path(), "solver", &solver_cfg);
-    let board = spawn_irtrackd(dir.path(), "board", &board_cfg);
-    let key_of = |st: &serde_json::Value| {
-        envelope::parse_key_hex(
-            st["cluster"]["box_public_key"]
-                .as_str()
-                .unwrap_or_else(|| panic!("{st}")),
-        )
-        .unwrap()
-    };
-    let (solver_key, board_key) = (
-        key_of(&status_now(solver.status)),
-        key_of(&status_now(board.status)),
-    );
-
-    let keys = dir.path().join("keys");
-    irtrack_cluster::credentials::write_new_credentials(&keys, &["b0"], false).unwrap();
-    let password = std::fs::read(irtrack_cluster::credentials::password_path(&keys, "b0")).unwrap();
-    let dictionary = std::fs::read(irtrack_cluster::credentials::dictionary_path(&keys)).unwrap();
+    use irtrack_cluster::envelope::SecretKind;
+    let (cell, solver, board) = PushCell::start("cluster-auth-tls");
+    let (solver_key, board_key, port) = (cell.solver_key, cell.board_key, cell.port);
+    let (password, dictionary) = (cell.password.clone(), cell.dictionary.clone());
     // The solver's identity as `cluster-keys --tls` makes it.
     let tls_key = rcgen::KeyPair::generate().unwrap();
     let cert = rcgen::CertificateParams::new(vec![irtrack_cluster::names::SOLVER_TLS_NAME.to_string()])
@@ -661,18 +678,7 @@ fn pushed_tls_files_make_the_solver_prove_itself_after_a_restart() {
         .pem();
     let identity = format!("{cert}{}", tls_key.serialize_pem());
     let seal = |kind, board: &str, serial, recipient, plaintext: &[u8]| {
-        envelope::seal(
-            &Sealing {
-                kind,
-                board,
-                serial,
-                created_unix_s: 1_795_000_000,
-                recipient,
-                plaintext,
-            },
-            &pc,
-        )
-        .unwrap()
+        cell.seal(kind, board, serial, recipient, plaintext)
     };
     // The solver's key never goes to a board: not as the solver's identity (the wrong kind
     // for a camera board), nor inside the certificate to pin.
@@ -742,8 +748,7 @@ fn pushed_tls_files_make_the_solver_prove_itself_after_a_restart() {
 
     drop(board);
     drop(solver);
-    let solver = spawn_irtrackd(dir.path(), "solver", &solver_cfg);
-    let board = spawn_irtrackd(dir.path(), "board", &board_cfg);
+    let (solver, board) = cell.spawn();
     // A peer with b0's own password but no TLS, from an address of its own.
     let outsider = own_address("127.0.0.67");
     let b0_password = String::from_utf8(password.clone()).unwrap();

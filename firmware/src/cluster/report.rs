@@ -165,8 +165,10 @@ pub struct DeniedPublicationReport {
     /// The access-control subject it matched (`Interface(lo)+Username(b1)+Transport(Tcp)+
     /// <zid>`), once known.
     pub subject: Option<String>,
-    /// The key expression it published on.
+    /// The key expression it published (or answered the clock probe) on.
     pub key: String,
+    /// `put` (observations) or `reply` (clock probe answers).
+    pub action: &'static str,
     /// Denials logged.
     pub count: u64,
     /// Time since the newest, s.
@@ -253,8 +255,13 @@ impl PeerRefusalsReport {
             .denied_recent
             .first()
             .filter(|d| d.age_s < PEER_REFUSED_FAULT_S)?;
+        let does = if newest.action == "reply" {
+            "answers the clock probe"
+        } else {
+            "publishes"
+        };
         Some(format!(
-            "{}, {:.0} s ago; {} dropped since start — none of it was used; a board publishes under another board's name: check its [cluster] board and that it has its own password file (host-tools cluster-keys, docs/cluster.md \"Credentials\")",
+            "{}, {:.0} s ago; {} dropped since start — none of it was used; a board {does} under another board's name: check its [cluster] board and that it has its own password file (host-tools cluster-keys, docs/cluster.md \"Credentials\")",
             newest.words, newest.age_s, self.denied_publications
         ))
     }
@@ -926,6 +933,7 @@ mod tests {
                 user: Some("b1".into()),
                 subject: Some("Interface(lo)+Username(b1)+Transport(Tcp)+4f2a9c".into()),
                 key: "irtrack/cell1/b0/cam/0/obs".into(),
+                action: "put",
                 count: 41,
                 age_s: 2.0,
                 last_unix_ms: 0,

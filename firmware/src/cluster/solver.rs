@@ -1357,6 +1357,7 @@ fn peer_refusals_report(log: &irtrack_cluster::refusals::PeerRefusals) -> super:
                 user: d.user().map(str::to_string),
                 subject: d.subject.clone(),
                 key: d.key.clone(),
+                action: d.action.code(),
                 count: d.count,
                 age_s: now.saturating_duration_since(d.last).as_secs_f64(),
                 last_unix_ms: d.last_unix_ms,
