@@ -25,6 +25,9 @@ use irtrack_core::observation::decode;
 
 const PW0: &str = "b0-secret-4Kq9zT2wXn7Lp3Rv";
 
+/// The tests that read the board-side log (one per process) one at a time.
+static BOARD_LOG: Mutex<()> = Mutex::new(());
+
 fn temp_dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("irtrack-ztls-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
@@ -164,6 +167,7 @@ fn contains(hay: &[u8], needle: &[u8]) -> bool {
 
 #[test]
 fn a_board_talks_only_to_the_solver_that_proves_itself_and_nothing_is_readable_on_the_wire() {
+    let _one_at_a_time = BOARD_LOG.lock().unwrap_or_else(|e| e.into_inner());
     let dir = temp_dir("prove");
     let (cert, key) = identity(&dir, "solver");
     let (impostor_cert, impostor_key) = identity(&dir, "impostor");
@@ -329,6 +333,88 @@ fn a_flood_of_failing_handshakes_does_not_keep_a_board_out() {
     );
     assert!(tls_refused >= 100, "only {tls_refused} failed handshakes counted");
     b0.close();
+    solver_s.close();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Python's `ssl` module (OpenSSL), run as a separate process (tests/python/tls_peer.py), on
+/// each side of the tunnels: as a board it completes TLS 1.3 with the solver's tunnel when it
+/// trusts the solver's certificate and fails when it trusts another; as a solver with the
+/// solver's own certificate and key it gets the board's Zenoh bytes, decrypted, and as an
+/// impostor with its own certificate it gets no handshake from the board.
+#[test]
+fn an_independent_tls_stack_meets_the_tunnels() {
+    let _one_at_a_time = BOARD_LOG.lock().unwrap_or_else(|e| e.into_inner());
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/tls_peer.py");
+    let dir = temp_dir("openssl");
+    let (cert, key) = identity(&dir, "solver");
+    let (impostor_cert, impostor_key) = identity(&dir, "impostor");
+    let port = free_port();
+    let (solver_s, _sub, _rx) = solver(&dir, port, &cert, &key);
+    let client = |trusted: &Path| {
+        let o = std::process::Command::new("python3")
+            .args([script, "client", &port.to_string(), trusted.to_str().unwrap()])
+            .output()
+            .expect("python3");
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let ok = client(&cert);
+    assert!(ok.contains("\"ok\": true") && ok.contains("TLSv1.3"), "{ok}");
+    let refused = client(&impostor_cert);
+    assert!(
+        refused.contains("\"ok\": false") && refused.contains("CERTIFICATE_VERIFY_FAILED"),
+        "{refused}"
+    );
+    eprintln!(
+        "OpenSSL as a board: {}; trusting another certificate: {}",
+        ok.trim(),
+        refused.trim()
+    );
+
+    for (c, k, genuine) in [(&cert, &key, true), (&impostor_cert, &impostor_key, false)] {
+        use std::io::BufRead;
+        let sport = free_port();
+        let mut child = std::process::Command::new("python3")
+            .args([
+                script,
+                "server",
+                &sport.to_string(),
+                c.to_str().unwrap(),
+                k.to_str().unwrap(),
+                "3",
+            ])
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .expect("python3");
+        let mut lines = std::io::BufReader::new(child.stdout.take().unwrap()).lines();
+        assert_eq!(lines.next().unwrap().unwrap(), "listening");
+        let before = board_log().snapshot();
+        let b0 = board(sport, Some(&cert));
+        let report = lines.next().unwrap().unwrap();
+        child.wait().unwrap();
+        let after = board_log().snapshot();
+        b0.close();
+        let v: serde_json::Value = serde_json::from_str(&report).unwrap();
+        eprintln!(
+            "OpenSSL as the solver ({}): {report}",
+            if genuine {
+                "its certificate"
+            } else {
+                "an impostor's"
+            }
+        );
+        if genuine {
+            assert!(
+                v["handshakes"].as_u64() >= Some(1) && v["bytes"].as_u64() > Some(0),
+                "{report}"
+            );
+            assert!(after.carried > before.carried, "{after:?}");
+        } else {
+            assert_eq!(v["handshakes"], 0, "{report}");
+            assert!(v["failed"].as_u64() >= Some(1), "{report}");
+            assert!(after.solver_refused > before.solver_refused, "{after:?}");
+        }
+    }
     solver_s.close();
     let _ = std::fs::remove_dir_all(&dir);
 }
