@@ -189,10 +189,25 @@ pub struct BoardClock {
     /// Reported silent by the receiver ([`Pairer::set_board_down`]): sets stop waiting for
     /// its cameras, so one stopped board does not delay every position to the deadline.
     pub down: bool,
+    /// Its last [`RECENT`] observations all arrived later than any of the last full window
+    /// by more than that window's spread (and at least [`STEP_BACK_MIN_NS`]): its clock
+    /// stepped back, or its link holds a queue. The receiver cannot tell which from here.
+    pub stepped_back: bool,
     cur_max: i64,
+    cur_min: i64,
     cur_count: u32,
     prev_max: Option<i64>,
+    prev_min: Option<i64>,
+    recent: [i64; RECENT],
+    recent_n: usize,
 }
+
+/// Observations whose offsets [`BoardClock::stepped_back`] looks at.
+pub const RECENT: usize = 4;
+/// The smallest drop of a board's offset taken as a step back, ns.
+pub const STEP_BACK_MIN_NS: i64 = 2_000_000;
+/// Added to the last window's spread (its jitter) for the drop to count, ns.
+const STEP_BACK_MARGIN_NS: i64 = 1_000_000;
 
 /// The pairing state machine (see the module documentation).
 #[derive(Debug, Clone)]
@@ -274,17 +289,29 @@ impl Pairer {
         let window = self.cfg.offset_window;
         let limit = self.cfg.max_clock_offset_ns;
         let b = &mut self.boards[board];
-        b.cur_max = if b.cur_count == 0 {
-            offset_sample_ns
+        (b.cur_max, b.cur_min) = if b.cur_count == 0 {
+            (offset_sample_ns, offset_sample_ns)
         } else {
-            b.cur_max.max(offset_sample_ns)
+            (b.cur_max.max(offset_sample_ns), b.cur_min.min(offset_sample_ns))
         };
         b.cur_count += 1;
+        b.recent[b.recent_n % RECENT] = offset_sample_ns;
+        b.recent_n += 1;
+        // A clock stepped back makes every observation after it look that much later: the
+        // window's maximum shows it only after two windows, the last few at once.
+        b.stepped_back = match (b.prev_max, b.prev_min) {
+            (Some(mx), Some(mn)) if b.recent_n >= RECENT => {
+                let recent_max = b.recent.iter().copied().max().unwrap_or(i64::MAX);
+                recent_max < mx - STEP_BACK_MIN_NS.max(mx - mn + STEP_BACK_MARGIN_NS)
+            }
+            _ => false,
+        };
         // The estimate: the larger of this window's and the last full window's maximum, so a
         // change shows within two windows and one slow packet never counts.
         let est = b.prev_max.map_or(b.cur_max, |p| p.max(b.cur_max));
         if b.cur_count >= window {
             b.prev_max = Some(b.cur_max);
+            b.prev_min = Some(b.cur_min);
             b.cur_count = 0;
         }
         b.offset_ns = Some(est);
@@ -527,6 +554,52 @@ mod tests {
         }
         assert_eq!(p.stats().sets_complete, 5);
         assert_eq!(p.stats().late, 0);
+    }
+
+    /// A clock that steps back is seen from the last few observations' arrival, within
+    /// [`RECENT`] of them; a link's jitter (here up to 3 ms) and a small step are not.
+    #[test]
+    fn a_step_back_shows_in_the_last_few_arrivals_and_jitter_does_not() {
+        let mut p = Pairer::new(cfg()).unwrap();
+        let t0 = 1_000 * PERIOD;
+        let mut rng = 0x2545_f491_4f6c_dd1du64;
+        let mut jitter_ns = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            rng % 3_000_000
+        };
+        let mut flagged = Vec::new();
+        // Board 1's camera 2: 300 frames in line (transit 0.2–3.2 ms), then its clock steps
+        // back by 8 ms (every stamp 8 ms early), then by 1.5 ms only (another run below).
+        for k in 0..400u64 {
+            let t = t0 + k * PERIOD;
+            let stamp = if k >= 300 { t - 8_000_000 } else { t };
+            let m = msg(0, k, stamp, None, 1.0);
+            let _ = push(&mut p, 2, &m, t + 200_000 + jitter_ns());
+            if p.boards()[1].stepped_back {
+                flagged.push(k);
+            }
+            let _ = p.poll(t + 5_000_000);
+        }
+        assert!(
+            flagged
+                .first()
+                .is_some_and(|k| (300..300 + RECENT as u64).contains(k)),
+            "flagged at {flagged:?}"
+        );
+        assert!(!p.boards()[0].stepped_back);
+        let mut p = Pairer::new(cfg()).unwrap();
+        for k in 0..400u64 {
+            let t = t0 + k * PERIOD;
+            let stamp = if k >= 300 { t - 1_500_000 } else { t };
+            let _ = push(&mut p, 2, &msg(0, k, stamp, None, 1.0), t + 200_000 + jitter_ns());
+            assert!(
+                !p.boards()[1].stepped_back,
+                "a 1.5 ms step within 3 ms of jitter, at {k}"
+            );
+            let _ = p.poll(t + 5_000_000);
+        }
     }
 
     #[test]

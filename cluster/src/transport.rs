@@ -579,6 +579,8 @@ pub struct ClockProber {
     stop: Arc<std::sync::atomic::AtomicBool>,
     /// Probes sent.
     pub sent: Arc<AtomicU64>,
+    /// Wakes the thread for a probe before its interval is over.
+    wake: SyncSender<()>,
 }
 
 impl std::fmt::Debug for ClockProber {
@@ -603,6 +605,7 @@ impl ClockProber {
     ) -> Result<(ClockProber, Receiver<ProbeReply>)> {
         check_name("rig", rig)?;
         let (tx, rx) = sync_channel::<ProbeReply>(64);
+        let (wake, woken) = sync_channel::<()>(1);
         let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
         let sent = Arc::new(AtomicU64::new(0));
         let (session, rig, st, sn) = (session.inner.clone(), rig.to_string(), stop.clone(), sent.clone());
@@ -664,14 +667,25 @@ impl ClockProber {
                     if asked.is_ok() {
                         sn.fetch_add(1, Ordering::Relaxed);
                     }
-                    std::thread::sleep(interval);
+                    // The interval, or less when asked for a probe now; gone when the
+                    // prober is dropped (its sender with it).
+                    if let Err(std::sync::mpsc::RecvTimeoutError::Disconnected) = woken.recv_timeout(interval)
+                    {
+                        break;
+                    }
                 }
             })
             .map_err(|e| ClusterError::Transport {
                 what: "clock probe thread",
                 reason: e.to_string(),
             })?;
-        Ok((ClockProber { stop, sent }, rx))
+        Ok((ClockProber { stop, sent, wake }, rx))
+    }
+
+    /// Sends the next probe now instead of at the end of the interval (a board's clock looks
+    /// stepped, or is being measured again after a step).
+    pub fn probe_now(&self) {
+        let _ = self.wake.try_send(());
     }
 }
 

@@ -106,6 +106,11 @@ pub struct ClockProbeReport {
     pub last_step_ago_s: Option<f64>,
     /// Stepped and not yet measured again: its cameras are left out of every set.
     pub settling: bool,
+    /// Times its observations suddenly arrived late by more than its link's jitter (a clock
+    /// stepped back, or a queue on the link), each time left out until the probe answered.
+    pub suspected_steps_back: u64,
+    /// Left out now for that reason.
+    pub suspect: bool,
 }
 
 /// A clock step stays a fault this long after it was seen, s (a clock stepping every few

@@ -159,6 +159,8 @@ pub struct ClusterSource {
     prober: Option<(ClockProber, Receiver<ProbeReply>)>,
     /// What the probe knows of each board's clock, by board name (a few boards: a list).
     clocks: Vec<BoardProbe>,
+    /// When a probe was last asked for out of turn (pairing clock, ns).
+    last_fast_probe_ns: u64,
 }
 
 /// One camera board's clock as the probe measures it.
@@ -175,14 +177,34 @@ struct BoardProbe {
     last_step: Option<(i64, u64)>,
     /// Stepped and not yet measured again: its cameras are left out of every set.
     settling: bool,
+    /// Its last arrivals say its clock may have stepped back (the pairer's
+    /// `stepped_back`), since this time on the pairing clock: left out until a probe sent
+    /// after it answers (a step, or only a slow link), at most [`SUSPECT_MAX_NS`].
+    suspect_at_ns: Option<u64>,
+    /// Times that happened.
+    suspected: u64,
+    /// The offset before the last step, ns: the step's size is re-measured against the
+    /// settled estimate (the sample that showed it carries its own round trip's error).
+    pre_step_ns: Option<i64>,
+
+    /// The pairer's flag at the board's last observation (a suspicion starts on its rise).
+    back_flag: bool,
 }
 
-/// Time between probes of every board (each a request and a reply of 40 bytes): also the
-/// longest a board's clock step goes unseen by the probe (a step ahead shows at once in the
-/// one-way check; one back only here). Measured 2026-11-29 in cluster_e2e's stepping clock
-/// (±8 ms every 2 s): at 250 ms, up to 7 positions of 4 s about 2.1 mm off after a step
-/// back; at 100 ms none over 1 mm, but a board corrected by 6 ms then tracked worse (RMS
-/// 0.045 → 0.10 mm, not yet understood), so 250 ms stays.
+/// A suspicion from arrivals that no probe answer settles is dropped after this, ns (a board
+/// that does not answer the probe is not left out for good).
+const SUSPECT_MAX_NS: u64 = 1_000_000_000;
+/// While a board is suspected, it is probed this often instead of every [`PROBE_INTERVAL`],
+/// ns. Not while it settles after a step: probing faster then gave a worse new estimate
+/// (positions 0.25–0.35 mm RMS in 3 of 10 runs of the stepping test, against 0.05 mm), as
+/// probing every 100 ms did for a corrected board (docs/cluster.md).
+const FAST_PROBE_NS: u64 = 25_000_000;
+
+/// Time between probes of every board (each a request and a reply of 40 bytes). A step
+/// ahead shows at once in the one-way check, one back in the last few arrivals (the
+/// pairer's `stepped_back`), which hold the board out and ask for a probe at once. Probing
+/// every 100 ms instead made a board corrected by 6 ms track worse (RMS 0.045 → 0.10 mm,
+/// not yet understood), so 250 ms stays.
 const PROBE_INTERVAL: Duration = Duration::from_millis(250);
 /// A probe whose round trip is longer than this met a queue on the way: not used, ns.
 const PROBE_MAX_RTT_NS: u64 = 20_000_000;
@@ -457,6 +479,7 @@ impl ClusterSource {
             sequence_restarts: 0,
             prober,
             clocks: Vec::new(),
+            last_fast_probe_ns: 0,
         })
     }
 
@@ -481,6 +504,10 @@ impl ClusterSource {
                         steps: 0,
                         last_step: None,
                         settling: false,
+                        suspect_at_ns: None,
+                        suspected: 0,
+                        pre_step_ns: None,
+                        back_flag: false,
                     });
                     self.clocks.len() - 1
                 }
@@ -488,9 +515,19 @@ impl ClusterSource {
             };
             let c = &mut self.clocks[i];
             match c.estimator.push(&r.sample) {
-                Ok(Taken::Added) => c.replies += 1,
+                Ok(Taken::Added) => {
+                    c.replies += 1;
+                    // Asked after the suspicion and in line with the estimate: no step, the
+                    // arrivals were late on the link.
+                    if c.suspect_at_ns.is_some_and(|t| r.sample.t1_ns > t) {
+                        c.suspect_at_ns = None;
+                        tracing::info!(board = %c.board, "no clock step after all (the probe agrees): its observations arrived late on the link");
+                    }
+                }
                 Ok(Taken::Stepped { by_ns }) => {
                     c.replies += 1;
+                    c.suspect_at_ns = None;
+                    c.pre_step_ns = Some(r.sample.offset_ns() - by_ns);
                     c.steps += 1;
                     c.last_step = Some((by_ns, clock::monotonic_ns()));
                     // Observations stamped after the step carry the new offset: until the
@@ -508,6 +545,26 @@ impl ClusterSource {
         }
     }
 
+    /// Boards suspected of a step back are probed every [`FAST_PROBE_NS`] until a probe
+    /// answers; a suspicion no probe answer settles ends after [`SUSPECT_MAX_NS`].
+    fn probe_unsettled(&mut self, now_ns: u64) {
+        let Some((prober, _)) = &self.prober else { return };
+        let mut unsettled = false;
+        for c in &mut self.clocks {
+            if c.suspect_at_ns
+                .is_some_and(|t| now_ns.saturating_sub(t) > SUSPECT_MAX_NS)
+            {
+                c.suspect_at_ns = None;
+                tracing::warn!(board = %c.board, "its clock may have stepped back, but the probe did not answer within 1 s: taken again as before");
+            }
+            unsettled |= c.suspect_at_ns.is_some();
+        }
+        if unsettled && now_ns.saturating_sub(self.last_fast_probe_ns) >= FAST_PROBE_NS {
+            prober.probe_now();
+            self.last_fast_probe_ns = now_ns;
+        }
+    }
+
     /// Puts a camera board's capture time on the solver's clock by the probe's estimate of its
     /// clock; restarts the board's pairing state when the correction starts, stops or steps.
     fn correct_capture_time(&mut self, board: &str, capture_ts_ns: u64, now_ns: u64) -> u64 {
@@ -522,8 +579,11 @@ impl ClusterSource {
         // the same machine) is left alone: correcting it by the probe's own error (50–80 µs
         // here) made positions worse (RMS 0.043 → 0.055–0.070 mm, measured 2026-11-28).
         let estimate = c.estimator.estimate(now_ns);
-        if estimate.is_some() {
+        if let Some(e) = &estimate {
             c.settling = false;
+            if let (Some(pre), Some((_, at))) = (c.pre_step_ns.take(), c.last_step) {
+                c.last_step = Some((e.offset_ns - pre, at));
+            }
         }
         let offset = estimate.and_then(|e| {
             let surely_off_ns = e.offset_ns.unsigned_abs().saturating_sub(e.uncertainty_ns);
@@ -879,12 +939,31 @@ impl ClusterSource {
             return;
         }
         // Late, conflicting or clock-faulted observations are counted by the pairer.
-        if layout.pairer.push(camera, &obs, m.received_ns) == PushOutcome::NoTrigger
-            && let Some(b) =
-                (0..layout.board_cameras.len()).find(|&b| layout.board_cameras[b].contains(&camera))
+        let pushed = layout.pairer.push(camera, &obs, m.received_ns);
+        let board = (0..layout.board_cameras.len()).find(|&b| layout.board_cameras[b].contains(&camera));
+        if pushed == PushOutcome::NoTrigger
+            && let Some(b) = board
             && let Some(n) = self.no_trigger.get_mut(b)
         {
             *n += 1;
+        }
+        // Its last arrivals all late by more than its link's jitter: its clock may have
+        // stepped back, which the probe would see only at its next round. Left out from now,
+        // and probed at once.
+        if let Some(b) = board
+            && let Some(name) = layout.boards.get(b)
+            && let Some(c) = self.clocks.iter_mut().find(|c| c.board == *name)
+        {
+            let back = layout.pairer.boards().get(b).is_some_and(|k| k.stepped_back);
+            if back && !c.back_flag && c.suspect_at_ns.is_none() && !c.settling {
+                c.suspect_at_ns = Some(m.received_ns);
+                c.suspected += 1;
+                tracing::info!(board = %c.board, "its observations suddenly arrive late: its clock may have stepped back; left out until the probe has measured it");
+                if let Some((p, _)) = &self.prober {
+                    p.probe_now();
+                }
+            }
+            c.back_flag = back;
         }
     }
 
@@ -1013,6 +1092,8 @@ impl ClusterSource {
                                 .last_step
                                 .map(|(_, at)| clock::monotonic_ns().saturating_sub(at) as f64 / 1e9),
                             settling: c.settling,
+                            suspected_steps_back: c.suspected,
+                            suspect: c.suspect_at_ns.is_some(),
                         }
                     }),
                     clock_fault: clock.faulted,
@@ -1120,6 +1201,7 @@ impl FrameSource for ClusterSource {
         loop {
             let now = realtime_ns();
             self.take_probe_replies();
+            self.probe_unsettled(now);
             self.update_report(now);
             if self.take_set(now, out) {
                 return Ok(());
@@ -1198,7 +1280,10 @@ impl FrameSource for ClusterSource {
         // A board whose clock just stepped: its newest observations may carry either offset.
         let mut settling = [false; irtrack_core::pipeline::MAX_CAMERAS];
         for (s, name) in settling.iter_mut().zip(&layout.boards) {
-            *s = self.clocks.iter().any(|c| c.settling && c.board == *name);
+            *s = self
+                .clocks
+                .iter()
+                .any(|c| (c.settling || c.suspect_at_ns.is_some()) && c.board == *name);
         }
         for (off, s) in clock_off.iter_mut().zip(settling) {
             *off |= s;
