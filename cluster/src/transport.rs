@@ -223,6 +223,12 @@ impl TransportConfig {
             c.insert_json5("transport/unicast/qos/enabled", "false")
                 .map_err(bad)?;
         }
+        if self.tls.is_some() {
+            // Zenoh's gossip tells peers each other's locators and has them connect on their
+            // own: with TLS every link goes through the tunnels, never to a locator gossiped
+            // (the solver's Zenoh listens on 127.0.0.1 behind its tunnel).
+            c.insert_json5("scouting/gossip/enabled", "false").map_err(bad)?;
+        }
         match &self.auth {
             Auth::None => {}
             Auth::Board { board, password } => {

@@ -94,18 +94,20 @@ fn board(port: u16, pinned: Option<&Path>) -> Session {
     .unwrap()
 }
 
-/// Publishes from `board` every 2 ms until `want` observations arrived or `limit` passed;
-/// returns how many arrived, and when the first did (from the start).
+/// Publishes from `board` every 2 ms, sequences from `base` on, until `want` of them arrived
+/// or `limit` passed; returns how many arrived, and when the first did (from the start).
+/// Others still on their way (an earlier sender's) are not counted.
 fn deliver(
     board: &Session,
     rx: &Receiver<Received>,
+    base: u64,
     want: usize,
     limit: Duration,
 ) -> (usize, Option<Duration>) {
     let mut p = ObsPublisher::new(board, "cell1", "b0", 0).unwrap();
     let start = Instant::now();
     let (mut got, mut first) = (0usize, None);
-    let mut seq = 0u64;
+    let mut seq = base;
     while got < want && start.elapsed() < limit {
         seq += 1;
         p.publish(&header("cell1", "b0", 0, seq), &[blob()]).unwrap();
@@ -113,8 +115,10 @@ fn deliver(
         while let Ok(m) = rx.try_recv() {
             let obs = decode(m.payload()).unwrap();
             assert_eq!(obs.header.board, "b0");
-            got += 1;
-            first.get_or_insert(start.elapsed());
+            if (base..base + 1_000_000).contains(&obs.header.sequence) {
+                got += 1;
+                first.get_or_insert(start.elapsed());
+            }
         }
     }
     (got, first)
@@ -177,7 +181,7 @@ fn a_board_talks_only_to_the_solver_that_proves_itself_and_nothing_is_readable_o
     let (solver_s, _sub, rx) = solver(&dir, port, &cert, &key);
     let (tap_port, seen) = wire_tap(port);
     let b0 = board(tap_port, Some(&cert));
-    let (got, first) = deliver(&b0, &rx, 50, Duration::from_secs(15));
+    let (got, first) = deliver(&b0, &rx, 0, 50, Duration::from_secs(15));
     assert!(
         got >= 50,
         "the board pinning the solver's certificate delivered {got} of 50"
@@ -206,7 +210,7 @@ fn a_board_talks_only_to_the_solver_that_proves_itself_and_nothing_is_readable_o
     let (_psub, prx) = ObsSubscriber::new(&plain_solver, "cell1", 4096, realtime_ns).unwrap();
     let (ptap, pseen) = wire_tap(plain_port);
     let pb0 = board(ptap, None);
-    let (pgot, _) = deliver(&pb0, &prx, 20, Duration::from_secs(15));
+    let (pgot, _) = deliver(&pb0, &prx, 1_000_000, 20, Duration::from_secs(15));
     assert!(pgot >= 20, "{pgot}");
     assert!(
         contains(&pseen.lock().unwrap(), b"cell1"),
@@ -221,7 +225,7 @@ fn a_board_talks_only_to_the_solver_that_proves_itself_and_nothing_is_readable_o
     let iport = free_port();
     let (impostor, _isub, irx) = solver(&dir, iport, &impostor_cert, &impostor_key);
     let fooled = board(iport, Some(&cert));
-    let (igot, _) = deliver(&fooled, &irx, 1, Duration::from_secs(4));
+    let (igot, _) = deliver(&fooled, &irx, 2_000_000, 1, Duration::from_secs(4));
     assert_eq!(igot, 0, "the impostor received observations");
     let after = board_log().snapshot();
     assert!(
@@ -243,7 +247,7 @@ fn a_board_talks_only_to_the_solver_that_proves_itself_and_nothing_is_readable_o
     // address; and it delivers nothing.
     let before = global().snapshot().by_reason[3].1;
     let no_tls = board(port, None);
-    let (ngot, _) = deliver(&no_tls, &rx, 1, Duration::from_secs(3));
+    let (ngot, _) = deliver(&no_tls, &rx, 3_000_000, 1, Duration::from_secs(3));
     assert_eq!(ngot, 0, "a peer without TLS reached the solver");
     let snap = global().snapshot();
     assert_eq!(snap.by_reason[3].0, RefusalReason::Tls);
@@ -307,7 +311,7 @@ fn a_flood_of_failing_handshakes_does_not_keep_a_board_out() {
     let start = Instant::now();
     let b0 = board(port, Some(&cert));
     let opened = start.elapsed();
-    let (got, first) = deliver(&b0, &rx, 10, Duration::from_secs(15));
+    let (got, first) = deliver(&b0, &rx, 0, 10, Duration::from_secs(15));
     let first = first.map(|f| f + opened);
     let took = start.elapsed();
     stop.store(true, Ordering::Relaxed);
