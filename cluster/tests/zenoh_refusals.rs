@@ -7,6 +7,8 @@
 //! layer recognises (refusals.rs): counting zero would pass silently otherwise.
 #![cfg(feature = "zenoh")]
 
+mod common;
+
 use std::time::{Duration, Instant};
 
 use irtrack_cluster::credentials::{BoardCredential, dictionary_text};
@@ -14,7 +16,7 @@ use irtrack_cluster::refusals::{
     self, CredentialProblem, RefusalReason, RefusalSnapshot, ZENOH_TRANSPORT_VERSION, ZENOH_VERSION,
 };
 use irtrack_cluster::transport::{Auth, ObsPublisher, ObsSubscriber, Session, TransportConfig, realtime_ns};
-use irtrack_core::observation::{ObsClock, ObsHeader};
+use irtrack_core::observation::ObsHeader;
 use tracing_subscriber::layer::SubscriberExt;
 
 const PW0: &str = "b0-secret-4Kq9zT2wXn7Lp3Rv";
@@ -127,18 +129,7 @@ fn refused_peers_are_counted_with_their_address() {
 
     // The genuine board is heard: the solver's authentication works in this run.
     let mut publ = ObsPublisher::new(&p_genuine, "cell1", "b0", 0).unwrap();
-    let header = |seq| ObsHeader {
-        rig: "cell1",
-        board: "b0",
-        camera: 0,
-        sequence: seq,
-        trigger_count: None,
-        capture_ts_ns: realtime_ns(),
-        clock: ObsClock::Realtime,
-        exposure_us: 250,
-        dropped: 0,
-        send_delay_us: 100,
-    };
+    let header = |seq| common::header("cell1", "b0", 0, seq);
     let mut heard = false;
     let mut snap = log.snapshot();
     let deadline = t0 + Duration::from_secs(8);
