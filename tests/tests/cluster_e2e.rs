@@ -16,6 +16,8 @@
 //! and three one-camera boards, a robot link on the solver. A fourth renders the cameras
 //! free-running with a rolling shutter (issue 39) and compares time-true solving across boards
 //! with one board and with solving as seen.
+//! Another puts a board on a subnet of its own, behind a router namespace, with passwords and
+//! the TLS tunnel (docs/cluster.md, "Across subnets").
 //!
 //! Build the binaries first, with the same features as this test (the example brings in this
 //! crate's dev-dependencies, so irtrackd gets them; `--bins` alone would leave `cluster` out):
@@ -456,6 +458,226 @@ fn assert_tracks_like_one_board(
         "solver RMS {rms_c} mm vs one board {rms_s} mm (more than 10 % worse)"
     );
     assert_no_wrong_position(what, cluster);
+}
+
+/// Two links through a router namespace: the test's namespace (the solver) —
+/// 10.232.<o>.0/30 — the router (forwarding on) — 10.232.<o+1>.0/30 — a board's namespace,
+/// whose only route to the solver goes through the router. Deleted on drop.
+struct RoutedNet {
+    router: String,
+    board: String,
+    o: usize,
+}
+
+impl RoutedNet {
+    fn try_new() -> Option<RoutedNet> {
+        let pid = std::process::id();
+        let n = RoutedNet {
+            router: format!("irtr{}", pid % 100_000),
+            board: format!("irtb{}", pid % 100_000),
+            o: (pid as usize % 63) * 4,
+        };
+        let ip = |args: &[&str]| {
+            Command::new("ip")
+                .args(args)
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .status()
+                .is_ok_and(|s| s.success())
+        };
+        if !ip(&["netns", "add", &n.router]) {
+            return None;
+        }
+        if !ip(&["netns", "add", &n.board]) {
+            let _ = ip(&["netns", "del", &n.router]);
+            return None;
+        }
+        let host_if = format!("irq{}", pid % 100_000);
+        let (r, b) = (n.router.as_str(), n.board.as_str());
+        let (solver_net, board_net) = (n.o, n.o + 1);
+        let ok = ip(&["link", "add", &host_if, "type", "veth", "peer", "name", "up0", "netns", r])
+            && ip(&["addr", "add", &format!("{}/30", n.solver_ip()), "dev", &host_if])
+            && ip(&["link", "set", &host_if, "up"])
+            && ip(&["netns", "exec", r, "ip", "addr", "add", &format!("10.232.{solver_net}.2/30"), "dev", "up0"])
+            && ip(&["netns", "exec", r, "ip", "link", "set", "up0", "up"])
+            && ip(&["netns", "exec", r, "ip", "link", "add", "down0", "type", "veth", "peer", "name", "eth0", "netns", b])
+            && ip(&["netns", "exec", r, "ip", "addr", "add", &format!("10.232.{board_net}.1/30"), "dev", "down0"])
+            && ip(&["netns", "exec", r, "ip", "link", "set", "down0", "up"])
+            && ip(&["netns", "exec", r, "sysctl", "-qw", "net.ipv4.ip_forward=1"])
+            && ip(&["netns", "exec", b, "ip", "addr", "add", &format!("{}/30", n.board_ip()), "dev", "eth0"])
+            && ip(&["netns", "exec", b, "ip", "link", "set", "eth0", "up"])
+            && ip(&["netns", "exec", b, "ip", "link", "set", "lo", "up"])
+            && ip(&["netns", "exec", b, "ip", "route", "add", "default", "via", &format!("10.232.{board_net}.1")])
+            // The test's namespace reaches the board's subnet through the router; the route
+            // goes with the veth link when the router's namespace is deleted.
+            && ip(&["route", "add", &format!("10.232.{board_net}.0/30"), "via", &format!("10.232.{solver_net}.2"), "dev", &host_if]);
+        ok.then_some(n)
+    }
+
+    fn solver_ip(&self) -> String {
+        format!("10.232.{}.1", self.o)
+    }
+
+    fn board_ip(&self) -> String {
+        format!("10.232.{}.2", self.o + 1)
+    }
+}
+
+impl Drop for RoutedNet {
+    fn drop(&mut self) {
+        for ns in [&self.board, &self.router] {
+            let _ = Command::new("ip").args(["netns", "del", ns]).status();
+        }
+    }
+}
+
+/// Across subnets (docs/cluster.md, "Across subnets"): a board on another IP subnet reaches
+/// the solver through an IP router, with its password and the TLS tunnel, and nothing else in
+/// between (no Zenoh router). Board b0 sits in a namespace whose only route to the solver goes
+/// through a router namespace; b1 is in the solver's. b0's clock is 20 ms ahead and the clock
+/// probe measures it across the router. A host on b0's subnet that talks no TLS is refused
+/// and named with its own address.
+#[test]
+fn a_board_on_another_subnet_joins_through_an_ip_router_with_credentials_and_tls() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let Some(net) = RoutedNet::try_new() else {
+        if std::env::var_os("IRTRACK_REQUIRE_NETNS").is_some() {
+            panic!("IRTRACK_REQUIRE_NETNS is set but `ip netns` with a router namespace does not work here");
+        }
+        eprintln!("SKIPPED: network namespaces are not available here (root and iproute2 needed)");
+        return;
+    };
+    let dir = temp_dir("cluster-routed");
+    let keys = dir.join("keys");
+    let out = Command::new(common::bin("host-tools"))
+        .args(["cluster-keys", "--boards", "b0,b1", "--tls", "--out"])
+        .arg(&keys)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let key = |f: &str| format!("{:?}", keys.join(f));
+    let port = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let solver_addr = format!("tcp/{}:{port}", net.solver_ip());
+    let solver_cfg = format!(
+        "{}correct_board_clocks = true\ncredentials_file = {}\ntls_certificate_file = {}\ntls_key_file = {}\n",
+        solver_config(&solver_addr),
+        key("solver.credentials"),
+        key("solver.tls.crt"),
+        key("solver.tls.key"),
+    );
+    let board_extra = |b: &str, more: &str| {
+        format!(
+            "password_file = {}\ntls_solver_certificate_file = {}\n{more}",
+            key(&format!("{b}.password")),
+            key("solver.tls.crt")
+        )
+    };
+    solver_params(&dir.join("solver-state"));
+    let scenario = Scenario::new(sim_cfg().scenario_config()).unwrap();
+    let solver = spawn(&dir, "solver", &solver_cfg, None, "127.0.0.1");
+    let b0 = spawn(
+        &dir,
+        "b0",
+        &board_config(
+            "b0",
+            [0, 1],
+            &solver_addr,
+            &board_extra("b0", "clock_offset_ms = 20.0\n"),
+        ),
+        Some(&net.board),
+        &net.board_ip(),
+    );
+    let _b1 = spawn(
+        &dir,
+        "b1",
+        &board_config("b1", [2, 3], &solver_addr, &board_extra("b1", "")),
+        None,
+        "127.0.0.1",
+    );
+    wait_for(
+        "b0's clock measured across the router",
+        Duration::from_secs(20),
+        || board(&solver.status(), "b0")["clock_probe"]["corrected"] == true,
+    );
+    wait_for("solver tracks with 4 cameras", Duration::from_secs(20), || {
+        solver
+            .take_records()
+            .iter()
+            .any(|r| r["status"] == "ok" && r["cameras_used"] == 4)
+    });
+    std::thread::sleep(Duration::from_secs(3));
+    let tracked = errors(&solver.take_records(), &scenario);
+    let u = used(&tracked);
+    eprintln!(
+        "across the router: {} positions in 3 s, {} of them from 4 cameras, RMS {:.4} mm",
+        tracked.len(),
+        u.iter().filter(|&&c| c == 4).count(),
+        rms(&errs(&tracked))
+    );
+    assert!(
+        tracked.len() as f64 >= 0.6 * 3.0 * FPS,
+        "{} positions",
+        tracked.len()
+    );
+    assert!(
+        u.iter().filter(|&&c| c == 4).count() as f64 >= 0.9 * u.len() as f64,
+        "cameras used: {u:?}"
+    );
+    assert_no_wrong_position("across the router", &tracked);
+    assert!(rms(&errs(&tracked)) < 0.2, "RMS {} mm", rms(&errs(&tracked)));
+
+    // A host on b0's subnet that talks plain TCP to the solver's port.
+    let stranger = Command::new("ip")
+        .args(["netns", "exec", &net.board, "python3", "-c"])
+        .arg(format!(
+            "import socket\ns = socket.create_connection(('{}', {port}), 3)\ns.sendall(b'GET / HTTP/1.0\\r\\n\\r\\n')\ns.settimeout(3)\ntry:\n    s.recv(64)\nexcept Exception:\n    pass\n",
+            net.solver_ip()
+        ))
+        .output()
+        .unwrap();
+    assert!(
+        stranger.status.success(),
+        "{}",
+        String::from_utf8_lossy(&stranger.stderr)
+    );
+    let mut refused = None;
+    wait_for("the stranger refused and named", Duration::from_secs(5), || {
+        let st = solver.status();
+        refused = st["cluster"]["refused_peers"]["recent"].as_array().and_then(|a| {
+            a.iter()
+                .find(|e| {
+                    e["address"]
+                        .as_str()
+                        .is_some_and(|s| s.starts_with(&format!("{}:", net.board_ip())))
+                })
+                .cloned()
+        });
+        refused.is_some()
+    });
+    let refused = refused.unwrap_or_default();
+    assert_eq!(refused["reason"], "tls", "{refused}");
+
+    let st = solver.status();
+    let p = &board(&st, "b0")["clock_probe"];
+    eprintln!("clock probe of b0 across the router (20 ms ahead): {p}");
+    let off = p["offset_ms"].as_f64().unwrap_or(f64::NAN);
+    assert!((off - 20.0).abs() < 1.0, "probed offset {off} ms");
+    assert_eq!(board(&st, "b0")["down"], false);
+    // b0's own report, read from the test's namespace through the router.
+    let bst = b0.status();
+    let tls = &bst["cluster"]["tls"];
+    assert_eq!(tls["side"], "board", "{}", bst["cluster"]);
+    assert!(tls["carried"].as_u64().is_some_and(|n| n >= 1), "{tls}");
+    assert_eq!(tls["solver_refused"], 0, "{tls}");
+    assert_eq!(
+        st["cluster"]["refused_peers"]["by_reason"]["credentials"]
+            .as_u64()
+            .unwrap_or(0),
+        0
+    );
 }
 
 /// The normal case on Pandaboard-class boards (one VGA camera at 120 fps fills a USB 2.0
