@@ -3,7 +3,8 @@
 //! sessions on 127.0.0.1 — one without credentials, one with board b1's genuine password
 //! publishing under board b0's key expressions. The forgers send a point 300 mm off with
 //! sequence numbers above the boards' (the attack of issue 40); the solver's positions stay
-//! on the real point with all three cameras and nothing of the forgers is even seen.
+//! on the real point with all three cameras, nothing of the forgers is even seen, and the
+//! simulated robot that follows the solver never leaves the real point.
 #![cfg(feature = "cluster")]
 
 mod common;
@@ -141,9 +142,12 @@ async fn forged_peers_never_move_the_solver() {
         ..solver_cluster(&r, RIG, port, FPS)
     };
     cfg.cluster.validate().unwrap();
-    let running = app::start(cfg, Overrides::default()).await.unwrap();
     let p = Vector3::new(20.0, -10.0, 580.0);
     let forged = Vector3::new(320.0, -10.0, 580.0);
+    // The robot of issue 40's attack: it was driven to the forged point (876 targets).
+    let (robot, robot_cfg) = sim_robot([p.x, p.y, p.z]).await;
+    cfg.robot = Some(robot_cfg);
+    let running = app::start(cfg, Overrides::default()).await.unwrap();
     let stop = Arc::new(AtomicBool::new(false));
     let forged_sent = Arc::new(AtomicU64::new(0));
     let publisher = {
@@ -158,7 +162,9 @@ async fn forged_peers_never_move_the_solver() {
         })
         .await;
     assert!(dist_mm(first.position_mm.unwrap(), [p.x, p.y, p.z]) < 0.05);
+    robot_following(&running, &robot).await;
     let n = positions_stay_on(&mut client, p).await;
+    let (targets, worst) = assert_robot_stayed_on(&robot, [p.x, p.y, p.z], 0.1, (2.0 * FPS) as usize);
     // Nothing of the forgers reached the solver: not even as refused duplicates (in issue 40
     // the real boards' observations were the ones refused, as `duplicate_sequence`).
     let st = status_json(running.addrs.status).await;
@@ -173,7 +179,10 @@ async fn forged_peers_never_move_the_solver() {
     publisher.join().unwrap();
     let sent = forged_sent.load(Ordering::Relaxed);
     assert!(sent > 100, "the forgers sent only {sent} observations");
-    eprintln!("{n} positions in 3 s, all on the real point; forgers sent {sent}, none arrived");
+    eprintln!(
+        "{n} positions in 3 s, all on the real point; forgers sent {sent}, none arrived; the \
+         robot got {targets} targets, the worst {worst:.4} mm off, and never left the point"
+    );
     running.shutdown().await;
 }
 

@@ -467,3 +467,88 @@ pub fn obs_header<'a>(
         send_delay_us: 0,
     }
 }
+
+/// A simulated robot controller (the reference socket protocol) homed at `home_mm`, and the
+/// `[robot]` section that has irtrackd stream the tracked point to it: deadman `none`, so
+/// the link moves once enabled (`RobotLink::enable` on `app::Running::robot()`).
+pub async fn sim_robot(
+    home_mm: [f64; 3],
+) -> (irtrack_robot::sim::SimRobotServer, irtrack_robot::RobotConfig) {
+    use irtrack_robot::sim::{SimRobotServer, SimServerConfig};
+    use irtrack_robot::sim_robot::SimRobotConfig;
+    let robot = SimRobotServer::start(SimServerConfig {
+        robot: SimRobotConfig {
+            speed_mm_s: 2000.0,
+            window: 4,
+            home_mm,
+            beat_period_s: 0.05,
+            ..Default::default()
+        },
+        ..Default::default()
+    })
+    .await
+    .unwrap();
+    let section = format!(
+        "address = \"{}\"\n[safety]\nworkspace_min_mm = [-2000.0, -2000.0, -2000.0]\n\
+         workspace_max_mm = [2000.0, 2000.0, 2000.0]\nmax_step_mm = 50.0\nmax_speed_mm_s = 2000.0\n\
+         max_gap_mm = 2.0\nmax_age_ms = 200\nrequire_world_frame = false\n[deadman]\nkind = \"none\"\n",
+        robot.addr
+    );
+    let cfg: irtrack_robot::RobotConfig = toml::from_str(&section).unwrap();
+    (robot, cfg)
+}
+
+/// Enables irtrackd's robot link and waits until the simulated robot has its first targets.
+pub async fn robot_following(running: &app::Running, robot: &irtrack_robot::sim::SimRobotServer) {
+    use irtrack_robot::RobotLink;
+    let link = running.robot().expect("the robot link runs");
+    let t0 = std::time::Instant::now();
+    loop {
+        link.enable();
+        if robot.received().len() >= 3 {
+            return;
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "the robot got no targets: {:?}",
+            link.status()
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// The robot's path is unchanged by an attack: every target it was sent, and every position
+/// it was at since its first target, within `tol_mm` of the still point `p_mm`; at least
+/// `min_targets` targets. Returns (targets, the worst distance of a target, mm).
+pub fn assert_robot_stayed_on(
+    robot: &irtrack_robot::sim::SimRobotServer,
+    p_mm: [f64; 3],
+    tol_mm: f64,
+    min_targets: usize,
+) -> (usize, f64) {
+    let targets = robot.received();
+    assert!(
+        targets.len() >= min_targets,
+        "the robot got {} targets (want {min_targets})",
+        targets.len()
+    );
+    let worst = targets
+        .iter()
+        .map(|t| dist_mm(t.pos_mm, p_mm))
+        .fold(0.0f64, f64::max);
+    assert!(
+        worst <= tol_mm,
+        "a target {worst:.3} mm off the real point reached the robot"
+    );
+    let t_first = targets[0].t_s;
+    let path: Vec<[f64; 3]> = robot
+        .trace()
+        .into_iter()
+        .filter(|(t, _)| *t >= t_first + 0.5)
+        .map(|(_, p)| p)
+        .collect();
+    let off = path.iter().map(|q| dist_mm(*q, p_mm)).fold(0.0f64, f64::max);
+    assert!(!path.is_empty(), "no robot positions recorded");
+    assert!(off <= tol_mm, "the robot moved {off:.3} mm off the real point");
+    (targets.len(), worst)
+}
