@@ -8,16 +8,13 @@
 //! publishing, then restarts (a new session) and must be heard again within a few seconds.
 #![cfg(feature = "zenoh")]
 
-use std::io::Read;
-use std::net::TcpStream;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use irtrack_cluster::transport::{
     ACCEPT_PENDING, ACCEPT_TIMEOUT_MS, ObsPublisher, ObsSubscriber, Session, TransportConfig, realtime_ns,
 };
 use irtrack_core::observation::{ObsBlob, ObsClock, ObsHeader, decode};
+use irtrack_testkit::flood::Flood;
 
 /// Idle connections the flooder keeps open: above Zenoh's default `accept_pending` (100).
 const FLOOD: usize = 300;
@@ -46,36 +43,6 @@ fn header(seq: u64) -> ObsHeader<'static> {
 
 /// Keeps `FLOOD` connections open until `stop`; counts the ones the peer closed (and that
 /// were replaced).
-fn flood(port: u16, stop: Arc<AtomicBool>, closed: Arc<AtomicU64>, open: Arc<AtomicU64>) {
-    let mut conns: Vec<TcpStream> = Vec::with_capacity(FLOOD);
-    let mut buf = [0u8; 64];
-    while !stop.load(Ordering::Relaxed) {
-        conns.retain_mut(|c| match c.read(&mut buf) {
-            Ok(0) => {
-                closed.fetch_add(1, Ordering::Relaxed);
-                false
-            }
-            Ok(_) => true,
-            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => true,
-            Err(_) => {
-                closed.fetch_add(1, Ordering::Relaxed);
-                false
-            }
-        });
-        while conns.len() < FLOOD {
-            match TcpStream::connect(("127.0.0.1", port)) {
-                Ok(c) => {
-                    c.set_nonblocking(true).unwrap();
-                    conns.push(c);
-                }
-                Err(_) => break,
-            }
-        }
-        open.store(conns.len() as u64, Ordering::Relaxed);
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
 /// Publishes from a new board session until the solver's subscriber has one of its
 /// observations with a sequence from `first_seq` on; returns how long that took.
 fn board_heard(
@@ -114,16 +81,6 @@ fn board_heard(
     }
 }
 
-/// Stops the flooder when the test ends, also when an assertion fails (else its thread
-/// would keep the test process alive).
-struct StopOnDrop(Arc<AtomicBool>);
-
-impl Drop for StopOnDrop {
-    fn drop(&mut self) {
-        self.0.store(true, Ordering::Relaxed);
-    }
-}
-
 #[test]
 fn a_connection_flood_keeps_no_board_out() {
     let port = free_port();
@@ -141,19 +98,13 @@ fn a_connection_flood_keeps_no_board_out() {
         t0.as_secs_f64() * 1e3
     );
 
-    let stop = Arc::new(AtomicBool::new(false));
-    let _guard = StopOnDrop(stop.clone());
-    let (closed, open) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
-    let flooder = {
-        let (stop, closed, open) = (stop.clone(), closed.clone(), open.clone());
-        std::thread::spawn(move || flood(port, stop, closed, open))
-    };
+    let flood = Flood::start(port, FLOOD, Duration::from_secs(60));
     // Let the flood fill Zenoh's handshake slots and run through a few timeouts.
     std::thread::sleep(Duration::from_millis(2 * ACCEPT_TIMEOUT_MS + 500));
     assert!(
-        open.load(Ordering::Relaxed) as usize >= FLOOD / 2,
+        flood.open() as usize >= FLOOD / 2,
         "the flooder holds only {} connections",
-        open.load(Ordering::Relaxed)
+        flood.open()
     );
 
     // The board that was connected keeps reaching the solver during the flood.
@@ -179,11 +130,10 @@ fn a_connection_flood_keeps_no_board_out() {
     std::thread::sleep(Duration::from_millis(100));
     while rx.try_recv().is_ok() {}
     let (board2, t_restart) = board_heard(port, &rx, 1_000_000);
-    stop.store(true, Ordering::Relaxed);
-    flooder.join().unwrap();
+    let closed = flood.stop();
     println!(
         "flood of {FLOOD} idle connections (accept_pending {ACCEPT_PENDING}, accept_timeout {ACCEPT_TIMEOUT_MS} ms): {} closed by Zenoh and replaced; connected board heard after {:.0} ms, restarted board after {:.0} ms",
-        closed.load(Ordering::Relaxed),
+        closed,
         t_connected.as_secs_f64() * 1e3,
         t_restart.as_secs_f64() * 1e3
     );
@@ -192,7 +142,7 @@ fn a_connection_flood_keeps_no_board_out() {
         "the restarted board was heard only after {t_restart:?} (limit {LIMIT:?})"
     );
     // Zenoh closed the silent connections at its accept timeout.
-    assert!(closed.load(Ordering::Relaxed) >= FLOOD as u64);
+    assert!(closed >= FLOOD as u64);
     board2.close();
     solver.close();
 }

@@ -215,32 +215,6 @@ async fn sequence_jumps_are_refused_and_restarts_recognised() {
 /// `accept_pending` (100), where issue 40 kept a restarting board out for 40 s.
 const FLOOD: usize = 300;
 
-/// Keeps `FLOOD` idle TCP connections to `port` open until `stop`, replacing each one the
-/// solver closes; counts those.
-fn flood(port: u16, stop: Arc<AtomicBool>, closed: Arc<AtomicU64>) {
-    use std::io::Read;
-    let mut conns: Vec<std::net::TcpStream> = Vec::with_capacity(FLOOD);
-    let mut buf = [0u8; 64];
-    let start = Instant::now();
-    while !stop.load(Ordering::Relaxed) && start.elapsed() < Duration::from_secs(60) {
-        conns.retain_mut(|c| match c.read(&mut buf) {
-            Ok(0) => false,
-            Ok(_) => true,
-            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => true,
-            Err(_) => false,
-        });
-        let before = conns.len();
-        while conns.len() < FLOOD {
-            match std::net::TcpStream::connect(("127.0.0.1", port)) {
-                Ok(c) if c.set_nonblocking(true).is_ok() => conns.push(c),
-                _ => break,
-            }
-        }
-        closed.fetch_add((FLOOD - before) as u64, Ordering::Relaxed);
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
 /// Issue 40, item 6: a board restarting during a connection flood on the solver's Zenoh port
 /// is heard again within seconds, and the robot that follows the solver never leaves the
 /// point meanwhile. b0 (cameras 0, 1) and b1 (camera 0) publish a still point; 300 idle
@@ -324,11 +298,7 @@ async fn a_board_restarting_into_a_connection_flood_is_back_in_seconds_and_the_r
         })
         .await;
     robot_following(&running, &robot).await;
-    let closed = Arc::new(AtomicU64::new(0));
-    let flooder = {
-        let (stop, closed) = (stop.clone(), closed.clone());
-        std::thread::spawn(move || flood(port, stop, closed))
-    };
+    let flood = irtrack_testkit::flood::Flood::start(port, FLOOD, Duration::from_secs(60));
     tokio::time::sleep(Duration::from_millis(500)).await;
     restart.store(true, Ordering::Relaxed);
     // Until b1's camera is back in the positions (limit 10 s; the issue's board was out 40 s).
@@ -355,8 +325,7 @@ async fn a_board_restarting_into_a_connection_flood_is_back_in_seconds_and_the_r
     stop.store(true, Ordering::Relaxed);
     b0.join().unwrap();
     b1.join().unwrap();
-    flooder.join().unwrap();
-    let replaced = closed.load(Ordering::Relaxed);
+    let replaced = flood.stop();
     println!(
         "b1 back {:.2} s after its restart into a flood of {FLOOD} connections ({replaced} closed by \
          the solver and replaced); {positions} positions meanwhile, the worst {worst_mm:.4} mm off",

@@ -11,6 +11,8 @@
 //! With `update-bundles`, [`update_bundles`] makes signing keys and RAUC bundles for the update
 //! tests with the host's `openssl` and `rauc`.
 //!
+//! [`flood::Flood`] holds idle connections against a port, as a connection flood would.
+//!
 //! [`CountingAlloc`] proves "no allocation per frame": install it as the global allocator of a
 //! test binary and compare [`allocations`] before and after the code under test.
 //!
@@ -24,6 +26,7 @@
 
 #![deny(missing_docs)]
 
+pub mod flood;
 #[cfg(feature = "harness")]
 pub mod harness;
 #[cfg(feature = "mcap-check")]
