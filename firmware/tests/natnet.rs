@@ -97,6 +97,7 @@ async fn natnet_client_reads_tool_rigid_bodies_equal_to_the_ndjson_stream() {
     let frames = got["frames"].as_array().unwrap();
     assert_eq!(frames.len(), 150);
     let (mut compared, mut worst_m, mut worst_q) = (0usize, 0.0f64, 0.0f64);
+    let mut not_on_stream = 0usize;
     let mut last_frame = None;
     for fr in frames {
         let n = fr["frame"].as_u64().unwrap() as u32;
@@ -104,9 +105,12 @@ async fn natnet_client_reads_tool_rigid_bodies_equal_to_the_ndjson_stream() {
             assert!(n > last, "frames out of order: {last} then {n}");
         }
         last_frame = Some(n);
-        let rec = by_frame
-            .get(&n)
-            .unwrap_or_else(|| panic!("frame {n} not on the NDJSON stream"));
+        // The NDJSON stream drops records for a client that falls behind (a loaded machine):
+        // such a frame has nothing to compare with and is counted, as in the two-tool test.
+        let Some(rec) = by_frame.get(&n) else {
+            not_on_stream += 1;
+            continue;
+        };
         assert_eq!(fr["stamp_mid_exposure"].as_u64(), Some(rec.capture_ts_ns));
         let body = &fr["rigid_bodies"][0];
         assert_eq!(body["id"], 1);
@@ -141,7 +145,8 @@ async fn natnet_client_reads_tool_rigid_bodies_equal_to_the_ndjson_stream() {
         compared += 1;
     }
     println!(
-        "NatNet vs NDJSON: {compared} tracked frames, largest position difference {worst_m:.2e} m, quaternion {worst_q:.2e}"
+        "NatNet vs NDJSON: {compared} tracked frames, largest position difference {worst_m:.2e} m, quaternion {worst_q:.2e}; \
+         {not_on_stream} frames not on the NDJSON stream"
     );
     assert!(compared >= 100, "only {compared} tracked frames compared");
     assert!(worst_m <= 1e-4, "{worst_m} m");

@@ -212,21 +212,39 @@ fn ros2_single_led_is_a_point_stamped_reliable() {
             .filter(|r| r.status == TrackStatus::Ok)
             .filter_map(|r| r.position_mm)
             .collect();
-        // Every point equals (in metres) a tracked record's position, in its order.
-        let mut next = 0usize;
+        // Every point equals (in metres) a tracked record's position, in its order. The NDJSON
+        // stream drops records for a client that falls behind (a loaded machine), which shows
+        // as gaps in its frame numbers: at most that many points may have nothing to equal.
+        let dropped: u64 = records
+            .windows(2)
+            .map(|w| w[1].frame.saturating_sub(w[0].frame).saturating_sub(1))
+            .sum();
+        let (mut next, mut unmatched) = (0usize, 0u64);
         for s in &samples {
             let m = &s["msg"];
             assert_eq!(m["header"]["frame_id"], "irtrack_camera0_optical");
             let p = [f(&m["point"]["x"]), f(&m["point"]["y"]), f(&m["point"]["z"])];
-            let at = tracked[next..]
+            match tracked[next..]
                 .iter()
                 .position(|t| (0..3).all(|i| (p[i] - t[i] / 1e3).abs() < 1e-12))
-                .unwrap_or_else(|| panic!("point {p:?} is not on the NDJSON stream (after #{next})"));
-            next += at + 1;
+            {
+                Some(at) => next += at + 1,
+                None => unmatched += 1,
+            }
         }
         println!(
-            "ROS 2 single LED: {} points equal the NDJSON stream; {clients} subscription(s) matched",
+            "ROS 2 single LED: {} of {} points equal the NDJSON stream, which dropped {dropped} frames; \
+             {clients} subscription(s) matched",
+            samples.len() as u64 - unmatched,
             samples.len()
+        );
+        assert!(
+            unmatched <= dropped,
+            "{unmatched} points are not on the NDJSON stream, which dropped only {dropped} frames"
+        );
+        assert!(
+            samples.len() as u64 - unmatched >= 90,
+            "{unmatched} of 100 points unmatched"
         );
     });
 }
