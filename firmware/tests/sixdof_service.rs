@@ -13,8 +13,6 @@ use irtrack_core::pose6d::quaternion_angle_rad;
 use irtrack_core::robot_proto::HoldReason;
 use irtrack_core::stream::TrackStatus;
 use irtrack_firmware::app::{self, Overrides};
-use irtrack_robot::sim::{SimRobotServer, SimServerConfig};
-use irtrack_robot::sim_robot::SimRobotConfig;
 use irtrack_robot::{LinkState, RobotLink};
 use nalgebra::Vector3;
 
@@ -60,18 +58,7 @@ frames = {FRAMES}
         Vector3::from(home_mm).add_scalar(300.0),
     );
 
-    let robot = SimRobotServer::start(SimServerConfig {
-        robot: SimRobotConfig {
-            speed_mm_s: 2000.0,
-            window: 4,
-            home_mm,
-            beat_period_s: 0.05,
-            ..Default::default()
-        },
-        ..Default::default()
-    })
-    .await
-    .unwrap();
+    let robot = sim_robot_server(home_mm).await;
     let toml = format!(
         r#"
 [service]

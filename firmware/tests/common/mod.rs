@@ -468,15 +468,12 @@ pub fn obs_header<'a>(
     }
 }
 
-/// A simulated robot controller (the reference socket protocol) homed at `home_mm`, and the
-/// `[robot]` section that has irtrackd stream the tracked point to it: deadman `none`, so
-/// the link moves once enabled (`RobotLink::enable` on `app::Running::robot()`).
-pub async fn sim_robot(
-    home_mm: [f64; 3],
-) -> (irtrack_robot::sim::SimRobotServer, irtrack_robot::RobotConfig) {
+/// A simulated robot controller (the reference socket protocol) homed at `home_mm`: quick
+/// (2 m/s), a window of 4 targets, a heartbeat every 50 ms.
+pub async fn sim_robot_server(home_mm: [f64; 3]) -> irtrack_robot::sim::SimRobotServer {
     use irtrack_robot::sim::{SimRobotServer, SimServerConfig};
     use irtrack_robot::sim_robot::SimRobotConfig;
-    let robot = SimRobotServer::start(SimServerConfig {
+    SimRobotServer::start(SimServerConfig {
         robot: SimRobotConfig {
             speed_mm_s: 2000.0,
             window: 4,
@@ -487,7 +484,16 @@ pub async fn sim_robot(
         ..Default::default()
     })
     .await
-    .unwrap();
+    .unwrap()
+}
+
+/// [`sim_robot_server`], and the
+/// `[robot]` section that has irtrackd stream the tracked point to it: deadman `none`, so
+/// the link moves once enabled (`RobotLink::enable` on `app::Running::robot()`).
+pub async fn sim_robot(
+    home_mm: [f64; 3],
+) -> (irtrack_robot::sim::SimRobotServer, irtrack_robot::RobotConfig) {
+    let robot = sim_robot_server(home_mm).await;
     let section = format!(
         "address = \"{}\"\n[safety]\nworkspace_min_mm = [-2000.0, -2000.0, -2000.0]\n\
          workspace_max_mm = [2000.0, 2000.0, 2000.0]\nmax_step_mm = 50.0\nmax_speed_mm_s = 2000.0\n\
