@@ -234,6 +234,9 @@ pub enum Taken {
     Stepped {
         /// New offset minus the estimated one, ns.
         by_ns: i64,
+        /// How far `by_ns` may be from the true step: the sample's bound plus the estimate's,
+        /// ns (one sample's round trip: over a millisecond on a loaded machine).
+        uncertainty_ns: u64,
     },
 }
 
@@ -319,7 +322,10 @@ impl ClockEstimator {
                 .saturating_add(Self::STEP_SLACK_NS);
             if by_ns.unsigned_abs() > allowed {
                 self.reset();
-                taken = Taken::Stepped { by_ns };
+                taken = Taken::Stepped {
+                    by_ns,
+                    uncertainty_ns: entry.uncertainty_ns.saturating_add(e.uncertainty_ns),
+                };
             }
         }
         self.ring[self.next] = Some(entry);
@@ -609,10 +615,19 @@ mod tests {
         // Queued 1.9 ms one way: its offset is 0.95 ms off, within its own bound.
         assert_eq!(next(1_000_000, 1_900_000, 80_000).1, Taken::Added);
         let (at, taken, e) = next(9_000_000, 80_000, 80_000);
-        let Taken::Stepped { by_ns } = taken else {
+        let Taken::Stepped {
+            by_ns,
+            uncertainty_ns,
+        } = taken
+        else {
             panic!("+8 ms not seen as a step: {taken:?}");
         };
         assert!((by_ns - 8_000_000).abs() < 100_000, "stepped by {by_ns} ns");
+        // Two samples' bounds of 80 µs each way: 80 µs each.
+        assert!(
+            (150_000..=200_000).contains(&uncertainty_ns),
+            "{uncertainty_ns} ns"
+        );
         assert!(e.estimate(at + 1_000_000).is_none(), "one sample after a step");
         assert_eq!(next(9_000_000, 80_000, 80_000).1, Taken::Added);
         let (at, taken, e) = next(9_000_000, 80_000, 80_000);
@@ -622,7 +637,7 @@ mod tests {
         assert_eq!(got.samples, 3);
         let (_, taken, _) = next(1_000_000, 80_000, 80_000);
         assert!(
-            matches!(taken, Taken::Stepped { by_ns } if (by_ns + 8_000_000).abs() < 100_000),
+            matches!(taken, Taken::Stepped { by_ns, .. } if (by_ns + 8_000_000).abs() < 100_000),
             "{taken:?}"
         );
     }

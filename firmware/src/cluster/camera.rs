@@ -121,12 +121,8 @@ impl ClockError {
         let stepped = self.step_every_s > 0.0 && (elapsed_s / self.step_every_s) as u64 % 2 == 1;
         let error_ms = self.offset_ms + if stepped { self.step_ms } else { 0.0 };
         let error_ns = error_ms * 1e6 + self.drift_ppm * 1e3 * elapsed_s;
-        (i128::from(mono_ns) + realtime_minus_mono_ns() + error_ns as i128).max(0) as u64
+        (i128::from(mono_ns) + clock::realtime_minus_mono_ns() + error_ns as i128).max(0) as u64
     }
-}
-
-fn realtime_minus_mono_ns() -> i128 {
-    i128::from(irtrack_cluster::transport::realtime_ns()) - i128::from(clock::monotonic_ns())
 }
 
 impl CameraPublisher {

@@ -101,7 +101,10 @@ pub struct ClockProbeReport {
     /// Times its clock stepped since start (a probe sample outside the estimate's bound).
     pub steps: u64,
     /// The last step: new offset minus the old one, ms, and how long ago it was seen, s.
+    /// First measured by the one probe sample that showed it, then by the settled estimate.
     pub last_step_ms: Option<f64>,
+    /// How far `last_step_ms` may be from the true step, ms: the two measurements' bounds.
+    pub last_step_uncertainty_ms: Option<f64>,
     /// See `last_step_ms`.
     pub last_step_ago_s: Option<f64>,
     /// Stepped and not yet measured again: its cameras are left out of every set.
@@ -466,10 +469,13 @@ impl ClusterReport {
                     "clock_stepped",
                     None,
                     format!(
-                        "camera board {} ({}): its clock stepped by {:+.1} ms {:.0} s ago ({} step(s) since the solver started; clock probe) — {}; a clock that jumps while the cell runs usually has two time services setting it (ptp4l/phc2sys and chrony, NTP or systemd-timesyncd): let only one set it",
+                        "camera board {} ({}): its clock stepped by {:+.1}{} ms {:.0} s ago ({} step(s) since the solver started; clock probe) — {}; a clock that jumps while the cell runs usually has two time services setting it (ptp4l/phc2sys and chrony, NTP or systemd-timesyncd): let only one set it",
                         b.name,
                         camera_words(&b.cameras),
                         by,
+                        p.last_step_uncertainty_ms
+                            .map(|u| format!(" ± {u:.1}"))
+                            .unwrap_or_default(),
                         ago,
                         p.steps,
                         if p.settling {
@@ -1130,6 +1136,7 @@ mod tests {
             replies: 30,
             steps: 3,
             last_step_ms: Some(-8.04),
+            last_step_uncertainty_ms: Some(1.26),
             last_step_ago_s: Some(0.3),
             settling: true,
             ..ClockProbeReport::default()
@@ -1147,11 +1154,14 @@ mod tests {
         the_one_fault(
             &report,
             "clock_stepped",
-            "camera board b1 (cameras 2, 3): its clock stepped by -8.0 ms 0 s ago (3 step(s) since the solver started; clock probe) — its cameras are left out until",
+            "camera board b1 (cameras 2, 3): its clock stepped by -8.0 ± 1.3 ms 0 s ago (3 step(s) since the solver started; clock probe) — its cameras are left out until",
         );
         assert!(metrics_text(report).contains("irtrackd_cluster_board_clock_steps{board=\"b1\"} 3"));
+        // Re-measured against the settled estimate: a tighter bound.
         let after = ClockProbeReport {
             settling: false,
+            last_step_ms: Some(-7.97),
+            last_step_uncertainty_ms: Some(0.18),
             last_step_ago_s: Some(20.0),
             ..probe.clone()
         };
@@ -1161,7 +1171,7 @@ mod tests {
                 ..ClusterReport::default()
             },
             "clock_stepped",
-            "camera board b1 (cameras 2, 3): its clock stepped by -8.0 ms 20 s ago",
+            "camera board b1 (cameras 2, 3): its clock stepped by -8.0 ± 0.2 ms 20 s ago",
         );
         assert!(
             fault.contains("were left out until the probe had measured"),

@@ -171,10 +171,10 @@ struct BoardProbe {
     applied_ns: Option<i64>,
     replies: u64,
     refused: u64,
-    /// Clock steps the probe saw, the last one's size (ns) and when it was seen (solver's
-    /// monotonic clock, ns).
+    /// Clock steps the probe saw, the last one's size and its bound (ns) and when it was seen
+    /// (solver's monotonic clock, ns).
     steps: u64,
-    last_step: Option<(i64, u64)>,
+    last_step: Option<LastStep>,
     /// Stepped and not yet measured again: its cameras are left out of every set.
     settling: bool,
     /// Its last arrivals say its clock may have stepped back (the pairer's
@@ -183,9 +183,10 @@ struct BoardProbe {
     suspect_at_ns: Option<u64>,
     /// Times that happened.
     suspected: u64,
-    /// The offset before the last step, ns: the step's size is re-measured against the
-    /// settled estimate (the sample that showed it carries its own round trip's error).
-    pre_step_ns: Option<i64>,
+    /// The offset before the last step and its bound, ns: the step's size is re-measured
+    /// against the settled estimate (the sample that showed it carries its own round trip's
+    /// error).
+    pre_step_ns: Option<(i64, u64)>,
 
     /// The pairer's flag at the board's last observation (a suspicion starts on its rise).
     back_flag: bool,
@@ -194,6 +195,17 @@ struct BoardProbe {
 /// A suspicion from arrivals that no probe answer settles is dropped after this, ns (a board
 /// that does not answer the probe is not left out for good).
 const SUSPECT_MAX_NS: u64 = 1_000_000_000;
+/// A clock step the probe saw.
+#[derive(Debug, Clone, Copy)]
+struct LastStep {
+    /// New offset minus the old one, ns.
+    by_ns: i64,
+    /// How far `by_ns` may be from the true step, ns.
+    uncertainty_ns: u64,
+    /// When it was seen, solver's monotonic clock, ns.
+    at_ns: u64,
+}
+
 /// While a board is suspected, it is probed this often instead of every [`PROBE_INTERVAL`],
 /// ns. Not while it settles after a step: probing faster then gave a worse new estimate
 /// (positions 0.25–0.35 mm RMS in 3 of 10 runs of the stepping test, against 0.05 mm), as
@@ -524,12 +536,23 @@ impl ClusterSource {
                         tracing::info!(board = %c.board, "no clock step after all (the probe agrees): its observations arrived late on the link");
                     }
                 }
-                Ok(Taken::Stepped { by_ns }) => {
+                Ok(Taken::Stepped {
+                    by_ns,
+                    uncertainty_ns,
+                }) => {
                     c.replies += 1;
                     c.suspect_at_ns = None;
-                    c.pre_step_ns = Some(r.sample.offset_ns() - by_ns);
+                    let sample_bound_ns = r.sample.uncertainty_ns().unwrap_or(u64::MAX);
+                    c.pre_step_ns = Some((
+                        r.sample.offset_ns() - by_ns,
+                        uncertainty_ns.saturating_sub(sample_bound_ns),
+                    ));
                     c.steps += 1;
-                    c.last_step = Some((by_ns, clock::monotonic_ns()));
+                    c.last_step = Some(LastStep {
+                        by_ns,
+                        uncertainty_ns,
+                        at_ns: clock::monotonic_ns(),
+                    });
                     // Observations stamped after the step carry the new offset: until the
                     // probe has measured it, the board's cameras are left out.
                     c.settling = true;
@@ -581,8 +604,12 @@ impl ClusterSource {
         let estimate = c.estimator.estimate(now_ns);
         if let Some(e) = &estimate {
             c.settling = false;
-            if let (Some(pre), Some((_, at))) = (c.pre_step_ns.take(), c.last_step) {
-                c.last_step = Some((e.offset_ns - pre, at));
+            if let (Some((pre_ns, pre_bound_ns)), Some(step)) = (c.pre_step_ns.take(), c.last_step) {
+                c.last_step = Some(LastStep {
+                    by_ns: e.offset_ns - pre_ns,
+                    uncertainty_ns: e.uncertainty_ns.saturating_add(pre_bound_ns),
+                    at_ns: step.at_ns,
+                });
             }
         }
         let offset = estimate.and_then(|e| {
@@ -1087,10 +1114,11 @@ impl ClusterSource {
                             refused: c.refused,
                             corrected: c.applied_ns.is_some(),
                             steps: c.steps,
-                            last_step_ms: c.last_step.map(|(by, _)| by as f64 / 1e6),
+                            last_step_ms: c.last_step.map(|s| s.by_ns as f64 / 1e6),
+                            last_step_uncertainty_ms: c.last_step.map(|s| s.uncertainty_ns as f64 / 1e6),
                             last_step_ago_s: c
                                 .last_step
-                                .map(|(_, at)| clock::monotonic_ns().saturating_sub(at) as f64 / 1e9),
+                                .map(|s| clock::monotonic_ns().saturating_sub(s.at_ns) as f64 / 1e9),
                             settling: c.settling,
                             suspected_steps_back: c.suspected,
                             suspect: c.suspect_at_ns.is_some(),
@@ -1119,7 +1147,7 @@ impl ClusterSource {
         let Some(set) = layout.pairer.poll(now_ns) else {
             return false;
         };
-        let rt_minus_mono = i128::from(realtime_ns()) - i128::from(clock::monotonic_ns());
+        let rt_minus_mono = clock::realtime_minus_mono_ns();
         let to_mono = |rt: u64| (i128::from(rt) - rt_minus_mono).max(0) as u64;
         let (mut lo, mut hi) = (u64::MAX, 0u64);
         let mut index = None;
