@@ -204,6 +204,16 @@ pub fn matched_rms(a: &BTreeMap<u64, (f64, u64)>, b: &BTreeMap<u64, (f64, u64)>)
     (rms(&ea), rms(&eb), common.len())
 }
 
+/// Three seconds of a cell at [`FPS`] gave at least 60 % of its frames as positions, and at
+/// least 90 % of them came from all four cameras (`used`: cameras per position).
+pub fn assert_three_seconds_from_four_cameras(positions: usize, used: &[u64]) {
+    assert!(positions as f64 >= 0.6 * 3.0 * FPS, "{positions} positions");
+    assert!(
+        used.iter().filter(|&&c| c == 4).count() as f64 >= 0.9 * used.len() as f64,
+        "cameras used: {used:?}"
+    );
+}
+
 /// No tracked record anywhere near a wrong pairing or a stale position.
 pub fn assert_no_wrong_position(phase: &str, m: &BTreeMap<u64, (f64, u64)>) {
     let worst = m.values().map(|v| v.0).fold(0.0, f64::max);
