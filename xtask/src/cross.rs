@@ -268,7 +268,7 @@ pub fn test_command(ctx: &Ctx, arch: Arch) -> Result<Command> {
 }
 
 /// The irtrackd that the test build of `arch` links for the firmware's integration tests
-/// (test profile: opt-level 1, dependencies at 2, debug assertions and overflow checks on;
+/// (test profile: opt-level 1, most dependencies too, debug assertions and overflow checks on;
 /// static for aarch64, see [`Arch::rustflags`]). CI's image runs it, so the system test
 /// exercises the same compiled code as the aarch64 unit tests, with its assertions armed;
 /// `cargo xtask image build` keeps the release binary ([`build_irtrackd`]).
