@@ -239,11 +239,7 @@ fn frameset_body(set: &TapSet) -> Option<Vec<u8>> {
         .collect();
     // The clock difference lets `host-tools capture` pair sets of several boards on the
     // realtime clock PTP/chrony keep in agreement (the timestamps are CLOCK_MONOTONIC).
-    let realtime_minus_monotonic_ns = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .ok()
-        .map(|d| d.as_nanos() as i128 - i128::from(crate::clock::monotonic_ns()))
-        .and_then(|d| i64::try_from(d).ok());
+    let realtime_minus_monotonic_ns = i64::try_from(crate::clock::realtime_minus_mono_ns()).ok();
     match frameset::encode_with_clock(
         set.set_index,
         set.pairing_error_ns,

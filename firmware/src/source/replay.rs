@@ -634,7 +634,7 @@ impl ReplaySource {
         let Some(mut sh) = self.shared else {
             return Ok(0);
         };
-        let rt_minus_mono = realtime_ns() - i128::from(clock::monotonic_ns());
+        let rt_minus_mono = clock::realtime_minus_mono_ns();
         if sh.cycle.is_none() {
             // A repeating replay started several passes after start_at joins the pass now
             // playing, not the first.

@@ -1213,8 +1213,7 @@ impl FrameSource for SimSource {
                 let rt_now = std::time::SystemTime::now()
                     .duration_since(std::time::UNIX_EPOCH)
                     .map_or(0, |d| d.as_nanos() as u64);
-                let mono_now = clock::monotonic_ns();
-                let rt_minus_mono = rt_now.saturating_sub(mono_now);
+                let rt_minus_mono = u64::try_from(clock::realtime_minus_mono_ns()).unwrap_or(0);
                 // The frame being captured now, by the scenario's own time base (frame k at
                 // k * 1e9 / fps ns): an integer period would drift from it by seconds at
                 // today's frame numbers (~5e10 at 30 fps).
